@@ -1,0 +1,72 @@
+"""Crops from boxes, and the affine maps between image, network input and heatmap.
+
+Coordinates are continuous pixels with the origin at the top-left corner of the
+top-left pixel: pixel (row r, col c) has centre (c + 0.5, r + 0.5). This holds in
+the image, in the network input and in the heatmap, so one affine per instance maps
+a point between them with no half-pixel fudge at the call sites.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+_HALF = np.array([0.5, 0.5])
+
+
+def crop_affines(boxes: np.ndarray, padding: float, size: tuple[int, int]) -> np.ndarray:
+    """Image -> crop affines ``(N, 2, 3)`` for boxes ``(N, 4)`` as ``[x, y, w, h]``.
+
+    The crop is a square centred on the box with side ``max(w, h) * (1 + padding)``,
+    resized to ``size = (height, width)``.
+    """
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    centres = boxes[:, :2] + boxes[:, 2:] / 2
+    sides = np.maximum(boxes[:, 2], boxes[:, 3]) * (1.0 + padding)
+    height, width = size
+    affines = np.zeros((len(boxes), 2, 3))
+    affines[:, 0, 0] = width / sides
+    affines[:, 1, 1] = height / sides
+    affines[:, :, 2] = np.stack([width / 2.0, height / 2.0]) - affines[:, [0, 1], [0, 1]] * centres
+    return affines
+
+
+def rescale_affines(affines: np.ndarray, from_size: tuple[int, int], to_size: tuple[int, int]) -> np.ndarray:
+    """Compose ``(N, 2, 3)`` affines with the scaling from one grid size to another."""
+    scale = np.array([to_size[1] / from_size[1], to_size[0] / from_size[0]])
+    return affines * scale[None, :, None]
+
+
+def apply_affines(affines: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Map points ``(N, ..., 2)`` through per-instance affines ``(N, 2, 3)``."""
+    points = np.asarray(points, dtype=np.float64)
+    shape = points.shape
+    flat = points.reshape(shape[0], -1, 2)
+    mapped = np.einsum("nij,nkj->nki", affines[:, :, :2], flat) + affines[:, None, :, 2]
+    return mapped.reshape(shape)
+
+
+def invert_affines(affines: np.ndarray) -> np.ndarray:
+    """Inverse of each ``(2, 3)`` affine."""
+    linear_inv = np.linalg.inv(affines[:, :, :2])
+    offset = -np.einsum("nij,nj->ni", linear_inv, affines[:, :, 2])
+    return np.concatenate([linear_inv, offset[:, :, None]], axis=2)
+
+
+def warp_crop(image: np.ndarray, affine: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Resample ``image`` through one continuous-coordinate affine into ``size = (h, w)``.
+
+    OpenCV puts pixel centres at integer coordinates; the continuous affine is shifted
+    by half a pixel on both sides so that the two conventions agree exactly.
+    """
+    linear = affine[:, :2]
+    offset = affine[:, 2] + linear @ _HALF - _HALF
+    matrix = np.concatenate([linear, offset[:, None]], axis=1)
+    return cv2.warpAffine(
+        image,
+        matrix,
+        (size[1], size[0]),
+        flags=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )
