@@ -1,0 +1,43 @@
+"""Errors that carry an HTTP meaning; the API turns them into RFC 9457 problem+json.
+
+Domain code raises these with a message that tells the caller what to fix; it never
+needs to know about FastAPI.
+"""
+
+from __future__ import annotations
+
+
+class ServiceError(Exception):
+    """Base class: ``status`` and ``title`` are the problem's, ``detail`` the message."""
+
+    status: int = 400
+    title: str = "Bad request"
+
+    def __init__(self, detail: str, *, errors: list[str] | None = None) -> None:
+        super().__init__(detail)
+        self.detail = detail
+        self.errors = errors or []
+
+
+class InvalidInput(ServiceError):
+    status, title = 422, "Invalid input"
+
+
+class PayloadTooLarge(ServiceError):
+    status, title = 413, "Payload too large"
+
+
+class UnsupportedMediaType(ServiceError):
+    status, title = 415, "Unsupported media type"
+
+
+class NotFound(ServiceError):
+    status, title = 404, "Not found"
+
+
+class Conflict(ServiceError):
+    status, title = 409, "Conflict"
+
+
+class Unavailable(ServiceError):
+    status, title = 503, "Service unavailable"
