@@ -29,7 +29,9 @@ def normalize_crops(crops: np.ndarray, spec: InputSpec) -> np.ndarray:
     return np.ascontiguousarray(batch.transpose(0, 3, 1, 2))
 
 
-def build_batch(image_bgr: np.ndarray, boxes: np.ndarray, manifest: Manifest) -> tuple[np.ndarray, np.ndarray]:
+def build_batch(
+    image_bgr: np.ndarray, boxes: np.ndarray, manifest: Manifest
+) -> tuple[np.ndarray, np.ndarray]:
     """Crop every box and return ``(input batch NCHW float32, image->heatmap affines (N, 2, 3))``."""
     spec = manifest.input
     input_size = (spec.height, spec.width)

@@ -1,0 +1,128 @@
+"""The ONNX detector: load a model directory, check it against its manifest, run batches."""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+from pydantic import ValidationError
+
+from service.detector.manifest import MODEL_FILENAME, Manifest, load_manifest
+from service.detector.preprocess import build_batch
+
+
+class ModelMismatch(Exception):
+    """The model directory cannot be served: the message names what does not fit."""
+
+
+def file_sha256(path: Path, chunk: int = 1 << 20) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        while block := handle.read(chunk):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+@dataclass(frozen=True)
+class InstanceHeatmaps:
+    """Heatmaps of one request, flattened to one row per (instance, keypoint of its object)."""
+
+    heatmaps: np.ndarray  # (M, H, W) float32 raw network output
+    instance_index: np.ndarray  # (M,) which instance each row belongs to
+    channel: np.ndarray  # (M,) manifest keypoint index of each row
+    affines: np.ndarray  # (N, 2, 3) image -> heatmap affine per instance
+
+
+class Detector:
+    """A validated ONNX heatmap model and its manifest; ``run`` is thread-safe."""
+
+    def __init__(self, model_dir: Path, intra_op_threads: int = 0) -> None:
+        model_dir = Path(model_dir)
+        self.manifest = _load_manifest(model_dir)
+        model_path = model_dir / MODEL_FILENAME
+        if not model_path.is_file():
+            raise ModelMismatch(f"{model_path} does not exist")
+        self.model_hash = file_sha256(model_path)
+        self._session = _create_session(model_path, intra_op_threads)
+        _check_graph(self._session, self.manifest)
+        self._run_lock = threading.Lock() if intra_op_threads == 1 else None
+        self._check_output_shape()
+
+    def run(self, batch: np.ndarray) -> np.ndarray:
+        """``(N, C, H, W)`` float32 input -> ``(N, K, h, w)`` float32 heatmaps."""
+        spec = self.manifest
+        return self._session.run([spec.output.name], {spec.input.name: batch})[0]
+
+    def infer(self, image_bgr: np.ndarray, boxes: np.ndarray, objects: list[str]) -> InstanceHeatmaps:
+        """Crop all boxes, run them as one batch, keep each instance's own keypoint channels."""
+        batch, affines = build_batch(image_bgr, boxes, self.manifest)
+        heatmaps = self.run(batch)
+        channels = [np.asarray(self.manifest.object(name).keypoints) for name in objects]
+        instance_index = np.concatenate([np.full(len(c), i) for i, c in enumerate(channels)])
+        channel = np.concatenate(channels)
+        return InstanceHeatmaps(heatmaps[instance_index, channel], instance_index, channel, affines)
+
+    def _check_output_shape(self) -> None:
+        spec = self.manifest.input
+        probe = np.zeros((2, spec.channels, spec.height, spec.width), dtype=np.float32)
+        try:
+            out = self.run(probe)
+        except Exception as error:  # onnxruntime raises its own untyped errors
+            raise ModelMismatch(f"the model does not run on a manifest-shaped input: {error}") from error
+        expected = (2, self.manifest.num_keypoints, self.manifest.output.height, self.manifest.output.width)
+        if out.shape != expected:
+            raise ModelMismatch(
+                f"output {self.manifest.output.name!r} has shape {tuple(out.shape)} for a batch of 2, "
+                f"but the manifest implies {expected} (batch, keypoints, output.height, output.width)"
+            )
+
+
+def _load_manifest(model_dir: Path) -> Manifest:
+    try:
+        return load_manifest(model_dir)
+    except FileNotFoundError as error:
+        raise ModelMismatch(f"no manifest.json in {model_dir}") from error
+    except (ValueError, ValidationError) as error:
+        raise ModelMismatch(f"invalid manifest in {model_dir}: {error}") from error
+
+
+def _create_session(model_path: Path, intra_op_threads: int) -> ort.InferenceSession:
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = intra_op_threads
+    options.inter_op_num_threads = 1
+    options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    try:
+        return ort.InferenceSession(str(model_path), options, providers=["CPUExecutionProvider"])
+    except Exception as error:
+        raise ModelMismatch(f"onnxruntime cannot load {model_path}: {error}") from error
+
+
+def _check_graph(session: ort.InferenceSession, manifest: Manifest) -> None:
+    inputs = {i.name: i for i in session.get_inputs()}
+    outputs = {o.name: o for o in session.get_outputs()}
+    if manifest.input.name not in inputs:
+        raise ModelMismatch(
+            f"manifest input.name {manifest.input.name!r} is not a model input (model inputs: {sorted(inputs)})"
+        )
+    if manifest.output.name not in outputs:
+        raise ModelMismatch(
+            f"manifest output.name {manifest.output.name!r} is not a model output (model outputs: {sorted(outputs)})"
+        )
+    spec = manifest.input
+    _check_dims("input", inputs[manifest.input.name].shape, (spec.channels, spec.height, spec.width))
+    out = manifest.output
+    _check_dims("output", outputs[out.name].shape, (manifest.num_keypoints, out.height, out.width))
+
+
+def _check_dims(which: str, graph_shape: list, expected: tuple[int, ...]) -> None:
+    names = ("channels" if which == "input" else "keypoints", "height", "width")
+    if len(graph_shape) != 4:
+        raise ModelMismatch(f"model {which} has rank {len(graph_shape)}, expected 4 (N, C, H, W)")
+    for name, got, want in zip(names, graph_shape[1:], expected, strict=True):
+        if isinstance(got, int) and got != want:
+            raise ModelMismatch(f"model {which} {name} is {got} but the manifest says {want}")
