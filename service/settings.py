@@ -17,12 +17,18 @@ class Settings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="CKS_", extra="ignore", frozen=True)
 
-    model_dir: Path = Field(default=DEFAULT_MODEL_DIR, description="directory with model.onnx and manifest.json")
-    data_dir: Path = Field(default=Path("var"), description="where the service writes (SQLite store, uploads)")
+    model_dir: Path = Field(
+        default=DEFAULT_MODEL_DIR, description="directory with model.onnx and manifest.json"
+    )
+    data_dir: Path = Field(
+        default=Path("var"), description="where the service writes (SQLite store, uploads)"
+    )
     store_url: str | None = Field(
         default=None, description="sqlite:///path or postgresql://...; default sqlite under data_dir"
     )
-    admin_token: str | None = Field(default=None, description="bearer token for /v1/admin; unset disables admin")
+    admin_token: str | None = Field(
+        default=None, description="bearer token for /v1/admin; unset disables admin"
+    )
     bootstrap_calibration: bool = Field(
         default=True, description="load the model's bundled calibration as version 1 when the store has none"
     )
@@ -35,15 +41,23 @@ class Settings(BaseSettings):
     max_image_pixels: int = Field(default=40_000_000, gt=0, description="largest width*height decoded")
     max_instances: int = Field(default=64, gt=0, description="instances per predict request")
     max_concurrent_inferences: int = Field(default=4, gt=0, description="predict requests computing at once")
-    inference_threads: int = Field(default=2, ge=0, description="onnxruntime intra-op threads (0 = ort default)")
-    cpu_workers: int = Field(default=4, gt=0, description="threads for decode, crop and scoring off the event loop")
+    inference_threads: int = Field(
+        default=2, ge=0, description="onnxruntime intra-op threads (0 = ort default)"
+    )
+    cpu_workers: int = Field(
+        default=4, gt=0, description="threads for decode, crop and scoring off the event loop"
+    )
 
     max_upload_bytes: int = Field(default=2 * 2**30, gt=0, description="largest calibration zip")
     max_upload_files: int = Field(default=100_000, gt=0, description="most files in a calibration zip")
-    max_upload_uncompressed_bytes: int = Field(default=8 * 2**30, gt=0, description="most bytes once unzipped")
+    max_upload_uncompressed_bytes: int = Field(
+        default=8 * 2**30, gt=0, description="most bytes once unzipped"
+    )
     calibration_workers: int = Field(default=1, gt=0, description="calibration jobs running at once")
 
-    store_poll_seconds: float = Field(default=1.0, gt=0, description="how often to look for a new active version")
+    store_poll_seconds: float = Field(
+        default=1.0, gt=0, description="how often to look for a new active version"
+    )
 
     @cached_property
     def resolved_store_url(self) -> str:

@@ -107,11 +107,13 @@ def _check_graph(session: ort.InferenceSession, manifest: Manifest) -> None:
     outputs = {o.name: o for o in session.get_outputs()}
     if manifest.input.name not in inputs:
         raise ModelMismatch(
-            f"manifest input.name {manifest.input.name!r} is not a model input (model inputs: {sorted(inputs)})"
+            f"manifest input.name {manifest.input.name!r} is not a model input "
+            f"(model inputs: {sorted(inputs)})"
         )
     if manifest.output.name not in outputs:
         raise ModelMismatch(
-            f"manifest output.name {manifest.output.name!r} is not a model output (model outputs: {sorted(outputs)})"
+            f"manifest output.name {manifest.output.name!r} is not a model output "
+            f"(model outputs: {sorted(outputs)})"
         )
     spec = manifest.input
     _check_dims("input", inputs[manifest.input.name].shape, (spec.channels, spec.height, spec.width))
