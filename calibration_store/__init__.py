@@ -1,0 +1,85 @@
+"""Versioned, durable storage of calibration scores (knows nothing about heatmaps).
+
+Open a store from one URL (migrations run on open, safely from several processes)::
+
+    from calibration_store import open_store, NewVersion, ObjectScores, ScoreTable
+
+    store = open_store("sqlite:///var/lib/keypoints/calibration.db")   # or postgresql://...
+    info = store.create_version(
+        NewVersion(model_hash=sha, model_name="hourglass", normalization={"mode": "anchor"},
+                   source_batches=[{"name": "b1.zip", "sha256": digest, "instances": 120}],
+                   author="alice", note="first batch", parent_version=None),
+        ScoreTable((ObjectScores("mug", keypoint_ids=[0, 1, 2], instance_refs=refs,
+                                 scores={"peak": p, "var": v, "cov": c}),)),
+    )                                    # p, v, c: (n_instances, 3) float64, NaN = unlabeled
+    store.activate(sha, info.number, who="alice", reason="initial")
+    active = store.active_version(sha)   # Activation | None
+    table = store.load_scores(sha, active.version)
+
+URLs: ``sqlite:///abs/path.db`` (also ``sqlite:////abs/path.db``) and
+``sqlite:relative/path.db`` (parent directories are created), ``postgresql://...``
+(needs the ``postgres`` extra: psycopg 3 + psycopg_pool).
+
+CalibrationStore (thread-safe; also a context manager that closes):
+- ``create_version(new: NewVersion, scores: ScoreTable) -> VersionInfo``: one
+  transaction; numbers are 1, 2, ... per model hash, distinct and gap-free under
+  concurrent writers; a writer killed mid-way leaves nothing. ``created_at`` is set by
+  the store (UTC). Raises VersionNotFound if ``parent_version`` does not exist.
+- ``list_versions(model_hash) -> list[VersionInfo]`` (by number),
+  ``get_version(model_hash, number) -> VersionInfo``,
+  ``load_scores(model_hash, number) -> ScoreTable`` (read-only arrays, bit-exact).
+- ``activate(model_hash, number, who, reason="") -> Activation``: appends to the
+  log; rollback = activating an older number. ``active_version(model_hash) ->
+  Activation | None`` is the latest entry; ``activation_log(model_hash) ->
+  list[Activation]`` oldest first.
+- ``change_counter() -> int``: grows with every creation and activation, store-wide;
+  poll it (one tiny query) to notice changes made by other replicas.
+- ``ping() -> None`` (raises StoreUnavailable), ``close() -> None``.
+
+Data classes (frozen, validated on construction: ValueError/TypeError says what to fix):
+- ``SourceBatch(name, sha256, instances)``; NewVersion also accepts plain dicts.
+- ``NewVersion(model_hash, model_name, normalization: dict, source_batches, author,
+  note="", parent_version: int | None = None)``.
+- ``ObjectScores(object_name, keypoint_ids: (k,) int, instance_refs: (n,) str,
+  scores: {function: (n, k) float64})``; finite or NaN only; functions are lowercase
+  names (the service uses DEFAULT_FUNCTIONS = peak, var, cov).
+- ``ScoreTable(objects: tuple[ObjectScores, ...])``: unique object names, the same
+  functions in every block; ``.object(name)``, ``.n_instances``, ``.functions``.
+- ``VersionInfo(model_hash, number, model_name, normalization, source_batches,
+  author, note, parent_version, created_at, n_instances, object_counts, functions)``.
+- ``Activation(seq, model_hash, version, activated_at, who, reason)``.
+
+Errors: StoreError > VersionNotFound (also a LookupError; HTTP 404),
+SchemaVersionError (database migrated by newer code), StoreUnavailable (HTTP 503).
+Stored rows are immutable (database triggers refuse UPDATE and DELETE).
+"""
+
+from .base import CalibrationStore
+from .errors import SchemaVersionError, StoreError, StoreUnavailable, VersionNotFound
+from .factory import open_store, sqlite_path
+from .models import (
+    DEFAULT_FUNCTIONS,
+    Activation,
+    NewVersion,
+    ObjectScores,
+    ScoreTable,
+    SourceBatch,
+    VersionInfo,
+)
+
+__all__ = [
+    "DEFAULT_FUNCTIONS",
+    "Activation",
+    "CalibrationStore",
+    "NewVersion",
+    "ObjectScores",
+    "SchemaVersionError",
+    "ScoreTable",
+    "SourceBatch",
+    "StoreError",
+    "StoreUnavailable",
+    "VersionInfo",
+    "VersionNotFound",
+    "open_store",
+    "sqlite_path",
+]

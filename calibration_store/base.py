@@ -1,0 +1,75 @@
+"""The backend-independent interface every calibration store implements."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from types import TracebackType
+
+from .models import Activation, NewVersion, ScoreTable, VersionInfo
+
+
+class CalibrationStore(ABC):
+    """Versioned, durable storage of calibration scores. Thread-safe.
+
+    Versions are immutable and numbered 1, 2, 3, ... per model hash without gaps.
+    Activation is an append-only log; the active version of a model is the version
+    named by its latest activation (None until the first activation).
+    """
+
+    @abstractmethod
+    def create_version(self, new: NewVersion, scores: ScoreTable) -> VersionInfo:
+        """Store a new version atomically and return its metadata (number, created_at).
+
+        Raises VersionNotFound if new.parent_version does not exist for new.model_hash.
+        """
+
+    @abstractmethod
+    def list_versions(self, model_hash: str) -> list[VersionInfo]:
+        """Metadata of every version of a model, by increasing number ([] if none)."""
+
+    @abstractmethod
+    def get_version(self, model_hash: str, number: int) -> VersionInfo:
+        """Metadata of one version; raises VersionNotFound."""
+
+    @abstractmethod
+    def load_scores(self, model_hash: str, number: int) -> ScoreTable:
+        """The scores of one version, as read-only numpy arrays; raises VersionNotFound."""
+
+    @abstractmethod
+    def activate(self, model_hash: str, number: int, who: str, reason: str = "") -> Activation:
+        """Append an activation of an existing version to the log; raises VersionNotFound."""
+
+    @abstractmethod
+    def active_version(self, model_hash: str) -> Activation | None:
+        """The latest activation of a model, or None if it was never activated."""
+
+    @abstractmethod
+    def activation_log(self, model_hash: str) -> list[Activation]:
+        """Every activation of a model, oldest first."""
+
+    @abstractmethod
+    def change_counter(self) -> int:
+        """A store-wide integer that grows on every version creation and activation.
+
+        One cheap query: poll it (about once a second) to learn that another replica
+        changed something, then re-read active_version.
+        """
+
+    @abstractmethod
+    def ping(self) -> None:
+        """Check the database answers (readiness); raises StoreUnavailable otherwise."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Release connections. The store must not be used afterwards."""
+
+    def __enter__(self) -> CalibrationStore:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()

@@ -1,0 +1,24 @@
+"""Exceptions raised by the calibration store (the service maps them to HTTP statuses)."""
+
+from __future__ import annotations
+
+
+class StoreError(Exception):
+    """Base class of every error the store raises on purpose."""
+
+
+class VersionNotFound(StoreError, LookupError):
+    """No calibration version with this number exists for this model hash (HTTP 404)."""
+
+    def __init__(self, model_hash: str, number: int) -> None:
+        super().__init__(f"calibration version {number} does not exist for model {model_hash}")
+        self.model_hash = model_hash
+        self.number = number
+
+
+class SchemaVersionError(StoreError):
+    """The database schema is newer than this code understands (refuse to touch it)."""
+
+
+class StoreUnavailable(StoreError):
+    """The database cannot be reached or stayed locked too long (HTTP 503; retry later)."""

@@ -1,0 +1,173 @@
+"""Forward-only schema migrations, applied when a store opens.
+
+Each backend runs `apply_migrations` inside one transaction holding a database-wide
+lock (SQLite: BEGIN IMMEDIATE; PostgreSQL: pg_advisory_xact_lock), so concurrent
+openers apply each migration exactly once and see either none or all of it.
+To change the schema append a Migration; never edit a released one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from typing import Any
+
+from .errors import SchemaVersionError
+
+
+@dataclass(frozen=True)
+class Migration:
+    version: int
+    description: str
+    statements: tuple[str, ...]
+
+
+def _initial(blob: str, id_column: str, seq_column: str, timestamp: str) -> tuple[str, ...]:
+    return (
+        """CREATE TABLE calib_models (
+            model_hash TEXT PRIMARY KEY,
+            last_number INTEGER NOT NULL CHECK (last_number >= 1)
+        )""",
+        f"""CREATE TABLE calib_versions (
+            {id_column},
+            model_hash TEXT NOT NULL REFERENCES calib_models (model_hash),
+            number INTEGER NOT NULL CHECK (number >= 1),
+            model_name TEXT NOT NULL,
+            normalization TEXT NOT NULL,
+            source_batches TEXT NOT NULL,
+            author TEXT NOT NULL,
+            note TEXT NOT NULL,
+            parent_number INTEGER,
+            created_at {timestamp} NOT NULL,
+            n_instances BIGINT NOT NULL,
+            object_counts TEXT NOT NULL,
+            functions TEXT NOT NULL,
+            UNIQUE (model_hash, number),
+            FOREIGN KEY (model_hash, parent_number) REFERENCES calib_versions (model_hash, number)
+        )""",
+        f"""CREATE TABLE calib_score_objects (
+            version_id BIGINT NOT NULL REFERENCES calib_versions (id),
+            position INTEGER NOT NULL,
+            object_name TEXT NOT NULL,
+            n_instances BIGINT NOT NULL,
+            keypoint_ids {blob} NOT NULL,
+            instance_refs TEXT NOT NULL,
+            PRIMARY KEY (version_id, object_name),
+            UNIQUE (version_id, position)
+        )""",
+        f"""CREATE TABLE calib_score_arrays (
+            version_id BIGINT NOT NULL,
+            object_name TEXT NOT NULL,
+            function TEXT NOT NULL,
+            n_rows BIGINT NOT NULL,
+            n_cols INTEGER NOT NULL,
+            data {blob} NOT NULL,
+            PRIMARY KEY (version_id, object_name, function),
+            FOREIGN KEY (version_id, object_name)
+                REFERENCES calib_score_objects (version_id, object_name)
+        )""",
+        f"""CREATE TABLE calib_activations (
+            {seq_column},
+            model_hash TEXT NOT NULL,
+            number INTEGER NOT NULL,
+            activated_at {timestamp} NOT NULL,
+            who TEXT NOT NULL,
+            reason TEXT NOT NULL,
+            FOREIGN KEY (model_hash, number) REFERENCES calib_versions (model_hash, number)
+        )""",
+        "CREATE INDEX calib_activations_by_model ON calib_activations (model_hash, seq)",
+        """CREATE TABLE calib_change_counter (
+            id INTEGER PRIMARY KEY CHECK (id = 1),
+            value BIGINT NOT NULL
+        )""",
+        "INSERT INTO calib_change_counter (id, value) VALUES (1, 0)",
+    )
+
+
+_IMMUTABLE_TABLES = ("calib_versions", "calib_score_objects", "calib_score_arrays",
+                     "calib_activations")
+
+
+def _sqlite_immutability() -> tuple[str, ...]:
+    return tuple(
+        f"""CREATE TRIGGER {table}_immutable_{op.lower()} BEFORE {op} ON {table}
+            BEGIN SELECT RAISE(ABORT, 'calibration store history is immutable'); END"""
+        for table in _IMMUTABLE_TABLES
+        for op in ("UPDATE", "DELETE")
+    )
+
+
+def _postgres_immutability() -> tuple[str, ...]:
+    function = """CREATE FUNCTION calib_refuse_change() RETURNS trigger LANGUAGE plpgsql AS $$
+        BEGIN RAISE EXCEPTION 'calibration store history is immutable'; END $$"""
+    triggers = tuple(
+        f"""CREATE TRIGGER {table}_immutable BEFORE UPDATE OR DELETE ON {table}
+            FOR EACH ROW EXECUTE FUNCTION calib_refuse_change()"""
+        for table in _IMMUTABLE_TABLES
+    )
+    return (function, *triggers)
+
+
+SQLITE_MIGRATIONS: tuple[Migration, ...] = (
+    Migration(
+        1,
+        "versions, score blobs, activation log, change counter",
+        _initial(
+            blob="BLOB",
+            id_column="id INTEGER PRIMARY KEY",
+            seq_column="seq INTEGER PRIMARY KEY AUTOINCREMENT",
+            timestamp="TEXT",
+        )
+        + _sqlite_immutability(),
+    ),
+)
+
+POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
+    Migration(
+        1,
+        "versions, score blobs, activation log, change counter",
+        _initial(
+            blob="BYTEA",
+            id_column="id BIGINT GENERATED ALWAYS AS IDENTITY PRIMARY KEY",
+            seq_column="seq BIGINT GENERATED ALWAYS AS IDENTITY PRIMARY KEY",
+            timestamp="TIMESTAMPTZ",
+        )
+        + (
+            # score blobs are incompressible floats: skip the compression attempt
+            "ALTER TABLE calib_score_arrays ALTER COLUMN data SET STORAGE EXTERNAL",
+        )
+        + _postgres_immutability(),
+    ),
+)
+
+
+def apply_migrations(cur: Any, migrations: tuple[Migration, ...]) -> int:
+    """Apply pending migrations through `cur` (inside the caller's locked transaction).
+
+    Returns the schema version afterwards. Raises SchemaVersionError if the database
+    was migrated by newer code.
+    """
+    cur.execute(
+        "CREATE TABLE IF NOT EXISTS calib_schema_version ("
+        " version INTEGER PRIMARY KEY, description TEXT NOT NULL, applied_at TEXT NOT NULL)"
+    )
+    cur.execute("SELECT COALESCE(MAX(version), 0) FROM calib_schema_version")
+    current = int(cur.fetchone()[0])
+    latest = migrations[-1].version
+    if current > latest:
+        raise SchemaVersionError(
+            f"database schema version {current} is newer than this code ({latest}); upgrade"
+        )
+    for migration in migrations:
+        if migration.version > current:
+            _apply_one(cur, migration)
+    return latest
+
+
+def _apply_one(cur: Any, migration: Migration) -> None:
+    for statement in migration.statements:
+        cur.execute(statement)
+    cur.execute(
+        "INSERT INTO calib_schema_version (version, description, applied_at) VALUES (?, ?, ?)",
+        (migration.version, migration.description, datetime.now(UTC).isoformat()),
+    )

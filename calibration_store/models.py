@@ -1,0 +1,278 @@
+"""Value objects of the calibration store, validated on construction.
+
+Invalid input raises ValueError (or TypeError for a wrong type) with a message that
+says what to fix; a constructed object is always storable.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from datetime import datetime
+from typing import Any
+
+import numpy as np
+
+#: Nonconformity functions the service computes; the store accepts any lowercase name.
+DEFAULT_FUNCTIONS: tuple[str, ...] = ("peak", "var", "cov")
+
+_FUNCTION_RE = re.compile(r"^[a-z][a-z0-9_]{0,62}$")
+_SHA256_RE = re.compile(r"^[0-9a-f]{64}$")
+
+
+def _text(value: object, what: str, *, allow_empty: bool = False) -> str:
+    if not isinstance(value, str):
+        raise TypeError(f"{what} must be a string, got {type(value).__name__}")
+    if not allow_empty and not value.strip():
+        raise ValueError(f"{what} must be a non-empty string")
+    return value
+
+
+def _count(value: object, what: str, *, minimum: int = 0) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise TypeError(f"{what} must be an integer, got {type(value).__name__}")
+    if value < minimum:
+        raise ValueError(f"{what} must be >= {minimum}, got {value}")
+    return int(value)
+
+
+@dataclass(frozen=True)
+class SourceBatch:
+    """One uploaded labeled batch a version was computed from."""
+
+    name: str
+    sha256: str
+    instances: int
+
+    def __post_init__(self) -> None:
+        _text(self.name, "source batch name")
+        digest = _text(self.sha256, f"sha256 of batch {self.name!r}").lower()
+        if not _SHA256_RE.match(digest):
+            raise ValueError(f"sha256 of batch {self.name!r} must be 64 hex digits")
+        object.__setattr__(self, "sha256", digest)
+        object.__setattr__(
+            self, "instances", _count(self.instances, f"instances of batch {self.name!r}")
+        )
+
+    @classmethod
+    def coerce(cls, value: SourceBatch | Mapping[str, Any]) -> SourceBatch:
+        """Accept a SourceBatch or a mapping with keys name, sha256, instances."""
+        if isinstance(value, SourceBatch):
+            return value
+        if not isinstance(value, Mapping):
+            raise TypeError("a source batch must be a SourceBatch or a mapping")
+        missing = {"name", "sha256", "instances"} - set(value)
+        if missing:
+            raise ValueError(f"source batch is missing {sorted(missing)}")
+        return cls(name=value["name"], sha256=value["sha256"], instances=value["instances"])
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "sha256": self.sha256, "instances": self.instances}
+
+
+def _float_matrix(values: object, what: str, shape: tuple[int, int]) -> np.ndarray:
+    array = np.asarray(values)
+    if array.dtype.kind not in "fiu":
+        raise ValueError(f"{what} must hold real numbers, got dtype {array.dtype}")
+    array = np.ascontiguousarray(array, dtype=np.float64)
+    if array.shape != shape:
+        raise ValueError(f"{what} must have shape {shape} (instances, keypoints), got {array.shape}")
+    if np.isinf(array).any():
+        raise ValueError(f"{what} contains infinite values (use NaN for unlabeled keypoints)")
+    return array
+
+
+def _keypoint_ids(values: object, what: str) -> np.ndarray:
+    array = np.asarray(values)
+    if array.ndim != 1 or array.size == 0:
+        raise ValueError(f"{what} must be a non-empty 1-D array of keypoint indices")
+    if array.dtype.kind not in "iu":
+        raise ValueError(f"{what} must hold integers, got dtype {array.dtype}")
+    array = np.ascontiguousarray(array, dtype=np.int64)
+    if (array < 0).any():
+        raise ValueError(f"{what} must be non-negative")
+    if np.unique(array).size != array.size:
+        raise ValueError(f"{what} contains duplicates")
+    return array
+
+
+@dataclass(frozen=True, eq=False)
+class ObjectScores:
+    """Scores of every instance of one object class.
+
+    keypoint_ids: (k,) global manifest keypoint indices, the matrix columns in order.
+    instance_refs: (n,) opaque per-instance references (e.g. "batch:image:annotation").
+    scores: nonconformity function name -> (n, k) float64 matrix; NaN = not labeled.
+    """
+
+    object_name: str
+    keypoint_ids: np.ndarray
+    instance_refs: tuple[str, ...]
+    scores: Mapping[str, np.ndarray]
+
+    def __post_init__(self) -> None:
+        name = _text(self.object_name, "object name")
+        ids = _keypoint_ids(self.keypoint_ids, f"keypoint_ids of {name!r}")
+        refs = tuple(self.instance_refs)
+        for ref in refs:
+            _text(ref, f"instance reference of {name!r}", allow_empty=True)
+        if not refs:
+            raise ValueError(f"object {name!r} has no instances")
+        if not isinstance(self.scores, Mapping) or not self.scores:
+            raise ValueError(f"scores of {name!r} must map function names to matrices")
+        shape = (len(refs), ids.size)
+        matrices = {}
+        for function, values in self.scores.items():
+            if not isinstance(function, str) or not _FUNCTION_RE.match(function):
+                raise ValueError(f"function name {function!r} must match {_FUNCTION_RE.pattern}")
+            matrices[function] = _float_matrix(values, f"{function} scores of {name!r}", shape)
+        object.__setattr__(self, "keypoint_ids", ids)
+        object.__setattr__(self, "instance_refs", refs)
+        object.__setattr__(self, "scores", matrices)
+
+    @property
+    def n_instances(self) -> int:
+        return len(self.instance_refs)
+
+    @property
+    def functions(self) -> tuple[str, ...]:
+        return tuple(sorted(self.scores))
+
+
+@dataclass(frozen=True, eq=False)
+class ScoreTable:
+    """All per-instance scores of one calibration version, one block per object class.
+
+    Every block carries the same set of nonconformity functions.
+    """
+
+    objects: tuple[ObjectScores, ...]
+
+    def __post_init__(self) -> None:
+        blocks = tuple(self.objects)
+        if not blocks:
+            raise ValueError("a score table needs at least one object block")
+        for block in blocks:
+            if not isinstance(block, ObjectScores):
+                raise TypeError("score table objects must be ObjectScores")
+        names = [block.object_name for block in blocks]
+        if len(set(names)) != len(names):
+            raise ValueError(f"object names must be unique, got {names}")
+        functions = {block.functions for block in blocks}
+        if len(functions) != 1:
+            raise ValueError(f"every object must carry the same functions, got {sorted(functions)}")
+        object.__setattr__(self, "objects", blocks)
+
+    @property
+    def functions(self) -> tuple[str, ...]:
+        return self.objects[0].functions
+
+    @property
+    def n_instances(self) -> int:
+        return sum(block.n_instances for block in self.objects)
+
+    def object(self, name: str) -> ObjectScores:
+        """The block of one object class (KeyError if absent)."""
+        for block in self.objects:
+            if block.object_name == name:
+                return block
+        raise KeyError(name)
+
+    def object_counts(self) -> dict[str, int]:
+        return {block.object_name: block.n_instances for block in self.objects}
+
+
+def _normalization(value: object) -> dict[str, Any]:
+    if not isinstance(value, Mapping):
+        raise TypeError("normalization settings must be a mapping")
+    try:
+        return json.loads(json.dumps(dict(value), allow_nan=False, sort_keys=True))
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"normalization settings must be plain JSON: {exc}") from exc
+
+
+@dataclass(frozen=True)
+class NewVersion:
+    """Metadata of a version to create; the store sets number and created_at."""
+
+    model_hash: str
+    model_name: str
+    normalization: Mapping[str, Any]
+    source_batches: Sequence[SourceBatch | Mapping[str, Any]]
+    author: str
+    note: str = ""
+    parent_version: int | None = None
+
+    def __post_init__(self) -> None:
+        _text(self.model_hash, "model hash")
+        if self.model_hash != self.model_hash.strip():
+            raise ValueError("model hash must not have surrounding whitespace")
+        _text(self.model_name, "model name")
+        _text(self.author, "author")
+        _text(self.note, "note", allow_empty=True)
+        if self.parent_version is not None:
+            _count(self.parent_version, "parent version", minimum=1)
+        batches = tuple(SourceBatch.coerce(b) for b in _iterable(self.source_batches))
+        object.__setattr__(self, "source_batches", batches)
+        object.__setattr__(self, "normalization", _normalization(self.normalization))
+
+
+def _iterable(value: object) -> Iterable[Any]:
+    if isinstance(value, str | bytes | Mapping) or not isinstance(value, Iterable):
+        raise TypeError("source batches must be a list")
+    return value
+
+
+@dataclass(frozen=True)
+class VersionInfo:
+    """Metadata of a stored, immutable calibration version."""
+
+    model_hash: str
+    number: int
+    model_name: str
+    normalization: Mapping[str, Any]
+    source_batches: tuple[SourceBatch, ...]
+    author: str
+    note: str
+    parent_version: int | None
+    created_at: datetime
+    n_instances: int
+    object_counts: Mapping[str, int] = field(default_factory=dict)
+    functions: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Activation:
+    """One entry of the append-only activation log (seq orders entries store-wide)."""
+
+    seq: int
+    model_hash: str
+    version: int
+    activated_at: datetime
+    who: str
+    reason: str
+
+
+def check_number(value: object, what: str = "version number") -> int:
+    """Validate a version number passed to a store method."""
+    return _count(value, what, minimum=1)
+
+
+def check_model_hash(value: object) -> str:
+    """Validate a model hash passed to a store method."""
+    return _text(value, "model hash")
+
+
+__all__ = [
+    "DEFAULT_FUNCTIONS",
+    "Activation",
+    "NewVersion",
+    "ObjectScores",
+    "ScoreTable",
+    "SourceBatch",
+    "VersionInfo",
+    "check_model_hash",
+    "check_number",
+]

@@ -1,0 +1,318 @@
+"""Store logic shared by the SQL backends: one set of queries, '?' placeholders.
+
+A backend supplies `_transaction(write)` (a context manager yielding a cursor, committing
+on success and rolling back on error; write transactions are serialized per database on
+SQLite and per model row on PostgreSQL), plus the timestamp conversions.
+"""
+
+from __future__ import annotations
+
+from abc import abstractmethod
+from collections.abc import Iterator, Sequence
+from contextlib import AbstractContextManager
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from typing import Any, ClassVar, Protocol
+
+from . import codec
+from .base import CalibrationStore
+from .errors import VersionNotFound
+from .models import (
+    Activation,
+    NewVersion,
+    ObjectScores,
+    ScoreTable,
+    SourceBatch,
+    VersionInfo,
+    check_model_hash,
+    check_number,
+)
+
+
+class Cursor(Protocol):
+    def execute(self, sql: str, params: Sequence[Any] = ...) -> Any: ...
+    def fetchone(self) -> Any: ...
+    def fetchall(self) -> list[Any]: ...
+
+
+@dataclass(frozen=True)
+class EncodedBlock:
+    """One ObjectScores turned into storable values (done before the transaction)."""
+
+    position: int
+    object_name: str
+    n_instances: int
+    keypoint_ids: bytes
+    instance_refs: str
+    arrays: tuple[tuple[str, int, int, bytes], ...]
+
+
+def encode_block(position: int, block: ObjectScores) -> EncodedBlock:
+    n, k = block.n_instances, block.keypoint_ids.size
+    arrays = tuple(
+        (fn, n, k, codec.encode_matrix(block.scores[fn])) for fn in block.functions
+    )
+    return EncodedBlock(
+        position=position,
+        object_name=block.object_name,
+        n_instances=n,
+        keypoint_ids=codec.encode_ids(block.keypoint_ids),
+        instance_refs=codec.encode_refs(block.instance_refs),
+        arrays=arrays,
+    )
+
+
+_VERSION_COLUMNS = (
+    "model_hash, number, model_name, normalization, source_batches, author, note,"
+    " parent_number, created_at, n_instances, object_counts, functions"
+)
+_ACTIVATION_COLUMNS = "seq, model_hash, number, activated_at, who, reason"
+
+
+def now_utc() -> datetime:
+    return datetime.now(UTC)
+
+
+class SqlStore(CalibrationStore):
+    """CalibrationStore over a SQL database; subclasses provide connections."""
+
+    #: appended to the SELECT that locks a model row before activating
+    lock_clause: ClassVar[str] = ""
+
+    @abstractmethod
+    def _transaction(self, write: bool) -> AbstractContextManager[Cursor]:
+        """Cursor inside a transaction (write=True: exclusive for writers)."""
+
+    @abstractmethod
+    def _time_to_db(self, value: datetime) -> Any: ...
+
+    @abstractmethod
+    def _time_from_db(self, value: Any) -> datetime: ...
+
+    # -- writing ---------------------------------------------------------------
+
+    def create_version(self, new: NewVersion, scores: ScoreTable) -> VersionInfo:
+        if not isinstance(new, NewVersion) or not isinstance(scores, ScoreTable):
+            raise TypeError("create_version takes a NewVersion and a ScoreTable")
+        blocks = [encode_block(i, block) for i, block in enumerate(scores.objects)]
+        created_at = now_utc()
+        with self._transaction(write=True) as cur:
+            number = self._next_number(cur, new.model_hash)
+            if new.parent_version is not None:
+                self._version_id(cur, new.model_hash, new.parent_version)
+            version_id = self._insert_version(cur, new, number, created_at, scores)
+            for block in blocks:
+                self._insert_block(cur, version_id, block)
+            self._bump_counter(cur)
+        return self.get_version(new.model_hash, number)
+
+    def _next_number(self, cur: Cursor, model_hash: str) -> int:
+        cur.execute(
+            "INSERT INTO calib_models (model_hash, last_number) VALUES (?, 1)"
+            " ON CONFLICT (model_hash) DO UPDATE"
+            " SET last_number = calib_models.last_number + 1 RETURNING last_number",
+            (model_hash,),
+        )
+        return int(cur.fetchone()[0])
+
+    def _insert_version(
+        self, cur: Cursor, new: NewVersion, number: int, created_at: datetime, scores: ScoreTable
+    ) -> int:
+        cur.execute(
+            f"INSERT INTO calib_versions ({_VERSION_COLUMNS})"
+            " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING id",
+            (
+                new.model_hash,
+                number,
+                new.model_name,
+                codec.encode_json(new.normalization),
+                codec.encode_json([b.as_dict() for b in new.source_batches]),
+                new.author,
+                new.note,
+                new.parent_version,
+                self._time_to_db(created_at),
+                scores.n_instances,
+                codec.encode_json(scores.object_counts()),
+                codec.encode_json(list(scores.functions)),
+            ),
+        )
+        return int(cur.fetchone()[0])
+
+    def _insert_block(self, cur: Cursor, version_id: int, block: EncodedBlock) -> None:
+        cur.execute(
+            "INSERT INTO calib_score_objects (version_id, position, object_name, n_instances,"
+            " keypoint_ids, instance_refs) VALUES (?, ?, ?, ?, ?, ?)",
+            (
+                version_id,
+                block.position,
+                block.object_name,
+                block.n_instances,
+                block.keypoint_ids,
+                block.instance_refs,
+            ),
+        )
+        for function, rows, cols, data in block.arrays:
+            cur.execute(
+                "INSERT INTO calib_score_arrays (version_id, object_name, function, n_rows,"
+                " n_cols, data) VALUES (?, ?, ?, ?, ?, ?)",
+                (version_id, block.object_name, function, rows, cols, data),
+            )
+
+    def _bump_counter(self, cur: Cursor) -> None:
+        cur.execute("UPDATE calib_change_counter SET value = value + 1 WHERE id = 1")
+
+    def activate(self, model_hash: str, number: int, who: str, reason: str = "") -> Activation:
+        check_model_hash(model_hash)
+        check_number(number)
+        if not isinstance(who, str) or not who.strip():
+            raise ValueError("who must be a non-empty string")
+        if not isinstance(reason, str):
+            raise TypeError("reason must be a string")
+        with self._transaction(write=True) as cur:
+            cur.execute(
+                f"SELECT last_number FROM calib_models WHERE model_hash = ?{self.lock_clause}",
+                (model_hash,),
+            )
+            if cur.fetchone() is None:
+                raise VersionNotFound(model_hash, number)
+            self._version_id(cur, model_hash, number)
+            cur.execute(
+                "INSERT INTO calib_activations (model_hash, number, activated_at, who, reason)"
+                f" VALUES (?, ?, ?, ?, ?) RETURNING {_ACTIVATION_COLUMNS}",
+                (model_hash, number, self._time_to_db(now_utc()), who, reason),
+            )
+            activation = self._activation(cur.fetchone())
+            self._bump_counter(cur)
+        return activation
+
+    # -- reading ---------------------------------------------------------------
+
+    def _version_id(self, cur: Cursor, model_hash: str, number: int) -> int:
+        cur.execute(
+            "SELECT id FROM calib_versions WHERE model_hash = ? AND number = ?",
+            (model_hash, number),
+        )
+        row = cur.fetchone()
+        if row is None:
+            raise VersionNotFound(model_hash, number)
+        return int(row[0])
+
+    def list_versions(self, model_hash: str) -> list[VersionInfo]:
+        check_model_hash(model_hash)
+        with self._transaction(write=False) as cur:
+            cur.execute(
+                f"SELECT {_VERSION_COLUMNS} FROM calib_versions WHERE model_hash = ?"
+                " ORDER BY number",
+                (model_hash,),
+            )
+            rows = cur.fetchall()
+        return [self._version_info(row) for row in rows]
+
+    def get_version(self, model_hash: str, number: int) -> VersionInfo:
+        check_model_hash(model_hash)
+        check_number(number)
+        with self._transaction(write=False) as cur:
+            cur.execute(
+                f"SELECT {_VERSION_COLUMNS} FROM calib_versions"
+                " WHERE model_hash = ? AND number = ?",
+                (model_hash, number),
+            )
+            row = cur.fetchone()
+        if row is None:
+            raise VersionNotFound(model_hash, number)
+        return self._version_info(row)
+
+    def load_scores(self, model_hash: str, number: int) -> ScoreTable:
+        check_model_hash(model_hash)
+        check_number(number)
+        with self._transaction(write=False) as cur:
+            version_id = self._version_id(cur, model_hash, number)
+            cur.execute(
+                "SELECT object_name, keypoint_ids, instance_refs FROM calib_score_objects"
+                " WHERE version_id = ? ORDER BY position",
+                (version_id,),
+            )
+            objects = cur.fetchall()
+            cur.execute(
+                "SELECT object_name, function, n_rows, n_cols, data FROM calib_score_arrays"
+                " WHERE version_id = ?",
+                (version_id,),
+            )
+            arrays = cur.fetchall()
+        return _score_table(objects, arrays)
+
+    def active_version(self, model_hash: str) -> Activation | None:
+        check_model_hash(model_hash)
+        with self._transaction(write=False) as cur:
+            cur.execute(
+                f"SELECT {_ACTIVATION_COLUMNS} FROM calib_activations WHERE model_hash = ?"
+                " ORDER BY seq DESC LIMIT 1",
+                (model_hash,),
+            )
+            row = cur.fetchone()
+        return None if row is None else self._activation(row)
+
+    def activation_log(self, model_hash: str) -> list[Activation]:
+        check_model_hash(model_hash)
+        with self._transaction(write=False) as cur:
+            cur.execute(
+                f"SELECT {_ACTIVATION_COLUMNS} FROM calib_activations WHERE model_hash = ?"
+                " ORDER BY seq",
+                (model_hash,),
+            )
+            rows = cur.fetchall()
+        return [self._activation(row) for row in rows]
+
+    def change_counter(self) -> int:
+        with self._transaction(write=False) as cur:
+            cur.execute("SELECT value FROM calib_change_counter WHERE id = 1")
+            return int(cur.fetchone()[0])
+
+    def ping(self) -> None:
+        self.change_counter()
+
+    # -- row mapping -----------------------------------------------------------
+
+    def _version_info(self, row: Sequence[Any]) -> VersionInfo:
+        batches = codec.decode_json(row[4])
+        return VersionInfo(
+            model_hash=row[0],
+            number=int(row[1]),
+            model_name=row[2],
+            normalization=codec.decode_json(row[3]),
+            source_batches=tuple(SourceBatch.coerce(b) for b in batches),
+            author=row[5],
+            note=row[6],
+            parent_version=None if row[7] is None else int(row[7]),
+            created_at=self._time_from_db(row[8]),
+            n_instances=int(row[9]),
+            object_counts=codec.decode_json(row[10]),
+            functions=tuple(codec.decode_json(row[11])),
+        )
+
+    def _activation(self, row: Sequence[Any]) -> Activation:
+        return Activation(
+            seq=int(row[0]),
+            model_hash=row[1],
+            version=int(row[2]),
+            activated_at=self._time_from_db(row[3]),
+            who=row[4],
+            reason=row[5],
+        )
+
+
+def _score_table(objects: list[Any], arrays: list[Any]) -> ScoreTable:
+    matrices: dict[str, dict[str, Any]] = {}
+    for object_name, function, rows, cols, data in arrays:
+        matrices.setdefault(object_name, {})[function] = codec.decode_matrix(data, rows, cols)
+    return ScoreTable(tuple(_blocks(objects, matrices)))
+
+
+def _blocks(objects: list[Any], matrices: dict[str, dict[str, Any]]) -> Iterator[ObjectScores]:
+    for object_name, keypoint_ids, instance_refs in objects:
+        yield ObjectScores(
+            object_name=object_name,
+            keypoint_ids=codec.decode_ids(keypoint_ids),
+            instance_refs=codec.decode_refs(instance_refs),
+            scores=matrices.get(object_name, {}),
+        )
