@@ -1,0 +1,308 @@
+"""Calibration uploads: stream to disk, then unzip safely within configured limits.
+
+Every member of an uploaded zip is checked before anything is written (names, types,
+encryption, counts, declared sizes), then members are streamed to disk in bounded
+chunks while the bytes actually produced are counted, because a zip bomb's headers
+lie. Any refusal removes the destination directory entirely.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+import shutil
+import stat
+import zipfile
+import zlib
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, BinaryIO, NamedTuple
+
+from service.errors import InvalidInput, PayloadTooLarge
+
+if TYPE_CHECKING:
+    from service.settings import Settings
+
+ANNOTATIONS_FILENAME = "annotations.json"
+CHUNK_BYTES = 1 << 20
+MAX_REPORTED_PROBLEMS = 50
+MAX_NAME_COMPONENT_BYTES = 255
+
+UPLOAD_BYTES_SETTING = "CKS_MAX_UPLOAD_BYTES"
+FILES_SETTING = "CKS_MAX_UPLOAD_FILES"
+UNCOMPRESSED_SETTING = "CKS_MAX_UPLOAD_UNCOMPRESSED_BYTES"
+
+_SUPPORTED_COMPRESSION = {
+    zipfile.ZIP_STORED: "stored",
+    zipfile.ZIP_DEFLATED: "deflate",
+    zipfile.ZIP_BZIP2: "bzip2",
+    zipfile.ZIP_LZMA: "lzma",
+}
+_DRIVE = re.compile(r"^[A-Za-z]:")
+_IGNORED_TOP_LEVEL = frozenset({"__MACOSX"})
+
+
+@dataclass(frozen=True)
+class ArchiveLimits:
+    """Most entries and most uncompressed bytes an uploaded archive may hold."""
+
+    max_files: int
+    max_uncompressed_bytes: int
+
+    @classmethod
+    def from_settings(cls, settings: Settings) -> ArchiveLimits:
+        """From ``Settings.max_upload_files`` and ``Settings.max_upload_uncompressed_bytes``."""
+        return cls(settings.max_upload_files, settings.max_upload_uncompressed_bytes)
+
+
+class SavedUpload(NamedTuple):
+    """An upload written to disk: its size in bytes and hex sha256."""
+
+    size: int
+    sha256: str
+
+
+def save_upload(
+    source: Iterable[bytes] | BinaryIO,
+    dest_file: Path,
+    max_bytes: int,
+    *,
+    setting: str = UPLOAD_BYTES_SETTING,
+) -> SavedUpload:
+    """Stream ``source`` (chunks, or a binary file object) to ``dest_file``, hashing as it goes.
+
+    Refuses with ``PayloadTooLarge`` as soon as more than ``max_bytes`` arrive; on any
+    failure the partial file is deleted.
+    """
+    digest, size = hashlib.sha256(), 0
+    try:
+        with open(dest_file, "wb") as out:
+            for chunk in _chunks(source):
+                size += len(chunk)
+                if size > max_bytes:
+                    raise PayloadTooLarge(
+                        f"the upload is larger than the limit of {max_bytes} bytes ({setting}); "
+                        "split the batch into smaller archives"
+                    )
+                digest.update(chunk)
+                out.write(chunk)
+    except BaseException:
+        dest_file.unlink(missing_ok=True)
+        raise
+    return SavedUpload(size, digest.hexdigest())
+
+
+def _chunks(source: Iterable[bytes] | BinaryIO) -> Iterable[bytes]:
+    read = getattr(source, "read", None)
+    if read is None:
+        yield from source  # type: ignore[misc]
+        return
+    while chunk := read(CHUNK_BYTES):
+        yield chunk
+
+
+def extract_zip(zip_path: Path, dest: Path, limits: ArchiveLimits) -> Path:
+    """Safely extract ``zip_path`` into ``dest`` (absent or empty) and return the batch folder.
+
+    The batch folder is the one holding ``annotations.json``: ``dest`` itself or its single
+    top-level folder. Raises ``InvalidInput`` or ``PayloadTooLarge`` naming the offending
+    member and the setting involved; ``dest`` does not exist after a refusal.
+    """
+    dest = Path(dest)
+    if dest.exists() and any(dest.iterdir()):
+        raise FileExistsError(f"extraction directory {dest} is not empty")
+    dest.mkdir(parents=True, exist_ok=True)
+    try:
+        with _open_zip(zip_path) as archive:
+            members = archive.infolist()
+            _check_members(members, limits)
+            _extract_members(archive, members, dest, limits)
+        return _batch_folder(dest)
+    except BaseException:
+        shutil.rmtree(dest, ignore_errors=True)
+        raise
+
+
+def _open_zip(zip_path: Path) -> zipfile.ZipFile:
+    try:
+        return zipfile.ZipFile(zip_path)
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, ValueError, EOFError) as exc:
+        raise InvalidInput(
+            f"the upload is not a readable zip archive ({exc}); upload a .zip of annotations.json and images"
+        ) from exc
+
+
+# ---------------------------------------------------------------- checks before writing
+
+
+def _check_members(members: list[zipfile.ZipInfo], limits: ArchiveLimits) -> None:
+    if len(members) > limits.max_files:
+        raise PayloadTooLarge(
+            f"the archive has {len(members)} entries, above the limit of {limits.max_files} ({FILES_SETTING})"
+        )
+    problems: list[str] = []
+    for info in members:
+        problem = _member_problem(info)
+        if problem:
+            problems.append(f"member {info.filename!r}: {problem}")
+    problems.extend(_layout_problems(members))
+    if problems:
+        raise _refusal(problems)
+    _check_declared_size(members, limits)
+
+
+def _refusal(problems: list[str]) -> InvalidInput:
+    shown = problems[:MAX_REPORTED_PROBLEMS]
+    if len(problems) > len(shown):
+        shown.append(f"... and {len(problems) - len(shown)} more")
+    return InvalidInput(
+        f"the archive was refused ({len(problems)} problem(s)); first: {problems[0]}", errors=shown
+    )
+
+
+def _member_problem(info: zipfile.ZipInfo) -> str | None:
+    """Why this member may not be extracted, or None."""
+    return _name_problem(info.filename) or _type_problem(info) or _coding_problem(info)
+
+
+def _name_problem(name: str) -> str | None:
+    if "\\" in name:
+        return "contains a backslash; use '/' as the path separator"
+    if "\x00" in name:
+        return "contains a NUL character"
+    if name.startswith("/"):
+        return "is an absolute path; paths must be relative to the archive root"
+    if _DRIVE.match(name):
+        return "starts with a drive letter; paths must be relative to the archive root"
+    parts = name.rstrip("/").split("/")
+    if any(p == ".." for p in parts):
+        return "contains a '..' component (path traversal)"
+    if any(p in ("", ".") for p in parts):
+        return "contains an empty or '.' path component"
+    if any(len(p.encode("utf-8", "surrogateescape")) > MAX_NAME_COMPONENT_BYTES for p in parts):
+        return f"has a path component longer than {MAX_NAME_COMPONENT_BYTES} bytes"
+    return None
+
+
+def _type_problem(info: zipfile.ZipInfo) -> str | None:
+    kind = stat.S_IFMT(info.external_attr >> 16)
+    if kind == stat.S_IFLNK:
+        return "is a symbolic link; archives may contain only regular files and folders"
+    if kind not in (0, stat.S_IFREG, stat.S_IFDIR):
+        return "is not a regular file (device, pipe or socket entry)"
+    if kind == stat.S_IFDIR and not info.is_dir():
+        return "is marked as a folder but its name does not end with '/'"
+    return None
+
+
+def _coding_problem(info: zipfile.ZipInfo) -> str | None:
+    if info.flag_bits & 0x1:
+        return "is encrypted; upload an archive without a password"
+    if info.compress_type not in _SUPPORTED_COMPRESSION:
+        methods = ", ".join(_SUPPORTED_COMPRESSION.values())
+        return f"uses compression method {info.compress_type}; supported: {methods}"
+    return None
+
+
+def _layout_problems(members: list[zipfile.ZipInfo]) -> list[str]:
+    """Duplicate names, and names used both as a file and as a folder."""
+    problems: list[str] = []
+    seen: set[str] = set()
+    files: set[str] = set()
+    folders: set[str] = set()
+    for info in members:
+        path = info.filename.rstrip("/")
+        if path in seen:
+            problems.append(f"member {info.filename!r}: the name appears more than once")
+        seen.add(path)
+        (folders if info.is_dir() else files).add(path)
+        parts = path.split("/")
+        folders.update("/".join(parts[:i]) for i in range(1, len(parts)))
+    for clash in sorted(files & folders):
+        problems.append(f"member {clash!r}: the name is used both as a file and as a folder")
+    return problems
+
+
+def _check_declared_size(members: list[zipfile.ZipInfo], limits: ArchiveLimits) -> None:
+    total = 0
+    for info in members:
+        total += info.file_size
+        if total > limits.max_uncompressed_bytes:
+            raise PayloadTooLarge(
+                f"member {info.filename!r} ({info.file_size} bytes) brings the archive's declared "
+                f"uncompressed size to {total} bytes, above the limit of {limits.max_uncompressed_bytes} "
+                f"bytes ({UNCOMPRESSED_SETTING})"
+            )
+
+
+# ---------------------------------------------------------------- streaming extraction
+
+
+def _extract_members(
+    archive: zipfile.ZipFile, members: list[zipfile.ZipInfo], dest: Path, limits: ArchiveLimits
+) -> None:
+    root = dest.resolve()
+    written = 0
+    for info in members:
+        target = root / info.filename.rstrip("/")
+        if not target.resolve().is_relative_to(root):  # defence in depth; names were checked
+            raise InvalidInput(f"member {info.filename!r} would be written outside the batch folder")
+        if info.is_dir():
+            target.mkdir(parents=True, exist_ok=True)
+            continue
+        target.parent.mkdir(parents=True, exist_ok=True)
+        written += _extract_file(archive, info, target, written, limits.max_uncompressed_bytes)
+
+
+def _extract_file(
+    archive: zipfile.ZipFile, info: zipfile.ZipInfo, target: Path, written: int, limit: int
+) -> int:
+    """Copy one member in bounded chunks; return its size. ``written`` bytes came before it."""
+    try:
+        with archive.open(info) as src, open(target, "xb") as out:
+            return copy_limited(src, out, limit - written)
+    except BudgetExceeded as exc:
+        raise PayloadTooLarge(
+            f"member {info.filename!r} (declared {info.file_size} bytes) expanded past the limit of "
+            f"{limit} uncompressed bytes ({UNCOMPRESSED_SETTING}) while extracting: the archive's "
+            "headers understate its size"
+        ) from exc
+    except (zipfile.BadZipFile, EOFError, zlib.error, NotImplementedError, RuntimeError, ValueError) as exc:
+        raise InvalidInput(
+            f"member {info.filename!r} is corrupt and cannot be extracted ({exc}); rebuild the archive"
+        ) from exc
+
+
+class BudgetExceeded(Exception):
+    """More bytes came out of a stream than the remaining budget allowed."""
+
+
+def copy_limited(src: BinaryIO, out: BinaryIO, budget: int) -> int:
+    """Copy ``src`` to ``out`` in chunks of at most 1 MiB; raise ``BudgetExceeded`` past ``budget``.
+
+    At most ``budget + 1`` bytes are ever read, whatever ``src`` claims about its size.
+    """
+    written = 0
+    while chunk := src.read(min(CHUNK_BYTES, budget - written + 1)):
+        written += len(chunk)
+        if written > budget:
+            raise BudgetExceeded(f"more than {budget} bytes")
+        out.write(chunk)
+    return written
+
+
+# ---------------------------------------------------------------- locating the batch
+
+
+def _batch_folder(dest: Path) -> Path:
+    if (dest / ANNOTATIONS_FILENAME).is_file():
+        return dest
+    top = [p for p in dest.iterdir() if p.name not in _IGNORED_TOP_LEVEL and not p.name.startswith(".")]
+    if len(top) == 1 and top[0].is_dir() and (top[0] / ANNOTATIONS_FILENAME).is_file():
+        return top[0]
+    found = ", ".join(sorted(p.name + ("/" if p.is_dir() else "") for p in top)[:10]) or "nothing"
+    raise InvalidInput(
+        f"{ANNOTATIONS_FILENAME} was not found at the archive root or inside a single top-level folder "
+        f"(top level holds: {found}); put {ANNOTATIONS_FILENAME} next to the images"
+    )
