@@ -15,14 +15,14 @@ from typing import Any
 
 try:
     import psycopg
-    from psycopg_pool import ConnectionPool, PoolTimeout
+    from psycopg_pool import ConnectionPool, PoolClosed, PoolTimeout
 except ImportError as exc:  # pragma: no cover - depends on the installed extras
     raise ImportError(
         "the PostgreSQL calibration store needs psycopg 3 and psycopg_pool:"
         ' pip install "conformal-keypoint-service[postgres]"'
     ) from exc
 
-from .errors import StoreUnavailable
+from .errors import StoreError, StoreUnavailable
 from .migrations import POSTGRES_MIGRATIONS, apply_migrations
 from .sqlstore import Cursor, SqlStore
 
@@ -95,6 +95,8 @@ class PostgresStore(SqlStore):
                 conn.cursor(binary=True) as cursor,
             ):
                 yield _QmarkCursor(cursor)
+        except PoolClosed as exc:
+            raise StoreError("the calibration store is closed") from exc
         except PoolTimeout as exc:
             raise StoreUnavailable(f"no PostgreSQL connection available: {exc}") from exc
         except psycopg.OperationalError as exc:
