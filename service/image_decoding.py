@@ -124,7 +124,7 @@ def _to_bgr_or_gray_uint8(image: np.ndarray, header: ImageHeader) -> np.ndarray:
     if image.ndim == 2:
         return image
     channels = image.shape[2]
-    if channels in (1, 2):  # gray, gray + alpha
+    if channels in (1, 2) or header.channels in (1, 2):  # gray (+ alpha), maybe expanded to B = G = R
         return np.ascontiguousarray(image[:, :, 0])
     if channels == 4:
         return cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
