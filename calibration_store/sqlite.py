@@ -99,6 +99,8 @@ class SQLiteStore(SqlStore):
                 _execute(cur, "BEGIN IMMEDIATE" if write else "BEGIN")
                 yield cur
                 _execute(cur, "COMMIT")
+            except sqlite3.OperationalError as exc:  # locked, disk full, I/O error
+                raise StoreUnavailable(f"SQLite error: {exc}") from exc
             finally:
                 if conn.in_transaction:
                     conn.execute("ROLLBACK")
