@@ -104,8 +104,9 @@ def load_coco_batch(folder: Path, manifest: Manifest) -> CocoBatch:
     sections = _sections(_parse_json(raw))
     problems = _Problems()
     categories = _read_categories(sections["categories"], manifest, problems)
-    images = _read_images(sections["images"], folder, problems)
-    instances = _AnnotationReader(manifest, images, categories, problems).read(sections["annotations"])
+    images, refused_images = _read_images(sections["images"], folder, problems)
+    reader = _AnnotationReader(manifest, images, refused_images, categories, problems)
+    instances = reader.read(sections["annotations"])
     if not sections["annotations"]:
         problems.add("annotations", "is empty; a calibration batch needs at least one labeled instance")
     problems.raise_if_any()
@@ -135,7 +136,10 @@ class _Problems:
 
 
 def _short(value: Any) -> str:
-    text = repr(value)
+    """A bounded-size rendering of an untrusted value for a message."""
+    if isinstance(value, list | dict):
+        return f"{_type_name(value)} of {len(value)} items"
+    text = repr(value[:41] if isinstance(value, str) else value)
     return text if len(text) <= 40 else text[:37] + "..."
 
 
@@ -227,18 +231,24 @@ def _check_category_keypoints(
 # ---------------------------------------------------------------- images
 
 
-def _read_images(entries: list[Any], folder: Path, problems: _Problems) -> dict[int, ImageRecord]:
+def _read_images(
+    entries: list[Any], folder: Path, problems: _Problems
+) -> tuple[dict[int, ImageRecord], set[int]]:
+    """Valid images by id, and the ids of entries refused (their problems are recorded)."""
     root = folder.resolve()
     images: dict[int, ImageRecord] = {}
+    refused: set[int] = set()
     for i, entry in enumerate(entries):
         record = _read_image(f"images[{i}]", entry, root, problems)
         if record is None:
+            if isinstance(entry, dict) and _is_int(entry.get("id")):
+                refused.add(entry["id"])
             continue
         if record.id in images:
             problems.add(f"images[{i}]", f"duplicate image id {record.id}")
         else:
             images[record.id] = record
-    return images
+    return images, refused
 
 
 def _read_image(where: str, entry: Any, root: Path, problems: _Problems) -> ImageRecord | None:
@@ -338,6 +348,7 @@ def _file_header(path: Path) -> ImageHeader:
 class _AnnotationReader:
     manifest: Manifest
     images: dict[int, ImageRecord]
+    refused_images: set[int]  # already reported: annotations on them are skipped silently
     categories: dict[int, str]
     problems: _Problems
     seen_ids: set[int] = field(default_factory=set)
@@ -378,8 +389,8 @@ class _AnnotationReader:
             self.problems.add(where, f"image_id must be an integer, got {_short(value)}")
             return None
         image = self.images.get(value)
-        if image is None:
-            self.problems.add(where, f"image_id {value} is not a valid entry of images")
+        if image is None and value not in self.refused_images:
+            self.problems.add(where, f"image_id {value} is not an id in images")
         return image
 
     def _object(self, where: str, value: Any) -> ObjectSpec | None:
