@@ -1,0 +1,104 @@
+"""Heatmap normalization: raw detector output -> probability map f(x) in the simplex.
+
+The paper (Sec. 3) assumes f(x) is a probability vector over the H*W pixels. Raw
+network heatmaps are not, so a normalization mode is chosen per model:
+
+- ``anchor`` (default, the authors' reference ``clean_heatmap``): subtract the
+  minimum, set every value below the median to 0, divide by the sum.
+- ``softmax``: ``exp(h / temperature)`` divided by its sum.
+- ``relu``: clip negative values to 0, divide by the sum.
+
+A *degenerate* map, one whose normalizer is zero or not finite (constant or
+all-zero input under ``anchor``/``relu``, any NaN or infinity), becomes the
+uniform map 1/(H*W): the least informative answer, which turns into a tiny peak
+probability and a spread covering the whole heatmap, i.e. a large set. It never
+produces NaN and never raises.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+NORMALIZATION_MODES = ("anchor", "softmax", "relu")
+
+
+@dataclass(frozen=True)
+class NormalizedHeatmaps:
+    """Unnormalized nonnegative weights (N, P) with the probabilities weights / totals.
+
+    ``degenerate`` marks maps replaced by the uniform map (weights all 1).
+    """
+
+    weights: np.ndarray
+    totals: np.ndarray
+    degenerate: np.ndarray
+
+    def probabilities(self) -> np.ndarray:
+        return self.weights / self.totals[:, None]
+
+
+def normalize_heatmaps(
+    heatmaps: np.ndarray, mode: str = "anchor", temperature: float = 1.0
+) -> np.ndarray:
+    """Probability maps (N, H, W) float64, each summing to 1, from raw heatmaps (N, H, W)."""
+    heatmaps = as_heatmap_batch(heatmaps)
+    normalized = normalized_weights(heatmaps, mode, temperature)
+    return normalized.probabilities().reshape(heatmaps.shape)
+
+
+def as_heatmap_batch(heatmaps: np.ndarray) -> np.ndarray:
+    """Validate and convert to a float64 (N, H, W) array."""
+    heatmaps = np.asarray(heatmaps, dtype=np.float64)
+    if heatmaps.ndim != 3 or heatmaps.shape[1] == 0 or heatmaps.shape[2] == 0:
+        raise ValueError(f"heatmaps must have shape (N, H, W) with H, W >= 1, got {heatmaps.shape}")
+    return heatmaps
+
+
+def normalized_weights(
+    heatmaps: np.ndarray,
+    mode: str = "anchor",
+    temperature: float = 1.0,
+    *,
+    skip_anchor_median: bool = False,
+) -> NormalizedHeatmaps:
+    """Nonnegative weights and their totals for a (N, H, W) batch.
+
+    ``skip_anchor_median`` leaves the below-median values of ``anchor`` in place
+    (weights = h - min). Only callers that renormalize the top K <= H*W/2 weights
+    may ask for it: those K values all lie at or above the median, so the
+    result is unchanged and the O(H*W) median selection is saved.
+    """
+    flat = heatmaps.reshape(heatmaps.shape[0], -1)
+    finite = np.isfinite(flat).all(axis=1)
+    flat = np.where(finite[:, None], flat, 0.0)
+    if mode == "anchor":
+        weights = _anchor(flat, with_median=not skip_anchor_median)
+    elif mode == "softmax":
+        weights = _softmax(flat, temperature)
+    elif mode == "relu":
+        weights = np.maximum(flat, 0.0)
+    else:
+        raise ValueError(f"unknown normalization {mode!r}; expected one of {NORMALIZATION_MODES}")
+    totals = weights.sum(axis=1)
+    degenerate = ~finite | ~np.isfinite(totals) | (totals <= 0)
+    weights[degenerate] = 1.0
+    totals[degenerate] = flat.shape[1]
+    return NormalizedHeatmaps(weights, totals, degenerate)
+
+
+def _anchor(flat: np.ndarray, with_median: bool) -> np.ndarray:
+    weights = flat - flat.min(axis=1, keepdims=True)
+    if with_median:
+        median = np.median(weights, axis=1, keepdims=True)
+        weights[weights < median] = 0.0
+    return weights
+
+
+def _softmax(flat: np.ndarray, temperature: float) -> np.ndarray:
+    if not (np.isfinite(temperature) and temperature > 0):
+        raise ValueError(f"softmax temperature must be a positive finite number, got {temperature}")
+    with np.errstate(over="ignore", invalid="ignore"):
+        scaled = flat / temperature
+        return np.exp(scaled - scaled.max(axis=1, keepdims=True))
