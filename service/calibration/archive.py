@@ -63,6 +63,38 @@ class SavedUpload(NamedTuple):
     sha256: str
 
 
+class UploadSink:
+    """Writes an upload to disk chunk by chunk, hashing it and enforcing a size limit.
+
+    Used by sync callers through ``save_upload`` and by the async admin route directly.
+    """
+
+    def __init__(self, dest_file: Path, max_bytes: int, setting: str = UPLOAD_BYTES_SETTING) -> None:
+        self._dest, self._max, self._setting = dest_file, max_bytes, setting
+        self._digest, self._size = hashlib.sha256(), 0
+        self._out: BinaryIO = open(dest_file, "wb")  # noqa: SIM115 - closed by finish/abort
+
+    def write(self, chunk: bytes) -> None:
+        self._size += len(chunk)
+        if self._size > self._max:
+            self.abort()
+            raise PayloadTooLarge(
+                f"the upload is larger than the limit of {self._max} bytes ({self._setting}); "
+                "split the batch into smaller archives"
+            )
+        self._digest.update(chunk)
+        self._out.write(chunk)
+
+    def finish(self) -> SavedUpload:
+        self._out.close()
+        return SavedUpload(self._size, self._digest.hexdigest())
+
+    def abort(self) -> None:
+        """Close and delete the partial file."""
+        self._out.close()
+        self._dest.unlink(missing_ok=True)
+
+
 def save_upload(
     source: Iterable[bytes] | BinaryIO,
     dest_file: Path,
@@ -75,22 +107,14 @@ def save_upload(
     Refuses with ``PayloadTooLarge`` as soon as more than ``max_bytes`` arrive; on any
     failure the partial file is deleted.
     """
-    digest, size = hashlib.sha256(), 0
+    sink = UploadSink(dest_file, max_bytes, setting)
     try:
-        with open(dest_file, "wb") as out:
-            for chunk in _chunks(source):
-                size += len(chunk)
-                if size > max_bytes:
-                    raise PayloadTooLarge(
-                        f"the upload is larger than the limit of {max_bytes} bytes ({setting}); "
-                        "split the batch into smaller archives"
-                    )
-                digest.update(chunk)
-                out.write(chunk)
+        for chunk in _chunks(source):
+            sink.write(chunk)
     except BaseException:
-        dest_file.unlink(missing_ok=True)
+        sink.abort()
         raise
-    return SavedUpload(size, digest.hexdigest())
+    return sink.finish()
 
 
 def _chunks(source: Iterable[bytes] | BinaryIO) -> Iterable[bytes]:

@@ -39,9 +39,7 @@ class NormalizedHeatmaps:
         return self.weights / self.totals[:, None]
 
 
-def normalize_heatmaps(
-    heatmaps: np.ndarray, mode: str = "anchor", temperature: float = 1.0
-) -> np.ndarray:
+def normalize_heatmaps(heatmaps: np.ndarray, mode: str = "anchor", temperature: float = 1.0) -> np.ndarray:
     """Probability maps (N, H, W) float64, each summing to 1, from raw heatmaps (N, H, W)."""
     heatmaps = as_heatmap_batch(heatmaps)
     normalized = normalized_weights(heatmaps, mode, temperature)

@@ -29,9 +29,7 @@ class NonconformityScore(ABC):
         """Scores (N,) of keypoints (N, 2) in heatmap coordinates; NaN keypoint -> NaN."""
 
     @abstractmethod
-    def region(
-        self, statistics: HeatmapStatistics, threshold: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def region(self, statistics: HeatmapStatistics, threshold: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Centres (N, 2) and shape matrices (N, 2, 2) of the sets for thresholds (N,)."""
 
     @abstractmethod
@@ -49,9 +47,7 @@ class PeakScore(NonconformityScore):
         offset = keypoints - statistics.peak_location
         return statistics.peak_probability * np.hypot(offset[:, 0], offset[:, 1])
 
-    def region(
-        self, statistics: HeatmapStatistics, threshold: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def region(self, statistics: HeatmapStatistics, threshold: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         base = _identity_times(statistics.peak_probability**2)
         return statistics.peak_location.copy(), _scaled_shapes(base, threshold**2)
 
@@ -70,9 +66,7 @@ class VarScore(NonconformityScore):
         gamma = np.sqrt(statistics.regularized_variance)
         return np.hypot(offset[:, 0], offset[:, 1]) / gamma
 
-    def region(
-        self, statistics: HeatmapStatistics, threshold: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def region(self, statistics: HeatmapStatistics, threshold: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         base = _identity_times(1.0 / statistics.regularized_variance)
         return statistics.mean.copy(), _scaled_shapes(base, threshold**2)
 
@@ -90,9 +84,7 @@ class CovScore(NonconformityScore):
         offset = keypoints - statistics.mean
         return np.einsum("ni,nij,nj->n", offset, statistics.precision, offset)
 
-    def region(
-        self, statistics: HeatmapStatistics, threshold: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def region(self, statistics: HeatmapStatistics, threshold: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return statistics.mean.copy(), _scaled_shapes(statistics.precision, threshold)
 
     def point_estimate(self, statistics: HeatmapStatistics) -> np.ndarray:

@@ -61,9 +61,7 @@ def _exact_top_k(values: np.ndarray, k: int) -> np.ndarray:
     return np.nonzero(selected)[1].reshape(values.shape[0], k)
 
 
-def _pack_rows(
-    mask: np.ndarray, values: np.ndarray, fill: float
-) -> tuple[np.ndarray, np.ndarray]:
+def _pack_rows(mask: np.ndarray, values: np.ndarray, fill: float) -> tuple[np.ndarray, np.ndarray]:
     """Left-align the masked entries of each row into a (N, max count) array padded with fill."""
     counts = np.count_nonzero(mask, axis=1)
     rows, columns = np.divmod(np.flatnonzero(mask), mask.shape[1])

@@ -88,9 +88,7 @@ def heatmap_statistics(
         raise ValueError(f"top_k must be a positive integer, got {top_k!r}")
     k = min(int(top_k), height * width)
     skip_median = normalization == "anchor" and not include_peak and 2 * k <= height * width
-    normalized = normalized_weights(
-        heatmaps, normalization, temperature, skip_anchor_median=skip_median
-    )
+    normalized = normalized_weights(heatmaps, normalization, temperature, skip_anchor_median=skip_median)
     weights = normalized.weights
     uninformative = normalized.degenerate | (weights.max(axis=1) == weights.min(axis=1))
     fields: dict[str, np.ndarray] = {}

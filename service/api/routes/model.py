@@ -1,0 +1,23 @@
+"""What model is served: manifest, keypoints, objects, hash."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+from pydantic import BaseModel
+
+from service.api.deps import State
+from service.detector.manifest import Manifest
+
+router = APIRouter(tags=["model"])
+
+
+class ModelInfo(BaseModel):
+    name: str
+    hash: str
+    manifest: Manifest
+
+
+@router.get("/v1/model", response_model=ModelInfo, summary="The served model, its keypoints and objects")
+async def model_info(state: State) -> ModelInfo:
+    detector = state.detector
+    return ModelInfo(name=detector.manifest.name, hash=detector.model_hash, manifest=detector.manifest)

@@ -1,0 +1,116 @@
+"""POST /v1/predict: an image and boxes in, keypoint prediction sets out (JSON or a PNG)."""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import binascii
+
+from fastapi import APIRouter, Request, Response
+from pydantic import ValidationError
+from starlette.datastructures import UploadFile
+
+from service.api.body import read_limited_body
+from service.api.deps import State
+from service.api.schemas import PredictJson, PredictParameters, PredictResponse
+from service.errors import InvalidInput, UnsupportedMediaType
+from service.image_decoding import decode_image
+from service.prediction import predict
+from service.render import render_prediction
+
+router = APIRouter(tags=["prediction"])
+
+_MULTIPART_SCHEMA = {
+    "type": "object",
+    "required": ["image", "request"],
+    "properties": {
+        "image": {"type": "string", "format": "binary", "description": "JPEG or PNG file"},
+        "request": {
+            "type": "string",
+            "description": "JSON of PredictParameters: instances and options",
+            "contentMediaType": "application/json",
+        },
+    },
+}
+_OPENAPI = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "application/json": {"schema": {"$ref": "#/components/schemas/PredictJson"}},
+            "multipart/form-data": {"schema": _MULTIPART_SCHEMA},
+        },
+    },
+    "responses": {
+        "200": {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}},
+        "413": {"description": "Body or image too large"},
+        "415": {"description": "Not JSON or multipart, or not a JPEG/PNG image"},
+        "422": {"description": "Invalid request; the problem lists what to fix"},
+        "503": {"description": "No active calibration"},
+    },
+}
+
+
+def _validated(model: type[PredictParameters], raw: str | bytes) -> PredictParameters:
+    try:
+        return model.model_validate_json(raw)
+    except ValidationError as error:
+        problems = [f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in error.errors()]
+        raise InvalidInput(
+            "The request does not match the schema: " + "; ".join(problems[:5]), errors=problems
+        ) from error
+
+
+async def _parse(request: Request, state: State) -> tuple[bytes, PredictParameters]:
+    body = await read_limited_body(request, state.settings.max_request_bytes, "CKS_MAX_REQUEST_BYTES")
+    content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if content_type == "application/json":
+        parameters = _validated(PredictJson, body)
+        try:
+            image = base64.b64decode(parameters.image_base64, validate=True)
+        except (binascii.Error, ValueError) as error:
+            raise InvalidInput(f"image_base64 is not valid base64: {error}") from error
+        return image, parameters
+    if content_type == "multipart/form-data":
+        return await _parse_multipart(request)
+    raise UnsupportedMediaType(
+        f"send application/json (image_base64) or multipart/form-data (image + request), not {content_type!r}"
+    )
+
+
+async def _parse_multipart(request: Request) -> tuple[bytes, PredictParameters]:
+    try:
+        form = await request.form(max_files=1, max_fields=2)
+    except Exception as error:  # starlette reports malformed multipart with several types
+        raise InvalidInput(f"malformed multipart body: {error}") from error
+    image, raw = form.get("image"), form.get("request")
+    if not isinstance(image, UploadFile):
+        raise InvalidInput("multipart part 'image' (a JPEG or PNG file) is missing")
+    if raw is None:
+        raise InvalidInput("multipart part 'request' (JSON with instances and options) is missing")
+    raw = raw if isinstance(raw, str) else (await raw.read()).decode("utf-8", "replace")
+    return await image.read(), _validated(PredictParameters, raw)
+
+
+def _wants_png(request: Request) -> bool:
+    accept = request.headers.get("accept", "")
+    return "image/png" in accept and "application/json" not in accept
+
+
+@router.post(
+    "/v1/predict",
+    response_model=PredictResponse,
+    summary="Keypoint prediction sets with a coverage guarantee",
+    openapi_extra=_OPENAPI,
+)
+async def predict_route(request: Request, state: State) -> Response:
+    image_bytes, parameters = await _parse(request, state)
+    loop = asyncio.get_running_loop()
+    image = await loop.run_in_executor(
+        state.cpu_pool, decode_image, image_bytes, state.settings.max_image_pixels
+    )
+    async with state.inference_slots:
+        result = await loop.run_in_executor(state.cpu_pool, predict, state, image, parameters)
+    if _wants_png(request):
+        png = await loop.run_in_executor(state.cpu_pool, render_prediction, image, result)
+        return Response(png, media_type="image/png")
+    return Response(result.model_dump_json(), media_type="application/json")

@@ -1,0 +1,66 @@
+"""A calibration version as one portable file, and the bundled default loaded on first start.
+
+The file is a numpy ``.npz`` (no pickles): ``metadata`` holds the version's JSON metadata,
+and for each object ``<object>/keypoint_ids``, ``<object>/refs`` and ``<object>/<function>``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from calibration_store import CalibrationStore, NewVersion, ObjectScores, ScoreTable, VersionInfo
+from service.detector.runtime import Detector
+
+BUNDLE_FILENAME = "default_calibration.npz"
+log = logging.getLogger(__name__)
+
+
+def save_bundle(path: Path, info: VersionInfo, table: ScoreTable) -> None:
+    metadata = {
+        "model_hash": info.model_hash,
+        "model_name": info.model_name,
+        "normalization": dict(info.normalization),
+        "source_batches": [batch.as_dict() for batch in info.source_batches],
+        "author": info.author,
+        "note": info.note,
+    }
+    arrays = {"metadata": np.array(json.dumps(metadata))}
+    for block in table.objects:
+        arrays[f"{block.object_name}/keypoint_ids"] = block.keypoint_ids
+        arrays[f"{block.object_name}/refs"] = np.array(block.instance_refs)
+        for function, matrix in block.scores.items():
+            arrays[f"{block.object_name}/{function}"] = matrix
+    with open(path, "wb") as handle:
+        np.savez_compressed(handle, **arrays)
+
+
+def load_bundle(path: Path) -> tuple[NewVersion, ScoreTable]:
+    with np.load(path, allow_pickle=False) as data:
+        metadata = json.loads(str(data["metadata"]))
+        names = sorted({key.split("/")[0] for key in data.files if "/" in key})
+        blocks = []
+        for name in names:
+            functions = [k.split("/", 1)[1] for k in data.files if k.startswith(f"{name}/")]
+            scores = {f: data[f"{name}/{f}"] for f in functions if f not in ("keypoint_ids", "refs")}
+            refs = tuple(str(ref) for ref in data[f"{name}/refs"])
+            blocks.append(ObjectScores(name, data[f"{name}/keypoint_ids"], refs, scores))
+    return NewVersion(**metadata), ScoreTable(tuple(blocks))
+
+
+def bootstrap_default_calibration(store: CalibrationStore, detector: Detector, model_dir: Path) -> int | None:
+    """Store and activate the model's bundled calibration when the store has none for it yet."""
+    path = Path(model_dir) / BUNDLE_FILENAME
+    if not path.is_file() or store.list_versions(detector.model_hash):
+        return None
+    new, table = load_bundle(path)
+    if new.model_hash != detector.model_hash:
+        log.warning("%s was computed for another model (%s); not loading it", path, new.model_hash[:12])
+        return None
+    info = store.create_version(new, table)
+    store.activate(detector.model_hash, info.number, "bootstrap", f"bundled default calibration {path.name}")
+    log.info("loaded the bundled calibration as version %d", info.number)
+    return info.number

@@ -1,0 +1,114 @@
+"""Score labeled instances with the served detector: the numbers a calibration version stores."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calibration_store import ObjectScores, ScoreTable
+from service.calibration.coco import CocoBatch, LabeledInstance
+from service.conformal import NONCONFORMITY_KINDS, nonconformity_scores
+from service.detector.crop import apply_affines
+from service.detector.runtime import Detector
+from service.image_decoding import decode_image
+
+
+@dataclass
+class _ObjectRows:
+    keypoint_ids: tuple[int, ...]
+    refs: list[str] = field(default_factory=list)
+    rows: dict[str, list[np.ndarray]] = field(default_factory=lambda: {k: [] for k in NONCONFORMITY_KINDS})
+
+
+class ScoreAccumulator:
+    """Collects per-instance score rows by object, then freezes them into a ScoreTable."""
+
+    def __init__(self) -> None:
+        self._objects: dict[str, _ObjectRows] = {}
+
+    def extend(self, table: ScoreTable) -> None:
+        """Start from an existing version's instances (append mode)."""
+        for block in table.objects:
+            rows = self._rows(block.object_name, tuple(int(k) for k in block.keypoint_ids))
+            rows.refs.extend(block.instance_refs)
+            for kind in NONCONFORMITY_KINDS:
+                rows.rows[kind].extend(block.scores[kind])
+
+    def add(
+        self, object_name: str, keypoint_ids: tuple[int, ...], ref: str, scores: dict[str, np.ndarray]
+    ) -> None:
+        rows = self._rows(object_name, keypoint_ids)
+        rows.refs.append(ref)
+        for kind in NONCONFORMITY_KINDS:
+            rows.rows[kind].append(scores[kind])
+
+    def table(self) -> ScoreTable:
+        blocks = [
+            ObjectScores(
+                object_name=name,
+                keypoint_ids=np.asarray(rows.keypoint_ids),
+                instance_refs=tuple(rows.refs),
+                scores={kind: np.vstack(rows.rows[kind]) for kind in NONCONFORMITY_KINDS},
+            )
+            for name, rows in sorted(self._objects.items())
+        ]
+        return ScoreTable(tuple(blocks))
+
+    def _rows(self, object_name: str, keypoint_ids: tuple[int, ...]) -> _ObjectRows:
+        rows = self._objects.setdefault(object_name, _ObjectRows(keypoint_ids))
+        if rows.keypoint_ids != keypoint_ids:
+            raise ValueError(f"object {object_name!r}: keypoint ids changed between batches")
+        return rows
+
+    @property
+    def count(self) -> int:
+        return sum(len(rows.refs) for rows in self._objects.values())
+
+
+def score_image(
+    detector: Detector, image_bgr: np.ndarray, instances: list[LabeledInstance]
+) -> list[dict[str, np.ndarray]]:
+    """Per instance, per nonconformity function, the scores of its keypoints (NaN = unlabeled)."""
+    boxes = np.stack([inst.bbox for inst in instances])
+    result = detector.infer(image_bgr, boxes, [inst.object_name for inst in instances])
+    labels = np.concatenate([inst.keypoints for inst in instances])  # same row order as result
+    labels_hm = apply_affines(result.affines[result.instance_index][:, None, :], labels[:, None, :])[:, 0]
+    normalization = detector.manifest.heatmap
+    labeled = ~np.isnan(labels_hm).any(axis=1)
+    per_kind = {}
+    for kind in NONCONFORMITY_KINDS:
+        scores = np.full(len(labels), np.nan)
+        if labeled.any():
+            scores[labeled] = nonconformity_scores(
+                kind,
+                result.heatmaps[labeled],
+                labels_hm[labeled],
+                normalization=normalization.normalization,
+                top_k=normalization.top_k,
+            )
+        per_kind[kind] = scores
+    bounds = np.cumsum([0] + [len(inst.keypoints) for inst in instances])
+    return [
+        {kind: s[a:b] for kind, s in per_kind.items()} for a, b in zip(bounds[:-1], bounds[1:], strict=True)
+    ]
+
+
+def score_batch(
+    batch: CocoBatch,
+    batch_name: str,
+    detector: Detector,
+    accumulator: ScoreAccumulator,
+    max_image_pixels: int,
+    progress: Callable[[int], None] = lambda count: None,
+) -> None:
+    """Score every instance of a validated COCO batch into ``accumulator``, image by image."""
+    manifest = detector.manifest
+    for image_id, instances in batch.instances_by_image().items():
+        image = decode_image(batch.images[image_id].path.read_bytes(), max_image_pixels)
+        for instance, scores in zip(instances, score_image(detector, image, instances), strict=True):
+            keypoint_ids = manifest.object(instance.object_name).keypoints
+            ref = f"{batch_name}:{image_id}:{instance.annotation_id}"
+            accumulator.add(instance.object_name, keypoint_ids, ref, scores)
+        progress(len(instances))

@@ -1,0 +1,63 @@
+"""The composition root: build every long-lived part of the service once, from Settings."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+from calibration_store import CalibrationStore, open_store
+from service.calibration.bundle import bootstrap_default_calibration
+from service.calibration.jobs import JobRunner
+from service.calibration.registry import CalibrationRegistry
+from service.detector.runtime import Detector
+from service.settings import Settings
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ServiceState:
+    """Everything a request handler may need, created at start-up and closed at shutdown."""
+
+    settings: Settings
+    detector: Detector
+    store: CalibrationStore
+    registry: CalibrationRegistry
+    jobs: JobRunner
+    cpu_pool: ThreadPoolExecutor
+    inference_slots: asyncio.Semaphore
+
+    @property
+    def uploads_dir(self) -> Path:
+        return self.settings.data_dir / "uploads"
+
+    def close(self) -> None:
+        self.jobs.shutdown()
+        self.cpu_pool.shutdown(wait=True, cancel_futures=True)
+        self.store.close()
+
+
+def build_state(settings: Settings) -> ServiceState:
+    """Load the model (refusing a manifest that does not fit it), open the store, bootstrap."""
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    detector = Detector(settings.model_dir, settings.inference_threads)
+    store = open_store(settings.resolved_store_url)
+    if settings.bootstrap_calibration:
+        bootstrap_default_calibration(store, detector, settings.model_dir)
+    registry = CalibrationRegistry(
+        store, detector.model_hash, detector.manifest.num_keypoints, settings.store_poll_seconds
+    )
+    log.info("serving model %s (%s), active calibration %s", detector.manifest.name,
+             detector.model_hash[:12], registry.refresh_now())  # fmt: skip
+    return ServiceState(
+        settings=settings,
+        detector=detector,
+        store=store,
+        registry=registry,
+        jobs=JobRunner(settings.calibration_workers),
+        cpu_pool=ThreadPoolExecutor(settings.cpu_workers, thread_name_prefix="cpu"),
+        inference_slots=asyncio.Semaphore(settings.max_concurrent_inferences),
+    )
