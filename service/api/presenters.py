@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 from calibration_store import Activation, VersionInfo
 from service.api.admin_schemas import (
     ActivationOut,
@@ -15,7 +13,7 @@ from service.api.admin_schemas import (
     VersionSummary,
 )
 from service.calibration.registry import CalibrationRegistry
-from service.conformal import NONCONFORMITY_KINDS
+from service.conformal import NONCONFORMITY_SCORES
 from service.detector.manifest import Manifest
 
 REPORTED_EPSILONS = (0.05, 0.1, 0.2)
@@ -42,34 +40,28 @@ def _finite_or_none(value: float) -> float | None:
 def describe(
     info: VersionInfo, active: int | None, registry: CalibrationRegistry, manifest: Manifest
 ) -> VersionDetail:
-    table = registry.scores(info.number)
-    labeled: dict[str, int] = {}
-    complete: dict[str, int] = {}
-    for block in table.objects:
-        matrix = block.scores[NONCONFORMITY_KINDS[0]]
-        for column, channel in enumerate(block.keypoint_ids):
-            labeled[manifest.keypoints[int(channel)].name] = int(
-                np.count_nonzero(~np.isnan(matrix[:, column]))
-            )
-        complete[block.object_name] = int(np.count_nonzero(~np.isnan(matrix).any(axis=1)))
     rows = []
-    for kind in NONCONFORMITY_KINDS:
+    for kind in NONCONFORMITY_SCORES:
         for epsilon in REPORTED_EPSILONS:
-            per_keypoint = registry.thresholds(info.number, kind, "keypoint", epsilon, None).values
-            per_object = registry.thresholds(info.number, kind, "object", epsilon, None).values
+            per_keypoint = registry.thresholds(info.number, kind, "keypoint", epsilon, None)
+            per_object = registry.thresholds(info.number, kind, "object", epsilon, None)
             rows.append(
                 ThresholdRow(
                     nonconformity=kind,
                     epsilon=epsilon,
-                    keypoint={k.name: _finite_or_none(per_keypoint[k.index]) for k in manifest.keypoints},
-                    object={o.name: _finite_or_none(per_object[o.keypoints[0]]) for o in manifest.objects},
+                    keypoint={
+                        k.name: _finite_or_none(per_keypoint.values[k.index]) for k in manifest.keypoints
+                    },
+                    object={
+                        o.name: _finite_or_none(per_object.values[o.keypoints[0]]) for o in manifest.objects
+                    },
                 )
             )
     return VersionDetail(
         **summarize(info, active).model_dump(),
         normalization=dict(info.normalization),
-        labeled_per_keypoint=labeled,
-        complete_per_object=complete,
+        labeled_per_keypoint={k.name: per_keypoint.guarantees[k.index].n for k in manifest.keypoints},
+        complete_per_object={o.name: per_object.guarantees[o.keypoints[0]].n for o in manifest.objects},
         thresholds=rows,
     )
 

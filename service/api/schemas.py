@@ -109,11 +109,13 @@ class Guarantee(BaseModel):
 
 
 class KeypointStatistics(BaseModel):
-    peak_probability: float
-    peak: Point
-    mean: Point
-    gamma: float
-    covariance: tuple[Point, Point]
+    """Raw statistics of the normalized heatmap, in heatmap pixels (scores are computed there)."""
+
+    peak_probability: float = Field(description="p*, probability of the argmax pixel")
+    peak: Point = Field(description="q*, centre of the argmax pixel")
+    mean: Point = Field(description="q-bar, top-K weighted mean")
+    gamma: float = Field(description="square root of the top-K weighted variance")
+    covariance: tuple[Point, Point] = Field(description="top-K weighted covariance, before regularization")
 
 
 class KeypointOut(BaseModel):

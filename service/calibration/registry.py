@@ -17,8 +17,13 @@ from functools import lru_cache
 import numpy as np
 
 from calibration_store import CalibrationStore, ScoreTable, VersionNotFound
-from service.conformal import calibrate_threshold
-from service.conformal.guarantees import Guarantee
+from service.conformal import (
+    CoverageGuarantee,
+    calibrate,
+    calibrate_columns,
+    coverage_guarantee,
+    object_scores,
+)
 from service.errors import NotFound, Unavailable
 
 
@@ -27,29 +32,30 @@ class ChannelThresholds:
     """One threshold and guarantee per manifest keypoint channel (``inf`` = unbounded)."""
 
     values: np.ndarray  # (K,) float64
-    guarantees: tuple[Guarantee, ...]
+    guarantees: tuple[CoverageGuarantee, ...]
 
 
-def calibration_scores(table: ScoreTable, kind: str, scope: str) -> dict[tuple[int, ...], np.ndarray]:
-    """Group calibration scores by the channels one threshold serves.
+def channel_thresholds(
+    table: ScoreTable, num_keypoints: int, kind: str, scope: str, epsilon: float, delta: float | None
+) -> ChannelThresholds:
+    """Thresholds for every keypoint channel; a channel without calibration data is unbounded.
 
-    ``keypoint`` scope: one group per keypoint channel, its labeled instances' scores.
-    ``object`` scope: one group per object, the max score over each fully labeled instance.
+    ``keypoint`` scope calibrates each keypoint column on its labeled instances; ``object``
+    scope calibrates the max over each fully labeled instance, one threshold per object.
     """
-    groups: dict[tuple[int, ...], np.ndarray] = {}
+    values = np.full(num_keypoints, np.inf)
+    guarantees = [coverage_guarantee(0, epsilon, delta)] * num_keypoints
     for block in table.objects:
-        matrix = block.scores[kind]
-        channels = tuple(int(c) for c in block.keypoint_ids)
+        matrix, channels = block.scores[kind], block.keypoint_ids
         if scope == "object":
-            complete = ~np.isnan(matrix).any(axis=1)
-            groups[channels] = (
-                matrix[complete].max(axis=1, initial=-np.inf) if complete.any() else np.empty(0)
-            )
+            calibration = calibrate(object_scores(matrix), epsilon, delta)
+            block_values, block_guarantees = calibration.threshold, [calibration.guarantee] * len(channels)
         else:
-            for column, channel in enumerate(channels):
-                scores = matrix[:, column]
-                groups[(channel,)] = scores[~np.isnan(scores)]
-    return groups
+            block_values, block_guarantees = calibrate_columns(matrix, epsilon, delta)
+        values[channels] = block_values
+        for channel, guarantee in zip(channels, block_guarantees, strict=True):
+            guarantees[channel] = guarantee
+    return ChannelThresholds(values, tuple(guarantees))
 
 
 class CalibrationRegistry:
@@ -120,17 +126,5 @@ class CalibrationRegistry:
     def _thresholds(
         self, version: int, kind: str, scope: str, epsilon: float, delta: float | None
     ) -> ChannelThresholds:
-        groups = calibration_scores(self.scores(version), kind, scope)
-        values = np.full(self._num_keypoints, np.inf)
-        guarantees: list[Guarantee | None] = [None] * self._num_keypoints
-        for channels, scores in groups.items():
-            threshold, guarantee = calibrate_threshold(scores, epsilon, delta)
-            for channel in channels:
-                values[channel], guarantees[channel] = threshold, guarantee
-        empty, _ = None, None
-        for channel, guarantee in enumerate(guarantees):
-            if guarantee is None:
-                if empty is None:
-                    _, empty = calibrate_threshold(np.empty(0), epsilon, delta)
-                guarantees[channel] = empty
-        return ChannelThresholds(values, tuple(guarantees))
+        table = self.scores(version)
+        return channel_thresholds(table, self._num_keypoints, kind, scope, epsilon, delta)

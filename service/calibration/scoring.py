@@ -9,10 +9,12 @@ import numpy as np
 
 from calibration_store import ObjectScores, ScoreTable
 from service.calibration.coco import CocoBatch, LabeledInstance
-from service.conformal import NONCONFORMITY_KINDS, nonconformity_scores
+from service.conformal import NONCONFORMITY_SCORES, nonconformity_scores
 from service.detector.crop import apply_affines
 from service.detector.runtime import Detector
 from service.image_decoding import decode_image
+
+NONCONFORMITY_KINDS = tuple(NONCONFORMITY_SCORES)
 
 
 @dataclass
@@ -87,6 +89,7 @@ def score_image(
                 labels_hm[labeled],
                 normalization=normalization.normalization,
                 top_k=normalization.top_k,
+                temperature=normalization.temperature,
             )
         per_kind[kind] = scores
     bounds = np.cumsum([0] + [len(inst.keypoints) for inst in instances])

@@ -1,0 +1,191 @@
+"""One predict request, from a decoded image to the response body.
+
+Scores live in heatmap coordinates (scale-free across object sizes); sets are mapped to
+image pixels through each instance's crop affine.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from functools import lru_cache
+
+import numpy as np
+
+from service.api.schemas import (
+    BallSet,
+    BetaLaw,
+    CalibrationRef,
+    EllipseSet,
+    Guarantee,
+    ImageInfo,
+    InstanceIn,
+    InstanceOut,
+    KeypointOut,
+    KeypointStatistics,
+    ModelRef,
+    PredictParameters,
+    PredictResponse,
+    UnboundedSet,
+)
+from service.conformal import (
+    CoverageGuarantee,
+    HeatmapStatistics,
+    ellipse_axes,
+    get_nonconformity_score,
+    heatmap_statistics,
+    map_sets_to_image,
+    statistics_for,
+)
+from service.detector.manifest import Manifest
+from service.errors import InvalidInput
+from service.metrics import BATCH_SIZE, INFERENCE_SECONDS
+from service.state import ServiceState
+
+_MAX_BOX_TO_IMAGE = 4.0  # a box may overhang the image, but not dwarf it
+
+
+def check_instances(
+    instances: list[InstanceIn], manifest: Manifest, width: int, height: int, limit: int
+) -> None:
+    """Refuse instances the model cannot answer for, naming each problem."""
+    if len(instances) > limit:
+        raise InvalidInput(
+            f"{len(instances)} instances in one request; the limit is {limit} (CKS_MAX_INSTANCES)"
+        )
+    problems = []
+    known = set(manifest.object_names)
+    largest = _MAX_BOX_TO_IMAGE * max(width, height)
+    for i, instance in enumerate(instances):
+        x, y, w, h = instance.bbox
+        if instance.object not in known:
+            problems.append(
+                f"instances[{i}].object {instance.object!r} is not an object of model {manifest.name!r} "
+                f"(known: {', '.join(manifest.object_names)})"
+            )
+        if w < 1 or h < 1 or w > largest or h > largest:
+            problems.append(f"instances[{i}].bbox size {w:g}x{h:g} must be between 1 and {largest:g} pixels")
+        elif x >= width or y >= height or x + w <= 0 or y + h <= 0:
+            problems.append(
+                f"instances[{i}].bbox {list(instance.bbox)} lies outside the {width}x{height} image"
+            )
+    if problems:
+        raise InvalidInput("; ".join(problems[:5]), errors=problems)
+
+
+def predict(state: ServiceState, image: np.ndarray, parameters: PredictParameters) -> PredictResponse:
+    """Run the detector on every instance as one batch and return calibrated sets."""
+    detector, registry = state.detector, state.registry
+    manifest = detector.manifest
+    height, width = image.shape[:2]
+    check_instances(parameters.instances, manifest, width, height, state.settings.max_instances)
+    version = registry.resolve(parameters.calibration_version)
+    kind, scope = parameters.nonconformity, parameters.coverage
+    thresholds = registry.thresholds(version, kind, scope, parameters.epsilon, parameters.delta)
+
+    boxes = np.array([instance.bbox for instance in parameters.instances], dtype=np.float64)
+    started = time.perf_counter()
+    result = detector.infer(image, boxes, [instance.object for instance in parameters.instances])
+    INFERENCE_SECONDS.observe(time.perf_counter() - started)
+    BATCH_SIZE.observe(len(boxes))
+
+    score = get_nonconformity_score(kind)
+    heatmap = manifest.heatmap
+    options = (heatmap.normalization, heatmap.top_k, heatmap.temperature)
+    if parameters.include_statistics:
+        statistics = heatmap_statistics(result.heatmaps, *options)
+    else:
+        statistics = statistics_for(score, result.heatmaps, *options)
+    centers, shapes = score.region(statistics, thresholds.values[result.channel])
+    centers, shapes = map_sets_to_image(centers, shapes, result.affines[result.instance_index])
+
+    regions = _regions(centers, shapes, kind)
+    guarantees = [_guarantee(thresholds.guarantees[c], scope) for c in result.channel]
+    stats = _statistics(statistics) if parameters.include_statistics else [None] * len(regions)
+    keypoints = [
+        KeypointOut(
+            index=int(channel),
+            name=manifest.keypoints[channel].name,
+            point=(float(centers[row, 0]), float(centers[row, 1])),
+            set=regions[row],
+            guarantee=guarantees[row],
+            statistics=stats[row],
+        )
+        for row, channel in enumerate(result.channel)
+    ]
+    instances = [
+        InstanceOut(
+            object=instance.object,
+            bbox=instance.bbox,
+            keypoints=[kp for kp, owner in zip(keypoints, result.instance_index, strict=True) if owner == i],
+        )
+        for i, instance in enumerate(parameters.instances)
+    ]
+    return PredictResponse(
+        model=ModelRef(name=manifest.name, hash=detector.model_hash),
+        calibration=CalibrationRef(
+            version=version,
+            nonconformity=kind,
+            coverage=scope,
+            epsilon=parameters.epsilon,
+            delta=parameters.delta,
+        ),
+        image=ImageInfo(width=width, height=height),
+        instances=instances,
+    )
+
+
+def _regions(centers: np.ndarray, shapes: np.ndarray, kind: str) -> list:
+    semi_minor, semi_major, angles = ellipse_axes(shapes)
+    regions = []
+    for row, center in enumerate(centers):
+        c = (float(center[0]), float(center[1]))
+        a, b = float(semi_minor[row]), float(semi_major[row])
+        if math.isinf(b):
+            regions.append(UnboundedSet(reason="too few calibration scores for this epsilon (t = 0)"))
+        elif a == b and (kind != "cov" or a == 0.0):
+            regions.append(BallSet(center=c, radius=b))
+        else:
+            shape = shapes[row]
+            regions.append(
+                EllipseSet(
+                    center=c,
+                    shape_matrix=(
+                        (float(shape[0, 0]), float(shape[0, 1])),
+                        (float(shape[1, 0]), float(shape[1, 1])),
+                    ),
+                    semi_axes=(a, b),
+                    angle_deg=float(angles[row]),
+                )
+            )
+    return regions
+
+
+@lru_cache(maxsize=4096)
+def _guarantee(guarantee: CoverageGuarantee, scope: str) -> Guarantee:
+    return Guarantee(
+        scope=scope,
+        n=guarantee.n,
+        t=guarantee.t,
+        epsilon=guarantee.epsilon,
+        coverage_lower_bound=guarantee.marginal_lower,
+        coverage_upper_bound=guarantee.marginal_upper,
+        conditional_coverage=BetaLaw(a=guarantee.beta_a, b=guarantee.beta_b),
+        delta=guarantee.delta,
+        pac_failure_probability=guarantee.pac_failure_probability if guarantee.delta is not None else None,
+    )
+
+
+def _statistics(statistics: HeatmapStatistics) -> list[KeypointStatistics]:
+    covariance = statistics.covariance
+    gamma = np.sqrt(statistics.variance)
+    return [
+        KeypointStatistics(
+            peak_probability=float(statistics.peak_probability[i]),
+            peak=tuple(statistics.peak_location[i]),
+            mean=tuple(statistics.mean[i]),
+            gamma=float(gamma[i]),
+            covariance=(tuple(covariance[i, 0]), tuple(covariance[i, 1])),
+        )
+        for i in range(len(gamma))
+    ]
