@@ -9,7 +9,7 @@ from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 PACKAGE_ROOT = Path(__file__).resolve().parent.parent
-DEFAULT_MODEL_DIR = PACKAGE_ROOT / "models" / "default"
+DEFAULT_MODEL_DIR = PACKAGE_ROOT / "models" / "lmo-synth-unet"
 
 
 class Settings(BaseSettings):

@@ -76,7 +76,7 @@ def score_image(
     boxes = np.stack([inst.bbox for inst in instances])
     result = detector.infer(image_bgr, boxes, [inst.object_name for inst in instances])
     labels = np.concatenate([inst.keypoints for inst in instances])  # same row order as result
-    labels_hm = apply_affines(result.affines[result.instance_index][:, None, :], labels[:, None, :])[:, 0]
+    labels_hm = apply_affines(result.affines[result.instance_index], labels)
     normalization = detector.manifest.heatmap
     labeled = ~np.isnan(labels_hm).any(axis=1)
     per_kind = {}

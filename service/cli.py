@@ -1,0 +1,157 @@
+"""The one command-line entry point: serve, calibrate, predict, export-openapi."""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import logging
+import sys
+from pathlib import Path
+
+from service.settings import Settings
+
+
+def _serve(args: argparse.Namespace, settings: Settings) -> int:
+    import uvicorn
+
+    uvicorn.run(
+        "service.api.main:app",
+        host=args.host or settings.host,
+        port=args.port or settings.port,
+        workers=settings.workers,
+        log_level="info",
+        access_log=False,
+    )
+    return 0
+
+
+def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
+    from calibration_store import open_store
+    from service.calibration.bundle import save_bundle
+    from service.calibration.calibrate import CalibrationOptions, NamedBatch, create_calibration
+    from service.calibration.coco import load_coco_batch
+    from service.detector.runtime import Detector
+
+    detector = Detector(settings.model_dir, settings.inference_threads)
+    batches = []
+    for folder in args.folders:
+        batch = load_coco_batch(Path(folder), detector.manifest)
+        digest = hashlib.sha256((Path(folder) / "annotations.json").read_bytes()).hexdigest()
+        batches.append(NamedBatch(name=args.name or Path(folder).name, sha256=digest, batch=batch))
+    total = sum(b.batch.count for b in batches)
+    done = 0
+
+    def progress(count: int) -> None:
+        nonlocal done
+        done += count
+        print(f"\rscored {done}/{total} instances", end="", file=sys.stderr, flush=True)
+
+    options = CalibrationOptions(
+        author=args.author, note=args.note, append_to=args.append_to, activate=args.activate
+    )
+    with open_store(settings.resolved_store_url) as store:
+        info = create_calibration(store, detector, batches, options, settings.max_image_pixels, progress)
+        print(file=sys.stderr)
+        if args.bundle:
+            save_bundle(Path(args.bundle), info, store.load_scores(detector.model_hash, info.number))
+    print(json.dumps({"version": info.number, "instances": info.n_instances, "activated": args.activate}))
+    return 0
+
+
+def _predict(args: argparse.Namespace, settings: Settings) -> int:
+    from service.api.schemas import PredictParameters
+    from service.image_decoding import decode_image
+    from service.prediction import predict
+    from service.render import render_prediction
+    from service.state import build_state
+
+    instances = [{"object": obj, "bbox": [float(v) for v in bbox.split(",")]} for obj, bbox in args.instance]
+    parameters = PredictParameters(
+        instances=instances,
+        epsilon=args.epsilon,
+        nonconformity=args.nonconformity,
+        coverage=args.coverage,
+        delta=args.delta,
+        calibration_version=args.calibration_version,
+    )
+    image = decode_image(Path(args.image).read_bytes(), settings.max_image_pixels)
+    state = build_state(settings)
+    try:
+        response = predict(state, image, parameters)
+    finally:
+        state.close()
+    if args.png:
+        Path(args.png).write_bytes(render_prediction(image, response))
+    print(response.model_dump_json(indent=2))
+    return 0
+
+
+def _export_openapi(args: argparse.Namespace, settings: Settings) -> int:
+    from service.api.openapi import openapi_document
+
+    text = json.dumps(openapi_document(), indent=2, sort_keys=True) + "\n"
+    if args.output == "-":
+        sys.stdout.write(text)
+    else:
+        Path(args.output).write_text(text, encoding="utf-8")
+    return 0
+
+
+def _instance(text: str) -> tuple[str, str]:
+    name, sep, bbox = text.partition(":")
+    if not sep or len(bbox.split(",")) != 4:
+        raise argparse.ArgumentTypeError("use OBJECT:x,y,w,h, e.g. duck:120,80,64,70")
+    return name, bbox
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="keypoint-service", description=__doc__)
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    serve = commands.add_parser("serve", help="run the HTTP service (settings from CKS_* variables)")
+    serve.add_argument("--host")
+    serve.add_argument("--port", type=int)
+    serve.set_defaults(run=_serve)
+
+    calibrate = commands.add_parser("calibrate", help="score COCO-keypoints folders into a new version")
+    calibrate.add_argument("folders", nargs="+", help="folders holding annotations.json and images")
+    calibrate.add_argument("--name", help="batch name (default: the folder name)")
+    calibrate.add_argument("--author", default="cli")
+    calibrate.add_argument("--note", default="")
+    calibrate.add_argument("--append-to", type=int)
+    calibrate.add_argument("--activate", action="store_true")
+    calibrate.add_argument("--bundle", help="also write the version to this .npz file")
+    calibrate.set_defaults(run=_calibrate)
+
+    predict = commands.add_parser("predict", help="prediction sets for one image, as JSON (and a PNG)")
+    predict.add_argument("image")
+    predict.add_argument("--instance", type=_instance, action="append", required=True, help="OBJECT:x,y,w,h")
+    predict.add_argument("--epsilon", type=float, default=0.1)
+    predict.add_argument("--nonconformity", choices=["peak", "var", "cov"], default="cov")
+    predict.add_argument("--coverage", choices=["keypoint", "object"], default="keypoint")
+    predict.add_argument("--delta", type=float)
+    predict.add_argument("--calibration-version", type=int)
+    predict.add_argument("--png", help="also draw the sets into this PNG file")
+    predict.set_defaults(run=_predict)
+
+    export = commands.add_parser("export-openapi", help="write the OpenAPI document")
+    export.add_argument("--output", default="openapi/openapi.json", help="file, or - for stdout")
+    export.set_defaults(run=_export_openapi)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    args = build_parser().parse_args(argv)
+    from service.errors import ServiceError
+
+    try:
+        return args.run(args, Settings())
+    except ServiceError as error:
+        print(f"error: {error.detail}", *error.errors[:20], sep="\n  ", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
