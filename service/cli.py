@@ -15,6 +15,16 @@ from service.settings import Settings
 def _serve(args: argparse.Namespace, settings: Settings) -> int:
     import uvicorn
 
+    from calibration_store import open_store
+    from service.calibration.bundle import bootstrap_default_calibration
+    from service.detector.runtime import Detector
+
+    # Check the model and store the bundled calibration once, before workers start racing.
+    detector = Detector(settings.model_dir, settings.inference_threads)
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    with open_store(settings.resolved_store_url) as store:
+        if settings.bootstrap_calibration:
+            bootstrap_default_calibration(store, detector, settings.model_dir)
     uvicorn.run(
         "service.api.main:app",
         host=args.host or settings.host,
@@ -144,6 +154,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     args = build_parser().parse_args(argv)
+    from service.detector.runtime import ModelMismatch
     from service.errors import ServiceError
 
     try:
@@ -151,6 +162,9 @@ def main(argv: list[str] | None = None) -> int:
     except ServiceError as error:
         print(f"error: {error.detail}", *error.errors[:20], sep="\n  ", file=sys.stderr)
         return 2
+    except ModelMismatch as error:
+        print(f"error: the model cannot be served: {error}", file=sys.stderr)
+        return 3
 
 
 if __name__ == "__main__":
