@@ -10,6 +10,7 @@ The ONNX graph has a dynamic batch axis, input ``image`` (N, 3, 128, 128) and ou
 from __future__ import annotations
 
 import argparse
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +36,15 @@ def load_model(checkpoint: Path, manifest: Manifest) -> HeatmapUNet:
 def export_onnx(model: torch.nn.Module, manifest: Manifest, path: Path) -> Path:
     spec = manifest.input
     dummy = torch.zeros(1, spec.channels, spec.height, spec.width)
+    with warnings.catch_warnings():  # the TorchScript exporter is deprecated but needs no onnxscript
+        warnings.simplefilter("ignore", DeprecationWarning)
+        _export(model, dummy, path, manifest)
+    onnx.checker.check_model(onnx.load(str(path)))
+    return path
+
+
+def _export(model: torch.nn.Module, dummy: torch.Tensor, path: Path, manifest: Manifest) -> None:
+    spec = manifest.input
     torch.onnx.export(
         model,
         (dummy,),
@@ -45,8 +55,6 @@ def export_onnx(model: torch.nn.Module, manifest: Manifest, path: Path) -> Path:
         opset_version=OPSET,
         dynamo=False,
     )
-    onnx.checker.check_model(onnx.load(str(path)))
-    return path
 
 
 def max_difference(model: torch.nn.Module, onnx_path: Path, inputs: np.ndarray, input_name: str) -> float:

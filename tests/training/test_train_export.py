@@ -1,0 +1,64 @@
+"""Training targets, a one-step training smoke run, and ONNX export agreement with PyTorch."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.detector.crop import apply_affines, invert_affines
+from training.dataset import gaussian_targets, load_split, make_batch
+from training.evaluate_detector import argmax_points
+from training.export import export
+from training.manifest import build_manifest
+from training.train import run
+
+
+def test_gaussian_target_peaks_at_the_label_pixel() -> None:
+    points = np.array([[[10.2, 30.9], [0.5, 63.5]]])
+    target = gaussian_targets(points, 64, 64)
+    peaks = argmax_points(target)
+    np.testing.assert_allclose(peaks, [[[10.5, 30.5], [0.5, 63.5]]])
+
+
+def test_batch_targets_map_back_to_the_labels(tiny_split: Path) -> None:
+    """Crop with the service's code, argmax the target, invert the affine: back at the label."""
+    manifest = build_manifest()
+    split = load_split(tiny_split, manifest, progress=False)
+    rows = np.arange(len(split))
+    inputs, targets, channels = make_batch(split, rows, manifest, rng=None)
+    assert inputs.shape == (len(rows), 3, 128, 128) and inputs.dtype == np.float32
+    assert targets.shape == (len(rows), 8, 64, 64)
+    assert (channels // 8 == split.category[:, None]).all()
+    from training.dataset import cut_crops
+
+    _, affines = cut_crops(split, rows, split.boxes[rows], manifest)
+    back = apply_affines(invert_affines(affines), argmax_points(targets))
+    inside = (targets.max(axis=(2, 3)) > 0.5)
+    side = np.maximum(split.boxes[:, 2], split.boxes[:, 3])[:, None] * 1.25 / 64
+    err = np.linalg.norm(back - split.keypoints[:, :, :2], axis=2)
+    assert (err[inside] <= side.repeat(8, 1)[inside] * 0.71).all()
+
+
+@pytest.fixture(scope="module")
+def one_step_checkpoint(tiny_split: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    manifest = build_manifest()
+    split = load_split(tiny_split, manifest, progress=False)
+    return run(split, tmp_path_factory.mktemp("run"), minutes=5, batch_size=4, max_steps=1, log_every=1)
+
+
+def test_one_training_step_writes_a_resumable_checkpoint(one_step_checkpoint: Path, tiny_split: Path) -> None:
+    import torch
+
+    ckpt = torch.load(one_step_checkpoint, map_location="cpu", weights_only=False)
+    assert ckpt["step"] == 1 and np.isfinite(ckpt["losses"][0][1])
+    split = load_split(tiny_split, build_manifest(), progress=False)
+    run(split, one_step_checkpoint.parent, minutes=5, batch_size=4, max_steps=2, resume=True)
+    assert torch.load(one_step_checkpoint, map_location="cpu", weights_only=False)["step"] == 2
+
+
+def test_onnx_export_matches_pytorch(one_step_checkpoint: Path, tiny_split: Path, tmp_path: Path) -> None:
+    path, diff = export(one_step_checkpoint, tmp_path / "exported", check_data=tiny_split)
+    assert path.exists() and path.stat().st_size < 10e6
+    assert diff is not None and diff <= 1e-4
