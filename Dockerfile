@@ -1,0 +1,26 @@
+# The conformal keypoint service with the bundled default model and calibration.
+FROM python:3.11-slim
+
+ENV PYTHONUNBUFFERED=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    CKS_HOST=0.0.0.0 \
+    CKS_PORT=8000 \
+    CKS_DATA_DIR=/data \
+    CKS_MODEL_DIR=/app/models/lmo-synth-unet
+
+WORKDIR /app
+COPY pyproject.toml README.md ./
+COPY service ./service
+COPY calibration_store ./calibration_store
+RUN pip install '.[postgres]' \
+    && useradd --system --uid 10001 --no-create-home --shell /usr/sbin/nologin app \
+    && mkdir -p /data && chown app /data
+COPY models/lmo-synth-unet ./models/lmo-synth-unet
+
+USER app
+VOLUME /data
+EXPOSE 8000
+HEALTHCHECK --interval=10s --timeout=3s --start-period=30s --retries=3 \
+    CMD python -c "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/readyz', timeout=2)"
+CMD ["keypoint-service", "serve"]
