@@ -70,7 +70,8 @@ def normalized_weights(
     """
     flat = heatmaps.reshape(heatmaps.shape[0], -1)
     finite = np.isfinite(flat).all(axis=1)
-    flat = np.where(finite[:, None], flat, 0.0)
+    if not finite.all():
+        flat = np.where(finite[:, None], flat, 0.0)
     if mode == "anchor":
         weights = _anchor(flat, with_median=not skip_anchor_median)
     elif mode == "softmax":
@@ -79,7 +80,8 @@ def normalized_weights(
         weights = np.maximum(flat, 0.0)
     else:
         raise ValueError(f"unknown normalization {mode!r}; expected one of {NORMALIZATION_MODES}")
-    totals = weights.sum(axis=1)
+    with np.errstate(over="ignore", invalid="ignore"):  # overflow -> inf -> degenerate
+        totals = weights.sum(axis=1)
     degenerate = ~finite | ~np.isfinite(totals) | (totals <= 0)
     weights[degenerate] = 1.0
     totals[degenerate] = flat.shape[1]
@@ -90,7 +92,7 @@ def _anchor(flat: np.ndarray, with_median: bool) -> np.ndarray:
     weights = flat - flat.min(axis=1, keepdims=True)
     if with_median:
         median = np.median(weights, axis=1, keepdims=True)
-        weights[weights < median] = 0.0
+        np.multiply(weights, weights >= median, out=weights)  # zero below the median
     return weights
 
 
