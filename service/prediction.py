@@ -7,7 +7,6 @@ image pixels through each instance's crop affine.
 from __future__ import annotations
 
 import math
-import time
 from functools import lru_cache
 
 import numpy as np
@@ -39,7 +38,6 @@ from service.conformal import (
 )
 from service.detector.manifest import Manifest
 from service.errors import InvalidInput
-from service.metrics import BATCH_SIZE, INFERENCE_SECONDS
 from service.state import ServiceState
 
 _MAX_BOX_TO_IMAGE = 4.0  # a box may overhang the image, but not dwarf it
@@ -84,10 +82,7 @@ def predict(state: ServiceState, image: np.ndarray, parameters: PredictParameter
     thresholds = registry.thresholds(version, kind, scope, parameters.epsilon, parameters.delta)
 
     boxes = np.array([instance.bbox for instance in parameters.instances], dtype=np.float64)
-    started = time.perf_counter()
     result = detector.infer(image, boxes, [instance.object for instance in parameters.instances])
-    INFERENCE_SECONDS.observe(time.perf_counter() - started)
-    BATCH_SIZE.observe(len(boxes))
 
     score = get_nonconformity_score(kind)
     heatmap = manifest.heatmap

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import hashlib
-import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -11,8 +11,10 @@ import numpy as np
 import onnxruntime as ort
 from pydantic import ValidationError
 
+from service.detector.batching import MicroBatcher
 from service.detector.manifest import MODEL_FILENAME, Manifest, load_manifest
 from service.detector.preprocess import build_batch
+from service.metrics import BATCH_SIZE, INFERENCE_SECONDS
 
 
 class ModelMismatch(Exception):
@@ -40,7 +42,7 @@ class InstanceHeatmaps:
 class Detector:
     """A validated ONNX heatmap model and its manifest; ``run`` is thread-safe."""
 
-    def __init__(self, model_dir: Path, intra_op_threads: int = 0) -> None:
+    def __init__(self, model_dir: Path, intra_op_threads: int = 0, max_batch: int = 0) -> None:
         model_dir = Path(model_dir)
         self.manifest = _load_manifest(model_dir)
         model_path = model_dir / MODEL_FILENAME
@@ -49,13 +51,25 @@ class Detector:
         self.model_hash = file_sha256(model_path)
         self._session = _create_session(model_path, intra_op_threads)
         _check_graph(self._session, self.manifest)
-        self._run_lock = threading.Lock() if intra_op_threads == 1 else None
         self._check_output_shape()
+        self._batcher = MicroBatcher(self.run_session, max_batch) if max_batch > 0 else None
+
+    def run_session(self, batch: np.ndarray) -> np.ndarray:
+        """``(N, C, H, W)`` float32 input -> ``(N, K, h, w)`` float32 heatmaps, on this thread."""
+        spec = self.manifest
+        started = time.perf_counter()
+        heatmaps = self._session.run([spec.output.name], {spec.input.name: batch})[0]
+        INFERENCE_SECONDS.observe(time.perf_counter() - started)
+        BATCH_SIZE.observe(len(batch))
+        return heatmaps
 
     def run(self, batch: np.ndarray) -> np.ndarray:
-        """``(N, C, H, W)`` float32 input -> ``(N, K, h, w)`` float32 heatmaps."""
-        spec = self.manifest
-        return self._session.run([spec.output.name], {spec.input.name: batch})[0]
+        """Like ``run_session``, merged with concurrent callers' crops when batching is on."""
+        return self._batcher.run(batch) if self._batcher else self.run_session(batch)
+
+    def close(self) -> None:
+        if self._batcher:
+            self._batcher.close()
 
     def infer(self, image_bgr: np.ndarray, boxes: np.ndarray, objects: list[str]) -> InstanceHeatmaps:
         """Crop all boxes, run them as one batch, keep each instance's own keypoint channels."""
@@ -70,7 +84,7 @@ class Detector:
         spec = self.manifest.input
         probe = np.zeros((2, spec.channels, spec.height, spec.width), dtype=np.float32)
         try:
-            out = self.run(probe)
+            out = self.run_session(probe)
         except Exception as error:  # onnxruntime raises its own untyped errors
             raise ModelMismatch(f"the model does not run on a manifest-shaped input: {error}") from error
         expected = (2, self.manifest.num_keypoints, self.manifest.output.height, self.manifest.output.width)

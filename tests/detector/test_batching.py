@@ -1,0 +1,75 @@
+"""The micro-batcher merges concurrent requests without mixing up their results."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from service.detector.batching import MicroBatcher
+
+
+class RecordingRun:
+    """A real (pure numpy) batch function that records the batch sizes it was given."""
+
+    def __init__(self, gate: threading.Event | None = None) -> None:
+        self.sizes: list[int] = []
+        self.gate = gate
+
+    def __call__(self, batch: np.ndarray) -> np.ndarray:
+        if self.gate is not None:
+            self.gate.wait(5)
+        self.sizes.append(len(batch))
+        return batch * 2.0 + batch.sum(axis=(1, 2, 3), keepdims=True)
+
+
+def test_each_caller_gets_its_own_rows_back():
+    run = RecordingRun()
+    batcher = MicroBatcher(run, max_batch=8)
+    rng = np.random.default_rng(0)
+    inputs = [rng.random((int(rng.integers(1, 4)), 1, 2, 2)) for _ in range(40)]
+    results: list[np.ndarray | None] = [None] * len(inputs)
+
+    def call(i: int) -> None:
+        results[i] = batcher.run(inputs[i])
+
+    threads = [threading.Thread(target=call, args=(i,)) for i in range(len(inputs))]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    batcher.close()
+    sizes = list(run.sizes)
+    for given, got in zip(inputs, results, strict=True):
+        np.testing.assert_array_equal(got, run(given))
+    assert sum(sizes) == sum(len(x) for x in inputs)
+    assert max(sizes) <= 8
+
+
+def test_queued_requests_share_one_run_and_respect_max_batch():
+    gate = threading.Event()
+    run = RecordingRun(gate)
+    batcher = MicroBatcher(run, max_batch=5)
+    threads = [threading.Thread(target=batcher.run, args=(np.ones((2, 1, 1, 1)),)) for _ in range(6)]
+    for thread in threads:
+        thread.start()
+    while batcher._queue.qsize() < 5:  # first request is held by the gate, five wait behind it
+        threading.Event().wait(0.01)
+    gate.set()
+    for thread in threads:
+        thread.join()
+    batcher.close()
+    assert sum(run.sizes) == 12
+    assert max(run.sizes) <= 5
+    assert len(run.sizes) < 6, f"no request was merged: {run.sizes}"
+
+
+def test_a_failing_run_fails_every_waiting_request():
+    def broken(batch: np.ndarray) -> np.ndarray:
+        raise RuntimeError("model exploded")
+
+    batcher = MicroBatcher(broken, max_batch=4)
+    with pytest.raises(RuntimeError, match="model exploded"):
+        batcher.run(np.ones((1, 1, 1, 1)))
+    batcher.close()
