@@ -7,6 +7,7 @@ image pixels through each instance's crop affine.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
@@ -36,7 +37,8 @@ from service.conformal import (
     map_sets_to_image,
     statistics_for,
 )
-from service.detector.manifest import Manifest
+from service.detector.manifest import HeatmapSpec, Manifest
+from service.detector.runtime import InstanceHeatmaps
 from service.errors import InvalidInput
 from service.state import ServiceState
 
@@ -71,6 +73,37 @@ def check_instances(
         raise InvalidInput("; ".join(problems[:5]), errors=problems)
 
 
+@dataclass(frozen=True)
+class CalibratedSets:
+    """Sets of every (instance, keypoint) row of an inference result, in image pixels."""
+
+    centers: np.ndarray  # (M, 2)
+    shapes: np.ndarray  # (M, 2, 2), (y - c)^T L (y - c) <= 1; zeros = unbounded
+    statistics: HeatmapStatistics
+
+
+def calibrated_sets(
+    result: InstanceHeatmaps,
+    kind: str,
+    channel_thresholds: np.ndarray,
+    heatmap: HeatmapSpec,
+    all_statistics: bool = False,
+) -> CalibratedSets:
+    """Apply per-channel thresholds to a detector result and map the sets to the image.
+
+    ``all_statistics`` computes every heatmap statistic, not only those ``kind`` needs.
+    """
+    score = get_nonconformity_score(kind)
+    options = (heatmap.normalization, heatmap.top_k, heatmap.temperature)
+    if all_statistics:
+        statistics = heatmap_statistics(result.heatmaps, *options)
+    else:
+        statistics = statistics_for(score, result.heatmaps, *options)
+    centers, shapes = score.region(statistics, channel_thresholds[result.channel])
+    centers, shapes = map_sets_to_image(centers, shapes, result.affines[result.instance_index])
+    return CalibratedSets(centers, shapes, statistics)
+
+
 def predict(state: ServiceState, image: np.ndarray, parameters: PredictParameters) -> PredictResponse:
     """Run the detector on every instance as one batch and return calibrated sets."""
     detector, registry = state.detector, state.registry
@@ -84,16 +117,8 @@ def predict(state: ServiceState, image: np.ndarray, parameters: PredictParameter
     boxes = np.array([instance.bbox for instance in parameters.instances], dtype=np.float64)
     result = detector.infer(image, boxes, [instance.object for instance in parameters.instances])
 
-    score = get_nonconformity_score(kind)
-    heatmap = manifest.heatmap
-    options = (heatmap.normalization, heatmap.top_k, heatmap.temperature)
-    if parameters.include_statistics:
-        statistics = heatmap_statistics(result.heatmaps, *options)
-    else:
-        statistics = statistics_for(score, result.heatmaps, *options)
-    centers, shapes = score.region(statistics, thresholds.values[result.channel])
-    centers, shapes = map_sets_to_image(centers, shapes, result.affines[result.instance_index])
-
+    sets = calibrated_sets(result, kind, thresholds.values, manifest.heatmap, parameters.include_statistics)
+    centers, shapes, statistics = sets.centers, sets.shapes, sets.statistics
     regions = _regions(centers, shapes, kind)
     guarantees = [_guarantee(thresholds.guarantees[c], scope) for c in result.channel]
     stats = _statistics(statistics) if parameters.include_statistics else [None] * len(regions)
