@@ -44,6 +44,9 @@ class Settings(BaseSettings):
     inference_threads: int = Field(
         default=2, ge=0, description="onnxruntime intra-op threads (0 = ort default)"
     )
+    max_inference_batch: int = Field(
+        default=32, ge=0, le=1024, description="crops of concurrent requests merged into one run (0 = off)"
+    )
     cpu_workers: int = Field(
         default=4, gt=0, description="threads for decode, crop and scoring off the event loop"
     )
