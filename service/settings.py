@@ -33,8 +33,8 @@ class Settings(BaseSettings):
         default=True, description="load the model's bundled calibration as version 1 when the store has none"
     )
 
-    host: str = "127.0.0.1"
-    port: int = Field(default=8000, ge=1, le=65535)
+    host: str = Field(default="127.0.0.1", description="address to listen on")
+    port: int = Field(default=8000, ge=1, le=65535, description="port to listen on")
     workers: int = Field(default=1, ge=1, le=64, description="uvicorn worker processes")
 
     max_request_bytes: int = Field(default=20 * 2**20, gt=0, description="largest predict request body")
