@@ -6,6 +6,7 @@ import argparse
 import hashlib
 import json
 import logging
+import shutil
 import sys
 from pathlib import Path
 
@@ -22,6 +23,8 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
     # Check the model and store the bundled calibration once, before workers start racing.
     detector = Detector(settings.model_dir, settings.inference_threads)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
+    # Uploads a crash left behind were never stored (a version is written in one transaction).
+    shutil.rmtree(settings.data_dir / "uploads", ignore_errors=True)
     with open_store(settings.resolved_store_url) as store:
         if settings.bootstrap_calibration:
             bootstrap_default_calibration(store, detector, settings.model_dir)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import shutil
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,8 +44,6 @@ class ServiceState:
 def build_state(settings: Settings) -> ServiceState:
     """Load the model (refusing a manifest that does not fit it), open the store, bootstrap."""
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    # Uploads left by a crash were never stored (a version is written in one transaction).
-    shutil.rmtree(settings.data_dir / "uploads", ignore_errors=True)
     detector = Detector(settings.model_dir, settings.inference_threads, settings.max_inference_batch)
     store = open_store(settings.resolved_store_url)
     if settings.bootstrap_calibration:
