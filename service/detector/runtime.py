@@ -49,7 +49,7 @@ class Detector:
         if not model_path.is_file():
             raise ModelMismatch(f"{model_path} does not exist")
         self.model_hash = file_sha256(model_path)
-        self._session = _create_session(model_path, intra_op_threads)
+        self._session = create_session(model_path, intra_op_threads)
         _check_graph(self._session, self.manifest)
         self._check_output_shape()
         self._batcher = MicroBatcher(self.run_session, max_batch) if max_batch > 0 else None
@@ -104,7 +104,8 @@ def _load_manifest(model_dir: Path) -> Manifest:
         raise ModelMismatch(f"invalid manifest in {model_dir}: {error}") from error
 
 
-def _create_session(model_path: Path, intra_op_threads: int) -> ort.InferenceSession:
+def create_session(model_path: Path, intra_op_threads: int) -> ort.InferenceSession:
+    """The onnxruntime session the service runs: CPU, sequential, all graph optimizations."""
     options = ort.SessionOptions()
     options.intra_op_num_threads = intra_op_threads
     options.inter_op_num_threads = 1
