@@ -12,6 +12,7 @@ from service.calibration.coco import CocoBatch, LabeledInstance
 from service.conformal import NONCONFORMITY_SCORES, nonconformity_scores
 from service.detector.crop import apply_affines
 from service.detector.runtime import Detector
+from service.errors import ServiceError
 from service.image_decoding import decode_image
 
 NONCONFORMITY_KINDS = tuple(NONCONFORMITY_SCORES)
@@ -109,7 +110,11 @@ def score_batch(
     """Score every instance of a validated COCO batch into ``accumulator``, image by image."""
     manifest = detector.manifest
     for image_id, instances in batch.instances_by_image().items():
-        image = decode_image(batch.images[image_id].path.read_bytes(), max_image_pixels)
+        record = batch.images[image_id]
+        try:
+            image = decode_image(record.path.read_bytes(), max_image_pixels)
+        except ServiceError as error:  # name the file: the job's errors are all the operator sees
+            raise type(error)(f"image {image_id} ({record.file_name!r}): {error.detail}") from error
         for instance, scores in zip(instances, score_image(detector, image, instances), strict=True):
             keypoint_ids = manifest.object(instance.object_name).keypoints
             ref = f"{batch_name}:{image_id}:{instance.annotation_id}"
