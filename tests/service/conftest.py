@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.service.live import ADMIN_TOKEN, LiveServer, Sample, load_samples, model_dir
+from tests.service.live import ADMIN_TOKEN, LiveServer, Sample, batch_zip, load_samples, model_dir
 
 
 @pytest.fixture(scope="session")
@@ -41,3 +41,26 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
 @pytest.fixture(scope="session")
 def samples(samples_dir: Path, coco: dict) -> list[Sample]:
     return load_samples(samples_dir, coco)
+
+
+@pytest.fixture(scope="session")
+def limits(samples_dir: Path, coco: dict) -> dict[str, int]:
+    """Small limits for refusal tests, derived from the samples so that valid small batches fit."""
+    small_batch = len(batch_zip(samples_dir, coco, images=2))
+    upload_bytes = max(1_000_000, 2 * small_batch)
+    return {
+        "max_upload_bytes": upload_bytes,
+        "max_upload_uncompressed_bytes": 2 * upload_bytes,
+        "max_upload_files": 8,
+        "max_image_pixels": max(image["width"] * image["height"] for image in coco["images"]),
+        "max_request_bytes": 300_000,
+        "max_instances": 3,
+    }
+
+
+@pytest.fixture(scope="session")
+def limited_server(tmp_path_factory: pytest.TempPathFactory, limits: dict[str, int]) -> Iterator[LiveServer]:
+    """A server with small request, image and upload limits; refusals must leave it unchanged."""
+    data = tmp_path_factory.mktemp("limited") / "data"
+    with LiveServer(data, admin_token=ADMIN_TOKEN, **limits) as live:
+        yield live
