@@ -14,6 +14,7 @@ import copy
 import io
 import json
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -280,3 +281,11 @@ def assert_problem(response: httpx.Response, status: int, *fragments: str) -> di
     for fragment in fragments:
         assert fragment.lower() in text, f"{fragment!r} not in the problem: {body}"
     return body
+
+
+def cli() -> list[str]:
+    """The installed ``keypoint-service`` entry point (next to this Python, or on PATH)."""
+    beside = Path(sys.executable).parent / "keypoint-service"
+    found = str(beside) if beside.is_file() else shutil.which("keypoint-service")
+    assert found, "the keypoint-service command is not installed: pip install -e '.[test]'"
+    return [found]
