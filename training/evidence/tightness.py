@@ -1,0 +1,50 @@
+"""Tightness: sizes of the ICP sets in image pixels (the paper's Fig. 3).
+
+Balls (peak, var) by their radius, ellipses (cov) by their semi-axes a <= b; areas
+pi r^2 and pi a b make the three functions comparable. Unbounded sets (t = 0) have
+infinite size and stay in the medians as such.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.conformal import ball_radii, ellipse_axes
+
+
+@dataclass(frozen=True)
+class SetSizes:
+    """Per row: semi-axes a <= b (a = b = r for balls) and area, image pixels."""
+
+    kind: str
+    a: np.ndarray
+    b: np.ndarray
+
+    @property
+    def area(self) -> np.ndarray:
+        return np.pi * self.a * self.b
+
+    def median(self, values: np.ndarray) -> float:
+        return float(np.median(values)) if values.size else float("nan")
+
+
+def set_sizes(kind: str, shapes: np.ndarray) -> SetSizes:
+    """Radii of balls (peak, var) or semi-axes of ellipses (cov), from image-space shapes."""
+    if kind == "cov":
+        a, b, _ = ellipse_axes(shapes)
+        return SetSizes(kind, a, b)
+    radii = ball_radii(shapes)
+    return SetSizes(kind, radii, radii)
+
+
+def empirical_cdf(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted values and their CDF levels i/n, for a step plot."""
+    x = np.sort(values)
+    return x, np.arange(1, x.size + 1) / max(x.size, 1)
+
+
+def tightest(median_areas: dict[str, float]) -> str:
+    """The function with the smallest median set area."""
+    return min(median_areas, key=lambda kind: median_areas[kind])
