@@ -11,6 +11,7 @@ from service import __version__
 from service.api.metrics import MetricsMiddleware
 from service.api.problems import install_problem_handlers
 from service.api.routes import admin, health, model, predict
+from service.api.schemas import PredictJson
 from service.settings import Settings
 from service.state import ServiceState, build_state
 
@@ -47,4 +48,26 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
     install_problem_handlers(app)
     for router in (predict.router, model.router, admin.router, health.router):
         app.include_router(router)
+    _document_raw_bodies(app)
     return app
+
+
+def _document_raw_bodies(app: FastAPI) -> None:
+    """Add the schemas of bodies parsed by hand (predict's JSON form) to the OpenAPI components.
+
+    FastAPI only collects models it validates itself, so ``#/components/schemas/PredictJson``
+    (referenced by the predict route's ``openapi_extra``) would otherwise dangle.
+    """
+    generate = app.openapi
+
+    def openapi() -> dict:
+        if app.openapi_schema is None:
+            document = generate()
+            schema = PredictJson.model_json_schema(ref_template="#/components/schemas/{model}")
+            components = document.setdefault("components", {}).setdefault("schemas", {})
+            components.update(schema.pop("$defs", {}))
+            components["PredictJson"] = schema
+            app.openapi_schema = document
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]

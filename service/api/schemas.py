@@ -10,6 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 Nonconformity = Literal["peak", "var", "cov"]
 Coverage = Literal["keypoint", "object"]
 Point = tuple[float, float]
+MAX_VERSION = 2**31 - 1  # the calibration store keeps version numbers in 32-bit INTEGER columns
 
 
 class _Body(BaseModel):
@@ -49,7 +50,9 @@ class PredictOptions(_Body):
         description="if set, coverage >= 1-epsilon holds with probability 1-delta "
         "over the calibration set (PAC); sets get larger",
     )
-    calibration_version: int | None = Field(default=None, ge=1, description="default: the active version")
+    calibration_version: int | None = Field(
+        default=None, ge=1, le=MAX_VERSION, description="default: the active version"
+    )
     include_statistics: bool = Field(default=False, description="add raw heatmap statistics per keypoint")
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Query, Request, Response
+from fastapi import APIRouter, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 
 from calibration_store import VersionNotFound
@@ -19,6 +19,7 @@ from service.api.admin_schemas import (
 from service.api.body import receive_upload
 from service.api.deps import Admin, State
 from service.api.presenters import activation_out, describe, summarize
+from service.api.schemas import MAX_VERSION
 from service.calibration.archive import ArchiveLimits
 from service.calibration.calibrate import CalibrationOptions, check_parent, create_calibration
 from service.calibration.jobs import Job
@@ -26,6 +27,7 @@ from service.calibration.uploads import UploadWorkspace, batch_name, validate_up
 from service.errors import NotFound, UnsupportedMediaType
 
 router = APIRouter(prefix="/v1/admin", tags=["admin"])
+VersionNumber = Annotated[int, Path(ge=1, le=MAX_VERSION, description="calibration version number")]
 
 _ZIP_TYPES = {"application/zip", "application/x-zip-compressed", "application/octet-stream"}
 _UPLOAD_OPENAPI = {
@@ -67,7 +69,7 @@ async def upload_calibration(
         str | None, Query(max_length=200, description="batch name (default: upload-<sha256>)")
     ] = None,
     append_to: Annotated[
-        int | None, Query(ge=1, description="new version = this version + the batch")
+        int | None, Query(ge=1, le=MAX_VERSION, description="new version = this version + the batch")
     ] = None,
     activate: Annotated[bool, Query(description="activate the new version when the job succeeds")] = False,
     note: Annotated[str, Query(max_length=2000)] = "",
@@ -137,7 +139,7 @@ async def list_calibrations(state: State, _: Admin) -> VersionList:
 
 
 @router.get("/calibrations/{version}", response_model=VersionDetail, summary="One version in detail")
-async def get_calibration(version: int, state: State, _: Admin) -> VersionDetail:
+async def get_calibration(version: VersionNumber, state: State, _: Admin) -> VersionDetail:
     def build() -> VersionDetail:
         try:
             info = state.store.get_version(state.detector.model_hash, version)
@@ -154,7 +156,7 @@ async def get_calibration(version: int, state: State, _: Admin) -> VersionDetail
     summary="Make a version active (activating an older one is a rollback)",
 )
 async def activate_calibration(
-    version: int, state: State, who: Admin, body: ActivationIn | None = None
+    version: VersionNumber, state: State, who: Admin, body: ActivationIn | None = None
 ) -> ActivationOut:
     reason = body.reason if body else ""
 
