@@ -205,6 +205,20 @@ def test_missing_version_and_job_are_404(server: LiveServer) -> None:
     assert_problem(server.client.get("/v1/admin/jobs/nope", headers=server.admin), 404)
 
 
+@pytest.mark.parametrize("version", ["0", "-1", str(2**31), str(2**70), "one"])
+def test_out_of_range_version_numbers_are_422(server: LiveServer, version: str) -> None:
+    """Not 500: the store keeps version numbers as 32-bit integers >= 1."""
+    versions = server.versions()
+    assert_problem(
+        server.client.get(f"/v1/admin/calibrations/{version}", headers=server.admin), 422, "version"
+    )
+    response = server.client.post(
+        f"/v1/admin/calibrations/{version}/activate", json={"reason": "x"}, headers=server.admin
+    )
+    assert_problem(response, 422, "version")
+    assert server.versions() == versions
+
+
 ADMIN_ROUTES = [
     ("GET", "/v1/admin/calibrations"),
     ("GET", "/v1/admin/calibrations/1"),

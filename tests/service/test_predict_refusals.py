@@ -203,6 +203,7 @@ def test_non_finite_bbox_is_422(
         {"nonconformity": "gaussian"},
         {"coverage": "image"},
         {"calibration_version": 0},
+        {"calibration_version": 2**40},
         {"include_statistics": "perhaps"},
         {"unexpected_option": 1},
     ],

@@ -205,7 +205,9 @@ def test_append_to_a_missing_version(limited_server: LiveServer, samples_dir: Pa
     assert_problem(limited_server.upload(body, append_to=missing), 404, str(missing))
 
 
-@pytest.mark.parametrize("params", [{"append_to": 0}, {"append_to": "two"}, {"activate": "maybe"}])
+@pytest.mark.parametrize(
+    "params", [{"append_to": 0}, {"append_to": 2**40}, {"append_to": "two"}, {"activate": "maybe"}]
+)
 @pytest.mark.usefixtures("unchanged")
 def test_bad_query_parameters(
     limited_server: LiveServer, samples_dir: Path, coco: dict, params: dict
