@@ -53,7 +53,7 @@ def _validity_panel(ax: plt.Axes, summary) -> None:
     m = int(np.median([g.m for g in groups]))
     t = int(np.median([g.t for g in groups]))
     low, high = central_interval(betabinomial_pmf(m, n + 1 - t, t))
-    grid = np.linspace(max(0.0, summary.target - 0.25), 1.0, 400)
+    grid = np.linspace(max(0.0, min(summary.target - 0.25, float(coverage.min()))), 1.0, 400)
     ax.axvspan(low / m, high / m, color="tab:orange", alpha=0.2, label=f"95% predictive, m={m}")
     ax.hist(
         coverage, bins=20, range=(grid[0], 1.0), density=True, color="tab:blue", alpha=0.7, label="keypoints"
@@ -71,15 +71,18 @@ def resplit_figure(evidence: Evidence, path: Path) -> Path:
     for row, kind in enumerate(KINDS):
         result = evidence.resplits[(kind, MAIN_EPSILON)]
         keypoint = _median_keypoint(result.n)
-        n, t, m = int(np.median(result.n[:, keypoint])), int(np.median(result.t[:, keypoint])), 0
+        n, t = int(np.median(result.n[:, keypoint])), int(np.median(result.t[:, keypoint]))
         m = int(np.median(result.m[:, keypoint]))
         ax = axes[row, 0]
         coverage = result.coverage[:, keypoint]
-        ax.hist(coverage, bins=15, density=True, alpha=0.7, label=f"{result.coverage.shape[0]} re-splits")
-        grid = np.linspace(max(0.0, coverage.min() - 0.05), 1.0, 400)
-        ax.plot(grid, beta_pdf(grid, n + 1 - t, t), color="tab:red", label=f"Beta({n + 1 - t}, {t})")
-        pmf = betabinomial_pmf(m, n + 1 - t, t)
-        ax.plot(np.arange(m + 1) / m, pmf * m, color="tab:orange", lw=1, label=f"BetaBinomial(m={m})/m")
+        coverage = coverage[~np.isnan(coverage)]
+        if coverage.size:
+            ax.hist(coverage, bins=15, density=True, alpha=0.7, label=f"{result.coverage.shape[0]} re-splits")
+        grid = np.linspace(max(0.0, (coverage.min() if coverage.size else 1.0) - 0.05), 1.0, 400)
+        if t > 0 and m > 0:  # t = 0: unbounded sets, coverage 1, no Beta law to draw
+            ax.plot(grid, beta_pdf(grid, n + 1 - t, t), color="tab:red", label=f"Beta({n + 1 - t}, {t})")
+            pmf = betabinomial_pmf(m, n + 1 - t, t)
+            ax.plot(np.arange(m + 1) / m, pmf * m, color="tab:orange", lw=1, label=f"BetaBinomial(m={m})/m")
         ax.set_xlim(grid[0], 1.0)
         ax.axvline(1 - MAIN_EPSILON, color="k", ls="--", lw=1)
         name = evidence.manifest.keypoints[keypoint].name
@@ -87,9 +90,11 @@ def resplit_figure(evidence: Evidence, path: Path) -> Path:
         ax.legend(fontsize=7, loc="upper left")
         ax = axes[row, 1]
         pits = result.pit[~np.isnan(result.pit)]
-        ax.hist(pits, bins=20, range=(0, 1), density=True, alpha=0.7)
+        pooled = f"KS {result.pooled_ks():.3f}" if pits.size else "no bounded sets"
+        if pits.size:
+            ax.hist(pits, bins=20, range=(0, 1), density=True, alpha=0.7)
         ax.axhline(1.0, color="tab:red")
-        ax.set_title(f"{kind}: PIT of every keypoint and re-split (KS {result.pooled_ks():.3f})", fontsize=10)
+        ax.set_title(f"{kind}: PIT of every keypoint and re-split ({pooled})", fontsize=10)
     figure.tight_layout()
     return save(figure, path)
 

@@ -14,7 +14,20 @@ TITLE = "# Conformal keypoint sets: evidence on the synthetic LM-O-like benchmar
 
 
 def _f(value: float, digits: int = 3) -> str:
+    """A table number; ``n/a`` when undefined (every set unbounded: t = 0, too few calibration points)."""
+    if np.isnan(value):
+        return "n/a"
     return "inf" if np.isinf(value) else f"{value:.{digits}f}"
+
+
+def _nanmean(values: np.ndarray) -> float:
+    finite = values[~np.isnan(values)]
+    return float(np.mean(finite)) if finite.size else float("nan")
+
+
+def _nanmedian(values: np.ndarray) -> float:
+    finite = values[~np.isnan(values)]
+    return float(np.median(finite)) if finite.size else float("nan")
 
 
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
@@ -205,10 +218,10 @@ def resplits(evidence: Evidence) -> list[str]:
                 [
                     kind,
                     f"{epsilon}",
-                    _f(float(np.nanmean(r.coverage))),
+                    _f(_nanmean(r.coverage)),
                     _f(float(np.mean(r.expected_coverage()))),
-                    _f(float(np.nanmedian(distances))),
-                    _f(float(np.mean(pvalues[valid] < 0.05))),
+                    _f(_nanmedian(distances)),
+                    _f(float(np.mean(pvalues[valid] < 0.05)) if valid.any() else float("nan")),
                     _f(r.pooled_ks()),
                 ]
             )

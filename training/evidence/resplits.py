@@ -42,11 +42,16 @@ class ResplitResult:
 
     def keypoint_ks(self) -> tuple[np.ndarray, np.ndarray]:
         """Per keypoint: KS distance of its PITs to Uniform(0, 1), and the p-value."""
-        distances = np.array([ks_uniform(column) for column in self.pit.T])
-        return distances, np.array([ks_pvalue(d, self.pit.shape[0]) for d in distances])
+        columns = [column[~np.isnan(column)] for column in self.pit.T]
+        distances = np.array([ks_uniform(c) if c.size else np.nan for c in columns])
+        pvalues = [
+            ks_pvalue(d, c.size) if c.size else np.nan for d, c in zip(distances, columns, strict=True)
+        ]
+        return distances, np.array(pvalues)
 
     def pooled_ks(self) -> float:
-        return ks_uniform(self.pit.ravel())
+        pits = self.pit[~np.isnan(self.pit)]
+        return ks_uniform(pits) if pits.size else float("nan")
 
     def expected_coverage(self) -> np.ndarray:
         """1 - t/(n+1), the mean of Beta(n+1-t, t), per split and keypoint."""
