@@ -161,7 +161,7 @@ def _place_positions(rng: np.random.Generator, radii: list[float], spread: float
         spot = None
         for _ in range(40):
             xy = rng.uniform(-spread, spread, 2)
-            if all(np.linalg.norm(xy - q) > 0.8 * (r + rq) for q, rq in placed):
+            if all(np.linalg.norm(xy - q) > 0.6 * (r + rq) for q, rq in placed):
                 spot = xy
                 break
         out.append(spot)
@@ -205,23 +205,27 @@ def _place_targets(rng: np.random.Generator, world: World, spots: list[np.ndarra
 
 
 def _place_distractors(rng: np.random.Generator, world: World, chosen: np.ndarray,
-                       spots: list[np.ndarray | None]) -> None:
-    for index, xy in zip(chosen, spots, strict=True):
-        if xy is None:
+                       positions: list[np.ndarray | None]) -> None:
+    for index, position in zip(chosen, positions, strict=True):
+        if position is None:
             continue
-        body = world.distractors[index]
-        rotation = _random_rotation(rng)
-        r = world.distractor_radius[index]
-        world.move(body, rotation, np.array([xy[0], xy[1], r * rng.uniform(0.3, 0.9)]))
-        world.colour(body, np.r_[rng.uniform(0, 1, 3), 1.0])
+        world.move(world.distractors[index], _random_rotation(rng), position)
+        world.colour(world.distractors[index], np.r_[rng.uniform(0, 1, 3), 1.0])
 
 
-def _occluder_spot(rng: np.random.Generator, camera: Camera) -> np.ndarray:
-    """A ground point between the camera and the scene centre."""
+def _ground_position(rng: np.random.Generator, xy: np.ndarray | None, radius: float) -> np.ndarray | None:
+    return None if xy is None else np.array([xy[0], xy[1], radius * rng.uniform(0.3, 0.9)])
+
+
+def _occluder_position(rng: np.random.Generator, camera: Camera, target: np.ndarray) -> np.ndarray:
+    """Between an annotated object and the camera: on the ground, or floating on the line of sight."""
     eye = -camera.rotation.T @ camera.translation
-    toward = eye[:2] / max(np.linalg.norm(eye[:2]), 1e-6)
-    side = np.array([-toward[1], toward[0]])
-    return toward * rng.uniform(0.12, 0.3) + side * rng.normal(0, 0.06)
+    if rng.random() < 0.5:
+        toward = (eye - target)[:2] / max(np.linalg.norm((eye - target)[:2]), 1e-6)
+        side = np.array([-toward[1], toward[0]])
+        xy = target[:2] + toward * rng.uniform(0.06, 0.18) + side * rng.normal(0, 0.04)
+        return np.array([xy[0], xy[1], rng.uniform(0.01, 0.05)])
+    return target + rng.uniform(0.1, 0.4) * (eye - target) + rng.normal(0, 0.03, 3)
 
 
 def _setup_ground(rng: np.random.Generator, world: World) -> None:
@@ -256,19 +260,24 @@ def _render(rng: np.random.Generator, world: World, camera: Camera) -> tuple[np.
 
 
 def render_scene(world: World, rng: np.random.Generator) -> Rendered:
-    """Sample and render one scene: 3-6 annotated objects, distractors, ground, light, camera."""
+    """Sample and render one scene: 3-6 annotated objects, clutter, occluders, ground, light, camera."""
     world.park_all()
     camera = _sample_camera(rng, world)
     _setup_ground(rng, world)
     classes = rng.choice(len(OBJECT_CLASSES), int(rng.integers(3, len(OBJECT_CLASSES) + 1)), replace=False)
-    chosen = rng.choice(len(world.distractors), int(rng.integers(2, 8)), replace=False)
+    chosen = rng.choice(len(world.distractors), int(rng.integers(3, 9)), replace=False)
+    occluders = int(rng.integers(1, 3))
+    clutter = chosen[:-occluders]
     radii = [class_mesh(OBJECT_CLASSES[c]).diameter / 2 for c in classes]
-    radii += [world.distractor_radius[i] for i in chosen]
-    spots = _place_positions(rng, radii, spread=0.16)
-    if rng.random() < 0.5 and spots[-1] is not None:
-        spots[-1] = _occluder_spot(rng, camera)
+    radii += [world.distractor_radius[i] for i in clutter]
+    spots = _place_positions(rng, radii, spread=0.12)
     objects = _place_targets(rng, world, spots[: len(classes)], classes)
-    _place_distractors(rng, world, chosen, spots[len(classes):])
+    positions = [_ground_position(rng, xy, r) for xy, r in zip(spots[len(classes):], radii[len(classes):],
+                                                                 strict=True)]
+    targets = [objects[int(rng.integers(len(objects)))].position if objects else np.zeros(3)
+               for _ in range(occluders)]
+    positions += [_occluder_position(rng, camera, t) for t in targets]
+    _place_distractors(rng, world, chosen, positions)
     rgb, depth, seg = _render(rng, world, camera)
     background = texture(rng, (world.height, world.width))
     rgb = np.where((seg < 0)[:, :, None], background, rgb)
