@@ -38,12 +38,16 @@ def wrong_heatmap_size(manifest: dict) -> list[str]:
 
 
 def wrong_keypoint_count(manifest: dict) -> list[str]:
-    """Drop the last object and its keypoints: the graph still has the original count."""
+    """Drop the last object and its keypoints (renumbered): the graph still has the original count."""
     total = len(manifest["keypoints"])
     dropped = manifest["objects"].pop()
-    kept = [k for k in manifest["keypoints"] if k["object"] != dropped["name"]]
-    assert [k["index"] for k in kept] == list(range(len(kept))), "the last object owns the last channels"
-    manifest["keypoints"] = kept
+    kept = sorted(
+        (k for k in manifest["keypoints"] if k["object"] != dropped["name"]), key=lambda k: k["index"]
+    )
+    renumber = {k["index"]: i for i, k in enumerate(kept)}
+    manifest["keypoints"] = [{**k, "index": renumber[k["index"]]} for k in kept]
+    for obj in manifest["objects"]:
+        obj["keypoints"] = [renumber[i] for i in obj["keypoints"]]
     return ["keypoints", str(total), str(len(kept))]
 
 
