@@ -1,0 +1,95 @@
+"""Where the time of one predict request goes, timed in-process on the functions the route calls.
+
+Stages, in the route's order: ``decode_image`` -> ``build_batch`` (crop + normalize) ->
+``Detector.run_session`` (inference) -> ``calibrated_sets`` (heatmap statistics and
+sets) -> the rest of ``predict`` (thresholds lookup, response objects) ->
+``model_dump_json``. Each iteration runs every stage once, so the stages are measured
+side by side; the figures are medians over iterations.
+"""
+
+from __future__ import annotations
+
+import statistics
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.service_bench.inputs import Sample
+from service.api.schemas import PredictParameters
+from service.detector.preprocess import build_batch
+from service.detector.runtime import InstanceHeatmaps
+from service.image_decoding import decode_image
+from service.prediction import calibrated_sets, predict
+from service.settings import Settings
+from service.state import ServiceState, build_state
+
+STAGES = ("decode", "crop", "inference", "sets", "response", "json")
+
+
+@contextmanager
+def service_state(model_dir: Path, inference_threads: int) -> Iterator[ServiceState]:
+    """The service's own state (model, store with the bundled calibration), batching off."""
+    with tempfile.TemporaryDirectory(prefix="cks-bench-state-") as data_dir:
+        settings = Settings(
+            model_dir=model_dir,
+            data_dir=Path(data_dir),
+            inference_threads=inference_threads,
+            max_inference_batch=0,
+        )
+        state = build_state(settings)
+        try:
+            yield state
+        finally:
+            state.close()
+
+
+def _heatmaps(
+    state: ServiceState, batch_out: np.ndarray, sample: Sample, affines: np.ndarray
+) -> InstanceHeatmaps:
+    """The rows ``Detector.infer`` keeps: each instance's own keypoint channels."""
+    manifest = state.detector.manifest
+    channels = [np.asarray(manifest.object(name).keypoints) for name in sample.objects]
+    index = np.concatenate([np.full(len(c), i) for i, c in enumerate(channels)])
+    channel = np.concatenate(channels)
+    return InstanceHeatmaps(batch_out[index, channel], index, channel, affines)
+
+
+def _timed(action: Callable[[], object]) -> tuple[float, object]:
+    start = time.perf_counter()
+    value = action()
+    return (time.perf_counter() - start) * 1e3, value
+
+
+def _one_iteration(state: ServiceState, sample: Sample, parameters: PredictParameters) -> dict[str, float]:
+    manifest, detector, registry = state.detector.manifest, state.detector, state.registry
+    limit = state.settings.max_image_pixels
+    ms: dict[str, float] = {}
+    ms["decode"], image = _timed(lambda: decode_image(sample.jpeg, limit))
+    ms["crop"], (batch, affines) = _timed(lambda: build_batch(image, sample.boxes, manifest))
+    ms["inference"], out = _timed(lambda: detector.run_session(batch))
+    result = _heatmaps(state, out, sample, affines)
+    version = registry.resolve(parameters.calibration_version)
+    thresholds = registry.thresholds(
+        version, parameters.nonconformity, parameters.coverage, parameters.epsilon, parameters.delta
+    )
+    ms["sets"], _ = _timed(
+        lambda: calibrated_sets(result, parameters.nonconformity, thresholds.values, manifest.heatmap)
+    )
+    predict_ms, response = _timed(lambda: predict(state, image, parameters))
+    ms["response"] = max(0.0, predict_ms - ms["crop"] - ms["inference"] - ms["sets"])
+    ms["json"], _ = _timed(response.model_dump_json)
+    return ms
+
+
+def stage_breakdown(state: ServiceState, sample: Sample, iterations: int) -> dict[str, float]:
+    """Median milliseconds per stage (and their sum as ``total``) for one request of ``sample``."""
+    parameters = PredictParameters.model_validate_json(sample.parameters_json())
+    _one_iteration(state, sample, parameters)  # warm-up
+    runs = [_one_iteration(state, sample, parameters) for _ in range(iterations)]
+    medians = {stage: statistics.median(run[stage] for run in runs) for stage in STAGES}
+    medians["total"] = sum(medians.values())
+    return medians

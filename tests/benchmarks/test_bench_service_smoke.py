@@ -1,0 +1,66 @@
+"""Smoke test of benchmarks.bench_service: structure of its output, never its timings (no wrk)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+
+from benchmarks.service_bench.breakdown import STAGES, service_state, stage_breakdown
+from benchmarks.service_bench.inputs import Sample, load_sample
+from benchmarks.service_bench.loadgen import parse_wrk
+from service.settings import Settings
+
+WRK_OUTPUT = """\
+Running 2s test @ http://127.0.0.1:40000/v1/predict
+  1 threads and 4 connections
+  Thread Stats   Avg      Stdev     Max   +/- Stdev
+    Latency    40.12ms   10.00ms  120.50ms   70.00%
+    Req/Sec    99.00     10.00   120.00     80.00%
+  Latency Distribution
+     50%   38.50ms
+     75%   45.00ms
+     90%   52.00ms
+     99%    1.20s
+  198 requests in 2.01s, 1.50MB read
+  Non-2xx or 3xx responses: 3
+Requests/sec:     98.51
+Transfer/sec:    764.00KB
+"""
+
+
+@pytest.fixture(scope="module")
+def model_dir() -> Path:
+    return Path(Settings().model_dir).resolve()
+
+
+@pytest.fixture(scope="module")
+def sample(model_dir: Path) -> Sample:
+    return load_sample(model_dir / "samples")
+
+
+def test_sample_builds_both_request_bodies(sample: Sample) -> None:
+    four = sample.with_instances(4)
+    assert len(four.objects) == 4 and four.boxes.shape == (4, 4)
+    body, content_type = four.multipart_body()
+    assert content_type.startswith("multipart/form-data; boundary=") and sample.jpeg in body
+    body, content_type = four.json_body()
+    assert content_type == "application/json" and b'"image_base64"' in body
+
+
+@pytest.mark.parametrize("instances", [1, 4])
+def test_breakdown_reports_every_stage(model_dir: Path, sample: Sample, instances: int) -> None:
+    with service_state(model_dir, inference_threads=1) as state:
+        stages = stage_breakdown(state, sample.with_instances(instances), iterations=3)
+    assert list(stages) == [*STAGES, "total"]
+    assert all(math.isfinite(ms) and ms >= 0 for ms in stages.values())
+    assert stages["total"] == pytest.approx(sum(stages[s] for s in STAGES))
+
+
+def test_wrk_output_is_parsed() -> None:
+    result = parse_wrk(WRK_OUTPUT, concurrency=4, cpu_seconds=0.2)
+    assert (result.requests, result.errors, result.concurrency) == (198, 3, 4)
+    assert result.requests_per_s == pytest.approx(98.51)
+    assert (result.p50_ms, result.p99_ms) == (pytest.approx(38.5), pytest.approx(1200.0))
+    assert result.loadgen_cpu_share == pytest.approx(0.2 / 2.01)
