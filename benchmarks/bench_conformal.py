@@ -5,11 +5,18 @@ Run: python -m benchmarks.bench_conformal   (or python benchmarks/bench_conforma
 Scores one batch of 76 heatmaps of 64x64 (the paper's LM-O setting) for each
 nonconformity function, side by side in one run, and prints microseconds per
 heatmap and the speed-up. The loop mirrors the authors' reference code: per
-keypoint, anchor normalization, full argsort for the top-K, np.linalg.inv.
+keypoint, anchor normalization, full argsort for the top-K, np.linalg.inv, on
+the array it is given. Both get the same float32 batch, the detector's output
+dtype (``--dtype float64`` for the other case). The vectorized scores are
+checked against the loop run on the float64 copy of the same values (1e-9).
+Timings are the best of 5 repeats; the load average is printed because the
+machine may be shared (a loaded machine inflates both columns, ratios less).
 """
 
 from __future__ import annotations
 
+import argparse
+import os
 import sys
 import timeit
 from pathlib import Path
@@ -62,12 +69,18 @@ def per_heatmap_us(function, repeats: int) -> float:
 
 
 def main() -> None:
-    heatmaps, keypoints = make_batch()
-    print(f"batch: {N_HEATMAPS} heatmaps {SIZE}x{SIZE}, top_k={TOP_K}, normalization=anchor")
-    print(f"{'kind':<6}{'loop us/hm':>12}{'vectorized us/hm':>18}{'speed-up':>10}")
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    dtype = np.dtype(parser.parse_args().dtype)
+    exact_heatmaps, keypoints = make_batch()
+    heatmaps = exact_heatmaps.astype(dtype)
+    values = heatmaps.astype(np.float64)
+    print(f"batch: {N_HEATMAPS} heatmaps {SIZE}x{SIZE} {dtype}, top_k={TOP_K}, normalization=anchor")
+    print("(timings on a possibly shared machine; load average printed per row)")
+    print(f"{'kind':<6}{'loop us/hm':>12}{'vectorized us/hm':>18}{'speed-up':>10}{'load avg (1m)':>15}")
     for kind in ("peak", "var", "cov"):
         vectorized = nonconformity_scores(kind, heatmaps, keypoints, top_k=TOP_K)
-        looped = [loop_score(kind, h, k) for h, k in zip(heatmaps, keypoints, strict=True)]
+        looped = [loop_score(kind, h, k) for h, k in zip(values, keypoints, strict=True)]
         np.testing.assert_allclose(vectorized, looped, rtol=1e-9)
         loop_us = per_heatmap_us(
             lambda kind=kind: [loop_score(kind, h, k) for h, k in zip(heatmaps, keypoints, strict=True)],
@@ -76,7 +89,8 @@ def main() -> None:
         vector_us = per_heatmap_us(
             lambda kind=kind: nonconformity_scores(kind, heatmaps, keypoints, top_k=TOP_K), 20
         )
-        print(f"{kind:<6}{loop_us:>12.1f}{vector_us:>18.1f}{loop_us / vector_us:>9.1f}x")
+        load = os.getloadavg()[0]
+        print(f"{kind:<6}{loop_us:>12.1f}{vector_us:>18.1f}{loop_us / vector_us:>9.1f}x{load:>15.2f}")
 
 
 if __name__ == "__main__":

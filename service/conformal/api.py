@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .normalization import as_heatmap_batch
+from .normalization import as_raw_batch
 from .scores import NonconformityScore, get_nonconformity_score
 from .statistics import DEFAULT_TOP_K, HeatmapStatistics, heatmap_statistics
 
@@ -39,7 +39,7 @@ def nonconformity_scores(
 
     An unlabeled keypoint (NaN) gets a NaN score, which thresholds ignore.
     """
-    heatmaps = as_heatmap_batch(heatmaps)
+    heatmaps = as_raw_batch(heatmaps)
     keypoints = np.asarray(keypoints, dtype=np.float64)
     if keypoints.shape != (heatmaps.shape[0], 2):
         raise ValueError(f"keypoints must have shape ({heatmaps.shape[0]}, 2), got {keypoints.shape}")
@@ -61,7 +61,7 @@ def prediction_sets(
     ``threshold`` is one float or one per heatmap (N,); ``math.inf`` (unbounded)
     gives L = 0.
     """
-    heatmaps = as_heatmap_batch(heatmaps)
+    heatmaps = as_raw_batch(heatmaps)
     thresholds = _thresholds(threshold, heatmaps.shape[0])
     score = get_nonconformity_score(kind)
     statistics = statistics_for(score, heatmaps, normalization, top_k, temperature)

@@ -48,7 +48,18 @@ def normalize_heatmaps(heatmaps: np.ndarray, mode: str = "anchor", temperature: 
 
 def as_heatmap_batch(heatmaps: np.ndarray) -> np.ndarray:
     """Validate and convert to a float64 (N, H, W) array."""
-    heatmaps = np.asarray(heatmaps, dtype=np.float64)
+    return _checked_shape(np.asarray(heatmaps, dtype=np.float64))
+
+
+def as_raw_batch(heatmaps: np.ndarray) -> np.ndarray:
+    """Validate a (N, H, W) batch; float32 and float64 are kept, anything else becomes float64."""
+    heatmaps = np.asarray(heatmaps)
+    if heatmaps.dtype not in (np.float32, np.float64):
+        heatmaps = heatmaps.astype(np.float64)
+    return _checked_shape(heatmaps)
+
+
+def _checked_shape(heatmaps: np.ndarray) -> np.ndarray:
     if heatmaps.ndim != 3 or heatmaps.shape[1] == 0 or heatmaps.shape[2] == 0:
         raise ValueError(f"heatmaps must have shape (N, H, W) with H, W >= 1, got {heatmaps.shape}")
     return heatmaps

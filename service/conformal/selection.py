@@ -3,9 +3,11 @@
 ``np.argpartition`` on a whole (N, P) batch costs about as much per row as a
 Python loop (introselect is bound by branch mispredictions), so ``top_k_indices``
 first shrinks each row to the entries above a cutoff guessed from a strided
-sample, partitions only those, and verifies that the cutoff kept every entry
-that could belong to the top K. Rows where the guess fails or the K-th value is
-tied take the exact slow path, so the answer never depends on the shortcut.
+sample, sorts only those (numpy sorts rows of <= 512 values with SIMD networks,
+~0.3 us per row), and verifies that the cutoff kept every entry that could
+belong to the top K. Rows where the guess fails or the K-th value is tied take
+the exact slow path, so the answer never depends on the shortcut. Works on any
+real dtype (float32 heatmaps are selected without conversion).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import numpy as np
 
 _SAMPLE_SIZE = 256  # values per row used to guess a candidate window
 _MIN_FAST_ROW = 1024  # below this, the plain numpy path is already fast
+_MAX_CANDIDATES = 512  # candidates sorted per row (SIMD sort range); more -> exact path
 
 
 def top_k_indices(values: np.ndarray, k: int) -> np.ndarray:
@@ -31,24 +34,47 @@ def top_k_indices(values: np.ndarray, k: int) -> np.ndarray:
     stride = width // _SAMPLE_SIZE
     sample = np.sort(values[:, ::stride], axis=1)
     rank_from_top = min(sample.shape[1], -(-2 * k // stride) + 1)
-    cutoff = sample[:, -rank_from_top, None]
-    candidates = values >= cutoff
-    n_candidates = np.count_nonzero(candidates, axis=1)
-    usable = (n_candidates >= k) & (n_candidates <= 8 * k)
+    candidates = values >= sample[:, -rank_from_top, None]
+    counts = row_counts(candidates)
+    usable = (counts >= k) & (counts <= _MAX_CANDIDATES)
+    if not usable.all():
+        candidates[~usable] = False
+        counts[~usable] = 0
+    packed, columns = pack_rows(candidates, values, -np.inf, counts, min_width=k + 1)
+    kth_value = -np.sort(-packed, axis=1)[:, k - 1, None]
+    chosen = packed >= kth_value
+    usable &= row_counts(chosen) == k  # a tie at the k-th value -> exact path
     result = np.empty((n_rows, k), dtype=np.intp)
-    fast_rows = np.flatnonzero(usable)
-    if fast_rows.size:
-        packed, columns = _pack_rows(candidates[fast_rows], values[fast_rows], fill=-np.inf)
-        chosen = np.argpartition(-packed, k - 1, axis=1)[:, :k]
-        chosen_values = np.take_along_axis(packed, chosen, axis=1)
-        kth_value = chosen_values.min(axis=1, keepdims=True)
-        unambiguous = np.count_nonzero(packed >= kth_value, axis=1) == k
-        result[fast_rows] = np.take_along_axis(columns, chosen, axis=1)
-        usable[fast_rows[~unambiguous]] = False
+    result[usable] = columns[chosen & usable[:, None]].reshape(-1, k)
     slow_rows = np.flatnonzero(~usable)
     if slow_rows.size:
         result[slow_rows] = _exact_top_k(values[slow_rows], k)
     return result
+
+
+def row_counts(mask: np.ndarray) -> np.ndarray:
+    """Number of True entries per row of a 2-D boolean array (a byte sum, ~5x count_nonzero)."""
+    return mask.view(np.uint8).sum(axis=1, dtype=np.intp)
+
+
+def pack_rows(
+    mask: np.ndarray, values: np.ndarray, fill: float, counts: np.ndarray, min_width: int = 2
+) -> tuple[np.ndarray, np.ndarray]:
+    """Left-align the masked entries of each row into (N, width) arrays padded with fill.
+
+    ``counts`` is ``row_counts(mask)``. Returns the values (dtype of ``values``)
+    and their columns, in increasing column order within each row.
+    """
+    flat_positions = np.flatnonzero(mask)
+    rows, columns = np.divmod(flat_positions, mask.shape[1])
+    starts = np.cumsum(counts) - counts
+    slots = np.arange(rows.size) - starts[rows]
+    width = max(int(counts.max(initial=0)), min_width)
+    packed = np.full((mask.shape[0], width), fill, dtype=values.dtype)
+    packed_columns = np.zeros((mask.shape[0], width), dtype=np.intp)
+    packed[rows, slots] = values.ravel()[flat_positions]
+    packed_columns[rows, slots] = columns
+    return packed, packed_columns
 
 
 def _exact_top_k(values: np.ndarray, k: int) -> np.ndarray:
@@ -59,17 +85,3 @@ def _exact_top_k(values: np.ndarray, k: int) -> np.ndarray:
     missing = k - np.count_nonzero(greater, axis=1, keepdims=True)
     selected = greater | (tied & (np.cumsum(tied, axis=1) <= missing))
     return np.nonzero(selected)[1].reshape(values.shape[0], k)
-
-
-def _pack_rows(mask: np.ndarray, values: np.ndarray, fill: float) -> tuple[np.ndarray, np.ndarray]:
-    """Left-align the masked entries of each row into a (N, max count) array padded with fill."""
-    counts = np.count_nonzero(mask, axis=1)
-    rows, columns = np.divmod(np.flatnonzero(mask), mask.shape[1])
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    positions = np.arange(rows.size) - starts[rows]
-    width = max(int(counts.max()), 1)
-    packed = np.full((mask.shape[0], width), fill)
-    packed_columns = np.zeros((mask.shape[0], width), dtype=np.intp)
-    packed[rows, positions] = values[rows, columns]
-    packed_columns[rows, positions] = columns
-    return packed, packed_columns

@@ -27,11 +27,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .normalization import as_heatmap_batch, normalized_weights
+from .anchor import isolated, raw_extremes, raw_top_k, upper_half_weight_sums
+from .normalization import as_raw_batch, normalized_weights
 from .selection import top_k_indices
 
 PIXEL_VARIANCE = 1.0 / 12.0
 DEFAULT_TOP_K = 100
+_MIN_RAW_WIDTH = 1024  # smaller maps: the float64 path is cheap and the sampling moot
 
 
 @dataclass(frozen=True)
@@ -81,21 +83,18 @@ def heatmap_statistics(
     include_peak: bool = True,
     include_spread: bool = True,
 ) -> HeatmapStatistics:
-    """Statistics of a raw (N, H, W) heatmap batch after normalization."""
-    heatmaps = as_heatmap_batch(heatmaps)
+    """Statistics of a raw (N, H, W) heatmap batch (float32 or float64) after normalization."""
+    heatmaps = as_raw_batch(heatmaps)
     height, width = heatmaps.shape[1:]
     if not isinstance(top_k, int | np.integer) or top_k < 1:
         raise ValueError(f"top_k must be a positive integer, got {top_k!r}")
     k = min(int(top_k), height * width)
-    skip_median = normalization == "anchor" and not include_peak and 2 * k <= height * width
-    normalized = normalized_weights(heatmaps, normalization, temperature, skip_anchor_median=skip_median)
-    weights = normalized.weights
-    uninformative = normalized.degenerate | (weights.max(axis=1) == weights.min(axis=1))
-    fields: dict[str, np.ndarray] = {}
-    if include_peak:
-        fields.update(_peak(weights, normalized.totals, width))
-    if include_spread:
-        fields.update(_spread(weights, k, width))
+    flat = heatmaps.reshape(heatmaps.shape[0], -1)
+    parts = (k, width, include_peak, include_spread)
+    if normalization == "anchor" and flat.shape[1] >= _MIN_RAW_WIDTH and 2 * k <= flat.shape[1]:
+        fields, uninformative = _raw_anchor_fields(flat, *parts)
+    else:
+        fields, uninformative = _weight_fields(flat.astype(np.float64), normalization, temperature, *parts)
     _use_uniform_statistics(fields, uninformative, height, width)
     return HeatmapStatistics((height, width), uninformative, **fields)
 
@@ -106,17 +105,65 @@ def pixel_centers(flat_indices: np.ndarray, width: int) -> tuple[np.ndarray, np.
     return columns + 0.5, rows + 0.5
 
 
-def _peak(weights: np.ndarray, totals: np.ndarray, width: int) -> dict[str, np.ndarray]:
-    argmax = weights.argmax(axis=1)
+def _weight_fields(
+    flat: np.ndarray, normalization: str, temperature: float, k: int, width: int, peak: bool, spread: bool
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The exact path: float64 weights of the whole batch (every mode)."""
+    skip_median = normalization == "anchor" and not peak and 2 * k <= flat.shape[1]
+    normalized = normalized_weights(flat, normalization, temperature, skip_anchor_median=skip_median)
+    weights = normalized.weights
+    uninformative = normalized.degenerate | (weights.max(axis=1) == weights.min(axis=1))
+    fields: dict[str, np.ndarray] = {}
+    if peak:
+        argmax = weights.argmax(axis=1)
+        peak_weight = weights[np.arange(weights.shape[0]), argmax]
+        fields.update(_peak(argmax, peak_weight / normalized.totals, width))
+    if spread:
+        indices = top_k_indices(weights, k)
+        fields.update(_spread(indices, np.take_along_axis(weights, indices, axis=1), width))
+    return fields, uninformative
+
+
+def _raw_anchor_fields(
+    flat: np.ndarray, k: int, width: int, peak: bool, spread: bool
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """``anchor`` selected on the raw values (see ``anchor``); unverified rows go exact."""
+    extremes = raw_extremes(flat)
+    finite = np.isfinite(extremes.minimum) & np.isfinite(extremes.maximum)
+    if not finite.all():  # degenerate rows: uniform statistics; zeros keep the passes quiet
+        flat = np.where(finite[:, None], flat, 0)
+        extremes = raw_extremes(flat)
+    span = extremes.maximum - extremes.minimum
+    uninformative = ~finite | (span == 0)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        exact = ~np.isfinite(span * (2 * flat.shape[1]))  # float64 weights could overflow
+        fields: dict[str, np.ndarray] = {}
+        if peak:
+            sums, ok = upper_half_weight_sums(flat, extremes.minimum)
+            exact |= ~(ok & isolated(extremes.maximum.astype(flat.dtype), extremes.minimum))
+            fields.update(_peak(extremes.argmax, span / sums, width))
+        if spread:
+            indices, top_weights, ok = raw_top_k(flat, k, extremes.minimum)
+            exact |= ~ok
+            fields.update(_spread(indices, top_weights, width))
+    exact &= ~uninformative
+    if exact.any():
+        rows = np.flatnonzero(exact)
+        exact_fields, uninformative[rows] = _weight_fields(
+            flat[rows].astype(np.float64), "anchor", 1.0, k, width, peak, spread
+        )
+        for name, value in exact_fields.items():
+            fields[name][rows] = value
+    return fields, uninformative
+
+
+def _peak(argmax: np.ndarray, probability: np.ndarray, width: int) -> dict[str, np.ndarray]:
     x, y = pixel_centers(argmax, width)
-    peak_weight = weights[np.arange(weights.shape[0]), argmax]
-    return {"peak_location": np.stack([x, y], axis=1), "peak_probability": peak_weight / totals}
+    return {"peak_location": np.stack([x, y], axis=1), "peak_probability": probability}
 
 
-def _spread(weights: np.ndarray, k: int, width: int) -> dict[str, np.ndarray]:
-    indices = top_k_indices(weights, k)
-    top_weights = np.take_along_axis(weights, indices, axis=1)
-    top_weights /= top_weights.sum(axis=1, keepdims=True)
+def _spread(indices: np.ndarray, top_weights: np.ndarray, width: int) -> dict[str, np.ndarray]:
+    top_weights = top_weights / top_weights.sum(axis=1, keepdims=True)
     x, y = pixel_centers(indices, width)
     mean_x = np.einsum("nk,nk->n", top_weights, x)
     mean_y = np.einsum("nk,nk->n", top_weights, y)
