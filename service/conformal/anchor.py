@@ -30,7 +30,7 @@ import numpy as np
 from .selection import pack_rows, row_counts, top_k_indices
 
 _MEDIAN_SAMPLE = 512  # strided sample that brackets the median (np.sort is fast up to 512)
-_MEDIAN_MARGIN = 31  # sample ranks either side of the sample median (~2.7 standard deviations)
+_MEDIAN_MARGIN = 24  # sample ranks either side of the sample median (~2 standard deviations)
 _MAX_BRACKET = 512  # bracket values sorted per row; wider rows take the exact path
 _SUM_TOLERANCE = 1e-11  # accepted relative rounding-error bound of S
 
@@ -98,14 +98,17 @@ def upper_half_weight_sums(flat: np.ndarray, minimum: np.ndarray) -> tuple[np.nd
     bracket = at_least_low & (flat <= high)
     n_below = width - row_counts(at_least_low)
     n_bracket = row_counts(bracket)
-    ok = (n_below <= lower_mid) & (n_below + n_bracket > upper_mid) & (n_bracket <= _MAX_BRACKET)
-    if not ok.all():
-        bracket[~ok] = False
-        n_bracket[~ok] = 0
+    tied = low[:, 0] == high[:, 0]  # e.g. a zero background: both middle values are ``low``
+    ok = (n_below <= lower_mid) & (n_below + n_bracket > upper_mid) & ((n_bracket <= _MAX_BRACKET) | tied)
+    unpacked = ~ok | tied
+    if unpacked.any():
+        bracket[unpacked] = False
+        n_bracket[unpacked] = 0
     inside = np.sort(pack_rows(bracket, flat, np.inf, n_bracket)[0], axis=1)
     rows = np.arange(n_rows)
     first = np.clip(lower_mid - n_below, 0, inside.shape[1] - 1 - (upper_mid - lower_mid))
-    middle_low, middle_high = inside[rows, first], inside[rows, first + upper_mid - lower_mid]
+    middle_low = np.where(tied, low[:, 0], inside[rows, first])
+    middle_high = np.where(tied, low[:, 0], inside[rows, first + upper_mid - lower_mid])
     below_weight = anchor_weights(middle_low, minimum)
     median = (below_weight + anchor_weights(middle_high, minimum)) / 2 if width % 2 == 0 else below_weight
     take_low = below_weight >= median  # the lower middle value itself is not zeroed
