@@ -5,12 +5,14 @@ from __future__ import annotations
 import re
 import resource
 import shutil
+import signal
 import subprocess
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 INSTALL_HINT = "apt-get install -y wrk"
+DONE_MARKER = "cks-bench: enough responses"
 
 _UNITS = {"us": 1e-3, "ms": 1.0, "s": 1e3, "m": 60e3}
 _SCRIPT = """\
@@ -25,7 +27,11 @@ _STOP_AFTER = """\
 local done = 0
 function response(status, headers, body)
   done = done + 1
-  if done >= {limit} then wrk.thread:stop() end
+  if done == {limit} then
+    io.write("{marker}\\n")
+    io.flush()
+    wrk.thread:stop()
+  end
 end
 """
 
@@ -58,7 +64,7 @@ def write_script(directory: Path, body: bytes, content_type: str, stop_after: in
     body_path.write_bytes(body)
     text = _SCRIPT.format(body=body_path, content_type=content_type)
     if stop_after:
-        text += _STOP_AFTER.format(limit=stop_after)
+        text += _STOP_AFTER.format(limit=stop_after, marker=DONE_MARKER)
     script = directory / "post.lua"
     script.write_text(text)
     return script
@@ -100,19 +106,37 @@ def _children_cpu() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def run_wrk(url: str, script: Path, concurrency: int, seconds: float) -> LoadResult:
-    """One closed-loop wrk run: ``concurrency`` connections on one wrk thread for ``seconds``."""
-    command = [
+def _wrk_command(url: str, script: Path, concurrency: int, seconds: float) -> list[str]:
+    return [
         require_wrk(), "-t1", f"-c{concurrency}", f"-d{max(1, round(seconds))}s", "--latency",
         "--timeout", "60s", "-s", str(script), f"{url}/v1/predict",
     ]  # fmt: skip
+
+
+def run_wrk(url: str, script: Path, concurrency: int, seconds: float) -> LoadResult:
+    """One closed-loop wrk run: ``concurrency`` connections on one wrk thread for ``seconds``."""
     before = _children_cpu()
+    command = _wrk_command(url, script, concurrency, seconds)
     output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
     return parse_wrk(output, concurrency, _children_cpu() - before)
 
 
 def post_requests(url: str, body: bytes, content_type: str, count: int, concurrency: int) -> LoadResult:
-    """Send about ``count`` requests (wrk stops after that many responses)."""
+    """Send ``count`` requests: the script stops wrk's thread and says so, then wrk gets SIGINT.
+
+    (wrk's main thread sleeps for the whole ``-d``; SIGINT ends that sleep and it reports.)
+    """
     with tempfile.TemporaryDirectory(prefix="cks-wrk-") as directory:
         script = write_script(Path(directory), body, content_type, stop_after=count)
-        return run_wrk(url, script, concurrency, seconds=3600)
+        before = _children_cpu()
+        command = _wrk_command(url, script, concurrency, 24 * 3600)
+        with subprocess.Popen(command, stdout=subprocess.PIPE, text=True) as wrk:
+            assert wrk.stdout is not None
+            for line in wrk.stdout:
+                if line.strip() == DONE_MARKER:
+                    wrk.send_signal(signal.SIGINT)
+                    break
+            output = wrk.stdout.read()
+        if wrk.returncode != 0:
+            raise RuntimeError(f"wrk failed with code {wrk.returncode}:\n{output}")
+        return parse_wrk(output, concurrency, _children_cpu() - before)

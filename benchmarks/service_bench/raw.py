@@ -37,9 +37,11 @@ class RawResult:
     p99_ms: float
 
 
-def make_session(model_dir: Path, threads: int) -> ort.InferenceSession:
-    """The same session options as ``service.detector.runtime``."""
+def make_session(model_dir: Path, threads: int, spinning: bool = True) -> ort.InferenceSession:
+    """The same session options as ``service.detector.runtime`` (``spinning=False``: an experiment)."""
     options = ort.SessionOptions()
+    if not spinning:
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
     options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
@@ -47,10 +49,12 @@ def make_session(model_dir: Path, threads: int) -> ort.InferenceSession:
     return ort.InferenceSession(str(model_dir / MODEL_FILENAME), options, providers=["CPUExecutionProvider"])
 
 
-def _drive(model_dir: str, threads: int, batch_path: str, concurrency: int, seconds: float) -> list[float]:
+def _drive(
+    model_dir: str, threads: int, batch_path: str, concurrency: int, seconds: float, spinning: bool
+) -> list[float]:
     """One process: ``concurrency`` threads running the batch until ``seconds`` have passed."""
     manifest = load_manifest(Path(model_dir))
-    session = make_session(Path(model_dir), threads)
+    session = make_session(Path(model_dir), threads, spinning)
     feed = {manifest.input.name: np.load(batch_path)}
     outputs = [manifest.output.name]
     session.run(outputs, feed)  # warm-up
@@ -71,11 +75,17 @@ def _drive(model_dir: str, threads: int, batch_path: str, concurrency: int, seco
 
 
 def measure(
-    model_dir: Path, threads: int, batch_path: Path, concurrency: int, seconds: float, processes: int = 1
+    model_dir: Path,
+    threads: int,
+    batch_path: Path,
+    concurrency: int,
+    seconds: float,
+    processes: int = 1,
+    spinning: bool = True,
 ) -> RawResult:
     """Runs/s of ``concurrency`` callers spread over ``processes`` processes (in this process)."""
     shares = [concurrency // processes + (i < concurrency % processes) for i in range(processes)]
-    jobs = [(str(model_dir), threads, str(batch_path), share, seconds) for share in shares if share]
+    jobs = [(str(model_dir), threads, str(batch_path), n, seconds, spinning) for n in shares if n]
     if len(jobs) == 1:
         latencies = _drive(*jobs[0])
     else:
@@ -87,13 +97,19 @@ def measure(
 
 
 def measure_in_subprocess(
-    model_dir: Path, threads: int, batch_path: Path, concurrency: int, seconds: float, processes: int = 1
+    model_dir: Path,
+    threads: int,
+    batch_path: Path,
+    concurrency: int,
+    seconds: float,
+    processes: int = 1,
+    spinning: bool = True,
 ) -> RawResult:
     """``measure`` in a fresh interpreter, so the benchmark's own state does not share its CPU."""
     command = [
         sys.executable, "-m", "benchmarks.service_bench.raw", str(model_dir), str(batch_path),
         "--threads", str(threads), "--concurrency", str(concurrency), "--seconds", str(seconds),
-        "--processes", str(processes),
+        "--processes", str(processes), *([] if spinning else ["--no-spinning"]),
     ]  # fmt: skip
     output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
     return RawResult(**json.loads(output.strip().splitlines()[-1]))
@@ -107,8 +123,12 @@ def main() -> None:
     parser.add_argument("--concurrency", type=int, default=1)
     parser.add_argument("--seconds", type=float, default=5.0)
     parser.add_argument("--processes", type=int, default=1)
+    parser.add_argument("--no-spinning", action="store_true", help="session.intra_op.allow_spinning = 0")
     args = parser.parse_args()
-    result = measure(args.model_dir, args.threads, args.batch, args.concurrency, args.seconds, args.processes)
+    result = measure(
+        args.model_dir, args.threads, args.batch, args.concurrency, args.seconds, args.processes,
+        spinning=not args.no_spinning,
+    )  # fmt: skip
     print(json.dumps(result.__dict__))
 
 

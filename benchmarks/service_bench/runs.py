@@ -29,12 +29,13 @@ class Plan:
     """How long each point runs; --quick shortens everything."""
 
     seconds: float
+    tuning_seconds: float
     warmup_seconds: float
     memory_requests: tuple[int, int]
 
     @staticmethod
     def for_mode(quick: bool) -> Plan:
-        return Plan(2.0, 1.0, (200, 2000)) if quick else Plan(10.0, 3.0, (1000, 10000))
+        return Plan(2.0, 2.0, 1.0, (200, 2000)) if quick else Plan(10.0, 6.0, 2.0, (1000, 10000))
 
 
 @dataclass
@@ -106,12 +107,12 @@ def prepare(directory: Path, model_dir: Path, sample: Sample, settings: dict[str
 
 
 def raw_point(
-    space: Workspace, crops: int, concurrency: int, seconds: float, **overrides: int
+    space: Workspace, crops: int, concurrency: int, seconds: float, spinning: bool = True, **overrides: int
 ) -> raw.RawResult:
     settings = {**space.settings, **overrides}
     return raw.measure_in_subprocess(
         space.model_dir, settings["inference_threads"], space.batches[crops], concurrency, seconds,
-        processes=settings["workers"],
+        processes=settings["workers"], spinning=spinning,
     )  # fmt: skip
 
 
@@ -168,7 +169,12 @@ class Variant:
 
     label: str
     overrides: dict[str, int]
+    patches: tuple[str, ...] = ()  # code changes, see benchmarks.service_bench.patched_serve
     points: list[Point] = field(default_factory=list)
+
+    @property
+    def spinning(self) -> bool:
+        return "no-spinning" not in self.patches
 
 
 TUNING = (
@@ -179,6 +185,13 @@ TUNING = (
     Variant("CKS_CPU_WORKERS=8", {"cpu_workers": 8}),
     Variant("CKS_WORKERS=2, CKS_INFERENCE_THREADS=1", {"workers": 2, "inference_threads": 1}),
     Variant("CKS_WORKERS=2, CKS_INFERENCE_THREADS=2", {"workers": 2, "inference_threads": 2}),
+    Variant("code change: onnxruntime intra-op spin-waiting off", {"workers": 1}, ("no-spinning",)),
+    Variant("code change: contiguous RGB image before cropping", {"workers": 1}, ("contiguous-colour",)),
+    Variant(
+        "code change: contiguous RGB + CKS_INFERENCE_THREADS=1",
+        {"workers": 1, "inference_threads": 1},
+        ("contiguous-colour",),
+    ),
 )
 
 
@@ -188,15 +201,18 @@ def tuning(
     raws: dict[tuple, raw.RawResult] = {}
     done = []
     for template in variants:
-        variant = Variant(template.label, template.overrides)
-        with serve(space.env(**variant.overrides), log=space.directory / "server.log") as server:
+        variant = Variant(template.label, template.overrides, template.patches)
+        env = space.env(**variant.overrides)
+        with serve(env, log=space.directory / "server.log", patches=variant.patches) as server:
             warm_up(server, space, plan)
             for count in INSTANCE_COUNTS:
-                service = run_wrk(server.url, space.scripts[count, "multipart"], 16, plan.seconds)
+                service = run_wrk(server.url, space.scripts[count, "multipart"], 16, plan.tuning_seconds)
                 layout = {**space.settings, **variant.overrides}
-                key = (layout["inference_threads"], layout["workers"], count)
+                key = (layout["inference_threads"], layout["workers"], variant.spinning, count)
                 if key not in raws:
-                    raws[key] = raw_point(space, count, 16, plan.seconds, **variant.overrides)
+                    raws[key] = raw_point(
+                        space, count, 16, plan.tuning_seconds, variant.spinning, **variant.overrides
+                    )
                 variant.points.append(Point(count, 16, service, raws[key]))
                 log(f"{variant.label}: {format_point(variant.points[-1])}")
         done.append(variant)

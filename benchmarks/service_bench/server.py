@@ -52,15 +52,20 @@ def _wait_ready(url: str, process: subprocess.Popen, timeout: float) -> None:
 
 
 @contextmanager
-def serve(settings: dict[str, str], log: Path | None = None, timeout: float = 120) -> Iterator[Server]:
-    """Start ``python -m service.cli serve`` with ``CKS_*`` settings; stop it on exit."""
+def serve(
+    settings: dict[str, str], log: Path | None = None, timeout: float = 120, patches: tuple[str, ...] = ()
+) -> Iterator[Server]:
+    """Start ``python -m service.cli serve`` with ``CKS_*`` settings; stop it on exit.
+
+    ``patches``: start ``benchmarks.service_bench.patched_serve`` with those code changes instead.
+    """
+    command = ["-m", "benchmarks.service_bench.patched_serve"] if patches else ["-m", "service.cli", "serve"]
+    settings = {**settings, "CKS_BENCH_PATCHES": ",".join(patches)}
     port = free_port()
     with tempfile.TemporaryDirectory(prefix="cks-bench-") as data_dir:
         env = {**os.environ, "CKS_DATA_DIR": data_dir, "CKS_PORT": str(port), **settings}
         output = open(log or os.devnull, "ab")  # noqa: SIM115 - closed below
-        process = subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "serve"], env=env, stdout=output, stderr=output
-        )
+        process = subprocess.Popen([sys.executable, *command], env=env, stdout=output, stderr=output)
         try:
             url = f"http://127.0.0.1:{port}"
             _wait_ready(url, process, timeout)
