@@ -23,7 +23,7 @@ from benchmarks.service_bench.loadgen import require_wrk
 from benchmarks.service_bench.machine import this_machine
 from service.detector.manifest import load_manifest
 from service.detector.runtime import file_sha256
-from service.settings import Settings
+from service.settings import DEFAULT_MODEL_DIR, Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OUTPUT = ROOT / "docs" / "performance.md"
@@ -53,10 +53,12 @@ def model_description(model_dir: Path) -> str:
     manifest = load_manifest(model_dir)
     spec = manifest.input
     digest = file_sha256(model_dir / "model.onnx")[:12]
+    bundled = model_dir == DEFAULT_MODEL_DIR.resolve()
     return (
         f"`{manifest.name}` from `{model_dir}` (model.onnx sha256 {digest}...), input "
         f"{spec.height}x{spec.width}, {manifest.num_keypoints} keypoints, heatmaps "
         f"{manifest.output.height}x{manifest.output.width}"
+        + ("" if bundled else " (**not** the bundled model: CKS_MODEL_DIR points elsewhere)")
     )
 
 
