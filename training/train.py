@@ -14,8 +14,10 @@ import argparse
 import json
 import math
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -53,9 +55,13 @@ def load_checkpoint(path: Path, model: torch.nn.Module, opt: torch.optim.Optimiz
     return {k: v for k, v in ckpt.items() if k not in ("model", "optimizer")}
 
 
-def train_step(model: torch.nn.Module, opt: torch.optim.Optimizer, batch: tuple[np.ndarray, ...]) -> float:
+def train_step(model: torch.nn.Module, opt: torch.optim.Optimizer, batch: tuple[np.ndarray, ...],
+               bf16: bool = False) -> float:
+    """One optimizer step; with ``bf16`` the convolutions run in bfloat16 (CPU autocast), the loss in fp32."""
     inputs, targets, channels = (torch.from_numpy(np.ascontiguousarray(b)) for b in batch)
-    loss = masked_mse(model(inputs), targets, channels)
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        heatmaps = model(inputs)
+    loss = masked_mse(heatmaps.float(), targets, channels)
     opt.zero_grad(set_to_none=True)
     loss.backward()
     opt.step()
@@ -64,7 +70,7 @@ def train_step(model: torch.nn.Module, opt: torch.optim.Optimizer, batch: tuple[
 
 def run(split: Split, run_dir: Path, minutes: float, batch_size: int = 32, lr: float = 2e-3, seed: int = 0,
         resume: bool = False, max_steps: int | None = None, log_every: int = 50,
-        ckpt_minutes: float = 3.0) -> Path:
+        ckpt_minutes: float = 3.0, bf16: bool = False) -> Path:
     """Train until the time budget (or ``max_steps``) is spent; returns the checkpoint path."""
     manifest = build_manifest()
     torch.manual_seed(seed)
@@ -80,11 +86,18 @@ def run(split: Split, run_dir: Path, minutes: float, batch_size: int = 32, lr: f
     budget, start, last_ckpt = minutes * 60.0, time.time() - state["elapsed"], time.time()
     model.train()
     running = []
+    prefetch = ThreadPoolExecutor(max_workers=1)  # the next batch is cut while this one trains
+
+    def next_batch() -> Future:
+        return prefetch.submit(make_batch, split, rng.integers(0, len(split), batch_size), manifest, rng)
+
+    pending = next_batch()
     while state["elapsed"] < budget and (max_steps is None or state["step"] < max_steps):
         for group in opt.param_groups:
             group["lr"] = learning_rate(lr, state["elapsed"], budget)
-        running.append(train_step(model, opt, make_batch(split, rng.integers(0, len(split), batch_size),
-                                                         manifest, rng)))
+        batch = pending.result()
+        pending = next_batch()
+        running.append(train_step(model, opt, batch, bf16))
         state["step"] += 1
         state["elapsed"] = time.time() - start
         if state["step"] % log_every == 0:
@@ -96,6 +109,7 @@ def run(split: Split, run_dir: Path, minutes: float, batch_size: int = 32, lr: f
         if time.time() - last_ckpt > ckpt_minutes * 60:
             save_checkpoint(ckpt_path, model, opt, state)
             last_ckpt = time.time()
+    prefetch.shutdown(wait=True)
     save_checkpoint(ckpt_path, model, opt, state)
     (run_dir / "state.json").write_text(json.dumps({k: v for k, v in state.items() if k != "losses"}))
     return ckpt_path
@@ -111,14 +125,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--batch", type=int, default=32)
     parser.add_argument("--lr", type=float, default=2e-3)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=2, help="torch threads (1: busy machine)")
+    parser.add_argument("--fp32", action="store_true", help="train in fp32 instead of bfloat16 autocast")
     parser.add_argument("--max-images", type=int, default=None)
     parser.add_argument("--resume", action="store_true")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
+    cv2.setNumThreads(1)
     split = load_split(args.data, build_manifest(), args.max_images)
     print(f"{len(split.images)} images, {len(split)} instances", flush=True)
-    path = run(split, args.run, args.minutes, args.batch, args.lr, args.seed, args.resume)
+    path = run(split, args.run, args.minutes, args.batch, args.lr, args.seed, args.resume, bf16=not args.fp32)
     print(f"saved {path}", flush=True)
 
 
