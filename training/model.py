@@ -50,6 +50,8 @@ class HeatmapUNet(nn.Module):
         self.up1 = Up(w2, w1, w1)
         self.up0 = Up(w1, w0, w0)
         self.head = nn.Conv2d(w0, num_keypoints, 1)
+        nn.init.normal_(self.head.weight, std=1e-3)  # start near zero: no early push that kills the ReLUs
+        nn.init.zeros_(self.head.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         s0 = self.stem(x)
