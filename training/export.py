@@ -39,8 +39,21 @@ def export_onnx(model: torch.nn.Module, manifest: Manifest, path: Path) -> Path:
     with warnings.catch_warnings():  # the TorchScript exporter is deprecated but needs no onnxscript
         warnings.simplefilter("ignore", DeprecationWarning)
         _export(model, dummy, path, manifest)
-    onnx.checker.check_model(onnx.load(str(path)))
+    graph_model = onnx.load(str(path))
+    _static_output_shape(graph_model, manifest)
+    onnx.checker.check_model(graph_model)
+    onnx.save(graph_model, str(path))
     return path
+
+
+def _static_output_shape(graph_model: onnx.ModelProto, manifest: Manifest) -> None:
+    """Declare the heatmap dims (K, H, W) as fixed numbers; the exporter leaves them symbolic."""
+    (output,) = graph_model.graph.output
+    dims = output.type.tensor_type.shape.dim
+    fixed = (manifest.num_keypoints, manifest.output.height, manifest.output.width)
+    for dim, value in zip(dims[1:], fixed, strict=True):
+        dim.Clear()
+        dim.dim_value = value
 
 
 def _export(model: torch.nn.Module, dummy: torch.Tensor, path: Path, manifest: Manifest) -> None:
