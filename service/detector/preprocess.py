@@ -14,16 +14,17 @@ from service.detector.crop import crop_affines, rescale_affines, warp_crop
 from service.detector.manifest import InputSpec, Manifest
 
 
-def to_model_colour(crops: np.ndarray, spec: InputSpec) -> np.ndarray:
-    """``(N, H, W, 1 or 3)`` crops in OpenCV order (gray or BGR) -> the model's channels."""
-    gray = crops.shape[3] == 1
+def to_model_colour(pixels: np.ndarray, spec: InputSpec) -> np.ndarray:
+    """Channels-last pixels ``(..., H, W, 1 or 3)`` in OpenCV order (gray or BGR) -> model order."""
+    gray = pixels.shape[-1] == 1
     if spec.color == "GRAY":
         if gray:
-            return crops
-        return np.stack([cv2.cvtColor(crop, cv2.COLOR_BGR2GRAY) for crop in crops])[..., None]
+            return pixels
+        rows = np.ascontiguousarray(pixels).reshape(-1, pixels.shape[-2], 3)  # images stacked vertically
+        return cv2.cvtColor(rows, cv2.COLOR_BGR2GRAY).reshape(*pixels.shape[:-1], 1)
     if gray:
-        return np.repeat(crops, 3, axis=3)
-    return crops[..., ::-1] if spec.color == "RGB" else crops
+        return np.repeat(pixels, 3, axis=-1)
+    return pixels[..., ::-1] if spec.color == "RGB" else pixels
 
 
 def normalize_crops(crops: np.ndarray, spec: InputSpec) -> np.ndarray:

@@ -48,3 +48,26 @@ def test_invert_and_rescale_compose():
     points = np.array([[12.0, 30.0]])
     np.testing.assert_allclose(apply_affines(heatmap, points), apply_affines(affines, points) / 2)
     np.testing.assert_allclose(apply_affines(invert_affines(heatmap), apply_affines(heatmap, points)), points)
+
+
+def test_preprocessing_matches_the_manifest_formula_for_colour_and_gray_images():
+    from service.detector.manifest import InputSpec, Manifest
+    from service.detector.preprocess import build_batch
+
+    manifest = Manifest(
+        name="m",
+        input=InputSpec(name="image", height=8, width=8, mean=(0.1, 0.2, 0.3), std=(0.5, 0.6, 0.7)),
+        crop={"padding": 0.0},
+        output={"name": "heatmaps", "height": 4, "width": 4},
+        keypoints=[{"index": 0, "name": "k", "object": "o"}],
+        objects=[{"name": "o", "keypoints": [0]}],
+    )
+    rng = np.random.default_rng(1)
+    image = rng.integers(0, 256, (20, 30, 3), dtype=np.uint8)
+    box = np.array([[11.0, 6.0, 8.0, 8.0]])  # crop = pixels 11..18 x 6..13 exactly
+    batch, _ = build_batch(image, box, manifest)
+    rgb = image[6:14, 11:19, ::-1].astype(np.float32) / 255
+    expected = ((rgb - np.float32([0.1, 0.2, 0.3])) / np.float32([0.5, 0.6, 0.7])).transpose(2, 0, 1)
+    np.testing.assert_allclose(batch[0], expected, rtol=1e-6, atol=1e-6)
+    gray, _ = build_batch(image[:, :, 1], box, manifest)
+    np.testing.assert_allclose(gray[0, 0], gray[0, 2] * 0.7 / 0.5 + (0.3 - 0.1) / 0.5, rtol=1e-5, atol=1e-5)
