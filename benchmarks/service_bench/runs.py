@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,6 +47,7 @@ class Point:
     concurrency: int
     service: LoadResult
     raw: raw.RawResult
+    load_1m: float = field(default_factory=lambda: os.getloadavg()[0])  # after the point
 
     @property
     def raw_requests_per_s(self) -> float:
@@ -159,7 +161,8 @@ def format_point(point: Point) -> str:
     return (
         f"{point.instances} inst c={point.concurrency:<2}  service {s.requests_per_s:7.1f} req/s "
         f"p50 {s.p50_ms:7.1f} ms p99 {s.p99_ms:7.1f} ms  raw {point.raw_requests_per_s:7.1f}/s  "
-        f"ratio {point.ratio:.2f}  errors {s.errors}  wrk cpu {s.loadgen_cpu_share:.0%}"
+        f"ratio {point.ratio:.2f}  errors {s.errors}  wrk cpu {s.loadgen_cpu_share:.0%}  "
+        f"load {point.load_1m:.1f}"
     )
 
 
