@@ -19,11 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.service_bench.inputs import Sample
-from benchmarks.service_bench.patched_serve import contiguous_colour
 from service import prediction
 from service.api.schemas import PredictParameters
-from service.detector import preprocess
-from service.detector.manifest import Manifest
 from service.detector.preprocess import build_batch
 from service.detector.runtime import Detector, InstanceHeatmaps
 from service.image_decoding import decode_image
@@ -81,23 +78,12 @@ def _cached(detector: Detector, result: InstanceHeatmaps, sets: CalibratedSets) 
         prediction.calibrated_sets = original
 
 
-def _build_batch_contiguous(image: np.ndarray, boxes: np.ndarray, manifest: Manifest):
-    """``build_batch`` with a contiguous colour-converted image (the proposed change)."""
-    original = preprocess.to_model_colour
-    preprocess.to_model_colour = contiguous_colour
-    try:
-        return build_batch(image, boxes, manifest)
-    finally:
-        preprocess.to_model_colour = original
-
-
 def _one_iteration(state: ServiceState, sample: Sample, parameters: PredictParameters) -> dict[str, float]:
     manifest, detector, registry = state.detector.manifest, state.detector, state.registry
     limit = state.settings.max_image_pixels
     ms: dict[str, float] = {}
     ms["decode"], image = _timed(lambda: decode_image(sample.jpeg, limit))
     ms["crop"], (batch, affines) = _timed(lambda: build_batch(image, sample.boxes, manifest))
-    ms["crop_contiguous"], _ = _timed(lambda: _build_batch_contiguous(image, sample.boxes, manifest))
     ms["inference"], out = _timed(lambda: detector.run_session(batch))
     result = _heatmaps(state, out, sample, affines)
     version = registry.resolve(parameters.calibration_version)
@@ -120,5 +106,4 @@ def stage_breakdown(state: ServiceState, sample: Sample, iterations: int) -> dic
     runs = [_one_iteration(state, sample, parameters) for _ in range(iterations)]
     medians = {stage: statistics.median(run[stage] for run in runs) for stage in STAGES}
     medians["total"] = sum(medians.values())
-    medians["crop_contiguous"] = statistics.median(run["crop_contiguous"] for run in runs)
     return medians

@@ -4,13 +4,11 @@ The benchmark cannot edit ``service/``; instead this replaces module functions b
 server starts (``CKS_BENCH_PATCHES``, comma-separated):
 
 - ``no-spinning``: the onnxruntime session gets ``session.intra_op.allow_spinning = 0``
-  (``service.detector.runtime._create_session``);
-- ``contiguous-colour``: ``service.detector.preprocess.to_model_colour`` returns a contiguous
-  array (BGR->RGB as a reversed-stride view makes every ``cv2.warpAffine`` copy the image).
+  (``service.detector.runtime._create_session``).
 
 Only valid with ``CKS_WORKERS=1`` (worker processes would import the unpatched modules).
 
-    CKS_BENCH_PATCHES=no-spinning,contiguous-colour python -m benchmarks.service_bench.patched_serve
+    CKS_BENCH_PATCHES=no-spinning python -m benchmarks.service_bench.patched_serve
 """
 
 from __future__ import annotations
@@ -19,32 +17,23 @@ import os
 import sys
 from pathlib import Path
 
-import numpy as np
 import onnxruntime as ort
 
 from benchmarks.service_bench.raw import make_session
 from service import cli
-from service.detector import preprocess, runtime
-from service.detector.manifest import InputSpec
+from service.detector import runtime
 
 PATCHES_VARIABLE = "CKS_BENCH_PATCHES"
-_original_colour = preprocess.to_model_colour
 
 
 def _session_without_spinning(model_path: Path, intra_op_threads: int) -> ort.InferenceSession:
     return make_session(Path(model_path).parent, intra_op_threads, spinning=False)
 
 
-def contiguous_colour(image_bgr: np.ndarray, spec: InputSpec) -> np.ndarray:
-    return np.ascontiguousarray(_original_colour(image_bgr, spec))
-
-
 def apply(patches: list[str]) -> None:
     for patch in patches:
         if patch == "no-spinning":
             runtime._create_session = _session_without_spinning
-        elif patch == "contiguous-colour":
-            preprocess.to_model_colour = contiguous_colour
         elif patch:
             raise SystemExit(f"unknown patch {patch!r} in {PATCHES_VARIABLE}")
 

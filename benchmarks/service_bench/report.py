@@ -347,10 +347,6 @@ def recommendations(r: Results) -> list[str]:
         "",
         "Rows marked *code change* run the server through `benchmarks/service_bench/patched_serve.py`, "
         "which swaps one service function at start-up (the service code itself is unchanged): "
-        "*spin-waiting off* builds the onnxruntime session with `session.intra_op.allow_spinning = 0`; "
-        "*contiguous RGB* makes `to_model_colour` return `np.ascontiguousarray(...)` instead of the "
-        "reversed-stride BGR->RGB view, which `cv2.warpAffine` otherwise copies whole for every crop "
-        f"(in-process: crop + normalize {r.breakdown[4]['crop']:.2f} ms -> "
-        f"{r.breakdown[4]['crop_contiguous']:.2f} ms for 4 instances).",
+        "*spin-waiting off* builds the onnxruntime session with `session.intra_op.allow_spinning = 0`.",
     ]
     return lines

@@ -188,13 +188,11 @@ TUNING = (
     Variant("CKS_CPU_WORKERS=8", {"cpu_workers": 8}),
     Variant("CKS_WORKERS=2, CKS_INFERENCE_THREADS=1", {"workers": 2, "inference_threads": 1}),
     Variant("CKS_WORKERS=2, CKS_INFERENCE_THREADS=2", {"workers": 2, "inference_threads": 2}),
-    Variant("code change: onnxruntime intra-op spin-waiting off", {"workers": 1}, ("no-spinning",)),
-    Variant("code change: contiguous RGB image before cropping", {"workers": 1}, ("contiguous-colour",)),
     Variant(
-        "code change: contiguous RGB + CKS_INFERENCE_THREADS=1",
-        {"workers": 1, "inference_threads": 1},
-        ("contiguous-colour",),
+        "CKS_INFERENCE_THREADS=1, CKS_MAX_INFERENCE_BATCH=0",
+        {"inference_threads": 1, "max_inference_batch": 0},
     ),
+    Variant("code change: onnxruntime intra-op spin-waiting off", {"workers": 1}, ("no-spinning",)),
 )
 
 

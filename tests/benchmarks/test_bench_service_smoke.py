@@ -53,7 +53,7 @@ def test_sample_builds_both_request_bodies(sample: Sample) -> None:
 def test_breakdown_reports_every_stage(model_dir: Path, sample: Sample, instances: int) -> None:
     with service_state(model_dir, inference_threads=1) as state:
         stages = stage_breakdown(state, sample.with_instances(instances), iterations=3)
-    assert list(stages) == [*STAGES, "total", "crop_contiguous"]
+    assert list(stages) == [*STAGES, "total"]
     assert all(math.isfinite(ms) and ms >= 0 for ms in stages.values())
     assert stages["total"] == pytest.approx(sum(stages[s] for s in STAGES))
 
