@@ -40,9 +40,12 @@ class Settings(BaseSettings):
     max_request_bytes: int = Field(default=20 * 2**20, gt=0, description="largest predict request body")
     max_image_pixels: int = Field(default=40_000_000, gt=0, description="largest width*height decoded")
     max_instances: int = Field(default=64, gt=0, description="instances per predict request")
-    max_concurrent_inferences: int = Field(default=4, gt=0, description="predict requests computing at once")
+    max_concurrent_inferences: int = Field(default=8, gt=0, description="predict requests computing at once")
     inference_threads: int = Field(
-        default=2, ge=0, description="onnxruntime intra-op threads (0 = ort default)"
+        default=1, ge=0, description="onnxruntime intra-op threads per run (0 = ort default)"
+    )
+    inference_streams: int = Field(
+        default=2, ge=1, le=64, description="onnxruntime runs in parallel when batching (about one per core)"
     )
     max_inference_batch: int = Field(
         default=32, ge=0, le=1024, description="crops of concurrent requests merged into one run (0 = off)"

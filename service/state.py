@@ -44,7 +44,12 @@ class ServiceState:
 def build_state(settings: Settings) -> ServiceState:
     """Load the model (refusing a manifest that does not fit it), open the store, bootstrap."""
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    detector = Detector(settings.model_dir, settings.inference_threads, settings.max_inference_batch)
+    detector = Detector(
+        settings.model_dir,
+        settings.inference_threads,
+        settings.max_inference_batch,
+        settings.inference_streams,
+    )
     store = open_store(settings.resolved_store_url)
     if settings.bootstrap_calibration:
         bootstrap_default_calibration(store, detector, settings.model_dir)

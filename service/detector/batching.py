@@ -1,9 +1,10 @@
 """Continuous micro-batching: crops of concurrent requests share one onnxruntime run.
 
-One inference thread takes whatever requests are queued (up to ``max_batch`` crops),
-runs them as one batch and hands each request its slice. Nothing waits for a batch to
-fill: a lone request runs at once, and under load the queue fills while the previous
-batch runs, so batches grow exactly when they pay off.
+Each of ``streams`` inference threads takes whatever requests are queued (up to
+``max_batch`` crops), runs them as one batch and hands each request its slice. Nothing
+waits for a batch to fill: a lone request runs at once, and under load the queue fills
+while the previous batches run, so batches grow exactly when they pay off. Several
+streams keep several cores busy when each run uses few intra-op threads.
 """
 
 from __future__ import annotations
@@ -28,13 +29,17 @@ class _Request:
 class MicroBatcher:
     """Serializes inference on one thread and merges queued requests into one run."""
 
-    def __init__(self, run_batch: RunBatch, max_batch: int) -> None:
+    def __init__(self, run_batch: RunBatch, max_batch: int, streams: int = 1) -> None:
         self._run_batch = run_batch
         self._max_batch = max_batch
         self._queue: queue.SimpleQueue[_Request | None] = queue.SimpleQueue()
         self._carry: _Request | None = None
-        self._thread = threading.Thread(target=self._loop, name="inference", daemon=True)
-        self._thread.start()
+        self._grouping = threading.Lock()  # one stream at a time forms its group
+        self._threads = [
+            threading.Thread(target=self._loop, name=f"inference-{i}", daemon=True) for i in range(streams)
+        ]
+        for thread in self._threads:
+            thread.start()
 
     def run(self, batch: np.ndarray) -> np.ndarray:
         """Heatmaps for ``batch``; blocks the calling (worker) thread until they are ready."""
@@ -43,8 +48,10 @@ class MicroBatcher:
         return request.result.result()
 
     def close(self) -> None:
-        self._queue.put(None)
-        self._thread.join(timeout=10)
+        for _ in self._threads:
+            self._queue.put(None)
+        for thread in self._threads:
+            thread.join(timeout=10)
 
     def _loop(self) -> None:
         while (requests := self._next_group()) is not None:
@@ -60,6 +67,10 @@ class MicroBatcher:
                 start += len(request.batch)
 
     def _next_group(self) -> list[_Request] | None:
+        with self._grouping:
+            return self._form_group()
+
+    def _form_group(self) -> list[_Request] | None:
         first = self._carry or self._queue.get()
         self._carry = None
         if first is None:
@@ -70,8 +81,11 @@ class MicroBatcher:
                 request = self._queue.get_nowait()
             except queue.Empty:
                 break
-            if request is None or size + len(request.batch) > self._max_batch:
-                self._carry = request  # run it (or stop) after this group
+            if request is None:
+                self._queue.put(None)  # leave the stop signal for a stream
+                break
+            if size + len(request.batch) > self._max_batch:
+                self._carry = request  # the next group starts with it
                 break
             group.append(request)
             size += len(request.batch)

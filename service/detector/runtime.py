@@ -42,7 +42,9 @@ class InstanceHeatmaps:
 class Detector:
     """A validated ONNX heatmap model and its manifest; ``run`` is thread-safe."""
 
-    def __init__(self, model_dir: Path, intra_op_threads: int = 0, max_batch: int = 0) -> None:
+    def __init__(
+        self, model_dir: Path, intra_op_threads: int = 0, max_batch: int = 0, streams: int = 1
+    ) -> None:
         model_dir = Path(model_dir)
         self.manifest = _load_manifest(model_dir)
         model_path = model_dir / MODEL_FILENAME
@@ -52,7 +54,7 @@ class Detector:
         self._session = create_session(model_path, intra_op_threads)
         _check_graph(self._session, self.manifest)
         self._check_output_shape()
-        self._batcher = MicroBatcher(self.run_session, max_batch) if max_batch > 0 else None
+        self._batcher = MicroBatcher(self.run_session, max_batch, streams) if max_batch > 0 else None
 
     def run_session(self, batch: np.ndarray) -> np.ndarray:
         """``(N, C, H, W)`` float32 input -> ``(N, K, h, w)`` float32 heatmaps, on this thread."""

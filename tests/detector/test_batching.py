@@ -73,3 +73,25 @@ def test_a_failing_run_fails_every_waiting_request():
     with pytest.raises(RuntimeError, match="model exploded"):
         batcher.run(np.ones((1, 1, 1, 1)))
     batcher.close()
+
+
+def test_several_streams_run_batches_in_parallel_and_stop_cleanly():
+    started = threading.Barrier(2, timeout=5)
+
+    def run(batch: np.ndarray) -> np.ndarray:
+        started.wait()  # only passes if two runs are in flight at once
+        return batch + 1
+
+    batcher = MicroBatcher(run, max_batch=1, streams=2)
+    results: list[np.ndarray] = []
+    def call(value: float) -> None:
+        results.append(batcher.run(np.full((1, 1), value)))
+
+    threads = [threading.Thread(target=call, args=(value,)) for value in (1.0, 2.0)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    batcher.close()
+    assert sorted(float(r[0, 0]) for r in results) == [2.0, 3.0]
+    assert not any(thread.is_alive() for thread in batcher._threads)
