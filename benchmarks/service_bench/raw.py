@@ -1,11 +1,11 @@
 """The baseline: the bare onnxruntime session, no HTTP, no decode, no scoring.
 
 Run in its own process(es), like the server: ``processes`` copies (CKS_WORKERS), each
-with one session built with the service's options (CKS_INFERENCE_THREADS intra-op
-threads, one inter-op thread, sequential) and ``concurrency / processes`` threads each
+with one session built by the service's own ``service.detector.runtime.create_session``
+(CKS_INFERENCE_THREADS intra-op threads) and ``concurrency / processes`` threads each
 calling ``session.run`` on the same prebuilt batch of crops, back to back.
 
-    python -m benchmarks.service_bench.raw MODEL_DIR BATCH.npy --threads 2 --concurrency 16
+    python -m benchmarks.service_bench.raw MODEL_DIR BATCH.npy --threads 1 --concurrency 16
 """
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import onnxruntime as ort
 
 from service.detector.manifest import MODEL_FILENAME, load_manifest
+from service.detector.runtime import create_session
 
 
 @dataclass(frozen=True)
@@ -37,24 +37,10 @@ class RawResult:
     p99_ms: float
 
 
-def make_session(model_dir: Path, threads: int, spinning: bool = True) -> ort.InferenceSession:
-    """The same session options as ``service.detector.runtime`` (``spinning=False``: an experiment)."""
-    options = ort.SessionOptions()
-    if not spinning:
-        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    options.intra_op_num_threads = threads
-    options.inter_op_num_threads = 1
-    options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    return ort.InferenceSession(str(model_dir / MODEL_FILENAME), options, providers=["CPUExecutionProvider"])
-
-
-def _drive(
-    model_dir: str, threads: int, batch_path: str, concurrency: int, seconds: float, spinning: bool
-) -> list[float]:
+def _drive(model_dir: str, threads: int, batch_path: str, concurrency: int, seconds: float) -> list[float]:
     """One process: ``concurrency`` threads running the batch until ``seconds`` have passed."""
     manifest = load_manifest(Path(model_dir))
-    session = make_session(Path(model_dir), threads, spinning)
+    session = create_session(Path(model_dir) / MODEL_FILENAME, threads)
     feed = {manifest.input.name: np.load(batch_path)}
     outputs = [manifest.output.name]
     session.run(outputs, feed)  # warm-up
@@ -81,11 +67,10 @@ def measure(
     concurrency: int,
     seconds: float,
     processes: int = 1,
-    spinning: bool = True,
 ) -> RawResult:
     """Runs/s of ``concurrency`` callers spread over ``processes`` processes (in this process)."""
     shares = [concurrency // processes + (i < concurrency % processes) for i in range(processes)]
-    jobs = [(str(model_dir), threads, str(batch_path), n, seconds, spinning) for n in shares if n]
+    jobs = [(str(model_dir), threads, str(batch_path), n, seconds) for n in shares if n]
     if len(jobs) == 1:
         latencies = _drive(*jobs[0])
     else:
@@ -103,13 +88,12 @@ def measure_in_subprocess(
     concurrency: int,
     seconds: float,
     processes: int = 1,
-    spinning: bool = True,
 ) -> RawResult:
     """``measure`` in a fresh interpreter, so the benchmark's own state does not share its CPU."""
     command = [
         sys.executable, "-m", "benchmarks.service_bench.raw", str(model_dir), str(batch_path),
         "--threads", str(threads), "--concurrency", str(concurrency), "--seconds", str(seconds),
-        "--processes", str(processes), *([] if spinning else ["--no-spinning"]),
+        "--processes", str(processes),
     ]  # fmt: skip
     output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
     return RawResult(**json.loads(output.strip().splitlines()[-1]))
@@ -119,16 +103,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("model_dir", type=Path)
     parser.add_argument("batch", type=Path, help=".npy of the (N, C, H, W) float32 input batch")
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=1, help="intra-op threads (CKS_INFERENCE_THREADS)")
     parser.add_argument("--concurrency", type=int, default=1)
     parser.add_argument("--seconds", type=float, default=5.0)
     parser.add_argument("--processes", type=int, default=1)
-    parser.add_argument("--no-spinning", action="store_true", help="session.intra_op.allow_spinning = 0")
     args = parser.parse_args()
-    result = measure(
-        args.model_dir, args.threads, args.batch, args.concurrency, args.seconds, args.processes,
-        spinning=not args.no_spinning,
-    )  # fmt: skip
+    result = measure(args.model_dir, args.threads, args.batch, args.concurrency, args.seconds, args.processes)
     print(json.dumps(result.__dict__))
 
 

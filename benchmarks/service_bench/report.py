@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from benchmarks.service_bench.breakdown import STAGES
 from benchmarks.service_bench.machine import Machine
 from benchmarks.service_bench.offline import Calibration, PostProcessing
-from benchmarks.service_bench.runs import BATCHED_CROPS, Memory, Point, Variant
+from benchmarks.service_bench.runs import BATCHED_CROPS, Memory, Point, Variant, batched_callers
 
 RATIO_GOAL, SPEEDUP_GOAL, MEMORY_GOAL = 0.85, 20.0, 0.05
 NOISE = 0.10  # throughput changes smaller than this are not called an effect
@@ -98,8 +98,10 @@ def throughput(r: Results) -> list[str]:
 
 def batched(r: Results) -> list[str]:
     crops_per_s = r.extra["batched"].runs_per_s * BATCHED_CROPS
+    callers = batched_callers(r.settings)
     lines = [
-        f"Raw session with the batching the service does: batches of {BATCHED_CROPS} crops, one caller: "
+        f"Raw session with the batching the service does: batches of {BATCHED_CROPS} crops, {callers} "
+        f"caller(s) (`CKS_INFERENCE_STREAMS` x `CKS_WORKERS`, as many as the service's inference threads): "
         f"**{crops_per_s:.1f} crops/s**.",
         "",
         "| instances | service req/s at c=16 | raw batched, request-equivalents/s | service / raw batched |",
@@ -186,7 +188,7 @@ def ceiling(r: Results) -> list[str]:
             "unless merged batches make inference cheaper per crop."
         )
     unbatched = r.point(1, 1).raw.runs_per_s
-    batched = r.extra["batched"].runs_per_s * BATCHED_CROPS
+    batched = r.extra["batched-1"].runs_per_s * BATCHED_CROPS
     lines.append(
         f"- Batching gain of the model itself: {batched:.0f} crops/s in batches of {BATCHED_CROPS} vs "
         f"{unbatched:.0f} crops/s one crop per run (one caller): x{batched / unbatched:.2f}."
@@ -249,16 +251,18 @@ def render(r: Results) -> str:
         "",
         "## Service vs raw onnxruntime",
         "",
-        "Raw = the bare `onnxruntime.InferenceSession` with the service's session options, in the same "
-        "process layout (`CKS_WORKERS` processes, `CKS_INFERENCE_THREADS` intra-op threads), on the same "
+        "Raw = the bare `onnxruntime.InferenceSession` built by the service's own "
+        "`service.detector.runtime.create_session`, in the same process layout (`CKS_WORKERS` processes, "
+        "`CKS_INFERENCE_THREADS` intra-op threads per run), on the same "
         "crops (the 1 or 4 crops of the request, one `session.run` per request-equivalent), driven by "
         "<concurrency> threads. No HTTP, decoding, cropping, scoring or JSON.",
         "",
         *throughput(r),
         "",
         "**Batching is not the same on both sides.** With `CKS_MAX_INFERENCE_BATCH > 0` the service merges "
-        "the crops of concurrent requests into one onnxruntime run (up to that many crops; at most "
-        "`CKS_MAX_CONCURRENT_INFERENCES` requests are inside `predict` at once), while the per-request raw "
+        "the crops of concurrent requests into one onnxruntime run (up to that many crops, on "
+        "`CKS_INFERENCE_STREAMS` inference threads per worker; at most `CKS_MAX_CONCURRENT_INFERENCES` "
+        "requests are inside `predict` at once), while the per-request raw "
         "baseline above never merges. A ratio above 1 at high concurrency is therefore possible and "
         "means batching wins more than the service overhead costs. For the fair upper bound, here is the "
         "raw session with the batching:",
@@ -343,10 +347,4 @@ def recommendations(r: Results) -> list[str]:
     for v in sorted(r.tuning, key=lambda v: -sum(gains(v))):
         one, four = gains(v)
         lines.append(f"- {v.label}: {one:+.0%} / {four:+.0%}: {_verdict([one, four])}.")
-    lines += [
-        "",
-        "Rows marked *code change* run the server through `benchmarks/service_bench/patched_serve.py`, "
-        "which swaps one service function at start-up (the service code itself is unchanged): "
-        "*spin-waiting off* builds the onnxruntime session with `session.intra_op.allow_spinning = 0`.",
-    ]
     return lines

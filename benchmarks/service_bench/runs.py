@@ -21,7 +21,8 @@ CONCURRENCIES = (1, 4, 16)
 INSTANCE_COUNTS = (1, 4)
 BATCHED_CROPS = 16
 SETTING_NAMES = (
-    "workers", "inference_threads", "max_inference_batch", "max_concurrent_inferences", "cpu_workers",
+    "workers", "inference_threads", "inference_streams", "max_inference_batch", "max_concurrent_inferences",
+    "cpu_workers",
 )  # fmt: skip
 
 
@@ -109,13 +110,19 @@ def prepare(directory: Path, model_dir: Path, sample: Sample, settings: dict[str
 
 
 def raw_point(
-    space: Workspace, crops: int, concurrency: int, seconds: float, spinning: bool = True, **overrides: int
+    space: Workspace, crops: int, concurrency: int, seconds: float, **overrides: int
 ) -> raw.RawResult:
+    """The raw session in the process layout and thread settings of the headline (plus ``overrides``)."""
     settings = {**space.settings, **overrides}
     return raw.measure_in_subprocess(
         space.model_dir, settings["inference_threads"], space.batches[crops], concurrency, seconds,
-        processes=settings["workers"], spinning=spinning,
+        processes=settings["workers"],
     )  # fmt: skip
+
+
+def batched_callers(settings: dict[str, int]) -> int:
+    """Threads running merged batches in the service: the inference streams of every worker."""
+    return settings["inference_streams"] * settings["workers"]
 
 
 def warm_up(server: Server, space: Workspace, plan: Plan) -> None:
@@ -151,8 +158,15 @@ def headline(
                 log(format_point(points[-1]))
             extra[f"json-{count}"] = run_wrk(server.url, space.scripts[count, "json"], 16, plan.seconds)
             log(f"JSON body, {count} instance(s), c=16: {extra[f'json-{count}'].requests_per_s:.1f} req/s")
-    extra["batched"] = raw_point(space, BATCHED_CROPS, 1, plan.seconds)
-    log(f"raw batches of {BATCHED_CROPS} crops: {extra['batched'].runs_per_s * BATCHED_CROPS:.1f} crops/s")
+    callers = batched_callers(space.settings)
+    extra["batched"] = raw_point(space, BATCHED_CROPS, callers, plan.seconds)
+    log(
+        f"raw batches of {BATCHED_CROPS} crops, {callers} caller(s): "
+        f"{extra['batched'].runs_per_s * BATCHED_CROPS:.1f} crops/s"
+    )
+    extra["batched-1"] = raw_point(space, BATCHED_CROPS, 1, plan.tuning_seconds)
+    crops_per_s = extra["batched-1"].runs_per_s * BATCHED_CROPS
+    log(f"raw batches of {BATCHED_CROPS} crops, 1 caller: {crops_per_s:.1f} crops/s")
     return points, mem, extra
 
 
@@ -172,27 +186,19 @@ class Variant:
 
     label: str
     overrides: dict[str, int]
-    patches: tuple[str, ...] = ()  # code changes, see benchmarks.service_bench.patched_serve
     points: list[Point] = field(default_factory=list)
-
-    @property
-    def spinning(self) -> bool:
-        return "no-spinning" not in self.patches
 
 
 TUNING = (
-    Variant("CKS_INFERENCE_THREADS=1", {"inference_threads": 1}),
+    Variant("CKS_INFERENCE_STREAMS=1 (batches serialized on one inference thread)", {"inference_streams": 1}),
+    Variant(
+        "CKS_INFERENCE_THREADS=2, CKS_INFERENCE_STREAMS=1 (the previous defaults)",
+        {"inference_threads": 2, "inference_streams": 1},
+    ),
     Variant("CKS_MAX_INFERENCE_BATCH=0 (no micro-batching)", {"max_inference_batch": 0}),
+    Variant("CKS_WORKERS=2", {"workers": 2}),
     Variant("CKS_MAX_CONCURRENT_INFERENCES=16", {"max_concurrent_inferences": 16}),
     Variant("CKS_CPU_WORKERS=2", {"cpu_workers": 2}),
-    Variant("CKS_CPU_WORKERS=8", {"cpu_workers": 8}),
-    Variant("CKS_WORKERS=2, CKS_INFERENCE_THREADS=1", {"workers": 2, "inference_threads": 1}),
-    Variant("CKS_WORKERS=2, CKS_INFERENCE_THREADS=2", {"workers": 2, "inference_threads": 2}),
-    Variant(
-        "CKS_INFERENCE_THREADS=1, CKS_MAX_INFERENCE_BATCH=0",
-        {"inference_threads": 1, "max_inference_batch": 0},
-    ),
-    Variant("code change: onnxruntime intra-op spin-waiting off", {"workers": 1}, ("no-spinning",)),
 )
 
 
@@ -202,18 +208,16 @@ def tuning(
     raws: dict[tuple, raw.RawResult] = {}
     done = []
     for template in variants:
-        variant = Variant(template.label, template.overrides, template.patches)
+        variant = Variant(template.label, template.overrides)
         env = space.env(**variant.overrides)
-        with serve(env, log=space.directory / "server.log", patches=variant.patches) as server:
+        with serve(env, log=space.directory / "server.log") as server:
             warm_up(server, space, plan)
             for count in INSTANCE_COUNTS:
                 service = run_wrk(server.url, space.scripts[count, "multipart"], 16, plan.tuning_seconds)
                 layout = {**space.settings, **variant.overrides}
-                key = (layout["inference_threads"], layout["workers"], variant.spinning, count)
+                key = (layout["inference_threads"], layout["workers"], count)
                 if key not in raws:
-                    raws[key] = raw_point(
-                        space, count, 16, plan.tuning_seconds, variant.spinning, **variant.overrides
-                    )
+                    raws[key] = raw_point(space, count, 16, plan.tuning_seconds, **variant.overrides)
                 variant.points.append(Point(count, 16, service, raws[key]))
                 log(f"{variant.label}: {format_point(variant.points[-1])}")
         done.append(variant)

@@ -52,15 +52,9 @@ def _wait_ready(url: str, process: subprocess.Popen, timeout: float) -> None:
 
 
 @contextmanager
-def serve(
-    settings: dict[str, str], log: Path | None = None, timeout: float = 120, patches: tuple[str, ...] = ()
-) -> Iterator[Server]:
-    """Start ``python -m service.cli serve`` with ``CKS_*`` settings; stop it on exit.
-
-    ``patches``: start ``benchmarks.service_bench.patched_serve`` with those code changes instead.
-    """
-    command = ["-m", "benchmarks.service_bench.patched_serve"] if patches else ["-m", "service.cli", "serve"]
-    settings = {**settings, "CKS_BENCH_PATCHES": ",".join(patches)}
+def serve(settings: dict[str, str], log: Path | None = None, timeout: float = 120) -> Iterator[Server]:
+    """Start ``python -m service.cli serve`` with ``CKS_*`` settings; stop it on exit."""
+    command = ["-m", "service.cli", "serve"]
     port = free_port()
     with tempfile.TemporaryDirectory(prefix="cks-bench-") as data_dir:
         env = {**os.environ, "CKS_DATA_DIR": data_dir, "CKS_PORT": str(port), **settings}
