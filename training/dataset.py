@@ -118,8 +118,9 @@ def gaussian_targets(points: np.ndarray, height: int, width: int, sigma: float =
 
 
 def make_batch(split: Split, rows: np.ndarray, manifest: Manifest, rng: np.random.Generator | None
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Network inputs, targets ``(B, 8, H, W)`` for the instance's own channels, and those channels."""
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Network inputs, targets ``(B, 8, H, W)`` for the instance's own channels, those channels,
+    and the keypoints in continuous heatmap coordinates ``(B, 8, 2)``."""
     boxes = split.boxes[rows]
     if rng is not None:
         boxes = jitter_boxes(rng, boxes)
@@ -129,4 +130,4 @@ def make_batch(split: Split, rows: np.ndarray, manifest: Manifest, rng: np.rando
     points = apply_affines(affines, split.keypoints[rows, :, :2])
     targets = gaussian_targets(points, manifest.output.height, manifest.output.width)
     channels = split.category[rows, None] * KEYPOINTS_PER_OBJECT + np.arange(KEYPOINTS_PER_OBJECT)
-    return normalize_crops(crops, manifest.input), targets, channels
+    return normalize_crops(crops, manifest.input), targets, channels, points.astype(np.float32)

@@ -82,7 +82,7 @@ def max_difference(model: torch.nn.Module, onnx_path: Path, inputs: np.ndarray, 
 def real_crops(folder: Path, manifest: Manifest, count: int = 16) -> np.ndarray:
     """Un-augmented network inputs cut from the first images of a split."""
     split = load_split(folder, manifest, max_images=max(4, count // 2), progress=False)
-    inputs, _, _ = make_batch(split, np.arange(min(count, len(split))), manifest, rng=None)
+    inputs, *_ = make_batch(split, np.arange(min(count, len(split))), manifest, rng=None)
     return inputs
 
 

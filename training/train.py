@@ -40,6 +40,26 @@ def masked_mse(heatmaps: torch.Tensor, targets: torch.Tensor, channels: torch.Te
     return ((1.0 + peak_weight * targets) * (picked - targets) ** 2).mean() * 1000.0
 
 
+def soft_argmax_l1(heatmaps: torch.Tensor, points: torch.Tensor, channels: torch.Tensor,
+                   beta: float = 10.0) -> torch.Tensor:
+    """Auxiliary coordinate loss: L1 between the soft-argmax of ``beta * heatmap`` and the label.
+
+    It gives every pixel a gradient towards the right place, which gets the heatmaps off the
+    all-zero plateau quickly; the MSE term keeps them Gaussian so that argmax reads them.
+    Keypoints outside the heatmap are ignored. Coordinates are normalized by the heatmap size.
+    """
+    n, k = channels.shape
+    h, w = heatmaps.shape[-2:]
+    picked = heatmaps.gather(1, channels[:, :, None, None].expand(-1, -1, h, w))
+    prob = torch.softmax(beta * picked.reshape(n, k, -1), dim=2).reshape(n, k, h, w)
+    xs = torch.arange(w, dtype=prob.dtype) + 0.5
+    ys = torch.arange(h, dtype=prob.dtype) + 0.5
+    expected = torch.stack([(prob.sum(2) * xs).sum(2), (prob.sum(3) * ys).sum(2)], dim=2)
+    inside = (points[..., 0] >= 0) & (points[..., 0] < w) & (points[..., 1] >= 0) & (points[..., 1] < h)
+    err = (expected - points).abs().sum(2) / w
+    return (err * inside).sum() / inside.sum().clamp(min=1)
+
+
 def learning_rate(base: float, elapsed: float, budget: float, warmup: float = 60.0) -> float:
     if elapsed < warmup:
         return base * max(elapsed / warmup, 0.05)
@@ -61,12 +81,14 @@ def load_checkpoint(path: Path, model: torch.nn.Module, opt: torch.optim.Optimiz
 
 
 def train_step(model: torch.nn.Module, opt: torch.optim.Optimizer, batch: tuple[np.ndarray, ...],
-               bf16: bool = False) -> float:
+               bf16: bool = False, coord_weight: float = 0.0) -> float:
     """One optimizer step; with ``bf16`` the convolutions run in bfloat16 (CPU autocast), the loss in fp32."""
-    inputs, targets, channels = (torch.from_numpy(np.ascontiguousarray(b)) for b in batch)
+    inputs, targets, channels, points = (torch.from_numpy(np.ascontiguousarray(b)) for b in batch)
     with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
         heatmaps = model(inputs)
     loss = masked_mse(heatmaps.float(), targets, channels)
+    if coord_weight > 0:
+        loss = loss + coord_weight * soft_argmax_l1(heatmaps.float(), points, channels)
     opt.zero_grad(set_to_none=True)
     loss.backward()
     opt.step()
@@ -75,7 +97,8 @@ def train_step(model: torch.nn.Module, opt: torch.optim.Optimizer, batch: tuple[
 
 def run(split: Split, run_dir: Path, minutes: float, batch_size: int = 32, lr: float = 2e-3, seed: int = 0,
         resume: bool = False, max_steps: int | None = None, log_every: int = 50,
-        ckpt_minutes: float = 3.0, bf16: bool = False) -> Path:
+        ckpt_minutes: float = 3.0, bf16: bool = False, coord_weight: float = 0.0,
+        init: Path | None = None) -> Path:
     """Train until the time budget (or ``max_steps``) is spent; returns the checkpoint path."""
     manifest = build_manifest()
     torch.manual_seed(seed)
@@ -84,6 +107,9 @@ def run(split: Split, run_dir: Path, minutes: float, batch_size: int = 32, lr: f
     run_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path = run_dir / CHECKPOINT
     state = {"step": 0, "elapsed": 0.0, "seed": seed, "losses": []}
+    if init is not None and not (resume and ckpt_path.exists()):
+        load_checkpoint(init, model)  # warm start: weights only, fresh optimizer and schedule
+        print(f"initialized from {init}", flush=True)
     if resume and ckpt_path.exists():
         state = load_checkpoint(ckpt_path, model, opt)
         print(f"resumed at step {state['step']}, {state['elapsed'] / 60:.1f} min", flush=True)
@@ -102,7 +128,7 @@ def run(split: Split, run_dir: Path, minutes: float, batch_size: int = 32, lr: f
             group["lr"] = learning_rate(lr, state["elapsed"], budget)
         batch = pending.result()
         pending = next_batch()
-        running.append(train_step(model, opt, batch, bf16))
+        running.append(train_step(model, opt, batch, bf16, coord_weight))
         state["step"] += 1
         state["elapsed"] = time.time() - start
         if state["step"] % log_every == 0:
@@ -133,13 +159,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--threads", type=int, default=2, help="torch threads (1: busy machine)")
     parser.add_argument("--fp32", action="store_true", help="train in fp32 instead of bfloat16 autocast")
     parser.add_argument("--max-images", type=int, default=None)
+    parser.add_argument("--coord-weight", type=float, default=20.0, help="auxiliary soft-argmax L1 weight")
+    parser.add_argument("--init", type=Path, default=None, help="warm start from a checkpoint's weights")
     parser.add_argument("--resume", action="store_true")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(1)
     split = load_split(args.data, build_manifest(), args.max_images)
     print(f"{len(split.images)} images, {len(split)} instances", flush=True)
-    path = run(split, args.run, args.minutes, args.batch, args.lr, args.seed, args.resume, bf16=not args.fp32)
+    path = run(split, args.run, args.minutes, args.batch, args.lr, args.seed, args.resume, bf16=not args.fp32,
+               coord_weight=args.coord_weight, init=args.init)
     print(f"saved {path}", flush=True)
 
 

@@ -27,13 +27,14 @@ def test_batch_targets_map_back_to_the_labels(tiny_split: Path) -> None:
     manifest = build_manifest()
     split = load_split(tiny_split, manifest, progress=False)
     rows = np.arange(len(split))
-    inputs, targets, channels = make_batch(split, rows, manifest, rng=None)
+    inputs, targets, channels, points = make_batch(split, rows, manifest, rng=None)
     assert inputs.shape == (len(rows), 3, 128, 128) and inputs.dtype == np.float32
     assert targets.shape == (len(rows), 8, 64, 64)
     assert (channels // 8 == split.category[:, None]).all()
     from training.dataset import cut_crops
 
     _, affines = cut_crops(split, rows, split.boxes[rows], manifest)
+    np.testing.assert_allclose(points, apply_affines(affines, split.keypoints[:, :, :2]), rtol=1e-5)
     back = apply_affines(invert_affines(affines), argmax_points(targets))
     inside = (targets.max(axis=(2, 3)) > 0.5)
     side = np.maximum(split.boxes[:, 2], split.boxes[:, 3])[:, None] * 1.25 / 64
