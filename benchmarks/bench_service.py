@@ -2,6 +2,7 @@
 
     python -m benchmarks.bench_service            # full run, ~10 min, writes docs/performance.md
     python -m benchmarks.bench_service --quick    # a few seconds per point, for development
+    python -m benchmarks.bench_service --seconds 6  # shorter headline points, same points
 
 Needs wrk (``apt-get install -y wrk``). The model is ``CKS_MODEL_DIR`` (default: the bundled
 model) and its ``samples/`` COCO folder; other ``CKS_*`` variables set the headline settings.
@@ -69,7 +70,7 @@ def run(args: argparse.Namespace) -> report.Results:
     samples = model_dir / "samples"
     sample = load_sample(samples)
     settings = headline_settings()
-    plan = runs.Plan.for_mode(args.quick)
+    plan = runs.Plan.for_mode(args.quick, args.seconds)
     with tempfile.TemporaryDirectory(prefix="cks-bench-") as directory:
         space = runs.prepare(Path(directory), model_dir, sample, settings)
         points, memory, extra = runs.headline(space, plan, log, with_memory=not args.skip_memory)
@@ -82,7 +83,9 @@ def run(args: argparse.Namespace) -> report.Results:
     write = calibration.store_write_best_s
     log(f"calibration: {calibration.instances_per_s:.0f} instances/s, write 100k instances {write:.2f} s")
     return report.Results(
-        command="python -m benchmarks.bench_service" + (" --quick" if args.quick else ""),
+        command="python -m benchmarks.bench_service"
+        + (" --quick" if args.quick else "")
+        + (f" --seconds {args.seconds:g}" if args.seconds is not None else ""),
         quick=args.quick,
         machine=machine,
         load_at_end=os.getloadavg(),
@@ -101,6 +104,9 @@ def run(args: argparse.Namespace) -> report.Results:
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="a few seconds per point")
+    parser.add_argument(
+        "--seconds", type=float, help="seconds per headline point (default 10, quick 2; tuning at most 6)"
+    )
     parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT, help="the Markdown report to write")
     parser.add_argument("--skip-memory", action="store_true", help="skip the 10 000-request memory run")
     parser.add_argument("--skip-tuning", action="store_true", help="skip the tuning variants")

@@ -36,8 +36,12 @@ class Plan:
     memory_requests: tuple[int, int]
 
     @staticmethod
-    def for_mode(quick: bool) -> Plan:
-        return Plan(2.0, 2.0, 1.0, (200, 2000)) if quick else Plan(10.0, 6.0, 2.0, (1000, 10000))
+    def for_mode(quick: bool, seconds: float | None = None) -> Plan:
+        """``seconds``: per headline point instead of the mode's (tuning points at most as long)."""
+        plan = Plan(2.0, 2.0, 1.0, (200, 2000)) if quick else Plan(10.0, 6.0, 2.0, (1000, 10000))
+        if seconds is None:
+            return plan
+        return Plan(seconds, min(seconds, plan.tuning_seconds), plan.warmup_seconds, plan.memory_requests)
 
 
 @dataclass

@@ -7,9 +7,13 @@ from pathlib import Path
 
 import pytest
 
+from benchmarks.service_bench import report, runs
 from benchmarks.service_bench.breakdown import STAGES, service_state, stage_breakdown
 from benchmarks.service_bench.inputs import Sample, load_sample
-from benchmarks.service_bench.loadgen import parse_wrk
+from benchmarks.service_bench.loadgen import LoadResult, parse_wrk
+from benchmarks.service_bench.machine import Machine
+from benchmarks.service_bench.offline import Calibration, PostProcessing
+from benchmarks.service_bench.raw import RawResult
 from service.settings import Settings
 
 WRK_OUTPUT = """\
@@ -64,3 +68,60 @@ def test_wrk_output_is_parsed() -> None:
     assert result.requests_per_s == pytest.approx(98.51)
     assert (result.p50_ms, result.p99_ms) == (pytest.approx(38.5), pytest.approx(1200.0))
     assert result.loadgen_cpu_share == pytest.approx(0.2 / 2.01)
+
+
+def _synthetic_results() -> report.Results:
+    def load(rps: float) -> LoadResult:
+        return LoadResult(16, int(rps * 10), 10.0, rps, 100.0, 200.0, 0, 0.01)
+
+    def raw_result(runs_per_s: float, batch: int = 1) -> RawResult:
+        return RawResult(16, batch, runs_per_s, 50.0, 90.0)
+
+    settings = {name: getattr(Settings(), name) for name in runs.SETTING_NAMES}
+    points = [
+        runs.Point(n, c, load(100.0 / n), raw_result(120.0 / n), load_1m=1.0)
+        for n in runs.INSTANCE_COUNTS
+        for c in runs.CONCURRENCIES
+    ]
+    tuned = [
+        runs.Variant(v.label, v.overrides, [runs.Point(n, 16, load(110.0 / n), raw_result(120.0 / n), 1.0)
+                                            for n in runs.INSTANCE_COUNTS])
+        for v in runs.TUNING
+    ]  # fmt: skip
+    stages = {stage: 1.0 for stage in STAGES}
+    return report.Results(
+        command="python -m benchmarks.bench_service",
+        quick=False,
+        machine=Machine(2, "test CPU", (0.5, 0.5, 0.5), "3.11", "1.0"),
+        load_at_end=(1.0, 0.8, 0.6),
+        model="`test`",
+        settings=settings,
+        points=points,
+        memory=runs.Memory([(1000, 200_000), (10001, 201_000)]),
+        extra={
+            "json-1": load(90.0),
+            "json-4": load(20.0),
+            "batched": raw_result(10.0, runs.BATCHED_CROPS),
+            "batched-1": raw_result(8.0, runs.BATCHED_CROPS),
+        },
+        breakdown={n: {**stages, "total": float(len(STAGES))} for n in runs.INSTANCE_COUNTS},
+        post=[PostProcessing(kind, 100.0, 2.0) for kind in ("peak", "var", "cov")],
+        calibration=Calibration(100, 1.0, 0.1, 0.12, 100_000),
+        tuning=tuned,
+    )
+
+
+def test_report_renders_every_section_and_tuning_row() -> None:
+    text = report.render(_synthetic_results())
+    for heading in ("## Goals", "## Service vs raw", "## Where the time goes", "## Tuning", "## Memory"):
+        assert heading in text
+    assert "`CKS_INFERENCE_STREAMS=" in text  # the headline settings include the streams
+    for variant in runs.TUNING:
+        assert f"| {variant.label} |" in text
+    assert "patched_serve" not in text and "spin" not in text
+
+
+def test_raw_baseline_and_batched_bound_follow_the_service_layout() -> None:
+    settings = {"workers": 2, "inference_threads": 1, "inference_streams": 2}
+    assert runs.batched_callers(settings) == 4
+    assert runs.Plan.for_mode(False, 4.0).tuning_seconds == 4.0
