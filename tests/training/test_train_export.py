@@ -63,3 +63,19 @@ def test_onnx_export_matches_pytorch(one_step_checkpoint: Path, tiny_split: Path
     path, diff = export(one_step_checkpoint, tmp_path / "exported", check_data=tiny_split)
     assert path.exists() and path.stat().st_size < 10e6
     assert diff is not None and diff <= 1e-4
+
+
+def test_training_crops_equal_the_service_batch(tiny_split: Path) -> None:
+    """Un-augmented training inputs are exactly what the service's build_batch feeds the model."""
+    import cv2
+
+    from service.detector.preprocess import build_batch
+    from training.coco import ANNOTATIONS_FILENAME, read_coco
+
+    manifest = build_manifest()
+    split = load_split(tiny_split, manifest, progress=False)
+    rows = np.flatnonzero(split.image_index == split.image_index[0])
+    inputs, *_ = make_batch(split, rows, manifest, rng=None)
+    image_file = read_coco(tiny_split / ANNOTATIONS_FILENAME)["images"][split.image_index[0]]["file_name"]
+    served, _ = build_batch(cv2.imread(str(tiny_split / image_file)), split.boxes[rows], manifest)
+    np.testing.assert_array_equal(inputs, served)
