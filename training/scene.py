@@ -52,6 +52,18 @@ def _random_rotation(rng: np.random.Generator) -> np.ndarray:
     return np.array(p.getMatrixFromQuaternion(q.tolist())).reshape(3, 3)
 
 
+def _resting_rotation(rng: np.random.Generator, max_tilt_deg: float = 15.0) -> np.ndarray:
+    """An object standing on the table as in LM-O: model z up, any yaw, a small tilt."""
+    yaw = rng.uniform(0, 2 * np.pi)
+    heading = rng.uniform(0, 2 * np.pi)
+    axis = np.array([np.cos(heading), np.sin(heading), 0.0])
+    tilt = np.deg2rad(rng.uniform(0, max_tilt_deg))
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    tilt_rot = np.eye(3) + np.sin(tilt) * k + (1 - np.cos(tilt)) * k @ k
+    c, s = np.cos(yaw), np.sin(yaw)
+    return tilt_rot @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
 def _quaternion(rotation: np.ndarray) -> list[float]:
     """Rotation matrix -> pybullet quaternion (x, y, z, w)."""
     m = rotation
@@ -193,7 +205,7 @@ def _place_targets(rng: np.random.Generator, world: World, spots: list[np.ndarra
     for cls, xy in zip(classes, spots, strict=True):
         if xy is None:
             continue
-        rotation = _random_rotation(rng)
+        rotation = _resting_rotation(rng)
         position = _rest_on_ground(class_mesh(OBJECT_CLASSES[cls]).vertices, rotation, xy)
         body = world.targets[cls]
         world.move(body, rotation, position)
