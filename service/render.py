@@ -51,10 +51,12 @@ def _draw_legend(canvas: np.ndarray, response: PredictResponse) -> None:
         f"calibration v{cal.version}, model {response.model.name}",
     ]
     scale = max(0.4, min(canvas.shape[:2]) / 900)
-    height = int(22 * scale / 0.5)
-    cv2.rectangle(canvas, (0, 0), (int(430 * scale / 0.5), height * len(lines) + 8), (0, 0, 0), -1)
+    sizes = [cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0] for text in lines]
+    line_height = max(h for _, h in sizes) * 2
+    width = max(w for w, _ in sizes) + 12
+    cv2.rectangle(canvas, (0, 0), (width, line_height * len(lines) + 6), (0, 0, 0), -1)
     for row, text in enumerate(lines):
-        origin = (6, height * (row + 1))
+        origin = (6, line_height * (row + 1))
         cv2.putText(canvas, text, origin, cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
 
 
