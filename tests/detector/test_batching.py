@@ -16,8 +16,10 @@ class RecordingRun:
     def __init__(self, gate: threading.Event | None = None) -> None:
         self.sizes: list[int] = []
         self.gate = gate
+        self.entered = threading.Event()
 
     def __call__(self, batch: np.ndarray) -> np.ndarray:
+        self.entered.set()
         if self.gate is not None:
             self.gate.wait(5)
         self.sizes.append(len(batch))
@@ -52,9 +54,11 @@ def test_queued_requests_share_one_run_and_respect_max_batch():
     run = RecordingRun(gate)
     batcher = MicroBatcher(run, max_batch=5)
     threads = [threading.Thread(target=batcher.run, args=(np.ones((2, 1, 1, 1)),)) for _ in range(6)]
-    for thread in threads:
+    threads[0].start()
+    assert run.entered.wait(5), "the first request never reached the model"
+    for thread in threads[1:]:  # the only stream is held by the gate: these five queue up
         thread.start()
-    while batcher._queue.qsize() < 5:  # first request is held by the gate, five wait behind it
+    while batcher._queue.qsize() < 5:
         threading.Event().wait(0.01)
     gate.set()
     for thread in threads:
@@ -62,7 +66,7 @@ def test_queued_requests_share_one_run_and_respect_max_batch():
     batcher.close()
     assert sum(run.sizes) == 12
     assert max(run.sizes) <= 5
-    assert len(run.sizes) < 6, f"no request was merged: {run.sizes}"
+    assert run.sizes[1] == 4, f"two queued requests (4 crops) should share the second run: {run.sizes}"
 
 
 def test_a_failing_run_fails_every_waiting_request():
