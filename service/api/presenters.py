@@ -7,11 +7,13 @@ import math
 from calibration_store import Activation, VersionInfo
 from service.api.admin_schemas import (
     ActivationOut,
+    JobOut,
     SourceBatchOut,
     ThresholdRow,
     VersionDetail,
     VersionSummary,
 )
+from service.calibration.jobs import Job
 from service.calibration.registry import CalibrationRegistry
 from service.conformal import NONCONFORMITY_SCORES
 from service.detector.manifest import Manifest
@@ -73,4 +75,18 @@ def activation_out(entry: Activation) -> ActivationOut:
         activated_at=entry.activated_at,
         who=entry.who,
         reason=entry.reason,
+    )
+
+
+def job_out(job: Job) -> JobOut:
+    return JobOut(
+        id=job.id,
+        kind=job.kind,
+        state=job.state,
+        done=job.done,
+        total=job.total,
+        errors=list(job.errors),
+        result=job.result,
+        created_at=job.created_at,
+        finished_at=job.finished_at,
     )

@@ -18,11 +18,10 @@ from service.api.admin_schemas import (
 )
 from service.api.body import receive_upload
 from service.api.deps import Admin, State
-from service.api.presenters import activation_out, describe, summarize
+from service.api.presenters import activation_out, describe, job_out, summarize
 from service.api.schemas import MAX_VERSION
 from service.calibration.archive import ArchiveLimits
 from service.calibration.calibrate import CalibrationOptions, check_parent, create_calibration
-from service.calibration.jobs import Job
 from service.calibration.uploads import UploadWorkspace, batch_name, validate_upload
 from service.errors import NotFound, UnsupportedMediaType
 
@@ -37,20 +36,6 @@ _UPLOAD_OPENAPI = {
         "content": {"application/zip": {"schema": {"type": "string", "format": "binary"}}},
     }
 }
-
-
-def job_out(job: Job) -> JobOut:
-    return JobOut(
-        id=job.id,
-        kind=job.kind,
-        state=job.state,
-        done=job.done,
-        total=job.total,
-        errors=list(job.errors),
-        result=job.result,
-        created_at=job.created_at,
-        finished_at=job.finished_at,
-    )
 
 
 @router.post(
