@@ -2,15 +2,20 @@
 
     python -m training.evaluate_detector --data data/lmo_synth/test --model models/lmo-synth-unet
 
-Crops go through the service's ``build_batch``; the point estimate of a keypoint is the
-centre of the argmax pixel of its channel, mapped back to the image by the inverse of
-the image->heatmap affine. Errors are normalized by max(box w, h); PCK uses 0.05.
+Crops go through the service's ``build_batch``. The point estimate of a keypoint is
+the ``point`` the service returns for the nonconformity function ``--point``: for
+``peak`` (the default) the centre of the argmax pixel, the detector's own estimate;
+for ``var``/``cov`` the top-K weighted mean of the normalized heatmap (normalization
+and K from the manifest). It is mapped back to the image by the inverse of the
+image->heatmap affine. Errors are normalized by max(box w, h); PCK uses 0.05.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -18,33 +23,30 @@ import numpy as np
 import onnxruntime as ort
 from tqdm import tqdm
 
+from service.conformal import point_estimates
 from service.detector.crop import apply_affines, invert_affines
 from service.detector.manifest import MODEL_FILENAME, Manifest, load_manifest
 from service.detector.preprocess import build_batch
 from training.coco import ANNOTATIONS_FILENAME, read_coco
 
 PCK_THRESHOLD = 0.05
+POINT_KINDS = ("peak", "var", "cov")
 
 
-def argmax_points(heatmaps: np.ndarray) -> np.ndarray:
-    """``(N, K, H, W)`` -> ``(N, K, 2)`` centres ``(c + 0.5, r + 0.5)`` of the argmax pixels."""
-    n, k, h, w = heatmaps.shape
-    flat = heatmaps.reshape(n, k, -1).argmax(axis=2)
-    return np.stack([flat % w + 0.5, flat // w + 0.5], axis=2).astype(np.float64)
+@dataclass(frozen=True)
+class ImageInstances:
+    """The detector's heatmaps of every annotated instance of one image, with its labels."""
+
+    heatmaps: np.ndarray  # (n, 8, H, W): each instance's own object channels
+    affines: np.ndarray  # (n, 2, 3) image -> heatmap
+    labels: np.ndarray  # (n, 8, 3) COCO x, y, v
+    boxes: np.ndarray  # (n, 4) x, y, w, h
+    objects: list[str]
 
 
-def predict_image(session: ort.InferenceSession, manifest: Manifest, image_bgr: np.ndarray, boxes: np.ndarray,
-                  objects: list[str]) -> np.ndarray:
-    """Image-space point estimates ``(N, 8, 2)`` for boxes of the given objects."""
-    batch, affines = build_batch(image_bgr, boxes, manifest)
-    (heatmaps,) = session.run([manifest.output.name], {manifest.input.name: batch})
-    channels = np.array([manifest.object(name).keypoints for name in objects])
-    picked = np.take_along_axis(heatmaps, channels[:, :, None, None], axis=1)
-    return apply_affines(invert_affines(affines), argmax_points(picked))
-
-
-def collect_errors(data: Path, model_dir: Path, max_images: int | None = None) -> dict[str, np.ndarray]:
-    """Normalized errors, visibility flags and object names of every labelled keypoint."""
+def image_instances(data: Path, model_dir: Path, max_images: int | None = None,
+                    desc: str = "evaluate") -> Iterator[ImageInstances]:
+    """Run the detector on the ground-truth boxes of every image of a COCO split."""
     manifest = load_manifest(model_dir)
     session = ort.InferenceSession(str(Path(model_dir) / MODEL_FILENAME), providers=["CPUExecutionProvider"])
     coco = read_coco(Path(data) / ANNOTATIONS_FILENAME)
@@ -52,20 +54,44 @@ def collect_errors(data: Path, model_dir: Path, max_images: int | None = None) -
     by_image: dict[int, list[dict]] = {}
     for ann in coco["annotations"]:
         by_image.setdefault(ann["image_id"], []).append(ann)
-    errors, flags, objects = [], [], []
-    for im in tqdm(coco["images"][:max_images], desc="evaluate", mininterval=10):
+    for im in tqdm(coco["images"][:max_images], desc=desc, mininterval=10):
         anns = by_image.get(im["id"], [])
         if not anns:
             continue
         image = cv2.imread(str(Path(data) / im["file_name"]), cv2.IMREAD_COLOR)
         boxes = np.array([a["bbox"] for a in anns], dtype=np.float64)
-        objs = [names[a["category_id"]] for a in anns]
-        pred = predict_image(session, manifest, image, boxes, objs)
-        gt = np.array([a["keypoints"] for a in anns], dtype=np.float64).reshape(len(anns), -1, 3)
-        scale = np.maximum(boxes[:, 2], boxes[:, 3])[:, None]
-        errors.append((np.linalg.norm(pred - gt[:, :, :2], axis=2) / scale).ravel())
-        flags.append(gt[:, :, 2].ravel())
-        objects += [o for o in objs for _ in range(gt.shape[1])]
+        objects = [names[a["category_id"]] for a in anns]
+        batch, affines = build_batch(image, boxes, manifest)
+        (heatmaps,) = session.run([manifest.output.name], {manifest.input.name: batch})
+        channels = np.array([manifest.object(name).keypoints for name in objects])
+        yield ImageInstances(
+            heatmaps=np.take_along_axis(heatmaps, channels[:, :, None, None], axis=1),
+            affines=affines,
+            labels=np.array([a["keypoints"] for a in anns], dtype=np.float64).reshape(len(anns), -1, 3),
+            boxes=boxes,
+            objects=objects,
+        )
+
+
+def service_points(heatmaps: np.ndarray, manifest: Manifest, kind: str = "peak") -> np.ndarray:
+    """The service's point estimates ``(n, K, 2)`` in heatmap coordinates for heatmaps ``(n, K, H, W)``."""
+    n, k, h, w = heatmaps.shape
+    spec = manifest.heatmap
+    flat = heatmaps.reshape(n * k, h, w)
+    return point_estimates(kind, flat, spec.normalization, spec.top_k, spec.temperature).reshape(n, k, 2)
+
+
+def collect_errors(data: Path, model_dir: Path, max_images: int | None = None,
+                   kind: str = "peak") -> dict[str, np.ndarray]:
+    """Normalized errors, visibility flags and object names of every labelled keypoint."""
+    manifest = load_manifest(model_dir)
+    errors, flags, objects = [], [], []
+    for found in image_instances(data, model_dir, max_images):
+        points = apply_affines(invert_affines(found.affines), service_points(found.heatmaps, manifest, kind))
+        scale = np.maximum(found.boxes[:, 2], found.boxes[:, 3])[:, None]
+        errors.append((np.linalg.norm(points - found.labels[:, :, :2], axis=2) / scale).ravel())
+        flags.append(found.labels[:, :, 2].ravel())
+        objects += [o for o in found.objects for _ in range(found.labels.shape[1])]
     return {"error": np.concatenate(errors), "v": np.concatenate(flags), "object": np.array(objects)}
 
 
@@ -103,13 +129,16 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--model", type=Path, required=True, help="model directory (onnx + manifest)")
+    parser.add_argument("--point", choices=POINT_KINDS, default="peak",
+                        help="evaluate the service's point for this nonconformity function")
     parser.add_argument("--max-images", type=int, default=None)
     parser.add_argument("--json", type=Path, default=None, help="also write the summary as JSON")
     args = parser.parse_args(argv)
-    summary = report(collect_errors(args.data, args.model, args.max_images))
+    summary = report(collect_errors(args.data, args.model, args.max_images, args.point))
+    print(f"point estimate: the service's {args.point!r} point")
     print(format_report(summary))
     if args.json:
-        args.json.write_text(json.dumps(summary, indent=2))
+        args.json.write_text(json.dumps({"point": args.point, **summary}, indent=2))
 
 
 if __name__ == "__main__":

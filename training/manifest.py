@@ -32,7 +32,9 @@ def object_channels(class_index: int) -> list[int]:
     return list(range(start, start + KEYPOINTS_PER_OBJECT))
 
 
-def build_manifest(name: str = MODEL_NAME) -> Manifest:
+def build_manifest(name: str = MODEL_NAME, top_k: int = 100) -> Manifest:
+    """The manifest; ``top_k`` starts at the paper's 100 and is then chosen per model by
+    ``python -m training.select_top_k --write``."""
     keypoints, objects = [], []
     for c, obj in enumerate(OBJECT_CLASSES):
         channels = object_channels(c)
@@ -48,7 +50,7 @@ def build_manifest(name: str = MODEL_NAME) -> Manifest:
                         mean=IMAGENET_MEAN, std=IMAGENET_STD),
         crop=CropSpec(padding=0.25),
         output=OutputSpec(name="heatmaps", height=HEATMAP_SIZE, width=HEATMAP_SIZE),
-        heatmap=HeatmapSpec(normalization="anchor", top_k=100),
+        heatmap=HeatmapSpec(normalization="anchor", top_k=top_k),
         keypoints=tuple(keypoints),
         objects=tuple(objects),
     )
