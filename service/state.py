@@ -54,7 +54,11 @@ def build_state(settings: Settings) -> ServiceState:
     if settings.bootstrap_calibration:
         bootstrap_default_calibration(store, detector, settings.model_dir)
     registry = CalibrationRegistry(
-        store, detector.model_hash, detector.manifest.num_keypoints, settings.store_poll_seconds
+        store,
+        detector.model_hash,
+        detector.manifest.num_keypoints,
+        settings.store_poll_seconds,
+        detector.manifest.heatmap,
     )
     log.info("serving model %s (%s), active calibration %s", detector.manifest.name,
              detector.model_hash[:12], registry.refresh_now())  # fmt: skip

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration_store import CalibrationStore, NewVersion, ObjectScores, ScoreTable, VersionInfo
+from service.calibration.compatibility import incompatibility
 from service.detector.runtime import Detector
 
 BUNDLE_FILENAME = "default_calibration.npz"
@@ -59,6 +60,10 @@ def bootstrap_default_calibration(store: CalibrationStore, detector: Detector, m
     new, table = load_bundle(path)
     if new.model_hash != detector.model_hash:
         log.warning("%s was computed for another model (%s); not loading it", path, new.model_hash[:12])
+        return None
+    reason = incompatibility(new.normalization, detector.manifest.heatmap)
+    if reason is not None:
+        log.warning("%s is not loaded: %s", path, reason)
         return None
     info = store.create_version(new, table)
     store.activate(detector.model_hash, info.number, "bootstrap", f"bundled default calibration {path.name}")

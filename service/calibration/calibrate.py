@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 from calibration_store import CalibrationStore, NewVersion, SourceBatch, VersionInfo, VersionNotFound
 from service.calibration.coco import CocoBatch
+from service.calibration.compatibility import scoring_settings, version_incompatibility
 from service.calibration.scoring import ScoreAccumulator, score_batch
 from service.detector.runtime import Detector
 from service.errors import Conflict, NotFound
@@ -30,23 +31,15 @@ class CalibrationOptions:
     activate: bool = False
 
 
-def normalization_settings(detector: Detector) -> dict:
-    """What the stored scores depend on besides the model bytes; appending requires equality."""
-    heatmap = detector.manifest.heatmap
-    return {"mode": heatmap.normalization, "temperature": heatmap.temperature, "top_k": heatmap.top_k}
-
-
 def check_parent(store: CalibrationStore, detector: Detector, version: int) -> VersionInfo:
     """The version to append to, refused when it is missing or was scored differently."""
     try:
         parent = store.get_version(detector.model_hash, version)
     except VersionNotFound as error:
         raise NotFound(f"cannot append to calibration version {version}: it does not exist") from error
-    if dict(parent.normalization) != normalization_settings(detector):
-        raise Conflict(
-            f"version {version} was scored with {dict(parent.normalization)}, the model now uses "
-            f"{normalization_settings(detector)}: start a new version instead of appending"
-        )
+    reason = version_incompatibility(parent, detector.manifest.heatmap)
+    if reason is not None:
+        raise Conflict(f"cannot append: {reason}")
     return parent
 
 
@@ -76,7 +69,7 @@ def create_calibration(
     new = NewVersion(
         model_hash=detector.model_hash,
         model_name=detector.manifest.name,
-        normalization=normalization_settings(detector),
+        normalization=scoring_settings(detector.manifest.heatmap),
         source_batches=sources,
         author=options.author,
         note=options.note,

@@ -17,6 +17,7 @@ from functools import lru_cache
 import numpy as np
 
 from calibration_store import CalibrationStore, ScoreTable, VersionNotFound
+from service.calibration.compatibility import version_incompatibility
 from service.conformal import (
     CoverageGuarantee,
     calibrate,
@@ -24,7 +25,8 @@ from service.conformal import (
     coverage_guarantee,
     object_scores,
 )
-from service.errors import NotFound, Unavailable
+from service.detector.manifest import HeatmapSpec
+from service.errors import Conflict, NotFound, Unavailable
 
 
 @dataclass(frozen=True)
@@ -62,11 +64,17 @@ class CalibrationRegistry:
     """Active-version tracking plus per-version caches for one model hash."""
 
     def __init__(
-        self, store: CalibrationStore, model_hash: str, num_keypoints: int, poll_seconds: float
+        self,
+        store: CalibrationStore,
+        model_hash: str,
+        num_keypoints: int,
+        poll_seconds: float,
+        heatmap: HeatmapSpec,
     ) -> None:
         self.store = store
         self.model_hash = model_hash
         self._num_keypoints = num_keypoints
+        self._heatmap = heatmap
         self._poll_seconds = poll_seconds
         self._lock = threading.Lock()
         self._checked_at = -np.inf
@@ -102,11 +110,13 @@ class CalibrationRegistry:
         return version
 
     def scores(self, version: int) -> ScoreTable:
+        """The version's scores; 404 if it does not exist, 409 if scored under other heatmap settings."""
         with self._lock:
             if version in self._tables:
                 self._tables.move_to_end(version)
                 return self._tables[version]
         try:
+            self.check_usable(version)
             table = self.store.load_scores(self.model_hash, version)
         except VersionNotFound as error:
             raise NotFound(f"calibration version {version} does not exist for this model") from error
@@ -115,6 +125,12 @@ class CalibrationRegistry:
             while len(self._tables) > 8:
                 self._tables.popitem(last=False)
         return table
+
+    def check_usable(self, version: int) -> None:
+        """Raise Conflict if the version was scored under other heatmap settings; VersionNotFound passes."""
+        reason = version_incompatibility(self.store.get_version(self.model_hash, version), self._heatmap)
+        if reason is not None:
+            raise Conflict(reason)
 
     def _refresh(self) -> None:
         counter = self.store.change_counter()

@@ -147,6 +147,7 @@ async def activate_calibration(
 
     def run() -> ActivationOut:
         try:
+            state.registry.check_usable(version)
             entry = state.store.activate(state.detector.model_hash, version, who, reason)
         except VersionNotFound as error:
             raise NotFound(f"calibration version {version} does not exist for this model") from error
