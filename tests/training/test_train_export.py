@@ -7,12 +7,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from service.conformal import point_estimates
 from service.detector.crop import apply_affines, invert_affines
 from training.dataset import gaussian_targets, load_split, make_batch
-from training.evaluate_detector import argmax_points
 from training.export import export
 from training.manifest import build_manifest
 from training.train import run
+
+
+def argmax_points(heatmaps: np.ndarray) -> np.ndarray:
+    """(N, K, H, W) -> (N, K, 2): the service's peak point (argmax pixel centre) of every map."""
+    n, k, h, w = heatmaps.shape
+    return point_estimates("peak", heatmaps.reshape(n * k, h, w)).reshape(n, k, 2)
 
 
 def test_gaussian_target_peaks_at_the_label_pixel() -> None:
