@@ -42,6 +42,7 @@ _OPENAPI = {
     },
     "responses": {
         "200": {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}},
+        "409": {"description": "The calibration version was scored under other heatmap settings"},
         "413": {"description": "Body or image too large"},
         "415": {"description": "Not JSON or multipart, or not a JPEG/PNG image"},
         "422": {"description": "Invalid request; the problem lists what to fix"},
