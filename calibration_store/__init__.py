@@ -34,6 +34,13 @@ CalibrationStore (thread-safe; also a context manager that closes):
   list[Activation]`` oldest first.
 - ``change_counter() -> int``: grows with every creation and activation, store-wide;
   poll it (one tiny query) to notice changes made by other replicas.
+- ``create_job(job: JobRecord) -> JobRecord`` (JobExists if the id is taken),
+  ``update_job(job_id, **fields) -> JobRecord`` (state, done, total, errors, result,
+  finished_at, heartbeat_at; heartbeat_at defaults to now, so every write is a sign of
+  life; JobNotFound), ``get_job(job_id) -> JobRecord | None``: background jobs, visible
+  to every process sharing the store. ``prune_jobs(keep=1000, max_age=7 days) -> int``
+  deletes jobs whose heartbeat is older than max_age, and finished jobs with ``keep``
+  newer jobs after them; a live unfinished job is never deleted.
 - ``ping() -> None`` (raises StoreUnavailable), ``close() -> None``.
 
 Data classes (frozen, validated on construction: ValueError/TypeError says what to fix):
@@ -48,18 +55,32 @@ Data classes (frozen, validated on construction: ValueError/TypeError says what 
 - ``VersionInfo(model_hash, number, model_name, normalization, source_batches,
   author, note, parent_version, created_at, n_instances, object_counts, functions)``.
 - ``Activation(seq, model_hash, version, activated_at, who, reason)``.
+- ``JobRecord(id, kind, owner, created_at, heartbeat_at, state="queued", done=0,
+  total=0, errors=(), result={}, finished_at=None)``: state is one of JOB_STATES
+  (queued, running, succeeded, failed); times are timezone-aware.
 
-Errors: StoreError > VersionNotFound (also a LookupError; HTTP 404),
-SchemaVersionError (database migrated by newer code), StoreUnavailable (HTTP 503).
-Stored rows are immutable (database triggers refuse UPDATE and DELETE).
+Errors: StoreError > VersionNotFound (also a LookupError; HTTP 404), JobNotFound
+(a LookupError), JobExists (a ValueError), SchemaVersionError (database migrated by
+newer code), StoreUnavailable (HTTP 503).
+Versions, scores and activations are immutable (database triggers refuse UPDATE and
+DELETE); only job rows change.
 """
 
 from .base import CalibrationStore
-from .errors import SchemaVersionError, StoreError, StoreUnavailable, VersionNotFound
+from .errors import (
+    JobExists,
+    JobNotFound,
+    SchemaVersionError,
+    StoreError,
+    StoreUnavailable,
+    VersionNotFound,
+)
 from .factory import open_store, sqlite_path
 from .models import (
     DEFAULT_FUNCTIONS,
+    JOB_STATES,
     Activation,
+    JobRecord,
     NewVersion,
     ObjectScores,
     ScoreTable,
@@ -69,8 +90,12 @@ from .models import (
 
 __all__ = [
     "DEFAULT_FUNCTIONS",
+    "JOB_STATES",
     "Activation",
     "CalibrationStore",
+    "JobExists",
+    "JobNotFound",
+    "JobRecord",
     "NewVersion",
     "ObjectScores",
     "SchemaVersionError",

@@ -3,9 +3,15 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from datetime import timedelta
 from types import TracebackType
+from typing import Any
 
-from .models import Activation, NewVersion, ScoreTable, VersionInfo
+from .models import Activation, JobRecord, NewVersion, ScoreTable, VersionInfo
+
+#: prune_jobs defaults: keep the newest KEEP_JOBS jobs and anything alive within JOB_MAX_AGE
+KEEP_JOBS = 1000
+JOB_MAX_AGE = timedelta(days=7)
 
 
 class CalibrationStore(ABC):
@@ -53,6 +59,31 @@ class CalibrationStore(ABC):
 
         One cheap query: poll it (about once a second) to learn that another replica
         changed something, then re-read active_version.
+        """
+
+    @abstractmethod
+    def create_job(self, job: JobRecord) -> JobRecord:
+        """Store a new background job as given; raises JobExists if its id is taken."""
+
+    @abstractmethod
+    def update_job(self, job_id: str, **fields: Any) -> JobRecord:
+        """Change mutable fields of a job (see JOB_MUTABLE_FIELDS) and return the stored row.
+
+        Every update is a sign of life: heartbeat_at is set to now unless given.
+        `update_job(job_id)` only refreshes the heartbeat. Raises JobNotFound.
+        """
+
+    @abstractmethod
+    def get_job(self, job_id: str) -> JobRecord | None:
+        """The stored job, or None if there is none with this id (or it was pruned)."""
+
+    @abstractmethod
+    def prune_jobs(self, keep: int = KEEP_JOBS, max_age: timedelta = JOB_MAX_AGE) -> int:
+        """Delete old jobs and return how many were deleted.
+
+        A job is deleted when its heartbeat (its last write) is older than max_age, or
+        when it is finished and at least `keep` jobs were created after it. A live
+        unfinished job is never deleted.
         """
 
     @abstractmethod

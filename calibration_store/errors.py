@@ -16,6 +16,22 @@ class VersionNotFound(StoreError, LookupError):
         self.number = number
 
 
+class JobNotFound(StoreError, LookupError):
+    """No job with this id is stored (never created, or pruned)."""
+
+    def __init__(self, job_id: str) -> None:
+        super().__init__(f"no job {job_id!r} is stored")
+        self.job_id = job_id
+
+
+class JobExists(StoreError, ValueError):
+    """create_job was given the id of a job that is already stored."""
+
+    def __init__(self, job_id: str) -> None:
+        super().__init__(f"a job with id {job_id!r} is already stored; ids must be unique")
+        self.job_id = job_id
+
+
 class SchemaVersionError(StoreError):
     """The database schema is newer than this code understands (refuse to touch it)."""
 

@@ -84,6 +84,27 @@ def _initial(blob: str, id_column: str, seq_column: str, timestamp: str) -> tupl
     )
 
 
+def _jobs(timestamp: str) -> tuple[str, ...]:
+    """Background jobs, so that any process of any replica can report them (mutable rows)."""
+    return (
+        f"""CREATE TABLE calib_jobs (
+            id TEXT PRIMARY KEY,
+            kind TEXT NOT NULL,
+            owner TEXT NOT NULL,
+            created_at {timestamp} NOT NULL,
+            heartbeat_at {timestamp} NOT NULL,
+            state TEXT NOT NULL CHECK (state IN ('queued', 'running', 'succeeded', 'failed')),
+            done BIGINT NOT NULL CHECK (done >= 0),
+            total BIGINT NOT NULL CHECK (total >= 0),
+            errors TEXT NOT NULL,
+            result TEXT NOT NULL,
+            finished_at {timestamp}
+        )""",
+        "CREATE INDEX calib_jobs_by_created ON calib_jobs (created_at)",
+        "CREATE INDEX calib_jobs_by_heartbeat ON calib_jobs (heartbeat_at)",
+    )
+
+
 _IMMUTABLE_TABLES = ("calib_versions", "calib_score_objects", "calib_score_arrays",
                      "calib_activations")
 
@@ -120,6 +141,7 @@ SQLITE_MIGRATIONS: tuple[Migration, ...] = (
         )
         + _sqlite_immutability(),
     ),
+    Migration(2, "background jobs", _jobs(timestamp="TEXT")),
 )
 
 POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
@@ -138,6 +160,7 @@ POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
         )
         + _postgres_immutability(),
     ),
+    Migration(2, "background jobs", _jobs(timestamp="TIMESTAMPTZ")),
 )
 
 

@@ -184,13 +184,17 @@ class ScoreTable:
         return {block.object_name: block.n_instances for block in self.objects}
 
 
-def _normalization(value: object) -> dict[str, Any]:
+def _json_object(value: object, what: str) -> dict[str, Any]:
     if not isinstance(value, Mapping):
-        raise TypeError("normalization settings must be a mapping")
+        raise TypeError(f"{what} must be a mapping")
     try:
         return json.loads(json.dumps(dict(value), allow_nan=False, sort_keys=True))
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"normalization settings must be plain JSON: {exc}") from exc
+        raise ValueError(f"{what} must be plain JSON: {exc}") from exc
+
+
+def _normalization(value: object) -> dict[str, Any]:
+    return _json_object(value, "normalization settings")
 
 
 @dataclass(frozen=True)
@@ -255,6 +259,89 @@ class Activation:
     reason: str
 
 
+#: States of a background job; the last two are final.
+JOB_STATES: tuple[str, ...] = ("queued", "running", "succeeded", "failed")
+FINAL_JOB_STATES: tuple[str, ...] = ("succeeded", "failed")
+MAX_JOB_ID = 200
+
+#: JobRecord fields update_job may change (the rest are set once by create_job).
+JOB_MUTABLE_FIELDS: tuple[str, ...] = (
+    "state", "done", "total", "errors", "result", "finished_at", "heartbeat_at"
+)
+
+
+def _aware(value: object, what: str) -> datetime:
+    if not isinstance(value, datetime):
+        raise TypeError(f"{what} must be a datetime, got {type(value).__name__}")
+    if value.tzinfo is None or value.utcoffset() is None:
+        raise ValueError(f"{what} must be timezone-aware (e.g. datetime.now(UTC))")
+    return value
+
+
+def _messages(value: object, what: str) -> tuple[str, ...]:
+    if isinstance(value, str | bytes) or not isinstance(value, Iterable):
+        raise TypeError(f"{what} must be a list of strings")
+    return tuple(_text(item, f"each of {what}", allow_empty=True) for item in value)
+
+
+def is_job_id(value: object) -> bool:
+    """Whether a job could be stored under this id (1 to MAX_JOB_ID printable characters)."""
+    return isinstance(value, str) and 0 < len(value) <= MAX_JOB_ID and value.isprintable()
+
+
+def check_job_field(name: str, value: object) -> Any:
+    """Validate one mutable job field (see JOB_MUTABLE_FIELDS); returns the normalized value."""
+    if name == "state":
+        if value not in JOB_STATES:
+            raise ValueError(f"job state must be one of {JOB_STATES}, got {value!r}")
+        return value
+    if name in ("done", "total"):
+        return _count(value, f"job {name}")
+    if name == "errors":
+        return _messages(value, "job errors")
+    if name == "result":
+        return _json_object(value, "job result")
+    if name == "finished_at":
+        return None if value is None else _aware(value, "job finished_at")
+    if name == "heartbeat_at":
+        return _aware(value, "job heartbeat_at")
+    raise ValueError(f"job field {name!r} cannot be changed; changeable: {JOB_MUTABLE_FIELDS}")
+
+
+@dataclass(frozen=True)
+class JobRecord:
+    """One background job as stored, so that every process of every replica can report it.
+
+    owner names the process running it (e.g. "host:pid"); heartbeat_at is refreshed by
+    every write of that process, so an old heartbeat on an unfinished job means it died.
+    """
+
+    id: str
+    kind: str
+    owner: str
+    created_at: datetime
+    heartbeat_at: datetime
+    state: str = "queued"
+    done: int = 0
+    total: int = 0
+    errors: tuple[str, ...] = ()
+    result: Mapping[str, Any] = field(default_factory=dict)
+    finished_at: datetime | None = None
+
+    def __post_init__(self) -> None:
+        if not is_job_id(self.id):
+            raise ValueError(f"job id must be 1 to {MAX_JOB_ID} printable characters, got {self.id!r}")
+        _text(self.kind, "job kind")
+        _text(self.owner, "job owner")
+        _aware(self.created_at, "job created_at")
+        for name in JOB_MUTABLE_FIELDS:
+            object.__setattr__(self, name, check_job_field(name, getattr(self, name)))
+
+    @property
+    def finished(self) -> bool:
+        return self.state in FINAL_JOB_STATES
+
+
 def check_number(value: object, what: str = "version number") -> int:
     """Validate a version number passed to a store method."""
     return _count(value, what, minimum=1)
@@ -267,12 +354,19 @@ def check_model_hash(value: object) -> str:
 
 __all__ = [
     "DEFAULT_FUNCTIONS",
+    "FINAL_JOB_STATES",
+    "JOB_MUTABLE_FIELDS",
+    "JOB_STATES",
+    "MAX_JOB_ID",
     "Activation",
+    "JobRecord",
     "NewVersion",
     "ObjectScores",
     "ScoreTable",
     "SourceBatch",
     "VersionInfo",
+    "check_job_field",
     "check_model_hash",
     "check_number",
+    "is_job_id",
 ]

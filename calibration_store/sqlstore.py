@@ -11,21 +11,25 @@ from abc import abstractmethod
 from collections.abc import Iterator, Sequence
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from typing import Any, ClassVar, Protocol
 
 from . import codec
-from .base import CalibrationStore
-from .errors import VersionNotFound
+from .base import JOB_MAX_AGE, KEEP_JOBS, CalibrationStore
+from .errors import JobExists, JobNotFound, VersionNotFound
 from .models import (
+    FINAL_JOB_STATES,
     Activation,
+    JobRecord,
     NewVersion,
     ObjectScores,
     ScoreTable,
     SourceBatch,
     VersionInfo,
+    check_job_field,
     check_model_hash,
     check_number,
+    is_job_id,
 )
 
 
@@ -67,6 +71,10 @@ _VERSION_COLUMNS = (
     " parent_number, created_at, n_instances, object_counts, functions"
 )
 _ACTIVATION_COLUMNS = "seq, model_hash, number, activated_at, who, reason"
+_JOB_COLUMNS = (
+    "id, kind, owner, created_at, heartbeat_at, state, done, total, errors, result, finished_at"
+)
+_FINAL_STATES_SQL = ", ".join(f"'{state}'" for state in FINAL_JOB_STATES)
 
 
 def now_utc() -> datetime:
@@ -271,6 +279,78 @@ class SqlStore(CalibrationStore):
     def ping(self) -> None:
         self.change_counter()
 
+    # -- jobs ------------------------------------------------------------------
+
+    def create_job(self, job: JobRecord) -> JobRecord:
+        if not isinstance(job, JobRecord):
+            raise TypeError("create_job takes a JobRecord")
+        with self._transaction(write=True) as cur:
+            cur.execute(
+                f"INSERT INTO calib_jobs ({_JOB_COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)"
+                f" ON CONFLICT (id) DO NOTHING RETURNING {_JOB_COLUMNS}",
+                (
+                    job.id,
+                    job.kind,
+                    job.owner,
+                    self._time_to_db(job.created_at),
+                    *(self._job_value(name, value) for name, value in _job_fields(job).items()),
+                ),
+            )
+            row = cur.fetchone()
+        if row is None:
+            raise JobExists(job.id)
+        return self._job(row)
+
+    def update_job(self, job_id: str, **fields: Any) -> JobRecord:
+        _check_job_id(job_id)
+        if not is_job_id(job_id):
+            raise JobNotFound(job_id)
+        changes = {name: check_job_field(name, value) for name, value in fields.items()}
+        changes.setdefault("heartbeat_at", now_utc())
+        names = sorted(changes)  # column names from the JOB_MUTABLE_FIELDS whitelist only
+        assignments = ", ".join(f"{name} = ?" for name in names)
+        with self._transaction(write=True) as cur:
+            cur.execute(
+                f"UPDATE calib_jobs SET {assignments} WHERE id = ? RETURNING {_JOB_COLUMNS}",
+                (*(self._job_value(name, changes[name]) for name in names), job_id),
+            )
+            row = cur.fetchone()
+        if row is None:
+            raise JobNotFound(job_id)
+        return self._job(row)
+
+    def get_job(self, job_id: str) -> JobRecord | None:
+        _check_job_id(job_id)
+        if not is_job_id(job_id):  # e.g. a NUL character, which PostgreSQL text refuses
+            return None
+        with self._transaction(write=False) as cur:
+            cur.execute(f"SELECT {_JOB_COLUMNS} FROM calib_jobs WHERE id = ?", (job_id,))
+            row = cur.fetchone()
+        return None if row is None else self._job(row)
+
+    def prune_jobs(self, keep: int = KEEP_JOBS, max_age: timedelta = JOB_MAX_AGE) -> int:
+        keep = check_number(keep, "jobs to keep")
+        if not isinstance(max_age, timedelta) or max_age <= timedelta(0):
+            raise ValueError("max_age must be a positive timedelta")
+        with self._transaction(write=True) as cur:
+            cur.execute(
+                "DELETE FROM calib_jobs WHERE heartbeat_at < ?"
+                f" OR (state IN ({_FINAL_STATES_SQL}) AND created_at < (SELECT created_at"
+                " FROM calib_jobs ORDER BY created_at DESC LIMIT 1 OFFSET ?)) RETURNING id",
+                (self._time_to_db(now_utc() - max_age), keep - 1),
+            )
+            return len(cur.fetchall())
+
+    def _job_value(self, name: str, value: Any) -> Any:
+        """One mutable job field as a database value."""
+        if name == "errors":
+            return codec.encode_json(list(value))
+        if name == "result":
+            return codec.encode_json(value)
+        if name in ("finished_at", "heartbeat_at"):
+            return None if value is None else self._time_to_db(value)
+        return value
+
     # -- row mapping -----------------------------------------------------------
 
     def _version_info(self, row: Sequence[Any]) -> VersionInfo:
@@ -290,6 +370,21 @@ class SqlStore(CalibrationStore):
             functions=tuple(codec.decode_json(row[11])),
         )
 
+    def _job(self, row: Sequence[Any]) -> JobRecord:
+        return JobRecord(
+            id=row[0],
+            kind=row[1],
+            owner=row[2],
+            created_at=self._time_from_db(row[3]),
+            heartbeat_at=self._time_from_db(row[4]),
+            state=row[5],
+            done=int(row[6]),
+            total=int(row[7]),
+            errors=tuple(codec.decode_json(row[8])),
+            result=codec.decode_json(row[9]),
+            finished_at=None if row[10] is None else self._time_from_db(row[10]),
+        )
+
     def _activation(self, row: Sequence[Any]) -> Activation:
         return Activation(
             seq=int(row[0]),
@@ -299,6 +394,24 @@ class SqlStore(CalibrationStore):
             who=row[4],
             reason=row[5],
         )
+
+
+def _check_job_id(job_id: object) -> None:
+    if not isinstance(job_id, str):
+        raise TypeError(f"job id must be a string, got {type(job_id).__name__}")
+
+
+def _job_fields(job: JobRecord) -> dict[str, Any]:
+    """The mutable fields of a job, in _JOB_COLUMNS order."""
+    return {
+        "heartbeat_at": job.heartbeat_at,
+        "state": job.state,
+        "done": job.done,
+        "total": job.total,
+        "errors": job.errors,
+        "result": job.result,
+        "finished_at": job.finished_at,
+    }
 
 
 def _score_table(objects: list[Any], arrays: list[Any]) -> ScoreTable:

@@ -1,13 +1,17 @@
-"""Schema migrations: applied once, idempotent on reopen, safe under concurrent opens."""
+"""Schema migrations: applied once, idempotent on reopen, safe under concurrent opens, and
+upgrading a database written before a migration existed."""
 
 from __future__ import annotations
 
+from datetime import UTC, datetime
+
 import pytest
 
-from calibration_store import SchemaVersionError, open_store
+from calibration_store import CalibrationStore, JobRecord, SchemaVersionError, open_store
+from calibration_store import sqlite as sqlite_backend
 from calibration_store.migrations import POSTGRES_MIGRATIONS, SQLITE_MIGRATIONS
 from tests.store import rawdb
-from tests.store.factories import MODEL_A, new_version, score_table
+from tests.store.factories import MODEL_A, assert_tables_identical, new_version, score_table
 from tests.store.processes import run_together
 from tests.store.workers import open_concurrently
 
@@ -43,3 +47,51 @@ def test_newer_schema_is_refused(store_url: str) -> None:
     )
     with pytest.raises(SchemaVersionError, match="newer"):
         open_store(store_url)
+
+
+def _open_with_schema_1(url: str, monkeypatch: pytest.MonkeyPatch) -> CalibrationStore:
+    """A store opened the way the code before the job table did (only migration 1)."""
+    with monkeypatch.context() as patch:
+        patch.setattr(sqlite_backend, "SQLITE_MIGRATIONS", SQLITE_MIGRATIONS[:1])
+        if url.startswith("postgresql:"):
+            from calibration_store import postgres
+
+            patch.setattr(postgres, "POSTGRES_MIGRATIONS", POSTGRES_MIGRATIONS[:1])
+        return open_store(url)
+
+
+def _tables(url: str) -> set[str]:
+    if url.startswith("sqlite:"):
+        sql = "SELECT name FROM sqlite_master WHERE type = 'table'"
+    else:
+        sql = "SELECT tablename FROM pg_tables WHERE schemaname = current_schema()"
+    return {row[0] for row in rawdb.query(url, sql)}
+
+
+def test_database_from_before_jobs_is_upgraded(store_url: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    with _open_with_schema_1(store_url, monkeypatch) as old:
+        table = score_table(n=3)
+        old.create_version(new_version(), table)
+        old.activate(MODEL_A, 1, who="alice")
+    assert rawdb.schema_versions(store_url) == [1]
+    assert "calib_jobs" not in _tables(store_url)
+
+    with open_store(store_url) as store:
+        assert rawdb.schema_versions(store_url) == list(range(1, LATEST + 1))
+        assert "calib_jobs" in _tables(store_url)
+        assert [v.number for v in store.list_versions(MODEL_A)] == [1]
+        assert store.active_version(MODEL_A).version == 1
+        assert_tables_identical(store.load_scores(MODEL_A, 1), table)
+        now = datetime.now(UTC)
+        store.create_job(JobRecord(id="j", kind="k", owner="o", created_at=now, heartbeat_at=now))
+        assert store.update_job("j", state="running").state == "running"
+
+
+def test_concurrent_upgrades_of_an_old_database_migrate_once(
+    store_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _open_with_schema_1(store_url, monkeypatch).close()
+    seen = run_together(open_concurrently, [(store_url,)] * 4)
+    assert seen == [list(range(1, LATEST + 1))] * 4
+    with open_store(store_url) as store:
+        assert store.get_job("none") is None

@@ -47,3 +47,26 @@ def open_concurrently(url: str, barrier: Any, results: Any) -> None:
     with open_store(url) as store:
         store.ping()
     results.put(rawdb.schema_versions(url))
+
+
+def run_jobs(url: str, barrier: Any, worker: int, count: int, results: Any) -> None:
+    """Create `count` jobs and take each through running to succeeded; report their ids."""
+    from datetime import UTC, datetime
+
+    from calibration_store import JobRecord
+
+    store = open_store(url)
+    barrier.wait(timeout=60)
+    ids = []
+    for i in range(count):
+        now = datetime.now(UTC)
+        job_id = f"w{worker}-{i}"
+        store.create_job(JobRecord(id=job_id, kind="test", owner=f"worker-{worker}", created_at=now,
+                                   heartbeat_at=now, total=5))  # fmt: skip
+        store.update_job(job_id, state="running")
+        for done in range(1, 6):
+            store.update_job(job_id, done=done)
+        store.update_job(job_id, state="succeeded", result={"i": i}, finished_at=datetime.now(UTC))
+        ids.append(job_id)
+    store.close()
+    results.put((worker, ids))
