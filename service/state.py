@@ -67,7 +67,7 @@ def build_state(settings: Settings) -> ServiceState:
         detector=detector,
         store=store,
         registry=registry,
-        jobs=JobRunner(settings.calibration_workers),
+        jobs=JobRunner(store, settings.calibration_workers),
         cpu_pool=ThreadPoolExecutor(settings.cpu_workers, thread_name_prefix="cpu"),
         inference_slots=asyncio.Semaphore(settings.max_concurrent_inferences),
     )

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from calibration_store import Activation, VersionInfo
+from calibration_store import Activation, JobRecord, VersionInfo
 from service.api.admin_schemas import (
     ActivationOut,
     JobOut,
@@ -13,7 +13,6 @@ from service.api.admin_schemas import (
     VersionDetail,
     VersionSummary,
 )
-from service.calibration.jobs import Job
 from service.calibration.registry import CalibrationRegistry
 from service.conformal import NONCONFORMITY_SCORES
 from service.detector.manifest import Manifest
@@ -78,7 +77,7 @@ def activation_out(entry: Activation) -> ActivationOut:
     )
 
 
-def job_out(job: Job) -> JobOut:
+def job_out(job: JobRecord) -> JobOut:
     return JobOut(
         id=job.id,
         kind=job.kind,

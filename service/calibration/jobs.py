@@ -1,37 +1,94 @@
-"""Background calibration jobs: a bounded worker pool and the state clients poll."""
+"""Background calibration jobs: run on this process's worker pool, reported from the store.
+
+Any process of any replica answers for any job, because the job's row in the calibration
+store is what clients see:
+- the row is created before the upload's 202 is returned, and state changes (running,
+  succeeded, failed) are written at once; the final write is retried, then kept in memory
+  and retried by the writer thread until it lands;
+- progress is written by one writer thread, at most once per PROGRESS_WRITE_S per job, so
+  scoring never waits on the store and a failed write only logs a warning;
+- every write refreshes the row's heartbeat, and an unfinished job is rewritten at least
+  every HEARTBEAT_S even without progress;
+- an unfinished job whose heartbeat is older than STALE_AFTER is reported failed: the
+  process running it stopped. Nothing was stored by it, because a calibration version is
+  written only in the job's last step, in one transaction (create_calibration).
+"""
 
 from __future__ import annotations
 
 import logging
+import os
+import socket
 import threading
+import time
 import uuid
-from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
-from datetime import UTC, datetime
-from typing import Literal
+from dataclasses import replace
+from datetime import UTC, datetime, timedelta
+from typing import Any
 
-from service.errors import ServiceError
+from calibration_store import CalibrationStore, JobNotFound, JobRecord, StoreError
+from service.errors import ServiceError, Unavailable
 from service.metrics import CALIBRATION_JOBS
 
 log = logging.getLogger(__name__)
-JobStateName = Literal["queued", "running", "succeeded", "failed"]
+
+#: progress reaches the store at most this often per job (plus the final state)
+PROGRESS_WRITE_S = 1.0
+#: an unfinished job of a live process is rewritten at least this often
+HEARTBEAT_S = 10.0
+#: an unfinished job silent for longer is reported failed (its process stopped)
+STALE_AFTER = timedelta(seconds=60)
+#: attempts at writing a job's final state before leaving it to the writer thread
+FINAL_WRITE_ATTEMPTS = 4
+RETRY_DELAY_S = 0.25
+_TICK_S = 0.25
 
 
-@dataclass(frozen=True)
-class Job:
-    """A snapshot of one job; the runner replaces it as the job advances."""
+def process_owner() -> str:
+    """The name a job's row gives its process: host:pid."""
+    return f"{socket.gethostname()}:{os.getpid()}"
 
-    id: str
-    kind: str
-    state: JobStateName = "queued"
-    done: int = 0
-    total: int = 0
-    errors: tuple[str, ...] = ()
-    result: dict = field(default_factory=dict)
-    created_at: datetime = field(default_factory=lambda: datetime.now(UTC))
-    finished_at: datetime | None = None
+
+def reported(job: JobRecord, now: datetime, stale_after: timedelta = STALE_AFTER) -> JobRecord:
+    """The job as clients see it: unfinished and silent for over stale_after means failed."""
+    silent = now - job.heartbeat_at
+    if job.finished or silent <= stale_after:
+        return job
+    error = (
+        f"the process running this job ({job.owner}) stopped: no heartbeat for"
+        f" {int(silent.total_seconds())} s (limit {int(stale_after.total_seconds())} s)."
+        " Nothing was stored by it (a calibration version is written only in a job's last"
+        " step, in one transaction); upload the batch again"
+    )
+    return replace(job, state="failed", errors=(*job.errors, error), finished_at=job.heartbeat_at)
+
+
+def _mutable(job: JobRecord) -> dict[str, Any]:
+    """The fields a write sends (the store sets heartbeat_at)."""
+    return {
+        "state": job.state,
+        "done": job.done,
+        "total": job.total,
+        "errors": job.errors,
+        "result": job.result,
+        "finished_at": job.finished_at,
+    }
+
+
+class _Tracked:
+    """A job of this process: its latest snapshot and what the store last received."""
+
+    def __init__(self, job: JobRecord) -> None:
+        self.job = job
+        self.stored = job
+        self.stored_at = self.attempted_at = time.monotonic()
+        self.write_lock = threading.Lock()  # one write at a time, so writes land in order
+
+    @property
+    def dirty(self) -> bool:
+        return self.job != self.stored
 
 
 class JobProgress:
@@ -41,42 +98,76 @@ class JobProgress:
         self._runner, self._id = runner, job_id
 
     def set_total(self, total: int) -> None:
-        self._runner._update(self._id, total=total)
+        self._runner._change(self._id, lambda job: replace(job, total=total))
 
     def advance(self, count: int = 1) -> None:
-        self._runner._advance(self._id, count)
+        self._runner._change(self._id, lambda job: replace(job, done=job.done + count))
 
 
 JobFunction = Callable[[JobProgress], dict]
 
 
 class JobRunner:
-    """Runs jobs on ``workers`` threads and remembers the latest ``keep`` of them."""
+    """Runs jobs on ``workers`` threads; their state lives in ``store`` for every process."""
 
-    def __init__(self, workers: int = 1, keep: int = 1000) -> None:
+    def __init__(self, store: CalibrationStore, workers: int = 1, owner: str | None = None) -> None:
+        self._store = store
+        self._owner = owner or process_owner()
         self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="calibration")
-        self._jobs: OrderedDict[str, Job] = OrderedDict()
+        self._tracked: dict[str, _Tracked] = {}
         self._lock = threading.Lock()
-        self._keep = keep
+        self._stop = threading.Event()
+        self._writer = threading.Thread(target=self._write_loop, name="job-writer", daemon=True)
+        self._writer.start()
 
-    def submit(self, kind: str, function: JobFunction, total: int = 0) -> Job:
-        job = Job(id=uuid.uuid4().hex, kind=kind, total=total)
+    def submit(self, kind: str, function: JobFunction, total: int = 0) -> JobRecord:
+        """Store a queued job, then queue it; raises Unavailable if the store cannot take it."""
+        now = datetime.now(UTC)
+        job = JobRecord(
+            id=uuid.uuid4().hex, kind=kind, owner=self._owner, created_at=now, heartbeat_at=now, total=total
+        )
+        try:
+            self._store.create_job(job)
+        except StoreError as error:
+            raise Unavailable(f"the job could not be recorded, so it was not started: {error}") from error
         with self._lock:
-            self._jobs[job.id] = job
-            while len(self._jobs) > self._keep:
-                self._jobs.popitem(last=False)
-        self._pool.submit(self._run, job.id, function)
+            self._tracked[job.id] = _Tracked(job)
+        try:
+            self._pool.submit(self._run, job.id, function)
+        except RuntimeError as error:  # the pool is shut down: the service is stopping
+            self._finish(job.id, "failed", errors=("the service is stopping; nothing was stored",))
+            raise Unavailable("the service is stopping: upload the batch again") from error
         return job
 
-    def get(self, job_id: str) -> Job | None:
-        with self._lock:
-            return self._jobs.get(job_id)
+    def get(self, job_id: str) -> JobRecord | None:
+        """The stored job, whichever process runs it (None if unknown or pruned)."""
+        try:
+            job = self._store.get_job(job_id)
+        except StoreError as error:
+            raise Unavailable(f"the calibration store is unreachable: {error}") from error
+        return None if job is None else reported(job, datetime.now(UTC))
 
     def shutdown(self) -> None:
+        """Finish running jobs, fail the queued ones, and write what is left to the store."""
         self._pool.shutdown(wait=True, cancel_futures=True)
+        for entry in self._entries():
+            if entry.job.state == "queued":  # cancelled before it started
+                self._finish(
+                    entry.job.id, "failed", errors=("the service stopped before the job started;"
+                                                    " nothing was stored: upload the batch again",),
+                )  # fmt: skip
+        self._stop.set()
+        self._writer.join()
+        for entry in self._entries():
+            self._write(entry)
+
+    # -- running ----------------------------------------------------------------
 
     def _run(self, job_id: str, function: JobFunction) -> None:
-        self._update(job_id, state="running")
+        self._prune()
+        entry = self._change(job_id, lambda job: replace(job, state="running"))
+        if entry is not None:
+            self._write(entry)
         try:
             result = function(JobProgress(self, job_id))
         except ServiceError as error:
@@ -87,17 +178,77 @@ class JobRunner:
         else:
             self._finish(job_id, "succeeded", result=result)
 
-    def _finish(self, job_id: str, state: JobStateName, **changes) -> None:
-        CALIBRATION_JOBS.labels(state).inc()
-        self._update(job_id, state=state, finished_at=datetime.now(UTC), **changes)
+    def _finish(self, job_id: str, state: str, **changes: Any) -> None:
+        """Record the final state, then write it, retrying a few times."""
+        entry = self._change(job_id, lambda job: _final(job, state, changes))
+        CALIBRATION_JOBS.labels(state if entry is None else entry.job.state).inc()
+        for attempt in range(FINAL_WRITE_ATTEMPTS):
+            if entry is None or self._write(entry):
+                return
+            time.sleep(RETRY_DELAY_S * 2**attempt)
+        log.error("job %s: its final state is not stored yet; retrying in the background", job_id)
 
-    def _update(self, job_id: str, **changes) -> None:
-        with self._lock:
-            if job_id in self._jobs:
-                self._jobs[job_id] = replace(self._jobs[job_id], **changes)
+    def _prune(self) -> None:
+        try:
+            self._store.prune_jobs()
+        except Exception as error:  # pruning is housekeeping: never fail a job over it
+            log.warning("could not prune old jobs: %s", error)
 
-    def _advance(self, job_id: str, count: int) -> None:
+    # -- the store ----------------------------------------------------------------
+
+    def _entries(self) -> list[_Tracked]:
         with self._lock:
-            job = self._jobs.get(job_id)
-            if job is not None:
-                self._jobs[job_id] = replace(job, done=job.done + count)
+            return list(self._tracked.values())
+
+    def _change(self, job_id: str, change: Callable[[JobRecord], JobRecord]) -> _Tracked | None:
+        with self._lock:
+            entry = self._tracked.get(job_id)
+            if entry is not None:
+                entry.job = change(entry.job)
+            return entry
+
+    def _write(self, entry: _Tracked) -> bool:
+        """Send the latest snapshot (refreshing the heartbeat); False if the store failed."""
+        with entry.write_lock:
+            with self._lock:
+                job = entry.job
+            if job.finished and job == entry.stored:  # written already (by the other thread)
+                return True
+            entry.attempted_at = time.monotonic()
+            try:
+                self._store.update_job(job.id, **_mutable(job))
+            except JobNotFound:
+                log.error("job %s: its row is gone from the store; no longer tracked", job.id)
+                self._forget(job.id)
+                return True
+            except Exception as error:  # the store may be away for a moment: the job goes on
+                log.warning("job %s: could not write it to the store: %s", job.id, error)
+                return False
+            entry.stored, entry.stored_at = job, entry.attempted_at
+        if job.finished:
+            self._forget(job.id)
+        return True
+
+    def _forget(self, job_id: str) -> None:
+        with self._lock:
+            self._tracked.pop(job_id, None)
+
+    def _write_loop(self) -> None:
+        while not self._stop.wait(_TICK_S):
+            now = time.monotonic()
+            for entry in self._entries():
+                if now - entry.attempted_at < PROGRESS_WRITE_S:
+                    continue
+                if entry.dirty or now - entry.stored_at >= HEARTBEAT_S:
+                    self._write(entry)
+
+
+def _final(job: JobRecord, state: str, changes: dict[str, Any]) -> JobRecord:
+    """The job in its final state; a result the store cannot hold fails the job instead."""
+    finished_at = datetime.now(UTC)
+    try:
+        return replace(job, state=state, finished_at=finished_at, **changes)
+    except (TypeError, ValueError) as error:
+        log.error("job %s: cannot store its result: %s", job.id, error)
+        errors = (f"internal error: the job's result cannot be stored: {error}",)
+        return replace(job, state="failed", finished_at=finished_at, errors=errors)

@@ -97,16 +97,23 @@ async def upload_calibration(
         state.registry.refresh_now()
         return {"version": info.number, "instances": info.n_instances, "activated": activate}
 
-    job = state.jobs.submit("calibration", run, total=named.batch.count)
+    try:
+        job = await run_in_threadpool(state.jobs.submit, "calibration", run, named.batch.count)
+    except BaseException:
+        await run_in_threadpool(workspace.remove)
+        raise
     response.headers["Location"] = f"/v1/admin/jobs/{job.id}"
     return job_out(job)
 
 
 @router.get("/jobs/{job_id}", response_model=JobOut, summary="State, progress and errors of a job")
 async def get_job(job_id: str, state: State, _: Admin) -> JobOut:
-    job = state.jobs.get(job_id)
+    job = await run_in_threadpool(state.jobs.get, job_id)
     if job is None:
-        raise NotFound(f"no job {job_id!r} on this replica (jobs are kept in memory, the latest 1000)")
+        raise NotFound(
+            f"no job {job_id!r}: it never existed or was pruned (jobs are kept while among the"
+            " latest 1000 or active within 7 days)"
+        )
     return job_out(job)
 
 
