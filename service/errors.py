@@ -13,10 +13,13 @@ class ServiceError(Exception):
     status: int = 400
     title: str = "Bad request"
 
-    def __init__(self, detail: str, *, errors: list[str] | None = None) -> None:
+    def __init__(
+        self, detail: str, *, errors: list[str] | None = None, headers: dict[str, str] | None = None
+    ) -> None:
         super().__init__(detail)
         self.detail = detail
         self.errors = errors or []
+        self.headers = headers or {}
 
 
 class InvalidInput(ServiceError):

@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
-from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Histogram, generate_latest
+from prometheus_client import (
+    CONTENT_TYPE_LATEST,
+    CollectorRegistry,
+    Counter,
+    Gauge,
+    Histogram,
+    generate_latest,
+)
 
 REGISTRY = CollectorRegistry(auto_describe=True)
 
@@ -26,6 +33,16 @@ INFERENCE_SECONDS = Histogram(
     "cks_inference_seconds",
     "onnxruntime run time per batch",
     buckets=(0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1),
+    registry=REGISTRY,
+)
+PREDICT_IN_FLIGHT = Gauge(
+    "cks_predict_in_flight", "predict requests admitted (computing or waiting for a slot)", registry=REGISTRY
+)
+PREDICT_WAITING = Gauge(
+    "cks_predict_waiting", "predict requests waiting for a compute slot", registry=REGISTRY
+)
+PREDICT_REJECTED = Counter(
+    "cks_predict_rejected", "predict requests refused with 503 by admission control", ["reason"],
     registry=REGISTRY,
 )
 CALIBRATION_JOBS = Counter(

@@ -41,6 +41,12 @@ class Settings(BaseSettings):
     max_image_pixels: int = Field(default=40_000_000, gt=0, description="largest width*height decoded")
     max_instances: int = Field(default=64, gt=0, description="instances per predict request")
     max_concurrent_inferences: int = Field(default=8, gt=0, description="predict requests computing at once")
+    max_queued_requests: int = Field(
+        default=32, ge=0, description="predict requests waiting for a slot; more get 503 at once"
+    )
+    queue_timeout_seconds: float = Field(
+        default=10.0, gt=0, description="longest wait for a slot before a predict request gets 503"
+    )
     inference_threads: int = Field(
         default=1, ge=0, description="onnxruntime intra-op threads per run (0 = ort default)"
     )

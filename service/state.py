@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import asyncio
 import logging
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 from calibration_store import CalibrationStore, open_store
+from service.api.admission import Admission
 from service.calibration.bundle import bootstrap_default_calibration
 from service.calibration.jobs import JobRunner
 from service.calibration.registry import CalibrationRegistry
@@ -28,7 +28,7 @@ class ServiceState:
     registry: CalibrationRegistry
     jobs: JobRunner
     cpu_pool: ThreadPoolExecutor
-    inference_slots: asyncio.Semaphore
+    admission: Admission
 
     @property
     def uploads_dir(self) -> Path:
@@ -69,5 +69,7 @@ def build_state(settings: Settings) -> ServiceState:
         registry=registry,
         jobs=JobRunner(store, settings.calibration_workers),
         cpu_pool=ThreadPoolExecutor(settings.cpu_workers, thread_name_prefix="cpu"),
-        inference_slots=asyncio.Semaphore(settings.max_concurrent_inferences),
+        admission=Admission(
+            settings.max_concurrent_inferences, settings.max_queued_requests, settings.queue_timeout_seconds
+        ),
     )

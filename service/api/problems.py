@@ -16,13 +16,18 @@ log = logging.getLogger(__name__)
 
 
 def problem(
-    status: int, title: str, detail: str, request: Request, errors: list | None = None
+    status: int,
+    title: str,
+    detail: str,
+    request: Request,
+    errors: list | None = None,
+    headers: dict[str, str] | None = None,
 ) -> JSONResponse:
     body = {"type": "about:blank", "title": title, "status": status, "detail": detail}
     body["instance"] = request.url.path
     if errors:
         body["errors"] = errors
-    return JSONResponse(body, status_code=status, media_type=PROBLEM_JSON)
+    return JSONResponse(body, status_code=status, media_type=PROBLEM_JSON, headers=headers)
 
 
 def _validation_errors(exc: RequestValidationError) -> list[str]:
@@ -36,7 +41,7 @@ def _validation_errors(exc: RequestValidationError) -> list[str]:
 def install_problem_handlers(app: FastAPI) -> None:
     @app.exception_handler(ServiceError)
     async def _service_error(request: Request, exc: ServiceError) -> JSONResponse:
-        return problem(exc.status, exc.title, exc.detail, request, exc.errors)
+        return problem(exc.status, exc.title, exc.detail, request, exc.errors, exc.headers)
 
     @app.exception_handler(RequestValidationError)
     async def _invalid_request(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -49,10 +54,7 @@ def install_problem_handlers(app: FastAPI) -> None:
         title = {404: "Not found", 405: "Method not allowed", 401: "Unauthorized"}.get(
             exc.status_code, "Error"
         )
-        response = problem(exc.status_code, title, str(exc.detail), request)
-        for key, value in (exc.headers or {}).items():
-            response.headers[key] = value
-        return response
+        return problem(exc.status_code, title, str(exc.detail), request, headers=exc.headers)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:

@@ -17,6 +17,7 @@ from service.errors import InvalidInput, UnsupportedMediaType
 from service.image_decoding import decode_image
 from service.prediction import predict
 from service.render import render_prediction
+from service.state import ServiceState
 
 router = APIRouter(tags=["prediction"])
 
@@ -46,7 +47,7 @@ _OPENAPI = {
         "413": {"description": "Body or image too large"},
         "415": {"description": "Not JSON or multipart, or not a JPEG/PNG image"},
         "422": {"description": "Invalid request; the problem lists what to fix"},
-        "503": {"description": "No active calibration"},
+        "503": {"description": "No active calibration, or overloaded (with Retry-After)"},
     },
 }
 
@@ -104,14 +105,18 @@ def _wants_png(request: Request) -> bool:
     openapi_extra=_OPENAPI,
 )
 async def predict_route(request: Request, state: State) -> Response:
-    image_bytes, parameters = await _parse(request, state)
-    loop = asyncio.get_running_loop()
-    image = await loop.run_in_executor(
-        state.cpu_pool, decode_image, image_bytes, state.settings.max_image_pixels
-    )
-    async with state.inference_slots:
-        result = await loop.run_in_executor(state.cpu_pool, predict, state, image, parameters)
-    if _wants_png(request):
-        png = await loop.run_in_executor(state.cpu_pool, render_prediction, image, result)
-        return Response(png, media_type="image/png")
+    async with state.admission.admitted():
+        image_bytes, parameters = await _parse(request, state)
+        async with state.admission.slot():  # decoded images exist only inside a slot
+            loop = asyncio.get_running_loop()
+            return await loop.run_in_executor(
+                state.cpu_pool, _respond, state, image_bytes, parameters, _wants_png(request)
+            )
+
+
+def _respond(state: ServiceState, image_bytes: bytes, parameters: PredictParameters, png: bool) -> Response:
+    image = decode_image(image_bytes, state.settings.max_image_pixels)
+    result = predict(state, image, parameters)
+    if png:
+        return Response(render_prediction(image, result), media_type="image/png")
     return Response(result.model_dump_json(), media_type="application/json")

@@ -1,0 +1,88 @@
+"""Overload: a bounded queue and a queue timeout answer 503 + Retry-After, and the server recovers.
+
+One slow request (many instances) holds the only compute slot of a real server while
+the others arrive; the server's own gauges in /metrics tell the test when a request is
+computing or waiting, so nothing depends on sleeping for the right time.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+
+import httpx
+
+from tests.service.live import LiveServer, Sample, assert_problem, samples_by_image
+from tests.service.predict_client import instances_of, predict_json
+
+SLOW_INSTANCES = 128
+
+
+def metric(server: LiveServer, name: str, labels: str = "") -> float:
+    text = server.client.get("/metrics").text
+    match = re.search(rf"^{name}{re.escape(labels)} ([0-9.e+-]+)$", text, re.MULTILINE)
+    return float(match.group(1)) if match else 0.0
+
+
+def wait_until(condition: Callable[[], bool], what: str, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, f"timed out waiting until {what}"
+        time.sleep(0.005)
+
+
+def post_in_background(pool: ThreadPoolExecutor, server: LiveServer, image: bytes, instances: list) -> Future:
+    def post() -> httpx.Response:
+        with httpx.Client(base_url=server.url, timeout=120) as client:
+            return predict_json(client, image, {"instances": instances})
+
+    return pool.submit(post)
+
+
+def slow_and_quick(samples: list[Sample]) -> tuple[bytes, list, list]:
+    path, group = next(iter(samples_by_image(samples).items()))
+    instances = instances_of(group)
+    return path.read_bytes(), (instances * SLOW_INSTANCES)[:SLOW_INSTANCES], instances[:1]
+
+
+def test_a_full_queue_is_refused_at_once_and_the_server_recovers(
+    tmp_path: Path, samples: list[Sample]
+) -> None:
+    image, slow, quick = slow_and_quick(samples)
+    settings = {"max_concurrent_inferences": 1, "max_queued_requests": 1, "max_instances": SLOW_INSTANCES}
+    with LiveServer(tmp_path / "data", **settings) as server, ThreadPoolExecutor(2) as pool:
+        computing = post_in_background(pool, server, image, slow)
+        wait_until(lambda: metric(server, "cks_predict_in_flight") == 1, "the slow request computes")
+        waiting = post_in_background(pool, server, image, quick)
+        wait_until(lambda: metric(server, "cks_predict_waiting") == 1, "the second request waits")
+
+        refused = predict_json(server.client, image, {"instances": quick})
+        assert not computing.done(), "the slow request ended too soon to test the queue"
+        body = assert_problem(refused, 503, "at capacity", "CKS_MAX_QUEUED_REQUESTS", "retry after")
+        assert body["title"] == "Overloaded" and refused.headers["retry-after"] == "1"
+
+        assert computing.result().status_code == 200 and waiting.result().status_code == 200
+        assert len(computing.result().json()["instances"]) == SLOW_INSTANCES
+        assert predict_json(server.client, image, {"instances": quick}).status_code == 200
+        assert metric(server, "cks_predict_rejected_total", '{reason="queue_full"}') == 1
+        assert metric(server, "cks_predict_in_flight") == 0 and metric(server, "cks_predict_waiting") == 0
+
+
+def test_a_request_waiting_longer_than_the_queue_timeout_gets_503(
+    tmp_path: Path, samples: list[Sample]
+) -> None:
+    image, slow, quick = slow_and_quick(samples)
+    settings = {"max_concurrent_inferences": 1, "queue_timeout_seconds": 0.2, "max_instances": SLOW_INSTANCES}
+    with LiveServer(tmp_path / "data", **settings) as server, ThreadPoolExecutor(1) as pool:
+        computing = post_in_background(pool, server, image, slow)
+        wait_until(lambda: metric(server, "cks_predict_in_flight") == 1, "the slow request computes")
+
+        timed_out = predict_json(server.client, image, {"instances": quick})
+        assert not computing.done(), "the slow request ended too soon to test the timeout"
+        assert_problem(timed_out, 503, "within 0.2 s", "CKS_QUEUE_TIMEOUT_SECONDS")
+        assert timed_out.headers["retry-after"] == "1"
+        assert computing.result().status_code == 200
+        assert metric(server, "cks_predict_rejected_total", '{reason="queue_timeout"}') == 1
