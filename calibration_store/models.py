@@ -341,6 +341,10 @@ class JobRecord:
     def finished(self) -> bool:
         return self.state in FINAL_JOB_STATES
 
+    def progress_fields(self) -> dict[str, Any]:
+        """The fields a running job changes: JOB_MUTABLE_FIELDS without heartbeat_at."""
+        return {name: getattr(self, name) for name in JOB_MUTABLE_FIELDS if name != "heartbeat_at"}
+
 
 def check_number(value: object, what: str = "version number") -> int:
     """Validate a version number passed to a store method."""

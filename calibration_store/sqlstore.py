@@ -293,7 +293,7 @@ class SqlStore(CalibrationStore):
                     job.kind,
                     job.owner,
                     self._time_to_db(job.created_at),
-                    *(self._job_value(name, value) for name, value in _job_fields(job).items()),
+                    *(self._job_value(name, value) for name, value in _job_fields(job)),
                 ),
             )
             row = cur.fetchone()
@@ -401,17 +401,9 @@ def _check_job_id(job_id: object) -> None:
         raise TypeError(f"job id must be a string, got {type(job_id).__name__}")
 
 
-def _job_fields(job: JobRecord) -> dict[str, Any]:
+def _job_fields(job: JobRecord) -> list[tuple[str, Any]]:
     """The mutable fields of a job, in _JOB_COLUMNS order."""
-    return {
-        "heartbeat_at": job.heartbeat_at,
-        "state": job.state,
-        "done": job.done,
-        "total": job.total,
-        "errors": job.errors,
-        "result": job.result,
-        "finished_at": job.finished_at,
-    }
+    return [("heartbeat_at", job.heartbeat_at), *job.progress_fields().items()]
 
 
 def _score_table(objects: list[Any], arrays: list[Any]) -> ScoreTable:

@@ -65,18 +65,6 @@ def reported(job: JobRecord, now: datetime, stale_after: timedelta = STALE_AFTER
     return replace(job, state="failed", errors=(*job.errors, error), finished_at=job.heartbeat_at)
 
 
-def _mutable(job: JobRecord) -> dict[str, Any]:
-    """The fields a write sends (the store sets heartbeat_at)."""
-    return {
-        "state": job.state,
-        "done": job.done,
-        "total": job.total,
-        "errors": job.errors,
-        "result": job.result,
-        "finished_at": job.finished_at,
-    }
-
-
 class _Tracked:
     """A job of this process: its latest snapshot and what the store last received."""
 
@@ -216,7 +204,7 @@ class JobRunner:
                 return True
             entry.attempted_at = time.monotonic()
             try:
-                self._store.update_job(job.id, **_mutable(job))
+                self._store.update_job(job.id, **job.progress_fields())  # the store sets the heartbeat
             except JobNotFound:
                 log.error("job %s: its row is gone from the store; no longer tracked", job.id)
                 self._forget(job.id)

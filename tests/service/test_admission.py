@@ -42,6 +42,13 @@ def post_in_background(pool: ThreadPoolExecutor, server: LiveServer, image: byte
     return pool.submit(post)
 
 
+def hold_the_slot(pool: ThreadPoolExecutor, server: LiveServer, image: bytes, slow: list) -> Future:
+    """Post the slow request and return once the server reports it computing."""
+    computing = post_in_background(pool, server, image, slow)
+    wait_until(lambda: metric(server, "cks_predict_in_flight") == 1, "the slow request computes")
+    return computing
+
+
 def slow_and_quick(samples: list[Sample]) -> tuple[bytes, list, list]:
     path, group = next(iter(samples_by_image(samples).items()))
     instances = instances_of(group)
@@ -54,8 +61,7 @@ def test_a_full_queue_is_refused_at_once_and_the_server_recovers(
     image, slow, quick = slow_and_quick(samples)
     settings = {"max_concurrent_inferences": 1, "max_queued_requests": 1, "max_instances": SLOW_INSTANCES}
     with LiveServer(tmp_path / "data", **settings) as server, ThreadPoolExecutor(2) as pool:
-        computing = post_in_background(pool, server, image, slow)
-        wait_until(lambda: metric(server, "cks_predict_in_flight") == 1, "the slow request computes")
+        computing = hold_the_slot(pool, server, image, slow)
         waiting = post_in_background(pool, server, image, quick)
         wait_until(lambda: metric(server, "cks_predict_waiting") == 1, "the second request waits")
 
@@ -77,8 +83,7 @@ def test_a_request_waiting_longer_than_the_queue_timeout_gets_503(
     image, slow, quick = slow_and_quick(samples)
     settings = {"max_concurrent_inferences": 1, "queue_timeout_seconds": 0.2, "max_instances": SLOW_INSTANCES}
     with LiveServer(tmp_path / "data", **settings) as server, ThreadPoolExecutor(1) as pool:
-        computing = post_in_background(pool, server, image, slow)
-        wait_until(lambda: metric(server, "cks_predict_in_flight") == 1, "the slow request computes")
+        computing = hold_the_slot(pool, server, image, slow)
 
         timed_out = predict_json(server.client, image, {"instances": quick})
         assert not computing.done(), "the slow request ended too soon to test the timeout"
