@@ -10,8 +10,10 @@ store is what clients see:
 - every write refreshes the row's heartbeat, and an unfinished job is rewritten at least
   every HEARTBEAT_S even without progress;
 - an unfinished job whose heartbeat is older than STALE_AFTER is reported failed: the
-  process running it stopped. Nothing was stored by it, because a calibration version is
-  written only in the job's last step, in one transaction (create_calibration).
+  process running it stopped. A calibration version is written in the job's last step, in
+  one transaction (create_calibration): either it is listed, or nothing was stored (the
+  process may die between that commit and the job's final write, so the report cannot
+  tell which; it points the client at the version list).
 """
 
 from __future__ import annotations
@@ -59,8 +61,9 @@ def reported(job: JobRecord, now: datetime, stale_after: timedelta = STALE_AFTER
     error = (
         f"the process running this job ({job.owner}) stopped: no heartbeat for"
         f" {int(silent.total_seconds())} s (limit {int(stale_after.total_seconds())} s)."
-        " Nothing was stored by it (a calibration version is written only in a job's last"
-        " step, in one transaction); upload the batch again"
+        " A calibration version is written in one transaction in a job's very last step, so"
+        " either GET /v1/admin/calibrations lists a new version with this batch or nothing"
+        " was stored; if it is not listed, upload the batch again"
     )
     return replace(job, state="failed", errors=(*job.errors, error), finished_at=job.heartbeat_at)
 

@@ -202,7 +202,8 @@ def test_a_silent_unfinished_job_is_reported_failed(store: CountingStore, runner
         job = runner.get(job_id)
         assert job.state == "failed" and job.finished_at == old and job.done == 2
         (error,) = job.errors
-        assert "gone-host:999" in error and "stopped" in error and "Nothing was stored" in error, error
+        assert "gone-host:999" in error and "stopped" in error and "nothing was stored" in error, error
+        assert "/v1/admin/calibrations" in error, error
         assert store.get_job(job_id).state != "failed", "reporting must not rewrite the row"
     assert runner.get("alive").state == "running"
     assert runner.get("done-long-ago").state == "succeeded"

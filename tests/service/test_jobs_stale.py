@@ -68,7 +68,8 @@ def test_a_killed_servers_job_is_reported_failed(tmp_path: Path, samples_dir: Pa
         assert job["state"] == "failed", job
         assert job["finished_at"] is not None and job["result"] == {}
         (error,) = job["errors"]
-        assert owner in error and "stopped" in error and "Nothing was stored" in error, error
+        assert owner in error and "stopped" in error and "nothing was stored" in error, error
+        assert "/v1/admin/calibrations" in error, error
         assert b.versions() == [1], "the killed job stored no version"
         assert b.client.get("/readyz").json()["active_calibration"] == 1
 
@@ -93,6 +94,6 @@ def test_a_silent_job_row_is_reported_failed(tmp_path: Path) -> None:
         for job_id in ("stale", "stale-queued"):
             job = get_job(server, job_id)
             assert (job["state"], job["done"], job["total"]) == ("failed", 3, 9), job
-            assert "node-7:31337" in job["errors"][0] and "Nothing was stored" in job["errors"][0], job
+            assert "node-7:31337" in job["errors"][0] and "nothing was stored" in job["errors"][0], job
         assert get_job(server, "fresh")["state"] == "running"
         assert get_job(server, "finished")["state"] == "succeeded"
