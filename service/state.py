@@ -53,13 +53,7 @@ def build_state(settings: Settings) -> ServiceState:
     store = open_store(settings.resolved_store_url)
     if settings.bootstrap_calibration:
         bootstrap_default_calibration(store, detector, settings.model_dir)
-    registry = CalibrationRegistry(
-        store,
-        detector.model_hash,
-        detector.manifest.num_keypoints,
-        settings.store_poll_seconds,
-        detector.manifest.heatmap,
-    )
+    registry = CalibrationRegistry(store, detector.model_hash, detector.manifest, settings.store_poll_seconds)
     log.info("serving model %s (%s), active calibration %s", detector.manifest.name,
              detector.model_hash[:12], registry.refresh_now())  # fmt: skip
     return ServiceState(

@@ -37,7 +37,9 @@ class ThresholdRow(BaseModel):
 
 
 class VersionDetail(VersionSummary):
-    normalization: dict
+    normalization: dict = Field(description="the manifest settings the scores were computed under")
+    usable: bool = Field(description="whether the current manifest can serve this version")
+    unusable_reason: str | None = Field(default=None, description="why not, and what to do")
     labeled_per_keypoint: dict[str, int] = Field(description="calibration scores per keypoint (n)")
     complete_per_object: dict[str, int] = Field(description="fully labeled instances (object scope n)")
     thresholds: list[ThresholdRow]

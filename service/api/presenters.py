@@ -58,9 +58,12 @@ def describe(
                     },
                 )
             )
+    unusable_reason = registry.incompatibility(info.number)
     return VersionDetail(
         **summarize(info, active).model_dump(),
         normalization=dict(info.normalization),
+        usable=unusable_reason is None,
+        unusable_reason=unusable_reason,
         labeled_per_keypoint={k.name: per_keypoint.guarantees[k.index].n for k in manifest.keypoints},
         complete_per_object={o.name: per_object.guarantees[o.keypoints[0]].n for o in manifest.objects},
         thresholds=rows,

@@ -61,7 +61,7 @@ def bootstrap_default_calibration(store: CalibrationStore, detector: Detector, m
     if new.model_hash != detector.model_hash:
         log.warning("%s was computed for another model (%s); not loading it", path, new.model_hash[:12])
         return None
-    reason = incompatibility(new.normalization, detector.manifest.heatmap)
+    reason = incompatibility(new.normalization, detector.manifest)
     if reason is not None:
         log.warning("%s is not loaded: %s", path, reason)
         return None

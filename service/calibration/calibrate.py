@@ -37,7 +37,7 @@ def check_parent(store: CalibrationStore, detector: Detector, version: int) -> V
         parent = store.get_version(detector.model_hash, version)
     except VersionNotFound as error:
         raise NotFound(f"cannot append to calibration version {version}: it does not exist") from error
-    reason = version_incompatibility(parent, detector.manifest.heatmap)
+    reason = version_incompatibility(parent, detector.manifest)
     if reason is not None:
         raise Conflict(f"cannot append: {reason}")
     return parent
@@ -69,7 +69,7 @@ def create_calibration(
     new = NewVersion(
         model_hash=detector.model_hash,
         model_name=detector.manifest.name,
-        normalization=scoring_settings(detector.manifest.heatmap),
+        normalization=scoring_settings(detector.manifest),
         source_batches=sources,
         author=options.author,
         note=options.note,

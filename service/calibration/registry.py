@@ -25,7 +25,7 @@ from service.conformal import (
     coverage_guarantee,
     object_scores,
 )
-from service.detector.manifest import HeatmapSpec
+from service.detector.manifest import Manifest
 from service.errors import Conflict, NotFound, Unavailable
 
 
@@ -67,14 +67,14 @@ class CalibrationRegistry:
         self,
         store: CalibrationStore,
         model_hash: str,
-        num_keypoints: int,
+        manifest: Manifest,
         poll_seconds: float,
-        heatmap: HeatmapSpec,
     ) -> None:
         self.store = store
         self.model_hash = model_hash
-        self._num_keypoints = num_keypoints
-        self._heatmap = heatmap
+        self._manifest = manifest
+        self._num_keypoints = manifest.num_keypoints
+        self._incompatibilities: dict[int, str | None] = {}  # versions are immutable: cached forever
         self._poll_seconds = poll_seconds
         self._lock = threading.Lock()
         self._checked_at = -np.inf
@@ -100,23 +100,29 @@ class CalibrationRegistry:
             return self._active
 
     def resolve(self, version: int | None) -> int:
-        """The version a request asked for, or the active one; 404/503 when there is none."""
-        if version is None:
-            active = self.active_version()
-            if active is None:
-                raise Unavailable("no calibration is active for this model: upload and activate one")
-            return active
-        self.scores(version)
-        return version
+        """The version a request asked for, or the active one, checked usable for this manifest.
+
+        A named version: 404 if missing, 409 if scored under other manifest settings. The
+        active one: 503 if there is none or it is unusable (the caller did nothing wrong).
+        """
+        if version is not None:
+            self.check_usable(version)
+            return version
+        active = self.active_version()
+        if active is None:
+            raise Unavailable("no calibration is active for this model: upload and activate one")
+        reason = self.incompatibility(active)
+        if reason is not None:
+            raise Unavailable(f"the active {reason}")
+        return active
 
     def scores(self, version: int) -> ScoreTable:
-        """The version's scores; 404 if it does not exist, 409 if scored under other heatmap settings."""
+        """The version's scores (404 if it does not exist); ``resolve`` checks them usable first."""
         with self._lock:
             if version in self._tables:
                 self._tables.move_to_end(version)
                 return self._tables[version]
         try:
-            self.check_usable(version)
             table = self.store.load_scores(self.model_hash, version)
         except VersionNotFound as error:
             raise NotFound(f"calibration version {version} does not exist for this model") from error
@@ -127,10 +133,24 @@ class CalibrationRegistry:
         return table
 
     def check_usable(self, version: int) -> None:
-        """Raise Conflict if the version was scored under other heatmap settings; VersionNotFound passes."""
-        reason = version_incompatibility(self.store.get_version(self.model_hash, version), self._heatmap)
+        """404 if the version does not exist, 409 if it was scored under other manifest settings."""
+        reason = self.incompatibility(version)
         if reason is not None:
             raise Conflict(reason)
+
+    def incompatibility(self, version: int) -> str | None:
+        """Why this version cannot serve the current manifest (None if it can); 404 if it does not exist."""
+        with self._lock:
+            if version in self._incompatibilities:
+                return self._incompatibilities[version]
+        try:
+            info = self.store.get_version(self.model_hash, version)
+        except VersionNotFound as error:
+            raise NotFound(f"calibration version {version} does not exist for this model") from error
+        reason = version_incompatibility(info, self._manifest)
+        with self._lock:
+            self._incompatibilities[version] = reason
+        return reason
 
     def _refresh(self) -> None:
         counter = self.store.change_counter()

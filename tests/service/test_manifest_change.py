@@ -1,26 +1,50 @@
-"""An operator edits the manifest's heatmap settings: old versions are refused, never silently used.
+"""An operator edits score-relevant manifest settings: old versions are refused, never silently used.
 
-The model hash covers the ONNX bytes only, so versions scored under the old top-K stay
-listed for the same model; using their thresholds with the new statistics would void
-the guarantee. Real uvicorn processes share one SQLite store across the edit.
+The model hash covers the ONNX bytes only, so versions scored under the old top-K (or
+crop padding, input transform, channels) stay listed for the same model; using their
+thresholds with the new statistics would void the guarantee. Real uvicorn processes
+share one SQLite store across the edit.
 """
 
 from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Callable
 from pathlib import Path
+
+import pytest
 
 from tests.service.live import ADMIN_TOKEN, LiveServer, Sample, assert_problem, batch_zip, samples_by_image
 from tests.service.predict_client import instances_of, predict_json, predict_ok
 
 
-def copy_model(source: Path, target: Path, top_k_change: int = 0) -> Path:
+def more_top_k(manifest: dict) -> str:
+    manifest["heatmap"]["top_k"] += 7
+    return "heatmap top_k"
+
+
+def fewer_top_k(manifest: dict) -> str:
+    manifest["heatmap"]["top_k"] -= 1
+    return "heatmap top_k"
+
+
+def wider_crop(manifest: dict) -> str:
+    manifest["crop"]["padding"] += 0.05
+    return "fingerprint"
+
+
+def renamed_keypoint(manifest: dict) -> None:
+    manifest["keypoints"][0]["name"] += "_renamed"  # names do not change a score
+
+
+def copy_model(source: Path, target: Path, edit: Callable[[dict], str | None] | None = None) -> Path:
     target.mkdir(parents=True)
     for name in ("model.onnx", "manifest.json", "default_calibration.npz"):
         shutil.copyfile(source / name, target / name)
     manifest = json.loads((source / "manifest.json").read_text())
-    manifest["heatmap"]["top_k"] += top_k_change
+    if edit is not None:
+        edit(manifest)
     (target / "manifest.json").write_text(json.dumps(manifest, indent=2))
     return target
 
@@ -31,8 +55,9 @@ def activation_count(server: LiveServer) -> int:
     return len(response.json()["activations"])
 
 
-def test_versions_scored_under_other_heatmap_settings_are_refused(
-    model_path: Path, samples_dir: Path, coco: dict, samples: list[Sample], tmp_path: Path
+@pytest.mark.parametrize("edit", [more_top_k, wider_crop])
+def test_versions_scored_under_other_manifest_settings_are_refused(
+    model_path: Path, samples_dir: Path, coco: dict, samples: list[Sample], tmp_path: Path, edit: Callable
 ) -> None:
     image_path, group = next(iter(samples_by_image(samples).items()))
     request = {"instances": instances_of(group)}
@@ -42,32 +67,43 @@ def test_versions_scored_under_other_heatmap_settings_are_refused(
         predict_ok(server.client, image_path.read_bytes(), request)  # the bundled version 1
         server.calibrate(batch_zip(samples_dir, coco, images=4))  # version 2, not active
 
-    edited = copy_model(model_path, tmp_path / "edited", top_k_change=7)
+    changed = edit(json.loads((model_path / "manifest.json").read_text()))
+    edited = copy_model(model_path, tmp_path / "edited", edit)
     with LiveServer(data, admin_token=ADMIN_TOKEN, model_dir=edited) as server:
         assert server.versions() == [1, 2]  # same model hash, no second bootstrap
-        assert_problem(server.client.get("/readyz"), 503, "calibration version 1 cannot be used", "top_k")
-        for version in (None, 2):
-            body = {**request, "calibration_version": version} if version else request
-            assert_problem(
-                predict_json(server.client, image_path.read_bytes(), body),
-                409, f"calibration version {version or 1} cannot be used", "calibrate a new version",
-            )  # fmt: skip
+        assert_problem(server.client.get("/readyz"), 503, "calibration version 1 cannot be used", changed)
+        image = image_path.read_bytes()
+        assert_problem(predict_json(server.client, image, request), 503, "the active calibration version 1")
+        assert_problem(
+            predict_json(server.client, image, {**request, "calibration_version": 2}),
+            409, "calibration version 2 cannot be used", changed, "calibrate a new version",
+        )  # fmt: skip
+        detail = server.client.get("/v1/admin/calibrations/2", headers=server.admin).json()
+        assert detail["usable"] is False and changed in detail["unusable_reason"]
         before = activation_count(server)
         response = server.client.post("/v1/admin/calibrations/2/activate", headers=server.admin)
         assert_problem(response, 409, "calibration version 2 cannot be used")
         assert activation_count(server) == before  # nothing stored
         response = server.upload(batch_zip(samples_dir, coco, images=2), append_to=2)
-        assert_problem(response, 409, "cannot append", "top_k")
+        assert_problem(response, 409, "cannot append", changed)
         assert server.versions() == [1, 2]
 
         server.calibrate(batch_zip(samples_dir, coco, images=4), activate=True)  # version 3, new settings
         assert server.client.get("/readyz").json()["active_calibration"] == 3
-        predict_ok(server.client, image_path.read_bytes(), request)
+        predict_ok(server.client, image, request)
+        assert server.client.get("/v1/admin/calibrations/3", headers=server.admin).json()["usable"] is True
 
 
 def test_a_bundle_scored_under_other_settings_is_not_bootstrapped(model_path: Path, tmp_path: Path) -> None:
-    edited = copy_model(model_path, tmp_path / "edited", top_k_change=-1)
+    edited = copy_model(model_path, tmp_path / "edited", fewer_top_k)
     with LiveServer(tmp_path / "data", admin_token=ADMIN_TOKEN, model_dir=edited) as server:
         assert server.versions() == []
         assert_problem(server.client.get("/readyz"), 503, "no calibration is active")
         assert "is not loaded" in server.log() and "top_k" in server.log()
+
+
+def test_edits_that_do_not_change_scores_keep_the_versions(model_path: Path, tmp_path: Path) -> None:
+    edited = copy_model(model_path, tmp_path / "edited", renamed_keypoint)
+    with LiveServer(tmp_path / "data", admin_token=ADMIN_TOKEN, model_dir=edited) as server:
+        assert server.versions() == [1]
+        assert server.client.get("/readyz").status_code == 200

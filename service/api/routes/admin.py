@@ -154,8 +154,8 @@ async def activate_calibration(
     reason = body.reason if body else ""
 
     def run() -> ActivationOut:
+        state.registry.check_usable(version)
         try:
-            state.registry.check_usable(version)
             entry = state.store.activate(state.detector.model_hash, version, who, reason)
         except VersionNotFound as error:
             raise NotFound(f"calibration version {version} does not exist for this model") from error

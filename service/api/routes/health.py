@@ -7,7 +7,7 @@ from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel
 
 from service.api.deps import State
-from service.errors import Conflict, Unavailable
+from service.errors import Unavailable
 from service.metrics import metrics_payload
 
 router = APIRouter(tags=["operations"])
@@ -38,10 +38,9 @@ async def readyz(state: State) -> Readiness:
     active = await run_in_threadpool(state.registry.active_version)
     if active is None:
         raise Unavailable("no calibration is active for this model: upload and activate one")
-    try:
-        await run_in_threadpool(state.registry.check_usable, active)
-    except Conflict as error:
-        raise Unavailable(f"the active {error.detail}") from error
+    reason = await run_in_threadpool(state.registry.incompatibility, active)
+    if reason is not None:
+        raise Unavailable(f"the active {reason}")
     manifest = state.detector.manifest
     return Readiness(
         status="ready", model=manifest.name, model_hash=state.detector.model_hash, active_calibration=active
