@@ -26,6 +26,10 @@ class InvalidInput(ServiceError):
     status, title = 422, "Invalid input"
 
 
+class RequestTimeout(ServiceError):
+    status, title = 408, "Request timeout"
+
+
 class PayloadTooLarge(ServiceError):
     status, title = 413, "Payload too large"
 

@@ -38,6 +38,9 @@ INFERENCE_SECONDS = Histogram(
 PREDICT_IN_FLIGHT = Gauge(
     "cks_predict_in_flight", "predict requests admitted (computing or waiting for a slot)", registry=REGISTRY
 )
+PREDICT_COMPUTING = Gauge(
+    "cks_predict_computing", "predict requests holding a compute slot", registry=REGISTRY
+)
 PREDICT_WAITING = Gauge(
     "cks_predict_waiting", "predict requests waiting for a compute slot", registry=REGISTRY
 )

@@ -44,6 +44,9 @@ class Settings(BaseSettings):
     max_queued_requests: int = Field(
         default=32, ge=0, description="predict requests waiting for a slot; more get 503 at once"
     )
+    request_read_timeout_seconds: float = Field(
+        default=30.0, gt=0, description="longest time to receive a predict request body (408 beyond)"
+    )
     queue_timeout_seconds: float = Field(
         default=10.0, gt=0, description="longest wait for a slot before a predict request gets 503"
     )

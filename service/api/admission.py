@@ -14,7 +14,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from service.errors import Unavailable
-from service.metrics import PREDICT_IN_FLIGHT, PREDICT_REJECTED, PREDICT_WAITING
+from service.metrics import PREDICT_COMPUTING, PREDICT_IN_FLIGHT, PREDICT_REJECTED, PREDICT_WAITING
 
 RETRY_AFTER_SECONDS = 1
 
@@ -66,7 +66,9 @@ class Admission:
             ) from None
         finally:
             PREDICT_WAITING.dec()
+        PREDICT_COMPUTING.inc()
         try:
             yield
         finally:
+            PREDICT_COMPUTING.dec()
             self._slots.release()

@@ -8,6 +8,7 @@ computing or waiting, so nothing depends on sleeping for the right time.
 from __future__ import annotations
 
 import re
+import socket
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -45,7 +46,7 @@ def post_in_background(pool: ThreadPoolExecutor, server: LiveServer, image: byte
 def hold_the_slot(pool: ThreadPoolExecutor, server: LiveServer, image: bytes, slow: list) -> Future:
     """Post the slow request and return once the server reports it computing."""
     computing = post_in_background(pool, server, image, slow)
-    wait_until(lambda: metric(server, "cks_predict_in_flight") == 1, "the slow request computes")
+    wait_until(lambda: metric(server, "cks_predict_computing") == 1, "the slow request computes")
     return computing
 
 
@@ -91,3 +92,23 @@ def test_a_request_waiting_longer_than_the_queue_timeout_gets_503(
         assert timed_out.headers["retry-after"] == "1"
         assert computing.result().status_code == 200
         assert metric(server, "cks_predict_rejected_total", '{reason="queue_timeout"}') == 1
+
+
+def test_a_slow_body_gets_408_and_frees_its_place(tmp_path: Path, samples: list[Sample]) -> None:
+    image, _, quick = slow_and_quick(samples)
+    settings = {"max_concurrent_inferences": 1, "max_queued_requests": 0, "request_read_timeout_seconds": 0.5}
+    with LiveServer(tmp_path / "data", **settings) as server, socket.create_connection(
+        ("127.0.0.1", server.port), timeout=30
+    ) as slow_client:
+        slow_client.sendall(
+            b"POST /v1/predict HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+            b"Content-Length: 100000\r\n\r\n{\"instances\": ["
+        )  # and then nothing more
+        wait_until(lambda: metric(server, "cks_predict_in_flight") == 1, "the slow body holds the place")
+        assert_problem(predict_json(server.client, image, {"instances": quick}), 503, "at capacity")
+
+        answer = slow_client.recv(65536).decode()
+        assert answer.startswith("HTTP/1.1 408"), answer
+        assert "CKS_REQUEST_READ_TIMEOUT_SECONDS" in answer and "connection: close" in answer.lower()
+        wait_until(lambda: metric(server, "cks_predict_in_flight") == 0, "the place is free again")
+        assert predict_json(server.client, image, {"instances": quick}).status_code == 200

@@ -146,7 +146,7 @@ async def get_calibration(version: VersionNumber, state: State, _: Admin) -> Ver
     "/calibrations/{version}/activate",
     response_model=ActivationOut,
     summary="Make a version active (activating an older one is a rollback)",
-    responses={409: {"description": "The version was scored under other heatmap settings"}},
+    responses={409: {"description": "The version was scored under other manifest settings"}},
 )
 async def activate_calibration(
     version: VersionNumber, state: State, who: Admin, body: ActivationIn | None = None

@@ -13,7 +13,7 @@ from starlette.datastructures import UploadFile
 from service.api.body import read_limited_body
 from service.api.deps import State
 from service.api.schemas import PredictJson, PredictParameters, PredictResponse
-from service.errors import InvalidInput, UnsupportedMediaType
+from service.errors import InvalidInput, RequestTimeout, UnsupportedMediaType
 from service.image_decoding import decode_image
 from service.prediction import predict
 from service.render import render_prediction
@@ -43,7 +43,8 @@ _OPENAPI = {
     },
     "responses": {
         "200": {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}},
-        "409": {"description": "The calibration version was scored under other heatmap settings"},
+        "408": {"description": "The body did not arrive within CKS_REQUEST_READ_TIMEOUT_SECONDS"},
+        "409": {"description": "The calibration version was scored under other manifest settings"},
         "413": {"description": "Body or image too large"},
         "415": {"description": "Not JSON or multipart, or not a JPEG/PNG image"},
         "422": {"description": "Invalid request; the problem lists what to fix"},
@@ -63,7 +64,7 @@ def _validated(model: type[PredictParameters], raw: str | bytes) -> PredictParam
 
 
 async def _parse(request: Request, state: State) -> tuple[bytes, PredictParameters]:
-    body = await read_limited_body(request, state.settings.max_request_bytes, "CKS_MAX_REQUEST_BYTES")
+    body = await _read_body(request, state)
     content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if content_type == "application/json":
         parameters = _validated(PredictJson, body)
@@ -77,6 +78,20 @@ async def _parse(request: Request, state: State) -> tuple[bytes, PredictParamete
     raise UnsupportedMediaType(
         f"send application/json (image_base64) or multipart/form-data (image + request), not {content_type!r}"
     )
+
+
+async def _read_body(request: Request, state: State) -> bytes:
+    """The body within CKS_MAX_REQUEST_BYTES and CKS_REQUEST_READ_TIMEOUT_SECONDS: a slow
+    client must not hold an admission place for long."""
+    timeout = state.settings.request_read_timeout_seconds
+    try:
+        async with asyncio.timeout(timeout):
+            return await read_limited_body(request, state.settings.max_request_bytes, "CKS_MAX_REQUEST_BYTES")
+    except TimeoutError:
+        raise RequestTimeout(
+            f"the request body did not arrive within {timeout:g} s (CKS_REQUEST_READ_TIMEOUT_SECONDS)",
+            headers={"Connection": "close"},
+        ) from None
 
 
 async def _parse_multipart(request: Request) -> tuple[bytes, PredictParameters]:
