@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import argparse
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -49,10 +49,13 @@ class KeypointRows:
     box_side: np.ndarray  # (M,) max(box w, h)
 
 
-def collect_rows(data: Path, model_dir: Path, images: int) -> KeypointRows:
+def collect_rows(data: Path, model_dir: Path, images: int) -> tuple[KeypointRows, int]:
+    """Every labelled keypoint of the first ``images`` images, and how many images had instances."""
     manifest = load_manifest(model_dir)
-    parts: dict[str, list[np.ndarray]] = {name: [] for name in KeypointRows.__dataclass_fields__}
+    parts: dict[str, list[np.ndarray]] = {field.name: [] for field in fields(KeypointRows)}
+    count = 0
     for i, found in enumerate(image_instances(data, model_dir, images, desc="select top-K")):
+        count += 1
         n, k, h, w = found.heatmaps.shape
         parts["heatmaps"].append(found.heatmaps.reshape(n * k, h, w))
         parts["labels"].append(apply_affines(found.affines, found.labels[:, :, :2]).reshape(n * k, 2))
@@ -61,7 +64,7 @@ def collect_rows(data: Path, model_dir: Path, images: int) -> KeypointRows:
         parts["calibration"].append(np.full(n * k, i % 2 == 0))
         parts["to_image"].append(np.repeat(invert_affines(found.affines), k, axis=0))
         parts["box_side"].append(np.repeat(np.maximum(found.boxes[:, 2], found.boxes[:, 3]), k))
-    return KeypointRows(**{name: np.concatenate(values) for name, values in parts.items()})
+    return KeypointRows(**{name: np.concatenate(values) for name, values in parts.items()}), count
 
 
 def visible_pck(rows: KeypointRows, manifest: Manifest, top_k: int) -> float:
@@ -74,7 +77,9 @@ def visible_pck(rows: KeypointRows, manifest: Manifest, top_k: int) -> float:
     return float(np.mean(errors <= PCK_THRESHOLD))
 
 
-def median_set_area(rows: KeypointRows, manifest: Manifest, kind: str, top_k: int) -> float:
+def median_set_area(
+    rows: KeypointRows, manifest: Manifest, kind: str, top_k: int, epsilon: float = EPSILON
+) -> float:
     """Median ICP set area (heatmap px^2) on the odd images, calibrated per column on the even ones."""
     spec = manifest.heatmap
     options = {"normalization": spec.normalization, "top_k": top_k, "temperature": spec.temperature}
@@ -83,7 +88,7 @@ def median_set_area(rows: KeypointRows, manifest: Manifest, kind: str, top_k: in
     scores = nonconformity_scores(kind, rows.heatmaps[calibration], rows.labels[calibration], **options)
     thresholds = np.full(manifest.num_keypoints, math.inf)
     for column in np.unique(rows.column[calibration]):
-        thresholds[column] = conformal_threshold(scores[rows.column[calibration] == column], EPSILON)
+        thresholds[column] = conformal_threshold(scores[rows.column[calibration] == column], epsilon)
     _, shapes = prediction_sets(kind, rows.heatmaps[test], thresholds[rows.column[test]], **options)
     with np.errstate(divide="ignore"):
         areas = math.pi / np.sqrt(np.linalg.det(shapes))
@@ -98,24 +103,32 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--model", type=Path, required=True, help="model directory (onnx + manifest)")
     parser.add_argument("--images", type=int, default=400)
     parser.add_argument("--candidates", type=int, nargs="+", default=list(CANDIDATES))
+    parser.add_argument("--epsilon", type=float, default=EPSILON, help="miscoverage of the compared sets")
     parser.add_argument("--write", action="store_true", help="store the recommended K in manifest.json")
     args = parser.parse_args(argv)
     manifest = load_manifest(args.model)
-    rows = collect_rows(args.data, args.model, args.images)
-    print(f"{len(rows.labels)} keypoints of {args.images} images of {args.data}; eps {EPSILON}")
+    rows, images = collect_rows(args.data, args.model, args.images)
+    print(f"{len(rows.labels)} keypoints of {images} images of {args.data}; eps {args.epsilon}")
     print("| top_k | visible PCK@0.05 of the top-K mean | median ICP-var area | median ICP-cov area |")
     print("|---|---|---|---|")
-    areas = {}
+    areas: dict[int, float] = {}
     for top_k in args.candidates:
-        areas[top_k] = median_set_area(rows, manifest, "cov", top_k)
-        var_area = median_set_area(rows, manifest, "var", top_k)
+        areas[top_k] = median_set_area(rows, manifest, "cov", top_k, args.epsilon)
+        var_area = median_set_area(rows, manifest, "var", top_k, args.epsilon)
         print(f"| {top_k} | {visible_pck(rows, manifest, top_k):.3f} | {var_area:.1f} | {areas[top_k]:.1f} |")
-    print(f"peak (no K): median ICP-peak area {median_set_area(rows, manifest, 'peak', 1):.1f}")
+    print(f"peak (no K): median ICP-peak area {median_set_area(rows, manifest, 'peak', 1, args.epsilon):.1f}")
     best = min(areas, key=areas.get)
+    if not math.isfinite(areas[best]):
+        raise SystemExit(
+            "every candidate gives unbounded sets (too few calibration scores per keypoint for this "
+            "epsilon): use more --images or a larger --epsilon; nothing written"
+        )
     print(f"recommended top_k: {best} (smallest median ICP-cov area)")
     if args.write:
         heatmap = manifest.heatmap.model_copy(update={"top_k": best})
         print(f"wrote {write_manifest(args.model, manifest.model_copy(update={'heatmap': heatmap}))}")
+        print("calibrations scored under the old top_k are now refused: recalibrate, e.g. "
+              f"keypoint-service calibrate <calibration split> --bundle {args.model}/default_calibration.npz")
 
 
 if __name__ == "__main__":

@@ -35,18 +35,34 @@ def test_report_counts_every_labelled_keypoint_and_the_detector_is_accurate_on_v
     assert summary["visible"]["median"] < summary["occluded"]["median"]
 
 
+def copied_model(tmp_path: Path) -> Path:
+    model = tmp_path / "model"
+    shutil.copytree(MODEL_DIR, model, ignore=shutil.ignore_patterns("samples"))
+    return model
+
+
 def test_select_top_k_writes_the_k_with_the_smallest_cov_area(
     tmp_path: Path, capsys: pytest.CaptureFixture
 ) -> None:
-    model = tmp_path / "model"
-    shutil.copytree(MODEL_DIR, model, ignore=shutil.ignore_patterns("samples"))
-    select_top_k.main(["--data", str(SAMPLES), "--model", str(model), "--candidates", "9", "100", "--write"])
+    model = copied_model(tmp_path)
+    options = ["--candidates", "4", "100", "--epsilon", "0.5", "--write"]
+    select_top_k.main(["--data", str(SAMPLES), "--model", str(model), *options])
     out = capsys.readouterr().out
-    rows = [line.split("|") for line in out.splitlines() if line.startswith(("| 9 ", "| 100 "))]
+    rows = [line.split("|") for line in out.splitlines() if line.startswith(("| 4 ", "| 100 "))]
     cov_area = {int(r[1]): float(r[4]) for r in rows}
-    assert set(cov_area) == {9, 100}
+    assert set(cov_area) == {4, 100} and all(np.isfinite(list(cov_area.values())))
+    assert cov_area[4] != cov_area[100]
     best = min(cov_area, key=cov_area.get)
-    assert f"recommended top_k: {best}" in out
+    assert f"recommended top_k: {best}" in out and "recalibrate" in out
     written, committed = load_manifest(model), load_manifest(MODEL_DIR)
     assert written.heatmap.top_k == best
     assert written.model_copy(update={"heatmap": committed.heatmap}) == committed  # nothing else changed
+    assert f"of {len(list((SAMPLES / 'images').iterdir()))} images" in out
+
+
+def test_select_top_k_refuses_when_every_set_is_unbounded(tmp_path: Path) -> None:
+    model = copied_model(tmp_path)
+    before = (model / "manifest.json").read_bytes()
+    with pytest.raises(SystemExit, match="unbounded"):  # 12 images: t = 0 for every keypoint at eps 0.1
+        select_top_k.main(["--data", str(SAMPLES), "--model", str(model), "--candidates", "9", "--write"])
+    assert (model / "manifest.json").read_bytes() == before
