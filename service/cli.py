@@ -6,7 +6,6 @@ import argparse
 import hashlib
 import json
 import logging
-import shutil
 import sys
 from pathlib import Path
 
@@ -18,13 +17,13 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
 
     from calibration_store import open_store
     from service.calibration.bundle import bootstrap_default_calibration
+    from service.calibration.uploads import remove_orphaned_uploads
     from service.detector.runtime import Detector
 
     # Check the model and store the bundled calibration once, before workers start racing.
     detector = Detector(settings.model_dir, settings.inference_threads)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    # Uploads a crash left behind were never stored (a version is written in one transaction).
-    shutil.rmtree(settings.data_dir / "uploads", ignore_errors=True)
+    remove_orphaned_uploads(settings.data_dir / "uploads")  # never stored: versions are atomic
     with open_store(settings.resolved_store_url) as store:
         if settings.bootstrap_calibration:
             bootstrap_default_calibration(store, detector, settings.model_dir)

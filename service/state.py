@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import shutil
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,6 +13,7 @@ from service.api.admission import Admission
 from service.calibration.bundle import bootstrap_default_calibration
 from service.calibration.jobs import JobRunner
 from service.calibration.registry import CalibrationRegistry
+from service.calibration.uploads import process_uploads_dir
 from service.detector.runtime import Detector
 from service.settings import Settings
 
@@ -36,6 +38,7 @@ class ServiceState:
 
     def close(self) -> None:
         self.jobs.shutdown()
+        shutil.rmtree(process_uploads_dir(self.uploads_dir), ignore_errors=True)  # cancelled jobs' uploads
         self.cpu_pool.shutdown(wait=True, cancel_futures=True)
         self.store.close()
         self.detector.close()

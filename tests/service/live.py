@@ -88,6 +88,10 @@ class LiveServer:
     def uploads_dir(self) -> Path:
         return self.data_dir / "uploads"
 
+    def upload_workspaces(self) -> list[Path]:
+        """Upload workspaces left under the uploads folder (one folder per server process)."""
+        return sorted(self.uploads_dir.glob("*/*"))
+
     def log(self) -> str:
         try:
             return self.log_path.read_text(errors="replace")

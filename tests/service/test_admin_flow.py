@@ -81,7 +81,7 @@ def test_upload_job_activate_predict_and_roll_back(
     assert job["result"] == {"version": version, "instances": total, "activated": False}
     assert server.versions() == [*before, version]
     assert active(server) == previous  # not activated without activate=true
-    assert not any(server.uploads_dir.iterdir()), "the upload workspace was not removed"
+    assert server.upload_workspaces() == [], "the upload workspace was not removed"
 
     summary = detail(server, version)
     assert summary["note"] == "end-to-end test" and summary["author"] == "admin"

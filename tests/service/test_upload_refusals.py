@@ -26,8 +26,7 @@ def snapshot(server: LiveServer) -> tuple[list[int], int, list[Path]]:
 
 def assert_nothing_stored(server: LiveServer, before: tuple) -> None:
     assert snapshot(server) == before
-    if server.uploads_dir.exists():
-        assert list(server.uploads_dir.iterdir()) == [], "an upload workspace was left behind"
+    assert server.upload_workspaces() == [], "an upload workspace was left behind"
 
 
 @pytest.fixture
@@ -238,4 +237,4 @@ def test_a_valid_small_batch_is_accepted(limited_server: LiveServer, samples_dir
     before = limited_server.versions()
     job = limited_server.calibrate(batch_zip(samples_dir, coco, images=2))
     assert limited_server.versions() == [*before, job["result"]["version"]]
-    assert list(limited_server.uploads_dir.iterdir()) == []
+    assert limited_server.upload_workspaces() == []
