@@ -34,7 +34,14 @@ _UPLOAD_OPENAPI = {
         "required": True,
         "description": "A zip of a COCO-keypoints batch: annotations.json and the images it names",
         "content": {"application/zip": {"schema": {"type": "string", "format": "binary"}}},
-    }
+    },
+    "responses": {
+        "409": {"description": "append_to names a version scored under other manifest settings"},
+        "413": {"description": "The zip, its files or its unzipped size exceed the limits"},
+        "415": {"description": "Not a zip body"},
+        "422": {"description": "The archive or its COCO batch is invalid; the problem lists what to fix"},
+        "503": {"description": "The calibration store could not record the job"},
+    },
 }
 
 
@@ -106,13 +113,21 @@ async def upload_calibration(
     return job_out(job)
 
 
-@router.get("/jobs/{job_id}", response_model=JobOut, summary="State, progress and errors of a job")
+@router.get(
+    "/jobs/{job_id}",
+    response_model=JobOut,
+    summary="State, progress and errors of a job (any replica answers)",
+    responses={
+        404: {"description": "No such job (never existed, or pruned)"},
+        503: {"description": "The calibration store is unreachable"},
+    },
+)
 async def get_job(job_id: str, state: State, _: Admin) -> JobOut:
     job = await run_in_threadpool(state.jobs.get, job_id)
     if job is None:
         raise NotFound(
-            f"no job {job_id!r}: it never existed or was pruned (jobs are kept while among the"
-            " latest 1000 or active within 7 days)"
+            f"no job {job_id!r}: it never existed or was pruned (a job is kept for 7 days after its"
+            " last heartbeat, and of the finished jobs only the latest 1000)"
         )
     return job_out(job)
 
