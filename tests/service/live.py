@@ -34,6 +34,14 @@ STARTUP_TIMEOUT_S = 30.0
 PROBLEM_JSON = "application/problem+json"
 
 
+def wait_until(condition: Callable[[], bool], what: str = "condition", timeout: float = 30.0) -> None:
+    """Poll ``condition`` every 10 ms; fail naming ``what`` after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, f"timed out after {timeout} s waiting until {what}"
+        time.sleep(0.01)
+
+
 def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
         sock.bind(("127.0.0.1", 0))
@@ -153,6 +161,12 @@ class LiveServer:
             params=params,
             headers={**self.admin, "Content-Type": content_type},
         )
+
+    def job(self, job_id: str) -> dict:
+        """GET one job (must answer 200)."""
+        response = self.client.get(f"/v1/admin/jobs/{job_id}", headers=self.admin)
+        assert response.status_code == 200, f"{self.url}: {response.text}"
+        return response.json()
 
     def wait_job(self, job_id: str, timeout: float = 120.0) -> dict:
         """Poll a job until it succeeds or fails; returns the final job body."""

@@ -9,14 +9,12 @@ from __future__ import annotations
 
 import re
 import socket
-import time
-from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import httpx
 
-from tests.service.live import LiveServer, Sample, assert_problem, samples_by_image
+from tests.service.live import LiveServer, Sample, assert_problem, samples_by_image, wait_until
 from tests.service.predict_client import instances_of, predict_json
 
 SLOW_INSTANCES = 128
@@ -28,11 +26,6 @@ def metric(server: LiveServer, name: str, labels: str = "") -> float:
     return float(match.group(1)) if match else 0.0
 
 
-def wait_until(condition: Callable[[], bool], what: str, timeout: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, f"timed out waiting until {what}"
-        time.sleep(0.005)
 
 
 def post_in_background(pool: ThreadPoolExecutor, server: LiveServer, image: bytes, instances: list) -> Future:

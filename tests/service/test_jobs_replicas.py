@@ -24,10 +24,6 @@ def shared_store_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
     return f"sqlite://{tmp_path}/shared/calibration.db"
 
 
-def get_job(server: LiveServer, job_id: str) -> dict:
-    response = server.client.get(f"/v1/admin/jobs/{job_id}", headers=server.admin)
-    assert response.status_code == 200, f"{server.url}: {response.text}"
-    return response.json()
 
 
 def test_upload_on_a_poll_on_b(shared_store_url: str, tmp_path: Path, samples_dir: Path, coco: dict) -> None:
@@ -44,7 +40,7 @@ def test_upload_on_a_poll_on_b(shared_store_url: str, tmp_path: Path, samples_di
         job_id = accepted["id"]
 
         # the row exists before the 202, so B knows the job from the first poll on
-        first = get_job(b, job_id)
+        first = b.job(job_id)
         assert first["state"] in ("queued", "running", "succeeded"), first
         assert (first["id"], first["kind"], first["total"]) == (job_id, "calibration", total)
         assert first["created_at"] == accepted["created_at"]
@@ -56,7 +52,7 @@ def test_upload_on_a_poll_on_b(shared_store_url: str, tmp_path: Path, samples_di
         version = job["result"]["version"]
         assert job["result"] == {"version": version, "instances": total, "activated": False}
         assert version == 2
-        assert get_job(a, job_id) == job, "both servers report the same stored job"
+        assert a.job(job_id) == job, "both servers report the same stored job"
 
         assert a.versions() == b.versions() == [1, 2]
         with open_store(shared_store_url) as store:

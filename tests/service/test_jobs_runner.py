@@ -5,7 +5,7 @@ from __future__ import annotations
 import sqlite3
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
@@ -17,6 +17,7 @@ from calibration_store.sqlite import SQLiteStore
 from service.calibration import jobs
 from service.calibration.jobs import JobProgress, JobRunner, reported
 from service.errors import InvalidInput
+from tests.service.live import wait_until
 
 OWNER = "test-host:4242"
 
@@ -47,11 +48,6 @@ def runner(store: CountingStore) -> Iterator[JobRunner]:
     started.shutdown()
 
 
-def wait_until(condition: Callable[[], bool], timeout: float = 10.0, what: str = "condition") -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, f"{what} not reached within {timeout} s"
-        time.sleep(0.02)
 
 
 def state_of(store: CountingStore, job_id: str) -> str | None:

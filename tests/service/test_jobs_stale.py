@@ -36,10 +36,6 @@ def repeated(copies: int):
     return mutate
 
 
-def get_job(server: LiveServer, job_id: str) -> dict:
-    response = server.client.get(f"/v1/admin/jobs/{job_id}", headers=server.admin)
-    assert response.status_code == 200, response.text
-    return response.json()
 
 
 def test_a_killed_servers_job_is_reported_failed(tmp_path: Path, samples_dir: Path, coco: dict) -> None:
@@ -60,11 +56,11 @@ def test_a_killed_servers_job_is_reported_failed(tmp_path: Path, samples_dir: Pa
             assert row.state in ("queued", "running"), f"the kill must land mid-job: {row}"
             assert row.total == COPIES * count_instances(coco)
             # its heartbeat is recent: B still reports what the row says
-            assert get_job(b, job_id)["state"] == row.state
+            assert b.job(job_id)["state"] == row.state
             # the silence outlasts the limit (written as the dead process left it, only older)
             store.update_job(job_id, heartbeat_at=datetime.now(UTC) - STALE_AFTER - timedelta(seconds=5))
 
-        job = get_job(b, job_id)
+        job = b.job(job_id)
         assert job["state"] == "failed", job
         assert job["finished_at"] is not None and job["result"] == {}
         (error,) = job["errors"]
@@ -92,8 +88,8 @@ def test_a_silent_job_row_is_reported_failed(tmp_path: Path) -> None:
                               heartbeat_at=heartbeat_at, state=state, done=3, total=9)
                 )  # fmt: skip
         for job_id in ("stale", "stale-queued"):
-            job = get_job(server, job_id)
+            job = server.job(job_id)
             assert (job["state"], job["done"], job["total"]) == ("failed", 3, 9), job
             assert "node-7:31337" in job["errors"][0] and "nothing was stored" in job["errors"][0], job
-        assert get_job(server, "fresh")["state"] == "running"
-        assert get_job(server, "finished")["state"] == "succeeded"
+        assert server.job("fresh")["state"] == "running"
+        assert server.job("finished")["state"] == "succeeded"
