@@ -22,6 +22,7 @@ from service.api.presenters import activation_out, describe, job_out, summarize
 from service.api.schemas import MAX_VERSION
 from service.calibration.archive import ArchiveLimits
 from service.calibration.calibrate import CalibrationOptions, check_parent, create_calibration
+from service.calibration.jobs import JobProgress
 from service.calibration.uploads import UploadWorkspace, batch_name, validate_upload
 from service.errors import NotFound, UnsupportedMediaType
 
@@ -89,7 +90,7 @@ async def upload_calibration(
         raise
     options = CalibrationOptions(author=who, note=note, append_to=append_to, activate=activate)
 
-    def run(progress) -> dict:
+    def run(progress: JobProgress) -> dict:
         try:
             info = create_calibration(
                 state.store,
