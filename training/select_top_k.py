@@ -1,11 +1,12 @@
-"""Choose the manifest's top-K (used by var and cov) on the training split.
+"""Choose the manifest's top-K (used by var and cov) on a held-out validation split.
 
-    python -m training.select_top_k --data data/lmo_synth/train --model models/lmo-synth-unet
+    python -m training.select_top_k --data data/lmo_synth/validation --model models/lmo-synth-unet --write
 
 The paper's K = 100 of 64x64 suits its detector's broad heatmaps; a sharper model
 needs a smaller K, or the top-K statistics are dominated by background pixels and
 the var/cov sets are wide and not adaptive. For each candidate K this prints, on
-images of the training split (never the calibration or test split, so that K is
+images of a validation split (not the training split, whose heatmaps are sharper than
+on new images and favour a small K; never the calibration or test split, so that K is
 fixed before calibration and the guarantee is untouched):
 
 - the visible PCK@0.05 of the top-K mean (the service's var/cov point), and
@@ -99,7 +100,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--data", type=Path, required=True, help="the training split (COCO folder)")
+    parser.add_argument("--data", type=Path, required=True, help="a validation split (COCO folder)")
     parser.add_argument("--model", type=Path, required=True, help="model directory (onnx + manifest)")
     parser.add_argument("--images", type=int, default=400)
     parser.add_argument("--candidates", type=int, nargs="+", default=list(CANDIDATES))
