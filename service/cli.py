@@ -19,6 +19,7 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
     from service.calibration.bundle import bootstrap_default_calibration
     from service.calibration.uploads import remove_orphaned_uploads
     from service.detector.runtime import Detector
+    from service.metrics import enable_multiprocess
 
     # Check the model and store the bundled calibration once, before workers start racing.
     detector = Detector(settings.model_dir, settings.inference_threads)
@@ -27,6 +28,8 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
     with open_store(settings.resolved_store_url) as store:
         if settings.bootstrap_calibration:
             bootstrap_default_calibration(store, detector, settings.model_dir)
+    if settings.workers > 1:
+        enable_multiprocess(settings.data_dir / "metrics")
     uvicorn.run(
         "service.api.main:app",
         host=args.host or settings.host,

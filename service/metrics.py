@@ -1,6 +1,16 @@
-"""Prometheus metrics of the service: requests, inference batches, calibration jobs."""
+"""Prometheus metrics of the service: requests, inference batches, admission, calibration jobs.
+
+With several worker processes (``CKS_WORKERS > 1``) ``serve`` points prometheus_client's
+multiprocess mode at a folder (``PROMETHEUS_MULTIPROC_DIR``) before the workers start:
+each worker writes its values there and ``/metrics``, whichever worker answers, reports
+the sum over all of them (gauges of live workers only).
+"""
 
 from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
 
 from prometheus_client import (
     CONTENT_TYPE_LATEST,
@@ -9,7 +19,10 @@ from prometheus_client import (
     Gauge,
     Histogram,
     generate_latest,
+    multiprocess,
 )
+
+MULTIPROCESS_ENV = "PROMETHEUS_MULTIPROC_DIR"
 
 REGISTRY = CollectorRegistry(auto_describe=True)
 
@@ -36,13 +49,16 @@ INFERENCE_SECONDS = Histogram(
     registry=REGISTRY,
 )
 PREDICT_IN_FLIGHT = Gauge(
-    "cks_predict_in_flight", "predict requests admitted (computing or waiting for a slot)", registry=REGISTRY
+    "cks_predict_in_flight", "predict requests admitted (computing or waiting for a slot)",
+    registry=REGISTRY, multiprocess_mode="livesum",
 )
 PREDICT_COMPUTING = Gauge(
-    "cks_predict_computing", "predict requests holding a compute slot", registry=REGISTRY
+    "cks_predict_computing", "predict requests holding a compute slot",
+    registry=REGISTRY, multiprocess_mode="livesum",
 )
 PREDICT_WAITING = Gauge(
-    "cks_predict_waiting", "predict requests waiting for a compute slot", registry=REGISTRY
+    "cks_predict_waiting", "predict requests waiting for a compute slot",
+    registry=REGISTRY, multiprocess_mode="livesum",
 )
 PREDICT_REJECTED = Counter(
     "cks_predict_rejected", "predict requests refused with 503 by admission control", ["reason"],
@@ -57,4 +73,22 @@ CALIBRATION_INSTANCES = Counter(
 
 
 def metrics_payload() -> tuple[bytes, str]:
+    """The exposition text: this process's metrics, or all workers' in multiprocess mode."""
+    if os.environ.get(MULTIPROCESS_ENV):
+        registry = CollectorRegistry()
+        multiprocess.MultiProcessCollector(registry)
+        return generate_latest(registry), CONTENT_TYPE_LATEST
     return generate_latest(REGISTRY), CONTENT_TYPE_LATEST
+
+
+def enable_multiprocess(folder: Path) -> None:
+    """Call in the parent before worker processes start (and before they import this module)."""
+    shutil.rmtree(folder, ignore_errors=True)  # values of an earlier run must not be summed in
+    folder.mkdir(parents=True)
+    os.environ[MULTIPROCESS_ENV] = str(folder)
+
+
+def worker_stopped() -> None:
+    """Drop this worker's live gauges from the multiprocess sums (no-op otherwise)."""
+    if os.environ.get(MULTIPROCESS_ENV):
+        multiprocess.mark_process_dead(os.getpid())

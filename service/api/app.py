@@ -12,6 +12,7 @@ from service.api.metrics import MetricsMiddleware
 from service.api.problems import install_problem_handlers
 from service.api.routes import admin, health, model, predict
 from service.api.schemas import PredictJson
+from service.metrics import worker_stopped
 from service.settings import Settings
 from service.state import ServiceState, build_state
 
@@ -37,6 +38,7 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
         finally:
             if owned:
                 app.state.service.close()
+            worker_stopped()
 
     app = FastAPI(
         title="Conformal keypoint service",

@@ -1,0 +1,70 @@
+"""`keypoint-service serve` with CKS_WORKERS=2: /metrics sums every worker, jobs are shared.
+
+Each request opens a new connection, so the kernel spreads them over both workers; the
+multiprocess folder then holds one counter file per worker that served, which is what
+makes the summed count a real test of the aggregation.
+"""
+
+from __future__ import annotations
+
+import re
+import signal
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from service.settings import PACKAGE_ROOT
+from tests.service.live import ADMIN_TOKEN, Sample, cli, free_port, samples_by_image, service_env, wait_until
+from tests.service.predict_client import instances_of, predict_json
+
+REQUESTS = 40
+
+
+@pytest.fixture
+def two_workers(tmp_path: Path) -> Iterator[tuple[str, Path]]:
+    port = free_port()
+    data = tmp_path / "data"
+    env = service_env(data, workers=2, port=port, admin_token=ADMIN_TOKEN)
+    with open(tmp_path / "serve.log", "wb") as log:
+        process = subprocess.Popen([*cli(), "serve"], env=env, cwd=PACKAGE_ROOT, stdout=log, stderr=log)
+    url = f"http://127.0.0.1:{port}"
+
+    def ready() -> bool:
+        assert process.poll() is None, (tmp_path / "serve.log").read_text()
+        try:
+            return httpx.get(f"{url}/readyz", timeout=1).status_code == 200
+        except httpx.TransportError:
+            return False
+
+    try:
+        wait_until(ready, "both workers serve", timeout=60)
+        yield url, data
+    finally:
+        process.send_signal(signal.SIGINT)
+        process.wait(timeout=30)
+
+
+def predict_count(text: str) -> float:
+    pattern = r'^cks_http_requests_total\{method="POST",route="/v1/predict",status="200"\} ([0-9.e+]+)$'
+    match = re.search(pattern, text, re.MULTILINE)
+    return float(match.group(1)) if match else 0.0
+
+
+def test_metrics_sum_over_the_workers(two_workers: tuple[str, Path], samples: list[Sample]) -> None:
+    url, data = two_workers
+    path, group = next(iter(samples_by_image(samples).items()))
+    image, request = path.read_bytes(), {"instances": instances_of(group)}
+    for _ in range(REQUESTS):
+        with httpx.Client(base_url=url, timeout=60) as client:  # a new connection each time
+            assert predict_json(client, image, request).status_code == 200
+
+    served_by = {f.name for f in (data / "metrics").glob("counter_*.db")}
+    assert len(served_by) == 2, f"expected both workers to have counted requests: {served_by}"
+    for _ in range(6):  # whichever worker answers the scrape
+        with httpx.Client(base_url=url, timeout=60) as client:
+            text = client.get("/metrics").text
+        assert predict_count(text) == REQUESTS, text
+        assert re.search(r"^cks_predict_in_flight(\{.*\})? 0\.0$", text, re.MULTILINE), text
