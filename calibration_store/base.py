@@ -30,6 +30,16 @@ class CalibrationStore(ABC):
         """
 
     @abstractmethod
+    def create_first_version(
+        self, new: NewVersion, scores: ScoreTable, who: str, reason: str = ""
+    ) -> VersionInfo | None:
+        """Store ``new`` as the model's version 1 and activate it, in one transaction.
+
+        Returns None, writing nothing, if the model already has (or had) a version: of
+        several processes bootstrapping the same store at once, exactly one succeeds.
+        """
+
+    @abstractmethod
     def list_versions(self, model_hash: str) -> list[VersionInfo]:
         """Metadata of every version of a model, by increasing number ([] if none)."""
 

@@ -103,16 +103,38 @@ class SqlStore(CalibrationStore):
         if not isinstance(new, NewVersion) or not isinstance(scores, ScoreTable):
             raise TypeError("create_version takes a NewVersion and a ScoreTable")
         blocks = [encode_block(i, block) for i, block in enumerate(scores.objects)]
-        created_at = now_utc()
         with self._transaction(write=True) as cur:
             number = self._next_number(cur, new.model_hash)
             if new.parent_version is not None:
                 self._version_id(cur, new.model_hash, new.parent_version)
-            version_id = self._insert_version(cur, new, number, created_at, scores)
-            for block in blocks:
-                self._insert_block(cur, version_id, block)
-            self._bump_counter(cur)
+            self._write_version(cur, new, number, scores, blocks)
         return self.get_version(new.model_hash, number)
+
+    def create_first_version(
+        self, new: NewVersion, scores: ScoreTable, who: str, reason: str = ""
+    ) -> VersionInfo | None:
+        if not isinstance(new, NewVersion) or not isinstance(scores, ScoreTable):
+            raise TypeError("create_first_version takes a NewVersion and a ScoreTable")
+        _check_activation_text(who, reason)
+        blocks = [encode_block(i, block) for i, block in enumerate(scores.objects)]
+        try:
+            with self._transaction(write=True) as cur:
+                # The counter row's lock orders concurrent callers: only one sees number 1.
+                if self._next_number(cur, new.model_hash) != 1:
+                    raise _NotFirst
+                self._write_version(cur, new, 1, scores, blocks)
+                self._insert_activation(cur, new.model_hash, 1, who, reason)
+        except _NotFirst:
+            return None  # rolled back: the counter bump too
+        return self.get_version(new.model_hash, 1)
+
+    def _write_version(
+        self, cur: Cursor, new: NewVersion, number: int, scores: ScoreTable, blocks: list[EncodedBlock]
+    ) -> None:
+        version_id = self._insert_version(cur, new, number, now_utc(), scores)
+        for block in blocks:
+            self._insert_block(cur, version_id, block)
+        self._bump_counter(cur)
 
     def _next_number(self, cur: Cursor, model_hash: str) -> int:
         cur.execute(
@@ -172,10 +194,7 @@ class SqlStore(CalibrationStore):
     def activate(self, model_hash: str, number: int, who: str, reason: str = "") -> Activation:
         check_model_hash(model_hash)
         check_number(number)
-        if not isinstance(who, str) or not who.strip():
-            raise ValueError("who must be a non-empty string")
-        if not isinstance(reason, str):
-            raise TypeError("reason must be a string")
+        _check_activation_text(who, reason)
         with self._transaction(write=True) as cur:
             cur.execute(
                 f"SELECT last_number FROM calib_models WHERE model_hash = ?{self.lock_clause}",
@@ -184,14 +203,19 @@ class SqlStore(CalibrationStore):
             if cur.fetchone() is None:
                 raise VersionNotFound(model_hash, number)
             self._version_id(cur, model_hash, number)
-            cur.execute(
-                "INSERT INTO calib_activations (model_hash, number, activated_at, who, reason)"
-                f" VALUES (?, ?, ?, ?, ?) RETURNING {_ACTIVATION_COLUMNS}",
-                (model_hash, number, self._time_to_db(now_utc()), who, reason),
-            )
-            activation = self._activation(cur.fetchone())
+            activation = self._insert_activation(cur, model_hash, number, who, reason)
             self._bump_counter(cur)
         return activation
+
+    def _insert_activation(
+        self, cur: Cursor, model_hash: str, number: int, who: str, reason: str
+    ) -> Activation:
+        cur.execute(
+            "INSERT INTO calib_activations (model_hash, number, activated_at, who, reason)"
+            f" VALUES (?, ?, ?, ?, ?) RETURNING {_ACTIVATION_COLUMNS}",
+            (model_hash, number, self._time_to_db(now_utc()), who, reason),
+        )
+        return self._activation(cur.fetchone())
 
     # -- reading ---------------------------------------------------------------
 
@@ -394,6 +418,17 @@ class SqlStore(CalibrationStore):
             who=row[4],
             reason=row[5],
         )
+
+
+class _NotFirst(Exception):
+    """Aborts create_first_version's transaction when the model already has a version."""
+
+
+def _check_activation_text(who: object, reason: object) -> None:
+    if not isinstance(who, str) or not who.strip():
+        raise ValueError("who must be a non-empty string")
+    if not isinstance(reason, str):
+        raise TypeError("reason must be a string")
 
 
 def _check_job_id(job_id: object) -> None:

@@ -53,7 +53,10 @@ def load_bundle(path: Path) -> tuple[NewVersion, ScoreTable]:
 
 
 def bootstrap_default_calibration(store: CalibrationStore, detector: Detector, model_dir: Path) -> int | None:
-    """Store and activate the model's bundled calibration when the store has none for it yet."""
+    """Store and activate the model's bundled calibration when the store has none for it yet.
+
+    Atomic in the store: replicas starting at once on an empty shared store bootstrap it once.
+    """
     path = Path(model_dir) / BUNDLE_FILENAME
     if not path.is_file() or store.list_versions(detector.model_hash):
         return None
@@ -65,7 +68,8 @@ def bootstrap_default_calibration(store: CalibrationStore, detector: Detector, m
     if reason is not None:
         log.warning("%s is not loaded: %s", path, reason)
         return None
-    info = store.create_version(new, table)
-    store.activate(detector.model_hash, info.number, "bootstrap", f"bundled default calibration {path.name}")
+    info = store.create_first_version(new, table, "bootstrap", f"bundled default calibration {path.name}")
+    if info is None:  # another process bootstrapped it first
+        return None
     log.info("loaded the bundled calibration as version %d", info.number)
     return info.number

@@ -70,3 +70,12 @@ def run_jobs(url: str, barrier: Any, worker: int, count: int, results: Any) -> N
         ids.append(job_id)
     store.close()
     results.put((worker, ids))
+
+
+def bootstrap(url: str, barrier: Any, worker: int, results: Any) -> None:
+    """Try to store the first version of MODEL_A at the same moment as the other workers."""
+    store = open_store(url)
+    barrier.wait(timeout=60)
+    info = store.create_first_version(new_version(author=f"w{worker}"), score_table(n=4), who=f"w{worker}")
+    store.close()
+    results.put((worker, None if info is None else info.number))
