@@ -25,6 +25,9 @@ CalibrationStore (thread-safe; also a context manager that closes):
   transaction; numbers are 1, 2, ... per model hash, distinct and gap-free under
   concurrent writers; a writer killed mid-way leaves nothing. ``created_at`` is set by
   the store (UTC). Raises VersionNotFound if ``parent_version`` does not exist.
+- ``create_first_version(new, scores, who, reason="") -> VersionInfo | None``: version 1
+  stored and activated in one transaction, or None (nothing written) if the model has
+  or had a version: concurrent bootstraps of one store succeed exactly once.
 - ``list_versions(model_hash) -> list[VersionInfo]`` (by number),
   ``get_version(model_hash, number) -> VersionInfo``,
   ``load_scores(model_hash, number) -> ScoreTable`` (read-only arrays, bit-exact).
