@@ -229,30 +229,30 @@ class SqlStore(CalibrationStore):
             raise VersionNotFound(model_hash, number)
         return int(row[0])
 
+    def _read(self, sql: str, params: tuple) -> list[tuple]:
+        """All rows of one read-only query, in its own transaction."""
+        with self._transaction(write=False) as cur:
+            cur.execute(sql, params)
+            return cur.fetchall()
+
     def list_versions(self, model_hash: str) -> list[VersionInfo]:
         check_model_hash(model_hash)
-        with self._transaction(write=False) as cur:
-            cur.execute(
-                f"SELECT {_VERSION_COLUMNS} FROM calib_versions WHERE model_hash = ?"
-                " ORDER BY number",
-                (model_hash,),
-            )
-            rows = cur.fetchall()
+        rows = self._read(
+            f"SELECT {_VERSION_COLUMNS} FROM calib_versions WHERE model_hash = ? ORDER BY number",
+            (model_hash,),
+        )
         return [self._version_info(row) for row in rows]
 
     def get_version(self, model_hash: str, number: int) -> VersionInfo:
         check_model_hash(model_hash)
         check_number(number)
-        with self._transaction(write=False) as cur:
-            cur.execute(
-                f"SELECT {_VERSION_COLUMNS} FROM calib_versions"
-                " WHERE model_hash = ? AND number = ?",
-                (model_hash, number),
-            )
-            row = cur.fetchone()
-        if row is None:
+        rows = self._read(
+            f"SELECT {_VERSION_COLUMNS} FROM calib_versions WHERE model_hash = ? AND number = ?",
+            (model_hash, number),
+        )
+        if not rows:
             raise VersionNotFound(model_hash, number)
-        return self._version_info(row)
+        return self._version_info(rows[0])
 
     def load_scores(self, model_hash: str, number: int) -> ScoreTable:
         check_model_hash(model_hash)
@@ -275,30 +275,23 @@ class SqlStore(CalibrationStore):
 
     def active_version(self, model_hash: str) -> Activation | None:
         check_model_hash(model_hash)
-        with self._transaction(write=False) as cur:
-            cur.execute(
-                f"SELECT {_ACTIVATION_COLUMNS} FROM calib_activations WHERE model_hash = ?"
-                " ORDER BY seq DESC LIMIT 1",
-                (model_hash,),
-            )
-            row = cur.fetchone()
-        return None if row is None else self._activation(row)
+        rows = self._read(
+            f"SELECT {_ACTIVATION_COLUMNS} FROM calib_activations WHERE model_hash = ?"
+            " ORDER BY seq DESC LIMIT 1",
+            (model_hash,),
+        )
+        return self._activation(rows[0]) if rows else None
 
     def activation_log(self, model_hash: str) -> list[Activation]:
         check_model_hash(model_hash)
-        with self._transaction(write=False) as cur:
-            cur.execute(
-                f"SELECT {_ACTIVATION_COLUMNS} FROM calib_activations WHERE model_hash = ?"
-                " ORDER BY seq",
-                (model_hash,),
-            )
-            rows = cur.fetchall()
+        rows = self._read(
+            f"SELECT {_ACTIVATION_COLUMNS} FROM calib_activations WHERE model_hash = ? ORDER BY seq",
+            (model_hash,),
+        )
         return [self._activation(row) for row in rows]
 
     def change_counter(self) -> int:
-        with self._transaction(write=False) as cur:
-            cur.execute("SELECT value FROM calib_change_counter WHERE id = 1")
-            return int(cur.fetchone()[0])
+        return int(self._read("SELECT value FROM calib_change_counter WHERE id = 1", ())[0][0])
 
     def ping(self) -> None:
         self.change_counter()
@@ -347,10 +340,8 @@ class SqlStore(CalibrationStore):
         _check_job_id(job_id)
         if not is_job_id(job_id):  # e.g. a NUL character, which PostgreSQL text refuses
             return None
-        with self._transaction(write=False) as cur:
-            cur.execute(f"SELECT {_JOB_COLUMNS} FROM calib_jobs WHERE id = ?", (job_id,))
-            row = cur.fetchone()
-        return None if row is None else self._job(row)
+        rows = self._read(f"SELECT {_JOB_COLUMNS} FROM calib_jobs WHERE id = ?", (job_id,))
+        return self._job(rows[0]) if rows else None
 
     def prune_jobs(self, keep: int = KEEP_JOBS, max_age: timedelta = JOB_MAX_AGE) -> int:
         keep = check_number(keep, "jobs to keep")
