@@ -43,6 +43,14 @@ def hold_the_slot(pool: ThreadPoolExecutor, server: LiveServer, image: bytes, sl
     return computing
 
 
+def read_until_closed(connection: socket.socket) -> str:
+    """Everything the server sends until it closes the connection (header and body may be split)."""
+    received = b""
+    while chunk := connection.recv(65536):
+        received += chunk
+    return received.decode()
+
+
 def slow_and_quick(samples: list[Sample]) -> tuple[bytes, list, list]:
     path, group = next(iter(samples_by_image(samples).items()))
     instances = instances_of(group)
@@ -100,7 +108,7 @@ def test_a_slow_body_gets_408_and_frees_its_place(tmp_path: Path, samples: list[
         wait_until(lambda: metric(server, "cks_predict_in_flight") == 1, "the slow body holds the place")
         assert_problem(predict_json(server.client, image, {"instances": quick}), 503, "at capacity")
 
-        answer = slow_client.recv(65536).decode()
+        answer = read_until_closed(slow_client)
         assert answer.startswith("HTTP/1.1 408"), answer
         assert "CKS_REQUEST_READ_TIMEOUT_SECONDS" in answer and "connection: close" in answer.lower()
         wait_until(lambda: metric(server, "cks_predict_in_flight") == 0, "the place is free again")
