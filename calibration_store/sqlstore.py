@@ -115,6 +115,8 @@ class SqlStore(CalibrationStore):
     ) -> VersionInfo | None:
         if not isinstance(new, NewVersion) or not isinstance(scores, ScoreTable):
             raise TypeError("create_first_version takes a NewVersion and a ScoreTable")
+        if new.parent_version is not None:
+            raise ValueError("a first version has no parent_version")
         _check_activation_text(who, reason)
         blocks = [encode_block(i, block) for i, block in enumerate(scores.objects)]
         try:

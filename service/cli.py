@@ -6,6 +6,7 @@ import argparse
 import hashlib
 import json
 import logging
+import shutil
 import sys
 from pathlib import Path
 
@@ -17,27 +18,31 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
 
     from calibration_store import open_store
     from service.calibration.bundle import bootstrap_default_calibration
-    from service.calibration.uploads import remove_orphaned_uploads
     from service.detector.runtime import Detector
     from service.metrics import enable_multiprocess
+    from service.processes import remove_dead_process_folders
 
     # Check the model and store the bundled calibration once, before workers start racing.
     detector = Detector(settings.model_dir, settings.inference_threads)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    remove_orphaned_uploads(settings.data_dir / "uploads")  # never stored: versions are atomic
+    for shared in ("uploads", "metrics"):  # of stopped processes: uploads were never stored
+        remove_dead_process_folders(settings.data_dir / shared)
     with open_store(settings.resolved_store_url) as store:
         if settings.bootstrap_calibration:
             bootstrap_default_calibration(store, detector, settings.model_dir)
-    if settings.workers > 1:
-        enable_multiprocess(settings.data_dir / "metrics")
-    uvicorn.run(
-        "service.api.main:app",
-        host=args.host or settings.host,
-        port=args.port or settings.port,
-        workers=settings.workers,
-        log_level="info",
-        access_log=False,
-    )
+    metrics = enable_multiprocess(settings.data_dir / "metrics") if settings.workers > 1 else None
+    try:
+        uvicorn.run(
+            "service.api.main:app",
+            host=args.host or settings.host,
+            port=args.port or settings.port,
+            workers=settings.workers,
+            log_level="info",
+            access_log=False,
+        )
+    finally:
+        if metrics is not None:
+            shutil.rmtree(metrics, ignore_errors=True)
     return 0
 
 

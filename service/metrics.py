@@ -22,6 +22,8 @@ from prometheus_client import (
     multiprocess,
 )
 
+from service.processes import process_folder, process_running
+
 MULTIPROCESS_ENV = "PROMETHEUS_MULTIPROC_DIR"
 
 REGISTRY = CollectorRegistry(auto_describe=True)
@@ -74,18 +76,33 @@ CALIBRATION_INSTANCES = Counter(
 
 def metrics_payload() -> tuple[bytes, str]:
     """The exposition text: this process's metrics, or all workers' in multiprocess mode."""
-    if os.environ.get(MULTIPROCESS_ENV):
+    if folder := os.environ.get(MULTIPROCESS_ENV):
+        _forget_dead_workers(Path(folder))
         registry = CollectorRegistry()
         multiprocess.MultiProcessCollector(registry)
         return generate_latest(registry), CONTENT_TYPE_LATEST
     return generate_latest(REGISTRY), CONTENT_TYPE_LATEST
 
 
-def enable_multiprocess(folder: Path) -> None:
-    """Call in the parent before worker processes start (and before they import this module)."""
-    shutil.rmtree(folder, ignore_errors=True)  # values of an earlier run must not be summed in
+def enable_multiprocess(parent: Path) -> Path:
+    """Call in the parent before worker processes start (and before they import this module).
+
+    The files go to a folder of this parent process (``<parent>/<host>--<pid>``), so another
+    server on the same data directory keeps its own sums; returns it (remove it at exit).
+    """
+    folder = process_folder(parent)
+    shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
     os.environ[MULTIPROCESS_ENV] = str(folder)
+    return folder
+
+
+def _forget_dead_workers(folder: Path) -> None:
+    """Drop live gauges of workers that died without a clean shutdown (killed, crashed)."""
+    for path in folder.glob("gauge_live*_*.db"):
+        pid = path.stem.rpartition("_")[2]
+        if pid.isdigit() and not process_running(int(pid)):
+            multiprocess.mark_process_dead(int(pid), str(folder))
 
 
 def worker_stopped() -> None:

@@ -6,10 +6,7 @@ COCO file, the image headers, the version to append to) is refused before the 20
 
 from __future__ import annotations
 
-import logging
-import os
 import shutil
-import socket
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,46 +16,15 @@ from service.calibration.calibrate import NamedBatch
 from service.calibration.coco import load_coco_batch
 from service.detector.manifest import Manifest
 from service.errors import InvalidInput
-
-log = logging.getLogger(__name__)
+from service.processes import process_folder
 
 
 def process_uploads_dir(uploads_dir: Path, pid: int | None = None) -> Path:
-    """This process's folder of upload workspaces: ``<uploads>/<host>--<pid>``.
-
-    Per process, so that a process can remove all of its own leftovers (uploads of jobs
-    cancelled at shutdown) and a starting server can tell which folders belong to dead
-    processes of this host, without touching the uploads of another live server or worker.
-    """
-    return uploads_dir / f"{socket.gethostname()}--{pid or os.getpid()}"
-
-
-def remove_orphaned_uploads(uploads_dir: Path) -> list[Path]:
-    """Remove the upload folders of processes of this host that no longer run; returns them.
-
-    A version is written in one transaction at the end of a job, so an orphaned upload was
-    never stored. Folders of other hosts (a shared volume) are left to their own servers.
-    """
-    removed = []
-    host = socket.gethostname()
-    for folder in sorted(uploads_dir.iterdir()) if uploads_dir.is_dir() else []:
-        owner_host, _, pid = folder.name.rpartition("--")
-        if owner_host == host and pid.isdigit() and not _running(int(pid)):
-            shutil.rmtree(folder, ignore_errors=True)
-            removed.append(folder)
-    if removed:
-        log.info("removed %d upload folder(s) of stopped processes", len(removed))
-    return removed
-
-
-def _running(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # it exists, under another user
-        return True
-    return True
+    """This process's folder of upload workspaces: ``<uploads>/<host>--<pid>``, removed when it
+    stops (uploads of jobs cancelled at shutdown); a starting server removes dead processes'
+    folders (``remove_dead_process_folders``): a version is written in one transaction at the
+    end of a job, so an orphaned upload was never stored."""
+    return process_folder(uploads_dir, pid)
 
 
 @dataclass(frozen=True)

@@ -1,8 +1,8 @@
-"""`keypoint-service serve` with CKS_WORKERS=2: /metrics sums every worker, jobs are shared.
+"""`keypoint-service serve` with CKS_WORKERS=2: /metrics sums every worker.
 
-Each request opens a new connection, so the kernel spreads them over both workers; the
-multiprocess folder then holds one counter file per worker that served, which is what
-makes the summed count a real test of the aggregation.
+Each request opens a new connection, so the kernel spreads them over both workers; each
+worker's own counter file must show some of them, which is what makes the summed count a
+real test of the aggregation.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+from prometheus_client.mmap_dict import MmapedDict
 
 from service.settings import PACKAGE_ROOT
 from tests.service.live import ADMIN_TOKEN, Sample, cli, free_port, samples_by_image, service_env, wait_until
@@ -45,12 +46,26 @@ def two_workers(tmp_path: Path) -> Iterator[tuple[str, Path]]:
     finally:
         process.send_signal(signal.SIGINT)
         process.wait(timeout=30)
+    assert list((data / "metrics").iterdir()) == [], "serve left its metrics folder behind"
 
 
 def predict_count(text: str) -> float:
     pattern = r'^cks_http_requests_total\{method="POST",route="/v1/predict",status="200"\} ([0-9.e+]+)$'
     match = re.search(pattern, text, re.MULTILINE)
     return float(match.group(1)) if match else 0.0
+
+
+def worker_predicts(counter_file: Path) -> float:
+    """Successful predicts counted in one worker's multiprocess counter file."""
+    values = MmapedDict(str(counter_file), read_mode=True)
+    try:
+        return sum(
+            value
+            for key, value, _ in values.read_all_values()
+            if '"cks_http_requests_total"' in key and '"/v1/predict"' in key and '"200"' in key
+        )
+    finally:
+        values.close()
 
 
 def test_metrics_sum_over_the_workers(two_workers: tuple[str, Path], samples: list[Sample]) -> None:
@@ -61,8 +76,10 @@ def test_metrics_sum_over_the_workers(two_workers: tuple[str, Path], samples: li
         with httpx.Client(base_url=url, timeout=60) as client:  # a new connection each time
             assert predict_json(client, image, request).status_code == 200
 
-    served_by = {f.name for f in (data / "metrics").glob("counter_*.db")}
-    assert len(served_by) == 2, f"expected both workers to have counted requests: {served_by}"
+    (folder,) = (data / "metrics").iterdir()  # one folder per serve process
+    served = {path.name: worker_predicts(path) for path in folder.glob("counter_*.db")}
+    assert len(served) == 2 and all(served.values()), f"both workers must have served: {served}"
+    assert sum(served.values()) == REQUESTS
     for _ in range(6):  # whichever worker answers the scrape
         with httpx.Client(base_url=url, timeout=60) as client:
             text = client.get("/metrics").text

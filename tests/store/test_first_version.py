@@ -40,4 +40,6 @@ def test_the_activation_text_is_checked(store_url: str) -> None:
     with open_store(store_url) as store:
         with pytest.raises(ValueError, match="who"):
             store.create_first_version(new_version(), score_table(n=4), who=" ")
+        with pytest.raises(ValueError, match="parent_version"):
+            store.create_first_version(new_version(parent=1), score_table(n=4), who="boot")
         assert store.list_versions(MODEL_A) == []

@@ -1,0 +1,49 @@
+"""Folders owned by one process of this host (``<host>--<pid>``), and cleaning up after dead ones.
+
+Upload workspaces and the Prometheus multiprocess files live in such folders, so that a
+process can remove its own and a starting server can remove those of processes that
+stopped without touching another live server's files on a shared data directory.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import socket
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+def process_folder(parent: Path, pid: int | None = None) -> Path:
+    """``<parent>/<host>--<pid>`` for this process (or ``pid``)."""
+    return parent / f"{socket.gethostname()}--{pid or os.getpid()}"
+
+
+def remove_dead_process_folders(parent: Path) -> list[Path]:
+    """Remove the folders of processes of this host that no longer run; returns them.
+
+    Folders of other hosts (a shared volume) are left to their own servers.
+    """
+    removed = []
+    host = socket.gethostname()
+    for folder in sorted(parent.iterdir()) if parent.is_dir() else []:
+        owner_host, _, pid = folder.name.rpartition("--")
+        if owner_host == host and pid.isdigit() and not process_running(int(pid)):
+            shutil.rmtree(folder, ignore_errors=True)
+            removed.append(folder)
+    if removed:
+        log.info("removed %d folder(s) of stopped processes under %s", len(removed), parent)
+    return removed
+
+
+def process_running(pid: int) -> bool:
+    """Whether a process with this pid exists on this host."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # it exists, under another user
+        return True
+    return True

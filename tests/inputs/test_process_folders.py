@@ -1,0 +1,70 @@
+"""Per-process folders (uploads, metrics): a starting server removes only dead processes' folders."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+from service.calibration.uploads import UploadWorkspace, process_uploads_dir
+from service.processes import remove_dead_process_folders
+
+
+def dead_pid() -> int:
+    process = subprocess.Popen([sys.executable, "-c", "pass"])
+    process.wait()
+    return process.pid
+
+
+def test_a_workspace_is_created_in_this_process_folder(tmp_path: Path) -> None:
+    workspace = UploadWorkspace.create(tmp_path)
+    assert workspace.root.parent == process_uploads_dir(tmp_path)
+    assert workspace.root.parent.name == f"{socket.gethostname()}--{os.getpid()}"
+    workspace.remove()
+    assert not workspace.root.exists()
+
+
+def test_only_folders_of_stopped_processes_of_this_host_are_removed(tmp_path: Path) -> None:
+    mine = UploadWorkspace.create(tmp_path).root
+    orphan = process_uploads_dir(tmp_path, dead_pid()) / "abc"
+    other_host = tmp_path / "some-other-host--1" / "def"
+    not_a_process = tmp_path / "notes"
+    for folder in (orphan, other_host, not_a_process):
+        folder.mkdir(parents=True)
+        (folder / "batch.zip").write_bytes(b"x")
+
+    removed = remove_dead_process_folders(tmp_path)
+
+    assert removed == [orphan.parent]
+    assert not orphan.parent.exists()
+    assert mine.is_dir() and other_host.is_dir() and not_a_process.is_dir()
+
+
+def test_a_missing_uploads_folder_is_fine(tmp_path: Path) -> None:
+    assert remove_dead_process_folders(tmp_path / "never-created") == []
+
+
+def test_gauges_of_a_killed_worker_leave_the_multiprocess_sums(tmp_path: Path, monkeypatch) -> None:
+    """A worker SIGKILLed while a request was in flight must not leave a permanent offset."""
+    import signal
+
+    from service.metrics import MULTIPROCESS_ENV, metrics_payload
+
+    env = {**os.environ, MULTIPROCESS_ENV: str(tmp_path)}
+    code = (
+        "import os, signal, sys\n"
+        "from service.metrics import PREDICT_IN_FLIGHT\n"
+        "PREDICT_IN_FLIGHT.inc()\n"
+        "sys.stdout.write('ready\\n'); sys.stdout.flush()\n"
+        "signal.pause()\n"
+    )
+    worker = subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, text=True)
+    assert worker.stdout.readline() == "ready\n"
+    monkeypatch.setenv(MULTIPROCESS_ENV, str(tmp_path))
+    assert b"cks_predict_in_flight 1.0" in metrics_payload()[0]
+    worker.send_signal(signal.SIGKILL)
+    worker.wait()
+    assert b"cks_predict_in_flight 1.0" not in metrics_payload()[0]  # no live worker: no sample
+    assert not list(tmp_path.glob(f"gauge_live*_{worker.pid}.db"))
