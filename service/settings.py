@@ -21,7 +21,8 @@ class Settings(BaseSettings):
         default=DEFAULT_MODEL_DIR, description="directory with model.onnx and manifest.json"
     )
     data_dir: Path = Field(
-        default=Path("var"), description="where the service writes (SQLite store, uploads)"
+        default=Path("var"),
+        description="where the service writes (SQLite store, uploads, metrics files of several workers)",
     )
     store_url: str | None = Field(
         default=None, description="sqlite:///path or postgresql://...; default sqlite under data_dir"
