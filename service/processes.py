@@ -1,8 +1,9 @@
-"""Folders owned by one process of this host (``<host>--<pid>``), and cleaning up after dead ones.
+"""Which process of which host owns something: job rows (``host:pid``) and folders.
 
-Upload workspaces and the Prometheus multiprocess files live in such folders, so that a
-process can remove its own and a starting server can remove those of processes that
-stopped without touching another live server's files on a shared data directory.
+Upload workspaces and the Prometheus multiprocess files live in folders of one process
+(``<host>--<pid>``), so that a process can remove its own and a starting server can remove
+those of processes that stopped without touching another live server's files on a shared
+data directory.
 """
 
 from __future__ import annotations
@@ -14,6 +15,11 @@ import socket
 from pathlib import Path
 
 log = logging.getLogger(__name__)
+
+
+def process_owner() -> str:
+    """The name a job's row gives this process: ``host:pid``."""
+    return f"{socket.gethostname()}:{os.getpid()}"
 
 
 def process_folder(parent: Path, pid: int | None = None) -> Path:

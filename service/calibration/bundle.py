@@ -58,7 +58,7 @@ def bootstrap_default_calibration(store: CalibrationStore, detector: Detector, m
     Atomic in the store: replicas starting at once on an empty shared store bootstrap it once.
     """
     path = Path(model_dir) / BUNDLE_FILENAME
-    if not path.is_file() or store.list_versions(detector.model_hash):
+    if not path.is_file() or store.list_versions(detector.model_hash):  # the usual restart: skip the file
         return None
     new, table = load_bundle(path)
     if new.model_hash != detector.model_hash:

@@ -19,8 +19,6 @@ store is what clients see:
 from __future__ import annotations
 
 import logging
-import os
-import socket
 import threading
 import time
 import uuid
@@ -33,6 +31,7 @@ from typing import Any
 from calibration_store import CalibrationStore, JobNotFound, JobRecord, StoreError
 from service.errors import ServiceError, Unavailable
 from service.metrics import CALIBRATION_JOBS
+from service.processes import process_owner
 
 log = logging.getLogger(__name__)
 
@@ -46,11 +45,6 @@ STALE_AFTER = timedelta(seconds=60)
 FINAL_WRITE_ATTEMPTS = 4
 RETRY_DELAY_S = 0.25
 _TICK_S = 0.25
-
-
-def process_owner() -> str:
-    """The name a job's row gives its process: host:pid."""
-    return f"{socket.gethostname()}:{os.getpid()}"
 
 
 def reported(job: JobRecord, now: datetime, stale_after: timedelta = STALE_AFTER) -> JobRecord:

@@ -35,12 +35,7 @@ async def readyz(state: State) -> Readiness:
         await run_in_threadpool(state.store.ping)
     except Exception as error:
         raise Unavailable(f"the calibration store is unreachable: {error}") from error
-    active = await run_in_threadpool(state.registry.active_version)
-    if active is None:
-        raise Unavailable("no calibration is active for this model: upload and activate one")
-    reason = await run_in_threadpool(state.registry.incompatibility, active)
-    if reason is not None:
-        raise Unavailable(f"the active {reason}")
+    active = await run_in_threadpool(state.registry.resolve, None)  # 503: none active, or unusable
     manifest = state.detector.manifest
     return Readiness(
         status="ready", model=manifest.name, model_hash=state.detector.model_hash, active_calibration=active
