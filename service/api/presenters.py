@@ -71,24 +71,8 @@ def describe(
 
 
 def activation_out(entry: Activation) -> ActivationOut:
-    return ActivationOut(
-        seq=entry.seq,
-        version=entry.version,
-        activated_at=entry.activated_at,
-        who=entry.who,
-        reason=entry.reason,
-    )
+    return ActivationOut.model_validate(entry, from_attributes=True)
 
 
 def job_out(job: JobRecord) -> JobOut:
-    return JobOut(
-        id=job.id,
-        kind=job.kind,
-        state=job.state,
-        done=job.done,
-        total=job.total,
-        errors=list(job.errors),
-        result=job.result,
-        created_at=job.created_at,
-        finished_at=job.finished_at,
-    )
+    return JobOut.model_validate(job, from_attributes=True)
