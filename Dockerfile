@@ -1,4 +1,13 @@
 # The conformal keypoint service with the bundled default model and calibration.
+
+# Build stage: a wheel with the compiled anchor-median kernel (needs a C compiler).
+FROM python:3.11 AS build
+WORKDIR /src
+COPY pyproject.toml README.md ./
+COPY service ./service
+COPY calibration_store ./calibration_store
+RUN pip wheel --no-deps --wheel-dir /wheels .
+
 FROM python:3.11-slim
 
 ENV PYTHONUNBUFFERED=1 \
@@ -10,10 +19,8 @@ ENV PYTHONUNBUFFERED=1 \
     CKS_MODEL_DIR=/app/models/lmo-synth-unet
 
 WORKDIR /app
-COPY pyproject.toml README.md ./
-COPY service ./service
-COPY calibration_store ./calibration_store
-RUN pip install '.[postgres]' \
+COPY --from=build /wheels /wheels
+RUN pip install "$(ls /wheels/*.whl)[postgres]" && rm -rf /wheels \
     && useradd --system --uid 10001 --no-create-home --shell /usr/sbin/nologin app \
     && mkdir -p /data && chown app /data
 COPY models/lmo-synth-unet ./models/lmo-synth-unet

@@ -139,7 +139,7 @@ def _raw_anchor_fields(
         exact = ~np.isfinite(span * (2 * flat.shape[1]))  # float64 weights could overflow
         fields: dict[str, np.ndarray] = {}
         if peak:
-            sums, ok = upper_half_weight_sums(flat, extremes.minimum)
+            sums, ok = upper_half_weight_sums(flat, extremes)
             exact |= ~(ok & isolated(extremes.maximum.astype(flat.dtype), extremes.minimum))
             fields.update(_peak(extremes.argmax, span / sums, width))
         if spread:

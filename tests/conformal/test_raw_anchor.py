@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from service.conformal import heatmap_statistics, nonconformity_scores
+from service.conformal import anchor, heatmap_statistics, nonconformity_scores
 from service.conformal.anchor import isolated, raw_extremes, raw_top_k, upper_half_weight_sums
 from service.conformal.normalization import normalized_weights
 from service.conformal.selection import top_k_indices
@@ -60,11 +60,20 @@ def test_upper_half_sums_equal_the_median_masked_sum():
     rng = np.random.default_rng(2)
     raw = mixed_heatmaps(rng, 90).astype(np.float32).reshape(90, -1)
     raw[:5] = np.round(raw[:5])  # ties at the median
-    extremes = raw_extremes(raw)
-    sums, ok = upper_half_weight_sums(raw, extremes.minimum)
+    sums, ok = upper_half_weight_sums(raw, raw_extremes(raw))
     expected = normalized_weights(raw.astype(np.float64)).totals
-    assert ok.mean() > 0.8
-    np.testing.assert_allclose(sums[ok], expected[ok], rtol=1e-12)
+    assert ok.all()
+    np.testing.assert_allclose(sums, expected, rtol=1e-12)
+
+
+def test_without_the_native_kernel_every_peak_row_takes_the_exact_path(float32_batch, monkeypatch):
+    heatmaps, keypoints = float32_batch
+    monkeypatch.setattr(anchor, "upper_half_sums", lambda *arrays: None)
+    flat = heatmaps.reshape(len(heatmaps), -1)
+    _, ok = upper_half_weight_sums(flat, raw_extremes(flat))
+    assert not ok.any()
+    expected = _reference("peak", heatmaps, keypoints)
+    np.testing.assert_allclose(nonconformity_scores("peak", heatmaps, keypoints), expected, rtol=1e-9)
 
 
 def test_rows_that_fail_the_shortcuts_take_the_exact_path():
