@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 _LIBRARY = "_upper_half"
+_VERSION = 1  # cks_kernel_version() of the sources this module expects
 _FUNCTIONS = {
     np.dtype(np.float32): "cks_upper_half_sums_f32",
     np.dtype(np.float64): "cks_upper_half_sums_f64",
@@ -31,9 +32,11 @@ _MAX_WIDTH = 2**31 - 1  # the kernel counts in 32-bit lanes
 @functools.cache
 def _library() -> ctypes.CDLL | None:
     try:
-        return np.ctypeslib.load_library(_LIBRARY, Path(__file__).parent)
-    except OSError:
+        library = np.ctypeslib.load_library(_LIBRARY, Path(__file__).parent)
+        current = library.cks_kernel_version() == _VERSION
+    except (OSError, AttributeError):  # not built, or a build of older sources
         return None
+    return library if current else None
 
 
 def native_kernel_available() -> bool:
@@ -49,11 +52,14 @@ def upper_half_sums(flat: np.ndarray, minimum: np.ndarray, maximum: np.ndarray) 
     summed in another order than numpy's (a few ulp apart).
     """
     library = _library()
-    if library is None or flat.dtype not in _FUNCTIONS or not 2 <= flat.shape[1] <= _MAX_WIDTH:
+    supported = flat.ndim == 2 and flat.dtype in _FUNCTIONS and 2 <= flat.shape[1] <= _MAX_WIDTH
+    if library is None or not supported:
         return None
-    flat = np.ascontiguousarray(flat)
-    minimum = np.ascontiguousarray(minimum, dtype=np.float64)
-    maximum = np.ascontiguousarray(maximum, dtype=np.float64)
+    if np.shape(minimum) != (flat.shape[0],) or np.shape(maximum) != (flat.shape[0],):
+        raise ValueError(f"minimum and maximum need one value per row, {flat.shape[0]} rows")
+    flat = np.require(flat, requirements="CA")  # C order, aligned, native byte order
+    minimum = np.require(minimum, np.float64, "CA")
+    maximum = np.require(maximum, np.float64, "CA")
     sums = np.empty(flat.shape[0], dtype=np.float64)
     status = getattr(library, _FUNCTIONS[flat.dtype])(
         _pointer(flat), ctypes.c_int64(flat.shape[0]), ctypes.c_int64(flat.shape[1]),

@@ -75,3 +75,20 @@ def test_kernel_equals_the_median_masked_sum_on_arbitrary_rows(dtype, data):
 def test_rows_too_narrow_or_of_another_dtype_are_left_to_numpy():
     assert upper_half_sums(np.ones((2, 1), np.float32), np.ones(2), np.ones(2)) is None
     assert upper_half_sums(np.ones((2, 8), np.float16), np.ones(2), np.ones(2)) is None
+    assert upper_half_sums(np.ones((2, 8), ">f8"), np.ones(2), np.ones(2)) is None
+    assert upper_half_sums(np.ones(8, np.float32), np.ones(1), np.ones(1)) is None
+
+
+def test_extremes_must_have_one_value_per_row():
+    with pytest.raises(ValueError, match="one value per row"):
+        upper_half_sums(np.ones((8, 16), np.float32), np.zeros(1), np.ones(1))
+
+
+def test_unaligned_and_strided_rows_give_the_same_sums():
+    rows = ROW_CASES["gaussian noise"][:4].astype(np.float32)
+    buffer = np.zeros(rows.nbytes + 1, np.uint8)
+    unaligned = np.frombuffer(buffer.data, np.float32, rows.size, offset=1).reshape(rows.shape)
+    unaligned[...] = rows
+    strided = np.repeat(rows, 2, axis=1)[:, ::2]
+    for flat in (unaligned, strided):
+        np.testing.assert_array_equal(kernel_sums(flat), kernel_sums(rows))

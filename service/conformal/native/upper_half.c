@@ -20,7 +20,7 @@
 
 #define LANES 16
 
-#if defined(__x86_64__) && defined(__has_attribute)
+#if defined(__x86_64__) && defined(__GLIBC__) && defined(__has_attribute) /* ifunc needs glibc */
 #if __has_attribute(target_clones)
 #define TARGETS __attribute__((target_clones("avx512f", "avx2", "default")))
 #endif
@@ -37,6 +37,9 @@
 
 /* Signed integers that order like the floats they reinterpret (no NaN here). */
 #define ORDERED(k) ((k) ^ (((k) >> (8 * sizeof(k) - 1)) & KEY_MAX))
+
+/* Bumped whenever the entry points change, so that a stale build is not loaded. */
+int cks_kernel_version(void) { return 1; }
 
 #define T float
 #define KEY int32_t
