@@ -188,12 +188,38 @@ def ceiling(r: Results) -> list[str]:
             f"reach about **{stages['inference'] / total:.2f}** of the raw per-request throughput, "
             "unless merged batches make inference cheaper per crop."
         )
+    lines.extend(overhead_bound(r))
     unbatched = r.point(1, 1).raw.runs_per_s
     batched = r.extra["batched-1"].runs_per_s * BATCHED_CROPS
     lines.append(
         f"- Batching gain of the model itself: {batched:.0f} crops/s in batches of {BATCHED_CROPS} vs "
         f"{unbatched:.0f} crops/s one crop per run (one caller): x{batched / unbatched:.2f}."
     )
+    return lines
+
+
+def overhead_bound(r: Results, goal: float = 0.85) -> list[str]:
+    """The model cost at which the measured per-request overhead would meet the ratio goal.
+
+    At concurrency 16 every core is busy, so CPU ms per request = cores * 1000 / (req/s)
+    on both sides; the service's extra is work the model does not share (decode, HTTP,
+    crop, scoring, JSON). The ratio raw / (raw + extra) reaches ``goal`` once the model
+    costs extra * goal / (1 - goal) per request.
+    """
+    lines = []
+    for count in (1, 4):
+        point = r.point(count, 16)
+        service_ms = r.machine.cpus * 1e3 / point.service.requests_per_s
+        raw_ms = r.machine.cpus * 1e3 / point.raw.runs_per_s
+        extra = service_ms - raw_ms
+        decode = r.breakdown[count]["decode"]
+        lines.append(
+            f"- {count} instance(s) at concurrency 16: {service_ms:.1f} CPU ms per request in the service "
+            f"vs {raw_ms:.1f} in the raw session, so {extra:.1f} ms of per-request work besides the model. "
+            f"A ratio of {goal} needs a model of at least {extra * goal / (1 - goal):.0f} CPU ms per request "
+            f"(this one: {raw_ms:.1f}); with JPEG decoding ({decode:.1f} ms) as the only extra work, "
+            f"this model would reach {raw_ms / (raw_ms + decode):.2f}."
+        )
     return lines
 
 
