@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 _LIBRARY = "_upper_half"
-_VERSION = 1  # cks_kernel_version() of the sources this module expects
+_VERSION = 2  # cks_kernel_version() of the sources this module expects
 _FUNCTIONS = {
     np.dtype(np.float32): "cks_upper_half_sums_f32",
     np.dtype(np.float64): "cks_upper_half_sums_f64",

@@ -92,3 +92,16 @@ def test_unaligned_and_strided_rows_give_the_same_sums():
     strided = np.repeat(rows, 2, axis=1)[:, ::2]
     for flat in (unaligned, strided):
         np.testing.assert_array_equal(kernel_sums(flat), kernel_sums(rows))
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    dtype=st.sampled_from([np.float32, np.float64]),
+    data=st.data(),
+)
+def test_kernel_equals_the_median_masked_sum_when_ties_are_everywhere(dtype, data):
+    shape = data.draw(st.tuples(st.integers(1, 3), st.integers(2, 400)))
+    levels = data.draw(st.lists(st.floats(-10, 10, width=32), min_size=1, max_size=5))
+    choice = data.draw(hnp.arrays(np.int64, shape, elements=st.integers(0, len(levels) - 1)))
+    values = np.asarray(levels, dtype=dtype)[choice]
+    np.testing.assert_allclose(kernel_sums(values), median_masked_sum(values), rtol=1e-12, atol=1e-300)

@@ -39,7 +39,7 @@
 #define ORDERED(k) ((k) ^ (((k) >> (8 * sizeof(k) - 1)) & KEY_MAX))
 
 /* Bumped whenever the entry points change, so that a stale build is not loaded. */
-int cks_kernel_version(void) { return 1; }
+int cks_kernel_version(void) { return 2; }
 
 #define T float
 #define KEY int32_t
