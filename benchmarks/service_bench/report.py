@@ -336,7 +336,8 @@ def render(r: Results) -> str:
         "",
         "## Memory",
         "",
-        "VmRSS of the server process (`/proc/<pid>/status`), 1-instance requests at concurrency 16:",
+        "VmRSS of the server: the `serve` process and its worker processes, summed (`/proc/<pid>/status`), "
+        "1-instance requests at concurrency 16:",
         "",
         *memory(r),
         "",

@@ -30,11 +30,22 @@ class Server:
     pid: int
 
     def rss_kib(self) -> int:
-        """VmRSS of the server process (the single worker when CKS_WORKERS=1)."""
-        for line in Path(f"/proc/{self.pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1])
-        raise RuntimeError(f"no VmRSS for pid {self.pid}")
+        """VmRSS of the ``serve`` process and all its descendants (the workers when CKS_WORKERS > 1)."""
+        return sum(_rss_kib(pid) for pid in _process_tree(self.pid))
+
+
+def _process_tree(pid: int) -> list[int]:
+    children = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        children += [int(child) for child in (task / "children").read_text().split()]
+    return [pid] + [descendant for child in children for descendant in _process_tree(child)]
+
+
+def _rss_kib(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    raise RuntimeError(f"no VmRSS for pid {pid}")
 
 
 def _wait_ready(url: str, process: subprocess.Popen, timeout: float) -> None:
