@@ -37,10 +37,7 @@ class Settings(BaseSettings):
     host: str = Field(default="127.0.0.1", description="address to listen on")
     port: int = Field(default=8000, ge=1, le=65535, description="port to listen on")
     workers: int = Field(
-        default=2,
-        ge=1,
-        le=64,
-        description="uvicorn worker processes, about one per core (limits below are per process)",
+        default=1, ge=1, le=64, description="uvicorn worker processes (limits below are per process)"
     )
 
     max_request_bytes: int = Field(default=20 * 2**20, gt=0, description="largest predict request body")
@@ -60,7 +57,7 @@ class Settings(BaseSettings):
         default=1, ge=0, description="onnxruntime intra-op threads per run (0 = ort default)"
     )
     inference_streams: int = Field(
-        default=1, ge=1, le=64, description="onnxruntime runs in parallel per worker when batching"
+        default=2, ge=1, le=64, description="onnxruntime runs in parallel when batching (about one per core)"
     )
     max_inference_batch: int = Field(
         default=32, ge=0, le=1024, description="crops of concurrent requests merged into one run (0 = off)"
