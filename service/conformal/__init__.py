@@ -1,4 +1,7 @@
-"""Conformal keypoint core: pure numpy, no I/O, vectorized over a batch of heatmaps.
+"""Conformal keypoint core: numpy, no I/O, vectorized over a batch of heatmaps.
+
+One optional C kernel (``kernel``, built by pip when a compiler is present) computes
+the exact median behind ``peak``'s normalizer; without it numpy gives the same numbers.
 
 Implements "Conformal Semantic Keypoint Detection with Statistical Guarantees"
 (Yang & Pavone); see DESIGN.md, "Numerics contract". Heatmap coordinates: pixel
