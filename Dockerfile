@@ -1,7 +1,7 @@
 # The conformal keypoint service with the bundled default model and calibration.
 
 # Build stage: a wheel with the compiled anchor-median kernel (needs a C compiler).
-FROM python:3.11 AS build
+FROM python:3.11-bookworm AS build
 WORKDIR /src
 COPY pyproject.toml README.md ./
 COPY service ./service
@@ -9,7 +9,7 @@ COPY calibration_store ./calibration_store
 RUN pip wheel --no-deps --wheel-dir /wheels . \
     && python -m zipfile -l /wheels/*.whl | grep -q _upper_half  # the kernel was compiled
 
-FROM python:3.11-slim
+FROM python:3.11-slim-bookworm
 
 ENV PYTHONUNBUFFERED=1 \
     PIP_NO_CACHE_DIR=1 \
@@ -22,6 +22,7 @@ ENV PYTHONUNBUFFERED=1 \
 WORKDIR /app
 COPY --from=build /wheels /wheels
 RUN pip install "$(ls /wheels/*.whl)[postgres]" && rm -rf /wheels \
+    && python -c "from service.conformal.kernel import native_kernel_available as ok; assert ok()" \
     && useradd --system --uid 10001 --no-create-home --shell /usr/sbin/nologin app \
     && mkdir -p /data && chown app /data
 COPY models/lmo-synth-unet ./models/lmo-synth-unet

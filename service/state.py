@@ -16,6 +16,7 @@ from service.calibration.bundle import bootstrap_default_calibration
 from service.calibration.jobs import JobRunner
 from service.calibration.registry import CalibrationRegistry
 from service.calibration.uploads import process_uploads_dir
+from service.conformal.kernel import native_kernel_available
 from service.detector.runtime import Detector
 from service.settings import Settings
 
@@ -47,10 +48,13 @@ class ServiceState:
 
 
 def build_state(settings: Settings) -> ServiceState:
-    """Load the model (refusing a manifest that does not fit it), open the store, bootstrap."""
+    """Load the model (refusing a manifest that does not fit it), open the store, bootstrap.
+
+    Also turns OpenCV's internal threading off for the process (``cv2.setNumThreads(1)``).
+    """
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    # Requests already run in parallel on cpu_pool; OpenCV's own pool would split each small
-    # crop across threads that spin while waiting (measured: ~0.3 ms of CPU per request).
+    # Process-wide: requests already run in parallel on cpu_pool, and OpenCV's own pool would
+    # split each small crop across helper threads that spin while they wait.
     cv2.setNumThreads(1)
     detector = Detector(
         settings.model_dir,
@@ -64,6 +68,9 @@ def build_state(settings: Settings) -> ServiceState:
     registry = CalibrationRegistry(store, detector.model_hash, detector.manifest, settings.store_poll_seconds)
     log.info("serving model %s (%s), active calibration %s", detector.manifest.name,
              detector.model_hash[:12], registry.refresh_now())  # fmt: skip
+    if not native_kernel_available():
+        log.warning("the native kernel (service/conformal/kernel.py) is not built: 'peak' runs on the "
+                    "slower numpy path; install a C compiler and reinstall the package")  # fmt: skip
     return ServiceState(
         settings=settings,
         detector=detector,

@@ -14,7 +14,7 @@ _bearer = HTTPBearer(auto_error=False, description="CKS_ADMIN_TOKEN")
 
 
 # Dependencies are ``async def`` although they never await: FastAPI runs a plain ``def``
-# dependency on its thread pool, a thread hop per request (~0.3 ms of CPU on /v1/predict).
+# dependency on its thread pool, a thread hop on every request.
 async def get_state(request: Request) -> ServiceState:
     return request.app.state.service
 

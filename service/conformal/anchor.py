@@ -73,13 +73,9 @@ def raw_top_k(flat: np.ndarray, k: int, minimum: np.ndarray) -> tuple[np.ndarray
     return indices, anchor_weights(values, minimum), exact
 
 
-def upper_half_weight_sums(flat: np.ndarray, extremes: RawExtremes) -> tuple[np.ndarray, np.ndarray]:
-    """S = sum of the anchor weights at or above their median (np.median's), float64.
+def upper_half_weight_sums(flat: np.ndarray, extremes: RawExtremes) -> np.ndarray | None:
+    """S (N,) = sum of the anchor weights at or above their median (np.median's), float64.
 
-    Returns S (N,) and a flag (N,), False where the rows need the exact path
-    (all of them when the native kernel is not built).
+    None when the native kernel is not built: the rows need the exact path.
     """
-    sums = upper_half_sums(flat, extremes.minimum, extremes.maximum)
-    if sums is None:
-        return np.full(flat.shape[0], np.nan), np.zeros(flat.shape[0], dtype=bool)
-    return sums, np.ones(flat.shape[0], dtype=bool)
+    return upper_half_sums(flat, extremes.minimum, extremes.maximum)

@@ -2,10 +2,9 @@
 
 ``peak`` needs, per heatmap, S = the sum of the anchor weights at or above
 their median, i.e. an exact median of 4096 values. numpy's fastest exact tool,
-``np.partition``, costs about as much per map (~25 us) as the whole per-heatmap
-reference loop, and no pure-numpy pipeline measured below ~6 us. The kernel
-selects the two middle values by vectorized counting passes instead (about 3 us
-per 64x64 float32 map on the benchmark machine, see ``benchmarks/bench_conformal``).
+``np.partition``, costs about as much per map as the whole per-heatmap
+reference loop. The kernel selects the two middle values by vectorized counting
+passes instead (``python -m benchmarks.bench_conformal`` prints the figures).
 
 It is built by ``pip install`` when a C compiler is present (an optional
 extension: no compiler, no failure). Without it, ``upper_half_sums`` returns

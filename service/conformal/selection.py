@@ -35,15 +35,15 @@ def top_k_indices(values: np.ndarray, k: int) -> np.ndarray:
     sample = np.sort(values[:, ::stride], axis=1)
     rank_from_top = min(sample.shape[1], -(-2 * k // stride) + 1)
     candidates = values >= sample[:, -rank_from_top, None]
-    counts = row_counts(candidates)
+    counts = _row_counts(candidates)
     usable = (counts >= k) & (counts <= _MAX_CANDIDATES)
     if not usable.all():
         candidates[~usable] = False
         counts[~usable] = 0
-    packed, columns = pack_rows(candidates, values, -np.inf, counts, min_width=k + 1)
+    packed, columns = _pack_rows(candidates, values, -np.inf, counts, min_width=k + 1)
     kth_value = -np.sort(-packed, axis=1)[:, k - 1, None]
     chosen = packed >= kth_value
-    usable &= row_counts(chosen) == k  # a tie at the k-th value -> exact path
+    usable &= _row_counts(chosen) == k  # a tie at the k-th value -> exact path
     result = np.empty((n_rows, k), dtype=np.intp)
     result[usable] = columns[chosen & usable[:, None]].reshape(-1, k)
     slow_rows = np.flatnonzero(~usable)
@@ -52,17 +52,17 @@ def top_k_indices(values: np.ndarray, k: int) -> np.ndarray:
     return result
 
 
-def row_counts(mask: np.ndarray) -> np.ndarray:
+def _row_counts(mask: np.ndarray) -> np.ndarray:
     """Number of True entries per row of a 2-D boolean array (a byte sum, ~5x count_nonzero)."""
     return mask.view(np.uint8).sum(axis=1, dtype=np.intp)
 
 
-def pack_rows(
+def _pack_rows(
     mask: np.ndarray, values: np.ndarray, fill: float, counts: np.ndarray, min_width: int = 2
 ) -> tuple[np.ndarray, np.ndarray]:
     """Left-align the masked entries of each row into (N, width) arrays padded with fill.
 
-    ``counts`` is ``row_counts(mask)``. Returns the values (dtype of ``values``)
+    ``counts`` is ``_row_counts(mask)``. Returns the values (dtype of ``values``)
     and their columns, in increasing column order within each row.
     """
     flat_positions = np.flatnonzero(mask)

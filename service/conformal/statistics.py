@@ -139,8 +139,11 @@ def _raw_anchor_fields(
         exact = ~np.isfinite(span * (2 * flat.shape[1]))  # float64 weights could overflow
         fields: dict[str, np.ndarray] = {}
         if peak:
-            sums, ok = upper_half_weight_sums(flat, extremes)
-            exact |= ~(ok & isolated(extremes.maximum.astype(flat.dtype), extremes.minimum))
+            sums = upper_half_weight_sums(flat, extremes)
+            if sums is None:  # no native kernel: every row takes the exact path
+                sums = np.full(flat.shape[0], np.nan)
+                exact[:] = True
+            exact |= ~isolated(extremes.maximum.astype(flat.dtype), extremes.minimum)
             fields.update(_peak(extremes.argmax, span / sums, width))
         if spread:
             indices, top_weights, ok = raw_top_k(flat, k, extremes.minimum)
