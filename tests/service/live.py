@@ -61,6 +61,7 @@ def service_env(data_dir: Path, **settings: Any) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("CKS_")}
     env["CKS_MODEL_DIR"] = str(model_dir())
     env["CKS_DATA_DIR"] = str(data_dir)
+    env["CKS_WORKERS"] = "1"  # one process unless a test asks for more (test_workers)
     env["CKS_INFERENCE_THREADS"] = "1"
     env["CKS_CPU_WORKERS"] = "2"
     env["PYTHONUNBUFFERED"] = "1"
