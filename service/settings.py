@@ -37,7 +37,7 @@ class Settings(BaseSettings):
     host: str = Field(default="127.0.0.1", description="address to listen on")
     port: int = Field(default=8000, ge=1, le=65535, description="port to listen on")
     workers: int = Field(
-        default=2, ge=1, le=64, description="uvicorn worker processes (limits below are per process)"
+        default=1, ge=1, le=64, description="uvicorn worker processes (limits below are per process)"
     )
 
     max_request_bytes: int = Field(default=20 * 2**20, gt=0, description="largest predict request body")

@@ -198,7 +198,7 @@ TUNING = (
         "CKS_WORKERS=2, CKS_INFERENCE_STREAMS=1 (a process per core)",
         {"workers": 2, "inference_streams": 1},
     ),
-    Variant("CKS_WORKERS=1 (one process, the previous default)", {"workers": 1}),
+    Variant("CKS_WORKERS=2 (two processes, two inference threads each)", {"workers": 2}),
     Variant("CKS_INFERENCE_STREAMS=1 (one inference thread)", {"inference_streams": 1}),
     Variant("CKS_INFERENCE_THREADS=2 (two intra-op threads per run)", {"inference_threads": 2}),
     Variant("CKS_MAX_INFERENCE_BATCH=0 (no micro-batching)", {"max_inference_batch": 0}),
