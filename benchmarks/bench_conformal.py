@@ -95,5 +95,6 @@ def main() -> None:
     kernel = "built" if native_kernel_available() else "MISSING (needs a C compiler at install): numpy path"
     print(f"native anchor-median kernel (service/conformal/kernel.py): {kernel}")
 
+
 if __name__ == "__main__":
     main()

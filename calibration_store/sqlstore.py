@@ -100,9 +100,7 @@ class SqlStore(CalibrationStore):
     # -- writing ---------------------------------------------------------------
 
     def create_version(self, new: NewVersion, scores: ScoreTable) -> VersionInfo:
-        if not isinstance(new, NewVersion) or not isinstance(scores, ScoreTable):
-            raise TypeError("create_version takes a NewVersion and a ScoreTable")
-        blocks = [encode_block(i, block) for i, block in enumerate(scores.objects)]
+        blocks = _encoded_blocks(new, scores, "create_version")
         with self._transaction(write=True) as cur:
             number = self._next_number(cur, new.model_hash)
             if new.parent_version is not None:
@@ -113,12 +111,10 @@ class SqlStore(CalibrationStore):
     def create_first_version(
         self, new: NewVersion, scores: ScoreTable, who: str, reason: str = ""
     ) -> VersionInfo | None:
-        if not isinstance(new, NewVersion) or not isinstance(scores, ScoreTable):
-            raise TypeError("create_first_version takes a NewVersion and a ScoreTable")
+        blocks = _encoded_blocks(new, scores, "create_first_version")
         if new.parent_version is not None:
             raise ValueError("a first version has no parent_version")
         _check_activation_text(who, reason)
-        blocks = [encode_block(i, block) for i, block in enumerate(scores.objects)]
         try:
             with self._transaction(write=True) as cur:
                 # The counter row's lock orders concurrent callers: only one sees number 1.
@@ -415,6 +411,13 @@ class SqlStore(CalibrationStore):
 
 class _NotFirst(Exception):
     """Aborts create_first_version's transaction when the model already has a version."""
+
+
+def _encoded_blocks(new: object, scores: object, method: str) -> list[EncodedBlock]:
+    """The score blocks of a version to write, after checking the arguments' types."""
+    if not isinstance(new, NewVersion) or not isinstance(scores, ScoreTable):
+        raise TypeError(f"{method} takes a NewVersion and a ScoreTable")
+    return [encode_block(i, block) for i, block in enumerate(scores.objects)]
 
 
 def _check_activation_text(who: object, reason: object) -> None:

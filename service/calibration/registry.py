@@ -73,7 +73,6 @@ class CalibrationRegistry:
         self.store = store
         self.model_hash = model_hash
         self._manifest = manifest
-        self._num_keypoints = manifest.num_keypoints
         self._incompatibilities: dict[int, str | None] = {}  # versions are immutable: cached forever
         self._poll_seconds = poll_seconds
         self._lock = threading.Lock()
@@ -163,4 +162,4 @@ class CalibrationRegistry:
         self, version: int, kind: str, scope: str, epsilon: float, delta: float | None
     ) -> ChannelThresholds:
         table = self.scores(version)
-        return channel_thresholds(table, self._num_keypoints, kind, scope, epsilon, delta)
+        return channel_thresholds(table, self._manifest.num_keypoints, kind, scope, epsilon, delta)

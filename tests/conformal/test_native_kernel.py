@@ -59,19 +59,6 @@ def test_kernel_equals_the_median_masked_sum(case, dtype):
     np.testing.assert_allclose(kernel_sums(flat), median_masked_sum(flat), rtol=1e-12, atol=0)
 
 
-@settings(max_examples=300, deadline=None)
-@given(
-    dtype=st.sampled_from([np.float32, np.float64]),
-    data=st.data(),
-)
-def test_kernel_equals_the_median_masked_sum_on_arbitrary_rows(dtype, data):
-    shape = data.draw(st.tuples(st.integers(1, 4), st.integers(2, 300)))
-    values = data.draw(
-        hnp.arrays(dtype, shape, elements=st.floats(-1e6, 1e6, width=np.dtype(dtype).itemsize * 8))
-    )
-    np.testing.assert_allclose(kernel_sums(values), median_masked_sum(values), rtol=1e-12, atol=1e-300)
-
-
 def test_rows_too_narrow_or_of_another_dtype_are_left_to_numpy():
     assert upper_half_sums(np.ones((2, 1), np.float32), np.ones(2), np.ones(2)) is None
     assert upper_half_sums(np.ones((2, 8), np.float16), np.ones(2), np.ones(2)) is None
@@ -94,14 +81,27 @@ def test_unaligned_and_strided_rows_give_the_same_sums():
         np.testing.assert_array_equal(kernel_sums(flat), kernel_sums(rows))
 
 
-@settings(max_examples=300, deadline=None)
-@given(
-    dtype=st.sampled_from([np.float32, np.float64]),
-    data=st.data(),
-)
-def test_kernel_equals_the_median_masked_sum_when_ties_are_everywhere(dtype, data):
-    shape = data.draw(st.tuples(st.integers(1, 3), st.integers(2, 400)))
-    levels = data.draw(st.lists(st.floats(-10, 10, width=32), min_size=1, max_size=5))
-    choice = data.draw(hnp.arrays(np.int64, shape, elements=st.integers(0, len(levels) - 1)))
-    values = np.asarray(levels, dtype=dtype)[choice]
+
+DTYPES = st.sampled_from([np.float32, np.float64])
+
+
+@st.composite
+def arbitrary_rows(draw):
+    dtype = np.dtype(draw(DTYPES))
+    shape = draw(st.tuples(st.integers(1, 4), st.integers(2, 300)))
+    return draw(hnp.arrays(dtype, shape, elements=st.floats(-1e6, 1e6, width=dtype.itemsize * 8)))
+
+
+@st.composite
+def rows_of_few_levels(draw):
+    """Ties everywhere: every value is one of at most five levels."""
+    shape = draw(st.tuples(st.integers(1, 3), st.integers(2, 400)))
+    levels = draw(st.lists(st.floats(-10, 10, width=32), min_size=1, max_size=5))
+    choice = draw(hnp.arrays(np.int64, shape, elements=st.integers(0, len(levels) - 1)))
+    return np.asarray(levels, dtype=draw(DTYPES))[choice]
+
+
+@settings(max_examples=600, deadline=None)
+@given(values=st.one_of(arbitrary_rows(), rows_of_few_levels()))
+def test_kernel_equals_the_median_masked_sum_on_generated_rows(values):
     np.testing.assert_allclose(kernel_sums(values), median_masked_sum(values), rtol=1e-12, atol=1e-300)

@@ -9,7 +9,10 @@ from __future__ import annotations
 
 import re
 import socket
+from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
@@ -57,14 +60,33 @@ def slow_and_quick(samples: list[Sample]) -> tuple[bytes, list, list]:
     return path.read_bytes(), (instances * SLOW_INSTANCES)[:SLOW_INSTANCES], instances[:1]
 
 
+@dataclass(frozen=True)
+class HeldSlot:
+    """A server with one compute slot, held by a slow request; ``quick`` is a small request."""
+
+    server: LiveServer
+    pool: ThreadPoolExecutor
+    computing: Future
+    image: bytes
+    quick: list
+
+
+@contextmanager
+def slot_held_by_a_slow_request(
+    tmp_path: Path, samples: list[Sample], **settings: object
+) -> Iterator[HeldSlot]:
+    image, slow, quick = slow_and_quick(samples)
+    settings = {"max_concurrent_inferences": 1, "max_instances": SLOW_INSTANCES, **settings}
+    with LiveServer(tmp_path / "data", **settings) as server, ThreadPoolExecutor(2) as pool:
+        yield HeldSlot(server, pool, hold_the_slot(pool, server, image, slow), image, quick)
+
+
 def test_a_full_queue_is_refused_at_once_and_the_server_recovers(
     tmp_path: Path, samples: list[Sample]
 ) -> None:
-    image, slow, quick = slow_and_quick(samples)
-    settings = {"max_concurrent_inferences": 1, "max_queued_requests": 1, "max_instances": SLOW_INSTANCES}
-    with LiveServer(tmp_path / "data", **settings) as server, ThreadPoolExecutor(2) as pool:
-        computing = hold_the_slot(pool, server, image, slow)
-        waiting = post_in_background(pool, server, image, quick)
+    with slot_held_by_a_slow_request(tmp_path, samples, max_queued_requests=1) as held:
+        server, image, quick, computing = held.server, held.image, held.quick, held.computing
+        waiting = post_in_background(held.pool, server, image, quick)
         wait_until(lambda: metric(server, "cks_predict_waiting") == 1, "the second request waits")
 
         refused = predict_json(server.client, image, {"instances": quick})
@@ -82,12 +104,9 @@ def test_a_full_queue_is_refused_at_once_and_the_server_recovers(
 def test_a_request_waiting_longer_than_the_queue_timeout_gets_503(
     tmp_path: Path, samples: list[Sample]
 ) -> None:
-    image, slow, quick = slow_and_quick(samples)
-    settings = {"max_concurrent_inferences": 1, "queue_timeout_seconds": 0.2, "max_instances": SLOW_INSTANCES}
-    with LiveServer(tmp_path / "data", **settings) as server, ThreadPoolExecutor(1) as pool:
-        computing = hold_the_slot(pool, server, image, slow)
-
-        timed_out = predict_json(server.client, image, {"instances": quick})
+    with slot_held_by_a_slow_request(tmp_path, samples, queue_timeout_seconds=0.2) as held:
+        server, computing = held.server, held.computing
+        timed_out = predict_json(server.client, held.image, {"instances": held.quick})
         assert not computing.done(), "the slow request ended too soon to test the timeout"
         assert_problem(timed_out, 503, "within 0.2 s", "CKS_QUEUE_TIMEOUT_SECONDS")
         assert timed_out.headers["retry-after"] == "1"
