@@ -21,26 +21,32 @@ URLs: ``sqlite:///abs/path.db`` (also ``sqlite:////abs/path.db``) and
 (needs the ``postgres`` extra: psycopg 3 + psycopg_pool).
 
 CalibrationStore (thread-safe; also a context manager that closes):
-- ``create_version(new: NewVersion, scores: ScoreTable) -> VersionInfo``: one
-  transaction; numbers are 1, 2, ... per model hash, distinct and gap-free under
-  concurrent writers; a writer killed mid-way leaves nothing. ``created_at`` is set by
-  the store (UTC). Raises VersionNotFound if ``parent_version`` does not exist.
+- ``create_version(new: NewVersion, scores: ScoreTable, *, activation=None, job=None,
+  audit=()) -> VersionInfo``: one transaction; numbers are 1, 2, ... per model hash,
+  distinct and gap-free under concurrent writers; a writer killed mid-way leaves nothing.
+  In the same transaction it can activate the new version (``ActivationIntent``), mark
+  the job that produced it succeeded with its number (``JobCompletion``) and append audit
+  entries. ``created_at`` is set by the store (UTC). Raises VersionNotFound if
+  ``parent_version`` does not exist.
 - ``create_first_version(new, scores, who, reason="") -> VersionInfo | None``: version 1
   stored and activated in one transaction, or None (nothing written) if the model has
   or had a version: concurrent bootstraps of one store succeed exactly once.
 - ``list_versions(model_hash) -> list[VersionInfo]`` (by number),
   ``get_version(model_hash, number) -> VersionInfo``,
   ``load_scores(model_hash, number) -> ScoreTable`` (read-only arrays, bit-exact).
-- ``activate(model_hash, number, who, reason="") -> Activation``: appends to the
-  log; rollback = activating an older number. ``active_version(model_hash) ->
-  Activation | None`` is the latest entry; ``activation_log(model_hash) ->
-  list[Activation]`` oldest first.
+- ``activate(model_hash, number, who, reason="", audit=()) -> Activation``: appends to
+  the log (and the audit entries, same transaction); rollback = activating an older number.
+- ``append_audit(NewAuditEntry) -> AuditEntry``, ``audit_log(model_hash, before=None,
+  limit=100) -> list[AuditEntry]`` (newest first): the append-only audit trail.
+  ``active_version(model_hash) -> Activation | None`` is the latest activation;
+  ``activation_log(model_hash) -> list[Activation]`` oldest first.
 - ``change_counter() -> int``: grows with every creation and activation, store-wide;
   poll it (one tiny query) to notice changes made by other replicas.
 - ``create_job(job: JobRecord) -> JobRecord`` (JobExists if the id is taken),
   ``update_job(job_id, **fields) -> JobRecord`` (state, done, total, errors, result,
-  finished_at, heartbeat_at; heartbeat_at defaults to now, so every write is a sign of
-  life; JobNotFound), ``get_job(job_id) -> JobRecord | None``: background jobs, visible
+  finished_at, version, heartbeat_at; heartbeat_at defaults to now, so every write is a
+  sign of life; JobNotFound; JobFinished for a job in a final state: finished jobs never
+  change), ``get_job(job_id) -> JobRecord | None``: background jobs, visible
   to every process sharing the store. ``prune_jobs(keep=1000, max_age=7 days) -> int``
   deletes jobs whose heartbeat is older than max_age, and finished jobs with ``keep``
   newer jobs after them; a live unfinished job is never deleted.
@@ -51,27 +57,32 @@ Data classes (frozen, validated on construction: ValueError/TypeError says what 
 - ``NewVersion(model_hash, model_name, normalization: dict, source_batches, author,
   note="", parent_version: int | None = None)``.
 - ``ObjectScores(object_name, keypoint_ids: (k,) int, instance_refs: (n,) str,
-  scores: {function: (n, k) float64})``; finite or NaN only; functions are lowercase
-  names (the service uses DEFAULT_FUNCTIONS = peak, var, cov).
+  scores: {function: (n, k) float64}, image_hashes=(), instance_hashes=())``: the
+  hashes are (n,) sha256 hex digests, or empty when unknown; scores finite or NaN
+  only; functions are lowercase names (the service uses DEFAULT_FUNCTIONS = peak, var, cov).
 - ``ScoreTable(objects: tuple[ObjectScores, ...])``: unique object names, the same
   functions in every block; ``.object(name)``, ``.n_instances``, ``.functions``.
 - ``VersionInfo(model_hash, number, model_name, normalization, source_batches,
   author, note, parent_version, created_at, n_instances, object_counts, functions)``.
 - ``Activation(seq, model_hash, version, activated_at, who, reason)``.
 - ``JobRecord(id, kind, owner, created_at, heartbeat_at, state="queued", done=0,
-  total=0, errors=(), result={}, finished_at=None)``: state is one of JOB_STATES
-  (queued, running, succeeded, failed); times are timezone-aware.
+  total=0, errors=(), result={}, finished_at=None, version=None)``: state is one of
+  JOB_STATES (queued, running, succeeded, failed, interrupted); times are timezone-aware.
+- ``ActivationIntent(who, reason)``, ``JobCompletion(job_id, result)``,
+  ``NewAuditEntry(model_hash, who, action, outcome, version=None, previous_version=None,
+  reason="", client="", details={})`` and the stored ``AuditEntry`` (+ seq, at).
 
 Errors: StoreError > VersionNotFound (also a LookupError; HTTP 404), JobNotFound
-(a LookupError), JobExists (a ValueError), SchemaVersionError (database migrated by
+(a LookupError), JobExists (a ValueError), JobFinished, SchemaVersionError (database migrated by
 newer code), StoreUnavailable (HTTP 503).
-Versions, scores and activations are immutable (database triggers refuse UPDATE and
-DELETE); only job rows change.
+Versions, scores, activations and audit entries are immutable (database triggers refuse
+UPDATE and DELETE); only unfinished job rows change.
 """
 
 from .base import CalibrationStore
 from .errors import (
     JobExists,
+    JobFinished,
     JobNotFound,
     SchemaVersionError,
     StoreError,
@@ -81,9 +92,14 @@ from .errors import (
 from .factory import open_store, sqlite_path
 from .models import (
     DEFAULT_FUNCTIONS,
+    FINAL_JOB_STATES,
     JOB_STATES,
     Activation,
+    ActivationIntent,
+    AuditEntry,
+    JobCompletion,
     JobRecord,
+    NewAuditEntry,
     NewVersion,
     ObjectScores,
     ScoreTable,
@@ -93,12 +109,18 @@ from .models import (
 
 __all__ = [
     "DEFAULT_FUNCTIONS",
+    "FINAL_JOB_STATES",
     "JOB_STATES",
     "Activation",
+    "ActivationIntent",
+    "AuditEntry",
     "CalibrationStore",
+    "JobCompletion",
     "JobExists",
+    "JobFinished",
     "JobNotFound",
     "JobRecord",
+    "NewAuditEntry",
     "NewVersion",
     "ObjectScores",
     "SchemaVersionError",

@@ -3,11 +3,22 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from datetime import timedelta
 from types import TracebackType
 from typing import Any
 
-from .models import Activation, JobRecord, NewVersion, ScoreTable, VersionInfo
+from .models import (
+    Activation,
+    ActivationIntent,
+    AuditEntry,
+    JobCompletion,
+    JobRecord,
+    NewAuditEntry,
+    NewVersion,
+    ScoreTable,
+    VersionInfo,
+)
 
 #: prune_jobs defaults: keep the newest KEEP_JOBS jobs and anything alive within JOB_MAX_AGE
 KEEP_JOBS = 1000
@@ -23,9 +34,22 @@ class CalibrationStore(ABC):
     """
 
     @abstractmethod
-    def create_version(self, new: NewVersion, scores: ScoreTable) -> VersionInfo:
+    def create_version(
+        self,
+        new: NewVersion,
+        scores: ScoreTable,
+        *,
+        activation: ActivationIntent | None = None,
+        job: JobCompletion | None = None,
+        audit: Sequence[NewAuditEntry] = (),
+    ) -> VersionInfo:
         """Store a new version atomically and return its metadata (number, created_at).
 
+        In the same transaction, optionally: activate it (``activation``), mark the job that
+        produced it succeeded with the version number (``job``; JobFinished or JobNotFound,
+        and nothing is written, if that job is already final or gone), and append ``audit``
+        entries (an entry's version None means the new version). A process killed at any
+        point leaves all of it or none of it.
         Raises VersionNotFound if new.parent_version does not exist for new.model_hash.
         """
 
@@ -52,8 +76,19 @@ class CalibrationStore(ABC):
         """The scores of one version, as read-only numpy arrays; raises VersionNotFound."""
 
     @abstractmethod
-    def activate(self, model_hash: str, number: int, who: str, reason: str = "") -> Activation:
-        """Append an activation of an existing version to the log; raises VersionNotFound."""
+    def activate(
+        self, model_hash: str, number: int, who: str, reason: str = "", audit: Sequence[NewAuditEntry] = ()
+    ) -> Activation:
+        """Append an activation of an existing version to the log, and ``audit`` entries, in one
+        transaction; raises VersionNotFound."""
+
+    @abstractmethod
+    def append_audit(self, entry: NewAuditEntry) -> AuditEntry:
+        """Append one entry to the audit trail (append-only: entries are never changed)."""
+
+    @abstractmethod
+    def audit_log(self, model_hash: str, before: int | None = None, limit: int = 100) -> list[AuditEntry]:
+        """Audit entries of a model, newest first: at most ``limit`` with seq < ``before``."""
 
     @abstractmethod
     def active_version(self, model_hash: str) -> Activation | None:
@@ -77,10 +112,11 @@ class CalibrationStore(ABC):
 
     @abstractmethod
     def update_job(self, job_id: str, **fields: Any) -> JobRecord:
-        """Change mutable fields of a job (see JOB_MUTABLE_FIELDS) and return the stored row.
+        """Change mutable fields of an unfinished job (see JOB_MUTABLE_FIELDS); return the row.
 
         Every update is a sign of life: heartbeat_at is set to now unless given.
-        `update_job(job_id)` only refreshes the heartbeat. Raises JobNotFound.
+        `update_job(job_id)` only refreshes the heartbeat. Raises JobNotFound, and
+        JobFinished for a job already in a final state (finished jobs never change).
         """
 
     @abstractmethod

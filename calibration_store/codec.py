@@ -59,3 +59,18 @@ def encode_refs(refs: Sequence[str]) -> str:
 def decode_refs(text: str | bytes) -> tuple[str, ...]:
     """Instance references written by `encode_refs`."""
     return tuple(json.loads(text))
+
+
+def encode_digests(digests: Sequence[str]) -> bytes | None:
+    """sha256 hex digests as 32 raw bytes each; None for none (unknown)."""
+    return b"".join(bytes.fromhex(d) for d in digests) if digests else None
+
+
+def decode_digests(data: bytes | memoryview | None) -> tuple[str, ...]:
+    """Hex digests written by `encode_digests` (() for NULL)."""
+    if data is None:
+        return ()
+    raw = bytes(data)
+    if len(raw) % 32:
+        raise ValueError(f"digest blob has {len(raw)} bytes, not a multiple of 32")
+    return tuple(raw[i : i + 32].hex() for i in range(0, len(raw), 32))

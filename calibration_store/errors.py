@@ -24,6 +24,15 @@ class JobNotFound(StoreError, LookupError):
         self.job_id = job_id
 
 
+class JobFinished(StoreError):
+    """The job is already in a final state; a finished job is never rewritten."""
+
+    def __init__(self, job_id: str, state: str) -> None:
+        super().__init__(f"job {job_id!r} is already {state}; a finished job cannot change")
+        self.job_id = job_id
+        self.state = state
+
+
 class JobExists(StoreError, ValueError):
     """create_job was given the id of a job that is already stored."""
 

@@ -109,24 +109,88 @@ _IMMUTABLE_TABLES = ("calib_versions", "calib_score_objects", "calib_score_array
                      "calib_activations")
 
 
-def _sqlite_immutability() -> tuple[str, ...]:
+def _sqlite_immutability(tables: tuple[str, ...] = _IMMUTABLE_TABLES) -> tuple[str, ...]:
     return tuple(
         f"""CREATE TRIGGER {table}_immutable_{op.lower()} BEFORE {op} ON {table}
             BEGIN SELECT RAISE(ABORT, 'calibration store history is immutable'); END"""
-        for table in _IMMUTABLE_TABLES
+        for table in tables
         for op in ("UPDATE", "DELETE")
+    )
+
+
+def _postgres_triggers(tables: tuple[str, ...]) -> tuple[str, ...]:
+    return tuple(
+        f"""CREATE TRIGGER {table}_immutable BEFORE UPDATE OR DELETE ON {table}
+            FOR EACH ROW EXECUTE FUNCTION calib_refuse_change()"""
+        for table in tables
     )
 
 
 def _postgres_immutability() -> tuple[str, ...]:
     function = """CREATE FUNCTION calib_refuse_change() RETURNS trigger LANGUAGE plpgsql AS $$
         BEGIN RAISE EXCEPTION 'calibration store history is immutable'; END $$"""
-    triggers = tuple(
-        f"""CREATE TRIGGER {table}_immutable BEFORE UPDATE OR DELETE ON {table}
-            FOR EACH ROW EXECUTE FUNCTION calib_refuse_change()"""
-        for table in _IMMUTABLE_TABLES
+    return (function, *_postgres_triggers(_IMMUTABLE_TABLES))
+
+
+_JOB_STATES_V3 = "'queued', 'running', 'succeeded', 'failed', 'interrupted'"
+_JOB_COLUMNS_V2 = (
+    "id, kind, owner, created_at, heartbeat_at, state, done, total, errors, result, finished_at"
+)
+
+
+def _content_hashes_and_audit(blob: str, seq_column: str, timestamp: str) -> tuple[str, ...]:
+    """Per-instance content hashes (duplicate checks) and the append-only audit trail."""
+    return (
+        f"ALTER TABLE calib_score_objects ADD COLUMN image_hashes {blob}",
+        f"ALTER TABLE calib_score_objects ADD COLUMN instance_hashes {blob}",
+        f"""CREATE TABLE calib_audit (
+            {seq_column},
+            at {timestamp} NOT NULL,
+            model_hash TEXT NOT NULL,
+            who TEXT NOT NULL,
+            action TEXT NOT NULL,
+            outcome TEXT NOT NULL,
+            version INTEGER,
+            previous_version INTEGER,
+            reason TEXT NOT NULL,
+            client TEXT NOT NULL,
+            details TEXT NOT NULL
+        )""",
+        "CREATE INDEX calib_audit_by_model ON calib_audit (model_hash, seq)",
     )
-    return (function, *triggers)
+
+
+def _sqlite_jobs_v3() -> tuple[str, ...]:
+    """SQLite cannot change a CHECK constraint: rebuild calib_jobs with the new state and column."""
+    return (
+        f"""CREATE TABLE calib_jobs_v3 (
+            id TEXT PRIMARY KEY,
+            kind TEXT NOT NULL,
+            owner TEXT NOT NULL,
+            created_at TEXT NOT NULL,
+            heartbeat_at TEXT NOT NULL,
+            state TEXT NOT NULL CHECK (state IN ({_JOB_STATES_V3})),
+            done BIGINT NOT NULL CHECK (done >= 0),
+            total BIGINT NOT NULL CHECK (total >= 0),
+            errors TEXT NOT NULL,
+            result TEXT NOT NULL,
+            finished_at TEXT,
+            version INTEGER
+        )""",
+        f"INSERT INTO calib_jobs_v3 ({_JOB_COLUMNS_V2}) SELECT {_JOB_COLUMNS_V2} FROM calib_jobs",
+        "DROP TABLE calib_jobs",
+        "ALTER TABLE calib_jobs_v3 RENAME TO calib_jobs",
+        "CREATE INDEX calib_jobs_by_created ON calib_jobs (created_at)",
+        "CREATE INDEX calib_jobs_by_heartbeat ON calib_jobs (heartbeat_at)",
+    )
+
+
+def _postgres_jobs_v3() -> tuple[str, ...]:
+    return (
+        "ALTER TABLE calib_jobs DROP CONSTRAINT calib_jobs_state_check",
+        f"ALTER TABLE calib_jobs ADD CONSTRAINT calib_jobs_state_check CHECK (state IN ({_JOB_STATES_V3}))",
+        "ALTER TABLE calib_jobs ADD COLUMN version INTEGER",
+    )
 
 
 SQLITE_MIGRATIONS: tuple[Migration, ...] = (
@@ -142,6 +206,13 @@ SQLITE_MIGRATIONS: tuple[Migration, ...] = (
         + _sqlite_immutability(),
     ),
     Migration(2, "background jobs", _jobs(timestamp="TEXT")),
+    Migration(
+        3,
+        "content hashes, audit trail, interrupted jobs and the version a job produced",
+        _content_hashes_and_audit("BLOB", "seq INTEGER PRIMARY KEY AUTOINCREMENT", "TEXT")
+        + _sqlite_immutability(("calib_audit",))
+        + _sqlite_jobs_v3(),
+    ),
 )
 
 POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
@@ -161,6 +232,15 @@ POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
         + _postgres_immutability(),
     ),
     Migration(2, "background jobs", _jobs(timestamp="TIMESTAMPTZ")),
+    Migration(
+        3,
+        "content hashes, audit trail, interrupted jobs and the version a job produced",
+        _content_hashes_and_audit(
+            "BYTEA", "seq BIGINT GENERATED ALWAYS AS IDENTITY PRIMARY KEY", "TIMESTAMPTZ"
+        )
+        + _postgres_triggers(("calib_audit",))
+        + _postgres_jobs_v3(),
+    ),
 )
 
 

@@ -84,6 +84,19 @@ def _float_matrix(values: object, what: str, shape: tuple[int, int]) -> np.ndarr
     return array
 
 
+def _digests(values: object, what: str, count: int) -> tuple[str, ...]:
+    """Empty, or exactly ``count`` lowercase sha256 hex digests."""
+    if isinstance(values, str | bytes) or not isinstance(values, Iterable):
+        raise TypeError(f"{what} must be a sequence of sha256 hex digests")
+    digests = tuple(values)
+    if digests and len(digests) != count:
+        raise ValueError(f"{what} has {len(digests)} digests for {count} instances")
+    for digest in digests:
+        if not isinstance(digest, str) or not _SHA256_RE.match(digest):
+            raise ValueError(f"{what} must hold 64 lowercase hex digits each, got {digest!r}")
+    return digests
+
+
 def _keypoint_ids(values: object, what: str) -> np.ndarray:
     array = np.asarray(values)
     if array.ndim != 1 or array.size == 0:
@@ -105,12 +118,17 @@ class ObjectScores:
     keypoint_ids: (k,) global manifest keypoint indices, the matrix columns in order.
     instance_refs: (n,) opaque per-instance references (e.g. "batch:image:annotation").
     scores: nonconformity function name -> (n, k) float64 matrix; NaN = not labeled.
+    image_hashes, instance_hashes: (n,) sha256 hex digests of each instance's image file
+    and of the instance itself (image, object, box, labels), so that a batch appended
+    later can be checked for repeats; both empty when unknown (versions made without them).
     """
 
     object_name: str
     keypoint_ids: np.ndarray
     instance_refs: tuple[str, ...]
     scores: Mapping[str, np.ndarray]
+    image_hashes: tuple[str, ...] = ()
+    instance_hashes: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         name = _text(self.object_name, "object name")
@@ -131,6 +149,14 @@ class ObjectScores:
         object.__setattr__(self, "keypoint_ids", ids)
         object.__setattr__(self, "instance_refs", refs)
         object.__setattr__(self, "scores", matrices)
+        for what in ("image_hashes", "instance_hashes"):
+            object.__setattr__(self, what, _digests(getattr(self, what), f"{what} of {name!r}", len(refs)))
+        if bool(self.image_hashes) != bool(self.instance_hashes):
+            raise ValueError(f"object {name!r}: give both image_hashes and instance_hashes, or neither")
+
+    @property
+    def has_hashes(self) -> bool:
+        return bool(self.instance_hashes)
 
     @property
     def n_instances(self) -> int:
@@ -259,14 +285,15 @@ class Activation:
     reason: str
 
 
-#: States of a background job; the last two are final.
-JOB_STATES: tuple[str, ...] = ("queued", "running", "succeeded", "failed")
-FINAL_JOB_STATES: tuple[str, ...] = ("succeeded", "failed")
+#: States of a background job; the last three are final. ``interrupted``: its process
+#: stopped before it finished (nothing was stored); it may be retried as a new job.
+JOB_STATES: tuple[str, ...] = ("queued", "running", "succeeded", "failed", "interrupted")
+FINAL_JOB_STATES: tuple[str, ...] = ("succeeded", "failed", "interrupted")
 MAX_JOB_ID = 200
 
 #: JobRecord fields update_job may change (the rest are set once by create_job).
 JOB_MUTABLE_FIELDS: tuple[str, ...] = (
-    "state", "done", "total", "errors", "result", "finished_at", "heartbeat_at"
+    "state", "done", "total", "errors", "result", "finished_at", "version", "heartbeat_at"
 )
 
 
@@ -303,6 +330,8 @@ def check_job_field(name: str, value: object) -> Any:
         return _json_object(value, "job result")
     if name == "finished_at":
         return None if value is None else _aware(value, "job finished_at")
+    if name == "version":
+        return None if value is None else _count(value, "job version", minimum=1)
     if name == "heartbeat_at":
         return _aware(value, "job heartbeat_at")
     raise ValueError(f"job field {name!r} cannot be changed; changeable: {JOB_MUTABLE_FIELDS}")
@@ -314,6 +343,8 @@ class JobRecord:
 
     owner names the process running it (e.g. "host:pid"); heartbeat_at is refreshed by
     every write of that process, so an old heartbeat on an unfinished job means it died.
+    version is the calibration version the job produced, written in the same transaction
+    as the version itself.
     """
 
     id: str
@@ -327,6 +358,7 @@ class JobRecord:
     errors: tuple[str, ...] = ()
     result: Mapping[str, Any] = field(default_factory=dict)
     finished_at: datetime | None = None
+    version: int | None = None
 
     def __post_init__(self) -> None:
         if not is_job_id(self.id):
@@ -346,6 +378,74 @@ class JobRecord:
         return {name: getattr(self, name) for name in JOB_MUTABLE_FIELDS if name != "heartbeat_at"}
 
 
+@dataclass(frozen=True)
+class ActivationIntent:
+    """Activate the version being created, in the same transaction (who and why)."""
+
+    who: str
+    reason: str = ""
+
+    def __post_init__(self) -> None:
+        _text(self.who, "who")
+        _text(self.reason, "reason", allow_empty=True)
+
+
+@dataclass(frozen=True)
+class JobCompletion:
+    """Mark a job succeeded with this result in the transaction that creates its version.
+
+    The store adds ``"version": <number>`` to the result and sets the job's version, so a
+    version and the job that produced it are never seen apart.
+    """
+
+    job_id: str
+    result: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not is_job_id(self.job_id):
+            raise ValueError(f"job id must be 1 to {MAX_JOB_ID} printable characters")
+        object.__setattr__(self, "result", _json_object(self.result, "job result"))
+
+
+@dataclass(frozen=True)
+class NewAuditEntry:
+    """One administrative action to append to the audit trail (the store sets seq and at).
+
+    ``version`` None inside ``create_version`` means the version being created.
+    """
+
+    model_hash: str
+    who: str
+    action: str
+    outcome: str
+    version: int | None = None
+    previous_version: int | None = None
+    reason: str = ""
+    client: str = ""
+    details: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        _text(self.model_hash, "model hash")
+        _text(self.who, "who")
+        _text(self.action, "audit action")
+        _text(self.outcome, "audit outcome")
+        for name in ("version", "previous_version"):
+            value = getattr(self, name)
+            if value is not None:
+                _count(value, f"audit {name}", minimum=1)
+        _text(self.reason, "reason", allow_empty=True)
+        _text(self.client, "client", allow_empty=True)
+        object.__setattr__(self, "details", _json_object(self.details, "audit details"))
+
+
+@dataclass(frozen=True)
+class AuditEntry(NewAuditEntry):
+    """A stored audit entry: ``seq`` orders entries store-wide, ``at`` is when it was written."""
+
+    seq: int = 0
+    at: datetime | None = None
+
+
 def check_number(value: object, what: str = "version number") -> int:
     """Validate a version number passed to a store method."""
     return _count(value, what, minimum=1)
@@ -358,6 +458,10 @@ def check_model_hash(value: object) -> str:
 
 __all__ = [
     "DEFAULT_FUNCTIONS",
+    "ActivationIntent",
+    "AuditEntry",
+    "JobCompletion",
+    "NewAuditEntry",
     "FINAL_JOB_STATES",
     "JOB_MUTABLE_FIELDS",
     "JOB_STATES",

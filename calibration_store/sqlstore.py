@@ -10,17 +10,21 @@ from __future__ import annotations
 from abc import abstractmethod
 from collections.abc import Iterator, Sequence
 from contextlib import AbstractContextManager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime, timedelta
 from typing import Any, ClassVar, Protocol
 
 from . import codec
 from .base import JOB_MAX_AGE, KEEP_JOBS, CalibrationStore
-from .errors import JobExists, JobNotFound, VersionNotFound
+from .errors import JobExists, JobFinished, JobNotFound, VersionNotFound
 from .models import (
     FINAL_JOB_STATES,
     Activation,
+    ActivationIntent,
+    AuditEntry,
+    JobCompletion,
     JobRecord,
+    NewAuditEntry,
     NewVersion,
     ObjectScores,
     ScoreTable,
@@ -49,6 +53,8 @@ class EncodedBlock:
     keypoint_ids: bytes
     instance_refs: str
     arrays: tuple[tuple[str, int, int, bytes], ...]
+    image_hashes: bytes | None
+    instance_hashes: bytes | None
 
 
 def encode_block(position: int, block: ObjectScores) -> EncodedBlock:
@@ -63,6 +69,8 @@ def encode_block(position: int, block: ObjectScores) -> EncodedBlock:
         keypoint_ids=codec.encode_ids(block.keypoint_ids),
         instance_refs=codec.encode_refs(block.instance_refs),
         arrays=arrays,
+        image_hashes=codec.encode_digests(block.image_hashes),
+        instance_hashes=codec.encode_digests(block.instance_hashes),
     )
 
 
@@ -72,7 +80,11 @@ _VERSION_COLUMNS = (
 )
 _ACTIVATION_COLUMNS = "seq, model_hash, number, activated_at, who, reason"
 _JOB_COLUMNS = (
-    "id, kind, owner, created_at, heartbeat_at, state, done, total, errors, result, finished_at"
+    "id, kind, owner, created_at, heartbeat_at, state, done, total, errors, result, finished_at,"
+    " version"
+)
+_AUDIT_COLUMNS = (
+    "seq, at, model_hash, who, action, outcome, version, previous_version, reason, client, details"
 )
 _FINAL_STATES_SQL = ", ".join(f"'{state}'" for state in FINAL_JOB_STATES)
 
@@ -99,14 +111,49 @@ class SqlStore(CalibrationStore):
 
     # -- writing ---------------------------------------------------------------
 
-    def create_version(self, new: NewVersion, scores: ScoreTable) -> VersionInfo:
+    def create_version(
+        self,
+        new: NewVersion,
+        scores: ScoreTable,
+        *,
+        activation: ActivationIntent | None = None,
+        job: JobCompletion | None = None,
+        audit: Sequence[NewAuditEntry] = (),
+    ) -> VersionInfo:
         blocks = _encoded_blocks(new, scores, "create_version")
+        _check_types(activation, ActivationIntent, "activation")
+        _check_types(job, JobCompletion, "job")
+        entries = _audit_entries(audit)
         with self._transaction(write=True) as cur:
             number = self._next_number(cur, new.model_hash)
             if new.parent_version is not None:
                 self._version_id(cur, new.model_hash, new.parent_version)
             self._write_version(cur, new, number, scores, blocks)
+            if activation is not None:
+                self._insert_activation(cur, new.model_hash, number, activation.who, activation.reason)
+            if job is not None:
+                self._complete_job(cur, job, number)
+            for entry in entries:
+                self._insert_audit(cur, replace(entry, version=number) if entry.version is None else entry)
         return self.get_version(new.model_hash, number)
+
+    def _complete_job(self, cur: Cursor, job: JobCompletion, number: int) -> None:
+        """Mark the job succeeded with the version; refuse (rolling back) a finished or missing job."""
+        now = self._time_to_db(now_utc())
+        cur.execute(
+            "UPDATE calib_jobs SET state = 'succeeded', result = ?, version = ?, finished_at = ?,"
+            f" heartbeat_at = ? WHERE id = ? AND state NOT IN ({_FINAL_STATES_SQL}) RETURNING id",
+            (codec.encode_json({**job.result, "version": number}), number, now, now, job.job_id),
+        )
+        if cur.fetchone() is None:
+            self._raise_job_unchangeable(cur, job.job_id)
+
+    def _raise_job_unchangeable(self, cur: Cursor, job_id: str) -> None:
+        cur.execute("SELECT state FROM calib_jobs WHERE id = ?", (job_id,))
+        row = cur.fetchone()
+        if row is None:
+            raise JobNotFound(job_id)
+        raise JobFinished(job_id, row[0])
 
     def create_first_version(
         self, new: NewVersion, scores: ScoreTable, who: str, reason: str = ""
@@ -169,7 +216,7 @@ class SqlStore(CalibrationStore):
     def _insert_block(self, cur: Cursor, version_id: int, block: EncodedBlock) -> None:
         cur.execute(
             "INSERT INTO calib_score_objects (version_id, position, object_name, n_instances,"
-            " keypoint_ids, instance_refs) VALUES (?, ?, ?, ?, ?, ?)",
+            " keypoint_ids, instance_refs, image_hashes, instance_hashes) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
             (
                 version_id,
                 block.position,
@@ -177,6 +224,8 @@ class SqlStore(CalibrationStore):
                 block.n_instances,
                 block.keypoint_ids,
                 block.instance_refs,
+                block.image_hashes,
+                block.instance_hashes,
             ),
         )
         for function, rows, cols, data in block.arrays:
@@ -189,10 +238,13 @@ class SqlStore(CalibrationStore):
     def _bump_counter(self, cur: Cursor) -> None:
         cur.execute("UPDATE calib_change_counter SET value = value + 1 WHERE id = 1")
 
-    def activate(self, model_hash: str, number: int, who: str, reason: str = "") -> Activation:
+    def activate(
+        self, model_hash: str, number: int, who: str, reason: str = "", audit: Sequence[NewAuditEntry] = ()
+    ) -> Activation:
         check_model_hash(model_hash)
         check_number(number)
         _check_activation_text(who, reason)
+        entries = _audit_entries(audit)
         with self._transaction(write=True) as cur:
             cur.execute(
                 f"SELECT last_number FROM calib_models WHERE model_hash = ?{self.lock_clause}",
@@ -203,7 +255,46 @@ class SqlStore(CalibrationStore):
             self._version_id(cur, model_hash, number)
             activation = self._insert_activation(cur, model_hash, number, who, reason)
             self._bump_counter(cur)
+            for entry in entries:
+                self._insert_audit(cur, entry)
         return activation
+
+    # -- audit -----------------------------------------------------------------
+
+    def append_audit(self, entry: NewAuditEntry) -> AuditEntry:
+        (entry,) = _audit_entries((entry,))
+        with self._transaction(write=True) as cur:
+            return self._insert_audit(cur, entry)
+
+    def _insert_audit(self, cur: Cursor, entry: NewAuditEntry) -> AuditEntry:
+        cur.execute(
+            "INSERT INTO calib_audit (at, model_hash, who, action, outcome, version, previous_version,"
+            f" reason, client, details) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING {_AUDIT_COLUMNS}",
+            (
+                self._time_to_db(now_utc()),
+                entry.model_hash,
+                entry.who,
+                entry.action,
+                entry.outcome,
+                entry.version,
+                entry.previous_version,
+                entry.reason,
+                entry.client,
+                codec.encode_json(entry.details),
+            ),
+        )
+        return self._audit(cur.fetchone())
+
+    def audit_log(self, model_hash: str, before: int | None = None, limit: int = 100) -> list[AuditEntry]:
+        check_model_hash(model_hash)
+        limit = check_number(limit, "audit page size")
+        bound = _MAX_SEQ if before is None else check_number(before, "audit cursor")
+        rows = self._read(
+            f"SELECT {_AUDIT_COLUMNS} FROM calib_audit WHERE model_hash = ? AND seq < ?"
+            " ORDER BY seq DESC LIMIT ?",
+            (model_hash, bound, limit),
+        )
+        return [self._audit(row) for row in rows]
 
     def _insert_activation(
         self, cur: Cursor, model_hash: str, number: int, who: str, reason: str
@@ -258,8 +349,8 @@ class SqlStore(CalibrationStore):
         with self._transaction(write=False) as cur:
             version_id = self._version_id(cur, model_hash, number)
             cur.execute(
-                "SELECT object_name, keypoint_ids, instance_refs FROM calib_score_objects"
-                " WHERE version_id = ? ORDER BY position",
+                "SELECT object_name, keypoint_ids, instance_refs, image_hashes, instance_hashes"
+                " FROM calib_score_objects WHERE version_id = ? ORDER BY position",
                 (version_id,),
             )
             objects = cur.fetchall()
@@ -301,7 +392,7 @@ class SqlStore(CalibrationStore):
             raise TypeError("create_job takes a JobRecord")
         with self._transaction(write=True) as cur:
             cur.execute(
-                f"INSERT INTO calib_jobs ({_JOB_COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)"
+                f"INSERT INTO calib_jobs ({_JOB_COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)"
                 f" ON CONFLICT (id) DO NOTHING RETURNING {_JOB_COLUMNS}",
                 (
                     job.id,
@@ -326,12 +417,13 @@ class SqlStore(CalibrationStore):
         assignments = ", ".join(f"{name} = ?" for name in names)
         with self._transaction(write=True) as cur:
             cur.execute(
-                f"UPDATE calib_jobs SET {assignments} WHERE id = ? RETURNING {_JOB_COLUMNS}",
+                f"UPDATE calib_jobs SET {assignments} WHERE id = ? AND state NOT IN ({_FINAL_STATES_SQL})"
+                f" RETURNING {_JOB_COLUMNS}",
                 (*(self._job_value(name, changes[name]) for name in names), job_id),
             )
             row = cur.fetchone()
-        if row is None:
-            raise JobNotFound(job_id)
+            if row is None:
+                self._raise_job_unchangeable(cur, job_id)
         return self._job(row)
 
     def get_job(self, job_id: str) -> JobRecord | None:
@@ -396,6 +488,22 @@ class SqlStore(CalibrationStore):
             errors=tuple(codec.decode_json(row[8])),
             result=codec.decode_json(row[9]),
             finished_at=None if row[10] is None else self._time_from_db(row[10]),
+            version=None if row[11] is None else int(row[11]),
+        )
+
+    def _audit(self, row: Sequence[Any]) -> AuditEntry:
+        return AuditEntry(
+            seq=int(row[0]),
+            at=self._time_from_db(row[1]),
+            model_hash=row[2],
+            who=row[3],
+            action=row[4],
+            outcome=row[5],
+            version=None if row[6] is None else int(row[6]),
+            previous_version=None if row[7] is None else int(row[7]),
+            reason=row[8],
+            client=row[9],
+            details=codec.decode_json(row[10]),
         )
 
     def _activation(self, row: Sequence[Any]) -> Activation:
@@ -407,6 +515,21 @@ class SqlStore(CalibrationStore):
             who=row[4],
             reason=row[5],
         )
+
+
+_MAX_SEQ = 2**63 - 1
+
+
+def _check_types(value: object, kind: type, what: str) -> None:
+    if value is not None and not isinstance(value, kind):
+        raise TypeError(f"{what} must be a {kind.__name__} or None")
+
+
+def _audit_entries(entries: Sequence[NewAuditEntry]) -> tuple[NewAuditEntry, ...]:
+    entries = tuple(entries)
+    for entry in entries:
+        _check_types(entry, NewAuditEntry, "each audit entry")
+    return entries
 
 
 class _NotFirst(Exception):
@@ -445,10 +568,12 @@ def _score_table(objects: list[Any], arrays: list[Any]) -> ScoreTable:
 
 
 def _blocks(objects: list[Any], matrices: dict[str, dict[str, Any]]) -> Iterator[ObjectScores]:
-    for object_name, keypoint_ids, instance_refs in objects:
+    for object_name, keypoint_ids, instance_refs, image_hashes, instance_hashes in objects:
         yield ObjectScores(
             object_name=object_name,
             keypoint_ids=codec.decode_ids(keypoint_ids),
             instance_refs=codec.decode_refs(instance_refs),
             scores=matrices.get(object_name, {}),
+            image_hashes=codec.decode_digests(image_hashes),
+            instance_hashes=codec.decode_digests(instance_hashes),
         )

@@ -10,6 +10,7 @@ import pytest
 from calibration_store import CalibrationStore, JobRecord, SchemaVersionError, open_store
 from calibration_store import sqlite as sqlite_backend
 from calibration_store.migrations import POSTGRES_MIGRATIONS, SQLITE_MIGRATIONS
+from calibration_store.sqlstore import Cursor, EncodedBlock, SqlStore
 from tests.store import rawdb
 from tests.store.factories import MODEL_A, assert_tables_identical, new_version, score_table
 from tests.store.processes import run_together
@@ -50,7 +51,9 @@ def test_newer_schema_is_refused(store_url: str) -> None:
 
 
 def _open_with_schema_1(url: str, monkeypatch: pytest.MonkeyPatch) -> CalibrationStore:
-    """A store opened the way the code before the job table did (only migration 1)."""
+    """A store opened the way the code before the job table did (only migration 1), writing
+    score blocks as that code did (no content-hash columns)."""
+    monkeypatch.setattr(SqlStore, "_insert_block", _insert_block_schema_1)
     with monkeypatch.context() as patch:
         patch.setattr(sqlite_backend, "SQLITE_MIGRATIONS", SQLITE_MIGRATIONS[:1])
         if url.startswith("postgresql:"):
@@ -58,6 +61,21 @@ def _open_with_schema_1(url: str, monkeypatch: pytest.MonkeyPatch) -> Calibratio
 
             patch.setattr(postgres, "POSTGRES_MIGRATIONS", POSTGRES_MIGRATIONS[:1])
         return open_store(url)
+
+
+def _insert_block_schema_1(self: SqlStore, cur: Cursor, version_id: int, block: EncodedBlock) -> None:
+    cur.execute(
+        "INSERT INTO calib_score_objects (version_id, position, object_name, n_instances,"
+        " keypoint_ids, instance_refs) VALUES (?, ?, ?, ?, ?, ?)",
+        (version_id, block.position, block.object_name, block.n_instances, block.keypoint_ids,
+         block.instance_refs),
+    )  # fmt: skip
+    for function, rows, cols, data in block.arrays:
+        cur.execute(
+            "INSERT INTO calib_score_arrays (version_id, object_name, function, n_rows,"
+            " n_cols, data) VALUES (?, ?, ?, ?, ?, ?)",
+            (version_id, block.object_name, function, rows, cols, data),
+        )
 
 
 def _tables(url: str) -> set[str]:
@@ -73,6 +91,7 @@ def test_database_from_before_jobs_is_upgraded(store_url: str, monkeypatch: pyte
         table = score_table(n=3)
         old.create_version(new_version(), table)
         old.activate(MODEL_A, 1, who="alice")
+    monkeypatch.undo()
     assert rawdb.schema_versions(store_url) == [1]
     assert "calib_jobs" not in _tables(store_url)
 
@@ -85,6 +104,8 @@ def test_database_from_before_jobs_is_upgraded(store_url: str, monkeypatch: pyte
         now = datetime.now(UTC)
         store.create_job(JobRecord(id="j", kind="k", owner="o", created_at=now, heartbeat_at=now))
         assert store.update_job("j", state="running").state == "running"
+        assert store.update_job("j", state="interrupted").state == "interrupted"
+        assert not store.load_scores(MODEL_A, 1).objects[0].has_hashes  # written before hashes existed
 
 
 def test_concurrent_upgrades_of_an_old_database_migrate_once(
