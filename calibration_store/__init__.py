@@ -89,7 +89,7 @@ from .errors import (
     StoreUnavailable,
     VersionNotFound,
 )
-from .factory import open_store, sqlite_path
+from .factory import open_store, sqlite_path, store_location
 from .models import (
     DEFAULT_FUNCTIONS,
     FINAL_JOB_STATES,
@@ -132,4 +132,5 @@ __all__ = [
     "VersionNotFound",
     "open_store",
     "sqlite_path",
+    "store_location",
 ]

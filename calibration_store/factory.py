@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 from typing import Any
-from urllib.parse import unquote
+from urllib.parse import unquote, urlsplit
 
 from .base import CalibrationStore
 
@@ -54,3 +54,17 @@ def open_store(url: str, **options: Any) -> CalibrationStore:
         f"unsupported calibration store URL {url!r}: use sqlite:///path/to/file.db"
         " or postgresql://user@host:port/database"
     )
+
+
+def store_location(url: str) -> tuple[str, str]:
+    """The backend kind and where it is, without secrets: ("sqlite", "/abs/path.db") or
+    ("postgresql", "postgresql://user@host:5432/db") with any password and query removed."""
+    scheme = url.split(":", 1)[0].lower() if ":" in url else ""
+    if scheme == "sqlite":
+        return "sqlite", str(sqlite_path(url).resolve())
+    parts = urlsplit(url)
+    host = parts.hostname or ""
+    if parts.port:
+        host = f"{host}:{parts.port}"
+    user = f"{parts.username}@" if parts.username else ""
+    return "postgresql", f"postgresql://{user}{host}{parts.path}"

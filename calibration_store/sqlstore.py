@@ -17,6 +17,7 @@ from typing import Any, ClassVar, Protocol
 from . import codec
 from .base import JOB_MAX_AGE, KEEP_JOBS, CalibrationStore
 from .errors import JobExists, JobFinished, JobNotFound, VersionNotFound
+from .faults import crash_point
 from .models import (
     FINAL_JOB_STATES,
     Activation,
@@ -135,14 +136,17 @@ class SqlStore(CalibrationStore):
                 self._complete_job(cur, job, number)
             for entry in entries:
                 self._insert_audit(cur, replace(entry, version=number) if entry.version is None else entry)
+            crash_point("version-written")
+        crash_point("version-committed")
         return self.get_version(new.model_hash, number)
 
     def _complete_job(self, cur: Cursor, job: JobCompletion, number: int) -> None:
         """Mark the job succeeded with the version; refuse (rolling back) a finished or missing job."""
         now = self._time_to_db(now_utc())
         cur.execute(
-            "UPDATE calib_jobs SET state = 'succeeded', result = ?, version = ?, finished_at = ?,"
-            f" heartbeat_at = ? WHERE id = ? AND state NOT IN ({_FINAL_STATES_SQL}) RETURNING id",
+            "UPDATE calib_jobs SET state = 'succeeded', done = total, result = ?, version = ?,"
+            " finished_at = ?, heartbeat_at = ?"
+            f" WHERE id = ? AND state NOT IN ({_FINAL_STATES_SQL}) RETURNING id",
             (codec.encode_json({**job.result, "version": number}), number, now, now, job.job_id),
         )
         if cur.fetchone() is None:

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import logging
 import shutil
 import sys
 from pathlib import Path
 
+from service.errors import InvalidInput, ServiceError
 from service.settings import Settings
 
 
@@ -48,34 +48,60 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
 
 def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     from calibration_store import open_store
+    from service.audit import AuditTrail, Operator
     from service.calibration.bundle import save_bundle
-    from service.calibration.calibrate import CalibrationOptions, NamedBatch, create_calibration
-    from service.calibration.coco import load_coco_batch
+    from service.calibration.calibrate import CalibrationOptions, check_parent, create_calibration
+    from service.calibration.coco import NamedBatch, load_coco_batch
+    from service.calibration.intake import prepare_batch
     from service.detector.runtime import Detector
 
+    if args.force and not (args.activate and args.reason.strip()):
+        raise InvalidInput("--force needs --activate and a --reason (why the guardrails may be overridden)")
+    share = settings.max_rejected_share if args.max_rejected_share is None else args.max_rejected_share
     detector = Detector(settings.model_dir, settings.inference_threads)
-    batches = []
-    for folder in args.folders:
-        batch = load_coco_batch(Path(folder), detector.manifest)
-        digest = hashlib.sha256((Path(folder) / "annotations.json").read_bytes()).hexdigest()
-        batches.append(NamedBatch(name=args.name or Path(folder).name, sha256=digest, batch=batch))
-    total = sum(b.batch.count for b in batches)
-    done = 0
-
-    def progress(count: int) -> None:
-        nonlocal done
-        done += count
-        print(f"\rscored {done}/{total} instances", end="", file=sys.stderr, flush=True)
-
-    options = CalibrationOptions(
-        author=args.author, note=args.note, append_to=args.append_to, activate=args.activate
-    )
     with open_store(settings.resolved_store_url) as store:
-        info = create_calibration(store, detector, batches, options, settings.max_image_pixels, progress)
+        parent = parent_table = None
+        if args.append_to is not None:
+            parent = check_parent(store, detector, args.append_to)
+            parent_table = store.load_scores(detector.model_hash, args.append_to)
+        batches = []
+        for folder in args.folders:
+            batch = load_coco_batch(Path(folder), detector.manifest)
+            named = NamedBatch(name=args.name or Path(folder).name, sha256=batch.sha256, batch=batch)
+            batches.append(
+                prepare_batch(named, parent, parent_table, dedupe=args.dedupe, max_rejected_share=share)
+            )
+        total = sum(b.named.batch.count for b in batches)
+        done = 0
+
+        def progress(count: int) -> None:
+            nonlocal done
+            done += count
+            print(f"\rscored {done}/{total} instances", end="", file=sys.stderr, flush=True)
+
+        options = CalibrationOptions(
+            operator=Operator(args.author, "cli"),
+            note=args.note,
+            append_to=args.append_to,
+            activate=args.activate,
+            force=args.force,
+            reason=args.reason,
+            max_rejected_share=share,
+            min_instances=settings.min_calibration_instances,
+        )
+        audit = AuditTrail(store, detector.model_hash)
+        pixels = settings.max_image_pixels
+        outcome = create_calibration(store, detector, batches, options, pixels, audit, progress)
         print(file=sys.stderr)
         if args.bundle:
-            save_bundle(Path(args.bundle), info, store.load_scores(detector.model_hash, info.number))
-    print(json.dumps({"version": info.number, "instances": info.n_instances, "activated": args.activate}))
+            table = store.load_scores(detector.model_hash, outcome.info.number)
+            save_bundle(Path(args.bundle), outcome.info, table)
+    for problem in outcome.summary.get("activation_problems", []):
+        print(f"guardrail: {problem}", file=sys.stderr)
+    if args.activate and not outcome.activated:
+        print("not activated: the guardrails refused it (see above); add --force --reason to override",
+              file=sys.stderr)
+    print(json.dumps(outcome.summary))
     return 0
 
 
@@ -141,6 +167,13 @@ def build_parser() -> argparse.ArgumentParser:
     calibrate.add_argument("--note", default="")
     calibrate.add_argument("--append-to", type=int)
     calibrate.add_argument("--activate", action="store_true")
+    calibrate.add_argument("--force", action="store_true",
+                           help="with --activate: activate although the guardrails refuse (needs --reason)")
+    calibrate.add_argument("--reason", default="", help="why (recorded in the activation log and the audit)")
+    calibrate.add_argument("--dedupe", action="store_true",
+                           help="drop instances already counted instead of refusing the batch")
+    calibrate.add_argument("--max-rejected-share", type=float,
+                           help="share of instances the box rule may reject (default CKS_MAX_REJECTED_SHARE)")
     calibrate.add_argument("--bundle", help="also write the version to this .npz file")
     calibrate.set_defaults(run=_calibrate)
 
@@ -165,7 +198,6 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     args = build_parser().parse_args(argv)
     from service.detector.runtime import ModelMismatch
-    from service.errors import ServiceError
 
     try:
         return args.run(args, Settings())

@@ -6,6 +6,8 @@ needs to know about FastAPI.
 
 from __future__ import annotations
 
+from typing import Any
+
 
 class ServiceError(Exception):
     """Base class: ``status`` and ``title`` are the problem's, ``detail`` the message."""
@@ -14,12 +16,18 @@ class ServiceError(Exception):
     title: str = "Bad request"
 
     def __init__(
-        self, detail: str, *, errors: list[str] | None = None, headers: dict[str, str] | None = None
+        self,
+        detail: str,
+        *,
+        errors: list[str] | None = None,
+        headers: dict[str, str] | None = None,
+        extensions: dict[str, Any] | None = None,
     ) -> None:
         super().__init__(detail)
         self.detail = detail
         self.errors = errors or []
         self.headers = headers or {}
+        self.extensions = extensions or {}  # extra members of the problem body (RFC 9457)
 
 
 class InvalidInput(ServiceError):

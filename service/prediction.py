@@ -37,12 +37,11 @@ from service.conformal import (
     map_sets_to_image,
     statistics_for,
 )
+from service.detector.boxes import box_problem
 from service.detector.manifest import HeatmapSpec, Manifest
 from service.detector.runtime import InstanceHeatmaps
 from service.errors import InvalidInput
 from service.state import ServiceState
-
-_MAX_BOX_TO_IMAGE = 4.0  # a box may overhang the image, but not dwarf it
 
 
 def check_instances(
@@ -55,20 +54,15 @@ def check_instances(
         )
     problems = []
     known = set(manifest.object_names)
-    largest = _MAX_BOX_TO_IMAGE * max(width, height)
     for i, instance in enumerate(instances):
-        x, y, w, h = instance.bbox
         if instance.object not in known:
             problems.append(
                 f"instances[{i}].object {instance.object!r} is not an object of model {manifest.name!r} "
                 f"(known: {', '.join(manifest.object_names)})"
             )
-        if w < 1 or h < 1 or w > largest or h > largest:
-            problems.append(f"instances[{i}].bbox size {w:g}x{h:g} must be between 1 and {largest:g} pixels")
-        elif x >= width or y >= height or x + w <= 0 or y + h <= 0:
-            problems.append(
-                f"instances[{i}].bbox {list(instance.bbox)} lies outside the {width}x{height} image"
-            )
+        problem = box_problem(instance.bbox, width, height)
+        if problem:
+            problems.append(f"instances[{i}].bbox: {problem}")
     if problems:
         raise InvalidInput("; ".join(problems[:5]), errors=problems)
 

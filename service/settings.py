@@ -5,8 +5,10 @@ from __future__ import annotations
 from functools import cached_property
 from pathlib import Path
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from calibration_store import sqlite_path
 
 PACKAGE_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_MODEL_DIR = PACKAGE_ROOT / "models" / "lmo-synth-unet"
@@ -28,7 +30,10 @@ class Settings(BaseSettings):
         default=None, description="sqlite:///path or postgresql://...; default sqlite under data_dir"
     )
     admin_token: str | None = Field(
-        default=None, description="bearer token for /v1/admin; unset disables admin"
+        default=None, description="bearer token for /v1/admin (operator 'admin'); unset disables it"
+    )
+    admin_tokens_file: Path | None = Field(
+        default=None, description="file of 'name:token' lines: named admin operators for the audit trail"
     )
     bootstrap_calibration: bool = Field(
         default=True, description="load the model's bundled calibration as version 1 when the store has none"
@@ -72,13 +77,32 @@ class Settings(BaseSettings):
         default=8 * 2**30, gt=0, description="most bytes once unzipped"
     )
     calibration_workers: int = Field(default=1, gt=0, description="calibration jobs running at once")
+    min_calibration_instances: int = Field(
+        default=100, ge=0, description="activation needs this n per keypoint (unless forced with a reason)"
+    )
+    max_rejected_share: float = Field(
+        default=0.0, ge=0, le=1, description="share of a batch's instances that may be rejected (default)"
+    )
 
     store_poll_seconds: float = Field(
         default=1.0, gt=0, description="how often to look for a new active version"
     )
 
+    @field_validator("data_dir", "model_dir", "admin_tokens_file")
+    @classmethod
+    def _absolute(cls, path: Path | None) -> Path | None:
+        """Resolved once, against the directory the service starts in, and said at start-up."""
+        return None if path is None else path.expanduser().resolve()
+
     @cached_property
     def resolved_store_url(self) -> str:
-        if self.store_url:
-            return self.store_url
-        return f"sqlite:///{(self.data_dir / 'calibrations.db').resolve()}"
+        if not self.store_url:
+            return f"sqlite:///{self.data_dir / 'calibrations.db'}"
+        if self.store_url.startswith("sqlite:") and not self.store_url.startswith("sqlite:///"):
+            return f"sqlite:///{sqlite_path(self.store_url).resolve()}"
+        return self.store_url
+
+    @property
+    def jobs_dir(self) -> Path:
+        """Uploads kept for their jobs until they finish, so an interrupted job can be retried."""
+        return self.data_dir / "jobs"

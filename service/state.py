@@ -10,14 +10,19 @@ from pathlib import Path
 
 import cv2
 
-from calibration_store import CalibrationStore, open_store
-from service.api.admission import Admission
+from calibration_store import CalibrationStore, open_store, store_location
+from service.admission import Admission
+from service.audit import AuditTrail
+from service.calibration.archive import ArchiveLimits
 from service.calibration.bundle import bootstrap_default_calibration
 from service.calibration.jobs import JobRunner
 from service.calibration.registry import CalibrationRegistry
-from service.calibration.uploads import process_uploads_dir
+from service.calibration.submission import CalibrationJobs, SubmissionSettings
+from service.calibration.uploads import process_uploads_dir, remove_spent_job_folders
 from service.conformal.kernel import native_kernel_available
 from service.detector.runtime import Detector
+from service.logs import ensure_logging
+from service.operators import load_operators
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -32,6 +37,9 @@ class ServiceState:
     store: CalibrationStore
     registry: CalibrationRegistry
     jobs: JobRunner
+    calibrations: CalibrationJobs
+    audit: AuditTrail
+    operators: dict[str, str]  # admin token -> operator name
     cpu_pool: ThreadPoolExecutor
     admission: Admission
 
@@ -52,6 +60,8 @@ def build_state(settings: Settings) -> ServiceState:
 
     Also turns OpenCV's internal threading off for the process (``cv2.setNumThreads(1)``).
     """
+    ensure_logging()
+    operators = load_operators(settings.admin_token, settings.admin_tokens_file)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     # Process-wide: requests already run in parallel on cpu_pool, and OpenCV's own pool would
     # split each small crop across helper threads that spin while they wait.
@@ -66,19 +76,39 @@ def build_state(settings: Settings) -> ServiceState:
     if settings.bootstrap_calibration:
         bootstrap_default_calibration(store, detector, settings.model_dir)
     registry = CalibrationRegistry(store, detector.model_hash, detector.manifest, settings.store_poll_seconds)
-    log.info("serving model %s (%s), active calibration %s", detector.manifest.name,
-             detector.model_hash[:12], registry.refresh_now())  # fmt: skip
+    kind, location = store_location(settings.resolved_store_url)
+    names = ", ".join(sorted(operators.values())) or "none (admin API disabled)"
+    log.info("serving model %s (sha256 %s) from %s; calibration store: %s at %s; data directory %s;"
+             " active calibration version %s; admin operators: %s", detector.manifest.name,
+             detector.model_hash, settings.model_dir, kind, location, settings.data_dir,
+             registry.refresh_now(), names)  # fmt: skip
     if not native_kernel_available():
         log.warning("the native kernel (service/conformal/kernel.py) is not built: 'peak' runs on the "
                     "slower numpy path; install a C compiler and reinstall the package")  # fmt: skip
+    remove_spent_job_folders(settings.jobs_dir, store)
+    jobs = JobRunner(store, settings.calibration_workers)
+    audit = AuditTrail(store, detector.model_hash)
     return ServiceState(
         settings=settings,
         detector=detector,
         store=store,
         registry=registry,
-        jobs=JobRunner(store, settings.calibration_workers),
+        jobs=jobs,
+        calibrations=CalibrationJobs(store, detector, registry, jobs, audit, _submission_settings(settings)),
+        audit=audit,
+        operators=operators,
         cpu_pool=ThreadPoolExecutor(settings.cpu_workers, thread_name_prefix="cpu"),
         admission=Admission(
             settings.max_concurrent_inferences, settings.max_queued_requests, settings.queue_timeout_seconds
         ),
+    )
+
+
+def _submission_settings(settings: Settings) -> SubmissionSettings:
+    return SubmissionSettings(
+        jobs_dir=settings.jobs_dir,
+        limits=ArchiveLimits.from_settings(settings),
+        max_image_pixels=settings.max_image_pixels,
+        min_instances=settings.min_calibration_instances,
+        max_rejected_share=settings.max_rejected_share,
     )

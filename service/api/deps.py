@@ -8,9 +8,10 @@ from typing import Annotated
 from fastapi import Depends, HTTPException, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from service.audit import Operator
 from service.state import ServiceState
 
-_bearer = HTTPBearer(auto_error=False, description="CKS_ADMIN_TOKEN")
+_bearer = HTTPBearer(auto_error=False, description="CKS_ADMIN_TOKEN, or a token of CKS_ADMIN_TOKENS_FILE")
 
 
 # Dependencies are ``async def`` although they never await: FastAPI runs a plain ``def``
@@ -23,17 +24,30 @@ State = Annotated[ServiceState, Depends(get_state)]
 
 
 async def require_admin(
-    state: State, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
-) -> str:
-    """Let the request through only with the configured bearer token; returns who it was."""
-    token = state.settings.admin_token
-    if not token:
-        raise HTTPException(403, "The admin API is disabled: set CKS_ADMIN_TOKEN to enable it.")
-    if credentials is None or not hmac.compare_digest(credentials.credentials.encode(), token.encode()):
+    request: Request,
+    state: State,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> Operator:
+    """Let the request through only with a configured admin token; returns the operator it names."""
+    if not state.operators:
         raise HTTPException(
-            401, "Send 'Authorization: Bearer <CKS_ADMIN_TOKEN>'.", headers={"WWW-Authenticate": "Bearer"}
+            403, "The admin API is disabled: set CKS_ADMIN_TOKEN or CKS_ADMIN_TOKENS_FILE to enable it."
         )
-    return "admin"
+    name = None if credentials is None else _operator_name(state.operators, credentials.credentials)
+    if name is None:
+        raise HTTPException(
+            401, "Send 'Authorization: Bearer <admin token>'.", headers={"WWW-Authenticate": "Bearer"}
+        )
+    return Operator(name=name, client=request.client.host if request.client else "")
 
 
-Admin = Annotated[str, Depends(require_admin)]
+def _operator_name(operators: dict[str, str], presented: str) -> str | None:
+    """Compare with every token in constant time each, so timing tells nothing about which matched."""
+    found = None
+    for token, name in operators.items():
+        if hmac.compare_digest(presented.encode(), token.encode()):
+            found = name
+    return found
+
+
+Admin = Annotated[Operator, Depends(require_admin)]

@@ -4,15 +4,19 @@ from __future__ import annotations
 
 import math
 
-from calibration_store import Activation, JobRecord, VersionInfo
+from calibration_store import Activation, AuditEntry, JobRecord, VersionInfo
 from service.api.admin_schemas import (
     ActivationOut,
+    AuditEntryOut,
+    AuditPage,
+    ComparisonOut,
     JobOut,
     SourceBatchOut,
     ThresholdRow,
     VersionDetail,
     VersionSummary,
 )
+from service.calibration.guardrails import Comparison
 from service.calibration.registry import CalibrationRegistry
 from service.conformal import NONCONFORMITY_SCORES
 from service.detector.manifest import Manifest
@@ -76,3 +80,14 @@ def activation_out(entry: Activation) -> ActivationOut:
 
 def job_out(job: JobRecord) -> JobOut:
     return JobOut.model_validate(job, from_attributes=True)
+
+
+def comparison_out(comparison: Comparison) -> ComparisonOut:
+    return ComparisonOut.model_validate(comparison.as_dict())
+
+
+def audit_page(entries: list[AuditEntry], limit: int) -> AuditPage:
+    return AuditPage(
+        entries=[AuditEntryOut.model_validate(e, from_attributes=True) for e in entries],
+        next_before=entries[-1].seq if len(entries) == limit else None,
+    )

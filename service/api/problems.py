@@ -22,11 +22,13 @@ def problem(
     request: Request,
     errors: list | None = None,
     headers: dict[str, str] | None = None,
+    extensions: dict | None = None,
 ) -> JSONResponse:
     body = {"type": "about:blank", "title": title, "status": status, "detail": detail}
     body["instance"] = request.url.path
     if errors:
         body["errors"] = errors
+    body.update(extensions or {})
     return JSONResponse(body, status_code=status, media_type=PROBLEM_JSON, headers=headers)
 
 
@@ -41,7 +43,7 @@ def _validation_errors(exc: RequestValidationError) -> list[str]:
 def install_problem_handlers(app: FastAPI) -> None:
     @app.exception_handler(ServiceError)
     async def _service_error(request: Request, exc: ServiceError) -> JSONResponse:
-        return problem(exc.status, exc.title, exc.detail, request, exc.errors, exc.headers)
+        return problem(exc.status, exc.title, exc.detail, request, exc.errors, exc.headers, exc.extensions)
 
     @app.exception_handler(RequestValidationError)
     async def _invalid_request(request: Request, exc: RequestValidationError) -> JSONResponse:

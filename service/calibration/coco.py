@@ -10,6 +10,10 @@ Category names must equal manifest object names and an annotation's ``keypoints`
 ``3 * K`` numbers ``x, y, v`` in the object's manifest keypoint order. ``v = 0`` means
 not labeled (the row becomes NaN); ``v = 1`` (labeled, occluded) and ``v = 2`` count
 as labeled. Labeled points may lie outside the image (occluded or out-of-crop).
+
+A well-formed annotation whose box breaks the rule every predict box obeys
+(``service.detector.boxes``) is not a problem of the file: it is *rejected*, listed in
+``CocoBatch.rejected`` with the reason, and left out, as prediction would refuse it.
 """
 
 from __future__ import annotations
@@ -24,13 +28,13 @@ from typing import Any
 
 import numpy as np
 
+from service.detector.boxes import box_problem
 from service.detector.manifest import Manifest, ObjectSpec
 from service.errors import InvalidInput, UnsupportedMediaType
 from service.image_decoding import ImageHeader, read_image_header
 
 ANNOTATIONS_FILENAME = "annotations.json"
 MAX_REPORTED_PROBLEMS = 50
-BBOX_TOLERANCE_PX = 1.0
 HEADER_PREFIX_BYTES = 64 * 1024
 VISIBILITY_VALUES = (0, 1, 2)
 
@@ -70,18 +74,37 @@ class LabeledInstance:
 
 
 @dataclass(frozen=True)
+class Rejection:
+    """An instance left out of a calibration, and why (for the job's report)."""
+
+    image_id: int
+    annotation_id: int
+    reason: str
+
+    def describe(self) -> str:
+        return f"image {self.image_id}, annotation {self.annotation_id}: {self.reason}"
+
+
+@dataclass(frozen=True)
 class CocoBatch:
-    """A validated batch: images by id, instances in file order, sha256 of annotations.json."""
+    """A validated batch: images by id, instances in file order, sha256 of annotations.json,
+    and the well-formed annotations rejected by the box rule."""
 
     folder: Path
     sha256: str
     images: Mapping[int, ImageRecord]
     instances: tuple[LabeledInstance, ...]
+    rejected: tuple[Rejection, ...] = ()
 
     @property
     def count(self) -> int:
         """Number of labeled instances."""
         return len(self.instances)
+
+    @property
+    def annotations(self) -> int:
+        """Number of annotations read: the instances plus the rejected ones."""
+        return len(self.instances) + len(self.rejected)
 
     def instances_by_image(self) -> dict[int, list[LabeledInstance]]:
         """Instances grouped by image id, in file order (images without instances are absent)."""
@@ -89,6 +112,15 @@ class CocoBatch:
         for instance in self.instances:
             groups.setdefault(instance.image_id, []).append(instance)
         return groups
+
+
+@dataclass(frozen=True)
+class NamedBatch:
+    """A validated COCO batch with the name and sha256 it is recorded under."""
+
+    name: str
+    sha256: str
+    batch: CocoBatch
 
 
 def load_coco_batch(folder: Path, manifest: Manifest) -> CocoBatch:
@@ -110,7 +142,8 @@ def load_coco_batch(folder: Path, manifest: Manifest) -> CocoBatch:
     if not sections["annotations"]:
         problems.add("annotations", "is empty; a calibration batch needs at least one labeled instance")
     problems.raise_if_any()
-    return CocoBatch(folder, hashlib.sha256(raw).hexdigest(), images, tuple(instances))
+    digest = hashlib.sha256(raw).hexdigest()
+    return CocoBatch(folder, digest, images, tuple(instances), tuple(reader.rejected))
 
 
 # ---------------------------------------------------------------- problems
@@ -352,6 +385,7 @@ class _AnnotationReader:
     categories: dict[int, str]
     problems: _Problems
     seen_ids: set[int] = field(default_factory=set)
+    rejected: list[Rejection] = field(default_factory=list)
 
     def read(self, entries: list[Any]) -> list[LabeledInstance]:
         instances = []
@@ -368,9 +402,13 @@ class _AnnotationReader:
         ann_id = self._annotation_id(where, entry.get("id"))
         image = self._image(where, entry.get("image_id"))
         obj = self._object(where, entry.get("category_id"))
-        bbox = self._bbox(where, entry.get("bbox"), image)
+        bbox = self._bbox(where, entry.get("bbox"))
         keypoints = self._keypoints(where, entry.get("keypoints"), obj)
         if ann_id is None or image is None or obj is None or bbox is None or keypoints is None:
+            return None
+        problem = box_problem(bbox, image.width, image.height)
+        if problem:
+            self.rejected.append(Rejection(image.id, ann_id, f"{where}.bbox: {problem}"))
             return None
         return LabeledInstance(image.id, ann_id, obj.name, bbox, keypoints)
 
@@ -440,15 +478,10 @@ class _AnnotationReader:
             return None
         return number
 
-    def _bbox(self, where: str, value: Any, image: ImageRecord | None) -> np.ndarray | None:
+    def _bbox(self, where: str, value: Any) -> np.ndarray | None:
         bbox = self._numbers(f"{where}.bbox", value, 4)
-        if bbox is None:
-            return None
-        problem = _bbox_problem(bbox, image)
-        if problem:
-            self.problems.add(f"{where}.bbox", problem)
-            return None
-        bbox.flags.writeable = False
+        if bbox is not None:
+            bbox.flags.writeable = False
         return bbox
 
     def _keypoints(self, where: str, value: Any, obj: ObjectSpec | None) -> np.ndarray | None:
@@ -488,18 +521,3 @@ def _nonfinite_text(text: str) -> bool:
         return not math.isfinite(float(text))
     except ValueError:
         return False
-
-
-def _bbox_problem(bbox: np.ndarray, image: ImageRecord | None) -> str | None:
-    x, y, w, h = bbox.tolist()
-    if w <= 0 or h <= 0:
-        return f"width and height must be > 0, got w={w:g}, h={h:g}"
-    if image is None:
-        return None
-    tol = BBOX_TOLERANCE_PX
-    if x < -tol or y < -tol or x + w > image.width + tol or y + h > image.height + tol:
-        return (
-            f"box [{x:g}, {y:g}, {w:g}, {h:g}] (x, y, w, h) extends outside image {image.id} "
-            f"({image.width}x{image.height}); boxes must lie inside the image"
-        )
-    return None

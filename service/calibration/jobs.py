@@ -9,11 +9,12 @@ store is what clients see:
   scoring never waits on the store and a failed write only logs a warning;
 - every write refreshes the row's heartbeat, and an unfinished job is rewritten at least
   every HEARTBEAT_S even without progress;
-- an unfinished job whose heartbeat is older than STALE_AFTER is reported failed: the
-  process running it stopped. A calibration version is written in the job's last step, in
-  one transaction (create_calibration): either it is listed, or nothing was stored (the
-  process may die between that commit and the job's final write, so the report cannot
-  tell which; it points the client at the version list).
+- an unfinished job whose heartbeat is older than STALE_AFTER is reported interrupted:
+  the process running it stopped. A calibration version is written in the job's last step,
+  in the same transaction that marks the job succeeded (create_calibration), so an
+  interrupted job stored nothing; its upload is kept and it can be retried;
+- a finished job never changes (the store refuses it): a retry marks the interrupted job
+  finished first, so the process presumed dead can no longer complete it.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from dataclasses import replace
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
-from calibration_store import CalibrationStore, JobNotFound, JobRecord, StoreError
+from calibration_store import CalibrationStore, JobFinished, JobNotFound, JobRecord, StoreError
 from service.errors import ServiceError, Unavailable
 from service.metrics import CALIBRATION_JOBS
 from service.processes import process_owner
@@ -48,18 +49,25 @@ _TICK_S = 0.25
 
 
 def reported(job: JobRecord, now: datetime, stale_after: timedelta = STALE_AFTER) -> JobRecord:
-    """The job as clients see it: unfinished and silent for over stale_after means failed."""
+    """The job as clients see it: unfinished and silent for over stale_after means interrupted."""
     silent = now - job.heartbeat_at
     if job.finished or silent <= stale_after:
         return job
     error = (
         f"the process running this job ({job.owner}) stopped: no heartbeat for"
         f" {int(silent.total_seconds())} s (limit {int(stale_after.total_seconds())} s)."
-        " A calibration version is written in one transaction in a job's very last step, so"
-        " either GET /v1/admin/calibrations lists a new version with this batch or nothing"
-        " was stored; if it is not listed, upload the batch again"
+        f" {interrupted_note(job.id)}"
     )
-    return replace(job, state="failed", errors=(*job.errors, error), finished_at=job.heartbeat_at)
+    return replace(job, state="interrupted", errors=(*job.errors, error), finished_at=job.heartbeat_at)
+
+
+def interrupted_note(job_id: str) -> str:
+    """What an interrupted job's report says (a version and its job's success are one transaction)."""
+    return (
+        "Nothing was stored: a version is written in the same transaction that marks its job"
+        f" succeeded. Retry it with POST /v1/admin/jobs/{job_id}/retry on a server sharing the data"
+        " directory that received the upload (it is kept there), or upload the batch again"
+    )
 
 
 class _Tracked:
@@ -105,12 +113,15 @@ class JobRunner:
         self._writer = threading.Thread(target=self._write_loop, name="job-writer", daemon=True)
         self._writer.start()
 
-    def submit(self, kind: str, function: JobFunction, total: int = 0) -> JobRecord:
+    def submit(
+        self, kind: str, function: JobFunction, total: int = 0, job_id: str | None = None
+    ) -> JobRecord:
         """Store a queued job, then queue it; raises Unavailable if the store cannot take it."""
         now = datetime.now(UTC)
         job = JobRecord(
-            id=uuid.uuid4().hex, kind=kind, owner=self._owner, created_at=now, heartbeat_at=now, total=total
-        )
+            id=job_id or new_job_id(), kind=kind, owner=self._owner, created_at=now, heartbeat_at=now,
+            total=total,
+        )  # fmt: skip
         try:
             self._store.create_job(job)
         except StoreError as error:
@@ -120,8 +131,9 @@ class JobRunner:
         try:
             self._pool.submit(self._run, job.id, function)
         except RuntimeError as error:  # the pool is shut down: the service is stopping
-            self._finish(job.id, "failed", errors=("the service is stopping; nothing was stored",))
-            raise Unavailable("the service is stopping: upload the batch again") from error
+            note = "the service was stopping. " + interrupted_note(job.id)
+            self._finish(job.id, "interrupted", errors=(note,))
+            raise Unavailable("the service is stopping: retry the job, or upload the batch again") from error
         return job
 
     def get(self, job_id: str) -> JobRecord | None:
@@ -133,14 +145,12 @@ class JobRunner:
         return None if job is None else reported(job, datetime.now(UTC))
 
     def shutdown(self) -> None:
-        """Finish running jobs, fail the queued ones, and write what is left to the store."""
+        """Finish running jobs, mark queued ones interrupted, and write what is left to the store."""
         self._pool.shutdown(wait=True, cancel_futures=True)
         for entry in self._entries():
             if entry.job.state == "queued":  # cancelled before it started
-                self._finish(
-                    entry.job.id, "failed", errors=("the service stopped before the job started;"
-                                                    " nothing was stored: upload the batch again",),
-                )  # fmt: skip
+                error = "the service stopped before the job started. " + interrupted_note(entry.job.id)
+                self._finish(entry.job.id, "interrupted", errors=(error,))
         self._stop.set()
         self._writer.join()
         for entry in self._entries():
@@ -155,6 +165,9 @@ class JobRunner:
             self._write(entry)
         try:
             result = function(JobProgress(self, job_id))
+        except JobFinished as error:  # a retry took the job over while this process was presumed dead
+            log.warning("job %s was finished elsewhere (%s); its work here was not stored", job_id, error)
+            self._forget(job_id)
         except ServiceError as error:
             self._finish(job_id, "failed", errors=(error.detail, *error.errors))
         except Exception as error:  # a job must never take the worker down with it
@@ -202,6 +215,9 @@ class JobRunner:
             entry.attempted_at = time.monotonic()
             try:
                 self._store.update_job(job.id, **job.progress_fields())  # the store sets the heartbeat
+            except JobFinished:  # completed with its version, or taken over by a retry
+                self._forget(job.id)
+                return True
             except JobNotFound:
                 log.error("job %s: its row is gone from the store; no longer tracked", job.id)
                 self._forget(job.id)
@@ -226,6 +242,10 @@ class JobRunner:
                     continue
                 if entry.dirty or now - entry.stored_at >= HEARTBEAT_S:
                     self._write(entry)
+
+
+def new_job_id() -> str:
+    return uuid.uuid4().hex
 
 
 def _final(job: JobRecord, state: str, changes: dict[str, Any]) -> JobRecord:

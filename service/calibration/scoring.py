@@ -8,7 +8,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calibration_store import ObjectScores, ScoreTable
-from service.calibration.coco import CocoBatch, LabeledInstance
+from service.calibration.coco import CocoBatch, LabeledInstance, Rejection
+from service.calibration.fingerprints import UNKNOWN_DIGEST, Fingerprint
 from service.conformal import NONCONFORMITY_SCORES, nonconformity_scores
 from service.detector.crop import apply_affines
 from service.detector.runtime import Detector
@@ -23,10 +24,15 @@ class _ObjectRows:
     keypoint_ids: tuple[int, ...]
     refs: list[str] = field(default_factory=list)
     rows: dict[str, list[np.ndarray]] = field(default_factory=lambda: {k: [] for k in NONCONFORMITY_KINDS})
+    prints: list[Fingerprint] = field(default_factory=list)
+
+
+_UNKNOWN = Fingerprint(UNKNOWN_DIGEST, UNKNOWN_DIGEST)
 
 
 class ScoreAccumulator:
-    """Collects per-instance score rows by object, then freezes them into a ScoreTable."""
+    """Collects per-instance score rows and fingerprints by object, then freezes them into a
+    ScoreTable (instances stored before fingerprints were kept get UNKNOWN_DIGEST)."""
 
     def __init__(self) -> None:
         self._objects: dict[str, _ObjectRows] = {}
@@ -38,12 +44,22 @@ class ScoreAccumulator:
             rows.refs.extend(block.instance_refs)
             for kind in NONCONFORMITY_KINDS:
                 rows.rows[kind].extend(block.scores[kind])
+            if block.has_hashes:
+                rows.prints.extend(map(Fingerprint, block.image_hashes, block.instance_hashes))
+            else:
+                rows.prints.extend([_UNKNOWN] * block.n_instances)
 
     def add(
-        self, object_name: str, keypoint_ids: tuple[int, ...], ref: str, scores: dict[str, np.ndarray]
+        self,
+        object_name: str,
+        keypoint_ids: tuple[int, ...],
+        ref: str,
+        scores: dict[str, np.ndarray],
+        fingerprint: Fingerprint = _UNKNOWN,
     ) -> None:
         rows = self._rows(object_name, keypoint_ids)
         rows.refs.append(ref)
+        rows.prints.append(fingerprint)
         for kind in NONCONFORMITY_KINDS:
             rows.rows[kind].append(scores[kind])
 
@@ -54,6 +70,8 @@ class ScoreAccumulator:
                 keypoint_ids=np.asarray(rows.keypoint_ids),
                 instance_refs=tuple(rows.refs),
                 scores={kind: np.vstack(rows.rows[kind]) for kind in NONCONFORMITY_KINDS},
+                image_hashes=tuple(p.image for p in rows.prints),
+                instance_hashes=tuple(p.instance for p in rows.prints),
             )
             for name, rows in sorted(self._objects.items())
         ]
@@ -106,17 +124,30 @@ def score_batch(
     accumulator: ScoreAccumulator,
     max_image_pixels: int,
     progress: Callable[[int], None] = lambda count: None,
-) -> None:
-    """Score every instance of a validated COCO batch into ``accumulator``, image by image."""
+    fingerprints: tuple[Fingerprint, ...] = (),
+) -> list[Rejection]:
+    """Score every instance of a validated COCO batch into ``accumulator``, image by image.
+
+    An image that does not decode strictly (the predict rule) is left out with its
+    instances, which are returned as rejections naming the file and the reason.
+    ``fingerprints`` align with ``batch.instances`` (empty: unknown).
+    """
     manifest = detector.manifest
+    prints = dict(zip(((i.image_id, i.annotation_id) for i in batch.instances), fingerprints, strict=False))
+    rejected = []
     for image_id, instances in batch.instances_by_image().items():
         record = batch.images[image_id]
         try:
             image = decode_image(record.path.read_bytes(), max_image_pixels)
-        except ServiceError as error:  # name the file: the job's errors are all the operator sees
-            raise type(error)(f"image {image_id} ({record.file_name!r}): {error.detail}") from error
+        except ServiceError as error:
+            reason = f"image file {record.file_name!r} was left out: {error.detail}"
+            rejected.extend(Rejection(image_id, i.annotation_id, reason) for i in instances)
+            progress(len(instances))
+            continue
         for instance, scores in zip(instances, score_image(detector, image, instances), strict=True):
             keypoint_ids = manifest.object(instance.object_name).keypoints
             ref = f"{batch_name}:{image_id}:{instance.annotation_id}"
-            accumulator.add(instance.object_name, keypoint_ids, ref, scores)
+            fingerprint = prints.get((image_id, instance.annotation_id), _UNKNOWN)
+            accumulator.add(instance.object_name, keypoint_ids, ref, scores, fingerprint)
         progress(len(instances))
+    return rejected

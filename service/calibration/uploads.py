@@ -1,22 +1,33 @@
 """From an uploaded zip to a validated batch, synchronously, so that bad batches get a 4xx.
 
 Only scoring runs in the background; everything that can be refused (the archive, the
-COCO file, the image headers, the version to append to) is refused before the 202.
+COCO file, the image headers, repeats, the box rule, the version to append to) is
+refused before the 202.
+
+An upload is received into this process's workspace folder (removed if the process
+dies mid-upload), then moved to ``<data>/jobs/<job id>`` where it stays until its job
+succeeds or fails: a job interrupted by a crash or a restart keeps it and can be retried.
 """
 
 from __future__ import annotations
 
+import json
+import logging
 import shutil
+import time
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
+from calibration_store import CalibrationStore, StoreError
 from service.calibration.archive import ArchiveLimits, extract_zip
-from service.calibration.calibrate import NamedBatch
-from service.calibration.coco import load_coco_batch
+from service.calibration.coco import NamedBatch, load_coco_batch
 from service.detector.manifest import Manifest
 from service.errors import InvalidInput
 from service.processes import process_folder
+
+log = logging.getLogger(__name__)
 
 
 def process_uploads_dir(uploads_dir: Path, pid: int | None = None) -> Path:
@@ -47,6 +58,65 @@ class UploadWorkspace:
         shutil.rmtree(self.root, ignore_errors=True)
 
 
+@dataclass(frozen=True)
+class JobFolder:
+    """The upload of one calibration job and the request that came with it, kept until the
+    job succeeds or fails, so an interrupted job can be retried."""
+
+    root: Path
+
+    REQUEST = "request.json"
+    UNCLAIMED_AFTER_S = 3600.0  # a folder without a job row this old was left by a crash
+
+    @classmethod
+    def of(cls, jobs_dir: Path, job_id: str) -> JobFolder:
+        return cls(jobs_dir / job_id)
+
+    @property
+    def job_id(self) -> str:
+        return self.root.name
+
+    @property
+    def archive(self) -> Path:
+        return self.root / "batch.zip"
+
+    def adopt(self, workspace: UploadWorkspace) -> None:
+        """Move a received upload here (same file system: one rename)."""
+        self.root.parent.mkdir(parents=True, exist_ok=True)
+        workspace.root.rename(self.root)
+
+    def exists(self) -> bool:
+        return (self.root / self.REQUEST).is_file()
+
+    def save(self, request: dict[str, Any]) -> None:
+        (self.root / self.REQUEST).write_text(json.dumps(request, sort_keys=True), encoding="utf-8")
+
+    def load(self) -> dict[str, Any]:
+        return json.loads((self.root / self.REQUEST).read_text(encoding="utf-8"))
+
+    def move_to(self, other: JobFolder) -> None:
+        self.root.rename(other.root)
+
+    def remove(self) -> None:
+        shutil.rmtree(self.root, ignore_errors=True)
+
+
+def remove_spent_job_folders(jobs_dir: Path, store: CalibrationStore) -> None:
+    """Remove kept uploads nobody can retry: of jobs that succeeded or failed, pruned jobs,
+    and folders a crash left before their job was recorded."""
+    if not jobs_dir.is_dir():
+        return
+    for root in jobs_dir.iterdir():
+        try:
+            job = store.get_job(root.name)
+        except StoreError as error:
+            log.warning("could not check kept uploads in %s: %s", jobs_dir, error)
+            return
+        unclaimed = job is None and time.time() - root.stat().st_mtime > JobFolder.UNCLAIMED_AFTER_S
+        if unclaimed or (job is not None and job.state in ("succeeded", "failed")):
+            shutil.rmtree(root, ignore_errors=True)
+
+
 def batch_name(requested: str | None, sha256: str) -> str:
     if requested is None:
         return f"upload-{sha256[:12]}"
@@ -57,9 +127,14 @@ def batch_name(requested: str | None, sha256: str) -> str:
 
 
 def validate_upload(
-    workspace: UploadWorkspace, name: str, sha256: str, manifest: Manifest, limits: ArchiveLimits
+    folder: JobFolder, name: str, sha256: str, manifest: Manifest, limits: ArchiveLimits
 ) -> NamedBatch:
     """Unzip within limits and validate the COCO batch against the manifest."""
-    folder = extract_zip(workspace.archive, workspace.root / "batch", limits)
-    workspace.archive.unlink()
-    return NamedBatch(name=name, sha256=sha256, batch=load_coco_batch(folder, manifest))
+    batch = extract_zip(folder.archive, folder.root / "batch", limits)
+    folder.archive.unlink()
+    return NamedBatch(name=name, sha256=sha256, batch=load_coco_batch(batch, manifest))
+
+
+def reload_batch(folder: JobFolder, batch_dir: str, name: str, sha256: str, manifest: Manifest) -> NamedBatch:
+    """The kept batch of a job folder (``batch_dir`` relative to it), validated again for a retry."""
+    return NamedBatch(name=name, sha256=sha256, batch=load_coco_batch(folder.root / batch_dir, manifest))

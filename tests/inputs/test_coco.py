@@ -281,19 +281,37 @@ class TestAnnotations:
     @pytest.mark.parametrize(
         ("bbox", "message"),
         [
-            ([1, 2, 0, 5], "width and height must be > 0, got w=0, h=5"),
-            ([1, 2, 5, -1], "width and height must be > 0, got w=5, h=-1"),
-            ([-2, 0, 10, 10], "box [-2, 0, 10, 10] (x, y, w, h) extends outside image 1 (64x48)"),
-            ([0, -1.5, 10, 10], "extends outside image 1 (64x48)"),
-            ([60, 0, 5.5, 10], "extends outside image 1 (64x48)"),
-            ([0, 40, 10, 9.5], "extends outside image 1 (64x48)"),
             ([1, 2, 3], "has 3 numbers, expected 4"),
             ("1,2,3,4", "must be a list of 4 numbers, got a string"),
         ],
     )
-    def test_bbox(self, tmp_path: Path, bbox: Any, message: str) -> None:
+    def test_malformed_bbox(self, tmp_path: Path, bbox: Any, message: str) -> None:
         error = refusal(tmp_path, lambda d: d["annotations"][1].update(bbox=bbox))
         assert only_error(error).startswith("annotations[1].bbox: ") and message in error.errors[0]
+
+    @pytest.mark.parametrize(
+        ("bbox", "message"),
+        [
+            ([1, 2, 0, 5], "at least 1 pixel, got w=0, h=5"),
+            ([1, 2, 5, -1], "at least 1 pixel, got w=5, h=-1"),
+            ([1, 2, 1e-6, 1e-6], "at least 1 pixel, got w=1e-06, h=1e-06"),
+            ([-2, 0, 10, 10], "box [-2, 0, 10, 10] (x, y, w, h) extends outside the 64x48 image"),
+            ([0, -1.5, 10, 10], "extends outside the 64x48 image"),
+            ([60, 0, 5.5, 10], "extends outside the 64x48 image"),
+            ([0, 40, 10, 9.5], "extends outside the 64x48 image"),
+        ],
+    )
+    def test_bbox_breaking_the_predict_rule_is_rejected(
+        self, tmp_path: Path, bbox: Any, message: str
+    ) -> None:
+        doc = copy.deepcopy(valid_document())
+        doc["annotations"][1]["bbox"] = bbox
+        batch = load_coco_batch(write_batch(tmp_path / "batch", doc), MANIFEST)
+        assert [i.annotation_id for i in batch.instances] == [10, 12]
+        (rejection,) = batch.rejected
+        assert (rejection.image_id, rejection.annotation_id) == (1, 11)
+        assert rejection.reason.startswith("annotations[1].bbox: ") and message in rejection.reason
+        assert batch.annotations == 3
 
     def test_unknown_image(self, tmp_path: Path) -> None:
         error = refusal(tmp_path, lambda d: d["annotations"][1].update(image_id=3))
@@ -311,7 +329,7 @@ class TestAnnotations:
     def test_all_problems_are_collected(self, tmp_path: Path) -> None:
         def edit(d: dict[str, Any]) -> None:
             d["annotations"][0]["keypoints"][0] = "inf"
-            d["annotations"][1]["bbox"][2] = 0
+            d["annotations"][1]["bbox"][2] = "wide"
             d["annotations"][2]["category_id"] = 9
 
         error = refusal(tmp_path, edit)

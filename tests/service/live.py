@@ -176,7 +176,7 @@ class LiveServer:
             response = self.client.get(f"/v1/admin/jobs/{job_id}", headers=self.admin)
             assert response.status_code == 200, response.text
             job = response.json()
-            if job["state"] in ("succeeded", "failed"):
+            if job["state"] in ("succeeded", "failed", "interrupted"):
                 return job
             assert time.monotonic() < deadline, f"job {job_id} still {job['state']} after {timeout} s: {job}"
             time.sleep(0.1)

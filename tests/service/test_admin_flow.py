@@ -42,12 +42,20 @@ def detail(server: LiveServer, version: int) -> dict:
     return response.json()
 
 
-def activate(server: LiveServer, version: int, reason: str) -> dict:
+def activate(server: LiveServer, version: int, reason: str, force: bool = False) -> dict:
     response = server.client.post(
-        f"/v1/admin/calibrations/{version}/activate", json={"reason": reason}, headers=server.admin
+        f"/v1/admin/calibrations/{version}/activate",
+        json={"reason": reason, "force": force},
+        headers=server.admin,
     )
     assert response.status_code == 200, response.text
     return response.json()
+
+
+def result(version: int, instances: int, activated: bool, added: int) -> dict:
+    """A calibration job's result when nothing was dropped or rejected."""
+    return {"version": version, "instances": instances, "activated": activated, "added": added,
+            "duplicates_dropped": 0, "rejected": 0, "rejections": []}  # fmt: skip
 
 
 def used_version(server: LiveServer, image: tuple[bytes, list[Sample]], version: int | None = None) -> dict:
@@ -78,7 +86,8 @@ def test_upload_job_activate_predict_and_roll_back(
     assert job["done"] == job["total"] == total
     assert job["errors"] == [] and job["finished_at"] is not None
     version = job["result"]["version"]
-    assert job["result"] == {"version": version, "instances": total, "activated": False}
+    assert job["result"] == result(version, total, False, total)
+    assert job["version"] == version
     assert server.versions() == [*before, version]
     assert active(server) == previous  # not activated without activate=true
     assert server.upload_workspaces() == [], "the upload workspace was not removed"
@@ -99,7 +108,13 @@ def test_upload_job_activate_predict_and_roll_back(
             assert keypoint["guarantee"]["n"] == summary["labeled_per_keypoint"][keypoint["name"]]
     assert used_version(server, first_image)["calibration"]["version"] == previous
 
-    entry = activate(server, version, "new batch")
+    refused = server.client.post(
+        f"/v1/admin/calibrations/{version}/activate", json={"reason": "new batch"}, headers=server.admin
+    )
+    problem = assert_problem(refused, 409, "activation refused", "force")
+    assert problem["comparison"]["against"] == previous and not problem["comparison"]["allowed"]
+    assert active(server) == previous
+    entry = activate(server, version, "new batch", force=True)
     assert (entry["version"], entry["who"], entry["reason"]) == (version, "admin", "new batch")
     assert active(server) == version
     assert used_version(server, first_image)["calibration"]["version"] == version
@@ -140,8 +155,7 @@ def test_append_to_a_version_and_activate_on_success(
 
     job = server.calibrate(body, append_to=parent, activate=True, note="appended")
     version = job["result"]["version"]
-    assert job["result"] == {"version": version, "instances": parent_detail["instances"] + batch_count,
-                             "activated": True}  # fmt: skip
+    assert job["result"] == result(version, parent_detail["instances"] + batch_count, True, batch_count)
     assert job["total"] == job["done"] == batch_count  # only the batch is scored
     assert active(server) == version
     assert used_version(server, first_image)["calibration"]["version"] == version
@@ -222,10 +236,14 @@ def test_out_of_range_version_numbers_are_422(server: LiveServer, version: str) 
 ADMIN_ROUTES = [
     ("GET", "/v1/admin/calibrations"),
     ("GET", "/v1/admin/calibrations/1"),
+    ("GET", "/v1/admin/calibrations/1/compare"),
     ("POST", "/v1/admin/calibrations/1/activate"),
     ("GET", "/v1/admin/activations"),
     ("GET", "/v1/admin/jobs/abc"),
+    ("POST", "/v1/admin/jobs/abc/retry"),
     ("POST", "/v1/admin/calibrations"),
+    ("GET", "/v1/admin/audit"),
+    ("GET", "/v1/admin/store"),
 ]
 
 
@@ -254,5 +272,5 @@ def test_admin_is_disabled_without_a_configured_token(
 ) -> None:
     for headers in ({}, {"Authorization": f"Bearer {ADMIN_TOKEN}"}):
         response = no_admin_server.client.request(method, path, headers=headers, content=b"PK")
-        assert_problem(response, 403, "CKS_ADMIN_TOKEN")
+        assert_problem(response, 403, "CKS_ADMIN_TOKEN", "CKS_ADMIN_TOKENS_FILE")
     assert used_version(no_admin_server, first_image)["calibration"]["version"] == 1  # predict still works

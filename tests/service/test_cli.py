@@ -15,7 +15,7 @@ from service.settings import PACKAGE_ROOT
 from tests.service.live import Sample, cli, count_instances, samples_by_image, service_env
 
 
-def run(args: list[str], data_dir: Path) -> subprocess.CompletedProcess:
+def run(args: list[str], data_dir: Path, expect: int = 0) -> subprocess.CompletedProcess:
     result = subprocess.run(
         [*cli(), *args],
         env=service_env(data_dir),
@@ -24,7 +24,7 @@ def run(args: list[str], data_dir: Path) -> subprocess.CompletedProcess:
         text=True,
         timeout=180,
     )
-    assert result.returncode == 0, (
+    assert result.returncode == expect, (
         f"exit {result.returncode}\nstdout:\n{result.stdout}\nstderr:\n{result.stderr}"
     )
     return result
@@ -57,18 +57,36 @@ def test_calibrate_creates_and_activates_a_version(
 ) -> None:
     data = tmp_path / "data"
     data.mkdir()
-    result = run(["calibrate", str(samples_dir), "--activate", "--note", "from the CLI"], data)
-    summary = json.loads(result.stdout)
-    assert summary == {"version": 1, "instances": count_instances(coco), "activated": True}
-
+    total = count_instances(coco)
     model_hash = file_sha256(model_path / "model.onnx")
-    with open_store(f"sqlite:///{data / 'calibrations.db'}") as store:
-        (info,) = store.list_versions(model_hash)
-        assert (info.number, info.note, info.n_instances) == (1, "from the CLI", count_instances(coco))
-        assert store.active_version(model_hash).version == 1
+    store_url = f"sqlite:///{data / 'calibrations.db'}"
 
-    # appending through the CLI makes version 2 with both batches
-    second = json.loads(
-        run(["calibrate", str(samples_dir), "--append-to", "1", "--name", "again"], data).stdout
-    )
-    assert second == {"version": 2, "instances": 2 * count_instances(coco), "activated": False}
+    # 52 instances: every keypoint's n is below the floor, so the guardrails refuse to activate
+    refused = run(["calibrate", str(samples_dir), "--activate", "--note", "from the CLI"], data)
+    summary = json.loads(refused.stdout)
+    assert (summary["version"], summary["instances"], summary["activated"]) == (1, total, False)
+    assert "guardrail: keypoint" in refused.stderr and "--force --reason" in refused.stderr
+    with open_store(store_url) as store:
+        assert store.active_version(model_hash) is None
+
+    forced = run(["calibrate", str(samples_dir), "--activate", "--force", "--reason", "a test batch"], data)
+    assert json.loads(forced.stdout)["activated"] is True
+    with open_store(store_url) as store:
+        info = store.get_version(model_hash, 2)
+        assert (info.number, info.n_instances, info.author) == (2, total, "cli")
+        activation = store.active_version(model_hash)
+        assert (activation.version, activation.reason) == (2, "a test batch")
+        outcomes = [(e.action, e.outcome) for e in store.audit_log(model_hash)]
+        assert outcomes[:2] == [("activation", "forced"), ("calibration", "stored")]
+
+    # the same batch appended to a version that holds it: refused, nothing stored
+    repeated = run(["calibrate", str(samples_dir), "--append-to", "2"], data, expect=2)
+    assert f"{total} of {total} instances are already counted" in repeated.stderr
+    assert "Traceback" not in repeated.stderr
+    with open_store(store_url) as store:
+        assert [v.number for v in store.list_versions(model_hash)] == [1, 2]
+
+
+def test_calibrate_force_needs_a_reason(tmp_path: Path, samples_dir: Path) -> None:
+    result = run(["calibrate", str(samples_dir), "--activate", "--force"], tmp_path / "data", expect=2)
+    assert "--force needs --activate and a --reason" in result.stderr

@@ -183,7 +183,7 @@ def test_final_state_lands_after_the_retries_run_out(
     wait_until(lambda: state_of(store, job.id) == "succeeded", timeout=5, what="success written later")
 
 
-def test_a_silent_unfinished_job_is_reported_failed(store: CountingStore, runner: JobRunner) -> None:
+def test_a_silent_unfinished_job_is_reported_interrupted(store: CountingStore, runner: JobRunner) -> None:
     now = datetime.now(UTC)
     old = now - timedelta(seconds=75)
     def row(job_id: str, owner: str, heartbeat_at: datetime, state: str, **fields: Any) -> None:
@@ -196,11 +196,11 @@ def test_a_silent_unfinished_job_is_reported_failed(store: CountingStore, runner
     row("done-long-ago", "gone-host:999", old, "succeeded", finished_at=old)
     for job_id in ("dead-running", "dead-queued"):
         job = runner.get(job_id)
-        assert job.state == "failed" and job.finished_at == old and job.done == 2
+        assert job.state == "interrupted" and job.finished_at == old and job.done == 2
         (error,) = job.errors
-        assert "gone-host:999" in error and "stopped" in error and "nothing was stored" in error, error
-        assert "/v1/admin/calibrations" in error, error
-        assert store.get_job(job_id).state != "failed", "reporting must not rewrite the row"
+        assert "gone-host:999" in error and "stopped" in error and "Nothing was stored" in error, error
+        assert f"/v1/admin/jobs/{job_id}/retry" in error, error
+        assert store.get_job(job_id).state != "interrupted", "reporting must not rewrite the row"
     assert runner.get("alive").state == "running"
     assert runner.get("done-long-ago").state == "succeeded"
     assert runner.get("unknown") is None
@@ -210,11 +210,11 @@ def test_staleness_limit() -> None:
     now = datetime.now(UTC)
     job = JobRecord(id="j", kind="k", owner="o", created_at=now, heartbeat_at=now, state="running")
     assert reported(job, now + jobs.STALE_AFTER) == job
-    assert reported(job, now + jobs.STALE_AFTER + timedelta(seconds=1)).state == "failed"
+    assert reported(job, now + jobs.STALE_AFTER + timedelta(seconds=1)).state == "interrupted"
     assert jobs.STALE_AFTER.total_seconds() >= 3 * jobs.HEARTBEAT_S, "a live job must never look stale"
 
 
-def test_shutdown_fails_queued_jobs(store: CountingStore) -> None:
+def test_shutdown_interrupts_queued_jobs(store: CountingStore) -> None:
     runner = JobRunner(store, workers=1, owner=OWNER)
     go = threading.Event()
     first = runner.submit("calibration", lambda progress: {"first": go.wait(10)})
@@ -228,4 +228,5 @@ def test_shutdown_fails_queued_jobs(store: CountingStore) -> None:
     assert not stopper.is_alive()
     assert store.get_job(first.id).state == "succeeded"
     queued = store.get_job(second.id)
-    assert queued.state == "failed" and "stopped before the job started" in queued.errors[0]
+    assert queued.state == "interrupted" and "stopped before the job started" in queued.errors[0]
+    assert f"/v1/admin/jobs/{second.id}/retry" in queued.errors[0]

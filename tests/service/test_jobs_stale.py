@@ -1,4 +1,11 @@
-"""A job whose server process died is reported failed by the others, naming the dead process."""
+"""A job whose server process died is reported interrupted by the others, nothing of it is
+stored, and it can be retried from its kept upload by a server sharing the data directory.
+
+A real SIGKILL of a real server at the worst moments (``CKS_FAULT``, see
+``calibration_store.faults``): with the version written but not committed, and right after
+the commit. Either the version is active and its job succeeded, or nothing was written and
+the job is interrupted and retryable; on SQLite and on PostgreSQL.
+"""
 
 from __future__ import annotations
 
@@ -8,15 +15,20 @@ import socket
 from datetime import UTC, datetime, timedelta
 from pathlib import Path, PurePosixPath
 
+import cv2
+import numpy as np
+import pytest
+
 from calibration_store import JobRecord, open_store
 from service.calibration.jobs import STALE_AFTER
-from tests.service.live import ADMIN_TOKEN, LiveServer, batch_zip, count_instances
+from tests.service.live import ADMIN_TOKEN, LiveServer, batch_zip, count_instances, wait_until
 
 COPIES = 6  # the samples, 6 times over: seconds of scoring, so the kill lands mid-job
 
 
-def repeated(copies: int):
-    """A batch mutation: every image (and its annotations) `copies` times, under new names."""
+def reencoded(copies: int):
+    """A batch mutation: every image (and its annotations) `copies` times, each copy re-encoded
+    at another JPEG quality so that no two files are the same (repeats would be refused)."""
 
     def mutate(doc: dict, files: dict[str, bytes]) -> None:
         images, annotations = list(doc["images"]), list(doc["annotations"])
@@ -26,7 +38,8 @@ def repeated(copies: int):
             for image in images:
                 path = PurePosixPath(image["file_name"])
                 name = str(path.with_name(f"copy{copy}-{path.name}"))
-                files[name] = files[image["file_name"]]
+                pixels = cv2.imdecode(np.frombuffer(files[image["file_name"]], np.uint8), cv2.IMREAD_COLOR)
+                files[name] = cv2.imencode(".jpg", pixels, [cv2.IMWRITE_JPEG_QUALITY, 90 - copy])[1].tobytes()
                 doc["images"].append({**image, "id": next_image, "file_name": name})
                 for annotation in (a for a in annotations if a["image_id"] == image["id"]):
                     doc["annotations"].append({**annotation, "id": next_annotation, "image_id": next_image})
@@ -36,42 +49,110 @@ def repeated(copies: int):
     return mutate
 
 
+@pytest.fixture(params=["sqlite", "postgres"])
+def store_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
+    if request.param == "postgres":
+        return request.getfixturevalue("postgres_url")
+    return f"sqlite://{tmp_path}/shared/calibration.db"
 
 
-def test_a_killed_servers_job_is_reported_failed(tmp_path: Path, samples_dir: Path, coco: dict) -> None:
+def age_heartbeat(store_url: str, job_id: str) -> None:
+    """Make the dead process's silence outlast the limit (the row as it left it, only older)."""
+    with open_store(store_url) as store:
+        store.update_job(job_id, heartbeat_at=datetime.now(UTC) - STALE_AFTER - timedelta(seconds=5))
+
+
+def killed(server: LiveServer) -> None:
+    assert server.process.wait(timeout=60) == -signal.SIGKILL, server.log()
+
+
+def test_a_killed_servers_job_is_interrupted_and_retried(
+    tmp_path: Path, samples_dir: Path, coco: dict
+) -> None:
     store_url = f"sqlite://{tmp_path}/shared/calibration.db"
+    body = batch_zip(samples_dir, coco, mutate=reencoded(COPIES))
     with (
         LiveServer(tmp_path / "a", admin_token=ADMIN_TOKEN, store_url=store_url) as a,
         LiveServer(tmp_path / "b", admin_token=ADMIN_TOKEN, store_url=store_url) as b,
     ):
-        response = a.upload(batch_zip(samples_dir, coco, mutate=repeated(COPIES)), activate=True)
+        response = a.upload(body, activate=True, force=True, reason="six copies")
         assert response.status_code == 202, response.text
         os.kill(a.process.pid, signal.SIGKILL)
-        assert a.process.wait(timeout=10) == -signal.SIGKILL
+        killed(a)
         job_id, owner = response.json()["id"], f"{socket.gethostname()}:{a.process.pid}"
-
         with open_store(store_url) as store:
             row = store.get_job(job_id)
             assert row is not None and row.owner == owner
             assert row.state in ("queued", "running"), f"the kill must land mid-job: {row}"
             assert row.total == COPIES * count_instances(coco)
-            # its heartbeat is recent: B still reports what the row says
-            assert b.job(job_id)["state"] == row.state
-            # the silence outlasts the limit (written as the dead process left it, only older)
-            store.update_job(job_id, heartbeat_at=datetime.now(UTC) - STALE_AFTER - timedelta(seconds=5))
+        assert b.job(job_id)["state"] == row.state  # its heartbeat is recent: B reports the row
+        age_heartbeat(store_url, job_id)
 
         job = b.job(job_id)
-        assert job["state"] == "failed", job
-        assert job["finished_at"] is not None and job["result"] == {}
+        assert job["state"] == "interrupted", job
+        assert job["finished_at"] is not None and job["result"] == {} and job["version"] is None
         (error,) = job["errors"]
-        assert owner in error and "stopped" in error and "nothing was stored" in error, error
-        assert "/v1/admin/calibrations" in error, error
+        assert owner in error and "stopped" in error and "Nothing was stored" in error, error
+        assert f"/v1/admin/jobs/{job_id}/retry" in error, error
         assert b.versions() == [1], "the killed job stored no version"
-        assert b.client.get("/readyz").json()["active_calibration"] == 1
+        # B has its own data directory: the upload is kept in A's
+        refused = b.client.post(f"/v1/admin/jobs/{job_id}/retry", headers=b.admin)
+        assert refused.status_code == 409 and "not kept in this server's data directory" in refused.text
+
+        with LiveServer(tmp_path / "a", admin_token=ADMIN_TOKEN, store_url=store_url) as again:
+            retried = again.client.post(f"/v1/admin/jobs/{job_id}/retry", headers=again.admin)
+            assert retried.status_code == 202, retried.text
+            new = again.wait_job(retried.json()["id"])
+            assert new["state"] == "succeeded" and new["result"]["activated"], new
+            assert again.versions() == [1, 2] and new["version"] == 2
+            old = again.job(job_id)
+            assert old["state"] == "interrupted" and old["result"]["retried_as"] == new["id"]
+            again_refused = again.client.post(f"/v1/admin/jobs/{job_id}/retry", headers=again.admin)
+            assert again_refused.status_code == 409, again_refused.text
+            assert not (tmp_path / "a" / "jobs" / new["id"]).exists(), "a finished job's upload was kept"
 
 
-def test_a_silent_job_row_is_reported_failed(tmp_path: Path) -> None:
-    """Rows written through the store API: stale unfinished ones fail, fresh or finished ones stay."""
+@pytest.mark.parametrize("moment", ["version-written", "version-committed"])
+def test_sigkill_at_the_worst_moment_leaves_all_or_nothing(
+    store_url: str, moment: str, tmp_path: Path, samples_dir: Path, coco: dict
+) -> None:
+    data = tmp_path / "data"
+    body = batch_zip(samples_dir, coco, images=4)
+    server = LiveServer(data, admin_token=ADMIN_TOKEN, store_url=store_url, fault=moment).start()
+    try:
+        response = server.upload(body, activate=True, force=True, reason="crash test")
+        assert response.status_code == 202, response.text
+        job_id = response.json()["id"]
+        killed(server)
+    finally:
+        server.stop()
+    assert (data / "jobs" / job_id).is_dir(), "the upload of an unfinished job must be kept"
+    if moment == "version-written":
+        age_heartbeat(store_url, job_id)
+
+    with LiveServer(data, admin_token=ADMIN_TOKEN, store_url=store_url) as restarted:
+        active = restarted.client.get("/readyz").json()["active_calibration"]
+        job = restarted.job(job_id)
+        if moment == "version-committed":  # all of it: version, activation, the job's success
+            assert (job["state"], job["version"], active) == ("succeeded", 2, 2), job
+            assert restarted.versions() == [1, 2]
+            wait_until(lambda: not (data / "jobs" / job_id).exists(), "the spent upload is removed")
+            return
+        assert (job["state"], job["version"], active) == ("interrupted", None, 1), job  # none of it
+        assert restarted.versions() == [1]
+        retried = restarted.client.post(f"/v1/admin/jobs/{job_id}/retry", headers=restarted.admin)
+        assert retried.status_code == 202, retried.text
+        new = restarted.wait_job(retried.json()["id"])
+        assert (new["state"], new["version"]) == ("succeeded", 2), new
+        assert restarted.client.get("/readyz").json()["active_calibration"] == 2
+        entries = restarted.client.get("/v1/admin/audit", headers=restarted.admin).json()["entries"]
+        assert {(e["action"], e["outcome"]) for e in entries[:3]} == {
+            ("retry", "accepted"), ("activation", "forced"), ("calibration", "stored")
+        }  # the retry's entry and the job's race
+
+
+def test_a_silent_job_row_is_reported_interrupted(tmp_path: Path) -> None:
+    """Rows written through the store API: stale unfinished ones are interrupted, others stay."""
     store_url = f"sqlite://{tmp_path}/shared/calibration.db"
     now = datetime.now(UTC)
     old = now - STALE_AFTER - timedelta(seconds=1)
@@ -89,7 +170,7 @@ def test_a_silent_job_row_is_reported_failed(tmp_path: Path) -> None:
                 )  # fmt: skip
         for job_id in ("stale", "stale-queued"):
             job = server.job(job_id)
-            assert (job["state"], job["done"], job["total"]) == ("failed", 3, 9), job
-            assert "node-7:31337" in job["errors"][0] and "nothing was stored" in job["errors"][0], job
+            assert (job["state"], job["done"], job["total"]) == ("interrupted", 3, 9), job
+            assert "node-7:31337" in job["errors"][0] and "Nothing was stored" in job["errors"][0], job
         assert server.job("fresh")["state"] == "running"
         assert server.job("finished")["state"] == "succeeded"

@@ -88,7 +88,9 @@ def test_versions_scored_under_other_manifest_settings_are_refused(
         assert_problem(response, 409, "cannot append", changed)
         assert server.versions() == [1, 2]
 
-        server.calibrate(batch_zip(samples_dir, coco, images=4), activate=True)  # version 3, new settings
+        # version 3, new settings: a small batch, so the guardrails want a reason
+        body = batch_zip(samples_dir, coco, images=4)
+        server.calibrate(body, activate=True, force=True, reason="re-scored")
         assert server.client.get("/readyz").json()["active_calibration"] == 3
         predict_ok(server.client, image, request)
         assert server.client.get("/v1/admin/calibrations/3", headers=server.admin).json()["usable"] is True

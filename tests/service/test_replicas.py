@@ -36,7 +36,7 @@ def test_replicas_share_the_active_version(
         assert a.versions() == b.versions() == [1]
         assert predict_ok(b.client, image, parameters)["calibration"]["version"] == 1
 
-        job = a.calibrate(batch_zip(samples_dir, coco, images=4), activate=True)
+        job = a.calibrate(batch_zip(samples_dir, coco, images=4), activate=True, force=True, reason="small")
         activated_at = time.monotonic()
         version = job["result"]["version"]
         assert version == 2
@@ -57,6 +57,6 @@ def test_replicas_share_the_active_version(
         assert predict_ok(a.client, image, parameters)["calibration"]["version"] == 1
         log = a.client.get("/v1/admin/activations", headers=a.admin).json()["activations"]
         assert [(e["version"], e["reason"]) for e in log[-2:]] == [
-            (2, "activated on creation"),
+            (2, "small"),
             (1, "rollback from B"),
         ]

@@ -1,30 +1,37 @@
-"""Calibration administration: upload batches, watch jobs, list, inspect, activate, roll back."""
+"""Calibration administration: upload batches, watch and retry jobs, list, inspect, compare,
+activate, roll back, and read the audit trail and where the store is."""
 
 from __future__ import annotations
 
-from typing import Annotated
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 
-from calibration_store import VersionNotFound
+from calibration_store import VersionNotFound, store_location
 from service.api.admin_schemas import (
     ActivationIn,
     ActivationLog,
     ActivationOut,
+    AuditPage,
+    ComparisonOut,
     JobOut,
+    StoreInfo,
     VersionDetail,
     VersionList,
 )
 from service.api.body import receive_upload
 from service.api.deps import Admin, State
-from service.api.presenters import activation_out, describe, job_out, summarize
-from service.api.schemas import MAX_VERSION
-from service.calibration.archive import ArchiveLimits
-from service.calibration.calibrate import CalibrationOptions, check_parent, create_calibration
-from service.calibration.jobs import JobProgress
-from service.calibration.uploads import UploadWorkspace, batch_name, validate_upload
-from service.errors import NotFound, UnsupportedMediaType
+from service.api.presenters import activation_out, audit_page, comparison_out, describe, job_out, summarize
+from service.api.schemas import MAX_VERSION, Nonconformity
+from service.audit import Operator
+from service.calibration.activation import ActivationRequest, activate, comparison_with
+from service.calibration.submission import UploadRequest
+from service.calibration.uploads import UploadWorkspace
+from service.errors import NotFound, ServiceError, UnsupportedMediaType
+from service.state import ServiceState
 
 router = APIRouter(prefix="/v1/admin", tags=["admin"])
 VersionNumber = Annotated[int, Path(ge=1, le=MAX_VERSION, description="calibration version number")]
@@ -37,13 +44,43 @@ _UPLOAD_OPENAPI = {
         "content": {"application/zip": {"schema": {"type": "string", "format": "binary"}}},
     },
     "responses": {
-        "409": {"description": "append_to names a version scored under other manifest settings"},
+        "404": {"description": "append_to names a version that does not exist"},
+        "409": {
+            "description": "The batch repeats images or instances already counted (inside itself or in"
+            " append_to): the problem lists them; or append_to was scored under other manifest settings"
+        },
         "413": {"description": "The zip, its files or its unzipped size exceed the limits"},
         "415": {"description": "Not a zip body"},
-        "422": {"description": "The archive or its COCO batch is invalid; the problem lists what to fix"},
+        "422": {
+            "description": "The archive or its COCO batch is invalid, more instances break the box rule"
+            " than max_rejected_share allows, or force without a reason; the problem lists what to fix"
+        },
         "503": {"description": "The calibration store could not record the job"},
     },
 }
+_ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
+    404: {"description": "No such version"},
+    409: {
+        "description": "Refused by the guardrails (a keypoint's n below CKS_MIN_CALIBRATION_INSTANCES or"
+        " below half the active version's; the body's `comparison` says where), or the version was"
+        " scored under other manifest settings"
+    },
+    422: {"description": "force without a reason"},
+}
+
+
+@asynccontextmanager
+async def _refusals_audited(
+    state: ServiceState, operator: Operator, action: str, context: dict | None = None, **fields: Any
+) -> AsyncIterator[None]:
+    """Append every refusal of an admin action to the audit trail, then let it through."""
+    try:
+        yield
+    except ServiceError as error:
+        details = {**(context or {}), "status": error.status, "detail": error.detail,
+                   "errors": error.errors[:10]}  # fmt: skip
+        await run_in_threadpool(state.audit.record, operator, action, "refused", details=details, **fields)
+        raise
 
 
 @router.post(
@@ -65,51 +102,34 @@ async def upload_calibration(
         int | None, Query(ge=1, le=MAX_VERSION, description="new version = this version + the batch")
     ] = None,
     activate: Annotated[bool, Query(description="activate the new version when the job succeeds")] = False,
+    force: Annotated[
+        bool, Query(description="with activate: activate even if the guardrails refuse (needs reason)")
+    ] = False,
+    reason: Annotated[str, Query(max_length=2000, description="why (recorded; required with force)")] = "",
+    dedupe: Annotated[
+        bool, Query(description="drop instances already counted instead of refusing the batch (409)")
+    ] = False,
+    max_rejected_share: Annotated[
+        float | None,
+        Query(ge=0, le=1, description="share of instances the box rule or strict decoding may reject"
+              " before the batch fails (default CKS_MAX_REJECTED_SHARE)"),
+    ] = None,
     note: Annotated[str, Query(max_length=2000)] = "",
 ) -> JobOut:
-    content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
-    if content_type not in _ZIP_TYPES:
-        raise UnsupportedMediaType(
-            f"send the batch as a zip body (Content-Type: application/zip), not {content_type!r}"
-        )
-    workspace = await run_in_threadpool(UploadWorkspace.create, state.uploads_dir)
-    try:
-        saved = await receive_upload(request, workspace.archive, state.settings.max_upload_bytes)
-        named = await run_in_threadpool(
-            validate_upload,
-            workspace,
-            batch_name(name, saved.sha256),
-            saved.sha256,
-            state.detector.manifest,
-            ArchiveLimits.from_settings(state.settings),
-        )
-        if append_to is not None:
-            await run_in_threadpool(check_parent, state.store, state.detector, append_to)
-    except BaseException:
-        await run_in_threadpool(workspace.remove)
-        raise
-    options = CalibrationOptions(author=who, note=note, append_to=append_to, activate=activate)
-
-    def run(progress: JobProgress) -> dict:
-        try:
-            info = create_calibration(
-                state.store,
-                state.detector,
-                [named],
-                options,
-                state.settings.max_image_pixels,
-                progress.advance,
+    async with _refusals_audited(state, who, "upload"):
+        content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
+        if content_type not in _ZIP_TYPES:
+            raise UnsupportedMediaType(
+                f"send the batch as a zip body (Content-Type: application/zip), not {content_type!r}"
             )
-        finally:
-            workspace.remove()
-        state.registry.refresh_now()
-        return {"version": info.number, "instances": info.n_instances, "activated": activate}
-
-    try:
-        job = await run_in_threadpool(state.jobs.submit, "calibration", run, named.batch.count)
-    except BaseException:
-        await run_in_threadpool(workspace.remove)
-        raise
+        upload = UploadRequest(name, note, append_to, activate, force, reason, dedupe, max_rejected_share)
+        workspace = await run_in_threadpool(UploadWorkspace.create, state.uploads_dir)
+        try:
+            saved = await receive_upload(request, workspace.archive, state.settings.max_upload_bytes)
+        except BaseException:
+            await run_in_threadpool(workspace.remove)
+            raise
+        job = await run_in_threadpool(state.calibrations.accept, workspace, saved.sha256, upload, who)
     response.headers["Location"] = f"/v1/admin/jobs/{job.id}"
     return job_out(job)
 
@@ -130,6 +150,23 @@ async def get_job(job_id: str, state: State, _: Admin) -> JobOut:
             f"no job {job_id!r}: it never existed or was pruned (a job is kept for 7 days after its"
             " last heartbeat, and of the finished jobs only the latest 1000)"
         )
+    return job_out(job)
+
+
+@router.post(
+    "/jobs/{job_id}/retry",
+    status_code=202,
+    response_model=JobOut,
+    summary="Run an interrupted job again from its kept upload (a new job)",
+    responses={
+        404: {"description": "No such job"},
+        409: {"description": "The job is not interrupted, or its upload is kept by another server"},
+    },
+)
+async def retry_job(job_id: str, response: Response, state: State, who: Admin) -> JobOut:
+    async with _refusals_audited(state, who, "retry", {"job": job_id}):
+        job = await run_in_threadpool(state.calibrations.retry, job_id, who)
+    response.headers["Location"] = f"/v1/admin/jobs/{job.id}"
     return job_out(job)
 
 
@@ -158,27 +195,50 @@ async def get_calibration(version: VersionNumber, state: State, _: Admin) -> Ver
     return await run_in_threadpool(build)
 
 
+@router.get(
+    "/calibrations/{version}/compare",
+    response_model=ComparisonOut,
+    summary="Dry run: compare a version with the active one (or another) without activating",
+    responses={404: {"description": "No such version"}},
+)
+async def compare_calibration(
+    version: VersionNumber,
+    state: State,
+    _: Admin,
+    against: Annotated[
+        Literal["active"] | int, Query(description="'active' or a version number (ge 1)")
+    ] = "active",
+    epsilon: Annotated[float, Query(gt=0, lt=1, description="the epsilon the sets are compared at")] = 0.1,
+    nonconformity: Annotated[Nonconformity, Query()] = "cov",
+) -> ComparisonOut:
+    def build() -> ComparisonOut:
+        reference = state.registry.refresh_now() if against == "active" else int(against)
+        if reference is not None and reference < 1:
+            raise NotFound(f"calibration version {reference} does not exist for this model")
+        minimum = state.settings.min_calibration_instances
+        return comparison_out(comparison_with(state.registry, state.detector.manifest, version, reference,
+                                              minimum, epsilon, nonconformity))  # fmt: skip
+
+    return await run_in_threadpool(build)
+
+
 @router.post(
     "/calibrations/{version}/activate",
     response_model=ActivationOut,
-    summary="Make a version active (activating an older one is a rollback)",
-    responses={409: {"description": "The version was scored under other manifest settings"}},
+    summary="Make a version active (activating an older one is a rollback), behind the guardrails",
+    responses=_ACTIVATE_RESPONSES,
 )
 async def activate_calibration(
     version: VersionNumber, state: State, who: Admin, body: ActivationIn | None = None
 ) -> ActivationOut:
-    reason = body.reason if body else ""
-
-    def run() -> ActivationOut:
-        state.registry.check_usable(version)
-        try:
-            entry = state.store.activate(state.detector.model_hash, version, who, reason)
-        except VersionNotFound as error:
-            raise NotFound(f"calibration version {version} does not exist for this model") from error
-        state.registry.refresh_now()
-        return activation_out(entry)
-
-    return await run_in_threadpool(run)
+    body = body or ActivationIn()
+    request = ActivationRequest(version, who, body.reason, body.force)
+    async with _refusals_audited(state, who, "activation", version=version, reason=body.reason):
+        entry, _ = await run_in_threadpool(
+            activate, state.registry, state.detector.manifest, state.audit, request,
+            state.settings.min_calibration_instances,
+        )  # fmt: skip
+    return activation_out(entry)
 
 
 @router.get("/activations", response_model=ActivationLog, summary="The append-only activation history")
@@ -186,3 +246,22 @@ async def activation_log(state: State, _: Admin) -> ActivationLog:
     entries = await run_in_threadpool(state.store.activation_log, state.detector.model_hash)
     active = await run_in_threadpool(state.registry.refresh_now)
     return ActivationLog(active_version=active, activations=[activation_out(e) for e in entries])
+
+
+@router.get("/audit", response_model=AuditPage, summary="The append-only audit trail, newest first")
+async def audit_trail(
+    state: State,
+    _: Admin,
+    before: Annotated[int | None, Query(ge=1, le=2**63 - 1, description="entries before this seq")] = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+) -> AuditPage:
+    entries = await run_in_threadpool(state.store.audit_log, state.detector.model_hash, before, limit)
+    return audit_page(entries, limit)
+
+
+@router.get("/store", response_model=StoreInfo, summary="Which calibration store this server uses")
+async def store_info(state: State, _: Admin) -> StoreInfo:
+    kind, location = store_location(state.settings.resolved_store_url)
+    active = await run_in_threadpool(state.registry.refresh_now)
+    return StoreInfo(kind=kind, location=location, data_dir=str(state.settings.data_dir),
+                     model_hash=state.detector.model_hash, active_version=active)  # fmt: skip

@@ -1,0 +1,111 @@
+"""Content hashes of calibration instances, and the repeats they reveal.
+
+A calibration set must be exchangeable with the images served: an instance counted twice
+weighs twice in every threshold, so n and the guarantee are wrong. Each stored instance
+keeps the sha256 of its image file and of the instance itself (image hash, object, box
+and labels), and a new batch is checked against itself and against the version it extends.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibration_store import ScoreTable, SourceBatch
+from service.calibration.coco import CocoBatch, LabeledInstance
+
+#: stands for the hash of an instance stored before hashes were kept (never a repeat)
+UNKNOWN_DIGEST = "0" * 64
+
+
+@dataclass(frozen=True)
+class Fingerprint:
+    image: str
+    instance: str
+
+
+@dataclass(frozen=True)
+class Repeat:
+    """An instance of a new batch that is already counted, and where."""
+
+    image_id: int
+    annotation_id: int
+    reason: str
+
+    def describe(self) -> str:
+        return f"image {self.image_id}, annotation {self.annotation_id}: {self.reason}"
+
+
+def fingerprints(batch: CocoBatch) -> tuple[Fingerprint, ...]:
+    """One fingerprint per instance of ``batch``, in order (each image file is read once)."""
+    image_digests = {
+        image_id: hashlib.sha256(batch.images[image_id].path.read_bytes()).hexdigest()
+        for image_id in {instance.image_id for instance in batch.instances}
+    }
+    return tuple(
+        Fingerprint(image_digests[i.image_id], _instance_digest(image_digests[i.image_id], i))
+        for i in batch.instances
+    )
+
+
+def _instance_digest(image_digest: str, instance: LabeledInstance) -> str:
+    labels = [[None if np.isnan(v) else float(v) for v in row] for row in instance.keypoints]
+    canonical = json.dumps(
+        [image_digest, instance.object_name, [float(v) for v in instance.bbox], labels],
+        separators=(",", ":"),
+    )
+    return hashlib.sha256(canonical.encode()).hexdigest()
+
+
+def find_repeats(
+    batch: CocoBatch,
+    prints: Sequence[Fingerprint],
+    batch_sha256: str,
+    parent: ScoreTable | None = None,
+    parent_sources: Iterable[SourceBatch] = (),
+    parent_number: int | None = None,
+) -> list[Repeat]:
+    """Instances of ``batch`` already counted: inside the batch or in the version it extends.
+
+    An image file that appears under two image ids, or that the parent version already
+    holds, repeats every instance on it; so does a batch whose sha256 the parent lists.
+    """
+    where = f"version {parent_number}"
+    for source in parent_sources:
+        if source.sha256 == batch_sha256:
+            reason = f"the same batch (sha256 {batch_sha256[:12]}) is already in {where} as {source.name!r}"
+            return [Repeat(i.image_id, i.annotation_id, reason) for i in batch.instances]
+    old_images, old_instances = _stored_digests(parent)
+    image_ids: dict[str, int] = {}
+    seen: set[str] = set()
+    repeats = []
+    for instance, fingerprint in zip(batch.instances, prints, strict=True):
+        first_id = image_ids.setdefault(fingerprint.image, instance.image_id)
+        reason = None
+        if fingerprint.image in old_images:
+            reason = f"its image file is already in {where}"
+        elif fingerprint.instance in old_instances:
+            reason = f"the same instance is already in {where}"
+        elif first_id != instance.image_id:
+            reason = f"its image file repeats image {first_id} of this batch"
+        elif fingerprint.instance in seen:
+            reason = "the same instance (image, object, box, labels) appears earlier in this batch"
+        seen.add(fingerprint.instance)
+        if reason:
+            repeats.append(Repeat(instance.image_id, instance.annotation_id, reason))
+    return repeats
+
+
+def _stored_digests(table: ScoreTable | None) -> tuple[set[str], set[str]]:
+    images: set[str] = set()
+    instances: set[str] = set()
+    for block in () if table is None else table.objects:
+        images.update(block.image_hashes)
+        instances.update(block.instance_hashes)
+    images.discard(UNKNOWN_DIGEST)
+    instances.discard(UNKNOWN_DIGEST)
+    return images, instances

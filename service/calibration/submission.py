@@ -1,0 +1,183 @@
+"""Calibration uploads as background jobs: accepted after every check that can refuse them,
+run with their upload kept until they finish, and retried when a crash interrupted them."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from calibration_store import CalibrationStore, JobFinished, JobRecord
+from service.audit import AuditTrail, Operator
+from service.calibration.archive import ArchiveLimits
+from service.calibration.calibrate import CalibrationOptions, check_parent, create_calibration
+from service.calibration.coco import NamedBatch
+from service.calibration.intake import PreparedBatch, prepare_batch
+from service.calibration.jobs import JobProgress, JobRunner, new_job_id
+from service.calibration.registry import CalibrationRegistry
+from service.calibration.uploads import JobFolder, UploadWorkspace, batch_name, reload_batch, validate_upload
+from service.detector.runtime import Detector
+from service.errors import Conflict, InvalidInput, NotFound, ServiceError
+
+log = logging.getLogger(__name__)
+JOB_KIND = "calibration"
+
+
+@dataclass(frozen=True)
+class UploadRequest:
+    """What the operator asked for with an upload (kept with it, for a retry)."""
+
+    name: str | None = None
+    note: str = ""
+    append_to: int | None = None
+    activate: bool = False
+    force: bool = False
+    reason: str = ""
+    dedupe: bool = False
+    max_rejected_share: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.force and not self.reason.strip():
+            raise InvalidInput("force=true needs a reason: say why the guardrails may be overridden")
+        if self.force and not self.activate:
+            raise InvalidInput("force=true only applies with activate=true")
+
+
+@dataclass(frozen=True)
+class SubmissionSettings:
+    jobs_dir: Path
+    limits: ArchiveLimits
+    max_image_pixels: int
+    min_instances: int
+    max_rejected_share: float
+
+
+class CalibrationJobs:
+    """Accepts, runs and retries calibration jobs for one detector and store."""
+
+    def __init__(
+        self,
+        store: CalibrationStore,
+        detector: Detector,
+        registry: CalibrationRegistry,
+        runner: JobRunner,
+        audit: AuditTrail,
+        settings: SubmissionSettings,
+    ) -> None:
+        self._store, self._detector, self._registry = store, detector, registry
+        self._runner, self._audit, self._settings = runner, audit, settings
+
+    def accept(
+        self, workspace: UploadWorkspace, sha256: str, request: UploadRequest, operator: Operator
+    ) -> JobRecord:
+        """Validate a received upload and start its job, or refuse it (nothing is kept)."""
+        folder = JobFolder.of(self._settings.jobs_dir, new_job_id())
+        folder.adopt(workspace)
+        try:
+            named = validate_upload(folder, batch_name(request.name, sha256), sha256,
+                                    self._detector.manifest, self._settings.limits)  # fmt: skip
+            prepared = self._prepare(named, request)
+            folder.save({"request": asdict(request), "operator": asdict(operator), "sha256": sha256,
+                         "batch_dir": str(named.batch.folder.relative_to(folder.root))})  # fmt: skip
+            job = self._submit(folder, prepared, request, operator)
+        except BaseException:
+            folder.remove()
+            raise
+        details = _accepted(job, prepared)
+        self._audit.record(operator, "upload", "accepted", reason=request.note, details=details)
+        return job
+
+    def retry(self, job_id: str, operator: Operator) -> JobRecord:
+        """Run an interrupted job again as a new job, from its kept upload."""
+        job = self._runner.get(job_id)
+        if job is None:
+            raise NotFound(f"no job {job_id!r}: it never existed or was pruned")
+        if job.state != "interrupted":
+            raise Conflict(f"job {job_id} is {job.state}; only an interrupted job can be retried")
+        old = JobFolder.of(self._settings.jobs_dir, job_id)
+        if not old.exists():
+            raise Conflict(
+                f"the upload of job {job_id} is not kept in this server's data directory"
+                f" ({self._settings.jobs_dir}); retry on the server that received it ({job.owner}),"
+                " or upload the batch again"
+            )
+        kept = old.load()
+        request, original = UploadRequest(**kept["request"]), Operator(**kept["operator"])
+        named = reload_batch(old, kept["batch_dir"], batch_name(request.name, kept["sha256"]), kept["sha256"],
+                             self._detector.manifest)  # fmt: skip
+        self._prepare(named, request)  # refuse before taking the job over
+        new = JobFolder.of(self._settings.jobs_dir, new_job_id())
+        self._take_over(job, new.job_id)
+        old.move_to(new)
+        named = reload_batch(new, kept["batch_dir"], named.name, named.sha256, self._detector.manifest)
+        retried = self._submit(new, self._prepare(named, request), request, original)
+        self._audit.record(operator, "retry", "accepted", details={"job": job_id, "new_job": retried.id})
+        return retried
+
+    def _take_over(self, job: JobRecord, new_id: str) -> None:
+        """Mark the interrupted job finished (so its old process can no longer complete it)."""
+        try:
+            self._store.update_job(
+                job.id, state="interrupted", errors=job.errors, finished_at=datetime.now(UTC),
+                result={**job.result, "retried_as": new_id},
+            )  # fmt: skip
+        except JobFinished as error:
+            raise Conflict(f"job {job.id} was retried or finished meanwhile: {error}") from error
+
+    def _prepare(self, named: NamedBatch, request: UploadRequest) -> PreparedBatch:
+        parent = parent_table = None
+        if request.append_to is not None:
+            parent = check_parent(self._store, self._detector, request.append_to)
+            parent_table = self._registry.scores(request.append_to)
+        return prepare_batch(named, parent, parent_table, dedupe=request.dedupe,
+                             max_rejected_share=self._share(request))  # fmt: skip
+
+    def _share(self, request: UploadRequest) -> float:
+        if request.max_rejected_share is None:
+            return self._settings.max_rejected_share
+        return request.max_rejected_share
+
+    def _submit(
+        self, folder: JobFolder, prepared: PreparedBatch, request: UploadRequest, operator: Operator
+    ) -> JobRecord:
+        options = CalibrationOptions(
+            operator=operator,
+            note=request.note,
+            append_to=request.append_to,
+            activate=request.activate,
+            force=request.force,
+            reason=request.reason,
+            max_rejected_share=self._share(request),
+            min_instances=self._settings.min_instances,
+        )
+
+        def run(progress: JobProgress) -> dict[str, Any]:
+            try:
+                outcome = create_calibration(
+                    self._store, self._detector, [prepared], options, self._settings.max_image_pixels,
+                    self._audit, progress.advance, job_id=folder.job_id,
+                )  # fmt: skip
+            except ServiceError as error:
+                self._audit.record(operator, "calibration", "failed", reason=request.note,
+                                   details={"job": folder.job_id, "detail": error.detail})  # fmt: skip
+                folder.remove()
+                raise
+            folder.remove()
+            self._registry.refresh_now()
+            return outcome.summary
+
+        return self._runner.submit(JOB_KIND, run, prepared.named.batch.count, job_id=folder.job_id)
+
+
+def _accepted(job: JobRecord, prepared: PreparedBatch) -> dict[str, Any]:
+    named = prepared.named
+    return {
+        "job": job.id,
+        "batch": named.name,
+        "sha256": named.sha256,
+        "instances": named.batch.count,
+        "duplicates_dropped": prepared.repeats_dropped,
+        "rejected": len(prepared.rejected),
+    }

@@ -1,0 +1,63 @@
+"""Named admin tokens: who may administer calibrations, under which name.
+
+``CKS_ADMIN_TOKENS_FILE`` names a file of ``name:token`` lines (``#`` starts a comment,
+blank lines are ignored); ``CKS_ADMIN_TOKEN`` still works and is the operator ``admin``.
+The name is what the audit trail and the activation log record.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+TOKENS_FILE_SETTING = "CKS_ADMIN_TOKENS_FILE"
+SINGLE_TOKEN_NAME = "admin"
+MIN_TOKEN_CHARS = 16
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._@-]{0,63}$")
+
+
+class OperatorsError(ValueError):
+    """The admin token configuration is unusable; the message says what to fix."""
+
+
+def load_operators(single_token: str | None, tokens_file: Path | None) -> dict[str, str]:
+    """Token -> operator name, from ``CKS_ADMIN_TOKEN`` and the tokens file (empty: admin off)."""
+    operators: dict[str, str] = {}
+    if single_token:
+        operators[single_token] = SINGLE_TOKEN_NAME
+    if tokens_file is not None:
+        for number, name, token in _entries(tokens_file):
+            where = f"{TOKENS_FILE_SETTING} {tokens_file}, line {number}"
+            if token in operators:
+                raise OperatorsError(f"{where}: this token is already given to {operators[token]!r}")
+            if name in operators.values():
+                raise OperatorsError(f"{where}: the name {name!r} is used twice; give each operator one name")
+            operators[token] = name
+    return operators
+
+
+def _entries(path: Path) -> list[tuple[int, str, str]]:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        raise OperatorsError(f"{TOKENS_FILE_SETTING}: cannot read {path}: {error}") from error
+    entries = []
+    for number, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        where = f"{TOKENS_FILE_SETTING} {path}, line {number}"
+        name, sep, token = line.partition(":")
+        name, token = name.strip(), token.strip()
+        if not sep or not _NAME.match(name):
+            raise OperatorsError(
+                f"{where}: write 'name:token' with a name of letters, digits and . _ @ - (at most 64)"
+            )
+        if len(token) < MIN_TOKEN_CHARS or any(ch.isspace() for ch in token):
+            raise OperatorsError(
+                f"{where}: the token of {name!r} must be at least {MIN_TOKEN_CHARS} characters without spaces"
+            )
+        entries.append((number, name, token))
+    if not entries:
+        raise OperatorsError(f"{TOKENS_FILE_SETTING} {path} names no operator; add 'name:token' lines")
+    return entries
