@@ -20,9 +20,11 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
     from service.calibration.bundle import bootstrap_default_calibration
     from service.detector.runtime import Detector
     from service.metrics import enable_multiprocess
+    from service.operators import load_operators
     from service.processes import remove_dead_process_folders
 
     # Check the model and store the bundled calibration once, before workers start racing.
+    load_operators(settings.admin_token, settings.admin_tokens_file)
     detector = Detector(settings.model_dir, settings.inference_threads)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     for shared in ("uploads", "metrics"):  # of stopped processes: uploads were never stored
@@ -198,6 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     args = build_parser().parse_args(argv)
     from service.detector.runtime import ModelMismatch
+    from service.operators import OperatorsError
 
     try:
         return args.run(args, Settings())
@@ -207,6 +210,9 @@ def main(argv: list[str] | None = None) -> int:
     except ModelMismatch as error:
         print(f"error: the model cannot be served: {error}", file=sys.stderr)
         return 3
+    except OperatorsError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

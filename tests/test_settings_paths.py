@@ -1,0 +1,57 @@
+"""Paths in the settings are resolved once, against the directory the service starts in."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from service.operators import OperatorsError, load_operators
+from service.settings import Settings
+
+
+def test_relative_paths_are_resolved_against_the_starting_directory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("CKS_DATA_DIR", "var")
+    monkeypatch.delenv("CKS_STORE_URL", raising=False)
+    settings = Settings()
+    assert settings.data_dir == tmp_path / "var"
+    assert settings.resolved_store_url == f"sqlite:///{tmp_path / 'var' / 'calibrations.db'}"
+    monkeypatch.setenv("CKS_STORE_URL", "sqlite:stores/cal.db")
+    assert Settings().resolved_store_url == f"sqlite:///{tmp_path / 'stores' / 'cal.db'}"
+
+
+def test_operators_come_from_the_token_and_the_tokens_file(tmp_path: Path) -> None:
+    tokens = tmp_path / "tokens"
+    tokens.write_text("# operators\n\nalice: alice-token-0123456789\nbob:bob-token-9876543210\n")
+    assert load_operators("single-admin-token", tokens) == {
+        "single-admin-token": "admin",
+        "alice-token-0123456789": "alice",
+        "bob-token-9876543210": "bob",
+    }
+    assert load_operators(None, None) == {}
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("alice\n", "line 1: write 'name:token'"),
+        ("al ice:alice-token-0123456789\n", "line 1: write 'name:token'"),
+        ("alice:short\n", "at least 16 characters"),
+        ("alice:alice-token-0123456789\nbob:alice-token-0123456789\n", "line 2: this token is already"),
+        ("alice:alice-token-0123456789\nalice:other-token-0123456789\n", "the name 'alice' is used twice"),
+        ("# nobody\n", "names no operator"),
+    ],
+)
+def test_a_bad_tokens_file_is_refused_naming_the_line(tmp_path: Path, text: str, message: str) -> None:
+    tokens = tmp_path / "tokens"
+    tokens.write_text(text)
+    with pytest.raises(OperatorsError, match=message):
+        load_operators(None, tokens)
+
+
+def test_a_missing_tokens_file_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(OperatorsError, match="cannot read"):
+        load_operators(None, tmp_path / "absent")
