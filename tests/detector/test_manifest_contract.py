@@ -167,3 +167,15 @@ def test_unknown_fields_and_bad_json_are_located(bundled: dict, tmp_path: Path) 
     assert only_line(raised.value).startswith(
         f"{tmp_path / MANIFEST_FILENAME}: line 2 column 12: not valid JSON"
     )
+
+
+def test_non_finite_numbers_are_refused(bundled: dict, tmp_path: Path) -> None:
+    """Python's json reads NaN and Infinity; an infinite temperature would fail every predict instead."""
+    manifest = copy.deepcopy(bundled)
+    manifest["heatmap"].update(normalization="softmax", temperature=float("inf"))
+    manifest["input"]["mean"][1] = float("nan")
+    (tmp_path / MANIFEST_FILENAME).write_text(json.dumps(manifest), encoding="utf-8")
+    with pytest.raises(ManifestError) as raised:
+        load_manifest(tmp_path)
+    assert [field for field, _ in raised.value.problems] == ["input.mean[1]", "heatmap.temperature"]
+    assert "Infinity" in (tmp_path / MANIFEST_FILENAME).read_text() and "finite" in str(raised.value)
