@@ -64,3 +64,4 @@ def test_the_page_documents_every_field_with_its_default() -> None:
             expected = f"`{json.dumps(field['default'])}`"
         assert rows[path][1] == expected, f"{path}: default cell {rows[path][1]!r}, expected {expected!r}"
         assert rows[path][2], f"{path} has no meaning in the table"
+        assert field.get("description"), f"{path}: give it a Field(description=...) in manifest.py"
