@@ -1,4 +1,4 @@
-"""The one command-line entry point: serve, calibrate, predict, export-openapi."""
+"""The one command-line entry point: serve, calibrate, predict, check-model, export the schemas."""
 
 from __future__ import annotations
 
@@ -135,14 +135,33 @@ def _predict(args: argparse.Namespace, settings: Settings) -> int:
     return 0
 
 
+def _check_model(args: argparse.Namespace, settings: Settings) -> int:
+    from service.detector.runtime import Detector
+
+    model_dir = args.model_dir or settings.model_dir
+    detector = Detector(model_dir, settings.inference_threads)
+    print(f"{model_dir}: ok, model.onnx sha256 {detector.model_hash}\n{detector.manifest.summary()}")
+    return 0
+
+
 def _export_openapi(args: argparse.Namespace, settings: Settings) -> int:
     from service.api.openapi import openapi_document
 
-    text = json.dumps(openapi_document(), indent=2, sort_keys=True) + "\n"
-    if args.output == "-":
+    return _write_json(openapi_document(), args.output)
+
+
+def _manifest_schema(args: argparse.Namespace, settings: Settings) -> int:
+    from service.detector.manifest import manifest_json_schema
+
+    return _write_json(manifest_json_schema(), args.output)
+
+
+def _write_json(document: dict, output: str) -> int:
+    text = json.dumps(document, indent=2, sort_keys=True) + "\n"
+    if output == "-":
         sys.stdout.write(text)
     else:
-        Path(args.output).write_text(text, encoding="utf-8")
+        Path(output).write_text(text, encoding="utf-8")
     return 0
 
 
@@ -190,9 +209,17 @@ def build_parser() -> argparse.ArgumentParser:
     predict.add_argument("--png", help="also draw the sets into this PNG file")
     predict.set_defaults(run=_predict)
 
+    check = commands.add_parser("check-model", help="validate a model directory and summarize its manifest")
+    check.add_argument("model_dir", nargs="?", type=Path, help="default: CKS_MODEL_DIR")
+    check.set_defaults(run=_check_model)
+
     export = commands.add_parser("export-openapi", help="write the OpenAPI document")
     export.add_argument("--output", default="openapi/openapi.json", help="file, or - for stdout")
     export.set_defaults(run=_export_openapi)
+
+    schema = commands.add_parser("manifest-schema", help="write the JSON Schema of manifest.json")
+    schema.add_argument("--output", default="docs/manifest.schema.json", help="file, or - for stdout")
+    schema.set_defaults(run=_manifest_schema)
     return parser
 
 

@@ -9,10 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
-from pydantic import ValidationError
 
 from service.detector.batching import MicroBatcher
-from service.detector.manifest import MODEL_FILENAME, Manifest, load_manifest
+from service.detector.manifest import MODEL_FILENAME, Manifest, ManifestError, load_manifest
 from service.detector.preprocess import build_batch
 from service.metrics import BATCH_SIZE, INFERENCE_SECONDS
 
@@ -102,8 +101,8 @@ def _load_manifest(model_dir: Path) -> Manifest:
         return load_manifest(model_dir)
     except FileNotFoundError as error:
         raise ModelMismatch(f"no manifest.json in {model_dir}") from error
-    except (ValueError, ValidationError) as error:
-        raise ModelMismatch(f"invalid manifest in {model_dir}: {error}") from error
+    except ManifestError as error:
+        raise ModelMismatch(str(error)) from error
 
 
 def create_session(model_path: Path, intra_op_threads: int) -> ort.InferenceSession:
