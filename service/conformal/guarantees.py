@@ -8,6 +8,12 @@ space (no scipy at run time, stable for n up to 10^6 and beyond).
 
 PAC: given delta, use the largest t with P(Beta(n+1-t, t) < 1-eps) <= delta,
 i.e. P(Binomial(n, eps) <= t-1) <= delta; t = 0 (unbounded set) always qualifies.
+A PAC request never gives up the marginal guarantee: t is at most floor((n+1) eps).
+
+Every eps and delta in the open interval (0, 1) has an answer, subnormals and the
+neighbours of 1 included: 1 - p is never formed where it would round (see
+``_log_binomial_tails``), and the PAC test is made where the failure probability is
+exact (its log near 0, its complement near 1).
 """
 
 from __future__ import annotations
@@ -93,8 +99,15 @@ class Calibration:
 
 
 def coverage_guarantee(n: int, epsilon: float, delta: float | None = None) -> CoverageGuarantee:
-    """The rank t (marginal, or PAC when delta is given) and its guarantee for n scores."""
-    t = conformal_rank(n, epsilon) if delta is None else pac_rank(n, epsilon, delta)
+    """The rank t (marginal, or PAC when delta is given) and its guarantee for n scores.
+
+    With delta, t = min(PAC rank, marginal rank): for delta above about 0.37 the PAC
+    rank alone can exceed the marginal one, and then 1 - eps would no longer bound the
+    marginal coverage 1 - t/(n+1).
+    """
+    t = conformal_rank(n, epsilon)
+    if delta is not None:
+        t = min(t, pac_rank(n, epsilon, delta))
     return CoverageGuarantee(n=n, t=t, epsilon=float(epsilon), delta=delta)
 
 
@@ -124,7 +137,7 @@ def pac_rank(n: int, epsilon: float, delta: float) -> int:
     low, high = 0, n  # invariant: failure(low) <= delta
     while low < high:
         middle = (low + high + 1) // 2
-        if _pac_failure(n, middle, epsilon) <= delta:
+        if _pac_failure_at_most(n, middle, epsilon, delta):
             low = middle
         else:
             high = middle - 1
@@ -132,39 +145,76 @@ def pac_rank(n: int, epsilon: float, delta: float) -> int:
 
 
 def beta_cdf(x: float, a: int, b: int) -> float:
-    """P(Beta(a, b) <= x) for integers a, b >= 1, via P(Binomial(a+b-1, x) >= a)."""
+    """P(Beta(a, b) <= x) for integers a, b >= 1, via P(Binomial(a+b-1, 1-x) <= b-1)."""
     if a < 1 or b < 1:
         raise ValueError(f"Beta parameters must be integers >= 1, got ({a}, {b})")
-    return binomial_cdf(b - 1, a + b - 1, 1.0 - x)
+    return math.exp(_log_binomial_tails(b - 1, a + b - 1, 1.0 - x, x)[0])
 
 
 def binomial_cdf(m: int, n: int, p: float) -> float:
     """P(Binomial(n, p) <= m), summing whichever tail is smaller in log space."""
-    if m < 0:
-        return 0.0
-    if m >= n or p <= 0.0:
-        return 1.0
-    if p >= 1.0:
-        return 0.0
-    if m < n * p:
-        return math.exp(_log_lower_tail(m, n, p))
-    return -math.expm1(_log_lower_tail(n - m - 1, n, 1.0 - p))
+    return math.exp(_log_binomial_tails(m, n, p, 1.0 - p)[0])
 
 
 def _pac_failure(n: int, t: int, epsilon: float) -> float:
     return 0.0 if t == 0 else binomial_cdf(t - 1, n, epsilon)
 
 
-def _log_lower_tail(m: int, n: int, p: float) -> float:
-    """log P(Binomial(n, p) <= m) for 0 <= m < n, 0 < p < 1."""
-    width = int(_TAIL_WIDTH_SD * math.sqrt(n * p * (1 - p))) + 50
+def _pac_failure_at_most(n: int, t: int, epsilon: float, delta: float) -> bool:
+    """Whether P(Binomial(n, eps) <= t-1) <= delta, decided where it is computed exactly.
+
+    Near 0 the failure probability is compared in log space (exp would lose a subnormal
+    delta's digits), near 1 its complement is compared with 1 - delta (exact there). The
+    reported value must not exceed delta either, so a tie within rounding refuses t.
+    """
+    log_failure, log_success = _log_binomial_tails(t - 1, n, epsilon, 1.0 - epsilon)
+    precise = log_failure <= math.log(delta) if delta <= 0.5 else log_success >= math.log1p(-delta)
+    return precise and math.exp(log_failure) <= delta
+
+
+def _log_binomial_tails(m: int, n: int, p: float, q: float) -> tuple[float, float]:
+    """(log P(Binomial(n, p) <= m), log P(Binomial(n, p) > m)); log 0 is -inf.
+
+    q is 1 - p, passed separately because 1 - p rounds away what matters when p is tiny
+    (1 - 1e-17 == 1.0): the smaller of p and q must be exact, the other may be rounded.
+    The smaller tail is summed; the other is its complement.
+    """
+    if m < 0:
+        return -math.inf, 0.0
+    if m >= n or p <= 0.0:
+        return 0.0, -math.inf
+    if q <= 0.0:
+        return -math.inf, 0.0
+    if m < n * p:
+        lower = _log_lower_tail(m, n, p, q)
+        return lower, _log_one_minus_exp(lower)
+    upper = _log_lower_tail(n - m - 1, n, q, p)  # P(X > m) = P(n - X <= n - m - 1), n - X ~ Bin(n, q)
+    return _log_one_minus_exp(upper), upper
+
+
+def _log_one_minus_exp(x: float) -> float:
+    """log(1 - e^x) for x <= 0, accurate at both ends."""
+    if x >= 0.0:
+        return -math.inf
+    return math.log(-math.expm1(x)) if x > -math.log(2.0) else math.log1p(-math.exp(x))
+
+
+def _log_lower_tail(m: int, n: int, p: float, q: float) -> float:
+    """log P(Binomial(n, p) <= m) for 0 <= m < n, 0 < p, q < 1 with p + q = 1.
+
+    Both logs come from the smaller of p and q, the exact one.
+    """
+    small = min(p, q)
+    log_small, log_large = math.log(small), math.log1p(-small)
+    log_p, log_q = (log_small, log_large) if p <= q else (log_large, log_small)
+    width = int(_TAIL_WIDTH_SD * math.sqrt(n * small * (1.0 - small))) + 50
     j = np.arange(max(0, m - width), m + 1, dtype=np.float64)
     log_terms = (
         math.lgamma(n + 1)
         - _log_gamma(j + 1).astype(np.float64)
         - _log_gamma(n - j + 1).astype(np.float64)
-        + j * math.log(p)
-        + (n - j) * math.log1p(-p)
+        + j * log_p
+        + (n - j) * log_q
     )
     largest = log_terms.max()
     return float(largest + math.log(np.exp(log_terms - largest).sum()))

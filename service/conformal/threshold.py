@@ -55,6 +55,8 @@ def column_thresholds(score_matrix: np.ndarray, ranks: np.ndarray) -> np.ndarray
     counts = labeled_counts(matrix)
     if ranks.shape != counts.shape or np.any((ranks < 0) | (ranks > counts)):
         raise ValueError("ranks must be one integer in [0, n_g] per column")
+    if matrix.shape[0] == 0:  # no row to pick from; every rank is 0
+        return np.full(matrix.shape[1], np.inf)
     descending = -np.sort(-matrix, axis=0)  # NaNs sort last
     picked = descending[np.maximum(ranks - 1, 0), np.arange(matrix.shape[1])]
     return np.where(ranks == 0, np.inf, picked)
