@@ -9,7 +9,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from service.errors import InvalidInput, ServiceError
+from service.errors import ServiceError
 from service.settings import Settings
 
 
@@ -52,14 +52,15 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     from calibration_store import open_store
     from service.audit import AuditTrail, Operator
     from service.calibration.bundle import save_bundle
-    from service.calibration.calibrate import CalibrationOptions, check_parent, create_calibration
+    from service.calibration.calibrate import check_parent, create_calibration
     from service.calibration.coco import NamedBatch, load_coco_batch
     from service.calibration.intake import prepare_batch
+    from service.calibration.submission import UploadRequest
     from service.detector.runtime import Detector
 
-    if args.force and not (args.activate and args.reason.strip()):
-        raise InvalidInput("--force needs --activate and a --reason (why the guardrails may be overridden)")
-    share = settings.max_rejected_share if args.max_rejected_share is None else args.max_rejected_share
+    request = UploadRequest(args.name, args.note, args.append_to, args.activate, args.force, args.reason,
+                            args.dedupe, args.max_rejected_share)  # fmt: skip
+    share = request.rejected_share(settings.max_rejected_share)
     detector = Detector(settings.model_dir, settings.inference_threads)
     with open_store(settings.resolved_store_url) as store:
         parent = parent_table = None
@@ -81,16 +82,8 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
             done += count
             print(f"\rscored {done}/{total} instances", end="", file=sys.stderr, flush=True)
 
-        options = CalibrationOptions(
-            operator=Operator(args.author, "cli"),
-            note=args.note,
-            append_to=args.append_to,
-            activate=args.activate,
-            force=args.force,
-            reason=args.reason,
-            max_rejected_share=share,
-            min_instances=settings.min_calibration_instances,
-        )
+        options = request.options(Operator(args.author, "cli"), settings.max_rejected_share,
+                                  settings.min_calibration_instances)  # fmt: skip
         audit = AuditTrail(store, detector.model_hash)
         pixels = settings.max_image_pixels
         outcome = create_calibration(store, detector, batches, options, pixels, audit, progress)

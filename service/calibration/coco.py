@@ -75,7 +75,7 @@ class LabeledInstance:
 
 @dataclass(frozen=True)
 class Rejection:
-    """An instance left out of a calibration, and why (for the job's report)."""
+    """An instance left out of a calibration (a rule it breaks, or a repeat), and why."""
 
     image_id: int
     annotation_id: int

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration_store import ScoreTable, SourceBatch
-from service.calibration.coco import CocoBatch, LabeledInstance
+from service.calibration.coco import CocoBatch, LabeledInstance, Rejection
 
 #: stands for the hash of an instance stored before hashes were kept (never a repeat)
 UNKNOWN_DIGEST = "0" * 64
@@ -26,18 +26,6 @@ UNKNOWN_DIGEST = "0" * 64
 class Fingerprint:
     image: str
     instance: str
-
-
-@dataclass(frozen=True)
-class Repeat:
-    """An instance of a new batch that is already counted, and where."""
-
-    image_id: int
-    annotation_id: int
-    reason: str
-
-    def describe(self) -> str:
-        return f"image {self.image_id}, annotation {self.annotation_id}: {self.reason}"
 
 
 def fingerprints(batch: CocoBatch) -> tuple[Fingerprint, ...]:
@@ -68,7 +56,7 @@ def find_repeats(
     parent: ScoreTable | None = None,
     parent_sources: Iterable[SourceBatch] = (),
     parent_number: int | None = None,
-) -> list[Repeat]:
+) -> list[Rejection]:
     """Instances of ``batch`` already counted: inside the batch or in the version it extends.
 
     An image file that appears under two image ids, or that the parent version already
@@ -78,7 +66,7 @@ def find_repeats(
     for source in parent_sources:
         if source.sha256 == batch_sha256:
             reason = f"the same batch (sha256 {batch_sha256[:12]}) is already in {where} as {source.name!r}"
-            return [Repeat(i.image_id, i.annotation_id, reason) for i in batch.instances]
+            return [Rejection(i.image_id, i.annotation_id, reason) for i in batch.instances]
     old_images, old_instances = _stored_digests(parent)
     image_ids: dict[str, int] = {}
     seen: set[str] = set()
@@ -96,7 +84,7 @@ def find_repeats(
             reason = "the same instance (image, object, box, labels) appears earlier in this batch"
         seen.add(fingerprint.instance)
         if reason:
-            repeats.append(Repeat(instance.image_id, instance.annotation_id, reason))
+            repeats.append(Rejection(instance.image_id, instance.annotation_id, reason))
     return repeats
 
 

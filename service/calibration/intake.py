@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 
 from calibration_store import ScoreTable, VersionInfo
 from service.calibration.coco import NamedBatch, Rejection
-from service.calibration.fingerprints import Fingerprint, Repeat, find_repeats, fingerprints
+from service.calibration.fingerprints import Fingerprint, find_repeats, fingerprints
 from service.errors import Conflict, InvalidInput
 
 #: how many repeats or rejections a refusal lists (the count is always given)
@@ -82,7 +82,7 @@ def check_rejected_share(rejected: Sequence[Rejection], total: int, max_share: f
     )
 
 
-def _repeats_refused(repeats: list[Repeat], count: int) -> Conflict:
+def _repeats_refused(repeats: list[Rejection], count: int) -> Conflict:
     listed = [r.describe() for r in repeats[:LISTED]]
     if len(repeats) > LISTED:
         listed.append(f"... and {len(repeats) - LISTED} more")

@@ -40,9 +40,26 @@ class UploadRequest:
 
     def __post_init__(self) -> None:
         if self.force and not self.reason.strip():
-            raise InvalidInput("force=true needs a reason: say why the guardrails may be overridden")
+            raise InvalidInput("force needs a reason (force=true&reason=..., or --force --reason ...):"
+                               " say why the guardrails may be overridden")  # fmt: skip
         if self.force and not self.activate:
-            raise InvalidInput("force=true only applies with activate=true")
+            raise InvalidInput("force only applies when activating (activate=true, or --activate)")
+
+    def rejected_share(self, default: float) -> float:
+        return default if self.max_rejected_share is None else self.max_rejected_share
+
+    def options(self, operator: Operator, default_share: float, min_instances: int) -> CalibrationOptions:
+        """The calibration this request asks for (``default_share`` when it names none)."""
+        return CalibrationOptions(
+            operator=operator,
+            note=self.note,
+            append_to=self.append_to,
+            activate=self.activate,
+            force=self.force,
+            reason=self.reason,
+            max_rejected_share=self.rejected_share(default_share),
+            min_instances=min_instances,
+        )
 
 
 @dataclass(frozen=True)
@@ -131,27 +148,16 @@ class CalibrationJobs:
         if request.append_to is not None:
             parent = check_parent(self._store, self._detector, request.append_to)
             parent_table = self._registry.scores(request.append_to)
-        return prepare_batch(named, parent, parent_table, dedupe=request.dedupe,
-                             max_rejected_share=self._share(request))  # fmt: skip
+        share = request.rejected_share(self._settings.max_rejected_share)
+        return prepare_batch(named, parent, parent_table, dedupe=request.dedupe, max_rejected_share=share)
 
-    def _share(self, request: UploadRequest) -> float:
-        if request.max_rejected_share is None:
-            return self._settings.max_rejected_share
-        return request.max_rejected_share
+    def _options(self, request: UploadRequest, operator: Operator) -> CalibrationOptions:
+        return request.options(operator, self._settings.max_rejected_share, self._settings.min_instances)
 
     def _submit(
         self, folder: JobFolder, prepared: PreparedBatch, request: UploadRequest, operator: Operator
     ) -> JobRecord:
-        options = CalibrationOptions(
-            operator=operator,
-            note=request.note,
-            append_to=request.append_to,
-            activate=request.activate,
-            force=request.force,
-            reason=request.reason,
-            max_rejected_share=self._share(request),
-            min_instances=self._settings.min_instances,
-        )
+        options = self._options(request, operator)
 
         def run(progress: JobProgress) -> dict[str, Any]:
             try:

@@ -181,7 +181,7 @@ def test_force_without_a_reason_is_refused_before_the_upload_is_read(
     named_server: LiveServer, samples_dir: Path, coco: dict
 ) -> None:
     response = upload(named_server, batch_zip(samples_dir, coco, images=1), activate=True, force=True)
-    assert_problem(response, 422, "force=true needs a reason")
+    assert_problem(response, 422, "force needs a reason")
 
 
 # ---------------------------------------------------------------- the box rule in calibration
