@@ -1,0 +1,51 @@
+"""deploy/compose: two replicas on one PostgreSQL, started in a health-checked order.
+
+No container engine runs here; the file is checked for what the README promises of it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import yaml
+
+from service.settings import PACKAGE_ROOT, Settings
+
+COMPOSE = PACKAGE_ROOT / "deploy" / "compose"
+
+
+def compose() -> dict:
+    return yaml.safe_load((COMPOSE / "compose.yaml").read_text(encoding="utf-8"))
+
+
+def test_two_replicas_on_one_postgresql_in_a_health_checked_order() -> None:
+    services = compose()["services"]
+    db, service, proxy = services["db"], services["keypoints"], services["proxy"]
+    assert "pg_isready" in " ".join(db["healthcheck"]["test"])
+    assert service["deploy"]["replicas"] == 2
+    assert service["depends_on"]["db"]["condition"] == "service_healthy"
+    assert proxy["depends_on"]["keypoints"]["condition"] == "service_healthy"  # the image's HEALTHCHECK
+    assert service["environment"]["CKS_STORE_URL"].startswith("postgresql://")
+    assert "@db:5432/" in service["environment"]["CKS_STORE_URL"]
+
+
+def test_the_build_context_holds_the_dockerfile_and_secrets_are_files() -> None:
+    config = compose()
+    service = config["services"]["keypoints"]
+    assert (COMPOSE / service["build"] / "Dockerfile").resolve() == PACKAGE_ROOT / "Dockerfile"
+    assert service["environment"]["CKS_ADMIN_TOKENS_FILE"] == "/run/secrets/admin_tokens"
+    assert config["secrets"]["admin_tokens"]["file"] == "./admin_tokens"
+    assert any(volume.endswith(":/data") for volume in service["volumes"])  # one shared data volume
+
+
+def test_the_proxy_lets_uploads_through() -> None:
+    conf = (COMPOSE / "nginx.conf").read_text(encoding="utf-8")
+    assert "client_max_body_size 2g;" in conf
+    assert Settings().max_upload_bytes <= 2 * 2**30
+    mounted = compose()["services"]["proxy"]["volumes"][0].split(":")[0]
+    assert (COMPOSE / mounted).resolve() == (COMPOSE / "nginx.conf").resolve()
+
+
+def test_the_readme_points_at_it() -> None:
+    readme = Path(PACKAGE_ROOT / "README.md").read_text(encoding="utf-8")
+    assert "deploy/compose/compose.yaml" in readme
