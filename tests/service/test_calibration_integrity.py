@@ -147,6 +147,13 @@ def test_a_small_batch_needs_force_and_a_reason_and_is_audited(
     assert duck["smallest_bounded_epsilon_after"] == pytest.approx(1 / (duck["n_after"] + 1))
     assert 0 <= duck["active_coverage_of_candidate"] <= 1 and duck["set_area_ratio"] > 0
 
+    itself = named_server.client.get(f"/v1/admin/calibrations/{version}/compare",
+                                     params={"against": version, "nonconformity": "var", "epsilon": 0.2},
+                                     headers=as_operator("bob")).json()  # fmt: skip
+    assert (itself["against"], itself["nonconformity"], itself["epsilon"]) == (version, "var", 0.2)
+    assert all(k["n_before"] == k["n_after"] for k in itself["keypoints"])
+    assert itself["median_set_area_ratio"] == 1.0
+
     url = f"/v1/admin/calibrations/{version}/activate"
     refused = named_server.client.post(url, json={"reason": "try"}, headers=as_operator("bob"))
     problem = assert_problem(refused, 409, "activation refused", "below the floor of 100")
