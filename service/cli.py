@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import shutil
 import sys
 from pathlib import Path
 
 from service.errors import InvalidInput, ServiceError
+from service.logs import configure_logging, uvicorn_log_config
 from service.settings import Settings
 
 
@@ -39,7 +39,7 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
             host=args.host or settings.host,
             port=args.port or settings.port,
             workers=settings.workers,
-            log_level="info",
+            log_config=uvicorn_log_config(settings),
             access_log=False,
         )
     finally:
@@ -224,13 +224,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     args = build_parser().parse_args(argv)
+    settings = Settings()
+    # serve logs at CKS_LOG_LEVEL; the one-shot commands say only what went wrong unless it is set
+    quiet = args.run is not _serve and "log_level" not in settings.model_fields_set
+    configure_logging(settings, "WARNING" if quiet else None)
     from service.detector.runtime import ModelMismatch
     from service.operators import OperatorsError
 
     try:
-        return args.run(args, Settings())
+        return args.run(args, settings)
     except ServiceError as error:
         print(f"error: {error.detail}", *error.errors[:20], sep="\n  ", file=sys.stderr)
         return 2
