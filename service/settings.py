@@ -109,6 +109,19 @@ class Settings(BaseSettings):
     def _upper(cls, level: object) -> object:
         return level.upper() if isinstance(level, str) else level
 
+    @field_validator("store_url")
+    @classmethod
+    def _known_store(cls, url: str | None) -> str | None:
+        """Refused when the settings are read, naming the setting, not when the store is opened."""
+        if url is None:
+            return None
+        scheme = url.partition(":")[0].lower()
+        if scheme == "sqlite":
+            sqlite_path(url)  # says what is wrong with a sqlite URL
+        elif scheme not in ("postgresql", "postgres"):
+            raise ValueError("use sqlite:///path/to/file.db or postgresql://user@host:port/database")
+        return url
+
     @field_validator("data_dir", "model_dir", "admin_tokens_file")
     @classmethod
     def _absolute(cls, path: Path | None) -> Path | None:
