@@ -1,18 +1,19 @@
 """The audit trail: every administrative action, who did it, from where and why.
 
 Entries go to the calibration store's append-only audit table (nothing in the API can
-change them) and to the log as one line each. An entry about a stored change is written
+change them) and to the log as one line each (``audit action=... outcome=... who=...``; in
+JSON those are members of the line). An entry about a stored change is written
 in the same transaction as the change; a refusal is appended on its own.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 from typing import Any
 
 from calibration_store import CalibrationStore, NewAuditEntry, StoreError
+from service.logs import log_fields
 
 log = logging.getLogger("service.audit")
 
@@ -61,7 +62,8 @@ class AuditTrail:
         try:
             self._store.append_audit(entry)
         except StoreError as error:
-            log.error("audit entry not stored (%s): %s", error, describe(entry))
+            fields = {**audit_fields(entry), "error": str(error)}
+            log_fields(log, "audit entry not stored", fields, logging.ERROR)
             return
         written(entry)
 
@@ -69,12 +71,12 @@ class AuditTrail:
 def written(*entries: NewAuditEntry) -> None:
     """Log entries that reached the store."""
     for entry in entries:
-        log.info("audit %s", describe(entry))
+        log_fields(log, "audit", audit_fields(entry))
 
 
-def describe(entry: NewAuditEntry) -> str:
-    """One line of key=value pairs (values JSON-quoted where needed)."""
-    fields = {
+def audit_fields(entry: NewAuditEntry) -> dict[str, Any]:
+    """The fields of an entry's log line: who did what, with what outcome, from where, why."""
+    return {
         "action": entry.action,
         "outcome": entry.outcome,
         "who": entry.who,
@@ -82,13 +84,5 @@ def describe(entry: NewAuditEntry) -> str:
         "version": entry.version,
         "previous_version": entry.previous_version,
         "reason": entry.reason,
+        "details": dict(entry.details) or None,
     }
-    pairs = [f"{key}={_value(value)}" for key, value in fields.items() if value not in (None, "")]
-    if entry.details:
-        pairs.append(f"details={json.dumps(dict(entry.details), sort_keys=True, separators=(',', ':'))}")
-    return " ".join(pairs)
-
-
-def _value(value: object) -> str:
-    text = str(value)
-    return text if text.replace("-", "").replace("_", "").replace(".", "").isalnum() else json.dumps(text)

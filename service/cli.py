@@ -6,10 +6,18 @@ import argparse
 import json
 import logging
 import shutil
+import socket
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import NoReturn
 
-from service.errors import ServiceError
+from pydantic import ValidationError
+
+from calibration_store import StoreError, store_location
+from service import __version__
+from service.errors import InvalidInput, ServiceError
+from service.logs import configure_logging, uvicorn_log_config
 from service.settings import Settings
 
 
@@ -23,6 +31,8 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
     from service.operators import load_operators
     from service.processes import remove_dead_process_folders
 
+    host, port = args.host or settings.host, args.port or settings.port
+    _check_port(host, port)
     # Check the model and store the bundled calibration once, before workers start racing.
     load_operators(settings.admin_token, settings.admin_tokens_file)
     detector = Detector(settings.model_dir, settings.inference_threads)
@@ -36,16 +46,30 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
     try:
         uvicorn.run(
             "service.api.main:app",
-            host=args.host or settings.host,
-            port=args.port or settings.port,
+            host=host,
+            port=port,
             workers=settings.workers,
-            log_level="info",
+            log_config=uvicorn_log_config(settings),
             access_log=False,
         )
     finally:
         if metrics is not None:
             shutil.rmtree(metrics, ignore_errors=True)
     return 0
+
+
+def _check_port(host: str, port: int) -> None:
+    """Refuse an address already in use now: uvicorn would load the model first, then fail."""
+    try:
+        family, kind, _, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+        with socket.socket(family, kind) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds
+            probe.bind(address)
+    except OSError as error:
+        reason = error.strerror or str(error)
+        raise InvalidInput(
+            f"cannot listen on {host}:{port}: {reason} (choose another: --port or CKS_PORT)"
+        ) from None
 
 
 def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
@@ -69,6 +93,8 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
             parent_table = store.load_scores(detector.model_hash, args.append_to)
         batches = []
         for folder in args.folders:
+            if not Path(folder).is_dir():
+                raise InvalidInput(f"{folder} is not a folder (one holding annotations.json and the images)")
             batch = load_coco_batch(Path(folder), detector.manifest)
             named = NamedBatch(name=args.name or Path(folder).name, sha256=batch.sha256, batch=batch)
             batches.append(
@@ -107,15 +133,18 @@ def _predict(args: argparse.Namespace, settings: Settings) -> int:
     from service.render import render_prediction
     from service.state import build_state
 
-    instances = [{"object": obj, "bbox": [float(v) for v in bbox.split(",")]} for obj, bbox in args.instance]
-    parameters = PredictParameters(
-        instances=instances,
-        epsilon=args.epsilon,
-        nonconformity=args.nonconformity,
-        coverage=args.coverage,
-        delta=args.delta,
-        calibration_version=args.calibration_version,
-    )
+    instances = [{"object": obj, "bbox": bbox} for obj, bbox in args.instance]
+    try:
+        parameters = PredictParameters(
+            instances=instances,
+            epsilon=args.epsilon,
+            nonconformity=args.nonconformity,
+            coverage=args.coverage,
+            delta=args.delta,
+            calibration_version=args.calibration_version,
+        )
+    except ValidationError as error:
+        raise InvalidInput(_problems(error, lambda loc: ".".join(loc))) from None
     image = decode_image(Path(args.image).read_bytes(), settings.max_image_pixels)
     state = build_state(settings)
     try:
@@ -158,81 +187,217 @@ def _write_json(document: dict, output: str) -> int:
     return 0
 
 
-def _instance(text: str) -> tuple[str, str]:
+def _instance(text: str) -> tuple[str, list[float]]:
     name, sep, bbox = text.partition(":")
-    if not sep or len(bbox.split(",")) != 4:
-        raise argparse.ArgumentTypeError("use OBJECT:x,y,w,h, e.g. duck:120,80,64,70")
-    return name, bbox
+    try:
+        values = [float(v) for v in bbox.split(",")]
+    except ValueError:
+        values = []
+    if not sep or len(values) != 4:
+        raise argparse.ArgumentTypeError(f"{text!r}: use OBJECT:x,y,w,h with numbers, e.g. duck:120,80,64,70")
+    return name, values
+
+
+EXAMPLES = {
+    "serve": """\
+  keypoint-service serve
+  keypoint-service serve --host 0.0.0.0 --port 8080
+  CKS_ADMIN_TOKEN=change-me CKS_LOG_FORMAT=json keypoint-service serve
+""",
+    "calibrate": """\
+  keypoint-service calibrate data/site_a
+  keypoint-service calibrate data/site_a data/site_b --activate --note "two sites"
+  keypoint-service calibrate data/more --append-to 2 --dedupe --activate
+  keypoint-service calibrate data/small --activate --force --reason "pilot, n below the floor"
+  keypoint-service calibrate data/site_a --bundle models/my-model/default_calibration.npz
+""",
+    "predict": """\
+  keypoint-service predict models/lmo-synth-unet/samples/images/000000.jpg --instance duck:235,217,67,64
+  keypoint-service predict scene.png --instance duck:235,217,67,64 --instance teddy:383,191,81,73 \\
+      --epsilon 0.05 --nonconformity var --png sets.png
+
+A box is x,y,width,height in pixels, origin at the image's top-left corner.
+""",
+    "check-model": """\
+  keypoint-service check-model
+  keypoint-service check-model models/my-hrnet
+""",
+    "export-openapi": """\
+  keypoint-service export-openapi
+  keypoint-service export-openapi --output - | jq '.paths | keys'
+""",
+    "manifest-schema": """\
+  keypoint-service manifest-schema
+  keypoint-service manifest-schema --output - > manifest.schema.json
+""",
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    """Reports a usage mistake in one line (and exit status 2) rather than the whole usage."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _command(commands: argparse._SubParsersAction, name: str, summary: str) -> argparse.ArgumentParser:
+    return commands.add_parser(
+        name,
+        help=summary,
+        description=summary,
+        epilog="examples:\n" + EXAMPLES[name],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+
+
+EXIT_STATUS = """\
+Settings come from CKS_* environment variables (README, Configuration).
+
+exit status: 0 done; 1 a file, the calibration store or the system failed; 2 a mistake in
+the command, its input or the settings; 3 the model cannot be served.
+"""
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="keypoint-service", description=__doc__)
-    commands = parser.add_subparsers(dest="command", required=True)
+    parser = _Parser(
+        prog="keypoint-service",
+        description=__doc__,
+        epilog=EXIT_STATUS,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    serve = commands.add_parser("serve", help="run the HTTP service (settings from CKS_* variables)")
-    serve.add_argument("--host")
-    serve.add_argument("--port", type=int)
+    serve = _command(commands, "serve", "run the HTTP service (settings from CKS_* variables)")
+    serve.add_argument("--host", help="address to listen on (default CKS_HOST, 127.0.0.1)")
+    serve.add_argument("--port", type=int, help="port to listen on (default CKS_PORT, 8000)")
     serve.set_defaults(run=_serve)
 
-    calibrate = commands.add_parser("calibrate", help="score COCO-keypoints folders into a new version")
+    calibrate = _command(commands, "calibrate", "score COCO-keypoints folders into a new version")
     calibrate.add_argument("folders", nargs="+", help="folders holding annotations.json and images")
     calibrate.add_argument("--name", help="batch name (default: the folder name)")
-    calibrate.add_argument("--author", default="cli")
-    calibrate.add_argument("--note", default="")
-    calibrate.add_argument("--append-to", type=int)
-    calibrate.add_argument("--activate", action="store_true")
-    calibrate.add_argument("--force", action="store_true",
-                           help="with --activate: activate although the guardrails refuse (needs --reason)")
+    calibrate.add_argument("--author", default="cli", help="operator name in the audit trail (default cli)")
+    calibrate.add_argument("--note", default="", help="free text stored with the version")
+    calibrate.add_argument(
+        "--append-to",
+        type=int,
+        metavar="VERSION",
+        help="new version = this version's instances + the batches",
+    )
+    calibrate.add_argument(
+        "--activate", action="store_true", help="activate the new version (if the guardrails allow it)"
+    )
+    calibrate.add_argument(
+        "--force",
+        action="store_true",
+        help="with --activate: activate although the guardrails refuse (needs --reason)",
+    )
     calibrate.add_argument("--reason", default="", help="why (recorded in the activation log and the audit)")
-    calibrate.add_argument("--dedupe", action="store_true",
-                           help="drop instances already counted instead of refusing the batch")
-    calibrate.add_argument("--max-rejected-share", type=float,
-                           help="share of instances the box rule may reject (default CKS_MAX_REJECTED_SHARE)")
+    calibrate.add_argument(
+        "--dedupe", action="store_true", help="drop instances already counted instead of refusing the batch"
+    )
+    calibrate.add_argument(
+        "--max-rejected-share",
+        type=float,
+        help="share of instances the box rule may reject (default CKS_MAX_REJECTED_SHARE)",
+    )
     calibrate.add_argument("--bundle", help="also write the version to this .npz file")
     calibrate.set_defaults(run=_calibrate)
 
-    predict = commands.add_parser("predict", help="prediction sets for one image, as JSON (and a PNG)")
-    predict.add_argument("image")
-    predict.add_argument("--instance", type=_instance, action="append", required=True, help="OBJECT:x,y,w,h")
-    predict.add_argument("--epsilon", type=float, default=0.1)
-    predict.add_argument("--nonconformity", choices=["peak", "var", "cov"], default="cov")
-    predict.add_argument("--coverage", choices=["keypoint", "object"], default="keypoint")
-    predict.add_argument("--delta", type=float)
-    predict.add_argument("--calibration-version", type=int)
+    predict = _command(commands, "predict", "prediction sets for one image, as JSON (and a PNG)")
+    predict.add_argument("image", help="a JPEG or PNG file")
+    predict.add_argument(
+        "--instance",
+        type=_instance,
+        action="append",
+        required=True,
+        metavar="OBJECT:x,y,w,h",
+        help="an object of the model and its box; repeat for several",
+    )
+    predict.add_argument(
+        "--epsilon",
+        type=float,
+        default=0.1,
+        help="miscoverage: each set holds the keypoint with probability >= 1 - epsilon",
+    )
+    predict.add_argument(
+        "--nonconformity",
+        choices=["peak", "var", "cov"],
+        default="cov",
+        help="balls (peak, var) or ellipses (cov, the default)",
+    )
+    predict.add_argument(
+        "--coverage",
+        choices=["keypoint", "object"],
+        default="keypoint",
+        help="a guarantee per keypoint, or for all of an object's keypoints at once",
+    )
+    predict.add_argument("--delta", type=float, help="PAC: the guarantee holds with probability >= 1 - delta")
+    predict.add_argument(
+        "--calibration-version",
+        type=int,
+        metavar="VERSION",
+        help="answer with this version (default: the active one)",
+    )
     predict.add_argument("--png", help="also draw the sets into this PNG file")
     predict.set_defaults(run=_predict)
 
-    check = commands.add_parser("check-model", help="validate a model directory and summarize its manifest")
+    check = _command(commands, "check-model", "validate a model directory and summarize its manifest")
     check.add_argument("model_dir", nargs="?", type=Path, help="default: CKS_MODEL_DIR")
     check.set_defaults(run=_check_model)
 
-    export = commands.add_parser("export-openapi", help="write the OpenAPI document")
+    export = _command(commands, "export-openapi", "write the OpenAPI document")
     export.add_argument("--output", default="openapi/openapi.json", help="file, or - for stdout")
     export.set_defaults(run=_export_openapi)
 
-    schema = commands.add_parser("manifest-schema", help="write the JSON Schema of manifest.json")
+    schema = _command(commands, "manifest-schema", "write the JSON Schema of manifest.json")
     schema.add_argument("--output", default="docs/manifest.schema.json", help="file, or - for stdout")
     schema.set_defaults(run=_manifest_schema)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     args = build_parser().parse_args(argv)
+    try:
+        settings = Settings()
+    except ValidationError as error:
+        return _failed(f"invalid settings: {_problems(error, lambda loc: 'CKS_' + '_'.join(loc).upper())}", 2)
+    # serve logs at CKS_LOG_LEVEL; the one-shot commands say only what went wrong unless it is set
+    quiet = args.run is not _serve and "log_level" not in settings.model_fields_set
+    configure_logging(settings, "WARNING" if quiet else None)
+    if quiet:  # the pool's warning at each retry to reach PostgreSQL, before the error line says so
+        logging.getLogger("psycopg.pool").setLevel(logging.ERROR)
     from service.detector.runtime import ModelMismatch
     from service.operators import OperatorsError
 
     try:
-        return args.run(args, Settings())
+        return args.run(args, settings)
     except ServiceError as error:
-        print(f"error: {error.detail}", *error.errors[:20], sep="\n  ", file=sys.stderr)
-        return 2
+        return _failed(error.detail, 2, [line for line in error.errors[:20] if line != error.detail])
     except ModelMismatch as error:
-        print(f"error: the model cannot be served: {error}", file=sys.stderr)
-        return 3
+        return _failed(f"the model cannot be served: {error}", 3)
     except OperatorsError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
+        return _failed(str(error), 2)
+    except StoreError as error:
+        _, location = store_location(settings.resolved_store_url)
+        return _failed(f"the calibration store {location} (CKS_STORE_URL): {error}", 1)
+    except OSError as error:  # a file or folder that is missing, not writable, not a folder
+        return _failed(f"{error.filename}: {error.strerror}" if error.filename else str(error), 1)
+    except KeyboardInterrupt:
+        return _failed("interrupted", 130)
+
+
+def _failed(message: str, status: int, details: list[str] | None = None) -> int:
+    print(f"error: {message}", *(details or []), sep="\n  ", file=sys.stderr)
+    return status
+
+
+def _problems(error: ValidationError, name: Callable[[list[str]], str]) -> str:
+    """``name: what is wrong; ...``, without the values: a mistyped store URL may hold a password."""
+    return "; ".join(
+        f"{name([str(part) for part in problem['loc']])}: {problem['msg'].removeprefix('Value error, ')}"
+        for problem in error.errors()
+    )
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from functools import cached_property
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -87,6 +88,39 @@ class Settings(BaseSettings):
     store_poll_seconds: float = Field(
         default=1.0, gt=0, description="how often to look for a new active version"
     )
+
+    log_format: Literal["text", "json"] = Field(
+        default="text",
+        description="`text` (one line: UTC time, level, logger, [request id], message) or `json`"
+        " (one JSON object a line), for the service's lines and uvicorn's alike",
+    )
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
+        default="INFO",
+        description="least severe level logged by `serve`; the other commands log warnings and errors"
+        " only unless it is set",
+    )
+    access_log: bool = Field(
+        default=True,
+        description="one line per request: method, path, status, latency, request id, calibration version",
+    )
+
+    @field_validator("log_level", mode="before")
+    @classmethod
+    def _upper(cls, level: object) -> object:
+        return level.upper() if isinstance(level, str) else level
+
+    @field_validator("store_url")
+    @classmethod
+    def _known_store(cls, url: str | None) -> str | None:
+        """Refused when the settings are read, naming the setting, not when the store is opened."""
+        if url is None:
+            return None
+        scheme = url.partition(":")[0].lower()
+        if scheme == "sqlite":
+            sqlite_path(url)  # says what is wrong with a sqlite URL
+        elif scheme not in ("postgresql", "postgres"):
+            raise ValueError("use sqlite:///path/to/file.db or postgresql://user@host:port/database")
+        return url
 
     @field_validator("data_dir", "model_dir", "admin_tokens_file")
     @classmethod

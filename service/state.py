@@ -60,7 +60,7 @@ def build_state(settings: Settings) -> ServiceState:
 
     Also turns OpenCV's internal threading off for the process (``cv2.setNumThreads(1)``).
     """
-    ensure_logging()
+    ensure_logging(settings)
     operators = load_operators(settings.admin_token, settings.admin_tokens_file)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     # Process-wide: requests already run in parallel on cpu_pool, and OpenCV's own pool would

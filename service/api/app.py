@@ -10,8 +10,10 @@ from fastapi import FastAPI
 from service import __version__
 from service.api.metrics import MetricsMiddleware
 from service.api.problems import install_problem_handlers
+from service.api.request_id import RequestIdMiddleware
 from service.api.routes import admin, health, model, predict
 from service.api.schemas import PredictJson
+from service.logs import ensure_logging
 from service.metrics import worker_stopped
 from service.settings import Settings
 from service.state import ServiceState, build_state
@@ -23,16 +25,26 @@ For each keypoint of each object you send, the service returns a ball or an elli
 image pixels that contains the true keypoint with probability at least 1 - epsilon
 (inductive conformal prediction, Yang & Pavone, "Conformal Semantic Keypoint Detection
 with Statistical Guarantees"). Errors are RFC 9457 problem+json.
+
+Every response carries an `X-Request-ID` header, and every problem body a `request_id`: the
+caller's `X-Request-ID` (1 to 128 visible ASCII characters), or one the service made up. The
+service's log lines about the request carry the same id.
 """
 
 
 def create_app(settings: Settings | None = None, state: ServiceState | None = None) -> FastAPI:
-    """Build the app; the model and store are loaded at start-up (or ``state`` is used as is)."""
+    """Build the app; the model and store are loaded at start-up (or ``state`` is used as is).
+
+    Settings are read now, and logging configured (unless the process did), so that a server
+    started as ``uvicorn service.api.main:app`` logs its start-up in the service's format.
+    """
+    settings = state.settings if state is not None else settings or Settings()
+    ensure_logging(settings)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         owned = state is None
-        app.state.service = state or build_state(settings or Settings())
+        app.state.service = state or build_state(settings)
         try:
             yield
         finally:
@@ -47,6 +59,7 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
         lifespan=lifespan,
     )
     app.add_middleware(MetricsMiddleware)
+    app.add_middleware(RequestIdMiddleware)  # outside the access line, which logs the id
     install_problem_handlers(app)
     for router in (predict.router, model.router, admin.router, health.router):
         app.include_router(router)

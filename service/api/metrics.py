@@ -1,16 +1,22 @@
-"""ASGI middleware that counts and times every request under its route template."""
+"""ASGI middleware that counts, times and logs every request under its route template."""
 
 from __future__ import annotations
 
+import logging
 import time
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.logs import ACCESS_LOGGER, current_request, log_fields
 from service.metrics import LATENCY, REQUESTS
+
+access_log = logging.getLogger(ACCESS_LOGGER)
 
 
 class MetricsMiddleware:
-    """Counts and times every request under its route template (not the raw path)."""
+    """Counts and times every request under its route template (not the raw path), and logs
+    its access line (CKS_ACCESS_LOG) with the raw path, the request id and, for a prediction,
+    the calibration version that answered."""
 
     def __init__(self, app: ASGIApp) -> None:
         self.app = app
@@ -30,8 +36,25 @@ class MetricsMiddleware:
         try:
             await self.app(scope, receive, send_with_status)
         finally:
+            elapsed = time.perf_counter() - start
             route = scope.get("route")
             path = getattr(route, "path", None) or "unmatched"
             method = scope.get("method", "GET")
             REQUESTS.labels(method, path, str(status["code"])).inc()
-            LATENCY.labels(method, path).observe(time.perf_counter() - start)
+            LATENCY.labels(method, path).observe(elapsed)
+            if access_log.isEnabledFor(logging.INFO):
+                _log_access(scope, method, status["code"], elapsed)
+
+
+def _log_access(scope: Scope, method: str, status: int, elapsed: float) -> None:
+    request = current_request()
+    client = scope.get("client")
+    fields = {
+        "method": method,
+        "path": scope.get("path", ""),
+        "status": status,
+        "duration_ms": round(elapsed * 1000, 1),
+        "calibration_version": request.calibration_version if request else None,
+        "client": client[0] if client else None,
+    }
+    log_fields(access_log, "access", fields)

@@ -1,4 +1,4 @@
-"""RFC 9457 problem+json for every error the API returns."""
+"""RFC 9457 problem+json for every error the API returns, each with the request's id."""
 
 from __future__ import annotations
 
@@ -9,7 +9,9 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from service.api.request_id import HEADER as REQUEST_ID_HEADER
 from service.errors import ServiceError
+from service.logs import current_request
 
 PROBLEM_JSON = "application/problem+json"
 log = logging.getLogger(__name__)
@@ -29,6 +31,11 @@ def problem(
     if errors:
         body["errors"] = errors
     body.update(extensions or {})
+    context = current_request()
+    if context is not None:
+        body["request_id"] = context.request_id
+        # The 500 handler answers outside RequestIdMiddleware, which sets the header on the rest.
+        headers = {**(headers or {}), REQUEST_ID_HEADER: context.request_id}
     return JSONResponse(body, status_code=status, media_type=PROBLEM_JSON, headers=headers)
 
 

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 from fastapi import APIRouter
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
+from service import __version__
 from service.api.deps import State
 from service.detector.manifest import Manifest
 
@@ -15,9 +16,15 @@ class ModelInfo(BaseModel):
     name: str
     hash: str
     manifest: Manifest
+    service_version: str = Field(description="the version of the service (`keypoint-service --version`)")
 
 
 @router.get("/v1/model", response_model=ModelInfo, summary="The served model, its keypoints and objects")
 async def model_info(state: State) -> ModelInfo:
     detector = state.detector
-    return ModelInfo(name=detector.manifest.name, hash=detector.model_hash, manifest=detector.manifest)
+    return ModelInfo(
+        name=detector.manifest.name,
+        hash=detector.model_hash,
+        manifest=detector.manifest,
+        service_version=__version__,
+    )

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import binascii
+import contextvars
 
 from fastapi import APIRouter, Request, Response
 from pydantic import ValidationError
@@ -15,6 +16,7 @@ from service.api.deps import State
 from service.api.schemas import PredictJson, PredictParameters, PredictResponse
 from service.errors import InvalidInput, RequestTimeout, UnsupportedMediaType
 from service.image_decoding import decode_image
+from service.logs import note_calibration_version
 from service.prediction import predict
 from service.render import render_prediction
 from service.state import ServiceState
@@ -124,14 +126,16 @@ async def predict_route(request: Request, state: State) -> Response:
         image_bytes, parameters = await _parse(request, state)
         async with state.admission.slot():  # decoded images exist only inside a slot
             loop = asyncio.get_running_loop()
+            context = contextvars.copy_context()  # the pool's thread logs with the request's id
             return await loop.run_in_executor(
-                state.cpu_pool, _respond, state, image_bytes, parameters, _wants_png(request)
+                state.cpu_pool, context.run, _respond, state, image_bytes, parameters, _wants_png(request)
             )
 
 
 def _respond(state: ServiceState, image_bytes: bytes, parameters: PredictParameters, png: bool) -> Response:
     image = decode_image(image_bytes, state.settings.max_image_pixels)
     result = predict(state, image, parameters)
+    note_calibration_version(result.calibration.version)
     if png:
         return Response(render_prediction(image, result), media_type="image/png")
     return Response(result.model_dump_json(), media_type="application/json")
