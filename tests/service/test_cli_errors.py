@@ -28,7 +28,7 @@ MISTAKES = [
     (["calibrate", f"{NO_SUCH}folder"], 2, [f"{NO_SUCH}folder is not a folder"]),
     (["calibrate", SAMPLES, "--append-to", "two"], 2,
      ["argument --append-to: invalid int value: 'two'", "(see keypoint-service calibrate --help)"]),
-    (["calibrate", SAMPLES, "--activate", "--force"], 2, ["--force needs --activate and a --reason"]),
+    (["calibrate", SAMPLES, "--activate", "--force"], 2, ["force needs a reason"]),
     (["predict", f"{NO_SUCH}image.jpg", "--instance", DUCK], 1, [f"{NO_SUCH}image.jpg: No such file"]),
     (["predict", "README.md", "--instance", DUCK], 2, ["not a recognised image format"]),
     (["predict", SAMPLE_IMAGE], 2, ["the following arguments are required: --instance"]),
