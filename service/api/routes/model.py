@@ -1,10 +1,11 @@
-"""What model is served: manifest, keypoints, objects, hash."""
+"""What model is served: manifest, keypoints, objects, hash, and the service's version."""
 
 from __future__ import annotations
 
 from fastapi import APIRouter
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
+from service import __version__
 from service.api.deps import State
 from service.detector.manifest import Manifest
 
@@ -15,9 +16,15 @@ class ModelInfo(BaseModel):
     name: str
     hash: str
     manifest: Manifest
+    service_version: str = Field(description="version of the conformal keypoint service answering")
 
 
 @router.get("/v1/model", response_model=ModelInfo, summary="The served model, its keypoints and objects")
 async def model_info(state: State) -> ModelInfo:
     detector = state.detector
-    return ModelInfo(name=detector.manifest.name, hash=detector.model_hash, manifest=detector.manifest)
+    return ModelInfo(
+        name=detector.manifest.name,
+        hash=detector.model_hash,
+        manifest=detector.manifest,
+        service_version=__version__,
+    )
