@@ -6,6 +6,8 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
+from fastapi_offline import FastAPIOffline
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service import __version__
 from service.api.metrics import MetricsMiddleware
@@ -31,6 +33,17 @@ caller's `X-Request-ID` (1 to 128 visible ASCII characters), or one the service 
 service's log lines about the request carry the same id.
 """
 
+DOCS_PAGES = ("/docs", "/redoc")
+# The pages' own origin only. ReDoc's side menu always shows Redocly's logo from
+# cdn.redoc.ly (no option hides it); this keeps the browser from even trying to fetch it,
+# so an air-gapped page makes no request that waits on a network it cannot reach.
+# Inline scripts and styles: FastAPI's page bootstrap, Swagger UI's and ReDoc's styling;
+# blob: workers: ReDoc's search index.
+DOCS_CONTENT_SECURITY_POLICY = (
+    "default-src 'self'; script-src 'self' 'unsafe-inline'; style-src 'self' 'unsafe-inline'; "
+    "img-src 'self' data:; font-src 'self' data:; worker-src 'self' blob:"
+)
+
 
 def create_app(settings: Settings | None = None, state: ServiceState | None = None) -> FastAPI:
     """Build the app; the model and store are loaded at start-up (or ``state`` is used as is).
@@ -52,13 +65,19 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
                 app.state.service.close()
             worker_stopped()
 
-    app = FastAPI(
+    # Swagger UI and ReDoc served from the package, not a CDN: many deployments (factories,
+    # labs, vehicles) have no internet access.
+    docs_url, redoc_url = DOCS_PAGES
+    app = FastAPIOffline(
+        docs_url=docs_url,
+        redoc_url=redoc_url,
         title="Conformal keypoint service",
         version=__version__,
         description=DESCRIPTION,
         lifespan=lifespan,
     )
     app.add_middleware(MetricsMiddleware)
+    app.add_middleware(DocsPagesPolicy)
     app.add_middleware(RequestIdMiddleware)  # outside the access line, which logs the id
     install_problem_handlers(app)
     for router in (predict.router, model.router, admin.router, health.router):
@@ -86,3 +105,24 @@ def _document_raw_bodies(app: FastAPI) -> None:
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]
+
+
+class DocsPagesPolicy:
+    """Sends ``DOCS_CONTENT_SECURITY_POLICY`` with the API pages (``DOCS_PAGES``), nothing else."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        path = scope.get("path", "").removeprefix(scope.get("root_path", ""))
+        if scope["type"] != "http" or path not in DOCS_PAGES:
+            await self.app(scope, receive, send)
+            return
+
+        async def send_with_policy(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                policy = (b"content-security-policy", DOCS_CONTENT_SECURITY_POLICY.encode())
+                message["headers"] = [*message.get("headers", []), policy]
+            await send(message)
+
+        await self.app(scope, receive, send_with_policy)

@@ -1,4 +1,4 @@
-"""What model is served: manifest, keypoints, objects, hash."""
+"""What model is served: manifest, keypoints, objects, hash, and the service's version."""
 
 from __future__ import annotations
 
