@@ -3,9 +3,9 @@ exit status, never a traceback; --version and every command's --help with exampl
 
 from __future__ import annotations
 
+import importlib.metadata
 import socket
 import subprocess
-import tomllib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -136,8 +136,7 @@ def test_a_mistake_is_one_line(tmp_path: Path, args: list[str], status: int, fra
 
 
 def test_version_is_the_package_version(tmp_path: Path) -> None:
-    pyproject = tomllib.loads((PACKAGE_ROOT / "pyproject.toml").read_text(encoding="utf-8"))
-    assert __version__ == pyproject["project"]["version"]
+    assert __version__ == importlib.metadata.version("conformal-keypoint-service")  # one source
     result = run(["--version"], tmp_path / "data")
     assert (result.returncode, result.stdout, result.stderr) == (0, f"keypoint-service {__version__}\n", "")
 
