@@ -226,6 +226,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     args = build_parser().parse_args(argv)
+    from calibration_store import StoreUnavailable
     from service.detector.runtime import ModelMismatch
     from service.operators import OperatorsError
 
@@ -239,6 +240,9 @@ def main(argv: list[str] | None = None) -> int:
         return 3
     except OperatorsError as error:
         print(f"error: {error}", file=sys.stderr)
+        return 2
+    except StoreUnavailable as error:  # nothing was ever loaded from it: there is nothing to serve
+        print(f"error: the calibration store is unreachable: {error}", file=sys.stderr)
         return 2
 
 
