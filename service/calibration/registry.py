@@ -160,9 +160,13 @@ class CalibrationRegistry:
 
     def refresh_now(self) -> int | None:
         """Poll the store now (admin calls, after an activation); StoreError if it is away."""
+        before = self._polled
         if not self._poll_lock.acquire(timeout=self._store_timeout):
             raise StoreUnavailable(f"the store has not answered a poll for over {self._store_timeout:g} s")
         try:
+            polled = self._polled
+            if polled is not before and polled.error is not None:  # a poll failed while this one waited
+                raise StoreUnavailable(polled.error)
             self._poll(force=True)
         finally:
             self._poll_lock.release()
