@@ -4,10 +4,16 @@ Version numbers come from an upsert on the model's row in calib_models, which ho
 that row locked until commit: concurrent writers of one model queue there and get
 consecutive numbers; a rolled-back or killed writer releases the row and its number.
 Migrations run under a transaction-scoped advisory lock.
+
+A database that is away fails an operation with StoreUnavailable after ``timeout_s``
+(waiting for a pooled connection); reconnection attempts give up after the same time, so
+the next operation after the database returns connects at once instead of waiting for the
+pool's exponential backoff (up to minutes after a long outage).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from datetime import UTC, datetime
@@ -60,14 +66,19 @@ class PostgresStore(SqlStore):
         min_connections: int = 1,
         max_connections: int = 10,
         connect_timeout_s: float = 10.0,
+        timeout_s: float = 10.0,
     ) -> None:
-        self._timeout_s = connect_timeout_s
+        """connect_timeout_s: how long opening waits for the database (start-up); timeout_s: how
+        long one operation waits for a connection before StoreUnavailable."""
+        self._timeout_s = timeout_s
         self._pool = ConnectionPool(
             url,
             min_size=min_connections,
             max_size=max_connections,
-            kwargs={"autocommit": True},
+            # libpq counts whole seconds and treats less than 2 as 2
+            kwargs={"autocommit": True, "connect_timeout": max(2, math.ceil(timeout_s))},
             check=ConnectionPool.check_connection,
+            reconnect_timeout=timeout_s,
             open=False,
             name="calibration_store",
         )

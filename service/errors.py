@@ -56,3 +56,13 @@ class Conflict(ServiceError):
 
 class Unavailable(ServiceError):
     status, title = 503, "Service unavailable"
+
+
+class StoreUnreachable(Unavailable):
+    """The calibration store is away: the caller should retry (``Retry-After``); the active
+    version keeps answering predictions from memory."""
+
+    title = "Calibration store unreachable"
+
+    def __init__(self, detail: str, retry_after_s: int = 1) -> None:
+        super().__init__(detail, headers={"Retry-After": str(retry_after_s)})

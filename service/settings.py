@@ -88,6 +88,18 @@ class Settings(BaseSettings):
     store_poll_seconds: float = Field(
         default=1.0, gt=0, description="how often to look for a new active version"
     )
+    store_timeout_seconds: float = Field(
+        default=1.5,
+        gt=0,
+        description="longest wait for a PostgreSQL store connection; beyond it the store counts as"
+        " unreachable (admin calls answer 503, predictions go on from memory)",
+    )
+    max_cache_staleness_seconds: float | None = Field(
+        default=None,
+        gt=0,
+        description="/readyz answers 503 once the store has not confirmed the cached calibration for"
+        " this long; unset: never (predictions go on either way)",
+    )
 
     log_format: Literal["text", "json"] = Field(
         default="text",

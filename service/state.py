@@ -48,6 +48,7 @@ class ServiceState:
         return self.settings.data_dir / "uploads"
 
     def close(self) -> None:
+        self.registry.stop()
         self.jobs.shutdown()
         shutil.rmtree(process_uploads_dir(self.uploads_dir), ignore_errors=True)  # cancelled jobs' uploads
         self.cpu_pool.shutdown(wait=True, cancel_futures=True)
@@ -72,16 +73,19 @@ def build_state(settings: Settings) -> ServiceState:
         settings.max_inference_batch,
         settings.inference_streams,
     )
-    store = open_store(settings.resolved_store_url)
+    kind, location = store_location(settings.resolved_store_url)
+    # SQLite keeps its busy timeout: a write waiting on another writer is no outage
+    options = {"timeout_s": settings.store_timeout_seconds} if kind == "postgresql" else {}
+    store = open_store(settings.resolved_store_url, **options)
     if settings.bootstrap_calibration:
         bootstrap_default_calibration(store, detector, settings.model_dir)
-    registry = CalibrationRegistry(store, detector.model_hash, detector.manifest, settings.store_poll_seconds)
-    kind, location = store_location(settings.resolved_store_url)
+    registry = CalibrationRegistry(store, detector.model_hash, detector.manifest, settings.store_poll_seconds,
+                                   settings.store_timeout_seconds)  # fmt: skip
     names = ", ".join(sorted(operators.values())) or "none (admin API disabled)"
     log.info("serving model %s (sha256 %s) from %s; calibration store: %s at %s; data directory %s;"
              " active calibration version %s; admin operators: %s", detector.manifest.name,
              detector.model_hash, settings.model_dir, kind, location, settings.data_dir,
-             registry.refresh_now(), names)  # fmt: skip
+             registry.start(), names)  # fmt: skip
     if not native_kernel_available():
         log.warning("the native kernel (service/conformal/kernel.py) is not built: 'peak' runs on the "
                     "slower numpy path; install a C compiler and reinstall the package")  # fmt: skip

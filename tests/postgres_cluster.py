@@ -10,14 +10,20 @@ Use from any test folder through the fixtures of tests/conftest.py (`postgres_ur
 
     with PostgresCluster.start() as cluster:
         url = cluster.create_database()
+        cluster.stop_server()   # an outage: the data and the port are kept
+        cluster.start_server()
+        cluster.freeze_server() # SIGSTOP: neither refuses nor answers
+        cluster.thaw_server()
 """
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import os
 import pwd
 import shutil
+import signal
 import socket
 import subprocess
 import tempfile
@@ -78,6 +84,17 @@ def _run_as() -> tuple[list[str], pwd.struct_passwd | None]:
         return [runuser, "-u", "postgres", "--"], account
     return ["setpriv", f"--reuid={account.pw_uid}", f"--regid={account.pw_gid}",
             "--init-groups"], account
+
+
+def _children(parent: int) -> list[int]:
+    children = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            if int(stat.read_text().rpartition(")")[2].split()[1]) == parent:
+                children.append(int(stat.parent.name))
+        except (OSError, ValueError, IndexError):  # it exited meanwhile
+            continue
+    return children
 
 
 class PostgresCluster:
@@ -147,6 +164,32 @@ class PostgresCluster:
                 raise PostgresClusterError(f"{exc}\nserver log:\n{self.server_log()}") from exc
             return False
         return True
+
+    def stop_server(self) -> None:
+        """Stop the server as an outage would (fast mode: clients are cut off), keeping its data
+        and port for ``start_server``."""
+        self._run(
+            [str(self.bindir / "pg_ctl"), "stop", "-m", "fast", "-w", "-t", "60", "-D", str(self.datadir)],
+            "pg_ctl stop",
+        )
+
+    def start_server(self) -> None:
+        """Start the server stopped by ``stop_server`` again, on the same port."""
+        self._pg_ctl_start(last=True)
+
+    def freeze_server(self) -> None:
+        """SIGSTOP the server and its backends: a database that neither refuses nor answers
+        (a paused VM). ``thaw_server`` lets it go on."""
+        self._signal_server(signal.SIGSTOP)
+
+    def thaw_server(self) -> None:
+        self._signal_server(signal.SIGCONT)
+
+    def _signal_server(self, signum: int) -> None:
+        postmaster = int((self.datadir / "postmaster.pid").read_text().split()[0])
+        for pid in [postmaster, *_children(postmaster)]:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signum)
 
     def server_log(self) -> str:
         try:

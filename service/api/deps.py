@@ -28,7 +28,8 @@ async def require_admin(
     state: State,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> Operator:
-    """Let the request through only with a configured admin token; returns the operator it names."""
+    """Let the request through only with a configured admin token (and a reachable store);
+    returns the operator it names."""
     if not state.operators:
         raise HTTPException(
             403, "The admin API is disabled: set CKS_ADMIN_TOKEN or CKS_ADMIN_TOKENS_FILE to enable it."
@@ -38,6 +39,7 @@ async def require_admin(
         raise HTTPException(
             401, "Send 'Authorization: Bearer <admin token>'.", headers={"WWW-Authenticate": "Bearer"}
         )
+    state.registry.require_store()  # every admin call needs the store: 503 at once while it is away
     return Operator(name=name, client=request.client.host if request.client else "")
 
 

@@ -9,8 +9,9 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from calibration_store import StoreUnavailable
 from service.api.request_id import HEADER as REQUEST_ID_HEADER
-from service.errors import ServiceError
+from service.errors import ServiceError, StoreUnreachable
 from service.logs import current_request
 
 PROBLEM_JSON = "application/problem+json"
@@ -64,6 +65,11 @@ def install_problem_handlers(app: FastAPI) -> None:
             exc.status_code, "Error"
         )
         return problem(exc.status_code, title, str(exc.detail), request, headers=exc.headers)
+
+    @app.exception_handler(StoreUnavailable)
+    async def _store_unavailable(request: Request, exc: StoreUnavailable) -> JSONResponse:
+        error = StoreUnreachable(f"the calibration store is unreachable ({exc}): retry later")
+        return problem(error.status, error.title, error.detail, request, headers=error.headers)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:

@@ -29,8 +29,15 @@ from dataclasses import replace
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
-from calibration_store import CalibrationStore, JobFinished, JobNotFound, JobRecord, StoreError
-from service.errors import ServiceError, Unavailable
+from calibration_store import (
+    CalibrationStore,
+    JobFinished,
+    JobNotFound,
+    JobRecord,
+    StoreError,
+    StoreUnavailable,
+)
+from service.errors import ServiceError, StoreUnreachable, Unavailable
 from service.metrics import CALIBRATION_JOBS
 from service.processes import process_owner
 
@@ -125,7 +132,8 @@ class JobRunner:
         try:
             self._store.create_job(job)
         except StoreError as error:
-            raise Unavailable(f"the job could not be recorded, so it was not started: {error}") from error
+            detail = f"the job could not be recorded, so it was not started: {error}"
+            raise StoreUnreachable(detail) from error
         with self._lock:
             self._tracked[job.id] = _Tracked(job)
         try:
@@ -141,7 +149,7 @@ class JobRunner:
         try:
             job = self._store.get_job(job_id)
         except StoreError as error:
-            raise Unavailable(f"the calibration store is unreachable: {error}") from error
+            raise StoreUnreachable(f"the calibration store is unreachable: {error}") from error
         return None if job is None else reported(job, datetime.now(UTC))
 
     def shutdown(self) -> None:
@@ -168,6 +176,9 @@ class JobRunner:
         except JobFinished as error:  # a retry took the job over while this process was presumed dead
             log.warning("job %s was finished elsewhere (%s); its work here was not stored", job_id, error)
             self._forget(job_id)
+        except StoreUnavailable as error:  # nothing committed: had it, the job's row would refuse this write
+            detail = f"the calibration store was unreachable ({error}); nothing was stored"
+            self._finish(job_id, "failed", errors=(detail + ": upload the batch again",))
         except ServiceError as error:
             self._finish(job_id, "failed", errors=(error.detail, *error.errors))
         except Exception as error:  # a job must never take the worker down with it

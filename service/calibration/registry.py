@@ -1,13 +1,19 @@
-"""The served model's calibrations: which version is active, and cached thresholds per version.
+"""The served model's calibrations, held in memory: the active version with its scores, and
+cached thresholds per version.
 
-Versions are immutable, so scores and thresholds are cached by version number and never
-invalidated; only the *active* pointer changes, and it is re-read at most once per
-``poll_seconds`` (when the store's change counter moves), which is how replicas see each
-other's activations.
+A poller thread reads the store every ``poll_seconds`` (the active version when the store's
+change counter moves; a newly active version's scores are loaded before it is served), which
+is how replicas see each other's activations. Requests read only what the poller left in
+memory, so the active version never waits on the store: while the store is away the last
+good state keeps being served and ``health()`` says how stale it is. Versions are immutable,
+so scores and thresholds are cached by version number and never invalidated; a request
+naming a version not in memory loads it from the store (503 while the store is away).
 """
 
 from __future__ import annotations
 
+import logging
+import math
 import threading
 import time
 from collections import OrderedDict
@@ -16,7 +22,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from calibration_store import CalibrationStore, ScoreTable, VersionNotFound
+from calibration_store import CalibrationStore, ScoreTable, StoreError, StoreUnavailable, VersionNotFound
 from service.calibration.compatibility import version_incompatibility
 from service.conformal import (
     CoverageGuarantee,
@@ -26,7 +32,12 @@ from service.conformal import (
     object_scores,
 )
 from service.detector.manifest import Manifest
-from service.errors import Conflict, NotFound, Unavailable
+from service.errors import Conflict, NotFound, StoreUnreachable, Unavailable
+
+log = logging.getLogger(__name__)
+
+#: score tables of versions other than the active one kept in memory
+CACHED_TABLES = 8
 
 
 @dataclass(frozen=True)
@@ -60,8 +71,31 @@ def channel_thresholds(
     return ChannelThresholds(values, tuple(guarantees))
 
 
+@dataclass(frozen=True)
+class StoreHealth:
+    """What the poller last learned from the store."""
+
+    reachable: bool
+    age_seconds: float  # since the store last answered a poll: how stale the cached state may be
+    error: str | None  # why the store is unreachable (None while it answers)
+
+
+@dataclass(frozen=True)
+class _Served:
+    """The active version and its scores (None when there is none, or it cannot be used)."""
+
+    version: int | None
+    table: ScoreTable | None
+
+
+@dataclass(frozen=True)
+class _Polled:
+    answered_at: float  # time.monotonic() when the last poll the store answered began
+    error: str | None  # why the polls since then failed
+
+
 class CalibrationRegistry:
-    """Active-version tracking plus per-version caches for one model hash."""
+    """The active version and per-version caches for one model hash, kept fresh by a poller."""
 
     def __init__(
         self,
@@ -69,43 +103,84 @@ class CalibrationRegistry:
         model_hash: str,
         manifest: Manifest,
         poll_seconds: float,
+        store_timeout_seconds: float,
     ) -> None:
         self.store = store
         self.model_hash = model_hash
         self._manifest = manifest
-        self._incompatibilities: dict[int, str | None] = {}  # versions are immutable: cached forever
         self._poll_seconds = poll_seconds
-        self._lock = threading.Lock()
-        self._checked_at = -np.inf
-        self._counter: int | None = None
-        self._active: int | None = None
+        self._store_timeout = store_timeout_seconds
+        self.retry_after_s = max(1, math.ceil(poll_seconds))  # a store that returns is seen within one poll
+        self._lock = threading.Lock()  # the caches
+        self._poll_lock = threading.Lock()  # one poll at a time: the poller's or refresh_now's
+        self._incompatibilities: dict[int, str | None] = {}  # versions are immutable: cached forever
         self._tables: OrderedDict[int, ScoreTable] = OrderedDict()
+        self._served = _Served(None, None)
+        self._counter: int | None = None
+        self._polled = _Polled(-math.inf, "the store was never polled")
+        self._polling_since: float | None = None
+        self._stop = threading.Event()
+        self._poller: threading.Thread | None = None
         self.thresholds = lru_cache(maxsize=1024)(self._thresholds)
 
+    def start(self) -> int | None:
+        """Read the active version (StoreError if the store is away), then poll in the background."""
+        active = self.refresh_now()
+        self._poller = threading.Thread(target=self._poll_forever, name="calibration-poller", daemon=True)
+        self._poller.start()
+        return active
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._poller is not None:
+            self._poller.join(timeout=self._store_timeout + 1.0)
+
     def active_version(self) -> int | None:
-        """The active version number, refreshed from the store at most once per poll interval."""
-        now = time.monotonic()
-        with self._lock:
-            if now - self._checked_at >= self._poll_seconds:
-                self._refresh()
-                self._checked_at = now
-            return self._active
+        """The active version as last read from the store (never waits on it)."""
+        return self._served.version
+
+    def health(self) -> StoreHealth:
+        now, polled, since = time.monotonic(), self._polled, self._polling_since
+        error = polled.error
+        if error is None and since is not None and now - since > 2 * self._store_timeout:  # a hung store
+            error = f"the store has not answered a poll for {now - since:.1f} s"
+        return StoreHealth(reachable=error is None, age_seconds=now - polled.answered_at, error=error)
+
+    def require_store(self) -> None:
+        """503 at once while the polls find the store unreachable: a call needing the store
+        would only wait for its timeout. The first poll the store answers lifts it."""
+        health = self.health()
+        if not health.reachable:
+            raise StoreUnreachable(
+                f"the calibration store is unreachable ({health.error}); calls that need it answer again"
+                f" within about {self._poll_seconds:g} s of its return (CKS_STORE_POLL_SECONDS). Predictions"
+                f" keep using the active calibration version {self.active_version()} from memory",
+                self.retry_after_s,
+            )
 
     def refresh_now(self) -> int | None:
-        with self._lock:
-            self._counter = None
-            self._refresh()
-            self._checked_at = time.monotonic()
-            return self._active
+        """Poll the store now (admin calls, after an activation); StoreError if it is away."""
+        before = self._polled
+        if not self._poll_lock.acquire(timeout=self._store_timeout):
+            raise StoreUnavailable(f"the store has not answered a poll for over {self._store_timeout:g} s")
+        try:
+            polled = self._polled
+            if polled is not before and polled.error is not None:  # a poll failed while this one waited
+                raise StoreUnavailable(polled.error)
+            self._poll(force=True)
+        finally:
+            self._poll_lock.release()
+        return self.active_version()
 
     def resolve(self, version: int | None) -> int:
         """The version a request asked for, or the active one, checked usable for this manifest.
 
-        A named version: 404 if missing, 409 if scored under other manifest settings. The
-        active one: 503 if there is none or it is unusable (the caller did nothing wrong).
+        A named version: 404 if missing, 409 if scored under other manifest settings, 503 if it
+        is not in memory and the store is away. The active one: 503 if there is none or it is
+        unusable (the caller did nothing wrong).
         """
         if version is not None:
-            self.check_usable(version)
+            self._load_named(version)
             return version
         active = self.active_version()
         if active is None:
@@ -117,6 +192,9 @@ class CalibrationRegistry:
 
     def scores(self, version: int) -> ScoreTable:
         """The version's scores (404 if it does not exist); ``resolve`` checks them usable first."""
+        served = self._served
+        if version == served.version and served.table is not None:
+            return served.table
         with self._lock:
             if version in self._tables:
                 self._tables.move_to_end(version)
@@ -127,7 +205,7 @@ class CalibrationRegistry:
             raise NotFound(f"calibration version {version} does not exist for this model") from error
         with self._lock:
             self._tables[version] = table
-            while len(self._tables) > 8:
+            while len(self._tables) > CACHED_TABLES:
                 self._tables.popitem(last=False)
         return table
 
@@ -151,12 +229,69 @@ class CalibrationRegistry:
             self._incompatibilities[version] = reason
         return reason
 
-    def _refresh(self) -> None:
-        counter = self.store.change_counter()
-        if counter != self._counter:
-            activation = self.store.active_version(self.model_hash)
-            self._active = activation.version if activation else None
-            self._counter = counter
+    def _load_named(self, version: int) -> None:
+        """Check a version a request names and have its scores in memory. The store is not tried
+        while the polls find it unreachable: the request would hold its slot for the timeout."""
+        try:
+            health = self.health()
+            if not health.reachable and not self._in_memory(version):
+                raise StoreUnavailable(health.error or "")
+            self.check_usable(version)
+            self.scores(version)
+        except StoreUnavailable as error:
+            raise StoreUnreachable(
+                f"calibration version {version} is not in this server's memory and the calibration store"
+                f" is unreachable ({error}): retry later, or omit calibration_version to use the active"
+                f" version {self.active_version()}, which still answers",
+                self.retry_after_s,
+            ) from error
+
+    def _in_memory(self, version: int) -> bool:
+        with self._lock:
+            if version not in self._incompatibilities:
+                return False
+            unusable = self._incompatibilities[version] is not None
+            return unusable or version in self._tables or version == self._served.version
+
+    def _poll_forever(self) -> None:
+        while not self._stop.wait(self._poll_seconds):
+            try:
+                with self._poll_lock:
+                    self._poll(force=False)
+            except StoreError:  # recorded in health(); the cached state keeps being served
+                continue
+            except Exception:  # a bug, not an outage: say so, and keep polling
+                log.exception("polling the calibration store failed")
+
+    def _poll(self, force: bool) -> None:
+        """Read the store's change counter, and the active version when it moved; the caller holds
+        the poll lock. A store failure is recorded (health) and raised; what is served stays."""
+        began = time.monotonic()
+        self._polling_since = began
+        try:
+            counter = self.store.change_counter()
+            if force or counter != self._counter:
+                activation = self.store.active_version(self.model_hash)
+                self._serve(None if activation is None else activation.version)
+                self._counter = counter
+        except StoreError as error:
+            if self._polled.error is None:
+                log.warning("calibration store unreachable (%s); serving calibration version %s from memory",
+                            error, self.active_version())  # fmt: skip
+            self._polled = _Polled(self._polled.answered_at, f"{type(error).__name__}: {error}")
+            raise
+        finally:
+            self._polling_since = None
+        if self._polled.error is not None and math.isfinite(self._polled.answered_at):
+            log.info("calibration store reachable again after %.1f s", began - self._polled.answered_at)
+        self._polled = _Polled(began, None)
+
+    def _serve(self, version: int | None) -> None:
+        """Serve ``version`` from now on, its scores loaded first (an unusable one has none)."""
+        table = None
+        if version is not None and self.incompatibility(version) is None:
+            table = self.scores(version)
+        self._served = _Served(version, table)
 
     def _thresholds(
         self, version: int, kind: str, scope: str, epsilon: float, delta: float | None

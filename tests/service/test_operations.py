@@ -34,11 +34,15 @@ def test_readyz_with_an_active_calibration(server: LiveServer) -> None:
     assert response.status_code == 200, response.text
     body = response.json()
     model = server.client.get("/v1/model").json()
+    age = body.pop("cache_age_seconds")
+    assert 0 <= age < 5, age  # polled every CKS_STORE_POLL_SECONDS (1 s)
     assert body == {
         "status": "ready",
         "model": model["name"],
         "model_hash": model["hash"],
         "active_calibration": 1,
+        "store": "ok",
+        "store_error": None,
     }
 
 

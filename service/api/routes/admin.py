@@ -33,7 +33,11 @@ from service.calibration.uploads import UploadWorkspace
 from service.errors import NotFound, ServiceError, UnsupportedMediaType
 from service.state import ServiceState
 
-router = APIRouter(prefix="/v1/admin", tags=["admin"])
+router = APIRouter(
+    prefix="/v1/admin",
+    tags=["admin"],
+    responses={503: {"description": "The calibration store is unreachable (with Retry-After)"}},
+)
 VersionNumber = Annotated[int, Path(ge=1, le=MAX_VERSION, description="calibration version number")]
 
 _ZIP_TYPES = {"application/zip", "application/x-zip-compressed", "application/octet-stream"}
@@ -150,6 +154,8 @@ async def get_job(job_id: str, state: State, _: Admin) -> JobOut:
             f"no job {job_id!r}: it never existed or was pruned (a job is kept for 7 days after its"
             " last heartbeat, and of the finished jobs only the latest 1000)"
         )
+    if job.state == "succeeded" and job.result.get("activated"):  # the server that says so serves it
+        await run_in_threadpool(state.registry.refresh_now)
     return job_out(job)
 
 

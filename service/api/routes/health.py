@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from fastapi import APIRouter, Response
-from fastapi.concurrency import run_in_threadpool
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 from service.api.deps import State
-from service.errors import Unavailable
+from service.errors import StoreUnreachable
 from service.metrics import metrics_payload
 
 router = APIRouter(tags=["operations"])
@@ -22,6 +23,14 @@ class Readiness(BaseModel):
     model: str
     model_hash: str
     active_calibration: int
+    store: Literal["ok", "unreachable"] = Field(
+        description="whether the calibration store answered the latest poll; predictions go on from"
+        " memory while it is unreachable"
+    )
+    cache_age_seconds: float = Field(
+        description="seconds since the store last confirmed the cached active calibration"
+    )
+    store_error: str | None = Field(description="why the store is unreachable (null while it answers)")
 
 
 @router.get("/healthz", response_model=Health, summary="The process is alive")
@@ -29,16 +38,37 @@ async def healthz() -> Health:
     return Health(status="ok")
 
 
-@router.get("/readyz", response_model=Readiness, summary="Model loaded, store reachable, calibration active")
+@router.get(
+    "/readyz",
+    response_model=Readiness,
+    summary="Model loaded, a calibration active and in memory (the store's health is in the body)",
+    responses={
+        503: {
+            "description": "No calibration active or usable, or the store has not confirmed the cached"
+            " one for over CKS_MAX_CACHE_STALENESS_SECONDS"
+        }
+    },
+)
 async def readyz(state: State) -> Readiness:
-    try:
-        await run_in_threadpool(state.store.ping)
-    except Exception as error:
-        raise Unavailable(f"the calibration store is unreachable: {error}") from error
-    active = await run_in_threadpool(state.registry.resolve, None)  # 503: none active, or unusable
+    registry = state.registry
+    active = registry.resolve(None)  # 503: none active, or unusable; never waits on the store
+    health = registry.health()
+    limit = state.settings.max_cache_staleness_seconds
+    if limit is not None and health.age_seconds > limit:
+        raise StoreUnreachable(
+            f"the store has not confirmed the cached calibration for {health.age_seconds:.1f} s"
+            f" (CKS_MAX_CACHE_STALENESS_SECONDS = {limit:g}): {health.error or 'its polls are slow'}",
+            registry.retry_after_s,
+        )
     manifest = state.detector.manifest
     return Readiness(
-        status="ready", model=manifest.name, model_hash=state.detector.model_hash, active_calibration=active
+        status="ready",
+        model=manifest.name,
+        model_hash=state.detector.model_hash,
+        active_calibration=active,
+        store="ok" if health.reachable else "unreachable",
+        cache_age_seconds=round(health.age_seconds, 3),
+        store_error=health.error,
     )
 
 

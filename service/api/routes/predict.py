@@ -50,7 +50,10 @@ _OPENAPI = {
         "413": {"description": "Body or image too large"},
         "415": {"description": "Not JSON or multipart, or not a JPEG/PNG image"},
         "422": {"description": "Invalid request; the problem lists what to fix"},
-        "503": {"description": "No active calibration, or overloaded (with Retry-After)"},
+        "503": {
+            "description": "No active calibration, overloaded, or calibration_version names a version"
+            " not in memory while the store is unreachable (with Retry-After)"
+        },
     },
 }
 

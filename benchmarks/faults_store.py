@@ -1,0 +1,293 @@
+"""What a real server does while its PostgreSQL store is down, measured end to end.
+
+    python -m benchmarks.faults_store                       # 8 s outage, 2 clients
+    python -m benchmarks.faults_store --outage 30 --clients 4
+
+Starts a throwaway PostgreSQL cluster (the machine's server binaries, as the tests do) and
+one real server on it (uvicorn on loopback, bundled model and calibration, version 1
+active), stores a second version without activating it, then has client threads predict
+continuously with the active version while the cluster is stopped for ``--outage`` seconds
+and started again. Printed: predictions answered and failed with their latency p50/p99
+before, during and after the outage; how long an admin call took to answer 503 (the first
+one, before the server knew, and one after); /readyz during the outage; a predict naming
+the version not in memory; how long until /readyz reported the store unreachable, and ok
+again after the restart; how long an activation written to the store during recovery (as
+another replica would) took to be served; and when admin calls answered 200 again.
+
+Bounded: ``--before + --outage + --after`` seconds of load, every wait capped at
+``WAIT_LIMIT_S``; loopback only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+from calibration_store import open_store
+from tests.postgres_cluster import PostgresCluster
+from tests.service.live import (
+    ADMIN_TOKEN,
+    LiveServer,
+    batch_zip,
+    load_samples,
+    model_dir,
+    samples_by_image,
+    wait_until,
+)
+from tests.service.predict_client import instances_of, predict_json
+
+#: longest any single wait of the scenario may take
+WAIT_LIMIT_S = 30.0
+ADMIN_PROBE = "/v1/admin/calibrations"
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """One predict as a client saw it (status 0: no HTTP answer)."""
+
+    began: float  # time.monotonic()
+    seconds: float
+    status: int
+
+
+@dataclass(frozen=True)
+class PhaseFigures:
+    answered: int
+    failed: int
+    p50_ms: float
+    p99_ms: float
+
+    @classmethod
+    def of(cls, outcomes: list[Outcome]) -> PhaseFigures:
+        ok = [o.seconds * 1e3 for o in outcomes if o.status == 200]
+        p50, p99 = np.percentile(ok, [50, 99]) if ok else (float("nan"), float("nan"))
+        return cls(len(ok), len(outcomes) - len(ok), float(p50), float(p99))
+
+
+@dataclass(frozen=True)
+class Call:
+    """One HTTP exchange: status, seconds, Retry-After and the JSON body (or {})."""
+
+    status: int
+    seconds: float
+    retry_after: str | None
+    body: dict
+
+    @classmethod
+    def timed(cls, send: Callable[[], httpx.Response]) -> Call:
+        began = time.monotonic()
+        response = send()
+        seconds = time.monotonic() - began
+        try:
+            body = response.json()
+        except ValueError:
+            body = {}
+        return cls(response.status_code, seconds, response.headers.get("Retry-After"), body)
+
+
+@dataclass
+class OutageReport:
+    outage_s: float
+    poll_s: float
+    phases: dict[str, PhaseFigures]  # before, during, after
+    admin_first: Call  # sent right after the stop, before the server knew
+    admin_known: Call  # sent once /readyz said the store is unreachable
+    readyz_during: Call
+    named_active: Call  # predict naming the active version (in memory)
+    named_other: Call  # predict naming a version not in memory
+    unreachable_after_s: float  # stop -> /readyz says unreachable
+    recovered_after_s: float  # restart -> /readyz says ok
+    activation_seen_after_s: float  # activation written to the store during recovery -> served
+    admin_ok_after_s: float  # restart -> an admin call answers 200
+
+
+@dataclass
+class PredictLoad:
+    """Client threads predicting back to back (``pause`` seconds apart) until stopped."""
+
+    url: str
+    image: bytes
+    parameters: dict[str, Any]
+    clients: int = 2
+    pause: float = 0.02
+    outcomes: list[Outcome] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self._stop = threading.Event()
+        self._threads = [threading.Thread(target=self._run, daemon=True) for _ in range(self.clients)]
+
+    def start(self) -> None:
+        for thread in self._threads:
+            thread.start()
+
+    def stop(self) -> list[Outcome]:
+        self._stop.set()
+        for thread in self._threads:
+            thread.join(timeout=WAIT_LIMIT_S)
+        return sorted(self.outcomes, key=lambda o: o.began)
+
+    def _run(self) -> None:
+        with httpx.Client(base_url=self.url, timeout=30.0) as client:
+            while not self._stop.is_set():
+                began = time.monotonic()
+                try:
+                    status = predict_json(client, self.image, self.parameters).status_code
+                except httpx.HTTPError:
+                    status = 0
+                self.outcomes.append(Outcome(began, time.monotonic() - began, status))  # list.append: atomic
+                self._stop.wait(self.pause)
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A server on a cluster's database, version 1 active and version 2 stored (not in memory)."""
+
+    cluster: PostgresCluster
+    store_url: str
+    server: LiveServer
+    image: bytes
+    parameters: dict[str, Any]
+
+
+@contextmanager
+def scene(work: Path, cluster: PostgresCluster, **settings: Any) -> Iterator[Scene]:
+    """Start a server with ``settings`` on a new database of ``cluster``, and store version 2."""
+    samples_dir = model_dir() / "samples"
+    coco = json.loads((samples_dir / "annotations.json").read_text())
+    path, group = next(iter(samples_by_image(load_samples(samples_dir, coco)).items()))
+    url = cluster.create_database()
+    with LiveServer(work / "data", admin_token=ADMIN_TOKEN, store_url=url, **settings) as server:
+        job = server.calibrate(batch_zip(samples_dir, coco, images=4))
+        assert job["result"]["version"] == 2, job
+        yield Scene(cluster, url, server, path.read_bytes(), {"instances": instances_of(group)})
+
+
+def seconds_until(condition: Callable[[], bool], what: str) -> float:
+    """Seconds until ``condition()`` holds (AssertionError naming ``what`` past WAIT_LIMIT_S)."""
+    began = time.monotonic()
+    wait_until(condition, what, WAIT_LIMIT_S)
+    return time.monotonic() - began
+
+
+def run_outage(
+    prepared: Scene, outage_s: float, before_s: float = 3.0, after_s: float = 5.0, clients: int = 2
+) -> OutageReport:
+    """Predict under load while the cluster is stopped for ``outage_s`` seconds and restarted."""
+    server, client, cluster = prepared.server, prepared.server.client, prepared.cluster
+    poll_s = float(server.settings.get("store_poll_seconds", 1.0))
+    readyz: dict[str, Call] = {}
+
+    def readyz_says(key: str, value: object) -> bool:
+        readyz["last"] = Call.timed(lambda: client.get("/readyz"))
+        return readyz["last"].body.get(key) == value
+
+    def admin() -> Call:
+        return Call.timed(lambda: client.get(ADMIN_PROBE, headers=server.admin))
+
+    def predict_named(version: int) -> Call:
+        parameters = {**prepared.parameters, "calibration_version": version}
+        return Call.timed(lambda: predict_json(client, prepared.image, parameters))
+
+    load = PredictLoad(server.url, prepared.image, prepared.parameters, clients)
+    load.start()
+    try:
+        time.sleep(before_s)
+        stopped_at = time.monotonic()
+        cluster.stop_server()
+        try:
+            admin_first = admin()
+            unreachable_after_s = time.monotonic() - stopped_at + seconds_until(
+                lambda: readyz_says("store", "unreachable"), "/readyz reports the store unreachable"
+            )
+            readyz_during = readyz["last"]
+            admin_known, named_active, named_other = admin(), predict_named(1), predict_named(2)
+            time.sleep(max(0.0, stopped_at + outage_s - time.monotonic()))
+        finally:
+            restarted_at = time.monotonic()
+            cluster.start_server()
+        with open_store(prepared.store_url) as store:  # another replica's activation, during recovery
+            store.activate(readyz_during.body["model_hash"], 2, "faults_store", "activated during recovery")
+        activated_at = time.monotonic()
+        recovered_after_s = time.monotonic() - restarted_at + seconds_until(
+            lambda: readyz_says("store", "ok"), "/readyz reports the store ok"
+        )
+        admin_ok_after_s = time.monotonic() - restarted_at + seconds_until(
+            lambda: admin().status == 200, "admin calls answer 200"
+        )
+        activation_seen_after_s = time.monotonic() - activated_at + seconds_until(
+            lambda: readyz_says("active_calibration", 2), "the activation is served"
+        )
+        time.sleep(after_s)
+    finally:
+        outcomes = load.stop()
+
+    def between(start: float, end: float) -> PhaseFigures:
+        return PhaseFigures.of([o for o in outcomes if start <= o.began < end])
+
+    phases = {
+        "before": between(-np.inf, stopped_at),
+        "during": between(stopped_at, restarted_at),
+        "after": between(restarted_at, np.inf),
+    }
+    return OutageReport(outage_s, poll_s, phases, admin_first, admin_known, readyz_during, named_active,
+                        named_other, unreachable_after_s, recovered_after_s, activation_seen_after_s,
+                        admin_ok_after_s)  # fmt: skip
+
+
+def print_report(report: OutageReport) -> None:
+    print(f"PostgreSQL stopped for {report.outage_s:g} s; store polled every {report.poll_s:g} s")
+    print(f"{'predictions':<12} {'answered':>9} {'failed':>7} {'p50 ms':>8} {'p99 ms':>8}")
+    for name, f in report.phases.items():
+        print(f"{name:<12} {f.answered:>9} {f.failed:>7} {f.p50_ms:>8.1f} {f.p99_ms:>8.1f}")
+    readyz = report.readyz_during.body
+    print(f"/readyz during: {report.readyz_during.status}, store {readyz.get('store')},"
+          f" cache age {readyz.get('cache_age_seconds')} s, error {readyz.get('store_error')!r}")  # fmt: skip
+    for label, call in (("admin GET, first after the stop", report.admin_first),
+                        ("admin GET, store known down", report.admin_known),
+                        ("predict naming the active version", report.named_active),
+                        ("predict naming a version not in memory", report.named_other)):  # fmt: skip
+        print(f"{label}: {call.status} in {call.seconds:.3f} s (Retry-After: {call.retry_after})")
+    print(f"/readyz reported the store unreachable {report.unreachable_after_s:.2f} s after the stop")
+    print(f"after the restart: /readyz store ok in {report.recovered_after_s:.2f} s, admin 200 by"
+          f" {report.admin_ok_after_s:.2f} s; an activation written during recovery served by"
+          f" {report.activation_seen_after_s:.2f} s after it")  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--outage", type=float, default=8.0, help="seconds the cluster stays stopped")
+    parser.add_argument("--before", type=float, default=3.0, help="seconds of load before the stop")
+    parser.add_argument("--after", type=float, default=5.0, help="seconds of load after recovery")
+    parser.add_argument("--clients", type=int, default=2, help="client threads predicting")
+    parser.add_argument("--poll", type=float, default=1.0, help="CKS_STORE_POLL_SECONDS")
+    parser.add_argument("--timeout", type=float, default=1.5, help="CKS_STORE_TIMEOUT_SECONDS")
+    args = parser.parse_args(argv)
+    for name in ("outage", "before", "after", "poll", "timeout"):
+        if not 0 < getattr(args, name) <= 600:
+            parser.error(f"--{name} must be in (0, 600] seconds")
+    if not 1 <= args.clients <= 32:
+        parser.error("--clients must be 1 to 32")
+    settings = {"store_poll_seconds": args.poll, "store_timeout_seconds": args.timeout}
+    with (
+        tempfile.TemporaryDirectory(prefix="cks-faults-store-") as work,
+        PostgresCluster.start() as cluster,
+        scene(Path(work), cluster, **settings) as prepared,
+    ):
+        report = run_outage(prepared, args.outage, args.before, args.after, args.clients)
+    print_report(report)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
