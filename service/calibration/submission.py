@@ -115,19 +115,26 @@ class CalibrationJobs:
             raise Conflict(f"job {job_id} is {job.state}; only an interrupted job can be retried")
         old = JobFolder.of(self._settings.jobs_dir, job_id)
         if not old.exists():
+            retried_as = job.result.get("retried_as")
             raise Conflict(
+                f"job {job_id} was retried already, as job {retried_as}" if retried_as else
                 f"the upload of job {job_id} is not kept in this server's data directory"
-                f" ({self._settings.jobs_dir}); retry on the server that received it ({job.owner}),"
-                " or upload the batch again"
-            )
+                f" ({self._settings.jobs_dir}): it was retried already (GET /v1/admin/audit says as"
+                f" which job), or it is kept by the server that received it ({job.owner}); retry"
+                " there, or upload the batch again"
+            )  # fmt: skip
         kept = old.load()
         request, original = UploadRequest(**kept["request"]), Operator(**kept["operator"])
         named = reload_batch(old, kept["batch_dir"], batch_name(request.name, kept["sha256"]), kept["sha256"],
                              self._detector.manifest)  # fmt: skip
         self._prepare(named, request)  # refuse before taking the job over
         new = JobFolder.of(self._settings.jobs_dir, new_job_id())
-        self._take_over(job, new.job_id)
-        old.move_to(new)
+        if self._store.get_job(job_id).state != "interrupted":  # only reported so: its process may live
+            self._take_over(job, new.job_id)
+        try:
+            old.move_to(new)  # one rename wins: a job is retried once
+        except FileNotFoundError as error:
+            raise Conflict(f"job {job_id} was retried meanwhile") from error
         named = reload_batch(new, kept["batch_dir"], named.name, named.sha256, self._detector.manifest)
         retried = self._submit(new, self._prepare(named, request), request, original)
         self._audit.record(operator, "retry", "accepted", details={"job": job_id, "new_job": retried.id})

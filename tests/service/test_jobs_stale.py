@@ -174,3 +174,29 @@ def test_a_silent_job_row_is_reported_interrupted(tmp_path: Path) -> None:
             assert "node-7:31337" in job["errors"][0] and "Nothing was stored" in job["errors"][0], job
         assert server.job("fresh")["state"] == "running"
         assert server.job("finished")["state"] == "succeeded"
+
+
+def test_a_job_queued_at_shutdown_is_interrupted_and_retried(
+    tmp_path: Path, samples_dir: Path, coco: dict
+) -> None:
+    """A job still queued when the server stops is stored interrupted (a final state): the
+    retry claims its kept upload by moving it, once."""
+    data = tmp_path / "data"
+    server = LiveServer(data, admin_token=ADMIN_TOKEN, calibration_workers=1).start()
+    try:
+        first = server.upload(batch_zip(samples_dir, coco, mutate=reencoded(COPIES)))
+        second = server.upload(batch_zip(samples_dir, coco, images=3))
+        assert first.status_code == second.status_code == 202, (first.text, second.text)
+        queued = second.json()["id"]
+        assert server.job(queued)["state"] == "queued"
+    finally:
+        server.stop()
+    with LiveServer(data, admin_token=ADMIN_TOKEN) as restarted:
+        job = restarted.job(queued)
+        assert job["state"] == "interrupted" and "stopped before the job started" in job["errors"][0], job
+        retried = restarted.client.post(f"/v1/admin/jobs/{queued}/retry", headers=restarted.admin)
+        assert retried.status_code == 202, retried.text
+        new = restarted.wait_job(retried.json()["id"])
+        assert new["state"] == "succeeded" and new["result"]["added"] == count_instances(coco, images=3), new
+        again = restarted.client.post(f"/v1/admin/jobs/{queued}/retry", headers=restarted.admin)
+        assert again.status_code == 409, again.text
