@@ -101,29 +101,28 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
 
 
 def _predict(args: argparse.Namespace, settings: Settings) -> int:
-    from service.api.schemas import PredictParameters
-    from service.image_decoding import decode_image
-    from service.prediction import predict
-    from service.render import render_prediction
-    from service.state import build_state
+    from contextlib import nullcontext
 
-    instances = [{"object": obj, "bbox": [float(v) for v in bbox.split(",")]} for obj, bbox in args.instance]
-    parameters = PredictParameters(
-        instances=instances,
-        epsilon=args.epsilon,
-        nonconformity=args.nonconformity,
-        coverage=args.coverage,
-        delta=args.delta,
-        calibration_version=args.calibration_version,
-    )
-    image = decode_image(Path(args.image).read_bytes(), settings.max_image_pixels)
-    state = build_state(settings)
-    try:
-        response = predict(state, image, parameters)
-    finally:
-        state.close()
-    if args.png:
-        Path(args.png).write_bytes(render_prediction(image, response))
+    from keypoint_client import ConnectionFailed, KeypointClient, ProblemError
+
+    from service.inprocess import served
+
+    image = Path(args.image).read_bytes()
+    instances = [(obj, [float(v) for v in bbox.split(",")]) for obj, bbox in args.instance]
+    options = {"epsilon": args.epsilon, "nonconformity": args.nonconformity, "coverage": args.coverage,
+               "delta": args.delta, "calibration_version": args.calibration_version}  # fmt: skip
+    # Without --url, this process serves the model on a loopback port: one path, the client's.
+    with nullcontext(args.url) if args.url else served(settings) as url, KeypointClient(url) as client:
+        try:
+            response = client.predict(image, instances, **options)
+            drawn = client.predict_png(image, instances, **options) if args.png else None
+        except ProblemError as problem:
+            raise ServiceError(problem.detail, errors=problem.errors) from None
+        except ConnectionFailed as error:
+            print(f"error: {error}", file=sys.stderr)
+            return 1
+    if drawn is not None:
+        Path(args.png).write_bytes(drawn)
     print(response.model_dump_json(indent=2))
     return 0
 
@@ -200,6 +199,7 @@ def build_parser() -> argparse.ArgumentParser:
     predict.add_argument("--delta", type=float)
     predict.add_argument("--calibration-version", type=int)
     predict.add_argument("--png", help="also draw the sets into this PNG file")
+    predict.add_argument("--url", help="the service to ask (default: serve the model in this process)")
     predict.set_defaults(run=_predict)
 
     check = commands.add_parser("check-model", help="validate a model directory and summarize its manifest")
