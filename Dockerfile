@@ -6,6 +6,7 @@ WORKDIR /src
 COPY pyproject.toml README.md ./
 COPY service ./service
 COPY calibration_store ./calibration_store
+COPY client ./client
 RUN pip wheel --no-deps --wheel-dir /wheels . \
     && python -m zipfile -l /wheels/*.whl | grep -q _upper_half  # the kernel was compiled
 

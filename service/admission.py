@@ -34,23 +34,29 @@ class Admission:
         self._max_concurrent, self._max_queued, self._timeout = max_concurrent, max_queued, timeout
         self._admitted = 0
 
+    @property
+    def capacity(self) -> int:
+        """Places in all: computing plus waiting."""
+        return self._max_concurrent + self._max_queued
+
     @asynccontextmanager
-    async def admitted(self) -> AsyncIterator[None]:
-        """Enter the queue or fail fast (CKS_MAX_QUEUED_REQUESTS)."""
-        if self._admitted >= self._max_concurrent + self._max_queued:
+    async def admitted(self, places: int = 1) -> AsyncIterator[None]:
+        """Enter the queue with ``places`` places (one per image) or fail fast (CKS_MAX_QUEUED_REQUESTS)."""
+        if self._admitted + places > self.capacity:
             PREDICT_REJECTED.labels("queue_full").inc()
+            needs = f"; this batch needs {places} more places, one per image" if places > 1 else ""
             raise Overloaded(
                 f"the service is at capacity ({self._max_concurrent} predict requests computing, "
-                f"{self._max_queued} waiting; CKS_MAX_CONCURRENT_INFERENCES, CKS_MAX_QUEUED_REQUESTS): "
-                f"retry after {RETRY_AFTER_SECONDS} s"
+                f"{self._max_queued} waiting; CKS_MAX_CONCURRENT_INFERENCES, CKS_MAX_QUEUED_REQUESTS)"
+                f"{needs}: retry after {RETRY_AFTER_SECONDS} s"
             )
-        self._admitted += 1
-        PREDICT_IN_FLIGHT.inc()
+        self._admitted += places
+        PREDICT_IN_FLIGHT.inc(places)
         try:
             yield
         finally:
-            self._admitted -= 1
-            PREDICT_IN_FLIGHT.dec()
+            self._admitted -= places
+            PREDICT_IN_FLIGHT.dec(places)
 
     @asynccontextmanager
     async def slot(self) -> AsyncIterator[None]:

@@ -127,32 +127,31 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
 
 
 def _predict(args: argparse.Namespace, settings: Settings) -> int:
-    from service.api.schemas import PredictParameters
-    from service.image_decoding import decode_image
-    from service.prediction import predict
-    from service.render import render_prediction
-    from service.state import build_state
+    from contextlib import nullcontext
 
-    instances = [{"object": obj, "bbox": bbox} for obj, bbox in args.instance]
-    try:
-        parameters = PredictParameters(
-            instances=instances,
-            epsilon=args.epsilon,
-            nonconformity=args.nonconformity,
-            coverage=args.coverage,
-            delta=args.delta,
-            calibration_version=args.calibration_version,
-        )
+    from keypoint_client import ConnectionFailed, KeypointClient, ProblemError
+
+    from service.api.schemas import PredictParameters
+    from service.inprocess import served
+
+    image = Path(args.image).read_bytes()
+    options = {"epsilon": args.epsilon, "nonconformity": args.nonconformity, "coverage": args.coverage,
+               "delta": args.delta, "calibration_version": args.calibration_version}  # fmt: skip
+    try:  # refuse a mistake before a model is loaded for nothing
+        PredictParameters(instances=[{"object": o, "bbox": b} for o, b in args.instance], **options)
     except ValidationError as error:
         raise InvalidInput(_problems(error, lambda loc: ".".join(loc))) from None
-    image = decode_image(Path(args.image).read_bytes(), settings.max_image_pixels)
-    state = build_state(settings)
-    try:
-        response = predict(state, image, parameters)
-    finally:
-        state.close()
-    if args.png:
-        Path(args.png).write_bytes(render_prediction(image, response))
+    # Without --url, this process serves the model on a loopback port: one path, the client's.
+    with nullcontext(args.url) if args.url else served(settings) as url, KeypointClient(url) as client:
+        try:
+            response = client.predict(image, args.instance, **options)
+            drawn = client.predict_png(image, args.instance, **options) if args.png else None
+        except ProblemError as problem:
+            raise ServiceError(problem.detail, errors=problem.errors) from None
+        except ConnectionFailed as error:
+            return _failed(str(error), 1)
+    if drawn is not None:
+        Path(args.png).write_bytes(drawn)
     print(response.model_dump_json(indent=2))
     return 0
 
@@ -340,6 +339,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="answer with this version (default: the active one)",
     )
     predict.add_argument("--png", help="also draw the sets into this PNG file")
+    predict.add_argument("--url", help="the service to ask (default: serve the model in this process)")
     predict.set_defaults(run=_predict)
 
     check = _command(commands, "check-model", "validate a model directory and summarize its manifest")

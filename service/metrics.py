@@ -51,7 +51,7 @@ INFERENCE_SECONDS = Histogram(
     registry=REGISTRY,
 )
 PREDICT_IN_FLIGHT = Gauge(
-    "cks_predict_in_flight", "predict requests admitted (computing or waiting for a slot)",
+    "cks_predict_in_flight", "predict places taken, one per request or batch image (computing or waiting)",
     registry=REGISTRY, multiprocess_mode="livesum",
 )
 PREDICT_COMPUTING = Gauge(

@@ -49,6 +49,13 @@ class Settings(BaseSettings):
     max_request_bytes: int = Field(default=20 * 2**20, gt=0, description="largest predict request body")
     max_image_pixels: int = Field(default=40_000_000, gt=0, description="largest width*height decoded")
     max_instances: int = Field(default=64, gt=0, description="instances per predict request")
+    max_batch_images: int = Field(
+        default=16,
+        gt=0,
+        le=1024,
+        description="images per POST /v1/predict/batch request (each takes one admission place;"
+        " the body obeys CKS_MAX_REQUEST_BYTES)",
+    )
     max_concurrent_inferences: int = Field(default=8, gt=0, description="predict requests computing at once")
     max_queued_requests: int = Field(
         default=32, ge=0, description="predict requests waiting for a slot; more get 503 at once"

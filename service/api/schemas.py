@@ -159,3 +159,28 @@ class PredictResponse(BaseModel):
     calibration: CalibrationRef
     image: ImageInfo
     instances: list[InstanceOut]
+
+
+class Problem(BaseModel):
+    """An RFC 9457 problem: what went wrong and what to fix (``application/problem+json``)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    type: str = "about:blank"
+    title: str
+    status: int
+    detail: str = Field(description="what to fix")
+    instance: str | None = Field(default=None, description="the request's path")
+    errors: list[str] | None = Field(default=None, description="every problem found")
+
+
+class BatchItem(BaseModel):
+    """The answer for one image of a batch: a result, or the problem that image alone had."""
+
+    status: int = Field(description="200, or the status this image would have had on POST /v1/predict")
+    result: PredictResponse | None = Field(default=None, description="present when status is 200")
+    problem: Problem | None = Field(default=None, description="present otherwise")
+
+
+class BatchResponse(BaseModel):
+    items: list[BatchItem] = Field(description="one per image, in the order image_0, image_1, ...")

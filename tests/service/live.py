@@ -56,8 +56,9 @@ def model_dir() -> Path:
 def service_env(data_dir: Path, **settings: Any) -> dict[str, str]:
     """The parent environment without any CKS_* variable, plus the model, data dir and ``settings``.
 
-    ``PYTHONPATH`` starts with this checkout: an installed console script (``cli()``) would
-    otherwise import the code of wherever the package was installed from, e.g. another worktree.
+    ``PYTHONPATH`` starts with this checkout and its client: an installed console script
+    (``cli()``) would otherwise import the code of wherever the package was installed from,
+    e.g. another worktree.
 
     ``settings`` keys are setting names (``admin_token="x"`` -> ``CKS_ADMIN_TOKEN=x``); None drops one.
     """
@@ -68,7 +69,9 @@ def service_env(data_dir: Path, **settings: Any) -> dict[str, str]:
     env["CKS_INFERENCE_THREADS"] = "1"
     env["CKS_CPU_WORKERS"] = "2"
     env["PYTHONUNBUFFERED"] = "1"
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(PACKAGE_ROOT), os.environ.get("PYTHONPATH")]))
+    env["PYTHONPATH"] = os.pathsep.join(
+        filter(None, [str(PACKAGE_ROOT), str(PACKAGE_ROOT / "client"), os.environ.get("PYTHONPATH")])
+    )
     for key, value in settings.items():
         if value is not None:
             env[f"CKS_{key.upper()}"] = str(value)

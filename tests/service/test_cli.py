@@ -1,4 +1,5 @@
-"""The keypoint-service command line: predict (JSON and PNG) and offline calibrate."""
+"""The keypoint-service command line: predict (JSON and PNG, through the client, in this
+process or from a running service) and offline calibrate."""
 
 from __future__ import annotations
 
@@ -10,9 +11,19 @@ import cv2
 import numpy as np
 
 from calibration_store import open_store
+from service.api.schemas import PredictResponse
 from service.detector.runtime import file_sha256
 from service.settings import PACKAGE_ROOT
-from tests.service.live import Sample, cli, count_instances, samples_by_image, service_env
+from tests.service.live import (
+    LiveServer,
+    Sample,
+    cli,
+    count_instances,
+    free_port,
+    samples_by_image,
+    service_env,
+)
+from tests.service.predict_client import predict_json
 
 
 def run(args: list[str], data_dir: Path, expect: int = 0) -> subprocess.CompletedProcess:
@@ -30,13 +41,33 @@ def run(args: list[str], data_dir: Path, expect: int = 0) -> subprocess.Complete
     return result
 
 
-def test_predict_prints_json_and_writes_a_png(tmp_path: Path, samples: list[Sample]) -> None:
+def predict_args(path: Path, group: list[Sample], *options: str) -> tuple[list[str], dict]:
+    """The command line's arguments, and the same request as POST /v1/predict takes it."""
+    boxes = [(s.object, ",".join(f"{v:g}" for v in s.bbox)) for s in group]
+    args = ["predict", str(path), *options]
+    for name, box in boxes:
+        args += ["--instance", f"{name}:{box}"]
+    instances = [{"object": name, "bbox": [float(v) for v in box.split(",")]} for name, box in boxes]
+    return args, {"instances": instances}
+
+
+def services_answers(server: LiveServer, path: Path, parameters: dict) -> tuple[str, bytes]:
+    """The JSON as the command line printed it before it used the client (PredictResponse's
+    model_dump_json(indent=2)), and the PNG the service draws."""
+    image = path.read_bytes()
+    answer = predict_json(server.client, image, parameters)
+    drawn = predict_json(server.client, image, parameters, headers={"Accept": "image/png"})
+    assert answer.status_code == drawn.status_code == 200, answer.text
+    return PredictResponse.model_validate_json(answer.content).model_dump_json(indent=2) + "\n", drawn.content
+
+
+def test_predict_prints_json_and_writes_a_png(
+    tmp_path: Path, samples: list[Sample], server: LiveServer
+) -> None:
     path, group = next(iter(samples_by_image(samples).items()))
-    instances = [f"{s.object}:{','.join(f'{v:g}' for v in s.bbox)}" for s in group]
-    args = ["predict", str(path), "--png", str(tmp_path / "out.png"), "--nonconformity", "var"]
-    for instance in instances:
-        args += ["--instance", instance]
-    body = json.loads(run(args, tmp_path / "data").stdout)
+    args, parameters = predict_args(path, group, "--png", str(tmp_path / "out.png"), "--nonconformity", "var")
+    printed = run(args, tmp_path / "data").stdout
+    body = json.loads(printed)
 
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     assert body["image"] == {"width": image.shape[1], "height": image.shape[0]}
@@ -50,6 +81,31 @@ def test_predict_prints_json_and_writes_a_png(tmp_path: Path, samples: list[Samp
     assert drawn is not None and drawn.shape[:2] == image.shape[:2]
     assert (tmp_path / "out.png").read_bytes().startswith(b"\x89PNG")
     assert np.any(drawn != cv2.imread(str(path), cv2.IMREAD_COLOR))
+    # The same output as before it used the client: the same text, the same drawing.
+    assert (printed, (tmp_path / "out.png").read_bytes()) == services_answers(
+        server, path, {**parameters, "nonconformity": "var"}
+    )
+
+
+def test_predict_asks_a_running_service(tmp_path: Path, samples: list[Sample], server: LiveServer) -> None:
+    path, group = list(samples_by_image(samples).items())[1]
+    args, parameters = predict_args(path, group, "--url", server.url, "--png", str(tmp_path / "out.png"))
+    printed = run(args, tmp_path / "data").stdout
+    assert (printed, (tmp_path / "out.png").read_bytes()) == services_answers(server, path, parameters)
+
+    unknown = run(
+        ["predict", str(path), "--url", server.url, "--instance", "nothing:1,1,9,9"], tmp_path, expect=2
+    )
+    assert "error: instances[0].object 'nothing' is not an object" in unknown.stderr
+    assert "Traceback" not in unknown.stderr
+    closed = f"http://127.0.0.1:{free_port()}"
+    unreachable = run(
+        ["predict", str(path), "--url", closed, "--instance", "duck:1,1,9,9"], tmp_path, expect=1
+    )
+    assert (
+        f"error: {closed}/v1/predict: ConnectError" in unreachable.stderr
+        and "Traceback" not in unreachable.stderr
+    )
 
 
 def test_calibrate_creates_and_activates_a_version(

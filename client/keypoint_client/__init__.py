@@ -1,0 +1,111 @@
+"""Typed Python client of the conformal keypoint service.
+
+    from keypoint_client import KeypointClient
+
+    with KeypointClient("http://127.0.0.1:8000") as client:
+        result = client.predict("scene.jpg", [("duck", [235, 217, 67, 64])], epsilon=0.1)
+        keypoint = result.instances[0].keypoints[0]
+        keypoint.set.contains([[268.0, 219.0]])  # -> array([ True])
+
+See README.md for the rest: many images per call, retries, calibration administration.
+"""
+
+from keypoint_client.admin_models import (
+    Activation,
+    ActivationLog,
+    AuditEntry,
+    AuditPage,
+    Comparison,
+    Job,
+    KeypointChange,
+    StoreInfo,
+    VersionDetail,
+    VersionList,
+    VersionSummary,
+)
+from keypoint_client.calls import PredictOptions, PredictRequest, UploadOptions
+from keypoint_client.client import AsyncKeypointClient, KeypointClient, __version__
+from keypoint_client.errors import (
+    ActivationRefused,
+    BadRequest,
+    Conflict,
+    ConnectionFailed,
+    Forbidden,
+    InvalidInput,
+    JobFailed,
+    JobWaitTimeout,
+    KeypointClientError,
+    NotFound,
+    PayloadTooLarge,
+    ProblemError,
+    RequestTimeout,
+    ServerError,
+    ServiceUnavailable,
+    Unauthorized,
+    UnsupportedMediaType,
+)
+from keypoint_client.images import ImageInput, png_bytes
+from keypoint_client.models import (
+    Guarantee,
+    Instance,
+    InstanceRequest,
+    Keypoint,
+    KeypointStatistics,
+    ModelInfo,
+    PredictResult,
+    Readiness,
+)
+from keypoint_client.retry import RetryPolicy
+from keypoint_client.sets import Ball, Ellipse, PredictionSet, Unbounded
+
+__all__ = [
+    "Activation",
+    "ActivationLog",
+    "ActivationRefused",
+    "AsyncKeypointClient",
+    "AuditEntry",
+    "AuditPage",
+    "BadRequest",
+    "Ball",
+    "Comparison",
+    "Conflict",
+    "ConnectionFailed",
+    "Ellipse",
+    "Forbidden",
+    "Guarantee",
+    "ImageInput",
+    "Instance",
+    "InstanceRequest",
+    "InvalidInput",
+    "Job",
+    "JobFailed",
+    "JobWaitTimeout",
+    "Keypoint",
+    "KeypointChange",
+    "KeypointClient",
+    "KeypointClientError",
+    "KeypointStatistics",
+    "ModelInfo",
+    "NotFound",
+    "PayloadTooLarge",
+    "PredictOptions",
+    "PredictRequest",
+    "PredictResult",
+    "PredictionSet",
+    "ProblemError",
+    "Readiness",
+    "RequestTimeout",
+    "RetryPolicy",
+    "ServerError",
+    "ServiceUnavailable",
+    "StoreInfo",
+    "Unauthorized",
+    "Unbounded",
+    "UnsupportedMediaType",
+    "UploadOptions",
+    "VersionDetail",
+    "VersionList",
+    "VersionSummary",
+    "__version__",
+    "png_bytes",
+]

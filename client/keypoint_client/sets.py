@@ -1,0 +1,120 @@
+"""Prediction sets: a ball, an ellipse or the whole plane, with membership, area and outline.
+
+Coordinates are image pixels, x to the right and y down, with the origin at the top-left
+corner of the top-left pixel (pixel (row r, column c) has its centre at (c + 0.5, r + 0.5)),
+as in the API. ``contains`` and ``boundary`` need numpy (``pip install 'keypoint-client[numpy]'``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from keypoint_client._numpy import np, require_numpy
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike, NDArray
+
+Point = tuple[float, float]
+
+
+class Frozen(BaseModel):
+    """An immutable body of the API; ``to_dict()`` is its JSON form."""
+
+    model_config = ConfigDict(frozen=True)
+
+    def to_dict(self) -> dict[str, Any]:
+        return self.model_dump(mode="json")
+
+
+def _offsets(points: ArrayLike, center: Point) -> NDArray[np.float64]:
+    require_numpy("contains()")
+    array = np.asarray(points, dtype=np.float64)
+    if array.shape[-1:] != (2,):
+        raise ValueError(f"points must be an (N, 2) array of (x, y) or one (x, y); got shape {array.shape}")
+    return array - np.asarray(center, dtype=np.float64)
+
+
+def _angles(n: int) -> NDArray[np.float64]:
+    require_numpy("boundary()")
+    if n < 3:
+        raise ValueError(f"a boundary polygon needs at least 3 vertices, not {n}")
+    return np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
+
+
+class Ball(Frozen):
+    """Every point within ``radius`` of ``center`` (radius 0: the single point ``center``)."""
+
+    type: Literal["ball"] = "ball"
+    center: Point
+    radius: float
+
+    @property
+    def area(self) -> float:
+        return math.pi * self.radius**2
+
+    def contains(self, points: ArrayLike) -> NDArray[np.bool_]:
+        """For an (N, 2) array of (x, y), N booleans (for one (x, y), a 0-d array)."""
+        offsets = _offsets(points, self.center)
+        return np.asarray(np.hypot(offsets[..., 0], offsets[..., 1]) <= self.radius)
+
+    def boundary(self, n: int = 64) -> NDArray[np.float64]:
+        """The circle as an (n, 2) polygon of (x, y), from +x turning towards +y."""
+        angles = _angles(n)
+        return np.asarray(self.center) + self.radius * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+
+
+class Ellipse(Frozen):
+    """Every point y with (y - center)^T shape_matrix (y - center) <= 1."""
+
+    type: Literal["ellipse"] = "ellipse"
+    center: Point
+    shape_matrix: tuple[Point, Point] = Field(description="L with (y-c)^T L (y-c) <= 1")
+    semi_axes: Point = Field(description="(a, b), a <= b, in pixels")
+    angle_deg: float = Field(description="direction of the major axis b, degrees from +x towards +y")
+
+    @property
+    def area(self) -> float:
+        return math.pi * self.semi_axes[0] * self.semi_axes[1]
+
+    def contains(self, points: ArrayLike) -> NDArray[np.bool_]:
+        """For an (N, 2) array of (x, y), N booleans (for one (x, y), a 0-d array)."""
+        offsets = _offsets(points, self.center)
+        quadratic = np.einsum("...i,ij,...j->...", offsets, np.asarray(self.shape_matrix), offsets)
+        return np.asarray(quadratic <= 1.0)
+
+    def boundary(self, n: int = 64) -> NDArray[np.float64]:
+        """The ellipse as an (n, 2) polygon of (x, y), starting at the end of the major axis."""
+        angles = _angles(n)
+        minor, major = self.semi_axes
+        theta = math.radians(self.angle_deg)
+        along = np.array([math.cos(theta), math.sin(theta)])
+        across = np.array([-math.sin(theta), math.cos(theta)])
+        outline = np.asarray(self.center) + np.cos(angles)[:, None] * major * along
+        return np.asarray(outline + np.sin(angles)[:, None] * minor * across, dtype=np.float64)
+
+
+class Unbounded(Frozen):
+    """The whole plane: too few calibration scores for this epsilon (t = 0) to bound the set."""
+
+    type: Literal["unbounded"] = "unbounded"
+    reason: str
+
+    @property
+    def area(self) -> float:
+        return math.inf
+
+    def contains(self, points: ArrayLike) -> NDArray[np.bool_]:
+        """Always true: for an (N, 2) array, N times True."""
+        offsets = _offsets(points, (0.0, 0.0))
+        return np.ones(offsets.shape[:-1], dtype=bool)
+
+    def boundary(self, n: int = 64) -> NDArray[np.float64]:
+        """No boundary: an empty (0, 2) array (there is nothing to draw)."""
+        _angles(n)
+        return np.empty((0, 2))
+
+
+PredictionSet = Annotated[Ball | Ellipse | Unbounded, Field(discriminator="type")]

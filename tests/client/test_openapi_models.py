@@ -1,0 +1,68 @@
+"""The client's models mirror the API: the same fields, and the same of them required, as the
+committed openapi/openapi.json (and the batch endpoint is in it). The document lists fields
+sorted; their order, which the CLI's output keeps, is checked by its test."""
+
+from __future__ import annotations
+
+import json
+
+import keypoint_client as kc
+import pytest
+from keypoint_client import calls
+from pydantic import BaseModel
+
+from service.settings import PACKAGE_ROOT
+
+COMPONENTS = json.loads((PACKAGE_ROOT / "openapi" / "openapi.json").read_text())["components"]["schemas"]
+MIRRORS: dict[str, type[BaseModel]] = {
+    "PredictResponse": kc.PredictResult,
+    "ModelRef": kc.models.ModelRef,
+    "CalibrationRef": kc.models.CalibrationRef,
+    "ImageInfo": kc.models.ImageInfo,
+    "InstanceIn": kc.InstanceRequest,
+    "InstanceOut": kc.Instance,
+    "KeypointOut": kc.Keypoint,
+    "BallSet": kc.Ball,
+    "EllipseSet": kc.Ellipse,
+    "UnboundedSet": kc.Unbounded,
+    "Guarantee": kc.Guarantee,
+    "BetaLaw": kc.models.BetaLaw,
+    "KeypointStatistics": kc.KeypointStatistics,
+    "BatchItem": calls._BatchItem,
+    "BatchResponse": calls._BatchAnswer,
+    "Readiness": kc.Readiness,
+    "SourceBatchOut": kc.admin_models.SourceBatch,
+    "VersionSummary": kc.VersionSummary,
+    "ThresholdRow": kc.admin_models.ThresholdRow,
+    "VersionDetail": kc.VersionDetail,
+    "VersionList": kc.VersionList,
+    "KeypointChangeOut": kc.KeypointChange,
+    "ComparisonOut": kc.Comparison,
+    "ActivationOut": kc.Activation,
+    "ActivationLog": kc.ActivationLog,
+    "AuditEntryOut": kc.AuditEntry,
+    "AuditPage": kc.AuditPage,
+    "StoreInfo": kc.StoreInfo,
+    "JobOut": kc.Job,
+}
+
+
+@pytest.mark.parametrize("component", sorted(MIRRORS))
+def test_the_model_mirrors_the_schema(component: str) -> None:
+    schema, model = COMPONENTS[component], MIRRORS[component]
+    assert set(model.model_fields) == set(schema["properties"]), model
+    required = {name for name, field in model.model_fields.items() if field.is_required()}
+    assert required == set(schema.get("required", [])), model
+
+
+def test_model_info_names_the_schemas_fields() -> None:
+    assert set(kc.ModelInfo.model_fields) == set(COMPONENTS["ModelInfo"]["properties"])
+
+
+def test_the_batch_endpoint_is_documented() -> None:
+    paths = json.loads((PACKAGE_ROOT / "openapi" / "openapi.json").read_text())["paths"]
+    batch = paths["/v1/predict/batch"]["post"]
+    assert "multipart/form-data" in batch["requestBody"]["content"]
+    assert batch["responses"]["200"]["content"]["application/json"]["schema"]["$ref"].endswith(
+        "/BatchResponse"
+    )
