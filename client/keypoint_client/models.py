@@ -118,6 +118,7 @@ class ModelInfo(Frozen):
     name: str
     hash: str
     manifest: dict[str, Any]
+    service_version: str
 
     @property
     def object_names(self) -> list[str]:
@@ -133,3 +134,6 @@ class Readiness(Frozen):
     model: str
     model_hash: str
     active_calibration: int
+    store: str  # "ok", or "unreachable" while predictions go on from memory
+    cache_age_seconds: float
+    store_error: str | None
