@@ -1,17 +1,22 @@
-"""Admission control for predict: bounded work, bounded waiting, and a fast 503 beyond.
+"""Admission control for predict: bounded receiving, bounded work, bounded waiting, and a fast
+503 beyond.
 
-At most ``max_concurrent`` requests decode and infer at once; at most ``max_queued``
-more wait for a slot, each for at most ``timeout`` seconds. A request beyond that is
-refused at once with 503 and ``Retry-After``, before its body is read, so an overload
-costs neither memory (bodies and decoded images of waiting requests) nor unbounded
-latency: clients see a clear answer they can back off from instead of a growing queue.
+A request takes a place only once its body has arrived, so a slow client holds no place:
+bodies being received count instead against a byte budget (``max_receiving_bytes``, all
+requests together, counted as the bytes arrive: a slow client holds only what it sent),
+and ``service.api.body`` cuts bodies that arrive too slowly. At most ``max_concurrent``
+admitted requests decode and infer at once; at most ``max_queued`` more wait for a slot,
+each for at most ``timeout`` seconds. A request beyond that is refused with 503 and
+``Retry-After`` (before its body is read when every place is already taken), so an overload
+costs neither memory (bodies and decoded images of waiting requests) nor unbounded latency:
+clients see a clear answer they can back off from instead of a growing queue.
 """
 
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator
-from contextlib import asynccontextmanager
+from collections.abc import AsyncIterator, Callable, Iterator
+from contextlib import asynccontextmanager, contextmanager
 
 from service.errors import Unavailable
 from service.metrics import PREDICT_COMPUTING, PREDICT_IN_FLIGHT, PREDICT_REJECTED, PREDICT_WAITING
@@ -27,16 +32,19 @@ class Overloaded(Unavailable):
 
 
 class Admission:
-    """Counts admitted requests; one asyncio semaphore hands out the compute slots."""
+    """Counts received bytes and admitted requests; one asyncio semaphore hands out the compute
+    slots. Used from the event loop only."""
 
-    def __init__(self, max_concurrent: int, max_queued: int, timeout: float) -> None:
+    def __init__(
+        self, max_concurrent: int, max_queued: int, timeout: float, max_receiving_bytes: int
+    ) -> None:
         self._slots = asyncio.Semaphore(max_concurrent)
         self._max_concurrent, self._max_queued, self._timeout = max_concurrent, max_queued, timeout
-        self._admitted = 0
+        self._max_receiving = max_receiving_bytes
+        self._admitted = self._receiving = 0
 
-    @asynccontextmanager
-    async def admitted(self) -> AsyncIterator[None]:
-        """Enter the queue or fail fast (CKS_MAX_QUEUED_REQUESTS)."""
+    def refuse_if_full(self) -> None:
+        """503 when every place is taken (CKS_MAX_QUEUED_REQUESTS)."""
         if self._admitted >= self._max_concurrent + self._max_queued:
             PREDICT_REJECTED.labels("queue_full").inc()
             raise Overloaded(
@@ -44,6 +52,34 @@ class Admission:
                 f"{self._max_queued} waiting; CKS_MAX_CONCURRENT_INFERENCES, CKS_MAX_QUEUED_REQUESTS): "
                 f"retry after {RETRY_AFTER_SECONDS} s"
             )
+
+    @contextmanager
+    def receiving(self) -> Iterator[Callable[[int], None]]:
+        """While one body arrives: a function counting its bytes against CKS_MAX_RECEIVING_BYTES
+        (503 beyond); they are given back when the body is done with."""
+        taken = 0
+
+        def take(count: int) -> None:
+            nonlocal taken
+            if self._receiving + count > self._max_receiving:
+                PREDICT_REJECTED.labels("receiving_budget").inc()
+                raise Overloaded(
+                    f"the service is receiving {self._receiving} bytes of other predict bodies, and this one"
+                    f" would exceed the budget of {self._max_receiving} bytes (CKS_MAX_RECEIVING_BYTES):"
+                    f" retry after {RETRY_AFTER_SECONDS} s"
+                )
+            self._receiving += count
+            taken += count
+
+        try:
+            yield take
+        finally:
+            self._receiving -= taken
+
+    @asynccontextmanager
+    async def admitted(self) -> AsyncIterator[None]:
+        """Take a place (computing or waiting for a slot), or fail fast."""
+        self.refuse_if_full()
         self._admitted += 1
         PREDICT_IN_FLIGHT.inc()
         try:

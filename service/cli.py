@@ -14,14 +14,13 @@ from service.settings import Settings
 
 
 def _serve(args: argparse.Namespace, settings: Settings) -> int:
-    import uvicorn
-
     from calibration_store import open_store
     from service.calibration.bundle import bootstrap_default_calibration
     from service.detector.runtime import Detector
     from service.metrics import enable_multiprocess
     from service.operators import load_operators
     from service.processes import remove_dead_process_folders
+    from service.server import serve
 
     # Check the model and store the bundled calibration once, before workers start racing.
     load_operators(settings.admin_token, settings.admin_tokens_file)
@@ -32,20 +31,13 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
     with open_store(settings.resolved_store_url) as store:
         if settings.bootstrap_calibration:
             bootstrap_default_calibration(store, detector, settings.model_dir)
+    del detector  # the serving process loads its own
     metrics = enable_multiprocess(settings.data_dir / "metrics") if settings.workers > 1 else None
     try:
-        uvicorn.run(
-            "service.api.main:app",
-            host=args.host or settings.host,
-            port=args.port or settings.port,
-            workers=settings.workers,
-            log_level="info",
-            access_log=False,
-        )
+        return serve(settings, args.host, args.port)
     finally:
         if metrics is not None:
             shutil.rmtree(metrics, ignore_errors=True)
-    return 0
 
 
 def _calibrate(args: argparse.Namespace, settings: Settings) -> int:

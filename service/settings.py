@@ -44,6 +44,22 @@ class Settings(BaseSettings):
     workers: int = Field(
         default=1, ge=1, le=64, description="uvicorn worker processes (limits below are per process)"
     )
+    max_connections: int = Field(
+        default=1000, ge=1, description="open connections per process; a request beyond gets 503"
+    )
+    header_read_timeout_seconds: float = Field(
+        default=10.0,
+        gt=0,
+        description="longest time for a request's line and headers to arrive (408 and closed beyond)",
+    )
+    min_body_bytes_per_second: float = Field(
+        default=1024.0,
+        gt=0,
+        description="slowest average rate a request body may arrive at, after the grace below (408 below)",
+    )
+    body_rate_grace_seconds: float = Field(
+        default=5.0, gt=0, description="time a request body gets before its average rate is checked"
+    )
 
     max_request_bytes: int = Field(default=20 * 2**20, gt=0, description="largest predict request body")
     max_image_pixels: int = Field(default=40_000_000, gt=0, description="largest width*height decoded")
@@ -54,6 +70,11 @@ class Settings(BaseSettings):
     )
     request_read_timeout_seconds: float = Field(
         default=30.0, gt=0, description="longest time to receive a predict request body (408 beyond)"
+    )
+    max_receiving_bytes: int = Field(
+        default=256 * 2**20,
+        gt=0,
+        description="bytes of predict bodies being received at once, all requests together (503 beyond)",
     )
     queue_timeout_seconds: float = Field(
         default=10.0, gt=0, description="longest wait for a slot before a predict request gets 503"
@@ -75,6 +96,9 @@ class Settings(BaseSettings):
     max_upload_files: int = Field(default=100_000, gt=0, description="most files in a calibration zip")
     max_upload_uncompressed_bytes: int = Field(
         default=8 * 2**30, gt=0, description="most bytes once unzipped"
+    )
+    upload_read_timeout_seconds: float = Field(
+        default=3600.0, gt=0, description="longest time to receive a calibration upload (408 beyond)"
     )
     calibration_workers: int = Field(default=1, gt=0, description="calibration jobs running at once")
     min_calibration_instances: int = Field(

@@ -99,8 +99,9 @@ def build_state(settings: Settings) -> ServiceState:
         operators=operators,
         cpu_pool=ThreadPoolExecutor(settings.cpu_workers, thread_name_prefix="cpu"),
         admission=Admission(
-            settings.max_concurrent_inferences, settings.max_queued_requests, settings.queue_timeout_seconds
-        ),
+            settings.max_concurrent_inferences, settings.max_queued_requests, settings.queue_timeout_seconds,
+            settings.max_receiving_bytes,
+        ),  # fmt: skip
     )
 
 
