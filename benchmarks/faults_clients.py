@@ -1,21 +1,30 @@
 """Faults for tests and benchmarks, loopback only: slow clients (connections trickling their
-request heads or bodies) and a normal client timing its predicts. Used by
-tests/service/test_slow_clients.py.
+request heads or bodies) and a normal client timing its predicts; huge PNGs and a server's
+peak resident memory; zip bombs. Used by tests/service/test_slow_clients.py,
+test_decode_budget.py and tests/inputs/.
 """
 
 from __future__ import annotations
 
+import io
 import json
 import re
 import selectors
 import socket
+import struct
 import threading
 import time
+import zipfile
+import zlib
+from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
 
+from service.image_decoding import PNG_SIGNATURE
 from service.settings import DEFAULT_MODEL_DIR
 
 SAMPLES_DIR = DEFAULT_MODEL_DIR / "samples"
@@ -158,3 +167,79 @@ def metric(url: str, name: str, labels: str = "") -> float:
 
 def percentile(values: list[float], q: float) -> float:
     return float(np.percentile(values, q))
+
+
+# ---------------------------------------------------------------- huge images
+
+
+def flat_png(width: int, height: int, depth: int = 16, colour_type: int = 6) -> bytes:
+    """A valid PNG of a repeated striped row: huge once decoded, small on the wire (one row is
+    compressed at a time, so building it needs little memory)."""
+    channels = {0: 1, 2: 3, 4: 2, 6: 4}[colour_type]
+    stripes = np.arange(width * channels, dtype=np.uint32) % 251 * 257
+    row = b"\x00" + stripes.astype(">u2" if depth == 16 else np.uint8).tobytes()
+    compressor, idat = zlib.compressobj(6), []
+    for _ in range(height):
+        idat.append(compressor.compress(row))
+    idat.append(compressor.flush())
+    header = struct.pack(">IIBBBBB", width, height, depth, colour_type, 0, 0, 0)
+    return PNG_SIGNATURE + png_chunk(b"IHDR", header) + png_chunk(b"IDAT", b"".join(idat)) + png_chunk(
+        b"IEND", b""
+    )
+
+
+def png_chunk(kind: bytes, payload: bytes) -> bytes:
+    return struct.pack(">I", len(payload)) + kind + payload + struct.pack(">I", zlib.crc32(kind + payload))
+
+
+def peak_rss_bytes(pid: int) -> int:
+    """The peak resident memory of a process since its last ``reset_peak_rss`` (VmHWM)."""
+    status = Path(f"/proc/{pid}/status").read_text()
+    return 1024 * int(next(line.split()[1] for line in status.splitlines() if line.startswith("VmHWM:")))
+
+
+def reset_peak_rss(pid: int) -> None:
+    Path(f"/proc/{pid}/clear_refs").write_text("5")
+
+
+def peak_while(pid: int, action: Callable[[], Any]) -> tuple[int, Any]:
+    """The rise of the process's peak resident memory while ``action()`` runs, and its result."""
+    reset_peak_rss(pid)
+    before = peak_rss_bytes(pid)
+    result = action()
+    return peak_rss_bytes(pid) - before, result
+
+
+# ---------------------------------------------------------------- uploads
+
+
+def zip_bomb(uncompressed: int, name: str = "images/bomb.png") -> bytes:
+    """A real zip bomb: ``annotations.json`` and one member of ``uncompressed`` zero bytes (a
+    multiple of 16 MiB) with honest headers, deflated to about a thousandth of that."""
+    block = 1 << 24
+    assert uncompressed % block == 0, "a multiple of 16 MiB"
+    compressor = zlib.compressobj(9, zlib.DEFLATED, -15)
+    # After a full flush no block refers back to earlier data, so the same bytes can repeat.
+    unit = compressor.compress(bytes(block)) + compressor.flush(zlib.Z_FULL_FLUSH)
+    data = unit * (uncompressed // block) + compressor.flush()
+    crc = 0
+    for _ in range(uncompressed // block):
+        crc = zlib.crc32(bytes(block), crc)
+    annotations = json.dumps({"images": [], "annotations": [], "categories": []}).encode()
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("annotations.json", annotations)
+    small = buffer.getvalue()
+    end = small.rindex(b"PK\x05\x06")
+    directory_at = struct.unpack("<I", small[end + 16 : end + 20])[0]
+    local_at = directory_at
+    encoded = name.encode()
+    zip64 = struct.pack("<HHQQ", 1, 16, uncompressed, len(data))
+    sizes = (0xFFFFFFFF, 0xFFFFFFFF, len(encoded), len(zip64))  # the real ones are in the zip64 field
+    local = struct.pack("<IHHHHHIIIHH", 0x04034B50, 45, 0, 8, 0, 0x21, crc, *sizes)
+    central = struct.pack("<IHHHHHHIIIHHHHHII", 0x02014B50, 45, 45, 0, 8, 0, 0x21, crc, *sizes, 0, 0, 0, 0,
+                          local_at)  # fmt: skip
+    new_directory_at = local_at + len(local) + len(encoded) + len(zip64) + len(data)
+    directory = small[directory_at:end] + central + encoded + zip64
+    eocd = struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, 2, 2, len(directory), new_directory_at, 0)
+    return small[:directory_at] + local + encoded + zip64 + data + directory + eocd

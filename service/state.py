@@ -13,7 +13,7 @@ import cv2
 from calibration_store import CalibrationStore, open_store, store_location
 from service.admission import Admission
 from service.audit import AuditTrail
-from service.calibration.archive import ArchiveLimits
+from service.calibration.archive import ArchiveLimits, DiskBudget
 from service.calibration.bundle import bootstrap_default_calibration
 from service.calibration.jobs import JobRunner
 from service.calibration.registry import CalibrationRegistry
@@ -45,7 +45,7 @@ class ServiceState:
 
     @property
     def uploads_dir(self) -> Path:
-        return self.settings.data_dir / "uploads"
+        return self.settings.uploads_dir
 
     def close(self) -> None:
         self.jobs.shutdown()
@@ -112,4 +112,5 @@ def _submission_settings(settings: Settings) -> SubmissionSettings:
         max_image_pixels=settings.max_image_pixels,
         min_instances=settings.min_calibration_instances,
         max_rejected_share=settings.max_rejected_share,
+        disk=DiskBudget.from_settings(settings),
     )

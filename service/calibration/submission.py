@@ -11,7 +11,7 @@ from typing import Any
 
 from calibration_store import CalibrationStore, JobFinished, JobRecord
 from service.audit import AuditTrail, Operator
-from service.calibration.archive import ArchiveLimits
+from service.calibration.archive import ArchiveLimits, DiskBudget
 from service.calibration.calibrate import CalibrationOptions, check_parent, create_calibration
 from service.calibration.coco import NamedBatch
 from service.calibration.intake import PreparedBatch, prepare_batch
@@ -52,6 +52,7 @@ class SubmissionSettings:
     max_image_pixels: int
     min_instances: int
     max_rejected_share: float
+    disk: DiskBudget | None = None
 
 
 class CalibrationJobs:
@@ -76,8 +77,9 @@ class CalibrationJobs:
         folder = JobFolder.of(self._settings.jobs_dir, new_job_id())
         folder.adopt(workspace)
         try:
+            settings = self._settings
             named = validate_upload(folder, batch_name(request.name, sha256), sha256,
-                                    self._detector.manifest, self._settings.limits)  # fmt: skip
+                                    self._detector.manifest, settings.limits, settings.disk)  # fmt: skip
             prepared = self._prepare(named, request)
             folder.save({"request": asdict(request), "operator": asdict(operator), "sha256": sha256,
                          "batch_dir": str(named.batch.folder.relative_to(folder.root))})  # fmt: skip

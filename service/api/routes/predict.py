@@ -129,7 +129,7 @@ async def predict_route(request: Request, state: State) -> Response:
 
 
 def _respond(state: ServiceState, image_bytes: bytes, parameters: PredictParameters, png: bool) -> Response:
-    image = decode_image(image_bytes, state.settings.max_image_pixels)
+    image = decode_image(image_bytes, state.settings.max_image_pixels, state.settings.max_decoded_bytes)
     result = predict(state, image, parameters)
     if png:
         return Response(render_prediction(image, result), media_type="image/png")
