@@ -1,33 +1,54 @@
-"""Faults for tests and benchmarks, loopback only: slow clients (connections trickling their
-request heads or bodies) and a normal client timing its predicts; huge PNGs and a server's
-peak resident memory; zip bombs. Used by tests/service/test_slow_clients.py,
-test_decode_budget.py and tests/inputs/.
+"""The service under slow clients, huge images, a zip bomb and SIGTERM: the figures of
+docs/operations-clients-shutdown.md.
+
+    python -m benchmarks.faults_clients
+
+Loopback only, one real ``keypoint-service serve`` process at a time (default settings
+unless said), bounded in count and time (about a minute): a normal client's latency
+alone and beside 100 slow-body and 100 slow-header connections, and when each kind of slow
+client is cut; the server's peak resident memory while it refuses a 16-bit RGBA PNG of
+6324x6324 (under the pixel limit), eight at once, and while it decodes accepted 16-bit PNGs;
+a 7.5 GiB zip bomb; the time from SIGTERM to exit, idle and with a calibration job and
+predicts in flight. Needs the test extras (httpx).
+
+The fault generators here are used by the tests too (tests/service/test_slow_clients.py,
+test_decode_budget.py, test_shutdown.py).
 """
 
 from __future__ import annotations
 
+import argparse
+import functools
 import io
 import json
+import os
 import re
 import selectors
+import signal
 import socket
 import struct
+import tempfile
 import threading
 import time
 import zipfile
 import zlib
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
+import cv2
 import httpx
 import numpy as np
 
-from service.image_decoding import PNG_SIGNATURE
-from service.settings import DEFAULT_MODEL_DIR
+from benchmarks.service_bench.server import Server, serve
+from calibration_store import open_store
+from service.image_decoding import PNG_SIGNATURE, decoded_bytes, read_image_header
+from service.settings import DEFAULT_MODEL_DIR, Settings
 
 SAMPLES_DIR = DEFAULT_MODEL_DIR / "samples"
+ADMIN_TOKEN = "bench-admin-token-0123456789"
 SLOW_BODY_HEAD = (
     b"POST /v1/predict HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
     b"Content-Length: 100000\r\n\r\n"
@@ -243,3 +264,158 @@ def zip_bomb(uncompressed: int, name: str = "images/bomb.png") -> bytes:
     directory = small[directory_at:end] + central + encoded + zip64
     eocd = struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, 2, 2, len(directory), new_directory_at, 0)
     return small[:directory_at] + local + encoded + zip64 + data + directory + eocd
+
+
+def long_batch(copies: int) -> bytes:
+    """A COCO zip of the bundled samples ``copies`` times over, each copy re-encoded at another
+    JPEG quality so that no two files are the same (repeats would be refused)."""
+    doc = json.loads((SAMPLES_DIR / "annotations.json").read_text())
+    images, annotations = list(doc["images"]), list(doc["annotations"])
+    files = {image["file_name"]: (SAMPLES_DIR / image["file_name"]).read_bytes() for image in images}
+    next_image = max(image["id"] for image in images) + 1
+    next_annotation = max(a["id"] for a in annotations) + 1
+    for copy in range(1, copies):
+        for image in images:
+            path = PurePosixPath(image["file_name"])
+            name = str(path.with_name(f"copy{copy}-{path.name}"))
+            pixels = cv2.imdecode(np.frombuffer(files[image["file_name"]], np.uint8), cv2.IMREAD_COLOR)
+            quality = [cv2.IMWRITE_JPEG_QUALITY, 95 - copy % 60]
+            files[name] = cv2.imencode(".jpg", pixels, quality)[1].tobytes()
+            doc["images"].append({**image, "id": next_image, "file_name": name})
+            for annotation in (a for a in annotations if a["image_id"] == image["id"]):
+                doc["annotations"].append({**annotation, "id": next_annotation, "image_id": next_image})
+                next_annotation += 1
+            next_image += 1
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("annotations.json", json.dumps(doc))
+        for name, data in files.items():
+            archive.writestr(name, data)
+    return buffer.getvalue()
+
+
+# ---------------------------------------------------------------- the benchmark
+
+
+def _mib(count: float) -> str:
+    return f"{count / 2**20:.0f} MiB"
+
+
+def _ms(seconds: list[float]) -> str:
+    return f"p50 {1000 * percentile(seconds, 50):.1f} ms, p99 {1000 * percentile(seconds, 99):.1f} ms"
+
+
+def _counted(statuses: list[int | None]) -> str:
+    return ", ".join(f"{statuses.count(s)} x {s}" for s in sorted(set(statuses), key=str))
+
+
+def _post_all(url: str, image: bytes, instances: list[dict], count: int) -> list[int]:
+    """``count`` predicts at once, each on its own connection: their statuses."""
+
+    def post(_: int) -> int:
+        with httpx.Client(base_url=url, timeout=120) as client:
+            return predict(client, image, instances).status_code
+
+    with ThreadPoolExecutor(count) as pool:
+        return list(pool.map(post, range(count)))
+
+
+def slow_clients(server: Server, requests: int, slow: int) -> None:
+    predict_latencies(server.url, 5)  # warm-up
+    alone, statuses = predict_latencies(server.url, requests)
+    print(f"normal client alone ({requests} predicts in a row): {_ms(alone)}; {_counted(statuses)}")
+    with SlowClients(int(server.url.rsplit(":", 1)[1]), bodies=slow, heads=slow) as clients:
+        beside, statuses = predict_latencies(server.url, requests)
+        still_open = clients.open_count()
+        clients.wait_closed(timeout=60)
+    print(f"beside {slow} slow-body + {slow} slow-header connections (a byte every 0.5 s; {still_open}"
+          f" still open when it was done): {_ms(beside)}; {_counted(statuses)}")  # fmt: skip
+    for kind, name in (("body", "slow-body"), ("head", "slow-header")):
+        cut = [c.closed_after for c in clients.of(kind) if c.closed_after is not None]
+        when = f"after {min(cut):.1f} to {max(cut):.1f} s" if cut else ""
+        print(f"  {name} connections: {len(cut)} of {slow} closed by the server {when};"
+              f" answers {_counted([c.status for c in clients.of(kind)])}")  # fmt: skip
+
+
+def huge_images(server: Server, settings: Settings) -> None:
+    instances = sample_request()[1][:1]
+    budget = f"CKS_MAX_DECODED_BYTES {_mib(settings.max_decoded_bytes)}"
+    for name, image in (("16-bit RGBA PNG 6324x6324 (the issue's)", flat_png(6324, 6324)),
+                        ("16-bit RGBA PNG 4000x4000", flat_png(4000, 4000))):  # fmt: skip
+        needed = decoded_bytes(image, read_image_header(image))
+        started = time.perf_counter()
+        rise, statuses = peak_while(server.pid, functools.partial(_post_all, server.url, image, instances, 1))
+        took = time.perf_counter() - started
+        print(f"{name}: {_mib(needed)} to decode ({budget}): {_counted(statuses)} in {took:.2f} s,"
+              f" peak RSS +{_mib(rise)}")  # fmt: skip
+        rise, statuses = peak_while(server.pid, functools.partial(_post_all, server.url, image, instances, 8))
+        print(f"  8 at once: {_counted(statuses)}, peak RSS +{_mib(rise)}"
+              f" (at most CKS_CPU_WORKERS = {settings.cpu_workers} decode at once)")  # fmt: skip
+
+
+def bomb(server: Server, data_dir: Path) -> None:
+    body = zip_bomb(15 * 2**29)
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}", "Content-Type": "application/zip"}
+    with httpx.Client(base_url=server.url, timeout=120) as client:
+        started = time.perf_counter()
+        response = client.post("/v1/admin/calibrations", content=body, headers=headers)
+        took = time.perf_counter() - started
+    left = [p for folder in ("jobs", "uploads") for p in (data_dir / folder).rglob("*") if p.is_file()]
+    print(f"zip bomb of 7.5 GiB ({_mib(len(body))} zipped): {response.status_code} in {took:.2f} s,"
+          f" {sum(p.stat().st_size for p in left)} bytes left on disk")  # fmt: skip
+
+
+def sigterm(settings: dict[str, str], busy: bool) -> None:
+    """Time from SIGTERM to exit, idle or with a calibration job scoring and 8 predicts in flight."""
+    with tempfile.TemporaryDirectory(prefix="cks-faults-") as data_dir, ThreadPoolExecutor(8) as pool:
+        with serve({**settings, "CKS_DATA_DIR": data_dir}) as server:
+            predicts, job_id = [], None
+            if busy:
+                with httpx.Client(base_url=server.url, timeout=120) as client:
+                    job_id = client.post(
+                        "/v1/admin/calibrations", content=long_batch(30),
+                        params={"activate": "true", "force": "true", "reason": "benchmark"},
+                        headers={"Authorization": f"Bearer {ADMIN_TOKEN}", "Content-Type": "application/zip"},
+                    ).json()["id"]  # fmt: skip
+                time.sleep(2)  # the job scores meanwhile
+                image, instances = sample_request()
+                heavy = (instances * 16)[:64]
+                predicts = [pool.submit(_post_all, server.url, image, heavy, 1) for _ in range(8)]
+                deadline = time.monotonic() + 30
+                while metric(server.url, "cks_predict_in_flight") < 8 and time.monotonic() < deadline:
+                    time.sleep(0.01)  # until the server has received them all
+            sent = time.perf_counter()
+            os.kill(server.pid, signal.SIGTERM)
+            _, status = os.waitpid(server.pid, 0)  # reaped here to time it (serve() copes)
+            took = time.perf_counter() - sent
+        line = f"exit {os.waitstatus_to_exitcode(status)} after {took:.2f} s"
+        if not busy:
+            print(f"SIGTERM, idle: {line}")
+            return
+        with open_store(f"sqlite:///{data_dir}/calibrations.db") as store:
+            job = store.get_job(job_id)
+        statuses = [status for future in predicts for status in future.result()]
+        print(f"SIGTERM with a calibration job scoring and 8 predicts (64 instances each) in flight: {line};"
+              f" predicts {_counted(statuses)}; job {job.state} at {job.done}/{job.total}")  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.faults_clients")
+    parser.add_argument("--requests", type=int, default=40, help="normal predicts per measurement")
+    parser.add_argument("--slow", type=int, default=100, help="slow-body and slow-header connections, each")
+    args = parser.parse_args(argv)
+    settings = {"CKS_ADMIN_TOKEN": ADMIN_TOKEN, "CKS_MODEL_DIR": str(DEFAULT_MODEL_DIR)}
+    print(f"default settings, {os.cpu_count()} cores, loopback; RSS: the server's peak VmHWM, reset per step")
+    with tempfile.TemporaryDirectory(prefix="cks-faults-") as data_dir, serve(
+        {**settings, "CKS_DATA_DIR": data_dir}
+    ) as server:
+        slow_clients(server, args.requests, args.slow)
+        huge_images(server, Settings())
+        bomb(server, Path(data_dir))
+    sigterm(settings, busy=False)
+    sigterm(settings, busy=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

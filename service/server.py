@@ -12,6 +12,10 @@ What a public port needs beyond uvicorn's defaults:
 - **Slow bodies** are paced where they are read (``service.api.body``): predict bodies
   within ``CKS_REQUEST_READ_TIMEOUT_SECONDS``, uploads within
   ``CKS_UPLOAD_READ_TIMEOUT_SECONDS``, both at ``CKS_MIN_BODY_BYTES_PER_SECOND`` or faster.
+- **SIGTERM.** uvicorn stops accepting connections, closes idle ones and gives in-flight
+  requests up to ``CKS_SHUTDOWN_GRACE_SECONDS``; then the app's shutdown marks running
+  calibration jobs interrupted without waiting for them (``ServiceState.close``), and the
+  process exits 0.
 """
 
 from __future__ import annotations
@@ -21,6 +25,8 @@ import functools
 import http
 import json
 import logging
+import signal
+from types import FrameType
 from typing import Any
 
 import uvicorn
@@ -114,6 +120,7 @@ def uvicorn_options(settings: Settings, host: str | None = None, port: int | Non
         # A partial of a module-level class: worker processes unpickle it by reference.
         "http": functools.partial(HeadTimeoutProtocol, head_timeout=settings.header_read_timeout_seconds),
         "limit_concurrency": settings.max_connections,
+        "timeout_graceful_shutdown": settings.shutdown_grace_seconds,
         **_logging_options(settings),
     }
 
@@ -124,6 +131,17 @@ def _logging_options(settings: Settings) -> dict[str, Any]:
 
 
 def serve(settings: Settings, host: str | None = None, port: int | None = None) -> int:
-    """Serve until SIGTERM or SIGINT."""
-    uvicorn.run(**uvicorn_options(settings, host, port))
+    """Serve until SIGTERM or SIGINT, then stop gracefully; 0 after a graceful stop."""
+    previous = signal.signal(signal.SIGTERM, _exit_on_sigterm)
+    try:
+        uvicorn.run(**uvicorn_options(settings, host, port))
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     return 0
+
+
+def _exit_on_sigterm(signum: int, frame: FrameType | None) -> None:
+    """SIGTERM outside uvicorn's own handler: before the server runs, stop at once; after its
+    graceful stop uvicorn raises the signal again for the handler it found (this one), which
+    would otherwise be the default action, killing the process (exit status 143, not 0)."""
+    raise SystemExit(0)

@@ -60,6 +60,11 @@ class Settings(BaseSettings):
     body_rate_grace_seconds: float = Field(
         default=5.0, gt=0, description="time a request body gets before its average rate is checked"
     )
+    shutdown_grace_seconds: float = Field(
+        default=20.0,
+        ge=0,
+        description="on SIGTERM, longest wait for in-flight requests before running jobs are interrupted",
+    )
 
     max_request_bytes: int = Field(default=20 * 2**20, gt=0, description="largest predict request body")
     max_image_pixels: int = Field(default=40_000_000, gt=0, description="largest width*height decoded")

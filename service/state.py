@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import shutil
+import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,11 +49,16 @@ class ServiceState:
         return self.settings.uploads_dir
 
     def close(self) -> None:
+        """Stop: calibration jobs are interrupted, not waited for (see JobRunner.shutdown); uploads
+        still being received are removed; then the store and the model are released."""
+        started = time.monotonic()
+        log.info("shutdown: interrupting calibration jobs, then closing the store and the model")
         self.jobs.shutdown()
         shutil.rmtree(process_uploads_dir(self.uploads_dir), ignore_errors=True)  # cancelled jobs' uploads
         self.cpu_pool.shutdown(wait=True, cancel_futures=True)
         self.store.close()
         self.detector.close()
+        log.info("shutdown: done in %.2f s", time.monotonic() - started)
 
 
 def build_state(settings: Settings) -> ServiceState:

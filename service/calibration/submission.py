@@ -112,21 +112,26 @@ class CalibrationJobs:
         self._prepare(named, request)  # refuse before taking the job over
         new = JobFolder.of(self._settings.jobs_dir, new_job_id())
         self._take_over(job, new.job_id)
-        old.move_to(new)
+        try:
+            old.move_to(new)  # one rename: of concurrent retries, one wins
+        except FileNotFoundError as error:
+            raise Conflict(f"job {job_id} was retried meanwhile") from error
         named = reload_batch(new, kept["batch_dir"], named.name, named.sha256, self._detector.manifest)
         retried = self._submit(new, self._prepare(named, request), request, original)
         self._audit.record(operator, "retry", "accepted", details={"job": job_id, "new_job": retried.id})
         return retried
 
     def _take_over(self, job: JobRecord, new_id: str) -> None:
-        """Mark the interrupted job finished (so its old process can no longer complete it)."""
+        """Mark a job reported interrupted finished (so its old process can no longer complete it);
+        one that its stopping server marked interrupted already is left as it is (finished)."""
         try:
             self._store.update_job(
                 job.id, state="interrupted", errors=job.errors, finished_at=datetime.now(UTC),
                 result={**job.result, "retried_as": new_id},
             )  # fmt: skip
         except JobFinished as error:
-            raise Conflict(f"job {job.id} was retried or finished meanwhile: {error}") from error
+            if error.state != "interrupted":
+                raise Conflict(f"job {job.id} was retried or finished meanwhile: {error}") from error
 
     def _prepare(self, named: NamedBatch, request: UploadRequest) -> PreparedBatch:
         parent = parent_table = None

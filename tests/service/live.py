@@ -150,12 +150,15 @@ class LiveServer:
         )
 
     def stop(self) -> None:
+        """SIGTERM, then SIGKILL if the process outlives its shutdown grace period by 10 s."""
         self.client.close()
         if self.process is None or self.process.poll() is not None:
             return
         self.process.terminate()
+        default = Settings.model_fields["shutdown_grace_seconds"].default
+        grace = float(self.env.get("CKS_SHUTDOWN_GRACE_SECONDS", default))
         try:
-            self.process.wait(timeout=15)
+            self.process.wait(timeout=grace + 10)
         except subprocess.TimeoutExpired:
             self.process.kill()
             self.process.wait(timeout=5)

@@ -13,7 +13,7 @@ from starlette.datastructures import UploadFile
 from service.api.body import BodyPace, read_limited_body
 from service.api.deps import State
 from service.api.schemas import PredictJson, PredictParameters, PredictResponse
-from service.errors import InvalidInput, UnsupportedMediaType
+from service.errors import InvalidInput, Unavailable, UnsupportedMediaType
 from service.image_decoding import decode_image
 from service.prediction import predict
 from service.render import render_prediction
@@ -117,15 +117,21 @@ def _wants_png(request: Request) -> bool:
     openapi_extra=_OPENAPI,
 )
 async def predict_route(request: Request, state: State) -> Response:
-    state.admission.refuse_if_full()  # not worth receiving
-    body = await _read_body(request, state)  # a slow client holds no place meanwhile
-    async with state.admission.admitted():
-        image_bytes, parameters = await _parse(request, body)
-        async with state.admission.slot():  # decoded images exist only inside a slot
-            loop = asyncio.get_running_loop()
-            return await loop.run_in_executor(
-                state.cpu_pool, _respond, state, image_bytes, parameters, _wants_png(request)
-            )
+    try:
+        state.admission.refuse_if_full()  # not worth receiving
+        body = await _read_body(request, state)  # a slow client holds no place meanwhile
+        async with state.admission.admitted():
+            image_bytes, parameters = await _parse(request, body)
+            async with state.admission.slot():  # decoded images exist only inside a slot
+                loop = asyncio.get_running_loop()
+                return await loop.run_in_executor(
+                    state.cpu_pool, _respond, state, image_bytes, parameters, _wants_png(request)
+                )
+    except asyncio.CancelledError:  # uvicorn cancels what is left when a shutdown's grace period ends
+        raise Unavailable(
+            "the service stopped before this request was done (CKS_SHUTDOWN_GRACE_SECONDS): send it again",
+            headers={"Retry-After": "1", "Connection": "close"},
+        ) from None
 
 
 def _respond(state: ServiceState, image_bytes: bytes, parameters: PredictParameters, png: bool) -> Response:
