@@ -7,8 +7,8 @@ What a public port needs beyond uvicorn's defaults:
   answers 408 and closes a connection whose head has not arrived within
   ``CKS_HEADER_READ_TIMEOUT_SECONDS`` of the connection opening (or of the first byte of
   a later request on a kept-alive connection).
-- **Open connections.** At most ``CKS_MAX_CONNECTIONS`` per process (uvicorn's
-  ``limit_concurrency``): a request beyond gets 503.
+- **Open connections.** At most ``CKS_MAX_CONNECTIONS`` per process are served (uvicorn's
+  ``limit_concurrency``): a request on one more gets 503.
 - **Slow bodies** are paced where they are read (``service.api.body``): predict bodies
   within ``CKS_REQUEST_READ_TIMEOUT_SECONDS``, uploads within
   ``CKS_UPLOAD_READ_TIMEOUT_SECONDS``, both at ``CKS_MIN_BODY_BYTES_PER_SECOND`` or faster.
@@ -119,7 +119,7 @@ def uvicorn_options(settings: Settings, host: str | None = None, port: int | Non
         "workers": settings.workers,
         # A partial of a module-level class: worker processes unpickle it by reference.
         "http": functools.partial(HeadTimeoutProtocol, head_timeout=settings.header_read_timeout_seconds),
-        "limit_concurrency": settings.max_connections,
+        "limit_concurrency": settings.max_connections + 1,  # uvicorn counts the request's own connection
         "timeout_graceful_shutdown": settings.shutdown_grace_seconds,
         **_logging_options(settings),
     }

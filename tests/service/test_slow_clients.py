@@ -165,13 +165,19 @@ def test_a_slow_upload_gets_408_and_leaves_nothing(paced: LiveServer) -> None:
 
 
 def test_connections_beyond_the_limit_get_503(tmp_path: Path) -> None:
-    with LiveServer(tmp_path / "data", max_connections=3) as server:
-        idle = [connect(server) for _ in range(3)]
+    def status() -> int:
+        with httpx.Client(base_url=server.url, timeout=10) as client:  # a connection of its own
+            return client.get("/healthz").status_code
+
+    with LiveServer(tmp_path / "data", max_connections=3, header_read_timeout_seconds=60) as server:
+        server.client.close()  # the connection it kept alive since start-up
+        idle = [connect(server) for _ in range(2)]
         try:
-            with httpx.Client(base_url=server.url, timeout=10) as client:
-                wait_until(lambda: client.get("/healthz").status_code == 503, "the 4th connection is refused")
-                idle.pop().close()
-                wait_until(lambda: client.get("/healthz").status_code == 200, "a 3rd connection is served")
+            wait_until(lambda: status() == 200, "a 3rd connection is served")
+            idle.append(connect(server))
+            wait_until(lambda: status() == 503, "a 4th connection is refused")
+            idle.pop().close()
+            wait_until(lambda: status() == 200, "a 3rd connection is served again")
         finally:
             for connection in idle:
                 connection.close()
