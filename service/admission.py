@@ -1,17 +1,22 @@
-"""Admission control for predict: bounded work, bounded waiting, and a fast 503 beyond.
+"""Admission control for predict: bounded receiving, bounded work, bounded waiting, and a fast
+503 beyond.
 
-At most ``max_concurrent`` requests decode and infer at once; at most ``max_queued``
-more wait for a slot, each for at most ``timeout`` seconds. A request beyond that is
-refused at once with 503 and ``Retry-After``, before its body is read, so an overload
-costs neither memory (bodies and decoded images of waiting requests) nor unbounded
-latency: clients see a clear answer they can back off from instead of a growing queue.
+A request takes a place only once its body has arrived, so a slow client holds no place:
+bodies being received count instead against a byte budget (``max_receiving_bytes``, all
+requests together, counted as the bytes arrive: a slow client holds only what it sent),
+and ``service.api.body`` cuts bodies that arrive too slowly. At most ``max_concurrent``
+admitted requests decode and infer at once; at most ``max_queued`` more wait for a slot,
+each for at most ``timeout`` seconds. A request beyond that is refused with 503 and
+``Retry-After`` (before its body is read when every place is already taken), so an overload
+costs neither memory (bodies and decoded images of waiting requests) nor unbounded latency:
+clients see a clear answer they can back off from instead of a growing queue.
 """
 
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator
-from contextlib import asynccontextmanager
+from collections.abc import AsyncIterator, Callable, Iterator
+from contextlib import asynccontextmanager, contextmanager
 
 from service.errors import Unavailable
 from service.metrics import PREDICT_COMPUTING, PREDICT_IN_FLIGHT, PREDICT_REJECTED, PREDICT_WAITING
@@ -27,21 +32,24 @@ class Overloaded(Unavailable):
 
 
 class Admission:
-    """Counts admitted requests; one asyncio semaphore hands out the compute slots."""
+    """Counts received bytes and admitted requests; one asyncio semaphore hands out the compute
+    slots. Used from the event loop only."""
 
-    def __init__(self, max_concurrent: int, max_queued: int, timeout: float) -> None:
+    def __init__(
+        self, max_concurrent: int, max_queued: int, timeout: float, max_receiving_bytes: int
+    ) -> None:
         self._slots = asyncio.Semaphore(max_concurrent)
         self._max_concurrent, self._max_queued, self._timeout = max_concurrent, max_queued, timeout
-        self._admitted = 0
+        self._max_receiving = max_receiving_bytes
+        self._admitted = self._receiving = 0
 
     @property
     def capacity(self) -> int:
         """Places in all: computing plus waiting."""
         return self._max_concurrent + self._max_queued
 
-    @asynccontextmanager
-    async def admitted(self, places: int = 1) -> AsyncIterator[None]:
-        """Enter the queue with ``places`` places (one per image) or fail fast (CKS_MAX_QUEUED_REQUESTS)."""
+    def refuse_if_full(self, places: int = 1) -> None:
+        """503 unless ``places`` places (one per image) are free (CKS_MAX_QUEUED_REQUESTS)."""
         if self._admitted + places > self.capacity:
             PREDICT_REJECTED.labels("queue_full").inc()
             needs = f"; this batch needs {places} more places, one per image" if places > 1 else ""
@@ -50,6 +58,34 @@ class Admission:
                 f"{self._max_queued} waiting; CKS_MAX_CONCURRENT_INFERENCES, CKS_MAX_QUEUED_REQUESTS)"
                 f"{needs}: retry after {RETRY_AFTER_SECONDS} s"
             )
+
+    @contextmanager
+    def receiving(self) -> Iterator[Callable[[int], None]]:
+        """While one body arrives: a function counting its bytes against CKS_MAX_RECEIVING_BYTES
+        (503 beyond); they are given back when the body is done with."""
+        taken = 0
+
+        def take(count: int) -> None:
+            nonlocal taken
+            if self._receiving + count > self._max_receiving:
+                PREDICT_REJECTED.labels("receiving_budget").inc()
+                raise Overloaded(
+                    f"the service is receiving {self._receiving} bytes of other predict bodies, and this one"
+                    f" would exceed the budget of {self._max_receiving} bytes (CKS_MAX_RECEIVING_BYTES):"
+                    f" retry after {RETRY_AFTER_SECONDS} s"
+                )
+            self._receiving += count
+            taken += count
+
+        try:
+            yield take
+        finally:
+            self._receiving -= taken
+
+    @asynccontextmanager
+    async def admitted(self, places: int = 1) -> AsyncIterator[None]:
+        """Take ``places`` places (computing or waiting for a slot; one per image), or fail fast."""
+        self.refuse_if_full(places)
         self._admitted += places
         PREDICT_IN_FLIGHT.inc(places)
         try:

@@ -17,19 +17,18 @@ from pydantic import ValidationError
 from calibration_store import StoreError, store_location
 from service import __version__
 from service.errors import InvalidInput, ServiceError
-from service.logs import configure_logging, uvicorn_log_config
+from service.logs import configure_logging
 from service.settings import Settings
 
 
 def _serve(args: argparse.Namespace, settings: Settings) -> int:
-    import uvicorn
-
     from calibration_store import open_store
     from service.calibration.bundle import bootstrap_default_calibration
     from service.detector.runtime import Detector
     from service.metrics import enable_multiprocess
     from service.operators import load_operators
     from service.processes import remove_dead_process_folders
+    from service.server import serve
 
     host, port = args.host or settings.host, args.port or settings.port
     _check_port(host, port)
@@ -42,20 +41,13 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
     with open_store(settings.resolved_store_url) as store:
         if settings.bootstrap_calibration:
             bootstrap_default_calibration(store, detector, settings.model_dir)
+    del detector  # the serving process loads its own
     metrics = enable_multiprocess(settings.data_dir / "metrics") if settings.workers > 1 else None
     try:
-        uvicorn.run(
-            "service.api.main:app",
-            host=host,
-            port=port,
-            workers=settings.workers,
-            log_config=uvicorn_log_config(settings),
-            access_log=False,
-        )
+        return serve(settings, host, port)
     finally:
         if metrics is not None:
             shutil.rmtree(metrics, ignore_errors=True)
-    return 0
 
 
 def _check_port(host: str, port: int) -> None:

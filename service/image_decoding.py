@@ -2,7 +2,19 @@
 
 ``read_image_header`` reads the dimensions straight from the PNG ``IHDR`` chunk or the
 JPEG ``SOFn`` segment, walking the marker segments without touching the entropy-coded
-data; ``decode_image`` checks them against the pixel limit and only then decodes.
+data; ``decode_image`` checks them against the pixel limit, then the memory the decode
+would take against the byte limit, and only then decodes.
+
+Memory: decoding goes straight to 8-bit BGR or gray wherever that gives the same pixels:
+JPEG always (libjpeg converts while decoding), PNG at 8 bits (libpng drops alpha and
+expands palettes and low bit depths row by row). A 16-bit PNG is decoded at 16 bits (its
+3 or 1 channels only) and scaled to 8 with ``(v + 128) // 257`` a block of rows at a time,
+because libpng's own reduction rounds differently and the bundled calibration was scored
+with this rounding. So a decode takes at most (``decoded_bytes``): for a JPEG its 8-bit
+result, plus libjpeg's buffer of every DCT coefficient (2 bytes per sample) for a
+progressive or multi-scan file, plus 4 bytes a pixel for CMYK; for a PNG twice its
+decoded array (OpenCV's ``imdecode`` decodes into one and returns a copy), which is the
+8-bit result or, at 16 bits, twice that.
 
 Decoding is strict, the same for predict and calibration: a truncated or corrupt file is
 ``InvalidInput``, never a partly grey image. JPEG: libjpeg-turbo through ``simplejpeg``
@@ -40,8 +52,11 @@ from service.errors import InvalidInput, PayloadTooLarge, UnsupportedMediaType
 
 ACCEPTED_FORMATS = "JPEG or PNG"
 PIXEL_LIMIT_SETTING = "CKS_MAX_IMAGE_PIXELS"
+BYTES_LIMIT_SETTING = "CKS_MAX_DECODED_BYTES"
+_SCALING_BLOCK_SAMPLES = 1 << 18  # 16-bit samples scaled to 8 bits at a time (1 MiB in 32-bit)
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_DEPTH_OFFSET = 24  # the IHDR's bit depth: signature, chunk length and type, width, height
 JPEG_SOI = b"\xff\xd8"
 
 # PNG colour type -> channels as stored (palette images expand to 3).
@@ -100,24 +115,47 @@ def read_image_header(data: bytes) -> ImageHeader:
     )
 
 
-def decode_image(data: bytes, max_pixels: int) -> np.ndarray:
+def decode_image(data: bytes, max_pixels: int, max_bytes: int | None = None) -> np.ndarray:
     """Decode a JPEG or PNG into uint8 pixels: BGR ``(H, W, 3)`` or gray ``(H, W)``.
 
     The header is checked first: ``PayloadTooLarge`` when ``width * height`` exceeds
-    ``max_pixels`` (setting ``CKS_MAX_IMAGE_PIXELS``), before anything is decoded.
-    16-bit samples are scaled to 8 bits and alpha is dropped. A good header followed
-    by corrupt, truncated or too little data gives ``InvalidInput``.
+    ``max_pixels`` (setting ``CKS_MAX_IMAGE_PIXELS``) or the decode would take more than
+    ``max_bytes`` of memory (``CKS_MAX_DECODED_BYTES``; None: no such limit), before
+    anything is decoded. 16-bit samples are scaled to 8 bits and alpha is dropped. A good
+    header followed by corrupt, truncated or too little data gives ``InvalidInput``.
     """
     header = read_image_header(data)
     _check_pixel_limit(header, max_pixels)
+    needed = decoded_bytes(data, header)
+    if max_bytes is not None and needed > max_bytes:
+        raise PayloadTooLarge(
+            f"decoding the {header.format.upper()} image ({header.width}x{header.height}) would take {needed}"
+            f" bytes of memory, above the limit of {max_bytes} bytes ({BYTES_LIMIT_SETTING}); send a smaller"
+            " image (16-bit samples and progressive JPEGs take more memory per pixel)"
+        )
     image = _decode_jpeg(data, header) if header.format == "jpeg" else _decode_png(data, header)
-    if image.shape[:2] != (header.height, header.width):
-        raise _corrupt(header, f"the decoded size {image.shape[1]}x{image.shape[0]} contradicts the header")
-    return _to_bgr_or_gray_uint8(image, header)
+    if image.shape[:2] != (header.height, header.width) or image.ndim != (2 if _gray(header) else 3):
+        raise _corrupt(header, f"the decoded shape {image.shape} contradicts the header")
+    return _to_uint8(image, header)
+
+
+def decoded_bytes(data: bytes, header: ImageHeader) -> int:
+    """The memory ``decode_image`` allocates for this image at its peak, from its headers alone.
+
+    Raises ``InvalidInput`` when the JPEG's segments are corrupt or incomplete.
+    """
+    result = header.pixels * (1 if _gray(header) else 3)
+    if header.format == "png":
+        return result * (4 if data[_PNG_DEPTH_OFFSET] == 16 else 2)  # OpenCV copies its decoded array
+    cmyk = header.pixels * 4 if header.channels == 4 else 0
+    return result + cmyk + _require_complete_jpeg(data, header)
+
+
+def _gray(header: ImageHeader) -> bool:
+    return header.channels in (1, 2)
 
 
 def _decode_jpeg(data: bytes, header: ImageHeader) -> np.ndarray:
-    _require_complete_jpeg(data, header)
     colorspace = "GRAY" if header.channels == 1 else "BGR"
     try:
         image = simplejpeg.decode_jpeg(data, colorspace=colorspace, strict=True)
@@ -129,8 +167,11 @@ def _decode_jpeg(data: bytes, header: ImageHeader) -> np.ndarray:
 
 def _decode_png(data: bytes, header: ImageHeader) -> np.ndarray:
     _require_intact_png(data, header)
+    flags = cv2.IMREAD_IGNORE_ORIENTATION | (cv2.IMREAD_GRAYSCALE if _gray(header) else cv2.IMREAD_COLOR)
+    if data[_PNG_DEPTH_OFFSET] == 16:
+        flags |= cv2.IMREAD_ANYDEPTH
     try:
-        image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+        image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
     except cv2.error as exc:
         raise _corrupt(header, "the decoder failed") from exc
     if image is None:
@@ -153,21 +194,19 @@ def _corrupt(header: ImageHeader, why: str) -> InvalidInput:
     )
 
 
-def _to_bgr_or_gray_uint8(image: np.ndarray, header: ImageHeader) -> np.ndarray:
-    if image.dtype == np.uint16:
-        image = ((image.astype(np.uint32) + 128) // 257).astype(np.uint8)
-    elif image.dtype != np.uint8:
+def _to_uint8(image: np.ndarray, header: ImageHeader) -> np.ndarray:
+    if image.dtype == np.uint8:
+        return image
+    if image.dtype != np.uint16:
         raise _corrupt(header, f"unsupported sample type {image.dtype}")
-    if image.ndim == 2:
-        return image
-    channels = image.shape[2]
-    if channels in (1, 2) or header.channels in (1, 2):  # gray (+ alpha), maybe expanded to B = G = R
-        return np.ascontiguousarray(image[:, :, 0])
-    if channels == 4:
-        return cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
-    if channels == 3:
-        return image
-    raise _corrupt(header, f"unsupported channel count {channels}")
+    result = np.empty(image.shape, np.uint8)
+    rows = max(1, _SCALING_BLOCK_SAMPLES // image[0].size)
+    for start in range(0, image.shape[0], rows):
+        block = image[start : start + rows].astype(np.uint32)
+        block += 128
+        block //= 257
+        result[start : start + rows] = block
+    return result
 
 
 def _guess_format(data: bytes) -> str:
@@ -305,8 +344,10 @@ def _parse_sof(data: bytes, marker: int, start: int, size: int) -> ImageHeader:
     return ImageHeader("jpeg", width, height, components)
 
 
-def _require_complete_jpeg(data: bytes, header: ImageHeader) -> None:
-    """Every frame component's every DCT coefficient arrives, to full precision, before EOI.
+def _require_complete_jpeg(data: bytes, header: ImageHeader) -> int:
+    """Check that every frame component's every DCT coefficient arrives, to full precision,
+    before EOI; return the bytes of libjpeg's buffer of every coefficient, which it fills
+    for a progressive or multi-scan file (0 for a file decoded in one pass).
 
     libjpeg leaves missing coefficients at zero without a warning when a file cut at a
     scan boundary ends with EOI: a sequential file then lacks a component, a progressive
@@ -314,20 +355,24 @@ def _require_complete_jpeg(data: bytes, header: ImageHeader) -> None:
     down to Al = 0). Lossless frames (SOF3, ...) need each component in some scan.
     """
     components: list[int] = []
+    sampling = b""
     progressive = False
+    first_scan_components = 0
     missing: set[tuple[int, int]] = set()
     try:
         for marker, start, size in _jpeg_segments(data, through_scans=True):
             payload = data[start : start + size]
             if marker in _SOF_MARKERS and not components:
                 components = list(payload[6 : 6 + 3 * header.channels : 3])
+                sampling = payload[7 : 7 + 3 * header.channels : 3]
                 progressive = marker in _PROGRESSIVE_SOF_MARKERS
                 missing = {(c, k) for c in components for k in range(64 if progressive else 1)}
             elif marker == _SOS:
                 missing -= _scan_coverage(payload, progressive)
+                first_scan_components = first_scan_components or payload[0]
     except _Malformed as exc:
         raise _corrupt(header, f"it {exc}") from None
-    if len(components) != header.channels:
+    if len(components) != header.channels or len(sampling) != header.channels:
         raise _corrupt(header, "it is truncated inside its frame header")
     if missing:
         lacking = ", ".join(str(c) for c in sorted({c for c, _ in missing}))
@@ -335,6 +380,19 @@ def _require_complete_jpeg(data: bytes, header: ImageHeader) -> None:
             header,
             f"it is truncated: the data of component(s) {lacking} is incomplete at its end-of-image marker",
         )
+    if not progressive and first_scan_components == len(components):
+        return 0
+    return _coefficient_bytes(header, [(h >> 4, h & 0x0F) for h in sampling])
+
+
+def _coefficient_bytes(header: ImageHeader, sampling: list[tuple[int, int]]) -> int:
+    """libjpeg's whole-image coefficient buffer: 64 2-byte coefficients per 8x8 block of each
+    component, padded to whole MCUs."""
+    h_max = max(max(h for h, _ in sampling), 1)
+    v_max = max(max(v for _, v in sampling), 1)
+    mcu_columns = -(-header.width // (8 * h_max))
+    mcu_rows = -(-header.height // (8 * v_max))
+    return 128 * sum(mcu_columns * h * mcu_rows * v for h, v in sampling)
 
 
 def _scan_coverage(payload: bytes, progressive: bool) -> set[tuple[int, int]]:

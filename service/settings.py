@@ -45,6 +45,27 @@ class Settings(BaseSettings):
     workers: int = Field(
         default=1, ge=1, le=64, description="uvicorn worker processes (limits below are per process)"
     )
+    max_connections: int = Field(
+        default=1000, ge=1, description="open connections per process; a request beyond gets 503"
+    )
+    header_read_timeout_seconds: float = Field(
+        default=10.0,
+        gt=0,
+        description="longest time for a request's line and headers to arrive (408 and closed beyond)",
+    )
+    min_body_bytes_per_second: float = Field(
+        default=1024.0,
+        gt=0,
+        description="slowest average rate a request body may arrive at, after the grace below (408 below)",
+    )
+    body_rate_grace_seconds: float = Field(
+        default=5.0, gt=0, description="time a request body gets before its average rate is checked"
+    )
+    shutdown_grace_seconds: float = Field(
+        default=20.0,
+        ge=0,
+        description="on SIGTERM, longest wait for in-flight requests before running jobs are interrupted",
+    )
 
     max_request_bytes: int = Field(default=20 * 2**20, gt=0, description="largest predict request body")
     max_image_pixels: int = Field(default=40_000_000, gt=0, description="largest width*height decoded")
@@ -62,6 +83,16 @@ class Settings(BaseSettings):
     )
     request_read_timeout_seconds: float = Field(
         default=30.0, gt=0, description="longest time to receive a predict request body (408 beyond)"
+    )
+    max_receiving_bytes: int = Field(
+        default=256 * 2**20,
+        gt=0,
+        description="bytes of predict bodies being received at once, all requests together (503 beyond)",
+    )
+    max_decoded_bytes: int = Field(
+        default=256 * 2**20,
+        gt=0,
+        description="memory one image may take to decode (its real bytes: 16-bit, alpha); 413 beyond",
     )
     queue_timeout_seconds: float = Field(
         default=10.0, gt=0, description="longest wait for a slot before a predict request gets 503"
@@ -82,7 +113,20 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(default=2 * 2**30, gt=0, description="largest calibration zip")
     max_upload_files: int = Field(default=100_000, gt=0, description="most files in a calibration zip")
     max_upload_uncompressed_bytes: int = Field(
-        default=8 * 2**30, gt=0, description="most bytes once unzipped"
+        default=4 * 2**30, gt=0, description="most bytes once unzipped"
+    )
+    upload_read_timeout_seconds: float = Field(
+        default=3600.0, gt=0, description="longest time to receive a calibration upload (408 beyond)"
+    )
+    max_uploads_disk_bytes: int = Field(
+        default=16 * 2**30,
+        gt=0,
+        description="disk kept uploads (zips, unzipped batches of unfinished jobs) may take (507 beyond)",
+    )
+    min_free_disk_bytes: int = Field(
+        default=2**30,
+        ge=0,
+        description="free space that unzipping an upload must leave in the data directory (507 beyond)",
     )
     calibration_workers: int = Field(default=1, gt=0, description="calibration jobs running at once")
     min_calibration_instances: int = Field(
@@ -154,6 +198,11 @@ class Settings(BaseSettings):
         if self.store_url.startswith("sqlite:") and not self.store_url.startswith("sqlite:///"):
             return f"sqlite:///{sqlite_path(self.store_url).resolve()}"
         return self.store_url
+
+    @property
+    def uploads_dir(self) -> Path:
+        """Uploads being received, in one folder per process (removed when the process stops)."""
+        return self.data_dir / "uploads"
 
     @property
     def jobs_dir(self) -> Path:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import shutil
+import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,7 +14,7 @@ import cv2
 from calibration_store import CalibrationStore, open_store, store_location
 from service.admission import Admission
 from service.audit import AuditTrail
-from service.calibration.archive import ArchiveLimits
+from service.calibration.archive import ArchiveLimits, DiskBudget
 from service.calibration.bundle import bootstrap_default_calibration
 from service.calibration.jobs import JobRunner
 from service.calibration.registry import CalibrationRegistry
@@ -45,15 +46,21 @@ class ServiceState:
 
     @property
     def uploads_dir(self) -> Path:
-        return self.settings.data_dir / "uploads"
+        return self.settings.uploads_dir
 
     def close(self) -> None:
+        """Stop: the store's poller ends, calibration jobs are interrupted, not waited for (see
+        JobRunner.shutdown); uploads still being received are removed; then the store and the
+        model are released."""
+        started = time.monotonic()
+        log.info("shutdown: interrupting calibration jobs, then closing the store and the model")
         self.registry.stop()
         self.jobs.shutdown()
         shutil.rmtree(process_uploads_dir(self.uploads_dir), ignore_errors=True)  # cancelled jobs' uploads
         self.cpu_pool.shutdown(wait=True, cancel_futures=True)
         self.store.close()
         self.detector.close()
+        log.info("shutdown: done in %.2f s", time.monotonic() - started)
 
 
 def build_state(settings: Settings) -> ServiceState:
@@ -103,8 +110,9 @@ def build_state(settings: Settings) -> ServiceState:
         operators=operators,
         cpu_pool=ThreadPoolExecutor(settings.cpu_workers, thread_name_prefix="cpu"),
         admission=Admission(
-            settings.max_concurrent_inferences, settings.max_queued_requests, settings.queue_timeout_seconds
-        ),
+            settings.max_concurrent_inferences, settings.max_queued_requests, settings.queue_timeout_seconds,
+            settings.max_receiving_bytes,
+        ),  # fmt: skip
     )
 
 
@@ -115,4 +123,5 @@ def _submission_settings(settings: Settings) -> SubmissionSettings:
         max_image_pixels=settings.max_image_pixels,
         min_instances=settings.min_calibration_instances,
         max_rejected_share=settings.max_rejected_share,
+        disk=DiskBudget.from_settings(settings),
     )

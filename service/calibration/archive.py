@@ -1,14 +1,17 @@
 """Calibration uploads: stream to disk, then unzip safely within configured limits.
 
 Every member of an uploaded zip is checked before anything is written (names, types,
-encryption, counts, declared sizes), then members are streamed to disk in bounded
-chunks while the bytes actually produced are counted, because a zip bomb's headers
-lie. Any refusal removes the destination directory entirely.
+encryption, counts, declared sizes), and the declared size against the disk: what kept
+uploads may take together and the free space to leave (``DiskBudget``). Then members are
+streamed to disk in bounded chunks while the bytes actually produced are counted, because
+a zip bomb's headers may lie. Any refusal removes the destination directory entirely.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import os
 import re
 import shutil
 import stat
@@ -19,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO, NamedTuple
 
-from service.errors import InvalidInput, PayloadTooLarge
+from service.errors import InvalidInput, PayloadTooLarge, ServiceError
 
 if TYPE_CHECKING:
     from service.settings import Settings
@@ -32,6 +35,8 @@ MAX_NAME_COMPONENT_BYTES = 255
 UPLOAD_BYTES_SETTING = "CKS_MAX_UPLOAD_BYTES"
 FILES_SETTING = "CKS_MAX_UPLOAD_FILES"
 UNCOMPRESSED_SETTING = "CKS_MAX_UPLOAD_UNCOMPRESSED_BYTES"
+DISK_BUDGET_SETTING = "CKS_MAX_UPLOADS_DISK_BYTES"
+FREE_DISK_SETTING = "CKS_MIN_FREE_DISK_BYTES"
 
 _SUPPORTED_COMPRESSION = {
     zipfile.ZIP_STORED: "stored",
@@ -41,6 +46,51 @@ _SUPPORTED_COMPRESSION = {
 }
 _DRIVE = re.compile(r"^[A-Za-z]:")
 _IGNORED_TOP_LEVEL = frozenset({"__MACOSX"})
+
+
+class InsufficientStorage(ServiceError):
+    status, title = 507, "Insufficient storage"
+
+
+@dataclass(frozen=True)
+class DiskBudget:
+    """Room on disk for unzipped uploads: what the uploads kept in ``folders`` may take in all
+    (``max_bytes``), and the free space unzipping must leave on the file system."""
+
+    folders: tuple[Path, ...]
+    max_bytes: int
+    min_free_bytes: int
+
+    @classmethod
+    def from_settings(cls, settings: Settings) -> DiskBudget:
+        """Kept uploads are those under the data directory's ``jobs`` and ``uploads`` folders."""
+        folders = (settings.jobs_dir, settings.uploads_dir)
+        return cls(folders, settings.max_uploads_disk_bytes, settings.min_free_disk_bytes)
+
+    def check(self, incoming: int, where: Path) -> None:
+        """Refuse (507) ``incoming`` more bytes under ``where`` beyond the budget or the free space."""
+        kept = sum(_tree_bytes(folder) for folder in self.folders)
+        if kept + incoming > self.max_bytes:
+            raise InsufficientStorage(
+                f"unzipped, the upload would take {incoming} bytes; with the {kept} bytes that kept uploads"
+                f" already take (of jobs queued, running or interrupted) that is above the budget of"
+                f" {self.max_bytes} bytes ({DISK_BUDGET_SETTING}): retry once jobs have finished"
+            )
+        free = shutil.disk_usage(where).free
+        if free - incoming < self.min_free_bytes:
+            raise InsufficientStorage(
+                f"the data directory's file system has {free} bytes free: unzipping the upload's {incoming}"
+                f" bytes would leave less than {self.min_free_bytes} ({FREE_DISK_SETTING})"
+            )
+
+
+def _tree_bytes(folder: Path) -> int:
+    total = 0
+    for root, _, files in os.walk(folder):
+        for name in files:
+            with contextlib.suppress(FileNotFoundError):  # removed meanwhile by a finished job
+                total += os.lstat(os.path.join(root, name)).st_size
+    return total
 
 
 @dataclass(frozen=True)
@@ -126,12 +176,13 @@ def _chunks(source: Iterable[bytes] | BinaryIO) -> Iterable[bytes]:
         yield chunk
 
 
-def extract_zip(zip_path: Path, dest: Path, limits: ArchiveLimits) -> Path:
+def extract_zip(zip_path: Path, dest: Path, limits: ArchiveLimits, disk: DiskBudget | None = None) -> Path:
     """Safely extract ``zip_path`` into ``dest`` (absent or empty) and return the batch folder.
 
     The batch folder is the one holding ``annotations.json``: ``dest`` itself or its single
     top-level folder. Raises ``InvalidInput`` or ``PayloadTooLarge`` naming the offending
-    member and the setting involved; ``dest`` does not exist after a refusal.
+    member and the setting involved, ``InsufficientStorage`` when ``disk`` cannot take it
+    (None: not checked); ``dest`` does not exist after a refusal.
     """
     dest = Path(dest)
     if dest.exists() and any(dest.iterdir()):
@@ -141,6 +192,8 @@ def extract_zip(zip_path: Path, dest: Path, limits: ArchiveLimits) -> Path:
         with _open_zip(zip_path) as archive:
             members = archive.infolist()
             _check_members(members, limits)
+            if disk is not None:
+                disk.check(sum(info.file_size for info in members), dest)
             _extract_members(archive, members, dest, limits)
         return _batch_folder(dest)
     except BaseException:

@@ -14,7 +14,10 @@ store is what clients see:
   in the same transaction that marks the job succeeded (create_calibration), so an
   interrupted job stored nothing; its upload is kept and it can be retried;
 - a finished job never changes (the store refuses it): a retry marks the interrupted job
-  finished first, so the process presumed dead can no longer complete it.
+  finished first, so the process presumed dead can no longer complete it;
+- when the service stops, its unfinished jobs are marked interrupted at once rather than
+  waited for (their uploads are kept for a retry), and a running one stops scoring at its
+  next image (``JobCancelled``, raised by its progress report).
 """
 
 from __future__ import annotations
@@ -77,6 +80,10 @@ def interrupted_note(job_id: str) -> str:
     )
 
 
+class JobCancelled(Exception):
+    """Raised into a running job by its progress report once the service is stopping."""
+
+
 class _Tracked:
     """A job of this process: its latest snapshot and what the store last received."""
 
@@ -101,7 +108,10 @@ class JobProgress:
         self._runner._change(self._id, lambda job: replace(job, total=total))
 
     def advance(self, count: int = 1) -> None:
+        """Count ``count`` more instances done; raises ``JobCancelled`` when the service is stopping."""
         self._runner._change(self._id, lambda job: replace(job, done=job.done + count))
+        if self._runner._stopping.is_set():
+            raise JobCancelled(f"job {self._id}: the service is stopping")
 
 
 JobFunction = Callable[[JobProgress], dict]
@@ -116,6 +126,7 @@ class JobRunner:
         self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="calibration")
         self._tracked: dict[str, _Tracked] = {}
         self._lock = threading.Lock()
+        self._stopping = threading.Event()
         self._stop = threading.Event()
         self._writer = threading.Thread(target=self._write_loop, name="job-writer", daemon=True)
         self._writer.start()
@@ -153,28 +164,60 @@ class JobRunner:
         return None if job is None else reported(job, datetime.now(UTC))
 
     def shutdown(self) -> None:
-        """Finish running jobs, mark queued ones interrupted, and write what is left to the store."""
-        self._pool.shutdown(wait=True, cancel_futures=True)
-        for entry in self._entries():
-            if entry.job.state == "queued":  # cancelled before it started
-                error = "the service stopped before the job started. " + interrupted_note(entry.job.id)
-                self._finish(entry.job.id, "interrupted", errors=(error,))
+        """Stop without waiting for jobs to finish: every queued or running job is marked
+        interrupted in the store at once (its upload is kept for a retry), a running one stops
+        at its next image; then what is left is written to the store."""
+        self._stopping.set()
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        unfinished = [entry.job for entry in self._entries() if not entry.job.finished]
+        log.info("stopping calibration jobs: %d unfinished", len(unfinished))
+        for job in unfinished:
+            self._interrupt(job)
+        started = time.monotonic()
+        self._pool.shutdown(wait=True)
+        log.info("calibration threads stopped in %.2f s", time.monotonic() - started)
         self._stop.set()
         self._writer.join()
         for entry in self._entries():
             self._write(entry)
 
+    def _interrupt(self, job: JobRecord) -> None:
+        """Mark a job interrupted, with one attempt at the store (the heartbeat covers a failure)."""
+        scored = f"{job.done}/{job.total} instances scored"
+        when = "before the job started" if job.state == "queued" else f"while the job was running ({scored})"
+        error = f"the service stopped {when}. {interrupted_note(job.id)}"
+        self._finish(job.id, "interrupted", attempts=1, errors=(error,))
+        try:
+            stored = self._store.get_job(job.id)
+        except StoreError as failure:
+            log.warning("job %s (%s) could not be marked interrupted (%s); it will be reported interrupted"
+                        " once its heartbeat is %d s old", job.id, scored, failure,
+                        STALE_AFTER.total_seconds())  # fmt: skip
+            return
+        if stored is not None and stored.state != "interrupted":
+            log.info("job %s %s before it could be interrupted", job.id, stored.state)
+            return
+        log.info("job %s (%s, %s) marked interrupted; its upload is kept: retry it with"
+                 " POST /v1/admin/jobs/%s/retry", job.id, job.state, scored, job.id)  # fmt: skip
+
     # -- running ----------------------------------------------------------------
 
     def _run(self, job_id: str, function: JobFunction) -> None:
+        if self._stopping.is_set():  # interrupted before it started
+            return
         self._prune()
         entry = self._change(job_id, lambda job: replace(job, state="running"))
         if entry is not None:
             self._write(entry)
         try:
             result = function(JobProgress(self, job_id))
-        except JobFinished as error:  # a retry took the job over while this process was presumed dead
-            log.warning("job %s was finished elsewhere (%s); its work here was not stored", job_id, error)
+        except JobCancelled:  # shutdown() marked it interrupted and writes what is left
+            log.info("job %s stopped scoring: the service is stopping", job_id)
+        except JobFinished as error:  # interrupted at shutdown, or a retry took it over elsewhere
+            if self._stopping.is_set():
+                log.info("job %s was interrupted before it could store its version", job_id)
+            else:
+                log.warning("job %s was finished elsewhere (%s); its work here was not stored", job_id, error)
             self._forget(job_id)
         except StoreUnavailable as error:  # nothing committed: had it, the job's row would refuse this write
             detail = f"the calibration store was unreachable ({error}); nothing was stored"
@@ -187,14 +230,17 @@ class JobRunner:
         else:
             self._finish(job_id, "succeeded", result=result)
 
-    def _finish(self, job_id: str, state: str, **changes: Any) -> None:
+    def _finish(self, job_id: str, state: str, attempts: int = FINAL_WRITE_ATTEMPTS, **changes: Any) -> None:
         """Record the final state, then write it, retrying a few times."""
         entry = self._change(job_id, lambda job: _final(job, state, changes))
-        CALIBRATION_JOBS.labels(state if entry is None else entry.job.state).inc()
-        for attempt in range(FINAL_WRITE_ATTEMPTS):
-            if entry is None or self._write(entry):
+        if entry is None:  # not tracked, or finished already (e.g. interrupted by shutdown())
+            return
+        CALIBRATION_JOBS.labels(entry.job.state).inc()
+        for attempt in range(attempts):
+            if self._write(entry):
                 return
-            time.sleep(RETRY_DELAY_S * 2**attempt)
+            if attempt + 1 < attempts:
+                time.sleep(RETRY_DELAY_S * 2**attempt)
         log.error("job %s: its final state is not stored yet; retrying in the background", job_id)
 
     def _prune(self) -> None:
@@ -210,10 +256,13 @@ class JobRunner:
             return list(self._tracked.values())
 
     def _change(self, job_id: str, change: Callable[[JobRecord], JobRecord]) -> _Tracked | None:
+        """Apply ``change`` to a tracked job's snapshot and return its entry; None when the job is
+        not tracked or finished (a finished job never changes)."""
         with self._lock:
             entry = self._tracked.get(job_id)
-            if entry is not None:
-                entry.job = change(entry.job)
+            if entry is None or entry.job.finished:
+                return None
+            entry.job = change(entry.job)
             return entry
 
     def _write(self, entry: _Tracked) -> bool:

@@ -130,7 +130,9 @@ def score_batch(
 
     An image that does not decode strictly (the predict rule) is left out with its
     instances, which are returned as rejections naming the file and the reason.
-    ``fingerprints`` align with ``batch.instances`` (empty: unknown).
+    ``fingerprints`` align with ``batch.instances`` (empty: unknown). ``progress`` is told
+    after each image how many instances it held; an exception it raises stops scoring
+    there (a job's progress raises ``JobCancelled`` when the service stops).
     """
     manifest = detector.manifest
     prints = dict(zip(((i.image_id, i.annotation_id) for i in batch.instances), fingerprints, strict=False))

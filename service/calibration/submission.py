@@ -11,7 +11,7 @@ from typing import Any
 
 from calibration_store import CalibrationStore, JobFinished, JobRecord
 from service.audit import AuditTrail, Operator
-from service.calibration.archive import ArchiveLimits
+from service.calibration.archive import ArchiveLimits, DiskBudget
 from service.calibration.calibrate import CalibrationOptions, check_parent, create_calibration
 from service.calibration.coco import NamedBatch
 from service.calibration.intake import PreparedBatch, prepare_batch
@@ -69,6 +69,7 @@ class SubmissionSettings:
     max_image_pixels: int
     min_instances: int
     max_rejected_share: float
+    disk: DiskBudget | None = None
 
 
 class CalibrationJobs:
@@ -93,8 +94,9 @@ class CalibrationJobs:
         folder = JobFolder.of(self._settings.jobs_dir, new_job_id())
         folder.adopt(workspace)
         try:
+            settings = self._settings
             named = validate_upload(folder, batch_name(request.name, sha256), sha256,
-                                    self._detector.manifest, self._settings.limits)  # fmt: skip
+                                    self._detector.manifest, settings.limits, settings.disk)  # fmt: skip
             prepared = self._prepare(named, request)
             folder.save({"request": asdict(request), "operator": asdict(operator), "sha256": sha256,
                          "batch_dir": str(named.batch.folder.relative_to(folder.root))})  # fmt: skip
@@ -141,14 +143,16 @@ class CalibrationJobs:
         return retried
 
     def _take_over(self, job: JobRecord, new_id: str) -> None:
-        """Mark the interrupted job finished (so its old process can no longer complete it)."""
+        """Mark a job reported interrupted finished (so its old process can no longer complete it);
+        one that its stopping server marked interrupted already is left as it is (finished)."""
         try:
             self._store.update_job(
                 job.id, state="interrupted", errors=job.errors, finished_at=datetime.now(UTC),
                 result={**job.result, "retried_as": new_id},
             )  # fmt: skip
         except JobFinished as error:
-            raise Conflict(f"job {job.id} was retried or finished meanwhile: {error}") from error
+            if error.state != "interrupted":
+                raise Conflict(f"job {job.id} was retried or finished meanwhile: {error}") from error
 
     def _prepare(self, named: NamedBatch, request: UploadRequest) -> PreparedBatch:
         parent = parent_table = None

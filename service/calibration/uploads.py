@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from calibration_store import CalibrationStore, StoreError
-from service.calibration.archive import ArchiveLimits, extract_zip
+from service.calibration.archive import ArchiveLimits, DiskBudget, extract_zip
 from service.calibration.coco import NamedBatch, load_coco_batch
 from service.detector.manifest import Manifest
 from service.errors import InvalidInput
@@ -127,10 +127,15 @@ def batch_name(requested: str | None, sha256: str) -> str:
 
 
 def validate_upload(
-    folder: JobFolder, name: str, sha256: str, manifest: Manifest, limits: ArchiveLimits
+    folder: JobFolder,
+    name: str,
+    sha256: str,
+    manifest: Manifest,
+    limits: ArchiveLimits,
+    disk: DiskBudget | None = None,
 ) -> NamedBatch:
-    """Unzip within limits and validate the COCO batch against the manifest."""
-    batch = extract_zip(folder.archive, folder.root / "batch", limits)
+    """Unzip within limits and the disk budget, and validate the COCO batch against the manifest."""
+    batch = extract_zip(folder.archive, folder.root / "batch", limits, disk)
     folder.archive.unlink()
     return NamedBatch(name=name, sha256=sha256, batch=load_coco_batch(batch, manifest))
 

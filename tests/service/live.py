@@ -1,10 +1,11 @@
 """Helpers for end-to-end tests of the HTTP service: real uvicorn processes on loopback ports.
 
-``LiveServer`` starts ``python -m uvicorn service.api.main:app`` with a given environment
-(a temporary data directory, an admin token, optionally a PostgreSQL store URL, the model
-directory from ``Settings().model_dir``), waits for ``/healthz`` and terminates the process
-at teardown. Helpers build COCO-keypoints batch zips from the model's bundled samples,
-optionally mutated, for the calibration upload tests.
+``LiveServer`` starts the server the way production does (``keypoint-service serve``, run
+as ``python -m service.cli serve`` so that this checkout's code is served) with a given
+environment (a temporary data directory, an admin token, optionally a PostgreSQL store URL,
+the model directory from ``Settings().model_dir``), waits for ``/healthz`` and stops the
+process with SIGTERM at teardown. Helpers build COCO-keypoints batch zips from the model's
+bundled samples, optionally mutated, for the calibration upload tests.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from typing import Any
 
 import httpx
 
+from benchmarks import faults_clients
 from service.settings import PACKAGE_ROOT, Settings
 
 ADMIN_TOKEN = "test-admin-token"
@@ -40,6 +42,19 @@ def wait_until(condition: Callable[[], bool], what: str = "condition", timeout: 
     while not condition():
         assert time.monotonic() < deadline, f"timed out after {timeout} s waiting until {what}"
         time.sleep(0.01)
+
+
+def metric(server: LiveServer, name: str, labels: str = "") -> float:
+    """A sample of the server's /metrics (0 when absent)."""
+    return faults_clients.metric(server.url, name, labels)
+
+
+def read_until_closed(connection: socket.socket) -> str:
+    """Everything the server sends until it closes the connection (header and body may be split)."""
+    received = b""
+    while chunk := connection.recv(65536):
+        received += chunk
+    return received.decode()
 
 
 def free_port() -> int:
@@ -79,7 +94,7 @@ def service_env(data_dir: Path, **settings: Any) -> dict[str, str]:
 
 
 class LiveServer:
-    """One uvicorn process serving ``service.api.main:app`` on a free loopback port."""
+    """One ``keypoint-service serve`` process on a free loopback port."""
 
     def __init__(self, data_dir: Path, **settings: Any) -> None:
         self.data_dir = Path(data_dir)
@@ -115,8 +130,8 @@ class LiveServer:
             return ""
 
     def start(self) -> LiveServer:
-        command = [sys.executable, "-m", "uvicorn", "service.api.main:app", "--host", "127.0.0.1",
-                   "--port", str(self.port), "--no-access-log"]  # fmt: skip
+        command = [sys.executable, "-m", "service.cli", "serve", "--host", "127.0.0.1",
+                   "--port", str(self.port)]  # fmt: skip
         with open(self.log_path, "wb") as log:
             self.process = subprocess.Popen(
                 command, env=self.env, cwd=PACKAGE_ROOT, stdout=log, stderr=subprocess.STDOUT
@@ -138,12 +153,15 @@ class LiveServer:
         )
 
     def stop(self) -> None:
+        """SIGTERM, then SIGKILL if the process outlives its shutdown grace period by 10 s."""
         self.client.close()
         if self.process is None or self.process.poll() is not None:
             return
         self.process.terminate()
+        default = Settings.model_fields["shutdown_grace_seconds"].default
+        grace = float(self.env.get("CKS_SHUTDOWN_GRACE_SECONDS", default))
         try:
-            self.process.wait(timeout=15)
+            self.process.wait(timeout=grace + 10)
         except subprocess.TimeoutExpired:
             self.process.kill()
             self.process.wait(timeout=5)

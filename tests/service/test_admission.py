@@ -7,8 +7,6 @@ computing or waiting, so nothing depends on sleeping for the right time.
 
 from __future__ import annotations
 
-import re
-import socket
 from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
@@ -17,18 +15,10 @@ from pathlib import Path
 
 import httpx
 
-from tests.service.live import LiveServer, Sample, assert_problem, samples_by_image, wait_until
+from tests.service.live import LiveServer, Sample, assert_problem, metric, samples_by_image, wait_until
 from tests.service.predict_client import instances_of, predict_json
 
 SLOW_INSTANCES = 128
-
-
-def metric(server: LiveServer, name: str, labels: str = "") -> float:
-    text = server.client.get("/metrics").text
-    match = re.search(rf"^{name}{re.escape(labels)} ([0-9.e+-]+)$", text, re.MULTILINE)
-    return float(match.group(1)) if match else 0.0
-
-
 
 
 def post_in_background(pool: ThreadPoolExecutor, server: LiveServer, image: bytes, instances: list) -> Future:
@@ -44,14 +34,6 @@ def hold_the_slot(pool: ThreadPoolExecutor, server: LiveServer, image: bytes, sl
     computing = post_in_background(pool, server, image, slow)
     wait_until(lambda: metric(server, "cks_predict_computing") == 1, "the slow request computes")
     return computing
-
-
-def read_until_closed(connection: socket.socket) -> str:
-    """Everything the server sends until it closes the connection (header and body may be split)."""
-    received = b""
-    while chunk := connection.recv(65536):
-        received += chunk
-    return received.decode()
 
 
 def slow_and_quick(samples: list[Sample]) -> tuple[bytes, list, list]:
@@ -112,23 +94,3 @@ def test_a_request_waiting_longer_than_the_queue_timeout_gets_503(
         assert timed_out.headers["retry-after"] == "1"
         assert computing.result().status_code == 200
         assert metric(server, "cks_predict_rejected_total", '{reason="queue_timeout"}') == 1
-
-
-def test_a_slow_body_gets_408_and_frees_its_place(tmp_path: Path, samples: list[Sample]) -> None:
-    image, _, quick = slow_and_quick(samples)
-    settings = {"max_concurrent_inferences": 1, "max_queued_requests": 0, "request_read_timeout_seconds": 0.5}
-    with LiveServer(tmp_path / "data", **settings) as server, socket.create_connection(
-        ("127.0.0.1", server.port), timeout=30
-    ) as slow_client:
-        slow_client.sendall(
-            b"POST /v1/predict HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
-            b"Content-Length: 100000\r\n\r\n{\"instances\": ["
-        )  # and then nothing more
-        wait_until(lambda: metric(server, "cks_predict_in_flight") == 1, "the slow body holds the place")
-        assert_problem(predict_json(server.client, image, {"instances": quick}), 503, "at capacity")
-
-        answer = read_until_closed(slow_client)
-        assert answer.startswith("HTTP/1.1 408"), answer
-        assert "CKS_REQUEST_READ_TIMEOUT_SECONDS" in answer and "connection: close" in answer.lower()
-        wait_until(lambda: metric(server, "cks_predict_in_flight") == 0, "the place is free again")
-        assert predict_json(server.client, image, {"instances": quick}).status_code == 200

@@ -214,19 +214,29 @@ def test_staleness_limit() -> None:
     assert jobs.STALE_AFTER.total_seconds() >= 3 * jobs.HEARTBEAT_S, "a live job must never look stale"
 
 
-def test_shutdown_interrupts_queued_jobs(store: CountingStore) -> None:
+def test_shutdown_interrupts_running_and_queued_jobs(store: CountingStore) -> None:
+    """Not waited for: the running job is marked interrupted at once and stops at its next progress."""
     runner = JobRunner(store, workers=1, owner=OWNER)
-    go = threading.Event()
-    first = runner.submit("calibration", lambda progress: {"first": go.wait(10)})
+    go, advanced = threading.Event(), []
+
+    def scoring(progress: JobProgress) -> dict:
+        go.wait(10)
+        progress.advance()
+        advanced.append(True)  # not reached: advance() raises once the service is stopping
+        return {"first": True}
+
+    first = runner.submit("calibration", scoring, total=2)
     second = runner.submit("calibration", lambda progress: {"second": True})
     wait_until(lambda: state_of(store, first.id) == "running", what="first running")
     assert state_of(store, second.id) == "queued"
     stopper = threading.Thread(target=runner.shutdown)
     stopper.start()
+    wait_until(lambda: state_of(store, first.id) == "interrupted", what="the running job is interrupted")
     go.set()
     stopper.join(30)
-    assert not stopper.is_alive()
-    assert store.get_job(first.id).state == "succeeded"
+    assert not stopper.is_alive() and not advanced
+    running = store.get_job(first.id)
+    assert "while the job was running (0/2 instances scored)" in running.errors[0], running.errors
     queued = store.get_job(second.id)
     assert queued.state == "interrupted" and "stopped before the job started" in queued.errors[0]
     assert f"/v1/admin/jobs/{second.id}/retry" in queued.errors[0]

@@ -22,7 +22,7 @@ from service.api.admin_schemas import (
     VersionDetail,
     VersionList,
 )
-from service.api.body import receive_upload
+from service.api.body import BodyPace, receive_upload
 from service.api.deps import Admin, State
 from service.api.presenters import activation_out, audit_page, comparison_out, describe, job_out, summarize
 from service.api.schemas import MAX_VERSION, Nonconformity
@@ -127,9 +127,12 @@ async def upload_calibration(
                 f"send the batch as a zip body (Content-Type: application/zip), not {content_type!r}"
             )
         upload = UploadRequest(name, note, append_to, activate, force, reason, dedupe, max_rejected_share)
+        settings = state.settings
+        timeout = settings.upload_read_timeout_seconds
+        pace = BodyPace.from_settings(settings, timeout, "CKS_UPLOAD_READ_TIMEOUT_SECONDS")
         workspace = await run_in_threadpool(UploadWorkspace.create, state.uploads_dir)
         try:
-            saved = await receive_upload(request, workspace.archive, state.settings.max_upload_bytes)
+            saved = await receive_upload(request, workspace.archive, settings.max_upload_bytes, pace)
         except BaseException:
             await run_in_threadpool(workspace.remove)
             raise

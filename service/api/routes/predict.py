@@ -11,10 +11,10 @@ from fastapi import APIRouter, Request, Response
 from pydantic import ValidationError
 from starlette.datastructures import UploadFile
 
-from service.api.body import read_limited_body
+from service.api.body import BodyPace, read_limited_body
 from service.api.deps import State
 from service.api.schemas import PredictJson, PredictParameters, PredictResponse
-from service.errors import InvalidInput, RequestTimeout, UnsupportedMediaType
+from service.errors import InvalidInput, Unavailable, UnsupportedMediaType
 from service.image_decoding import decode_image
 from service.logs import note_calibration_version
 from service.prediction import predict
@@ -68,8 +68,7 @@ def _validated(model: type[PredictParameters], raw: str | bytes) -> PredictParam
         ) from error
 
 
-async def _parse(request: Request, state: State) -> tuple[bytes, PredictParameters]:
-    body = await _read_body(request, state)
+async def _parse(request: Request, body: bytes) -> tuple[bytes, PredictParameters]:
     content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if content_type == "application/json":
         parameters = _validated(PredictJson, body)
@@ -86,17 +85,15 @@ async def _parse(request: Request, state: State) -> tuple[bytes, PredictParamete
 
 
 async def _read_body(request: Request, state: State) -> bytes:
-    """The body within CKS_MAX_REQUEST_BYTES and CKS_REQUEST_READ_TIMEOUT_SECONDS: a slow
-    client must not hold an admission place for long."""
-    timeout = state.settings.request_read_timeout_seconds
-    try:
-        async with asyncio.timeout(timeout):
-            return await read_limited_body(request, state.settings.max_request_bytes, "CKS_MAX_REQUEST_BYTES")
-    except TimeoutError:
-        raise RequestTimeout(
-            f"the request body did not arrive within {timeout:g} s (CKS_REQUEST_READ_TIMEOUT_SECONDS)",
-            headers={"Connection": "close"},
-        ) from None
+    """The body within CKS_MAX_REQUEST_BYTES, paced, its bytes counted against
+    CKS_MAX_RECEIVING_BYTES while it arrives."""
+    settings = state.settings
+    pace = BodyPace.from_settings(
+        settings, settings.request_read_timeout_seconds, "CKS_REQUEST_READ_TIMEOUT_SECONDS"
+    )
+    limit = settings.max_request_bytes
+    with state.admission.receiving() as count:
+        return await read_limited_body(request, limit, "CKS_MAX_REQUEST_BYTES", pace, count)
 
 
 async def _parse_multipart(request: Request) -> tuple[bytes, PredictParameters]:
@@ -125,18 +122,26 @@ def _wants_png(request: Request) -> bool:
     openapi_extra=_OPENAPI,
 )
 async def predict_route(request: Request, state: State) -> Response:
-    async with state.admission.admitted():
-        image_bytes, parameters = await _parse(request, state)
-        async with state.admission.slot():  # decoded images exist only inside a slot
-            loop = asyncio.get_running_loop()
-            context = contextvars.copy_context()  # the pool's thread logs with the request's id
-            return await loop.run_in_executor(
-                state.cpu_pool, context.run, _respond, state, image_bytes, parameters, _wants_png(request)
-            )
+    try:
+        state.admission.refuse_if_full()  # not worth receiving
+        body = await _read_body(request, state)  # a slow client holds no place meanwhile
+        async with state.admission.admitted():
+            image_bytes, parameters = await _parse(request, body)
+            async with state.admission.slot():  # decoded images exist only inside a slot
+                loop = asyncio.get_running_loop()
+                context = contextvars.copy_context()  # the pool's thread logs with the request's id
+                return await loop.run_in_executor(
+                    state.cpu_pool, context.run, _respond, state, image_bytes, parameters, _wants_png(request)
+                )
+    except asyncio.CancelledError:  # uvicorn cancels what is left when a shutdown's grace period ends
+        raise Unavailable(
+            "the service stopped before this request was done (CKS_SHUTDOWN_GRACE_SECONDS): send it again",
+            headers={"Retry-After": "1", "Connection": "close"},
+        ) from None
 
 
 def _respond(state: ServiceState, image_bytes: bytes, parameters: PredictParameters, png: bool) -> Response:
-    image = decode_image(image_bytes, state.settings.max_image_pixels)
+    image = decode_image(image_bytes, state.settings.max_image_pixels, state.settings.max_decoded_bytes)
     result = predict(state, image, parameters)
     note_calibration_version(result.calibration.version)
     if png:

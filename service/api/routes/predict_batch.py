@@ -12,6 +12,7 @@ read, each image's request checked and each image answered by predict's own step
 from __future__ import annotations
 
 import asyncio
+import contextvars
 import logging
 import re
 from dataclasses import dataclass
@@ -89,20 +90,18 @@ async def predict_batch_route(request: Request, state: State) -> Response:
         raise UnsupportedMediaType(
             f"send multipart/form-data with parts image_0, request_0, image_1, ..., not {content_type!r}"
         )
-    async with state.admission.admitted():  # the first image's place, taken before the body as predict's
-        await _read_body(request, state)
-        parts = await _parts(request, state.settings.max_batch_images)
-        capacity = state.admission.capacity
-        if len(parts) > capacity:
-            raise InvalidInput(
-                f"a batch of {len(parts)} images needs {len(parts)} admission places and this server has"
-                f" {capacity} (CKS_MAX_CONCURRENT_INFERENCES + CKS_MAX_QUEUED_REQUESTS): send at most"
-                f" {capacity} images per batch"
-            )
-        async with state.admission.admitted(len(parts) - 1):
-            items = await asyncio.gather(
-                *(_answer(request, state, index, part) for index, part in enumerate(parts))
-            )
+    state.admission.refuse_if_full()  # not worth receiving
+    await _read_body(request, state)  # as predict: a slow client holds no place meanwhile
+    parts = await _parts(request, state.settings.max_batch_images)
+    capacity = state.admission.capacity
+    if len(parts) > capacity:
+        raise InvalidInput(
+            f"a batch of {len(parts)} images needs {len(parts)} admission places and this server has"
+            f" {capacity} (CKS_MAX_CONCURRENT_INFERENCES + CKS_MAX_QUEUED_REQUESTS): send at most"
+            f" {capacity} images per batch"
+        )
+    async with state.admission.admitted(len(parts)):
+        items = await asyncio.gather(*(_answer(request, state, index, part) for index, part in enumerate(parts)))
     # Each item is already JSON (a result as POST /v1/predict writes it, or a problem): joined, not re-parsed.
     return Response(b'{"items":[' + b",".join(items) + b"]}", media_type="application/json")
 
@@ -152,7 +151,10 @@ async def _answer(request: Request, state: ServiceState, index: int, part: _Part
         image, parameters = part.parsed(index)
         async with state.admission.slot():  # decoded images exist only inside a slot
             loop = asyncio.get_running_loop()
-            response = await loop.run_in_executor(state.cpu_pool, _respond, state, image, parameters, False)
+            context = contextvars.copy_context()  # the pool's thread logs with the request's id
+            response = await loop.run_in_executor(
+                state.cpu_pool, context.run, _respond, state, image, parameters, False
+            )
         return b'{"status":200,"result":' + bytes(response.body) + b"}"
     except ServiceError as error:
         answer = problem(error.status, error.title, error.detail, request, error.errors,
