@@ -101,7 +101,8 @@ async def predict_batch_route(request: Request, state: State) -> Response:
             f" {capacity} images per batch"
         )
     async with state.admission.admitted(len(parts)):
-        items = await asyncio.gather(*(_answer(request, state, index, part) for index, part in enumerate(parts)))
+        answers = (_answer(request, state, index, part) for index, part in enumerate(parts))
+        items = await asyncio.gather(*answers)
     # Each item is already JSON (a result as POST /v1/predict writes it, or a problem): joined, not re-parsed.
     return Response(b'{"items":[' + b",".join(items) + b"]}", media_type="application/json")
 
