@@ -1,5 +1,5 @@
 """The service under slow clients, huge images, a zip bomb and SIGTERM: the figures of
-docs/operations-clients-shutdown.md.
+docs/operations.md.
 
     python -m benchmarks.faults_clients
 
