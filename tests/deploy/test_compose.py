@@ -23,6 +23,7 @@ def test_two_replicas_on_one_postgresql_in_a_health_checked_order() -> None:
     db, service, proxy = services["db"], services["keypoints"], services["proxy"]
     assert "pg_isready" in " ".join(db["healthcheck"]["test"])
     assert service["deploy"]["replicas"] == 2
+    assert int(service["stop_grace_period"].removesuffix("s")) > Settings().shutdown_grace_seconds
     assert service["depends_on"]["db"]["condition"] == "service_healthy"
     assert proxy["depends_on"]["keypoints"]["condition"] == "service_healthy"  # the image's HEALTHCHECK
     assert service["environment"]["CKS_STORE_URL"].startswith("postgresql://")
