@@ -19,7 +19,13 @@ from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import asynccontextmanager, contextmanager
 
 from service.errors import Unavailable
-from service.metrics import PREDICT_COMPUTING, PREDICT_IN_FLIGHT, PREDICT_REJECTED, PREDICT_WAITING
+from service.metrics import (
+    PREDICT_COMPUTING,
+    PREDICT_IN_FLIGHT,
+    PREDICT_RECEIVING,
+    PREDICT_REJECTED,
+    PREDICT_WAITING,
+)
 
 RETRY_AFTER_SECONDS = 1
 
@@ -52,7 +58,7 @@ class Admission:
         """503 unless ``places`` places (one per image) are free (CKS_MAX_QUEUED_REQUESTS)."""
         if self._admitted + places > self.capacity:
             PREDICT_REJECTED.labels("queue_full").inc()
-            needs = f"; this batch needs {places} more places, one per image" if places > 1 else ""
+            needs = f"; this batch needs {places} places, one per image" if places > 1 else ""
             raise Overloaded(
                 f"the service is at capacity ({self._max_concurrent} predict requests computing, "
                 f"{self._max_queued} waiting; CKS_MAX_CONCURRENT_INFERENCES, CKS_MAX_QUEUED_REQUESTS)"
@@ -76,11 +82,13 @@ class Admission:
                 )
             self._receiving += count
             taken += count
+            PREDICT_RECEIVING.inc(count)
 
         try:
             yield take
         finally:
             self._receiving -= taken
+            PREDICT_RECEIVING.dec(taken)
 
     @asynccontextmanager
     async def admitted(self, places: int = 1) -> AsyncIterator[None]:

@@ -62,6 +62,10 @@ PREDICT_WAITING = Gauge(
     "cks_predict_waiting", "predict requests waiting for a compute slot",
     registry=REGISTRY, multiprocess_mode="livesum",
 )
+PREDICT_RECEIVING = Gauge(
+    "cks_predict_receiving_bytes", "bytes of predict bodies still arriving (CKS_MAX_RECEIVING_BYTES)",
+    registry=REGISTRY, multiprocess_mode="livesum",
+)
 PREDICT_REJECTED = Counter(
     "cks_predict_rejected", "predict requests refused with 503 by admission control", ["reason"],
     registry=REGISTRY,

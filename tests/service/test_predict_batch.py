@@ -122,7 +122,7 @@ def test_admission_counts_images(tmp_path: Path, images) -> None:
         never = post_batch(server.client, batch_of(4))
         assert_problem(never, 422, "a batch of 4 images needs 4 admission places", "has 3")
         refused = post_batch(server.client, batch_of(3))
-        assert_problem(refused, 503, "at capacity", "this batch needs 2 more places", "retry after")
+        assert_problem(refused, 503, "at capacity", "this batch needs 3 places", "retry after")
         assert refused.headers["retry-after"] == "1"
 
         def post_two() -> httpx.Response:

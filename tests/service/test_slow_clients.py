@@ -75,6 +75,8 @@ def test_a_body_still_arriving_holds_no_place(paced: LiveServer, sample: tuple[b
     statuses = []
     with connect(paced) as slow, ThreadPoolExecutor(1) as pool:
         slow.sendall(SLOW_BODY_HEAD + b'{"instances": [' + b" " * 5000)  # then nothing: 5 s at 1000 B/s
+        # its place is checked when its head arrives: the loop below must not be holding it then
+        wait_until(lambda: metric(paced, "cks_predict_receiving_bytes") > 0, "the slow body is arriving")
         answered = pool.submit(read_until_closed, slow)
         while not answered.done():
             statuses.append(predict_json(paced.client, image, {"instances": instances}).status_code)
@@ -134,6 +136,7 @@ def test_bodies_being_received_share_a_byte_budget(paced: LiveServer, sample: tu
     image, instances = sample
     with connect(paced) as large:
         large.sendall(SLOW_BODY_HEAD.replace(b"100000", b"900000") + b" " * 350_000)
+        wait_until(lambda: metric(paced, "cks_predict_receiving_bytes") > 0, "the large body is arriving")
 
         responses = []
 
