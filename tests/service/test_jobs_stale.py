@@ -13,40 +13,16 @@ import os
 import signal
 import socket
 from datetime import UTC, datetime, timedelta
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 
-import cv2
-import numpy as np
 import pytest
 
+from benchmarks.faults_clients import long_batch
 from calibration_store import JobRecord, open_store
 from service.calibration.jobs import STALE_AFTER
 from tests.service.live import ADMIN_TOKEN, LiveServer, batch_zip, count_instances, wait_until
 
 COPIES = 6  # the samples, 6 times over: seconds of scoring, so the kill lands mid-job
-
-
-def reencoded(copies: int):
-    """A batch mutation: every image (and its annotations) `copies` times, each copy re-encoded
-    at another JPEG quality so that no two files are the same (repeats would be refused)."""
-
-    def mutate(doc: dict, files: dict[str, bytes]) -> None:
-        images, annotations = list(doc["images"]), list(doc["annotations"])
-        next_image = max(image["id"] for image in images) + 1
-        next_annotation = max(a["id"] for a in annotations) + 1
-        for copy in range(1, copies):
-            for image in images:
-                path = PurePosixPath(image["file_name"])
-                name = str(path.with_name(f"copy{copy}-{path.name}"))
-                pixels = cv2.imdecode(np.frombuffer(files[image["file_name"]], np.uint8), cv2.IMREAD_COLOR)
-                files[name] = cv2.imencode(".jpg", pixels, [cv2.IMWRITE_JPEG_QUALITY, 90 - copy])[1].tobytes()
-                doc["images"].append({**image, "id": next_image, "file_name": name})
-                for annotation in (a for a in annotations if a["image_id"] == image["id"]):
-                    doc["annotations"].append({**annotation, "id": next_annotation, "image_id": next_image})
-                    next_annotation += 1
-                next_image += 1
-
-    return mutate
 
 
 @pytest.fixture(params=["sqlite", "postgres"])
@@ -70,7 +46,7 @@ def test_a_killed_servers_job_is_interrupted_and_retried(
     tmp_path: Path, samples_dir: Path, coco: dict
 ) -> None:
     store_url = f"sqlite://{tmp_path}/shared/calibration.db"
-    body = batch_zip(samples_dir, coco, mutate=reencoded(COPIES))
+    body = long_batch(COPIES)
     with (
         LiveServer(tmp_path / "a", admin_token=ADMIN_TOKEN, store_url=store_url) as a,
         LiveServer(tmp_path / "b", admin_token=ADMIN_TOKEN, store_url=store_url) as b,
@@ -184,7 +160,7 @@ def test_a_job_queued_at_shutdown_is_interrupted_and_retried(
     data = tmp_path / "data"
     server = LiveServer(data, admin_token=ADMIN_TOKEN, calibration_workers=1).start()
     try:
-        first = server.upload(batch_zip(samples_dir, coco, mutate=reencoded(COPIES)))
+        first = server.upload(long_batch(COPIES))
         second = server.upload(batch_zip(samples_dir, coco, images=3))
         assert first.status_code == second.status_code == 202, (first.text, second.text)
         queued = second.json()["id"]

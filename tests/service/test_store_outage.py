@@ -12,10 +12,10 @@ import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
-import cv2
 import httpx
 import pytest
 
+from benchmarks.faults_clients import long_batch
 from benchmarks.faults_store import run_outage, scene
 from calibration_store import open_store
 from service.calibration.bundle import bootstrap_default_calibration
@@ -24,7 +24,7 @@ from service.detector.runtime import Detector
 from service.errors import StoreUnreachable
 from service.settings import PACKAGE_ROOT
 from tests.postgres_cluster import PostgresCluster
-from tests.service.live import assert_problem, build_zip, cli, free_port, model_dir, service_env, wait_until
+from tests.service.live import assert_problem, cli, free_port, model_dir, service_env, wait_until
 from tests.service.predict_client import predict_json
 
 POLL_S, TIMEOUT_S = 1.0, 1.5  # the defaults of CKS_STORE_POLL_SECONDS, CKS_STORE_TIMEOUT_SECONDS
@@ -95,30 +95,11 @@ def test_readyz_turns_503_past_the_staleness_limit_and_predictions_go_on(
         wait_until(lambda: readyz().status_code == 200, "/readyz is 200 again", TWO_POLLS_S)
 
 
-def reencoded_batch(samples_dir: Path, coco: dict, copies: int) -> bytes:
-    """The samples ``copies`` times, each copy re-encoded (other bytes, same labels): a batch
-    that takes seconds to score and repeats no image."""
-    doc = {key: value for key, value in coco.items() if key not in ("images", "annotations")}
-    doc["images"], doc["annotations"], files = [], [], {}
-    for copy in range(copies):
-        for image in coco["images"]:
-            pixels = cv2.imread(str(samples_dir / image["file_name"]))
-            name = f"images/copy{copy}_{Path(image['file_name']).name}"
-            files[name] = cv2.imencode(".jpg", pixels, [cv2.IMWRITE_JPEG_QUALITY, 90 - copy])[1].tobytes()
-            image_id = copy * 100_000 + image["id"]
-            doc["images"].append({**image, "id": image_id, "file_name": name})
-            doc["annotations"] += [
-                {**a, "id": copy * 100_000 + a["id"], "image_id": image_id}
-                for a in coco["annotations"] if a["image_id"] == image["id"]
-            ]  # fmt: skip
-    return build_zip(doc, files)
-
-
 @pytest.mark.slow
 def test_a_job_caught_by_the_outage_fails_cleanly_and_the_next_one_succeeds(
     cluster: PostgresCluster, tmp_path: Path, samples_dir: Path, coco: dict
 ) -> None:
-    body = reencoded_batch(samples_dir, coco, copies=4)
+    body = long_batch(4)
     with scene(tmp_path, cluster) as prepared:
         server = prepared.server
         response = server.upload(body)
