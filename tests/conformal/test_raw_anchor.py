@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from service.conformal import anchor, heatmap_statistics, nonconformity_scores
+from service.conformal import heatmap_statistics, kernel, nonconformity_scores
 from service.conformal.anchor import isolated, raw_extremes, raw_top_k, upper_half_weight_sums
 from service.conformal.normalization import normalized_weights
 from service.conformal.selection import top_k_indices
@@ -65,13 +65,14 @@ def test_upper_half_sums_equal_the_median_masked_sum():
     np.testing.assert_allclose(sums, expected, rtol=1e-12)
 
 
-def test_without_the_native_kernel_every_peak_row_takes_the_exact_path(float32_batch, monkeypatch):
+@pytest.mark.parametrize("kind", KINDS)
+def test_without_the_native_kernel_the_numpy_path_matches_the_reference(float32_batch, monkeypatch, kind):
     heatmaps, keypoints = float32_batch
-    monkeypatch.setattr(anchor, "upper_half_sums", lambda *arrays: None)
+    monkeypatch.setattr(kernel, "_library", lambda: None)  # as if the kernel were not built
     flat = heatmaps.reshape(len(heatmaps), -1)
     assert upper_half_weight_sums(flat, raw_extremes(flat)) is None
-    expected = _reference("peak", heatmaps, keypoints)
-    np.testing.assert_allclose(nonconformity_scores("peak", heatmaps, keypoints), expected, rtol=1e-9)
+    expected = _reference(kind, heatmaps, keypoints)
+    np.testing.assert_allclose(nonconformity_scores(kind, heatmaps, keypoints), expected, rtol=1e-9)
 
 
 def test_rows_that_fail_the_shortcuts_take_the_exact_path():
