@@ -1,6 +1,6 @@
 """The service against the cost of its model: throughput, latency, breakdown, memory, tuning.
 
-    python -m benchmarks.bench_service            # full run, ~10 min, writes docs/performance.md
+    python -m benchmarks.bench_service            # ~10 min, writes its section of docs/performance.md
     python -m benchmarks.bench_service --quick    # a few seconds per point, for development
     python -m benchmarks.bench_service --seconds 6  # shorter headline points, same points
 
@@ -17,7 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from benchmarks.service_bench import offline, report, runs
+from benchmarks.service_bench import offline, page, report, runs
 from benchmarks.service_bench.breakdown import service_state, stage_breakdown
 from benchmarks.service_bench.inputs import Sample, load_sample
 from benchmarks.service_bench.loadgen import require_wrk
@@ -119,8 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     started = time.monotonic()
     results = run(args)
     text = report.render(results)
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(text)
+    page.write_section(args.output, "bench_service", page.demote(text))
     log(f"\n{text}\nwrote {args.output} in {time.monotonic() - started:.0f} s")
     return 0
 

@@ -11,7 +11,7 @@ import tempfile
 import time
 import urllib.request
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -65,7 +65,7 @@ def _wait_ready(url: str, process: subprocess.Popen, timeout: float) -> None:
         if process.poll() is not None:
             raise RuntimeError(f"the server exited with code {process.returncode} before it was ready")
         try:
-            with urllib.request.urlopen(f"{url}/readyz", timeout=2) as response:
+            with urllib.request.urlopen(url, timeout=2) as response:
                 if response.status == 200:
                     return
         except OSError:
@@ -74,23 +74,38 @@ def _wait_ready(url: str, process: subprocess.Popen, timeout: float) -> None:
 
 
 @contextmanager
+def launch(
+    argv: list[str], env: dict[str, str], port: int, log: Path | None = None, timeout: float = 120
+) -> Iterator[Server]:
+    """Run ``argv`` (a server listening on ``port``) until its ``/readyz`` answers 200; stop it on exit."""
+    output = open(log or os.devnull, "ab")  # noqa: SIM115 - closed below
+    process = subprocess.Popen(argv, env=env, stdout=output, stderr=output, start_new_session=True)
+    try:
+        url = f"http://127.0.0.1:{port}"
+        _wait_ready(f"{url}/readyz", process, timeout)
+        yield Server(url, process.pid)
+    finally:
+        _stop(process)
+        output.close()
+
+
+def _stop(process: subprocess.Popen) -> None:
+    """SIGINT to the server's process group (its workers too); SIGKILL for what is left after 30 s."""
+    with suppress(ProcessLookupError):
+        os.killpg(process.pid, signal.SIGINT)
+    with suppress(subprocess.TimeoutExpired):
+        process.wait(timeout=30)
+    with suppress(ProcessLookupError):  # workers that outlive their parent belong to the group
+        os.killpg(process.pid, signal.SIGKILL)
+    process.wait()
+
+
+@contextmanager
 def serve(settings: dict[str, str], log: Path | None = None, timeout: float = 120) -> Iterator[Server]:
     """Start ``python -m service.cli serve`` with ``CKS_*`` settings; stop it on exit."""
-    command = ["-m", "service.cli", "serve"]
     port = free_port()
     with tempfile.TemporaryDirectory(prefix="cks-bench-") as data_dir:
         env = {**os.environ, "CKS_DATA_DIR": data_dir, "CKS_PORT": str(port), **settings}
-        output = open(log or os.devnull, "ab")  # noqa: SIM115 - closed below
-        process = subprocess.Popen([sys.executable, *command], env=env, stdout=output, stderr=output)
-        try:
-            url = f"http://127.0.0.1:{port}"
-            _wait_ready(url, process, timeout)
-            yield Server(url, process.pid)
-        finally:
-            process.send_signal(signal.SIGINT)
-            try:
-                process.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
-            output.close()
+        argv = [sys.executable, "-m", "service.cli", "serve"]
+        with launch(argv, env, port, log, timeout) as server:
+            yield server

@@ -75,11 +75,7 @@ class Detector:
     def infer(self, image_bgr: np.ndarray, boxes: np.ndarray, objects: list[str]) -> InstanceHeatmaps:
         """Crop all boxes, run them as one batch, keep each instance's own keypoint channels."""
         batch, affines = build_batch(image_bgr, boxes, self.manifest)
-        heatmaps = self.run(batch)
-        channels = [np.asarray(self.manifest.object(name).keypoints) for name in objects]
-        instance_index = np.concatenate([np.full(len(c), i) for i, c in enumerate(channels)])
-        channel = np.concatenate(channels)
-        return InstanceHeatmaps(heatmaps[instance_index, channel], instance_index, channel, affines)
+        return instance_heatmaps(self.manifest, self.run(batch), objects, affines)
 
     def _check_output_shape(self) -> None:
         spec = self.manifest.input
@@ -94,6 +90,16 @@ class Detector:
                 f"output {self.manifest.output.name!r} has shape {tuple(out.shape)} for a batch of 2, "
                 f"but the manifest implies {expected} (batch, keypoints, output.height, output.width)"
             )
+
+
+def instance_heatmaps(
+    manifest: Manifest, heatmaps: np.ndarray, objects: list[str], affines: np.ndarray
+) -> InstanceHeatmaps:
+    """The rows of a batch's ``(N, K, h, w)`` output that matter: each instance's own keypoints."""
+    channels = [np.asarray(manifest.object(name).keypoints) for name in objects]
+    instance_index = np.concatenate([np.full(len(c), i) for i, c in enumerate(channels)])
+    channel = np.concatenate(channels)
+    return InstanceHeatmaps(heatmaps[instance_index, channel], instance_index, channel, affines)
 
 
 def _load_manifest(model_dir: Path) -> Manifest:

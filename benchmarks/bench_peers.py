@@ -1,0 +1,108 @@
+"""The service against the frameworks a user would serve the model with instead, side by side.
+
+    python -m benchmarks.bench_peers             # ~12 min: 2 rounds, 8 s a point; docs/performance.md
+    python -m benchmarks.bench_peers --quick     # ~1 min smoke run: 1 round, 1 s per point
+    python -m benchmarks.bench_peers --peers FastAPI,LitServe --duration 5
+
+Needs wrk (``apt-get install -y wrk``) and the ``peers`` extra (``pip install -e '.[peers]'``:
+LitServe, BentoML, Ray Serve). Every server computes the same sets with the service's own
+functions; each peer's answer is checked against the service's before it is timed. Writes the
+``bench_peers`` section of docs/performance.md (``bench_service`` writes the rest of the page).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from benchmarks.peers.limit import in_process_limits
+from benchmarks.peers.measure import BOXES, Plan, Requests, measure
+from benchmarks.peers.report import PeerResults, goals, render
+from benchmarks.peers.servers import PEERS, SERVICE
+from benchmarks.service_bench import page
+from benchmarks.service_bench.inputs import load_sample
+from benchmarks.service_bench.loadgen import require_wrk
+from benchmarks.service_bench.machine import this_machine
+from service.settings import DEFAULT_MODEL_DIR
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_OUTPUT = ROOT / "docs" / "performance.md"
+
+
+def log(message: str) -> None:
+    print(message, flush=True)
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="smoke run: 1 round, 1 s per point")
+    parser.add_argument("--duration", type=float, help="seconds per point (default 8, quick 1)")
+    parser.add_argument("--rounds", type=int, help="rounds over every server (default 2, quick 1)")
+    parser.add_argument(
+        "--peers", default=",".join(p.name for p in PEERS), help="comma-separated peers (default: all)"
+    )
+    parser.add_argument(
+        "--output", type=Path, default=DEFAULT_OUTPUT, help="the page to write its section in"
+    )
+    parser.add_argument("--no-write", action="store_true", help="print the section, do not write the page")
+    args = parser.parse_args(argv)
+    known = {p.name.lower(): p for p in PEERS}
+    wanted = [name.strip().lower() for name in args.peers.split(",") if name.strip()]
+    unknown = [name for name in wanted if name not in known]
+    if unknown:
+        parser.error(f"unknown peer(s) {unknown}; known: {', '.join(p.name for p in PEERS)}")
+    args.contenders = [SERVICE, *(known[name] for name in wanted)]
+    return args
+
+
+def command_line(args: argparse.Namespace) -> str:
+    parts = ["python -m benchmarks.bench_peers"]
+    parts += ["--quick"] if args.quick else []
+    parts += [f"--duration {args.duration:g}"] if args.duration else []
+    parts += [f"--rounds {args.rounds}"] if args.rounds else []
+    if len(args.contenders) != len(PEERS) + 1:
+        parts.append("--peers " + ",".join(c.name for c in args.contenders[1:]))
+    return " ".join(parts)
+
+
+def run(args: argparse.Namespace) -> PeerResults:
+    started = time.monotonic()
+    machine = this_machine()
+    log(f"machine: {machine.describe()}")
+    plan = Plan.for_mode(args.quick, args.duration, args.rounds)
+    sample = load_sample(DEFAULT_MODEL_DIR / "samples")
+    with tempfile.TemporaryDirectory(prefix="cks-peers-") as directory:
+        requests = Requests.write(Path(directory), sample)
+        log(f"server logs in {directory} while the run lasts")
+        runs = measure(args.contenders, requests, plan, Path(directory), log)
+    limits = in_process_limits(DEFAULT_MODEL_DIR, sample, BOXES, 20 if args.quick else 200)
+    for limit in limits:
+        log(f"in-process, {limit.boxes} box(es): {limit.core_ms:.2f} core-ms/request, limit "
+            f"{limit.requests_per_s:.0f} req/s, best latency {limit.best_latency_ms:.2f} ms")  # fmt: skip
+    return PeerResults(
+        command=command_line(args), machine=machine, load_at_end=os.getloadavg(), seconds=plan.seconds,
+        rounds=plan.rounds, contenders=args.contenders, runs=runs, limits=limits,
+        minutes=(time.monotonic() - started) / 60,
+    )  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    require_wrk()
+    results = run(args)
+    text = render(results)
+    log("\n" + text)
+    if not args.no_write:
+        page.write_section(args.output, "bench_peers", text)
+        log(f"wrote the bench_peers section of {args.output}")
+    missed = [goal.text for goal in goals(results) if not goal.met]
+    log(f"goals: {len(goals(results)) - len(missed)} met, {len(missed)} NOT met")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

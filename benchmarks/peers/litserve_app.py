@@ -1,0 +1,49 @@
+"""LitServe, as its docs recommend for a CPU model: two inference workers on the CPU (one per core,
+``workers_per_device=2``), one intra-op thread each, dynamic batching of up to 8 requests with a
+2 ms batch timeout; one API server per inference worker (LitServe's default).
+
+    python -m benchmarks.peers.litserve_app PORT
+
+(No ``from __future__ import annotations`` here: LitServe reads ``decode_request``'s annotation
+as a class to know that it wants the form.)
+"""
+
+import sys
+
+import litserve as ls
+from fastapi import Request
+
+from benchmarks.peers.pipeline import Pipeline, Prepared
+
+WORKERS, MAX_BATCH, BATCH_TIMEOUT_S = 2, 8, 0.002
+
+
+class KeypointAPI(ls.LitAPI):
+    def setup(self, device: str) -> None:
+        self.pipeline = Pipeline(intra_op_threads=1)
+
+    def decode_request(self, request: Request) -> Prepared:
+        return self.pipeline.prepare(request["image"].file.read(), request["request"])
+
+    def batch(self, inputs: list[Prepared]) -> list[Prepared]:
+        return inputs
+
+    def predict(self, batch: list[Prepared]) -> list[dict]:
+        heatmaps = self.pipeline.infer_many(batch)
+        return [self.pipeline.answer(p, h) for p, h in zip(batch, heatmaps, strict=True)]
+
+    def unbatch(self, output: list[dict]) -> list[dict]:
+        return output
+
+    def encode_response(self, output: dict) -> dict:
+        return output
+
+
+def main(port: int) -> None:
+    api = KeypointAPI(max_batch_size=MAX_BATCH, batch_timeout=BATCH_TIMEOUT_S, api_path="/v1/predict")
+    server = ls.LitServer(api, accelerator="cpu", workers_per_device=WORKERS, healthcheck_path="/readyz")
+    server.run(port=port, log_level="warning", generate_client_file=False)
+
+
+if __name__ == "__main__":
+    main(int(sys.argv[1]))

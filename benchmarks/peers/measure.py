@@ -1,0 +1,111 @@
+"""Running the load: every contender, every point, rounds in alternating order; medians."""
+
+from __future__ import annotations
+
+import statistics
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from benchmarks.peers.answers import difference, post
+from benchmarks.peers.servers import Contender
+from benchmarks.service_bench.inputs import Sample
+from benchmarks.service_bench.loadgen import LoadResult, run_wrk, write_script
+
+CONCURRENCIES = (1, 4, 16)
+BOXES = (1, 4)
+Point = tuple[int, int]  # (boxes per image, concurrency)
+
+
+@dataclass(frozen=True)
+class Plan:
+    seconds: float
+    warmup_seconds: float
+    rounds: int
+
+    @staticmethod
+    def for_mode(quick: bool, seconds: float | None, rounds: int | None) -> Plan:
+        plan = Plan(1.0, 1.0, 1) if quick else Plan(8.0, 2.0, 2)
+        return Plan(seconds or plan.seconds, plan.warmup_seconds, rounds or plan.rounds)
+
+
+@dataclass
+class Runs:
+    """Every wrk result per contender and point, in the order measured."""
+
+    results: dict[str, dict[Point, list[LoadResult]]] = field(default_factory=dict)
+
+    def add(self, name: str, point: Point, result: LoadResult) -> None:
+        self.results.setdefault(name, {}).setdefault(point, []).append(result)
+
+    def rate(self, name: str, point: Point) -> float:
+        return statistics.median(r.requests_per_s for r in self.results[name][point])
+
+    def p50(self, name: str, point: Point) -> float:
+        return statistics.median(r.p50_ms for r in self.results[name][point])
+
+    def errors(self, name: str) -> int:
+        return sum(r.errors for runs in self.results[name].values() for r in runs)
+
+
+@dataclass(frozen=True)
+class Requests:
+    """The README's request with 1 and 4 boxes: multipart bodies and their wrk scripts."""
+
+    bodies: dict[int, tuple[bytes, str]]
+    scripts: dict[int, Path]
+
+    @staticmethod
+    def write(directory: Path, sample: Sample) -> Requests:
+        bodies, scripts = {}, {}
+        for boxes in BOXES:
+            bodies[boxes] = sample.with_instances(boxes).multipart_body()
+            folder = directory / f"boxes-{boxes}"
+            folder.mkdir()
+            scripts[boxes] = write_script(folder, *bodies[boxes])
+        return Requests(bodies, scripts)
+
+
+def check_answers(url: str, requests: Requests, reference: dict[int, dict]) -> dict[int, dict]:
+    """The contender's answers; ``AnswerMismatch`` unless they equal ``reference`` (when given)."""
+    answers = {boxes: post(url, *requests.bodies[boxes]) for boxes in BOXES}
+    for boxes, expected in reference.items():
+        if problem := difference(expected, answers[boxes]):
+            raise AnswerMismatch(f"{boxes} box(es): {problem}")
+    return answers
+
+
+class AnswerMismatch(Exception):
+    """A peer's sets differ from the service's: timing it would compare different work."""
+
+
+def measure(
+    contenders: list[Contender], requests: Requests, plan: Plan, logs: Path, log: Callable[[str], None]
+) -> Runs:
+    """Each round starts every contender in turn (the order reversed every other round), checks its
+    answers against the service's (the first contender) and runs every point."""
+    runs, reference = Runs(), {}
+    for round_number in range(plan.rounds):
+        order = contenders if round_number % 2 == 0 else contenders[::-1]
+        if round_number % 2 and order[0].module is None:  # the reference answer first, whatever the order
+            order = order[-1:] + order[:-1]
+        for contender in order:
+            with contender.running(logs / f"{contender.module or 'service'}.log") as server:
+                answers = check_answers(server.url, requests, reference)
+                reference = reference or answers
+                for boxes in BOXES:
+                    run_wrk(server.url, requests.scripts[boxes], 4, plan.warmup_seconds)
+                for boxes in BOXES:
+                    for concurrency in CONCURRENCIES:
+                        result = run_wrk(server.url, requests.scripts[boxes], concurrency, plan.seconds)
+                        runs.add(contender.name, (boxes, concurrency), result)
+                        log(format_result(round_number, contender.name, boxes, result))
+    return runs
+
+
+def format_result(round_number: int, name: str, boxes: int, result: LoadResult) -> str:
+    return (
+        f"round {round_number + 1} {name:<10} {boxes} box(es) c={result.concurrency:<2} "
+        f"{result.requests_per_s:7.1f} req/s  p50 {result.p50_ms:6.1f} ms  p99 {result.p99_ms:6.1f} ms  "
+        f"errors {result.errors}"
+    )

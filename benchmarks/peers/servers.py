@@ -1,0 +1,68 @@
+"""The servers compared: the service with its defaults and each peer, started the same way."""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from benchmarks.service_bench.server import Server, free_port, launch, serve
+
+
+@dataclass(frozen=True)
+class Contender:
+    """One server: how to start it and the settings it runs with (and why)."""
+
+    name: str
+    module: str | None  # benchmarks.peers.<module> PORT; None = the service itself
+    settings: str
+    startup_timeout_s: float = 120
+
+    @contextmanager
+    def running(self, log: Path) -> Iterator[Server]:
+        if self.module is None:
+            with serve({}, log=log) as server:
+                yield server
+            return
+        port = free_port()
+        argv = [sys.executable, "-m", f"benchmarks.peers.{self.module}", str(port)]
+        with launch(argv, dict(os.environ), port, log, self.startup_timeout_s) as server:
+            yield server
+
+
+SERVICE = Contender(
+    "service", None, "its defaults (`keypoint-service serve`, no `CKS_*` set): one worker, micro-batching"
+)
+PEERS = (
+    Contender(
+        "FastAPI",
+        "fastapi_app",
+        "one uvicorn worker, a sync endpoint (FastAPI's threadpool), onnxruntime's default intra-op "
+        "threads (every core for one request): the dozen lines a user writes first",
+    ),
+    Contender(
+        "LitServe",
+        "litserve_app",
+        "`workers_per_device=2` on `accelerator='cpu'` (one inference process per core, as LitServe's "
+        "docs advise for CPU models), one intra-op thread each, `max_batch_size=8`, `batch_timeout=0.002` "
+        "(dynamic batching), one API server per worker (LitServe's default)",
+    ),
+    Contender(
+        "BentoML",
+        "bentoml_app",
+        "`@bentoml.service(workers=2)` (one process per core, as BentoML's docs advise for CPU-bound "
+        "models), one intra-op thread each, the image as a file part; no adaptive batching (it needs one "
+        "array per request, and the crops per image vary)",
+    ),
+    Contender(
+        "Ray Serve",
+        "ray_app",
+        "two replicas with `num_cpus=1` (one per core), one intra-op thread each, a FastAPI ingress, "
+        "`@serve.batch(max_batch_size=8, batch_wait_timeout_s=0.002)` around inference (Ray Serve's "
+        "dynamic batching); a local Ray started by the app",
+        startup_timeout_s=300,
+    ),
+)
