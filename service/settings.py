@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from functools import cached_property
 from pathlib import Path
 from typing import Literal
@@ -99,6 +100,12 @@ class Settings(BaseSettings):
     )
     inference_threads: int = Field(
         default=1, ge=0, description="onnxruntime intra-op threads per run (0 = ort default)"
+    )
+    solo_inference_threads: int = Field(
+        default=0,
+        ge=0,
+        description="intra-op threads of a run while a worker computes one request only (0 = the cores"
+        " this process may use divided by CKS_WORKERS; equal to CKS_INFERENCE_THREADS = off)",
     )
     inference_streams: int = Field(
         default=2, ge=1, le=64, description="onnxruntime runs in parallel when batching (about one per core)"
@@ -198,6 +205,14 @@ class Settings(BaseSettings):
         if self.store_url.startswith("sqlite:") and not self.store_url.startswith("sqlite:///"):
             return f"sqlite:///{sqlite_path(self.store_url).resolve()}"
         return self.store_url
+
+    @property
+    def solo_threads(self) -> int:
+        """Intra-op threads of a lone request's run (CKS_SOLO_INFERENCE_THREADS resolved; with
+        CKS_INFERENCE_THREADS=0 every run has onnxruntime's default already)."""
+        if self.inference_threads == 0:
+            return 0
+        return self.solo_inference_threads or max(1, len(os.sched_getaffinity(0)) // self.workers)
 
     @property
     def uploads_dir(self) -> Path:

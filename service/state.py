@@ -79,6 +79,7 @@ def build_state(settings: Settings) -> ServiceState:
         settings.inference_threads,
         settings.max_inference_batch,
         settings.inference_streams,
+        solo_threads=settings.solo_threads,
     )
     kind, location = store_location(settings.resolved_store_url)
     # SQLite keeps its busy timeout: a write waiting on another writer is no outage

@@ -34,9 +34,15 @@ class Runs:
     """Every wrk result per contender and point, in the order measured."""
 
     results: dict[str, dict[Point, list[LoadResult]]] = field(default_factory=dict)
+    core_ms: dict[str, dict[Point, list[float]]] = field(default_factory=dict)  # server CPU per request
 
-    def add(self, name: str, point: Point, result: LoadResult) -> None:
+    def add(self, name: str, point: Point, result: LoadResult, cpu_seconds: float) -> None:
         self.results.setdefault(name, {}).setdefault(point, []).append(result)
+        per_request = cpu_seconds * 1e3 / max(result.requests, 1)
+        self.core_ms.setdefault(name, {}).setdefault(point, []).append(per_request)
+
+    def cpu(self, name: str, point: Point) -> float:
+        return statistics.median(self.core_ms[name][point])
 
     def rate(self, name: str, point: Point) -> float:
         return statistics.median(r.requests_per_s for r in self.results[name][point])
@@ -97,15 +103,17 @@ def measure(
                     run_wrk(server.url, requests.scripts[boxes], 4, plan.warmup_seconds)
                 for boxes in BOXES:
                     for concurrency in CONCURRENCIES:
+                        cpu_before = server.cpu_seconds()
                         result = run_wrk(server.url, requests.scripts[boxes], concurrency, plan.seconds)
-                        runs.add(contender.name, (boxes, concurrency), result)
-                        log(format_result(round_number, contender.name, boxes, result))
+                        cpu = server.cpu_seconds() - cpu_before
+                        runs.add(contender.name, (boxes, concurrency), result, cpu)
+                        log(format_result(round_number, contender.name, boxes, result, cpu))
     return runs
 
 
-def format_result(round_number: int, name: str, boxes: int, result: LoadResult) -> str:
+def format_result(round_number: int, name: str, boxes: int, result: LoadResult, cpu_seconds: float) -> str:
     return (
         f"round {round_number + 1} {name:<10} {boxes} box(es) c={result.concurrency:<2} "
         f"{result.requests_per_s:7.1f} req/s  p50 {result.p50_ms:6.1f} ms  p99 {result.p99_ms:6.1f} ms  "
-        f"errors {result.errors}"
+        f"{cpu_seconds * 1e3 / max(result.requests, 1):5.2f} server core-ms/request  errors {result.errors}"
     )

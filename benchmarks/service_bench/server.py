@@ -33,6 +33,11 @@ class Server:
         """VmRSS of the ``serve`` process and all its descendants (the workers when CKS_WORKERS > 1)."""
         return sum(_rss_kib(pid) for pid in _process_tree(self.pid))
 
+    def cpu_seconds(self) -> float:
+        """User + system CPU seconds of the server process and its descendants so far (those that
+        exited are not counted: measure differences over a run of a server that keeps its processes)."""
+        return sum(_cpu_seconds(pid) for pid in _process_tree(self.pid))
+
 
 def _process_tree(pid: int) -> list[int]:
     """``pid`` and its descendants, by parent pid (a process that exits meanwhile is left out)."""
@@ -48,6 +53,14 @@ def _process_tree(pid: int) -> list[int]:
         frontier = [child for parent in frontier for child in parents.get(parent, [])]
         tree += frontier
     return tree
+
+
+def _cpu_seconds(pid: int) -> float:
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
 
 
 def _rss_kib(pid: int) -> int:

@@ -5,6 +5,11 @@ Each of ``streams`` inference threads takes whatever requests are queued (up to
 waits for a batch to fill: a lone request runs at once, and under load the queue fills
 while the previous batches run, so batches grow exactly when they pay off. Several
 streams keep several cores busy when each run uses few intra-op threads.
+
+A request may ask to run ``wide`` (see ``chooser``): if it is alone when its stream takes it
+(nothing queued), its crops are split across the idle streams, their parts running at once, or,
+with one crop or no idle stream, it runs through ``run_wide`` (more intra-op threads). Merged
+with other requests it runs as any other.
 """
 
 from __future__ import annotations
@@ -24,26 +29,52 @@ RunBatch = Callable[[np.ndarray], np.ndarray]
 class _Request:
     batch: np.ndarray
     result: Future = field(default_factory=Future)
+    wide: bool = False  # run on every core it can get when alone
+
+
+def _split(request: _Request, count: int) -> list[_Request]:
+    """``count`` parts of ``request``'s crops; its result is set once every part has one."""
+    parts = [_Request(batch) for batch in np.array_split(request.batch, count)]
+    pending, lock = [count], threading.Lock()
+
+    def part_done(_: Future) -> None:
+        with lock:
+            pending[0] -= 1
+            if pending[0]:
+                return
+        try:
+            request.result.set_result(np.concatenate([part.result.result() for part in parts]))
+        except BaseException as error:
+            request.result.set_exception(error)
+
+    for part in parts:
+        part.result.add_done_callback(part_done)
+    return parts
 
 
 class MicroBatcher:
     """Serializes inference on one thread and merges queued requests into one run."""
 
-    def __init__(self, run_batch: RunBatch, max_batch: int, streams: int = 1) -> None:
+    def __init__(
+        self, run_batch: RunBatch, max_batch: int, streams: int = 1, run_wide: RunBatch | None = None
+    ) -> None:
         self._run_batch = run_batch
+        self._run_wide = run_wide or run_batch
         self._max_batch = max_batch
+        self._streams = streams
         self._queue: queue.SimpleQueue[_Request | None] = queue.SimpleQueue()
-        self._carry: _Request | None = None
+        self._carry: list[_Request] = []
         self._grouping = threading.Lock()  # one stream at a time forms its group
+        self._busy, self._counting = 0, threading.Lock()  # streams running a batch
         self._threads = [
             threading.Thread(target=self._loop, name=f"inference-{i}", daemon=True) for i in range(streams)
         ]
         for thread in self._threads:
             thread.start()
 
-    def run(self, batch: np.ndarray) -> np.ndarray:
+    def run(self, batch: np.ndarray, wide: bool = False) -> np.ndarray:
         """Heatmaps for ``batch``; blocks the calling (worker) thread until they are ready."""
-        request = _Request(batch)
+        request = _Request(batch, wide=wide)
         self._queue.put(request)
         return request.result.result()
 
@@ -56,23 +87,47 @@ class MicroBatcher:
     def _loop(self) -> None:
         while (requests := self._next_group()) is not None:
             try:
-                outputs = self._run_batch(np.concatenate([r.batch for r in requests]))
-            except BaseException as error:  # every waiting request learns of the failure
-                for request in requests:
-                    request.result.set_exception(error)
-                continue
-            start = 0
+                self._run_group(requests)
+            finally:
+                with self._counting:
+                    self._busy -= 1
+
+    def _run_group(self, requests: list[_Request]) -> None:
+        run = self._run_wide if len(requests) == 1 and requests[0].wide else self._run_batch
+        try:
+            outputs = run(np.concatenate([r.batch for r in requests]))
+        except BaseException as error:  # every waiting request learns of the failure
             for request in requests:
-                request.result.set_result(outputs[start : start + len(request.batch)])
-                start += len(request.batch)
+                request.result.set_exception(error)
+            return
+        start = 0
+        for request in requests:
+            request.result.set_result(outputs[start : start + len(request.batch)])
+            start += len(request.batch)
 
     def _next_group(self) -> list[_Request] | None:
         with self._grouping:
-            return self._form_group()
+            group = self._form_group()
+            if group is not None:
+                with self._counting:
+                    self._busy += 1
+                    idle = self._streams - self._busy
+                if len(group) == 1 and group[0].wide and self._queue.empty():
+                    group = self._spread(group[0], idle)
+            return group
+
+    def _spread(self, request: _Request, idle: int) -> list[_Request]:
+        """Split a lone wide request across the idle streams; this stream runs the first part.
+        (With one crop or no idle stream it stays whole, for ``run_wide``.)"""
+        count = min(len(request.batch), idle + 1)
+        if count < 2:
+            return [request]
+        first, *rest = _split(request, count)
+        self._carry = rest + self._carry  # the idle streams, waiting for this lock, take them
+        return [first]
 
     def _form_group(self) -> list[_Request] | None:
-        first = self._carry or self._queue.get()
-        self._carry = None
+        first = self._carry.pop(0) if self._carry else self._queue.get()
         if first is None:
             return None
         group, size = [first], len(first.batch)
@@ -85,7 +140,7 @@ class MicroBatcher:
                 self._queue.put(None)  # leave the stop signal for a stream
                 break
             if size + len(request.batch) > self._max_batch:
-                self._carry = request  # the next group starts with it
+                self._carry.append(request)  # the next group starts with it
                 break
             group.append(request)
             size += len(request.batch)

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import hashlib
+import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -11,6 +14,7 @@ import numpy as np
 import onnxruntime as ort
 
 from service.detector.batching import MicroBatcher
+from service.detector.chooser import FasterWay
 from service.detector.manifest import MODEL_FILENAME, Manifest, ManifestError, load_manifest
 from service.detector.preprocess import build_batch
 from service.metrics import BATCH_SIZE, INFERENCE_SECONDS
@@ -42,8 +46,18 @@ class Detector:
     """A validated ONNX heatmap model and its manifest; ``run`` is thread-safe."""
 
     def __init__(
-        self, model_dir: Path, intra_op_threads: int = 0, max_batch: int = 0, streams: int = 1
+        self,
+        model_dir: Path,
+        intra_op_threads: int = 0,
+        max_batch: int = 0,
+        streams: int = 1,
+        solo_threads: int | None = None,
     ) -> None:
+        """``solo_threads``: intra-op threads of a second session for requests that run alone (None
+        or ``intra_op_threads``: none). A request alone in the process (``computing``) runs either
+        as every other (``intra_op_threads``) or wide (its crops split across idle ``streams``, or
+        on ``solo_threads``), whichever has been faster lately (``chooser``): a lone client gets
+        every core when that pays, and many clients share the cores through ``streams`` runs."""
         model_dir = Path(model_dir)
         self.manifest = _load_manifest(model_dir)
         model_path = model_dir / MODEL_FILENAME
@@ -51,22 +65,62 @@ class Detector:
             raise ModelMismatch(f"{model_path} does not exist")
         self.model_hash = file_sha256(model_path)
         self._session = create_session(model_path, intra_op_threads)
+        self._solo_session = (
+            create_session(model_path, solo_threads)
+            if solo_threads is not None and solo_threads != intra_op_threads
+            else None
+        )
+        self._computing, self._counting = 0, threading.Lock()
+        self._ways = FasterWay()
         _check_graph(self._session, self.manifest)
         self._check_output_shape()
-        self._batcher = MicroBatcher(self.run_session, max_batch, streams) if max_batch > 0 else None
+        self._batcher = (
+            MicroBatcher(self.run_session, max_batch, streams, run_wide=self._run_solo)
+            if max_batch > 0
+            else None
+        )
 
     def run_session(self, batch: np.ndarray) -> np.ndarray:
         """``(N, C, H, W)`` float32 input -> ``(N, K, h, w)`` float32 heatmaps, on this thread."""
+        return self._run(self._session, batch)
+
+    def _run_solo(self, batch: np.ndarray) -> np.ndarray:
+        return self._run(self._solo_session or self._session, batch)
+
+    def _run(self, session: ort.InferenceSession, batch: np.ndarray) -> np.ndarray:
         spec = self.manifest
         started = time.perf_counter()
-        heatmaps = self._session.run([spec.output.name], {spec.input.name: batch})[0]
+        heatmaps = session.run([spec.output.name], {spec.input.name: batch})[0]
         INFERENCE_SECONDS.observe(time.perf_counter() - started)
         BATCH_SIZE.observe(len(batch))
         return heatmaps
 
     def run(self, batch: np.ndarray) -> np.ndarray:
-        """Like ``run_session``, merged with concurrent callers' crops when batching is on."""
-        return self._batcher.run(batch) if self._batcher else self.run_session(batch)
+        """Like ``run_session``, merged with concurrent callers' crops when batching is on; a
+        request alone in the process may run wide (see ``__init__``)."""
+        can_widen = self._solo_session is not None or (self._batcher is not None and len(batch) > 1)
+        if not can_widen or self._computing > 1:
+            return self._batcher.run(batch) if self._batcher else self.run_session(batch)
+        wide = self._ways.pick(len(batch))
+        started = time.perf_counter()
+        if self._batcher:
+            heatmaps = self._batcher.run(batch, wide)
+        else:
+            heatmaps = self._run_solo(batch) if wide else self.run_session(batch)
+        self._ways.record(len(batch), wide, time.perf_counter() - started)
+        return heatmaps
+
+    @contextmanager
+    def computing(self) -> Iterator[None]:
+        """Marks one request being computed (decode to response): ``run_session`` gives a run all
+        of ``solo_threads`` only while no other request is."""
+        with self._counting:
+            self._computing += 1
+        try:
+            yield
+        finally:
+            with self._counting:
+                self._computing -= 1
 
     def close(self) -> None:
         if self._batcher:

@@ -88,6 +88,7 @@ def test_several_streams_run_batches_in_parallel_and_stop_cleanly():
 
     batcher = MicroBatcher(run, max_batch=1, streams=2)
     results: list[np.ndarray] = []
+
     def call(value: float) -> None:
         results.append(batcher.run(np.full((1, 1), value)))
 
@@ -99,3 +100,39 @@ def test_several_streams_run_batches_in_parallel_and_stop_cleanly():
     batcher.close()
     assert sorted(float(r[0, 0]) for r in results) == [2.0, 3.0]
     assert not any(thread.is_alive() for thread in batcher._threads)
+
+
+def test_a_lone_wide_request_is_split_across_idle_streams_in_parallel():
+    both_running = threading.Barrier(2, timeout=5)
+    whole = RecordingRun()
+
+    def run(batch: np.ndarray) -> np.ndarray:
+        both_running.wait()  # only passes if the two parts run at once
+        return whole(batch)
+
+    batcher = MicroBatcher(run, max_batch=8, streams=2, run_wide=lambda batch: -batch)
+    given = np.random.default_rng(1).random((5, 1, 2, 2))
+    got = batcher.run(given, wide=True)
+    batcher.close()
+    assert sorted(whole.sizes) == [2, 3], f"5 crops should run as parts of 3 and 2: {whole.sizes}"
+    np.testing.assert_array_equal(got, np.concatenate([whole(given[:3]), whole(given[3:])]))
+
+
+def test_a_wide_request_that_cannot_be_split_runs_wide_and_a_narrow_one_never_does():
+    for streams, crops, wide, expected in ((2, 1, True, -1.0), (1, 4, True, -1.0), (2, 4, False, 2.0)):
+        batcher = MicroBatcher(lambda batch: batch * 2, max_batch=8, streams=streams, run_wide=lambda b: -b)
+        got = batcher.run(np.ones((crops, 1, 1, 1)), wide=wide)
+        batcher.close()
+        assert got.shape == (crops, 1, 1, 1) and np.all(got == expected), (streams, crops, wide)
+
+
+def test_a_failing_part_fails_the_split_request():
+    def run(batch: np.ndarray) -> np.ndarray:
+        if batch[0, 0, 0, 0] > 0:
+            raise RuntimeError("part exploded")
+        return batch
+
+    batcher = MicroBatcher(run, max_batch=8, streams=2)
+    with pytest.raises(RuntimeError, match="part exploded"):
+        batcher.run(np.array([0.0, 1.0]).reshape(2, 1, 1, 1), wide=True)
+    batcher.close()

@@ -141,8 +141,9 @@ async def predict_route(request: Request, state: State) -> Response:
 
 
 def _respond(state: ServiceState, image_bytes: bytes, parameters: PredictParameters, png: bool) -> Response:
-    image = decode_image(image_bytes, state.settings.max_image_pixels, state.settings.max_decoded_bytes)
-    result = predict(state, image, parameters)
+    with state.detector.computing():
+        image = decode_image(image_bytes, state.settings.max_image_pixels, state.settings.max_decoded_bytes)
+        result = predict(state, image, parameters)
     note_calibration_version(result.calibration.version)
     if png:
         return Response(render_prediction(image, result), media_type="image/png")
