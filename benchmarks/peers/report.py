@@ -161,14 +161,21 @@ def render(results: PeerResults) -> str:
         "Errors (non-2xx or socket) over the whole run: "
         + ", ".join(f"{c.name} {results.runs.errors(c.name)}" for c in results.contenders) + ".",
         "",
+        "Server core-ms per request: the CPU time of the server's process tree during the point divided by "
+        "the requests it answered. Other jobs on the machine barely move it, so it compares the servers' "
+        "efficiency even when the throughput figures are noisy.",
+        "",
         "### Settings, and why",
         "",
         *[f"- **{c.name}**: {c.settings}." for c in results.contenders],
         "",
         "### In-process limit (same run)",
         "",
-        "The service's own functions called in one process, no HTTP (medians, "
-        "`benchmarks/service_bench/breakdown.py`), one intra-op thread:",
+        "The service's own functions called in one process, no HTTP "
+        "(`benchmarks/service_bench/breakdown.py`): stage medians (wall ms) with one intra-op thread; "
+        "core-ms = the process's CPU time per request over those calls (not inflated by other jobs on the "
+        "machine); limit = cores / core-ms; best latency = the smallest wall-clock total with one intra-op "
+        "thread or one per core.",
         "",
         "| boxes | " + " | ".join(STAGE_NAMES.values()) + " | core-ms | limit req/s | best latency ms |",
         "|---|" + "---|" * (len(STAGE_NAMES) + 3),
