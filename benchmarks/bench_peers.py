@@ -21,16 +21,18 @@ from pathlib import Path
 
 from benchmarks.peers.limit import in_process_limits
 from benchmarks.peers.measure import BOXES, Plan, Requests, measure
+from benchmarks.peers.profile import Profile, profile_under_load
 from benchmarks.peers.report import PeerResults, goals, render
 from benchmarks.peers.servers import PEERS, SERVICE
 from benchmarks.service_bench import page
 from benchmarks.service_bench.inputs import load_sample
-from benchmarks.service_bench.loadgen import require_wrk
+from benchmarks.service_bench.loadgen import require_wrk, run_wrk
 from benchmarks.service_bench.machine import this_machine
 from service.settings import DEFAULT_MODEL_DIR
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OUTPUT = ROOT / "docs" / "performance.md"
+PROFILE_CONCURRENCY = 16
 
 
 def log(message: str) -> None:
@@ -49,6 +51,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--output", type=Path, default=DEFAULT_OUTPUT, help="the page to write its section in"
     )
     parser.add_argument("--no-write", action="store_true", help="print the section, do not write the page")
+    parser.add_argument("--no-profile", action="store_true", help="skip the py-spy profile of the service")
     args = parser.parse_args(argv)
     known = {p.name.lower(): p for p in PEERS}
     wanted = [name.strip().lower() for name in args.peers.split(",") if name.strip()]
@@ -79,15 +82,25 @@ def run(args: argparse.Namespace) -> PeerResults:
         requests = Requests.write(Path(directory), sample)
         log(f"server logs in {directory} while the run lasts")
         runs = measure(args.contenders, requests, plan, Path(directory), log)
+        profile = None if args.no_profile else profile_service(requests, plan, Path(directory))
     limits = in_process_limits(DEFAULT_MODEL_DIR, sample, BOXES, 20 if args.quick else 200)
     for limit in limits:
         log(f"in-process, {limit.boxes} box(es): {limit.core_ms:.2f} core-ms/request, limit "
             f"{limit.requests_per_s:.0f} req/s, best latency {limit.best_latency_ms:.2f} ms")  # fmt: skip
     return PeerResults(
         command=command_line(args), machine=machine, load_at_end=os.getloadavg(), seconds=plan.seconds,
-        rounds=plan.rounds, contenders=args.contenders, runs=runs, limits=limits,
+        rounds=plan.rounds, contenders=args.contenders, runs=runs, limits=limits, profile=profile,
         minutes=(time.monotonic() - started) / 60,
     )  # fmt: skip
+
+
+def profile_service(requests: Requests, plan: Plan, directory: Path) -> Profile:
+    """py-spy on the service at concurrency 16 with one box (its own server start, after the rounds)."""
+    with SERVICE.running(directory / "service-profiled.log") as server:
+        run_wrk(server.url, requests.scripts[1], 4, plan.warmup_seconds)
+        profile = profile_under_load(server, requests.scripts[1], PROFILE_CONCURRENCY, plan.seconds)
+    log(profile.problem or "profile: " + ", ".join(f"{k} {v:.0%}" for k, v in profile.shares.items()))
+    return profile
 
 
 def main(argv: list[str] | None = None) -> int:

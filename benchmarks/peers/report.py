@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 from benchmarks.peers.limit import Limit, cores
 from benchmarks.peers.measure import BOXES, CONCURRENCIES, Runs
+from benchmarks.peers.profile import Profile
 from benchmarks.peers.servers import Contender
 from benchmarks.service_bench.machine import Machine
 
@@ -44,6 +45,7 @@ class PeerResults:
     runs: Runs
     limits: list[Limit]
     minutes: float
+    profile: Profile | None = None
 
     @property
     def peers(self) -> list[str]:
@@ -186,4 +188,25 @@ def render(results: PeerResults) -> str:
             for limit in results.limits
         ],
     ]  # fmt: skip
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + profile_section(results)) + "\n"
+
+
+def profile_section(results: PeerResults) -> list[str]:
+    profile = results.profile
+    if profile is None:
+        return []
+    lines = ["", "### Where the service's CPU goes under load (py-spy)", ""]
+    if profile.problem:
+        return [*lines, f"No profile: {profile.problem}."]
+    core_ms = results.runs.cpu(SERVICE, (1, 16))
+    lines += [
+        f"py-spy sampled every thread of the service at concurrency 16 with one box ({profile.samples} "
+        f"samples, {profile.running} while threads ran rather than waited); each running sample counts for "
+        "the stage of its innermost frame that names one (`benchmarks/peers/profile.py`). ms per request = "
+        f"share x the service's server core-ms per request at that point ({core_ms:.2f}).",
+        "",
+        "| stage | share of running samples | ms per request |",
+        "|---|---|---|",
+        *[f"| {stage} | {share:.0%} | {share * core_ms:.2f} |" for stage, share in profile.shares.items()],
+    ]  # fmt: skip
+    return lines

@@ -13,6 +13,7 @@ from benchmarks.bench_peers import parse_args
 from benchmarks.peers.answers import difference
 from benchmarks.peers.limit import Limit
 from benchmarks.peers.measure import BOXES, CONCURRENCIES, AnswerMismatch, Requests, Runs, check_answers
+from benchmarks.peers.profile import OTHER, summarize
 from benchmarks.peers.report import PeerResults, goals, render
 from benchmarks.peers.servers import PEERS, SERVICE
 from benchmarks.service_bench import page
@@ -100,3 +101,21 @@ def test_the_report_gives_goals_table_and_settings_and_keeps_bench_services_sect
 def test_unknown_peers_are_refused() -> None:
     with pytest.raises(SystemExit):
         parse_args(["--peers", "Triton"])
+
+
+def test_profile_samples_are_sorted_into_stages_and_waits_left_out() -> None:
+    raw = "\n".join([
+        "thread (1);_worker (thread.py:81);_respond (predict.py:140);decode_image (image_decoding.py:120) 30",
+        "thread (2);MicroBatcher._loop (batching.py:80);Detector.run_session (runtime.py:70);"
+        "Session.run (onnxruntime_inference_collection.py:406) 60",
+        "thread (3);_worker (thread.py:81);MicroBatcher.run (batching.py:47);"
+        "Condition.wait (threading.py:320) 50",
+        "thread (4);Runner.run (runners.py:118) 40",
+        "thread (4);Runner.run (runners.py:118);RequestResponseCycle.send (httptools_impl.py:524) 10",
+    ])  # fmt: skip
+    profile = summarize(raw)
+    assert (profile.samples, profile.running) == (190, 100)
+    assert profile.shares == {"inference (onnxruntime)": 0.6, "decode (JPEG)": 0.3, OTHER: 0.1}
+    results = _results()
+    section = render(PeerResults(**{**results.__dict__, "profile": profile}))
+    assert "| inference (onnxruntime) | 60% |" in section
