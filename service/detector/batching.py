@@ -6,10 +6,11 @@ waits for a batch to fill: a lone request runs at once, and under load the queue
 while the previous batches run, so batches grow exactly when they pay off. Several
 streams keep several cores busy when each run uses few intra-op threads.
 
-A request may ask to run ``wide`` (see ``chooser``): if it is alone when its stream takes it
-(nothing queued), its crops are split across the idle streams, their parts running at once, or,
-with one crop or no idle stream, it runs through ``run_wide`` (more intra-op threads). Merged
-with other requests it runs as any other.
+A request that finds every stream idle and nothing queued runs on its caller's thread (no
+hand-off). A request may ask to run ``wide`` (see ``chooser``): if it is alone, its crops are
+split across the idle streams, their parts running at once, or, with one crop or no idle
+stream, it runs through ``run_wide`` (more intra-op threads). Merged with other requests it
+runs as any other.
 """
 
 from __future__ import annotations
@@ -73,10 +74,39 @@ class MicroBatcher:
             thread.start()
 
     def run(self, batch: np.ndarray, wide: bool = False) -> np.ndarray:
-        """Heatmaps for ``batch``; blocks the calling (worker) thread until they are ready."""
+        """Heatmaps for ``batch``; blocks the calling (worker) thread until they are ready.
+
+        When no stream runs and nothing waits, the caller runs its batch itself: a lone request
+        is spared the two thread hand-offs, each a wait for a core on a busy machine."""
         request = _Request(batch, wide=wide)
-        self._queue.put(request)
+        if not self._claim_idle():
+            self._queue.put(request)
+            return request.result.result()
+        try:
+            self._run_here(request)
+        finally:
+            with self._counting:
+                self._busy -= 1
         return request.result.result()
+
+    def _claim_idle(self) -> bool:
+        """Counts the caller as a busy stream if none is busy and nothing is queued."""
+        with self._counting:
+            if self._busy or self._carry or not self._queue.empty():
+                return False
+            self._busy += 1
+            return True
+
+    def _run_here(self, request: _Request) -> None:
+        """A wide request of several crops: its first part here, the others to the idle streams."""
+        count = min(len(request.batch), self._streams) if request.wide else 1
+        if count < 2:
+            self._run_group([request])
+            return
+        first, *rest = _split(request, count)
+        for part in rest:
+            self._queue.put(part)
+        self._run_group([first])
 
     def close(self) -> None:
         for _ in self._threads:

@@ -9,6 +9,8 @@ tries the other way, so the choice follows the machine's load.
 
 from __future__ import annotations
 
+import collections
+import statistics
 import threading
 from dataclasses import dataclass, field
 
@@ -17,15 +19,19 @@ NARROW, WIDE = False, True
 
 @dataclass
 class _Estimate:
-    seconds: dict[bool, float] = field(default_factory=dict)  # way -> moving average
+    seconds: dict[bool, collections.deque[float]] = field(default_factory=dict)  # way -> recent runs
     runs: int = 0
+
+    def median(self, way: bool) -> float:
+        return statistics.median(self.seconds[way])
 
 
 class FasterWay:
-    """Moving averages of lone runs' seconds, per crop count, for the narrow and the wide way."""
+    """The recent lone runs' seconds, per crop count, for the narrow and the wide way: the way with
+    the smaller median (robust to the odd run that waited for a core) is picked."""
 
-    def __init__(self, explore: int = 8, weight: float = 0.2) -> None:
-        self._explore, self._weight = explore, weight
+    def __init__(self, explore: int = 8, window: int = 9) -> None:
+        self._explore, self._window = explore, window
         self._estimates: dict[int, _Estimate] = {}
         self._lock = threading.Lock()
 
@@ -37,11 +43,10 @@ class FasterWay:
             for way in (WIDE, NARROW):  # each way is timed before any is preferred
                 if way not in estimate.seconds:
                     return way
-            faster = min(estimate.seconds, key=estimate.seconds.__getitem__)
+            faster = min(estimate.seconds, key=estimate.median)
             return (not faster) if estimate.runs % self._explore == 0 else faster
 
     def record(self, crops: int, way: bool, seconds: float) -> None:
         with self._lock:
             estimate = self._estimates.setdefault(crops, _Estimate())
-            before = estimate.seconds.get(way)
-            estimate.seconds[way] = seconds if before is None else before + self._weight * (seconds - before)
+            estimate.seconds.setdefault(way, collections.deque(maxlen=self._window)).append(seconds)

@@ -66,7 +66,7 @@ class Detector:
         self.model_hash = file_sha256(model_path)
         self._session = create_session(model_path, intra_op_threads)
         self._solo_session = (
-            create_session(model_path, solo_threads)
+            create_session(model_path, solo_threads, spinning=False)
             if solo_threads is not None and solo_threads != intra_op_threads
             else None
         )
@@ -165,10 +165,16 @@ def _load_manifest(model_dir: Path) -> Manifest:
         raise ModelMismatch(str(error)) from error
 
 
-def create_session(model_path: Path, intra_op_threads: int) -> ort.InferenceSession:
-    """The onnxruntime session the service runs: CPU, sequential, all graph optimizations."""
+def create_session(model_path: Path, intra_op_threads: int, *, spinning: bool = True) -> ort.InferenceSession:
+    """The onnxruntime session the service runs: CPU, sequential, all graph optimizations.
+
+    ``spinning=False``: the intra-op threads sleep as soon as a run ends instead of spinning for
+    the next one (for a session that runs now and then, so its threads do not take cores from
+    the runs of the other session)."""
     options = ort.SessionOptions()
     options.intra_op_num_threads = intra_op_threads
+    if not spinning:
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
     options.inter_op_num_threads = 1
     options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL

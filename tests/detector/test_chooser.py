@@ -16,11 +16,14 @@ def test_both_ways_are_timed_first_then_the_faster_one_wins_but_the_other_is_ret
 
 
 def test_the_choice_follows_the_machine_when_the_faster_way_slows_down():
-    ways = FasterWay(explore=4, weight=0.5)
-    ways.record(4, WIDE, 0.005)
+    ways = FasterWay(explore=100, window=5)
+    for _ in range(3):
+        ways.record(4, WIDE, 0.005)
     ways.record(4, NARROW, 0.010)
     assert ways.pick(4) == WIDE
-    for _ in range(6):  # the machine got busy: wide runs now wait for cores
+    ways.record(4, WIDE, 0.030)  # one slow run does not flip the choice
+    assert ways.pick(4) == WIDE
+    for _ in range(3):  # the machine got busy: wide runs now wait for cores
         ways.record(4, WIDE, 0.030)
     assert ways.pick(4) == NARROW
 
