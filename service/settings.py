@@ -212,7 +212,7 @@ class Settings(BaseSettings):
         CKS_INFERENCE_THREADS=0 every run has onnxruntime's default already)."""
         if self.inference_threads == 0:
             return 0
-        return self.solo_inference_threads or max(1, len(os.sched_getaffinity(0)) // self.workers)
+        return self.solo_inference_threads or max(1, usable_cores() // self.workers)
 
     @property
     def uploads_dir(self) -> Path:
@@ -223,3 +223,14 @@ class Settings(BaseSettings):
     def jobs_dir(self) -> Path:
         """Uploads kept for their jobs until they finish, so an interrupted job can be retried."""
         return self.data_dir / "jobs"
+
+
+def usable_cores(cpu_max: Path = Path("/sys/fs/cgroup/cpu.max")) -> int:
+    """The cores this process may run on: its CPU affinity, capped by a cgroup v2 CPU quota (a
+    container limited to 2 CPUs on a 64-core node can use 2)."""
+    cores = len(os.sched_getaffinity(0))
+    try:
+        quota, period = cpu_max.read_text().split()[:2]
+    except (OSError, ValueError):
+        return cores
+    return cores if quota == "max" else max(1, min(cores, int(quota) // int(period)))

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from service.detector.runtime import Detector
-from service.settings import DEFAULT_MODEL_DIR
+from service.settings import DEFAULT_MODEL_DIR, Settings, usable_cores
 
 
 @pytest.mark.parametrize("max_batch", [0, 32])
@@ -26,3 +29,15 @@ def test_wide_and_narrow_runs_give_the_same_heatmaps(max_batch: int) -> None:
             assert set(estimates) == {True, False}, "both ways should have been timed"
     finally:
         detector.close()
+
+
+def test_usable_cores_follow_a_cgroup_quota(tmp_path: Path) -> None:
+    cores = len(os.sched_getaffinity(0))
+    cpu_max = tmp_path / "cpu.max"
+    cpu_max.write_text("max 100000\n")
+    assert usable_cores(cpu_max) == cores
+    cpu_max.write_text("100000 100000\n")
+    assert usable_cores(cpu_max) == 1
+    assert usable_cores(tmp_path / "missing") == cores
+    assert Settings(workers=cores, inference_threads=1).solo_threads == 1
+    assert Settings(inference_threads=0).solo_threads == 0  # ort's default already takes every core
