@@ -21,8 +21,8 @@ CONCURRENCIES = (1, 4, 16)
 INSTANCE_COUNTS = (1, 4)
 BATCHED_CROPS = 16
 SETTING_NAMES = (
-    "workers", "inference_threads", "inference_streams", "max_inference_batch", "max_concurrent_inferences",
-    "cpu_workers",
+    "workers", "inference_threads", "solo_inference_threads", "inference_streams", "max_inference_batch",
+    "max_concurrent_inferences", "cpu_workers",
 )  # fmt: skip
 
 
