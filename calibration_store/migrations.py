@@ -213,6 +213,10 @@ def _features_and_groups(blob: str) -> tuple[str, ...]:
 
 _FEATURES_AND_GROUPS = "heatmap features and group labels of calibration instances"
 
+# Mondrian strata of a version (spec, difficulty-bin edges and counts) as JSON; NULL = none.
+_STRATA = "Mondrian strata of calibration versions"
+_STRATA_COLUMN = ("ALTER TABLE calib_versions ADD COLUMN strata TEXT",)
+
 SQLITE_MIGRATIONS: tuple[Migration, ...] = (
     Migration(
         1,
@@ -238,6 +242,7 @@ SQLITE_MIGRATIONS: tuple[Migration, ...] = (
         _FEATURES_AND_GROUPS,
         _features_and_groups("BLOB") + _sqlite_immutability(("calib_feature_arrays",)),
     ),
+    Migration(5, _STRATA, _STRATA_COLUMN),
 )
 
 POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
@@ -273,6 +278,7 @@ POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
         + ("ALTER TABLE calib_feature_arrays ALTER COLUMN data SET STORAGE EXTERNAL",)
         + _postgres_triggers(("calib_feature_arrays",)),
     ),
+    Migration(5, _STRATA, _STRATA_COLUMN),
 )
 
 

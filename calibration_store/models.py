@@ -282,6 +282,7 @@ class NewVersion:
     author: str
     note: str = ""
     parent_version: int | None = None
+    strata: Mapping[str, Any] | None = None  # Mondrian strata: spec and edges (JSON), None = none
 
     def __post_init__(self) -> None:
         _text(self.model_hash, "model hash")
@@ -295,6 +296,8 @@ class NewVersion:
         batches = tuple(SourceBatch.coerce(b) for b in _iterable(self.source_batches))
         object.__setattr__(self, "source_batches", batches)
         object.__setattr__(self, "normalization", _normalization(self.normalization))
+        if self.strata is not None:
+            object.__setattr__(self, "strata", _json_object(self.strata, "strata"))
 
 
 def _iterable(value: object) -> Iterable[Any]:
@@ -319,6 +322,7 @@ class VersionInfo:
     n_instances: int
     object_counts: Mapping[str, int] = field(default_factory=dict)
     functions: tuple[str, ...] = ()
+    strata: Mapping[str, Any] | None = None
 
 
 @dataclass(frozen=True)

@@ -84,7 +84,7 @@ def encode_block(position: int, block: ObjectScores) -> EncodedBlock:
 
 _VERSION_COLUMNS = (
     "model_hash, number, model_name, normalization, source_batches, author, note,"
-    " parent_number, created_at, n_instances, object_counts, functions"
+    " parent_number, created_at, n_instances, object_counts, functions, strata"
 )
 _ACTIVATION_COLUMNS = "seq, model_hash, number, activated_at, who, reason"
 _JOB_COLUMNS = (
@@ -206,7 +206,7 @@ class SqlStore(CalibrationStore):
     ) -> int:
         cur.execute(
             f"INSERT INTO calib_versions ({_VERSION_COLUMNS})"
-            " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING id",
+            " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING id",
             (
                 new.model_hash,
                 number,
@@ -220,6 +220,7 @@ class SqlStore(CalibrationStore):
                 scores.n_instances,
                 codec.encode_json(scores.object_counts()),
                 codec.encode_json(list(scores.functions)),
+                None if new.strata is None else codec.encode_json(new.strata),
             ),
         )
         return int(cur.fetchone()[0])
@@ -496,6 +497,7 @@ class SqlStore(CalibrationStore):
             n_instances=int(row[9]),
             object_counts=codec.decode_json(row[10]),
             functions=tuple(codec.decode_json(row[11])),
+            strata=None if row[12] is None else codec.decode_json(row[12]),
         )
 
     def _job(self, row: Sequence[Any]) -> JobRecord:

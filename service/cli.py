@@ -24,6 +24,7 @@ from service.settings import Settings
 def _serve(args: argparse.Namespace, settings: Settings) -> int:
     from calibration_store import open_store
     from service.calibration.bundle import bootstrap_default_calibration
+    from service.calibration.stratification import difficulty_spec
     from service.detector.runtime import Detector
     from service.metrics import enable_multiprocess
     from service.operators import load_operators
@@ -40,7 +41,7 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
         remove_dead_process_folders(settings.data_dir / shared)
     with open_store(settings.resolved_store_url) as store:
         if settings.bootstrap_calibration:
-            bootstrap_default_calibration(store, detector, settings.model_dir)
+            bootstrap_default_calibration(store, detector, settings.model_dir, difficulty_spec(settings))
     del detector  # the serving process loads its own
     metrics = enable_multiprocess(settings.data_dir / "metrics") if settings.workers > 1 else None
     try:

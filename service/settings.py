@@ -10,6 +10,7 @@ from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from calibration_store import sqlite_path
+from service.conformal.features import HEATMAP_FEATURES
 
 PACKAGE_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_MODEL_DIR = PACKAGE_ROOT / "models" / "lmo-synth-unet"
@@ -132,6 +133,17 @@ class Settings(BaseSettings):
     min_calibration_instances: int = Field(
         default=100, ge=0, description="activation needs this n per keypoint (unless forced with a reason)"
     )
+    stratum_signals: str = Field(
+        default="gamma,peak_probability",
+        description="difficulty strata: one heatmap feature, or two (comma-separated) for joint bins"
+        " (peak_probability, gamma, anisotropy)",
+    )
+    stratum_bins: int = Field(
+        default=3, ge=1, le=20, description="difficulty strata: quantile bins per signal"
+    )
+    min_stratum_instances: int = Field(
+        default=30, ge=1, description="difficulty strata: least calibration scores per bin (bins merge below)"
+    )
     max_rejected_share: float = Field(
         default=0.0, ge=0, le=1, description="share of a batch's instances that may be rejected (default)"
     )
@@ -166,6 +178,16 @@ class Settings(BaseSettings):
         default=True,
         description="one line per request: method, path, status, latency, request id, calibration version",
     )
+
+    @field_validator("stratum_signals")
+    @classmethod
+    def _stratum_signals(cls, value: str) -> str:
+        names = [name.strip() for name in value.split(",") if name.strip()]
+        unknown = [name for name in names if name not in HEATMAP_FEATURES]
+        if not 1 <= len(names) <= 2 or unknown or len(set(names)) != len(names):
+            raise ValueError(f"give one or two distinct heatmap features of {', '.join(HEATMAP_FEATURES)},"
+                             f" comma-separated; got {value!r}")  # fmt: skip
+        return ",".join(names)
 
     @field_validator("log_level", mode="before")
     @classmethod

@@ -18,6 +18,7 @@ from service.calibration.archive import ArchiveLimits, DiskBudget
 from service.calibration.bundle import bootstrap_default_calibration
 from service.calibration.jobs import JobRunner
 from service.calibration.registry import CalibrationRegistry
+from service.calibration.stratification import difficulty_spec
 from service.calibration.submission import CalibrationJobs, SubmissionSettings
 from service.calibration.uploads import process_uploads_dir, remove_spent_job_folders
 from service.conformal.kernel import native_kernel_available
@@ -85,7 +86,7 @@ def build_state(settings: Settings) -> ServiceState:
     options = {"timeout_s": settings.store_timeout_seconds} if kind == "postgresql" else {}
     store = open_store(settings.resolved_store_url, **options)
     if settings.bootstrap_calibration:
-        bootstrap_default_calibration(store, detector, settings.model_dir)
+        bootstrap_default_calibration(store, detector, settings.model_dir, difficulty_spec(settings))
     registry = CalibrationRegistry(store, detector.model_hash, detector.manifest, settings.store_poll_seconds,
                                    settings.store_timeout_seconds)  # fmt: skip
     names = ", ".join(sorted(operators.values())) or "none (admin API disabled)"
@@ -124,4 +125,5 @@ def _submission_settings(settings: Settings) -> SubmissionSettings:
         min_instances=settings.min_calibration_instances,
         max_rejected_share=settings.max_rejected_share,
         disk=DiskBudget.from_settings(settings),
+        difficulty=difficulty_spec(settings),
     )

@@ -43,6 +43,12 @@ class VersionDetail(VersionSummary):
     labeled_per_keypoint: dict[str, int] = Field(description="calibration scores per keypoint (n)")
     complete_per_object: dict[str, int] = Field(description="fully labeled instances (object scope n)")
     thresholds: list[ThresholdRow]
+    strata: dict | None = Field(
+        default=None,
+        description="Mondrian strata stored with the version (null: none): spec (difficulty signals, bins,"
+        " min_instances; group), groups (labels known), bins per keypoint channel and group ('*' = all"
+        " instances): edges of each signal and the calibration instances (counts) per bin",
+    )
 
 
 class VersionList(BaseModel):

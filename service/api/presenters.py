@@ -71,6 +71,7 @@ def describe(
         labeled_per_keypoint={k.name: per_keypoint.guarantees[k.index].n for k in manifest.keypoints},
         complete_per_object={o.name: per_object.guarantees[o.keypoints[0]].n for o in manifest.objects},
         thresholds=rows,
+        strata=None if info.strata is None else dict(info.strata),
     )
 
 

@@ -9,6 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 Nonconformity = Literal["peak", "var", "cov"]
 Coverage = Literal["keypoint", "object"]
+Stratify = Literal["none", "difficulty", "group", "difficulty+group"]
 Point = tuple[float, float]
 MAX_VERSION = 2**31 - 1  # the calibration store keeps version numbers in 32-bit INTEGER columns
 
@@ -22,6 +23,11 @@ class InstanceIn(_Body):
 
     object: str = Field(min_length=1, max_length=200, description="object name from GET /v1/model")
     bbox: tuple[float, float, float, float] = Field(description="[x, y, width, height] in image pixels")
+    group: str | None = Field(
+        default=None, min_length=1, max_length=64, pattern=r"^[ -~]+$",
+        description="the caller's group of this instance (camera, site) for stratify=group: its"
+        " calibration instances carried the same COCO \"group\"",
+    )  # fmt: skip
 
     @field_validator("bbox")
     @classmethod
@@ -54,6 +60,18 @@ class PredictOptions(_Body):
         default=None, ge=1, le=MAX_VERSION, description="default: the active version"
     )
     include_statistics: bool = Field(default=False, description="add raw heatmap statistics per keypoint")
+    stratify: Stratify | list[Stratify] = Field(
+        default="none",
+        description="Mondrian strata: none (pooled threshold), difficulty (bins of a label-free heatmap"
+        " signal), group (instances[i].group), difficulty+group; the version must have them. Each"
+        " keypoint's guarantee then holds conditionally on its stratum (guarantee.stratum)",
+    )
+    group_fallback: Literal["refuse", "pooled"] = Field(
+        default="refuse",
+        description="where a keypoint has no bounded stratum (unknown or missing group, too few"
+        " calibration scores for epsilon, strata the version lacks): refuse (422 naming the known"
+        " groups) or use the pooled threshold (guarantee.stratum says so)",
+    )
 
 
 class PredictParameters(PredictOptions):
@@ -95,6 +113,26 @@ class BetaLaw(BaseModel):
     b: int
 
 
+class SignalRange(BaseModel):
+    signal: str = Field(description="heatmap feature: peak_probability, gamma or anisotropy")
+    low: float | None = Field(description="the bin holds signal >= low (null: no lower edge)")
+    high: float | None = Field(description="and signal < high (null: no upper edge)")
+
+
+class Stratum(BaseModel):
+    """The Mondrian stratum whose calibration scores alone gave this keypoint's threshold."""
+
+    kind: Literal["pooled", "difficulty", "group", "difficulty+group"]
+    group: str | None = Field(default=None, description="the caller group (kind group)")
+    bin: int | None = Field(default=None, description="difficulty bin of this keypoint (kind difficulty)")
+    edges: list[SignalRange] | None = Field(default=None, description="the bin's range of each signal")
+    conditional: bool = Field(
+        description="true: n, t and the bounds are the stratum's, and coverage >= 1 - epsilon holds"
+        " conditionally on the stratum (Mondrian conformal); false: marginal over all keypoints"
+    )
+    fallback: str | None = Field(default=None, description="why the pooled threshold answered instead")
+
+
 class Guarantee(BaseModel):
     """What the calibration actually guarantees for this set (Theorem 1 of the paper)."""
 
@@ -109,6 +147,7 @@ class Guarantee(BaseModel):
     pac_failure_probability: float | None = Field(
         default=None, description="exact P(Beta(a, b) < 1 - epsilon) for the chosen t"
     )
+    stratum: Stratum | None = Field(default=None, description="which stratum answered (with stratify)")
 
 
 class KeypointStatistics(BaseModel):

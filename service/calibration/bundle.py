@@ -10,12 +10,15 @@ from __future__ import annotations
 
 import json
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from calibration_store import CalibrationStore, NewVersion, ObjectScores, ScoreTable, VersionInfo
 from service.calibration.compatibility import incompatibility
+from service.calibration.stratification import version_strata
+from service.conformal.strata import DifficultySpec
 from service.detector.runtime import Detector
 
 BUNDLE_FILENAME = "default_calibration.npz"
@@ -71,8 +74,11 @@ def _block(data: np.lib.npyio.NpzFile, name: str) -> ObjectScores:
 _BLOCK_KEYS = ("keypoint_ids", "refs", "groups")
 
 
-def bootstrap_default_calibration(store: CalibrationStore, detector: Detector, model_dir: Path) -> int | None:
-    """Store and activate the model's bundled calibration when the store has none for it yet.
+def bootstrap_default_calibration(
+    store: CalibrationStore, detector: Detector, model_dir: Path, difficulty: DifficultySpec | None = None
+) -> int | None:
+    """Store and activate the model's bundled calibration when the store has none for it yet,
+    with difficulty strata (``difficulty``, default bins) when it carries heatmap features.
 
     Atomic in the store: replicas starting at once on an empty shared store bootstrap it once.
     """
@@ -87,6 +93,8 @@ def bootstrap_default_calibration(store: CalibrationStore, detector: Detector, m
     if reason is not None:
         log.warning("%s is not loaded: %s", path, reason)
         return None
+    strata = version_strata(table, None, difficulty or DifficultySpec())
+    new = replace(new, strata=None if strata is None else strata.as_dict())
     info = store.create_first_version(new, table, "bootstrap", f"bundled default calibration {path.name}")
     if info is None:  # another process bootstrapped it first
         return None

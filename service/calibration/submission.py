@@ -17,7 +17,9 @@ from service.calibration.coco import NamedBatch
 from service.calibration.intake import PreparedBatch, prepare_batch
 from service.calibration.jobs import JobProgress, JobRunner, new_job_id
 from service.calibration.registry import CalibrationRegistry
+from service.calibration.stratification import parse_stratify
 from service.calibration.uploads import JobFolder, UploadWorkspace, batch_name, reload_batch, validate_upload
+from service.conformal.strata import DifficultySpec
 from service.detector.runtime import Detector
 from service.errors import Conflict, InvalidInput, NotFound, ServiceError
 
@@ -37,8 +39,11 @@ class UploadRequest:
     reason: str = ""
     dedupe: bool = False
     max_rejected_share: float | None = None
+    stratify: str | None = None  # None: difficulty strata when the scores carry heatmap features
 
     def __post_init__(self) -> None:
+        if self.stratify is not None:
+            parse_stratify(self.stratify)  # refused now (422), not when the job runs
         if self.force and not self.reason.strip():
             raise InvalidInput("force needs a reason (force=true&reason=..., or --force --reason ...):"
                                " say why the guardrails may be overridden")  # fmt: skip
@@ -48,7 +53,9 @@ class UploadRequest:
     def rejected_share(self, default: float) -> float:
         return default if self.max_rejected_share is None else self.max_rejected_share
 
-    def options(self, operator: Operator, default_share: float, min_instances: int) -> CalibrationOptions:
+    def options(
+        self, operator: Operator, default_share: float, min_instances: int, difficulty: DifficultySpec
+    ) -> CalibrationOptions:
         """The calibration this request asks for (``default_share`` when it names none)."""
         return CalibrationOptions(
             operator=operator,
@@ -59,6 +66,8 @@ class UploadRequest:
             reason=self.reason,
             max_rejected_share=self.rejected_share(default_share),
             min_instances=min_instances,
+            stratify=None if self.stratify is None else parse_stratify(self.stratify),
+            difficulty=difficulty,
         )
 
 
@@ -70,6 +79,7 @@ class SubmissionSettings:
     min_instances: int
     max_rejected_share: float
     disk: DiskBudget | None = None
+    difficulty: DifficultySpec = DifficultySpec()
 
 
 class CalibrationJobs:
@@ -163,7 +173,9 @@ class CalibrationJobs:
         return prepare_batch(named, parent, parent_table, dedupe=request.dedupe, max_rejected_share=share)
 
     def _options(self, request: UploadRequest, operator: Operator) -> CalibrationOptions:
-        return request.options(operator, self._settings.max_rejected_share, self._settings.min_instances)
+        settings = self._settings
+        share, minimum = settings.max_rejected_share, settings.min_instances
+        return request.options(operator, share, minimum, settings.difficulty)
 
     def _submit(
         self, folder: JobFolder, prepared: PreparedBatch, request: UploadRequest, operator: Operator

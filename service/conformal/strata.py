@@ -174,7 +174,8 @@ def fit_difficulty_bins(features: Mapping[str, np.ndarray], spec: DifficultySpec
         inner = quantile_edges(values, spec.bins, spec.min_instances)
         inner_edges.append(tuple(inner.tolist()))
         counts.extend(np.bincount(np.searchsorted(inner, values, side="right"), minlength=inner.size + 1))
-    return DifficultyBins(spec.signals, tuple(edges.tolist()), tuple(inner_edges), tuple(int(c) for c in counts))
+    counts_tuple = tuple(int(c) for c in counts)
+    return DifficultyBins(spec.signals, tuple(edges.tolist()), tuple(inner_edges), counts_tuple)
 
 
 def stratum_calibrations(

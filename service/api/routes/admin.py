@@ -119,6 +119,11 @@ async def upload_calibration(
               " before the batch fails (default CKS_MAX_REJECTED_SHARE)"),
     ] = None,
     note: Annotated[str, Query(max_length=2000)] = "",
+    stratify: Annotated[
+        list[str] | None,
+        Query(description="Mondrian strata to store: none, difficulty, group, difficulty+group (or the"
+              " parameter repeated); default: difficulty when the scores carry heatmap features"),
+    ] = None,
 ) -> JobOut:
     async with _refusals_audited(state, who, "upload"):
         content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
@@ -126,7 +131,8 @@ async def upload_calibration(
             raise UnsupportedMediaType(
                 f"send the batch as a zip body (Content-Type: application/zip), not {content_type!r}"
             )
-        upload = UploadRequest(name, note, append_to, activate, force, reason, dedupe, max_rejected_share)
+        upload = UploadRequest(name, note, append_to, activate, force, reason, dedupe, max_rejected_share,
+                               None if stratify is None else "+".join(stratify))  # fmt: skip
         settings = state.settings
         timeout = settings.upload_read_timeout_seconds
         pace = BodyPace.from_settings(settings, timeout, "CKS_UPLOAD_READ_TIMEOUT_SECONDS")
