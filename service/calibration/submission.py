@@ -9,7 +9,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from calibration_store import CalibrationStore, JobFinished, JobRecord
+from calibration_store import CalibrationStore, JobFinished, JobRecord, ScoreTable
 from service.audit import AuditTrail, Operator
 from service.calibration.archive import ArchiveLimits, DiskBudget
 from service.calibration.calibrate import CalibrationOptions, check_parent, create_calibration
@@ -17,7 +17,7 @@ from service.calibration.coco import NamedBatch
 from service.calibration.intake import PreparedBatch, prepare_batch
 from service.calibration.jobs import JobProgress, JobRunner, new_job_id
 from service.calibration.registry import CalibrationRegistry
-from service.calibration.stratification import parse_stratify
+from service.calibration.stratification import GROUP, parse_stratify
 from service.calibration.uploads import JobFolder, UploadWorkspace, batch_name, reload_batch, validate_upload
 from service.conformal.strata import DifficultySpec
 from service.detector.runtime import Detector
@@ -169,6 +169,7 @@ class CalibrationJobs:
         if request.append_to is not None:
             parent = check_parent(self._store, self._detector, request.append_to)
             parent_table = self._registry.scores(request.append_to)
+        _check_group_labels(named, parent_table, request)
         share = request.rejected_share(self._settings.max_rejected_share)
         return prepare_batch(named, parent, parent_table, dedupe=request.dedupe, max_rejected_share=share)
 
@@ -198,6 +199,16 @@ class CalibrationJobs:
             return outcome.summary
 
         return self._runner.submit(JOB_KIND, run, prepared.named.batch.count, job_id=folder.job_id)
+
+
+def _check_group_labels(named: NamedBatch, parent: ScoreTable | None, request: UploadRequest) -> None:
+    """stratify=group is refused at once (422) when no instance carries a group label."""
+    if request.stratify is None or GROUP not in parse_stratify(request.stratify):
+        return
+    inherited = parent is not None and any(block.has_groups for block in parent.objects)
+    if not inherited and not any(instance.group for instance in named.batch.instances):
+        raise InvalidInput('stratify=group needs group labels, and no annotation of the batch carries one:'
+                           ' add "group": "<label>" (a camera, a site) to the COCO annotations')  # fmt: skip
 
 
 def _accepted(job: JobRecord, prepared: PreparedBatch) -> dict[str, Any]:

@@ -34,8 +34,8 @@ from .guarantees import Calibration, calibrate
 
 #: the stratum key of instances taken together, whatever their group
 ALL_GROUPS = "*"
-DEFAULT_SIGNALS = ("peak_probability",)
-DEFAULT_BINS = 4
+DEFAULT_SIGNALS = ("gamma", "peak_probability")  # measured best: docs/strata-evaluation.md
+DEFAULT_BINS = 3
 
 
 @dataclass(frozen=True)
@@ -44,7 +44,7 @@ class DifficultySpec:
 
     signals: tuple[str, ...] = DEFAULT_SIGNALS
     bins: int = DEFAULT_BINS
-    min_instances: int = 50
+    min_instances: int = 30
 
     def __post_init__(self) -> None:
         if not 1 <= len(self.signals) <= 2 or len(set(self.signals)) != len(self.signals):
