@@ -86,6 +86,7 @@ _VERSION_COLUMNS = (
     "model_hash, number, model_name, normalization, source_batches, author, note,"
     " parent_number, created_at, n_instances, object_counts, functions, strata"
 )
+_STRATA_COLUMN = ", strata"  # written only for a version that has strata
 _ACTIVATION_COLUMNS = "seq, model_hash, number, activated_at, who, reason"
 _JOB_COLUMNS = (
     "id, kind, owner, created_at, heartbeat_at, state, done, total, errors, result, finished_at,"
@@ -204,9 +205,11 @@ class SqlStore(CalibrationStore):
     def _insert_version(
         self, cur: Cursor, new: NewVersion, number: int, created_at: datetime, scores: ScoreTable
     ) -> int:
+        strata = () if new.strata is None else (codec.encode_json(new.strata),)
+        columns = _VERSION_COLUMNS.removesuffix(_STRATA_COLUMN) + (_STRATA_COLUMN if strata else "")
+        marks = ", ".join("?" * (12 + len(strata)))
         cur.execute(
-            f"INSERT INTO calib_versions ({_VERSION_COLUMNS})"
-            " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING id",
+            f"INSERT INTO calib_versions ({columns}) VALUES ({marks}) RETURNING id",
             (
                 new.model_hash,
                 number,
@@ -220,7 +223,7 @@ class SqlStore(CalibrationStore):
                 scores.n_instances,
                 codec.encode_json(scores.object_counts()),
                 codec.encode_json(list(scores.functions)),
-                None if new.strata is None else codec.encode_json(new.strata),
+                *strata,
             ),
         )
         return int(cur.fetchone()[0])

@@ -28,7 +28,7 @@ from service.calibration.compatibility import scoring_settings, version_incompat
 from service.calibration.guardrails import Comparison, compare
 from service.calibration.intake import PreparedBatch, check_rejected_share
 from service.calibration.scoring import ScoreAccumulator, score_batch
-from service.calibration.stratification import VersionStrata, describe_kinds, version_strata
+from service.calibration.stratification import VersionStrata, version_strata
 from service.conformal.strata import DifficultySpec
 from service.detector.runtime import Detector
 from service.errors import Conflict, InvalidInput, NotFound
@@ -104,7 +104,6 @@ def create_calibration(
         comparison, previous = _compare_with_active(store, detector, table, options)
     activated = options.activate and (comparison.allowed or options.force)
     summary = _summary(table, scored, batches, activated, comparison)
-    summary["stratify"] = describe_kinds(() if strata is None else strata.spec.kinds)
     entries = _audit_entries(audit, options, summary, comparison, previous, activated)
     info = store.create_version(
         _new_version(detector, scored.sources, options, strata),

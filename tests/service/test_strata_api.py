@@ -30,9 +30,8 @@ def first_image(samples: list[Sample]) -> tuple[bytes, list[Sample]]:
 
 @pytest.fixture(scope="module")
 def grouped_version(server: LiveServer, samples_dir: Path, coco: dict) -> int:
-    job = server.calibrate(batch_zip(samples_dir, coco, mutate=_with_groups), stratify="group", name="grouped")
-    assert job["result"]["stratify"] == "group"
-    return job["version"]
+    body = batch_zip(samples_dir, coco, mutate=_with_groups)
+    return server.calibrate(body, stratify="group", name="grouped")["version"]
 
 
 def _detail(server: LiveServer, version: int) -> dict:
@@ -79,7 +78,9 @@ def test_difficulty_strata_answer_each_keypoint_from_its_bin(server: LiveServer,
     assert differ > 0
 
 
-def test_difficulty_bins_too_small_for_epsilon_are_refused_or_fall_back(server: LiveServer, first_image) -> None:
+def test_difficulty_bins_too_small_for_epsilon_are_refused_or_fall_back(
+    server: LiveServer, first_image
+) -> None:
     image, group = first_image
     parameters = {"instances": instances_of(group), "stratify": "difficulty", "epsilon": 0.02}
     assert_problem(predict_json(server.client, image, parameters), 422, "too few", "epsilon 0.02",
@@ -102,15 +103,16 @@ def test_prediction_with_a_group_uses_that_groups_calibration(
 ) -> None:
     image, group = first_image
     instances = [{**instance, "group": "cam-a"} for instance in instances_of(group)]
-    body = predict_ok(server.client, image, {"instances": instances, "stratify": "group", "epsilon": 0.5,
-                                             "calibration_version": grouped_version, "group_fallback": "pooled"})
+    parameters = {"instances": instances, "stratify": "group", "epsilon": 0.5,
+                  "calibration_version": grouped_version, "group_fallback": "pooled"}  # fmt: skip
+    body = predict_ok(server.client, image, parameters)
     categories = {c["id"]: c["name"] for c in coco["categories"]}
     objects = {o["name"]: o["keypoints"] for o in manifest["objects"]}
     labeled: dict[int, int] = {}  # keypoint channel -> labeled instances of group cam-a
     for annotation in coco["annotations"]:
         if _group_of(annotation["image_id"]) == "cam-a":
-            for channel, v in zip(objects[categories[annotation["category_id"]]], annotation["keypoints"][2::3],
-                                  strict=True):  # fmt: skip
+            channels = objects[categories[annotation["category_id"]]]
+            for channel, v in zip(channels, annotation["keypoints"][2::3], strict=True):
                 labeled[channel] = labeled.get(channel, 0) + (v > 0)
     answered = 0
     for keypoint in _keypoints(body):
