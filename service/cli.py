@@ -72,11 +72,12 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     from service.calibration.calibrate import check_parent, create_calibration
     from service.calibration.coco import NamedBatch, load_coco_batch
     from service.calibration.intake import prepare_batch
+    from service.calibration.stratification import difficulty_spec
     from service.calibration.submission import UploadRequest
     from service.detector.runtime import Detector
 
     request = UploadRequest(args.name, args.note, args.append_to, args.activate, args.force, args.reason,
-                            args.dedupe, args.max_rejected_share)  # fmt: skip
+                            args.dedupe, args.max_rejected_share, args.stratify)  # fmt: skip
     share = request.rejected_share(settings.max_rejected_share)
     detector = Detector(settings.model_dir, settings.inference_threads)
     with open_store(settings.resolved_store_url) as store:
@@ -102,7 +103,7 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
             print(f"\rscored {done}/{total} instances", end="", file=sys.stderr, flush=True)
 
         options = request.options(Operator(args.author, "cli"), settings.max_rejected_share,
-                                  settings.min_calibration_instances)  # fmt: skip
+                                  settings.min_calibration_instances, difficulty_spec(settings))  # fmt: skip
         audit = AuditTrail(store, detector.model_hash)
         pixels = settings.max_image_pixels
         outcome = create_calibration(store, detector, batches, options, pixels, audit, progress)
@@ -292,6 +293,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--max-rejected-share",
         type=float,
         help="share of instances the box rule may reject (default CKS_MAX_REJECTED_SHARE)",
+    )
+    calibrate.add_argument(
+        "--stratify",
+        help="Mondrian strata to store: none, difficulty, group or difficulty+group (default: difficulty"
+        " when the scores carry heatmap features)",
     )
     calibrate.add_argument("--bundle", help="also write the version to this .npz file")
     calibrate.set_defaults(run=_calibrate)
