@@ -114,7 +114,7 @@ class VersionStrata:
 def fit_strata(table: ScoreTable, spec: StrataSpec) -> VersionStrata:
     """Fit ``spec`` on a version's instances: bins per keypoint over its labeled instances
     (and within each group when both are asked). Refused when the table cannot carry it."""
-    groups = tuple(sorted({g for block in table.objects for g in block.groups if g}))
+    groups = tuple(sorted({str(g) for block in table.objects for g in block.groups if g}))
     if spec.group and not groups:
         raise InvalidInput('stratify=group needs group labels, and no instance carries one: add "group":'
                            ' "<label>" to the COCO annotations, or stratify by difficulty only')  # fmt: skip
