@@ -19,6 +19,7 @@ class InstanceRequest(Frozen):
 
     object: str
     bbox: Box
+    group: str | None = None  # the caller's group (camera, site), for stratify="group"
 
 
 # An instance as InstanceRequest, ("duck", [x, y, w, h]) or {"object": "duck", "bbox": [x, y, w, h]}.
@@ -39,6 +40,23 @@ class BetaLaw(Frozen):
     b: int
 
 
+class SignalRange(Frozen):
+    signal: str
+    low: float | None = Field(description="the bin holds signal >= low (None: no lower edge)")
+    high: float | None = Field(description="and signal < high (None: no upper edge)")
+
+
+class Stratum(Frozen):
+    """The Mondrian stratum whose calibration scores alone gave a keypoint's threshold."""
+
+    kind: Literal["pooled", "difficulty", "group", "difficulty+group"]
+    group: str | None = None
+    bin: int | None = None
+    edges: tuple[SignalRange, ...] | None = None
+    conditional: bool = Field(description="the guarantee holds conditionally on the stratum")
+    fallback: str | None = Field(default=None, description="why the pooled threshold answered instead")
+
+
 class Guarantee(Frozen):
     """What the calibration guarantees for a set (Theorem 1 of Yang & Pavone)."""
 
@@ -53,6 +71,7 @@ class Guarantee(Frozen):
     pac_failure_probability: float | None = Field(
         default=None, description="exact P(Beta(a, b) < 1 - epsilon) for the chosen t"
     )
+    stratum: Stratum | None = Field(default=None, description="which stratum answered (with stratify)")
 
     @property
     def bounded(self) -> bool:
