@@ -308,6 +308,8 @@ def _row_answer(thresholds, refusal, channel, group, bin_index) -> tuple[Stratum
         known = ", ".join(repr(g) for g in thresholds.groups)
         named = "names no group" if group is None else f"group {group!r} is unknown to this version"
         return None, f"{named} (known groups: {known})"
+    if channel not in thresholds.answers:
+        return None, f"calibration version has no scores for keypoint channel {channel}"
     answer = thresholds.answers[channel][key][bin_index]
     if answer.guarantee.unbounded:
         stratum = answer.stratum

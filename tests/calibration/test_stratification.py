@@ -93,6 +93,8 @@ def test_rows_get_their_groups_bin_or_a_clear_refusal(table: ScoreTable) -> None
         thresholds, None, pooled, channels, instances, ["cam-1", "cam-9"], features, "pooled"
     )
     assert fallback.strata[1].kinds == "pooled" and fallback.values[1] == 99.0
+    with pytest.raises(InvalidInput, match="no scores for keypoint channel 7"):  # an object the version lacks
+        answer_rows(thresholds, None, pooled, np.array([7]), np.array([0]), ["cam-1"], features, "refuse")
 
 
 def test_stratify_values_and_impossible_specs_are_refused(table: ScoreTable) -> None:
