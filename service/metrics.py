@@ -1,4 +1,5 @@
-"""Prometheus metrics of the service: requests, inference batches, admission, calibration jobs.
+"""Prometheus metrics of the service: requests, inference batches, admission, calibration jobs,
+coverage audits.
 
 With several worker processes (``CKS_WORKERS > 1``) ``serve`` points prometheus_client's
 multiprocess mode at a folder (``PROMETHEUS_MULTIPROC_DIR``) before the workers start:
@@ -75,6 +76,29 @@ CALIBRATION_JOBS = Counter(
 )
 CALIBRATION_INSTANCES = Counter(
     "cks_calibration_instances_scored", "instances scored by calibration jobs", registry=REGISTRY
+)
+
+# The latest coverage audit (service/monitoring/audits.py); replaced whole by each new audit
+_AUDIT_LABELS = ["object", "keypoint", "nonconformity", "epsilon", "scope"]
+AUDIT_COVERAGE = Gauge(
+    "cks_audit_coverage", "empirical coverage in the latest coverage audit (keypoint=\"\": pooled)",
+    _AUDIT_LABELS, registry=REGISTRY, multiprocess_mode="mostrecent",
+)
+AUDIT_BAND_LOW = Gauge(
+    "cks_audit_band_low", "low end of the 95% band of the coverage a valid calibration gives",
+    _AUDIT_LABELS, registry=REGISTRY, multiprocess_mode="mostrecent",
+)
+AUDIT_BAND_HIGH = Gauge(
+    "cks_audit_band_high", "high end of the 95% band of the coverage a valid calibration gives",
+    _AUDIT_LABELS, registry=REGISTRY, multiprocess_mode="mostrecent",
+)
+AUDIT_FLAGGED = Gauge(
+    "cks_audit_flagged", "1 where the latest audit found the coverage significantly low (Holm)",
+    _AUDIT_LABELS, registry=REGISTRY, multiprocess_mode="mostrecent",
+)
+AUDIT_LATEST = Gauge(
+    "cks_audit_latest_id", "id of the latest coverage audit, by audited version", ["version"],
+    registry=REGISTRY, multiprocess_mode="mostrecent",
 )
 
 

@@ -23,6 +23,7 @@ from service.calibration.uploads import process_uploads_dir, remove_spent_job_fo
 from service.conformal.kernel import native_kernel_available
 from service.detector.runtime import Detector
 from service.logs import ensure_logging
+from service.monitoring.audits import CoverageAudits
 from service.operators import load_operators
 from service.settings import Settings
 
@@ -43,6 +44,7 @@ class ServiceState:
     operators: dict[str, str]  # admin token -> operator name
     cpu_pool: ThreadPoolExecutor
     admission: Admission
+    audits: CoverageAudits
 
     @property
     def uploads_dir(self) -> Path:
@@ -99,13 +101,16 @@ def build_state(settings: Settings) -> ServiceState:
     remove_spent_job_folders(settings.jobs_dir, store)
     jobs = JobRunner(store, settings.calibration_workers)
     audit = AuditTrail(store, detector.model_hash)
+    submission = _submission_settings(settings)
+    audits = CoverageAudits(store, detector, registry, jobs, audit, submission)
+    audits.publish_latest()
     return ServiceState(
         settings=settings,
         detector=detector,
         store=store,
         registry=registry,
         jobs=jobs,
-        calibrations=CalibrationJobs(store, detector, registry, jobs, audit, _submission_settings(settings)),
+        calibrations=CalibrationJobs(store, detector, registry, jobs, audit, submission),
         audit=audit,
         operators=operators,
         cpu_pool=ThreadPoolExecutor(settings.cpu_workers, thread_name_prefix="cpu"),
@@ -113,6 +118,7 @@ def build_state(settings: Settings) -> ServiceState:
             settings.max_concurrent_inferences, settings.max_queued_requests, settings.queue_timeout_seconds,
             settings.max_receiving_bytes,
         ),  # fmt: skip
+        audits=audits,
     )
 
 
