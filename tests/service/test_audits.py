@@ -38,8 +38,12 @@ def shifted(pixels: float):
 
 def start_audit(server: LiveServer, body: bytes, content_type: str = "application/zip", **params):
     params = {k: (str(v).lower() if isinstance(v, bool) else v) for k, v in params.items()}
-    return server.client.post("/v1/admin/audits", content=body, params=params,
-                              headers={**server.admin, "Content-Type": content_type})  # fmt: skip
+    return server.client.post(
+        "/v1/admin/audits",
+        content=body,
+        params=params,
+        headers={**server.admin, "Content-Type": content_type},
+    )
 
 
 def run_audit(server: LiveServer, body: bytes, **params) -> dict:
@@ -57,15 +61,20 @@ def run_audit(server: LiveServer, body: bytes, **params) -> dict:
 
 def exact_figures(report: dict) -> list[dict]:
     """The figures Theorem 1 speaks about exactly: keypoints (keypoint scope), objects (object scope)."""
-    return [figure for section in report["sections"]
-            for figure in (section["keypoints"] if section["scope"] == "keypoint" else section["objects"])]  # fmt: skip
+    return [
+        figure
+        for section in report["sections"]
+        for figure in (section["keypoints"] if section["scope"] == "keypoint" else section["objects"])
+    ]
 
 
 @pytest.fixture(scope="module")
 def calibrations(server: LiveServer) -> Iterator[tuple]:
     """The versions and activation log before any audit, to check after them."""
-    before = (server.client.get("/v1/admin/calibrations", headers=server.admin).json(),
-              server.client.get("/v1/admin/activations", headers=server.admin).json())  # fmt: skip
+    before = (
+        server.client.get("/v1/admin/calibrations", headers=server.admin).json(),
+        server.client.get("/v1/admin/activations", headers=server.admin).json(),
+    )
     yield before
 
 
@@ -85,9 +94,11 @@ def test_the_bundled_samples_are_covered_within_their_bands(samples_audit: dict,
     assert samples_audit["version"] == active and samples_audit["instances"] == count_instances(coco)
     assert report["passed"] and report["flagged"] == [] and samples_audit["flagged"] == 0
     assert {(s["nonconformity"], s["epsilon"], s["scope"]) for s in report["sections"]} == {
-        (kind, epsilon, scope) for kind in FUNCTIONS for epsilon in (0.05, 0.1, 0.2)
+        (kind, epsilon, scope)
+        for kind in FUNCTIONS
+        for epsilon in (0.05, 0.1, 0.2)
         for scope in ("keypoint", "object")
-    }  # fmt: skip
+    }
     for section in report["sections"]:
         for figure in (section["overall"], *section["objects"]):
             assert figure["in_band"], (section["nonconformity"], section["epsilon"], figure)
@@ -124,7 +135,9 @@ def test_an_audit_never_changes_a_calibration(
     assert server.client.get("/v1/admin/activations", headers=server.admin).json() == activations
 
 
-def test_audits_are_listed_newest_first_in_pages(server: LiveServer, samples_audit: dict, shifted_audit: dict):
+def test_audits_are_listed_newest_first_in_pages(
+    server: LiveServer, samples_audit: dict, shifted_audit: dict
+):
     listed = server.client.get("/v1/admin/audits", headers=server.admin).json()
     ids = [audit["id"] for audit in listed["audits"]]
     assert ids == sorted(ids, reverse=True) and {samples_audit["id"], shifted_audit["id"]} <= set(ids)
@@ -134,7 +147,9 @@ def test_audits_are_listed_newest_first_in_pages(server: LiveServer, samples_aud
     assert [a["id"] for a in rest["audits"]] == ids[1:]
     summary = next(a for a in listed["audits"] if a["id"] == shifted_audit["id"])
     assert summary == {k: v for k, v in shifted_audit.items() if k != "report"}
-    assert_problem(server.client.get("/v1/admin/audits/999999", headers=server.admin), 404, "no coverage audit")
+    assert_problem(
+        server.client.get("/v1/admin/audits/999999", headers=server.admin), 404, "no coverage audit"
+    )
     assert server.client.get("/v1/admin/audits").status_code == 401
     assert server.client.delete(f"/v1/admin/audits/{ids[0]}", headers=server.admin).status_code == 405
 
@@ -149,15 +164,20 @@ def test_the_latest_audit_is_in_the_metrics_of_every_replica(
         for live in (server, replica):
             text = live.client.get("/metrics").text
             assert f'cks_audit_latest_id{{version="{report["version"]}"}} {float(report["id"])}' in text
-            overall = next(s for s in report["report"]["sections"]
-                           if (s["nonconformity"], s["epsilon"], s["scope"]) == ("cov", 0.1, "keypoint"))  # fmt: skip
+            overall = next(
+                s
+                for s in report["report"]["sections"]
+                if (s["nonconformity"], s["epsilon"], s["scope"]) == ("cov", 0.1, "keypoint")
+            )
             labels = 'epsilon="0.1",keypoint="",nonconformity="cov",object="",scope="keypoint"'
             assert _gauge(text, "cks_audit_coverage", labels) == pytest.approx(overall["overall"]["coverage"])
             assert _gauge(text, "cks_audit_band_low", labels) == pytest.approx(overall["overall"]["band"][0])
             if flagged is not None and flagged["scope"] == "keypoint":
-                labels = (f'epsilon="{flagged["epsilon"]:g}",keypoint="{flagged["keypoint"]}",'
-                          f'nonconformity="{flagged["nonconformity"]}",object="{flagged["object"]}",'
-                          'scope="keypoint"')  # fmt: skip
+                labels = (
+                    f'epsilon="{flagged["epsilon"]:g}",keypoint="{flagged["keypoint"]}",'
+                    f'nonconformity="{flagged["nonconformity"]}",object="{flagged["object"]}",'
+                    'scope="keypoint"'
+                )
                 assert _gauge(text, "cks_audit_flagged", labels) == 1.0
 
 
@@ -173,8 +193,12 @@ def test_a_named_version_is_audited_and_its_own_instances_are_refused(
     job = server.calibrate(batch_zip(samples_dir, coco, images=3), name="three-images")
     version = job["version"]
     body = batch_zip(samples_dir, coco)
-    assert_problem(start_audit(server, body, version=version), 409,
-                   f"version {version} was not calibrated with", "dedupe")  # fmt: skip
+    assert_problem(
+        start_audit(server, body, version=version),
+        409,
+        f"version {version} was not calibrated with",
+        "dedupe",
+    )
     audit = run_audit(server, body, version=version, dedupe=True, epsilon=[0.2, 0.1])
     report = audit["report"]
     assert audit["version"] == report["version"] == version
@@ -216,8 +240,9 @@ def test_bad_uploads_are_refused(server: LiveServer, samples_dir: Path, coco: di
         response = start_audit(server, batch_zip(samples_dir, coco, images=2, mutate=mutate))
         assert response.status_code == 422, response.text
     headers = {"Content-Type": "application/zip", "Authorization": "Bearer wrong-token"}
-    response = server.client.post("/v1/admin/audits", content=batch_zip(samples_dir, coco, images=1),
-                                  headers=headers)  # fmt: skip
+    response = server.client.post(
+        "/v1/admin/audits", content=batch_zip(samples_dir, coco, images=1), headers=headers
+    )
     assert response.status_code == 401
     assert server.client.get("/v1/admin/audits", headers=server.admin).json()["audits"] == before
     assert server.upload_workspaces() == []
