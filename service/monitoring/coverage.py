@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from fractions import Fraction
 
 import numpy as np
 
@@ -155,14 +156,15 @@ def recalibration_size(
     P(Beta(n+1-l, l) < 1 - eps - tolerance) <= 1 - level (eq. 5). Found by bisection (the
     probability shrinks as n grows, up to the floor in l)."""
     target = 1.0 - epsilon - tolerance
-    if target <= 0:
-        return conformal_floor(epsilon)
+    floor = conformal_floor(epsilon)
+    if target <= 0 or floor >= _MAX_RECALIBRATION_N:
+        return floor
 
     def enough(n: int) -> bool:
         rank = conformal_rank(n, epsilon)
         return rank >= 1 and beta_cdf(target, n + 1 - rank, rank) <= 1.0 - level
 
-    low, high = conformal_floor(epsilon), conformal_floor(epsilon)
+    low = high = floor
     while not enough(high):
         low, high = high, high * 2
         if high > _MAX_RECALIBRATION_N:
@@ -178,7 +180,5 @@ def recalibration_size(
 
 def conformal_floor(epsilon: float) -> int:
     """The smallest n with bounded sets at ``epsilon``: floor((n+1) eps) >= 1."""
-    n = max(0, math.ceil(1.0 / epsilon) - 1)
-    while conformal_rank(n, epsilon) < 1:
-        n += 1
-    return n
+    exact = Fraction(repr(float(epsilon)))  # the decimal the caller wrote, as conformal_rank reads it
+    return max(0, math.ceil(1 / exact) - 1)

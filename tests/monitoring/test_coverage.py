@@ -116,3 +116,10 @@ def test_recalibration_size_is_the_smallest_n_that_keeps_coverage(epsilon: float
     assert conformal_rank(conformal_floor(epsilon), epsilon) == 1
     assert conformal_rank(conformal_floor(epsilon) - 1, epsilon) == 0
     assert beta_cdf(target, n + 1 - conformal_rank(n, epsilon), conformal_rank(n, epsilon)) <= 0.05
+
+
+def test_extreme_epsilons_have_answers() -> None:
+    assert recalibration_size(1e-300) == conformal_floor(1e-300) >= 10**299
+    assert recalibration_size(0.99) == conformal_floor(0.99) == 1
+    test = coverage_test(3, 3, 10**6, 1e-9)  # l = 0: unbounded sets cover everything
+    assert test.band == (3, 3) and test.p_value == 1.0
