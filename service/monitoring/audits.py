@@ -10,11 +10,15 @@ not retried, the batch is uploaded again.
 from __future__ import annotations
 
 import logging
+import math
+import os
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from prometheus_client import Gauge
 
 from calibration_store import (
     CalibrationStore,
@@ -34,7 +38,14 @@ from service.calibration.submission import SubmissionSettings
 from service.calibration.uploads import JobFolder, UploadWorkspace, batch_name, validate_upload
 from service.detector.runtime import Detector
 from service.errors import Conflict, InvalidInput
-from service.metrics import AUDIT_BAND_HIGH, AUDIT_BAND_LOW, AUDIT_COVERAGE, AUDIT_FLAGGED, AUDIT_LATEST
+from service.metrics import (
+    AUDIT_BAND_HIGH,
+    AUDIT_BAND_LOW,
+    AUDIT_COVERAGE,
+    AUDIT_FLAGGED,
+    AUDIT_LATEST,
+    MULTIPROCESS_ENV,
+)
 from service.monitoring.audit_report import DEFAULT_EPSILONS, ThresholdLookup, audit_report
 
 log = logging.getLogger(__name__)
@@ -111,6 +122,15 @@ class CoverageAudits:
         if latest is not None:
             publish_audit(latest.id, latest.report)
 
+    def _previous(self, audit_id: int) -> CoverageAudit | None:
+        """The audit before this one, whose gauges other worker processes may still publish."""
+        try:
+            older = self._store.coverage_audits(self._detector.model_hash, before=audit_id, limit=1)
+        except StoreError as error:
+            log.warning("could not read the previous coverage audit for the metrics: %s", error)
+            return None
+        return older[0] if older else None
+
     def _prepare(self, named: NamedBatch, version: int, request: AuditRequest) -> PreparedBatch:
         """Refuse instances the audited version was calibrated with (they would flatter it)."""
         info = self._store.get_version(self._detector.model_hash, version)
@@ -146,7 +166,7 @@ class CoverageAudits:
                 stored = self._store.create_coverage_audit(new, job=JobCompletion(job_id, summary))
             finally:
                 workspace.remove()
-            publish_audit(stored.id, stored.report)
+            publish_audit(stored.id, stored.report, self._previous(stored.id))
             outcome = "passed" if report["passed"] else "failed"
             details = {"job": job_id, "audit": stored.id, "flagged": summary["flagged"]}
             self._audit.record(operator, "audit", outcome, version=version, details=details)
@@ -180,12 +200,27 @@ class CoverageAudits:
         return thresholds
 
 
-def publish_audit(audit_id: int, report: dict[str, Any]) -> None:
+def publish_audit(audit_id: int, report: dict[str, Any], previous: CoverageAudit | None = None) -> None:
     """Replace the audit gauges with this audit's figures (aggregates have keypoint "" and, for
-    the overall figure, object "")."""
-    gauges = (AUDIT_COVERAGE, AUDIT_BAND_LOW, AUDIT_BAND_HIGH, AUDIT_FLAGGED, AUDIT_LATEST)
-    for gauge in gauges:
-        gauge.clear()
+    the overall figure, object ""), hiding those of the ``previous`` audit and of whatever this
+    process published before."""
+    samples = _audit_samples(audit_id, report)
+    stale = set() if previous is None else set(_audit_samples(previous.id, previous.report))
+    with _PUBLISHED_LOCK:
+        for gauge, labels in (_PUBLISHED | stale) - samples.keys():
+            _forget(gauge, labels)
+        for (gauge, labels), value in samples.items():
+            gauge.labels(*labels).set(value)
+        _PUBLISHED.clear()
+        _PUBLISHED.update(samples)
+
+
+_PUBLISHED: set[tuple[Gauge, tuple[str, ...]]] = set()
+_PUBLISHED_LOCK = threading.Lock()
+
+
+def _audit_samples(audit_id: int, report: dict[str, Any]) -> dict[tuple[Gauge, tuple[str, ...]], float]:
+    samples = {(AUDIT_LATEST, (str(report.get("version", "")),)): float(audit_id)}
     for section in report.get("sections", []):
         where = (section["nonconformity"], f"{section['epsilon']:g}", section["scope"])
         figures = [("", "", section["overall"])]
@@ -195,8 +230,17 @@ def publish_audit(audit_id: int, report: dict[str, Any]) -> None:
             if figure.get("coverage") is None:
                 continue
             labels = (obj, keypoint, *where)
-            AUDIT_COVERAGE.labels(*labels).set(figure["coverage"])
-            AUDIT_BAND_LOW.labels(*labels).set(figure["band"][0])
-            AUDIT_BAND_HIGH.labels(*labels).set(figure["band"][1])
-            AUDIT_FLAGGED.labels(*labels).set(1.0 if figure.get("flagged") else 0.0)
-    AUDIT_LATEST.labels(str(report.get("version", ""))).set(audit_id)
+            samples[(AUDIT_COVERAGE, labels)] = figure["coverage"]
+            samples[(AUDIT_BAND_LOW, labels)] = figure["band"][0]
+            samples[(AUDIT_BAND_HIGH, labels)] = figure["band"][1]
+            samples[(AUDIT_FLAGGED, labels)] = 1.0 if figure.get("flagged") else 0.0
+    return samples
+
+
+def _forget(gauge: Gauge, labels: tuple[str, ...]) -> None:
+    """Drop a sample of an older audit. With several workers each keeps its own file of values
+    and the newest wins ("mostrecent"): a NaN written now hides the other workers' old value."""
+    if os.environ.get(MULTIPROCESS_ENV):
+        gauge.labels(*labels).set(math.nan)
+    else:
+        gauge.remove(*labels)

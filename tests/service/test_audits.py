@@ -152,6 +152,10 @@ def test_audits_are_listed_newest_first_in_pages(
     )
     assert server.client.get("/v1/admin/audits").status_code == 401
     assert server.client.delete(f"/v1/admin/audits/{ids[0]}", headers=server.admin).status_code == 405
+    jobs = server.client.get("/v1/admin/audit", headers=server.admin).json()["entries"]
+    job_id = next(e["details"]["job"] for e in jobs if e["action"] == "audit" and e["outcome"] == "accepted")
+    retried = server.client.post(f"/v1/admin/jobs/{job_id}/retry", headers=server.admin)
+    assert_problem(retried, 409, "only calibration jobs are retried")
 
 
 def test_the_latest_audit_is_in_the_metrics_of_every_replica(
@@ -205,6 +209,12 @@ def test_a_named_version_is_audited_and_its_own_instances_are_refused(
     assert report["batch"]["duplicates_dropped"] == count_instances(coco, images=3)
     assert audit["instances"] == count_instances(coco) - count_instances(coco, images=3)
     assert {s["epsilon"] for s in report["sections"]} == {0.1, 0.2}
+    metrics = server.client.get("/metrics").text  # the gauges are this audit's alone
+    assert re.findall(r"^cks_audit_latest_id\{(.*)\} (\S+)$", metrics, re.MULTILINE) == [
+        (f'version="{version}"', f"{float(audit['id'])}")
+    ]
+    epsilons = set(re.findall(r'^cks_audit_coverage\{epsilon="([^"]+)"', metrics, re.MULTILINE))
+    assert epsilons == {"0.1", "0.2"}
 
 
 @pytest.mark.parametrize(
@@ -248,3 +258,18 @@ def test_bad_uploads_are_refused(server: LiveServer, samples_dir: Path, coco: di
     assert server.upload_workspaces() == []
     trail = server.client.get("/v1/admin/audit", headers=server.admin).json()["entries"]
     assert any(e["action"] == "audit" and e["outcome"] == "refused" for e in trail), json.dumps(trail)[:500]
+
+
+def test_with_several_workers_the_gauges_are_the_latest_audits(
+    tmp_path: Path, samples_dir: Path, coco: dict
+) -> None:
+    """Each worker process keeps its own gauge values; the newest audit's must hide the older
+    one's, whichever worker ran either (prometheus multiprocess mode, "mostrecent")."""
+    with LiveServer(tmp_path / "data", admin_token=ADMIN_TOKEN, workers=2) as live:
+        run_audit(live, batch_zip(samples_dir, coco, images=4), epsilon=[0.05])
+        latest = run_audit(live, batch_zip(samples_dir, coco, images=4), epsilon=[0.2])
+        for _ in range(4):  # whichever worker answers
+            metrics = live.client.get("/metrics").text
+            values = re.findall(r'^cks_audit_coverage\{epsilon="([^"]+)".*\} (\S+)$', metrics, re.MULTILINE)
+            assert {epsilon for epsilon, value in values if value != "NaN"} == {"0.2"}
+            assert f'cks_audit_latest_id{{version="1"}} {float(latest["id"])}' in metrics
