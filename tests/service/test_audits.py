@@ -14,10 +14,13 @@ import pytest
 from tests.service.live import (
     ADMIN_TOKEN,
     LiveServer,
+    Sample,
     assert_problem,
     batch_zip,
     count_instances,
+    samples_by_image,
 )
+from tests.service.predict_client import contains, instances_of, predict_ok
 
 FUNCTIONS = {"peak", "var", "cov"}
 SHIFT_PX = 5
@@ -125,6 +128,40 @@ def test_labels_shifted_by_a_few_pixels_are_flagged(shifted_audit: dict) -> None
     needed = [int(n) for n in re.findall(r"(\d+) at epsilon", report["advice"])]
     assert "Recalibrate with labeled images like the audited ones" in report["advice"]
     assert len(needed) == 3 and all(n >= 19 for n in needed)  # at least 1/(n+1) <= 0.05
+
+
+@pytest.mark.parametrize("kind", ["peak", "cov"])
+@pytest.mark.parametrize("scope", ["keypoint", "object"])
+def test_covered_means_inside_the_sets_that_predict_returns(
+    server: LiveServer, shifted_audit: dict, samples: list[Sample], kind: str, scope: str
+) -> None:
+    """The audit's count is the number of true keypoints inside the served sets (the score
+    inequality and the set are one), counted here from /v1/predict on the shifted labels."""
+    section = next(s for s in shifted_audit["report"]["sections"]
+                   if (s["nonconformity"], s["epsilon"], s["scope"]) == (kind, 0.1, scope))  # fmt: skip
+    inside: dict[str, list[bool]] = {}
+    for path, group in samples_by_image(samples).items():
+        parameters = {
+            "instances": instances_of(group),
+            "nonconformity": kind,
+            "epsilon": 0.1,
+            "coverage": scope,
+        }
+        body = predict_ok(server.client, path.read_bytes(), parameters)
+        for sample, instance in zip(group, body["instances"], strict=True):
+            labeled = [
+                (x, y, k) for (x, y, v), k in zip(sample.keypoints, instance["keypoints"], strict=True) if v
+            ]
+            hits = [contains(keypoint["set"], (x + SHIFT_PX, y), slack=1e-6) for x, y, keypoint in labeled]
+            if scope == "keypoint":
+                for (_, _, keypoint), hit in zip(labeled, hits, strict=True):
+                    inside.setdefault(keypoint["name"], []).append(hit)
+            elif len(hits) == len(sample.keypoints):  # object scope counts fully labeled instances
+                inside.setdefault(sample.object, []).append(all(hits))
+    figures = section["keypoints"] if scope == "keypoint" else section["objects"]
+    for figure in figures:
+        counted = inside.get(figure["keypoint" if scope == "keypoint" else "object"], [])
+        assert (figure["m"], figure["covered"]) == (len(counted), sum(counted)), figure
 
 
 def test_an_audit_never_changes_a_calibration(
