@@ -126,7 +126,7 @@ def collect_split(
     instance_offset = 0
     for image_id, instances in tqdm(groups.items(), desc=f"infer {folder.name}", mininterval=5):
         image = decode_image(batch.images[image_id].path.read_bytes(), MAX_IMAGE_PIXELS)
-        scores = score_image(recorder, image, instances)
+        scores = [scored.scores for scored in score_image(recorder, image, instances)]
         assert recorder.last is not None
         part = _image_rows(recorder.last, instances, scores, extra, manifest.heatmap, baseline_thresholds)
         part["instance"] = part["instance"] + instance_offset
