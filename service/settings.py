@@ -172,7 +172,9 @@ class Settings(BaseSettings):
         description="ks: family-wise error rate of the drift alarm over all keypoints x features (Holm)",
     )
     drift_psi_threshold: float = Field(
-        default=0.25, gt=0, description="psi: a keypoint's feature alarms above this index (100+ live values)"
+        default=0.25,
+        gt=0,
+        description="psi: a keypoint's feature alarms above this index (once it has 400 live values)",
     )
     drift_full_statistics_share: float = Field(
         default=0.25,

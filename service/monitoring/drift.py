@@ -13,7 +13,7 @@ feature (service/conformal/features.py: p*, gamma, anisotropy), a sliding window
   whole family (every keypoint x feature with data), so a quiet stream raises any alarm with
   probability at most ``alarm_level`` (for a window drawn afresh; see docs/operations.md).
 - ``psi``: the population stability index over ten quantile bins of the reference; the alarm
-  is PSI > ``psi_threshold`` once the window holds ``PSI_MIN_LIVE`` values (a fixed threshold,
+  is PSI > ``psi_threshold`` once the window holds ``PSI_MIN_LIVE`` = 400 values (a fixed threshold,
   no multiplicity correction: PSI is a score, not a test).
 
 Cost: a request appends its rows to ring buffers (service/monitoring/windows.py); the tests
@@ -55,8 +55,9 @@ log = logging.getLogger(__name__)
 DriftTest = Literal["ks", "psi"]
 #: the feature of the peak statistics; every other feature comes from the top-K spread
 PEAK_FEATURE = "peak_probability"
-#: live values a window needs before PSI may raise its alarm (its small-sample bias is ~ bins / n)
-PSI_MIN_LIVE = 100
+#: live values a window needs before PSI may raise its alarm: PSI's small-sample bias is about
+#: (bins - 1)(1/n + 1/m), 0.11 at n = 100 (quiet streams then cross 0.25 on some of 144 tests)
+PSI_MIN_LIVE = 400
 _SHAPE_COLUMNS = slice(len(HEATMAP_FEATURES), len(HEATMAP_FEATURES) + 3)
 _KIND_COLUMN = len(HEATMAP_FEATURES) + 3
 _COLUMNS = _KIND_COLUMN + 1
@@ -149,6 +150,9 @@ class DriftMonitor:
     """Live windows of every keypoint's features, tested lazily against the active version."""
 
     def __init__(self, manifest: Manifest, reference: ReferenceSource, settings: DriftSettings) -> None:
+        if settings.test == "psi" and settings.window < PSI_MIN_LIVE:
+            log.warning("drift: psi alarms need %d live values per window; CKS_DRIFT_WINDOW is %d, so"
+                        " it never alarms", PSI_MIN_LIVE, settings.window)  # fmt: skip
         self.settings = settings
         self._manifest = manifest
         self._source = reference

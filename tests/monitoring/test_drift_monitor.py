@@ -104,7 +104,9 @@ def test_a_blurred_object_raises_the_alarm_of_its_keypoints_only():
     report = monitor.report()
     assert report.alarm
     by_object = {o.object: o for o in report.objects}
-    assert by_object["duck"].alarm and all(by_object["duck"].features[f].alarm for f in HEATMAP_FEATURES)
+    duck_features = by_object["duck"].features
+    assert by_object["duck"].alarm and duck_features["peak_probability"].alarm and duck_features["gamma"].alarm
+    assert not duck_features["anisotropy"].alarm  # the blur scales both axes: the shape is unchanged
     assert not any(o.alarm for name, o in by_object.items() if name != "duck")
     duck = [k for k in report.keypoints if k.object == "duck"]
     assert all(k.features["gamma"].alarm and k.features["gamma"].p_value < 1e-6 for k in duck)
@@ -154,12 +156,12 @@ def test_without_a_reference_the_report_says_why(version, table, reason):
 
 def test_psi_alarms_above_its_threshold_once_the_window_is_large_enough():
     rng = np.random.default_rng(6)
-    settings = DriftSettings(**{**SETTINGS.__dict__, "test": "psi", "window": 300})
+    settings = DriftSettings(**{**SETTINGS.__dict__, "test": "psi", "window": 500})
     quiet, shifted = _monitor(_table(rng), settings), _monitor(_table(rng), settings)
     _record(quiet, rng, 6 * PSI_MIN_LIVE)
     _record(shifted, rng, 6 * (PSI_MIN_LIVE - 1), blur=1.6)
     assert not quiet.report().alarm
-    assert not shifted.report().alarm  # 99 values: PSI is not trusted yet
+    assert not shifted.report().alarm  # 399 values: PSI is not trusted yet
     _record(shifted, rng, 6, blur=1.6)
     report = shifted.report()
     assert report.alarm and report.alarm_threshold == 0.25

@@ -92,9 +92,11 @@ def test_drift_is_quiet_on_calibration_like_images_and_alarms_on_a_blurred_strea
     labels = f'feature="{feature}",keypoint="{keypoint["keypoint"]}",object="{keypoint["object"]}"'
     assert f"cks_drift_alarm{{{labels}}} 1.0" in metrics
     assert f"cks_drift_window_size{{{labels}}} {4.0 * per_object[keypoint['object']]}" in metrics
-    wait_until(lambda: any(p["alarm"] for p in drift(drift_server)["history"]), "a history point alarms")
-    history = drift(drift_server)["history"]
-    assert history[-1]["recorded"] == shifted["recorded"] and len(history[-1]["keypoint_statistics"]) == 48
+    def latest_point() -> dict:
+        return drift(drift_server)["history"][-1]
+
+    wait_until(lambda: latest_point()["recorded"] == shifted["recorded"], "the history has the whole stream")
+    assert latest_point()["alarm"] and len(latest_point()["keypoint_statistics"]) == 48
 
     sizes = shifted["set_sizes"]
     assert sizes["cov"]["n"] == 4 * len(samples) * 8 and sizes["peak"]["n"] == 0
