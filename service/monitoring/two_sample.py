@@ -70,20 +70,24 @@ def _exact_p_value(numerator: int, n: int, m: int) -> float:
 
     u(i, j) = paths to (i, j) staying inside / C(i + j, i) obeys
     u(i, j) = u(i-1, j) i / (i + j) + u(i, j-1) j / (i + j): a probability, so it never
-    overflows; computed one anti-diagonal s = i + j at a time (vectors of n + 1).
+    overflows. Row i is inside on one interval [lo, hi] of j, where the recurrence in j is
+    first order with u(i, lo - 1) = 0; it is solved at once with cumulative sums and products
+    (in logs): u_j = Q_j sum_{t=lo..j} a_t u(i-1, t) / Q_t, Q_j = prod_{t=lo+1..j} t / (i + t).
+    n <= m: n rows of length m + 1.
     """
     if numerator <= 0:
         return 1.0
-    i = np.arange(n + 1, dtype=np.float64)
-    inside = np.zeros(n + 1)
-    inside[0] = 1.0
-    for s in range(1, n + m + 1):
-        previous = np.concatenate(([0.0], inside[:-1]))  # u(i-1, j) on diagonal s - 1
-        inside = (previous * i + inside * (s - i)) / s
-        j = s - i
-        outside = (j < 0) | (j > m) | (np.abs(i * m - j * n) >= numerator)
-        inside[outside] = 0.0
-    return float(min(max(1.0 - inside[n], 0.0), 1.0))
+    j = np.arange(m + 1, dtype=np.float64)
+    row = (j * n < numerator).astype(np.float64)  # i = 0: the first cells of the row, reached from the left
+    for i in range(1, n + 1):
+        inside = np.flatnonzero(np.abs(i * m - j * n) < numerator)
+        lo, hi = int(inside[0]), int(inside[-1]) + 1
+        t = j[lo:hi]
+        log_q = np.concatenate(([0.0], np.cumsum(np.log(t[1:] / (i + t[1:])))))
+        carried = np.cumsum(i / (i + t) * row[lo:hi] * np.exp(-log_q))
+        row = np.zeros(m + 1)
+        row[lo:hi] = np.exp(log_q) * carried
+    return float(min(max(1.0 - row[m], 0.0), 1.0))
 
 
 def quantile_bin_edges(reference: np.ndarray, bins: int = PSI_BINS) -> np.ndarray:
