@@ -11,6 +11,7 @@ that answers it.
 
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 from collections.abc import Callable, Iterator
@@ -35,6 +36,7 @@ if TYPE_CHECKING:
     from service.monitoring.drift import DriftReport
 
 MULTIPROCESS_ENV = "PROMETHEUS_MULTIPROC_DIR"
+log = logging.getLogger(__name__)
 
 REGISTRY = CollectorRegistry(auto_describe=True)
 
@@ -97,7 +99,12 @@ class DriftCollector(Collector):
     def collect(self) -> Iterator[GaugeMetricFamily]:
         if self.source is None:
             return
-        yield from drift_families(self.source())
+        try:
+            report = self.source()
+        except Exception:  # the other metrics must still be served; the drift figures skip a scrape
+            log.exception("drift metrics: the evaluation failed")
+            return
+        yield from drift_families(report)
 
 
 DRIFT = DriftCollector()

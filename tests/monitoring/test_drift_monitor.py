@@ -211,3 +211,14 @@ def test_prometheus_families_carry_every_keypoint_and_feature():
     assert text.count("cks_drift_statistic{") == K * len(HEATMAP_FEATURES)
     assert 'cks_drift_window_size{feature="gamma",keypoint="duck_kp0",object="duck"} 2.0' in text
     assert "cks_drift_alarm_any 0.0" in text and "cks_drift_reference_version 1.0" in text
+
+
+def test_a_failing_evaluation_leaves_the_other_metrics_served():
+    def broken() -> None:
+        raise RuntimeError("the store went away")
+
+    collector = DriftCollector()
+    collector.source = broken
+    registry = CollectorRegistry()
+    registry.register(collector)
+    assert "cks_drift" not in generate_latest(registry).decode()
