@@ -281,7 +281,7 @@ class DriftMonitor:
 
     def _test(self, reference: np.ndarray | None, edges: np.ndarray | None, live: np.ndarray) -> FeatureTest:
         reference_n = 0 if reference is None else reference.size
-        if reference is None or reference_n == 0 or live.size == 0:
+        if reference is None or edges is None or live.size == 0:  # edges exist for every non-empty reference
             return FeatureTest(None, None, False, live.size, reference_n)
         if self.settings.test == "psi":
             score = population_stability_index(reference, live, edges)
