@@ -13,7 +13,11 @@ from service.api.deps import Admin, State
 from service.errors import NotFound
 from service.monitoring.drift import DriftReport
 
-router = APIRouter(prefix="/v1/admin", tags=["admin"])
+router = APIRouter(
+    prefix="/v1/admin",
+    tags=["admin"],
+    responses={503: {"description": "The calibration store is unreachable (with Retry-After)"}},
+)
 
 
 class FeatureTestOut(BaseModel):
