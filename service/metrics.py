@@ -116,6 +116,12 @@ def set_drift_source(source: Callable[[], DriftReport] | None) -> None:
     DRIFT.source = source
 
 
+def forget_drift_source(source: Callable[[], DriftReport]) -> None:
+    """Stop serving ``cks_drift_*`` from ``source``, unless another monitor has taken its place."""
+    if DRIFT.source == source:
+        DRIFT.source = None
+
+
 def drift_families(report: DriftReport) -> list[GaugeMetricFamily]:
     """Per keypoint and feature: statistic, p-value (ks), alarm, live window size; and totals."""
     labels = ["object", "keypoint", "feature"]

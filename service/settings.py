@@ -158,7 +158,11 @@ class Settings(BaseSettings):
         " active calibration's (GET /v1/admin/drift, cks_drift_* metrics)",
     )
     drift_window: int = Field(
-        default=500, ge=10, le=100_000, description="live values kept per keypoint and feature (drift window)"
+        default=500,
+        ge=10,
+        le=100_000,
+        description="live instances kept per keypoint (the drift window; each feature's window holds"
+        " those that computed it)",
     )
     drift_test: Literal["ks", "psi"] = Field(
         default="ks",

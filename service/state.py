@@ -23,7 +23,7 @@ from service.calibration.uploads import process_uploads_dir, remove_spent_job_fo
 from service.conformal.kernel import native_kernel_available
 from service.detector.runtime import Detector
 from service.logs import ensure_logging
-from service.metrics import set_drift_source
+from service.metrics import forget_drift_source, set_drift_source
 from service.monitoring.drift import DriftMonitor, DriftSettings
 from service.operators import load_operators
 from service.settings import Settings
@@ -60,7 +60,7 @@ class ServiceState:
         self.registry.stop()
         if self.drift is not None:
             self.drift.stop()
-            set_drift_source(None)
+            forget_drift_source(self.drift.report)
         self.jobs.shutdown()
         shutil.rmtree(process_uploads_dir(self.uploads_dir), ignore_errors=True)  # cancelled jobs' uploads
         self.cpu_pool.shutdown(wait=True, cancel_futures=True)
