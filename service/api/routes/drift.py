@@ -71,7 +71,7 @@ class KindSizesOut(BaseModel):
 
 
 class DriftOut(BaseModel):
-    window: int = Field(description="live values kept per keypoint and feature (CKS_DRIFT_WINDOW)")
+    window: int = Field(description="live instances kept per keypoint (CKS_DRIFT_WINDOW)")
     statistic: Literal["ks", "psi"] = Field(description="the test (CKS_DRIFT_TEST)")
     alarm_threshold: float = Field(
         description="ks: family-wise error rate of the Holm-corrected alarm; psi: the PSI threshold"
