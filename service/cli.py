@@ -154,7 +154,7 @@ def _evaluate(args: argparse.Namespace, settings: Settings) -> int:
     from service.evaluation import run
 
     command = shlex.join(["keypoint-service", *args.argv])
-    epsilons = tuple(args.epsilon or run.DEFAULT_EPSILONS)
+    epsilons = tuple(sorted(set(args.epsilon or run.DEFAULT_EPSILONS)))
     request = run.EvaluationRequest(Path(args.folder), Path(args.out), args.version, epsilons, args.delta,
                                     args.title or run.DEFAULT_TITLE, command)  # fmt: skip
     run.require_matplotlib()  # refuse a mistake before a model is loaded for nothing

@@ -95,11 +95,29 @@ def validity(evaluation: Evaluation) -> list[str]:
             rows.append([kind, f"{epsilon}", _f(1 - epsilon), _f(_mean(c)), _f(_min(c)),
                          _f(s.fraction(lambda g: g.inside_predictive())),
                          _f(s.fraction(lambda g: g.inside_beta())),
-                         _f(float(np.mean([1 - g.t / (g.n + 1) for g in s.groups])))])  # fmt: skip
+                         _f(s.expected(lambda g: 1 - g.t / (g.n + 1)))])  # fmt: skip
     header = ["function", "eps", "1-eps", "mean coverage", "min coverage", "inside (predictive)",
               "inside (Beta)", "mean 1-t/(n+1)"]  # fmt: skip
-    lines += _table(header, rows)
+    lines += _table(header, rows) + unbounded(evaluation)
     return lines + object_scope(evaluation) + pac(evaluation) + bands(evaluation)
+
+
+def unbounded(evaluation: Evaluation) -> list[str]:
+    """Which keypoints have no bounded set: too few calibration scores for that epsilon."""
+    found = []
+    for kind in KINDS:
+        for epsilon in evaluation.epsilons:
+            groups = [g for g in evaluation.validity[(kind, epsilon, "keypoint")].groups if g.m]
+            count = sum(g.unbounded for g in groups)
+            if count:
+                found.append(f"{kind} at eps {epsilon}: {count} of {len(groups)}")
+    if not found:
+        return []
+    return [
+        "Unbounded sets (rank t = 0: fewer than 1/eps - 1 calibration scores; such a set is the whole "
+        "plane and always covers): " + "; ".join(found) + ".",
+        "",
+    ]
 
 
 def object_scope(evaluation: Evaluation) -> list[str]:

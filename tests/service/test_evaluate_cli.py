@@ -4,6 +4,7 @@ Markdown with PNG figures, checked against coverage recomputed from the service'
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -173,3 +174,43 @@ def test_refuses_without_matplotlib(
     assert status == 2 and error.count("\n") == 1
     assert "matplotlib, which is not installed" in error and "[evaluate]" in error
     assert not (tmp_path / "data").exists()  # refused before the model and the store were opened
+
+
+def one_object_without_occlusion_flags(samples_dir: Path, coco: dict, folder: Path, name: str) -> int:
+    """The samples' instances of one object, every labeled keypoint marked visible (v = 2) and
+    without visib_fract: a batch whose labels cannot tell occluded from visible."""
+    names = {c["id"]: c["name"] for c in coco["categories"]}
+    annotations = [dict(a) for a in coco["annotations"] if names[a["category_id"]] == name]
+    for annotation in annotations:
+        flat = annotation["keypoints"]
+        annotation["keypoints"] = [2 if i % 3 == 2 and v == 1 else v for i, v in enumerate(flat)]
+        annotation.pop("visib_fract", None)
+    used = {a["image_id"] for a in annotations}
+    images = [image for image in coco["images"] if image["id"] in used]
+    for image in images:
+        (folder / image["file_name"]).parent.mkdir(parents=True, exist_ok=True)
+        (folder / image["file_name"]).write_bytes((samples_dir / image["file_name"]).read_bytes())
+    document = {**coco, "images": images, "annotations": annotations}
+    (folder / "annotations.json").write_text(json.dumps(document))
+    return len(annotations)
+
+
+def test_a_batch_of_one_object_without_occlusion_flags(
+    server: LiveServer, samples_dir: Path, coco: dict, manifest: dict, tmp_path: Path
+) -> None:
+    duck = next(o for o in manifest["objects"] if o["name"] == "duck")
+    count = one_object_without_occlusion_flags(samples_dir, coco, tmp_path / "duck", "duck")
+    result = evaluate(server.data_dir, str(tmp_path / "duck"), "--out", str(tmp_path / "out"),
+                      "--epsilon", "0.001", "--epsilon", "0.1")  # fmt: skip
+    assert f"(version 1, {count} instances)" in result.stdout
+    text = (tmp_path / "out" / "evaluation.md").read_text()
+    assert "Not measured: the labels of this batch do not carry both COCO visibility flags" in text
+    assert not (tmp_path / "out" / "figures" / "adaptiveness.png").exists()
+    assert "adaptiveness.png" not in text
+    keypoints = len(duck["keypoints"])
+    for kind in KINDS:  # the keypoints and the one object of the batch, not the model's
+        assert re.search(rf"\| {kind} \| keypoint \| [0-9.]+ \| \d+ of {keypoints} \|", text)
+        assert re.search(rf"\| {kind} \| object \| [0-9.]+ \| [01] of 1 \|", text)
+    # eps 0.001 needs 999 calibration scores: every set is the whole plane, and says so
+    assert f"cov at eps 0.001: {keypoints} of {keypoints}" in text
+    assert "| 0.001 | cov | a inf, b inf | inf | 0.000 |" in text
