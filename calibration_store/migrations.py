@@ -193,6 +193,26 @@ def _postgres_jobs_v3() -> tuple[str, ...]:
     )
 
 
+def _features_and_groups(blob: str) -> tuple[str, ...]:
+    """Label-free heatmap features of every calibration instance, and caller group labels."""
+    return (
+        f"""CREATE TABLE calib_feature_arrays (
+            version_id BIGINT NOT NULL,
+            object_name TEXT NOT NULL,
+            feature TEXT NOT NULL,
+            n_rows BIGINT NOT NULL,
+            n_cols INTEGER NOT NULL,
+            data {blob} NOT NULL,
+            PRIMARY KEY (version_id, object_name, feature),
+            FOREIGN KEY (version_id, object_name)
+                REFERENCES calib_score_objects (version_id, object_name)
+        )""",
+        "ALTER TABLE calib_score_objects ADD COLUMN groups TEXT",
+    )
+
+
+_FEATURES_AND_GROUPS = "heatmap features and group labels of calibration instances"
+
 SQLITE_MIGRATIONS: tuple[Migration, ...] = (
     Migration(
         1,
@@ -212,6 +232,11 @@ SQLITE_MIGRATIONS: tuple[Migration, ...] = (
         _content_hashes_and_audit("BLOB", "seq INTEGER PRIMARY KEY AUTOINCREMENT", "TEXT")
         + _sqlite_immutability(("calib_audit",))
         + _sqlite_jobs_v3(),
+    ),
+    Migration(
+        4,
+        _FEATURES_AND_GROUPS,
+        _features_and_groups("BLOB") + _sqlite_immutability(("calib_feature_arrays",)),
     ),
 )
 
@@ -240,6 +265,13 @@ POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
         )
         + _postgres_triggers(("calib_audit",))
         + _postgres_jobs_v3(),
+    ),
+    Migration(
+        4,
+        _FEATURES_AND_GROUPS,
+        _features_and_groups("BYTEA")
+        + ("ALTER TABLE calib_feature_arrays ALTER COLUMN data SET STORAGE EXTERNAL",)
+        + _postgres_triggers(("calib_feature_arrays",)),
     ),
 )
 

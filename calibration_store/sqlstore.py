@@ -56,12 +56,17 @@ class EncodedBlock:
     arrays: tuple[tuple[str, int, int, bytes], ...]
     image_hashes: bytes | None
     instance_hashes: bytes | None
+    features: tuple[tuple[str, int, int, bytes], ...]
+    groups: str | None
 
 
 def encode_block(position: int, block: ObjectScores) -> EncodedBlock:
     n, k = block.n_instances, block.keypoint_ids.size
     arrays = tuple(
         (fn, n, k, codec.encode_matrix(block.scores[fn])) for fn in block.functions
+    )
+    features = tuple(
+        (name, n, k, codec.encode_matrix(block.features[name])) for name in sorted(block.features)
     )
     return EncodedBlock(
         position=position,
@@ -72,6 +77,8 @@ def encode_block(position: int, block: ObjectScores) -> EncodedBlock:
         arrays=arrays,
         image_hashes=codec.encode_digests(block.image_hashes),
         instance_hashes=codec.encode_digests(block.instance_hashes),
+        features=features,
+        groups=codec.encode_refs(block.groups) if block.has_groups else None,
     )
 
 
@@ -220,7 +227,8 @@ class SqlStore(CalibrationStore):
     def _insert_block(self, cur: Cursor, version_id: int, block: EncodedBlock) -> None:
         cur.execute(
             "INSERT INTO calib_score_objects (version_id, position, object_name, n_instances,"
-            " keypoint_ids, instance_refs, image_hashes, instance_hashes) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+            " keypoint_ids, instance_refs, image_hashes, instance_hashes, groups)"
+            " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
             (
                 version_id,
                 block.position,
@@ -230,14 +238,19 @@ class SqlStore(CalibrationStore):
                 block.instance_refs,
                 block.image_hashes,
                 block.instance_hashes,
+                block.groups,
             ),
         )
-        for function, rows, cols, data in block.arrays:
-            cur.execute(
-                "INSERT INTO calib_score_arrays (version_id, object_name, function, n_rows,"
-                " n_cols, data) VALUES (?, ?, ?, ?, ?, ?)",
-                (version_id, block.object_name, function, rows, cols, data),
-            )
+        for table, column, arrays in (
+            ("calib_score_arrays", "function", block.arrays),
+            ("calib_feature_arrays", "feature", block.features),
+        ):
+            for name, rows, cols, data in arrays:
+                cur.execute(
+                    f"INSERT INTO {table} (version_id, object_name, {column}, n_rows,"
+                    " n_cols, data) VALUES (?, ?, ?, ?, ?, ?)",
+                    (version_id, block.object_name, name, rows, cols, data),
+                )
 
     def _bump_counter(self, cur: Cursor) -> None:
         cur.execute("UPDATE calib_change_counter SET value = value + 1 WHERE id = 1")
@@ -353,8 +366,8 @@ class SqlStore(CalibrationStore):
         with self._transaction(write=False) as cur:
             version_id = self._version_id(cur, model_hash, number)
             cur.execute(
-                "SELECT object_name, keypoint_ids, instance_refs, image_hashes, instance_hashes"
-                " FROM calib_score_objects WHERE version_id = ? ORDER BY position",
+                "SELECT object_name, keypoint_ids, instance_refs, image_hashes, instance_hashes,"
+                " groups FROM calib_score_objects WHERE version_id = ? ORDER BY position",
                 (version_id,),
             )
             objects = cur.fetchall()
@@ -364,7 +377,13 @@ class SqlStore(CalibrationStore):
                 (version_id,),
             )
             arrays = cur.fetchall()
-        return _score_table(objects, arrays)
+            cur.execute(
+                "SELECT object_name, feature, n_rows, n_cols, data FROM calib_feature_arrays"
+                " WHERE version_id = ?",
+                (version_id,),
+            )
+            features = cur.fetchall()
+        return _score_table(objects, arrays, features)
 
     def active_version(self, model_hash: str) -> Activation | None:
         check_model_hash(model_hash)
@@ -564,15 +583,22 @@ def _job_fields(job: JobRecord) -> list[tuple[str, Any]]:
     return [("heartbeat_at", job.heartbeat_at), *job.progress_fields().items()]
 
 
-def _score_table(objects: list[Any], arrays: list[Any]) -> ScoreTable:
+def _score_table(objects: list[Any], arrays: list[Any], features: list[Any]) -> ScoreTable:
+    return ScoreTable(tuple(_blocks(objects, _matrices(arrays), _matrices(features))))
+
+
+def _matrices(arrays: list[Any]) -> dict[str, dict[str, Any]]:
+    """Rows (object_name, name, n_rows, n_cols, data) -> object -> name -> matrix."""
     matrices: dict[str, dict[str, Any]] = {}
-    for object_name, function, rows, cols, data in arrays:
-        matrices.setdefault(object_name, {})[function] = codec.decode_matrix(data, rows, cols)
-    return ScoreTable(tuple(_blocks(objects, matrices)))
+    for object_name, name, rows, cols, data in arrays:
+        matrices.setdefault(object_name, {})[name] = codec.decode_matrix(data, rows, cols)
+    return matrices
 
 
-def _blocks(objects: list[Any], matrices: dict[str, dict[str, Any]]) -> Iterator[ObjectScores]:
-    for object_name, keypoint_ids, instance_refs, image_hashes, instance_hashes in objects:
+def _blocks(
+    objects: list[Any], matrices: dict[str, dict[str, Any]], features: dict[str, dict[str, Any]]
+) -> Iterator[ObjectScores]:
+    for object_name, keypoint_ids, instance_refs, image_hashes, instance_hashes, groups in objects:
         yield ObjectScores(
             object_name=object_name,
             keypoint_ids=codec.decode_ids(keypoint_ids),
@@ -580,4 +606,6 @@ def _blocks(objects: list[Any], matrices: dict[str, dict[str, Any]]) -> Iterator
             scores=matrices.get(object_name, {}),
             image_hashes=codec.decode_digests(image_hashes),
             instance_hashes=codec.decode_digests(instance_hashes),
+            features=features.get(object_name, {}),
+            groups=codec.decode_refs(groups) if groups is not None else (),
         )

@@ -86,7 +86,7 @@ def collect_rows(
         except ServiceError as error:
             detail = f"image file {record.file_name!r} cannot be evaluated: {error.detail}"
             raise InvalidInput(detail) from None
-        scores = score_image(recorder, image, instances)
+        scores = [scored.scores for scored in score_image(recorder, image, instances)]
         assert recorder.last is not None
         part, stats = _image_rows(recorder.last, instances, scores, flags, detector)
         part["instance"] += offset
