@@ -14,12 +14,14 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
+import httpx
 import numpy as np
 import pytest
 
 from tests.service.live import ADMIN_TOKEN, LiveServer, Sample, assert_problem, samples_by_image, wait_until
 from tests.service.predict_client import instances_of, predict_ok
 from tests.service.test_manifest_change import copy_model
+from tests.service.test_workers import two_workers  # noqa: F401 (a fixture: two worker processes)
 
 FEATURES = ("peak_probability", "gamma", "anisotropy")
 BLUR_SIGMAS = (5.0, 7.0, 9.0)
@@ -92,6 +94,7 @@ def test_drift_is_quiet_on_calibration_like_images_and_alarms_on_a_blurred_strea
     labels = f'feature="{feature}",keypoint="{keypoint["keypoint"]}",object="{keypoint["object"]}"'
     assert f"cks_drift_alarm{{{labels}}} 1.0" in metrics
     assert f"cks_drift_window_size{{{labels}}} {4.0 * per_object[keypoint['object']]}" in metrics
+
     def latest_point() -> dict:
         return drift(drift_server)["history"][-1]
 
@@ -144,3 +147,26 @@ def test_the_drift_document_is_json_with_the_console_keys(drift_server: LiveServ
         "set_sizes",
     }
     json.dumps(body, allow_nan=False)  # no NaN or infinity for a browser's JSON.parse
+
+
+def test_each_worker_process_keeps_and_reports_its_own_window(
+    two_workers: tuple[str, Path],  # noqa: F811
+    samples: list[Sample],
+) -> None:
+    url, _ = two_workers
+    path, group = next(iter(samples_by_image(samples).items()))
+    image, request = path.read_bytes(), {"instances": instances_of(group)}
+    requests, rows = 20, 8 * len(group)
+    for _ in range(requests):
+        with httpx.Client(base_url=url, timeout=60) as client:  # a new connection each time
+            predict_ok(client, image, request)
+    recorded: dict[int, int] = {}
+    for _ in range(60):  # until both workers have answered
+        with httpx.Client(base_url=url, timeout=60) as client:
+            report = client.get("/v1/admin/drift", headers={"Authorization": f"Bearer {ADMIN_TOKEN}"}).json()
+            metrics = client.get("/metrics").text
+        recorded[report["process"]] = report["recorded"]
+        assert "cks_drift_window_size{" in metrics  # in multiprocess mode too: the answering worker's
+        if len(recorded) == 2:
+            break
+    assert len(recorded) == 2 and sum(recorded.values()) == requests * rows, recorded
