@@ -25,6 +25,8 @@ class RingWindows:
 
     def append(self, streams: np.ndarray, rows: np.ndarray) -> None:
         """Append ``rows`` (M, width) to their ``streams`` (M,); a stream may repeat."""
+        if streams.size == 0:
+            return
         rows = rows.reshape(streams.size, -1)
         if np.bincount(streams).max() == 1:  # the common case (one instance per object): no sort
             with self._lock:
