@@ -1,13 +1,15 @@
 """The operator console in a real Chromium with every request off 127.0.0.1 refused: it loads
 without errors, asks for the admin token, then shows the model, the versions, the activation
-history, the audit run here (its coverage plotted against the bands), drift and set sizes or
-that they are not available. A screenshot goes to the test's temporary directory and to
+history, the audit run here (its coverage plotted against the bands), the drift of every
+keypoint over time and the set sizes of the predictions made here, or 'no drift data' on a
+server without drift monitoring. A screenshot goes to the test's temporary directory and to
 ``test-artifacts/console.png`` (gitignored)."""
 
 from __future__ import annotations
 
 import re
 import shutil
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from urllib.parse import urlsplit
@@ -17,13 +19,35 @@ from playwright.sync_api import Browser, BrowserContext, ConsoleMessage, Playwri
 
 from service.api.routes.console import CONSOLE_CONTENT_SECURITY_POLICY
 from service.settings import PACKAGE_ROOT
-from tests.service.live import LiveServer, batch_zip
-from tests.service.test_api_pages import RECORD_POLICY_VIOLATIONS, Watch, open_page, screenshot
+from tests.service.live import ADMIN_TOKEN, LiveServer, Sample, batch_zip, samples_by_image
+from tests.service.predict_client import instances_of, predict_ok
+from tests.service.test_api_pages import RECORD_POLICY_VIOLATIONS, Watch, open_page
 from tests.service.test_audits import run_audit, shifted
 
 pytestmark = pytest.mark.browser
 
 ARTIFACT = PACKAGE_ROOT / "test-artifacts" / "console.png"
+HISTORY_SECONDS = 0.5
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+    """A server whose drift history takes a point every half second."""
+    data = tmp_path_factory.mktemp("console") / "data"
+    with LiveServer(data, admin_token=ADMIN_TOKEN, drift_history_seconds=HISTORY_SECONDS) as live:
+        yield live
+
+
+@pytest.fixture(scope="module")
+def predictions(server: LiveServer, samples: list[Sample]) -> None:
+    """Three rounds of predictions on the samples, a few history points apart."""
+    for round_ in range(3):
+        for path, group in samples_by_image(samples).items():
+            kind = ("cov", "peak", "var")[round_]
+            predict_ok(
+                server.client, path.read_bytes(), {"instances": instances_of(group), "nonconformity": kind}
+            )
+        time.sleep(3 * HISTORY_SECONDS)
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +93,7 @@ def test_the_console_is_served_from_the_package_without_other_hosts(server: Live
 
 
 def test_the_console_shows_the_audit_against_its_bands(
-    server: LiveServer, context: tuple[BrowserContext, Watch], audit: dict, tmp_path: Path
+    server: LiveServer, context: tuple[BrowserContext, Watch], audit: dict, predictions: None, tmp_path: Path
 ) -> None:
     errors: list[str] = []
     page, watch = open_page(context, f"{server.url}/console")
@@ -108,10 +132,10 @@ def test_the_console_shows_the_audit_against_its_bands(
     page.wait_for_function(f"{flagged_points} === {len(flagged)}")
     page.select_option("#audit-epsilon", "0.1")
 
-    screenshot(page, tmp_path / "console.png")
+    page.screenshot(path=tmp_path / "console.png", full_page=True)
     ARTIFACT.parent.mkdir(exist_ok=True)
     shutil.copyfile(tmp_path / "console.png", ARTIFACT)
-    print(f"screenshot: {ARTIFACT}")
+    print(f"screenshot: {tmp_path / 'console.png'}, copied to {ARTIFACT}")
 
     page.reload()  # the token stays for the tab
     page.wait_for_selector("body[data-loaded=true]")
@@ -142,18 +166,36 @@ def _record_error(message: ConsoleMessage, errors: list[str]) -> None:
 
 
 def _assert_drift_panels(server: LiveServer, page) -> None:  # noqa: ANN001 - a Playwright Page
-    """Drift as the server reports it: rows per keypoint, or 'no drift data' when it has none."""
-    paths = server.client.get("/openapi.json").json()["paths"]
-    drift = None
-    if "/v1/admin/drift" in paths:
-        response = server.client.get("/v1/admin/drift", headers=server.admin)
-        drift = response.json() if response.status_code == 200 else None
-    if drift is None:
+    """Drift as the server reports it: a row per keypoint with its statistics over time, and a
+    histogram of set sizes per nonconformity function predicted with."""
+    drift = server.client.get("/v1/admin/drift", headers=server.admin).json()
+    assert page.locator("#drift tbody tr").count() == len(drift["keypoints"]) > 0
+    assert len(drift["history"]) >= 2
+    with_history = {i for point in drift["history"] for i, v in enumerate(point["keypoint_statistics"]) if v}
+    assert page.locator("#drift svg.sparkline").count() >= len(with_history) > 0
+    kinds = {kind for kind, sizes in drift["set_sizes"].items() if sizes["n"] and sizes["semi_major_px"]}
+    shown = set(
+        page.eval_on_selector_all("#set-sizes svg.histogram", "plots => plots.map(p => p.dataset.kind)")
+    )
+    assert shown == kinds == {"cov", "peak", "var"}
+
+
+def test_a_server_without_drift_says_so(browser: Browser, tmp_path: Path) -> None:
+    with LiveServer(tmp_path / "data", admin_token=ADMIN_TOKEN, drift_enabled=False) as live:
+        context = browser.new_context()
+        watch = Watch(server_host=urlsplit(live.url).hostname or "")
+        context.route("**/*", watch.route)
+        context.add_init_script(RECORD_POLICY_VIOLATIONS)
+        context.on("requestfailed", watch.request_failed)
+        page = context.new_page()
+        page.on("pageerror", lambda error: watch.page_errors.append(str(error)))
+        page.goto(f"{live.url}/console")
+        page.fill("#token", ADMIN_TOKEN)
+        page.click("#token-form button[type=submit]")
+        page.wait_for_selector("body[data-loaded=true]")
         assert "No drift data" in page.inner_text("#drift")
         assert "not available" in page.inner_text("#set-sizes")
-        return
-    keypoints = drift.get("keypoints") or []
-    if keypoints:
-        assert page.locator("#drift tbody tr").count() == len(keypoints)
-    if drift.get("set_sizes"):
-        assert page.locator("#set-sizes svg").count() >= 1 or "not available" in page.inner_text("#set-sizes")
+        assert "No coverage audit yet" in page.inner_text("#audits")
+        watch.assert_offline(page)
+        assert not watch.page_errors
+        context.close()

@@ -205,7 +205,7 @@ function drawAudit() {
 function coveragePlot(figures, promised) {
   const width = Math.max(640, 16 * figures.length + 60);
   const height = 240;
-  const left = 44, right = 10, top = 10, bottom = 70;
+  const left = 44, right = 40, top = 10, bottom = 70;
   const values = figures.flatMap((f) => [f.coverage, ...(f.band || [])]).filter((v) => typeof v === "number");
   const low = Math.max(0, Math.floor(10 * Math.min(promised, ...values)) / 10);
   const y = (v) => top + (1 - (v - low) / (1 - low || 1)) * (height - top - bottom);
@@ -270,47 +270,61 @@ function drawDrift(drift) {
   const keypoints = Array.isArray(drift.keypoints) ? drift.keypoints : [];
   const features = featureNames(keypoints);
   const history = Array.isArray(drift.history) ? drift.history : [];
-  const header = note(`Window ${drift.window ?? "–"}, statistic ${drift.statistic ?? "–"}, alarm at ${drift.alarm_threshold ?? "–"}.`);
-  if (!keypoints.length) return show("drift", header, note("No drift data yet (no prediction in the window)."));
+  const psi = drift.statistic === "psi";
+  const alarmText = drift.alarm ? el("span", { class: "alarm" }, "alarm raised") : "no alarm";
+  const header = el("p", { class: "muted" },
+    `${drift.statistic === "ks" ? "Kolmogorov-Smirnov, Holm-corrected at" : "PSI, alarm above"} ${drift.alarm_threshold ?? "–"}; `,
+    `window ${drift.window ?? "–"} live instances per keypoint; reference: version ${drift.reference_version ?? "–"}; `,
+    `${drift.recorded ?? 0} live values recorded; `, alarmText, ".");
+  const nodes = [header];
+  if (drift.reference_available === false && drift.reason) nodes.push(note(drift.reason));
+  if (!keypoints.length) return show("drift", ...nodes, note("No drift data yet."));
   const rows = keypoints.map((k) => [
     k.object ?? "", k.keypoint ?? "",
     ...features.map((name) => {
       const feature = (k.features || {})[name] || {};
-      const text = `${fixed(feature.statistic)}${feature.p_value !== undefined ? ` (p ${fixed(feature.p_value, 3)})` : ""}`;
+      const p = typeof feature.p_value === "number" ? ` (p ${fixed(feature.p_value, 3)})` : "";
+      const text = `${fixed(feature.statistic)}${p}`;
       return feature.alarm ? el("span", { class: "alarm" }, `${text} alarm`) : text;
     }),
-    sparkline(historyOf(history, k), drift.alarm_threshold),
+    sparkline(historyOf(history, k), psi ? drift.alarm_threshold : undefined, Object.values(k.features || {}).some((f) => f?.alarm)),
   ]);
-  show("drift", header, table(["object", "keypoint", ...features, "over time (largest statistic per window)"], rows));
+  const span = history.length > 1 ? ` (${history.length} points, ${when(new Date(1000 * history[0].time).toISOString())} to now)` : "";
+  nodes.push(table(["object", "keypoint", ...features, `largest statistic over time${span}`], rows));
+  show("drift", ...nodes);
 }
 
 function historyOf(history, keypoint) {
   // One value per past window: the largest statistic of this keypoint's features.
-  return history.map((window) => {
-    const entries = Array.isArray(window?.keypoints) ? window.keypoints : [];
-    const match = entries.find((e) => e.index === keypoint.index || (e.object === keypoint.object && e.keypoint === keypoint.keypoint));
+  return history.map((point) => {
+    if (Array.isArray(point?.keypoint_statistics)) {
+      const value = point.keypoint_statistics[keypoint.index];
+      return typeof value === "number" ? value : null;
+    }
+    const entries = Array.isArray(point?.keypoints) ? point.keypoints : [];
+    const match = entries.find((e) => e.index === keypoint.index);
     const statistics = Object.values(match?.features || {}).map((f) => f?.statistic).filter((v) => typeof v === "number");
     return statistics.length ? Math.max(...statistics) : null;
   });
 }
 
-function sparkline(values, threshold) {
+function sparkline(values, threshold, alarm) {
   const width = 160, height = 28;
   const known = values.filter((v) => typeof v === "number");
-  if (known.length < 1) return "–";
+  if (!known.length) return "–";
   const top = Math.max(...known, typeof threshold === "number" ? threshold : 0) || 1;
   const x = (i) => (values.length < 2 ? width / 2 : (i * (width - 4)) / (values.length - 1) + 2);
   const y = (v) => height - 2 - (v / top) * (height - 4);
   const line = svg("svg", { class: "sparkline", width, height, viewBox: `0 0 ${width} ${height}` });
   if (typeof threshold === "number") line.append(svg("line", { class: "threshold", x1: 0, x2: width, y1: y(threshold), y2: y(threshold) }));
-  const points = values.map((v, i) => (typeof v === "number" ? `${x(i)},${y(v)}` : null)).filter(Boolean).join(" ");
-  const alarm = typeof threshold === "number" && known.some((v) => v > threshold);
-  line.append(svg("polyline", { class: alarm ? "series alarm" : "series", points }));
+  const points = values.map((v, i) => (typeof v === "number" ? `${x(i)},${y(v)}` : null)).filter(Boolean);
+  if (points.length === 1) line.append(svg("circle", { class: "bar", cx: points[0].split(",")[0], cy: points[0].split(",")[1], r: 2 }));
+  line.append(svg("polyline", { class: alarm ? "series alarm" : "series", points: points.join(" ") }));
   return line;
 }
 
 function histogramOf(sizes) {
-  // Accepts {edges, counts}, {bins, counts}, a plain list of sizes, or {name: one of those}.
+  // {histogram_edges, histogram_counts} (the drift endpoint's), {edges|bins, counts}, or a list of sizes.
   if (!sizes) return null;
   if (Array.isArray(sizes)) {
     const values = sizes.filter((v) => typeof v === "number" && Number.isFinite(v));
@@ -321,35 +335,37 @@ function histogramOf(sizes) {
     values.forEach((v) => { counts[Math.min(bins - 1, Math.floor((v - low) / width))] += 1; });
     return { edges: counts.map((_, i) => low + i * width).concat(high), counts };
   }
-  const counts = sizes.counts;
-  const edges = sizes.edges || sizes.bins || sizes.bin_edges;
-  if (Array.isArray(counts) && Array.isArray(edges)) return { edges, counts };
+  const counts = sizes.histogram_counts || sizes.counts;
+  const edges = sizes.histogram_edges || sizes.edges || sizes.bins;
+  if (Array.isArray(counts) && Array.isArray(edges) && edges.length === counts.length + 1) return { edges, counts };
   return null;
 }
 
 function drawSetSizes(sizes) {
-  if (!sizes) return show("set-sizes", note("Set sizes of recent predictions: not available."));
-  const direct = histogramOf(sizes);
-  const named = direct ? [["", direct, sizes]] : Object.entries(sizes).map(([name, value]) => [name, histogramOf(value), value]).filter(([, h]) => h);
-  if (!named.length) return show("set-sizes", note("Set sizes of recent predictions: not available."));
+  const kinds = sizes && typeof sizes === "object" && !Array.isArray(sizes) ? Object.entries(sizes) : [];
   const nodes = [];
-  for (const [name, histogram, raw] of named) {
-    const unit = raw?.unit ? ` (${raw.unit})` : "";
-    if (name) nodes.push(el("h3", {}, `${name}${unit}`));
-    nodes.push(histogramPlot(histogram));
+  for (const [kind, value] of kinds) {
+    const summary = value?.semi_major_px ?? value;
+    const histogram = histogramOf(summary);
+    if (!histogram) continue;
+    const quantiles = summary.quantiles ? Object.entries(summary.quantiles).map(([q, v]) => `${q} ${fixed(v, 1)}`).join(", ") : "";
+    const counts = typeof value?.n === "number" ? `${value.n} sets, ${value.unbounded ?? 0} unbounded` : "";
+    nodes.push(el("h3", {}, `${kind}: semi-major axis (px)`), note([counts, quantiles].filter(Boolean).join("; ")));
+    nodes.push(histogramPlot(histogram, kind));
   }
+  if (!nodes.length) return show("set-sizes", note("Set sizes of recent predictions: not available (no recent prediction)."));
   show("set-sizes", ...nodes);
 }
 
-function histogramPlot({ edges, counts }) {
-  const width = 520, height = 160, left = 36, bottom = 24, top = 8;
+function histogramPlot({ edges, counts }, kind) {
+  const width = 520, height = 140, left = 36, bottom = 24, top = 8;
   const most = Math.max(1, ...counts);
   const barWidth = (width - left - 8) / Math.max(1, counts.length);
-  const plot = svg("svg", { class: "histogram", width, height, viewBox: `0 0 ${width} ${height}` });
+  const plot = svg("svg", { class: "histogram", width, height, viewBox: `0 0 ${width} ${height}`, "data-kind": kind });
   counts.forEach((count, i) => {
     const barHeight = (count / most) * (height - top - bottom);
     const bar = svg("rect", { class: "bar", x: left + i * barWidth + 1, y: height - bottom - barHeight, width: Math.max(1, barWidth - 2), height: barHeight });
-    bar.append(svg("title", {}, `${fixed(edges[i], 1)}–${fixed(edges[i + 1], 1)}: ${count}`));
+    bar.append(svg("title", {}, `${fixed(edges[i], 1)}–${fixed(edges[i + 1], 1)} px: ${count}`));
     plot.append(bar);
   });
   plot.append(svg("text", { x: left, y: height - 8 }, fixed(edges[0], 1)));
