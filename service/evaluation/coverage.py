@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.conformal import CoverageGuarantee, binomial_cdf
-from service.evaluation.laws import beta_interval, betabinomial_pmf, central_interval
+from service.conformal.laws import beta_interval, betabinomial_pmf, central_interval
 
 LEVEL = 0.95
 

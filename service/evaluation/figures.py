@@ -18,8 +18,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from service.calibration.scoring import NONCONFORMITY_KINDS as KINDS  # noqa: E402
+from service.conformal.laws import beta_pdf, betabinomial_pmf, central_interval  # noqa: E402
 from service.evaluation.coverage import ValiditySummary  # noqa: E402
-from service.evaluation.laws import beta_pdf, betabinomial_pmf, central_interval  # noqa: E402
 from service.evaluation.sizes import empirical_cdf  # noqa: E402
 from service.evaluation.summary import Evaluation  # noqa: E402
 

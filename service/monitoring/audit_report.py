@@ -33,10 +33,10 @@ from service.monitoring.coverage import (
     CoverageTest,
     bonferroni_p_value,
     coverage_test,
-    holm_adjusted,
     pooled_band,
     recalibration_size,
 )
+from service.monitoring.multiple_testing import holm_adjusted
 
 SCOPES = ("keypoint", "object")
 DEFAULT_EPSILONS = (0.05, 0.1, 0.2)
@@ -72,7 +72,7 @@ def audit_report(
                 sections.append({"nonconformity": kind, "epsilon": epsilon, "scope": scope, **section})
                 units.extend(section_units)
     tested = [unit for unit in units if unit.test.m > 0]
-    for unit, adjusted in zip(tested, holm_adjusted([u.test.p_value for u in tested]), strict=True):
+    for unit, adjusted in zip(tested, holm_adjusted([u.test.p_value for u in tested]).tolist(), strict=True):
         unit.figure["adjusted_p_value"] = adjusted
         unit.figure["flagged"] = adjusted <= FAMILY_ALPHA
     flagged = flagged_figures(sections)

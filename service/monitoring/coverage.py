@@ -33,6 +33,7 @@ from fractions import Fraction
 import numpy as np
 
 from service.conformal import beta_cdf, conformal_rank
+from service.conformal.laws import betabinomial_pmf, central_interval
 
 #: probability of the band (two-sided, central)
 BAND_LEVEL = 0.95
@@ -43,24 +44,6 @@ RECALIBRATION_TOLERANCE = 0.02
 _MAX_RECALIBRATION_N = 10_000_000
 
 
-def betabinom_log_pmf(m: int, a: float, b: float) -> np.ndarray:
-    """log P(C = k), k = 0..m, for C ~ BetaBinomial(m, a, b), a, b > 0.
-
-    P(C = k) = binom(m, k) B(k + a, m - k + b) / B(a, b), summed in log space with lgamma
-    (exact to rounding for m and a + b up to millions).
-    """
-    if m < 0 or a <= 0 or b <= 0:
-        raise ValueError(f"BetaBinomial needs m >= 0 and a, b > 0, got m={m}, a={a}, b={b}")
-    k = np.arange(m + 1, dtype=np.float64)
-    lgamma = np.vectorize(math.lgamma, otypes=[np.float64])
-    log_choose = math.lgamma(m + 1) - lgamma(k + 1) - lgamma(m - k + 1)
-    log_beta_ratio = (
-        lgamma(k + a) + lgamma(m - k + b) - math.lgamma(m + a + b)
-        - (math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b))
-    )  # fmt: skip
-    return log_choose + log_beta_ratio
-
-
 def covered_count_pmf(m: int, n: int, epsilon: float) -> np.ndarray:
     """P(C = k), k = 0..m: the covered count of m test instances under a valid calibration of
     n scores at ``epsilon`` (BetaBinomial(m, n+1-l, l); all mass at m when l = 0)."""
@@ -69,8 +52,7 @@ def covered_count_pmf(m: int, n: int, epsilon: float) -> np.ndarray:
         pmf = np.zeros(m + 1)
         pmf[m] = 1.0
         return pmf
-    pmf = np.exp(betabinom_log_pmf(m, n + 1 - rank, rank))
-    return pmf / pmf.sum()  # rounding only: the log pmf is exact
+    return betabinomial_pmf(m, n + 1 - rank, rank)
 
 
 @dataclass(frozen=True)
@@ -99,24 +81,14 @@ class CoverageTest:
         return self.band[0] <= self.covered <= self.band[1]
 
 
-def central_band(pmf: np.ndarray, level: float = BAND_LEVEL) -> tuple[int, int]:
-    """The central interval [low, high] of a distribution on 0..m with at most (1-level)/2 of the
-    mass below low and at most (1-level)/2 above high (so at least ``level`` inside)."""
-    tail = (1.0 - level) / 2.0
-    below = np.cumsum(pmf) - pmf  # P(C < k)
-    above = np.cumsum(pmf[::-1])[::-1] - pmf  # P(C > k)
-    low = int(np.flatnonzero(below <= tail)[-1])
-    high = int(np.flatnonzero(above <= tail)[0])
-    return low, high
-
-
 def coverage_test(covered: int, m: int, n: int, epsilon: float, level: float = BAND_LEVEL) -> CoverageTest:
     """The band and the one-sided p-value of ``covered`` out of ``m`` (Theorem 1, eq. 5)."""
     if not 0 <= covered <= m:
         raise ValueError(f"covered must be in [0, m], got {covered} of {m}")
     pmf = covered_count_pmf(m, n, epsilon)
     p_value = float(min(1.0, pmf[: covered + 1].sum()))
-    return CoverageTest(m, covered, n, conformal_rank(n, epsilon), epsilon, central_band(pmf, level), p_value)
+    band = central_interval(pmf, level)
+    return CoverageTest(m, covered, n, conformal_rank(n, epsilon), epsilon, band, p_value)
 
 
 def pooled_band(tests: Sequence[CoverageTest], level: float = BAND_LEVEL) -> tuple[int, int]:
@@ -127,25 +99,13 @@ def pooled_band(tests: Sequence[CoverageTest], level: float = BAND_LEVEL) -> tup
     if not tests:
         return 0, 0
     unit_level = 1.0 - (1.0 - level) / len(tests)
-    bands = [central_band(covered_count_pmf(t.m, t.n, t.epsilon), unit_level) for t in tests]
+    bands = [central_interval(covered_count_pmf(t.m, t.n, t.epsilon), unit_level) for t in tests]
     return sum(low for low, _ in bands), sum(high for _, high in bands)
 
 
 def bonferroni_p_value(tests: Sequence[CoverageTest]) -> float:
     """The global test of "no unit's coverage is low": min(1, U * min p), valid under any dependence."""
     return 1.0 if not tests else min(1.0, len(tests) * min(t.p_value for t in tests))
-
-
-def holm_adjusted(p_values: Sequence[float]) -> list[float]:
-    """Holm's step-down adjusted p-values (Holm 1979): flag where adjusted <= alpha; controls the
-    family-wise error rate at alpha under any dependence between the tests."""
-    order = sorted(range(len(p_values)), key=lambda i: p_values[i])
-    adjusted = [1.0] * len(p_values)
-    running = 0.0
-    for position, index in enumerate(order):
-        running = max(running, min(1.0, (len(p_values) - position) * p_values[index]))
-        adjusted[index] = running
-    return adjusted
 
 
 def recalibration_size(

@@ -40,9 +40,9 @@ from calibration_store import ScoreTable
 from service.conformal import HeatmapStatistics
 from service.conformal.features import HEATMAP_FEATURES, heatmap_features
 from service.detector.manifest import Manifest
+from service.monitoring.multiple_testing import holm_rejections
 from service.monitoring.set_sizes import KINDS, KindSizes, set_sizes, shape_entries
 from service.monitoring.two_sample import (
-    holm_rejections,
     ks_p_value,
     ks_statistic,
     population_stability_index,

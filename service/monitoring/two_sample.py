@@ -103,20 +103,3 @@ def population_stability_index(reference: np.ndarray, live: np.ndarray, edges: n
     reference_share = np.maximum(reference_share / reference.size, _PSI_FLOOR)
     live_share = np.maximum(live_share / live.size, _PSI_FLOOR)
     return float(np.sum((live_share - reference_share) * np.log(live_share / reference_share)))
-
-
-def holm_rejections(p_values: np.ndarray, alpha: float) -> np.ndarray:
-    """Which hypotheses Holm's step-down procedure rejects at family-wise error rate ``alpha``.
-
-    Sorted ascending, p_(r) is rejected while p_(r) <= alpha / (N - r) for every rank up to r
-    (r from 0); NaN p-values (tests not run) are neither counted nor rejected.
-    """
-    p_values = np.asarray(p_values, dtype=np.float64)
-    rejected = np.zeros(p_values.shape, dtype=bool)
-    tested = np.flatnonzero(~np.isnan(p_values))
-    order = tested[np.argsort(p_values[tested], kind="stable")]
-    limits = alpha / (order.size - np.arange(order.size))
-    passing = p_values[order] <= limits
-    first_kept = order.size if passing.all() else int(np.argmin(passing))
-    rejected[order[:first_kept]] = True
-    return rejected

@@ -7,24 +7,23 @@ import pytest
 from scipy import stats
 
 from service.conformal import beta_cdf, conformal_rank, conformal_threshold
+from service.conformal.laws import betabinomial_pmf, central_interval
 from service.monitoring.coverage import (
-    betabinom_log_pmf,
     bonferroni_p_value,
-    central_band,
     conformal_floor,
     coverage_test,
     covered_count_pmf,
-    holm_adjusted,
     pooled_band,
     recalibration_size,
 )
+from service.monitoring.multiple_testing import holm_adjusted
 
 
 @pytest.mark.parametrize("m, a, b", [(0, 1, 1), (1, 2.5, 0.5), (10, 541, 60), (52, 9001, 1000), (500, 3, 7)])
 def test_betabinom_pmf_matches_scipy(m: int, a: float, b: float) -> None:
     k = np.arange(m + 1)
-    expected = stats.betabinom(m, a, b).logpmf(k)
-    assert np.allclose(betabinom_log_pmf(m, a, b), expected, rtol=1e-9, atol=1e-9)
+    expected = stats.betabinom(m, a, b).pmf(k)
+    assert np.allclose(betabinomial_pmf(m, a, b), expected, rtol=1e-9, atol=1e-15)
 
 
 @pytest.mark.parametrize("m, n, epsilon", [(6, 600, 0.1), (52, 600, 0.05), (200, 99, 0.2), (30, 9, 0.05)])
@@ -72,7 +71,7 @@ def test_shifted_test_scores_give_small_p_values() -> None:
 def test_central_band_of_a_point_mass() -> None:
     pmf = np.zeros(5)
     pmf[3] = 1
-    assert central_band(pmf) == (3, 3)
+    assert central_interval(pmf) == (3, 3)
     assert covered_count_pmf(4, 5, 0.1).tolist() == [0, 0, 0, 0, 1]  # n + 1 < 1/eps: unbounded
 
 
@@ -97,8 +96,9 @@ def test_pooled_band_holds_under_dependence() -> None:
 def test_holm_matches_the_step_down_by_hand() -> None:
     p = [0.01, 0.04, 0.03, 0.005]
     # sorted 0.005, 0.01, 0.03, 0.04 -> x4, x3, x2, x1 -> 0.02, 0.03, 0.06, 0.06 (monotone)
-    assert holm_adjusted(p) == pytest.approx([0.03, 0.06, 0.06, 0.02])
-    assert holm_adjusted([]) == []
+    assert holm_adjusted(p).tolist() == pytest.approx([0.03, 0.06, 0.06, 0.02])
+    assert holm_adjusted([]).size == 0
+    assert np.isnan(holm_adjusted([np.nan, 0.01])[0]) and holm_adjusted([np.nan, 0.01])[1] == 0.01
     assert bonferroni_p_value([coverage_test(0, 5, 600, 0.1)]) == coverage_test(0, 5, 600, 0.1).p_value
 
 

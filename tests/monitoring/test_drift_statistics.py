@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from service.monitoring.multiple_testing import holm_rejections
 from service.monitoring.two_sample import (
     EXACT_LIMIT,
-    holm_rejections,
     kolmogorov_sf,
     ks_asymptotic_p_value,
     ks_p_value,

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from service.conformal.laws import beta_interval, beta_quantile, betabinomial_pmf, central_interval
 from service.evaluation.adaptiveness import average_ranks, spearman
 from service.evaluation.coverage import GroupCoverage
-from service.evaluation.laws import beta_interval, beta_quantile, betabinomial_pmf, central_interval
 
 
 @pytest.mark.parametrize(("m", "a", "b"), [(1, 1, 1), (50, 30, 4), (400, 451, 50), (1000, 900, 100)])

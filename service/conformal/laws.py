@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from service.conformal import beta_cdf
+from .guarantees import beta_cdf
 
 
 def beta_quantile(q: float, a: int, b: int, tolerance: float = 1e-10) -> float:
