@@ -1,0 +1,237 @@
+"""The certified outer bound: a convex relaxation of PURSE solved with Clarabel (optional extra).
+
+Each keypoint's constraint is a second-order cone in (R, t) (Yang & Pavone, CVPR 2023, eq. 8):
+with p_i = R X_i + t, z_i = p_i[2] and W_i^T W_i = L_i,
+    || W_i (K[:2] - c_i e_3^T) p_i || <= z_i,
+which is (y_i - c_i)^T L_i (y_i - c_i) <= 1 multiplied by z_i^2 > 0. PURSE is these cones
+intersected with SO(3). Replacing SO(3) by its convex hull, written exactly through the unit
+quaternion lift R = A(Q), Q = q q^T relaxed to {Q PSD, tr Q = 1} (Saunderson, Parrilo & Willsky,
+SIAM J. Optim. 2015), gives a convex set containing PURSE. Over it we solve small conic programs:
+    max e_k^T (t - t_hat) for e_k in +-{ray frame of t_hat}  -> box, then radius, on the translation error
+    min tr(R_hat^T R)                                         -> angle bound on the rotation error
+Each bound is read from the dual: Clarabel's multipliers are projected onto the dual cones and
+the weak-duality bound is recomputed here (the certificate check), its residual in the
+translation bounded with twice the primal box. ``certified`` is True only when every program is
+solved, the recomputed dual bound agrees with the primal value, and it dominates the sampled poses.
+An infeasible relaxation certifies that PURSE is empty.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+from dataclasses import dataclass
+from functools import cache
+
+import numpy as np
+
+from .estimate import whitening
+from .membership import Pose
+from .rotations import QUATERNION_BASIS, rotation_angle_deg
+
+_TRIANGLE = [(a, b) for b in range(4) for a in range(b + 1)]  # Clarabel's svec order: upper, by column
+_Q = len(_TRIANGLE)  # 10 entries of the 4x4 quaternion moment matrix
+_N = _Q + 3  # + the scaled translation offset
+_AGREEMENT = 1e-6  # relative primal-dual agreement required of a certificate
+
+
+def relaxation_available() -> bool:
+    """Whether the `pose` extra (Clarabel) is installed."""
+    return importlib.util.find_spec("clarabel") is not None
+
+
+@cache
+def _clarabel():
+    import clarabel  # the `pose` extra; imported on first use, not at service start
+
+    return clarabel
+
+
+@dataclass(frozen=True)
+class OuterBound:
+    """Upper bounds on the pose error over PURSE from the relaxation (None: not available)."""
+
+    certified: bool
+    status: str
+    rotation_deg: float | None = None
+    translation: float | None = None
+    empty: bool = False  # the relaxation, hence PURSE, has no point
+
+
+def _rotation_map() -> np.ndarray:
+    """(9, 10): row-major vec(R) as a linear function of Q's upper triangle (unscaled entries)."""
+    mapping = np.zeros((9, _Q))
+    for column, (a, b) in enumerate(_TRIANGLE):
+        block = QUATERNION_BASIS[:, :, a, b] + (QUATERNION_BASIS[:, :, b, a] if a != b else 0.0)
+        mapping[:, column] = block.reshape(9)
+    return mapping
+
+
+_ROTATION_MAP = _rotation_map()
+_SVEC_SCALE = np.array([1.0 if a == b else math.sqrt(2.0) for a, b in _TRIANGLE])
+
+
+@dataclass(frozen=True)
+class _Program:
+    """A x + s = b, s in (zero(1), PSD triangle(4), SOC(3) per keypoint); x = (svec-free Q, dt / scale)."""
+
+    matrix: np.ndarray
+    offset: np.ndarray
+    keypoints: int
+    scale: float
+
+
+def _program(estimate: Pose, camera: np.ndarray, keypoints_3d, centers, shapes) -> _Program:
+    scale = float(np.linalg.norm(estimate.translation)) or 1.0
+    rows, offsets = [], []
+    trace = np.zeros(_N)
+    trace[[i for i, (a, b) in enumerate(_TRIANGLE) if a == b]] = 1.0
+    rows.append(trace[None])
+    offsets.append(np.ones(1))
+    rows.append(np.hstack([-np.diag(_SVEC_SCALE), np.zeros((_Q, 3))]))
+    offsets.append(np.zeros(_Q))
+    whiten = whitening(shapes)
+    for point, center, w in zip(keypoints_3d / scale, centers, whiten, strict=True):
+        # p / scale = R point + t_hat / scale + x_t, with R point linear in Q
+        linear = np.hstack([np.kron(np.eye(3), point[None]) @ _ROTATION_MAP, np.eye(3)])
+        cone = np.vstack([[0.0, 0.0, 1.0], w @ (camera[:2] - np.outer(center, camera[2]))])
+        cone /= np.abs(cone).max()  # a positive scale keeps the cone and evens the rows' magnitudes
+        rows.append(-cone @ linear)
+        offsets.append(cone @ (estimate.translation / scale))
+    return _Program(np.vstack(rows), np.concatenate(offsets), len(centers), scale)
+
+
+def _cones(keypoints: int) -> list:
+    clarabel = _clarabel()
+    return [clarabel.ZeroConeT(1), clarabel.PSDTriangleConeT(4)] + [
+        clarabel.SecondOrderConeT(3) for _ in range(keypoints)
+    ]
+
+
+def _project_dual(dual: np.ndarray, keypoints: int) -> np.ndarray:
+    """The multipliers projected onto the dual cones (all self-dual; the zero cone's dual is free)."""
+    projected = dual.copy()
+    triangle = projected[1 : 1 + _Q]
+    matrix = np.zeros((4, 4))
+    for value, (a, b), s in zip(triangle, _TRIANGLE, _SVEC_SCALE, strict=True):
+        matrix[a, b] = matrix[b, a] = value / s
+    values, vectors = np.linalg.eigh(matrix)
+    matrix = (vectors * np.maximum(values, 0.0)) @ vectors.T
+    projected[1 : 1 + _Q] = [matrix[a, b] * s for (a, b), s in zip(_TRIANGLE, _SVEC_SCALE, strict=True)]
+    for k in range(keypoints):
+        start = 1 + _Q + 3 * k
+        head, tail = projected[start], projected[start + 1 : start + 3]
+        norm = float(np.linalg.norm(tail))
+        if norm > head:  # Euclidean projection onto the second-order cone
+            if norm <= -head:
+                projected[start : start + 3] = 0.0
+            else:
+                level = (head + norm) / 2
+                projected[start] = level
+                projected[start + 1 : start + 3] = tail * (level / norm)
+    return projected
+
+
+@dataclass(frozen=True)
+class _Solved:
+    status: str
+    primal: float  # the solver's optimal value of min q^T x
+    lower: float  # our weak-duality lower bound on it (before the translation residual term)
+    translation_residual: float  # || r_t ||: its coefficient on the translation offset
+    agrees: bool
+
+
+def _minimise(program: _Program, objective: np.ndarray, solver=None):
+    if solver is None:
+        from scipy import sparse  # clarabel's own dependency
+
+        clarabel = _clarabel()
+        settings = clarabel.DefaultSettings()
+        settings.verbose = False
+        solver = clarabel.DefaultSolver(
+            sparse.csc_matrix((_N, _N)),
+            objective,
+            sparse.csc_matrix(program.matrix),
+            program.offset,
+            _cones(program.keypoints),
+            settings,
+        )
+    else:
+        solver.update(q=objective)
+    solution = solver.solve()
+    status = str(solution.status).split(".")[-1]
+    if status != "Solved":
+        return solver, _Solved(status, math.nan, -math.inf, math.inf, False)
+    dual = _project_dual(np.asarray(solution.z), program.keypoints)
+    residual = objective + program.matrix.T @ dual
+    # q^T x = -b^T z + z^T s + r^T x >= -b^T z + r_Q^T x_Q + r_t^T x_t, z^T s >= 0; |Q_ab| <= 1
+    lower = -float(program.offset @ dual) - float(np.abs(residual[:_Q]).sum())
+    primal = float(objective @ np.asarray(solution.x))
+    agrees = abs(primal - lower) <= _AGREEMENT * (1.0 + abs(primal))
+    return solver, _Solved(status, primal, lower, float(np.linalg.norm(residual[_Q:])), agrees)
+
+
+def _ray_frame(translation: np.ndarray) -> np.ndarray:
+    """Orthonormal rows, the first along the line of sight (the depth error dominates there)."""
+    ray = translation / (np.linalg.norm(translation) or 1.0)
+    helper = np.eye(3)[int(np.argmin(np.abs(ray)))]
+    second = np.cross(ray, helper)
+    second /= np.linalg.norm(second)
+    return np.vstack([ray, second, np.cross(ray, second)])
+
+
+def _infeasible(status: str) -> bool:
+    return status == "PrimalInfeasible"
+
+
+def outer_bound(
+    estimate: Pose,
+    camera: np.ndarray,
+    keypoints_3d: np.ndarray,
+    centers: np.ndarray,
+    shapes: np.ndarray,
+    sampled: list[Pose] | None = None,
+) -> OuterBound:
+    """Certified upper bounds on the rotation and translation error over PURSE (see the module doc)."""
+    if not relaxation_available():
+        return OuterBound(False, "the pose extra (clarabel) is not installed")
+    program = _program(estimate, camera, keypoints_3d, centers, shapes)
+    frame = _ray_frame(estimate.translation)
+    solver, directions = None, []
+    for axis in frame:
+        for sign in (1.0, -1.0):
+            objective = np.concatenate([np.zeros(_Q), -sign * axis])  # min -(+-e)^T dt
+            solver, solved = _minimise(program, objective, solver)
+            if _infeasible(solved.status):
+                return OuterBound(
+                    True, "relaxation infeasible: no pose is consistent with the sets", empty=True
+                )
+            if solved.status != "Solved":
+                return OuterBound(False, f"translation program: {solved.status}")
+            directions.append(solved)
+    box = np.array([max(-directions[2 * k].primal, -directions[2 * k + 1].primal, 0.0) for k in range(3)])
+    reach = 2.0 * float(np.linalg.norm(box)) + 1.0  # || x_t || over the relaxation, generously
+    extents = [max(-(s.lower - s.translation_residual * reach), 0.0) for s in directions]
+    translation = program.scale * math.sqrt(
+        sum(max(extents[2 * k], extents[2 * k + 1]) ** 2 for k in range(3))
+    )
+    rotation_objective = np.concatenate([estimate.rotation.reshape(9) @ _ROTATION_MAP, np.zeros(3)])
+    solver, solved = _minimise(program, rotation_objective, solver)
+    if solved.status != "Solved":
+        return OuterBound(False, f"rotation program: {solved.status}", translation=translation)
+    smallest_trace = solved.lower - solved.translation_residual * reach
+    rotation = math.degrees(math.acos(min(1.0, max(-1.0, (smallest_trace - 1.0) / 2.0))))
+    certified = all(s.agrees for s in [*directions, solved]) and _dominates(
+        estimate, rotation, translation, sampled or []
+    )
+    status = "solved, certificate verified" if certified else "solved, certificate not verified"
+    return OuterBound(certified, status, rotation, translation)
+
+
+def _dominates(estimate: Pose, rotation_deg: float, translation: float, sampled: list[Pose]) -> bool:
+    slack = 1e-6
+    return all(
+        rotation_angle_deg(estimate.rotation, p.rotation) <= rotation_deg + slack
+        and float(np.linalg.norm(p.translation - estimate.translation)) <= translation * (1 + slack) + slack
+        for p in sampled
+    )
