@@ -73,11 +73,13 @@ _SVEC_SCALE = np.array([1.0 if a == b else math.sqrt(2.0) for a, b in _TRIANGLE]
 
 @dataclass(frozen=True)
 class _Program:
-    """A x + s = b, s in (zero(1), PSD triangle(4), SOC(3) per keypoint); x = (svec-free Q, dt / scale)."""
+    """A x + s = b, s in (zero(1), PSD triangle(4), SOC(3) per keypoint, nonnegative(cuts));
+    x = (Q's upper triangle, (t - t_hat) / scale)."""
 
     matrix: np.ndarray
     offset: np.ndarray
     keypoints: int
+    cuts: int
     scale: float
 
 
@@ -91,24 +93,54 @@ def _program(estimate: Pose, camera: np.ndarray, keypoints_3d, centers, shapes) 
     rows.append(np.hstack([-np.diag(_SVEC_SCALE), np.zeros((_Q, 3))]))
     offsets.append(np.zeros(_Q))
     whiten = whitening(shapes)
-    for point, center, w in zip(keypoints_3d / scale, centers, whiten, strict=True):
-        # p / scale = R point + t_hat / scale + x_t, with R point linear in Q
-        linear = np.hstack([np.kron(np.eye(3), point[None]) @ _ROTATION_MAP, np.eye(3)])
+    # p_i / scale = linear_i x + t_hat / scale, with R X_i linear in Q
+    linears = [
+        np.hstack([np.kron(np.eye(3), point[None]) @ _ROTATION_MAP, np.eye(3)])
+        for point in keypoints_3d / scale
+    ]
+    origin = estimate.translation / scale
+    for linear, center, w in zip(linears, centers, whiten, strict=True):
         cone = np.vstack([[0.0, 0.0, 1.0], w @ (camera[:2] - np.outer(center, camera[2]))])
         cone /= np.abs(cone).max()  # a positive scale keeps the cone and evens the rows' magnitudes
         rows.append(-cone @ linear)
-        offsets.append(cone @ (estimate.translation / scale))
-    return _Program(np.vstack(rows), np.concatenate(offsets), len(centers), scale)
+        offsets.append(cone @ origin)
+    cuts = _depth_cuts(camera, keypoints_3d / scale, centers, shapes)
+    for i, j, slope_i, slope_j, distance in cuts:  # slope_i z_i + slope_j z_j >= d_ij
+        depth = slope_i * linears[i][2] + slope_j * linears[j][2]
+        rows.append(-depth[None])
+        offsets.append(np.array([(slope_i + slope_j) * origin[2] - distance]))
+    return _Program(np.vstack(rows), np.concatenate(offsets), len(centers), len(cuts), scale)
 
 
-def _cones(keypoints: int) -> list:
-    clarabel = _clarabel()
-    return [clarabel.ZeroConeT(1), clarabel.PSDTriangleConeT(4)] + [
-        clarabel.SecondOrderConeT(3) for _ in range(keypoints)
+def _depth_cuts(camera: np.ndarray, keypoints_3d: np.ndarray, centers: np.ndarray, shapes: np.ndarray):
+    """Linear cuts valid on PURSE that keep the relaxation off the camera centre.
+
+    A keypoint in set i lies on a ray p = z K^-1 (y, 1) with ||K^-1 (y, 1)|| <= s_i over the set, so
+    ||p_i|| <= s_i z_i, and rigidity gives d_ij = ||p_i - p_j|| <= s_i z_i + s_j z_j. Without them the
+    relaxation contains R = 0, t = 0 (every cone holds with equality at p = 0).
+    """
+    values = np.linalg.eigvalsh(shapes)
+    bounded = values[:, 0] > 0
+    inverse = np.linalg.inv(camera)
+    rays = np.c_[centers, np.ones(len(centers))] @ inverse.T
+    semi_major = np.where(bounded, 1.0 / np.sqrt(np.where(bounded, values[:, 0], 1.0)), np.inf)
+    slopes = np.linalg.norm(rays, axis=1) + semi_major * max(inverse[0, 0], inverse[1, 1])
+    return [
+        (i, j, slopes[i], slopes[j], float(np.linalg.norm(keypoints_3d[i] - keypoints_3d[j])))
+        for i in range(len(centers))
+        for j in range(i + 1, len(centers))
+        if bounded[i] and bounded[j]
     ]
 
 
-def _project_dual(dual: np.ndarray, keypoints: int) -> np.ndarray:
+def _cones(keypoints: int, cuts: int) -> list:
+    clarabel = _clarabel()
+    cones = [clarabel.ZeroConeT(1), clarabel.PSDTriangleConeT(4)]
+    cones += [clarabel.SecondOrderConeT(3) for _ in range(keypoints)]
+    return cones + ([clarabel.NonnegativeConeT(cuts)] if cuts else [])
+
+
+def _project_dual(dual: np.ndarray, keypoints: int, cuts: int) -> np.ndarray:
     """The multipliers projected onto the dual cones (all self-dual; the zero cone's dual is free)."""
     projected = dual.copy()
     triangle = projected[1 : 1 + _Q]
@@ -129,6 +161,8 @@ def _project_dual(dual: np.ndarray, keypoints: int) -> np.ndarray:
                 level = (head + norm) / 2
                 projected[start] = level
                 projected[start + 1 : start + 3] = tail * (level / norm)
+    if cuts:
+        projected[-cuts:] = np.maximum(projected[-cuts:], 0.0)
     return projected
 
 
@@ -153,7 +187,7 @@ def _minimise(program: _Program, objective: np.ndarray, solver=None):
             objective,
             sparse.csc_matrix(program.matrix),
             program.offset,
-            _cones(program.keypoints),
+            _cones(program.keypoints, program.cuts),
             settings,
         )
     else:
@@ -162,7 +196,7 @@ def _minimise(program: _Program, objective: np.ndarray, solver=None):
     status = str(solution.status).split(".")[-1]
     if status != "Solved":
         return solver, _Solved(status, math.nan, -math.inf, math.inf, False)
-    dual = _project_dual(np.asarray(solution.z), program.keypoints)
+    dual = _project_dual(np.asarray(solution.z), program.keypoints, program.cuts)
     residual = objective + program.matrix.T @ dual
     # q^T x = -b^T z + z^T s + r^T x >= -b^T z + r_Q^T x_Q + r_t^T x_t, z^T s >= 0; |Q_ab| <= 1
     lower = -float(program.offset @ dual) - float(np.abs(residual[:_Q]).sum())
