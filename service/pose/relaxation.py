@@ -175,25 +175,32 @@ class _Solved:
     agrees: bool
 
 
+def _solver(program: _Program, objective: np.ndarray, equilibrate: bool = True):
+    from scipy import sparse  # clarabel's own dependency
+
+    clarabel = _clarabel()
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    settings.equilibrate_enable = equilibrate
+    quadratic, matrix = sparse.csc_matrix((_N, _N)), sparse.csc_matrix(program.matrix)
+    cones = _cones(program.keypoints, program.cuts)
+    return clarabel.DefaultSolver(quadratic, objective, matrix, program.offset, cones, settings)
+
+
+def _status(solution) -> str:
+    return str(solution.status).split(".")[-1]
+
+
 def _minimise(program: _Program, objective: np.ndarray, solver=None):
     if solver is None:
-        from scipy import sparse  # clarabel's own dependency
-
-        clarabel = _clarabel()
-        settings = clarabel.DefaultSettings()
-        settings.verbose = False
-        solver = clarabel.DefaultSolver(
-            sparse.csc_matrix((_N, _N)),
-            objective,
-            sparse.csc_matrix(program.matrix),
-            program.offset,
-            _cones(program.keypoints, program.cuts),
-            settings,
-        )
+        solver = _solver(program, objective)
     else:
         solver.update(q=objective)
     solution = solver.solve()
-    status = str(solution.status).split(".")[-1]
+    if _status(solution) not in ("Solved", "PrimalInfeasible"):
+        # Clarabel's equilibration sometimes stalls these programs at "AlmostSolved"; without it they solve
+        solution = _solver(program, objective, equilibrate=False).solve()
+    status = _status(solution)
     if status != "Solved":
         return solver, _Solved(status, math.nan, -math.inf, math.inf, False)
     dual = _project_dual(np.asarray(solution.z), program.keypoints, program.cuts)
