@@ -63,10 +63,13 @@ def sample_poses_in_set(
     found = []
     for _ in range(count):
         points = sample_points_in_sets(centers, shapes, rng)
-        ok, rvec, tvec = cv2.solvePnP(
-            objects, points, camera, None, rvec0.copy(), tvec0.copy(), True, cv2.SOLVEPNP_ITERATIVE
-        )
-        if not ok:
+        try:
+            ok, rvec, tvec = cv2.solvePnP(
+                objects, points, camera, None, rvec0.copy(), tvec0.copy(), True, cv2.SOLVEPNP_ITERATIVE
+            )
+        except cv2.error:
+            ok = False
+        if not ok or not np.isfinite(tvec).all():
             continue
         pose = Pose(from_rotation_vector(rvec), tvec.reshape(3))
         if membership(pose, camera, keypoints_3d, centers, shapes).inside:

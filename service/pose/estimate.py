@@ -25,10 +25,13 @@ def pnp_on_centres(camera: np.ndarray, keypoints_3d: np.ndarray, centers: np.nda
     if len(keypoints_3d) < MIN_POINTS:
         return None
     objects, images = keypoints_3d.astype(np.float64), centers.astype(np.float64)
-    found, rvec, tvec = cv2.solvePnP(objects, images, camera, None, flags=cv2.SOLVEPNP_EPNP)
-    if not found:
+    try:
+        found, rvec, tvec = cv2.solvePnP(objects, images, camera, None, flags=cv2.SOLVEPNP_EPNP)
+        if not found:
+            return None
+        rvec, tvec = cv2.solvePnPRefineLM(objects, images, camera, None, rvec, tvec)
+    except cv2.error:  # degenerate input (e.g. an extreme camera matrix): no PnP solution
         return None
-    rvec, tvec = cv2.solvePnPRefineLM(objects, images, camera, None, rvec, tvec)
     if not (np.isfinite(rvec).all() and np.isfinite(tvec).all()):
         return None
     return Pose(from_rotation_vector(rvec), tvec.reshape(3))
@@ -61,13 +64,21 @@ def refine_into_set(
             return None
         if check.worst <= 1.0 - _INSIDE_MARGIN:
             return pose
-        projected, jacobian = cv2.projectPoints(objects, rvec, tvec, camera, None)
+        try:
+            projected, jacobian = cv2.projectPoints(objects, rvec, tvec, camera, None)
+        except cv2.error:
+            return None
         residuals = np.einsum("nij,nj->ni", whiten, projected.reshape(-1, 2) - centers)
         jacobians = np.einsum("nij,njk->nik", whiten, jacobian[:, :6].reshape(-1, 2, 6))
         weights = weights * np.maximum(np.linalg.norm(residuals, axis=1), 1e-12)  # Lawson
         weights /= weights.sum()
         hessian = np.einsum("n,nij,nik->jk", weights, jacobians, jacobians)
         gradient = np.einsum("n,nij,ni->j", weights, jacobians, residuals)
-        step = np.linalg.solve(hessian + _DAMPING * np.trace(hessian) * np.eye(6), -gradient)
+        try:
+            step = np.linalg.solve(hessian + _DAMPING * np.trace(hessian) * np.eye(6), -gradient)
+        except np.linalg.LinAlgError:
+            return None
+        if not np.isfinite(step).all():
+            return None
         rvec, tvec = rvec + step[:3], tvec + step[3:]
     return None

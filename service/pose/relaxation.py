@@ -236,7 +236,10 @@ def outer_bound(
     """Certified upper bounds on the rotation and translation error over PURSE (see the module doc)."""
     if not relaxation_available():
         return OuterBound(False, "the pose extra (clarabel) is not installed")
-    program = _program(estimate, camera, keypoints_3d, centers, shapes)
+    with np.errstate(all="ignore"):
+        program = _program(estimate, camera, keypoints_3d, centers, shapes)
+    if not (np.isfinite(program.matrix).all() and np.isfinite(program.offset).all()):
+        return OuterBound(False, "relaxation not posed: the data overflow (extreme camera matrix or sets)")
     frame = _ray_frame(estimate.translation)
     solver, directions = None, []
     for axis in frame:

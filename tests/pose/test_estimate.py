@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from service.pose import PoseOptions, instance_pose_sets, membership
 from service.pose.estimate import pnp_on_centres, refine_into_set
@@ -67,3 +68,14 @@ def test_too_few_keypoints_give_no_estimate(camera, duck_3d, true_pose) -> None:
     centers = projections(true_pose, camera, duck_3d)[:3]
     answer = instance_pose_sets(duck_3d[:3], centers, balls(np.full(3, 4.0)), PoseOptions(camera))
     assert answer.estimate is None and answer.method == "none"
+
+
+@pytest.mark.parametrize("scale", [1e-300, 1e-12, 1e12, 1e300])
+def test_extreme_cameras_give_an_answer_not_an_error(duck_3d, true_pose, scale: float) -> None:
+    """A valid but absurd K never raises: at worst no estimate and no certificate."""
+    camera = np.array([[572.0 * scale, 0.0, 320.0], [0.0, 572.0 * scale, 240.0], [0.0, 0.0, 1.0]])
+    centers = np.random.default_rng(1).uniform(0, 640, (8, 2))
+    answer = instance_pose_sets(duck_3d, centers, balls(np.full(8, 5.0)), PoseOptions(camera, samples=10))
+    assert answer.method in {"pnp", "pnp+refined-into-set", "sampled", "none"}
+    if answer.estimate is not None:
+        assert membership(answer.estimate, camera, duck_3d, centers, balls(np.full(8, 5.0))).inside
