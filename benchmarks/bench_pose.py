@@ -88,10 +88,15 @@ def estimate(camera, points, centers, shapes):
 
 
 def run(epsilon: float, samples: int, images: int) -> dict:
-    settings = Settings(data_dir=Path(tempfile.mkdtemp(prefix="bench-pose-")))
+    with tempfile.TemporaryDirectory(prefix="bench-pose-") as data_dir:
+        return _run(Settings(data_dir=Path(data_dir)), epsilon, samples, images)
+
+
+def _run(settings: Settings, epsilon: float, samples: int, images: int) -> dict:
     state = build_state(settings)
     costs = {"estimate": [], "inner": [], "outer": []}
     ratios_t, ratios_r = [], []
+    bounds = {"inner": [], "outer": [], "error": []}  # (rotation deg, translation) per instance
     counts = {
         "instances": 0,
         "estimated": 0,
@@ -117,6 +122,10 @@ def run(epsilon: float, samples: int, images: int) -> dict:
             if not outer.certified:
                 continue
             counts["certified"] += 1
+            bounds["inner"].append((inner.rotation_deg, inner.translation))
+            bounds["outer"].append((outer.rotation_deg, outer.translation))
+            error = np.linalg.norm(pose.translation - truth.translation)
+            bounds["error"].append((rotation_angle_deg(pose.rotation, truth.rotation), error))
             if inner.translation > 0:
                 ratios_t.append(outer.translation / inner.translation)
                 ratios_r.append(outer.rotation_deg / inner.rotation_deg)
@@ -128,7 +137,7 @@ def run(epsilon: float, samples: int, images: int) -> dict:
                 )
     finally:
         state.close()
-    return {"costs": costs, "ratios": (ratios_t, ratios_r), "counts": counts}
+    return {"costs": costs, "ratios": (ratios_t, ratios_r), "counts": counts, "bounds": bounds}
 
 
 def report(epsilon: float, samples: int, result: dict) -> list[str]:
@@ -145,6 +154,11 @@ def report(epsilon: float, samples: int, result: dict) -> list[str]:
             f"tightness (outer / inner, median): translation {statistics.median(ratios_t):.1f}x, "
             f"rotation {statistics.median(ratios_r):.1f}x"
         )
+    for name, label in [("error", "true error"), ("inner", "inner bound"), ("outer", "outer bound")]:
+        pairs = result["bounds"][name]
+        if pairs:
+            rotation, translation = (statistics.median(p[k] for p in pairs) for k in (0, 1))
+            lines.append(f"median {label:<11}: rotation {rotation:6.1f} deg, translation {translation:7.1f}")
     true_inside = counts["true_inside"]
     lines.append(
         f"instances {counts['instances']}, estimated {counts['estimated']}, outer certified "
