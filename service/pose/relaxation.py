@@ -175,13 +175,17 @@ class _Solved:
     agrees: bool
 
 
-def _solver(program: _Program, objective: np.ndarray, equilibrate: bool = True):
+_RETRIES = ({"equilibrate_enable": False}, {"max_step_fraction": 0.95})  # when a solve stalls
+
+
+def _solver(program: _Program, objective: np.ndarray, **options):
     from scipy import sparse  # clarabel's own dependency
 
     clarabel = _clarabel()
     settings = clarabel.DefaultSettings()
     settings.verbose = False
-    settings.equilibrate_enable = equilibrate
+    for name, value in options.items():
+        setattr(settings, name, value)
     quadratic, matrix = sparse.csc_matrix((_N, _N)), sparse.csc_matrix(program.matrix)
     cones = _cones(program.keypoints, program.cuts)
     return clarabel.DefaultSolver(quadratic, objective, matrix, program.offset, cones, settings)
@@ -197,9 +201,11 @@ def _minimise(program: _Program, objective: np.ndarray, solver=None):
     else:
         solver.update(q=objective)
     solution = solver.solve()
-    if _status(solution) not in ("Solved", "PrimalInfeasible"):
-        # Clarabel's equilibration sometimes stalls these programs at "AlmostSolved"; without it they solve
-        solution = _solver(program, objective, equilibrate=False).solve()
+    for options in _RETRIES:
+        if _status(solution) in ("Solved", "PrimalInfeasible"):
+            break
+        # Clarabel sometimes stalls these programs at "AlmostSolved"; other settings solve them
+        solution = _solver(program, objective, **options).solve()
     status = _status(solution)
     if status != "Solved":
         return solver, _Solved(status, math.nan, -math.inf, math.inf, False)
