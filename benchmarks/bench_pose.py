@@ -174,11 +174,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--samples", type=int, default=100)
     parser.add_argument("--images", type=int, default=1000, help="use the first N sample images")
     args = parser.parse_args(argv)
-    logging.disable(logging.INFO)
-    cv2.setNumThreads(1)
-    print(f"load avg (1m) {os.getloadavg()[0]:.2f}")
-    for epsilon in args.epsilon or [0.1, 0.3]:
-        print("\n".join(report(epsilon, args.samples, run(epsilon, args.samples, args.images))))
+    previous = logging.root.manager.disable
+    logging.disable(logging.INFO)  # the service's startup lines
+    try:
+        print(f"load avg (1m) {os.getloadavg()[0]:.2f}")
+        for epsilon in args.epsilon or [0.1, 0.3]:
+            print("\n".join(report(epsilon, args.samples, run(epsilon, args.samples, args.images))))
+    finally:
+        logging.disable(previous)
 
 
 if __name__ == "__main__":
