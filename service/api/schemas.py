@@ -81,7 +81,7 @@ class PoseRequest(_Body):
         description="camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in the response's image pixels"
     )
     samples: int = Field(
-        default=100, ge=0, le=2000, description="keypoint draws for the sampled (inner) bound; 0: none"
+        default=100, ge=0, le=500, description="keypoint draws for the sampled (inner) bound; 0: none"
     )
     outer_bound: bool = Field(
         default=True, description="solve the convex relaxation for certified upper bounds (pose extra)"
