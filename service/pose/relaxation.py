@@ -172,7 +172,7 @@ class _Solved:
     primal: float  # the solver's optimal value of min q^T x
     lower: float  # our weak-duality lower bound on it (before the translation residual term)
     translation_residual: float  # || r_t ||: its coefficient on the translation offset
-    agrees: bool
+    agrees: bool  # the certificate checks out (of optimality, or of infeasibility)
 
 
 _RETRIES = ({"equilibrate_enable": False}, {"max_step_fraction": 0.95})  # when a solve stalls
@@ -207,6 +207,9 @@ def _minimise(program: _Program, objective: np.ndarray, solver=None):
         # Clarabel sometimes stalls these programs at "AlmostSolved"; other settings solve them
         solution = _solver(program, objective, **options).solve()
     status = _status(solution)
+    if status == "PrimalInfeasible":
+        verified = _farkas_verified(program, np.asarray(solution.z))
+        return solver, _Solved(status, math.nan, -math.inf, math.inf, verified)
     if status != "Solved":
         return solver, _Solved(status, math.nan, -math.inf, math.inf, False)
     dual = _project_dual(np.asarray(solution.z), program.keypoints, program.cuts)
@@ -216,6 +219,20 @@ def _minimise(program: _Program, objective: np.ndarray, solver=None):
     primal = float(objective @ np.asarray(solution.x))
     agrees = abs(primal - lower) <= _AGREEMENT * (1.0 + abs(primal))
     return solver, _Solved(status, primal, lower, float(np.linalg.norm(residual[_Q:])), agrees)
+
+
+def _farkas_verified(program: _Program, certificate: np.ndarray) -> bool:
+    """Whether Clarabel's infeasibility certificate proves the relaxation empty.
+
+    With z in the dual cones, every feasible x has 0 <= z^T s = b^T z - (A^T z)^T x; b^T z < 0 and
+    A^T z = 0 make that impossible. Q's part of A^T z is bounded exactly (|Q_ab| <= 1); the
+    translation part must vanish to rounding (1e-9 of |b^T z|): t has no a-priori bound.
+    """
+    z = _project_dual(certificate, program.keypoints, program.cuts)
+    gap = float(program.offset @ z)
+    residual = program.matrix.T @ z
+    margin = -gap - float(np.abs(residual[:_Q]).sum())
+    return gap < 0 and margin > 0 and float(np.linalg.norm(residual[_Q:])) <= 1e-9 * -gap
 
 
 def _ray_frame(translation: np.ndarray) -> np.ndarray:
@@ -229,6 +246,12 @@ def _ray_frame(translation: np.ndarray) -> np.ndarray:
 
 def _infeasible(status: str) -> bool:
     return status == "PrimalInfeasible"
+
+
+def _empty(verified: bool) -> OuterBound:
+    if verified:
+        return OuterBound(True, "relaxation infeasible: no pose is consistent with the sets", empty=True)
+    return OuterBound(False, "relaxation reported infeasible, certificate not verified")
 
 
 def outer_bound(
@@ -253,9 +276,7 @@ def outer_bound(
             objective = np.concatenate([np.zeros(_Q), -sign * axis])  # min -(+-e)^T dt
             solver, solved = _minimise(program, objective, solver)
             if _infeasible(solved.status):
-                return OuterBound(
-                    True, "relaxation infeasible: no pose is consistent with the sets", empty=True
-                )
+                return _empty(solved.agrees)
             if solved.status != "Solved":
                 return OuterBound(False, f"translation program: {solved.status}")
             directions.append(solved)

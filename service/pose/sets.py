@@ -129,7 +129,7 @@ def instance_pose_sets(
         found = sampled.poses if sampled is not None else []
         outer = outer_bound(estimate or start, camera, keypoints_3d, centers, shapes, found)
         if estimate is None and not outer.empty:  # bounds around a pose outside PURSE mean nothing
-            outer = OuterBound(False, outer.status)
+            outer = OuterBound(False, "no estimate in PURSE to bound around; emptiness not proven")
     violation = None
     if estimate is not None:
         violation = membership(estimate, camera, keypoints_3d, centers, shapes).worst

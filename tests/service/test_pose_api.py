@@ -95,8 +95,12 @@ def test_every_estimate_projects_inside_its_sets(cases: list[Case]) -> None:
         assert pose["largest_violation"] <= 1.0
         assert np.allclose(np.array(pose["rotation"]).T @ pose["rotation"], np.eye(3), atol=1e-9)
     for case in cases:
-        if case.answer["pose"]["empty"]:
-            assert case.answer["pose"]["rotation"] is None and case.answer["pose"]["method"] == "none"
+        pose = case.answer["pose"]
+        if pose["empty"]:
+            assert pose["rotation"] is None and pose["method"] == "none" and pose["inner_bound"] is None
+            outer = pose["outer_bound"]
+            assert outer["rotation_deg"] is None and outer["translation"] is None
+            assert not outer["certified"] or "infeasible" in outer["status"]  # only emptiness is proven
 
 
 def test_membership_is_what_the_sets_say(cases: list[Case]) -> None:
