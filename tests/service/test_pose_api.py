@@ -247,3 +247,20 @@ def test_an_object_without_3d_keypoints_is_refused(
         body.pop("pose")
         assert predict_json(live.client, image, body).status_code == 200  # the same request without pose
     assert problem["status"] == 422
+
+
+def test_batch_items_carry_pose_and_refuse_alone(server: LiveServer, coco: dict, samples_dir: Path) -> None:
+    """POST /v1/predict/batch answers pose per image; a bad pose request fails only its own item."""
+    body, ann = one_instance(coco)
+    image = (samples_dir / coco["images"][0]["file_name"]).read_bytes()
+    good = {**body, "pose": {"K": ann["cam_K"], "samples": 10}}
+    bad = {**body, "coverage": "keypoint", "pose": {"K": ann["cam_K"]}}
+    parts = []
+    for index, request in enumerate([good, bad]):
+        parts.append((f"image_{index}", ("image.jpg", image, "image/jpeg")))
+        parts.append((f"request_{index}", (None, json.dumps(request).encode(), "application/json")))
+    response = server.client.post("/v1/predict/batch", files=parts)
+    assert response.status_code == 200, response.text
+    first, second = response.json()["items"]
+    assert first["status"] == 200 and first["result"]["instances"][0]["pose"]["method"] != "none"
+    assert second["status"] == 422 and "coverage 'object'" in second["problem"]["detail"]
