@@ -122,7 +122,7 @@ def instance_pose_sets(
                 _least_violating(sampled.poses, camera, keypoints_3d, centers, shapes),
                 "sampled",
             )
-    note = None if bounded else "a keypoint set is unbounded (t = 0): PURSE does not constrain that keypoint"
+    note = _inner_note(bounded, options.samples)
     inner = inner_bound(estimate, sampled) if estimate is not None and sampled is not None else None
     outer = None
     if options.outer:
@@ -134,6 +134,12 @@ def instance_pose_sets(
     if estimate is not None:
         violation = membership(estimate, camera, keypoints_3d, centers, shapes).worst
     return PoseSets(estimate, method, violation, inner, note, outer, checked)
+
+
+def _inner_note(bounded: bool, samples: int) -> str | None:
+    if not bounded:
+        return "a keypoint set is unbounded (t = 0): PURSE does not constrain that keypoint"
+    return "pose.samples is 0: no sampling" if samples == 0 else None
 
 
 def _estimate(start: Pose, camera, keypoints_3d, centers, shapes) -> tuple[Pose | None, str]:
