@@ -33,7 +33,8 @@ def pose_options(parameters: PredictParameters, manifest: Manifest) -> PoseOptio
     for check in request.check:
         pose = Pose(np.array(check.rotation, dtype=np.float64), np.array(check.translation, dtype=np.float64))
         checks.setdefault(check.instance, []).append(pose)
-    options = PoseOptions(as_camera_matrix(request.K), request.samples, request.outer_bound, checks)
+    camera = as_camera_matrix(request.K)
+    options = PoseOptions(camera, request.samples, request.outer_bound, request.outer_splits, checks)
     objects = [instance.object for instance in parameters.instances]
     check_pose_request(manifest, objects, parameters.coverage, options)
     return options

@@ -86,6 +86,12 @@ class PoseRequest(_Body):
     outer_bound: bool = Field(
         default=True, description="solve the convex relaxation for certified upper bounds (pose extra)"
     )
+    outer_splits: int = Field(
+        default=0,
+        ge=0,
+        le=8,
+        description="branch-and-bound rounds over rotation cells: tighter outer bounds, seconds per instance",
+    )
     check: list[PoseCheckIn] = Field(
         default_factory=list, max_length=100, description="poses to test for membership in PURSE"
     )

@@ -25,6 +25,7 @@ from functools import cache
 
 import numpy as np
 
+from .cells import root_cells
 from .estimate import whitening
 from .membership import Pose
 from .rotations import QUATERNION_BASIS, rotation_angle_deg
@@ -81,9 +82,12 @@ class _Program:
     keypoints: int
     cuts: int
     scale: float
+    reach: float  # every pose in PURSE has || t - t_hat || / scale <= reach (inf: no such bound)
 
 
-def _program(estimate: Pose, camera: np.ndarray, keypoints_3d, centers, shapes) -> _Program:
+def _program(
+    estimate: Pose, camera: np.ndarray, keypoints_3d, centers, shapes, cap: tuple[np.ndarray, float] | None
+) -> _Program:
     scale = float(np.linalg.norm(estimate.translation)) or 1.0
     rows, offsets = [], []
     trace = np.zeros(_N)
@@ -109,7 +113,30 @@ def _program(estimate: Pose, camera: np.ndarray, keypoints_3d, centers, shapes) 
         depth = slope_i * linears[i][2] + slope_j * linears[j][2]
         rows.append(-depth[None])
         offsets.append(np.array([(slope_i + slope_j) * origin[2] - distance]))
-    return _Program(np.vstack(rows), np.concatenate(offsets), len(centers), len(cuts), scale)
+    if cap is not None:  # the rotation cell: q_0^T Q q_0 >= cos^2(phi)
+        centre, cosine_squared = cap
+        rows.append(-np.concatenate([_quadratic_form(centre), np.zeros(3)])[None])
+        offsets.append(np.array([-cosine_squared]))
+    nonnegative = len(cuts) + (cap is not None)
+    reach = (_distance_bound(camera, keypoints_3d, centers, shapes) + scale) / scale
+    return _Program(np.vstack(rows), np.concatenate(offsets), len(centers), nonnegative, scale, reach)
+
+
+def _quadratic_form(vector: np.ndarray) -> np.ndarray:
+    """v^T Q v as a row over Q's upper triangle (unscaled entries)."""
+    return np.array([vector[a] ** 2 if a == b else 2 * vector[a] * vector[b] for a, b in _TRIANGLE])
+
+
+def _ray_slopes(camera: np.ndarray, centers: np.ndarray, shapes: np.ndarray):
+    """Per set: whether it is bounded, s_i >= ||K^-1 (y, 1)|| over it, and its centre's normalised
+    image coordinates and radius (semi-major axis / f)."""
+    values = np.linalg.eigvalsh(shapes)
+    bounded = values[:, 0] > 0
+    inverse = np.linalg.inv(camera)
+    rays = np.c_[centers, np.ones(len(centers))] @ inverse.T
+    radius = np.where(bounded, 1.0 / np.sqrt(np.where(bounded, values[:, 0], 1.0)), np.inf)
+    radius = radius * max(inverse[0, 0], inverse[1, 1])
+    return bounded, np.linalg.norm(rays, axis=1) + radius, rays[:, :2], radius
 
 
 def _depth_cuts(camera: np.ndarray, keypoints_3d: np.ndarray, centers: np.ndarray, shapes: np.ndarray):
@@ -119,18 +146,35 @@ def _depth_cuts(camera: np.ndarray, keypoints_3d: np.ndarray, centers: np.ndarra
     ||p_i|| <= s_i z_i, and rigidity gives d_ij = ||p_i - p_j|| <= s_i z_i + s_j z_j. Without them the
     relaxation contains R = 0, t = 0 (every cone holds with equality at p = 0).
     """
-    values = np.linalg.eigvalsh(shapes)
-    bounded = values[:, 0] > 0
-    inverse = np.linalg.inv(camera)
-    rays = np.c_[centers, np.ones(len(centers))] @ inverse.T
-    semi_major = np.where(bounded, 1.0 / np.sqrt(np.where(bounded, values[:, 0], 1.0)), np.inf)
-    slopes = np.linalg.norm(rays, axis=1) + semi_major * max(inverse[0, 0], inverse[1, 1])
+    bounded, slopes, _, _ = _ray_slopes(camera, centers, shapes)
     return [
         (i, j, slopes[i], slopes[j], float(np.linalg.norm(keypoints_3d[i] - keypoints_3d[j])))
         for i in range(len(centers))
         for j in range(i + 1, len(centers))
         if bounded[i] and bounded[j]
     ]
+
+
+def _distance_bound(camera: np.ndarray, keypoints_3d, centers, shapes) -> float:
+    """An upper bound on ||t|| over PURSE (inf when no two sets are apart).
+
+    The rays through two disjoint sets i, j make an angle with sin >= gap_ij / (s_i s_j), gap_ij
+    the distance between the sets in normalised image coordinates; p_j is on its ray, so
+    d_ij = ||p_i - p_j|| >= ||p_i|| sin(angle) and ||t|| <= ||p_i|| + ||X_i||.
+    """
+    bounded, slopes, normalised, radius = _ray_slopes(camera, centers, shapes)
+    best = math.inf
+    for i in range(len(centers)):
+        for j in range(len(centers)):
+            if i == j or not (bounded[i] and bounded[j]):
+                continue
+            gap = float(np.linalg.norm(normalised[i] - normalised[j]) - radius[i] - radius[j])
+            if gap > 0:
+                distance = float(np.linalg.norm(keypoints_3d[i] - keypoints_3d[j]))
+                best = min(
+                    best, distance * slopes[i] * slopes[j] / gap + float(np.linalg.norm(keypoints_3d[i]))
+                )
+    return best
 
 
 def _cones(keypoints: int, cuts: int) -> list:
@@ -231,8 +275,8 @@ def _farkas_verified(program: _Program, certificate: np.ndarray) -> bool:
     z = _project_dual(certificate, program.keypoints, program.cuts)
     gap = float(program.offset @ z)
     residual = program.matrix.T @ z
-    margin = -gap - float(np.abs(residual[:_Q]).sum())
-    return gap < 0 and margin > 0 and float(np.linalg.norm(residual[_Q:])) <= 1e-9 * -gap
+    margin = -gap - float(np.abs(residual[:_Q]).sum()) - float(np.linalg.norm(residual[_Q:])) * program.reach
+    return bool(gap < 0 and margin > 0)
 
 
 def _ray_frame(translation: np.ndarray) -> np.ndarray:
@@ -254,6 +298,43 @@ def _empty(verified: bool) -> OuterBound:
     return OuterBound(False, "relaxation reported infeasible, certificate not verified")
 
 
+@dataclass(frozen=True)
+class _CellBound:
+    """What the relaxation of one rotation cell proves (all in the program's scaled units)."""
+
+    status: str  # "bounded", "empty" (infeasibility verified) or why it failed
+    extents: np.ndarray | None = None  # (6,) upper bounds on +-e_k^T (t - t_hat) / scale
+    smallest_trace: float = math.nan  # lower bound on tr(R_hat^T R)
+    verified: bool = False
+
+
+def _bound_cell(estimate: Pose, data: tuple, frame: np.ndarray, cap) -> _CellBound:
+    with np.errstate(all="ignore"):
+        program = _program(estimate, *data, cap)
+    if not (np.isfinite(program.matrix).all() and np.isfinite(program.offset).all()):
+        return _CellBound("relaxation not posed: the data overflow (extreme camera matrix or sets)")
+    solver, directions = None, []
+    for axis in frame:
+        for sign in (1.0, -1.0):
+            objective = np.concatenate([np.zeros(_Q), -sign * axis])  # min -(+-e)^T dt
+            solver, solved = _minimise(program, objective, solver)
+            if _infeasible(solved.status):
+                status = "empty" if solved.agrees else "infeasibility certificate not verified"
+                return _CellBound(status, verified=solved.agrees)
+            if solved.status != "Solved":
+                return _CellBound(f"translation program: {solved.status}")
+            directions.append(solved)
+    reach = program.reach  # bounds the residual's term r_t^T x_t over PURSE
+    extents = np.array([-(s.lower - s.translation_residual * reach) for s in directions])
+    rotation_objective = np.concatenate([estimate.rotation.reshape(9) @ _ROTATION_MAP, np.zeros(3)])
+    solver, solved = _minimise(program, rotation_objective, solver)
+    if solved.status != "Solved":
+        return _CellBound(f"rotation program: {solved.status}")
+    smallest_trace = solved.lower - solved.translation_residual * reach
+    verified = all(s.agrees for s in [*directions, solved]) and math.isfinite(reach)
+    return _CellBound("bounded", extents, smallest_trace, verified)
+
+
 def outer_bound(
     estimate: Pose,
     camera: np.ndarray,
@@ -261,42 +342,69 @@ def outer_bound(
     centers: np.ndarray,
     shapes: np.ndarray,
     sampled: list[Pose] | None = None,
+    splits: int = 0,
 ) -> OuterBound:
-    """Certified upper bounds on the rotation and translation error over PURSE (see the module doc)."""
+    """Certified upper bounds on the rotation and translation error over PURSE (see the module doc).
+
+    ``splits`` rounds of branch-and-bound over rotation cells (cells.py) tighten the bounds: each
+    round splits the cells that attain the current bounds; 0 solves the whole relaxation once.
+    """
     if not relaxation_available():
         return OuterBound(False, "the pose extra (clarabel) is not installed")
-    with np.errstate(all="ignore"):
-        program = _program(estimate, camera, keypoints_3d, centers, shapes)
-    if not (np.isfinite(program.matrix).all() and np.isfinite(program.offset).all()):
-        return OuterBound(False, "relaxation not posed: the data overflow (extreme camera matrix or sets)")
+    data = (camera, keypoints_3d, centers, shapes)
     frame = _ray_frame(estimate.translation)
-    solver, directions = None, []
-    for axis in frame:
-        for sign in (1.0, -1.0):
-            objective = np.concatenate([np.zeros(_Q), -sign * axis])  # min -(+-e)^T dt
-            solver, solved = _minimise(program, objective, solver)
-            if _infeasible(solved.status):
-                return _empty(solved.agrees)
-            if solved.status != "Solved":
-                return OuterBound(False, f"translation program: {solved.status}")
-            directions.append(solved)
-    box = np.array([max(-directions[2 * k].primal, -directions[2 * k + 1].primal, 0.0) for k in range(3)])
-    reach = 2.0 * float(np.linalg.norm(box)) + 1.0  # || x_t || over the relaxation, generously
-    extents = [max(-(s.lower - s.translation_residual * reach), 0.0) for s in directions]
-    translation = program.scale * math.sqrt(
-        sum(max(extents[2 * k], extents[2 * k + 1]) ** 2 for k in range(3))
-    )
-    rotation_objective = np.concatenate([estimate.rotation.reshape(9) @ _ROTATION_MAP, np.zeros(3)])
-    solver, solved = _minimise(program, rotation_objective, solver)
-    if solved.status != "Solved":
-        return OuterBound(False, f"rotation program: {solved.status}", translation=translation)
-    smallest_trace = solved.lower - solved.translation_residual * reach
+    scale = float(np.linalg.norm(estimate.translation)) or 1.0
+    root = _bound_cell(estimate, data, frame, None)
+    if root.status != "bounded":
+        return _empty(root.verified) if root.status == "empty" else OuterBound(False, root.status)
+    leaves = [(None, root, None)]
+    if splits > 0:
+        leaves = [(cell, None, root) for cell in root_cells()]
+        for round_ in range(splits + 1):
+            leaves = _evaluated(estimate, data, frame, leaves)
+            if isinstance(leaves, str):
+                return OuterBound(False, leaves)
+            if not leaves:
+                return _empty(True)
+            if round_ < splits:
+                leaves = _split_the_worst(leaves)
+    extents = np.max([bound.extents for _, bound, _ in leaves], axis=0).clip(min=0.0)
+    translation = scale * math.sqrt(sum(max(extents[2 * k], extents[2 * k + 1]) ** 2 for k in range(3)))
+    smallest_trace = min(bound.smallest_trace for _, bound, _ in leaves)
     rotation = math.degrees(math.acos(min(1.0, max(-1.0, (smallest_trace - 1.0) / 2.0))))
-    certified = all(s.agrees for s in [*directions, solved]) and _dominates(
+    certified = all(bound.verified for _, bound, _ in leaves) and _dominates(
         estimate, rotation, translation, sampled or []
     )
     status = "solved, certificate verified" if certified else "solved, certificate not verified"
-    return OuterBound(certified, status, rotation, translation)
+    return OuterBound(certified, f"{status} ({len(leaves)} rotation cells)", rotation, translation)
+
+
+def _evaluated(estimate, data, frame, leaves):
+    """Every leaf with its bound (cells proven empty dropped), or the reason one failed.
+
+    A leaf is (cell, bound or None, its parent's bound or None): a cell whose program fails keeps
+    its parent's bound, which holds for it too (the cell lies in its parent).
+    """
+    done = []
+    for cell, bound, parent in leaves:
+        if bound is None:
+            bound = _bound_cell(estimate, data, frame, cell.cap())
+        if bound.status == "empty":
+            continue
+        if bound.status != "bounded":
+            if parent is None:
+                return bound.status
+            bound = parent
+        done.append((cell, bound, None))
+    return done
+
+
+def _split_the_worst(leaves):
+    """Split the cells that attain any of the seven bounds; keep the others with their bounds."""
+    worst = {int(np.argmax([b.extents[k] for _, b, _ in leaves])) for k in range(6)}
+    worst.add(int(np.argmin([b.smallest_trace for _, b, _ in leaves])))
+    kept = [leaf for i, leaf in enumerate(leaves) if i not in worst]
+    return kept + [(child, None, leaves[i][1]) for i in sorted(worst) for child in leaves[i][0].split()]
 
 
 def _dominates(estimate: Pose, rotation_deg: float, translation: float, sampled: list[Pose]) -> bool:

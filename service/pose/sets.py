@@ -29,6 +29,7 @@ class PoseOptions:
     camera: np.ndarray  # (3, 3), validated (camera.py)
     samples: int = 100
     outer: bool = True
+    outer_splits: int = 0  # branch-and-bound rounds over rotation cells (relaxation.py)
     checks: dict[int, list[Pose]] = field(default_factory=dict)  # instance index -> poses
 
 
@@ -127,7 +128,8 @@ def instance_pose_sets(
     outer = None
     if options.outer:
         found = sampled.poses if sampled is not None else []
-        outer = outer_bound(estimate or start, camera, keypoints_3d, centers, shapes, found)
+        splits = options.outer_splits if estimate is not None else 0
+        outer = outer_bound(estimate or start, camera, keypoints_3d, centers, shapes, found, splits)
         if estimate is None and not outer.empty:  # bounds around a pose outside PURSE mean nothing
             outer = OuterBound(False, "no estimate in PURSE to bound around; emptiness not proven")
     violation = None
