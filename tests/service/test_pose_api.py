@@ -264,3 +264,21 @@ def test_batch_items_carry_pose_and_refuse_alone(server: LiveServer, coco: dict,
     first, second = response.json()["items"]
     assert first["status"] == 200 and first["result"]["instances"][0]["pose"]["method"] != "none"
     assert second["status"] == 422 and "coverage 'object'" in second["problem"]["detail"]
+
+
+def test_outer_splits_tighten_a_certified_bound(server: LiveServer, coco: dict, samples_dir: Path) -> None:
+    body, ann = one_instance(coco)
+    image = (samples_dir / coco["images"][0]["file_name"]).read_bytes()
+    check = [{"instance": 0, "rotation": ann["cam_R_m2c"], "translation": ann["cam_t_m2c"]}]
+    bounds = []
+    for splits in (0, 3):
+        body["pose"] = {"K": ann["cam_K"], "samples": 30, "outer_splits": splits, "check": check}
+        pose = predict_ok(server.client, image, body)["instances"][0]["pose"]
+        assert pose["outer_bound"]["certified"], pose["outer_bound"]
+        bounds.append(pose["outer_bound"])
+        if pose["checks"][0]["inside"]:
+            assert geodesic_deg(pose["rotation"], ann["cam_R_m2c"]) <= pose["outer_bound"]["rotation_deg"]
+    assert bounds[1]["rotation_deg"] < bounds[0]["rotation_deg"]
+    assert bounds[1]["translation"] <= bounds[0]["translation"] * (1 + 1e-9)
+    body["pose"]["outer_splits"] = 9
+    assert_problem(predict_json(server.client, image, body), 422, "pose.outer_splits")
