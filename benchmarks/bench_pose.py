@@ -1,13 +1,15 @@
 """Cost and tightness of pose sets (service/pose) on the bundled samples, per instance.
 
 Run: python -m benchmarks.bench_pose [--samples 100] [--epsilon 0.1 --epsilon 0.3] [--images N]
+                                    [--splits 0]
 
 Object-scope sets come from the bundled model and calibration (in process, a temporary data
 directory); the camera matrix and true poses from the samples' annotations. For each instance it
 times the three steps the predict API runs, in milliseconds per instance (median and mean):
     estimate  PnP on the set centres (+ refinement into PURSE when outside)
     inner     the sampled bound: --samples draws of keypoints inside the sets, PnP, membership
-    outer     the relaxation (7 conic programs with Clarabel, certificates checked)
+    outer     the relaxation (7 conic programs with Clarabel per rotation cell, certificates checked;
+              --splits rounds of branch-and-bound over rotation cells, as pose.outer_splits)
 and reports the tightness: outer / inner for translation and rotation (median over instances with
 both), how many outer bounds were certified, how many true poses were in PURSE, and that every
 certified bound contained the true pose's error when it was.
@@ -87,12 +89,12 @@ def estimate(camera, points, centers, shapes):
     return refine_into_set(start, camera, points, centers, shapes)
 
 
-def run(epsilon: float, samples: int, images: int) -> dict:
+def run(epsilon: float, samples: int, images: int, splits: int = 0) -> dict:
     with tempfile.TemporaryDirectory(prefix="bench-pose-") as data_dir:
-        return _run(Settings(data_dir=Path(data_dir)), epsilon, samples, images)
+        return _run(Settings(data_dir=Path(data_dir)), epsilon, samples, images, splits)
 
 
-def _run(settings: Settings, epsilon: float, samples: int, images: int) -> dict:
+def _run(settings: Settings, epsilon: float, samples: int, images: int, splits: int) -> dict:
     state = build_state(settings)
     costs = {"estimate": [], "inner": [], "outer": []}
     ratios_t, ratios_r = [], []
@@ -117,7 +119,7 @@ def _run(settings: Settings, epsilon: float, samples: int, images: int) -> dict:
             sampled, ms = timed(sample_poses_in_set, pose, camera, points, centers, shapes, samples)
             inner = inner_bound(pose, sampled)
             costs["inner"].append(ms)
-            outer, ms = timed(outer_bound, pose, camera, points, centers, shapes, sampled.poses)
+            outer, ms = timed(outer_bound, pose, camera, points, centers, shapes, sampled.poses, splits)
             costs["outer"].append(ms)
             if not outer.certified:
                 continue
@@ -140,8 +142,10 @@ def _run(settings: Settings, epsilon: float, samples: int, images: int) -> dict:
     return {"costs": costs, "ratios": (ratios_t, ratios_r), "counts": counts, "bounds": bounds}
 
 
-def report(epsilon: float, samples: int, result: dict) -> list[str]:
-    lines = [f"epsilon {epsilon:g}, object coverage, {samples} samples for the inner bound"]
+def report(epsilon: float, samples: int, splits: int, result: dict) -> list[str]:
+    lines = [
+        f"epsilon {epsilon:g}, object coverage, {samples} samples for the inner bound, {splits} outer splits"
+    ]
     lines.append(f"{'step':<9} {'median ms':>10} {'mean ms':>9} {'instances':>10}")
     for step, values in result["costs"].items():
         if values:
@@ -173,13 +177,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--epsilon", type=float, action="append", help="repeatable; default 0.1 and 0.3")
     parser.add_argument("--samples", type=int, default=100)
     parser.add_argument("--images", type=int, default=1000, help="use the first N sample images")
+    parser.add_argument("--splits", type=int, default=0, help="branch-and-bound rounds (pose.outer_splits)")
     args = parser.parse_args(argv)
     previous = logging.root.manager.disable
     logging.disable(logging.INFO)  # the service's startup lines
     try:
         print(f"load avg (1m) {os.getloadavg()[0]:.2f}")
         for epsilon in args.epsilon or [0.1, 0.3]:
-            print("\n".join(report(epsilon, args.samples, run(epsilon, args.samples, args.images))))
+            result = run(epsilon, args.samples, args.images, args.splits)
+            print("\n".join(report(epsilon, args.samples, args.splits, result)))
     finally:
         logging.disable(previous)
 
