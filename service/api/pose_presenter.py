@@ -65,8 +65,8 @@ def _vector(array: np.ndarray) -> tuple:
     return tuple(float(v) for v in array)
 
 
-def _finite_or_none(value: float) -> float | None:
-    return value if math.isfinite(value) else None
+def _finite_or_none(value: float | None) -> float | None:
+    return value if value is not None and math.isfinite(value) else None
 
 
 def pose_out(answer: PoseSets) -> PoseOut:
@@ -89,8 +89,8 @@ def pose_out(answer: PoseSets) -> PoseOut:
         outer_bound=OuterBoundOut(
             certified=outer.certified,
             status=outer.status,
-            rotation_deg=outer.rotation_deg,
-            translation=outer.translation,
+            rotation_deg=_finite_or_none(outer.rotation_deg),
+            translation=_finite_or_none(outer.translation),
         )
         if outer is not None
         else None,
