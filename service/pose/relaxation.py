@@ -313,6 +313,8 @@ def _bound_cell(estimate: Pose, data: tuple, frame: np.ndarray, cap) -> _CellBou
         program = _program(estimate, *data, cap)
     if not (np.isfinite(program.matrix).all() and np.isfinite(program.offset).all()):
         return _CellBound("relaxation not posed: the data overflow (extreme camera matrix or sets)")
+    if not math.isfinite(program.reach):
+        return _CellBound("no proven bound on ||t|| over PURSE (no two sets apart): nothing to certify with")
     solver, directions = None, []
     for axis in frame:
         for sign in (1.0, -1.0):
@@ -331,7 +333,7 @@ def _bound_cell(estimate: Pose, data: tuple, frame: np.ndarray, cap) -> _CellBou
     if solved.status != "Solved":
         return _CellBound(f"rotation program: {solved.status}")
     smallest_trace = solved.lower - solved.translation_residual * reach
-    verified = all(s.agrees for s in [*directions, solved]) and math.isfinite(reach)
+    verified = all(s.agrees for s in [*directions, solved])
     return _CellBound("bounded", extents, smallest_trace, verified)
 
 
