@@ -6,14 +6,16 @@ with p_i = R X_i + t, z_i = p_i[2] and W_i^T W_i = L_i,
 which is (y_i - c_i)^T L_i (y_i - c_i) <= 1 multiplied by z_i^2 > 0. PURSE is these cones
 intersected with SO(3). Replacing SO(3) by its convex hull, written exactly through the unit
 quaternion lift R = A(Q), Q = q q^T relaxed to {Q PSD, tr Q = 1} (Saunderson, Parrilo & Willsky,
-SIAM J. Optim. 2015), gives a convex set containing PURSE. Over it we solve small conic programs:
+SIAM J. Optim. 2015), plus valid depth cuts, gives a convex set containing PURSE. Over it (or
+over each rotation cell of a branch-and-bound, cells.py) we solve small conic programs:
     max e_k^T (t - t_hat) for e_k in +-{ray frame of t_hat}  -> box, then radius, on the translation error
     min tr(R_hat^T R)                                         -> angle bound on the rotation error
 Each bound is read from the dual: Clarabel's multipliers are projected onto the dual cones and
 the weak-duality bound is recomputed here (the certificate check), its residual in the
-translation bounded with twice the primal box. ``certified`` is True only when every program is
-solved, the recomputed dual bound agrees with the primal value, and it dominates the sampled poses.
-An infeasible relaxation certifies that PURSE is empty.
+translation bounded with a proven bound on ||t|| over PURSE (``_distance_bound``). ``certified``
+is True only when every program is solved, the recomputed dual bound agrees with the primal
+value, and it dominates the sampled poses. A relaxation whose infeasibility certificate checks
+out the same way proves PURSE empty.
 """
 
 from __future__ import annotations
