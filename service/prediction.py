@@ -12,6 +12,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from service.api.pose_presenter import pose_blocks, pose_options
 from service.api.schemas import (
     BallSet,
     BetaLaw,
@@ -104,6 +105,7 @@ def predict(state: ServiceState, image: np.ndarray, parameters: PredictParameter
     manifest = detector.manifest
     height, width = image.shape[:2]
     check_instances(parameters.instances, manifest, width, height, state.settings.max_instances)
+    pose = pose_options(parameters, manifest)
     version = registry.resolve(parameters.calibration_version)
     kind, scope = parameters.nonconformity, parameters.coverage
     thresholds = registry.thresholds(version, kind, scope, parameters.epsilon, parameters.delta)
@@ -120,6 +122,7 @@ def predict(state: ServiceState, image: np.ndarray, parameters: PredictParameter
     regions = _regions(centers, shapes, kind)
     guarantees = [_guarantee(thresholds.guarantees[c], scope) for c in result.channel]
     stats = _statistics(statistics) if parameters.include_statistics else [None] * len(regions)
+    poses = pose_blocks(pose, manifest, parameters, centers, shapes, result.channel, result.instance_index)
     keypoints = [
         KeypointOut(
             index=int(channel),
@@ -136,6 +139,7 @@ def predict(state: ServiceState, image: np.ndarray, parameters: PredictParameter
             object=instance.object,
             bbox=instance.bbox,
             keypoints=[kp for kp, owner in zip(keypoints, result.instance_index, strict=True) if owner == i],
+            pose=poses[i],
         )
         for i, instance in enumerate(parameters.instances)
     ]
