@@ -249,7 +249,11 @@ class InstanceOut(BaseModel):
     object: str
     bbox: tuple[float, float, float, float]
     keypoints: list[KeypointOut]
-    pose: PoseOut | None = Field(default=None, description="present when the request asked for pose")
+    pose: PoseOut | None = Field(
+        default=None,
+        exclude_if=lambda pose: pose is None,  # responses without pose keep their shape
+        description="present when the request asked for pose",
+    )
 
 
 class ModelRef(BaseModel):
