@@ -213,6 +213,27 @@ def _features_and_groups(blob: str) -> tuple[str, ...]:
 
 _FEATURES_AND_GROUPS = "heatmap features and group labels of calibration instances"
 
+
+def _coverage_audits(id_column: str, timestamp: str) -> tuple[str, ...]:
+    """Coverage audits of versions on labeled batches: immutable, like the versions they audit."""
+    return (
+        f"""CREATE TABLE calib_coverage_audits (
+            {id_column},
+            model_hash TEXT NOT NULL,
+            version INTEGER NOT NULL,
+            created_at {timestamp} NOT NULL,
+            who TEXT NOT NULL,
+            batch_sha256 TEXT NOT NULL,
+            n_instances BIGINT NOT NULL CHECK (n_instances >= 0),
+            report TEXT NOT NULL,
+            FOREIGN KEY (model_hash, version) REFERENCES calib_versions (model_hash, number)
+        )""",
+        "CREATE INDEX calib_coverage_audits_by_model ON calib_coverage_audits (model_hash, id)",
+    )
+
+
+_COVERAGE_AUDITS = "coverage audits"
+
 # Mondrian strata of a version (spec, difficulty-bin edges and counts) as JSON; NULL = none.
 _STRATA = "Mondrian strata of calibration versions"
 _STRATA_COLUMN = ("ALTER TABLE calib_versions ADD COLUMN strata TEXT",)
@@ -242,7 +263,13 @@ SQLITE_MIGRATIONS: tuple[Migration, ...] = (
         _FEATURES_AND_GROUPS,
         _features_and_groups("BLOB") + _sqlite_immutability(("calib_feature_arrays",)),
     ),
-    Migration(5, _STRATA, _STRATA_COLUMN),
+    Migration(
+        5,
+        _COVERAGE_AUDITS,
+        _coverage_audits("id INTEGER PRIMARY KEY AUTOINCREMENT", "TEXT")
+        + _sqlite_immutability(("calib_coverage_audits",)),
+    ),
+    Migration(6, _STRATA, _STRATA_COLUMN),
 )
 
 POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
@@ -278,7 +305,13 @@ POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
         + ("ALTER TABLE calib_feature_arrays ALTER COLUMN data SET STORAGE EXTERNAL",)
         + _postgres_triggers(("calib_feature_arrays",)),
     ),
-    Migration(5, _STRATA, _STRATA_COLUMN),
+    Migration(
+        5,
+        _COVERAGE_AUDITS,
+        _coverage_audits("id BIGINT GENERATED ALWAYS AS IDENTITY PRIMARY KEY", "TIMESTAMPTZ")
+        + _postgres_triggers(("calib_coverage_audits",)),
+    ),
+    Migration(6, _STRATA, _STRATA_COLUMN),
 )
 
 

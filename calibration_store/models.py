@@ -498,6 +498,36 @@ class AuditEntry(NewAuditEntry):
     at: datetime | None = None
 
 
+@dataclass(frozen=True)
+class NewCoverageAudit:
+    """A coverage audit of one calibration version on a labeled batch (the store sets id and
+    created_at). ``report`` is the audit's plain-JSON report; the store keeps it as given."""
+
+    model_hash: str
+    version: int
+    who: str
+    batch_sha256: str
+    n_instances: int
+    report: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        _text(self.model_hash, "model hash")
+        _count(self.version, "audited version", minimum=1)
+        _text(self.who, "who")
+        if not isinstance(self.batch_sha256, str) or not _SHA256_RE.match(self.batch_sha256):
+            raise ValueError("batch sha256 must be 64 lowercase hex digits")
+        _count(self.n_instances, "audited instances")
+        object.__setattr__(self, "report", _json_object(self.report, "audit report"))
+
+
+@dataclass(frozen=True)
+class CoverageAudit(NewCoverageAudit):
+    """A stored, immutable coverage audit: ``id`` orders audits store-wide."""
+
+    id: int = 0
+    created_at: datetime | None = None
+
+
 def check_number(value: object, what: str = "version number") -> int:
     """Validate a version number passed to a store method."""
     return _count(value, what, minimum=1)
@@ -512,7 +542,9 @@ __all__ = [
     "DEFAULT_FUNCTIONS",
     "ActivationIntent",
     "AuditEntry",
+    "CoverageAudit",
     "JobCompletion",
+    "NewCoverageAudit",
     "NewAuditEntry",
     "FINAL_JOB_STATES",
     "JOB_MUTABLE_FIELDS",

@@ -23,9 +23,11 @@ from .models import (
     Activation,
     ActivationIntent,
     AuditEntry,
+    CoverageAudit,
     JobCompletion,
     JobRecord,
     NewAuditEntry,
+    NewCoverageAudit,
     NewVersion,
     ObjectScores,
     ScoreTable,
@@ -95,6 +97,7 @@ _JOB_COLUMNS = (
 _AUDIT_COLUMNS = (
     "seq, at, model_hash, who, action, outcome, version, previous_version, reason, client, details"
 )
+_COVERAGE_AUDIT_COLUMNS = "id, model_hash, version, created_at, who, batch_sha256, n_instances, report"
 _FINAL_STATES_SQL = ", ".join(f"'{state}'" for state in FINAL_JOB_STATES)
 
 
@@ -150,15 +153,18 @@ class SqlStore(CalibrationStore):
 
     def _complete_job(self, cur: Cursor, job: JobCompletion, number: int) -> None:
         """Mark the job succeeded with the version; refuse (rolling back) a finished or missing job."""
+        self._mark_succeeded(cur, job.job_id, {**job.result, "version": number}, number)
+
+    def _mark_succeeded(self, cur: Cursor, job_id: str, result: dict, version: int | None) -> None:
         now = self._time_to_db(now_utc())
         cur.execute(
             "UPDATE calib_jobs SET state = 'succeeded', done = total, result = ?, version = ?,"
             " finished_at = ?, heartbeat_at = ?"
             f" WHERE id = ? AND state NOT IN ({_FINAL_STATES_SQL}) RETURNING id",
-            (codec.encode_json({**job.result, "version": number}), number, now, now, job.job_id),
+            (codec.encode_json(result), version, now, now, job_id),
         )
         if cur.fetchone() is None:
-            self._raise_job_unchangeable(cur, job.job_id)
+            self._raise_job_unchangeable(cur, job_id)
 
     def _raise_job_unchangeable(self, cur: Cursor, job_id: str) -> None:
         cur.execute("SELECT state FROM calib_jobs WHERE id = ?", (job_id,))
@@ -316,6 +322,49 @@ class SqlStore(CalibrationStore):
             (model_hash, bound, limit),
         )
         return [self._audit(row) for row in rows]
+
+    # -- coverage audits ---------------------------------------------------------
+
+    def create_coverage_audit(self, new: NewCoverageAudit, job: JobCompletion | None = None) -> CoverageAudit:
+        if not isinstance(new, NewCoverageAudit):
+            raise TypeError("create_coverage_audit takes a NewCoverageAudit")
+        _check_types(job, JobCompletion, "job")
+        with self._transaction(write=True) as cur:
+            self._version_id(cur, new.model_hash, new.version)
+            cur.execute(
+                "INSERT INTO calib_coverage_audits (model_hash, version, created_at, who, batch_sha256,"
+                f" n_instances, report) VALUES (?, ?, ?, ?, ?, ?, ?) RETURNING {_COVERAGE_AUDIT_COLUMNS}",
+                (new.model_hash, new.version, self._time_to_db(now_utc()), new.who, new.batch_sha256,
+                 new.n_instances, codec.encode_json(dict(new.report))),
+            )  # fmt: skip
+            audit = self._coverage_audit(cur.fetchone())
+            if job is not None:
+                self._mark_succeeded(cur, job.job_id, {**job.result, "audit": audit.id}, None)
+        return audit
+
+    def coverage_audits(
+        self, model_hash: str, before: int | None = None, limit: int = 100
+    ) -> list[CoverageAudit]:
+        check_model_hash(model_hash)
+        limit = check_number(limit, "audit page size")
+        bound = _MAX_SEQ if before is None else check_number(before, "audit cursor")
+        rows = self._read(
+            f"SELECT {_COVERAGE_AUDIT_COLUMNS} FROM calib_coverage_audits WHERE model_hash = ? AND id < ?"
+            " ORDER BY id DESC LIMIT ?",
+            (model_hash, bound, limit),
+        )
+        return [self._coverage_audit(row) for row in rows]
+
+    def coverage_audit(self, model_hash: str, audit_id: int) -> CoverageAudit | None:
+        check_model_hash(model_hash)
+        check_number(audit_id, "audit id")
+        if audit_id > _MAX_SEQ:
+            return None
+        rows = self._read(
+            f"SELECT {_COVERAGE_AUDIT_COLUMNS} FROM calib_coverage_audits WHERE model_hash = ? AND id = ?",
+            (model_hash, audit_id),
+        )
+        return self._coverage_audit(rows[0]) if rows else None
 
     def _insert_activation(
         self, cur: Cursor, model_hash: str, number: int, who: str, reason: str
@@ -532,6 +581,18 @@ class SqlStore(CalibrationStore):
             reason=row[8],
             client=row[9],
             details=codec.decode_json(row[10]),
+        )
+
+    def _coverage_audit(self, row: Sequence[Any]) -> CoverageAudit:
+        return CoverageAudit(
+            id=int(row[0]),
+            model_hash=row[1],
+            version=int(row[2]),
+            created_at=self._time_from_db(row[3]),
+            who=row[4],
+            batch_sha256=row[5],
+            n_instances=int(row[6]),
+            report=codec.decode_json(row[7]),
         )
 
     def _activation(self, row: Sequence[Any]) -> Activation:

@@ -13,6 +13,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from service.api.pose_presenter import pose_blocks, pose_options
 from service.api.schemas import (
     BallSet,
     BetaLaw,
@@ -114,6 +115,7 @@ def predict(state: ServiceState, image: np.ndarray, parameters: PredictParameter
     manifest = detector.manifest
     height, width = image.shape[:2]
     check_instances(parameters.instances, manifest, width, height, state.settings.max_instances)
+    pose = pose_options(parameters, manifest)
     version = registry.resolve(parameters.calibration_version)
     kind, scope = parameters.nonconformity, parameters.coverage
     thresholds = registry.thresholds(version, kind, scope, parameters.epsilon, parameters.delta)
@@ -123,16 +125,21 @@ def predict(state: ServiceState, image: np.ndarray, parameters: PredictParameter
 
     kinds = parse_stratify(parameters.stratify)
     strata = _RequestStrata(registry, version, kinds, parameters, result, thresholds) if kinds else None
-    sets = calibrated_sets(result, kind, thresholds.values, manifest.heatmap,
-                           parameters.include_statistics or DIFFICULTY in kinds,
+    drift = state.drift
+    all_statistics = parameters.include_statistics or (drift is not None and drift.wants_all_statistics())
+    all_statistics = all_statistics or DIFFICULTY in kinds  # difficulty strata need every feature
+    sets = calibrated_sets(result, kind, thresholds.values, manifest.heatmap, all_statistics,
                            strata.thresholds if strata else None)  # fmt: skip
     centers, shapes, statistics = sets.centers, sets.shapes, sets.statistics
+    if drift is not None:
+        drift.record(result.channel, statistics, kind, shapes)
     regions = _regions(centers, shapes, kind)
     if strata is not None:
         guarantees = strata.guarantees(scope)
     else:
         guarantees = [_guarantee(thresholds.guarantees[c], scope) for c in result.channel]
     stats = _statistics(statistics) if parameters.include_statistics else [None] * len(regions)
+    poses = pose_blocks(pose, manifest, parameters, centers, shapes, result.channel, result.instance_index)
     keypoints = [
         KeypointOut(
             index=int(channel),
@@ -149,6 +156,7 @@ def predict(state: ServiceState, image: np.ndarray, parameters: PredictParameter
             object=instance.object,
             bbox=instance.bbox,
             keypoints=[kp for kp, owner in zip(keypoints, result.instance_index, strict=True) if owner == i],
+            pose=poses[i],
         )
         for i, instance in enumerate(parameters.instances)
     ]

@@ -71,7 +71,9 @@ class Guarantee(Frozen):
     pac_failure_probability: float | None = Field(
         default=None, description="exact P(Beta(a, b) < 1 - epsilon) for the chosen t"
     )
-    stratum: Stratum | None = Field(default=None, description="which stratum answered (with stratify)")
+    stratum: Stratum | None = Field(
+        default=None, exclude_if=lambda stratum: stratum is None, description="which stratum answered (stratify)"
+    )
 
     @property
     def bounded(self) -> bool:
