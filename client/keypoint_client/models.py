@@ -72,7 +72,9 @@ class Guarantee(Frozen):
         default=None, description="exact P(Beta(a, b) < 1 - epsilon) for the chosen t"
     )
     stratum: Stratum | None = Field(
-        default=None, exclude_if=lambda stratum: stratum is None, description="which stratum answered (stratify)"
+        default=None,
+        exclude_if=lambda stratum: stratum is None,  # responses without stratify keep their shape
+        description="which stratum answered (with stratify)",
     )
 
     @property
