@@ -282,17 +282,18 @@ def answer_rows(
     return RowAnswers(out_values, out_guarantees, out_strata)
 
 
-def _row_bins(thresholds, channels, row_groups, features) -> list[int]:
-    """The difficulty bin of every row (0 when not stratified by difficulty or not answerable)."""
-    bins = [0] * len(channels)
+def _row_bins(thresholds, channels, row_groups, features) -> np.ndarray:
+    """The difficulty bin of every row (0 when not stratified by difficulty or not answerable),
+    assigned at once for all rows of one keypoint and group."""
+    bins = np.zeros(len(channels), dtype=np.intp)
     if thresholds is None or DIFFICULTY not in thresholds.kinds or features is None:
         return bins
-    for row, channel in enumerate(channels):
-        key = _key(thresholds, row_groups[row])
-        keyed = thresholds.bins.get(int(channel), {})
-        if key in keyed:
-            one = {s: np.asarray(features[s][row : row + 1]) for s in keyed[key].signals}
-            bins[row] = int(keyed[key].assign(one)[0])
+    keys = np.array([_key(thresholds, group) or "" for group in row_groups], dtype=object)
+    for channel in np.unique(channels):
+        for key, fitted in thresholds.bins.get(int(channel), {}).items():
+            rows = np.flatnonzero((channels == channel) & (keys == key))
+            if rows.size:
+                bins[rows] = fitted.assign({s: np.asarray(features[s])[rows] for s in fitted.signals})
     return bins
 
 
