@@ -202,17 +202,15 @@ def stratified_thresholds(
     for block in table.objects:
         members = _members(block)
         matrix = block.scores[kind]
+        if scope == "object":  # one threshold per group covers all of an object's keypoints at once
+            per_key = {key: _object_answer(matrix[members(key)], key, epsilon, delta) for key in keys}
+            answers.update({int(channel): per_key for channel in block.keypoint_ids})
+            continue
         for j, channel in enumerate(block.keypoint_ids):
             answers[int(channel)] = {}
             for key in keys:
                 rows = members(key)
                 group = None if key == ALL_GROUPS else key
-                if scope == "object":
-                    calibration = calibrate(object_scores(matrix[rows]), epsilon, delta)
-                    answers[int(channel)][key] = (
-                        StratumAnswer(calibration.threshold, calibration.guarantee, Stratum(GROUP, group)),
-                    )
-                    continue
                 if DIFFICULTY in kinds:
                     bins = strata.bins[int(channel)][key]
                     assigned = bins.assign({s: block.features[s][rows, j] for s in bins.signals})
@@ -225,6 +223,12 @@ def stratified_thresholds(
                     for b, c in enumerate(calibrations)
                 )
     return StratifiedThresholds(kinds, answers, strata.bins, strata.groups)
+
+
+def _object_answer(matrix: np.ndarray, key: str, epsilon: float, delta: float | None) -> tuple[StratumAnswer]:
+    calibration = calibrate(object_scores(matrix), epsilon, delta)
+    group = None if key == ALL_GROUPS else key
+    return (StratumAnswer(calibration.threshold, calibration.guarantee, Stratum(GROUP, group)),)
 
 
 def _stratum(kinds: frozenset[str], group: str | None, bins: DifficultyBins | None, index: int) -> Stratum:
@@ -316,10 +320,14 @@ def _row_answer(thresholds, refusal, channel, group, bin_index) -> tuple[Stratum
         stratum = answer.stratum
         where = "" if stratum.group is None else f" of group {stratum.group!r}"
         where += "" if stratum.bin is None else f" (difficulty bin {stratum.bin})"
+        guarantee = answer.guarantee
+        if guarantee.delta is None:
+            asked = f"epsilon {guarantee.epsilon:g} (needs n >= {_least_n(guarantee.epsilon)})"
+        else:
+            asked = f"epsilon {guarantee.epsilon:g} with delta {guarantee.delta:g}"
         return None, (
-            f"the stratum{where}"
-            f" has n = {answer.guarantee.n} calibration scores for keypoint channel {channel}: too few for"
-            f" epsilon {answer.guarantee.epsilon:g} (needs n >= {_least_n(answer.guarantee.epsilon)})"
+            f"the stratum{where} has n = {guarantee.n} calibration scores for keypoint channel {channel}:"
+            f" too few for {asked}"
         )
     return answer, None
 

@@ -18,7 +18,7 @@ from service.calibration.stratification import (
     parse_stratify,
     stratified_thresholds,
 )
-from service.conformal import calibrate
+from service.conformal import calibrate, object_scores
 from service.conformal.strata import ALL_GROUPS, DifficultySpec
 from service.errors import InvalidInput
 
@@ -110,3 +110,15 @@ def test_stratify_values_and_impossible_specs_are_refused(table: ScoreTable) -> 
         fit_strata(bare, StrataSpec(group=True))
     with pytest.raises(InvalidInput, match="heatmap features"):
         fit_strata(bare, StrataSpec(DifficultySpec()))
+
+
+def test_object_scope_calibrates_each_group_on_its_fully_labeled_instances(table: ScoreTable) -> None:
+    strata = fit_strata(table, SPEC)
+    thresholds = stratified_thresholds(table, strata, frozenset({GROUP}), "cov", "object", 0.2, None)
+    block = table.objects[0]
+    rows = np.array(block.groups) == "cam-1"
+    expected = calibrate(object_scores(block.scores["cov"][rows]), 0.2)
+    for channel in CHANNELS:
+        (answer,) = thresholds.answers[channel]["cam-1"]
+        assert answer.threshold == expected.threshold and answer.guarantee == expected.guarantee
+        assert answer.stratum.kinds == "group" and answer.stratum.group == "cam-1"
