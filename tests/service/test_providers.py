@@ -77,3 +77,13 @@ def test_the_server_reports_and_logs_the_providers_in_use(tmp_path: Path) -> Non
 def test_serve_refuses_providers_this_machine_lacks(tmp_path: Path, settings: dict, fragments: list) -> None:
     result = run(["serve", "--port", str(free_port())], tmp_path / "data", **settings)
     assert_one_line_error(result, 2, *fragments)
+
+
+def test_ray_replicas_reserve_gpus_only_when_asked() -> None:
+    from service.deploy_ray import Scaling
+
+    with_gpu = Scaling(num_gpus=1).deployment_options(Settings())
+    assert with_gpu["ray_actor_options"] == {"num_cpus": 1, "num_gpus": 1}
+    assert Scaling().deployment_options(Settings())["ray_actor_options"] == {"num_cpus": 1}
+    with pytest.raises(ValueError, match="num_gpus must be 0 or more"):
+        Scaling(num_gpus=-1)
