@@ -5,8 +5,9 @@
 #   docker run --gpus all -p 8000:8000 keypoint-service:cuda
 
 # The CUDA target's base: its CUDA and cuDNN must be those the onnxruntime-gpu release wants
-# (onnxruntime.ai/docs/execution-providers/CUDA-ExecutionProvider.html#requirements).
-ARG CUDA_IMAGE=nvidia/cuda:12.4.1-cudnn-runtime-ubuntu22.04
+# (onnxruntime.ai/docs/execution-providers/CUDA-ExecutionProvider.html#requirements): 1.31
+# links CUDA 13 (libcublas.so.13) and asks for cuDNN 9. The build fails when they differ.
+ARG CUDA_IMAGE=nvidia/cuda:13.0.0-cudnn-runtime-ubuntu22.04
 
 # Build stage: a wheel with the compiled anchor-median kernel (needs a C compiler).
 FROM python:3.11-bookworm AS build
@@ -53,10 +54,14 @@ WORKDIR /app
 COPY --from=cuda-build /wheels /wheels
 # onnxruntime-gpu replaces onnxruntime: both own the `onnxruntime` module, so the CPU build is
 # removed and the GPU build's files put back (the uninstall took the files the two share).
+# Then every library the CUDA provider links must be in the image, but the driver's libcuda
+# (mounted by --gpus): otherwise onnxruntime would fall back to the CPU at start-up.
 RUN pip install "$(ls /wheels/*.whl)[postgres,gpu]" && rm -rf /wheels \
     && pip uninstall -y onnxruntime \
     && pip install --force-reinstall --no-deps "onnxruntime-gpu>=1.17" \
     && python -c "import onnxruntime as o; assert 'CUDAExecutionProvider' in o.get_available_providers()" \
+    && ! ldd "$(python -c "import onnxruntime as o, pathlib; print(pathlib.Path(o.__file__).parent \
+         / 'capi' / 'libonnxruntime_providers_cuda.so')")" | grep "not found" | grep -v "libcuda\.so\.1" \
     && python -c "from service.conformal.kernel import native_kernel_available as ok; assert ok()" \
     && useradd --system --uid 10001 --no-create-home --shell /usr/sbin/nologin app \
     && mkdir -p /data && chown app /data
