@@ -203,6 +203,8 @@ class Settings(BaseSettings):
             providers = [name.strip() for name in providers.split(",") if name.strip()]
         if isinstance(providers, list | tuple) and not providers:
             raise ValueError("name at least one, e.g. CPUExecutionProvider")
+        if isinstance(providers, list | tuple) and len(set(map(str, providers))) < len(providers):
+            raise ValueError("a provider is named twice: name each once, in order of preference")
         return providers
 
     @field_validator("store_url")

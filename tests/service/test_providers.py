@@ -35,7 +35,8 @@ def test_the_setting_reads_a_comma_separated_or_json_list(monkeypatch, value: st
 
 @pytest.mark.parametrize(
     ("value", "message"),
-    [(" , ", "name at least one"), ("[]", "name at least one"), ('["CPU', "not a JSON list")],
+    [(" , ", "name at least one"), ("[]", "name at least one"), ('["CPU', "not a JSON list"),
+     (f"{CPU},{CPU}", "named twice")],
 )
 def test_an_empty_or_malformed_list_is_refused(monkeypatch, value: str, message: str) -> None:
     monkeypatch.setenv("CKS_EXECUTION_PROVIDERS", value)
