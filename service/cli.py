@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import shlex
 import shutil
 import socket
 import sys
@@ -150,6 +151,37 @@ def _predict(args: argparse.Namespace, settings: Settings) -> int:
     return 0
 
 
+def _evaluate(args: argparse.Namespace, settings: Settings) -> int:
+    from calibration_store import open_store
+    from service.evaluation import run
+
+    command = shlex.join(["keypoint-service", *args.argv])
+    epsilons = tuple(sorted(set(args.epsilon or run.DEFAULT_EPSILONS)))
+    request = run.EvaluationRequest(Path(args.folder), Path(args.out), args.version, epsilons, args.delta,
+                                    args.title or run.DEFAULT_TITLE, command)  # fmt: skip
+    run.require_matplotlib()  # refuse a mistake before a model is loaded for nothing
+    run.check_request(request)
+    from service.calibration.bundle import bootstrap_default_calibration
+    from service.detector.runtime import Detector
+
+    detector = Detector(settings.model_dir, settings.inference_threads)
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    with open_store(settings.resolved_store_url) as store:
+        if settings.bootstrap_calibration:  # as serve would on its first start
+            bootstrap_default_calibration(store, detector, settings.model_dir)
+        done = 0
+
+        def progress(count: int) -> None:
+            nonlocal done
+            done += count
+            print(f"\revaluated {done} instances", end="", file=sys.stderr, flush=True)
+
+        evaluation, path = run.run_evaluation(request, store, detector, settings.max_image_pixels, progress)
+    print(file=sys.stderr)
+    print(f"wrote {path} (version {evaluation.version.number}, {evaluation.rows.instances} instances)")
+    return 0
+
+
 def _check_model(args: argparse.Namespace, settings: Settings) -> int:
     from service.detector.runtime import Detector
 
@@ -210,6 +242,13 @@ EXAMPLES = {
       --epsilon 0.05 --nonconformity var --png sets.png
 
 A box is x,y,width,height in pixels, origin at the image's top-left corner.
+""",
+    "evaluate": """\
+  keypoint-service evaluate data/site_b
+  keypoint-service evaluate data/site_b --version 3 --epsilon 0.05 --epsilon 0.1 --out reports/site_b
+  CKS_DATA_DIR=/tmp/scratch keypoint-service evaluate data/lmo_synth/test --delta 0.1 --out docs
+
+Writes OUT/evaluation.md and OUT/figures/*.png (needs the `evaluate` extra: matplotlib).
 """,
     "check-model": """\
   keypoint-service check-model
@@ -336,6 +375,27 @@ def build_parser() -> argparse.ArgumentParser:
     predict.add_argument("--url", help="the service to ask (default: serve the model in this process)")
     predict.set_defaults(run=_predict)
 
+    evaluate = _command(commands, "evaluate", "the paper's evaluation of a version on a labeled COCO folder")
+    evaluate.add_argument("folder", help="a folder holding annotations.json and images (as for calibrate)")
+    evaluate.add_argument(
+        "--version",
+        "--calibration-version",
+        dest="version",
+        type=int,
+        metavar="VERSION",
+        help="the calibration version to evaluate (default: the active one)",
+    )
+    evaluate.add_argument(
+        "--epsilon",
+        type=float,
+        action="append",
+        help="miscoverage to evaluate at; repeat for several (default 0.1)",
+    )
+    evaluate.add_argument("--delta", type=float, help="also evaluate the PAC guarantee at this delta")
+    evaluate.add_argument("--out", default="evaluation", help="writes OUT/evaluation.md and OUT/figures/")
+    evaluate.add_argument("--title", help="the report's title (default: Conformal keypoint sets: evaluation)")
+    evaluate.set_defaults(run=_evaluate)
+
     check = _command(commands, "check-model", "validate a model directory and summarize its manifest")
     check.add_argument("model_dir", nargs="?", type=Path, help="default: CKS_MODEL_DIR")
     check.set_defaults(run=_check_model)
@@ -352,6 +412,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    args.argv = sys.argv[1:] if argv is None else list(argv)  # as typed: the report states its command
     try:
         settings = Settings()
     except ValidationError as error:

@@ -111,8 +111,12 @@ def predict(state: ServiceState, image: np.ndarray, parameters: PredictParameter
     boxes = np.array([instance.bbox for instance in parameters.instances], dtype=np.float64)
     result = detector.infer(image, boxes, [instance.object for instance in parameters.instances])
 
-    sets = calibrated_sets(result, kind, thresholds.values, manifest.heatmap, parameters.include_statistics)
+    drift = state.drift
+    all_statistics = parameters.include_statistics or (drift is not None and drift.wants_all_statistics())
+    sets = calibrated_sets(result, kind, thresholds.values, manifest.heatmap, all_statistics)
     centers, shapes, statistics = sets.centers, sets.shapes, sets.statistics
+    if drift is not None:
+        drift.record(result.channel, statistics, kind, shapes)
     regions = _regions(centers, shapes, kind)
     guarantees = [_guarantee(thresholds.guarantees[c], scope) for c in result.channel]
     stats = _statistics(statistics) if parameters.include_statistics else [None] * len(regions)

@@ -170,6 +170,45 @@ class Settings(BaseSettings):
         " this long; unset: never (predictions go on either way)",
     )
 
+    drift_enabled: bool = Field(
+        default=True,
+        description="keep windows of every keypoint's live heatmap features and test them against the"
+        " active calibration's (GET /v1/admin/drift, cks_drift_* metrics)",
+    )
+    drift_window: int = Field(
+        default=500,
+        ge=10,
+        le=100_000,
+        description="live instances kept per keypoint (the drift window; each feature's window holds"
+        " those that computed it)",
+    )
+    drift_test: Literal["ks", "psi"] = Field(
+        default="ks",
+        description="drift test: `ks` (Kolmogorov-Smirnov p-values, Holm-corrected) or `psi` (population"
+        " stability index over 10 quantile bins)",
+    )
+    drift_alarm_level: float = Field(
+        default=0.01,
+        gt=0,
+        lt=1,
+        description="ks: family-wise error rate of the drift alarm over all keypoints x features (Holm)",
+    )
+    drift_psi_threshold: float = Field(
+        default=0.25,
+        gt=0,
+        description="psi: a keypoint's feature alarms above this index (once it has 400 live values)",
+    )
+    drift_full_statistics_share: float = Field(
+        default=0.25,
+        ge=0,
+        le=1,
+        description="share of predictions that also compute the heatmap statistics their nonconformity"
+        " function skips, so every drift feature gets live values (the rest record theirs for free)",
+    )
+    drift_history_seconds: float = Field(
+        default=60.0, gt=0, description="one point of the drift history this often (360 points kept)"
+    )
+
     log_format: Literal["text", "json"] = Field(
         default="text",
         description="`text` (one line: UTC time, level, logger, [request id], message) or `json`"

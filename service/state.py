@@ -12,7 +12,7 @@ from typing import Any
 
 import cv2
 
-from calibration_store import CalibrationStore, open_store, store_location
+from calibration_store import CalibrationStore, ScoreTable, open_store, store_location
 from service.admission import Admission
 from service.audit import AuditTrail
 from service.calibration.archive import ArchiveLimits, DiskBudget
@@ -24,6 +24,9 @@ from service.calibration.uploads import process_uploads_dir, remove_spent_job_fo
 from service.conformal.kernel import native_kernel_available
 from service.detector.runtime import Detector
 from service.logs import ensure_logging
+from service.metrics import forget_drift_source, set_drift_source
+from service.monitoring.audits import CoverageAudits
+from service.monitoring.drift import DriftMonitor, DriftSettings
 from service.operators import load_operators
 from service.settings import Settings
 
@@ -44,6 +47,8 @@ class ServiceState:
     operators: dict[str, str]  # admin token -> operator name
     cpu_pool: ThreadPoolExecutor
     admission: Admission
+    audits: CoverageAudits
+    drift: DriftMonitor | None = None  # None when CKS_DRIFT_ENABLED is false
 
     @property
     def uploads_dir(self) -> Path:
@@ -56,6 +61,9 @@ class ServiceState:
         started = time.monotonic()
         log.info("shutdown: interrupting calibration jobs, then closing the store and the model")
         self.registry.stop()
+        if self.drift is not None:
+            self.drift.stop()
+            forget_drift_source(self.drift.report)
         self.jobs.shutdown()
         shutil.rmtree(process_uploads_dir(self.uploads_dir), ignore_errors=True)  # cancelled jobs' uploads
         self.cpu_pool.shutdown(wait=True, cancel_futures=True)
@@ -103,13 +111,17 @@ def build_state(settings: Settings) -> ServiceState:
     remove_spent_job_folders(settings.jobs_dir, store)
     jobs = JobRunner(store, settings.calibration_workers)
     audit = AuditTrail(store, detector.model_hash)
+    submission = _submission_settings(settings)
+    audits = CoverageAudits(store, detector, registry, jobs, audit, submission)
+    audits.publish_latest()
+    drift = _drift_monitor(settings, detector, registry)
     return ServiceState(
         settings=settings,
         detector=detector,
         store=store,
         registry=registry,
         jobs=jobs,
-        calibrations=CalibrationJobs(store, detector, registry, jobs, audit, _submission_settings(settings)),
+        calibrations=CalibrationJobs(store, detector, registry, jobs, audit, submission),
         audit=audit,
         operators=operators,
         cpu_pool=ThreadPoolExecutor(settings.cpu_workers, thread_name_prefix="cpu"),
@@ -117,7 +129,36 @@ def build_state(settings: Settings) -> ServiceState:
             settings.max_concurrent_inferences, settings.max_queued_requests, settings.queue_timeout_seconds,
             settings.max_receiving_bytes,
         ),  # fmt: skip
+        audits=audits,
+        drift=drift,
     )
+
+
+def _drift_monitor(
+    settings: Settings, detector: Detector, registry: CalibrationRegistry
+) -> DriftMonitor | None:
+    """The drift monitor, its history ticker started and its report the source of cks_drift_*."""
+    if not settings.drift_enabled:
+        return None
+
+    def active_calibration() -> tuple[int | None, ScoreTable | None]:
+        version = registry.active_version()
+        if version is None or registry.incompatibility(version) is not None:
+            return version, None
+        return version, registry.scores(version)
+
+    drift_settings = DriftSettings(
+        window=settings.drift_window,
+        test=settings.drift_test,
+        alarm_level=settings.drift_alarm_level,
+        psi_threshold=settings.drift_psi_threshold,
+        full_statistics_share=settings.drift_full_statistics_share,
+        history_seconds=settings.drift_history_seconds,
+    )
+    monitor = DriftMonitor(detector.manifest, active_calibration, drift_settings)
+    monitor.start()
+    set_drift_source(monitor.report)
+    return monitor
 
 
 def _submission_settings(settings: Settings) -> SubmissionSettings:

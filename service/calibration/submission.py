@@ -113,6 +113,9 @@ class CalibrationJobs:
         job = self._runner.get(job_id)
         if job is None:
             raise NotFound(f"no job {job_id!r}: it never existed or was pruned")
+        if job.kind != JOB_KIND:
+            raise Conflict(f"job {job_id} is an {job.kind} job: only calibration jobs are retried; send its"
+                           " batch again")  # fmt: skip
         if job.state != "interrupted":
             raise Conflict(f"job {job_id} is {job.state}; only an interrupted job can be retried")
         old = JobFolder.of(self._settings.jobs_dir, job_id)

@@ -88,7 +88,7 @@ def _tables(url: str) -> set[str]:
 
 def test_database_from_before_jobs_is_upgraded(store_url: str, monkeypatch: pytest.MonkeyPatch) -> None:
     with _open_with_schema_1(store_url, monkeypatch) as old:
-        table = score_table(n=3)
+        table = score_table(n=3, extras=False)
         old.create_version(new_version(), table)
         old.activate(MODEL_A, 1, who="alice")
     monkeypatch.undo()

@@ -69,20 +69,3 @@ def adaptiveness(
         spearman(visib_fract, area),
         spearman(visib_fract, relative),
     )
-
-
-def easy_and_hard(
-    instance: np.ndarray, relative_area: np.ndarray, visib_fract: np.ndarray
-) -> tuple[int, int]:
-    """Instances for the overlays: the smallest median relative set among well visible
-    instances (visib_fract >= 0.9, else the top quarter), the largest among occluded ones
-    (visib_fract < 0.5, else the bottom quarter)."""
-    ids, index = np.unique(instance, return_inverse=True)
-    medians = np.array([np.median(relative_area[index == i]) for i in range(len(ids))])
-    fraction = np.array([visib_fract[index == i][0] for i in range(len(ids))])
-    easy_pool = fraction >= min(0.9, np.quantile(fraction, 0.75))
-    hard_pool = fraction < max(0.5, np.quantile(fraction, 0.25))
-    easy = ids[easy_pool][np.argmin(medians[easy_pool])]
-    hard_candidates = hard_pool if hard_pool.any() else ~easy_pool
-    hard = ids[hard_candidates][np.argmax(medians[hard_candidates])]
-    return int(easy), int(hard)

@@ -57,28 +57,3 @@ def central_interval(pmf: np.ndarray, level: float = 0.95) -> tuple[int, int]:
     low = int(np.searchsorted(cdf, tail, side="right"))
     high = int(np.searchsorted(cdf, 1 - tail - 1e-12, side="left"))
     return low, min(high, len(pmf) - 1)
-
-
-def randomized_pit(count: int, pmf: np.ndarray, rng: np.random.Generator) -> float:
-    """F(count - 1) + U * P(count): exactly Uniform(0, 1) when count ~ pmf."""
-    below = float(pmf[:count].sum())
-    return below + float(rng.uniform()) * float(pmf[count])
-
-
-def ks_uniform(values: np.ndarray) -> float:
-    """Kolmogorov-Smirnov distance between the sample and Uniform(0, 1)."""
-    x = np.sort(np.asarray(values, dtype=np.float64))
-    n = x.size
-    upper = np.arange(1, n + 1) / n - x
-    lower = x - np.arange(n) / n
-    return float(max(upper.max(), lower.max()))
-
-
-def ks_pvalue(distance: float, n: int) -> float:
-    """Asymptotic Kolmogorov p-value with Stephens' small-sample correction."""
-    root = math.sqrt(n)
-    lam = (root + 0.12 + 0.11 / root) * distance
-    if lam < 0.2:
-        return 1.0
-    terms = [(-1) ** (j - 1) * math.exp(-2 * j * j * lam * lam) for j in range(1, 101)]
-    return float(min(1.0, max(0.0, 2 * sum(terms))))

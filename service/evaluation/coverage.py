@@ -1,5 +1,5 @@
-"""Validity: per-keypoint (and per-object) empirical coverage on the test split against
-the exact law of Theorem 1.
+"""Validity: per-keypoint (and per-object) empirical coverage of a labeled batch against
+the exact law of Theorem 1 (Yang & Pavone, conformal keypoint sets).
 
 The true coverage given the calibration set is Beta(n+1-t, t); the number of covered
 points among the m test points is then BetaBinomial(m, n+1-t, t), exactly. A group is
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.conformal import CoverageGuarantee, binomial_cdf
-from training.evidence.distributions import beta_interval, betabinomial_pmf, central_interval
+from service.evaluation.laws import beta_interval, betabinomial_pmf, central_interval
 
 LEVEL = 0.95
 
@@ -42,11 +42,17 @@ class GroupCoverage:
         """pmf of the covered count: BetaBinomial(m, n+1-t, t)."""
         return betabinomial_pmf(self.m, self.n + 1 - self.t, self.t)
 
-    def inside_predictive(self) -> bool:
-        if self.unbounded:
-            return self.covered == self.m
+    def band(self) -> tuple[float, float]:
+        """Central 95% interval of the empirical coverage of m test points under the law: where
+        the coverage falls when the calibration is valid (unbounded sets: always 1)."""
+        if self.unbounded or not self.m:
+            return 1.0, 1.0
         low, high = central_interval(self.law(), LEVEL)
-        return low <= self.covered <= high
+        return low / self.m, high / self.m
+
+    def inside_predictive(self) -> bool:
+        low, high = self.band()
+        return low - 1e-12 <= self.coverage <= high + 1e-12
 
     def inside_beta(self) -> bool:
         if self.unbounded:
@@ -73,6 +79,11 @@ class ValiditySummary:
     scope: str
     delta: float | None
     groups: tuple[GroupCoverage, ...]
+
+    @property
+    def label(self) -> str:
+        """The scope as a reader names it: keypoint, object, or keypoint with the PAC rank."""
+        return f"keypoint, PAC delta={self.delta}" if self.scope == "pac" else self.scope
 
     @property
     def target(self) -> float:
