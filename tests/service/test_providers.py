@@ -44,9 +44,12 @@ def test_an_empty_or_malformed_list_is_refused(monkeypatch, value: str, message:
         Settings()
 
 
-def test_the_defaults_keep_todays_behaviour() -> None:
+def test_the_defaults_keep_todays_behaviour(monkeypatch) -> None:
+    for name in ("CKS_EXECUTION_PROVIDERS", "CKS_EXECUTION_PROVIDER_OPTIONS", "CKS_BATCH_WINDOW_MS"):
+        monkeypatch.delenv(name, raising=False)
     settings = Settings()
     assert settings.execution_providers == (CPU,) and settings.batch_window_ms == 0
+    assert settings.execution_provider_options == {}
 
 
 def test_the_server_reports_and_logs_the_providers_in_use(tmp_path: Path) -> None:
