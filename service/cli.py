@@ -30,12 +30,13 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
     from service.operators import load_operators
     from service.processes import remove_dead_process_folders
     from service.server import serve
+    from service.state import detector_providers
 
     host, port = args.host or settings.host, args.port or settings.port
     _check_port(host, port)
     # Check the model and store the bundled calibration once, before workers start racing.
     load_operators(settings.admin_token, settings.admin_tokens_file)
-    detector = Detector(settings.model_dir, settings.inference_threads)
+    detector = Detector(settings.model_dir, settings.inference_threads, **detector_providers(settings))
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     for shared in ("uploads", "metrics"):  # of stopped processes: uploads were never stored
         remove_dead_process_folders(settings.data_dir / shared)
@@ -74,11 +75,12 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     from service.calibration.intake import prepare_batch
     from service.calibration.submission import UploadRequest
     from service.detector.runtime import Detector
+    from service.state import detector_providers
 
     request = UploadRequest(args.name, args.note, args.append_to, args.activate, args.force, args.reason,
                             args.dedupe, args.max_rejected_share)  # fmt: skip
     share = request.rejected_share(settings.max_rejected_share)
-    detector = Detector(settings.model_dir, settings.inference_threads)
+    detector = Detector(settings.model_dir, settings.inference_threads, **detector_providers(settings))
     with open_store(settings.resolved_store_url) as store:
         parent = parent_table = None
         if args.append_to is not None:
