@@ -269,9 +269,10 @@ def ready(*, timeout: float | None = None) -> Call[Readiness]:
 
 
 def _query(value: object) -> str | list[str]:
+    """An option as query text: a flag, numbers repeated (an audit's epsilons), or as it prints."""
     if isinstance(value, bool):
         return _flag(value)
-    if isinstance(value, list | tuple):
+    if isinstance(value, Sequence) and not isinstance(value, str):
         return [repr(float(item)) for item in value]
     return str(value)
 
