@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 _LIBRARY = "_upper_half"
-_VERSION = 3  # cks_kernel_version() of the sources this module expects
+_VERSION = 4  # cks_kernel_version() of the sources this module expects
 _TYPES = {np.dtype(np.float32): "f32", np.dtype(np.float64): "f64"}
 _ENTRY_POINTS = ("cks_anchor_peaks", "cks_top_k_spread")
 _MAX_WIDTH = 2**31 - 1  # the kernel counts in 32-bit lanes
