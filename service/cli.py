@@ -31,12 +31,13 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
     from service.operators import load_operators
     from service.processes import remove_dead_process_folders
     from service.server import serve
+    from service.state import detector_providers
 
     host, port = args.host or settings.host, args.port or settings.port
     _check_port(host, port)
     # Check the model and store the bundled calibration once, before workers start racing.
     load_operators(settings.admin_token, settings.admin_tokens_file)
-    detector = Detector(settings.model_dir, settings.inference_threads)
+    detector = Detector(settings.model_dir, settings.inference_threads, **detector_providers(settings))
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     for shared in ("uploads", "metrics"):  # of stopped processes: uploads were never stored
         remove_dead_process_folders(settings.data_dir / shared)
@@ -76,11 +77,12 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     from service.calibration.stratification import difficulty_spec
     from service.calibration.submission import UploadRequest
     from service.detector.runtime import Detector
+    from service.state import detector_providers
 
     request = UploadRequest(args.name, args.note, args.append_to, args.activate, args.force, args.reason,
                             args.dedupe, args.max_rejected_share, args.stratify)  # fmt: skip
     share = request.rejected_share(settings.max_rejected_share)
-    detector = Detector(settings.model_dir, settings.inference_threads)
+    detector = Detector(settings.model_dir, settings.inference_threads, **detector_providers(settings))
     with open_store(settings.resolved_store_url) as store:
         parent = parent_table = None
         if args.append_to is not None:
@@ -124,7 +126,7 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
 def _predict(args: argparse.Namespace, settings: Settings) -> int:
     from contextlib import nullcontext
 
-    from keypoint_client import ConnectionFailed, KeypointClient, ProblemError
+    from keypoint_client import ConnectionFailed, KeypointClient, PoseRequest, ProblemError
 
     from service.api.schemas import PredictParameters
     from service.inprocess import served
@@ -132,10 +134,18 @@ def _predict(args: argparse.Namespace, settings: Settings) -> int:
     image = Path(args.image).read_bytes()
     options = {"epsilon": args.epsilon, "nonconformity": args.nonconformity, "coverage": args.coverage,
                "delta": args.delta, "calibration_version": args.calibration_version}  # fmt: skip
+    pose = None if args.pose_k is None else {"K": args.pose_k}
+    if pose is not None and args.coverage != "object":
+        raise InvalidInput("--pose-k needs --coverage object: only object-scope sets carry a pose guarantee")
     try:  # refuse a mistake before a model is loaded for nothing
-        PredictParameters(instances=[{"object": o, "bbox": b} for o, b in args.instance], **options)
+        instances = [{"object": o, "bbox": b} for o, b in args.instance]
+        PredictParameters(instances=instances, pose=pose, **options)
     except ValidationError as error:
-        raise InvalidInput(_problems(error, lambda loc: ".".join(loc))) from None
+        raise InvalidInput(
+            _problems(error, lambda loc: "--pose-k" if loc[:2] == ["pose", "K"] else ".".join(loc))
+        ) from None
+    if pose is not None:
+        options["pose"] = PoseRequest.model_validate(pose)
     # Without --url, this process serves the model on a loopback port: one path, the client's.
     with nullcontext(args.url) if args.url else served(settings) as url, KeypointClient(url) as client:
         try:
@@ -212,6 +222,23 @@ def _write_json(document: dict, output: str) -> int:
     return 0
 
 
+def _camera_matrix(text: str) -> list[list[float]]:
+    """``fx,fy,cx,cy`` as the pinhole matrix, or a JSON matrix (checked later, as the API checks it)."""
+    try:
+        if text.lstrip().startswith("["):
+            matrix = json.loads(text)
+            if isinstance(matrix, list) and all(isinstance(row, list) for row in matrix):
+                return [[float(v) for v in row] for row in matrix]
+        else:
+            fx, fy, cx, cy = (float(v) for v in text.split(","))
+            return [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]
+    except (ValueError, TypeError):
+        pass
+    raise argparse.ArgumentTypeError(
+        f"{text!r}: use fx,fy,cx,cy (e.g. 572,572,320,240) or a 3x3 JSON matrix [[fx,0,cx],[0,fy,cy],[0,0,1]]"
+    )
+
+
 def _instance(text: str) -> tuple[str, list[float]]:
     name, sep, bbox = text.partition(":")
     try:
@@ -240,6 +267,8 @@ EXAMPLES = {
   keypoint-service predict models/lmo-synth-unet/samples/images/000000.jpg --instance duck:235,217,67,64
   keypoint-service predict scene.png --instance duck:235,217,67,64 --instance teddy:383,191,81,73 \\
       --epsilon 0.05 --nonconformity var --png sets.png
+  keypoint-service predict models/lmo-synth-unet/samples/images/000000.jpg --instance duck:235,217,67,64 \\
+      --coverage object --pose-k 572,572,320,240 --png pose.png
 
 A box is x,y,width,height in pixels, origin at the image's top-left corner.
 """,
@@ -376,7 +405,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="VERSION",
         help="answer with this version (default: the active one)",
     )
-    predict.add_argument("--png", help="also draw the sets into this PNG file")
+    predict.add_argument(
+        "--pose-k",
+        type=_camera_matrix,
+        metavar="fx,fy,cx,cy",
+        help="also each instance's pose set (PURSE) for this camera (or a 3x3 JSON matrix), in the"
+        " image's pixels with pixel centres at +0.5; needs --coverage object (docs/pose.md)",
+    )
+    predict.add_argument("--png", help="also draw the sets (and the poses) into this PNG file")
     predict.add_argument("--url", help="the service to ask (default: serve the model in this process)")
     predict.set_defaults(run=_predict)
 

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import json
 from functools import cached_property
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import Field, field_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from calibration_store import sqlite_path
 from service.conformal.features import HEATMAP_FEATURES
@@ -109,6 +110,23 @@ class Settings(BaseSettings):
     )
     cpu_workers: int = Field(
         default=4, gt=0, description="threads for decode, crop and scoring off the event loop"
+    )
+    execution_providers: Annotated[tuple[str, ...], NoDecode] = Field(
+        default=("CPUExecutionProvider",),
+        description="onnxruntime execution providers in order of preference, comma-separated or a JSON"
+        " list, e.g. CUDAExecutionProvider,CPUExecutionProvider (GPU: the gpu extra, docs/operations.md);"
+        " one that this onnxruntime lacks is refused at start-up",
+    )
+    execution_provider_options: dict[str, dict[str, str]] = Field(
+        default_factory=dict,
+        description='JSON options per provider, e.g. {"CUDAExecutionProvider": {"device_id": "1"}}',
+    )
+    batch_window_ms: float = Field(
+        default=0.0,
+        ge=0,
+        le=1000,
+        description="how long a merged run waits for more crops once it has one (0 = runs what is queued"
+        " at once; a GPU gains from 1-5 ms, see docs/operations.md)",
     )
 
     max_upload_bytes: int = Field(default=2 * 2**30, gt=0, description="largest calibration zip")
@@ -232,6 +250,23 @@ class Settings(BaseSettings):
     @classmethod
     def _upper(cls, level: object) -> object:
         return level.upper() if isinstance(level, str) else level
+
+    @field_validator("execution_providers", mode="before")
+    @classmethod
+    def _provider_list(cls, providers: object) -> object:
+        """``A,B`` or ``["A", "B"]``; whether this onnxruntime has them is checked when the model loads."""
+        if isinstance(providers, str) and providers.strip().startswith("["):
+            try:
+                providers = json.loads(providers)
+            except json.JSONDecodeError as error:
+                raise ValueError(f"not a JSON list ({error}); or names separated by commas") from None
+        elif isinstance(providers, str):
+            providers = [name.strip() for name in providers.split(",") if name.strip()]
+        if isinstance(providers, list | tuple) and not providers:
+            raise ValueError("name at least one, e.g. CPUExecutionProvider")
+        if isinstance(providers, list | tuple) and len(set(map(str, providers))) < len(providers):
+            raise ValueError("a provider is named twice: name each once, in order of preference")
+        return providers
 
     @field_validator("store_url")
     @classmethod

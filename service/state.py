@@ -8,6 +8,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 
@@ -88,7 +89,10 @@ def build_state(settings: Settings) -> ServiceState:
         settings.inference_threads,
         settings.max_inference_batch,
         settings.inference_streams,
+        **detector_providers(settings),
+        batch_window_s=settings.batch_window_ms / 1000,
     )
+    log.info("onnxruntime execution providers in use: %s", ", ".join(detector.execution_providers))
     kind, location = store_location(settings.resolved_store_url)
     # SQLite keeps its busy timeout: a write waiting on another writer is no outage
     options = {"timeout_s": settings.store_timeout_seconds} if kind == "postgresql" else {}
@@ -168,3 +172,11 @@ def _submission_settings(settings: Settings) -> SubmissionSettings:
         disk=DiskBudget.from_settings(settings),
         difficulty=difficulty_spec(settings),
     )
+
+
+def detector_providers(settings: Settings) -> dict[str, Any]:
+    """The execution provider arguments of ``Detector``, from CKS_EXECUTION_PROVIDERS(_OPTIONS)."""
+    return {
+        "providers": settings.execution_providers,
+        "provider_options": settings.execution_provider_options,
+    }
