@@ -26,6 +26,8 @@ MIRRORS: dict[str, type[BaseModel]] = {
     "EllipseSet": kc.Ellipse,
     "UnboundedSet": kc.Unbounded,
     "Guarantee": kc.Guarantee,
+    "Stratum": kc.models.Stratum,
+    "SignalRange": kc.models.SignalRange,
     "BetaLaw": kc.models.BetaLaw,
     "KeypointStatistics": kc.KeypointStatistics,
     "BatchItem": calls._BatchItem,
