@@ -3,7 +3,7 @@
     python -m training.evaluate_strata --model models/lmo-synth-unet \\
         --calibration data/lmo_synth/calibration \\
         --heldout data/lmo_synth/heldout_default --heldout data/lmo_synth/heldout_heavy \\
-        > docs/strata-evaluation.md
+        --conditional-sample 1500 >> docs/evaluation.md
 
 For each held-out split and nonconformity function: coverage of occluded (COCO v = 1) and
 visible (v = 2) keypoints, the median set area of each (image pixels^2; the ratio to pooled),

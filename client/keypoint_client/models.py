@@ -241,6 +241,7 @@ class ModelInfo(Frozen):
     hash: str
     manifest: dict[str, Any]
     service_version: str
+    execution_providers: list[str] = []  # onnxruntime providers in use (servers before 0.1.0 omit it)
 
     @property
     def object_names(self) -> list[str]:
