@@ -82,8 +82,8 @@ class SubmissionSettings:
     difficulty: DifficultySpec = DifficultySpec()
 
 
-class CalibrationJobs:
-    """Accepts, runs and retries calibration jobs for one detector and store."""
+class DetectorJobs:
+    """What accepting and running background jobs over one detector's calibrations needs."""
 
     def __init__(
         self,
@@ -96,6 +96,10 @@ class CalibrationJobs:
     ) -> None:
         self._store, self._detector, self._registry = store, detector, registry
         self._runner, self._audit, self._settings = runner, audit, settings
+
+
+class CalibrationJobs(DetectorJobs):
+    """Accepts, runs and retries calibration jobs for one detector and store."""
 
     def accept(
         self, workspace: UploadWorkspace, sha256: str, request: UploadRequest, operator: Operator

@@ -21,22 +21,19 @@ import numpy as np
 from prometheus_client import Gauge
 
 from calibration_store import (
-    CalibrationStore,
     CoverageAudit,
     JobCompletion,
     JobRecord,
     NewCoverageAudit,
     StoreError,
 )
-from service.audit import AuditTrail, Operator
+from service.audit import Operator
 from service.calibration.coco import NamedBatch
 from service.calibration.intake import PreparedBatch, check_rejected_share, prepare_batch
-from service.calibration.jobs import JobProgress, JobRunner, new_job_id
-from service.calibration.registry import CalibrationRegistry
+from service.calibration.jobs import JobProgress, new_job_id
 from service.calibration.scoring import NONCONFORMITY_KINDS, ScoreAccumulator, score_batch
-from service.calibration.submission import SubmissionSettings
+from service.calibration.submission import DetectorJobs
 from service.calibration.uploads import JobFolder, UploadWorkspace, batch_name, validate_upload
-from service.detector.runtime import Detector
 from service.errors import Conflict, InvalidInput
 from service.metrics import (
     AUDIT_BAND_HIGH,
@@ -72,20 +69,8 @@ class AuditRequest:
         object.__setattr__(self, "epsilons", epsilons)
 
 
-class CoverageAudits:
+class CoverageAudits(DetectorJobs):
     """Accepts and runs coverage audits of one detector's calibration versions."""
-
-    def __init__(
-        self,
-        store: CalibrationStore,
-        detector: Detector,
-        registry: CalibrationRegistry,
-        runner: JobRunner,
-        audit: AuditTrail,
-        settings: SubmissionSettings,
-    ) -> None:
-        self._store, self._detector, self._registry = store, detector, registry
-        self._runner, self._audit, self._settings = runner, audit, settings
 
     def accept(
         self, workspace: UploadWorkspace, sha256: str, request: AuditRequest, operator: Operator

@@ -5,7 +5,6 @@ pages, refusals typed; the drift of the live features after predictions."""
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -24,12 +23,6 @@ from keypoint_client.archive import zip_coco_folder
 
 from tests.service.live import ADMIN_TOKEN, LiveServer, Sample, count_instances, samples_by_image
 from tests.service.predict_client import instances_of
-
-
-@pytest.fixture(scope="module")
-def admin(server: LiveServer) -> Iterator[KeypointClient]:
-    with KeypointClient(server.url, token=ADMIN_TOKEN) as client:
-        yield client
 
 
 @pytest.fixture(scope="module")

@@ -15,13 +15,13 @@ from pathlib import Path
 from urllib.parse import urlsplit
 
 import pytest
-from playwright.sync_api import Browser, BrowserContext, ConsoleMessage, Playwright, sync_playwright
+from playwright.sync_api import Browser, BrowserContext, ConsoleMessage
 
 from service.api.routes.console import CONSOLE_CONTENT_SECURITY_POLICY
 from service.settings import PACKAGE_ROOT
 from tests.service.live import ADMIN_TOKEN, LiveServer, Sample, batch_zip, samples_by_image
 from tests.service.predict_client import instances_of, predict_ok
-from tests.service.test_api_pages import RECORD_POLICY_VIOLATIONS, Watch, open_page
+from tests.service.test_api_pages import RECORD_POLICY_VIOLATIONS, Watch, open_page, watched_context
 from tests.service.test_audits import run_audit, shifted
 
 pytestmark = pytest.mark.browser
@@ -50,31 +50,9 @@ def predictions(server: LiveServer, samples: list[Sample]) -> None:
         time.sleep(3 * HISTORY_SECONDS)
 
 
-@pytest.fixture(scope="module")
-def playwright() -> Iterator[Playwright]:
-    with sync_playwright() as driver:
-        yield driver
-
-
-@pytest.fixture(scope="module")
-def browser(playwright: Playwright) -> Iterator[Browser]:
-    chromium = shutil.which("chromium")
-    assert chromium, "Debian's chromium is not installed: apt-get install chromium (.ci/run does)"
-    browser = playwright.chromium.launch(executable_path=chromium, headless=True)
-    yield browser
-    browser.close()
-
-
 @pytest.fixture
 def context(browser: Browser, server: LiveServer) -> Iterator[tuple[BrowserContext, Watch]]:
-    context = browser.new_context(viewport={"width": 1400, "height": 1350})
-    watch = Watch(server_host=urlsplit(server.url).hostname or "")
-    context.route("**/*", watch.route)
-    context.add_init_script(RECORD_POLICY_VIOLATIONS)
-    context.on("requestfailed", watch.request_failed)
-    context.on("response", watch.response)
-    yield context, watch
-    context.close()
+    yield from watched_context(browser, server, {"width": 1400, "height": 1350})
 
 
 @pytest.fixture(scope="module")
