@@ -72,6 +72,14 @@ Data classes (frozen, validated on construction: ValueError/TypeError says what 
   ``NewAuditEntry(model_hash, who, action, outcome, version=None, previous_version=None,
   reason="", client="", details={})`` and the stored ``AuditEntry`` (+ seq, at).
 
+Coverage audits (immutable, like versions):
+- ``create_coverage_audit(NewCoverageAudit(model_hash, version, who, batch_sha256,
+  n_instances, report), job=None) -> CoverageAudit`` (+ id, created_at); with ``job``
+  (a JobCompletion) the job is marked succeeded with ``"audit": <id>`` in its result in the
+  same transaction. VersionNotFound if the audited version does not exist.
+- ``coverage_audits(model_hash, before=None, limit=100) -> list[CoverageAudit]`` newest
+  first (id < before), ``coverage_audit(model_hash, audit_id) -> CoverageAudit | None``.
+
 Errors: StoreError > VersionNotFound (also a LookupError; HTTP 404), JobNotFound
 (a LookupError), JobExists (a ValueError), JobFinished, SchemaVersionError (database migrated by
 newer code), StoreUnavailable (HTTP 503).
@@ -97,9 +105,11 @@ from .models import (
     Activation,
     ActivationIntent,
     AuditEntry,
+    CoverageAudit,
     JobCompletion,
     JobRecord,
     NewAuditEntry,
+    NewCoverageAudit,
     NewVersion,
     ObjectScores,
     ScoreTable,
@@ -115,12 +125,14 @@ __all__ = [
     "ActivationIntent",
     "AuditEntry",
     "CalibrationStore",
+    "CoverageAudit",
     "JobCompletion",
     "JobExists",
     "JobFinished",
     "JobNotFound",
     "JobRecord",
     "NewAuditEntry",
+    "NewCoverageAudit",
     "NewVersion",
     "ObjectScores",
     "SchemaVersionError",

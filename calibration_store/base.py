@@ -12,9 +12,11 @@ from .models import (
     Activation,
     ActivationIntent,
     AuditEntry,
+    CoverageAudit,
     JobCompletion,
     JobRecord,
     NewAuditEntry,
+    NewCoverageAudit,
     NewVersion,
     ScoreTable,
     VersionInfo,
@@ -89,6 +91,25 @@ class CalibrationStore(ABC):
     @abstractmethod
     def audit_log(self, model_hash: str, before: int | None = None, limit: int = 100) -> list[AuditEntry]:
         """Audit entries of a model, newest first: at most ``limit`` with seq < ``before``."""
+
+    @abstractmethod
+    def create_coverage_audit(self, new: NewCoverageAudit, job: JobCompletion | None = None) -> CoverageAudit:
+        """Store a coverage audit (immutable) and return it with its id and created_at.
+
+        With ``job``, in the same transaction, mark that job succeeded with ``"audit": <id>``
+        added to its result (JobFinished or JobNotFound, and nothing is written, if it is final
+        or gone). Raises VersionNotFound if the audited version does not exist.
+        """
+
+    @abstractmethod
+    def coverage_audits(
+        self, model_hash: str, before: int | None = None, limit: int = 100
+    ) -> list[CoverageAudit]:
+        """Coverage audits of a model, newest first: at most ``limit`` with id < ``before``."""
+
+    @abstractmethod
+    def coverage_audit(self, model_hash: str, audit_id: int) -> CoverageAudit | None:
+        """One coverage audit of a model, or None if there is none with this id."""
 
     @abstractmethod
     def active_version(self, model_hash: str) -> Activation | None:

@@ -193,6 +193,51 @@ def _postgres_jobs_v3() -> tuple[str, ...]:
     )
 
 
+def _features_and_groups(blob: str) -> tuple[str, ...]:
+    """Label-free heatmap features of every calibration instance, and caller group labels."""
+    return (
+        f"""CREATE TABLE calib_feature_arrays (
+            version_id BIGINT NOT NULL,
+            object_name TEXT NOT NULL,
+            feature TEXT NOT NULL,
+            n_rows BIGINT NOT NULL,
+            n_cols INTEGER NOT NULL,
+            data {blob} NOT NULL,
+            PRIMARY KEY (version_id, object_name, feature),
+            FOREIGN KEY (version_id, object_name)
+                REFERENCES calib_score_objects (version_id, object_name)
+        )""",
+        "ALTER TABLE calib_score_objects ADD COLUMN groups TEXT",
+    )
+
+
+_FEATURES_AND_GROUPS = "heatmap features and group labels of calibration instances"
+
+
+def _coverage_audits(id_column: str, timestamp: str) -> tuple[str, ...]:
+    """Coverage audits of versions on labeled batches: immutable, like the versions they audit."""
+    return (
+        f"""CREATE TABLE calib_coverage_audits (
+            {id_column},
+            model_hash TEXT NOT NULL,
+            version INTEGER NOT NULL,
+            created_at {timestamp} NOT NULL,
+            who TEXT NOT NULL,
+            batch_sha256 TEXT NOT NULL,
+            n_instances BIGINT NOT NULL CHECK (n_instances >= 0),
+            report TEXT NOT NULL,
+            FOREIGN KEY (model_hash, version) REFERENCES calib_versions (model_hash, number)
+        )""",
+        "CREATE INDEX calib_coverage_audits_by_model ON calib_coverage_audits (model_hash, id)",
+    )
+
+
+_COVERAGE_AUDITS = "coverage audits"
+
+# Mondrian strata of a version (spec, difficulty-bin edges and counts) as JSON; NULL = none.
+_STRATA = "Mondrian strata of calibration versions"
+_STRATA_COLUMN = ("ALTER TABLE calib_versions ADD COLUMN strata TEXT",)
+
 SQLITE_MIGRATIONS: tuple[Migration, ...] = (
     Migration(
         1,
@@ -213,6 +258,18 @@ SQLITE_MIGRATIONS: tuple[Migration, ...] = (
         + _sqlite_immutability(("calib_audit",))
         + _sqlite_jobs_v3(),
     ),
+    Migration(
+        4,
+        _FEATURES_AND_GROUPS,
+        _features_and_groups("BLOB") + _sqlite_immutability(("calib_feature_arrays",)),
+    ),
+    Migration(
+        5,
+        _COVERAGE_AUDITS,
+        _coverage_audits("id INTEGER PRIMARY KEY AUTOINCREMENT", "TEXT")
+        + _sqlite_immutability(("calib_coverage_audits",)),
+    ),
+    Migration(6, _STRATA, _STRATA_COLUMN),
 )
 
 POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
@@ -241,6 +298,20 @@ POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
         + _postgres_triggers(("calib_audit",))
         + _postgres_jobs_v3(),
     ),
+    Migration(
+        4,
+        _FEATURES_AND_GROUPS,
+        _features_and_groups("BYTEA")
+        + ("ALTER TABLE calib_feature_arrays ALTER COLUMN data SET STORAGE EXTERNAL",)
+        + _postgres_triggers(("calib_feature_arrays",)),
+    ),
+    Migration(
+        5,
+        _COVERAGE_AUDITS,
+        _coverage_audits("id BIGINT GENERATED ALWAYS AS IDENTITY PRIMARY KEY", "TIMESTAMPTZ")
+        + _postgres_triggers(("calib_coverage_audits",)),
+    ),
+    Migration(6, _STRATA, _STRATA_COLUMN),
 )
 
 

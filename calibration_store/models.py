@@ -111,6 +111,38 @@ def _keypoint_ids(values: object, what: str) -> np.ndarray:
     return array
 
 
+def _features(values: object, name: str, shape: tuple[int, int]) -> dict[str, np.ndarray]:
+    if not isinstance(values, Mapping):
+        raise TypeError(f"features of {name!r} must map feature names to matrices")
+    matrices = {}
+    for feature, matrix in values.items():
+        if not isinstance(feature, str) or not _FUNCTION_RE.match(feature):
+            raise ValueError(f"feature name {feature!r} must match {_FUNCTION_RE.pattern}")
+        array = _float_matrix(matrix, f"feature {feature} of {name!r}", shape)
+        if np.isnan(array).any():
+            raise ValueError(f"feature {feature} of {name!r} must be finite for every keypoint")
+        matrices[feature] = array
+    return matrices
+
+
+_GROUP_RE = re.compile(r"^[\x20-\x7e]{0,64}$")
+
+
+def _groups(values: object, name: str, count: int) -> tuple[str, ...]:
+    """Empty, or exactly ``count`` printable ASCII labels of at most 64 characters ("" = none)."""
+    if isinstance(values, str | bytes) or not isinstance(values, Iterable):
+        raise TypeError(f"groups of {name!r} must be a sequence of strings")
+    groups = tuple(values)
+    if groups and len(groups) != count:
+        raise ValueError(f"groups of {name!r} has {len(groups)} labels for {count} instances")
+    for group in groups:
+        if not isinstance(group, str) or not _GROUP_RE.match(group):
+            raise ValueError(
+                f"group labels of {name!r} must be printable ASCII, at most 64 characters, got {group!r}"
+            )
+    return groups
+
+
 @dataclass(frozen=True, eq=False)
 class ObjectScores:
     """Scores of every instance of one object class.
@@ -121,6 +153,10 @@ class ObjectScores:
     image_hashes, instance_hashes: (n,) sha256 hex digests of each instance's image file
     and of the instance itself (image, object, box, labels), so that a batch appended
     later can be checked for repeats; both empty when unknown (versions made without them).
+    features: feature name -> (n, k) float64 label-free heatmap statistics of every
+    keypoint (labeled or not, all finite): the reference distribution for drift and the
+    difficulty signal of Mondrian strata; empty when unknown (versions made without them).
+    groups: (n,) caller group labels ("" = none); empty when no instance carried one.
     """
 
     object_name: str
@@ -129,6 +165,8 @@ class ObjectScores:
     scores: Mapping[str, np.ndarray]
     image_hashes: tuple[str, ...] = ()
     instance_hashes: tuple[str, ...] = ()
+    features: Mapping[str, np.ndarray] = field(default_factory=dict)
+    groups: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         name = _text(self.object_name, "object name")
@@ -153,6 +191,16 @@ class ObjectScores:
             object.__setattr__(self, what, _digests(getattr(self, what), f"{what} of {name!r}", len(refs)))
         if bool(self.image_hashes) != bool(self.instance_hashes):
             raise ValueError(f"object {name!r}: give both image_hashes and instance_hashes, or neither")
+        object.__setattr__(self, "features", _features(self.features, name, shape))
+        object.__setattr__(self, "groups", _groups(self.groups, name, len(refs)))
+
+    @property
+    def has_features(self) -> bool:
+        return bool(self.features)
+
+    @property
+    def has_groups(self) -> bool:
+        return bool(self.groups)
 
     @property
     def has_hashes(self) -> bool:
@@ -234,6 +282,7 @@ class NewVersion:
     author: str
     note: str = ""
     parent_version: int | None = None
+    strata: Mapping[str, Any] | None = None  # Mondrian strata: spec and edges (JSON), None = none
 
     def __post_init__(self) -> None:
         _text(self.model_hash, "model hash")
@@ -247,6 +296,8 @@ class NewVersion:
         batches = tuple(SourceBatch.coerce(b) for b in _iterable(self.source_batches))
         object.__setattr__(self, "source_batches", batches)
         object.__setattr__(self, "normalization", _normalization(self.normalization))
+        if self.strata is not None:
+            object.__setattr__(self, "strata", _json_object(self.strata, "strata"))
 
 
 def _iterable(value: object) -> Iterable[Any]:
@@ -271,6 +322,7 @@ class VersionInfo:
     n_instances: int
     object_counts: Mapping[str, int] = field(default_factory=dict)
     functions: tuple[str, ...] = ()
+    strata: Mapping[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -446,6 +498,36 @@ class AuditEntry(NewAuditEntry):
     at: datetime | None = None
 
 
+@dataclass(frozen=True)
+class NewCoverageAudit:
+    """A coverage audit of one calibration version on a labeled batch (the store sets id and
+    created_at). ``report`` is the audit's plain-JSON report; the store keeps it as given."""
+
+    model_hash: str
+    version: int
+    who: str
+    batch_sha256: str
+    n_instances: int
+    report: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        _text(self.model_hash, "model hash")
+        _count(self.version, "audited version", minimum=1)
+        _text(self.who, "who")
+        if not isinstance(self.batch_sha256, str) or not _SHA256_RE.match(self.batch_sha256):
+            raise ValueError("batch sha256 must be 64 lowercase hex digits")
+        _count(self.n_instances, "audited instances")
+        object.__setattr__(self, "report", _json_object(self.report, "audit report"))
+
+
+@dataclass(frozen=True)
+class CoverageAudit(NewCoverageAudit):
+    """A stored, immutable coverage audit: ``id`` orders audits store-wide."""
+
+    id: int = 0
+    created_at: datetime | None = None
+
+
 def check_number(value: object, what: str = "version number") -> int:
     """Validate a version number passed to a store method."""
     return _count(value, what, minimum=1)
@@ -460,7 +542,9 @@ __all__ = [
     "DEFAULT_FUNCTIONS",
     "ActivationIntent",
     "AuditEntry",
+    "CoverageAudit",
     "JobCompletion",
+    "NewCoverageAudit",
     "NewAuditEntry",
     "FINAL_JOB_STATES",
     "JOB_MUTABLE_FIELDS",

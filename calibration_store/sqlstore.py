@@ -23,9 +23,11 @@ from .models import (
     Activation,
     ActivationIntent,
     AuditEntry,
+    CoverageAudit,
     JobCompletion,
     JobRecord,
     NewAuditEntry,
+    NewCoverageAudit,
     NewVersion,
     ObjectScores,
     ScoreTable,
@@ -56,12 +58,17 @@ class EncodedBlock:
     arrays: tuple[tuple[str, int, int, bytes], ...]
     image_hashes: bytes | None
     instance_hashes: bytes | None
+    features: tuple[tuple[str, int, int, bytes], ...]
+    groups: str | None
 
 
 def encode_block(position: int, block: ObjectScores) -> EncodedBlock:
     n, k = block.n_instances, block.keypoint_ids.size
     arrays = tuple(
         (fn, n, k, codec.encode_matrix(block.scores[fn])) for fn in block.functions
+    )
+    features = tuple(
+        (name, n, k, codec.encode_matrix(block.features[name])) for name in sorted(block.features)
     )
     return EncodedBlock(
         position=position,
@@ -72,13 +79,16 @@ def encode_block(position: int, block: ObjectScores) -> EncodedBlock:
         arrays=arrays,
         image_hashes=codec.encode_digests(block.image_hashes),
         instance_hashes=codec.encode_digests(block.instance_hashes),
+        features=features,
+        groups=codec.encode_refs(block.groups) if block.has_groups else None,
     )
 
 
 _VERSION_COLUMNS = (
     "model_hash, number, model_name, normalization, source_batches, author, note,"
-    " parent_number, created_at, n_instances, object_counts, functions"
+    " parent_number, created_at, n_instances, object_counts, functions, strata"
 )
+_STRATA_COLUMN = ", strata"  # written only for a version that has strata
 _ACTIVATION_COLUMNS = "seq, model_hash, number, activated_at, who, reason"
 _JOB_COLUMNS = (
     "id, kind, owner, created_at, heartbeat_at, state, done, total, errors, result, finished_at,"
@@ -87,6 +97,7 @@ _JOB_COLUMNS = (
 _AUDIT_COLUMNS = (
     "seq, at, model_hash, who, action, outcome, version, previous_version, reason, client, details"
 )
+_COVERAGE_AUDIT_COLUMNS = "id, model_hash, version, created_at, who, batch_sha256, n_instances, report"
 _FINAL_STATES_SQL = ", ".join(f"'{state}'" for state in FINAL_JOB_STATES)
 
 
@@ -142,15 +153,18 @@ class SqlStore(CalibrationStore):
 
     def _complete_job(self, cur: Cursor, job: JobCompletion, number: int) -> None:
         """Mark the job succeeded with the version; refuse (rolling back) a finished or missing job."""
+        self._mark_succeeded(cur, job.job_id, {**job.result, "version": number}, number)
+
+    def _mark_succeeded(self, cur: Cursor, job_id: str, result: dict, version: int | None) -> None:
         now = self._time_to_db(now_utc())
         cur.execute(
             "UPDATE calib_jobs SET state = 'succeeded', done = total, result = ?, version = ?,"
             " finished_at = ?, heartbeat_at = ?"
             f" WHERE id = ? AND state NOT IN ({_FINAL_STATES_SQL}) RETURNING id",
-            (codec.encode_json({**job.result, "version": number}), number, now, now, job.job_id),
+            (codec.encode_json(result), version, now, now, job_id),
         )
         if cur.fetchone() is None:
-            self._raise_job_unchangeable(cur, job.job_id)
+            self._raise_job_unchangeable(cur, job_id)
 
     def _raise_job_unchangeable(self, cur: Cursor, job_id: str) -> None:
         cur.execute("SELECT state FROM calib_jobs WHERE id = ?", (job_id,))
@@ -197,9 +211,11 @@ class SqlStore(CalibrationStore):
     def _insert_version(
         self, cur: Cursor, new: NewVersion, number: int, created_at: datetime, scores: ScoreTable
     ) -> int:
+        strata = () if new.strata is None else (codec.encode_json(new.strata),)
+        columns = _VERSION_COLUMNS.removesuffix(_STRATA_COLUMN) + (_STRATA_COLUMN if strata else "")
+        marks = ", ".join("?" * (12 + len(strata)))
         cur.execute(
-            f"INSERT INTO calib_versions ({_VERSION_COLUMNS})"
-            " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING id",
+            f"INSERT INTO calib_versions ({columns}) VALUES ({marks}) RETURNING id",
             (
                 new.model_hash,
                 number,
@@ -213,6 +229,7 @@ class SqlStore(CalibrationStore):
                 scores.n_instances,
                 codec.encode_json(scores.object_counts()),
                 codec.encode_json(list(scores.functions)),
+                *strata,
             ),
         )
         return int(cur.fetchone()[0])
@@ -220,7 +237,8 @@ class SqlStore(CalibrationStore):
     def _insert_block(self, cur: Cursor, version_id: int, block: EncodedBlock) -> None:
         cur.execute(
             "INSERT INTO calib_score_objects (version_id, position, object_name, n_instances,"
-            " keypoint_ids, instance_refs, image_hashes, instance_hashes) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+            " keypoint_ids, instance_refs, image_hashes, instance_hashes, groups)"
+            " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
             (
                 version_id,
                 block.position,
@@ -230,14 +248,19 @@ class SqlStore(CalibrationStore):
                 block.instance_refs,
                 block.image_hashes,
                 block.instance_hashes,
+                block.groups,
             ),
         )
-        for function, rows, cols, data in block.arrays:
-            cur.execute(
-                "INSERT INTO calib_score_arrays (version_id, object_name, function, n_rows,"
-                " n_cols, data) VALUES (?, ?, ?, ?, ?, ?)",
-                (version_id, block.object_name, function, rows, cols, data),
-            )
+        for table, column, arrays in (
+            ("calib_score_arrays", "function", block.arrays),
+            ("calib_feature_arrays", "feature", block.features),
+        ):
+            for name, rows, cols, data in arrays:
+                cur.execute(
+                    f"INSERT INTO {table} (version_id, object_name, {column}, n_rows,"
+                    " n_cols, data) VALUES (?, ?, ?, ?, ?, ?)",
+                    (version_id, block.object_name, name, rows, cols, data),
+                )
 
     def _bump_counter(self, cur: Cursor) -> None:
         cur.execute("UPDATE calib_change_counter SET value = value + 1 WHERE id = 1")
@@ -300,6 +323,49 @@ class SqlStore(CalibrationStore):
         )
         return [self._audit(row) for row in rows]
 
+    # -- coverage audits ---------------------------------------------------------
+
+    def create_coverage_audit(self, new: NewCoverageAudit, job: JobCompletion | None = None) -> CoverageAudit:
+        if not isinstance(new, NewCoverageAudit):
+            raise TypeError("create_coverage_audit takes a NewCoverageAudit")
+        _check_types(job, JobCompletion, "job")
+        with self._transaction(write=True) as cur:
+            self._version_id(cur, new.model_hash, new.version)
+            cur.execute(
+                "INSERT INTO calib_coverage_audits (model_hash, version, created_at, who, batch_sha256,"
+                f" n_instances, report) VALUES (?, ?, ?, ?, ?, ?, ?) RETURNING {_COVERAGE_AUDIT_COLUMNS}",
+                (new.model_hash, new.version, self._time_to_db(now_utc()), new.who, new.batch_sha256,
+                 new.n_instances, codec.encode_json(dict(new.report))),
+            )  # fmt: skip
+            audit = self._coverage_audit(cur.fetchone())
+            if job is not None:
+                self._mark_succeeded(cur, job.job_id, {**job.result, "audit": audit.id}, None)
+        return audit
+
+    def coverage_audits(
+        self, model_hash: str, before: int | None = None, limit: int = 100
+    ) -> list[CoverageAudit]:
+        check_model_hash(model_hash)
+        limit = check_number(limit, "audit page size")
+        bound = _MAX_SEQ if before is None else check_number(before, "audit cursor")
+        rows = self._read(
+            f"SELECT {_COVERAGE_AUDIT_COLUMNS} FROM calib_coverage_audits WHERE model_hash = ? AND id < ?"
+            " ORDER BY id DESC LIMIT ?",
+            (model_hash, bound, limit),
+        )
+        return [self._coverage_audit(row) for row in rows]
+
+    def coverage_audit(self, model_hash: str, audit_id: int) -> CoverageAudit | None:
+        check_model_hash(model_hash)
+        check_number(audit_id, "audit id")
+        if audit_id > _MAX_SEQ:
+            return None
+        rows = self._read(
+            f"SELECT {_COVERAGE_AUDIT_COLUMNS} FROM calib_coverage_audits WHERE model_hash = ? AND id = ?",
+            (model_hash, audit_id),
+        )
+        return self._coverage_audit(rows[0]) if rows else None
+
     def _insert_activation(
         self, cur: Cursor, model_hash: str, number: int, who: str, reason: str
     ) -> Activation:
@@ -353,8 +419,8 @@ class SqlStore(CalibrationStore):
         with self._transaction(write=False) as cur:
             version_id = self._version_id(cur, model_hash, number)
             cur.execute(
-                "SELECT object_name, keypoint_ids, instance_refs, image_hashes, instance_hashes"
-                " FROM calib_score_objects WHERE version_id = ? ORDER BY position",
+                "SELECT object_name, keypoint_ids, instance_refs, image_hashes, instance_hashes,"
+                " groups FROM calib_score_objects WHERE version_id = ? ORDER BY position",
                 (version_id,),
             )
             objects = cur.fetchall()
@@ -364,7 +430,13 @@ class SqlStore(CalibrationStore):
                 (version_id,),
             )
             arrays = cur.fetchall()
-        return _score_table(objects, arrays)
+            cur.execute(
+                "SELECT object_name, feature, n_rows, n_cols, data FROM calib_feature_arrays"
+                " WHERE version_id = ?",
+                (version_id,),
+            )
+            features = cur.fetchall()
+        return _score_table(objects, arrays, features)
 
     def active_version(self, model_hash: str) -> Activation | None:
         check_model_hash(model_hash)
@@ -477,6 +549,7 @@ class SqlStore(CalibrationStore):
             n_instances=int(row[9]),
             object_counts=codec.decode_json(row[10]),
             functions=tuple(codec.decode_json(row[11])),
+            strata=None if row[12] is None else codec.decode_json(row[12]),
         )
 
     def _job(self, row: Sequence[Any]) -> JobRecord:
@@ -508,6 +581,18 @@ class SqlStore(CalibrationStore):
             reason=row[8],
             client=row[9],
             details=codec.decode_json(row[10]),
+        )
+
+    def _coverage_audit(self, row: Sequence[Any]) -> CoverageAudit:
+        return CoverageAudit(
+            id=int(row[0]),
+            model_hash=row[1],
+            version=int(row[2]),
+            created_at=self._time_from_db(row[3]),
+            who=row[4],
+            batch_sha256=row[5],
+            n_instances=int(row[6]),
+            report=codec.decode_json(row[7]),
         )
 
     def _activation(self, row: Sequence[Any]) -> Activation:
@@ -564,15 +649,22 @@ def _job_fields(job: JobRecord) -> list[tuple[str, Any]]:
     return [("heartbeat_at", job.heartbeat_at), *job.progress_fields().items()]
 
 
-def _score_table(objects: list[Any], arrays: list[Any]) -> ScoreTable:
+def _score_table(objects: list[Any], arrays: list[Any], features: list[Any]) -> ScoreTable:
+    return ScoreTable(tuple(_blocks(objects, _matrices(arrays), _matrices(features))))
+
+
+def _matrices(arrays: list[Any]) -> dict[str, dict[str, Any]]:
+    """Rows (object_name, name, n_rows, n_cols, data) -> object -> name -> matrix."""
     matrices: dict[str, dict[str, Any]] = {}
-    for object_name, function, rows, cols, data in arrays:
-        matrices.setdefault(object_name, {})[function] = codec.decode_matrix(data, rows, cols)
-    return ScoreTable(tuple(_blocks(objects, matrices)))
+    for object_name, name, rows, cols, data in arrays:
+        matrices.setdefault(object_name, {})[name] = codec.decode_matrix(data, rows, cols)
+    return matrices
 
 
-def _blocks(objects: list[Any], matrices: dict[str, dict[str, Any]]) -> Iterator[ObjectScores]:
-    for object_name, keypoint_ids, instance_refs, image_hashes, instance_hashes in objects:
+def _blocks(
+    objects: list[Any], matrices: dict[str, dict[str, Any]], features: dict[str, dict[str, Any]]
+) -> Iterator[ObjectScores]:
+    for object_name, keypoint_ids, instance_refs, image_hashes, instance_hashes, groups in objects:
         yield ObjectScores(
             object_name=object_name,
             keypoint_ids=codec.decode_ids(keypoint_ids),
@@ -580,4 +672,6 @@ def _blocks(objects: list[Any], matrices: dict[str, dict[str, Any]]) -> Iterator
             scores=matrices.get(object_name, {}),
             image_hashes=codec.decode_digests(image_hashes),
             instance_hashes=codec.decode_digests(instance_hashes),
+            features=features.get(object_name, {}),
+            groups=codec.decode_refs(groups) if groups is not None else (),
         )

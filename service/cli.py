@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import shlex
 import shutil
 import socket
 import sys
@@ -24,23 +25,25 @@ from service.settings import Settings
 def _serve(args: argparse.Namespace, settings: Settings) -> int:
     from calibration_store import open_store
     from service.calibration.bundle import bootstrap_default_calibration
+    from service.calibration.stratification import difficulty_spec
     from service.detector.runtime import Detector
     from service.metrics import enable_multiprocess
     from service.operators import load_operators
     from service.processes import remove_dead_process_folders
     from service.server import serve
+    from service.state import detector_providers
 
     host, port = args.host or settings.host, args.port or settings.port
     _check_port(host, port)
     # Check the model and store the bundled calibration once, before workers start racing.
     load_operators(settings.admin_token, settings.admin_tokens_file)
-    detector = Detector(settings.model_dir, settings.inference_threads)
+    detector = Detector(settings.model_dir, settings.inference_threads, **detector_providers(settings))
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     for shared in ("uploads", "metrics"):  # of stopped processes: uploads were never stored
         remove_dead_process_folders(settings.data_dir / shared)
     with open_store(settings.resolved_store_url) as store:
         if settings.bootstrap_calibration:
-            bootstrap_default_calibration(store, detector, settings.model_dir)
+            bootstrap_default_calibration(store, detector, settings.model_dir, difficulty_spec(settings))
     del detector  # the serving process loads its own
     metrics = enable_multiprocess(settings.data_dir / "metrics") if settings.workers > 1 else None
     try:
@@ -71,13 +74,15 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     from service.calibration.calibrate import check_parent, create_calibration
     from service.calibration.coco import NamedBatch, load_coco_batch
     from service.calibration.intake import prepare_batch
+    from service.calibration.stratification import difficulty_spec
     from service.calibration.submission import UploadRequest
     from service.detector.runtime import Detector
+    from service.state import detector_providers
 
     request = UploadRequest(args.name, args.note, args.append_to, args.activate, args.force, args.reason,
-                            args.dedupe, args.max_rejected_share)  # fmt: skip
+                            args.dedupe, args.max_rejected_share, args.stratify)  # fmt: skip
     share = request.rejected_share(settings.max_rejected_share)
-    detector = Detector(settings.model_dir, settings.inference_threads)
+    detector = Detector(settings.model_dir, settings.inference_threads, **detector_providers(settings))
     with open_store(settings.resolved_store_url) as store:
         parent = parent_table = None
         if args.append_to is not None:
@@ -101,7 +106,7 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
             print(f"\rscored {done}/{total} instances", end="", file=sys.stderr, flush=True)
 
         options = request.options(Operator(args.author, "cli"), settings.max_rejected_share,
-                                  settings.min_calibration_instances)  # fmt: skip
+                                  settings.min_calibration_instances, difficulty_spec(settings))  # fmt: skip
         audit = AuditTrail(store, detector.model_hash)
         pixels = settings.max_image_pixels
         outcome = create_calibration(store, detector, batches, options, pixels, audit, progress)
@@ -121,7 +126,7 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
 def _predict(args: argparse.Namespace, settings: Settings) -> int:
     from contextlib import nullcontext
 
-    from keypoint_client import ConnectionFailed, KeypointClient, ProblemError
+    from keypoint_client import ConnectionFailed, KeypointClient, PoseRequest, ProblemError
 
     from service.api.schemas import PredictParameters
     from service.inprocess import served
@@ -129,10 +134,18 @@ def _predict(args: argparse.Namespace, settings: Settings) -> int:
     image = Path(args.image).read_bytes()
     options = {"epsilon": args.epsilon, "nonconformity": args.nonconformity, "coverage": args.coverage,
                "delta": args.delta, "calibration_version": args.calibration_version}  # fmt: skip
+    pose = None if args.pose_k is None else {"K": args.pose_k}
+    if pose is not None and args.coverage != "object":
+        raise InvalidInput("--pose-k needs --coverage object: only object-scope sets carry a pose guarantee")
     try:  # refuse a mistake before a model is loaded for nothing
-        PredictParameters(instances=[{"object": o, "bbox": b} for o, b in args.instance], **options)
+        instances = [{"object": o, "bbox": b} for o, b in args.instance]
+        PredictParameters(instances=instances, pose=pose, **options)
     except ValidationError as error:
-        raise InvalidInput(_problems(error, lambda loc: ".".join(loc))) from None
+        raise InvalidInput(
+            _problems(error, lambda loc: "--pose-k" if loc[:2] == ["pose", "K"] else ".".join(loc))
+        ) from None
+    if pose is not None:
+        options["pose"] = PoseRequest.model_validate(pose)
     # Without --url, this process serves the model on a loopback port: one path, the client's.
     with nullcontext(args.url) if args.url else served(settings) as url, KeypointClient(url) as client:
         try:
@@ -145,6 +158,37 @@ def _predict(args: argparse.Namespace, settings: Settings) -> int:
     if drawn is not None:
         Path(args.png).write_bytes(drawn)
     print(response.model_dump_json(indent=2))
+    return 0
+
+
+def _evaluate(args: argparse.Namespace, settings: Settings) -> int:
+    from calibration_store import open_store
+    from service.evaluation import run
+
+    command = shlex.join(["keypoint-service", *args.argv])
+    epsilons = tuple(sorted(set(args.epsilon or run.DEFAULT_EPSILONS)))
+    request = run.EvaluationRequest(Path(args.folder), Path(args.out), args.version, epsilons, args.delta,
+                                    args.title or run.DEFAULT_TITLE, command)  # fmt: skip
+    run.require_matplotlib()  # refuse a mistake before a model is loaded for nothing
+    run.check_request(request)
+    from service.calibration.bundle import bootstrap_default_calibration
+    from service.detector.runtime import Detector
+
+    detector = Detector(settings.model_dir, settings.inference_threads)
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    with open_store(settings.resolved_store_url) as store:
+        if settings.bootstrap_calibration:  # as serve would on its first start
+            bootstrap_default_calibration(store, detector, settings.model_dir)
+        done = 0
+
+        def progress(count: int) -> None:
+            nonlocal done
+            done += count
+            print(f"\revaluated {done} instances", end="", file=sys.stderr, flush=True)
+
+        evaluation, path = run.run_evaluation(request, store, detector, settings.max_image_pixels, progress)
+    print(file=sys.stderr)
+    print(f"wrote {path} (version {evaluation.version.number}, {evaluation.rows.instances} instances)")
     return 0
 
 
@@ -178,6 +222,23 @@ def _write_json(document: dict, output: str) -> int:
     return 0
 
 
+def _camera_matrix(text: str) -> list[list[float]]:
+    """``fx,fy,cx,cy`` as the pinhole matrix, or a JSON matrix (checked later, as the API checks it)."""
+    try:
+        if text.lstrip().startswith("["):
+            matrix = json.loads(text)
+            if isinstance(matrix, list) and all(isinstance(row, list) for row in matrix):
+                return [[float(v) for v in row] for row in matrix]
+        else:
+            fx, fy, cx, cy = (float(v) for v in text.split(","))
+            return [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]
+    except (ValueError, TypeError):
+        pass
+    raise argparse.ArgumentTypeError(
+        f"{text!r}: use fx,fy,cx,cy (e.g. 572,572,320,240) or a 3x3 JSON matrix [[fx,0,cx],[0,fy,cy],[0,0,1]]"
+    )
+
+
 def _instance(text: str) -> tuple[str, list[float]]:
     name, sep, bbox = text.partition(":")
     try:
@@ -206,8 +267,17 @@ EXAMPLES = {
   keypoint-service predict models/lmo-synth-unet/samples/images/000000.jpg --instance duck:235,217,67,64
   keypoint-service predict scene.png --instance duck:235,217,67,64 --instance teddy:383,191,81,73 \\
       --epsilon 0.05 --nonconformity var --png sets.png
+  keypoint-service predict models/lmo-synth-unet/samples/images/000000.jpg --instance duck:235,217,67,64 \\
+      --coverage object --pose-k 572,572,320,240 --png pose.png
 
 A box is x,y,width,height in pixels, origin at the image's top-left corner.
+""",
+    "evaluate": """\
+  keypoint-service evaluate data/site_b
+  keypoint-service evaluate data/site_b --version 3 --epsilon 0.05 --epsilon 0.1 --out reports/site_b
+  CKS_DATA_DIR=/tmp/scratch keypoint-service evaluate data/lmo_synth/test --delta 0.1 --out docs
+
+Writes OUT/evaluation.md and OUT/figures/*.png (needs the `evaluate` extra: matplotlib).
 """,
     "check-model": """\
   keypoint-service check-model
@@ -292,6 +362,11 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         help="share of instances the box rule may reject (default CKS_MAX_REJECTED_SHARE)",
     )
+    calibrate.add_argument(
+        "--stratify",
+        help="Mondrian strata to store: none, difficulty, group or difficulty+group (default: difficulty"
+        " when the scores carry heatmap features)",
+    )
     calibrate.add_argument("--bundle", help="also write the version to this .npz file")
     calibrate.set_defaults(run=_calibrate)
 
@@ -330,9 +405,37 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="VERSION",
         help="answer with this version (default: the active one)",
     )
-    predict.add_argument("--png", help="also draw the sets into this PNG file")
+    predict.add_argument(
+        "--pose-k",
+        type=_camera_matrix,
+        metavar="fx,fy,cx,cy",
+        help="also each instance's pose set (PURSE) for this camera (or a 3x3 JSON matrix), in the"
+        " image's pixels with pixel centres at +0.5; needs --coverage object (docs/pose.md)",
+    )
+    predict.add_argument("--png", help="also draw the sets (and the poses) into this PNG file")
     predict.add_argument("--url", help="the service to ask (default: serve the model in this process)")
     predict.set_defaults(run=_predict)
+
+    evaluate = _command(commands, "evaluate", "the paper's evaluation of a version on a labeled COCO folder")
+    evaluate.add_argument("folder", help="a folder holding annotations.json and images (as for calibrate)")
+    evaluate.add_argument(
+        "--version",
+        "--calibration-version",
+        dest="version",
+        type=int,
+        metavar="VERSION",
+        help="the calibration version to evaluate (default: the active one)",
+    )
+    evaluate.add_argument(
+        "--epsilon",
+        type=float,
+        action="append",
+        help="miscoverage to evaluate at; repeat for several (default 0.1)",
+    )
+    evaluate.add_argument("--delta", type=float, help="also evaluate the PAC guarantee at this delta")
+    evaluate.add_argument("--out", default="evaluation", help="writes OUT/evaluation.md and OUT/figures/")
+    evaluate.add_argument("--title", help="the report's title (default: Conformal keypoint sets: evaluation)")
+    evaluate.set_defaults(run=_evaluate)
 
     check = _command(commands, "check-model", "validate a model directory and summarize its manifest")
     check.add_argument("model_dir", nargs="?", type=Path, help="default: CKS_MODEL_DIR")
@@ -350,6 +453,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    args.argv = sys.argv[1:] if argv is None else list(argv)  # as typed: the report states its command
     try:
         settings = Settings()
     except ValidationError as error:

@@ -56,6 +56,7 @@ class Scaling:
     target_ongoing_requests: float | None = None
     max_ongoing_requests: int | None = None
     num_cpus: float = 1.0
+    num_gpus: float = 0.0  # for a GPU provider in CKS_EXECUTION_PROVIDERS: Ray gives each replica one
 
     def __post_init__(self) -> None:
         if self.replicas < 1 or self.min_replicas < 1:
@@ -64,6 +65,8 @@ class Scaling:
             raise ValueError(f"max_replicas {self.max_replicas} is below min_replicas {self.min_replicas}")
         if self.num_cpus <= 0:
             raise ValueError("num_cpus must be positive")
+        if self.num_gpus < 0:
+            raise ValueError("num_gpus must be 0 or more")
 
     def deployment_options(self, settings: Settings) -> dict[str, Any]:
         """Options for ``Deployment.options``."""
@@ -71,7 +74,8 @@ class Scaling:
         options: dict[str, Any] = {
             "max_ongoing_requests": self.max_ongoing_requests
             or slots + settings.max_queued_requests + ADMIN_HEADROOM,
-            "ray_actor_options": {"num_cpus": self.num_cpus},
+            "ray_actor_options": {"num_cpus": self.num_cpus}
+            | ({"num_gpus": self.num_gpus} if self.num_gpus else {}),
         }
         if self.max_replicas is None:
             options["num_replicas"] = self.replicas
@@ -188,6 +192,8 @@ def _parser() -> argparse.ArgumentParser:
                        help="requests Serve sends one replica at once (default CKS_MAX_CONCURRENT_INFERENCES"
                        f" + CKS_MAX_QUEUED_REQUESTS + {ADMIN_HEADROOM})")  # fmt: skip
     scale.add_argument("--num-cpus", type=float, default=defaults.num_cpus, help="CPUs reserved per replica")
+    scale.add_argument("--num-gpus", type=float, default=defaults.num_gpus,
+                       help="GPUs reserved per replica (a GPU in CKS_EXECUTION_PROVIDERS)")  # fmt: skip
     service = parser.add_argument_group("service settings (override the CKS_* variables)")
     service.add_argument("--store-url", help="CKS_STORE_URL: postgresql://user@host:5432/db")
     service.add_argument("--data-dir", help="CKS_DATA_DIR, the same path on every node (shared, for retries)")

@@ -5,7 +5,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from service.api.schemas import BallSet, EllipseSet, PredictResponse
+from service.api.schemas import BallSet, EllipseSet, InstanceOut, PredictResponse
+from service.detector.manifest import Manifest
 
 _SHIFT = 4  # OpenCV fixed-point bits: sub-pixel drawing
 _SCALE = 1 << _SHIFT
@@ -60,14 +61,50 @@ def _draw_legend(canvas: np.ndarray, response: PredictResponse) -> None:
         cv2.putText(canvas, text, origin, cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
 
 
-def render_prediction(image_bgr: np.ndarray, response: PredictResponse) -> bytes:
-    """PNG bytes of the image with every set, point estimate and keypoint name drawn on it."""
+_AXIS_COLOURS = [(0, 0, 255), (0, 255, 0), (255, 0, 0)]  # x red, y green, z blue (BGR)
+_BOX_EDGES = [(a, b) for a in range(8) for b in range(a + 1, 8) if bin(a ^ b).count("1") == 1]
+
+
+def _draw_pose(canvas: np.ndarray, instance: InstanceOut, camera: np.ndarray, manifest: Manifest) -> None:
+    """The estimated pose's projected 3D box (around the object's 3D keypoints) and its axes."""
+    pose = instance.pose
+    points_3d = manifest.object(instance.object).keypoints_3d
+    if pose is None or pose.rotation is None or pose.translation is None or not points_3d:
+        return
+    low, high = np.min(points_3d, axis=0), np.max(points_3d, axis=0)
+    corners = np.array([[(high if (k >> d) & 1 else low)[d] for d in range(3)] for k in range(8)])
+    axis = 0.5 * float(np.max(high - low))
+    axes = np.array([[0.0, 0.0, 0.0], [axis, 0, 0], [0, axis, 0], [0, 0, axis]])
+    rotation, translation = np.array(pose.rotation), np.array(pose.translation)
+    camera_points = np.vstack([corners, axes]) @ rotation.T + translation
+    if (camera_points[:, 2] <= 0).any():
+        return  # a box reaching behind the camera has no faithful drawing
+    projected = camera_points @ camera.T
+    image_points = [_fixed(tuple(p[:2] / p[2])) for p in projected]
+    for a, b in _BOX_EDGES:
+        cv2.line(canvas, image_points[a], image_points[b], (255, 255, 255), 1, cv2.LINE_AA, _SHIFT)
+    origin = image_points[8]
+    for tip, colour in zip(image_points[9:], _AXIS_COLOURS, strict=True):
+        cv2.line(canvas, origin, tip, colour, 2, cv2.LINE_AA, _SHIFT)
+
+
+def render_prediction(
+    image_bgr: np.ndarray,
+    response: PredictResponse,
+    camera: np.ndarray | None = None,
+    manifest: Manifest | None = None,
+) -> bytes:
+    """PNG bytes of the image with every set, point estimate and keypoint name drawn on it.
+
+    With a camera matrix and the manifest, each instance's estimated pose is drawn too."""
     canvas = cv2.cvtColor(image_bgr, cv2.COLOR_GRAY2BGR) if image_bgr.ndim == 2 else image_bgr.copy()
     thickness = max(1, round(min(canvas.shape[:2]) / 400))
     font_scale = max(0.35, min(canvas.shape[:2]) / 1400)
     for instance in response.instances:
         x, y, w, h = instance.bbox
         cv2.rectangle(canvas, _fixed((x, y)), _fixed((x + w, y + h)), (200, 200, 200), 1, cv2.LINE_AA, _SHIFT)
+        if camera is not None and manifest is not None:
+            _draw_pose(canvas, instance, camera, manifest)
         for keypoint in instance.keypoints:
             colour = _PALETTE[keypoint.index % len(_PALETTE)]
             _draw_set(canvas, keypoint.set, colour, thickness)

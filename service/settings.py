@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import json
 import os
 from functools import cached_property
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import Field, field_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from calibration_store import sqlite_path
+from service.conformal.features import HEATMAP_FEATURES
 
 PACKAGE_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_MODEL_DIR = PACKAGE_ROOT / "models" / "lmo-synth-unet"
@@ -116,6 +118,23 @@ class Settings(BaseSettings):
     cpu_workers: int = Field(
         default=4, gt=0, description="threads for decode, crop and scoring off the event loop"
     )
+    execution_providers: Annotated[tuple[str, ...], NoDecode] = Field(
+        default=("CPUExecutionProvider",),
+        description="onnxruntime execution providers in order of preference, comma-separated or a JSON"
+        " list, e.g. CUDAExecutionProvider,CPUExecutionProvider (GPU: the gpu extra, docs/operations.md);"
+        " one that this onnxruntime lacks is refused at start-up",
+    )
+    execution_provider_options: dict[str, dict[str, str]] = Field(
+        default_factory=dict,
+        description='JSON options per provider, e.g. {"CUDAExecutionProvider": {"device_id": "1"}}',
+    )
+    batch_window_ms: float = Field(
+        default=0.0,
+        ge=0,
+        le=1000,
+        description="how long a merged run waits for more crops once it has one (0 = runs what is queued"
+        " at once; a GPU gains from 1-5 ms, see docs/operations.md)",
+    )
 
     max_upload_bytes: int = Field(default=2 * 2**30, gt=0, description="largest calibration zip")
     max_upload_files: int = Field(default=100_000, gt=0, description="most files in a calibration zip")
@@ -139,6 +158,17 @@ class Settings(BaseSettings):
     min_calibration_instances: int = Field(
         default=100, ge=0, description="activation needs this n per keypoint (unless forced with a reason)"
     )
+    stratum_signals: str = Field(
+        default="gamma,peak_probability",
+        description="difficulty strata: one heatmap feature, or two (comma-separated) for joint bins"
+        " (peak_probability, gamma, anisotropy)",
+    )
+    stratum_bins: int = Field(
+        default=3, ge=1, le=20, description="difficulty strata: quantile bins per signal"
+    )
+    min_stratum_instances: int = Field(
+        default=30, ge=1, description="difficulty strata: least calibration scores per bin (bins merge below)"
+    )
     max_rejected_share: float = Field(
         default=0.0, ge=0, le=1, description="share of a batch's instances that may be rejected (default)"
     )
@@ -159,6 +189,45 @@ class Settings(BaseSettings):
         " this long; unset: never (predictions go on either way)",
     )
 
+    drift_enabled: bool = Field(
+        default=True,
+        description="keep windows of every keypoint's live heatmap features and test them against the"
+        " active calibration's (GET /v1/admin/drift, cks_drift_* metrics)",
+    )
+    drift_window: int = Field(
+        default=500,
+        ge=10,
+        le=100_000,
+        description="live instances kept per keypoint (the drift window; each feature's window holds"
+        " those that computed it)",
+    )
+    drift_test: Literal["ks", "psi"] = Field(
+        default="ks",
+        description="drift test: `ks` (Kolmogorov-Smirnov p-values, Holm-corrected) or `psi` (population"
+        " stability index over 10 quantile bins)",
+    )
+    drift_alarm_level: float = Field(
+        default=0.01,
+        gt=0,
+        lt=1,
+        description="ks: family-wise error rate of the drift alarm over all keypoints x features (Holm)",
+    )
+    drift_psi_threshold: float = Field(
+        default=0.25,
+        gt=0,
+        description="psi: a keypoint's feature alarms above this index (once it has 400 live values)",
+    )
+    drift_full_statistics_share: float = Field(
+        default=0.25,
+        ge=0,
+        le=1,
+        description="share of predictions that also compute the heatmap statistics their nonconformity"
+        " function skips, so every drift feature gets live values (the rest record theirs for free)",
+    )
+    drift_history_seconds: float = Field(
+        default=60.0, gt=0, description="one point of the drift history this often (360 points kept)"
+    )
+
     log_format: Literal["text", "json"] = Field(
         default="text",
         description="`text` (one line: UTC time, level, logger, [request id], message) or `json`"
@@ -174,10 +243,37 @@ class Settings(BaseSettings):
         description="one line per request: method, path, status, latency, request id, calibration version",
     )
 
+    @field_validator("stratum_signals")
+    @classmethod
+    def _stratum_signals(cls, value: str) -> str:
+        names = [name.strip() for name in value.split(",") if name.strip()]
+        unknown = [name for name in names if name not in HEATMAP_FEATURES]
+        if not 1 <= len(names) <= 2 or unknown or len(set(names)) != len(names):
+            raise ValueError(f"give one or two distinct heatmap features of {', '.join(HEATMAP_FEATURES)},"
+                             f" comma-separated; got {value!r}")  # fmt: skip
+        return ",".join(names)
+
     @field_validator("log_level", mode="before")
     @classmethod
     def _upper(cls, level: object) -> object:
         return level.upper() if isinstance(level, str) else level
+
+    @field_validator("execution_providers", mode="before")
+    @classmethod
+    def _provider_list(cls, providers: object) -> object:
+        """``A,B`` or ``["A", "B"]``; whether this onnxruntime has them is checked when the model loads."""
+        if isinstance(providers, str) and providers.strip().startswith("["):
+            try:
+                providers = json.loads(providers)
+            except json.JSONDecodeError as error:
+                raise ValueError(f"not a JSON list ({error}); or names separated by commas") from None
+        elif isinstance(providers, str):
+            providers = [name.strip() for name in providers.split(",") if name.strip()]
+        if isinstance(providers, list | tuple) and not providers:
+            raise ValueError("name at least one, e.g. CPUExecutionProvider")
+        if isinstance(providers, list | tuple) and len(set(map(str, providers))) < len(providers):
+            raise ValueError("a provider is named twice: name each once, in order of preference")
+        return providers
 
     @field_validator("store_url")
     @classmethod

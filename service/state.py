@@ -8,21 +8,26 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 
-from calibration_store import CalibrationStore, open_store, store_location
+from calibration_store import CalibrationStore, ScoreTable, open_store, store_location
 from service.admission import Admission
 from service.audit import AuditTrail
 from service.calibration.archive import ArchiveLimits, DiskBudget
 from service.calibration.bundle import bootstrap_default_calibration
 from service.calibration.jobs import JobRunner
 from service.calibration.registry import CalibrationRegistry
+from service.calibration.stratification import difficulty_spec
 from service.calibration.submission import CalibrationJobs, SubmissionSettings
 from service.calibration.uploads import process_uploads_dir, remove_spent_job_folders
 from service.conformal.kernel import native_kernel_available
 from service.detector.runtime import Detector
 from service.logs import ensure_logging
+from service.metrics import forget_drift_source, set_drift_source
+from service.monitoring.audits import CoverageAudits
+from service.monitoring.drift import DriftMonitor, DriftSettings
 from service.operators import load_operators
 from service.settings import Settings
 
@@ -43,6 +48,8 @@ class ServiceState:
     operators: dict[str, str]  # admin token -> operator name
     cpu_pool: ThreadPoolExecutor
     admission: Admission
+    audits: CoverageAudits
+    drift: DriftMonitor | None = None  # None when CKS_DRIFT_ENABLED is false
 
     @property
     def uploads_dir(self) -> Path:
@@ -55,6 +62,9 @@ class ServiceState:
         started = time.monotonic()
         log.info("shutdown: interrupting calibration jobs, then closing the store and the model")
         self.registry.stop()
+        if self.drift is not None:
+            self.drift.stop()
+            forget_drift_source(self.drift.report)
         self.jobs.shutdown()
         shutil.rmtree(process_uploads_dir(self.uploads_dir), ignore_errors=True)  # cancelled jobs' uploads
         self.cpu_pool.shutdown(wait=True, cancel_futures=True)
@@ -79,14 +89,17 @@ def build_state(settings: Settings) -> ServiceState:
         settings.inference_threads,
         settings.max_inference_batch,
         settings.inference_streams,
+        **detector_providers(settings),
+        batch_window_s=settings.batch_window_ms / 1000,
         solo_threads=settings.solo_threads,
     )
+    log.info("onnxruntime execution providers in use: %s", ", ".join(detector.execution_providers))
     kind, location = store_location(settings.resolved_store_url)
     # SQLite keeps its busy timeout: a write waiting on another writer is no outage
     options = {"timeout_s": settings.store_timeout_seconds} if kind == "postgresql" else {}
     store = open_store(settings.resolved_store_url, **options)
     if settings.bootstrap_calibration:
-        bootstrap_default_calibration(store, detector, settings.model_dir)
+        bootstrap_default_calibration(store, detector, settings.model_dir, difficulty_spec(settings))
     registry = CalibrationRegistry(store, detector.model_hash, detector.manifest, settings.store_poll_seconds,
                                    settings.store_timeout_seconds)  # fmt: skip
     names = ", ".join(sorted(operators.values())) or "none (admin API disabled)"
@@ -100,21 +113,56 @@ def build_state(settings: Settings) -> ServiceState:
     remove_spent_job_folders(settings.jobs_dir, store)
     jobs = JobRunner(store, settings.calibration_workers)
     audit = AuditTrail(store, detector.model_hash)
+    submission = _submission_settings(settings)
+    audits = CoverageAudits(store, detector, registry, jobs, audit, submission)
+    audits.publish_latest()
+    drift = _drift_monitor(settings, detector, registry)
     return ServiceState(
         settings=settings,
         detector=detector,
         store=store,
         registry=registry,
         jobs=jobs,
-        calibrations=CalibrationJobs(store, detector, registry, jobs, audit, _submission_settings(settings)),
+        calibrations=CalibrationJobs(store, detector, registry, jobs, audit, submission),
         audit=audit,
         operators=operators,
         cpu_pool=ThreadPoolExecutor(settings.cpu_workers, thread_name_prefix="cpu"),
         admission=Admission(
-            settings.max_concurrent_inferences, settings.max_queued_requests, settings.queue_timeout_seconds,
+            settings.max_concurrent_inferences,
+            settings.max_queued_requests,
+            settings.queue_timeout_seconds,
             settings.max_receiving_bytes,
         ),  # fmt: skip
+        audits=audits,
+        drift=drift,
     )
+
+
+def _drift_monitor(
+    settings: Settings, detector: Detector, registry: CalibrationRegistry
+) -> DriftMonitor | None:
+    """The drift monitor, its history ticker started and its report the source of cks_drift_*."""
+    if not settings.drift_enabled:
+        return None
+
+    def active_calibration() -> tuple[int | None, ScoreTable | None]:
+        version = registry.active_version()
+        if version is None or registry.incompatibility(version) is not None:
+            return version, None
+        return version, registry.scores(version)
+
+    drift_settings = DriftSettings(
+        window=settings.drift_window,
+        test=settings.drift_test,
+        alarm_level=settings.drift_alarm_level,
+        psi_threshold=settings.drift_psi_threshold,
+        full_statistics_share=settings.drift_full_statistics_share,
+        history_seconds=settings.drift_history_seconds,
+    )
+    monitor = DriftMonitor(detector.manifest, active_calibration, drift_settings)
+    monitor.start()
+    set_drift_source(monitor.report)
+    return monitor
 
 
 def _submission_settings(settings: Settings) -> SubmissionSettings:
@@ -125,4 +173,13 @@ def _submission_settings(settings: Settings) -> SubmissionSettings:
         min_instances=settings.min_calibration_instances,
         max_rejected_share=settings.max_rejected_share,
         disk=DiskBudget.from_settings(settings),
+        difficulty=difficulty_spec(settings),
     )
+
+
+def detector_providers(settings: Settings) -> dict[str, Any]:
+    """The execution provider arguments of ``Detector``, from CKS_EXECUTION_PROVIDERS(_OPTIONS)."""
+    return {
+        "providers": settings.execution_providers,
+        "provider_options": settings.execution_provider_options,
+    }

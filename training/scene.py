@@ -271,14 +271,18 @@ def _render(rng: np.random.Generator, world: World, camera: Camera) -> tuple[np.
     return rgb, depth, np.asarray(seg, dtype=np.int64).reshape(shape)
 
 
-def render_scene(world: World, rng: np.random.Generator) -> Rendered:
-    """Sample and render one scene: 3-6 annotated objects, clutter, occluders, ground, light, camera."""
+def render_scene(world: World, rng: np.random.Generator, extra_occluders: int = 0) -> Rendered:
+    """Sample and render one scene: 3-6 annotated objects, clutter, occluders, ground, light, camera.
+
+    ``extra_occluders`` adds that many distractors between the camera and the annotated
+    objects (heavier occlusion); with 0 the scene, and every random draw, is the default's.
+    """
     world.park_all()
     camera = _sample_camera(rng, world)
     _setup_ground(rng, world)
     classes = rng.choice(len(OBJECT_CLASSES), int(rng.integers(3, len(OBJECT_CLASSES) + 1)), replace=False)
-    chosen = rng.choice(len(world.distractors), int(rng.integers(3, 9)), replace=False)
-    occluders = int(rng.integers(1, 3))
+    chosen = rng.choice(len(world.distractors), int(rng.integers(3, 9)) + extra_occluders, replace=False)
+    occluders = int(rng.integers(1, 3)) + extra_occluders
     clutter = chosen[:-occluders]
     radii = [class_mesh(OBJECT_CLASSES[c]).diameter / 2 for c in classes]
     radii += [world.distractor_radius[i] for i in clutter]

@@ -7,7 +7,8 @@
         keypoint = result.instances[0].keypoints[0]
         keypoint.set.contains([[268.0, 219.0]])  # -> array([ True])
 
-See README.md for the rest: many images per call, retries, calibration administration.
+See README.md for the rest: many images per call, pose sets, retries, calibration
+administration, coverage audits and drift.
 """
 
 from keypoint_client.admin_models import (
@@ -23,7 +24,7 @@ from keypoint_client.admin_models import (
     VersionList,
     VersionSummary,
 )
-from keypoint_client.calls import PredictOptions, PredictRequest, UploadOptions
+from keypoint_client.calls import AuditOptions, PredictOptions, PredictRequest, UploadOptions
 from keypoint_client.client import AsyncKeypointClient, KeypointClient, __version__
 from keypoint_client.errors import (
     ActivationRefused,
@@ -52,8 +53,22 @@ from keypoint_client.models import (
     Keypoint,
     KeypointStatistics,
     ModelInfo,
+    OuterBound,
+    Pose,
+    PoseCheck,
+    PoseCheckResult,
+    PoseRequest,
     PredictResult,
     Readiness,
+    SampledBound,
+)
+from keypoint_client.monitoring_models import (
+    AuditReport,
+    CoverageAudit,
+    CoverageAuditList,
+    CoverageAuditSummary,
+    CoverageFigure,
+    Drift,
 )
 from keypoint_client.retry import RetryPolicy
 from keypoint_client.sets import Ball, Ellipse, PredictionSet, Unbounded
@@ -64,12 +79,19 @@ __all__ = [
     "ActivationRefused",
     "AsyncKeypointClient",
     "AuditEntry",
+    "AuditOptions",
     "AuditPage",
+    "AuditReport",
     "BadRequest",
     "Ball",
     "Comparison",
     "Conflict",
     "ConnectionFailed",
+    "CoverageAudit",
+    "CoverageAuditList",
+    "CoverageAuditSummary",
+    "CoverageFigure",
+    "Drift",
     "Ellipse",
     "Forbidden",
     "Guarantee",
@@ -87,7 +109,12 @@ __all__ = [
     "KeypointStatistics",
     "ModelInfo",
     "NotFound",
+    "OuterBound",
     "PayloadTooLarge",
+    "Pose",
+    "PoseCheck",
+    "PoseCheckResult",
+    "PoseRequest",
     "PredictOptions",
     "PredictRequest",
     "PredictResult",
@@ -96,6 +123,7 @@ __all__ = [
     "Readiness",
     "RequestTimeout",
     "RetryPolicy",
+    "SampledBound",
     "ServerError",
     "ServiceUnavailable",
     "StoreInfo",

@@ -48,6 +48,7 @@ class VersionDetail(VersionSummary):
     labeled_per_keypoint: dict[str, int] = Field(description="calibration scores per keypoint (n)")
     complete_per_object: dict[str, int] = Field(description="fully labeled instances (object scope n)")
     thresholds: list[ThresholdRow]
+    strata: dict[str, Any] | None = Field(default=None, description="Mondrian strata: spec, groups, bins")
 
 
 class VersionList(Frozen):

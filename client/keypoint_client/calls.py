@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Generic, Literal, TypedDict, TypeVar
@@ -31,10 +31,12 @@ from keypoint_client.models import (
     InstanceLike,
     ModelInfo,
     Nonconformity,
+    PoseRequest,
     PredictResult,
     Readiness,
     instance_request,
 )
+from keypoint_client.monitoring_models import CoverageAudit, CoverageAuditList, Drift
 from keypoint_client.retry import retry_after_seconds
 
 if TYPE_CHECKING:
@@ -43,6 +45,7 @@ if TYPE_CHECKING:
 T = TypeVar("T")
 M = TypeVar("M", bound=BaseModel)
 Files = list[tuple[str, tuple[str | None, bytes, str]]]
+Params = Mapping[str, str | list[str]]
 Reader = Callable[[httpx.Response, str], T]
 DEFAULT_BATCH_SIZE = 16  # the service's default CKS_MAX_BATCH_IMAGES
 
@@ -57,6 +60,7 @@ class PredictOptions(TypedDict, total=False):
     calibration_version: int | None
     include_statistics: bool
     channel_order: ChannelOrder
+    pose: PoseRequest | None
 
 
 @dataclass(frozen=True)
@@ -68,7 +72,8 @@ class PredictRequest:
     or ``object`` (all of an object's keypoints at once). ``delta``: PAC, the guarantee holds
     with probability 1 - delta over the calibration set. ``calibration_version``: default the
     active one. ``include_statistics``: add the raw heatmap statistics. ``channel_order``: of a
-    numpy image's colour channels (``"bgr"`` for OpenCV's).
+    numpy image's colour channels (``"bgr"`` for OpenCV's). ``pose``: also each instance's pose
+    set, from the camera matrix (needs ``coverage="object"``; see ``PoseRequest``).
     """
 
     image: ImageInput
@@ -80,6 +85,7 @@ class PredictRequest:
     calibration_version: int | None = None
     include_statistics: bool = False
     channel_order: ChannelOrder = "rgb"
+    pose: PoseRequest | None = None
 
     def parts(self, suffix: str = "") -> Files:
         """The multipart parts ``image<suffix>`` and ``request<suffix>``."""
@@ -92,6 +98,7 @@ class PredictRequest:
             "delta": self.delta,
             "calibration_version": self.calibration_version,
             "include_statistics": self.include_statistics,
+            "pose": None if self.pose is None else self.pose.to_dict(),
         }
         return [
             (f"image{suffix}", (encoded.filename, encoded.data, encoded.content_type)),
@@ -115,6 +122,20 @@ class UploadOptions(TypedDict, total=False):
     max_rejected_share: float
 
 
+class AuditOptions(TypedDict, total=False):
+    """Options of a coverage audit: the ``version`` to audit (default the active one), the
+    ``epsilon`` values to audit at (default 0.05, 0.1 and 0.2), ``name`` and ``note`` of the
+    batch, ``dedupe`` (drop instances the version was calibrated with instead of refusing),
+    ``max_rejected_share`` of instances the box rule may reject."""
+
+    version: int
+    epsilon: Sequence[float]
+    name: str
+    note: str
+    dedupe: bool
+    max_rejected_share: float
+
+
 @dataclass(frozen=True)
 class Call(Generic[T]):
     """One exchange with the service. ``upload`` is a file streamed as the body."""
@@ -123,7 +144,7 @@ class Call(Generic[T]):
     path: str
     read: Reader[T]
     idempotent: bool = True
-    params: dict[str, str] | None = None
+    params: Params | None = None
     json: Any = None
     files: Files | None = None
     upload: Path | None = None
@@ -247,11 +268,28 @@ def ready(*, timeout: float | None = None) -> Call[Readiness]:
 # ---------------------------------------------------------------- administration
 
 
-def upload(archive: Path, options: UploadOptions, timeout: float | None) -> Call[Job]:
-    params = {key: _flag(value) if isinstance(value, bool) else str(value) for key, value in options.items()}
+def _query(value: object) -> str | list[str]:
+    """An option as query text: a flag, numbers repeated (an audit's epsilons), or as it prints."""
+    if isinstance(value, bool):
+        return _flag(value)
+    if isinstance(value, Sequence) and not isinstance(value, str):
+        return [repr(float(item)) for item in value]
+    return str(value)
+
+
+def _zip_upload(path: str, archive: Path, options: Mapping[str, object], timeout: float | None) -> Call[Job]:
+    params = {key: _query(value) for key, value in options.items()}
     headers = {"Content-Type": "application/zip", "Content-Length": str(archive.stat().st_size)}
-    return Call("POST", "/v1/admin/calibrations", _model(Job), idempotent=False, params=params,
-                upload=archive, headers=headers, timeout=timeout)  # fmt: skip
+    return Call("POST", path, _model(Job), idempotent=False, params=params, upload=archive,
+                headers=headers, timeout=timeout)  # fmt: skip
+
+
+def upload(archive: Path, options: UploadOptions, timeout: float | None) -> Call[Job]:
+    return _zip_upload("/v1/admin/calibrations", archive, options, timeout)
+
+
+def start_audit(archive: Path, options: AuditOptions, timeout: float | None) -> Call[Job]:
+    return _zip_upload("/v1/admin/audits", archive, options, timeout)
 
 
 def job(job: str | Job, *, timeout: float | None = None) -> Call[Job]:
@@ -312,6 +350,37 @@ def audit(*, before: int | None = None, limit: int = 100, timeout: float | None 
     """A page of the audit trail, newest first; pass ``next_before`` as ``before`` for the next page."""
     params = {"limit": str(limit)} | ({} if before is None else {"before": str(before)})
     return Call("GET", "/v1/admin/audit", _model(AuditPage), params=params, timeout=timeout)
+
+
+def audits(
+    *, before: int | None = None, limit: int = 100, timeout: float | None = None
+) -> Call[CoverageAuditList]:
+    """A page of the coverage audits of the served model, newest first; pass ``next_before`` as
+    ``before`` for the next page."""
+    params = {"limit": str(limit)} | ({} if before is None else {"before": str(before)})
+    return Call("GET", "/v1/admin/audits", _model(CoverageAuditList), params=params, timeout=timeout)
+
+
+def coverage_audit(audit: int | Job, *, timeout: float | None = None) -> Call[CoverageAudit]:
+    """One coverage audit, by its id or by the job that made it: every figure with its band and
+    p-value, the flagged ones (Holm) and the advice."""
+    path = f"/v1/admin/audits/{_audit_id(audit)}"
+    return Call("GET", path, _model(CoverageAudit), timeout=timeout)
+
+
+def _audit_id(audit: int | Job) -> int:
+    if isinstance(audit, int):
+        return audit
+    if audit.kind != "audit" or "audit" not in audit.result:
+        raise ValueError(f"job {audit.id} ({audit.kind}, {audit.state}) has made no coverage audit")
+    return int(audit.result["audit"])
+
+
+def drift(*, timeout: float | None = None) -> Call[Drift]:
+    """The live heatmap features of every keypoint tested against the active calibration's, as
+    the worker process that answers sees them (each keeps its own windows). NotFound when the
+    server's drift monitoring is off."""
+    return Call("GET", "/v1/admin/drift", _model(Drift), timeout=timeout)
 
 
 def store(*, timeout: float | None = None) -> Call[StoreInfo]:

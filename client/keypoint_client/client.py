@@ -25,12 +25,13 @@ from keypoint_client.archive import calibration_zip
 from keypoint_client.calls import DEFAULT_BATCH_SIZE, Call, JobWatch, PredictRequest
 from keypoint_client.errors import ProblemError
 from keypoint_client.models import PredictResult
+from keypoint_client.monitoring_models import CoverageAudit
 from keypoint_client.retry import Attempts, RetryPolicy
 
 if TYPE_CHECKING:
     from typing import Self, Unpack
 
-    from keypoint_client.calls import UploadOptions
+    from keypoint_client.calls import AuditOptions, UploadOptions
 
 __version__ = "0.1.0"
 T = TypeVar("T")
@@ -96,6 +97,9 @@ class _Endpoints:
     activate = endpoint(calls.activate)
     activations = endpoint(calls.activations)
     audit = endpoint(calls.audit)
+    audits = endpoint(calls.audits)
+    coverage_audit = endpoint(calls.coverage_audit)
+    drift = endpoint(calls.drift)
     store = endpoint(calls.store)
 
 
@@ -198,6 +202,28 @@ class KeypointClient(_Endpoints):
         job = self.upload_calibration(source, timeout=timeout, **options)
         return self.wait_for_job(job, progress=progress, timeout=wait_timeout)
 
+    def start_audit(
+        self, source: Source, *, timeout: float | None = None, **options: Unpack[AuditOptions]
+    ) -> Job:
+        """Upload a labeled batch (a COCO-keypoints folder, zipped here, or a zip of one) never used
+        to calibrate the audited version; returns its audit job, queued. Options: see ``AuditOptions``."""
+        with calibration_zip(source) as archive:
+            return self._send(calls.start_audit(archive, options, timeout))
+
+    def run_audit(
+        self,
+        source: Source,
+        *,
+        progress: Progress | None = None,
+        wait_timeout: float | None = None,
+        timeout: float | None = None,
+        **options: Unpack[AuditOptions],
+    ) -> CoverageAudit:
+        """Audit a version's coverage on a batch: ``start_audit``, ``wait_for_job``, then the stored audit."""
+        job = self.start_audit(source, timeout=timeout, **options)
+        finished = self.wait_for_job(job, progress=progress, timeout=wait_timeout)
+        return self.coverage_audit(finished, timeout=timeout)
+
     def rollback(
         self, *, reason: str, to: int | None = None, force: bool = False, timeout: float | None = None
     ) -> Activation:
@@ -294,6 +320,27 @@ class AsyncKeypointClient(_Endpoints):
         """See ``KeypointClient.calibrate``."""
         job = await self.upload_calibration(source, timeout=timeout, **options)
         return await self.wait_for_job(job, progress=progress, timeout=wait_timeout)
+
+    async def start_audit(
+        self, source: Source, *, timeout: float | None = None, **options: Unpack[AuditOptions]
+    ) -> Job:
+        """See ``KeypointClient.start_audit``."""
+        with calibration_zip(source) as archive:
+            return await self._send(calls.start_audit(archive, options, timeout))
+
+    async def run_audit(
+        self,
+        source: Source,
+        *,
+        progress: Progress | None = None,
+        wait_timeout: float | None = None,
+        timeout: float | None = None,
+        **options: Unpack[AuditOptions],
+    ) -> CoverageAudit:
+        """See ``KeypointClient.run_audit``."""
+        job = await self.start_audit(source, timeout=timeout, **options)
+        finished = await self.wait_for_job(job, progress=progress, timeout=wait_timeout)
+        return await self.coverage_audit(finished, timeout=timeout)
 
     async def rollback(
         self, *, reason: str, to: int | None = None, force: bool = False, timeout: float | None = None

@@ -1,4 +1,4 @@
-"""Bodies of the admin API: calibration versions, jobs, activations."""
+"""Bodies of the admin API: calibration versions, jobs, activations, coverage audits."""
 
 from __future__ import annotations
 
@@ -43,6 +43,12 @@ class VersionDetail(VersionSummary):
     labeled_per_keypoint: dict[str, int] = Field(description="calibration scores per keypoint (n)")
     complete_per_object: dict[str, int] = Field(description="fully labeled instances (object scope n)")
     thresholds: list[ThresholdRow]
+    strata: dict | None = Field(
+        default=None,
+        description="Mondrian strata stored with the version (null: none): spec (difficulty signals, bins,"
+        " min_instances; group), groups (labels known), bins per keypoint channel and group ('*' = all"
+        " instances): edges of each signal and the calibration instances (counts) per bin",
+    )
 
 
 class VersionList(BaseModel):
@@ -143,3 +149,100 @@ class JobOut(BaseModel):
     result: dict
     created_at: datetime
     finished_at: datetime | None
+
+
+# -- coverage audits (service/monitoring/audit_report.py makes the report) ----------------
+
+
+class CoverageFigureOut(BaseModel):
+    """Empirical coverage against what Theorem 1 predicts for a valid calibration."""
+
+    m: int = Field(description="audited instances (labeled keypoints, or fully labeled objects)")
+    covered: int = Field(description="of them, inside their sets")
+    coverage: float | None = Field(description="covered / m (null when m = 0)")
+    promised: float | None = Field(description="1 - epsilon, the coverage the version promises")
+    band: list[float] | None = Field(
+        description="the coverage a valid calibration gives this batch with 95% probability: the"
+        " Beta-Binomial band for one keypoint (object in object scope), the union-bound band pooled"
+    )
+    in_band: bool
+    p_value: float = Field(
+        description="one-sided p-value of 'coverage below 1 - epsilon' (pooled: Bonferroni over its units)"
+    )
+    n: int | None = Field(default=None, description="calibration instances behind the threshold")
+    rank: int | None = Field(default=None, description="l = floor((n+1) epsilon): Beta(n+1-l, l)")
+    adjusted_p_value: float | None = Field(default=None, description="Holm-adjusted over the audit's tests")
+    flagged: bool | None = Field(default=None, description="significantly low after Holm's correction")
+
+
+class ObjectCoverageOut(CoverageFigureOut):
+    object: str
+
+
+class KeypointCoverageOut(CoverageFigureOut):
+    object: str
+    keypoint: str
+    index: int = Field(description="the keypoint's output channel")
+
+
+class CoverageSectionOut(BaseModel):
+    nonconformity: Nonconformity
+    epsilon: float
+    scope: str = Field(description="keypoint or object")
+    overall: CoverageFigureOut
+    objects: list[ObjectCoverageOut]
+    keypoints: list[KeypointCoverageOut] = Field(description="keypoint scope only")
+
+
+class FlaggedFigureOut(CoverageFigureOut):
+    nonconformity: Nonconformity
+    epsilon: float
+    scope: str
+    object: str
+    keypoint: str | None = None
+    index: int | None = None
+
+
+class AuditBatchOut(BaseModel):
+    name: str
+    sha256: str
+    note: str
+    annotations: int = Field(description="annotations in the batch")
+    rejected: int = Field(description="instances left out (box rule, strict decoding)")
+    rejections: list[str] = Field(description="the first of them, with why")
+    duplicates_dropped: int
+
+
+class AuditReportOut(BaseModel):
+    version: int
+    band_level: float
+    correction: str = Field(description="the multiple-testing correction of the flags: holm")
+    family_alpha: float = Field(description="family-wise error rate of the flags")
+    tests: int = Field(description="exact figures tested")
+    instances: int = Field(description="instances scored")
+    passed: bool = Field(description="no figure flagged")
+    flagged: list[FlaggedFigureOut] = Field(description="most significant first")
+    sections: list[CoverageSectionOut] = Field(description="one per nonconformity, epsilon and scope")
+    advice: str = Field(description="what to do: nothing, or how to recalibrate and with how many images")
+    batch: AuditBatchOut
+
+
+class AuditSummaryOut(BaseModel):
+    id: int
+    version: int = Field(description="the calibration version audited")
+    created_at: datetime
+    who: str
+    batch_sha256: str
+    instances: int
+    passed: bool
+    flagged: int = Field(description="figures flagged")
+
+
+class AuditOut(AuditSummaryOut):
+    report: AuditReportOut
+
+
+class AuditList(BaseModel):
+    model_hash: str
+    audits: list[AuditSummaryOut] = Field(description="newest first")
+    next_before: int | None = Field(description="pass as before= for the next (older) page; null at the end")

@@ -13,7 +13,7 @@ from service import __version__
 from service.api.metrics import MetricsMiddleware
 from service.api.problems import install_problem_handlers
 from service.api.request_id import RequestIdMiddleware
-from service.api.routes import admin, health, model, predict, predict_batch
+from service.api.routes import admin, audits, console, drift, health, model, predict, predict_batch
 from service.api.schemas import PredictJson
 from service.logs import ensure_logging
 from service.metrics import worker_stopped
@@ -81,6 +81,9 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
     app.add_middleware(RequestIdMiddleware)  # outside the access line, which logs the id
     install_problem_handlers(app)
     for router in (predict.router, predict_batch.router, model.router, admin.router, health.router):
+        app.include_router(router)
+    app.include_router(drift.router)
+    for router in (audits.router, console.router):
         app.include_router(router)
     _document_raw_bodies(app)
     return app

@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import math
 
-from calibration_store import Activation, AuditEntry, JobRecord, VersionInfo
+from calibration_store import Activation, AuditEntry, CoverageAudit, JobRecord, VersionInfo
 from service.api.admin_schemas import (
     ActivationOut,
     AuditEntryOut,
+    AuditList,
+    AuditOut,
     AuditPage,
+    AuditReportOut,
+    AuditSummaryOut,
     ComparisonOut,
     JobOut,
     SourceBatchOut,
@@ -71,6 +75,7 @@ def describe(
         labeled_per_keypoint={k.name: per_keypoint.guarantees[k.index].n for k in manifest.keypoints},
         complete_per_object={o.name: per_object.guarantees[o.keypoints[0]].n for o in manifest.objects},
         thresholds=rows,
+        strata=None if info.strata is None else dict(info.strata),
     )
 
 
@@ -90,4 +95,23 @@ def audit_page(entries: list[AuditEntry], limit: int) -> AuditPage:
     return AuditPage(
         entries=[AuditEntryOut.model_validate(e, from_attributes=True) for e in entries],
         next_before=entries[-1].seq if len(entries) == limit else None,
+    )
+
+
+def audit_summary(audit: CoverageAudit) -> AuditSummaryOut:
+    report = audit.report
+    return AuditSummaryOut(id=audit.id, version=audit.version, created_at=audit.created_at, who=audit.who,
+                           batch_sha256=audit.batch_sha256, instances=audit.n_instances,
+                           passed=report["passed"], flagged=len(report["flagged"]))  # fmt: skip
+
+
+def audit_out(audit: CoverageAudit) -> AuditOut:
+    return AuditOut(**audit_summary(audit).model_dump(), report=AuditReportOut.model_validate(audit.report))
+
+
+def audit_list(model_hash: str, audits: list[CoverageAudit], limit: int) -> AuditList:
+    return AuditList(
+        model_hash=model_hash,
+        audits=[audit_summary(a) for a in audits],
+        next_before=audits[-1].id if len(audits) == limit else None,
     )

@@ -7,8 +7,11 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from service.pose.camera import camera_matrix_problems
+
 Nonconformity = Literal["peak", "var", "cov"]
 Coverage = Literal["keypoint", "object"]
+Stratify = Literal["none", "difficulty", "group", "difficulty+group"]
 Point = tuple[float, float]
 MAX_VERSION = 2**31 - 1  # the calibration store keeps version numbers in 32-bit INTEGER columns
 
@@ -22,6 +25,11 @@ class InstanceIn(_Body):
 
     object: str = Field(min_length=1, max_length=200, description="object name from GET /v1/model")
     bbox: tuple[float, float, float, float] = Field(description="[x, y, width, height] in image pixels")
+    group: str | None = Field(
+        default=None, min_length=1, max_length=64, pattern=r"^[ -~]+$",
+        description="the caller's group of this instance (camera, site) for stratify=group: its"
+        " calibration instances carried the same COCO \"group\"",
+    )  # fmt: skip
 
     @field_validator("bbox")
     @classmethod
@@ -31,6 +39,76 @@ class InstanceIn(_Body):
         if bbox[2] <= 0 or bbox[3] <= 0:
             raise ValueError("bbox width and height must be > 0")
         return bbox
+
+
+Vector3 = tuple[float, float, float]
+Matrix3 = tuple[Vector3, Vector3, Vector3]
+ROTATION_TOLERANCE = 1e-6
+
+
+class PoseCheckIn(_Body):
+    """A pose to test for membership in PURSE: p_camera = rotation @ p_model + translation."""
+
+    instance: int = Field(ge=0, description="index into instances")
+    rotation: Matrix3 = Field(description="3x3 rotation matrix, rows first (R^T R = I, det 1)")
+    translation: Vector3 = Field(description="in the units of the manifest's keypoints_3d")
+
+    @field_validator("rotation")
+    @classmethod
+    def _a_rotation(cls, rotation: Matrix3) -> Matrix3:
+        values = [v for row in rotation for v in row]
+        if not all(math.isfinite(v) for v in values):
+            raise ValueError("rotation entries must be finite numbers")
+        r = rotation
+        gram_error = max(
+            abs(sum(r[k][i] * r[k][j] for k in range(3)) - (i == j)) for i in range(3) for j in range(3)
+        )
+        det = (
+            r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1])
+            - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
+            + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0])
+        )
+        if gram_error > ROTATION_TOLERANCE or det <= 0:
+            raise ValueError(f"is not a rotation matrix (R^T R = I within {ROTATION_TOLERANCE:g}, det +1)")
+        return rotation
+
+    @field_validator("translation")
+    @classmethod
+    def _finite(cls, translation: Vector3) -> Vector3:
+        if not all(math.isfinite(v) for v in translation):
+            raise ValueError("translation entries must be finite numbers")
+        return translation
+
+
+class PoseRequest(_Body):
+    """Ask for pose sets (PURSE, Yang & Pavone CVPR 2023): needs coverage 'object'."""
+
+    K: list[list[float]] = Field(
+        description="camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in the response's image pixels"
+    )
+    samples: int = Field(
+        default=100, ge=0, le=500, description="keypoint draws for the sampled (inner) bound; 0: none"
+    )
+    outer_bound: bool = Field(
+        default=True, description="solve the convex relaxation for certified upper bounds (pose extra)"
+    )
+    outer_splits: int = Field(
+        default=0,
+        ge=0,
+        le=8,
+        description="branch-and-bound rounds over rotation cells: tighter outer bounds, seconds per instance",
+    )
+    check: list[PoseCheckIn] = Field(
+        default_factory=list, max_length=100, description="poses to test for membership in PURSE"
+    )
+
+    @field_validator("K")
+    @classmethod
+    def _pinhole(cls, matrix: list[list[float]]) -> list[list[float]]:
+        problems = camera_matrix_problems(matrix)
+        if problems:
+            raise ValueError("; ".join(problems))
+        return matrix
 
 
 class PredictOptions(_Body):
@@ -54,6 +132,19 @@ class PredictOptions(_Body):
         default=None, ge=1, le=MAX_VERSION, description="default: the active version"
     )
     include_statistics: bool = Field(default=False, description="add raw heatmap statistics per keypoint")
+    stratify: Stratify | list[Stratify] = Field(
+        default="none",
+        description="Mondrian strata: none (pooled threshold), difficulty (bins of a label-free heatmap"
+        " signal), group (instances[i].group), difficulty+group; the version must have them. Each"
+        " keypoint's guarantee then holds conditionally on its stratum (guarantee.stratum)",
+    )
+    group_fallback: Literal["refuse", "pooled"] = Field(
+        default="refuse",
+        description="where a keypoint has no bounded stratum (unknown or missing group, too few"
+        " calibration scores for epsilon, strata the version lacks): refuse (422 naming the known"
+        " groups) or use the pooled threshold (guarantee.stratum says so)",
+    )
+    pose: PoseRequest | None = Field(default=None, description="also return each instance's pose set")
 
 
 class PredictParameters(PredictOptions):
@@ -95,6 +186,26 @@ class BetaLaw(BaseModel):
     b: int
 
 
+class SignalRange(BaseModel):
+    signal: str = Field(description="heatmap feature: peak_probability, gamma or anisotropy")
+    low: float | None = Field(description="the bin holds signal >= low (null: no lower edge)")
+    high: float | None = Field(description="and signal < high (null: no upper edge)")
+
+
+class Stratum(BaseModel):
+    """The Mondrian stratum whose calibration scores alone gave this keypoint's threshold."""
+
+    kind: Literal["pooled", "difficulty", "group", "difficulty+group"]
+    group: str | None = Field(default=None, description="the caller group (kind group)")
+    bin: int | None = Field(default=None, description="difficulty bin of this keypoint (kind difficulty)")
+    edges: list[SignalRange] | None = Field(default=None, description="the bin's range of each signal")
+    conditional: bool = Field(
+        description="true: n, t and the bounds are the stratum's, and coverage >= 1 - epsilon holds"
+        " conditionally on the stratum (Mondrian conformal); false: marginal over all keypoints"
+    )
+    fallback: str | None = Field(default=None, description="why the pooled threshold answered instead")
+
+
 class Guarantee(BaseModel):
     """What the calibration actually guarantees for this set (Theorem 1 of the paper)."""
 
@@ -108,6 +219,11 @@ class Guarantee(BaseModel):
     delta: float | None = Field(default=None, description="PAC: P(coverage < 1-epsilon) <= this")
     pac_failure_probability: float | None = Field(
         default=None, description="exact P(Beta(a, b) < 1 - epsilon) for the chosen t"
+    )
+    stratum: Stratum | None = Field(
+        default=None,
+        exclude_if=lambda stratum: stratum is None,  # responses without stratify keep their shape
+        description="which Mondrian stratum answered: present when the request asked for stratify",
     )
 
 
@@ -130,10 +246,57 @@ class KeypointOut(BaseModel):
     statistics: KeypointStatistics | None = None
 
 
+class SampledBoundOut(BaseModel):
+    """Largest errors to poses found in PURSE by sampling: the worst case is at least this."""
+
+    kind: Literal["sampled"] = "sampled"
+    rotation_deg: float
+    translation: float
+    poses_found: int
+    poses_tried: int
+
+
+class OuterBoundOut(BaseModel):
+    """Upper bounds from the convex relaxation; trust them only when certified is true."""
+
+    certified: bool = Field(description="solved and its dual certificate verified")
+    status: str
+    rotation_deg: float | None = None
+    translation: float | None = None
+
+
+class PoseCheckOut(BaseModel):
+    rotation: Matrix3
+    translation: Vector3
+    inside: bool = Field(description="in PURSE: every keypoint in front of the camera and in its set")
+    violations: list[float | None] = Field(
+        description="per keypoint sqrt((y-c)^T L (y-c)), <= 1 inside its set; null: behind the camera"
+    )
+
+
+class PoseOut(BaseModel):
+    """The instance's pose set: an estimate inside PURSE and bounds on the error of any pose in it."""
+
+    empty: bool = Field(description="no pose consistent with the sets was found (they likely missed)")
+    rotation: Matrix3 | None
+    translation: Vector3 | None
+    method: Literal["pnp", "pnp+refined-into-set", "sampled", "none"]
+    largest_violation: float | None = Field(description="the estimate's largest normalised distance (<= 1)")
+    inner_bound: SampledBoundOut | None
+    inner_bound_note: str | None = None
+    outer_bound: OuterBoundOut | None
+    checks: list[PoseCheckOut] = Field(default_factory=list)
+
+
 class InstanceOut(BaseModel):
     object: str
     bbox: tuple[float, float, float, float]
     keypoints: list[KeypointOut]
+    pose: PoseOut | None = Field(
+        default=None,
+        exclude_if=lambda pose: pose is None,  # responses without pose keep their shape
+        description="present when the request asked for pose",
+    )
 
 
 class ModelRef(BaseModel):

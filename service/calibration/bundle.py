@@ -1,19 +1,24 @@
 """A calibration version as one portable file, and the bundled default loaded on first start.
 
 The file is a numpy ``.npz`` (no pickles): ``metadata`` holds the version's JSON metadata,
-and for each object ``<object>/keypoint_ids``, ``<object>/refs`` and ``<object>/<function>``.
+and for each object ``<object>/keypoint_ids``, ``<object>/refs``, ``<object>/<function>``
+(scores), and when the version has them ``<object>/features/<feature>`` (label-free heatmap
+features) and ``<object>/groups`` (caller group labels).
 """
 
 from __future__ import annotations
 
 import json
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from calibration_store import CalibrationStore, NewVersion, ObjectScores, ScoreTable, VersionInfo
 from service.calibration.compatibility import incompatibility
+from service.calibration.stratification import version_strata
+from service.conformal.strata import DifficultySpec
 from service.detector.runtime import Detector
 
 BUNDLE_FILENAME = "default_calibration.npz"
@@ -35,6 +40,10 @@ def save_bundle(path: Path, info: VersionInfo, table: ScoreTable) -> None:
         arrays[f"{block.object_name}/refs"] = np.array(block.instance_refs)
         for function, matrix in block.scores.items():
             arrays[f"{block.object_name}/{function}"] = matrix
+        for feature, matrix in block.features.items():
+            arrays[f"{block.object_name}/features/{feature}"] = matrix
+        if block.has_groups:
+            arrays[f"{block.object_name}/groups"] = np.array(block.groups)
     with open(path, "wb") as handle:
         np.savez_compressed(handle, **arrays)
 
@@ -43,17 +52,33 @@ def load_bundle(path: Path) -> tuple[NewVersion, ScoreTable]:
     with np.load(path, allow_pickle=False) as data:
         metadata = json.loads(str(data["metadata"]))
         names = sorted({key.split("/")[0] for key in data.files if "/" in key})
-        blocks = []
-        for name in names:
-            functions = [k.split("/", 1)[1] for k in data.files if k.startswith(f"{name}/")]
-            scores = {f: data[f"{name}/{f}"] for f in functions if f not in ("keypoint_ids", "refs")}
-            refs = tuple(str(ref) for ref in data[f"{name}/refs"])
-            blocks.append(ObjectScores(name, data[f"{name}/keypoint_ids"], refs, scores))
+        blocks = [_block(data, name) for name in names]
     return NewVersion(**metadata), ScoreTable(tuple(blocks))
 
 
-def bootstrap_default_calibration(store: CalibrationStore, detector: Detector, model_dir: Path) -> int | None:
-    """Store and activate the model's bundled calibration when the store has none for it yet.
+def _block(data: np.lib.npyio.NpzFile, name: str) -> ObjectScores:
+    parts = [key.split("/")[1:] for key in data.files if key.startswith(f"{name}/")]
+    scores = {p[0]: data[f"{name}/{p[0]}"] for p in parts if len(p) == 1 and p[0] not in _BLOCK_KEYS}
+    features = {p[1]: data[f"{name}/features/{p[1]}"] for p in parts if len(p) == 2 and p[0] == "features"}
+    groups = f"{name}/groups"
+    return ObjectScores(
+        name,
+        data[f"{name}/keypoint_ids"],
+        tuple(str(ref) for ref in data[f"{name}/refs"]),
+        scores,
+        features=features,
+        groups=tuple(str(g) for g in data[groups]) if groups in data.files else (),
+    )
+
+
+_BLOCK_KEYS = ("keypoint_ids", "refs", "groups")
+
+
+def bootstrap_default_calibration(
+    store: CalibrationStore, detector: Detector, model_dir: Path, difficulty: DifficultySpec | None = None
+) -> int | None:
+    """Store and activate the model's bundled calibration when the store has none for it yet,
+    with difficulty strata (``difficulty``, default bins) when it carries heatmap features.
 
     Atomic in the store: replicas starting at once on an empty shared store bootstrap it once.
     """
@@ -68,6 +93,8 @@ def bootstrap_default_calibration(store: CalibrationStore, detector: Detector, m
     if reason is not None:
         log.warning("%s is not loaded: %s", path, reason)
         return None
+    strata = version_strata(table, None, difficulty or DifficultySpec())
+    new = replace(new, strata=None if strata is None else strata.as_dict())
     info = store.create_first_version(new, table, "bootstrap", f"bundled default calibration {path.name}")
     if info is None:  # another process bootstrapped it first
         return None

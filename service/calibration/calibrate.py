@@ -28,6 +28,8 @@ from service.calibration.compatibility import scoring_settings, version_incompat
 from service.calibration.guardrails import Comparison, compare
 from service.calibration.intake import PreparedBatch, check_rejected_share
 from service.calibration.scoring import ScoreAccumulator, score_batch
+from service.calibration.stratification import VersionStrata, version_strata
+from service.conformal.strata import DifficultySpec
 from service.detector.runtime import Detector
 from service.errors import Conflict, InvalidInput, NotFound
 from service.metrics import CALIBRATION_INSTANCES
@@ -49,6 +51,8 @@ class CalibrationOptions:
     reason: str = ""
     max_rejected_share: float = 0.0
     min_instances: int = 100
+    stratify: frozenset[str] | None = None  # None: difficulty strata when the scores carry features
+    difficulty: DifficultySpec = DifficultySpec()
 
     @property
     def activation_reason(self) -> str:
@@ -94,6 +98,7 @@ def create_calibration(
     """
     scored = _score(store, detector, batches, options, max_image_pixels, progress)
     table = scored.accumulator.table()
+    strata = version_strata(table, options.stratify, options.difficulty)
     comparison, previous = None, None
     if options.activate:
         comparison, previous = _compare_with_active(store, detector, table, options)
@@ -101,7 +106,7 @@ def create_calibration(
     summary = _summary(table, scored, batches, activated, comparison)
     entries = _audit_entries(audit, options, summary, comparison, previous, activated)
     info = store.create_version(
-        _new_version(detector, scored.sources, options),
+        _new_version(detector, scored.sources, options, strata),
         table,
         activation=ActivationIntent(options.operator.name, options.activation_reason) if activated else None,
         job=JobCompletion(job_id, summary) if job_id else None,
@@ -171,7 +176,9 @@ def _usable(store: CalibrationStore, detector: Detector, version: int) -> bool:
     return version_incompatibility(store.get_version(detector.model_hash, version), detector.manifest) is None
 
 
-def _new_version(detector: Detector, sources: list[SourceBatch], options: CalibrationOptions) -> NewVersion:
+def _new_version(
+    detector: Detector, sources: list[SourceBatch], options: CalibrationOptions, strata: VersionStrata | None
+) -> NewVersion:
     return NewVersion(
         model_hash=detector.model_hash,
         model_name=detector.manifest.name,
@@ -180,6 +187,7 @@ def _new_version(detector: Detector, sources: list[SourceBatch], options: Calibr
         author=options.operator.name,
         note=options.note,
         parent_version=options.append_to,
+        strata=None if strata is None else strata.as_dict(),
     )
 
 

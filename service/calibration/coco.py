@@ -21,6 +21,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
@@ -37,6 +38,8 @@ ANNOTATIONS_FILENAME = "annotations.json"
 MAX_REPORTED_PROBLEMS = 50
 HEADER_PREFIX_BYTES = 64 * 1024
 VISIBILITY_VALUES = (0, 1, 2)
+_GROUP_RE = re.compile(r"^[\x20-\x7e]{1,64}$")  # the store's rule for group labels
+_INVALID = object()
 
 
 @dataclass(frozen=True)
@@ -55,6 +58,8 @@ class LabeledInstance:
     """One labeled object: ``bbox`` ``(4,)`` as x, y, w and ``keypoints`` ``(K, 2)`` image pixels.
 
     Rows of ``keypoints`` that were not labeled (``v = 0``) are NaN. Arrays are read-only.
+    ``group`` is the annotation's optional ``"group"`` attribute (a camera, a site: the
+    caller's Mondrian group), None when absent.
     """
 
     image_id: int
@@ -62,6 +67,7 @@ class LabeledInstance:
     object_name: str
     bbox: np.ndarray
     keypoints: np.ndarray
+    group: str | None = None
 
     @property
     def labeled(self) -> np.ndarray:
@@ -404,13 +410,26 @@ class _AnnotationReader:
         obj = self._object(where, entry.get("category_id"))
         bbox = self._bbox(where, entry.get("bbox"))
         keypoints = self._keypoints(where, entry.get("keypoints"), obj)
+        group = self._group(where, entry.get("group"))
         if ann_id is None or image is None or obj is None or bbox is None or keypoints is None:
+            return None
+        if group is _INVALID:
             return None
         problem = box_problem(bbox, image.width, image.height)
         if problem:
             self.rejected.append(Rejection(image.id, ann_id, f"{where}.bbox: {problem}"))
             return None
-        return LabeledInstance(image.id, ann_id, obj.name, bbox, keypoints)
+        return LabeledInstance(image.id, ann_id, obj.name, bbox, keypoints, group)
+
+    def _group(self, where: str, value: Any) -> Any:
+        if value is None:
+            return None
+        if not isinstance(value, str) or not _GROUP_RE.match(value):
+            self.problems.add(
+                where, f"group must be 1-64 printable ASCII characters, got {_short(value)}"
+            )
+            return _INVALID
+        return value
 
     def _annotation_id(self, where: str, value: Any) -> int | None:
         if not _is_int(value):

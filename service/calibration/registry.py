@@ -24,6 +24,13 @@ import numpy as np
 
 from calibration_store import CalibrationStore, ScoreTable, StoreError, StoreUnavailable, VersionNotFound
 from service.calibration.compatibility import version_incompatibility
+from service.calibration.stratification import (
+    DIFFICULTY,
+    StratifiedThresholds,
+    VersionStrata,
+    describe_kinds,
+    stratified_thresholds,
+)
 from service.conformal import (
     CoverageGuarantee,
     calibrate,
@@ -114,6 +121,7 @@ class CalibrationRegistry:
         self._lock = threading.Lock()  # the caches
         self._poll_lock = threading.Lock()  # one poll at a time: the poller's or refresh_now's
         self._incompatibilities: dict[int, str | None] = {}  # versions are immutable: cached forever
+        self._strata: dict[int, VersionStrata | None] = {}  # read with the incompatibility, cached too
         self._tables: OrderedDict[int, ScoreTable] = OrderedDict()
         self._served = _Served(None, None)
         self._counter: int | None = None
@@ -122,6 +130,7 @@ class CalibrationRegistry:
         self._stop = threading.Event()
         self._poller: threading.Thread | None = None
         self.thresholds = lru_cache(maxsize=1024)(self._thresholds)
+        self.stratified = lru_cache(maxsize=1024)(self._stratified)
 
     def start(self) -> int | None:
         """Read the active version (StoreError if the store is away), then poll in the background."""
@@ -225,9 +234,17 @@ class CalibrationRegistry:
         except VersionNotFound as error:
             raise NotFound(f"calibration version {version} does not exist for this model") from error
         reason = version_incompatibility(info, self._manifest)
+        strata = None if info.strata is None else VersionStrata.from_dict(info.strata)
         with self._lock:
             self._incompatibilities[version] = reason
+            self._strata[version] = strata
         return reason
+
+    def strata(self, version: int) -> VersionStrata | None:
+        """The version's Mondrian strata (None: calibrated without); 404 if it does not exist."""
+        self.incompatibility(version)
+        with self._lock:
+            return self._strata[version]
 
     def _load_named(self, version: int) -> None:
         """Check a version a request names and have its scores in memory. The store is not tried
@@ -292,6 +309,22 @@ class CalibrationRegistry:
         if version is not None and self.incompatibility(version) is None:
             table = self.scores(version)
         self._served = _Served(version, table)
+
+    def _stratified(
+        self, version: int, kinds: frozenset[str], kind: str, scope: str, epsilon: float, delta: float | None
+    ) -> tuple[StratifiedThresholds | None, str | None]:
+        """Per-stratum thresholds of ``kinds``, or None and why the version cannot give them."""
+        strata = self.strata(version)
+        have = frozenset() if strata is None else strata.spec.kinds
+        if not kinds <= have:
+            return None, (
+                f"calibration version {version} has no {describe_kinds(kinds)} strata (it has"
+                f" {describe_kinds(have)}): upload a calibration with stratify={describe_kinds(kinds)}"
+            )
+        if DIFFICULTY in kinds and scope == "object":
+            return None, "difficulty strata calibrate each keypoint: use coverage=keypoint, or stratify=group"
+        assert strata is not None
+        return stratified_thresholds(self.scores(version), strata, kinds, kind, scope, epsilon, delta), None
 
     def _thresholds(
         self, version: int, kind: str, scope: str, epsilon: float, delta: float | None

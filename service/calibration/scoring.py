@@ -10,7 +10,13 @@ import numpy as np
 from calibration_store import ObjectScores, ScoreTable
 from service.calibration.coco import CocoBatch, LabeledInstance, Rejection
 from service.calibration.fingerprints import UNKNOWN_DIGEST, Fingerprint
-from service.conformal import NONCONFORMITY_SCORES, nonconformity_scores
+from service.conformal import (
+    HEATMAP_FEATURES,
+    NONCONFORMITY_SCORES,
+    heatmap_features,
+    heatmap_statistics,
+    nonconformity_scores,
+)
 from service.detector.crop import apply_affines
 from service.detector.runtime import Detector
 from service.errors import ServiceError
@@ -19,20 +25,33 @@ from service.image_decoding import decode_image
 NONCONFORMITY_KINDS = tuple(NONCONFORMITY_SCORES)
 
 
+@dataclass(frozen=True)
+class InstanceScores:
+    """One labeled instance's nonconformity scores (NaN = unlabeled keypoint) and the
+    label-free heatmap features of all its keypoints, each ``(K,)``."""
+
+    scores: dict[str, np.ndarray]
+    features: dict[str, np.ndarray]
+
+
 @dataclass
 class _ObjectRows:
     keypoint_ids: tuple[int, ...]
     refs: list[str] = field(default_factory=list)
     rows: dict[str, list[np.ndarray]] = field(default_factory=lambda: {k: [] for k in NONCONFORMITY_KINDS})
     prints: list[Fingerprint] = field(default_factory=list)
+    features: dict[str, list[np.ndarray]] = field(default_factory=lambda: {f: [] for f in HEATMAP_FEATURES})
+    groups: list[str] = field(default_factory=list)
+    missing_features: bool = False  # an appended-to version stored none: the table keeps none
 
 
 _UNKNOWN = Fingerprint(UNKNOWN_DIGEST, UNKNOWN_DIGEST)
 
 
 class ScoreAccumulator:
-    """Collects per-instance score rows and fingerprints by object, then freezes them into a
-    ScoreTable (instances stored before fingerprints were kept get UNKNOWN_DIGEST)."""
+    """Collects per-instance score rows, features, group labels and fingerprints by object,
+    then freezes them into a ScoreTable (instances stored before fingerprints were kept get
+    UNKNOWN_DIGEST; features are kept only when every instance has them)."""
 
     def __init__(self) -> None:
         self._objects: dict[str, _ObjectRows] = {}
@@ -48,34 +67,33 @@ class ScoreAccumulator:
                 rows.prints.extend(map(Fingerprint, block.image_hashes, block.instance_hashes))
             else:
                 rows.prints.extend([_UNKNOWN] * block.n_instances)
+            if set(block.features) >= set(HEATMAP_FEATURES):
+                for name in HEATMAP_FEATURES:
+                    rows.features[name].extend(block.features[name])
+            else:
+                rows.missing_features = True
+            rows.groups.extend(block.groups or [""] * block.n_instances)
 
     def add(
         self,
         object_name: str,
         keypoint_ids: tuple[int, ...],
         ref: str,
-        scores: dict[str, np.ndarray],
+        scored: InstanceScores,
         fingerprint: Fingerprint = _UNKNOWN,
+        group: str | None = None,
     ) -> None:
         rows = self._rows(object_name, keypoint_ids)
         rows.refs.append(ref)
         rows.prints.append(fingerprint)
+        rows.groups.append(group or "")
         for kind in NONCONFORMITY_KINDS:
-            rows.rows[kind].append(scores[kind])
+            rows.rows[kind].append(scored.scores[kind])
+        for name in HEATMAP_FEATURES:
+            rows.features[name].append(scored.features[name])
 
     def table(self) -> ScoreTable:
-        blocks = [
-            ObjectScores(
-                object_name=name,
-                keypoint_ids=np.asarray(rows.keypoint_ids),
-                instance_refs=tuple(rows.refs),
-                scores={kind: np.vstack(rows.rows[kind]) for kind in NONCONFORMITY_KINDS},
-                image_hashes=tuple(p.image for p in rows.prints),
-                instance_hashes=tuple(p.instance for p in rows.prints),
-            )
-            for name, rows in sorted(self._objects.items())
-        ]
-        return ScoreTable(tuple(blocks))
+        return ScoreTable(tuple(_block(name, rows) for name, rows in sorted(self._objects.items())))
 
     def _rows(self, object_name: str, keypoint_ids: tuple[int, ...]) -> _ObjectRows:
         rows = self._objects.setdefault(object_name, _ObjectRows(keypoint_ids))
@@ -88,15 +106,32 @@ class ScoreAccumulator:
         return sum(len(rows.refs) for rows in self._objects.values())
 
 
+def _block(name: str, rows: _ObjectRows) -> ObjectScores:
+    features = {} if rows.missing_features else {f: np.vstack(rows.features[f]) for f in HEATMAP_FEATURES}
+    return ObjectScores(
+        object_name=name,
+        keypoint_ids=np.asarray(rows.keypoint_ids),
+        instance_refs=tuple(rows.refs),
+        scores={kind: np.vstack(rows.rows[kind]) for kind in NONCONFORMITY_KINDS},
+        image_hashes=tuple(p.image for p in rows.prints),
+        instance_hashes=tuple(p.instance for p in rows.prints),
+        features=features,
+        groups=tuple(rows.groups) if any(rows.groups) else (),
+    )
+
+
 def score_image(
     detector: Detector, image_bgr: np.ndarray, instances: list[LabeledInstance]
-) -> list[dict[str, np.ndarray]]:
-    """Per instance, per nonconformity function, the scores of its keypoints (NaN = unlabeled)."""
+) -> list[InstanceScores]:
+    """Per instance: per nonconformity function the scores of its keypoints (NaN =
+    unlabeled), and the label-free heatmap features of all its keypoints."""
     boxes = np.stack([inst.bbox for inst in instances])
     result = detector.infer(image_bgr, boxes, [inst.object_name for inst in instances])
     labels = np.concatenate([inst.keypoints for inst in instances])  # same row order as result
     labels_hm = apply_affines(result.affines[result.instance_index], labels)
-    normalization = detector.manifest.heatmap
+    spec = detector.manifest.heatmap
+    statistics = heatmap_statistics(result.heatmaps, spec.normalization, spec.top_k, spec.temperature)
+    features = heatmap_features(statistics)
     labeled = ~np.isnan(labels_hm).any(axis=1)
     per_kind = {}
     for kind in NONCONFORMITY_KINDS:
@@ -106,14 +141,18 @@ def score_image(
                 kind,
                 result.heatmaps[labeled],
                 labels_hm[labeled],
-                normalization=normalization.normalization,
-                top_k=normalization.top_k,
-                temperature=normalization.temperature,
+                normalization=spec.normalization,
+                top_k=spec.top_k,
+                temperature=spec.temperature,
             )
         per_kind[kind] = scores
     bounds = np.cumsum([0] + [len(inst.keypoints) for inst in instances])
     return [
-        {kind: s[a:b] for kind, s in per_kind.items()} for a, b in zip(bounds[:-1], bounds[1:], strict=True)
+        InstanceScores(
+            scores={kind: s[a:b] for kind, s in per_kind.items()},
+            features={name: f[a:b] for name, f in features.items()},
+        )
+        for a, b in zip(bounds[:-1], bounds[1:], strict=True)
     ]
 
 
@@ -150,6 +189,6 @@ def score_batch(
             keypoint_ids = manifest.object(instance.object_name).keypoints
             ref = f"{batch_name}:{image_id}:{instance.annotation_id}"
             fingerprint = prints.get((image_id, instance.annotation_id), _UNKNOWN)
-            accumulator.add(instance.object_name, keypoint_ids, ref, scores, fingerprint)
+            accumulator.add(instance.object_name, keypoint_ids, ref, scores, fingerprint, instance.group)
         progress(len(instances))
     return rejected

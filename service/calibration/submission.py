@@ -9,7 +9,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from calibration_store import CalibrationStore, JobFinished, JobRecord
+from calibration_store import CalibrationStore, JobFinished, JobRecord, ScoreTable
 from service.audit import AuditTrail, Operator
 from service.calibration.archive import ArchiveLimits, DiskBudget
 from service.calibration.calibrate import CalibrationOptions, check_parent, create_calibration
@@ -17,7 +17,9 @@ from service.calibration.coco import NamedBatch
 from service.calibration.intake import PreparedBatch, prepare_batch
 from service.calibration.jobs import JobProgress, JobRunner, new_job_id
 from service.calibration.registry import CalibrationRegistry
+from service.calibration.stratification import GROUP, parse_stratify
 from service.calibration.uploads import JobFolder, UploadWorkspace, batch_name, reload_batch, validate_upload
+from service.conformal.strata import DifficultySpec
 from service.detector.runtime import Detector
 from service.errors import Conflict, InvalidInput, NotFound, ServiceError
 
@@ -37,8 +39,11 @@ class UploadRequest:
     reason: str = ""
     dedupe: bool = False
     max_rejected_share: float | None = None
+    stratify: str | None = None  # None: difficulty strata when the scores carry heatmap features
 
     def __post_init__(self) -> None:
+        if self.stratify is not None:
+            parse_stratify(self.stratify)  # refused now (422), not when the job runs
         if self.force and not self.reason.strip():
             raise InvalidInput("force needs a reason (force=true&reason=..., or --force --reason ...):"
                                " say why the guardrails may be overridden")  # fmt: skip
@@ -48,7 +53,9 @@ class UploadRequest:
     def rejected_share(self, default: float) -> float:
         return default if self.max_rejected_share is None else self.max_rejected_share
 
-    def options(self, operator: Operator, default_share: float, min_instances: int) -> CalibrationOptions:
+    def options(
+        self, operator: Operator, default_share: float, min_instances: int, difficulty: DifficultySpec
+    ) -> CalibrationOptions:
         """The calibration this request asks for (``default_share`` when it names none)."""
         return CalibrationOptions(
             operator=operator,
@@ -59,6 +66,8 @@ class UploadRequest:
             reason=self.reason,
             max_rejected_share=self.rejected_share(default_share),
             min_instances=min_instances,
+            stratify=None if self.stratify is None else parse_stratify(self.stratify),
+            difficulty=difficulty,
         )
 
 
@@ -70,10 +79,11 @@ class SubmissionSettings:
     min_instances: int
     max_rejected_share: float
     disk: DiskBudget | None = None
+    difficulty: DifficultySpec = DifficultySpec()
 
 
-class CalibrationJobs:
-    """Accepts, runs and retries calibration jobs for one detector and store."""
+class DetectorJobs:
+    """What accepting and running background jobs over one detector's calibrations needs."""
 
     def __init__(
         self,
@@ -86,6 +96,10 @@ class CalibrationJobs:
     ) -> None:
         self._store, self._detector, self._registry = store, detector, registry
         self._runner, self._audit, self._settings = runner, audit, settings
+
+
+class CalibrationJobs(DetectorJobs):
+    """Accepts, runs and retries calibration jobs for one detector and store."""
 
     def accept(
         self, workspace: UploadWorkspace, sha256: str, request: UploadRequest, operator: Operator
@@ -113,6 +127,9 @@ class CalibrationJobs:
         job = self._runner.get(job_id)
         if job is None:
             raise NotFound(f"no job {job_id!r}: it never existed or was pruned")
+        if job.kind != JOB_KIND:
+            raise Conflict(f"job {job_id} is an {job.kind} job: only calibration jobs are retried; send its"
+                           " batch again")  # fmt: skip
         if job.state != "interrupted":
             raise Conflict(f"job {job_id} is {job.state}; only an interrupted job can be retried")
         old = JobFolder.of(self._settings.jobs_dir, job_id)
@@ -159,11 +176,14 @@ class CalibrationJobs:
         if request.append_to is not None:
             parent = check_parent(self._store, self._detector, request.append_to)
             parent_table = self._registry.scores(request.append_to)
+        _check_group_labels(named, parent_table, request)
         share = request.rejected_share(self._settings.max_rejected_share)
         return prepare_batch(named, parent, parent_table, dedupe=request.dedupe, max_rejected_share=share)
 
     def _options(self, request: UploadRequest, operator: Operator) -> CalibrationOptions:
-        return request.options(operator, self._settings.max_rejected_share, self._settings.min_instances)
+        settings = self._settings
+        share, minimum = settings.max_rejected_share, settings.min_instances
+        return request.options(operator, share, minimum, settings.difficulty)
 
     def _submit(
         self, folder: JobFolder, prepared: PreparedBatch, request: UploadRequest, operator: Operator
@@ -186,6 +206,16 @@ class CalibrationJobs:
             return outcome.summary
 
         return self._runner.submit(JOB_KIND, run, prepared.named.batch.count, job_id=folder.job_id)
+
+
+def _check_group_labels(named: NamedBatch, parent: ScoreTable | None, request: UploadRequest) -> None:
+    """stratify=group is refused at once (422) when no instance carries a group label."""
+    if request.stratify is None or GROUP not in parse_stratify(request.stratify):
+        return
+    inherited = parent is not None and any(block.has_groups for block in parent.objects)
+    if not inherited and not any(instance.group for instance in named.batch.instances):
+        raise InvalidInput('stratify=group needs group labels, and no annotation of the batch carries one:'
+                           ' add "group": "<label>" (a camera, a site) to the COCO annotations')  # fmt: skip
 
 
 def _accepted(job: JobRecord, prepared: PreparedBatch) -> dict[str, Any]:

@@ -44,6 +44,7 @@ Geometry       ``map_sets_to_image(centers, shapes, affine)`` (image->heatmap 2x
 """
 
 from .api import nonconformity_scores, point_estimates, prediction_sets, statistics_for
+from .features import HEATMAP_FEATURES, heatmap_features
 from .geometry import ball_radii, ball_shapes, contains, ellipse_axes, map_sets_to_image
 from .guarantees import (
     Calibration,
@@ -74,6 +75,8 @@ from .threshold import (
 )
 
 __all__ = [
+    "HEATMAP_FEATURES",
+    "heatmap_features",
     "NONCONFORMITY_SCORES",
     "NORMALIZATION_MODES",
     "PIXEL_VARIANCE",

@@ -18,15 +18,21 @@ from __future__ import annotations
 
 import ctypes
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 _LIBRARY = "_upper_half"
-_VERSION = 3  # cks_kernel_version() of the sources this module expects
+_VERSION = 4  # cks_kernel_version() of the sources this module expects
 _TYPES = {np.dtype(np.float32): "f32", np.dtype(np.float64): "f64"}
-_ENTRY_POINTS = ("cks_anchor_peaks", "cks_top_k_spread")
+_POINTER, _SIZE = ctypes.c_void_p, ctypes.c_int64
+# The entry points and their arguments: rows, N, M, then sizes and output arrays.
+_ENTRY_POINTS = {
+    "cks_anchor_peaks": (_POINTER, _SIZE, _SIZE, _POINTER, _POINTER, _POINTER, _POINTER),
+    "cks_top_k_spread": (_POINTER, _SIZE, _SIZE, _SIZE, _SIZE, _POINTER, _POINTER, _POINTER, _POINTER),
+}
 _MAX_WIDTH = 2**31 - 1  # the kernel counts in 32-bit lanes
 SPREAD_FIELDS = ("mean_x", "mean_y", "sxx", "sxy", "syy")  # the columns of TopKSpread.spread
 
@@ -66,9 +72,9 @@ def _library() -> ctypes.CDLL | None:
     try:
         library = np.ctypeslib.load_library(_LIBRARY, Path(__file__).parent)
         current = library.cks_kernel_version() == _VERSION
-        for name in _ENTRY_POINTS:
+        for name, arguments in _ENTRY_POINTS.items():
             for suffix in _TYPES.values():
-                getattr(library, f"{name}_{suffix}")
+                getattr(library, f"{name}_{suffix}").argtypes = arguments  # plain ints then pass as is
     except (OSError, AttributeError):  # not built, or a build of older sources
         return None
     return library if current else None
@@ -110,8 +116,7 @@ def top_k_spread(flat: np.ndarray, k: int, grid_width: int) -> TopKSpread | None
     minimum, maximum = np.empty(n), np.empty(n)
     indices = np.empty((n, k), dtype=np.int64)
     spread = np.empty((n, len(SPREAD_FIELDS)))
-    size = (ctypes.c_int64(k), ctypes.c_int64(grid_width))
-    _call("cks_top_k_spread", rows, *size, minimum, maximum, indices, spread)
+    _call("cks_top_k_spread", rows, k, grid_width, minimum, maximum, indices, spread)
     return TopKSpread(minimum, maximum, indices.astype(np.intp, copy=False), spread)
 
 
@@ -146,14 +151,15 @@ def _rows(flat: np.ndarray, min_width: int) -> np.ndarray | None:
 
 
 def _call(name: str, flat: np.ndarray, *arguments: object) -> None:
-    library = _library()
-    assert library is not None
-    function = getattr(library, f"{name}_{_TYPES[flat.dtype]}")
-    pointers = [_pointer(a) if isinstance(a, np.ndarray) else a for a in arguments]
-    status = function(_pointer(flat), ctypes.c_int64(flat.shape[0]), ctypes.c_int64(flat.shape[1]), *pointers)
+    function = _function(name, flat.dtype)
+    addresses = [a.ctypes.data if isinstance(a, np.ndarray) else a for a in arguments]
+    status = function(flat.ctypes.data, flat.shape[0], flat.shape[1], *addresses)
     if status != 0:
         raise RuntimeError(f"native anchor kernel {name} failed with status {status}")
 
 
-def _pointer(array: np.ndarray) -> ctypes.c_void_p:
-    return ctypes.c_void_p(array.ctypes.data)
+@functools.cache
+def _function(name: str, dtype: np.dtype) -> Callable[..., int]:
+    library = _library()
+    assert library is not None
+    return getattr(library, f"{name}_{_TYPES[dtype]}")

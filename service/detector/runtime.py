@@ -5,7 +5,7 @@ from __future__ import annotations
 import hashlib
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,7 +17,10 @@ from service.detector.batching import MicroBatcher
 from service.detector.chooser import FasterWay
 from service.detector.manifest import MODEL_FILENAME, Manifest, ManifestError, load_manifest
 from service.detector.preprocess import build_batch
+from service.errors import InvalidInput
 from service.metrics import BATCH_SIZE, INFERENCE_SECONDS
+
+CPU = ("CPUExecutionProvider",)
 
 
 class ModelMismatch(Exception):
@@ -51,6 +54,10 @@ class Detector:
         intra_op_threads: int = 0,
         max_batch: int = 0,
         streams: int = 1,
+        *,
+        providers: Sequence[str] = CPU,
+        provider_options: Mapping[str, Mapping[str, str]] | None = None,
+        batch_window_s: float = 0.0,
         solo_threads: int | None = None,
     ) -> None:
         """``solo_threads``: intra-op threads of a second session for requests that run alone (None
@@ -64,10 +71,10 @@ class Detector:
         if not model_path.is_file():
             raise ModelMismatch(f"{model_path} does not exist")
         self.model_hash = file_sha256(model_path)
-        self._session = create_session(model_path, intra_op_threads)
+        self._session = create_session(model_path, intra_op_threads, providers, provider_options)
         self._solo_session = (
             create_session(model_path, solo_threads, spinning=False)
-            if solo_threads is not None and solo_threads != intra_op_threads
+            if solo_threads is not None and solo_threads != intra_op_threads and tuple(providers) == CPU
             else None
         )
         self._computing, self._counting = 0, threading.Lock()
@@ -75,10 +82,15 @@ class Detector:
         _check_graph(self._session, self.manifest)
         self._check_output_shape()
         self._batcher = (
-            MicroBatcher(self.run_session, max_batch, streams, run_wide=self._run_solo)
+            MicroBatcher(self.run_session, max_batch, streams, batch_window_s, run_wide=self._run_solo)
             if max_batch > 0
             else None
         )
+
+    @property
+    def execution_providers(self) -> list[str]:
+        """The providers the session really runs on, in onnxruntime's order of preference."""
+        return self._session.get_providers()
 
     def run_session(self, batch: np.ndarray) -> np.ndarray:
         """``(N, C, H, W)`` float32 input -> ``(N, K, h, w)`` float32 heatmaps, on this thread."""
@@ -165,8 +177,16 @@ def _load_manifest(model_dir: Path) -> Manifest:
         raise ModelMismatch(str(error)) from error
 
 
-def create_session(model_path: Path, intra_op_threads: int, *, spinning: bool = True) -> ort.InferenceSession:
-    """The onnxruntime session the service runs: CPU, sequential, all graph optimizations.
+def create_session(
+    model_path: Path,
+    intra_op_threads: int,
+    providers: Sequence[str] = CPU,
+    provider_options: Mapping[str, Mapping[str, str]] | None = None,
+    *,
+    spinning: bool = True,
+) -> ort.InferenceSession:
+    """The onnxruntime session the service runs: sequential, all graph optimizations, on
+    ``providers`` (checked by ``session_providers``).
 
     ``spinning=False``: the intra-op threads sleep as soon as a run ends instead of spinning for
     the next one (for a session that runs now and then, so its threads do not take cores from
@@ -178,10 +198,46 @@ def create_session(model_path: Path, intra_op_threads: int, *, spinning: bool = 
     options.inter_op_num_threads = 1
     options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    chosen = session_providers(providers, provider_options or {})
     try:
-        return ort.InferenceSession(str(model_path), options, providers=["CPUExecutionProvider"])
+        session = ort.InferenceSession(str(model_path), options, providers=chosen)
     except Exception as error:
         raise ModelMismatch(f"onnxruntime cannot load {model_path}: {error}") from error
+    _check_providers_loaded(providers, session.get_providers())
+    return session
+
+
+def session_providers(
+    names: Sequence[str], options: Mapping[str, Mapping[str, str]]
+) -> list[str | tuple[str, dict[str, str]]]:
+    """onnxruntime's ``providers`` argument; a provider this onnxruntime lacks is refused (one line)."""
+    available = ort.get_available_providers()
+    listed = ", ".join(available)
+    for name in names:
+        if name not in available:
+            kind = "is not available in" if name in ort.get_all_providers() else "is not a provider of"
+            raise InvalidInput(
+                f"execution provider {name!r} (CKS_EXECUTION_PROVIDERS) {kind} this onnxruntime"
+                f" {ort.__version__}; available: {listed} (GPU: docs/operations.md, Execution providers)"
+            )
+    for name in options:
+        if name not in names:
+            raise InvalidInput(
+                f"CKS_EXECUTION_PROVIDER_OPTIONS has options for {name!r}, which is not in"
+                f" CKS_EXECUTION_PROVIDERS ({', '.join(names)})"
+            )
+    return [(name, dict(options[name])) if name in options else name for name in names]
+
+
+def _check_providers_loaded(requested: Sequence[str], in_use: list[str]) -> None:
+    """onnxruntime falls back to CPU, with only a log line, when e.g. CUDA's libraries or device
+    are missing: a GPU setting that silently runs on the CPU is refused instead."""
+    missing = [name for name in requested if name not in in_use]
+    if missing:
+        raise InvalidInput(
+            f"execution provider(s) {', '.join(missing)} (CKS_EXECUTION_PROVIDERS) failed to load:"
+            f" the session runs on {', '.join(in_use)} only (onnxruntime's log above says why)"
+        )
 
 
 def _check_graph(session: ort.InferenceSession, manifest: Manifest) -> None:

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -28,12 +27,6 @@ from keypoint_client.archive import zip_coco_folder
 from keypoint_client.calls import JobWatch
 
 from tests.service.live import ADMIN_TOKEN, LiveServer, batch_files, count_instances
-
-
-@pytest.fixture(scope="module")
-def admin(server: LiveServer) -> Iterator[KeypointClient]:
-    with KeypointClient(server.url, token=ADMIN_TOKEN) as client:
-        yield client
 
 
 def write_folder(folder: Path, doc: dict, files: dict[str, bytes]) -> Path:

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import json
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from playwright.sync_api import Browser, Playwright, sync_playwright
 
 from tests.service.live import ADMIN_TOKEN, LiveServer, Sample, batch_zip, load_samples, model_dir
 
@@ -65,3 +67,20 @@ def limited_server(tmp_path_factory: pytest.TempPathFactory, limits: dict[str, i
     data = tmp_path_factory.mktemp("limited") / "data"
     with LiveServer(data, admin_token=ADMIN_TOKEN, **limits) as live:
         yield live
+
+
+@pytest.fixture(scope="module")
+def playwright() -> Iterator[Playwright]:
+    """Playwright, for the browser tests (its own browser download is not reachable offline)."""
+    with sync_playwright() as driver:
+        yield driver
+
+
+@pytest.fixture(scope="module")
+def browser(playwright: Playwright) -> Iterator[Browser]:
+    """Debian's Chromium, headless."""
+    chromium = shutil.which("chromium")
+    assert chromium, "Debian's chromium is not installed: apt-get install chromium (.ci/run does)"
+    browser = playwright.chromium.launch(executable_path=chromium, headless=True)
+    yield browser
+    browser.close()

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import re
-import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,11 +20,9 @@ from playwright.sync_api import (
     Browser,
     BrowserContext,
     Page,
-    Playwright,
     Request,
     Response,
     Route,
-    sync_playwright,
 )
 
 from service.api.app import DOCS_CONTENT_SECURITY_POLICY, DOCS_PAGES
@@ -84,24 +81,16 @@ class Watch:
         assert not self.page_errors, f"JavaScript errors on the page: {self.page_errors}"
 
 
-@pytest.fixture(scope="module")
-def playwright() -> Iterator[Playwright]:
-    with sync_playwright() as driver:
-        yield driver
-
-
-@pytest.fixture(scope="module")
-def browser(playwright: Playwright) -> Iterator[Browser]:
-    chromium = shutil.which("chromium")
-    assert chromium, "Debian's chromium is not installed: apt-get install chromium (.ci/run does)"
-    browser = playwright.chromium.launch(executable_path=chromium, headless=True)
-    yield browser
-    browser.close()
-
-
 @pytest.fixture
 def context(browser: Browser, server: LiveServer) -> Iterator[tuple[BrowserContext, Watch]]:
-    context = browser.new_context(viewport={"width": 1280, "height": 1000})
+    yield from watched_context(browser, server, {"width": 1280, "height": 1000})
+
+
+def watched_context(
+    browser: Browser, server: LiveServer, viewport: dict[str, int]
+) -> Iterator[tuple[BrowserContext, Watch]]:
+    """A browser context whose every request off the server is aborted and recorded."""
+    context = browser.new_context(viewport=viewport)  # type: ignore[arg-type]
     watch = Watch(server_host=urlsplit(server.url).hostname or "")
     context.route("**/*", watch.route)
     context.add_init_script(RECORD_POLICY_VIOLATIONS)

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from calibration_store import open_store
-from service.api.schemas import PredictResponse
+from service.api.schemas import PoseOut, PredictResponse
 from service.detector.runtime import file_sha256
 from service.settings import PACKAGE_ROOT
 from tests.service.live import (
@@ -106,6 +106,41 @@ def test_predict_asks_a_running_service(tmp_path: Path, samples: list[Sample], s
         f"error: {closed}/v1/predict: ConnectError" in unreachable.stderr
         and "Traceback" not in unreachable.stderr
     )
+
+
+def test_predict_prints_and_draws_the_pose(
+    tmp_path: Path, samples: list[Sample], server: LiveServer, coco: dict
+) -> None:
+    path, group = next(iter(samples_by_image(samples).items()))
+    camera = coco["annotations"][0]["cam_K"]  # one camera renders every sample
+    (fx, _, cx), (_, fy, cy), _ = camera
+    intrinsics = ",".join(f"{v:g}" for v in (fx, fy, cx, cy))
+    png = tmp_path / "pose.png"
+    args, parameters = predict_args(
+        path, group, "--url", server.url, "--coverage", "object", "--pose-k", intrinsics, "--png", str(png)
+    )
+    printed = run(args, tmp_path / "data").stdout
+    parameters |= {"coverage": "object"}
+    answer, drawn = services_answers(server, path, parameters | {"pose": {"K": camera}})
+    assert (printed, png.read_bytes()) == (answer, drawn)
+    poses = [instance["pose"] for instance in json.loads(printed)["instances"]]
+    assert len(poses) == len(group) and all(set(pose) == set(PoseOut.model_fields) for pose in poses)
+    assert drawn != services_answers(server, path, parameters)[1], "the PNG draws the poses"
+    # The matrix as JSON asks the same.
+    args[args.index(intrinsics)] = json.dumps(camera)
+    assert run(args, tmp_path / "data").stdout == printed
+
+    def refused(*options: str) -> str:
+        result = run(
+            ["predict", str(path), "--instance", "duck:1,1,9,9", *options], tmp_path / "data", expect=2
+        )
+        assert "Traceback" not in result.stderr
+        return result.stderr
+
+    assert "--pose-k needs --coverage object" in refused("--pose-k", intrinsics)
+    assert "use fx,fy,cx,cy" in refused("--coverage", "object", "--pose-k", "572,572,320")
+    skewed = json.dumps([[fx, 2.0, cx], [0, fy, cy], [0, 0, 1]])
+    assert "error: --pose-k: K[0][1] (skew)" in refused("--coverage", "object", "--pose-k", skewed)
 
 
 def test_calibrate_creates_and_activates_a_version(

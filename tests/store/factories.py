@@ -33,8 +33,14 @@ def new_version(
 
 
 def object_scores(
-    name: str, n: int, keypoints: list[int], seed: int = 0, nan_fraction: float = 0.1
+    name: str,
+    n: int,
+    keypoints: list[int],
+    seed: int = 0,
+    nan_fraction: float = 0.1,
+    extras: bool = True,
 ) -> ObjectScores:
+    """Random scores; ``extras``: with heatmap features and (for even seeds) group labels."""
     rng = np.random.default_rng(seed)
     scores = {}
     for i, function in enumerate(FUNCTIONS):
@@ -42,14 +48,22 @@ def object_scores(
         matrix[rng.random(matrix.shape) < nan_fraction] = np.nan
         scores[function] = matrix
     refs = tuple(f"{name}/img{i:06d}/ann{i}" for i in range(n))
-    return ObjectScores(name, np.asarray(keypoints), refs, scores)
+    features = {
+        "peak_probability": rng.random((n, len(keypoints))),
+        "gamma": rng.gamma(3.0, 1.0, size=(n, len(keypoints))),
+    }
+    groups = tuple(("", "camera-1", "camera-2")[i % 3] for i in range(n)) if seed % 2 == 0 else ()
+    if not extras:
+        return ObjectScores(name, np.asarray(keypoints), refs, scores)
+    return ObjectScores(name, np.asarray(keypoints), refs, scores, features=features, groups=groups)
 
 
-def score_table(n: int = 20, seed: int = 0) -> ScoreTable:
+def score_table(n: int = 20, seed: int = 0, extras: bool = True) -> ScoreTable:
+    """Two objects; ``extras``: with features and groups (False: as stored before migration 4)."""
     return ScoreTable(
         (
-            object_scores("mug", n, [0, 1, 2, 3], seed=seed),
-            object_scores("bottle", max(1, n // 2), [4, 5, 6, 7, 8, 9, 10], seed=seed + 1),
+            object_scores("mug", n, [0, 1, 2, 3], seed=seed, extras=extras),
+            object_scores("bottle", max(1, n // 2), [4, 5, 6, 7, 8, 9, 10], seed=seed + 1, extras=extras),
         )
     )
 
@@ -69,3 +83,7 @@ def assert_tables_identical(actual: ScoreTable, expected: ScoreTable) -> None:
         for function in want.functions:
             assert got.scores[function].shape == want.scores[function].shape
             assert got.scores[function].tobytes() == want.scores[function].tobytes()
+        assert sorted(got.features) == sorted(want.features)
+        for feature, matrix in want.features.items():
+            assert got.features[feature].tobytes() == matrix.tobytes()
+        assert got.groups == want.groups

@@ -162,6 +162,7 @@ def test_history_is_immutable_in_the_database(store: CalibrationStore, store_url
     for sql in (
         "UPDATE calib_versions SET note = 'edited'",
         "DELETE FROM calib_score_arrays",
+        "DELETE FROM calib_feature_arrays",
         "DELETE FROM calib_activations",
     ):
         with pytest.raises(Exception, match="immutable"):

@@ -46,6 +46,12 @@ def scores(**overrides: object) -> ObjectScores:
         ({"scores": {"peak": np.full((2, 3), np.inf)}}, "infinite"),
         ({"scores": {"peak": np.full((2, 3), "x")}}, "real numbers"),
         ({"scores": {"Peak!": GOOD}}, "function name"),
+        ({"features": {"gamma": np.full((2, 3), np.nan)}}, "finite for every keypoint"),
+        ({"features": {"gamma": np.zeros((3, 3))}}, r"shape \(2, 3\)"),
+        ({"features": {"Gamma!": GOOD}}, "feature name"),
+        ({"groups": ("camera-1",)}, "1 labels for 2 instances"),
+        ({"groups": ("camera-1", "x" * 65)}, "at most 64 characters"),
+        ({"groups": ("camera-1", "caf\u00e9")}, "printable ASCII"),
     ],
 )
 def test_object_scores_validation(overrides: dict[str, object], message: str) -> None:

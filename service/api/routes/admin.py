@@ -74,7 +74,7 @@ _ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
 
 
 @asynccontextmanager
-async def _refusals_audited(
+async def refusals_audited(
     state: ServiceState, operator: Operator, action: str, context: dict | None = None, **fields: Any
 ) -> AsyncIterator[None]:
     """Append every refusal of an admin action to the audit trail, then let it through."""
@@ -119,26 +119,39 @@ async def upload_calibration(
               " before the batch fails (default CKS_MAX_REJECTED_SHARE)"),
     ] = None,
     note: Annotated[str, Query(max_length=2000)] = "",
+    stratify: Annotated[
+        list[str] | None,
+        Query(description="Mondrian strata to store: none, difficulty, group, difficulty+group (or the"
+              " parameter repeated); default: difficulty when the scores carry heatmap features"),
+    ] = None,
 ) -> JobOut:
-    async with _refusals_audited(state, who, "upload"):
-        content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
-        if content_type not in _ZIP_TYPES:
-            raise UnsupportedMediaType(
-                f"send the batch as a zip body (Content-Type: application/zip), not {content_type!r}"
-            )
-        upload = UploadRequest(name, note, append_to, activate, force, reason, dedupe, max_rejected_share)
-        settings = state.settings
-        timeout = settings.upload_read_timeout_seconds
-        pace = BodyPace.from_settings(settings, timeout, "CKS_UPLOAD_READ_TIMEOUT_SECONDS")
-        workspace = await run_in_threadpool(UploadWorkspace.create, state.uploads_dir)
-        try:
-            saved = await receive_upload(request, workspace.archive, settings.max_upload_bytes, pace)
-        except BaseException:
-            await run_in_threadpool(workspace.remove)
-            raise
-        job = await run_in_threadpool(state.calibrations.accept, workspace, saved.sha256, upload, who)
+    async with refusals_audited(state, who, "upload"):
+        upload = UploadRequest(name, note, append_to, activate, force, reason, dedupe, max_rejected_share,
+                               None if stratify is None else "+".join(stratify))  # fmt: skip
+        workspace, sha256 = await receive_batch_zip(request, state)
+        job = await run_in_threadpool(state.calibrations.accept, workspace, sha256, upload, who)
     response.headers["Location"] = f"/v1/admin/jobs/{job.id}"
     return job_out(job)
+
+
+async def receive_batch_zip(request: Request, state: ServiceState) -> tuple[UploadWorkspace, str]:
+    """Receive a zip body (415 for another type), paced and within the upload limits, into a new
+    upload workspace; returns it with the body's sha256 (the caller removes it when done)."""
+    content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if content_type not in _ZIP_TYPES:
+        raise UnsupportedMediaType(
+            f"send the batch as a zip body (Content-Type: application/zip), not {content_type!r}"
+        )
+    settings = state.settings
+    timeout = settings.upload_read_timeout_seconds
+    pace = BodyPace.from_settings(settings, timeout, "CKS_UPLOAD_READ_TIMEOUT_SECONDS")
+    workspace = await run_in_threadpool(UploadWorkspace.create, state.uploads_dir)
+    try:
+        saved = await receive_upload(request, workspace.archive, settings.max_upload_bytes, pace)
+    except BaseException:
+        await run_in_threadpool(workspace.remove)
+        raise
+    return workspace, saved.sha256
 
 
 @router.get(
@@ -173,7 +186,7 @@ async def get_job(job_id: str, state: State, _: Admin) -> JobOut:
     },
 )
 async def retry_job(job_id: str, response: Response, state: State, who: Admin) -> JobOut:
-    async with _refusals_audited(state, who, "retry", {"job": job_id}):
+    async with refusals_audited(state, who, "retry", {"job": job_id}):
         job = await run_in_threadpool(state.calibrations.retry, job_id, who)
     response.headers["Location"] = f"/v1/admin/jobs/{job.id}"
     return job_out(job)
@@ -242,7 +255,7 @@ async def activate_calibration(
 ) -> ActivationOut:
     body = body or ActivationIn()
     request = ActivationRequest(version, who, body.reason, body.force)
-    async with _refusals_audited(state, who, "activation", version=version, reason=body.reason):
+    async with refusals_audited(state, who, "activation", version=version, reason=body.reason):
         entry, _ = await run_in_threadpool(
             activate, state.registry, state.detector.manifest, state.audit, request,
             state.settings.min_calibration_instances,

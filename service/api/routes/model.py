@@ -17,6 +17,11 @@ class ModelInfo(BaseModel):
     hash: str
     manifest: Manifest
     service_version: str = Field(description="the version of the service (`keypoint-service --version`)")
+    execution_providers: list[str] = Field(
+        description="the onnxruntime execution providers the model runs on, in order of preference"
+        " (CKS_EXECUTION_PROVIDERS)",
+        examples=[["CPUExecutionProvider"]],
+    )
 
 
 @router.get("/v1/model", response_model=ModelInfo, summary="The served model, its keypoints and objects")
@@ -27,4 +32,5 @@ async def model_info(state: State) -> ModelInfo:
         hash=detector.model_hash,
         manifest=detector.manifest,
         service_version=__version__,
+        execution_providers=detector.execution_providers,
     )

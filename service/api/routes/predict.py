@@ -7,6 +7,7 @@ import base64
 import binascii
 import contextvars
 
+import numpy as np
 from fastapi import APIRouter, Request, Response
 from pydantic import ValidationError
 from starlette.datastructures import UploadFile
@@ -146,5 +147,7 @@ def _respond(state: ServiceState, image_bytes: bytes, parameters: PredictParamet
         result = predict(state, image, parameters)
     note_calibration_version(result.calibration.version)
     if png:
-        return Response(render_prediction(image, result), media_type="image/png")
+        camera = np.asarray(parameters.pose.K) if parameters.pose is not None else None
+        drawn = render_prediction(image, result, camera, state.detector.manifest)
+        return Response(drawn, media_type="image/png")
     return Response(result.model_dump_json(), media_type="application/json")

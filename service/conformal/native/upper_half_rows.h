@@ -8,7 +8,7 @@
  * compilers vectorize it without reassociating floating-point reductions. */
 
 INLINE int64_t NAME(count_at_most)(const T *v, int64_t m, T t) {
-    int32_t lanes[LANES] = {0}; /* the caller keeps m < 2^31 */
+    KEY lanes[LANES] = {0}; /* as wide as T: a comparison's result is added without a shuffle */
     int64_t i = 0, count = 0;
     for (; i + LANES <= m; i += LANES)
         for (int j = 0; j < LANES; j++) lanes[j] += v[i + j] <= t;

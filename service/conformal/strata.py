@@ -1,0 +1,191 @@
+"""Mondrian (group-conditional) conformal thresholds: one ICP threshold per stratum.
+
+A Mondrian taxonomy (Vovk, Lindsay, Nouretdinov & Gammerman, "Mondrian confidence machine",
+2003; Vovk, Gammerman & Shafer, "Algorithmic Learning in a Random World", sec. 4.5) maps each
+example to a category known at prediction time. Calibrating eq. (3) of Yang & Pavone on the
+n_g calibration scores of one category alone gives, by Theorem 1 applied inside the category
+(exchangeable within it),
+
+    1 - eps <= P(cover | category) <= 1 - eps + 1/(n_g + 1),
+
+a guarantee for every category at once instead of on average over them. Here a category
+(a *stratum*) of one keypoint is a caller-given group (a camera, a site), a difficulty bin
+of a label-free heatmap signal (``features.HEATMAP_FEATURES``: p*, gamma, anisotropy), or
+both: the bin within the group.
+
+Difficulty bins are quantile bins of the signal over the keypoint's labeled calibration
+instances, with at least ``min_instances`` in every bin (so a bin stays bounded down to
+eps = 1/(min_instances + 1)). The edges depend on the calibration features but never on
+their labels; the guarantee above is exact for edges fixed before calibration, and the
+deviation from fitting them on the same n instances vanishes as n grows. Two signals make
+joint bins: quantile bins of the first, then quantile bins of the second within each.
+
+Pure numpy, no I/O; thresholds come from ``guarantees.calibrate``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from .guarantees import Calibration, calibrate
+
+#: the stratum key of instances taken together, whatever their group
+ALL_GROUPS = "*"
+DEFAULT_SIGNALS = ("gamma", "peak_probability")  # measured best: docs/strata-evaluation.md
+DEFAULT_BINS = 3
+
+
+@dataclass(frozen=True)
+class DifficultySpec:
+    """How difficulty bins are chosen: the signal(s), bins per signal, the least n per bin."""
+
+    signals: tuple[str, ...] = DEFAULT_SIGNALS
+    bins: int = DEFAULT_BINS
+    min_instances: int = 30
+
+    def __post_init__(self) -> None:
+        if not 1 <= len(self.signals) <= 2 or len(set(self.signals)) != len(self.signals):
+            raise ValueError(f"difficulty needs one or two distinct signals, got {self.signals}")
+        if self.bins < 1:
+            raise ValueError(f"bins must be >= 1, got {self.bins}")
+        if self.min_instances < 1:
+            raise ValueError(f"min_instances must be >= 1, got {self.min_instances}")
+
+    def as_dict(self) -> dict[str, object]:
+        return {"signals": list(self.signals), "bins": self.bins, "min_instances": self.min_instances}
+
+    @classmethod
+    def from_dict(cls, value: Mapping[str, object]) -> DifficultySpec:
+        return cls(tuple(value["signals"]), int(value["bins"]), int(value["min_instances"]))  # type: ignore[arg-type]
+
+
+def quantile_edges(values: np.ndarray, bins: int, min_instances: int) -> np.ndarray:
+    """Interior cut points splitting ``values`` into at most ``bins`` quantile bins, each
+    holding at least ``min_instances`` values (ties may merge bins); empty = one bin.
+
+    A value v falls in bin ``searchsorted(edges, v, side="right")``: bins are [c_{k-1}, c_k).
+    """
+    ordered = np.sort(np.asarray(values, dtype=np.float64).ravel())
+    n = ordered.size
+    count = max(1, min(bins, n // min_instances))
+    positions = [round(k * n / count) for k in range(1, count)]
+    edges = np.unique([(ordered[p - 1] + ordered[p]) / 2 for p in positions])
+    return _merge_small_bins(ordered, edges, min_instances)
+
+
+def _merge_small_bins(ordered: np.ndarray, edges: np.ndarray, min_instances: int) -> np.ndarray:
+    """Drop cuts until every bin holds ``min_instances`` values: the smallest bin merges with
+    its smaller neighbour (ties at a cut can leave a quantile bin short)."""
+    edges = list(edges)
+    while edges:
+        counts = np.diff(np.searchsorted(ordered, edges, side="left"), prepend=0, append=ordered.size)
+        smallest = int(np.argmin(counts))
+        if counts[smallest] >= min_instances:
+            break
+        if smallest == 0:
+            cut = 0
+        elif smallest == len(counts) - 1:
+            cut = smallest - 1
+        else:
+            cut = smallest - 1 if counts[smallest - 1] <= counts[smallest + 1] else smallest
+        del edges[cut]
+    return np.asarray(edges, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class DifficultyBins:
+    """Bins of one keypoint (within one group): edges on ``signals[0]`` and, for joint bins,
+    edges on ``signals[1]`` within each of those; ``counts``: calibration instances per bin
+    (bins numbered outer-major)."""
+
+    signals: tuple[str, ...]
+    edges: tuple[float, ...]
+    inner_edges: tuple[tuple[float, ...], ...] = ()
+    counts: tuple[int, ...] = ()
+
+    @property
+    def n_bins(self) -> int:
+        return len(self.counts)
+
+    def assign(self, features: Mapping[str, np.ndarray]) -> np.ndarray:
+        """The bin of every row of ``features`` (name -> (m,) values)."""
+        outer = np.searchsorted(self.edges, np.asarray(features[self.signals[0]]), side="right")
+        if len(self.signals) == 1:
+            return outer.astype(np.intp)
+        inner = np.asarray(features[self.signals[1]])
+        offsets = np.cumsum([0] + [len(e) + 1 for e in self.inner_edges])
+        bins = np.empty(outer.shape, dtype=np.intp)
+        for k, edges in enumerate(self.inner_edges):
+            rows = outer == k
+            bins[rows] = offsets[k] + np.searchsorted(edges, inner[rows], side="right")
+        return bins
+
+    def ranges(self, bin_index: int) -> dict[str, tuple[float | None, float | None]]:
+        """signal -> [low, high) of one bin (None: unbounded on that side)."""
+        if len(self.signals) == 1:
+            return {self.signals[0]: _interval(self.edges, bin_index)}
+        sizes = [len(e) + 1 for e in self.inner_edges]
+        outer = int(np.searchsorted(np.cumsum(sizes), bin_index, side="right"))
+        inner = bin_index - sum(sizes[:outer])
+        return {
+            self.signals[0]: _interval(self.edges, outer),
+            self.signals[1]: _interval(self.inner_edges[outer], inner),
+        }
+
+    def as_dict(self) -> dict[str, object]:
+        value: dict[str, object] = {"signals": list(self.signals), "edges": list(self.edges),
+                                    "counts": list(self.counts)}  # fmt: skip
+        if self.inner_edges:
+            value["inner_edges"] = [list(e) for e in self.inner_edges]
+        return value
+
+    @classmethod
+    def from_dict(cls, value: Mapping[str, object]) -> DifficultyBins:
+        inner = tuple(tuple(float(v) for v in e) for e in value.get("inner_edges", ()))  # type: ignore[union-attr]
+        return cls(
+            signals=tuple(value["signals"]),  # type: ignore[arg-type]
+            edges=tuple(float(v) for v in value["edges"]),  # type: ignore[union-attr]
+            inner_edges=inner,
+            counts=tuple(int(v) for v in value["counts"]),  # type: ignore[union-attr]
+        )
+
+
+def _interval(edges: Sequence[float], index: int) -> tuple[float | None, float | None]:
+    low = float(edges[index - 1]) if index > 0 else None
+    high = float(edges[index]) if index < len(edges) else None
+    return low, high
+
+
+def fit_difficulty_bins(features: Mapping[str, np.ndarray], spec: DifficultySpec) -> DifficultyBins:
+    """Quantile bins of the given rows (the labeled calibration instances of one keypoint)."""
+    first = np.asarray(features[spec.signals[0]], dtype=np.float64)
+    edges = quantile_edges(first, spec.bins, spec.min_instances)
+    outer = np.searchsorted(edges, first, side="right")
+    if len(spec.signals) == 1:
+        counts = np.bincount(outer, minlength=edges.size + 1)
+        return DifficultyBins(spec.signals, tuple(edges.tolist()), counts=tuple(counts.tolist()))
+    second = np.asarray(features[spec.signals[1]], dtype=np.float64)
+    inner_edges, counts = [], []
+    for k in range(edges.size + 1):
+        values = second[outer == k]
+        inner = quantile_edges(values, spec.bins, spec.min_instances)
+        inner_edges.append(tuple(inner.tolist()))
+        counts.extend(np.bincount(np.searchsorted(inner, values, side="right"), minlength=inner.size + 1))
+    counts_tuple = tuple(int(c) for c in counts)
+    return DifficultyBins(spec.signals, tuple(edges.tolist()), tuple(inner_edges), counts_tuple)
+
+
+def stratum_calibrations(
+    scores: np.ndarray, strata: np.ndarray, n_strata: int, epsilon: float, delta: float | None = None
+) -> list[Calibration]:
+    """One ICP threshold and guarantee per stratum: eq. (3) on that stratum's scores alone.
+
+    ``scores`` (n,) with NaN = unlabeled (left out), ``strata`` (n,) in [0, n_strata);
+    a stratum with too few scores for ``epsilon`` is unbounded (t = 0), as in ``calibrate``.
+    """
+    scores = np.asarray(scores, dtype=np.float64)
+    strata = np.asarray(strata)
+    return [calibrate(scores[strata == s], epsilon, delta) for s in range(n_strata)]

@@ -1,0 +1,426 @@
+// The operator console: read-only views of the model, its calibrations, coverage audits and
+// drift, drawn with plain DOM and inline SVG (no library, nothing fetched from elsewhere).
+// Admin data needs the admin token; it is kept in this tab's sessionStorage only.
+"use strict";
+
+const TOKEN_KEY = "cks-admin-token";
+const SVG = "http://www.w3.org/2000/svg";
+const VERSIONS_SHOWN = 10;
+
+const state = { model: null, audit: null, token: sessionStorage.getItem(TOKEN_KEY) || "" };
+
+// ---------------------------------------------------------------- small helpers
+
+function el(tag, attributes = {}, ...children) {
+  const node = document.createElement(tag);
+  for (const [name, value] of Object.entries(attributes)) node.setAttribute(name, value);
+  for (const child of children) node.append(child instanceof Node ? child : String(child));
+  return node;
+}
+
+function svg(tag, attributes = {}, text) {
+  const node = document.createElementNS(SVG, tag);
+  for (const [name, value] of Object.entries(attributes)) node.setAttribute(name, value);
+  if (text !== undefined) node.textContent = String(text);
+  return node;
+}
+
+function panel(id) {
+  return document.querySelector(`#${id} .body`);
+}
+
+function show(id, ...nodes) {
+  panel(id).replaceChildren(...nodes);
+}
+
+function note(text, className = "muted") {
+  return el("p", { class: className }, text);
+}
+
+function table(headers, rows) {
+  const head = el("tr", {}, ...headers.map((h) => el("th", {}, h)));
+  const body = rows.map((cells) => el("tr", {}, ...cells.map((cell) =>
+    cell instanceof Node ? el("td", {}, cell) : el("td", typeof cell === "number" ? { class: "num" } : {}, cell ?? ""))));
+  return el("table", {}, el("thead", {}, head), el("tbody", {}, ...body));
+}
+
+function fixed(value, digits = 3) {
+  return typeof value === "number" && Number.isFinite(value) ? value.toFixed(digits) : "–";
+}
+
+function when(text) {
+  if (!text) return "";
+  const date = new Date(text);
+  return Number.isNaN(date.getTime()) ? String(text) : date.toISOString().replace("T", " ").slice(0, 19) + " UTC";
+}
+
+class HttpError extends Error {
+  constructor(status, detail) {
+    super(detail);
+    this.status = status;
+  }
+}
+
+async function getJson(path, admin = true) {
+  const headers = { Accept: "application/json" };
+  if (admin) headers.Authorization = `Bearer ${state.token}`;
+  const response = await fetch(path, { headers, cache: "no-store" });
+  if (!response.ok) {
+    let detail = response.statusText;
+    try {
+      detail = (await response.json()).detail || detail;
+    } catch (ignored) { /* not JSON */ }
+    throw new HttpError(response.status, detail);
+  }
+  return response.json();
+}
+
+function failure(error) {
+  if (error instanceof HttpError && error.status === 401) return note("The admin token was refused: enter a valid one.", "fail");
+  if (error instanceof HttpError && error.status === 403) return note("The admin API is disabled on this server (set CKS_ADMIN_TOKEN).", "fail");
+  return note(`Could not load: ${error.message}`, "fail");
+}
+
+// ---------------------------------------------------------------- model
+
+function keypointNames() {
+  const keypoints = state.model?.manifest?.keypoints || [];
+  return [...keypoints].sort((a, b) => a.index - b.index).map((k) => k.name);
+}
+
+async function loadModel() {
+  try {
+    state.model = await getJson("v1/model", false);
+  } catch (error) {
+    show("model", failure(error));
+    return;
+  }
+  const manifest = state.model.manifest || {};
+  const objects = (manifest.objects || []).map((o) => `${o.name} (${(o.keypoints || []).length})`).join(", ");
+  show("model", table(["", ""], [
+    ["name", state.model.name],
+    ["sha256", el("code", {}, state.model.hash)],
+    ["service", state.model.service_version],
+    ["keypoints", keypointNames().length],
+    ["objects", objects],
+    ["normalization", `${manifest.heatmap?.normalization ?? ""}, top-K ${manifest.heatmap?.top_k ?? ""}`],
+  ]));
+}
+
+// ---------------------------------------------------------------- versions and activations
+
+async function loadVersions() {
+  const list = await getJson("v1/admin/calibrations");
+  const versions = (list.versions || []).slice(-VERSIONS_SHOWN).reverse();
+  const details = await Promise.all(versions.map((v) => getJson(`v1/admin/calibrations/${v.version}`)));
+  const rows = details.map((d) => {
+    const counts = Object.values(d.labeled_per_keypoint || {});
+    const perKeypoint = el("details", {}, el("summary", {}, `min ${counts.length ? Math.min(...counts) : "–"}`),
+      table(["keypoint", "n"], Object.entries(d.labeled_per_keypoint || {}).map(([k, n]) => [k, n])));
+    return [d.version + (d.active ? " (active)" : ""), when(d.created_at), d.author, d.instances, perKeypoint,
+      d.usable === false ? "unusable" : "", d.note || ""];
+  });
+  const shown = versions.length < (list.versions || []).length ? note(`The latest ${versions.length} versions.`) : "";
+  show("versions", table(["version", "created", "author", "instances", "n per keypoint", "", "note"], rows), shown);
+}
+
+async function loadActivations() {
+  const log = await getJson("v1/admin/activations");
+  const rows = [...(log.activations || [])].reverse().map((a) => [a.seq, a.version, when(a.activated_at), a.who, a.reason]);
+  show("activations", rows.length ? table(["seq", "version", "activated", "who", "reason"], rows) : note("No activation yet."));
+}
+
+// ---------------------------------------------------------------- audits
+
+async function loadAudits() {
+  const list = await getJson("v1/admin/audits?limit=20");
+  const audits = list.audits || [];
+  const controls = document.querySelector("#audits .controls");
+  if (!audits.length) {
+    controls.hidden = true;
+    document.getElementById("audit-detail").replaceChildren();
+    show("audits", note("No coverage audit yet: POST a labeled batch to /v1/admin/audits (docs/operations.md)."));
+    return;
+  }
+  show("audits", table(["id", "version", "created", "who", "instances", "result"], audits.map((a) => [
+    a.id, a.version, when(a.created_at), a.who, a.instances,
+    a.passed ? el("span", { class: "pass" }, "passed") : el("span", { class: "fail" }, `${a.flagged} flagged`),
+  ])));
+  const choice = document.getElementById("audit-choice");
+  choice.replaceChildren(...audits.map((a) => el("option", { value: a.id }, `#${a.id} (version ${a.version})`)));
+  controls.hidden = false;
+  await loadAudit(audits[0].id);
+}
+
+async function loadAudit(id) {
+  state.audit = await getJson(`v1/admin/audits/${id}`);
+  const sections = state.audit.report?.sections || [];
+  fillSelect("audit-kind", [...new Set(sections.map((s) => s.nonconformity))], "cov");
+  fillSelect("audit-epsilon", [...new Set(sections.map((s) => s.epsilon))], 0.1);
+  drawAudit();
+}
+
+function fillSelect(id, values, preferred) {
+  const select = document.getElementById(id);
+  const current = select.value;
+  select.replaceChildren(...values.map((v) => el("option", { value: v }, v)));
+  const keep = values.map(String).includes(current) ? current : values.map(String).includes(String(preferred)) ? preferred : values[0];
+  if (keep !== undefined) select.value = String(keep);
+}
+
+function drawAudit() {
+  const report = state.audit?.report;
+  const target = document.getElementById("audit-detail");
+  if (!report) return target.replaceChildren();
+  const kind = document.getElementById("audit-kind").value;
+  const epsilon = Number(document.getElementById("audit-epsilon").value);
+  const pick = (scope) => (report.sections || []).find((s) => s.nonconformity === kind && s.epsilon === epsilon && s.scope === scope);
+  const keypointScope = pick("keypoint");
+  const objectScope = pick("object");
+  const verdict = report.passed ? el("span", { class: "pass" }, "passed") : el("span", { class: "fail" }, `${(report.flagged || []).length} figures flagged`);
+  const nodes = [
+    el("p", {}, `Audit #${state.audit.id} of version ${state.audit.version}, ${state.audit.instances} instances, `, verdict,
+      ` (Holm over ${report.tests} tests, family-wise ${report.family_alpha}).`),
+  ];
+  if (keypointScope) {
+    nodes.push(el("h3", {}, `Coverage per keypoint (${kind}, ε = ${epsilon}, keypoint scope) against its ${Math.round(100 * report.band_level)}% band`));
+    nodes.push(coveragePlot(keypointScope.keypoints || [], 1 - epsilon));
+    nodes.push(el("p", { class: "legend muted" }, "whiskers: the band a valid calibration gives;",
+      el("span", { class: "dot ok" }), "inside", el("span", { class: "dot out" }), "outside the band",
+      el("span", { class: "dot flagged" }), "significantly low (Holm); dashed: 1 − ε"));
+    const overall = keypointScope.overall || {};
+    nodes.push(note(`Overall ${fixed(overall.coverage)} on ${overall.m} keypoints, band ${fixed(overall.band?.[0])}–${fixed(overall.band?.[1])} (union bound).`));
+  }
+  if (objectScope) {
+    nodes.push(el("h3", {}, "Per object (object scope: all keypoints of an instance at once)"));
+    nodes.push(table(["object", "m", "coverage", "band", "p", "Holm p", ""], (objectScope.objects || []).map((o) => [
+      o.object, o.m, fixed(o.coverage), `${fixed(o.band?.[0])}–${fixed(o.band?.[1])}`, fixed(o.p_value, 4),
+      fixed(o.adjusted_p_value, 4), o.flagged ? el("span", { class: "fail" }, "flagged") : o.in_band ? "" : "outside band",
+    ])));
+  }
+  nodes.push(el("p", { class: "advice" }, report.advice || ""));
+  target.replaceChildren(...nodes);
+}
+
+function coveragePlot(figures, promised) {
+  const width = Math.max(640, 16 * figures.length + 60);
+  const height = 240;
+  const left = 44, right = 40, top = 10, bottom = 70;
+  const values = figures.flatMap((f) => [f.coverage, ...(f.band || [])]).filter((v) => typeof v === "number");
+  const low = Math.max(0, Math.floor(10 * Math.min(promised, ...values)) / 10);
+  const y = (v) => top + (1 - (v - low) / (1 - low || 1)) * (height - top - bottom);
+  const step = (width - left - right) / Math.max(1, figures.length);
+  const x = (i) => left + step * (i + 0.5);
+  const plot = svg("svg", { id: "audit-plot", width, height, viewBox: `0 0 ${width} ${height}`, role: "img",
+    "aria-label": "coverage per keypoint with its band" });
+  for (let tick = low; tick <= 1.0001; tick += (1 - low) / 5) {
+    plot.append(svg("line", { class: "axis", x1: left, x2: width - right, y1: y(tick), y2: y(tick) }));
+    plot.append(svg("text", { x: left - 4, y: y(tick) + 3, "text-anchor": "end" }, tick.toFixed(2)));
+  }
+  plot.append(svg("line", { class: "promised", x1: left, x2: width - right, y1: y(promised), y2: y(promised) }));
+  figures.forEach((f, i) => {
+    if (f.band) plot.append(svg("line", { class: "whisker", x1: x(i), x2: x(i), y1: y(f.band[0]), y2: y(f.band[1]) }));
+    if (typeof f.coverage === "number") {
+      const kind = f.flagged ? "coverage flagged" : f.in_band ? "coverage" : "coverage out";
+      const point = svg("circle", { class: kind, cx: x(i), cy: y(f.coverage), r: 4, "data-keypoint": f.keypoint });
+      point.append(svg("title", {}, `${f.keypoint}: ${fixed(f.coverage)} of ${f.m} (band ${fixed(f.band?.[0])}–${fixed(f.band?.[1])}, n ${f.n}, p ${fixed(f.p_value, 4)})`));
+      plot.append(point);
+    }
+    const label = svg("text", { x: x(i), y: height - bottom + 8, transform: `rotate(60 ${x(i)} ${height - bottom + 8})` }, f.keypoint);
+    plot.append(label);
+  });
+  return plot;
+}
+
+// ---------------------------------------------------------------- drift and set sizes
+
+async function driftAvailable() {
+  // Ask the API document first, so that a server without drift monitoring is not asked for it.
+  try {
+    const document_ = await getJson("openapi.json", false);
+    return Boolean(document_.paths && document_.paths["/v1/admin/drift"]);
+  } catch (error) {
+    return false;
+  }
+}
+
+async function loadDrift() {
+  let drift = null;
+  if (await driftAvailable()) {
+    try {
+      drift = await getJson("v1/admin/drift");
+    } catch (error) {
+      if (!(error instanceof HttpError && error.status === 404)) throw error;
+    }
+  }
+  if (!drift) {
+    show("drift", note("No drift data: this server does not report drift yet."));
+    show("set-sizes", note("Set sizes of recent predictions: not available."));
+    return;
+  }
+  drawDrift(drift);
+  drawSetSizes(drift.set_sizes);
+}
+
+function featureNames(keypoints) {
+  return [...new Set(keypoints.flatMap((k) => Object.keys(k.features || {})))];
+}
+
+function drawDrift(drift) {
+  const keypoints = Array.isArray(drift.keypoints) ? drift.keypoints : [];
+  const features = featureNames(keypoints);
+  const history = Array.isArray(drift.history) ? drift.history : [];
+  const psi = drift.statistic === "psi";
+  const alarmText = drift.alarm ? el("span", { class: "alarm" }, "alarm raised") : "no alarm";
+  const header = el("p", { class: "muted" },
+    `${drift.statistic === "ks" ? "Kolmogorov-Smirnov, Holm-corrected at" : "PSI, alarm above"} ${drift.alarm_threshold ?? "–"}; `,
+    `window ${drift.window ?? "–"} live instances per keypoint; reference: version ${drift.reference_version ?? "–"}; `,
+    `${drift.recorded ?? 0} live values recorded; `, alarmText, ".");
+  const nodes = [header];
+  if (drift.reference_available === false && drift.reason) nodes.push(note(drift.reason));
+  if (!keypoints.length) return show("drift", ...nodes, note("No drift data yet."));
+  const rows = keypoints.map((k) => [
+    k.object ?? "", k.keypoint ?? "",
+    ...features.map((name) => {
+      const feature = (k.features || {})[name] || {};
+      const p = typeof feature.p_value === "number" ? ` (p ${fixed(feature.p_value, 3)})` : "";
+      const text = `${fixed(feature.statistic)}${p}`;
+      return feature.alarm ? el("span", { class: "alarm" }, `${text} alarm`) : text;
+    }),
+    sparkline(historyOf(history, k), psi ? drift.alarm_threshold : undefined, Object.values(k.features || {}).some((f) => f?.alarm)),
+  ]);
+  const span = history.length > 1 ? ` (${history.length} points, ${when(new Date(1000 * history[0].time).toISOString())} to now)` : "";
+  nodes.push(table(["object", "keypoint", ...features, `largest statistic over time${span}`], rows));
+  show("drift", ...nodes);
+}
+
+function historyOf(history, keypoint) {
+  // One value per past window: the largest statistic of this keypoint's features.
+  return history.map((point) => {
+    if (Array.isArray(point?.keypoint_statistics)) {
+      const value = point.keypoint_statistics[keypoint.index];
+      return typeof value === "number" ? value : null;
+    }
+    const entries = Array.isArray(point?.keypoints) ? point.keypoints : [];
+    const match = entries.find((e) => e.index === keypoint.index);
+    const statistics = Object.values(match?.features || {}).map((f) => f?.statistic).filter((v) => typeof v === "number");
+    return statistics.length ? Math.max(...statistics) : null;
+  });
+}
+
+function sparkline(values, threshold, alarm) {
+  const width = 160, height = 28;
+  const known = values.filter((v) => typeof v === "number");
+  if (!known.length) return "–";
+  const top = Math.max(...known, typeof threshold === "number" ? threshold : 0) || 1;
+  const x = (i) => (values.length < 2 ? width / 2 : (i * (width - 4)) / (values.length - 1) + 2);
+  const y = (v) => height - 2 - (v / top) * (height - 4);
+  const line = svg("svg", { class: "sparkline", width, height, viewBox: `0 0 ${width} ${height}` });
+  if (typeof threshold === "number") line.append(svg("line", { class: "threshold", x1: 0, x2: width, y1: y(threshold), y2: y(threshold) }));
+  const points = values.map((v, i) => (typeof v === "number" ? `${x(i)},${y(v)}` : null)).filter(Boolean);
+  if (points.length === 1) line.append(svg("circle", { class: "bar", cx: points[0].split(",")[0], cy: points[0].split(",")[1], r: 2 }));
+  line.append(svg("polyline", { class: alarm ? "series alarm" : "series", points: points.join(" ") }));
+  return line;
+}
+
+function histogramOf(sizes) {
+  // {histogram_edges, histogram_counts} (the drift endpoint's), {edges|bins, counts}, or a list of sizes.
+  if (!sizes) return null;
+  if (Array.isArray(sizes)) {
+    const values = sizes.filter((v) => typeof v === "number" && Number.isFinite(v));
+    if (!values.length) return null;
+    const low = Math.min(...values), high = Math.max(...values);
+    const bins = 20, width = (high - low) / bins || 1;
+    const counts = new Array(bins).fill(0);
+    values.forEach((v) => { counts[Math.min(bins - 1, Math.floor((v - low) / width))] += 1; });
+    return { edges: counts.map((_, i) => low + i * width).concat(high), counts };
+  }
+  const counts = sizes.histogram_counts || sizes.counts;
+  const edges = sizes.histogram_edges || sizes.edges || sizes.bins;
+  if (Array.isArray(counts) && Array.isArray(edges) && edges.length === counts.length + 1) return { edges, counts };
+  return null;
+}
+
+function drawSetSizes(sizes) {
+  const kinds = sizes && typeof sizes === "object" && !Array.isArray(sizes) ? Object.entries(sizes) : [];
+  const nodes = [];
+  for (const [kind, value] of kinds) {
+    const summary = value?.semi_major_px ?? value;
+    const histogram = histogramOf(summary);
+    if (!histogram) continue;
+    const quantiles = summary.quantiles ? Object.entries(summary.quantiles).map(([q, v]) => `${q} ${fixed(v, 1)}`).join(", ") : "";
+    const counts = typeof value?.n === "number" ? `${value.n} sets, ${value.unbounded ?? 0} unbounded` : "";
+    nodes.push(el("h3", {}, `${kind}: semi-major axis (px)`), note([counts, quantiles].filter(Boolean).join("; ")));
+    nodes.push(histogramPlot(histogram, kind));
+  }
+  if (!nodes.length) return show("set-sizes", note("Set sizes of recent predictions: not available (no recent prediction)."));
+  show("set-sizes", ...nodes);
+}
+
+function histogramPlot({ edges, counts }, kind) {
+  const width = 520, height = 140, left = 36, bottom = 24, top = 8;
+  const most = Math.max(1, ...counts);
+  const barWidth = (width - left - 8) / Math.max(1, counts.length);
+  const plot = svg("svg", { class: "histogram", width, height, viewBox: `0 0 ${width} ${height}`, "data-kind": kind });
+  counts.forEach((count, i) => {
+    const barHeight = (count / most) * (height - top - bottom);
+    const bar = svg("rect", { class: "bar", x: left + i * barWidth + 1, y: height - bottom - barHeight, width: Math.max(1, barWidth - 2), height: barHeight });
+    bar.append(svg("title", {}, `${fixed(edges[i], 1)}–${fixed(edges[i + 1], 1)} px: ${count}`));
+    plot.append(bar);
+  });
+  plot.append(svg("text", { x: left, y: height - 8 }, fixed(edges[0], 1)));
+  plot.append(svg("text", { x: width - 8, y: height - 8, "text-anchor": "end" }, fixed(edges[edges.length - 1], 1)));
+  plot.append(svg("text", { x: left - 4, y: top + 8, "text-anchor": "end" }, most));
+  return plot;
+}
+
+// ---------------------------------------------------------------- wiring
+
+const ADMIN_PANELS = { versions: loadVersions, activations: loadActivations, audits: loadAudits, drift: loadDrift };
+
+async function loadAdmin() {
+  const status = document.getElementById("token-state");
+  if (!state.token) {
+    status.textContent = "no token";
+    for (const id of Object.keys(ADMIN_PANELS)) show(id, note("Enter the admin token above to see this."));
+    show("set-sizes", note("Enter the admin token above to see this."));
+    document.querySelector("#audits .controls").hidden = true;
+    document.getElementById("audit-detail").replaceChildren();
+    return;
+  }
+  status.textContent = "token in use (this tab only)";
+  await Promise.all(Object.entries(ADMIN_PANELS).map(async ([id, load]) => {
+    try {
+      await load();
+    } catch (error) {
+      show(id, failure(error));
+    }
+  }));
+  document.body.dataset.loaded = "true";
+}
+
+function wire() {
+  const input = document.getElementById("token");
+  input.value = state.token;
+  document.getElementById("token-form").addEventListener("submit", (event) => {
+    event.preventDefault();
+    state.token = input.value.trim();
+    if (state.token) sessionStorage.setItem(TOKEN_KEY, state.token);
+    else sessionStorage.removeItem(TOKEN_KEY);
+    loadAdmin();
+  });
+  document.getElementById("forget").addEventListener("click", () => {
+    state.token = "";
+    input.value = "";
+    sessionStorage.removeItem(TOKEN_KEY);
+    delete document.body.dataset.loaded;
+    loadAdmin();
+  });
+  document.getElementById("audit-choice").addEventListener("change", (event) => {
+    loadAudit(event.target.value).catch((error) => document.getElementById("audit-detail").replaceChildren(failure(error)));
+  });
+  for (const id of ["audit-kind", "audit-epsilon"]) document.getElementById(id).addEventListener("change", drawAudit);
+}
+
+wire();
+loadModel().then(loadAdmin);

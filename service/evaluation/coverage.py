@@ -1,0 +1,142 @@
+"""Validity: per-keypoint (and per-object) empirical coverage of a labeled batch against
+the exact law of Theorem 1 (Yang & Pavone, conformal keypoint sets).
+
+The true coverage given the calibration set is Beta(n+1-t, t); the number of covered
+points among the m test points is then BetaBinomial(m, n+1-t, t), exactly. A group is
+*inside* when its covered count lies in the central 95% interval of that law, so about
+95% of groups should be inside. The plain Beta interval on coverage (ignoring the test
+set's own binomial noise) is reported too: it is narrower, so it is a stricter check.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.conformal import CoverageGuarantee, binomial_cdf
+from service.conformal.laws import beta_interval, betabinomial_pmf, central_interval
+
+LEVEL = 0.95
+
+
+@dataclass(frozen=True)
+class GroupCoverage:
+    """Coverage of one keypoint (or one object, simultaneously) on the test split."""
+
+    name: str
+    n: int  # calibration size
+    t: int  # rank
+    m: int  # test size
+    covered: int
+
+    @property
+    def coverage(self) -> float:
+        return self.covered / self.m if self.m else float("nan")
+
+    @property
+    def unbounded(self) -> bool:
+        return self.t == 0
+
+    def law(self) -> np.ndarray:
+        """pmf of the covered count: BetaBinomial(m, n+1-t, t)."""
+        return betabinomial_pmf(self.m, self.n + 1 - self.t, self.t)
+
+    def band(self) -> tuple[float, float]:
+        """Central 95% interval of the empirical coverage of m test points under the law: where
+        the coverage falls when the calibration is valid (unbounded sets: always 1)."""
+        if self.unbounded or not self.m:
+            return 1.0, 1.0
+        low, high = central_interval(self.law(), LEVEL)
+        return low / self.m, high / self.m
+
+    def inside_predictive(self) -> bool:
+        low, high = self.band()
+        return low - 1e-12 <= self.coverage <= high + 1e-12
+
+    def inside_beta(self) -> bool:
+        if self.unbounded:
+            return self.covered == self.m
+        low, high = beta_interval(self.n + 1 - self.t, self.t, LEVEL)
+        return low <= self.coverage <= high
+
+    def chance_at_least(self, target: float) -> float:
+        """P(empirical coverage >= target) under the law (what PAC predicts we observe)."""
+        if self.unbounded:
+            return 1.0
+        need = int(np.ceil(target * self.m - 1e-9))
+        return float(self.law()[need:].sum())
+
+    def not_significantly_below(self, target: float, alpha: float = 0.05) -> bool:
+        """One-sided binomial test: is covered count consistent with true coverage >= target?"""
+        return binomial_cdf(self.covered, self.m, target) > alpha
+
+
+@dataclass(frozen=True)
+class ValiditySummary:
+    kind: str
+    epsilon: float
+    scope: str
+    delta: float | None
+    groups: tuple[GroupCoverage, ...]
+
+    @property
+    def label(self) -> str:
+        """The scope as a reader names it: keypoint, object, or keypoint with the PAC rank."""
+        return f"keypoint, PAC delta={self.delta}" if self.scope == "pac" else self.scope
+
+    @property
+    def target(self) -> float:
+        return 1 - self.epsilon
+
+    def coverages(self) -> np.ndarray:
+        return np.array([g.coverage for g in self.groups if g.m])
+
+    def fraction(self, predicate) -> float:
+        flags = [predicate(g) for g in self.groups if g.m]
+        return float(np.mean(flags)) if flags else float("nan")
+
+    def expected(self, chance) -> float:
+        values = [chance(g) for g in self.groups if g.m]
+        return float(np.mean(values)) if values else float("nan")
+
+
+def keypoint_groups(
+    covered: np.ndarray,
+    labeled: np.ndarray,
+    channel: np.ndarray,
+    guarantees: tuple[CoverageGuarantee, ...],
+    names: list[str],
+) -> tuple[GroupCoverage, ...]:
+    """Per manifest keypoint: covered count among its labeled test rows."""
+    groups = []
+    for k, guarantee in enumerate(guarantees):
+        rows = labeled & (channel == k)
+        groups.append(
+            GroupCoverage(names[k], guarantee.n, guarantee.t, int(rows.sum()), int(covered[rows].sum()))
+        )
+    return tuple(groups)
+
+
+def object_groups(
+    covered: np.ndarray,
+    labeled: np.ndarray,
+    channel: np.ndarray,
+    instance: np.ndarray,
+    guarantees: tuple[CoverageGuarantee, ...],
+    objects: list[tuple[str, tuple[int, ...]]],
+) -> tuple[GroupCoverage, ...]:
+    """Per object: instances (fully labeled) whose keypoints are all covered at once."""
+    groups = []
+    for name, keypoints in objects:
+        rows = np.isin(channel, keypoints)
+        ids, index = np.unique(instance[rows], return_inverse=True)
+        complete = np.bincount(index, weights=labeled[rows], minlength=len(ids)) == len(keypoints)
+        all_covered = np.bincount(index, weights=covered[rows], minlength=len(ids)) == len(keypoints)
+        guarantee = guarantees[keypoints[0]]
+        groups.append(
+            GroupCoverage(
+                name, guarantee.n, guarantee.t, int(complete.sum()), int((all_covered & complete).sum())
+            )
+        )
+    return tuple(groups)

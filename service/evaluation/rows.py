@@ -1,0 +1,144 @@
+"""One inference pass over a labeled COCO folder: per (instance, keypoint) row, everything
+the evaluation needs (the three scores, heatmap statistics, crop affine, label, COCO
+visibility flag), so no heatmap has to be kept.
+
+The detector runs once per image (all boxes in one batch). Scores come from the service's
+``score_image`` (the numbers a calibration stores); the same detector output gives the
+heatmap statistics (the service's ``heatmap_statistics`` with the manifest's settings),
+from which ``service.evaluation.sets`` builds the very sets ``predict`` answers with.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.calibration.coco import ANNOTATIONS_FILENAME, CocoBatch, LabeledInstance
+from service.calibration.scoring import NONCONFORMITY_KINDS, score_image
+from service.conformal import HeatmapStatistics, heatmap_statistics
+from service.detector.runtime import Detector, InstanceHeatmaps
+from service.errors import InvalidInput, ServiceError
+from service.image_decoding import decode_image
+
+
+@dataclass(frozen=True)
+class Rows:
+    """Row-aligned arrays, one row per (instance, keypoint of its object), instance-major."""
+
+    image_id: np.ndarray  # (R,)
+    instance: np.ndarray  # (R,) index of the instance within the batch
+    channel: np.ndarray  # (R,) manifest keypoint index
+    visibility: np.ndarray  # (R,) COCO v: 0 unlabeled, 1 occluded, 2 visible
+    visib_fract: np.ndarray  # (R,) fraction of the object visible, when the labels give it (else NaN)
+    label: np.ndarray  # (R, 2) true keypoint, image pixels (NaN when unlabeled)
+    box_side: np.ndarray  # (R,) max(w, h) of the instance box, image pixels
+    affine: np.ndarray  # (R, 2, 3) image -> heatmap affine of the row's crop
+    statistics: HeatmapStatistics  # heatmap coordinates, as heatmap_statistics returned them
+    scores: dict[str, np.ndarray]  # kind -> (R,), NaN when unlabeled
+    images: int
+
+    @property
+    def labeled(self) -> np.ndarray:
+        return self.visibility > 0
+
+    @property
+    def instances(self) -> int:
+        return int(self.instance.max()) + 1 if self.instance.size else 0
+
+
+class _RecordingDetector:
+    """Passes ``infer`` through to the detector and keeps the last result (no second run)."""
+
+    def __init__(self, detector: Detector) -> None:
+        self.manifest = detector.manifest
+        self._detector = detector
+        self.last: InstanceHeatmaps | None = None
+
+    def infer(self, image: np.ndarray, boxes: np.ndarray, objects: list[str]) -> InstanceHeatmaps:
+        self.last = self._detector.infer(image, boxes, objects)
+        return self.last
+
+
+def collect_rows(
+    batch: CocoBatch,
+    detector: Detector,
+    max_image_pixels: int,
+    progress: Callable[[int], None] = lambda count: None,
+) -> Rows:
+    """Run the detector once per image of a validated batch and collect every row.
+
+    An image that does not decode by the predict rule is refused (naming the file): an
+    evaluation that silently skipped images would measure another batch.
+    """
+    flags = _visibility_flags(batch)
+    recorder = _RecordingDetector(detector)
+    parts: list[dict[str, np.ndarray]] = []
+    statistics: list[HeatmapStatistics] = []
+    groups = batch.instances_by_image()
+    offset = 0
+    for image_id, instances in groups.items():
+        record = batch.images[image_id]
+        try:
+            image = decode_image(record.path.read_bytes(), max_image_pixels)
+        except ServiceError as error:
+            detail = f"image file {record.file_name!r} cannot be evaluated: {error.detail}"
+            raise InvalidInput(detail) from None
+        scores = [scored.scores for scored in score_image(recorder, image, instances)]
+        assert recorder.last is not None
+        part, stats = _image_rows(recorder.last, instances, scores, flags, detector)
+        part["instance"] += offset
+        offset += len(instances)
+        parts.append(part)
+        statistics.append(stats)
+        progress(len(instances))
+    merged = {name: np.concatenate([p[name] for p in parts]) for name in parts[0]}
+    scores = {kind: merged.pop(f"score_{kind}") for kind in NONCONFORMITY_KINDS}
+    return Rows(**merged, statistics=_concatenate(statistics), scores=scores, images=len(groups))
+
+
+def _image_rows(
+    result: InstanceHeatmaps,
+    instances: list[LabeledInstance],
+    scores: list[dict[str, np.ndarray]],
+    flags: dict[int, tuple[np.ndarray, float]],
+    detector: Detector,
+) -> tuple[dict[str, np.ndarray], HeatmapStatistics]:
+    spec = detector.manifest.heatmap
+    rows = result.instance_index
+    stats = heatmap_statistics(result.heatmaps, spec.normalization, spec.top_k, spec.temperature)
+    part = {
+        "image_id": np.array([instances[i].image_id for i in rows]),
+        "instance": rows.astype(np.int64),
+        "channel": result.channel.astype(np.int64),
+        "visibility": np.concatenate([flags[inst.annotation_id][0] for inst in instances]),
+        "visib_fract": np.array([flags[instances[i].annotation_id][1] for i in rows]),
+        "label": np.concatenate([inst.keypoints for inst in instances]),
+        "box_side": np.array([max(instances[i].bbox[2], instances[i].bbox[3]) for i in rows]),
+        "affine": result.affines[rows],
+    }
+    for kind in NONCONFORMITY_KINDS:
+        part[f"score_{kind}"] = np.concatenate([s[kind] for s in scores])
+    return part, stats
+
+
+def _visibility_flags(batch: CocoBatch) -> dict[int, tuple[np.ndarray, float]]:
+    """annotation id -> (COCO visibility flags (K,), visib_fract): load_coco_batch keeps only
+    whether a keypoint is labeled; the file was validated by it, so it parses."""
+    document = json.loads((batch.folder / ANNOTATIONS_FILENAME).read_bytes())
+    return {
+        a["id"]: (np.asarray(a["keypoints"], dtype=np.int64)[2::3], float(a.get("visib_fract", np.nan)))
+        for a in document["annotations"]
+    }
+
+
+def _concatenate(parts: list[HeatmapStatistics]) -> HeatmapStatistics:
+    return HeatmapStatistics(
+        parts[0].heatmap_shape,
+        *(np.concatenate([getattr(p, name) for p in parts]) for name in _STATISTIC_ARRAYS),
+    )
+
+
+_STATISTIC_ARRAYS = ("uninformative", "peak_location", "peak_probability", "mean", "covariance")

@@ -1,0 +1,231 @@
+"""Coverage audits as background jobs: a labeled batch, checked like a calibration upload, is
+scored by the served detector against a version's thresholds; the report is stored in the
+calibration store (immutable) and its figures published as Prometheus gauges.
+
+An audit never changes a calibration. Its upload stays in this process's workspace folder
+(removed when the job ends, and by the next start after a crash): an interrupted audit is
+not retried, the batch is uploaded again.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from prometheus_client import Gauge
+
+from calibration_store import (
+    CoverageAudit,
+    JobCompletion,
+    JobRecord,
+    NewCoverageAudit,
+    StoreError,
+)
+from service.audit import Operator
+from service.calibration.coco import NamedBatch
+from service.calibration.intake import PreparedBatch, check_rejected_share, prepare_batch
+from service.calibration.jobs import JobProgress, new_job_id
+from service.calibration.scoring import NONCONFORMITY_KINDS, ScoreAccumulator, score_batch
+from service.calibration.submission import DetectorJobs
+from service.calibration.uploads import JobFolder, UploadWorkspace, batch_name, validate_upload
+from service.errors import Conflict, InvalidInput
+from service.metrics import (
+    AUDIT_BAND_HIGH,
+    AUDIT_BAND_LOW,
+    AUDIT_COVERAGE,
+    AUDIT_FLAGGED,
+    AUDIT_LATEST,
+    MULTIPROCESS_ENV,
+)
+from service.monitoring.audit_report import DEFAULT_EPSILONS, ThresholdLookup, audit_report
+
+log = logging.getLogger(__name__)
+JOB_KIND = "audit"
+MAX_EPSILONS = 10
+
+
+@dataclass(frozen=True)
+class AuditRequest:
+    """What the operator asked an audit for."""
+
+    version: int | None = None  # None: the active version
+    epsilons: tuple[float, ...] = DEFAULT_EPSILONS
+    name: str | None = None
+    note: str = ""
+    dedupe: bool = False
+    max_rejected_share: float | None = None
+
+    def __post_init__(self) -> None:
+        epsilons = tuple(sorted(set(self.epsilons)))
+        if not epsilons or len(epsilons) > MAX_EPSILONS or not all(0 < e < 1 for e in epsilons):
+            raise InvalidInput(f"epsilon must be 1 to {MAX_EPSILONS} values in (0, 1), e.g."
+                               " epsilon=0.05&epsilon=0.1")  # fmt: skip
+        object.__setattr__(self, "epsilons", epsilons)
+
+
+class CoverageAudits(DetectorJobs):
+    """Accepts and runs coverage audits of one detector's calibration versions."""
+
+    def accept(
+        self, workspace: UploadWorkspace, sha256: str, request: AuditRequest, operator: Operator
+    ) -> JobRecord:
+        """Validate a received batch and start its audit, or refuse it (the upload is removed)."""
+        try:
+            version = self._registry.resolve(request.version)  # 404, 409, 503
+            named = validate_upload(JobFolder(workspace.root), batch_name(request.name, sha256), sha256,
+                                    self._detector.manifest, self._settings.limits,
+                                    self._settings.disk)  # fmt: skip
+            prepared = self._prepare(named, version, request)
+            job = self._submit(workspace, prepared, version, request, operator)
+        except BaseException:
+            workspace.remove()
+            raise
+        details = {"job": job.id, "version": version, "batch": named.name, "sha256": sha256,
+                   "instances": named.batch.count, "epsilons": list(request.epsilons)}  # fmt: skip
+        self._audit.record(operator, "audit", "accepted", version=version, reason=request.note,
+                           details=details)  # fmt: skip
+        return job
+
+    def latest(self) -> CoverageAudit | None:
+        """The newest audit of the served model (None if there is none)."""
+        audits = self._store.coverage_audits(self._detector.model_hash, limit=1)
+        return audits[0] if audits else None
+
+    def publish_latest(self) -> None:
+        """Set the gauges from the newest stored audit (at start-up; a store failure is logged)."""
+        try:
+            latest = self.latest()
+        except StoreError as error:
+            log.warning("could not read the latest coverage audit for the metrics: %s", error)
+            return
+        if latest is not None:
+            publish_audit(latest.id, latest.report)
+
+    def _previous(self, audit_id: int) -> CoverageAudit | None:
+        """The audit before this one, whose gauges other worker processes may still publish."""
+        try:
+            older = self._store.coverage_audits(self._detector.model_hash, before=audit_id, limit=1)
+        except StoreError as error:
+            log.warning("could not read the previous coverage audit for the metrics: %s", error)
+            return None
+        return older[0] if older else None
+
+    def _prepare(self, named: NamedBatch, version: int, request: AuditRequest) -> PreparedBatch:
+        """Refuse instances the audited version was calibrated with (they would flatter it)."""
+        info = self._store.get_version(self._detector.model_hash, version)
+        share = self._share(request)
+        try:
+            return prepare_batch(named, info, self._registry.scores(version), dedupe=request.dedupe,
+                                 max_rejected_share=share)  # fmt: skip
+        except Conflict as error:
+            raise Conflict(
+                f"an audit needs instances that version {version} was not calibrated with: {error.detail}",
+                errors=error.errors, extensions=error.extensions,
+            ) from error  # fmt: skip
+
+    def _share(self, request: AuditRequest) -> float:
+        share = request.max_rejected_share
+        return self._settings.max_rejected_share if share is None else share
+
+    def _submit(
+        self, workspace: UploadWorkspace, prepared: PreparedBatch, version: int, request: AuditRequest,
+        operator: Operator,
+    ) -> JobRecord:  # fmt: skip
+        job_id = new_job_id()
+
+        def run(progress: JobProgress) -> dict[str, Any]:
+            try:
+                report = self._measure(prepared, version, request, progress)
+                summary = {"version": version, "passed": report["passed"], "flagged": len(report["flagged"]),
+                           "instances": report["instances"]}  # fmt: skip
+                new = NewCoverageAudit(
+                    model_hash=self._detector.model_hash, version=version, who=operator.name,
+                    batch_sha256=prepared.named.sha256, n_instances=report["instances"], report=report,
+                )  # fmt: skip
+                stored = self._store.create_coverage_audit(new, job=JobCompletion(job_id, summary))
+            finally:
+                workspace.remove()
+            publish_audit(stored.id, stored.report, self._previous(stored.id))
+            outcome = "passed" if report["passed"] else "failed"
+            details = {"job": job_id, "audit": stored.id, "flagged": summary["flagged"]}
+            self._audit.record(operator, "audit", outcome, version=version, details=details)
+            return {**summary, "audit": stored.id}
+
+        return self._runner.submit(JOB_KIND, run, prepared.named.batch.count, job_id=job_id)
+
+    def _measure(
+        self, prepared: PreparedBatch, version: int, request: AuditRequest, progress: JobProgress
+    ) -> dict[str, Any]:
+        named = prepared.named
+        accumulator = ScoreAccumulator()
+        rejected = score_batch(named.batch, named.name, self._detector, accumulator,
+                               self._settings.max_image_pixels, progress.advance)  # fmt: skip
+        check_rejected_share([*prepared.rejected, *rejected], prepared.annotations, self._share(request))
+        if accumulator.count == 0:
+            raise InvalidInput("no instance of the batch could be scored: every image was left out")
+        report = audit_report(accumulator.table(), self._detector.manifest, self._lookup(version),
+                              NONCONFORMITY_KINDS, request.epsilons, version)  # fmt: skip
+        rejections = [r.describe() for r in (*prepared.rejected, *rejected)]
+        return {**report, "batch": {"name": named.name, "sha256": named.sha256, "note": request.note,
+                                    "annotations": prepared.annotations, "rejected": len(rejections),
+                                    "rejections": rejections[:20],
+                                    "duplicates_dropped": prepared.repeats_dropped}}  # fmt: skip
+
+    def _lookup(self, version: int) -> ThresholdLookup:
+        def thresholds(kind: str, scope: str, epsilon: float) -> tuple[np.ndarray, Sequence[int]]:
+            found = self._registry.thresholds(version, kind, scope, epsilon, None)
+            return found.values, [guarantee.n for guarantee in found.guarantees]
+
+        return thresholds
+
+
+def publish_audit(audit_id: int, report: dict[str, Any], previous: CoverageAudit | None = None) -> None:
+    """Replace the audit gauges with this audit's figures (aggregates have keypoint "" and, for
+    the overall figure, object ""), hiding those of the ``previous`` audit and of whatever this
+    process published before."""
+    samples = _audit_samples(audit_id, report)
+    stale = set() if previous is None else set(_audit_samples(previous.id, previous.report))
+    with _PUBLISHED_LOCK:
+        for gauge, labels in (_PUBLISHED | stale) - samples.keys():
+            _forget(gauge, labels)
+        for (gauge, labels), value in samples.items():
+            gauge.labels(*labels).set(value)
+        _PUBLISHED.clear()
+        _PUBLISHED.update(samples)
+
+
+_PUBLISHED: set[tuple[Gauge, tuple[str, ...]]] = set()
+_PUBLISHED_LOCK = threading.Lock()
+
+
+def _audit_samples(audit_id: int, report: dict[str, Any]) -> dict[tuple[Gauge, tuple[str, ...]], float]:
+    samples = {(AUDIT_LATEST, (str(report.get("version", "")),)): float(audit_id)}
+    for section in report.get("sections", []):
+        where = (section["nonconformity"], f"{section['epsilon']:g}", section["scope"])
+        figures = [("", "", section["overall"])]
+        figures += [(f["object"], "", f) for f in section["objects"]]
+        figures += [(f["object"], f["keypoint"], f) for f in section["keypoints"]]
+        for obj, keypoint, figure in figures:
+            if figure.get("coverage") is None:
+                continue
+            labels = (obj, keypoint, *where)
+            samples[(AUDIT_COVERAGE, labels)] = figure["coverage"]
+            samples[(AUDIT_BAND_LOW, labels)] = figure["band"][0]
+            samples[(AUDIT_BAND_HIGH, labels)] = figure["band"][1]
+            samples[(AUDIT_FLAGGED, labels)] = 1.0 if figure.get("flagged") else 0.0
+    return samples
+
+
+def _forget(gauge: Gauge, labels: tuple[str, ...]) -> None:
+    """Drop a sample of an older audit. With several workers each keeps its own file of values
+    and the newest wins ("mostrecent"): a NaN written now hides the other workers' old value."""
+    if os.environ.get(MULTIPROCESS_ENV):
+        gauge.labels(*labels).set(math.nan)
+    else:
+        gauge.remove(*labels)

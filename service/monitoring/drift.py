@@ -1,0 +1,382 @@
+"""Drift of the live inputs without labels: each keypoint's heatmap features on live traffic
+against the same features on the calibration images of the active version.
+
+The conformal guarantee (Yang & Pavone, Theorem 1) holds while test images are exchangeable
+with the calibration images. Labels are needed to measure coverage; without them, a change in
+the law of what the detector sees is the warning sign. Per keypoint channel and per label-free
+feature (service/conformal/features.py: p*, gamma, anisotropy), a sliding window of the last
+``window`` live values is compared with the version's calibration values by a two-sample test
+(service/monitoring/two_sample.py):
+
+- ``ks`` (default): Kolmogorov-Smirnov with its p-value; the alarm is raised for the tests
+  that Holm's step-down procedure rejects at family-wise error rate ``alarm_level`` over the
+  whole family (every keypoint x feature with data), so a quiet stream raises any alarm with
+  probability at most ``alarm_level`` (for a window drawn afresh; see docs/operations.md).
+- ``psi``: the population stability index over ten quantile bins of the reference; the alarm
+  is PSI > ``psi_threshold`` once the window holds ``PSI_MIN_LIVE`` = 400 values (a fixed threshold,
+  no multiplicity correction: PSI is a score, not a test).
+
+Cost: a request appends its rows to ring buffers (service/monitoring/windows.py); the tests
+run only when the report is read (``/v1/admin/drift``, ``/metrics``, the history ticker) and
+are cached until a window or the active version changes. Each process keeps its own windows.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import random
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import numpy as np
+
+from calibration_store import ScoreTable
+from service.conformal import HeatmapStatistics
+from service.conformal.features import HEATMAP_FEATURES, heatmap_features
+from service.detector.manifest import Manifest
+from service.monitoring.multiple_testing import holm_rejections
+from service.monitoring.set_sizes import KINDS, KindSizes, set_sizes, shape_entries
+from service.monitoring.two_sample import (
+    ks_p_value,
+    ks_statistic,
+    population_stability_index,
+    quantile_bin_edges,
+)
+from service.monitoring.windows import RingWindows
+
+log = logging.getLogger(__name__)
+
+DriftTest = Literal["ks", "psi"]
+#: the feature of the peak statistics; every other feature comes from the top-K spread
+PEAK_FEATURE = "peak_probability"
+#: live values a window needs before PSI may raise its alarm: PSI's small-sample bias is about
+#: (bins - 1)(1/n + 1/m), 0.11 at n = 100 (quiet streams then cross 0.25 on some of 144 tests)
+PSI_MIN_LIVE = 400
+_SHAPE_COLUMNS = slice(len(HEATMAP_FEATURES), len(HEATMAP_FEATURES) + 3)
+_KIND_COLUMN = len(HEATMAP_FEATURES) + 3
+_COLUMNS = _KIND_COLUMN + 1
+#: points kept in the history (6 h at one a minute)
+HISTORY_POINTS = 360
+
+#: the active version and its scores (None, None when there is none or it cannot serve)
+ReferenceSource = Callable[[], tuple[int | None, ScoreTable | None]]
+
+
+@dataclass(frozen=True)
+class DriftSettings:
+    window: int  # live values kept per keypoint and feature
+    test: DriftTest
+    alarm_level: float  # ks: family-wise error rate of the Holm-corrected family
+    psi_threshold: float  # psi: alarm above
+    full_statistics_share: float  # share of requests that compute the statistics their score skips
+    history_seconds: float  # one history point this often
+
+
+@dataclass(frozen=True)
+class FeatureTest:
+    """One two-sample comparison; statistic and p_value are None while a side has no data."""
+
+    statistic: float | None
+    p_value: float | None  # ks only
+    alarm: bool
+    live_n: int
+    reference_n: int
+
+
+@dataclass(frozen=True)
+class KeypointDrift:
+    object: str
+    keypoint: str
+    index: int
+    features: dict[str, FeatureTest]
+
+
+@dataclass(frozen=True)
+class ObjectDrift:
+    """Per feature: the largest statistic of the object's keypoints, their smallest p-value times
+    their number (Bonferroni within the object), alarm if any keypoint's is raised."""
+
+    object: str
+    keypoints: list[int]
+    features: dict[str, FeatureTest]
+    alarm: bool
+
+
+@dataclass(frozen=True)
+class HistoryPoint:
+    time: float  # unix seconds
+    version: int | None
+    recorded: int  # live values recorded so far (all windows)
+    alarm: bool
+    alarms: int  # keypoint x feature alarms
+    keypoint_statistics: list[float | None]  # per manifest channel: largest statistic over features
+    object_statistics: dict[str, float | None]
+
+
+@dataclass(frozen=True)
+class DriftReport:
+    version: int | None  # the reference: the active calibration version
+    reference_available: bool
+    reason: str | None  # why there is no reference (None when there is)
+    window: int
+    test: DriftTest
+    alarm_threshold: float
+    alarm: bool
+    keypoints: list[KeypointDrift]
+    objects: list[ObjectDrift]
+    set_sizes: dict[str, KindSizes]
+    recorded: int
+    evaluated_at: float
+    process: int
+    history: list[HistoryPoint] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class _Reference:
+    """Sorted calibration values per feature and channel (None: channel not in the version)."""
+
+    version: int
+    values: dict[str, list[np.ndarray | None]]
+    edges: dict[str, list[np.ndarray | None]]
+
+
+class DriftMonitor:
+    """Live windows of every keypoint's features, tested lazily against the active version."""
+
+    def __init__(self, manifest: Manifest, reference: ReferenceSource, settings: DriftSettings) -> None:
+        if settings.test == "psi" and settings.window < PSI_MIN_LIVE:
+            log.warning("drift: psi alarms need %d live values per window; CKS_DRIFT_WINDOW is %d, so"
+                        " it never alarms", PSI_MIN_LIVE, settings.window)  # fmt: skip
+        self.settings = settings
+        self._manifest = manifest
+        self._source = reference
+        self._channels = manifest.num_keypoints
+        # per channel, one row per live instance: the features (NaN: not computed), the set's shape
+        # entries and the nonconformity function's index
+        self._windows = RingWindows(self._channels, settings.window, width=_COLUMNS)
+        self._reference: _Reference | None = None
+        self._evaluation_lock = threading.Lock()
+        self._cached: tuple[tuple, DriftReport] | None = None
+        self._history: deque[HistoryPoint] = deque(maxlen=HISTORY_POINTS)
+        self._stop = threading.Event()
+        self._ticker: threading.Thread | None = None
+
+    # -- hot path -------------------------------------------------------------------------
+
+    def wants_all_statistics(self) -> bool:
+        """Whether this request should compute every heatmap statistic, not only its score's."""
+        return random.random() < self.settings.full_statistics_share
+
+    def record(
+        self, channels: np.ndarray, statistics: HeatmapStatistics, kind: str, shapes: np.ndarray
+    ) -> None:
+        """Keep one request's features (those its statistics allow) and set shapes (image px)."""
+        rows = np.full((channels.size, _COLUMNS), np.nan)
+        for position, values in _positions(live_features(statistics)):
+            rows[:, position] = values
+        rows[:, _SHAPE_COLUMNS] = shape_entries(shapes)
+        rows[:, _KIND_COLUMN] = KINDS.index(kind)
+        self._windows.append(channels, rows)
+
+    # -- reading --------------------------------------------------------------------------
+
+    def report(self) -> DriftReport:
+        """The tests of every window against the active version (cached until either changes)."""
+        version, table = self._source()
+        key = (version, self._windows.written())
+        with self._evaluation_lock:
+            if self._cached is not None and self._cached[0] == key:
+                report = self._cached[1]
+            else:
+                report = self._evaluate(version, table, key[1])
+                self._cached = (key, report)
+            history = list(self._history)
+        return replace(report, history=history)
+
+    def start(self) -> None:
+        """Add a history point every ``history_seconds`` (in a daemon thread) until ``stop``."""
+        self._ticker = threading.Thread(target=self._tick_forever, name="drift-history", daemon=True)
+        self._ticker.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._ticker is not None:
+            self._ticker.join(timeout=5.0)
+
+    def _tick_forever(self) -> None:
+        last_recorded = -1
+        while not self._stop.wait(self.settings.history_seconds):
+            try:
+                report = self.report()
+            except Exception:  # a store hiccup or a bug: the history skips a point, requests go on
+                log.exception("drift history: the evaluation failed")
+                continue
+            if report.recorded != last_recorded:
+                last_recorded = report.recorded
+                with self._evaluation_lock:
+                    self._history.append(_history_point(report))
+
+    def _evaluate(self, version: int | None, table: ScoreTable | None, recorded: int) -> DriftReport:
+        reference, reason = self._reference_for(version, table)
+        windows = [self._windows.window(channel) for channel in range(self._channels)]
+        live = [
+            [_finite(window[:, position]) for window in windows] for position in range(len(HEATMAP_FEATURES))
+        ]
+        tests = self._tests(reference, live)
+        rows = np.concatenate(windows)
+        keypoints = [
+            KeypointDrift(
+                object=spec.object,
+                keypoint=spec.name,
+                index=spec.index,
+                features={
+                    name: tests[position][spec.index] for position, name in enumerate(HEATMAP_FEATURES)
+                },
+            )
+            for spec in self._manifest.keypoints
+        ]
+        objects = [_object_drift(obj.name, list(obj.keypoints), keypoints) for obj in self._manifest.objects]
+        settings = self.settings
+        return DriftReport(
+            version=version,
+            reference_available=reference is not None,
+            reason=reason,
+            window=settings.window,
+            test=settings.test,
+            alarm_threshold=settings.alarm_level if settings.test == "ks" else settings.psi_threshold,
+            alarm=any(o.alarm for o in objects),
+            keypoints=keypoints,
+            objects=objects,
+            set_sizes=set_sizes(rows[:, _KIND_COLUMN].astype(int), rows[:, _SHAPE_COLUMNS]),
+            recorded=recorded,
+            evaluated_at=time.time(),
+            process=os.getpid(),
+        )
+
+    def _tests(self, reference: _Reference | None, live: list[list[np.ndarray]]) -> list[list[FeatureTest]]:
+        """[feature][channel] tests; the alarm of ks tests by Holm over the whole family."""
+        rows = []
+        for position, name in enumerate(HEATMAP_FEATURES):
+            row = []
+            for channel, values in enumerate(live[position]):
+                sorted_reference = None if reference is None else reference.values[name][channel]
+                edges = None if reference is None else reference.edges[name][channel]
+                row.append(self._test(sorted_reference, edges, values))
+            rows.append(row)
+        if self.settings.test == "ks":
+            p_values = np.array([[math.nan if t.p_value is None else t.p_value for t in row] for row in rows])
+            alarms = holm_rejections(p_values.ravel(), self.settings.alarm_level).reshape(p_values.shape)
+            rows = [
+                [FeatureTest(t.statistic, t.p_value, bool(alarm), t.live_n, t.reference_n)
+                 for t, alarm in zip(row, alarm_row, strict=True)]
+                for row, alarm_row in zip(rows, alarms, strict=True)
+            ]  # fmt: skip
+        return rows
+
+    def _test(self, reference: np.ndarray | None, edges: np.ndarray | None, live: np.ndarray) -> FeatureTest:
+        reference_n = 0 if reference is None else reference.size
+        if reference is None or edges is None or live.size == 0:  # edges exist for every non-empty reference
+            return FeatureTest(None, None, False, live.size, reference_n)
+        if self.settings.test == "psi":
+            score = population_stability_index(reference, live, edges)
+            alarm = live.size >= PSI_MIN_LIVE and score > self.settings.psi_threshold
+            return FeatureTest(score, None, alarm, live.size, reference_n)
+        statistic = ks_statistic(reference, live)
+        return FeatureTest(
+            statistic, ks_p_value(statistic, live.size, reference_n), False, live.size, reference_n
+        )
+
+    def _reference_for(
+        self, version: int | None, table: ScoreTable | None
+    ) -> tuple[_Reference | None, str | None]:
+        if version is None:
+            return None, "no calibration version is active for this model"
+        if table is None:
+            return None, f"the active calibration version {version} cannot serve this model's manifest"
+        missing = [block.object_name for block in table.objects if not block.has_features]
+        if missing or not table.objects:
+            return None, (
+                f"the active calibration version {version} carries no heatmap features (made before they"
+                " were stored): recalibrate, or append a batch to it, to get a drift reference"
+            )
+        if self._reference is None or self._reference.version != version:
+            self._reference = _reference(version, table, self._channels)
+        return self._reference, None
+
+
+def live_features(statistics: HeatmapStatistics) -> dict[str, np.ndarray]:
+    """The features ``statistics`` allow: p* needs the peak, gamma and anisotropy the spread.
+
+    Computed by ``heatmap_features``, the calibration's own function; a part that was not
+    computed is filled with a placeholder and its features dropped.
+    """
+    rows = statistics.uninformative.size
+    has_peak, has_spread = statistics.peak_probability is not None, statistics.covariance is not None
+    if not (has_peak and has_spread):
+        statistics = replace(
+            statistics,
+            peak_probability=statistics.peak_probability if has_peak else np.ones(rows),
+            covariance=statistics.covariance if has_spread else np.broadcast_to(np.eye(2), (rows, 2, 2)),
+        )
+    features = heatmap_features(statistics)
+    return {name: v for name, v in features.items() if (has_peak if name == PEAK_FEATURE else has_spread)}
+
+
+def _positions(features: dict[str, np.ndarray]) -> list[tuple[int, np.ndarray]]:
+    return [(position, features[name]) for position, name in enumerate(HEATMAP_FEATURES) if name in features]
+
+
+def _finite(values: np.ndarray) -> np.ndarray:
+    return values[np.isfinite(values)]
+
+
+def _reference(version: int, table: ScoreTable, channels: int) -> _Reference:
+    values: dict[str, list[np.ndarray | None]] = {name: [None] * channels for name in HEATMAP_FEATURES}
+    edges: dict[str, list[np.ndarray | None]] = {name: [None] * channels for name in HEATMAP_FEATURES}
+    for block in table.objects:
+        for name in HEATMAP_FEATURES:
+            matrix = np.asarray(block.features[name], dtype=np.float64)
+            for column, channel in enumerate(block.keypoint_ids):
+                column_values = matrix[:, column]
+                column_values = np.sort(column_values[np.isfinite(column_values)])
+                values[name][int(channel)] = column_values
+                edges[name][int(channel)] = quantile_bin_edges(column_values) if column_values.size else None
+    return _Reference(version, values, edges)
+
+
+def _object_drift(name: str, channels: list[int], keypoints: list[KeypointDrift]) -> ObjectDrift:
+    features = {}
+    for feature in HEATMAP_FEATURES:
+        tests = [keypoints[channel].features[feature] for channel in channels]
+        statistics = [t.statistic for t in tests if t.statistic is not None]
+        p_values = [t.p_value for t in tests if t.p_value is not None]
+        features[feature] = FeatureTest(
+            statistic=max(statistics) if statistics else None,
+            p_value=min(1.0, len(p_values) * min(p_values)) if p_values else None,
+            alarm=any(t.alarm for t in tests),
+            live_n=min(t.live_n for t in tests),
+            reference_n=min(t.reference_n for t in tests),
+        )
+    return ObjectDrift(name, channels, features, any(t.alarm for t in features.values()))
+
+
+def _history_point(report: DriftReport) -> HistoryPoint:
+    def largest(tests: dict[str, FeatureTest]) -> float | None:
+        statistics = [t.statistic for t in tests.values() if t.statistic is not None]
+        return max(statistics) if statistics else None
+
+    return HistoryPoint(
+        time=report.evaluated_at,
+        version=report.version,
+        recorded=report.recorded,
+        alarm=report.alarm,
+        alarms=sum(t.alarm for k in report.keypoints for t in k.features.values()),
+        keypoint_statistics=[largest(k.features) for k in report.keypoints],
+        object_statistics={o.object: largest(o.features) for o in report.objects},
+    )

@@ -1,0 +1,420 @@
+"""The certified outer bound: a convex relaxation of PURSE solved with Clarabel (optional extra).
+
+Each keypoint's constraint is a second-order cone in (R, t) (Yang & Pavone, CVPR 2023, eq. 8):
+with p_i = R X_i + t, z_i = p_i[2] and W_i^T W_i = L_i,
+    || W_i (K[:2] - c_i e_3^T) p_i || <= z_i,
+which is (y_i - c_i)^T L_i (y_i - c_i) <= 1 multiplied by z_i^2 > 0. PURSE is these cones
+intersected with SO(3). Replacing SO(3) by its convex hull, written exactly through the unit
+quaternion lift R = A(Q), Q = q q^T relaxed to {Q PSD, tr Q = 1} (Saunderson, Parrilo & Willsky,
+SIAM J. Optim. 2015), plus valid depth cuts, gives a convex set containing PURSE. Over it (or
+over each rotation cell of a branch-and-bound, cells.py) we solve small conic programs:
+    max e_k^T (t - t_hat) for e_k in +-{ray frame of t_hat}  -> box, then radius, on the translation error
+    min tr(R_hat^T R)                                         -> angle bound on the rotation error
+Each bound is read from the dual: Clarabel's multipliers are projected onto the dual cones and
+the weak-duality bound is recomputed here (the certificate check), its residual in the
+translation bounded with a proven bound on ||t|| over PURSE (``_distance_bound``). ``certified``
+is True only when every program is solved, the recomputed dual bound agrees with the primal
+value, and it dominates the sampled poses. A relaxation whose infeasibility certificate checks
+out the same way proves PURSE empty.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+from dataclasses import dataclass
+from functools import cache
+
+import numpy as np
+
+from .cells import root_cells
+from .estimate import whitening
+from .membership import Pose
+from .rotations import QUATERNION_BASIS, rotation_angle_deg
+
+_TRIANGLE = [(a, b) for b in range(4) for a in range(b + 1)]  # Clarabel's svec order: upper, by column
+_Q = len(_TRIANGLE)  # 10 entries of the 4x4 quaternion moment matrix
+_N = _Q + 3  # + the scaled translation offset
+_AGREEMENT = 1e-6  # relative primal-dual agreement required of a certificate
+
+
+def relaxation_available() -> bool:
+    """Whether the `pose` extra (Clarabel) is installed."""
+    return importlib.util.find_spec("clarabel") is not None
+
+
+@cache
+def _clarabel():
+    import clarabel  # the `pose` extra; imported on first use, not at service start
+
+    return clarabel
+
+
+@dataclass(frozen=True)
+class OuterBound:
+    """Upper bounds on the pose error over PURSE from the relaxation (None: not available)."""
+
+    certified: bool
+    status: str
+    rotation_deg: float | None = None
+    translation: float | None = None
+    empty: bool = False  # the relaxation, hence PURSE, has no point
+
+
+def _rotation_map() -> np.ndarray:
+    """(9, 10): row-major vec(R) as a linear function of Q's upper triangle (unscaled entries)."""
+    mapping = np.zeros((9, _Q))
+    for column, (a, b) in enumerate(_TRIANGLE):
+        block = QUATERNION_BASIS[:, :, a, b] + (QUATERNION_BASIS[:, :, b, a] if a != b else 0.0)
+        mapping[:, column] = block.reshape(9)
+    return mapping
+
+
+_ROTATION_MAP = _rotation_map()
+_SVEC_SCALE = np.array([1.0 if a == b else math.sqrt(2.0) for a, b in _TRIANGLE])
+
+
+@dataclass(frozen=True)
+class _Program:
+    """A x + s = b, s in (zero(1), PSD triangle(4), SOC(3) per keypoint, nonnegative(cuts));
+    x = (Q's upper triangle, (t - t_hat) / scale)."""
+
+    matrix: np.ndarray
+    offset: np.ndarray
+    keypoints: int
+    cuts: int
+    scale: float
+    reach: float  # every pose in PURSE has || t - t_hat || / scale <= reach (inf: no such bound)
+
+
+def _program(
+    estimate: Pose, camera: np.ndarray, keypoints_3d, centers, shapes, cap: tuple[np.ndarray, float] | None
+) -> _Program:
+    scale = float(np.linalg.norm(estimate.translation)) or 1.0
+    rows, offsets = [], []
+    trace = np.zeros(_N)
+    trace[[i for i, (a, b) in enumerate(_TRIANGLE) if a == b]] = 1.0
+    rows.append(trace[None])
+    offsets.append(np.ones(1))
+    rows.append(np.hstack([-np.diag(_SVEC_SCALE), np.zeros((_Q, 3))]))
+    offsets.append(np.zeros(_Q))
+    whiten = whitening(shapes)
+    # p_i / scale = linear_i x + t_hat / scale, with R X_i linear in Q
+    linears = [
+        np.hstack([np.kron(np.eye(3), point[None]) @ _ROTATION_MAP, np.eye(3)])
+        for point in keypoints_3d / scale
+    ]
+    origin = estimate.translation / scale
+    for linear, center, w in zip(linears, centers, whiten, strict=True):
+        cone = np.vstack([[0.0, 0.0, 1.0], w @ (camera[:2] - np.outer(center, camera[2]))])
+        cone /= np.abs(cone).max()  # a positive scale keeps the cone and evens the rows' magnitudes
+        rows.append(-cone @ linear)
+        offsets.append(cone @ origin)
+    cuts = _depth_cuts(camera, keypoints_3d / scale, centers, shapes)
+    for i, j, slope_i, slope_j, distance in cuts:  # slope_i z_i + slope_j z_j >= d_ij
+        depth = slope_i * linears[i][2] + slope_j * linears[j][2]
+        rows.append(-depth[None])
+        offsets.append(np.array([(slope_i + slope_j) * origin[2] - distance]))
+    if cap is not None:  # the rotation cell: q_0^T Q q_0 >= cos^2(phi)
+        centre, cosine_squared = cap
+        rows.append(-np.concatenate([_quadratic_form(centre), np.zeros(3)])[None])
+        offsets.append(np.array([-cosine_squared]))
+    nonnegative = len(cuts) + (cap is not None)
+    reach = (_distance_bound(camera, keypoints_3d, centers, shapes) + scale) / scale
+    return _Program(np.vstack(rows), np.concatenate(offsets), len(centers), nonnegative, scale, reach)
+
+
+def _quadratic_form(vector: np.ndarray) -> np.ndarray:
+    """v^T Q v as a row over Q's upper triangle (unscaled entries)."""
+    return np.array([vector[a] ** 2 if a == b else 2 * vector[a] * vector[b] for a, b in _TRIANGLE])
+
+
+def _ray_slopes(camera: np.ndarray, centers: np.ndarray, shapes: np.ndarray):
+    """Per set: whether it is bounded, s_i >= ||K^-1 (y, 1)|| over it, and its centre's normalised
+    image coordinates and radius (semi-major axis / f)."""
+    values = np.linalg.eigvalsh(shapes)
+    bounded = values[:, 0] > 0
+    inverse = np.linalg.inv(camera)
+    rays = np.c_[centers, np.ones(len(centers))] @ inverse.T
+    radius = np.where(bounded, 1.0 / np.sqrt(np.where(bounded, values[:, 0], 1.0)), np.inf)
+    radius = radius * max(inverse[0, 0], inverse[1, 1])
+    return bounded, np.linalg.norm(rays, axis=1) + radius, rays[:, :2], radius
+
+
+def _depth_cuts(camera: np.ndarray, keypoints_3d: np.ndarray, centers: np.ndarray, shapes: np.ndarray):
+    """Linear cuts valid on PURSE that keep the relaxation off the camera centre.
+
+    A keypoint in set i lies on a ray p = z K^-1 (y, 1) with ||K^-1 (y, 1)|| <= s_i over the set, so
+    ||p_i|| <= s_i z_i, and rigidity gives d_ij = ||p_i - p_j|| <= s_i z_i + s_j z_j. Without them the
+    relaxation contains R = 0, t = 0 (every cone holds with equality at p = 0).
+    """
+    bounded, slopes, _, _ = _ray_slopes(camera, centers, shapes)
+    return [
+        (i, j, slopes[i], slopes[j], float(np.linalg.norm(keypoints_3d[i] - keypoints_3d[j])))
+        for i in range(len(centers))
+        for j in range(i + 1, len(centers))
+        if bounded[i] and bounded[j]
+    ]
+
+
+def _distance_bound(camera: np.ndarray, keypoints_3d, centers, shapes) -> float:
+    """An upper bound on ||t|| over PURSE (inf when no two sets are apart).
+
+    The rays through two disjoint sets i, j make an angle with sin >= gap_ij / (s_i s_j), gap_ij
+    the distance between the sets in normalised image coordinates; p_j is on its ray, so
+    d_ij = ||p_i - p_j|| >= ||p_i|| sin(angle) and ||t|| <= ||p_i|| + ||X_i||.
+    """
+    bounded, slopes, normalised, radius = _ray_slopes(camera, centers, shapes)
+    best = math.inf
+    for i in range(len(centers)):
+        for j in range(len(centers)):
+            if i == j or not (bounded[i] and bounded[j]):
+                continue
+            gap = float(np.linalg.norm(normalised[i] - normalised[j]) - radius[i] - radius[j])
+            if gap > 0:
+                distance = float(np.linalg.norm(keypoints_3d[i] - keypoints_3d[j]))
+                best = min(
+                    best, distance * slopes[i] * slopes[j] / gap + float(np.linalg.norm(keypoints_3d[i]))
+                )
+    return best
+
+
+def _cones(keypoints: int, cuts: int) -> list:
+    clarabel = _clarabel()
+    cones = [clarabel.ZeroConeT(1), clarabel.PSDTriangleConeT(4)]
+    cones += [clarabel.SecondOrderConeT(3) for _ in range(keypoints)]
+    return cones + ([clarabel.NonnegativeConeT(cuts)] if cuts else [])
+
+
+def _project_dual(dual: np.ndarray, keypoints: int, cuts: int) -> np.ndarray:
+    """The multipliers projected onto the dual cones (all self-dual; the zero cone's dual is free)."""
+    projected = dual.copy()
+    triangle = projected[1 : 1 + _Q]
+    matrix = np.zeros((4, 4))
+    for value, (a, b), s in zip(triangle, _TRIANGLE, _SVEC_SCALE, strict=True):
+        matrix[a, b] = matrix[b, a] = value / s
+    values, vectors = np.linalg.eigh(matrix)
+    matrix = (vectors * np.maximum(values, 0.0)) @ vectors.T
+    projected[1 : 1 + _Q] = [matrix[a, b] * s for (a, b), s in zip(_TRIANGLE, _SVEC_SCALE, strict=True)]
+    for k in range(keypoints):
+        start = 1 + _Q + 3 * k
+        head, tail = projected[start], projected[start + 1 : start + 3]
+        norm = float(np.linalg.norm(tail))
+        if norm > head:  # Euclidean projection onto the second-order cone
+            if norm <= -head:
+                projected[start : start + 3] = 0.0
+            else:
+                level = (head + norm) / 2
+                projected[start] = level
+                projected[start + 1 : start + 3] = tail * (level / norm)
+    if cuts:
+        projected[-cuts:] = np.maximum(projected[-cuts:], 0.0)
+    return projected
+
+
+@dataclass(frozen=True)
+class _Solved:
+    status: str
+    primal: float  # the solver's optimal value of min q^T x
+    lower: float  # our weak-duality lower bound on it (before the translation residual term)
+    translation_residual: float  # || r_t ||: its coefficient on the translation offset
+    agrees: bool  # the certificate checks out (of optimality, or of infeasibility)
+
+
+_RETRIES = ({"equilibrate_enable": False}, {"max_step_fraction": 0.95})  # when a solve stalls
+
+
+def _solver(program: _Program, objective: np.ndarray, **options):
+    from scipy import sparse  # clarabel's own dependency
+
+    clarabel = _clarabel()
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    for name, value in options.items():
+        setattr(settings, name, value)
+    quadratic, matrix = sparse.csc_matrix((_N, _N)), sparse.csc_matrix(program.matrix)
+    cones = _cones(program.keypoints, program.cuts)
+    return clarabel.DefaultSolver(quadratic, objective, matrix, program.offset, cones, settings)
+
+
+def _status(solution) -> str:
+    return str(solution.status).split(".")[-1]
+
+
+def _minimise(program: _Program, objective: np.ndarray, solver=None):
+    if solver is None:
+        solver = _solver(program, objective)
+    else:
+        solver.update(q=objective)
+    solution = solver.solve()
+    for options in _RETRIES:
+        if _status(solution) in ("Solved", "PrimalInfeasible"):
+            break
+        # Clarabel sometimes stalls these programs at "AlmostSolved"; other settings solve them
+        solution = _solver(program, objective, **options).solve()
+    status = _status(solution)
+    if status == "PrimalInfeasible":
+        verified = _farkas_verified(program, np.asarray(solution.z))
+        return solver, _Solved(status, math.nan, -math.inf, math.inf, verified)
+    if status != "Solved":
+        return solver, _Solved(status, math.nan, -math.inf, math.inf, False)
+    dual = _project_dual(np.asarray(solution.z), program.keypoints, program.cuts)
+    residual = objective + program.matrix.T @ dual
+    # q^T x = -b^T z + z^T s + r^T x >= -b^T z + r_Q^T x_Q + r_t^T x_t, z^T s >= 0; |Q_ab| <= 1
+    lower = -float(program.offset @ dual) - float(np.abs(residual[:_Q]).sum())
+    primal = float(objective @ np.asarray(solution.x))
+    agrees = abs(primal - lower) <= _AGREEMENT * (1.0 + abs(primal))
+    return solver, _Solved(status, primal, lower, float(np.linalg.norm(residual[_Q:])), agrees)
+
+
+def _farkas_verified(program: _Program, certificate: np.ndarray) -> bool:
+    """Whether Clarabel's infeasibility certificate proves the relaxation empty.
+
+    With z in the dual cones, every feasible x has 0 <= z^T s = b^T z - (A^T z)^T x; b^T z < 0 and
+    A^T z = 0 make that impossible. Q's part of A^T z is bounded exactly (|Q_ab| <= 1); the
+    translation part must vanish to rounding (1e-9 of |b^T z|): t has no a-priori bound.
+    """
+    z = _project_dual(certificate, program.keypoints, program.cuts)
+    gap = float(program.offset @ z)
+    residual = program.matrix.T @ z
+    margin = -gap - float(np.abs(residual[:_Q]).sum()) - float(np.linalg.norm(residual[_Q:])) * program.reach
+    return bool(gap < 0 and margin > 0)
+
+
+def _ray_frame(translation: np.ndarray) -> np.ndarray:
+    """Orthonormal rows, the first along the line of sight (the depth error dominates there)."""
+    ray = translation / (np.linalg.norm(translation) or 1.0)
+    helper = np.eye(3)[int(np.argmin(np.abs(ray)))]
+    second = np.cross(ray, helper)
+    second /= np.linalg.norm(second)
+    return np.vstack([ray, second, np.cross(ray, second)])
+
+
+def _infeasible(status: str) -> bool:
+    return status == "PrimalInfeasible"
+
+
+def _empty(verified: bool) -> OuterBound:
+    if verified:
+        return OuterBound(True, "relaxation infeasible: no pose is consistent with the sets", empty=True)
+    return OuterBound(False, "relaxation reported infeasible, certificate not verified")
+
+
+@dataclass(frozen=True)
+class _CellBound:
+    """What the relaxation of one rotation cell proves (all in the program's scaled units)."""
+
+    status: str  # "bounded", "empty" (infeasibility verified) or why it failed
+    extents: np.ndarray | None = None  # (6,) upper bounds on +-e_k^T (t - t_hat) / scale
+    smallest_trace: float = math.nan  # lower bound on tr(R_hat^T R)
+    verified: bool = False
+
+
+def _bound_cell(estimate: Pose, data: tuple, frame: np.ndarray, cap) -> _CellBound:
+    with np.errstate(all="ignore"):
+        program = _program(estimate, *data, cap)
+    if not (np.isfinite(program.matrix).all() and np.isfinite(program.offset).all()):
+        return _CellBound("relaxation not posed: the data overflow (extreme camera matrix or sets)")
+    if not math.isfinite(program.reach):
+        return _CellBound("no proven bound on ||t|| over PURSE (no two sets apart): nothing to certify with")
+    solver, directions = None, []
+    for axis in frame:
+        for sign in (1.0, -1.0):
+            objective = np.concatenate([np.zeros(_Q), -sign * axis])  # min -(+-e)^T dt
+            solver, solved = _minimise(program, objective, solver)
+            if _infeasible(solved.status):
+                status = "empty" if solved.agrees else "infeasibility certificate not verified"
+                return _CellBound(status, verified=solved.agrees)
+            if solved.status != "Solved":
+                return _CellBound(f"translation program: {solved.status}")
+            directions.append(solved)
+    reach = program.reach  # bounds the residual's term r_t^T x_t over PURSE
+    extents = np.array([-(s.lower - s.translation_residual * reach) for s in directions])
+    rotation_objective = np.concatenate([estimate.rotation.reshape(9) @ _ROTATION_MAP, np.zeros(3)])
+    solver, solved = _minimise(program, rotation_objective, solver)
+    if solved.status != "Solved":
+        return _CellBound(f"rotation program: {solved.status}")
+    smallest_trace = solved.lower - solved.translation_residual * reach
+    verified = all(s.agrees for s in [*directions, solved])
+    return _CellBound("bounded", extents, smallest_trace, verified)
+
+
+def outer_bound(
+    estimate: Pose,
+    camera: np.ndarray,
+    keypoints_3d: np.ndarray,
+    centers: np.ndarray,
+    shapes: np.ndarray,
+    sampled: list[Pose] | None = None,
+    splits: int = 0,
+) -> OuterBound:
+    """Certified upper bounds on the rotation and translation error over PURSE (see the module doc).
+
+    ``splits`` rounds of branch-and-bound over rotation cells (cells.py) tighten the bounds: each
+    round splits the cells that attain the current bounds; 0 solves the whole relaxation once.
+    """
+    if not relaxation_available():
+        return OuterBound(False, "the pose extra (clarabel) is not installed")
+    data = (camera, keypoints_3d, centers, shapes)
+    frame = _ray_frame(estimate.translation)
+    scale = float(np.linalg.norm(estimate.translation)) or 1.0
+    root = _bound_cell(estimate, data, frame, None)
+    if root.status != "bounded":
+        return _empty(root.verified) if root.status == "empty" else OuterBound(False, root.status)
+    leaves = [(None, root, None)]
+    if splits > 0:
+        leaves = [(cell, None, root) for cell in root_cells()]
+        for round_ in range(splits + 1):
+            leaves = _evaluated(estimate, data, frame, leaves)
+            if isinstance(leaves, str):
+                return OuterBound(False, leaves)
+            if not leaves:
+                return _empty(True)
+            if round_ < splits:
+                leaves = _split_the_worst(leaves)
+    extents = np.max([bound.extents for _, bound, _ in leaves], axis=0).clip(min=0.0)
+    translation = scale * math.sqrt(sum(max(extents[2 * k], extents[2 * k + 1]) ** 2 for k in range(3)))
+    smallest_trace = min(bound.smallest_trace for _, bound, _ in leaves)
+    rotation = math.degrees(math.acos(min(1.0, max(-1.0, (smallest_trace - 1.0) / 2.0))))
+    certified = all(bound.verified for _, bound, _ in leaves) and _dominates(
+        estimate, rotation, translation, sampled or []
+    )
+    status = "solved, certificate verified" if certified else "solved, certificate not verified"
+    return OuterBound(certified, f"{status} ({len(leaves)} rotation cells)", rotation, translation)
+
+
+def _evaluated(estimate, data, frame, leaves):
+    """Every leaf with its bound (cells proven empty dropped), or the reason one failed.
+
+    A leaf is (cell, bound or None, its parent's bound or None): a cell whose program fails keeps
+    its parent's bound, which holds for it too (the cell lies in its parent).
+    """
+    done = []
+    for cell, bound, parent in leaves:
+        if bound is None:
+            bound = _bound_cell(estimate, data, frame, cell.cap())
+        if bound.status == "empty":
+            continue
+        if bound.status != "bounded":
+            if parent is None:
+                return bound.status
+            bound = parent
+        done.append((cell, bound, None))
+    return done
+
+
+def _split_the_worst(leaves):
+    """Split the cells that attain any of the seven bounds; keep the others with their bounds."""
+    worst = {int(np.argmax([b.extents[k] for _, b, _ in leaves])) for k in range(6)}
+    worst.add(int(np.argmin([b.smallest_trace for _, b, _ in leaves])))
+    kept = [leaf for i, leaf in enumerate(leaves) if i not in worst]
+    return kept + [(child, None, leaves[i][1]) for i in sorted(worst) for child in leaves[i][0].split()]
+
+
+def _dominates(estimate: Pose, rotation_deg: float, translation: float, sampled: list[Pose]) -> bool:
+    slack = 1e-6
+    return all(
+        rotation_angle_deg(estimate.rotation, p.rotation) <= rotation_deg + slack
+        and float(np.linalg.norm(p.translation - estimate.translation)) <= translation * (1 + slack) + slack
+        for p in sampled
+    )
