@@ -149,6 +149,7 @@ def render(results: PeerResults) -> str:
         f"- Load: `wrk -t1 -c<concurrency> --latency` on loopback, {results.seconds:g} s per point after a "
         f"warm-up; {results.rounds} round(s), each starting every server in turn (the order reversed in the "
         "second round); each cell gives every round's figure, ratios use the medians.",
+        f"- {_gpu_note()}",
         "",
         "### Goals (ratios measured side by side in this run)",
         "",
@@ -210,3 +211,18 @@ def profile_section(results: PeerResults) -> list[str]:
         *[f"| {stage} | {share:.0%} | {share * core_ms:.2f} |" for stage, share in profile.shares.items()],
     ]  # fmt: skip
     return lines
+
+
+def _gpu_note() -> str:
+    """Which onnxruntime providers this machine offers, and what that means for GPU figures."""
+    import onnxruntime
+
+    available = onnxruntime.get_available_providers()
+    listed = ", ".join(available)
+    if "CUDAExecutionProvider" not in available:
+        return (
+            f"Execution providers available: {listed}. GPU figures: none, this machine has no GPU "
+            "build of onnxruntime (for one: `CKS_EXECUTION_PROVIDERS`, the `cuda` image and GPU batching "
+            "in docs/operations.md, \"Execution providers and GPUs\"; rerun this command there)."
+        )
+    return f"Execution providers available: {listed} (the service ran with its `CKS_EXECUTION_PROVIDERS`)."
