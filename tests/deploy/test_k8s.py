@@ -180,7 +180,8 @@ def test_resources_follow_docs_performance(settings: Settings) -> None:
     report = PERFORMANCE.read_text(encoding="utf-8")
     cpus = re.search(r"Machine: (\d+) CPUs", report)
     headline = re.search(r"^- Headline settings: (.*)$", report, re.MULTILINE)
-    memory_section = report.split("\n## Memory", 1)[-1].split("\n## ", 1)[0]
+    memory_section = re.split(r"\n#{2,3} Memory\n", report, maxsplit=1)[-1]
+    memory_section = re.split(r"\n#{2,3} ", memory_section, maxsplit=1)[0]
     rss_mib = [float(value) for value in re.findall(r"^\| \d+ \| ([\d.]+) \|$", memory_section, re.MULTILINE)]
     assert cpus and headline and rss_mib, f"{PERFORMANCE.name} no longer has the figures this test reads"
 
