@@ -33,6 +33,7 @@ import numpy as np
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from service.api.predict_presenter import predict_response  # noqa: E402
 from service.api.schemas import BallSet, EllipseSet, PredictParameters  # noqa: E402
 from service.pose import Pose, membership  # noqa: E402
 from service.pose.bounds import inner_bound, sample_poses_in_set  # noqa: E402
@@ -69,7 +70,8 @@ def instances(state, model_dir: Path, epsilon: float, images: int):
             coverage="object",
             epsilon=epsilon,
         )
-        for ann, answer in zip(annotations, predict(state, pixels, parameters).instances, strict=True):
+        response = predict_response(predict(state, pixels, parameters), parameters, manifest)
+        for ann, answer in zip(annotations, response.instances, strict=True):
             centers, shapes = set_arrays(answer.keypoints)
             points = np.array(manifest.object(answer.object).keypoints_3d)
             truth = Pose(np.array(ann["cam_R_m2c"]), np.array(ann["cam_t_m2c"]))

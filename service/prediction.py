@@ -1,4 +1,5 @@
-"""One predict request, from a decoded image to the response body.
+"""One predict request, from a decoded image to its calibrated sets, guarantees and pose sets
+(service/api/predict_presenter.py turns them into the response body).
 
 Scores live in heatmap coordinates (scale-free across object sizes); sets are mapped to
 image pixels through each instance's crop affine.
@@ -6,39 +7,17 @@ image pixels through each instance's crop affine.
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from functools import lru_cache
+from typing import Any, Protocol
 
 import numpy as np
 
-from service.api.pose_presenter import pose_blocks, pose_options
-from service.api.schemas import (
-    BallSet,
-    BetaLaw,
-    CalibrationRef,
-    EllipseSet,
-    Guarantee,
-    ImageInfo,
-    InstanceIn,
-    InstanceOut,
-    KeypointOut,
-    KeypointStatistics,
-    ModelRef,
-    PredictParameters,
-    PredictResponse,
-    SignalRange,
-    Stratum,
-    UnboundedSet,
-)
 from service.calibration.registry import CalibrationRegistry, ChannelThresholds
-from service.calibration.stratification import DIFFICULTY, RowAnswers, answer_rows, parse_stratify
-from service.calibration.stratification import Stratum as StratumChoice
+from service.calibration.stratification import DIFFICULTY, RowAnswers, Stratum, answer_rows, parse_stratify
 from service.conformal import (
     CoverageGuarantee,
     HeatmapStatistics,
-    ellipse_axes,
     get_nonconformity_score,
     heatmap_statistics,
     map_sets_to_image,
@@ -49,11 +28,12 @@ from service.detector.boxes import box_problem
 from service.detector.manifest import HeatmapSpec, Manifest
 from service.detector.runtime import InstanceHeatmaps
 from service.errors import InvalidInput
+from service.pose import PoseOptions, PoseSets, estimate_pose_sets
 from service.state import ServiceState
 
 
 def check_instances(
-    instances: list[InstanceIn], manifest: Manifest, width: int, height: int, limit: int
+    instances: Sequence[InstanceQuery], manifest: Manifest, width: int, height: int, limit: int
 ) -> None:
     """Refuse instances the model cannot answer for, naming each problem."""
     if len(instances) > limit:
@@ -109,69 +89,82 @@ def calibrated_sets(
     return CalibratedSets(centers, shapes, statistics)
 
 
-def predict(state: ServiceState, image: np.ndarray, parameters: PredictParameters) -> PredictResponse:
-    """Run the detector on every instance as one batch and return calibrated sets."""
+class PredictQuery(Protocol):
+    """What a predict request asks (the API's PredictParameters is one)."""
+
+    instances: Sequence[InstanceQuery]
+    calibration_version: int | None
+    nonconformity: str
+    coverage: str
+    epsilon: float
+    delta: float | None
+    include_statistics: bool
+    stratify: Any
+    group_fallback: str
+
+
+class InstanceQuery(Protocol):
+    object: str
+    bbox: tuple[float, float, float, float]
+    group: str | None
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """The calibrated sets of one request, before they become a response.
+
+    Rows are (instance, keypoint) pairs in the detector's order: ``channel`` and
+    ``instance_index`` say whose; ``guarantees`` gives each row's guarantee and the Mondrian
+    stratum that answered it (None: pooled); ``poses`` each instance's pose sets, when asked.
+    """
+
+    model_name: str
+    model_hash: str
+    version: int
+    width: int
+    height: int
+    sets: CalibratedSets
+    channel: np.ndarray
+    instance_index: np.ndarray
+    guarantees: list[tuple[CoverageGuarantee, Stratum | None]]
+    poses: list[PoseSets] | None
+
+
+def predict(
+    state: ServiceState, image: np.ndarray, query: PredictQuery, pose: PoseOptions | None = None
+) -> Prediction:
+    """Run the detector on every instance as one batch and calibrate their sets."""
     detector, registry = state.detector, state.registry
     manifest = detector.manifest
     height, width = image.shape[:2]
-    check_instances(parameters.instances, manifest, width, height, state.settings.max_instances)
-    pose = pose_options(parameters, manifest)
-    version = registry.resolve(parameters.calibration_version)
-    kind, scope = parameters.nonconformity, parameters.coverage
-    thresholds = registry.thresholds(version, kind, scope, parameters.epsilon, parameters.delta)
+    check_instances(query.instances, manifest, width, height, state.settings.max_instances)
+    version = registry.resolve(query.calibration_version)
+    kind, scope = query.nonconformity, query.coverage
+    thresholds = registry.thresholds(version, kind, scope, query.epsilon, query.delta)
 
-    boxes = np.array([instance.bbox for instance in parameters.instances], dtype=np.float64)
-    result = detector.infer(image, boxes, [instance.object for instance in parameters.instances])
+    boxes = np.array([instance.bbox for instance in query.instances], dtype=np.float64)
+    objects = [instance.object for instance in query.instances]
+    result = detector.infer(image, boxes, objects)
 
-    kinds = parse_stratify(parameters.stratify)
-    strata = _RequestStrata(registry, version, kinds, parameters, result, thresholds) if kinds else None
+    kinds = parse_stratify(query.stratify)
+    strata = _RequestStrata(registry, version, kinds, query, result, thresholds) if kinds else None
     drift = state.drift
-    all_statistics = parameters.include_statistics or (drift is not None and drift.wants_all_statistics())
+    all_statistics = query.include_statistics or (drift is not None and drift.wants_all_statistics())
     all_statistics = all_statistics or DIFFICULTY in kinds  # difficulty strata need every feature
     sets = calibrated_sets(result, kind, thresholds.values, manifest.heatmap, all_statistics,
                            strata.thresholds if strata else None)  # fmt: skip
-    centers, shapes, statistics = sets.centers, sets.shapes, sets.statistics
     if drift is not None:
-        drift.record(result.channel, statistics, kind, shapes)
-    regions = _regions(centers, shapes, kind)
+        drift.record(result.channel, sets.statistics, kind, sets.shapes)
     if strata is not None:
-        guarantees = strata.guarantees(scope)
+        guarantees = strata.guarantees()
     else:
-        guarantees = [_guarantee(thresholds.guarantees[c], scope) for c in result.channel]
-    stats = _statistics(statistics) if parameters.include_statistics else [None] * len(regions)
-    poses = pose_blocks(pose, manifest, parameters, centers, shapes, result.channel, result.instance_index)
-    keypoints = [
-        KeypointOut(
-            index=int(channel),
-            name=manifest.keypoints[channel].name,
-            point=(float(centers[row, 0]), float(centers[row, 1])),
-            set=regions[row],
-            guarantee=guarantees[row],
-            statistics=stats[row],
-        )
-        for row, channel in enumerate(result.channel)
-    ]
-    instances = [
-        InstanceOut(
-            object=instance.object,
-            bbox=instance.bbox,
-            keypoints=[kp for kp, owner in zip(keypoints, result.instance_index, strict=True) if owner == i],
-            pose=poses[i],
-        )
-        for i, instance in enumerate(parameters.instances)
-    ]
-    return PredictResponse(
-        model=ModelRef(name=manifest.name, hash=detector.model_hash),
-        calibration=CalibrationRef(
-            version=version,
-            nonconformity=kind,
-            coverage=scope,
-            epsilon=parameters.epsilon,
-            delta=parameters.delta,
-        ),
-        image=ImageInfo(width=width, height=height),
-        instances=instances,
-    )
+        guarantees = [(thresholds.guarantees[c], None) for c in result.channel]
+    poses = None
+    if pose is not None:
+        poses = estimate_pose_sets(manifest, objects, pose, sets.centers, sets.shapes, result.channel,
+                                   result.instance_index)  # fmt: skip
+    return Prediction(manifest.name, detector.model_hash, version, width, height, sets, result.channel,
+                      result.instance_index, guarantees, poses)  # fmt: skip
 
 
 class _RequestStrata:
@@ -182,7 +175,7 @@ class _RequestStrata:
         registry: CalibrationRegistry,
         version: int,
         kinds: frozenset[str],
-        parameters: PredictParameters,
+        parameters: PredictQuery,
         result: InstanceHeatmaps,
         pooled: ChannelThresholds,
     ) -> None:
@@ -200,70 +193,6 @@ class _RequestStrata:
                                     result.instance_index, groups, features, p.group_fallback)  # fmt: skip
         return self._answers.values
 
-    def guarantees(self, scope: str) -> list[Guarantee]:
+    def guarantees(self) -> list[tuple[CoverageGuarantee, Stratum | None]]:
         assert self._answers is not None
-        rows = zip(self._answers.guarantees, self._answers.strata, strict=True)
-        return [_guarantee(guarantee, scope, stratum) for guarantee, stratum in rows]
-
-
-def _regions(centers: np.ndarray, shapes: np.ndarray, kind: str) -> list:
-    semi_minor, semi_major, angles = ellipse_axes(shapes)
-    regions = []
-    for row, center in enumerate(centers):
-        c = (float(center[0]), float(center[1]))
-        a, b = float(semi_minor[row]), float(semi_major[row])
-        if math.isinf(b):
-            regions.append(UnboundedSet(reason="too few calibration scores for this epsilon (t = 0)"))
-        elif a == b and (kind != "cov" or a == 0.0):
-            regions.append(BallSet(center=c, radius=b))
-        else:
-            shape = shapes[row]
-            regions.append(
-                EllipseSet(
-                    center=c,
-                    shape_matrix=(
-                        (float(shape[0, 0]), float(shape[0, 1])),
-                        (float(shape[1, 0]), float(shape[1, 1])),
-                    ),
-                    semi_axes=(a, b),
-                    angle_deg=float(angles[row]),
-                )
-            )
-    return regions
-
-
-def _stratum(choice: StratumChoice) -> Stratum:
-    edges = [SignalRange(signal=s, low=low, high=high) for s, low, high in choice.ranges] or None
-    return Stratum(kind=choice.kinds, group=choice.group, bin=choice.bin, edges=edges,
-                   conditional=choice.kinds != "pooled", fallback=choice.fallback)  # fmt: skip
-
-
-@lru_cache(maxsize=4096)
-def _guarantee(guarantee: CoverageGuarantee, scope: str, stratum: StratumChoice | None = None) -> Guarantee:
-    return Guarantee(
-        scope=scope,
-        n=guarantee.n,
-        t=guarantee.t,
-        epsilon=guarantee.epsilon,
-        coverage_lower_bound=guarantee.marginal_lower,
-        coverage_upper_bound=guarantee.marginal_upper,
-        conditional_coverage=BetaLaw(a=guarantee.beta_a, b=guarantee.beta_b),
-        delta=guarantee.delta,
-        pac_failure_probability=guarantee.pac_failure_probability if guarantee.delta is not None else None,
-        stratum=None if stratum is None else _stratum(stratum),
-    )
-
-
-def _statistics(statistics: HeatmapStatistics) -> list[KeypointStatistics]:
-    covariance = statistics.covariance
-    gamma = np.sqrt(statistics.variance)
-    return [
-        KeypointStatistics(
-            peak_probability=float(statistics.peak_probability[i]),
-            peak=tuple(statistics.peak_location[i]),
-            mean=tuple(statistics.mean[i]),
-            gamma=float(gamma[i]),
-            covariance=(tuple(covariance[i, 0]), tuple(covariance[i, 1])),
-        )
-        for i in range(len(gamma))
-    ]
+        return list(zip(self._answers.guarantees, self._answers.strata, strict=True))

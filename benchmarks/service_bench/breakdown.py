@@ -20,6 +20,7 @@ import numpy as np
 
 from benchmarks.service_bench.inputs import Sample
 from service import prediction
+from service.api.predict_presenter import predict_response  # noqa: E402
 from service.api.schemas import PredictParameters
 from service.detector.preprocess import build_batch
 from service.detector.runtime import Detector, InstanceHeatmaps
@@ -94,7 +95,9 @@ def _one_iteration(state: ServiceState, sample: Sample, parameters: PredictParam
         lambda: calibrated_sets(result, parameters.nonconformity, thresholds.values, manifest.heatmap)
     )
     with _cached(detector, result, sets):
-        ms["response"], response = _timed(lambda: predict(state, image, parameters))
+        ms["response"], response = _timed(
+            lambda: predict_response(predict(state, image, parameters), parameters, manifest)
+        )
     ms["json"], _ = _timed(response.model_dump_json)
     return ms
 

@@ -20,7 +20,6 @@ from service.pose import (
     PoseSets,
     as_camera_matrix,
     check_pose_request,
-    estimate_pose_sets,
 )
 
 
@@ -38,23 +37,6 @@ def pose_options(parameters: PredictParameters, manifest: Manifest) -> PoseOptio
     objects = [instance.object for instance in parameters.instances]
     check_pose_request(manifest, objects, parameters.coverage, options)
     return options
-
-
-def pose_blocks(
-    options: PoseOptions | None,
-    manifest: Manifest,
-    parameters: PredictParameters,
-    centers: np.ndarray,
-    shapes: np.ndarray,
-    channel: np.ndarray,
-    instance_index: np.ndarray,
-) -> list[PoseOut | None]:
-    """Each instance's pose block, or None for each when the request did not ask for pose."""
-    objects = [instance.object for instance in parameters.instances]
-    if options is None:
-        return [None] * len(objects)
-    answers = estimate_pose_sets(manifest, objects, options, centers, shapes, channel, instance_index)
-    return [pose_out(answer) for answer in answers]
 
 
 def _matrix(array: np.ndarray) -> tuple:

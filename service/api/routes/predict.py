@@ -14,12 +14,14 @@ from starlette.datastructures import UploadFile
 
 from service.api.body import BodyPace, read_limited_body
 from service.api.deps import State
+from service.api.pose_presenter import pose_options
+from service.api.predict_presenter import predict_response
+from service.api.render import render_prediction
 from service.api.schemas import PredictJson, PredictParameters, PredictResponse
 from service.errors import InvalidInput, Unavailable, UnsupportedMediaType
 from service.image_decoding import decode_image
 from service.logs import note_calibration_version
-from service.prediction import predict
-from service.render import render_prediction
+from service.prediction import check_instances, predict
 from service.state import ServiceState
 
 router = APIRouter(tags=["prediction"])
@@ -142,12 +144,16 @@ async def predict_route(request: Request, state: State) -> Response:
 
 
 def _respond(state: ServiceState, image_bytes: bytes, parameters: PredictParameters, png: bool) -> Response:
+    manifest = state.detector.manifest
     with state.detector.computing():
         image = decode_image(image_bytes, state.settings.max_image_pixels, state.settings.max_decoded_bytes)
-        result = predict(state, image, parameters)
+        height, width = image.shape[:2]
+        check_instances(parameters.instances, manifest, width, height, state.settings.max_instances)
+        pose = pose_options(parameters, manifest)  # refused before the model runs
+        result = predict_response(predict(state, image, parameters, pose), parameters, manifest)
     note_calibration_version(result.calibration.version)
     if png:
         camera = np.asarray(parameters.pose.K) if parameters.pose is not None else None
-        drawn = render_prediction(image, result, camera, state.detector.manifest)
+        drawn = render_prediction(image, result, camera, manifest)
         return Response(drawn, media_type="image/png")
     return Response(result.model_dump_json(), media_type="application/json")
