@@ -115,7 +115,14 @@ def test_admission_counts_images(tmp_path: Path, images) -> None:
             for part in (image_part(i, image), request_part(i, {"instances": instances}))
         ]
 
-    settings = {"max_concurrent_inferences": 1, "max_queued_requests": 2, "max_instances": len(slow)}
+    # The admitted batch waits for the slow request's slot: on a loaded machine that can take longer
+    # than the default queue timeout (10 s), which would turn its 200s into 503s.
+    settings = {
+        "max_concurrent_inferences": 1,
+        "max_queued_requests": 2,
+        "max_instances": len(slow),
+        "queue_timeout_seconds": 120,
+    }
     with LiveServer(tmp_path / "data", **settings) as server, ThreadPoolExecutor(2) as pool:
         computing = hold_the_slot(pool, server, image, slow)
 
