@@ -313,15 +313,20 @@ class SqlStore(CalibrationStore):
         return self._audit(cur.fetchone())
 
     def audit_log(self, model_hash: str, before: int | None = None, limit: int = 100) -> list[AuditEntry]:
+        rows = self._newest_first(_AUDIT_COLUMNS, "calib_audit", "seq", model_hash, before, limit)
+        return [self._audit(row) for row in rows]
+
+    def _newest_first(
+        self, columns: str, table: str, key: str, model_hash: str, before: int | None, limit: int
+    ) -> list[tuple]:
+        """One page of a model's rows of an append-only table, newest first, below ``before``."""
         check_model_hash(model_hash)
         limit = check_number(limit, "audit page size")
         bound = _MAX_SEQ if before is None else check_number(before, "audit cursor")
-        rows = self._read(
-            f"SELECT {_AUDIT_COLUMNS} FROM calib_audit WHERE model_hash = ? AND seq < ?"
-            " ORDER BY seq DESC LIMIT ?",
+        return self._read(
+            f"SELECT {columns} FROM {table} WHERE model_hash = ? AND {key} < ? ORDER BY {key} DESC LIMIT ?",
             (model_hash, bound, limit),
         )
-        return [self._audit(row) for row in rows]
 
     # -- coverage audits ---------------------------------------------------------
 
@@ -345,14 +350,8 @@ class SqlStore(CalibrationStore):
     def coverage_audits(
         self, model_hash: str, before: int | None = None, limit: int = 100
     ) -> list[CoverageAudit]:
-        check_model_hash(model_hash)
-        limit = check_number(limit, "audit page size")
-        bound = _MAX_SEQ if before is None else check_number(before, "audit cursor")
-        rows = self._read(
-            f"SELECT {_COVERAGE_AUDIT_COLUMNS} FROM calib_coverage_audits WHERE model_hash = ? AND id < ?"
-            " ORDER BY id DESC LIMIT ?",
-            (model_hash, bound, limit),
-        )
+        table = "calib_coverage_audits"
+        rows = self._newest_first(_COVERAGE_AUDIT_COLUMNS, table, "id", model_hash, before, limit)
         return [self._coverage_audit(row) for row in rows]
 
     def coverage_audit(self, model_hash: str, audit_id: int) -> CoverageAudit | None:

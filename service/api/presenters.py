@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import asdict
 
 from calibration_store import Activation, AuditEntry, CoverageAudit, JobRecord, VersionInfo
 from service.api.admin_schemas import (
@@ -14,7 +15,12 @@ from service.api.admin_schemas import (
     AuditReportOut,
     AuditSummaryOut,
     ComparisonOut,
+    DriftOut,
+    HistoryPointOut,
     JobOut,
+    KeypointDriftOut,
+    KindSizesOut,
+    ObjectDriftOut,
     SourceBatchOut,
     ThresholdRow,
     VersionDetail,
@@ -24,6 +30,7 @@ from service.calibration.guardrails import Comparison
 from service.calibration.registry import CalibrationRegistry
 from service.conformal import NONCONFORMITY_SCORES
 from service.detector.manifest import Manifest
+from service.monitoring.drift import DriftReport
 
 REPORTED_EPSILONS = (0.05, 0.1, 0.2)
 
@@ -114,4 +121,23 @@ def audit_list(model_hash: str, audits: list[CoverageAudit], limit: int) -> Audi
         model_hash=model_hash,
         audits=[audit_summary(a) for a in audits],
         next_before=audits[-1].id if len(audits) == limit else None,
+    )
+
+
+def drift_out(report: DriftReport) -> DriftOut:
+    return DriftOut(
+        window=report.window,
+        statistic=report.test,
+        alarm_threshold=report.alarm_threshold,
+        alarm=report.alarm,
+        reference_version=report.version,
+        reference_available=report.reference_available,
+        reason=report.reason,
+        recorded=report.recorded,
+        evaluated_at=report.evaluated_at,
+        process=report.process,
+        keypoints=[KeypointDriftOut.model_validate(asdict(k)) for k in report.keypoints],
+        objects=[ObjectDriftOut.model_validate(asdict(o)) for o in report.objects],
+        history=[HistoryPointOut.model_validate(asdict(h)) for h in report.history],
+        set_sizes={kind: KindSizesOut.model_validate(asdict(s)) for kind, s in report.set_sizes.items()},
     )
