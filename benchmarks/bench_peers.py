@@ -3,11 +3,14 @@
     python -m benchmarks.bench_peers             # ~12 min: 2 rounds, 8 s a point; docs/performance.md
     python -m benchmarks.bench_peers --quick     # ~1 min smoke run: 1 round, 1 s per point
     python -m benchmarks.bench_peers --peers FastAPI,LitServe --duration 5
+    python -m benchmarks.bench_peers --gpu       # the model on a GPU (onnxruntime-gpu); own section
 
 Needs wrk (``apt-get install -y wrk``) and the ``peers`` extra (``pip install -e '.[peers]'``:
 LitServe, BentoML, Ray Serve). Every server computes the same sets with the service's own
 functions; each peer's answer is checked against the service's before it is timed. Writes the
-``bench_peers`` section of docs/performance.md (``bench_service`` writes the rest of the page).
+``bench_peers`` section of docs/performance.md (``bench_service`` writes the rest of the page);
+with ``--gpu`` every server runs the model through onnxruntime's CUDA provider (the service with
+the ``cuda`` image's settings) and the run writes the ``bench_peers_gpu`` section instead.
 """
 
 from __future__ import annotations
@@ -19,11 +22,14 @@ import tempfile
 import time
 from pathlib import Path
 
+import onnxruntime
+
+from benchmarks.peers.accelerator import CUDA, GPU_SETTINGS, on_gpu
 from benchmarks.peers.limit import in_process_limits
 from benchmarks.peers.measure import BOXES, Plan, Requests, measure
 from benchmarks.peers.profile import Profile, profile_under_load
 from benchmarks.peers.report import PeerResults, goals, render
-from benchmarks.peers.servers import PEERS, SERVICE
+from benchmarks.peers.servers import PEERS, SERVICE, SERVICE_ON_GPU, Contender
 from benchmarks.service_bench import page
 from benchmarks.service_bench.inputs import load_sample
 from benchmarks.service_bench.loadgen import require_wrk, run_wrk
@@ -52,18 +58,23 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     )
     parser.add_argument("--no-write", action="store_true", help="print the section, do not write the page")
     parser.add_argument("--no-profile", action="store_true", help="skip the py-spy profile of the service")
+    parser.add_argument(
+        "--gpu", action="store_true", help="every server runs the model on the GPU (onnxruntime-gpu's CUDA)"
+    )
     args = parser.parse_args(argv)
     known = {p.name.lower(): p for p in PEERS}
     wanted = [name.strip().lower() for name in args.peers.split(",") if name.strip()]
     unknown = [name for name in wanted if name not in known]
     if unknown:
         parser.error(f"unknown peer(s) {unknown}; known: {', '.join(p.name for p in PEERS)}")
-    args.contenders = [SERVICE, *(known[name] for name in wanted)]
+    args.contenders = [SERVICE_ON_GPU if args.gpu else SERVICE, *(known[name] for name in wanted)]
+    args.section = "bench_peers_gpu" if args.gpu else "bench_peers"
     return args
 
 
 def command_line(args: argparse.Namespace) -> str:
     parts = ["python -m benchmarks.bench_peers"]
+    parts += ["--gpu"] if args.gpu else []
     parts += ["--quick"] if args.quick else []
     parts += [f"--duration {args.duration:g}"] if args.duration else []
     parts += [f"--rounds {args.rounds}"] if args.rounds else []
@@ -82,7 +93,8 @@ def run(args: argparse.Namespace) -> PeerResults:
         requests = Requests.write(Path(directory), sample)
         log(f"server logs in {directory} while the run lasts")
         runs = measure(args.contenders, requests, plan, Path(directory), log)
-        profile = None if args.no_profile else profile_service(requests, plan, Path(directory))
+        service = args.contenders[0]
+        profile = None if args.no_profile else profile_service(service, requests, plan, Path(directory))
     limits = in_process_limits(DEFAULT_MODEL_DIR, sample, BOXES, 20 if args.quick else 200)
     for limit in limits:
         log(f"in-process, {limit.boxes} box(es): {limit.core_ms:.2f} core-ms/request, limit "
@@ -94,24 +106,37 @@ def run(args: argparse.Namespace) -> PeerResults:
     )  # fmt: skip
 
 
-def profile_service(requests: Requests, plan: Plan, directory: Path) -> Profile:
+def profile_service(service: Contender, requests: Requests, plan: Plan, directory: Path) -> Profile:
     """py-spy on the service at concurrency 16 with one box (its own server start, after the rounds)."""
-    with SERVICE.running(directory / "service-profiled.log") as server:
+    with service.running(directory / "service-profiled.log") as server:
         run_wrk(server.url, requests.scripts[1], 4, plan.warmup_seconds)
         profile = profile_under_load(server, requests.scripts[1], PROFILE_CONCURRENCY, plan.seconds)
     log(profile.problem or "profile: " + ", ".join(f"{k} {v:.0%}" for k, v in profile.shares.items()))
     return profile
 
 
+def use_gpu() -> None:
+    """Every server started from here runs the model on the GPU (unless ``CKS_*`` say otherwise)."""
+    available = onnxruntime.get_available_providers()
+    if CUDA not in available:
+        sys.exit(f"--gpu needs onnxruntime-gpu's {CUDA}; this onnxruntime has {', '.join(available)}")
+    for name, value in GPU_SETTINGS.items():
+        os.environ.setdefault(name, value)
+    if not on_gpu():
+        sys.exit(f"--gpu, but CKS_EXECUTION_PROVIDERS={os.environ['CKS_EXECUTION_PROVIDERS']} has no CUDA")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     require_wrk()
+    if args.gpu:
+        use_gpu()
     results = run(args)
     text = render(results)
     log("\n" + text)
     if not args.no_write:
-        page.write_section(args.output, "bench_peers", text)
-        log(f"wrote the bench_peers section of {args.output}")
+        page.write_section(args.output, args.section, text)
+        log(f"wrote the {args.section} section of {args.output}")
     missed = [goal.text for goal in goals(results) if not goal.met]
     log(f"goals: {len(goals(results)) - len(missed)} met, {len(missed)} NOT met")
     return 0

@@ -8,6 +8,9 @@ import urllib.request
 import numpy as np
 
 TOLERANCE = 1e-6
+#: on a GPU the convolution algorithms cuDNN picks differ with the batch size (fp32, TF32 off:
+#: heatmaps within about 1e-6 of each other, relative), so merged runs move the sets a little
+GPU_TOLERANCE = 1e-4
 
 
 def post(url: str, body: bytes, content_type: str) -> dict:
@@ -36,17 +39,17 @@ def sets_of(answer: dict) -> tuple[np.ndarray, np.ndarray]:
     return centers, np.array(shapes, dtype=np.float64).reshape(-1, 2, 2)
 
 
-def difference(service: dict, peer: dict) -> str | None:
-    """None when the answers agree within TOLERANCE, else why not: centres in pixels, shape
+def difference(service: dict, peer: dict, tolerance: float = TOLERANCE) -> str | None:
+    """None when the answers agree within ``tolerance``, else why not: centres in pixels, shape
     matrices (entries of 1e-3 to 1 px^-2) relative to their largest entry."""
     (c1, s1), (c2, s2) = sets_of(service), sets_of(peer)
     if c1.shape != c2.shape:
         return f"{len(c1)} keypoints from the service, {len(c2)} from the peer"
     centres = float(np.abs(c1 - c2).max(initial=0.0))
-    if centres > TOLERANCE:
+    if centres > tolerance:
         return f"centres differ by {centres:.2e} px"
     scale = max(float(np.abs(s1).max(initial=0.0)), 1e-300)
     shapes = float(np.abs(s1 - s2).max(initial=0.0)) / scale
-    if shapes > TOLERANCE:
+    if shapes > tolerance:
         return f"shape matrices differ by {shapes:.2e} (relative to their largest entry)"
     return None

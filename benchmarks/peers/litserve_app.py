@@ -1,6 +1,8 @@
 """LitServe, as its docs recommend for a CPU model: two inference workers on the CPU (one per core,
 ``workers_per_device=2``), one intra-op thread each, dynamic batching of up to 8 requests with a
-2 ms batch timeout; one API server per inference worker (LitServe's default).
+2 ms batch timeout; one API server per inference worker (LitServe's default). With ``bench_peers
+--gpu`` its workers share the GPU (``accelerator='cuda'``), as many as the service's worker processes
+(``CKS_WORKERS``), batching as before.
 
     python -m benchmarks.peers.litserve_app PORT
 
@@ -8,14 +10,21 @@
 as a class to know that it wants the form.)
 """
 
+import os
 import sys
 
 import litserve as ls
 from fastapi import Request
 
+from benchmarks.peers.accelerator import on_gpu
 from benchmarks.peers.pipeline import Pipeline, Prepared
 
-WORKERS, MAX_BATCH, BATCH_TIMEOUT_S = 2, 8, 0.002
+MAX_BATCH, BATCH_TIMEOUT_S = 8, 0.002
+
+
+def workers() -> int:
+    """Two on the CPU (one per core); on a GPU as many as the service's worker processes."""
+    return int(os.environ.get("CKS_WORKERS", "2")) if on_gpu() else 2
 
 
 class KeypointAPI(ls.LitAPI):
@@ -41,7 +50,10 @@ class KeypointAPI(ls.LitAPI):
 
 def main(port: int) -> None:
     api = KeypointAPI(max_batch_size=MAX_BATCH, batch_timeout=BATCH_TIMEOUT_S, api_path="/v1/predict")
-    server = ls.LitServer(api, accelerator="cpu", workers_per_device=WORKERS, healthcheck_path="/readyz")
+    accelerator = "cuda" if on_gpu() else "cpu"
+    server = ls.LitServer(
+        api, accelerator=accelerator, workers_per_device=workers(), healthcheck_path="/readyz"
+    )
     server.run(port=port, log_level="warning", generate_client_file=False)
 
 

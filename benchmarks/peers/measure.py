@@ -7,7 +7,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from benchmarks.peers.answers import difference, post
+from benchmarks.peers.accelerator import on_gpu
+from benchmarks.peers.answers import GPU_TOLERANCE, TOLERANCE, difference, post
 from benchmarks.peers.servers import Contender
 from benchmarks.service_bench.inputs import Sample
 from benchmarks.service_bench.loadgen import LoadResult, run_wrk, write_script
@@ -76,7 +77,7 @@ def check_answers(url: str, requests: Requests, reference: dict[int, dict]) -> d
     """The contender's answers; ``AnswerMismatch`` unless they equal ``reference`` (when given)."""
     answers = {boxes: post(url, *requests.bodies[boxes]) for boxes in BOXES}
     for boxes, expected in reference.items():
-        if problem := difference(expected, answers[boxes]):
+        if problem := difference(expected, answers[boxes], GPU_TOLERANCE if on_gpu() else TOLERANCE):
             raise AnswerMismatch(f"{boxes} box(es): {problem}")
     return answers
 

@@ -1,9 +1,10 @@
 """The model, its preprocessing and its sets, built from the service's own domain functions.
 
 Decode (``service.image_decoding``), crop (``service.detector.preprocess``), the onnxruntime
-session (``service.detector.runtime.create_session``), the bundled calibration's thresholds
-(``service.calibration``) and the sets (``service.prediction.calibrated_sets``): a peer only
-adds its framework around these, as a user would, so its answers equal the service's.
+session (``service.detector.runtime.create_session``, on ``CKS_EXECUTION_PROVIDERS``), the
+bundled calibration's thresholds (``service.calibration``) and the sets
+(``service.prediction.calibrated_sets``): a peer only adds its framework around these, as a user
+would, so its answers equal the service's.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.peers.accelerator import execution_providers
 from service.calibration.bundle import BUNDLE_FILENAME, load_bundle
 from service.calibration.registry import channel_thresholds
 from service.detector.manifest import MODEL_FILENAME, load_manifest
@@ -43,7 +45,7 @@ class Pipeline:
     def __init__(self, model_dir: Path = DEFAULT_MODEL_DIR, intra_op_threads: int = 0) -> None:
         model_dir = Path(model_dir)
         self.manifest = load_manifest(model_dir)
-        self.session = create_session(model_dir / MODEL_FILENAME, intra_op_threads)
+        self.session = create_session(model_dir / MODEL_FILENAME, intra_op_threads, *execution_providers())
         _, table = load_bundle(model_dir / BUNDLE_FILENAME)
         self.thresholds = channel_thresholds(
             table, self.manifest.num_keypoints, KIND, SCOPE, EPSILON, None

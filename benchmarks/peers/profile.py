@@ -1,10 +1,10 @@
 """Where the service's CPU goes under load: py-spy samples of the server during a wrk run, by stage.
 
 py-spy (``pip install py-spy``, in the ``peers`` extra) samples every thread of the server
-process; samples are sorted into the request's stages by the innermost frame that names one
-(``STAGES``, first match from the top of the table), and waits (a thread blocked on a lock, a
-queue or the event loop's selector) are left out, so the shares are of the time threads were
-running.
+process and of its worker processes (``CKS_WORKERS``); samples are sorted into the request's
+stages by the innermost frame that names one (``STAGES``, first match from the top of the
+table), and waits (a thread blocked on a lock, a queue or the event loop's selector) are left
+out, so the shares are of the time threads were running.
 """
 
 from __future__ import annotations
@@ -84,7 +84,8 @@ def profile_under_load(server: Server, script: Path, concurrency: int, seconds: 
     with tempfile.TemporaryDirectory(prefix="cks-spy-") as directory:
         output = Path(directory) / "raw.txt"
         command = [spy, "record", "-p", str(server.pid), "-d", str(max(1, round(seconds))), "-r", "100",
-                   "--nonblocking", "--threads", "-f", "raw", "-o", str(output)]  # fmt: skip
+                   "--nonblocking", "--threads", "--subprocesses", "-f", "raw",
+                   "-o", str(output)]  # fmt: skip
         with subprocess.Popen(
             command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
         ) as sampler:

@@ -40,6 +40,13 @@ SERVICE = Contender(
     "runs on its own thread, and wide (its crops split across the streams, or on a second session with "
     "`CKS_SOLO_INFERENCE_THREADS`, default every core) when that has been faster lately",
 )  # fmt: skip
+SERVICE_ON_GPU = Contender(
+    "service", None,
+    "`benchmarks/peers/accelerator.py` `GPU_SETTINGS`: the CUDA provider with heuristic cuDNN algorithms "
+    "and TF32 off, one worker process per two cores (`CKS_WORKERS`), no cross-request batching "
+    "(`CKS_MAX_INFERENCE_BATCH=0`: each request's crops are one run), `CKS_CPU_WORKERS=4`, "
+    "`CKS_MAX_CONCURRENT_INFERENCES=16` per worker",
+)  # fmt: skip
 PEERS = (
     Contender(
         "FastAPI",

@@ -11,10 +11,11 @@ import re
 from pathlib import Path
 
 TITLE = "# Performance"
-ORDER = ("bench_peers", "bench_service")
+ORDER = ("bench_peers", "bench_peers_gpu", "bench_service")
 INTRO = (
     "Two commands write this page, each its own section: `python -m benchmarks.bench_peers` (the service"
-    " against the frameworks a user would pick instead, ratios first) and"
+    " against the frameworks a user would pick instead, ratios first; with `--gpu`, its own section for"
+    " the model on a GPU) and"
     " `python -m benchmarks.bench_service` "
     "(the service against its bare model: stage breakdown, memory, tuning). Do not edit by hand."
 )

@@ -21,6 +21,15 @@ from service.errors import InvalidInput
 from service.metrics import BATCH_SIZE, INFERENCE_SECONDS
 
 CPU = ("CPUExecutionProvider",)
+#: Options the service gives a provider unless CKS_EXECUTION_PROVIDER_OPTIONS says otherwise.
+#: CUDA: TF32 convolutions (onnxruntime's default) move the heatmaps by about 1e-3 of their
+#: range, and differently for each batch size, so a request's sets would depend on the requests
+#: it was merged with and drift from the calibration's fp32 scores; cuDNN's exhaustive algorithm
+#: search (the default) stalls the first run of every new batch size for 0.2-0.7 s (measured on
+#: an H200, docs/operations.md "Execution providers and GPUs").
+PROVIDER_DEFAULTS: dict[str, dict[str, str]] = {
+    "CUDAExecutionProvider": {"use_tf32": "0", "cudnn_conv_algo_search": "HEURISTIC"},
+}
 
 
 class ModelMismatch(Exception):
@@ -226,7 +235,13 @@ def session_providers(
                 f"CKS_EXECUTION_PROVIDER_OPTIONS has options for {name!r}, which is not in"
                 f" CKS_EXECUTION_PROVIDERS ({', '.join(names)})"
             )
-    return [(name, dict(options[name])) if name in options else name for name in names]
+    return [provider_entry(name, options.get(name, {})) for name in names]
+
+
+def provider_entry(name: str, options: Mapping[str, str]) -> str | tuple[str, dict[str, str]]:
+    """One item of onnxruntime's ``providers``: the name, with its options over ``PROVIDER_DEFAULTS``."""
+    merged = {**PROVIDER_DEFAULTS.get(name, {}), **options}
+    return (name, merged) if merged or name in PROVIDER_DEFAULTS else name
 
 
 def _check_providers_loaded(requested: Sequence[str], in_use: list[str]) -> None:

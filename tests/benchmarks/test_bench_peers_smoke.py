@@ -5,17 +5,20 @@ wrk is not needed here)."""
 from __future__ import annotations
 
 import copy
+import os
 from pathlib import Path
 
+import onnxruntime
 import pytest
 
-from benchmarks.bench_peers import parse_args
+from benchmarks.bench_peers import parse_args, use_gpu
+from benchmarks.peers.accelerator import CUDA, GPU_SETTINGS
 from benchmarks.peers.answers import difference
 from benchmarks.peers.limit import Limit
 from benchmarks.peers.measure import BOXES, CONCURRENCIES, AnswerMismatch, Requests, Runs, check_answers
 from benchmarks.peers.profile import OTHER, summarize
 from benchmarks.peers.report import PeerResults, goals, render
-from benchmarks.peers.servers import PEERS, SERVICE
+from benchmarks.peers.servers import PEERS, SERVICE, SERVICE_ON_GPU
 from benchmarks.service_bench import page
 from benchmarks.service_bench.inputs import load_sample
 from benchmarks.service_bench.loadgen import LoadResult
@@ -119,3 +122,36 @@ def test_profile_samples_are_sorted_into_stages_and_waits_left_out() -> None:
     results = _results()
     section = render(PeerResults(**{**results.__dict__, "profile": profile}))
     assert "| inference (onnxruntime) | 60% |" in section
+
+
+def test_worker_processes_samples_count_like_the_servers_own() -> None:
+    """``--subprocesses`` puts a process frame first: the stage is found the same way."""
+    raw = 'process 42:"python -m service.cli serve";thread (1);_worker (t.py:81);decode_image (i.py:1) 7'
+    assert summarize(raw).shares == {"decode (JPEG)": 1.0}
+
+
+def test_gpu_mode_runs_the_service_with_gpu_settings_into_its_own_section(tmp_path: Path) -> None:
+    args = parse_args(["--gpu", "--peers", "FastAPI"])
+    assert args.contenders[0] is SERVICE_ON_GPU and args.section == "bench_peers_gpu"
+    output = tmp_path / "performance.md"
+    for section in ("bench_service", "bench_peers_gpu", "bench_peers"):
+        page.write_section(output, section, f"## {section} text")
+    written = output.read_text()
+    assert written.index("bench_peers text") < written.index("bench_peers_gpu text") < written.index(
+        "bench_service text"
+    )
+
+
+def test_gpu_mode_needs_the_cuda_provider(monkeypatch) -> None:
+    """Without onnxruntime-gpu (CI) it stops naming what there is; with it, every server gets the
+    GPU settings."""
+    for name in GPU_SETTINGS:
+        monkeypatch.delenv(name, raising=False)
+    if CUDA not in onnxruntime.get_available_providers():
+        with pytest.raises(SystemExit) as stopped:
+            use_gpu()
+        assert CUDA in str(stopped.value) and "CPUExecutionProvider" in str(stopped.value)
+        assert "CKS_EXECUTION_PROVIDERS" not in os.environ
+    else:
+        use_gpu()
+        assert os.environ["CKS_EXECUTION_PROVIDERS"].startswith(CUDA)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import onnxruntime as ort
 import pytest
 
-from service.detector.runtime import Detector, _check_providers_loaded, session_providers
+from service.detector.runtime import Detector, _check_providers_loaded, provider_entry, session_providers
 from service.errors import InvalidInput
 from service.settings import DEFAULT_MODEL_DIR
 
@@ -32,6 +32,15 @@ def test_the_session_reports_the_providers_asked_for() -> None:
 def test_options_go_with_their_provider() -> None:
     assert session_providers([CPU], {CPU: {"device_id": "0"}}) == [(CPU, {"device_id": "0"})]
     assert session_providers([CPU], {}) == [CPU]
+
+
+def test_cuda_runs_full_fp32_with_heuristic_algorithms_unless_told_otherwise() -> None:
+    """TF32 would make the sets depend on the batch and drift from the calibration's fp32 scores."""
+    cuda = "CUDAExecutionProvider"
+    assert provider_entry(cuda, {}) == (cuda, {"use_tf32": "0", "cudnn_conv_algo_search": "HEURISTIC"})
+    chosen = provider_entry(cuda, {"use_tf32": "1", "device_id": "1"})
+    assert chosen == (cuda, {"use_tf32": "1", "cudnn_conv_algo_search": "HEURISTIC", "device_id": "1"})
+    assert provider_entry(CPU, {}) == CPU
 
 
 def test_an_unknown_provider_is_refused_naming_the_available_ones() -> None:
