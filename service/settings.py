@@ -133,7 +133,7 @@ class Settings(BaseSettings):
         ge=0,
         le=1000,
         description="how long a merged run waits for more crops once it has one (0 = runs what is queued"
-        " at once; a GPU gains from 1-5 ms, see docs/operations.md)",
+        " at once; on the GPU measured it did not pay, see docs/operations.md)",
     )
 
     max_upload_bytes: int = Field(default=2 * 2**30, gt=0, description="largest calibration zip")
