@@ -15,7 +15,7 @@ from starlette.datastructures import UploadFile
 from service.api.body import BodyPace, read_limited_body
 from service.api.deps import State
 from service.api.pose_presenter import pose_options
-from service.api.predict_presenter import predict_response
+from service.api.predict_presenter import predict_body, predict_json
 from service.api.render import render_prediction
 from service.api.schemas import PredictJson, PredictParameters, PredictResponse
 from service.errors import InvalidInput, Unavailable, UnsupportedMediaType
@@ -150,10 +150,11 @@ def _respond(state: ServiceState, image_bytes: bytes, parameters: PredictParamet
         height, width = image.shape[:2]
         check_instances(parameters.instances, manifest, width, height, state.settings.max_instances)
         pose = pose_options(parameters, manifest)  # refused before the model runs
-        result = predict_response(predict(state, image, parameters, pose), parameters, manifest)
-    note_calibration_version(result.calibration.version)
+        prediction = predict(state, image, parameters, pose, instances_checked=True)
+        body = predict_body(prediction, parameters, manifest)
+    note_calibration_version(prediction.version)
     if png:
         camera = np.asarray(parameters.pose.K) if parameters.pose is not None else None
-        drawn = render_prediction(image, result, camera, manifest)
+        drawn = render_prediction(image, PredictResponse.model_validate(body), camera, manifest)
         return Response(drawn, media_type="image/png")
-    return Response(result.model_dump_json(), media_type="application/json")
+    return Response(predict_json(body), media_type="application/json")
