@@ -28,32 +28,31 @@ def plain_form(content_type: str, body: bytes) -> dict[bytes, Part] | None:
     """The parts of ``body`` by name, or None unless it is a plain multipart body (see above)."""
     _, options = parse_options_header(content_type)
     boundary = options.get(b"boundary")
-    if not boundary or b"charset" in options:
+    if not boundary or b"charset" in options or not body.startswith(b"--" + boundary + b"\r\n"):
         return None
-    delimiter = b"--" + boundary
-    opening, separator = delimiter + b"\r\n", b"\r\n" + delimiter
-    closing = body.rfind(separator + b"--")
-    epilogue = body[closing + len(separator) + 2 :]
-    if not body.startswith(opening) or closing < 0 or epilogue not in (b"", b"\r\n"):
-        return None
-    chunks = body[len(opening) : closing].split(separator + b"\r\n")
-    if body.count(separator) != len(chunks):  # a delimiter not followed by CRLF: not plain
-        return None
+    delimiter = b"\r\n--" + boundary  # ends every part; one pass over the body finds them all
     parts: dict[bytes, Part] = {}
-    for chunk in chunks:
-        named = _part(chunk)
+    start = len(boundary) + 4
+    while (end := body.find(delimiter, start)) >= 0:
+        named = _part(body, start, end)
         if named is None or named[0] in parts:
             return None
         parts[named[0]] = named[1]
-    return parts
+        start = end + len(delimiter) + 2
+        follows = body[start - 2 : start]
+        if follows == b"--":  # the closing delimiter, then at most a line break
+            return parts if body[start:] in (b"", b"\r\n") else None
+        if follows != b"\r\n":
+            return None
+    return None
 
 
-def _part(chunk: bytes) -> tuple[bytes, Part] | None:
-    head, blank, data = chunk.partition(b"\r\n\r\n")
-    if not blank:
+def _part(body: bytes, start: int, end: int) -> tuple[bytes, Part] | None:
+    head_end = body.find(b"\r\n\r\n", start, end)
+    if head_end < 0:
         return None
     disposition = None
-    for line in head.split(b"\r\n"):
+    for line in body[start:head_end].split(b"\r\n"):
         name, colon, value = line.partition(b":")
         name = name.lower()
         if not colon or name not in _KNOWN_HEADERS:
@@ -66,4 +65,4 @@ def _part(chunk: bytes) -> tuple[bytes, Part] | None:
     field = options.get(b"name")
     if not field:
         return None
-    return field, Part(data, options.get(b"filename"))
+    return field, Part(body[head_end + 4 : end], options.get(b"filename"))
