@@ -4,7 +4,7 @@ ellipses or unbounded, each row's guarantee and stratum, statistics and pose blo
 The body is built once as plain JSON-ready data in ``PredictResponse``'s shape (field order,
 ``exclude_if`` fields left out) and written by pydantic-core's own serializer
 (``predict_json``): the same bytes ``PredictResponse.model_dump_json`` writes, without
-building and validating some twenty models per keypoint row on every request.
+building and validating a model for every keypoint, set and block of every response.
 ``predict_response`` validates the same data into the models when they are needed (the
 PNG drawing); tests hold the two paths to the same bytes.
 """
