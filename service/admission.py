@@ -107,7 +107,10 @@ class Admission:
         """A compute slot, waited for at most the queue timeout (CKS_QUEUE_TIMEOUT_SECONDS)."""
         PREDICT_WAITING.inc()
         try:
-            await asyncio.wait_for(self._slots.acquire(), self._timeout)
+            if self._slots.locked():
+                await asyncio.wait_for(self._slots.acquire(), self._timeout)
+            else:  # a free slot is taken at once: no task and timer for a wait that cannot happen
+                await self._slots.acquire()
         except TimeoutError:
             PREDICT_REJECTED.labels("queue_timeout").inc()
             raise Overloaded(

@@ -131,13 +131,20 @@ class Prediction:
 
 
 def predict(
-    state: ServiceState, image: np.ndarray, query: PredictQuery, pose: PoseOptions | None = None
+    state: ServiceState,
+    image: np.ndarray,
+    query: PredictQuery,
+    pose: PoseOptions | None = None,
+    instances_checked: bool = False,
 ) -> Prediction:
-    """Run the detector on every instance as one batch and calibrate their sets."""
+    """Run the detector on every instance as one batch and calibrate their sets.
+
+    ``instances_checked``: the caller already ran ``check_instances`` on this image."""
     detector, registry = state.detector, state.registry
     manifest = detector.manifest
     height, width = image.shape[:2]
-    check_instances(query.instances, manifest, width, height, state.settings.max_instances)
+    if not instances_checked:
+        check_instances(query.instances, manifest, width, height, state.settings.max_instances)
     version = registry.resolve(query.calibration_version)
     kind, scope = query.nonconformity, query.coverage
     thresholds = registry.thresholds(version, kind, scope, query.epsilon, query.delta)

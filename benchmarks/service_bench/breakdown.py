@@ -2,8 +2,9 @@
 
 Stages, in the route's order: ``decode_image`` -> ``build_batch`` (crop + normalize) ->
 ``Detector.run_session`` (inference) -> ``calibrated_sets`` (heatmap statistics and
-sets) -> the rest of ``predict`` (checks, thresholds lookup, response objects; timed with
-the two previous stages' results cached) -> ``model_dump_json``. Each iteration runs every stage once,
+sets) -> the rest of ``predict`` (checks, thresholds lookup) and the response body's data
+(``predict_body``; timed with the two previous stages' results cached) -> its JSON
+(``predict_json``), as the route writes them. Each iteration runs every stage once,
 so the stages are measured side by side; the figures are medians over iterations.
 """
 
@@ -20,7 +21,7 @@ import numpy as np
 
 from benchmarks.service_bench.inputs import Sample
 from service import prediction
-from service.api.predict_presenter import predict_response  # noqa: E402
+from service.api.predict_presenter import predict_body, predict_json  # noqa: E402
 from service.api.schemas import PredictParameters
 from service.detector.preprocess import build_batch
 from service.detector.runtime import Detector, InstanceHeatmaps
@@ -95,10 +96,10 @@ def _one_iteration(state: ServiceState, sample: Sample, parameters: PredictParam
         lambda: calibrated_sets(result, parameters.nonconformity, thresholds.values, manifest.heatmap)
     )
     with _cached(detector, result, sets):
-        ms["response"], response = _timed(
-            lambda: predict_response(predict(state, image, parameters), parameters, manifest)
+        ms["response"], body = _timed(
+            lambda: predict_body(predict(state, image, parameters), parameters, manifest)
         )
-    ms["json"], _ = _timed(response.model_dump_json)
+    ms["json"], _ = _timed(lambda: predict_json(body))
     return ms
 
 

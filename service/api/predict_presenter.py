@@ -1,139 +1,147 @@
 """A Prediction (service.prediction) as the response body of POST /v1/predict: the sets as balls,
-ellipses or unbounded, each row's guarantee and stratum, statistics and pose blocks."""
+ellipses or unbounded, each row's guarantee and stratum, statistics and pose blocks.
+
+The body is built once as plain JSON-ready data in ``PredictResponse``'s shape (field order,
+``exclude_if`` fields left out) and written by pydantic-core's own serializer
+(``predict_json``): the same bytes ``PredictResponse.model_dump_json`` writes, without
+building and validating a model for every keypoint, set and block of every response.
+``predict_response`` validates the same data into the models when they are needed (the
+PNG drawing); tests hold the two paths to the same bytes.
+"""
 
 from __future__ import annotations
 
 import math
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
+from pydantic_core import to_json
 
 from service.api.pose_presenter import pose_out
-from service.api.schemas import (
-    BallSet,
-    BetaLaw,
-    CalibrationRef,
-    EllipseSet,
-    Guarantee,
-    ImageInfo,
-    InstanceOut,
-    KeypointOut,
-    KeypointStatistics,
-    ModelRef,
-    PredictParameters,
-    PredictResponse,
-    SignalRange,
-    Stratum,
-    UnboundedSet,
-)
+from service.api.schemas import PredictParameters, PredictResponse
 from service.calibration.stratification import Stratum as StratumChoice
 from service.conformal import CoverageGuarantee, HeatmapStatistics, ellipse_axes
 from service.detector.manifest import Manifest
 from service.prediction import Prediction
 
+Body = dict[str, Any]
+UNBOUNDED = {"type": "unbounded", "reason": "too few calibration scores for this epsilon (t = 0)"}
 
-def predict_response(
-    prediction: Prediction, parameters: PredictParameters, manifest: Manifest
-) -> PredictResponse:
-    """The response body of ``prediction``, made for ``parameters``."""
+
+def predict_body(prediction: Prediction, parameters: PredictParameters, manifest: Manifest) -> Body:
+    """The response body of ``prediction``, made for ``parameters``, as ``PredictResponse`` data."""
     sets, scope = prediction.sets, parameters.coverage
     regions = _regions(sets.centers, sets.shapes, parameters.nonconformity)
     guarantees = [_guarantee(guarantee, scope, stratum) for guarantee, stratum in prediction.guarantees]
     stats = _statistics(sets.statistics) if parameters.include_statistics else [None] * len(regions)
+    centers = sets.centers.tolist()
     keypoints = [
-        KeypointOut(
-            index=int(channel),
-            name=manifest.keypoints[channel].name,
-            point=(float(sets.centers[row, 0]), float(sets.centers[row, 1])),
-            set=regions[row],
-            guarantee=guarantees[row],
-            statistics=stats[row],
-        )
-        for row, channel in enumerate(prediction.channel)
+        {
+            "index": int(channel),
+            "name": manifest.keypoints[channel].name,
+            "point": centers[row],
+            "set": regions[row],
+            "guarantee": guarantees[row],
+            "statistics": stats[row],
+        }
+        for row, channel in enumerate(prediction.channel.tolist())
     ]
-    poses = [pose_out(p) for p in prediction.poses] if prediction.poses is not None else None
-    owners = prediction.instance_index
-    instances = [
-        InstanceOut(
-            object=instance.object,
-            bbox=instance.bbox,
-            keypoints=[kp for kp, owner in zip(keypoints, owners, strict=True) if owner == i],
-            pose=poses[i] if poses is not None else None,
-        )
-        for i, instance in enumerate(parameters.instances)
-    ]
-    return PredictResponse(
-        model=ModelRef(name=prediction.model_name, hash=prediction.model_hash),
-        calibration=CalibrationRef(
-            version=prediction.version,
-            nonconformity=parameters.nonconformity,
-            coverage=scope,
-            epsilon=parameters.epsilon,
-            delta=parameters.delta,
-        ),
-        image=ImageInfo(width=prediction.width, height=prediction.height),
-        instances=instances,
-    )
+    poses = [pose_out(p).model_dump() for p in prediction.poses] if prediction.poses is not None else None
+    owners = prediction.instance_index.tolist()
+    instances = []
+    for i, instance in enumerate(parameters.instances):
+        out = {
+            "object": instance.object,
+            "bbox": instance.bbox,
+            "keypoints": [kp for kp, owner in zip(keypoints, owners, strict=True) if owner == i],
+        }
+        if poses is not None:  # InstanceOut.pose: left out when None
+            out["pose"] = poses[i]
+        instances.append(out)
+    return {
+        "model": {"name": prediction.model_name, "hash": prediction.model_hash},
+        "calibration": {
+            "version": int(prediction.version),
+            "nonconformity": parameters.nonconformity,
+            "coverage": scope,
+            "epsilon": parameters.epsilon,
+            "delta": parameters.delta,
+        },
+        "image": {"width": int(prediction.width), "height": int(prediction.height)},
+        "instances": instances,
+    }
 
 
-def _regions(centers: np.ndarray, shapes: np.ndarray, kind: str) -> list:
+def predict_json(body: Body) -> bytes:
+    """``body`` as ``PredictResponse.model_dump_json`` writes it (pydantic-core; inf and nan as null)."""
+    return to_json(body, inf_nan_mode="null")
+
+
+def predict_response(
+    prediction: Prediction, parameters: PredictParameters, manifest: Manifest
+) -> PredictResponse:
+    """The response body of ``prediction``, made for ``parameters``, as validated models."""
+    return PredictResponse.model_validate(predict_body(prediction, parameters, manifest))
+
+
+def _regions(centers: np.ndarray, shapes: np.ndarray, kind: str) -> list[Body]:
     semi_minor, semi_major, angles = ellipse_axes(shapes)
+    semi_minor, semi_major, angles = semi_minor.tolist(), semi_major.tolist(), angles.tolist()
     regions = []
-    for row, center in enumerate(centers):
-        c = (float(center[0]), float(center[1]))
-        a, b = float(semi_minor[row]), float(semi_major[row])
+    for row, (center, shape) in enumerate(zip(centers.tolist(), shapes.tolist(), strict=True)):
+        a, b = semi_minor[row], semi_major[row]
         if math.isinf(b):
-            regions.append(UnboundedSet(reason="too few calibration scores for this epsilon (t = 0)"))
+            regions.append(UNBOUNDED)
         elif a == b and (kind != "cov" or a == 0.0):
-            regions.append(BallSet(center=c, radius=b))
+            regions.append({"type": "ball", "center": center, "radius": b})
         else:
-            shape = shapes[row]
             regions.append(
-                EllipseSet(
-                    center=c,
-                    shape_matrix=(
-                        (float(shape[0, 0]), float(shape[0, 1])),
-                        (float(shape[1, 0]), float(shape[1, 1])),
-                    ),
-                    semi_axes=(a, b),
-                    angle_deg=float(angles[row]),
-                )
-            )
+                {"type": "ellipse", "center": center, "shape_matrix": shape, "semi_axes": (a, b),
+                 "angle_deg": angles[row]}
+            )  # fmt: skip
     return regions
 
 
-def _stratum(choice: StratumChoice) -> Stratum:
-    edges = [SignalRange(signal=s, low=low, high=high) for s, low, high in choice.ranges] or None
-    return Stratum(kind=choice.kinds, group=choice.group, bin=choice.bin, edges=edges,
-                   conditional=choice.kinds != "pooled", fallback=choice.fallback)  # fmt: skip
+def _stratum(choice: StratumChoice) -> Body:
+    edges = [{"signal": s, "low": _float(lo), "high": _float(hi)} for s, lo, hi in choice.ranges] or None
+    bin_ = None if choice.bin is None else int(choice.bin)
+    return {"kind": choice.kinds, "group": choice.group, "bin": bin_, "edges": edges,
+            "conditional": choice.kinds != "pooled", "fallback": choice.fallback}  # fmt: skip
 
 
 @lru_cache(maxsize=4096)
-def _guarantee(guarantee: CoverageGuarantee, scope: str, stratum: StratumChoice | None = None) -> Guarantee:
-    return Guarantee(
-        scope=scope,
-        n=guarantee.n,
-        t=guarantee.t,
-        epsilon=guarantee.epsilon,
-        coverage_lower_bound=guarantee.marginal_lower,
-        coverage_upper_bound=guarantee.marginal_upper,
-        conditional_coverage=BetaLaw(a=guarantee.beta_a, b=guarantee.beta_b),
-        delta=guarantee.delta,
-        pac_failure_probability=guarantee.pac_failure_probability if guarantee.delta is not None else None,
-        stratum=None if stratum is None else _stratum(stratum),
-    )
+def _guarantee(guarantee: CoverageGuarantee, scope: str, stratum: StratumChoice | None = None) -> Body:
+    """Shared between rows and requests (cached): never change what it returns."""
+    body = {
+        "scope": scope,
+        "n": int(guarantee.n),
+        "t": int(guarantee.t),
+        "epsilon": float(guarantee.epsilon),
+        "coverage_lower_bound": float(guarantee.marginal_lower),
+        "coverage_upper_bound": float(guarantee.marginal_upper),
+        "conditional_coverage": {"a": int(guarantee.beta_a), "b": int(guarantee.beta_b)},
+        "delta": _float(guarantee.delta),
+        "pac_failure_probability": (
+            float(guarantee.pac_failure_probability) if guarantee.delta is not None else None
+        ),
+    }
+    if stratum is not None:  # Guarantee.stratum: left out when None
+        body["stratum"] = _stratum(stratum)
+    return body
 
 
-def _statistics(statistics: HeatmapStatistics) -> list[KeypointStatistics]:
-    covariance = statistics.covariance
-    gamma = np.sqrt(statistics.variance)
+def _float(value: float | None) -> float | None:
+    return None if value is None else float(value)
+
+
+def _statistics(statistics: HeatmapStatistics) -> list[Body]:
+    gamma = np.sqrt(statistics.variance).tolist()
+    probability = statistics.peak_probability.tolist()
+    peak, mean = statistics.peak_location.tolist(), statistics.mean.tolist()
+    covariance = statistics.covariance.tolist()
     return [
-        KeypointStatistics(
-            peak_probability=float(statistics.peak_probability[i]),
-            peak=tuple(statistics.peak_location[i]),
-            mean=tuple(statistics.mean[i]),
-            gamma=float(gamma[i]),
-            covariance=(tuple(covariance[i, 0]), tuple(covariance[i, 1])),
-        )
+        {"peak_probability": probability[i], "peak": peak[i], "mean": mean[i], "gamma": gamma[i],
+         "covariance": covariance[i]}
         for i in range(len(gamma))
-    ]
+    ]  # fmt: skip

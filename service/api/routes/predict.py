@@ -11,11 +11,13 @@ import numpy as np
 from fastapi import APIRouter, Request, Response
 from pydantic import ValidationError
 from starlette.datastructures import UploadFile
+from starlette.formparsers import MultiPartParser
 
 from service.api.body import BodyPace, read_limited_body
 from service.api.deps import State
+from service.api.multipart import plain_form
 from service.api.pose_presenter import pose_options
-from service.api.predict_presenter import predict_response
+from service.api.predict_presenter import predict_body, predict_json
 from service.api.render import render_prediction
 from service.api.schemas import PredictJson, PredictParameters, PredictResponse
 from service.errors import InvalidInput, Unavailable, UnsupportedMediaType
@@ -81,7 +83,7 @@ async def _parse(request: Request, body: bytes) -> tuple[bytes, PredictParameter
             raise InvalidInput(f"image_base64 is not valid base64: {error}") from error
         return image, parameters
     if content_type == "multipart/form-data":
-        return await _parse_multipart(request)
+        return _parse_plain_multipart(request, body) or await _parse_multipart(request)
     raise UnsupportedMediaType(
         f"send application/json (image_base64) or multipart/form-data (image + request), not {content_type!r}"
     )
@@ -99,18 +101,37 @@ async def _read_body(request: Request, state: State) -> bytes:
         return await read_limited_body(request, limit, "CKS_MAX_REQUEST_BYTES", pace, count)
 
 
+def _parse_plain_multipart(request: Request, body: bytes) -> tuple[bytes, PredictParameters] | None:
+    """The image and parameters of a plain body (``plain_form``) holding just the file ``image``
+    and the field ``request``, read as Starlette would; None: anything else, for Starlette."""
+    parts = plain_form(request.headers.get("content-type", ""), body)
+    if parts is None or parts.keys() != {b"image", b"request"}:
+        return None
+    image, raw = parts[b"image"], parts[b"request"]
+    if image.filename is None or raw.filename is not None or len(raw.data) > MultiPartParser.max_part_size:
+        return None
+    try:
+        text = raw.data.decode("utf-8")
+    except UnicodeDecodeError:  # Starlette falls back to latin-1
+        return None
+    return image.data, _validated(PredictParameters, text)
+
+
 async def _parse_multipart(request: Request) -> tuple[bytes, PredictParameters]:
     try:
         form = await request.form(max_files=1, max_fields=2)
     except Exception as error:  # starlette reports malformed multipart with several types
         raise InvalidInput(f"malformed multipart body: {error}") from error
-    image, raw = form.get("image"), form.get("request")
-    if not isinstance(image, UploadFile):
-        raise InvalidInput("multipart part 'image' (a JPEG or PNG file) is missing")
-    if raw is None:
-        raise InvalidInput("multipart part 'request' (JSON with instances and options) is missing")
-    raw = raw if isinstance(raw, str) else (await raw.read()).decode("utf-8", "replace")
-    return await image.read(), _validated(PredictParameters, raw)
+    try:
+        image, raw = form.get("image"), form.get("request")
+        if not isinstance(image, UploadFile):
+            raise InvalidInput("multipart part 'image' (a JPEG or PNG file) is missing")
+        if raw is None:
+            raise InvalidInput("multipart part 'request' (JSON with instances and options) is missing")
+        raw = raw if isinstance(raw, str) else (await raw.read()).decode("utf-8", "replace")
+        return await image.read(), _validated(PredictParameters, raw)
+    finally:
+        await form.close()  # its spooled files, now rather than when collected
 
 
 def _wants_png(request: Request) -> bool:
@@ -150,10 +171,11 @@ def _respond(state: ServiceState, image_bytes: bytes, parameters: PredictParamet
         height, width = image.shape[:2]
         check_instances(parameters.instances, manifest, width, height, state.settings.max_instances)
         pose = pose_options(parameters, manifest)  # refused before the model runs
-        result = predict_response(predict(state, image, parameters, pose), parameters, manifest)
-    note_calibration_version(result.calibration.version)
+        prediction = predict(state, image, parameters, pose, instances_checked=True)
+        body = predict_body(prediction, parameters, manifest)
+    note_calibration_version(prediction.version)
     if png:
         camera = np.asarray(parameters.pose.K) if parameters.pose is not None else None
-        drawn = render_prediction(image, result, camera, manifest)
+        drawn = render_prediction(image, PredictResponse.model_validate(body), camera, manifest)
         return Response(drawn, media_type="image/png")
-    return Response(result.model_dump_json(), media_type="application/json")
+    return Response(predict_json(body), media_type="application/json")

@@ -18,7 +18,7 @@ import re
 from dataclasses import dataclass
 
 from fastapi import APIRouter, Request, Response
-from starlette.datastructures import UploadFile
+from starlette.datastructures import FormData, UploadFile
 
 from service.api.deps import State
 from service.api.problems import problem
@@ -116,9 +116,25 @@ async def _parts(request: Request, limit: int) -> list[_Part]:
             f"malformed multipart body, or more than {limit} images or requests"
             f" (CKS_MAX_BATCH_IMAGES): {error}"
         ) from error
+    try:
+        images, requests, problems = await _read_parts(form, limit)
+    finally:
+        await form.close()  # its spooled files, now rather than when collected
+    if problems:
+        raise InvalidInput("; ".join(problems[:5]), errors=problems)
+    count = max([*images, *requests], default=-1) + 1
+    if count == 0:
+        raise InvalidInput(
+            "the batch is empty: send parts image_0 and request_0 (and image_1, request_1, ...)"
+        )
+    return [_Part(images.get(index), requests.get(index)) for index in range(count)]
+
+
+async def _read_parts(form: FormData, limit: int) -> tuple[dict[int, bytes | None], dict[int, str], list]:
+    """The images and requests by index, and what is wrong with the parts' names."""
     images: dict[int, bytes | None] = {}
     requests: dict[int, str] = {}
-    problems = []
+    problems: list[str] = []
     for name, value in form.multi_items():
         match = _PART.fullmatch(name)
         index = int(match.group(2)) if match else -1
@@ -136,14 +152,7 @@ async def _parts(request: Request, limit: int) -> list[_Part]:
             requests[index] = (
                 value if isinstance(value, str) else (await value.read()).decode("utf-8", "replace")
             )
-    if problems:
-        raise InvalidInput("; ".join(problems[:5]), errors=problems)
-    count = max([*images, *requests], default=-1) + 1
-    if count == 0:
-        raise InvalidInput(
-            "the batch is empty: send parts image_0 and request_0 (and image_1, request_1, ...)"
-        )
-    return [_Part(images.get(index), requests.get(index)) for index in range(count)]
+    return images, requests, problems
 
 
 async def _answer(request: Request, state: ServiceState, index: int, part: _Part) -> bytes:
