@@ -28,7 +28,8 @@ class Settings(BaseSettings):
     )
     data_dir: Path = Field(
         default=Path("var"),
-        description="where the service writes (SQLite store, uploads, metrics files of several workers)",
+        description="where the service writes (SQLite store, uploads, metrics and activity files of"
+        " several workers)",
     )
     store_url: str | None = Field(
         default=None, description="sqlite:///path or postgresql://...; default sqlite under data_dir"
