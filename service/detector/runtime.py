@@ -190,16 +190,16 @@ def create_session(
     """The onnxruntime session the service runs: sequential, all graph optimizations, on
     ``providers`` (checked by ``session_providers``).
 
-    ``spinning=False``: the intra-op threads spin only while a run lasts (onnxruntime's
-    ``session.force_spinning_stop``), and sleep as soon as it returns instead of spinning for the
-    next one: for a session that runs now and then, so that its threads do not take cores from
-    the other session's runs and the requests' Python work. (Threads that never spin,
-    ``session.intra_op.allow_spinning`` = 0, sleep between the operators of a run too: a lone
-    1-crop run on 2 threads was then no faster than on one, 2.7 ms, against 1.7 ms spinning.)"""
+    ``spinning=False``: the intra-op threads sleep as soon as a run ends instead of spinning for
+    the next one (for a session that runs now and then, so its threads do not take cores from
+    the runs of the other session). (onnxruntime's ``session.force_spinning_stop``, spinning
+    during a run only, made a lone 1-crop run on 2 threads 1.8 ms against 2.2-3.3 ms, but the
+    service's p50 at concurrency 1 did not move, and the runs got twice as slow as one thread's
+    whenever another process held a core.)"""
     options = ort.SessionOptions()
     options.intra_op_num_threads = intra_op_threads
     if not spinning:
-        options.add_session_config_entry("session.force_spinning_stop", "1")
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
     options.inter_op_num_threads = 1
     options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
