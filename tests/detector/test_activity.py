@@ -5,7 +5,6 @@ from __future__ import annotations
 import multiprocessing
 import os
 import signal
-from collections.abc import Iterator
 from multiprocessing.connection import Connection
 from pathlib import Path
 
@@ -33,11 +32,9 @@ def _worker(commands: Connection) -> None:
 
 
 @pytest.fixture
-def shared(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
-    previous = os.environ.get(ACTIVITY_ENV)
-    folder = share_activity(tmp_path / "activity")  # sets the variable the spawned workers inherit
-    yield folder
-    monkeypatch.setenv(ACTIVITY_ENV, previous) if previous else monkeypatch.delenv(ACTIVITY_ENV)
+def shared(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    monkeypatch.delenv(ACTIVITY_ENV, raising=False)  # whatever it was comes back after the test
+    return share_activity(tmp_path / "activity")  # sets the variable the spawned workers inherit
 
 
 class Worker:
