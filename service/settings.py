@@ -28,7 +28,8 @@ class Settings(BaseSettings):
     )
     data_dir: Path = Field(
         default=Path("var"),
-        description="where the service writes (SQLite store, uploads, metrics files of several workers)",
+        description="where the service writes (SQLite store, uploads, metrics and activity files of"
+        " several workers)",
     )
     store_url: str | None = Field(
         default=None, description="sqlite:///path or postgresql://...; default sqlite under data_dir"
@@ -106,8 +107,8 @@ class Settings(BaseSettings):
     solo_inference_threads: int = Field(
         default=0,
         ge=0,
-        description="intra-op threads of a run while a worker computes one request only (0 = the cores"
-        " this process may use divided by CKS_WORKERS; equal to CKS_INFERENCE_THREADS = off)",
+        description="intra-op threads of a run while the server (every worker) computes one request only"
+        " (0 = the cores this process may use; equal to CKS_INFERENCE_THREADS = off)",
     )
     inference_streams: int = Field(
         default=2, ge=1, le=64, description="onnxruntime runs in parallel when batching (about one per core)"
@@ -308,7 +309,7 @@ class Settings(BaseSettings):
         CKS_INFERENCE_THREADS=0 every run has onnxruntime's default already)."""
         if self.inference_threads == 0:
             return 0
-        return self.solo_inference_threads or max(1, usable_cores() // self.workers)
+        return self.solo_inference_threads or usable_cores()
 
     @property
     def uploads_dir(self) -> Path:

@@ -23,6 +23,7 @@ from service.calibration.stratification import difficulty_spec
 from service.calibration.submission import CalibrationJobs, SubmissionSettings
 from service.calibration.uploads import process_uploads_dir, remove_spent_job_folders
 from service.conformal.kernel import native_kernel_available
+from service.detector.activity import worker_activity
 from service.detector.runtime import Detector
 from service.logs import ensure_logging
 from service.metrics import forget_drift_source, set_drift_source
@@ -92,6 +93,7 @@ def build_state(settings: Settings) -> ServiceState:
         **detector_providers(settings),
         batch_window_s=settings.batch_window_ms / 1000,
         solo_threads=settings.solo_threads,
+        activity=worker_activity(),
     )
     log.info("onnxruntime execution providers in use: %s", ", ".join(detector.execution_providers))
     kind, location = store_location(settings.resolved_store_url)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import threading
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -13,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
+from service.detector.activity import Activity
 from service.detector.batching import MicroBatcher
 from service.detector.chooser import FasterWay
 from service.detector.manifest import MODEL_FILENAME, Manifest, ManifestError, load_manifest
@@ -68,12 +68,15 @@ class Detector:
         provider_options: Mapping[str, Mapping[str, str]] | None = None,
         batch_window_s: float = 0.0,
         solo_threads: int | None = None,
+        activity: Activity | None = None,
     ) -> None:
         """``solo_threads``: intra-op threads of a second session for requests that run alone (None
         or ``intra_op_threads``: none). A request alone in the process (``computing``) runs either
         as every other (``intra_op_threads``) or wide (its crops split across idle ``streams``, or
         on ``solo_threads``), whichever has been faster lately (``chooser``): a lone client gets
-        every core when that pays, and many clients share the cores through ``streams`` runs."""
+        every core when that pays, and many clients share the cores through ``streams`` runs.
+        ``activity``: where requests being computed are counted (default: this process only; with
+        several workers, ``activity.worker_activity()`` counts every worker's)."""
         model_dir = Path(model_dir)
         self.manifest = _load_manifest(model_dir)
         model_path = model_dir / MODEL_FILENAME
@@ -86,7 +89,7 @@ class Detector:
             if solo_threads is not None and solo_threads != intra_op_threads and tuple(providers) == CPU
             else None
         )
-        self._computing, self._counting = 0, threading.Lock()
+        self._activity = activity or Activity()
         self._ways = FasterWay()
         _check_graph(self._session, self.manifest)
         self._check_output_shape()
@@ -120,7 +123,7 @@ class Detector:
         """Like ``run_session``, merged with concurrent callers' crops when batching is on; a
         request alone in the process may run wide (see ``__init__``)."""
         can_widen = self._solo_session is not None or (self._batcher is not None and len(batch) > 1)
-        if not can_widen or self._computing > 1:
+        if not can_widen or self._activity.total() > 1:
             return self._batcher.run(batch) if self._batcher else self.run_session(batch)
         wide = self._ways.pick(len(batch))
         started = time.perf_counter()
@@ -133,19 +136,18 @@ class Detector:
 
     @contextmanager
     def computing(self) -> Iterator[None]:
-        """Marks one request being computed (decode to response): ``run_session`` gives a run all
-        of ``solo_threads`` only while no other request is."""
-        with self._counting:
-            self._computing += 1
+        """Marks one request being computed (decode to response): ``run`` may run a request wide
+        only while no other request is, in this worker or (shared ``activity``) any other."""
+        self._activity.enter()
         try:
             yield
         finally:
-            with self._counting:
-                self._computing -= 1
+            self._activity.leave()
 
     def close(self) -> None:
         if self._batcher:
             self._batcher.close()
+        self._activity.close()
 
     def infer(self, image_bgr: np.ndarray, boxes: np.ndarray, objects: list[str]) -> InstanceHeatmaps:
         """Crop all boxes, run them as one batch, keep each instance's own keypoint channels."""
@@ -199,7 +201,10 @@ def create_session(
 
     ``spinning=False``: the intra-op threads sleep as soon as a run ends instead of spinning for
     the next one (for a session that runs now and then, so its threads do not take cores from
-    the runs of the other session)."""
+    the runs of the other session). (onnxruntime's ``session.force_spinning_stop``, spinning
+    during a run only, made a lone 1-crop run on 2 threads 1.8 ms against 2.2-3.3 ms, but the
+    service's p50 at concurrency 1 did not move, and the runs got twice as slow as one thread's
+    whenever another process held a core.)"""
     options = ort.SessionOptions()
     options.intra_op_num_threads = intra_op_threads
     if not spinning:
