@@ -42,14 +42,18 @@ RUN pip wheel --no-deps --wheel-dir /wheels . \
     && python -m zipfile -l /wheels/*.whl | grep -q _upper_half
 
 FROM cuda-python AS cuda
+# Measured on an H200 (docs/operations.md, Serving from a GPU): the CPU work, not the model, is
+# the bottleneck, so several workers (about half the host's cores: -e CKS_WORKERS=N) and no
+# cross-request batching serve the most.
 ENV PYTHONUNBUFFERED=1 \
     CKS_HOST=0.0.0.0 \
     CKS_PORT=8000 \
     CKS_DATA_DIR=/data \
     CKS_MODEL_DIR=/app/models/lmo-synth-unet \
     CKS_EXECUTION_PROVIDERS=CUDAExecutionProvider,CPUExecutionProvider \
-    CKS_MAX_INFERENCE_BATCH=64 \
-    CKS_BATCH_WINDOW_MS=2
+    CKS_WORKERS=4 \
+    CKS_MAX_INFERENCE_BATCH=0 \
+    CKS_MAX_CONCURRENT_INFERENCES=16
 WORKDIR /app
 COPY --from=cuda-build /wheels /wheels
 # onnxruntime-gpu replaces onnxruntime: both own the `onnxruntime` module, so the CPU build is

@@ -36,7 +36,7 @@ class Contender:
 SERVICE = Contender(
     "service", None,
     "its defaults (`keypoint-service serve`, no `CKS_*` set): one worker, two inference streams of one "
-    "intra-op thread merging concurrent requests' crops (micro-batching); a request alone in the process "
+    "intra-op thread merging concurrent requests' crops (micro-batching); a request alone in the server "
     "runs on its own thread, and wide (its crops split across the streams, or on a second session with "
     "`CKS_SOLO_INFERENCE_THREADS`, default every core) when that has been faster lately",
 )  # fmt: skip
