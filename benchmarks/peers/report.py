@@ -15,7 +15,7 @@ from benchmarks.service_bench.machine import Machine
 SERVICE = "service"
 STAGE_NAMES = {
     "decode": "decode", "crop": "crop", "inference": "inference", "sets": "sets",
-    "response": "response objects", "json": "JSON",
+    "response": "response data", "json": "JSON",
 }  # fmt: skip
 
 

@@ -17,8 +17,8 @@ STAGE_LABELS = {
     "crop": "crop + normalize (`build_batch`)",
     "inference": "inference (`Detector.run_session`)",
     "sets": "scoring / sets (`calibrated_sets`)",
-    "response": "response objects (rest of `predict`)",
-    "json": "JSON (`model_dump_json`)",
+    "response": "response data (`predict_body`)",
+    "json": "JSON (`predict_json`)",
 }
 
 

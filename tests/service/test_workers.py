@@ -96,9 +96,14 @@ def test_each_worker_counts_its_requests_in_the_shared_activity_file(two_workers
     worker holds the lock of its own slot of the one file its parent made."""
     _, data = two_workers
     (folder,) = (data / "activity").iterdir()  # one folder per serve process
-    with open(folder / "activity", "r+b") as shared:
-        held = [slot for slot in range(SLOTS) if not _free(shared.fileno(), slot)]
-    assert len(held) == 2, f"slots held by live workers: {held}"
+
+    def held() -> list[int]:
+        with open(folder / "activity", "r+b") as shared:
+            return [slot for slot in range(SLOTS) if not _free(shared.fileno(), slot)]
+
+    # /readyz answered means one worker is up; the other may still be loading its model
+    wait_until(lambda: len(held()) == 2, "both workers hold a slot", timeout=60)
+    assert len(held()) == 2, f"slots held by live workers: {held()}"
 
 
 def _free(fd: int, slot: int) -> bool:
