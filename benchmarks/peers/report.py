@@ -232,8 +232,8 @@ def _gpu_note() -> str:
     listed = ", ".join(available)
     if "CUDAExecutionProvider" not in available:
         return (
-            f"Execution providers available: {listed}. GPU figures: none, this machine has no GPU "
-            "build of onnxruntime (for one: `CKS_EXECUTION_PROVIDERS`, the `cuda` image and GPU batching "
-            "in docs/operations.md, \"Execution providers and GPUs\"; rerun this command there)."
+            f"Execution providers available: {listed}. No GPU build of onnxruntime here: the GPU figures "
+            "are the \"On a GPU\" section (`bench_peers --gpu` on a GPU machine; settings in "
+            "docs/operations.md, \"Serving from a GPU\")."
         )
     return f"Execution providers available: {listed} (the service ran with its `CKS_EXECUTION_PROVIDERS`)."
