@@ -174,7 +174,7 @@ def render(results: PeerResults) -> str:
         "",
         "### Settings, and why",
         "",
-        *[f"- **{c.name}**: {c.settings}." for c in results.contenders],
+        *[f"- **{c.name}**: {c.described(on_gpu())}." for c in results.contenders],
         "",
         "### In-process limit (same run)",
         "",
@@ -226,8 +226,7 @@ def _gpu_note() -> str:
         return (
             f"{gpu_names()}. Execution providers available: {', '.join(available)}; every server ran the "
             f"model on `CKS_EXECUTION_PROVIDERS={','.join(execution_providers()[0])}` (the peers' sessions "
-            "too; LitServe with `accelerator='cuda'` and as many workers as the service's `CKS_WORKERS`, "
-            "its other settings as below); decode, crop and sets stay on the CPU."
+            "too, as below); decode, crop and sets stay on the CPU."
         )
     listed = ", ".join(available)
     if "CUDAExecutionProvider" not in available:

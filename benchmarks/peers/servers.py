@@ -20,6 +20,10 @@ class Contender:
     module: str | None  # benchmarks.peers.<module> PORT; None = the service itself
     settings: str
     startup_timeout_s: float = 120
+    settings_on_gpu: str | None = None  # where ``bench_peers --gpu`` changes them
+
+    def described(self, gpu: bool) -> str:
+        return self.settings_on_gpu if gpu and self.settings_on_gpu else self.settings
 
     @contextmanager
     def running(self, log: Path) -> Iterator[Server]:
@@ -53,6 +57,8 @@ PEERS = (
         "fastapi_app",
         "one uvicorn worker, a sync endpoint (FastAPI's threadpool), onnxruntime's default intra-op "
         "threads (every core for one request): the dozen lines a user writes first",
+        settings_on_gpu="one uvicorn worker, a sync endpoint (FastAPI's threadpool), the session on "
+        "`CKS_EXECUTION_PROVIDERS` (the GPU): the dozen lines a user writes first",
     ),
     Contender(
         "LitServe",
@@ -60,6 +66,9 @@ PEERS = (
         "`workers_per_device=2` on `accelerator='cpu'` (one inference process per core, as LitServe's "
         "docs advise for CPU models), one intra-op thread each, `max_batch_size=8`, `batch_timeout=0.002` "
         "(dynamic batching), one API server per worker (LitServe's default)",
+        settings_on_gpu="`accelerator='cuda'` with as many workers as the service's `CKS_WORKERS` sharing "
+        "the GPU (`workers_per_device`), `max_batch_size=8`, `batch_timeout=0.002` (dynamic batching), "
+        "one API server per worker (LitServe's default)",
     ),
     Contender(
         "BentoML",

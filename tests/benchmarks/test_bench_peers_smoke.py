@@ -133,6 +133,8 @@ def test_worker_processes_samples_count_like_the_servers_own() -> None:
 def test_gpu_mode_runs_the_service_with_gpu_settings_into_its_own_section(tmp_path: Path) -> None:
     args = parse_args(["--gpu", "--peers", "FastAPI"])
     assert args.contenders[0] is SERVICE_ON_GPU and args.section == "bench_peers_gpu"
+    litserve = PEER["LitServe"]
+    assert "accelerator='cuda'" in litserve.described(True) and litserve.described(False) == litserve.settings
     output = tmp_path / "performance.md"
     for section in ("bench_service", "bench_peers_gpu", "bench_peers"):
         page.write_section(output, section, f"## {section} text")
