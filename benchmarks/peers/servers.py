@@ -39,10 +39,10 @@ class Contender:
 
 SERVICE = Contender(
     "service", None,
-    "its defaults (`keypoint-service serve`, no `CKS_*` set): one worker, two inference streams of one "
-    "intra-op thread merging concurrent requests' crops (micro-batching); a request alone in the server "
-    "runs on its own thread, and wide (its crops split across the streams, or on a second session with "
-    "`CKS_SOLO_INFERENCE_THREADS`, default every core) when that has been faster lately",
+    "its defaults (`keypoint-service serve`, no `CKS_*` set): one worker; each request's crops are one "
+    "run of one intra-op thread on the request's own thread, concurrent runs in parallel (no "
+    "micro-batching: `CKS_MAX_INFERENCE_BATCH=0`); a request alone in the server runs wide (on a second "
+    "session with `CKS_SOLO_INFERENCE_THREADS`, default every core) when that has been faster lately",
 )  # fmt: skip
 SERVICE_ON_GPU = Contender(
     "service", None,

@@ -194,14 +194,16 @@ class Variant:
 
 
 TUNING = (
+    Variant("CKS_WORKERS=2 (a process per core)", {"workers": 2}),
     Variant(
-        "CKS_WORKERS=2, CKS_INFERENCE_STREAMS=1 (a process per core)",
-        {"workers": 2, "inference_streams": 1},
+        "CKS_MAX_INFERENCE_BATCH=32 (micro-batching on two streams, the former default)",
+        {"max_inference_batch": 32},
     ),
-    Variant("CKS_WORKERS=2 (two processes, two inference threads each)", {"workers": 2}),
-    Variant("CKS_INFERENCE_STREAMS=1 (one inference thread)", {"inference_streams": 1}),
+    Variant(
+        "CKS_MAX_INFERENCE_BATCH=32, CKS_INFERENCE_STREAMS=1 (micro-batching on one stream)",
+        {"max_inference_batch": 32, "inference_streams": 1},
+    ),
     Variant("CKS_INFERENCE_THREADS=2 (two intra-op threads per run)", {"inference_threads": 2}),
-    Variant("CKS_MAX_INFERENCE_BATCH=0 (no micro-batching)", {"max_inference_batch": 0}),
     Variant("CKS_MAX_CONCURRENT_INFERENCES=16", {"max_concurrent_inferences": 16}),
     Variant("CKS_CPU_WORKERS=2", {"cpu_workers": 2}),
 )
