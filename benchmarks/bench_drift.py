@@ -2,7 +2,7 @@
 
 Run: python -m benchmarks.bench_drift   (or python benchmarks/bench_drift.py)
 
-``predict()`` (detector + sets + response objects, decode excluded) on the sample image with
+``predict()`` (decode + detector + sets + response objects) on the sample image with
 the most instances, with 1 and 4 boxes and the default nonconformity (cov), in three modes
 timed in interleaved rounds so that a shared machine's load hits them alike:
 
@@ -60,11 +60,12 @@ if __package__ in (None, ""):
 
 from benchmarks.service_bench.breakdown import service_state  # noqa: E402
 from benchmarks.service_bench.inputs import load_sample  # noqa: E402
+from service.api.predict_input import predict_query  # noqa: E402
 from service.api.predict_presenter import predict_response  # noqa: E402
 from service.api.schemas import PredictParameters  # noqa: E402
 from service.image_decoding import decode_image  # noqa: E402
 from service.monitoring.drift import DriftMonitor  # noqa: E402
-from service.prediction import calibrated_sets, predict  # noqa: E402
+from service.prediction import calibrated_sets  # noqa: E402
 from service.settings import Settings  # noqa: E402
 from service.state import ServiceState  # noqa: E402
 
@@ -74,8 +75,9 @@ KIND = "cov"
 
 
 def respond(state, image, parameters):  # noqa: ANN001, ANN201
-    """What the route computes for one request after decoding: the sets and the response objects."""
-    return predict_response(predict(state, image, parameters), parameters, state.detector.manifest)
+    """What the route computes for one request (the image's bytes): the sets and the response objects."""
+    query = predict_query(parameters)
+    return predict_response(state.predictor.predict(image, query), query, state.detector.manifest)
 
 def _median_us(action: Callable[[], object], repeats: int) -> float:
     times = []
@@ -100,7 +102,7 @@ def _modes(state: ServiceState) -> dict[str, DriftMonitor | None]:
 
 
 def predict_rounds(
-    state: ServiceState, image: np.ndarray, parameters: PredictParameters, rounds: int
+    state: ServiceState, image: bytes, parameters: PredictParameters, rounds: int
 ) -> dict:
     """Per mode: median predict() latency (us) and the median of its paired difference to ``off``
     in the same round (us; the modes run back to back, so a load change hits all of a round)."""
@@ -169,7 +171,7 @@ def main() -> None:
             parameters = PredictParameters.model_validate(
                 {"instances": chosen.instances, "nonconformity": KIND}
             )
-            medians = predict_rounds(state, image, parameters, arguments.rounds)
+            medians = predict_rounds(state, sample.jpeg, parameters, arguments.rounds)
             base = medians["off"][0]
             print(f"\n{count} box(es): predict() median, and the median paired difference to off")
             for name, (value, paired) in medians.items():

@@ -27,12 +27,12 @@ import tempfile
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from service.api.predict_input import predict_query  # noqa: E402
 from service.api.predict_presenter import predict_response  # noqa: E402
 from service.api.schemas import BallSet, EllipseSet, PredictParameters  # noqa: E402
 from service.pose import Pose, membership  # noqa: E402
@@ -40,7 +40,6 @@ from service.pose.bounds import inner_bound, sample_poses_in_set  # noqa: E402
 from service.pose.estimate import pnp_on_centres, refine_into_set  # noqa: E402
 from service.pose.relaxation import outer_bound  # noqa: E402
 from service.pose.rotations import rotation_angle_deg  # noqa: E402
-from service.prediction import predict  # noqa: E402
 from service.settings import Settings  # noqa: E402
 from service.state import build_state  # noqa: E402
 
@@ -64,13 +63,14 @@ def instances(state, model_dir: Path, epsilon: float, images: int):
     manifest = state.detector.manifest
     for image in coco["images"][:images]:
         annotations = [a for a in coco["annotations"] if a["image_id"] == image["id"]]
-        pixels = cv2.imread(str(model_dir / "samples" / image["file_name"]))
+        jpeg = (model_dir / "samples" / image["file_name"]).read_bytes()
         parameters = PredictParameters(
             instances=[{"object": names[a["category_id"]], "bbox": a["bbox"]} for a in annotations],
             coverage="object",
             epsilon=epsilon,
         )
-        response = predict_response(predict(state, pixels, parameters), parameters, manifest)
+        query = predict_query(parameters)
+        response = predict_response(state.predictor.predict(jpeg, query), query, manifest)
         for ann, answer in zip(annotations, response.instances, strict=True):
             centers, shapes = set_arrays(answer.keypoints)
             points = np.array(manifest.object(answer.object).keypoints_3d)

@@ -117,8 +117,10 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     for problem in outcome.summary.get("activation_problems", []):
         print(f"guardrail: {problem}", file=sys.stderr)
     if args.activate and not outcome.activated:
-        print("not activated: the guardrails refused it (see above); add --force --reason to override",
-              file=sys.stderr)
+        print(
+            "not activated: the guardrails refused it (see above); add --force --reason to override",
+            file=sys.stderr,
+        )
     print(json.dumps(outcome.summary))
     return 0
 

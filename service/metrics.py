@@ -63,23 +63,33 @@ INFERENCE_SECONDS = Histogram(
     registry=REGISTRY,
 )
 PREDICT_IN_FLIGHT = Gauge(
-    "cks_predict_in_flight", "predict places taken, one per request or batch image (computing or waiting)",
-    registry=REGISTRY, multiprocess_mode="livesum",
+    "cks_predict_in_flight",
+    "predict places taken, one per request or batch image (computing or waiting)",
+    registry=REGISTRY,
+    multiprocess_mode="livesum",
 )
 PREDICT_COMPUTING = Gauge(
-    "cks_predict_computing", "predict requests holding a compute slot",
-    registry=REGISTRY, multiprocess_mode="livesum",
+    "cks_predict_computing",
+    "predict requests holding a compute slot",
+    registry=REGISTRY,
+    multiprocess_mode="livesum",
 )
 PREDICT_WAITING = Gauge(
-    "cks_predict_waiting", "predict requests waiting for a compute slot",
-    registry=REGISTRY, multiprocess_mode="livesum",
+    "cks_predict_waiting",
+    "predict requests waiting for a compute slot",
+    registry=REGISTRY,
+    multiprocess_mode="livesum",
 )
 PREDICT_RECEIVING = Gauge(
-    "cks_predict_receiving_bytes", "bytes of predict bodies still arriving (CKS_MAX_RECEIVING_BYTES)",
-    registry=REGISTRY, multiprocess_mode="livesum",
+    "cks_predict_receiving_bytes",
+    "bytes of predict bodies still arriving (CKS_MAX_RECEIVING_BYTES)",
+    registry=REGISTRY,
+    multiprocess_mode="livesum",
 )
 PREDICT_REJECTED = Counter(
-    "cks_predict_rejected", "predict requests refused with 503 by admission control", ["reason"],
+    "cks_predict_rejected",
+    "predict requests refused with 503 by admission control",
+    ["reason"],
     registry=REGISTRY,
 )
 CALIBRATION_JOBS = Counter(
@@ -92,24 +102,39 @@ CALIBRATION_INSTANCES = Counter(
 # The latest coverage audit (service/monitoring/audits.py); replaced whole by each new audit
 _AUDIT_LABELS = ["object", "keypoint", "nonconformity", "epsilon", "scope"]
 AUDIT_COVERAGE = Gauge(
-    "cks_audit_coverage", "empirical coverage in the latest coverage audit (keypoint=\"\": pooled)",
-    _AUDIT_LABELS, registry=REGISTRY, multiprocess_mode="mostrecent",
+    "cks_audit_coverage",
+    'empirical coverage in the latest coverage audit (keypoint="": pooled)',
+    _AUDIT_LABELS,
+    registry=REGISTRY,
+    multiprocess_mode="mostrecent",
 )
 AUDIT_BAND_LOW = Gauge(
-    "cks_audit_band_low", "low end of the 95% band of the coverage a valid calibration gives",
-    _AUDIT_LABELS, registry=REGISTRY, multiprocess_mode="mostrecent",
+    "cks_audit_band_low",
+    "low end of the 95% band of the coverage a valid calibration gives",
+    _AUDIT_LABELS,
+    registry=REGISTRY,
+    multiprocess_mode="mostrecent",
 )
 AUDIT_BAND_HIGH = Gauge(
-    "cks_audit_band_high", "high end of the 95% band of the coverage a valid calibration gives",
-    _AUDIT_LABELS, registry=REGISTRY, multiprocess_mode="mostrecent",
+    "cks_audit_band_high",
+    "high end of the 95% band of the coverage a valid calibration gives",
+    _AUDIT_LABELS,
+    registry=REGISTRY,
+    multiprocess_mode="mostrecent",
 )
 AUDIT_FLAGGED = Gauge(
-    "cks_audit_flagged", "1 where the latest audit found the coverage significantly low (Holm)",
-    _AUDIT_LABELS, registry=REGISTRY, multiprocess_mode="mostrecent",
+    "cks_audit_flagged",
+    "1 where the latest audit found the coverage significantly low (Holm)",
+    _AUDIT_LABELS,
+    registry=REGISTRY,
+    multiprocess_mode="mostrecent",
 )
 AUDIT_LATEST = Gauge(
-    "cks_audit_latest_id", "id of the latest coverage audit, by audited version", ["version"],
-    registry=REGISTRY, multiprocess_mode="mostrecent",
+    "cks_audit_latest_id",
+    "id of the latest coverage audit, by audited version",
+    ["version"],
+    registry=REGISTRY,
+    multiprocess_mode="mostrecent",
 )
 
 

@@ -1,5 +1,5 @@
-"""One predict request, from a decoded image to its calibrated sets, guarantees and pose sets
-(service/api/predict_presenter.py turns them into the response body).
+"""The predict use case: image bytes and a query in, calibrated sets, guarantees and pose sets
+out (``Predictor.predict``; service/api/predict_presenter.py turns them into the response body).
 
 Scores live in heatmap coordinates (scale-free across object sizes); sets are mapped to
 image pixels through each instance's crop affine.
@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol
 
 import numpy as np
 
@@ -26,14 +25,15 @@ from service.conformal import (
 from service.conformal.features import heatmap_features
 from service.detector.boxes import box_problem
 from service.detector.manifest import HeatmapSpec, Manifest
-from service.detector.runtime import InstanceHeatmaps
+from service.detector.runtime import Detector, InstanceHeatmaps
 from service.errors import InvalidInput
-from service.pose import PoseOptions, PoseSets, estimate_pose_sets
-from service.state import ServiceState
+from service.image_decoding import decode_image
+from service.monitoring.drift import DriftMonitor
+from service.pose import PoseOptions, PoseSets, check_pose_request, estimate_pose_sets
 
 
-def check_instances(
-    instances: Sequence[InstanceQuery], manifest: Manifest, width: int, height: int, limit: int
+def _check_instances(
+    instances: Sequence[Instance], manifest: Manifest, width: int, height: int, limit: int
 ) -> None:
     """Refuse instances the model cannot answer for, naming each problem."""
     if len(instances) > limit:
@@ -89,24 +89,30 @@ def calibrated_sets(
     return CalibratedSets(centers, shapes, statistics)
 
 
-class PredictQuery(Protocol):
-    """What a predict request asks (the API's PredictParameters is one)."""
+@dataclass(frozen=True)
+class Instance:
+    """One object to locate keypoints for: its class, its box ``(x, y, w, h)`` in image pixels
+    and, for group strata, the caller's group."""
 
-    instances: Sequence[InstanceQuery]
-    calibration_version: int | None
-    nonconformity: str
-    coverage: str
-    epsilon: float
-    delta: float | None
-    include_statistics: bool
-    stratify: Any
-    group_fallback: str
-
-
-class InstanceQuery(Protocol):
     object: str
     bbox: tuple[float, float, float, float]
-    group: str | None
+    group: str | None = None
+
+
+@dataclass(frozen=True)
+class PredictQuery:
+    """What one predict request asks, in domain terms (the API builds it from its schema)."""
+
+    instances: tuple[Instance, ...]
+    epsilon: float = 0.1
+    nonconformity: str = "cov"
+    coverage: str = "keypoint"
+    delta: float | None = None
+    calibration_version: int | None = None
+    include_statistics: bool = False
+    stratify: str | Sequence[str] = "none"  # parsed where its refusal belongs, after the model ran
+    group_fallback: str = "refuse"
+    pose: PoseOptions | None = None
 
 
 @dataclass(frozen=True)
@@ -115,63 +121,96 @@ class Prediction:
 
     Rows are (instance, keypoint) pairs in the detector's order: ``channel`` and
     ``instance_index`` say whose; ``guarantees`` gives each row's guarantee and the Mondrian
-    stratum that answered it (None: pooled); ``poses`` each instance's pose sets, when asked.
+    stratum that answered it (None: pooled); ``poses`` each instance's pose sets, when asked;
+    ``image`` the decoded image (BGR or gray), for a drawing of the sets.
     """
 
     model_name: str
     model_hash: str
     version: int
-    width: int
-    height: int
+    image: np.ndarray
     sets: CalibratedSets
     channel: np.ndarray
     instance_index: np.ndarray
     guarantees: list[tuple[CoverageGuarantee, Stratum | None]]
     poses: list[PoseSets] | None
 
+    @property
+    def width(self) -> int:
+        return self.image.shape[1]
 
-def predict(
-    state: ServiceState,
-    image: np.ndarray,
-    query: PredictQuery,
-    pose: PoseOptions | None = None,
-    instances_checked: bool = False,
-) -> Prediction:
-    """Run the detector on every instance as one batch and calibrate their sets.
+    @property
+    def height(self) -> int:
+        return self.image.shape[0]
 
-    ``instances_checked``: the caller already ran ``check_instances`` on this image."""
-    detector, registry = state.detector, state.registry
-    manifest = detector.manifest
-    height, width = image.shape[:2]
-    if not instances_checked:
-        check_instances(query.instances, manifest, width, height, state.settings.max_instances)
-    version = registry.resolve(query.calibration_version)
-    kind, scope = query.nonconformity, query.coverage
-    thresholds = registry.thresholds(version, kind, scope, query.epsilon, query.delta)
 
-    boxes = np.array([instance.bbox for instance in query.instances], dtype=np.float64)
-    objects = [instance.object for instance in query.instances]
-    result = detector.infer(image, boxes, objects)
+@dataclass(frozen=True)
+class Predictor:
+    """The long-lived parts a prediction reads, and the limits it enforces (CKS_MAX_IMAGE_PIXELS,
+    CKS_MAX_DECODED_BYTES, CKS_MAX_INSTANCES)."""
 
-    kinds = parse_stratify(query.stratify)
-    strata = _RequestStrata(registry, version, kinds, query, result, thresholds) if kinds else None
-    drift = state.drift
-    all_statistics = query.include_statistics or (drift is not None and drift.wants_all_statistics())
-    all_statistics = all_statistics or DIFFICULTY in kinds  # difficulty strata need every feature
-    sets = calibrated_sets(result, kind, thresholds.values, manifest.heatmap, all_statistics,
-                           strata.thresholds if strata else None)  # fmt: skip
-    if drift is not None:
-        drift.record(result.channel, sets.statistics, kind, sets.shapes)
-    if strata is not None:
-        guarantees = strata.guarantees()
-    else:
-        guarantees = [(thresholds.guarantees[c], None) for c in result.channel]
-    poses = None
-    if pose is not None:
-        poses = estimate_pose_sets(manifest, objects, pose, sets.centers, sets.shapes, result.channel,
-                                   result.instance_index)  # fmt: skip
-    return Prediction(manifest.name, detector.model_hash, version, width, height, sets, result.channel,
-                      result.instance_index, guarantees, poses)  # fmt: skip
+    detector: Detector
+    registry: CalibrationRegistry
+    drift: DriftMonitor | None
+    max_image_pixels: int
+    max_decoded_bytes: int
+    max_instances: int
+
+    def predict(self, image_bytes: bytes, query: PredictQuery) -> Prediction:
+        """The predict use case: decode, check, pick the calibration, infer, calibrate the sets
+        (pooled or per stratum), record drift, estimate poses. Every refusal comes before the
+        model runs, except a stratum that cannot answer (it needs the heatmaps)."""
+        manifest = self.detector.manifest
+        image = decode_image(image_bytes, self.max_image_pixels, self.max_decoded_bytes)
+        height, width = image.shape[:2]
+        _check_instances(query.instances, manifest, width, height, self.max_instances)
+        objects = [instance.object for instance in query.instances]
+        if query.pose is not None:
+            check_pose_request(manifest, objects, query.coverage, query.pose)
+        version = self.registry.resolve(query.calibration_version)
+        kind = query.nonconformity
+        thresholds = self.registry.thresholds(version, kind, query.coverage, query.epsilon, query.delta)
+
+        boxes = np.array([instance.bbox for instance in query.instances], dtype=np.float64)
+        result = self.detector.infer(image, boxes, objects)
+
+        kinds = parse_stratify(query.stratify)
+        strata = _RequestStrata(self.registry, version, kinds, query, result, thresholds) if kinds else None
+        drift = self.drift
+        all_statistics = query.include_statistics or (drift is not None and drift.wants_all_statistics())
+        all_statistics = all_statistics or DIFFICULTY in kinds  # difficulty strata need every feature
+        row_thresholds = strata.thresholds if strata else None
+        sets = calibrated_sets(
+            result, kind, thresholds.values, manifest.heatmap, all_statistics, row_thresholds
+        )
+        if drift is not None:
+            drift.record(result.channel, sets.statistics, kind, sets.shapes)
+        if strata is not None:
+            guarantees = strata.guarantees()
+        else:
+            guarantees = [(thresholds.guarantees[c], None) for c in result.channel]
+        poses = None
+        if query.pose is not None:
+            poses = estimate_pose_sets(
+                manifest,
+                objects,
+                query.pose,
+                sets.centers,
+                sets.shapes,
+                result.channel,
+                result.instance_index,
+            )
+        return Prediction(
+            manifest.name,
+            self.detector.model_hash,
+            version,
+            image,
+            sets,
+            result.channel,
+            result.instance_index,
+            guarantees,
+            poses,
+        )
 
 
 class _RequestStrata:
@@ -182,16 +221,15 @@ class _RequestStrata:
         registry: CalibrationRegistry,
         version: int,
         kinds: frozenset[str],
-        parameters: PredictQuery,
+        query: PredictQuery,
         result: InstanceHeatmaps,
         pooled: ChannelThresholds,
     ) -> None:
-        self._lookup = (registry, version, kinds, parameters, result, pooled)
+        self._lookup = (registry, version, kinds, query, result, pooled)
         self._answers: RowAnswers | None = None
 
     def thresholds(self, statistics: HeatmapStatistics) -> np.ndarray:
-        registry, version, kinds, parameters, result, pooled = self._lookup
-        p = parameters
+        registry, version, kinds, p, result, pooled = self._lookup
         options = (p.nonconformity, p.coverage, p.epsilon, p.delta)
         stratified, refusal = registry.stratified(version, kinds, *options)
         features = heatmap_features(statistics) if DIFFICULTY in kinds else None

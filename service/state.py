@@ -7,6 +7,7 @@ import shutil
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +31,7 @@ from service.metrics import forget_drift_source, set_drift_source
 from service.monitoring.audits import CoverageAudits
 from service.monitoring.drift import DriftMonitor, DriftSettings
 from service.operators import load_operators
+from service.prediction import Predictor
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -51,6 +53,19 @@ class ServiceState:
     admission: Admission
     audits: CoverageAudits
     drift: DriftMonitor | None = None  # None when CKS_DRIFT_ENABLED is false
+
+    @cached_property
+    def predictor(self) -> Predictor:
+        """The predict use case over this state's model, calibrations and drift monitor."""
+        settings = self.settings
+        return Predictor(
+            self.detector,
+            self.registry,
+            self.drift,
+            settings.max_image_pixels,
+            settings.max_decoded_bytes,
+            settings.max_instances,
+        )
 
     @property
     def uploads_dir(self) -> Path:

@@ -32,7 +32,7 @@ STAGES = (
     ("multipart parsing", ("MultiPartParser", "MultipartParser", "Request.form", "_parse_multipart")),
     ("validation (pydantic)", ("model_validate_json", "_validated")),
     ("batching hand-offs", ("MicroBatcher", "Future.set_result", "_split")),
-    ("body reading", ("read_limited_body", "paced_chunks", "_read_body")),
+    ("body reading", ("read_limited_body", "paced_chunks", "receive")),
 )  # fmt: skip
 OTHER = "HTTP, routing, middleware, event loop"
 

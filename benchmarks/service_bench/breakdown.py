@@ -21,12 +21,13 @@ import numpy as np
 
 from benchmarks.service_bench.inputs import Sample
 from service import prediction
-from service.api.predict_presenter import predict_body, predict_json  # noqa: E402
+from service.api.predict_input import predict_query  # noqa: E402
+from service.api.predict_presenter import predict_json  # noqa: E402
 from service.api.schemas import PredictParameters
 from service.detector.preprocess import build_batch
 from service.detector.runtime import Detector, InstanceHeatmaps
 from service.image_decoding import decode_image
-from service.prediction import CalibratedSets, calibrated_sets, predict
+from service.prediction import CalibratedSets, calibrated_sets
 from service.settings import Settings
 from service.state import ServiceState, build_state
 
@@ -68,16 +69,20 @@ def _timed(action: Callable[[], object]) -> tuple[float, object]:
 
 
 @contextmanager
-def _cached(detector: Detector, result: InstanceHeatmaps, sets: CalibratedSets) -> Iterator[None]:
-    """``detector.infer`` and ``calibrated_sets`` return these at once: ``predict`` times the rest."""
+def _cached(
+    detector: Detector, image: np.ndarray, result: InstanceHeatmaps, sets: CalibratedSets
+) -> Iterator[None]:
+    """``decode_image``, ``detector.infer`` and ``calibrated_sets`` return these at once:
+    ``predict`` times the rest."""
     detector.infer = lambda image, boxes, objects: result  # type: ignore[method-assign]
-    original = prediction.calibrated_sets
+    originals = prediction.calibrated_sets, prediction.decode_image
     prediction.calibrated_sets = lambda *args, **kwargs: sets
+    prediction.decode_image = lambda *args, **kwargs: image
     try:
         yield
     finally:
         del detector.infer
-        prediction.calibrated_sets = original
+        prediction.calibrated_sets, prediction.decode_image = originals
 
 
 def _one_iteration(state: ServiceState, sample: Sample, parameters: PredictParameters) -> dict[str, float]:
@@ -95,11 +100,10 @@ def _one_iteration(state: ServiceState, sample: Sample, parameters: PredictParam
     ms["sets"], sets = _timed(
         lambda: calibrated_sets(result, parameters.nonconformity, thresholds.values, manifest.heatmap)
     )
-    with _cached(detector, result, sets):
-        ms["response"], body = _timed(
-            lambda: predict_body(predict(state, image, parameters), parameters, manifest)
-        )
-    ms["json"], _ = _timed(lambda: predict_json(body))
+    query = predict_query(parameters)
+    with _cached(detector, image, result, sets):
+        ms["response"], answer = _timed(lambda: state.predictor.predict(sample.jpeg, query))
+    ms["json"], _ = _timed(lambda: predict_json(answer, query, manifest))
     return ms
 
 

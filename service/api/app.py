@@ -10,10 +10,11 @@ from fastapi_offline import FastAPIOffline
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service import __version__
+from service.api.deps import PredictParts
 from service.api.metrics import MetricsMiddleware
 from service.api.problems import install_problem_handlers
 from service.api.request_id import RequestIdMiddleware
-from service.api.routes import admin, audits, console, drift, health, model, predict, predict_batch
+from service.api.routes import admin, audits, console, drift, health, model, predict
 from service.api.schemas import PredictJson
 from service.logs import ensure_logging
 from service.metrics import worker_stopped
@@ -58,6 +59,7 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         owned = state is None
         app.state.service = state or build_state(settings)
+        app.state.predict_parts = PredictParts.of(app.state.service)
         try:
             yield
         finally:
@@ -80,7 +82,7 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
     app.add_middleware(DocsPagesPolicy)
     app.add_middleware(RequestIdMiddleware)  # outside the access line, which logs the id
     install_problem_handlers(app)
-    for router in (predict.router, predict_batch.router, model.router, admin.router, health.router):
+    for router in (predict.router, model.router, admin.router, health.router):
         app.include_router(router)
     app.include_router(drift.router)
     for router in (audits.router, console.router):

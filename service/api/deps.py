@@ -1,14 +1,20 @@
-"""FastAPI dependencies: the service state and the admin bearer token check."""
+"""FastAPI dependencies: the service state, what the predict routes use, and the admin bearer
+token check."""
 
 from __future__ import annotations
 
 import hmac
+from concurrent.futures import Executor
+from dataclasses import dataclass
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from service.admission import Admission
+from service.api.body import BodyPace, read_limited_body
 from service.audit import Operator
+from service.prediction import Predictor
 from service.state import ServiceState
 
 _bearer = HTTPBearer(auto_error=False, description="CKS_ADMIN_TOKEN, or a token of CKS_ADMIN_TOKENS_FILE")
@@ -21,6 +27,48 @@ async def get_state(request: Request) -> ServiceState:
 
 
 State = Annotated[ServiceState, Depends(get_state)]
+
+
+@dataclass(frozen=True)
+class PredictParts:
+    """What the predict routes use: the use case, admission, the CPU pool and the body limits."""
+
+    predictor: Predictor
+    admission: Admission
+    pool: Executor
+    max_request_bytes: int
+    max_batch_images: int
+    pace: BodyPace
+
+    @classmethod
+    def of(cls, state: ServiceState) -> PredictParts:
+        settings = state.settings
+        pace = BodyPace.from_settings(
+            settings, settings.request_read_timeout_seconds, "CKS_REQUEST_READ_TIMEOUT_SECONDS"
+        )
+        return cls(
+            state.predictor,
+            state.admission,
+            state.cpu_pool,
+            settings.max_request_bytes,
+            settings.max_batch_images,
+            pace,
+        )
+
+    async def receive(self, request: Request) -> bytes:
+        """The body within CKS_MAX_REQUEST_BYTES, paced, its bytes counted against
+        CKS_MAX_RECEIVING_BYTES while it arrives."""
+        with self.admission.receiving() as count:
+            return await read_limited_body(
+                request, self.max_request_bytes, "CKS_MAX_REQUEST_BYTES", self.pace, count
+            )
+
+
+async def get_predict_parts(request: Request) -> PredictParts:
+    return request.app.state.predict_parts
+
+
+Predicting = Annotated[PredictParts, Depends(get_predict_parts)]
 
 
 async def require_admin(

@@ -1,4 +1,4 @@
-"""Pose requests in, pose answers out: the edge between the API's schemas and service.pose."""
+"""Pose answers out: service.pose's results as the API's schemas."""
 
 from __future__ import annotations
 
@@ -10,33 +10,11 @@ from service.api.schemas import (
     OuterBoundOut,
     PoseCheckOut,
     PoseOut,
-    PredictParameters,
     SampledBoundOut,
 )
-from service.detector.manifest import Manifest
 from service.pose import (
-    Pose,
-    PoseOptions,
     PoseSets,
-    as_camera_matrix,
-    check_pose_request,
 )
-
-
-def pose_options(parameters: PredictParameters, manifest: Manifest) -> PoseOptions | None:
-    """The request's pose options, refused (422) when the sets cannot answer them; None: not asked."""
-    request = parameters.pose
-    if request is None:
-        return None
-    checks: dict[int, list[Pose]] = {}
-    for check in request.check:
-        pose = Pose(np.array(check.rotation, dtype=np.float64), np.array(check.translation, dtype=np.float64))
-        checks.setdefault(check.instance, []).append(pose)
-    camera = as_camera_matrix(request.K)
-    options = PoseOptions(camera, request.samples, request.outer_bound, request.outer_splits, checks)
-    objects = [instance.object for instance in parameters.instances]
-    check_pose_request(manifest, objects, parameters.coverage, options)
-    return options
 
 
 def _matrix(array: np.ndarray) -> tuple:

@@ -6,7 +6,7 @@ The body is built once as plain JSON-ready data in ``PredictResponse``'s shape (
 (``predict_json``): the same bytes ``PredictResponse.model_dump_json`` writes, without
 building and validating a model for every keypoint, set and block of every response.
 ``predict_response`` validates the same data into the models when they are needed (the
-PNG drawing); tests hold the two paths to the same bytes.
+PNG drawing, ``predict_png``); tests hold the two paths to the same bytes.
 """
 
 from __future__ import annotations
@@ -19,22 +19,23 @@ import numpy as np
 from pydantic_core import to_json
 
 from service.api.pose_presenter import pose_out
-from service.api.schemas import PredictParameters, PredictResponse
+from service.api.render import render_prediction
+from service.api.schemas import PredictResponse
 from service.calibration.stratification import Stratum as StratumChoice
 from service.conformal import CoverageGuarantee, HeatmapStatistics, ellipse_axes
 from service.detector.manifest import Manifest
-from service.prediction import Prediction
+from service.prediction import Prediction, PredictQuery
 
 Body = dict[str, Any]
 UNBOUNDED = {"type": "unbounded", "reason": "too few calibration scores for this epsilon (t = 0)"}
 
 
-def predict_body(prediction: Prediction, parameters: PredictParameters, manifest: Manifest) -> Body:
-    """The response body of ``prediction``, made for ``parameters``, as ``PredictResponse`` data."""
-    sets, scope = prediction.sets, parameters.coverage
-    regions = _regions(sets.centers, sets.shapes, parameters.nonconformity)
+def predict_body(prediction: Prediction, query: PredictQuery, manifest: Manifest) -> Body:
+    """The response body of ``prediction``, made for ``query``, as ``PredictResponse`` data."""
+    sets, scope = prediction.sets, query.coverage
+    regions = _regions(sets.centers, sets.shapes, query.nonconformity)
     guarantees = [_guarantee(guarantee, scope, stratum) for guarantee, stratum in prediction.guarantees]
-    stats = _statistics(sets.statistics) if parameters.include_statistics else [None] * len(regions)
+    stats = _statistics(sets.statistics) if query.include_statistics else [None] * len(regions)
     centers = sets.centers.tolist()
     keypoints = [
         {
@@ -50,7 +51,7 @@ def predict_body(prediction: Prediction, parameters: PredictParameters, manifest
     poses = [pose_out(p).model_dump() for p in prediction.poses] if prediction.poses is not None else None
     owners = prediction.instance_index.tolist()
     instances = []
-    for i, instance in enumerate(parameters.instances):
+    for i, instance in enumerate(query.instances):
         out = {
             "object": instance.object,
             "bbox": instance.bbox,
@@ -63,26 +64,33 @@ def predict_body(prediction: Prediction, parameters: PredictParameters, manifest
         "model": {"name": prediction.model_name, "hash": prediction.model_hash},
         "calibration": {
             "version": int(prediction.version),
-            "nonconformity": parameters.nonconformity,
+            "nonconformity": query.nonconformity,
             "coverage": scope,
-            "epsilon": parameters.epsilon,
-            "delta": parameters.delta,
+            "epsilon": query.epsilon,
+            "delta": query.delta,
         },
         "image": {"width": int(prediction.width), "height": int(prediction.height)},
         "instances": instances,
     }
 
 
-def predict_json(body: Body) -> bytes:
-    """``body`` as ``PredictResponse.model_dump_json`` writes it (pydantic-core; inf and nan as null)."""
-    return to_json(body, inf_nan_mode="null")
+def predict_json(prediction: Prediction, query: PredictQuery, manifest: Manifest) -> bytes:
+    """The response body as ``PredictResponse.model_dump_json`` writes it (pydantic-core; inf and
+    nan as null)."""
+    return to_json(predict_body(prediction, query, manifest), inf_nan_mode="null")
 
 
-def predict_response(
-    prediction: Prediction, parameters: PredictParameters, manifest: Manifest
-) -> PredictResponse:
-    """The response body of ``prediction``, made for ``parameters``, as validated models."""
-    return PredictResponse.model_validate(predict_body(prediction, parameters, manifest))
+def predict_response(prediction: Prediction, query: PredictQuery, manifest: Manifest) -> PredictResponse:
+    """The response body of ``prediction``, made for ``query``, as validated models."""
+    return PredictResponse.model_validate(predict_body(prediction, query, manifest))
+
+
+def predict_png(prediction: Prediction, query: PredictQuery, manifest: Manifest) -> bytes:
+    """The image with the sets (and poses) drawn on it, as a PNG."""
+    camera = query.pose.camera if query.pose is not None else None
+    return render_prediction(
+        prediction.image, predict_response(prediction, query, manifest), camera, manifest
+    )
 
 
 def _regions(centers: np.ndarray, shapes: np.ndarray, kind: str) -> list[Body]:

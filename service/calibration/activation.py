@@ -74,4 +74,3 @@ def activate(
     written(entry)
     registry.refresh_now()
     return activation, comparison
-

@@ -231,4 +231,3 @@ def _audit_entries(
         entries.append(audit.entry(options.operator, "activation", outcome, previous_version=previous,
                                    reason=options.activation_reason, details=problems))  # fmt: skip
     return entries
-

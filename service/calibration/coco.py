@@ -425,9 +425,7 @@ class _AnnotationReader:
         if value is None:
             return None
         if not isinstance(value, str) or not _GROUP_RE.match(value):
-            self.problems.add(
-                where, f"group must be 1-64 printable ASCII characters, got {_short(value)}"
-            )
+            self.problems.add(where, f"group must be 1-64 printable ASCII characters, got {_short(value)}")
             return _INVALID
         return value
 

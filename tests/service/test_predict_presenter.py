@@ -13,11 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from service.api.pose_presenter import pose_options
+from service.api.predict_input import predict_query
 from service.api.predict_presenter import predict_body, predict_json, predict_response
 from service.api.schemas import PredictParameters, PredictResponse
-from service.image_decoding import decode_image
-from service.prediction import predict
 from service.settings import Settings
 from service.state import ServiceState, build_state
 
@@ -67,16 +65,15 @@ def test_the_json_is_the_models_json(state: ServiceState, scene: tuple, options:
         checks = [{"instance": i, "rotation": a["cam_R_m2c"], "translation": a["cam_t_m2c"]}
                   for i, a in enumerate(annotations)]  # fmt: skip
         request["pose"] = {"K": annotations[0]["cam_K"], "check": checks}
-    parameters = PredictParameters.model_validate(request)
+    query = predict_query(PredictParameters.model_validate(request))
     manifest = state.detector.manifest
-    image = decode_image(jpeg, state.settings.max_image_pixels)
-    prediction = predict(state, image, parameters, pose_options(parameters, manifest))
+    prediction = state.predictor.predict(jpeg, query)
 
-    body = predict_body(prediction, parameters, manifest)
-    written = predict_json(body)
+    body = predict_body(prediction, query, manifest)
+    written = predict_json(prediction, query, manifest)
 
     assert written == PredictResponse.model_validate(body).model_dump_json().encode()
-    assert written == predict_response(prediction, parameters, manifest).model_dump_json().encode()
+    assert written == predict_response(prediction, query, manifest).model_dump_json().encode()
     answer = json.loads(written)
     keypoints = [kp for instance in answer["instances"] for kp in instance["keypoints"]]
     assert len(answer["instances"]) == len(annotations) and keypoints

@@ -115,14 +115,20 @@ async def upload_calibration(
     ] = False,
     max_rejected_share: Annotated[
         float | None,
-        Query(ge=0, le=1, description="share of instances the box rule or strict decoding may reject"
-              " before the batch fails (default CKS_MAX_REJECTED_SHARE)"),
+        Query(
+            ge=0,
+            le=1,
+            description="share of instances the box rule or strict decoding may reject"
+            " before the batch fails (default CKS_MAX_REJECTED_SHARE)",
+        ),
     ] = None,
     note: Annotated[str, Query(max_length=2000)] = "",
     stratify: Annotated[
         list[str] | None,
-        Query(description="Mondrian strata to store: none, difficulty, group, difficulty+group (or the"
-              " parameter repeated); default: difficulty when the scores carry heatmap features"),
+        Query(
+            description="Mondrian strata to store: none, difficulty, group, difficulty+group (or the"
+            " parameter repeated); default: difficulty when the scores carry heatmap features"
+        ),
     ] = None,
 ) -> JobOut:
     async with refusals_audited(state, who, "upload"):

@@ -1,32 +1,37 @@
-"""POST /v1/predict: an image and boxes in, keypoint prediction sets out (JSON or a PNG)."""
+"""POST /v1/predict and POST /v1/predict/batch: images and boxes in, keypoint prediction sets
+out (JSON, or a PNG drawing for a single image).
+
+Both take admission places before their bodies are parsed and compute inside a slot on the CPU
+pool: receive -> parse -> ``Predictor.predict`` -> present. A batch of n images takes n places,
+so batching cannot get round CKS_MAX_CONCURRENT_INFERENCES and CKS_MAX_QUEUED_REQUESTS; each of
+its images is answered (or refused) on its own, with the status it would have had alone.
+"""
 
 from __future__ import annotations
 
 import asyncio
-import base64
-import binascii
 import contextvars
+import logging
 
-import numpy as np
 from fastapi import APIRouter, Request, Response
-from pydantic import ValidationError
-from starlette.datastructures import UploadFile
-from starlette.formparsers import MultiPartParser
 
-from service.api.body import BodyPace, read_limited_body
-from service.api.deps import State
-from service.api.multipart import plain_form
-from service.api.pose_presenter import pose_options
-from service.api.predict_presenter import predict_body, predict_json
-from service.api.render import render_prediction
-from service.api.schemas import PredictJson, PredictParameters, PredictResponse
-from service.errors import InvalidInput, Unavailable, UnsupportedMediaType
-from service.image_decoding import decode_image
+from service.api.deps import Predicting, PredictParts
+from service.api.predict_input import (
+    BatchItem,
+    batch_item,
+    parse_batch,
+    parse_predict,
+    predict_query,
+    require_batch_media,
+)
+from service.api.predict_presenter import predict_json, predict_png
+from service.api.problems import problem
+from service.api.schemas import BatchResponse, PredictParameters, PredictResponse
+from service.errors import InvalidInput, ServiceError, Unavailable
 from service.logs import note_calibration_version
-from service.prediction import check_instances, predict
-from service.state import ServiceState
 
 router = APIRouter(tags=["prediction"])
+log = logging.getLogger(__name__)
 
 _MULTIPART_SCHEMA = {
     "type": "object",
@@ -63,80 +68,34 @@ _OPENAPI = {
 }
 
 
-def _validated(model: type[PredictParameters], raw: str | bytes) -> PredictParameters:
-    try:
-        return model.model_validate_json(raw)
-    except ValidationError as error:
-        problems = [f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in error.errors()]
-        raise InvalidInput(
-            "The request does not match the schema: " + "; ".join(problems[:5]), errors=problems
-        ) from error
-
-
-async def _parse(request: Request, body: bytes) -> tuple[bytes, PredictParameters]:
-    content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
-    if content_type == "application/json":
-        parameters = _validated(PredictJson, body)
-        try:
-            image = base64.b64decode(parameters.image_base64, validate=True)
-        except (binascii.Error, ValueError) as error:
-            raise InvalidInput(f"image_base64 is not valid base64: {error}") from error
-        return image, parameters
-    if content_type == "multipart/form-data":
-        return _parse_plain_multipart(request, body) or await _parse_multipart(request)
-    raise UnsupportedMediaType(
-        f"send application/json (image_base64) or multipart/form-data (image + request), not {content_type!r}"
-    )
-
-
-async def _read_body(request: Request, state: State) -> bytes:
-    """The body within CKS_MAX_REQUEST_BYTES, paced, its bytes counted against
-    CKS_MAX_RECEIVING_BYTES while it arrives."""
-    settings = state.settings
-    pace = BodyPace.from_settings(
-        settings, settings.request_read_timeout_seconds, "CKS_REQUEST_READ_TIMEOUT_SECONDS"
-    )
-    limit = settings.max_request_bytes
-    with state.admission.receiving() as count:
-        return await read_limited_body(request, limit, "CKS_MAX_REQUEST_BYTES", pace, count)
-
-
-def _parse_plain_multipart(request: Request, body: bytes) -> tuple[bytes, PredictParameters] | None:
-    """The image and parameters of a plain body (``plain_form``) holding just the file ``image``
-    and the field ``request``, read as Starlette would; None: anything else, for Starlette."""
-    parts = plain_form(request.headers.get("content-type", ""), body)
-    if parts is None or parts.keys() != {b"image", b"request"}:
-        return None
-    image, raw = parts[b"image"], parts[b"request"]
-    if image.filename is None or raw.filename is not None or len(raw.data) > MultiPartParser.max_part_size:
-        return None
-    try:
-        text = raw.data.decode("utf-8")
-    except UnicodeDecodeError:  # Starlette falls back to latin-1
-        return None
-    return image.data, _validated(PredictParameters, text)
-
-
-async def _parse_multipart(request: Request) -> tuple[bytes, PredictParameters]:
-    try:
-        form = await request.form(max_files=1, max_fields=2)
-    except Exception as error:  # starlette reports malformed multipart with several types
-        raise InvalidInput(f"malformed multipart body: {error}") from error
-    try:
-        image, raw = form.get("image"), form.get("request")
-        if not isinstance(image, UploadFile):
-            raise InvalidInput("multipart part 'image' (a JPEG or PNG file) is missing")
-        if raw is None:
-            raise InvalidInput("multipart part 'request' (JSON with instances and options) is missing")
-        raw = raw if isinstance(raw, str) else (await raw.read()).decode("utf-8", "replace")
-        return await image.read(), _validated(PredictParameters, raw)
-    finally:
-        await form.close()  # its spooled files, now rather than when collected
-
-
-def _wants_png(request: Request) -> bool:
-    accept = request.headers.get("accept", "")
-    return "image/png" in accept and "application/json" not in accept
+_IMAGE_PART = {"type": "string", "format": "binary", "description": "JPEG or PNG file"}
+_REQUEST_PART = {
+    "type": "string",
+    "description": "JSON of PredictParameters (instances and options) for the image of the same index",
+    "contentMediaType": "application/json",
+}
+_BATCH_SCHEMA = {
+    "type": "object",
+    "description": "image_i and request_i for i = 0 .. n-1, n <= CKS_MAX_BATCH_IMAGES",
+    "required": ["image_0", "request_0"],
+    "properties": {"image_0": _IMAGE_PART, "request_0": _REQUEST_PART},
+    "patternProperties": {"^image_[0-9]+$": _IMAGE_PART, "^request_[0-9]+$": _REQUEST_PART},
+    "additionalProperties": False,
+}
+_BATCH_OPENAPI = {
+    "requestBody": {"required": True, "content": {"multipart/form-data": {"schema": _BATCH_SCHEMA}}},
+    "responses": {
+        "200": {"description": "One item per image, in order: its result, or its problem (RFC 9457)"},
+        "408": {"description": "The body did not arrive within CKS_REQUEST_READ_TIMEOUT_SECONDS"},
+        "413": {"description": "The body exceeds CKS_MAX_REQUEST_BYTES"},
+        "415": {"description": "Not multipart/form-data"},
+        "422": {
+            "description": "Parts other than image_i and request_i, an index repeated or beyond"
+            " CKS_MAX_BATCH_IMAGES, no parts, or more images than the server admits at once"
+        },
+        "503": {"description": "Not enough free places for every image of the batch (with Retry-After)"},
+    },
+}
 
 
 @router.post(
@@ -145,18 +104,13 @@ def _wants_png(request: Request) -> bool:
     summary="Keypoint prediction sets with a coverage guarantee",
     openapi_extra=_OPENAPI,
 )
-async def predict_route(request: Request, state: State) -> Response:
+async def predict_route(request: Request, parts: Predicting) -> Response:
     try:
-        state.admission.refuse_if_full()  # not worth receiving
-        body = await _read_body(request, state)  # a slow client holds no place meanwhile
-        async with state.admission.admitted():
-            image_bytes, parameters = await _parse(request, body)
-            async with state.admission.slot():  # decoded images exist only inside a slot
-                loop = asyncio.get_running_loop()
-                context = contextvars.copy_context()  # the pool's thread logs with the request's id
-                return await loop.run_in_executor(
-                    state.cpu_pool, context.run, _respond, state, image_bytes, parameters, _wants_png(request)
-                )
+        parts.admission.refuse_if_full()  # not worth receiving
+        body = await parts.receive(request)  # a slow client holds no place meanwhile
+        async with parts.admission.admitted():
+            image, parameters = await parse_predict(request, body)
+            return await _compute(parts, image, parameters, _wants_png(request))
     except asyncio.CancelledError:  # uvicorn cancels what is left when a shutdown's grace period ends
         raise Unavailable(
             "the service stopped before this request was done (CKS_SHUTDOWN_GRACE_SECONDS): send it again",
@@ -164,18 +118,69 @@ async def predict_route(request: Request, state: State) -> Response:
         ) from None
 
 
-def _respond(state: ServiceState, image_bytes: bytes, parameters: PredictParameters, png: bool) -> Response:
-    manifest = state.detector.manifest
-    with state.detector.computing():
-        image = decode_image(image_bytes, state.settings.max_image_pixels, state.settings.max_decoded_bytes)
-        height, width = image.shape[:2]
-        check_instances(parameters.instances, manifest, width, height, state.settings.max_instances)
-        pose = pose_options(parameters, manifest)  # refused before the model runs
-        prediction = predict(state, image, parameters, pose, instances_checked=True)
-        body = predict_body(prediction, parameters, manifest)
+@router.post(
+    "/v1/predict/batch",
+    response_model=BatchResponse,
+    summary="Keypoint prediction sets for several images in one request, one answer per image",
+    openapi_extra=_BATCH_OPENAPI,
+)
+async def predict_batch_route(request: Request, parts: Predicting) -> Response:
+    require_batch_media(request)
+    parts.admission.refuse_if_full()  # not worth receiving
+    await parts.receive(request)  # as predict: a slow client holds no place meanwhile
+    items = await parse_batch(request, parts.max_batch_images)
+    capacity = parts.admission.capacity
+    if len(items) > capacity:
+        raise InvalidInput(
+            f"a batch of {len(items)} images needs {len(items)} admission places and this server has"
+            f" {capacity} (CKS_MAX_CONCURRENT_INFERENCES + CKS_MAX_QUEUED_REQUESTS): send at most"
+            f" {capacity} images per batch"
+        )
+    async with parts.admission.admitted(len(items)):
+        answers = await asyncio.gather(
+            *(_batch_answer(request, parts, i, item) for i, item in enumerate(items))
+        )
+    # Each answer is JSON already (a result as POST /v1/predict writes it, or a problem): joined.
+    return Response(b'{"items":[' + b",".join(answers) + b"]}", media_type="application/json")
+
+
+async def _compute(parts: PredictParts, image: bytes, parameters: PredictParameters, png: bool) -> Response:
+    """Predict and present on the CPU pool, inside a compute slot (decoded images exist only there)."""
+    async with parts.admission.slot():
+        loop = asyncio.get_running_loop()
+        context = contextvars.copy_context()  # the pool's thread logs with the request's id
+        return await loop.run_in_executor(parts.pool, context.run, _respond, parts, image, parameters, png)
+
+
+def _respond(parts: PredictParts, image: bytes, parameters: PredictParameters, png: bool) -> Response:
+    query = predict_query(parameters)
+    prediction = parts.predictor.predict(image, query)
     note_calibration_version(prediction.version)
+    manifest = parts.predictor.detector.manifest
     if png:
-        camera = np.asarray(parameters.pose.K) if parameters.pose is not None else None
-        drawn = render_prediction(image, PredictResponse.model_validate(body), camera, manifest)
-        return Response(drawn, media_type="image/png")
-    return Response(predict_json(body), media_type="application/json")
+        return Response(predict_png(prediction, query, manifest), media_type="image/png")
+    return Response(predict_json(prediction, query, manifest), media_type="application/json")
+
+
+async def _batch_answer(request: Request, parts: PredictParts, index: int, item: BatchItem) -> bytes:
+    """One image's item as JSON: its result, or the problem it alone had."""
+    try:
+        image, parameters = batch_item(index, item)
+        response = await _compute(parts, image, parameters, png=False)
+        return b'{"status":200,"result":' + bytes(response.body) + b"}"
+    except ServiceError as error:
+        answer = problem(
+            error.status, error.title, error.detail, request, error.errors, extensions=error.extensions
+        )
+    except Exception:
+        log.exception("unhandled error on image %d of a batch", index)
+        answer = problem(
+            500, "Internal error", "The server failed on this image; the error was logged.", request
+        )
+    # The same problem body POST /v1/predict would answer, built by the same function.
+    return b'{"status":%d,"problem":%s}' % (answer.status_code, bytes(answer.body))
+
+
+def _wants_png(request: Request) -> bool:
+    accept = request.headers.get("accept", "")
+    return "image/png" in accept and "application/json" not in accept
