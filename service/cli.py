@@ -18,20 +18,20 @@ from pydantic import ValidationError
 from calibration_store import StoreError, store_location
 from service import __version__
 from service.errors import InvalidInput, ServiceError
-from service.logs import configure_logging
-from service.settings import Settings
+from service.runtime.logs import configure_logging
+from service.runtime.settings import Settings
 
 
 def _serve(args: argparse.Namespace, settings: Settings) -> int:
     from calibration_store import open_store
     from service.calibration.bundle import bootstrap_default_calibration
     from service.calibration.stratification import difficulty_spec
-    from service.detector.runtime import Detector
-    from service.metrics import enable_multiprocess
-    from service.operators import load_operators
-    from service.processes import remove_dead_process_folders
-    from service.server import serve
-    from service.state import detector_providers
+    from service.detector.session import Detector
+    from service.runtime.container import detector_providers
+    from service.runtime.metrics import enable_multiprocess
+    from service.runtime.operators import load_operators
+    from service.runtime.processes import remove_dead_process_folders
+    from service.runtime.server import serve
 
     host, port = args.host or settings.host, args.port or settings.port
     _check_port(host, port)
@@ -69,15 +69,15 @@ def _check_port(host: str, port: int) -> None:
 
 def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     from calibration_store import open_store
-    from service.audit import AuditTrail, Operator
     from service.calibration.bundle import save_bundle
     from service.calibration.calibrate import check_parent, create_calibration
     from service.calibration.coco import NamedBatch, load_coco_batch
     from service.calibration.intake import prepare_batch
     from service.calibration.stratification import difficulty_spec
     from service.calibration.submission import UploadRequest
-    from service.detector.runtime import Detector
-    from service.state import detector_providers
+    from service.detector.session import Detector
+    from service.runtime.audit_trail import AuditTrail, Operator
+    from service.runtime.container import detector_providers
 
     request = UploadRequest(args.name, args.note, args.append_to, args.activate, args.force, args.reason,
                             args.dedupe, args.max_rejected_share, args.stratify)  # fmt: skip
@@ -130,8 +130,8 @@ def _predict(args: argparse.Namespace, settings: Settings) -> int:
 
     from keypoint_client import ConnectionFailed, KeypointClient, PoseRequest, ProblemError
 
-    from service.api.schemas import PredictParameters
-    from service.inprocess import served
+    from service.api.predict_schemas import PredictParameters
+    from service.runtime.loopback import served
 
     image = Path(args.image).read_bytes()
     options = {"epsilon": args.epsilon, "nonconformity": args.nonconformity, "coverage": args.coverage,
@@ -174,7 +174,7 @@ def _evaluate(args: argparse.Namespace, settings: Settings) -> int:
     run.require_matplotlib()  # refuse a mistake before a model is loaded for nothing
     run.check_request(request)
     from service.calibration.bundle import bootstrap_default_calibration
-    from service.detector.runtime import Detector
+    from service.detector.session import Detector
 
     detector = Detector(settings.model_dir, settings.inference_threads)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
@@ -195,7 +195,7 @@ def _evaluate(args: argparse.Namespace, settings: Settings) -> int:
 
 
 def _check_model(args: argparse.Namespace, settings: Settings) -> int:
-    from service.detector.runtime import Detector
+    from service.detector.session import Detector
 
     model_dir = args.model_dir or settings.model_dir
     detector = Detector(model_dir, settings.inference_threads)
@@ -465,8 +465,8 @@ def main(argv: list[str] | None = None) -> int:
     configure_logging(settings, "WARNING" if quiet else None)
     if quiet:  # the pool's warning at each retry to reach PostgreSQL, before the error line says so
         logging.getLogger("psycopg.pool").setLevel(logging.ERROR)
-    from service.detector.runtime import ModelMismatch
-    from service.operators import OperatorsError
+    from service.detector.session import ModelMismatch
+    from service.runtime.operators import OperatorsError
 
     try:
         return args.run(args, settings)

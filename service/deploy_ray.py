@@ -27,8 +27,8 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from calibration_store import store_location
 from service.api.app import create_app
-from service.processes import remove_dead_process_folders
-from service.settings import Settings
+from service.runtime.processes import remove_dead_process_folders
+from service.runtime.settings import Settings
 
 APP_NAME = "keypoints"
 DEPLOYMENT_NAME = "KeypointService"

@@ -24,11 +24,11 @@ from service.conformal import (
 )
 from service.conformal.features import heatmap_features
 from service.detector.boxes import box_problem
+from service.detector.images import decode_image
 from service.detector.manifest import HeatmapSpec, Manifest
-from service.detector.runtime import Detector, InstanceHeatmaps
+from service.detector.session import Detector, InstanceHeatmaps
 from service.errors import InvalidInput
-from service.image_decoding import decode_image
-from service.monitoring.drift import DriftMonitor
+from service.monitoring.drift_monitor import DriftMonitor
 from service.pose import PoseOptions, PoseSets, check_pose_request, estimate_pose_sets
 
 

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from service.operators import OperatorsError, load_operators
-from service.settings import Settings
+from service.runtime.operators import OperatorsError, load_operators
+from service.runtime.settings import Settings
 
 
 def test_relative_paths_are_resolved_against_the_starting_directory(

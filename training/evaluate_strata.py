@@ -35,7 +35,7 @@ from service.conformal import calibrate
 from service.conformal.features import heatmap_features
 from service.conformal.laws import betabinomial_pmf, central_interval
 from service.conformal.strata import DifficultySpec, fit_difficulty_bins, stratum_calibrations
-from service.detector.runtime import Detector
+from service.detector.session import Detector
 from service.evaluation.rows import Rows, collect_rows
 
 OCCLUDED, VISIBLE = 1, 2

@@ -11,11 +11,11 @@ import os
 import shutil
 import subprocess
 
-from service.settings import Settings
+from service.runtime.settings import Settings
 
 CUDA = "CUDAExecutionProvider"
 #: the model on the GPU; the service gives CUDA full fp32 and heuristic cuDNN algorithms
-#: (``service.detector.runtime.PROVIDER_DEFAULTS``), the peers' sessions too
+#: (``service.detector.session.PROVIDER_DEFAULTS``), the peers' sessions too
 CUDA_SETTINGS = {"CKS_EXECUTION_PROVIDERS": f"{CUDA},CPUExecutionProvider"}
 #: what served best on the GPU machine measured (``python -m benchmarks.peers.gpu_tuning``,
 #: docs/operations.md "Serving from a GPU"): the CPU work (decode, crop, sets) spread over

@@ -1,7 +1,7 @@
 """The model, its preprocessing and its sets, built from the service's own domain functions.
 
-Decode (``service.image_decoding``), crop (``service.detector.preprocess``), the onnxruntime
-session (``service.detector.runtime.create_session``, on ``CKS_EXECUTION_PROVIDERS``), the
+Decode (``service.detector.images``), crop (``service.detector.preprocess``), the onnxruntime
+session (``service.detector.session.create_session``, on ``CKS_EXECUTION_PROVIDERS``), the
 bundled calibration's thresholds (``service.calibration``) and the sets
 (``service.prediction.calibrated_sets``): a peer only adds its framework around these, as a user
 would, so its answers equal the service's.
@@ -18,12 +18,12 @@ import numpy as np
 from benchmarks.peers.accelerator import execution_providers
 from service.calibration.bundle import BUNDLE_FILENAME, load_bundle
 from service.calibration.registry import channel_thresholds
+from service.detector.images import decode_image
 from service.detector.manifest import MODEL_FILENAME, load_manifest
 from service.detector.preprocess import build_batch
-from service.detector.runtime import create_session, instance_heatmaps
-from service.image_decoding import decode_image
+from service.detector.session import create_session, instance_heatmaps
 from service.prediction import calibrated_sets
-from service.settings import DEFAULT_MODEL_DIR
+from service.runtime.settings import DEFAULT_MODEL_DIR
 
 #: the README's request: ``cov`` sets, keypoint coverage, epsilon 0.1
 KIND, SCOPE, EPSILON = "cov", "keypoint", 0.1

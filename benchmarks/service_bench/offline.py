@@ -14,7 +14,7 @@ from benchmarks import bench_conformal, bench_store
 from service.calibration.coco import load_coco_batch
 from service.calibration.scoring import ScoreAccumulator, score_batch
 from service.conformal import nonconformity_scores
-from service.detector.runtime import Detector
+from service.detector.session import Detector
 
 
 @dataclass(frozen=True)

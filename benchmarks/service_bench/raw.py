@@ -1,7 +1,7 @@
 """The baseline: the bare onnxruntime session, no HTTP, no decode, no scoring.
 
 Run in its own process(es), like the server: ``processes`` copies (CKS_WORKERS), each
-with one session built by the service's own ``service.detector.runtime.create_session``
+with one session built by the service's own ``service.detector.session.create_session``
 (CKS_INFERENCE_THREADS intra-op threads) and ``concurrency / processes`` threads each
 calling ``session.run`` on the same prebuilt batch of crops, back to back.
 
@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from service.detector.manifest import MODEL_FILENAME, load_manifest
-from service.detector.runtime import create_session
+from service.detector.session import create_session
 
 
 @dataclass(frozen=True)

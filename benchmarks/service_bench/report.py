@@ -281,7 +281,7 @@ def render(r: Results) -> str:
         "## Service vs raw onnxruntime",
         "",
         "Raw = the bare `onnxruntime.InferenceSession` built by the service's own "
-        "`service.detector.runtime.create_session`, in the same process layout (`CKS_WORKERS` processes, "
+        "`service.detector.session.create_session`, in the same process layout (`CKS_WORKERS` processes, "
         "`CKS_INFERENCE_THREADS` intra-op threads per run), on the same "
         "crops (the 1 or 4 crops of the request, one `session.run` per request-equivalent), driven by "
         "<concurrency> threads. No HTTP, decoding, cropping, scoring or JSON.",

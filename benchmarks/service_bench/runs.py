@@ -13,9 +13,9 @@ from benchmarks.service_bench import raw
 from benchmarks.service_bench.inputs import Sample
 from benchmarks.service_bench.loadgen import LoadResult, post_requests, run_wrk, write_script
 from benchmarks.service_bench.server import Server, serve
+from service.detector.images import decode_image
 from service.detector.manifest import load_manifest
 from service.detector.preprocess import build_batch
-from service.image_decoding import decode_image
 
 CONCURRENCIES = (1, 4, 16)
 INSTANCE_COUNTS = (1, 4)

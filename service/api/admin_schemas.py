@@ -7,7 +7,7 @@ from typing import Literal
 
 from pydantic import BaseModel, Field, model_validator
 
-from service.api.schemas import Nonconformity
+from service.api.predict_schemas import Nonconformity
 
 
 class SourceBatchOut(BaseModel):

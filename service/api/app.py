@@ -11,15 +11,15 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service import __version__
 from service.api.deps import PredictParts
-from service.api.metrics import MetricsMiddleware
+from service.api.metrics_middleware import MetricsMiddleware
+from service.api.predict_schemas import PredictJson
 from service.api.problems import install_problem_handlers
 from service.api.request_id import RequestIdMiddleware
 from service.api.routes import admin, audits, console, drift, health, model, predict
-from service.api.schemas import PredictJson
-from service.logs import ensure_logging
-from service.metrics import worker_stopped
-from service.settings import Settings
-from service.state import ServiceState, build_state
+from service.runtime.container import ServiceState, build_state
+from service.runtime.logs import ensure_logging
+from service.runtime.metrics import worker_stopped
+from service.runtime.settings import Settings
 
 DESCRIPTION = """\
 Keypoint prediction sets with a finite-sample coverage guarantee.

@@ -11,11 +11,11 @@ from typing import Annotated
 from fastapi import Depends, HTTPException, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from service.admission import Admission
-from service.api.body import BodyPace, read_limited_body
-from service.audit import Operator
+from service.api.request_body import BodyPace, read_limited_body
 from service.prediction import Predictor
-from service.state import ServiceState
+from service.runtime.admission import Admission
+from service.runtime.audit_trail import Operator
+from service.runtime.container import ServiceState
 
 _bearer = HTTPBearer(auto_error=False, description="CKS_ADMIN_TOKEN, or a token of CKS_ADMIN_TOKENS_FILE")
 

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from service.api.schemas import (
+from service.api.predict_schemas import (
     OuterBoundOut,
     PoseCheckOut,
     PoseOut,

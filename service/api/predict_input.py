@@ -13,7 +13,7 @@ from fastapi import Request
 from pydantic import BaseModel, ValidationError
 from starlette.datastructures import FormData, UploadFile
 
-from service.api.schemas import PoseRequest, PredictJson, PredictParameters
+from service.api.predict_schemas import PoseRequest, PredictJson, PredictParameters
 from service.errors import InvalidInput, UnsupportedMediaType
 from service.pose import Pose, PoseOptions, as_camera_matrix
 from service.prediction import Instance, PredictQuery

@@ -19,8 +19,8 @@ import numpy as np
 from pydantic_core import to_json
 
 from service.api.pose_presenter import pose_out
+from service.api.predict_schemas import PredictResponse
 from service.api.render import render_prediction
-from service.api.schemas import PredictResponse
 from service.calibration.stratification import Stratum as StratumChoice
 from service.conformal import CoverageGuarantee, HeatmapStatistics, ellipse_axes
 from service.detector.manifest import Manifest

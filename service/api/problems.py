@@ -12,7 +12,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from calibration_store import StoreUnavailable
 from service.api.request_id import HEADER as REQUEST_ID_HEADER
 from service.errors import ServiceError, StoreUnreachable
-from service.logs import current_request
+from service.runtime.logs import current_request
 
 PROBLEM_JSON = "application/problem+json"
 log = logging.getLogger(__name__)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from service.api.schemas import BallSet, EllipseSet, InstanceOut, PredictResponse
+from service.api.predict_schemas import BallSet, EllipseSet, InstanceOut, PredictResponse
 from service.detector.manifest import Manifest
 
 _SHIFT = 4  # OpenCV fixed-point bits: sub-pixel drawing

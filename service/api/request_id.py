@@ -8,7 +8,7 @@ import uuid
 from starlette.datastructures import Headers, MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.logs import begin_request
+from service.runtime.logs import begin_request
 
 HEADER = "X-Request-ID"
 MAX_LENGTH = 128

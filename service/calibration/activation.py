@@ -6,7 +6,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from calibration_store import Activation, VersionNotFound
-from service.audit import AuditTrail, Operator, written
 from service.calibration.guardrails import (
     REFERENCE_EPSILON,
     REFERENCE_NONCONFORMITY,
@@ -17,6 +16,7 @@ from service.calibration.guardrails import (
 from service.calibration.registry import CalibrationRegistry
 from service.detector.manifest import Manifest
 from service.errors import Conflict, NotFound
+from service.runtime.audit_trail import AuditTrail, Operator, written
 
 
 @dataclass(frozen=True)

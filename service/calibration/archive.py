@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, BinaryIO, NamedTuple
 from service.errors import InvalidInput, PayloadTooLarge, ServiceError
 
 if TYPE_CHECKING:
-    from service.settings import Settings
+    from service.runtime.settings import Settings
 
 ANNOTATIONS_FILENAME = "annotations.json"
 CHUNK_BYTES = 1 << 20

@@ -19,7 +19,7 @@ from calibration_store import CalibrationStore, NewVersion, ObjectScores, ScoreT
 from service.calibration.compatibility import incompatibility
 from service.calibration.stratification import version_strata
 from service.conformal.strata import DifficultySpec
-from service.detector.runtime import Detector
+from service.detector.session import Detector
 
 BUNDLE_FILENAME = "default_calibration.npz"
 log = logging.getLogger(__name__)

@@ -22,7 +22,6 @@ from calibration_store import (
     VersionInfo,
     VersionNotFound,
 )
-from service.audit import AuditTrail, Operator, written
 from service.calibration.coco import NamedBatch, Rejection
 from service.calibration.compatibility import scoring_settings, version_incompatibility
 from service.calibration.guardrails import Comparison, compare
@@ -30,9 +29,10 @@ from service.calibration.intake import PreparedBatch, check_rejected_share
 from service.calibration.scoring import ScoreAccumulator, score_batch
 from service.calibration.stratification import VersionStrata, version_strata
 from service.conformal.strata import DifficultySpec
-from service.detector.runtime import Detector
+from service.detector.session import Detector
 from service.errors import Conflict, InvalidInput, NotFound
-from service.metrics import CALIBRATION_INSTANCES
+from service.runtime.audit_trail import AuditTrail, Operator, written
+from service.runtime.metrics import CALIBRATION_INSTANCES
 
 __all__ = ["CalibrationOptions", "CalibrationOutcome", "NamedBatch", "check_parent", "create_calibration"]
 

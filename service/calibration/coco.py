@@ -30,9 +30,9 @@ from typing import Any
 import numpy as np
 
 from service.detector.boxes import box_problem
+from service.detector.images import ImageHeader, read_image_header
 from service.detector.manifest import Manifest, ObjectSpec
 from service.errors import InvalidInput, UnsupportedMediaType
-from service.image_decoding import ImageHeader, read_image_header
 
 ANNOTATIONS_FILENAME = "annotations.json"
 MAX_REPORTED_PROBLEMS = 50

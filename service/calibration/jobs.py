@@ -41,8 +41,8 @@ from calibration_store import (
     StoreUnavailable,
 )
 from service.errors import ServiceError, StoreUnreachable, Unavailable
-from service.metrics import CALIBRATION_JOBS
-from service.processes import process_owner
+from service.runtime.metrics import CALIBRATION_JOBS
+from service.runtime.processes import process_owner
 
 log = logging.getLogger(__name__)
 

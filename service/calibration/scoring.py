@@ -18,9 +18,9 @@ from service.conformal import (
     nonconformity_scores,
 )
 from service.detector.crop import apply_affines
-from service.detector.runtime import Detector
+from service.detector.images import decode_image
+from service.detector.session import Detector
 from service.errors import ServiceError
-from service.image_decoding import decode_image
 
 NONCONFORMITY_KINDS = tuple(NONCONFORMITY_SCORES)
 

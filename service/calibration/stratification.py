@@ -27,7 +27,7 @@ from service.conformal.strata import (
     stratum_calibrations,
 )
 from service.errors import InvalidInput
-from service.settings import Settings
+from service.runtime.settings import Settings
 
 DIFFICULTY, GROUP = "difficulty", "group"
 STRATIFY_CHOICES = ("none", DIFFICULTY, GROUP, f"{DIFFICULTY}+{GROUP}")

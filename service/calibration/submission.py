@@ -10,7 +10,6 @@ from pathlib import Path
 from typing import Any
 
 from calibration_store import CalibrationStore, JobFinished, JobRecord, ScoreTable
-from service.audit import AuditTrail, Operator
 from service.calibration.archive import ArchiveLimits, DiskBudget
 from service.calibration.calibrate import CalibrationOptions, check_parent, create_calibration
 from service.calibration.coco import NamedBatch
@@ -20,8 +19,9 @@ from service.calibration.registry import CalibrationRegistry
 from service.calibration.stratification import GROUP, parse_stratify
 from service.calibration.uploads import JobFolder, UploadWorkspace, batch_name, reload_batch, validate_upload
 from service.conformal.strata import DifficultySpec
-from service.detector.runtime import Detector
+from service.detector.session import Detector
 from service.errors import Conflict, InvalidInput, NotFound, ServiceError
+from service.runtime.audit_trail import AuditTrail, Operator
 
 log = logging.getLogger(__name__)
 JOB_KIND = "calibration"

@@ -25,7 +25,7 @@ from service.calibration.archive import ArchiveLimits, DiskBudget, extract_zip
 from service.calibration.coco import NamedBatch, load_coco_batch
 from service.detector.manifest import Manifest
 from service.errors import InvalidInput
-from service.processes import process_folder
+from service.runtime.processes import process_folder
 
 log = logging.getLogger(__name__)
 

@@ -43,7 +43,7 @@ Geometry       ``map_sets_to_image(centers, shapes, affine)`` (image->heatmap 2x
                angle in degrees), ``ball_shapes``, ``ball_radii``.
 """
 
-from .api import nonconformity_scores, point_estimates, prediction_sets, statistics_for
+from .entry_points import nonconformity_scores, point_estimates, prediction_sets, statistics_for
 from .features import HEATMAP_FEATURES, heatmap_features
 from .geometry import ball_radii, ball_shapes, contains, ellipse_axes, map_sets_to_image
 from .guarantees import (

@@ -22,7 +22,7 @@ import shutil
 import threading
 from pathlib import Path
 
-from service.processes import process_folder
+from service.runtime.processes import process_folder
 
 ACTIVITY_ENV = "KEYPOINT_SERVICE_ACTIVITY_FILE"  # set by the parent, read by its workers
 SLOTS = 128  # CKS_WORKERS is at most 64; a replacement may start before its predecessor is reaped

@@ -5,7 +5,7 @@ visibility flag), so no heatmap has to be kept.
 The detector runs once per image (all boxes in one batch). Scores come from the service's
 ``score_image`` (the numbers a calibration stores); the same detector output gives the
 heatmap statistics (the service's ``heatmap_statistics`` with the manifest's settings),
-from which ``service.evaluation.sets`` builds the very sets ``predict`` answers with.
+from which ``service.evaluation.row_sets`` builds the very sets ``predict`` answers with.
 """
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ import numpy as np
 from service.calibration.coco import ANNOTATIONS_FILENAME, CocoBatch, LabeledInstance
 from service.calibration.scoring import NONCONFORMITY_KINDS, score_image
 from service.conformal import HeatmapStatistics, heatmap_statistics
-from service.detector.runtime import Detector, InstanceHeatmaps
+from service.detector.images import decode_image
+from service.detector.session import Detector, InstanceHeatmaps
 from service.errors import InvalidInput, ServiceError
-from service.image_decoding import decode_image
 
 
 @dataclass(frozen=True)

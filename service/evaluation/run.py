@@ -10,7 +10,7 @@ from pathlib import Path
 from calibration_store import CalibrationStore, ScoreTable, VersionInfo, VersionNotFound
 from service.calibration.coco import load_coco_batch
 from service.calibration.compatibility import version_incompatibility
-from service.detector.runtime import Detector
+from service.detector.session import Detector
 from service.errors import Conflict, InvalidInput, NotFound, ServiceError
 from service.evaluation.rows import collect_rows
 from service.evaluation.summary import Evaluation, evaluate

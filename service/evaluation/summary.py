@@ -11,8 +11,8 @@ from service.calibration.scoring import NONCONFORMITY_KINDS
 from service.detector.manifest import Manifest
 from service.evaluation.adaptiveness import Adaptiveness, adaptiveness
 from service.evaluation.coverage import ValiditySummary, keypoint_groups, object_groups
+from service.evaluation.row_sets import covered_by_score, row_sets
 from service.evaluation.rows import Rows
-from service.evaluation.sets import covered_by_score, row_sets
 from service.evaluation.sizes import SetSizes, set_sizes
 
 SCOPES = ("keypoint", "object")

@@ -26,7 +26,7 @@ import numpy as np
 from calibration_store import ScoreTable
 from service.conformal import object_scores
 from service.detector.manifest import Manifest
-from service.monitoring.coverage import (
+from service.monitoring.coverage_law import (
     BAND_LEVEL,
     FAMILY_ALPHA,
     RECALIBRATION_TOLERANCE,

@@ -4,8 +4,15 @@ an estimate inside the set, and bounds on the pose error."""
 from .bounds import InnerBound
 from .camera import as_camera_matrix, camera_matrix_problems
 from .membership import Membership, Pose, membership, pose_in_set
+from .pose_sets import (
+    PoseCheck,
+    PoseOptions,
+    PoseSets,
+    check_pose_request,
+    estimate_pose_sets,
+    instance_pose_sets,
+)
 from .relaxation import OuterBound, relaxation_available
-from .sets import PoseCheck, PoseOptions, PoseSets, check_pose_request, estimate_pose_sets, instance_pose_sets
 
 __all__ = [
     "InnerBound",

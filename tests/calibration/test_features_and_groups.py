@@ -14,9 +14,9 @@ from service.calibration.bundle import load_bundle
 from service.calibration.coco import load_coco_batch
 from service.calibration.scoring import ScoreAccumulator, score_batch
 from service.conformal import HEATMAP_FEATURES, heatmap_features
-from service.detector.runtime import Detector
+from service.detector.images import decode_image
+from service.detector.session import Detector
 from service.errors import InvalidInput
-from service.image_decoding import decode_image
 from service.prediction import calibrated_sets
 
 MODEL_DIR = Path(__file__).resolve().parents[2] / "models" / "lmo-synth-unet"

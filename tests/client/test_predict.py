@@ -26,7 +26,7 @@ from keypoint_client import (
     png_bytes,
 )
 
-from service.image_decoding import decode_image
+from service.detector.images import decode_image
 from tests.service.live import LiveServer, Sample, samples_by_image
 from tests.service.predict_client import instances_of, predict_json
 

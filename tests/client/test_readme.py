@@ -7,7 +7,7 @@ import re
 
 import pytest
 
-from service.settings import PACKAGE_ROOT
+from service.runtime.settings import PACKAGE_ROOT
 from tests.client.conftest import CLIENT_ROOT
 from tests.service.live import ADMIN_TOKEN, LiveServer
 

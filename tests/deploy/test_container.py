@@ -18,7 +18,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from service.settings import PACKAGE_ROOT
+from service.runtime.settings import PACKAGE_ROOT
 from tests.deploy.buildah import Container, build, image_bytes, image_config, missing_tools, process_uid
 from tests.service.live import ADMIN_TOKEN, LiveServer, batch_zip, free_port
 

@@ -22,8 +22,8 @@ import yaml
 
 from service import __version__
 from service.api.openapi import openapi_document
-from service.operators import load_operators
-from service.settings import PACKAGE_ROOT, Settings
+from service.runtime.operators import load_operators
+from service.runtime.settings import PACKAGE_ROOT, Settings
 
 K8S = PACKAGE_ROOT / "deploy" / "k8s"
 KUBERNETES_VERSION = "1.33"

@@ -43,7 +43,7 @@ from service.deploy_ray import (
     application,
     build_app,
 )
-from service.settings import PACKAGE_ROOT, Settings
+from service.runtime.settings import PACKAGE_ROOT, Settings
 from tests.service.live import (
     ADMIN_TOKEN,
     batch_zip,

@@ -13,7 +13,7 @@ import pytest
 from setuptools.config.pyprojecttoml import read_configuration
 
 from service import __version__
-from service.settings import PACKAGE_ROOT
+from service.runtime.settings import PACKAGE_ROOT
 from tests.service.live import LiveServer
 
 PYPROJECT = PACKAGE_ROOT / "pyproject.toml"

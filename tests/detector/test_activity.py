@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from service.detector.activity import ACTIVITY_ENV, Activity, share_activity, worker_activity
-from service.detector.runtime import Detector
-from service.settings import DEFAULT_MODEL_DIR
+from service.detector.session import Detector
+from service.runtime.settings import DEFAULT_MODEL_DIR
 
 SPAWN = multiprocessing.get_context("spawn")  # as uvicorn starts its workers
 

@@ -6,9 +6,9 @@ from __future__ import annotations
 import onnxruntime as ort
 import pytest
 
-from service.detector.runtime import Detector, _check_providers_loaded, provider_entry, session_providers
+from service.detector.session import Detector, _check_providers_loaded, provider_entry, session_providers
 from service.errors import InvalidInput
-from service.settings import DEFAULT_MODEL_DIR
+from service.runtime.settings import DEFAULT_MODEL_DIR
 
 CPU = "CPUExecutionProvider"
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.detector.runtime import Detector
-from service.settings import DEFAULT_MODEL_DIR, Settings, usable_cores
+from service.detector.session import Detector
+from service.runtime.settings import DEFAULT_MODEL_DIR, Settings, usable_cores
 
 
 @pytest.mark.parametrize("max_batch", [0, 32])

@@ -23,9 +23,9 @@ import pytest
 from PIL import Image
 
 from benchmarks.faults_clients import flat_png, png_chunk
+from service.detector.images import PNG_SIGNATURE, decode_image, decoded_bytes, read_image_header
 from service.errors import InvalidInput, PayloadTooLarge
-from service.image_decoding import PNG_SIGNATURE, decode_image, decoded_bytes, read_image_header
-from service.settings import PACKAGE_ROOT, Settings
+from service.runtime.settings import PACKAGE_ROOT, Settings
 
 LIMIT = 10**8
 MiB = 2**20
@@ -175,7 +175,7 @@ def measured_image(kind: str) -> bytes:
 _MEASURE = """
 import os, sys
 from benchmarks.faults_clients import peak_rss_bytes, reset_peak_rss
-from service.image_decoding import decode_image
+from service.detector.images import decode_image
 data = open(sys.argv[1], "rb").read()
 reset_peak_rss(os.getpid())
 before = peak_rss_bytes(os.getpid())

@@ -19,9 +19,9 @@ import pytest
 from PIL import Image
 
 from service import image_decoding
+from service.detector.images import ImageHeader, decode_image, read_image_header
 from service.errors import InvalidInput, PayloadTooLarge, UnsupportedMediaType
-from service.image_decoding import ImageHeader, decode_image, read_image_header
-from service.settings import DEFAULT_MODEL_DIR
+from service.runtime.settings import DEFAULT_MODEL_DIR
 
 LIMIT = 10_000_000
 SAMPLES = sorted((DEFAULT_MODEL_DIR / "samples" / "images").glob("*.jpg"))

@@ -8,7 +8,7 @@ from scipy import stats
 
 from service.conformal import beta_cdf, conformal_rank, conformal_threshold
 from service.conformal.laws import betabinomial_pmf, central_interval
-from service.monitoring.coverage import (
+from service.monitoring.coverage_law import (
     bonferroni_p_value,
     conformal_floor,
     coverage_test,

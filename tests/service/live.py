@@ -29,7 +29,7 @@ from typing import Any
 import httpx
 
 from benchmarks import faults_clients
-from service.settings import PACKAGE_ROOT, Settings
+from service.runtime.settings import PACKAGE_ROOT, Settings
 
 ADMIN_TOKEN = "test-admin-token"
 STARTUP_TIMEOUT_S = 30.0

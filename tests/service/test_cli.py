@@ -11,9 +11,9 @@ import cv2
 import numpy as np
 
 from calibration_store import open_store
-from service.api.schemas import PoseOut, PredictResponse
-from service.detector.runtime import file_sha256
-from service.settings import PACKAGE_ROOT
+from service.api.predict_schemas import PoseOut, PredictResponse
+from service.detector.session import file_sha256
+from service.runtime.settings import PACKAGE_ROOT
 from tests.service.live import (
     LiveServer,
     Sample,

@@ -14,7 +14,7 @@ import pytest
 
 from service import __version__
 from service.cli import EXAMPLES
-from service.settings import PACKAGE_ROOT
+from service.runtime.settings import PACKAGE_ROOT
 from tests.service.live import LiveServer, cli, free_port, service_env
 
 SAMPLE_IMAGE = "models/lmo-synth-unet/samples/images/000000.jpg"

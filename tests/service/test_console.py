@@ -18,7 +18,7 @@ import pytest
 from playwright.sync_api import Browser, BrowserContext, ConsoleMessage
 
 from service.api.routes.console import CONSOLE_CONTENT_SECURITY_POLICY
-from service.settings import PACKAGE_ROOT
+from service.runtime.settings import PACKAGE_ROOT
 from tests.service.live import ADMIN_TOKEN, LiveServer, Sample, batch_zip, samples_by_image
 from tests.service.predict_client import instances_of, predict_ok
 from tests.service.test_api_pages import RECORD_POLICY_VIOLATIONS, Watch, open_page, watched_context

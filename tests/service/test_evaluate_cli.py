@@ -14,7 +14,7 @@ import pytest
 from scipy import stats
 
 from service import cli as service_cli
-from service.settings import PACKAGE_ROOT
+from service.runtime.settings import PACKAGE_ROOT
 from tests.service.live import LiveServer, Sample, cli, samples_by_image, service_env
 from tests.service.predict_client import contains, predict_ok
 

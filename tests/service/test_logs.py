@@ -15,7 +15,7 @@ from typing import Any
 import httpx
 import pytest
 
-from service.settings import PACKAGE_ROOT
+from service.runtime.settings import PACKAGE_ROOT
 from tests.service.live import (
     ADMIN_TOKEN,
     LiveServer,
@@ -127,8 +127,12 @@ def test_uvicorn_start_up_lines_are_in_the_service_format(text_server: LiveServe
     uvicorn = [line["message"] for line in lines if line["logger"] == "uvicorn.error"]
     assert any(message.startswith("Started server process") for message in uvicorn), lines
     assert "Application startup complete." in uvicorn
-    assert any(line["logger"] == "service.state" and "serving model" in line["message"] for line in lines)
-    outside_requests = [line for line in lines if line["logger"] in ("uvicorn.error", "service.state")]
+    assert any(
+        line["logger"] == "service.runtime.container" and "serving model" in line["message"] for line in lines
+    )
+    outside_requests = [
+        line for line in lines if line["logger"] in ("uvicorn.error", "service.runtime.container")
+    ]
     assert all(line["request_id"] == "-" for line in outside_requests), outside_requests
     assert not any(line["logger"] == "uvicorn.access" for line in lines), "uvicorn's own access log is on"
 

@@ -15,8 +15,8 @@ import re
 import sys
 from pathlib import Path
 
-from service.detector.runtime import file_sha256
-from service.settings import PACKAGE_ROOT
+from service.detector.session import file_sha256
+from service.runtime.settings import PACKAGE_ROOT
 from tests.service.live import LiveServer, Sample, cli, count_instances, samples_by_image, service_env
 from tests.service.predict_client import instances_of, predict_ok
 from tests.service.test_model_mismatch import run_until_exit

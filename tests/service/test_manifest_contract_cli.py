@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from service.detector.runtime import file_sha256
+from service.detector.session import file_sha256
 from tests.service.live import LiveServer, Sample, cli, model_dir, service_env
 from tests.service.test_manifest_change import copy_model
 from tests.service.test_model_mismatch import run_until_exit

@@ -7,7 +7,7 @@ import re
 from pathlib import Path
 
 from service.detector.manifest import manifest_json_schema
-from service.settings import PACKAGE_ROOT
+from service.runtime.settings import PACKAGE_ROOT
 from tests.service.live import cli, service_env
 from tests.service.test_model_mismatch import run_until_exit
 

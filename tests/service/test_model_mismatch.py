@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from service.detector.runtime import Detector, ModelMismatch
-from service.settings import PACKAGE_ROOT
+from service.detector.session import Detector, ModelMismatch
+from service.runtime.settings import PACKAGE_ROOT
 from tests.service.live import cli, free_port, service_env
 
 

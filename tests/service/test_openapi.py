@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 from service.api.openapi import openapi_document
-from service.settings import PACKAGE_ROOT
+from service.runtime.settings import PACKAGE_ROOT
 
 COMMITTED = PACKAGE_ROOT / "openapi" / "openapi.json"
 

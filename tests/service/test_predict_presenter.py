@@ -15,9 +15,9 @@ import pytest
 
 from service.api.predict_input import predict_query
 from service.api.predict_presenter import predict_body, predict_json, predict_response
-from service.api.schemas import PredictParameters, PredictResponse
-from service.settings import Settings
-from service.state import ServiceState, build_state
+from service.api.predict_schemas import PredictParameters, PredictResponse
+from service.runtime.container import ServiceState, build_state
+from service.runtime.settings import Settings
 
 
 @pytest.fixture(scope="module")

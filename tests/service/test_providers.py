@@ -11,7 +11,7 @@ import pytest
 from pydantic import ValidationError
 
 from benchmarks.faults_clients import predict, sample_request
-from service.settings import Settings
+from service.runtime.settings import Settings
 from tests.detector.test_providers import missing_provider
 from tests.service.live import LiveServer, free_port
 from tests.service.test_cli_errors import assert_one_line_error, run

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from service.settings import PACKAGE_ROOT
+from service.runtime.settings import PACKAGE_ROOT
 from tests.service.live import ADMIN_TOKEN, LiveServer
 
 HOOKS = Path(__file__).with_name("schemathesis_hooks.py")

@@ -20,9 +20,9 @@ from benchmarks.faults_store import run_outage, scene
 from calibration_store import open_store
 from service.calibration.bundle import bootstrap_default_calibration
 from service.calibration.registry import CalibrationRegistry
-from service.detector.runtime import Detector
+from service.detector.session import Detector
 from service.errors import StoreUnreachable
-from service.settings import PACKAGE_ROOT
+from service.runtime.settings import PACKAGE_ROOT
 from tests.postgres_cluster import PostgresCluster
 from tests.service.live import assert_problem, cli, free_port, model_dir, service_env, wait_until
 from tests.service.predict_client import predict_json

@@ -20,7 +20,7 @@ import pytest
 from prometheus_client.mmap_dict import MmapedDict
 
 from service.detector.activity import SLOTS
-from service.settings import PACKAGE_ROOT
+from service.runtime.settings import PACKAGE_ROOT
 from tests.service.live import ADMIN_TOKEN, Sample, cli, free_port, samples_by_image, service_env, wait_until
 from tests.service.predict_client import instances_of, predict_json
 

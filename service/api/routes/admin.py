@@ -11,6 +11,14 @@ from fastapi import APIRouter, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 
 from calibration_store import VersionNotFound, store_location
+from service.api.admin_presenters import (
+    activation_out,
+    audit_page,
+    comparison_out,
+    describe,
+    job_out,
+    summarize,
+)
 from service.api.admin_schemas import (
     ActivationIn,
     ActivationLog,
@@ -22,16 +30,15 @@ from service.api.admin_schemas import (
     VersionDetail,
     VersionList,
 )
-from service.api.body import BodyPace, receive_upload
 from service.api.deps import Admin, State
-from service.api.presenters import activation_out, audit_page, comparison_out, describe, job_out, summarize
-from service.api.schemas import MAX_VERSION, Nonconformity
-from service.audit import Operator
+from service.api.predict_schemas import MAX_VERSION, Nonconformity
+from service.api.request_body import BodyPace, receive_upload
 from service.calibration.activation import ActivationRequest, activate, comparison_with
 from service.calibration.submission import UploadRequest
 from service.calibration.uploads import UploadWorkspace
 from service.errors import NotFound, ServiceError, UnsupportedMediaType
-from service.state import ServiceState
+from service.runtime.audit_trail import Operator
+from service.runtime.container import ServiceState
 
 router = APIRouter(
     prefix="/v1/admin",

@@ -8,14 +8,14 @@ from typing import Annotated
 from fastapi import APIRouter, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 
+from service.api.admin_presenters import audit_list, audit_out, job_out
 from service.api.admin_schemas import AuditList, AuditOut, JobOut
 from service.api.deps import Admin, State
-from service.api.presenters import audit_list, audit_out, job_out
+from service.api.predict_schemas import MAX_VERSION
 from service.api.routes.admin import receive_batch_zip, refusals_audited
-from service.api.schemas import MAX_VERSION
 from service.errors import NotFound
 from service.monitoring.audit_report import DEFAULT_EPSILONS
-from service.monitoring.audits import AuditRequest
+from service.monitoring.coverage_audits import AuditRequest
 
 router = APIRouter(
     prefix="/v1/admin/audits",

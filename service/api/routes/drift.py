@@ -5,9 +5,9 @@ from __future__ import annotations
 from fastapi import APIRouter
 from fastapi.concurrency import run_in_threadpool
 
+from service.api.admin_presenters import drift_out
 from service.api.admin_schemas import DriftOut
 from service.api.deps import Admin, State
-from service.api.presenters import drift_out
 from service.errors import NotFound
 
 router = APIRouter(

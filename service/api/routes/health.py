@@ -9,7 +9,7 @@ from pydantic import BaseModel, Field
 
 from service.api.deps import State
 from service.errors import StoreUnreachable
-from service.metrics import metrics_payload
+from service.runtime.metrics import metrics_payload
 
 router = APIRouter(tags=["operations"])
 

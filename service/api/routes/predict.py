@@ -25,10 +25,10 @@ from service.api.predict_input import (
     require_batch_media,
 )
 from service.api.predict_presenter import predict_json, predict_png
+from service.api.predict_schemas import BatchResponse, PredictParameters, PredictResponse
 from service.api.problems import problem
-from service.api.schemas import BatchResponse, PredictParameters, PredictResponse
 from service.errors import InvalidInput, ServiceError, Unavailable
-from service.logs import note_calibration_version
+from service.runtime.logs import note_calibration_version
 
 router = APIRouter(tags=["prediction"])
 log = logging.getLogger(__name__)

@@ -27,7 +27,6 @@ from calibration_store import (
     NewCoverageAudit,
     StoreError,
 )
-from service.audit import Operator
 from service.calibration.coco import NamedBatch
 from service.calibration.intake import PreparedBatch, check_rejected_share, prepare_batch
 from service.calibration.jobs import JobProgress, new_job_id
@@ -35,7 +34,9 @@ from service.calibration.scoring import NONCONFORMITY_KINDS, ScoreAccumulator, s
 from service.calibration.submission import DetectorJobs
 from service.calibration.uploads import JobFolder, UploadWorkspace, batch_name, validate_upload
 from service.errors import Conflict, InvalidInput
-from service.metrics import (
+from service.monitoring.audit_report import DEFAULT_EPSILONS, ThresholdLookup, audit_report
+from service.runtime.audit_trail import Operator
+from service.runtime.metrics import (
     AUDIT_BAND_HIGH,
     AUDIT_BAND_LOW,
     AUDIT_COVERAGE,
@@ -43,7 +44,6 @@ from service.metrics import (
     AUDIT_LATEST,
     MULTIPROCESS_ENV,
 )
-from service.monitoring.audit_report import DEFAULT_EPSILONS, ThresholdLookup, audit_report
 
 log = logging.getLogger(__name__)
 JOB_KIND = "audit"

@@ -4,7 +4,7 @@
 A request takes a place only once its body has arrived, so a slow client holds no place:
 bodies being received count instead against a byte budget (``max_receiving_bytes``, all
 requests together, counted as the bytes arrive: a slow client holds only what it sent),
-and ``service.api.body`` cuts bodies that arrive too slowly. At most ``max_concurrent``
+and ``service.api.request_body`` cuts bodies that arrive too slowly. At most ``max_concurrent``
 admitted requests decode and infer at once; at most ``max_queued`` more wait for a slot,
 each for at most ``timeout`` seconds. A request beyond that is refused with 503 and
 ``Retry-After`` (before its body is read when every place is already taken), so an overload
@@ -19,7 +19,7 @@ from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import asynccontextmanager, contextmanager
 
 from service.errors import Unavailable
-from service.metrics import (
+from service.runtime.metrics import (
     PREDICT_COMPUTING,
     PREDICT_IN_FLIGHT,
     PREDICT_RECEIVING,

@@ -18,7 +18,7 @@ from fastapi.concurrency import run_in_threadpool
 
 from service.calibration.archive import SavedUpload, UploadSink
 from service.errors import PayloadTooLarge, RequestTimeout
-from service.settings import Settings
+from service.runtime.settings import Settings
 
 _FLUSH_BYTES = 1 << 20
 

@@ -30,7 +30,7 @@ from service.calibration.guardrails import Comparison
 from service.calibration.registry import CalibrationRegistry
 from service.conformal import NONCONFORMITY_SCORES
 from service.detector.manifest import Manifest
-from service.monitoring.drift import DriftReport
+from service.monitoring.drift_monitor import DriftReport
 
 REPORTED_EPSILONS = (0.05, 0.1, 0.2)
 

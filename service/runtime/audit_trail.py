@@ -13,9 +13,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from calibration_store import CalibrationStore, NewAuditEntry, StoreError
-from service.logs import log_fields
+from service.runtime.logs import log_fields
 
-log = logging.getLogger("service.audit")
+log = logging.getLogger("service.audit")  # a stable name: operators route and filter these lines by it
 
 
 @dataclass(frozen=True)

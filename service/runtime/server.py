@@ -9,7 +9,7 @@ What a public port needs beyond uvicorn's defaults:
   a later request on a kept-alive connection).
 - **Open connections.** At most ``CKS_MAX_CONNECTIONS`` per process are served (uvicorn's
   ``limit_concurrency``): a request on one more gets 503.
-- **Slow bodies** are paced where they are read (``service.api.body``): predict bodies
+- **Slow bodies** are paced where they are read (``service.api.request_body``): predict bodies
   within ``CKS_REQUEST_READ_TIMEOUT_SECONDS``, uploads within
   ``CKS_UPLOAD_READ_TIMEOUT_SECONDS``, both at ``CKS_MIN_BODY_BYTES_PER_SECOND`` or faster.
 - **SIGTERM.** uvicorn stops accepting connections, closes idle ones and gives in-flight
@@ -36,9 +36,9 @@ from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 from service.detector.activity import share_activity
 from service.errors import RequestTimeout
-from service.logs import uvicorn_log_config
-from service.processes import remove_dead_process_folders
-from service.settings import Settings
+from service.runtime.logs import uvicorn_log_config
+from service.runtime.processes import remove_dead_process_folders
+from service.runtime.settings import Settings
 
 APP = "service.api.main:app"
 log = logging.getLogger(__name__)

@@ -30,10 +30,10 @@ from prometheus_client import (
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.registry import Collector
 
-from service.processes import process_folder, process_running
+from service.runtime.processes import process_folder, process_running
 
 if TYPE_CHECKING:
-    from service.monitoring.drift import DriftReport
+    from service.monitoring.drift_monitor import DriftReport
 
 MULTIPROCESS_ENV = "PROMETHEUS_MULTIPROC_DIR"
 log = logging.getLogger(__name__)
@@ -99,7 +99,7 @@ CALIBRATION_INSTANCES = Counter(
     "cks_calibration_instances_scored", "instances scored by calibration jobs", registry=REGISTRY
 )
 
-# The latest coverage audit (service/monitoring/audits.py); replaced whole by each new audit
+# The latest coverage audit (service/monitoring/coverage_audits.py); replaced whole by each new audit
 _AUDIT_LABELS = ["object", "keypoint", "nonconformity", "epsilon", "scope"]
 AUDIT_COVERAGE = Gauge(
     "cks_audit_coverage",

@@ -14,7 +14,7 @@ from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 from calibration_store import sqlite_path
 from service.conformal.features import HEATMAP_FEATURES
 
-PACKAGE_ROOT = Path(__file__).resolve().parent.parent
+PACKAGE_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_MODEL_DIR = PACKAGE_ROOT / "models" / "lmo-synth-unet"
 
 

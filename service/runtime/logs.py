@@ -28,7 +28,7 @@ from typing import Any
 
 from pythonjsonlogger.core import RESERVED_ATTRS
 
-from service.settings import Settings
+from service.runtime.settings import Settings
 
 TEXT_FORMAT = "%(asctime)s.%(msecs)03dZ %(levelname)s %(name)s [%(request_id)s] %(message)s"
 ISO_SECONDS = "%Y-%m-%dT%H:%M:%S"

@@ -12,8 +12,8 @@ from contextlib import contextmanager
 import uvicorn
 
 from service.api.app import create_app
-from service.settings import Settings
-from service.state import build_state
+from service.runtime.container import build_state
+from service.runtime.settings import Settings
 
 STARTUP_TIMEOUT_S = 30.0
 

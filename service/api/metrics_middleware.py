@@ -7,8 +7,8 @@ import time
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.logs import ACCESS_LOGGER, current_request, log_fields
-from service.metrics import LATENCY, REQUESTS
+from service.runtime.logs import ACCESS_LOGGER, current_request, log_fields
+from service.runtime.metrics import LATENCY, REQUESTS
 
 access_log = logging.getLogger(ACCESS_LOGGER)
 

@@ -14,8 +14,6 @@ from typing import Any
 import cv2
 
 from calibration_store import CalibrationStore, ScoreTable, open_store, store_location
-from service.admission import Admission
-from service.audit import AuditTrail
 from service.calibration.archive import ArchiveLimits, DiskBudget
 from service.calibration.bundle import bootstrap_default_calibration
 from service.calibration.jobs import JobRunner
@@ -25,14 +23,16 @@ from service.calibration.submission import CalibrationJobs, SubmissionSettings
 from service.calibration.uploads import process_uploads_dir, remove_spent_job_folders
 from service.conformal.kernel import native_kernel_available
 from service.detector.activity import worker_activity
-from service.detector.runtime import Detector
-from service.logs import ensure_logging
-from service.metrics import forget_drift_source, set_drift_source
-from service.monitoring.audits import CoverageAudits
-from service.monitoring.drift import DriftMonitor, DriftSettings
-from service.operators import load_operators
+from service.detector.session import Detector
+from service.monitoring.coverage_audits import CoverageAudits
+from service.monitoring.drift_monitor import DriftMonitor, DriftSettings
 from service.prediction import Predictor
-from service.settings import Settings
+from service.runtime.admission import Admission
+from service.runtime.audit_trail import AuditTrail
+from service.runtime.logs import ensure_logging
+from service.runtime.metrics import forget_drift_source, set_drift_source
+from service.runtime.operators import load_operators
+from service.runtime.settings import Settings
 
 log = logging.getLogger(__name__)
 
