@@ -1,5 +1,6 @@
-"""Release hygiene: the license pyproject.toml states is the one in LICENSE, and one version
-(``service.__version__``) is what the package, the API and the changelog carry."""
+"""Release hygiene: the license pyproject.toml states is the one in LICENSE, one version
+(``service.__version__``) is what the package, the API and the changelog carry, and the wheel
+holds the server (the training code runs from the repository)."""
 
 from __future__ import annotations
 
@@ -32,6 +33,13 @@ def test_license_file_is_the_apache_2_0_text_pyproject_states() -> None:
 def test_the_package_version_is_service_version() -> None:
     project = read_configuration(PYPROJECT, expand=True)["project"]
     assert project["version"] == __version__
+
+
+@pytest.mark.filterwarnings("ignore:`\\[tool.setuptools.ext-modules\\]`")
+def test_the_wheel_holds_the_server_not_the_training_code() -> None:
+    packages = read_configuration(PYPROJECT, expand=True)["tool"]["setuptools"]["packages"]
+    assert {"service", "service.runtime", "calibration_store", "keypoint_client"} <= set(packages)
+    assert not [name for name in packages if name.split(".")[0] in ("training", "tests", "benchmarks")]
 
 
 def test_the_changelog_has_a_section_for_this_version() -> None:
