@@ -73,11 +73,11 @@ GOAL = 0.02
 KIND = "cov"
 
 
-
 def respond(state, image, parameters):  # noqa: ANN001, ANN201
     """What the route computes for one request (the image's bytes): the sets and the response objects."""
     query = predict_query(parameters)
     return predict_response(state.predictor.predict(image, query), query, state.detector.manifest)
+
 
 def _median_us(action: Callable[[], object], repeats: int) -> float:
     times = []
@@ -101,9 +101,7 @@ def _modes(state: ServiceState) -> dict[str, DriftMonitor | None]:
     }
 
 
-def predict_rounds(
-    state: ServiceState, image: bytes, parameters: PredictParameters, rounds: int
-) -> dict:
+def predict_rounds(state: ServiceState, image: bytes, parameters: PredictParameters, rounds: int) -> dict:
     """Per mode: median predict() latency (us) and the median of its paired difference to ``off``
     in the same round (us; the modes run back to back, so a load change hits all of a round)."""
     modes, original = _modes(state), state.drift
@@ -160,12 +158,15 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads")
     arguments = parser.parse_args()
     settings = Settings()
-    sample = load_sample(settings.model_dir / "samples")
-    image = decode_image(sample.jpeg, settings.max_image_pixels)
-    print(f"model: {settings.model_dir.name}; nonconformity {KIND}; {arguments.rounds} interleaved rounds;"
-          f" load avg (1m) {os.getloadavg()[0]:.2f}")  # fmt: skip
+    sample = load_sample(settings.model.model_dir / "samples")
+    image = decode_image(sample.jpeg, settings.predict.max_image_pixels)
+    print(
+        f"model: {settings.model.model_dir.name}; nonconformity {KIND};"
+        f" {arguments.rounds} interleaved rounds;"
+        f" load avg (1m) {os.getloadavg()[0]:.2f}"
+    )
     print(f"goal: drift monitoring adds <= {GOAL:.0%} to predict()")
-    with service_state(settings.model_dir, arguments.threads) as state:
+    with service_state(settings.model.model_dir, arguments.threads) as state:
         for count in (1, 4):
             chosen = sample.with_instances(count)
             parameters = PredictParameters.model_validate(
@@ -187,8 +188,10 @@ def main() -> None:
             record = timed["record (cov's statistics)"]
             expected = share * extra + record
             goal = "met" if expected <= GOAL * base else "NOT met"
-            print(f"  from the parts, per request: {share:g} x {extra:.1f} + {record:.1f} = {expected:.1f} us"
-                  f" = {expected / base:.2%} of predict  {goal}")  # fmt: skip
+            print(
+                f"  from the parts, per request: {share:g} x {extra:.1f} + {record:.1f} = {expected:.1f} us"
+                f" = {expected / base:.2%} of predict  {goal}"
+            )
     print(f"\nload avg (1m) at the end {os.getloadavg()[0]:.2f}")
 
 

@@ -76,7 +76,7 @@ def checkpoints(first: int, every: int, total: int) -> list[int]:
 
 
 def measure(args: argparse.Namespace, body: Body, log_path: Path) -> Memory:
-    model_dir = str(Path(Settings().model_dir).resolve())
+    model_dir = str(Path(Settings().model.model_dir).resolve())
     memory, done = Memory(), 0
     with serve({"CKS_MODEL_DIR": model_dir}, log=log_path) as server:
         for mark in checkpoints(args.first, args.every, args.requests):
@@ -130,7 +130,8 @@ def server_settings() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    sample = load_sample(Path(Settings().model_dir).resolve() / "samples").with_instances(args.instances)
+    samples = Path(Settings().model.model_dir).resolve() / "samples"
+    sample = load_sample(samples).with_instances(args.instances)
     log_path = args.log or Path(tempfile.gettempdir()) / f"bench-memory-server-{os.getpid()}.log"
     print(f"machine: {this_machine().describe()}")
     print(f"server: keypoint-service serve, settings: {server_settings()}; log: {log_path}")

@@ -110,7 +110,9 @@ def _run(settings: Settings, epsilon: float, samples: int, images: int, splits: 
         "contained": 0,
     }
     try:
-        for camera, points, centers, shapes, truth in instances(state, settings.model_dir, epsilon, images):
+        for camera, points, centers, shapes, truth in instances(
+            state, settings.model.model_dir, epsilon, images
+        ):
             counts["instances"] += 1
             counts["true_inside"] += membership(truth, camera, points, centers, shapes).inside
             pose, ms = timed(estimate, camera, points, centers, shapes)

@@ -204,8 +204,11 @@ def flat_png(width: int, height: int, depth: int = 16, colour_type: int = 6) -> 
         idat.append(compressor.compress(row))
     idat.append(compressor.flush())
     header = struct.pack(">IIBBBBB", width, height, depth, colour_type, 0, 0, 0)
-    return PNG_SIGNATURE + png_chunk(b"IHDR", header) + png_chunk(b"IDAT", b"".join(idat)) + png_chunk(
-        b"IEND", b""
+    return (
+        PNG_SIGNATURE
+        + png_chunk(b"IHDR", header)
+        + png_chunk(b"IDAT", b"".join(idat))
+        + png_chunk(b"IEND", b"")
     )
 
 
@@ -339,7 +342,7 @@ def slow_clients(server: Server, requests: int, slow: int) -> None:
 
 def huge_images(server: Server, settings: Settings) -> None:
     instances = sample_request()[1][:1]
-    budget = f"CKS_MAX_DECODED_BYTES {_mib(settings.max_decoded_bytes)}"
+    budget = f"CKS_MAX_DECODED_BYTES {_mib(settings.predict.max_decoded_bytes)}"
     for name, image in (("16-bit RGBA PNG 6324x6324 (the issue's)", flat_png(6324, 6324)),
                         ("16-bit RGBA PNG 4000x4000", flat_png(4000, 4000))):  # fmt: skip
         needed = decoded_bytes(image, read_image_header(image))
@@ -350,7 +353,7 @@ def huge_images(server: Server, settings: Settings) -> None:
               f" peak RSS +{_mib(rise)}")  # fmt: skip
         rise, statuses = peak_while(server.pid, functools.partial(_post_all, server.url, image, instances, 8))
         print(f"  8 at once: {_counted(statuses)}, peak RSS +{_mib(rise)}"
-              f" (at most CKS_CPU_WORKERS = {settings.cpu_workers} decode at once)")  # fmt: skip
+              f" (at most CKS_CPU_WORKERS = {settings.model.cpu_workers} decode at once)")  # fmt: skip
 
 
 def bomb(server: Server, data_dir: Path) -> None:
@@ -406,9 +409,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     settings = {"CKS_ADMIN_TOKEN": ADMIN_TOKEN, "CKS_MODEL_DIR": str(DEFAULT_MODEL_DIR)}
     print(f"default settings, {os.cpu_count()} cores, loopback; RSS: the server's peak VmHWM, reset per step")
-    with tempfile.TemporaryDirectory(prefix="cks-faults-") as data_dir, serve(
-        {**settings, "CKS_DATA_DIR": data_dir}
-    ) as server:
+    with (
+        tempfile.TemporaryDirectory(prefix="cks-faults-") as data_dir,
+        serve({**settings, "CKS_DATA_DIR": data_dir}) as server,
+    ):
         slow_clients(server, args.requests, args.slow)
         huge_images(server, Settings())
         bomb(server, Path(data_dir))

@@ -33,19 +33,25 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
     from service.runtime.processes import remove_dead_process_folders
     from service.runtime.server import serve
 
-    host, port = args.host or settings.host, args.port or settings.port
+    host, port = args.host or settings.server.host, args.port or settings.server.port
     _check_port(host, port)
     # Check the model and store the bundled calibration once, before workers start racing.
-    load_operators(settings.admin_token, settings.admin_tokens_file)
-    detector = Detector(settings.model_dir, settings.inference_threads, **detector_providers(settings))
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    load_operators(settings.admin.admin_token, settings.admin.admin_tokens_file)
+    detector = Detector(
+        settings.model.model_dir, settings.model.inference_threads, **detector_providers(settings)
+    )
+    settings.storage.data_dir.mkdir(parents=True, exist_ok=True)
     for shared in ("uploads", "metrics"):  # of stopped processes: uploads were never stored
-        remove_dead_process_folders(settings.data_dir / shared)
-    with open_store(settings.resolved_store_url) as store:
-        if settings.bootstrap_calibration:
-            bootstrap_default_calibration(store, detector, settings.model_dir, difficulty_spec(settings))
+        remove_dead_process_folders(settings.storage.data_dir / shared)
+    with open_store(settings.storage.resolved_store_url) as store:
+        if settings.storage.bootstrap_calibration:
+            bootstrap_default_calibration(
+                store, detector, settings.model.model_dir, difficulty_spec(settings)
+            )
     del detector  # the serving process loads its own
-    metrics = enable_multiprocess(settings.data_dir / "metrics") if settings.workers > 1 else None
+    metrics = (
+        enable_multiprocess(settings.storage.data_dir / "metrics") if settings.server.workers > 1 else None
+    )
     try:
         return serve(settings, host, port)
     finally:
@@ -79,11 +85,22 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     from service.runtime.audit_trail import AuditTrail, Operator
     from service.runtime.container import detector_providers
 
-    request = UploadRequest(args.name, args.note, args.append_to, args.activate, args.force, args.reason,
-                            args.dedupe, args.max_rejected_share, args.stratify)  # fmt: skip
-    share = request.rejected_share(settings.max_rejected_share)
-    detector = Detector(settings.model_dir, settings.inference_threads, **detector_providers(settings))
-    with open_store(settings.resolved_store_url) as store:
+    request = UploadRequest(
+        args.name,
+        args.note,
+        args.append_to,
+        args.activate,
+        args.force,
+        args.reason,
+        args.dedupe,
+        args.max_rejected_share,
+        args.stratify,
+    )
+    share = request.rejected_share(settings.calibration.max_rejected_share)
+    detector = Detector(
+        settings.model.model_dir, settings.model.inference_threads, **detector_providers(settings)
+    )
+    with open_store(settings.storage.resolved_store_url) as store:
         parent = parent_table = None
         if args.append_to is not None:
             parent = check_parent(store, detector, args.append_to)
@@ -105,10 +122,14 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
             done += count
             print(f"\rscored {done}/{total} instances", end="", file=sys.stderr, flush=True)
 
-        options = request.options(Operator(args.author, "cli"), settings.max_rejected_share,
-                                  settings.min_calibration_instances, difficulty_spec(settings))  # fmt: skip
+        options = request.options(
+            Operator(args.author, "cli"),
+            settings.calibration.max_rejected_share,
+            settings.calibration.min_calibration_instances,
+            difficulty_spec(settings),
+        )
         audit = AuditTrail(store, detector.model_hash)
-        pixels = settings.max_image_pixels
+        pixels = settings.predict.max_image_pixels
         outcome = create_calibration(store, detector, batches, options, pixels, audit, progress)
         print(file=sys.stderr)
         if args.bundle:
@@ -134,8 +155,13 @@ def _predict(args: argparse.Namespace, settings: Settings) -> int:
     from service.runtime.loopback import served
 
     image = Path(args.image).read_bytes()
-    options = {"epsilon": args.epsilon, "nonconformity": args.nonconformity, "coverage": args.coverage,
-               "delta": args.delta, "calibration_version": args.calibration_version}  # fmt: skip
+    options = {
+        "epsilon": args.epsilon,
+        "nonconformity": args.nonconformity,
+        "coverage": args.coverage,
+        "delta": args.delta,
+        "calibration_version": args.calibration_version,
+    }
     pose = None if args.pose_k is None else {"K": args.pose_k}
     if pose is not None and args.coverage != "object":
         raise InvalidInput("--pose-k needs --coverage object: only object-scope sets carry a pose guarantee")
@@ -169,18 +195,25 @@ def _evaluate(args: argparse.Namespace, settings: Settings) -> int:
 
     command = shlex.join(["keypoint-service", *args.argv])
     epsilons = tuple(sorted(set(args.epsilon or run.DEFAULT_EPSILONS)))
-    request = run.EvaluationRequest(Path(args.folder), Path(args.out), args.version, epsilons, args.delta,
-                                    args.title or run.DEFAULT_TITLE, command)  # fmt: skip
+    request = run.EvaluationRequest(
+        Path(args.folder),
+        Path(args.out),
+        args.version,
+        epsilons,
+        args.delta,
+        args.title or run.DEFAULT_TITLE,
+        command,
+    )
     run.require_matplotlib()  # refuse a mistake before a model is loaded for nothing
     run.check_request(request)
     from service.calibration.bundle import bootstrap_default_calibration
     from service.detector.session import Detector
 
-    detector = Detector(settings.model_dir, settings.inference_threads)
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
-    with open_store(settings.resolved_store_url) as store:
-        if settings.bootstrap_calibration:  # as serve would on its first start
-            bootstrap_default_calibration(store, detector, settings.model_dir)
+    detector = Detector(settings.model.model_dir, settings.model.inference_threads)
+    settings.storage.data_dir.mkdir(parents=True, exist_ok=True)
+    with open_store(settings.storage.resolved_store_url) as store:
+        if settings.storage.bootstrap_calibration:  # as serve would on its first start
+            bootstrap_default_calibration(store, detector, settings.model.model_dir)
         done = 0
 
         def progress(count: int) -> None:
@@ -188,7 +221,9 @@ def _evaluate(args: argparse.Namespace, settings: Settings) -> int:
             done += count
             print(f"\revaluated {done} instances", end="", file=sys.stderr, flush=True)
 
-        evaluation, path = run.run_evaluation(request, store, detector, settings.max_image_pixels, progress)
+        evaluation, path = run.run_evaluation(
+            request, store, detector, settings.predict.max_image_pixels, progress
+        )
     print(file=sys.stderr)
     print(f"wrote {path} (version {evaluation.version.number}, {evaluation.rows.instances} instances)")
     return 0
@@ -197,8 +232,8 @@ def _evaluate(args: argparse.Namespace, settings: Settings) -> int:
 def _check_model(args: argparse.Namespace, settings: Settings) -> int:
     from service.detector.session import Detector
 
-    model_dir = args.model_dir or settings.model_dir
-    detector = Detector(model_dir, settings.inference_threads)
+    model_dir = args.model_dir or settings.model.model_dir
+    detector = Detector(model_dir, settings.model.inference_threads)
     print(f"{model_dir}: ok, model.onnx sha256 {detector.model_hash}\n{detector.manifest.summary()}")
     return 0
 
@@ -461,7 +496,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValidationError as error:
         return _failed(f"invalid settings: {_problems(error, lambda loc: 'CKS_' + '_'.join(loc).upper())}", 2)
     # serve logs at CKS_LOG_LEVEL; the one-shot commands say only what went wrong unless it is set
-    quiet = args.run is not _serve and "log_level" not in settings.model_fields_set
+    quiet = args.run is not _serve and "log_level" not in settings.logs.model_fields_set
     configure_logging(settings, "WARNING" if quiet else None)
     if quiet:  # the pool's warning at each retry to reach PostgreSQL, before the error line says so
         logging.getLogger("psycopg.pool").setLevel(logging.ERROR)
@@ -477,7 +512,7 @@ def main(argv: list[str] | None = None) -> int:
     except OperatorsError as error:
         return _failed(str(error), 2)
     except StoreError as error:
-        _, location = store_location(settings.resolved_store_url)
+        _, location = store_location(settings.storage.resolved_store_url)
         return _failed(f"the calibration store {location} (CKS_STORE_URL): {error}", 1)
     except OSError as error:  # a file or folder that is missing, not writable, not a folder
         return _failed(f"{error.filename}: {error.strerror}" if error.filename else str(error), 1)

@@ -70,10 +70,10 @@ class Scaling:
 
     def deployment_options(self, settings: Settings) -> dict[str, Any]:
         """Options for ``Deployment.options``."""
-        slots = settings.max_concurrent_inferences
+        slots = settings.predict.max_concurrent_inferences
         options: dict[str, Any] = {
             "max_ongoing_requests": self.max_ongoing_requests
-            or slots + settings.max_queued_requests + ADMIN_HEADROOM,
+            or slots + settings.predict.max_queued_requests + ADMIN_HEADROOM,
             "ray_actor_options": {"num_cpus": self.num_cpus}
             | ({"num_gpus": self.num_gpus} if self.num_gpus else {}),
         }
@@ -119,7 +119,7 @@ class KeypointService:
         self._settings = settings
         # Upload workspaces of replicas killed on this node (shared data directory): their
         # uploads were never stored. `keypoint-service serve` does the same at start-up.
-        remove_dead_process_folders(settings.data_dir / "uploads")
+        remove_dead_process_folders(settings.storage.data_dir / "uploads")
 
     def __serve_build_asgi_app__(self) -> FastAPI:
         app = create_app(self._settings)
@@ -129,7 +129,7 @@ class KeypointService:
 
 def application(settings: Settings, scaling: Scaling) -> Application:
     """The Serve application: KeypointService with ``scaling``, every replica on ``settings``."""
-    kind, location = store_location(settings.resolved_store_url)
+    kind, location = store_location(settings.storage.resolved_store_url)
     if kind != "postgresql":
         raise ValueError(
             f"the calibration store is {kind} ({location}), a file of one node; Ray may start replicas on"
@@ -207,8 +207,8 @@ def main(argv: list[str] | None = None) -> int:
     settings = Settings(**{name: value for name, value in overrides.items() if value is not None})
     scaling = Scaling(**{field.name: getattr(args, field.name) for field in fields(Scaling)})
     http_options = {
-        "host": args.host or settings.host,
-        "port": args.port or settings.port,
+        "host": args.host or settings.server.host,
+        "port": args.port or settings.server.port,
         "request_timeout_s": args.request_timeout_s,
         "keep_alive_timeout_s": args.keep_alive_timeout_s,
     }

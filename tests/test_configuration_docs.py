@@ -1,28 +1,38 @@
-"""The README documents every setting, under the name the service reads."""
+"""The README's settings table is the one the fields make, and every setting is read from its
+``CKS_`` variable whatever its group."""
 
 from __future__ import annotations
 
-from pathlib import Path
+import pytest
 
-from service.runtime.settings import Settings
-
-README = Path(__file__).resolve().parent.parent / "README.md"
+from service.runtime.settings import README, Settings, readme_with_table
 
 
-def test_every_setting_is_in_the_readme_configuration_table():
+def test_the_readme_settings_table_is_made_from_the_fields():
     text = README.read_text(encoding="utf-8")
-    missing = [f"CKS_{name.upper()}" for name in Settings.model_fields if f"`CKS_{name.upper()}`" not in text]
-    assert not missing, f"add these settings to README.md's Configuration table: {missing}"
+    assert readme_with_table(text) == text, "run python -m service.runtime.settings to write the table anew"
+    missing = [name for name in Settings.fields() if f"| `CKS_{name.upper()}` |" not in text]
+    assert not missing
 
 
 def test_every_setting_has_a_description():
-    undocumented = [name for name, field in Settings.model_fields.items() if not field.description]
+    undocumented = [name for name, field in Settings.fields().items() if not field.description]
     assert not undocumented, f"give these settings a Field(description=...): {undocumented}"
 
 
 def test_settings_are_read_from_prefixed_environment(monkeypatch):
     monkeypatch.setenv("CKS_MAX_INSTANCES", "7")
     monkeypatch.setenv("CKS_STORE_URL", "sqlite:////tmp/x.db")
-    settings = Settings()
-    assert settings.max_instances == 7
-    assert settings.resolved_store_url == "sqlite:////tmp/x.db"
+    monkeypatch.setenv("CKS_LOG_LEVEL", "debug")
+    settings = Settings(max_upload_files=9)
+    assert settings.predict.max_instances == 7
+    assert settings.storage.resolved_store_url == "sqlite:////tmp/x.db"
+    assert settings.logs.log_level == "DEBUG"
+    assert settings.calibration.max_upload_files == 9
+
+
+def test_a_setting_given_by_name_wins_over_its_variable_and_an_unknown_name_is_refused(monkeypatch):
+    monkeypatch.setenv("CKS_MAX_INSTANCES", "7")
+    assert Settings(max_instances=5).predict.max_instances == 5
+    with pytest.raises(TypeError, match="max_instancez"):
+        Settings(max_instancez=5)

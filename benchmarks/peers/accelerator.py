@@ -33,7 +33,7 @@ def execution_providers() -> tuple[tuple[str, ...], dict[str, dict[str, str]]]:
     """The providers of this run and their options, as the service reads them
     (``CKS_EXECUTION_PROVIDERS``, ``CKS_EXECUTION_PROVIDER_OPTIONS``)."""
     settings = Settings()
-    return settings.execution_providers, settings.execution_provider_options
+    return settings.model.execution_providers, settings.model.execution_provider_options
 
 
 def on_gpu() -> bool:

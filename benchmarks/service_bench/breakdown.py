@@ -87,7 +87,7 @@ def _cached(
 
 def _one_iteration(state: ServiceState, sample: Sample, parameters: PredictParameters) -> dict[str, float]:
     manifest, detector, registry = state.detector.manifest, state.detector, state.registry
-    limit = state.settings.max_image_pixels
+    limit = state.settings.predict.max_image_pixels
     ms: dict[str, float] = {}
     ms["decode"], image = _timed(lambda: decode_image(sample.jpeg, limit))
     ms["crop"], (batch, affines) = _timed(lambda: build_batch(image, sample.boxes, manifest))

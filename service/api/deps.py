@@ -44,14 +44,14 @@ class PredictParts:
     def of(cls, state: ServiceState) -> PredictParts:
         settings = state.settings
         pace = BodyPace.from_settings(
-            settings, settings.request_read_timeout_seconds, "CKS_REQUEST_READ_TIMEOUT_SECONDS"
+            settings, settings.predict.request_read_timeout_seconds, "CKS_REQUEST_READ_TIMEOUT_SECONDS"
         )
         return cls(
             state.predictor,
             state.admission,
             state.cpu_pool,
-            settings.max_request_bytes,
-            settings.max_batch_images,
+            settings.predict.max_request_bytes,
+            settings.predict.max_batch_images,
             pace,
         )
 

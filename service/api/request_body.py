@@ -35,7 +35,7 @@ class BodyPace:
 
     @classmethod
     def from_settings(cls, settings: Settings, timeout_s: float, timeout_setting: str) -> BodyPace:
-        rate, grace = settings.min_body_bytes_per_second, settings.body_rate_grace_seconds
+        rate, grace = settings.server.min_body_bytes_per_second, settings.server.body_rate_grace_seconds
         return cls(timeout_s, timeout_setting, rate, grace)
 
     def refusal(self, received: int, elapsed: float, too_slow: bool) -> RequestTimeout:

@@ -64,8 +64,10 @@ class DiskBudget:
     @classmethod
     def from_settings(cls, settings: Settings) -> DiskBudget:
         """Kept uploads are those under the data directory's ``jobs`` and ``uploads`` folders."""
-        folders = (settings.jobs_dir, settings.uploads_dir)
-        return cls(folders, settings.max_uploads_disk_bytes, settings.min_free_disk_bytes)
+        folders = (settings.storage.jobs_dir, settings.storage.uploads_dir)
+        return cls(
+            folders, settings.calibration.max_uploads_disk_bytes, settings.calibration.min_free_disk_bytes
+        )
 
     def check(self, incoming: int, where: Path) -> None:
         """Refuse (507) ``incoming`` more bytes under ``where`` beyond the budget or the free space."""
@@ -103,7 +105,7 @@ class ArchiveLimits:
     @classmethod
     def from_settings(cls, settings: Settings) -> ArchiveLimits:
         """From ``Settings.max_upload_files`` and ``Settings.max_upload_uncompressed_bytes``."""
-        return cls(settings.max_upload_files, settings.max_upload_uncompressed_bytes)
+        return cls(settings.calibration.max_upload_files, settings.calibration.max_upload_uncompressed_bytes)
 
 
 class SavedUpload(NamedTuple):

@@ -36,8 +36,10 @@ FALLBACKS = ("refuse", "pooled")
 
 def difficulty_spec(settings: Settings) -> DifficultySpec:
     """The difficulty bins new versions get (CKS_STRATUM_SIGNALS, _BINS, CKS_MIN_STRATUM_INSTANCES)."""
-    signals = tuple(settings.stratum_signals.split(","))
-    return DifficultySpec(signals, settings.stratum_bins, settings.min_stratum_instances)
+    signals = tuple(settings.calibration.stratum_signals.split(","))
+    return DifficultySpec(
+        signals, settings.calibration.stratum_bins, settings.calibration.min_stratum_instances
+    )
 
 
 def parse_stratify(value: str | Sequence[str]) -> frozenset[str]:

@@ -62,14 +62,14 @@ class ServiceState:
             self.detector,
             self.registry,
             self.drift,
-            settings.max_image_pixels,
-            settings.max_decoded_bytes,
-            settings.max_instances,
+            settings.predict.max_image_pixels,
+            settings.predict.max_decoded_bytes,
+            settings.predict.max_instances,
         )
 
     @property
     def uploads_dir(self) -> Path:
-        return self.settings.uploads_dir
+        return self.settings.storage.uploads_dir
 
     def close(self) -> None:
         """Stop: the store's poller ends, calibration jobs are interrupted, not waited for (see
@@ -95,40 +95,55 @@ def build_state(settings: Settings) -> ServiceState:
     Also turns OpenCV's internal threading off for the process (``cv2.setNumThreads(1)``).
     """
     ensure_logging(settings)
-    operators = load_operators(settings.admin_token, settings.admin_tokens_file)
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    operators = load_operators(settings.admin.admin_token, settings.admin.admin_tokens_file)
+    settings.storage.data_dir.mkdir(parents=True, exist_ok=True)
     # Process-wide: requests already run in parallel on cpu_pool, and OpenCV's own pool would
     # split each small crop across helper threads that spin while they wait.
     cv2.setNumThreads(1)
     detector = Detector(
-        settings.model_dir,
-        settings.inference_threads,
-        settings.max_inference_batch,
-        settings.inference_streams,
+        settings.model.model_dir,
+        settings.model.inference_threads,
+        settings.model.max_inference_batch,
+        settings.model.inference_streams,
         **detector_providers(settings),
-        batch_window_s=settings.batch_window_ms / 1000,
-        solo_threads=settings.solo_threads,
+        batch_window_s=settings.model.batch_window_ms / 1000,
+        solo_threads=settings.model.solo_threads,
         activity=worker_activity(),
     )
     log.info("onnxruntime execution providers in use: %s", ", ".join(detector.execution_providers))
-    kind, location = store_location(settings.resolved_store_url)
+    kind, location = store_location(settings.storage.resolved_store_url)
     # SQLite keeps its busy timeout: a write waiting on another writer is no outage
-    options = {"timeout_s": settings.store_timeout_seconds} if kind == "postgresql" else {}
-    store = open_store(settings.resolved_store_url, **options)
-    if settings.bootstrap_calibration:
-        bootstrap_default_calibration(store, detector, settings.model_dir, difficulty_spec(settings))
-    registry = CalibrationRegistry(store, detector.model_hash, detector.manifest, settings.store_poll_seconds,
-                                   settings.store_timeout_seconds)  # fmt: skip
+    options = {"timeout_s": settings.storage.store_timeout_seconds} if kind == "postgresql" else {}
+    store = open_store(settings.storage.resolved_store_url, **options)
+    if settings.storage.bootstrap_calibration:
+        bootstrap_default_calibration(store, detector, settings.model.model_dir, difficulty_spec(settings))
+    registry = CalibrationRegistry(
+        store,
+        detector.model_hash,
+        detector.manifest,
+        settings.storage.store_poll_seconds,
+        settings.storage.store_timeout_seconds,
+    )
     names = ", ".join(sorted(operators.values())) or "none (admin API disabled)"
-    log.info("serving model %s (sha256 %s) from %s; calibration store: %s at %s; data directory %s;"
-             " active calibration version %s; admin operators: %s", detector.manifest.name,
-             detector.model_hash, settings.model_dir, kind, location, settings.data_dir,
-             registry.start(), names)  # fmt: skip
+    log.info(
+        "serving model %s (sha256 %s) from %s; calibration store: %s at %s; data directory %s;"
+        " active calibration version %s; admin operators: %s",
+        detector.manifest.name,
+        detector.model_hash,
+        settings.model.model_dir,
+        kind,
+        location,
+        settings.storage.data_dir,
+        registry.start(),
+        names,
+    )
     if not native_kernel_available():
-        log.warning("the native kernel (service/conformal/kernel.py) is not built: 'peak' runs on the "
-                    "slower numpy path; install a C compiler and reinstall the package")  # fmt: skip
-    remove_spent_job_folders(settings.jobs_dir, store)
-    jobs = JobRunner(store, settings.calibration_workers)
+        log.warning(
+            "the native kernel (service/conformal/kernel.py) is not built: 'peak' runs on the "
+            "slower numpy path; install a C compiler and reinstall the package"
+        )
+    remove_spent_job_folders(settings.storage.jobs_dir, store)
+    jobs = JobRunner(store, settings.calibration.calibration_workers)
     audit = AuditTrail(store, detector.model_hash)
     submission = _submission_settings(settings)
     audits = CoverageAudits(store, detector, registry, jobs, audit, submission)
@@ -143,13 +158,13 @@ def build_state(settings: Settings) -> ServiceState:
         calibrations=CalibrationJobs(store, detector, registry, jobs, audit, submission),
         audit=audit,
         operators=operators,
-        cpu_pool=ThreadPoolExecutor(settings.cpu_workers, thread_name_prefix="cpu"),
+        cpu_pool=ThreadPoolExecutor(settings.model.cpu_workers, thread_name_prefix="cpu"),
         admission=Admission(
-            settings.max_concurrent_inferences,
-            settings.max_queued_requests,
-            settings.queue_timeout_seconds,
-            settings.max_receiving_bytes,
-        ),  # fmt: skip
+            settings.predict.max_concurrent_inferences,
+            settings.predict.max_queued_requests,
+            settings.predict.queue_timeout_seconds,
+            settings.predict.max_receiving_bytes,
+        ),
         audits=audits,
         drift=drift,
     )
@@ -159,7 +174,7 @@ def _drift_monitor(
     settings: Settings, detector: Detector, registry: CalibrationRegistry
 ) -> DriftMonitor | None:
     """The drift monitor, its history ticker started and its report the source of cks_drift_*."""
-    if not settings.drift_enabled:
+    if not settings.drift.drift_enabled:
         return None
 
     def active_calibration() -> tuple[int | None, ScoreTable | None]:
@@ -169,12 +184,12 @@ def _drift_monitor(
         return version, registry.scores(version)
 
     drift_settings = DriftSettings(
-        window=settings.drift_window,
-        test=settings.drift_test,
-        alarm_level=settings.drift_alarm_level,
-        psi_threshold=settings.drift_psi_threshold,
-        full_statistics_share=settings.drift_full_statistics_share,
-        history_seconds=settings.drift_history_seconds,
+        window=settings.drift.drift_window,
+        test=settings.drift.drift_test,
+        alarm_level=settings.drift.drift_alarm_level,
+        psi_threshold=settings.drift.drift_psi_threshold,
+        full_statistics_share=settings.drift.drift_full_statistics_share,
+        history_seconds=settings.drift.drift_history_seconds,
     )
     monitor = DriftMonitor(detector.manifest, active_calibration, drift_settings)
     monitor.start()
@@ -184,11 +199,11 @@ def _drift_monitor(
 
 def _submission_settings(settings: Settings) -> SubmissionSettings:
     return SubmissionSettings(
-        jobs_dir=settings.jobs_dir,
+        jobs_dir=settings.storage.jobs_dir,
         limits=ArchiveLimits.from_settings(settings),
-        max_image_pixels=settings.max_image_pixels,
-        min_instances=settings.min_calibration_instances,
-        max_rejected_share=settings.max_rejected_share,
+        max_image_pixels=settings.predict.max_image_pixels,
+        min_instances=settings.calibration.min_calibration_instances,
+        max_rejected_share=settings.calibration.max_rejected_share,
         disk=DiskBudget.from_settings(settings),
         difficulty=difficulty_spec(settings),
     )
@@ -197,6 +212,6 @@ def _submission_settings(settings: Settings) -> SubmissionSettings:
 def detector_providers(settings: Settings) -> dict[str, Any]:
     """The execution provider arguments of ``Detector``, from CKS_EXECUTION_PROVIDERS(_OPTIONS)."""
     return {
-        "providers": settings.execution_providers,
-        "provider_options": settings.execution_provider_options,
+        "providers": settings.model.execution_providers,
+        "provider_options": settings.model.execution_provider_options,
     }

@@ -108,12 +108,12 @@ def uvicorn_log_config(settings: Settings, level: str | None = None) -> dict[str
     uvicorn's own access log stays off whatever uvicorn is told: ``service.access`` writes
     one line per request instead, with the latency, request id and calibration version.
     """
-    level = level or settings.log_level
+    level = level or settings.logs.log_level
     return {
         "version": 1,
         "disable_existing_loggers": False,
         "filters": {"request_id": {"()": RequestIdFilter}},
-        "formatters": {"service": _formatter(settings.log_format)},
+        "formatters": {"service": _formatter(settings.logs.log_format)},
         "handlers": {
             "stderr": {
                 "class": "logging.StreamHandler",
@@ -128,7 +128,7 @@ def uvicorn_log_config(settings: Settings, level: str | None = None) -> dict[str
             **{name: {"handlers": [], "level": level, "propagate": True} for name in LOGGERS},
             # No handler and no propagation: uvicorn then skips its access lines altogether.
             "uvicorn.access": {"handlers": [], "propagate": False},
-            ACCESS_LOGGER: {"level": level if settings.access_log else "WARNING"},
+            ACCESS_LOGGER: {"level": level if settings.logs.access_log else "WARNING"},
         },
     }
 

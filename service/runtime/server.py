@@ -119,13 +119,16 @@ def uvicorn_options(settings: Settings, host: str | None = None, port: int | Non
     """The arguments of ``uvicorn.run`` for this service."""
     return {
         "app": APP,
-        "host": host or settings.host,
-        "port": port or settings.port,
-        "workers": settings.workers,
+        "host": host or settings.server.host,
+        "port": port or settings.server.port,
+        "workers": settings.server.workers,
         # A partial of a module-level class: worker processes unpickle it by reference.
-        "http": functools.partial(HeadTimeoutProtocol, head_timeout=settings.header_read_timeout_seconds),
-        "limit_concurrency": settings.max_connections + 1,  # uvicorn counts the request's own connection
-        "timeout_graceful_shutdown": settings.shutdown_grace_seconds,
+        "http": functools.partial(
+            HeadTimeoutProtocol, head_timeout=settings.server.header_read_timeout_seconds
+        ),
+        "limit_concurrency": settings.server.max_connections
+        + 1,  # uvicorn counts the request's own connection
+        "timeout_graceful_shutdown": settings.server.shutdown_grace_seconds,
         **_logging_options(settings),
     }
 
@@ -140,7 +143,9 @@ def serve(settings: Settings, host: str | None = None, port: int | None = None) 
     workers count their requests in one shared file (``activity``), so that a request alone in
     the server, not just in its worker, may take every core."""
     previous = signal.signal(signal.SIGTERM, _exit_on_sigterm)
-    activity = _share_activity(settings.data_dir / "activity") if settings.workers > 1 else None
+    activity = (
+        _share_activity(settings.storage.data_dir / "activity") if settings.server.workers > 1 else None
+    )
     try:
         uvicorn.run(**uvicorn_options(settings, host, port))
     finally:

@@ -1,14 +1,22 @@
-"""All configuration, from environment variables prefixed ``CKS_`` (see README, Configuration)."""
+"""All configuration, from environment variables prefixed ``CKS_`` (README, Configuration).
+
+Settings come in groups (``settings.predict.max_request_bytes``); each field is still the one
+variable ``CKS_<FIELD>``, and ``Settings(max_request_bytes=...)`` takes any field by its name.
+``python -m service.runtime.settings`` writes the README's table from the fields.
+"""
 
 from __future__ import annotations
 
 import json
 import os
+import re
+import sys
 from functools import cached_property
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import Field, field_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic.fields import FieldInfo
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from calibration_store import sqlite_path
@@ -16,17 +24,117 @@ from service.conformal.features import HEATMAP_FEATURES
 
 PACKAGE_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_MODEL_DIR = PACKAGE_ROOT / "models" / "lmo-synth-unet"
+README = PACKAGE_ROOT / "README.md"
 
 
-class Settings(BaseSettings):
-    """Service settings. Every field is an environment variable ``CKS_<FIELD>``."""
+def _absolute(path: Path) -> Path:
+    """Resolved once, against the directory the service starts in, and said at start-up."""
+    return path.expanduser().resolve()
+
+
+AbsolutePath = Annotated[Path, AfterValidator(_absolute)]
+
+
+class _Group(BaseSettings):
+    """One group of settings, each read from ``CKS_<FIELD>``."""
 
     model_config = SettingsConfigDict(env_prefix="CKS_", extra="ignore", frozen=True)
 
-    model_dir: Path = Field(
+
+class ModelSettings(_Group):
+    """The model and how it runs: where it is, onnxruntime's providers and threads."""
+
+    model_dir: AbsolutePath = Field(
         default=DEFAULT_MODEL_DIR, description="directory with model.onnx and manifest.json"
     )
-    data_dir: Path = Field(
+    execution_providers: Annotated[tuple[str, ...], NoDecode] = Field(
+        default=("CPUExecutionProvider",),
+        description=(
+            "onnxruntime execution providers in order of preference, comma-separated or a JSON list (e.g."
+            " `CUDAExecutionProvider,CPUExecutionProvider`; GPU install: docs/operations.md, Execution "
+            "providers and GPUs); one this onnxruntime lacks is refused at start-up (exit 2), and `GET "
+            "/v1/model` reports those in use"
+        ),
+    )
+    execution_provider_options: dict[str, dict[str, str]] = Field(
+        default_factory=dict,
+        description=(
+            'JSON options per provider, e.g. `{"CUDAExecutionProvider": {"device_id": "1"}}`, over the '
+            "service's own: CUDA runs with `use_tf32=0` and `cudnn_conv_algo_search=HEURISTIC` unless "
+            "told otherwise (TF32 makes the sets depend on the batch; docs/operations.md)"
+        ),
+    )
+    inference_threads: int = Field(
+        default=1, ge=0, description="onnxruntime intra-op threads per run (0 = ort default)"
+    )
+    solo_inference_threads: int = Field(
+        default=0,
+        ge=0,
+        description=(
+            "intra-op threads of a run while the server (all its workers) computes one request only (0 = "
+            "the usable cores, a cgroup CPU quota included; equal to `CKS_INFERENCE_THREADS` = off); used"
+            " only when timed faster than the one-thread run"
+        ),
+    )
+    inference_streams: int = Field(
+        default=2,
+        ge=1,
+        le=64,
+        description="onnxruntime runs in parallel when batching is on (about one per core)",
+    )
+    max_inference_batch: int = Field(
+        default=0,
+        ge=0,
+        le=1024,
+        description=(
+            "crops of concurrent requests merged into one run (0 = off: each request's crops are one run "
+            "on its own thread, concurrent runs in parallel; merging measured 3-8% less throughput at "
+            "concurrency 16 on 2 cores, docs/performance.md tuning, and less on a GPU)"
+        ),
+    )
+    batch_window_ms: float = Field(
+        default=0.0,
+        ge=0,
+        le=1000,
+        description=(
+            "how long a merged run waits for more crops once it has one (0: runs what is queued at once; "
+            'on the H200 measured it did not pay, docs/operations.md "Serving from a GPU")'
+        ),
+    )
+    cpu_workers: int = Field(
+        default=4, gt=0, description="threads for decode, crop and scoring off the event loop"
+    )
+
+    @field_validator("execution_providers", mode="before")
+    @classmethod
+    def _provider_list(cls, providers: object) -> object:
+        """``A,B`` or ``["A", "B"]``; whether this onnxruntime has them is checked when the model loads."""
+        if isinstance(providers, str) and providers.strip().startswith("["):
+            try:
+                providers = json.loads(providers)
+            except json.JSONDecodeError as error:
+                raise ValueError(f"not a JSON list ({error}); or names separated by commas") from None
+        elif isinstance(providers, str):
+            providers = [name.strip() for name in providers.split(",") if name.strip()]
+        if isinstance(providers, list | tuple) and not providers:
+            raise ValueError("name at least one, e.g. CPUExecutionProvider")
+        if isinstance(providers, list | tuple) and len(set(map(str, providers))) < len(providers):
+            raise ValueError("a provider is named twice: name each once, in order of preference")
+        return providers
+
+    @property
+    def solo_threads(self) -> int:
+        """Intra-op threads of a lone request's run (CKS_SOLO_INFERENCE_THREADS resolved; with
+        CKS_INFERENCE_THREADS=0 every run has onnxruntime's default already)."""
+        if self.inference_threads == 0:
+            return 0
+        return self.solo_inference_threads or usable_cores()
+
+
+class StorageSettings(_Group):
+    """Where the service writes, and the calibration store."""
+
+    data_dir: AbsolutePath = Field(
         default=Path("var"),
         description="where the service writes (SQLite store, uploads, metrics and activity files of"
         " several workers)",
@@ -34,23 +142,96 @@ class Settings(BaseSettings):
     store_url: str | None = Field(
         default=None, description="sqlite:///path or postgresql://...; default sqlite under data_dir"
     )
-    admin_token: str | None = Field(
-        default=None, description="bearer token for /v1/admin (operator 'admin'); unset disables it"
-    )
-    admin_tokens_file: Path | None = Field(
-        default=None, description="file of 'name:token' lines: named admin operators for the audit trail"
-    )
     bootstrap_calibration: bool = Field(
         default=True, description="load the model's bundled calibration as version 1 when the store has none"
     )
+    store_poll_seconds: float = Field(
+        default=1.0, gt=0, description="how often to look for a new active version"
+    )
+    store_timeout_seconds: float = Field(
+        default=1.5,
+        gt=0,
+        description=(
+            "longest wait for a PostgreSQL store connection; beyond it the store counts as unreachable "
+            "(admin calls answer 503, predictions go on from memory). A poll still running after twice "
+            "this (either store) counts as unreachable too"
+        ),
+    )
+    max_cache_staleness_seconds: float | None = Field(
+        default=None,
+        gt=0,
+        description=(
+            "`/readyz` answers 503 once the store has not confirmed the cached calibration for this long;"
+            " unset: never (predictions go on either way)"
+        ),
+    )
+
+    @field_validator("store_url")
+    @classmethod
+    def _known_store(cls, url: str | None) -> str | None:
+        """Refused when the settings are read, naming the setting, not when the store is opened."""
+        if url is None:
+            return None
+        scheme = url.partition(":")[0].lower()
+        if scheme == "sqlite":
+            sqlite_path(url)  # says what is wrong with a sqlite URL
+        elif scheme not in ("postgresql", "postgres"):
+            raise ValueError("use sqlite:///path/to/file.db or postgresql://user@host:port/database")
+        return url
+
+    @cached_property
+    def resolved_store_url(self) -> str:
+        if not self.store_url:
+            return f"sqlite:///{self.data_dir / 'calibrations.db'}"
+        if self.store_url.startswith("sqlite:") and not self.store_url.startswith("sqlite:///"):
+            return f"sqlite:///{sqlite_path(self.store_url).resolve()}"
+        return self.store_url
+
+    @property
+    def uploads_dir(self) -> Path:
+        """Uploads being received, in one folder per process (removed when the process stops)."""
+        return self.data_dir / "uploads"
+
+    @property
+    def jobs_dir(self) -> Path:
+        """Uploads kept for their jobs until they finish, so an interrupted job can be retried."""
+        return self.data_dir / "jobs"
+
+
+class AdminSettings(_Group):
+    """Who may use the admin API."""
+
+    admin_token: str | None = Field(
+        default=None, description="bearer token for /v1/admin (operator 'admin'); unset disables it"
+    )
+    admin_tokens_file: AbsolutePath | None = Field(
+        default=None, description="file of 'name:token' lines: named admin operators for the audit trail"
+    )
+
+
+class ServerSettings(_Group):
+    """The HTTP server: address, processes, connections and their timeouts."""
 
     host: str = Field(default="127.0.0.1", description="address to listen on")
     port: int = Field(default=8000, ge=1, le=65535, description="port to listen on")
     workers: int = Field(
-        default=1, ge=1, le=64, description="uvicorn worker processes (limits below are per process)"
+        default=1,
+        ge=1,
+        le=64,
+        description=(
+            "uvicorn worker processes (limits below are per process); jobs and `/metrics` cover all of "
+            "them. The threads of one process share one interpreter lock, so under many concurrent "
+            "clients 2 processes serve more (docs/performance.md, tuning) at some cost in one client's "
+            "latency; a keep-alive connection stays on its worker, so keep `CKS_INFERENCE_STREAMS` at "
+            "about one per core in each; a request alone in the server (the workers count their requests "
+            "in a small file under `CKS_DATA_DIR`/activity) still runs on every core. On a GPU the CPU "
+            "work is the bottleneck: about half the cores (docs/operations.md, Serving from a GPU)"
+        ),
     )
     max_connections: int = Field(
-        default=1000, ge=1, description="open connections per process; a request beyond gets 503"
+        default=1000,
+        ge=1,
+        description="open connections per process; a request beyond gets 503 (each takes a file descriptor)",
     )
     header_read_timeout_seconds: float = Field(
         default=10.0,
@@ -68,8 +249,15 @@ class Settings(BaseSettings):
     shutdown_grace_seconds: float = Field(
         default=20.0,
         ge=0,
-        description="on SIGTERM, longest wait for in-flight requests before running jobs are interrupted",
+        description=(
+            "on SIGTERM, longest wait for in-flight requests before running jobs are interrupted (see "
+            "Deployment)"
+        ),
     )
+
+
+class PredictSettings(_Group):
+    """Predict requests: body, image and instance limits, admission."""
 
     max_request_bytes: int = Field(default=20 * 2**20, gt=0, description="largest predict request body")
     max_image_pixels: int = Field(default=40_000_000, gt=0, description="largest width*height decoded")
@@ -78,8 +266,10 @@ class Settings(BaseSettings):
         default=16,
         gt=0,
         le=1024,
-        description="images per POST /v1/predict/batch request (each takes one admission place;"
-        " the body obeys CKS_MAX_REQUEST_BYTES)",
+        description=(
+            "images per `POST /v1/predict/batch` request (each takes one admission place; the body obeys "
+            "`CKS_MAX_REQUEST_BYTES`)"
+        ),
     )
     max_concurrent_inferences: int = Field(default=8, gt=0, description="predict requests computing at once")
     max_queued_requests: int = Field(
@@ -96,50 +286,18 @@ class Settings(BaseSettings):
     max_decoded_bytes: int = Field(
         default=256 * 2**20,
         gt=0,
-        description="memory one image may take to decode (its real bytes: 16-bit, alpha); 413 beyond",
+        description=(
+            "memory one image may take to decode (its real bytes: 16-bit, alpha); 413 beyond. At most "
+            "`CKS_CPU_WORKERS` images are decoded at once"
+        ),
     )
     queue_timeout_seconds: float = Field(
         default=10.0, gt=0, description="longest wait for a slot before a predict request gets 503"
     )
-    inference_threads: int = Field(
-        default=1, ge=0, description="onnxruntime intra-op threads per run (0 = ort default)"
-    )
-    solo_inference_threads: int = Field(
-        default=0,
-        ge=0,
-        description="intra-op threads of a run while the server (every worker) computes one request only"
-        " (0 = the cores this process may use; equal to CKS_INFERENCE_THREADS = off)",
-    )
-    inference_streams: int = Field(
-        default=2, ge=1, le=64, description="onnxruntime runs in parallel when batching (about one per core)"
-    )
-    max_inference_batch: int = Field(
-        default=0,
-        ge=0,
-        le=1024,
-        description="crops of concurrent requests merged into one run (0 = off: each request's crops are"
-        " one run, on its own thread; merging did not pay on the 2-core CPU nor on the GPU measured)",
-    )
-    cpu_workers: int = Field(
-        default=4, gt=0, description="threads for decode, crop and scoring off the event loop"
-    )
-    execution_providers: Annotated[tuple[str, ...], NoDecode] = Field(
-        default=("CPUExecutionProvider",),
-        description="onnxruntime execution providers in order of preference, comma-separated or a JSON"
-        " list, e.g. CUDAExecutionProvider,CPUExecutionProvider (GPU: the gpu extra, docs/operations.md);"
-        " one that this onnxruntime lacks is refused at start-up",
-    )
-    execution_provider_options: dict[str, dict[str, str]] = Field(
-        default_factory=dict,
-        description='JSON options per provider, e.g. {"CUDAExecutionProvider": {"device_id": "1"}}',
-    )
-    batch_window_ms: float = Field(
-        default=0.0,
-        ge=0,
-        le=1000,
-        description="how long a merged run waits for more crops once it has one (0 = runs what is queued"
-        " at once; on the GPU measured it did not pay, see docs/operations.md)",
-    )
+
+
+class CalibrationSettings(_Group):
+    """Calibration uploads and jobs: limits, the activation floor, difficulty strata."""
 
     max_upload_bytes: int = Field(default=2 * 2**30, gt=0, description="largest calibration zip")
     max_upload_files: int = Field(default=100_000, gt=0, description="most files in a calibration zip")
@@ -147,7 +305,12 @@ class Settings(BaseSettings):
         default=4 * 2**30, gt=0, description="most bytes once unzipped"
     )
     upload_read_timeout_seconds: float = Field(
-        default=3600.0, gt=0, description="longest time to receive a calibration upload (408 beyond)"
+        default=3600.0,
+        gt=0,
+        description=(
+            "longest time to receive a calibration upload (408 beyond; `CKS_MIN_BODY_BYTES_PER_SECOND` "
+            "applies too)"
+        ),
     )
     max_uploads_disk_bytes: int = Field(
         default=16 * 2**30,
@@ -172,27 +335,30 @@ class Settings(BaseSettings):
         default=3, ge=1, le=20, description="difficulty strata: quantile bins per signal"
     )
     min_stratum_instances: int = Field(
-        default=30, ge=1, description="difficulty strata: least calibration scores per bin (bins merge below)"
+        default=30,
+        ge=1,
+        description=(
+            "difficulty strata: least calibration scores per bin (bins merge below); bounded down to "
+            "epsilon = 1/31"
+        ),
     )
     max_rejected_share: float = Field(
         default=0.0, ge=0, le=1, description="share of a batch's instances that may be rejected (default)"
     )
 
-    store_poll_seconds: float = Field(
-        default=1.0, gt=0, description="how often to look for a new active version"
-    )
-    store_timeout_seconds: float = Field(
-        default=1.5,
-        gt=0,
-        description="longest wait for a PostgreSQL store connection; beyond it the store counts as"
-        " unreachable (admin calls answer 503, predictions go on from memory)",
-    )
-    max_cache_staleness_seconds: float | None = Field(
-        default=None,
-        gt=0,
-        description="/readyz answers 503 once the store has not confirmed the cached calibration for"
-        " this long; unset: never (predictions go on either way)",
-    )
+    @field_validator("stratum_signals")
+    @classmethod
+    def _stratum_signals(cls, value: str) -> str:
+        names = [name.strip() for name in value.split(",") if name.strip()]
+        unknown = [name for name in names if name not in HEATMAP_FEATURES]
+        if not 1 <= len(names) <= 2 or unknown or len(set(names)) != len(names):
+            raise ValueError(f"give one or two distinct heatmap features of {', '.join(HEATMAP_FEATURES)},"
+                             f" comma-separated; got {value!r}")  # fmt: skip
+        return ",".join(names)
+
+
+class DriftMonitorSettings(_Group):
+    """The label-free drift monitor."""
 
     drift_enabled: bool = Field(
         default=True,
@@ -233,6 +399,10 @@ class Settings(BaseSettings):
         default=60.0, gt=0, description="one point of the drift history this often (360 points kept)"
     )
 
+
+class LogSettings(_Group):
+    """Logging."""
+
     log_format: Literal["text", "json"] = Field(
         default="text",
         description="`text` (one line: UTC time, level, logger, [request id], message) or `json`"
@@ -248,82 +418,63 @@ class Settings(BaseSettings):
         description="one line per request: method, path, status, latency, request id, calibration version",
     )
 
-    @field_validator("stratum_signals")
-    @classmethod
-    def _stratum_signals(cls, value: str) -> str:
-        names = [name.strip() for name in value.split(",") if name.strip()]
-        unknown = [name for name in names if name not in HEATMAP_FEATURES]
-        if not 1 <= len(names) <= 2 or unknown or len(set(names)) != len(names):
-            raise ValueError(f"give one or two distinct heatmap features of {', '.join(HEATMAP_FEATURES)},"
-                             f" comma-separated; got {value!r}")  # fmt: skip
-        return ",".join(names)
-
     @field_validator("log_level", mode="before")
     @classmethod
     def _upper(cls, level: object) -> object:
         return level.upper() if isinstance(level, str) else level
 
-    @field_validator("execution_providers", mode="before")
-    @classmethod
-    def _provider_list(cls, providers: object) -> object:
-        """``A,B`` or ``["A", "B"]``; whether this onnxruntime has them is checked when the model loads."""
-        if isinstance(providers, str) and providers.strip().startswith("["):
+
+class Settings(BaseModel):
+    """Every setting of the service, by group."""
+
+    model_config = ConfigDict(frozen=True)
+
+    model: ModelSettings
+    storage: StorageSettings
+    admin: AdminSettings
+    server: ServerSettings
+    predict: PredictSettings
+    calibration: CalibrationSettings
+    drift: DriftMonitorSettings
+    logs: LogSettings
+
+    def __init__(self, **values: Any) -> None:
+        """Any setting by its field name (``data_dir=...``); the others from the environment."""
+        unknown = set(values) - set(Settings.fields())
+        if unknown:
+            raise TypeError(f"not settings: {', '.join(sorted(unknown))}")
+        groups, problems = {}, []
+        for name, group in _GROUPS.items():
             try:
-                providers = json.loads(providers)
-            except json.JSONDecodeError as error:
-                raise ValueError(f"not a JSON list ({error}); or names separated by commas") from None
-        elif isinstance(providers, str):
-            providers = [name.strip() for name in providers.split(",") if name.strip()]
-        if isinstance(providers, list | tuple) and not providers:
-            raise ValueError("name at least one, e.g. CPUExecutionProvider")
-        if isinstance(providers, list | tuple) and len(set(map(str, providers))) < len(providers):
-            raise ValueError("a provider is named twice: name each once, in order of preference")
-        return providers
+                groups[name] = group(
+                    **{key: value for key, value in values.items() if key in group.model_fields}
+                )
+            except ValidationError as error:  # every group's problems are told at once
+                problems += [
+                    {key: e[key] for key in ("type", "loc", "input", "ctx") if key in e}
+                    for e in error.errors()
+                ]
+        if problems:
+            raise ValidationError.from_exception_data("Settings", problems)
+        super().__init__(**groups)
 
-    @field_validator("store_url")
+    def value(self, name: str) -> Any:
+        """A setting by its field name, whatever its group."""
+        for group in (getattr(self, attribute) for attribute in _GROUPS):
+            if name in type(group).model_fields:
+                return getattr(group, name)
+        raise KeyError(name)
+
     @classmethod
-    def _known_store(cls, url: str | None) -> str | None:
-        """Refused when the settings are read, naming the setting, not when the store is opened."""
-        if url is None:
-            return None
-        scheme = url.partition(":")[0].lower()
-        if scheme == "sqlite":
-            sqlite_path(url)  # says what is wrong with a sqlite URL
-        elif scheme not in ("postgresql", "postgres"):
-            raise ValueError("use sqlite:///path/to/file.db or postgresql://user@host:port/database")
-        return url
+    def fields(cls) -> dict[str, FieldInfo]:
+        """Every setting's field, by name (the variable is ``CKS_`` + the name in capitals)."""
+        return {name: field for group in _GROUPS.values() for name, field in group.model_fields.items()}
 
-    @field_validator("data_dir", "model_dir", "admin_tokens_file")
-    @classmethod
-    def _absolute(cls, path: Path | None) -> Path | None:
-        """Resolved once, against the directory the service starts in, and said at start-up."""
-        return None if path is None else path.expanduser().resolve()
 
-    @cached_property
-    def resolved_store_url(self) -> str:
-        if not self.store_url:
-            return f"sqlite:///{self.data_dir / 'calibrations.db'}"
-        if self.store_url.startswith("sqlite:") and not self.store_url.startswith("sqlite:///"):
-            return f"sqlite:///{sqlite_path(self.store_url).resolve()}"
-        return self.store_url
-
-    @property
-    def solo_threads(self) -> int:
-        """Intra-op threads of a lone request's run (CKS_SOLO_INFERENCE_THREADS resolved; with
-        CKS_INFERENCE_THREADS=0 every run has onnxruntime's default already)."""
-        if self.inference_threads == 0:
-            return 0
-        return self.solo_inference_threads or usable_cores()
-
-    @property
-    def uploads_dir(self) -> Path:
-        """Uploads being received, in one folder per process (removed when the process stops)."""
-        return self.data_dir / "uploads"
-
-    @property
-    def jobs_dir(self) -> Path:
-        """Uploads kept for their jobs until they finish, so an interrupted job can be retried."""
-        return self.data_dir / "jobs"
+_GROUPS: dict[str, type[_Group]] = {
+    name: field.annotation
+    for name, field in Settings.model_fields.items()  # type: ignore[misc]
+}
 
 
 def usable_cores(cpu_max: Path = Path("/sys/fs/cgroup/cpu.max")) -> int:
@@ -335,3 +486,35 @@ def usable_cores(cpu_max: Path = Path("/sys/fs/cgroup/cpu.max")) -> int:
     except (OSError, ValueError):
         return cores
     return cores if quota == "max" else max(1, min(cores, int(quota) // int(period)))
+
+
+_SHOWN_DEFAULTS = {"model_dir": "models/lmo-synth-unet (bundled)", "store_url": "sqlite under CKS_DATA_DIR"}
+_TABLE = re.compile(
+    r"(<!-- settings table: python -m service.runtime.settings -->\n).*?(\n<!-- end of settings -->)", re.S
+)
+
+
+def settings_table() -> str:
+    """The README's Configuration table: a section per group, a row per setting."""
+    lines = []
+    for group in _GROUPS.values():
+        lines += [f"**{group.__doc__}**", "", "| variable | default | meaning |", "|---|---|---|"]
+        for name, field in group.model_fields.items():
+            default = _SHOWN_DEFAULTS.get(name, field.get_default(call_default_factory=True))
+            if isinstance(default, tuple):
+                default = ",".join(default)
+            lines.append(f"| `CKS_{name.upper()}` | `{default}` | {field.description} |")
+        lines.append("")
+    return "\n".join(lines).rstrip("\n")
+
+
+def readme_with_table(readme: str) -> str:
+    """``readme`` with its settings table made anew from the fields."""
+    if not _TABLE.search(readme):
+        raise ValueError("README.md has no settings table markers")
+    return _TABLE.sub(lambda match: match.group(1) + settings_table() + match.group(2), readme)
+
+
+if __name__ == "__main__":
+    README.write_text(readme_with_table(README.read_text(encoding="utf-8")), encoding="utf-8")
+    print(f"{README}: settings table written ({len(Settings.fields())} settings)", file=sys.stderr)

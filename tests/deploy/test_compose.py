@@ -23,7 +23,7 @@ def test_two_replicas_on_one_postgresql_in_a_health_checked_order() -> None:
     db, service, proxy = services["db"], services["keypoints"], services["proxy"]
     assert "pg_isready" in " ".join(db["healthcheck"]["test"])
     assert service["deploy"]["replicas"] == 2
-    assert int(service["stop_grace_period"].removesuffix("s")) > Settings().shutdown_grace_seconds
+    assert int(service["stop_grace_period"].removesuffix("s")) > Settings().server.shutdown_grace_seconds
     assert service["depends_on"]["db"]["condition"] == "service_healthy"
     assert proxy["depends_on"]["keypoints"]["condition"] == "service_healthy"  # the image's HEALTHCHECK
     assert service["environment"]["CKS_STORE_URL"].startswith("postgresql://")
@@ -42,7 +42,7 @@ def test_the_build_context_holds_the_dockerfile_and_secrets_are_files() -> None:
 def test_the_proxy_lets_uploads_through() -> None:
     conf = (COMPOSE / "nginx.conf").read_text(encoding="utf-8")
     assert "client_max_body_size 2g;" in conf
-    assert Settings().max_upload_bytes <= 2 * 2**30
+    assert Settings().calibration.max_upload_bytes <= 2 * 2**30
     mounted = compose()["services"]["proxy"]["volumes"][0].split(":")[0]
     assert (COMPOSE / mounted).resolve() == (COMPOSE / "nginx.conf").resolve()
 

@@ -102,11 +102,11 @@ def test_the_cuda_target_runs_onnxruntime_gpu_on_a_cuda_base(dockerfile) -> None
 def test_the_cuda_image_settings_are_valid_settings(dockerfile, monkeypatch) -> None:
     _, stages = dockerfile
     cuda_env = {k: v for k, v in env(named(stages, "cuda")).items() if k.startswith("CKS_")}
-    unknown = [k for k in cuda_env if k.removeprefix("CKS_").lower() not in Settings.model_fields]
+    unknown = [k for k in cuda_env if k.removeprefix("CKS_").lower() not in Settings.fields()]
     assert not unknown, f"the cuda stage sets settings the service does not read: {unknown}"
     for key, value in cuda_env.items():
         monkeypatch.setenv(key, value)
-    assert Settings().execution_providers[0] == "CUDAExecutionProvider"
+    assert Settings().model.execution_providers[0] == "CUDAExecutionProvider"
 
 
 def test_both_images_run_the_same_way(dockerfile) -> None:

@@ -114,12 +114,12 @@ def test_kustomization_applies_every_manifest_but_the_secrets_example() -> None:
 def test_every_setting_named_exists() -> None:
     for var in container()["env"]:
         name = var["name"]
-        assert name.startswith("CKS_") and name[4:].lower() in Settings.model_fields, f"no setting {name}"
+        assert name.startswith("CKS_") and name[4:].lower() in Settings.fields(), f"no setting {name}"
 
 
 def test_the_container_listens_where_the_service_and_probes_look(settings: Settings) -> None:
     ports = {port["name"]: port["containerPort"] for port in container()["ports"]}
-    assert settings.host == "0.0.0.0" and ports == {"http": settings.port}
+    assert settings.server.host == "0.0.0.0" and ports == {"http": settings.server.port}
     service_ports = applied("Service")["spec"]["ports"]
     assert [port["targetPort"] for port in service_ports] == ["http"]
 
@@ -152,7 +152,7 @@ def test_runs_as_the_image_user_on_a_read_only_root(settings: Settings) -> None:
     assert security["readOnlyRootFilesystem"] is True and security["allowPrivilegeEscalation"] is False
     assert security["capabilities"]["drop"] == ["ALL"]
     writable = emptydir_mounts()
-    assert str(settings.data_dir) in writable, "CKS_DATA_DIR is not writable"
+    assert str(settings.storage.data_dir) in writable, "CKS_DATA_DIR is not writable"
     assert tempfile.gettempdir() in writable, "multipart uploads spool to the temporary directory"
 
 
@@ -170,9 +170,11 @@ def test_credentials_come_from_the_secrets_the_example_shows(settings: Settings,
         if "secret" in volumes[mount["name"]]
         for key in secrets[volumes[mount["name"]]["secret"]["secretName"]]
     }
-    assert settings.admin_tokens_file in token_files, "CKS_ADMIN_TOKENS_FILE is not a mounted Secret key"
+    assert settings.admin.admin_tokens_file in token_files, (
+        "CKS_ADMIN_TOKENS_FILE is not a mounted Secret key"
+    )
     example = tmp_path / "tokens"
-    example.write_text(token_files[settings.admin_tokens_file], encoding="utf-8")
+    example.write_text(token_files[settings.admin.admin_tokens_file], encoding="utf-8")
     assert sorted(load_operators(None, example).values()) == ["alice", "bob"]
 
 
@@ -186,21 +188,24 @@ def test_resources_follow_docs_performance(settings: Settings) -> None:
     assert cpus and headline and rss_mib, f"{PERFORMANCE.name} no longer has the figures this test reads"
 
     for name, value in re.findall(r"`CKS_(\w+)=([^`]+)`", headline.group(1)):
-        assert str(getattr(settings, name.lower())) == value, f"pod CKS_{name} != measured {value}"
+        assert str(settings.value(name.lower())) == value, f"pod CKS_{name} != measured {value}"
     resources = container()["resources"]
     requests, limits = resources["requests"], resources["limits"]
     assert quantity(requests["cpu"]) == quantity(limits["cpu"]) == int(cpus.group(1))
 
     assert quantity(requests["memory"]) / MIB >= max(rss_mib)
-    decoded_at_once = settings.max_concurrent_inferences + settings.calibration_workers
-    images_mib = decoded_at_once * settings.max_image_pixels * RGB_BYTES_PER_PIXEL / MIB
+    decoded_at_once = settings.predict.max_concurrent_inferences + settings.calibration.calibration_workers
+    images_mib = decoded_at_once * settings.predict.max_image_pixels * RGB_BYTES_PER_PIXEL / MIB
     assert quantity(limits["memory"]) / MIB >= max(rss_mib) + images_mib
 
     writable = emptydir_mounts()
-    one_upload = settings.max_upload_bytes + settings.max_upload_uncompressed_bytes
-    assert quantity(writable[str(settings.data_dir)]["sizeLimit"]) >= one_upload
-    admitted = settings.max_concurrent_inferences + settings.max_queued_requests
-    assert quantity(writable[tempfile.gettempdir()]["sizeLimit"]) >= admitted * settings.max_request_bytes
+    one_upload = settings.calibration.max_upload_bytes + settings.calibration.max_upload_uncompressed_bytes
+    assert quantity(writable[str(settings.storage.data_dir)]["sizeLimit"]) >= one_upload
+    admitted = settings.predict.max_concurrent_inferences + settings.predict.max_queued_requests
+    assert (
+        quantity(writable[tempfile.gettempdir()]["sizeLimit"])
+        >= admitted * settings.predict.max_request_bytes
+    )
 
 
 def test_the_image_is_this_release() -> None:

@@ -346,15 +346,15 @@ def test_the_serve_config_builds_the_application(monkeypatch: pytest.MonkeyPatch
     module, _, name = app.import_path.partition(":")
     assert getattr(importlib.import_module(module), name) is build_app
     env = app.runtime_env["env_vars"]
-    assert [key for key in env if key.removeprefix("CKS_").lower() not in Settings.model_fields] == []
+    assert [key for key in env if key.removeprefix("CKS_").lower() not in Settings.fields()] == []
     for key, value in env.items():  # the builder runs in a Ray task with the application's runtime_env
         monkeypatch.setenv(key, value)
     assert isinstance(build_app(app.args), Application)
     settings = Settings()
     assert Scaling(**app.args).deployment_options(settings) == {
         "num_replicas": 2,
-        "max_ongoing_requests": settings.max_concurrent_inferences
-        + settings.max_queued_requests
+        "max_ongoing_requests": settings.predict.max_concurrent_inferences
+        + settings.predict.max_queued_requests
         + ADMIN_HEADROOM,
         "ray_actor_options": {"num_cpus": 1},
     }

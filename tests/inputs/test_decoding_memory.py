@@ -121,9 +121,9 @@ class TestBudget:
         """Issue 13: a 16-bit RGBA PNG of 6324x6324, under the pixel limit, added 1.5 GB of RSS."""
         data = flat_png(6324, 6324)
         header = read_image_header(data)
-        assert header.pixels <= Settings().max_image_pixels
+        assert header.pixels <= Settings().predict.max_image_pixels
         with pytest.raises(PayloadTooLarge) as refused:
-            decode_image(data, Settings().max_image_pixels, Settings().max_decoded_bytes)
+            decode_image(data, Settings().predict.max_image_pixels, Settings().predict.max_decoded_bytes)
         detail = refused.value.detail
         assert str(decoded_bytes(data, header)) in detail and "CKS_MAX_DECODED_BYTES" in detail, detail
         assert "6324x6324" in detail
@@ -213,5 +213,5 @@ def test_decoded_bytes_bound_the_real_peak(tmp_path: Path, kind: str) -> None:
 
 @pytest.mark.slow
 def test_a_refused_image_takes_no_memory(tmp_path: Path) -> None:
-    peak, error = peak_of_decode(tmp_path, flat_png(6324, 6324), Settings().max_decoded_bytes)
+    peak, error = peak_of_decode(tmp_path, flat_png(6324, 6324), Settings().predict.max_decoded_bytes)
     assert error == "PayloadTooLarge" and peak < 4 * MiB, (error, peak)

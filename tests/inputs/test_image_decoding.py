@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from service import image_decoding
+from service.detector import images as image_decoding
 from service.detector.images import ImageHeader, decode_image, read_image_header
 from service.errors import InvalidInput, PayloadTooLarge, UnsupportedMediaType
 from service.runtime.settings import DEFAULT_MODEL_DIR

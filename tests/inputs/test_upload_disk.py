@@ -56,7 +56,7 @@ def refused(bomb: Path, dest: Path, limits: ArchiveLimits, disk: DiskBudget | No
 
 def test_the_issue_bomb_is_beyond_the_default_uncompressed_limit() -> None:
     """Issue 13: a 7.5 GiB zip bomb was within the default limit and wrote 7.7 GB to disk."""
-    assert Settings().max_upload_uncompressed_bytes < 7.5 * 2**30
+    assert Settings().calibration.max_upload_uncompressed_bytes < 7.5 * 2**30
 
 
 def test_a_bomb_beyond_the_uncompressed_limit_writes_nothing(bomb: Path, tmp_path: Path) -> None:

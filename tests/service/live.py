@@ -3,7 +3,7 @@
 ``LiveServer`` starts the server the way production does (``keypoint-service serve``, run
 as ``python -m service.cli serve`` so that this checkout's code is served) with a given
 environment (a temporary data directory, an admin token, optionally a PostgreSQL store URL,
-the model directory from ``Settings().model_dir``), waits for ``/healthz`` and stops the
+the model directory from ``Settings().model.model_dir``), waits for ``/healthz`` and stops the
 process with SIGTERM at teardown. Helpers build COCO-keypoints batch zips from the model's
 bundled samples, optionally mutated, for the calibration upload tests.
 """
@@ -65,7 +65,7 @@ def free_port() -> int:
 
 def model_dir() -> Path:
     """The served model: CKS_MODEL_DIR, or the bundled one (never written to)."""
-    return Path(Settings().model_dir).resolve()
+    return Path(Settings().model.model_dir).resolve()
 
 
 def service_env(data_dir: Path, **settings: Any) -> dict[str, str]:
@@ -158,7 +158,7 @@ class LiveServer:
         if self.process is None or self.process.poll() is not None:
             return
         self.process.terminate()
-        default = Settings.model_fields["shutdown_grace_seconds"].default
+        default = Settings.fields()["shutdown_grace_seconds"].default
         grace = float(self.env.get("CKS_SHUTDOWN_GRACE_SECONDS", default))
         try:
             self.process.wait(timeout=grace + 10)

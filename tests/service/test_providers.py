@@ -30,13 +30,17 @@ AVAILABLE = ", ".join(ort.get_available_providers())
 )
 def test_the_setting_reads_a_comma_separated_or_json_list(monkeypatch, value: str, expected: tuple) -> None:
     monkeypatch.setenv("CKS_EXECUTION_PROVIDERS", value)
-    assert Settings().execution_providers == expected
+    assert Settings().model.execution_providers == expected
 
 
 @pytest.mark.parametrize(
     ("value", "message"),
-    [(" , ", "name at least one"), ("[]", "name at least one"), ('["CPU', "not a JSON list"),
-     (f"{CPU},{CPU}", "named twice")],
+    [
+        (" , ", "name at least one"),
+        ("[]", "name at least one"),
+        ('["CPU', "not a JSON list"),
+        (f"{CPU},{CPU}", "named twice"),
+    ],
 )
 def test_an_empty_or_malformed_list_is_refused(monkeypatch, value: str, message: str) -> None:
     monkeypatch.setenv("CKS_EXECUTION_PROVIDERS", value)
@@ -48,8 +52,8 @@ def test_the_defaults_keep_todays_behaviour(monkeypatch) -> None:
     for name in ("CKS_EXECUTION_PROVIDERS", "CKS_EXECUTION_PROVIDER_OPTIONS", "CKS_BATCH_WINDOW_MS"):
         monkeypatch.delenv(name, raising=False)
     settings = Settings()
-    assert settings.execution_providers == (CPU,) and settings.batch_window_ms == 0
-    assert settings.execution_provider_options == {}
+    assert settings.model.execution_providers == (CPU,) and settings.model.batch_window_ms == 0
+    assert settings.model.execution_provider_options == {}
 
 
 def test_the_server_reports_and_logs_the_providers_in_use(tmp_path: Path) -> None:

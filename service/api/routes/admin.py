@@ -156,11 +156,11 @@ async def receive_batch_zip(request: Request, state: ServiceState) -> tuple[Uplo
             f"send the batch as a zip body (Content-Type: application/zip), not {content_type!r}"
         )
     settings = state.settings
-    timeout = settings.upload_read_timeout_seconds
+    timeout = settings.calibration.upload_read_timeout_seconds
     pace = BodyPace.from_settings(settings, timeout, "CKS_UPLOAD_READ_TIMEOUT_SECONDS")
     workspace = await run_in_threadpool(UploadWorkspace.create, state.uploads_dir)
     try:
-        saved = await receive_upload(request, workspace.archive, settings.max_upload_bytes, pace)
+        saved = await receive_upload(request, workspace.archive, settings.calibration.max_upload_bytes, pace)
     except BaseException:
         await run_in_threadpool(workspace.remove)
         raise
@@ -250,7 +250,7 @@ async def compare_calibration(
         reference = state.registry.refresh_now() if against == "active" else int(against)
         if reference is not None and reference < 1:
             raise NotFound(f"calibration version {reference} does not exist for this model")
-        minimum = state.settings.min_calibration_instances
+        minimum = state.settings.calibration.min_calibration_instances
         return comparison_out(comparison_with(state.registry, state.detector.manifest, version, reference,
                                               minimum, epsilon, nonconformity))  # fmt: skip
 
@@ -271,7 +271,7 @@ async def activate_calibration(
     async with refusals_audited(state, who, "activation", version=version, reason=body.reason):
         entry, _ = await run_in_threadpool(
             activate, state.registry, state.detector.manifest, state.audit, request,
-            state.settings.min_calibration_instances,
+            state.settings.calibration.min_calibration_instances,
         )  # fmt: skip
     return activation_out(entry)
 
@@ -296,7 +296,7 @@ async def audit_trail(
 
 @router.get("/store", response_model=StoreInfo, summary="Which calibration store this server uses")
 async def store_info(state: State, _: Admin) -> StoreInfo:
-    kind, location = store_location(state.settings.resolved_store_url)
+    kind, location = store_location(state.settings.storage.resolved_store_url)
     active = await run_in_threadpool(state.registry.refresh_now)
-    return StoreInfo(kind=kind, location=location, data_dir=str(state.settings.data_dir),
+    return StoreInfo(kind=kind, location=location, data_dir=str(state.settings.storage.data_dir),
                      model_hash=state.detector.model_hash, active_version=active)  # fmt: skip

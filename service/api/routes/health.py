@@ -53,7 +53,7 @@ async def readyz(state: State) -> Readiness:
     registry = state.registry
     active = registry.resolve(None)  # 503: none active, or unusable; never waits on the store
     health = registry.health()
-    limit = state.settings.max_cache_staleness_seconds
+    limit = state.settings.storage.max_cache_staleness_seconds
     if limit is not None and health.age_seconds > limit:
         raise StoreUnreachable(
             f"the store has not confirmed the cached calibration for {health.age_seconds:.1f} s"
