@@ -54,7 +54,6 @@ if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from service.conformal import nonconformity_scores  # noqa: E402
-from service.conformal.kernel import native_kernel_available  # noqa: E402
 
 N_HEATMAPS, SIZE, TOP_K = 76, 64, 100
 SPEEDUP_GOAL = 20.0
@@ -114,13 +113,13 @@ def main() -> None:
     chosen = parser.parse_args().dtype
     dtypes = ("float32", "float64") if chosen == "both" else (chosen,)
     exact_heatmaps, keypoints = make_batch()
-    kernel = "built" if native_kernel_available() else "MISSING (needs a C compiler at install): numpy path"
     print(f"batch: {N_HEATMAPS} heatmaps {SIZE}x{SIZE}, top_k={TOP_K}, normalization=anchor")
-    print(f"native anchor kernel (service/conformal/kernel.py): {kernel}")
     print("loop: per heatmap, np.median anchor normalization, np.argpartition top K, np.linalg.inv")
     print(f"goal: vectorized >= {SPEEDUP_GOAL:.0f}x the loop for every score and dtype")
-    print(f"{'dtype':<9}{'kind':<6}{'loop us/hm':>11}{'vectorized us/hm':>18}{'speed-up':>10}"
-          f"{'goal':>9}{'load avg (1m)':>15}")
+    print(
+        f"{'dtype':<9}{'kind':<6}{'loop us/hm':>11}{'vectorized us/hm':>18}{'speed-up':>10}"
+        f"{'goal':>9}{'load avg (1m)':>15}"
+    )
     for name in dtypes:
         heatmaps = exact_heatmaps.astype(name)
         for kind in KINDS:
@@ -130,8 +129,10 @@ def main() -> None:
             vector_us = per_heatmap_us(partial(vectorized, kind, heatmaps, keypoints), 20)
             speedup = loop_us / vector_us
             verdict = "met" if speedup >= SPEEDUP_GOAL else "NOT met"
-            print(f"{name:<9}{kind:<6}{loop_us:>11.1f}{vector_us:>18.1f}{speedup:>9.1f}x{verdict:>9}"
-                  f"{os.getloadavg()[0]:>15.2f}")
+            print(
+                f"{name:<9}{kind:<6}{loop_us:>11.1f}{vector_us:>18.1f}{speedup:>9.1f}x{verdict:>9}"
+                f"{os.getloadavg()[0]:>15.2f}"
+            )
 
 
 if __name__ == "__main__":

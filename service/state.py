@@ -22,7 +22,6 @@ from service.calibration.registry import CalibrationRegistry
 from service.calibration.stratification import difficulty_spec
 from service.calibration.submission import CalibrationJobs, SubmissionSettings
 from service.calibration.uploads import process_uploads_dir, remove_spent_job_folders
-from service.conformal.kernel import native_kernel_available
 from service.detector.activity import worker_activity
 from service.detector.runtime import Detector
 from service.logs import ensure_logging
@@ -109,9 +108,6 @@ def build_state(settings: Settings) -> ServiceState:
              " active calibration version %s; admin operators: %s", detector.manifest.name,
              detector.model_hash, settings.model_dir, kind, location, settings.data_dir,
              registry.start(), names)  # fmt: skip
-    if not native_kernel_available():
-        log.warning("the native kernel (service/conformal/kernel.py) is not built: 'peak' runs on the "
-                    "slower numpy path; install a C compiler and reinstall the package")  # fmt: skip
     remove_spent_job_folders(settings.jobs_dir, store)
     jobs = JobRunner(store, settings.calibration_workers)
     audit = AuditTrail(store, detector.model_hash)
