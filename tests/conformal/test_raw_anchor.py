@@ -59,6 +59,20 @@ def test_isolated_detects_raw_values_merged_by_rounding():
     np.testing.assert_array_equal(isolated(values, minimum), [False, True])
 
 
+@pytest.mark.parametrize("width", [1, 2, 3, 4, 7, 8, 1023, 4095, 4096])
+def test_anchor_weights_are_those_of_np_median_bit_for_bit(width):
+    rng = np.random.default_rng(width)
+    noise = rng.normal(size=(20, width))
+    tail = rng.exponential(size=noise.shape) ** 8
+    for rows in (noise, np.round(noise * 2), noise * 1e300, noise * 1e-310, tail):
+        with np.errstate(over="ignore"):
+            weights = rows - rows.min(axis=1, keepdims=True)
+            expected = np.where(weights >= np.median(weights, axis=1, keepdims=True), weights, 0.0)
+            actual = normalized_weights(rows).weights
+        degenerate = ~np.isfinite(expected.sum(axis=1)) | (expected.sum(axis=1) <= 0)
+        assert actual[~degenerate].tobytes() == expected[~degenerate].tobytes()
+
+
 def test_rows_that_fail_the_shortcuts_take_the_exact_path():
     rng = np.random.default_rng(4)
     heatmaps, _ = gaussian_blobs(rng, 12, size=64, noise=0.02)
