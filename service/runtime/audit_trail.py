@@ -15,7 +15,7 @@ from typing import Any
 from calibration_store import CalibrationStore, NewAuditEntry, StoreError
 from service.runtime.logs import log_fields
 
-log = logging.getLogger("service.runtime.audit_trail")  # a stable name: operators route and filter these lines by it
+log = logging.getLogger("service.audit")  # a stable name: operators route and filter these lines by it
 
 
 @dataclass(frozen=True)

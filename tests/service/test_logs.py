@@ -198,7 +198,7 @@ def test_admin_actions_are_logged_with_who_what_outcome_and_the_request_id(
         "the audit and the access line of the activation",
         count=2,
     )
-    assert (audit["logger"], access["logger"]) == ("service.runtime.audit_trail", "service.access")
+    assert (audit["logger"], access["logger"]) == ("service.audit", "service.access")
     assert audit["message"] == (
         "audit action=activation outcome=activated who=admin client=127.0.0.1 version=1 previous_version=1"
         ' reason="re-pin v1"'
@@ -212,7 +212,7 @@ def test_admin_actions_are_logged_with_who_what_outcome_and_the_request_id(
     assert_problem(refused, 404)
     line = wait_for_line(
         lambda: text_lines(text_server.log()),
-        lambda line: line["request_id"] == "activate-2" and line["logger"] == "service.runtime.audit_trail",
+        lambda line: line["request_id"] == "activate-2" and line["logger"] == "service.audit",
         "the audit line of the refused activation",
     )
     assert line["message"].startswith("audit action=activation outcome=refused who=admin"), line
@@ -226,7 +226,7 @@ def test_admin_actions_are_logged_with_who_what_outcome_and_the_request_id(
     assert upload.status_code == 202, upload.text
     line = wait_for_line(
         lambda: text_lines(text_server.log()),
-        lambda line: line["request_id"] == "upload-1" and line["logger"] == "service.runtime.audit_trail",
+        lambda line: line["request_id"] == "upload-1" and line["logger"] == "service.audit",
         "the audit line of the upload",
     )
     assert line["message"].startswith("audit action=upload outcome=accepted who=admin"), line
@@ -311,7 +311,7 @@ def test_json_every_line_of_a_request_carries_its_id(json_server: tuple[httpx.Cl
         "the audit and the access line",
         count=2,
     )
-    assert audit["logger"] == "service.runtime.audit_trail"
+    assert audit["logger"] == "service.audit"
     assert (audit["action"], audit["outcome"], audit["who"], audit["reason"]) == (
         "activation", "activated", "admin", "json"
     )  # fmt: skip
