@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-import os
+from collections.abc import Mapping
 from functools import cached_property
 from pathlib import Path
 from typing import Annotated, Literal
@@ -17,6 +17,24 @@ from service.conformal.features import HEATMAP_FEATURES
 PACKAGE_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_MODEL_DIR = PACKAGE_ROOT / "models" / "lmo-synth-unet"
 
+_ONE_RUN = (
+    "micro-batching was removed (it lost on CPU and GPU, see CHANGELOG); each request's crops are one"
+    " run on its own thread, with CKS_INFERENCE_THREADS intra-op threads"
+)
+#: Settings no longer read, which an operator may still set: what replaced each.
+REMOVED_SETTINGS = {
+    "CKS_MAX_INFERENCE_BATCH": _ONE_RUN,
+    "CKS_INFERENCE_STREAMS": _ONE_RUN,
+    "CKS_BATCH_WINDOW_MS": _ONE_RUN,
+    "CKS_SOLO_INFERENCE_THREADS": "the lone-request session was removed (it did not pay, see CHANGELOG);"
+    " every run has CKS_INFERENCE_THREADS intra-op threads",
+}
+
+
+def removed_settings(environ: Mapping[str, str]) -> list[str]:
+    """One line for each removed setting that ``environ`` still sets."""
+    return [f"{name} is no longer read: {why}" for name, why in REMOVED_SETTINGS.items() if name in environ]
+
 
 class Settings(BaseSettings):
     """Service settings. Every field is an environment variable ``CKS_<FIELD>``."""
@@ -28,8 +46,7 @@ class Settings(BaseSettings):
     )
     data_dir: Path = Field(
         default=Path("var"),
-        description="where the service writes (SQLite store, uploads, metrics and activity files of"
-        " several workers)",
+        description="where the service writes (SQLite store, uploads, metrics files of several workers)",
     )
     store_url: str | None = Field(
         default=None, description="sqlite:///path or postgresql://...; default sqlite under data_dir"
@@ -104,22 +121,6 @@ class Settings(BaseSettings):
     inference_threads: int = Field(
         default=1, ge=0, description="onnxruntime intra-op threads per run (0 = ort default)"
     )
-    solo_inference_threads: int = Field(
-        default=0,
-        ge=0,
-        description="intra-op threads of a run while the server (every worker) computes one request only"
-        " (0 = the cores this process may use; equal to CKS_INFERENCE_THREADS = off)",
-    )
-    inference_streams: int = Field(
-        default=2, ge=1, le=64, description="onnxruntime runs in parallel when batching (about one per core)"
-    )
-    max_inference_batch: int = Field(
-        default=0,
-        ge=0,
-        le=1024,
-        description="crops of concurrent requests merged into one run (0 = off: each request's crops are"
-        " one run, on its own thread; merging did not pay on the 2-core CPU nor on the GPU measured)",
-    )
     cpu_workers: int = Field(
         default=4, gt=0, description="threads for decode, crop and scoring off the event loop"
     )
@@ -133,14 +134,6 @@ class Settings(BaseSettings):
         default_factory=dict,
         description='JSON options per provider, e.g. {"CUDAExecutionProvider": {"device_id": "1"}}',
     )
-    batch_window_ms: float = Field(
-        default=0.0,
-        ge=0,
-        le=1000,
-        description="how long a merged run waits for more crops once it has one (0 = runs what is queued"
-        " at once; on the GPU measured it did not pay, see docs/operations.md)",
-    )
-
     max_upload_bytes: int = Field(default=2 * 2**30, gt=0, description="largest calibration zip")
     max_upload_files: int = Field(default=100_000, gt=0, description="most files in a calibration zip")
     max_upload_uncompressed_bytes: int = Field(
@@ -308,14 +301,6 @@ class Settings(BaseSettings):
         return self.store_url
 
     @property
-    def solo_threads(self) -> int:
-        """Intra-op threads of a lone request's run (CKS_SOLO_INFERENCE_THREADS resolved; with
-        CKS_INFERENCE_THREADS=0 every run has onnxruntime's default already)."""
-        if self.inference_threads == 0:
-            return 0
-        return self.solo_inference_threads or usable_cores()
-
-    @property
     def uploads_dir(self) -> Path:
         """Uploads being received, in one folder per process (removed when the process stops)."""
         return self.data_dir / "uploads"
@@ -324,14 +309,3 @@ class Settings(BaseSettings):
     def jobs_dir(self) -> Path:
         """Uploads kept for their jobs until they finish, so an interrupted job can be retried."""
         return self.data_dir / "jobs"
-
-
-def usable_cores(cpu_max: Path = Path("/sys/fs/cgroup/cpu.max")) -> int:
-    """The cores this process may run on: its CPU affinity, capped by a cgroup v2 CPU quota (a
-    container limited to 2 CPUs on a 64-core node can use 2)."""
-    cores = len(os.sched_getaffinity(0))
-    try:
-        quota, period = cpu_max.read_text().split()[:2]
-    except (OSError, ValueError):
-        return cores
-    return cores if quota == "max" else max(1, min(cores, int(quota) // int(period)))

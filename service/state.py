@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import shutil
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -23,14 +24,13 @@ from service.calibration.stratification import difficulty_spec
 from service.calibration.submission import CalibrationJobs, SubmissionSettings
 from service.calibration.uploads import process_uploads_dir, remove_spent_job_folders
 from service.conformal.kernel import native_kernel_available
-from service.detector.activity import worker_activity
 from service.detector.runtime import Detector
 from service.logs import ensure_logging
 from service.metrics import forget_drift_source, set_drift_source
 from service.monitoring.audits import CoverageAudits
 from service.monitoring.drift import DriftMonitor, DriftSettings
 from service.operators import load_operators
-from service.settings import Settings
+from service.settings import Settings, removed_settings
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +70,6 @@ class ServiceState:
         shutil.rmtree(process_uploads_dir(self.uploads_dir), ignore_errors=True)  # cancelled jobs' uploads
         self.cpu_pool.shutdown(wait=True, cancel_futures=True)
         self.store.close()
-        self.detector.close()
         log.info("shutdown: done in %.2f s", time.monotonic() - started)
 
 
@@ -80,21 +79,14 @@ def build_state(settings: Settings) -> ServiceState:
     Also turns OpenCV's internal threading off for the process (``cv2.setNumThreads(1)``).
     """
     ensure_logging(settings)
+    for line in removed_settings(os.environ):
+        log.warning(line)
     operators = load_operators(settings.admin_token, settings.admin_tokens_file)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     # Process-wide: requests already run in parallel on cpu_pool, and OpenCV's own pool would
     # split each small crop across helper threads that spin while they wait.
     cv2.setNumThreads(1)
-    detector = Detector(
-        settings.model_dir,
-        settings.inference_threads,
-        settings.max_inference_batch,
-        settings.inference_streams,
-        **detector_providers(settings),
-        batch_window_s=settings.batch_window_ms / 1000,
-        solo_threads=settings.solo_threads,
-        activity=worker_activity(),
-    )
+    detector = Detector(settings.model_dir, settings.inference_threads, **detector_providers(settings))
     log.info("onnxruntime execution providers in use: %s", ", ".join(detector.execution_providers))
     kind, location = store_location(settings.resolved_store_url)
     # SQLite keeps its busy timeout: a write waiting on another writer is no outage

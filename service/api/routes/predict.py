@@ -166,13 +166,12 @@ async def predict_route(request: Request, state: State) -> Response:
 
 def _respond(state: ServiceState, image_bytes: bytes, parameters: PredictParameters, png: bool) -> Response:
     manifest = state.detector.manifest
-    with state.detector.computing():
-        image = decode_image(image_bytes, state.settings.max_image_pixels, state.settings.max_decoded_bytes)
-        height, width = image.shape[:2]
-        check_instances(parameters.instances, manifest, width, height, state.settings.max_instances)
-        pose = pose_options(parameters, manifest)  # refused before the model runs
-        prediction = predict(state, image, parameters, pose, instances_checked=True)
-        body = predict_body(prediction, parameters, manifest)
+    image = decode_image(image_bytes, state.settings.max_image_pixels, state.settings.max_decoded_bytes)
+    height, width = image.shape[:2]
+    check_instances(parameters.instances, manifest, width, height, state.settings.max_instances)
+    pose = pose_options(parameters, manifest)  # refused before the model runs
+    prediction = predict(state, image, parameters, pose, instances_checked=True)
+    body = predict_body(prediction, parameters, manifest)
     note_calibration_version(prediction.version)
     if png:
         camera = np.asarray(parameters.pose.K) if parameters.pose is not None else None

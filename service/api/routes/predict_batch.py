@@ -5,8 +5,8 @@ A problem of one image (its JSON, its decoding, its boxes, no compute slot in ti
 that image's item, with the status it would have had on POST /v1/predict, and the others
 are answered. Admission counts images: a batch of n takes n places, so batching cannot get
 round CKS_MAX_CONCURRENT_INFERENCES and CKS_MAX_QUEUED_REQUESTS; its images compute in
-parallel, one slot each, and their crops meet in the detector's micro-batches. The body is
-read, each image's request checked and each image answered by predict's own steps.
+parallel, one slot and one run each. The body is read, each image's request checked and each
+image answered by predict's own steps.
 """
 
 from __future__ import annotations
