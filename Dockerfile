@@ -30,8 +30,7 @@ RUN apt-get update && apt-get install -y --no-install-recommends python3.11 pyth
 
 FROM cuda-python AS cuda
 # Measured on an H200 (docs/operations.md, Serving from a GPU): the CPU work, not the model, is
-# the bottleneck, so several workers (about half the host's cores: -e CKS_WORKERS=N) and no
-# cross-request batching serve the most.
+# the bottleneck, so several workers (about half the host's cores: -e CKS_WORKERS=N) serve the most.
 ENV PYTHONUNBUFFERED=1 \
     CKS_HOST=0.0.0.0 \
     CKS_PORT=8000 \
@@ -39,7 +38,6 @@ ENV PYTHONUNBUFFERED=1 \
     CKS_MODEL_DIR=/app/models/lmo-synth-unet \
     CKS_EXECUTION_PROVIDERS=CUDAExecutionProvider,CPUExecutionProvider \
     CKS_WORKERS=4 \
-    CKS_MAX_INFERENCE_BATCH=0 \
     CKS_MAX_CONCURRENT_INFERENCES=16
 WORKDIR /app
 COPY --from=build /wheels /wheels

@@ -36,7 +36,7 @@ def log(message: str) -> None:
 
 def headline_settings() -> dict[str, int]:
     settings = Settings()
-    return {name: getattr(settings, name) for name in runs.SETTING_NAMES}
+    return {name: settings.value(name) for name in runs.SETTING_NAMES}
 
 
 def breakdowns(model_dir: Path, sample: Sample, threads: int, iterations: int) -> dict[int, dict[str, float]]:

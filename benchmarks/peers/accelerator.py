@@ -23,7 +23,6 @@ CUDA_SETTINGS = {"CKS_EXECUTION_PROVIDERS": f"{CUDA},CPUExecutionProvider"}
 GPU_SETTINGS = {
     **CUDA_SETTINGS,
     "CKS_WORKERS": str(max(1, len(os.sched_getaffinity(0)) // 2)),
-    "CKS_MAX_INFERENCE_BATCH": "0",
     "CKS_CPU_WORKERS": "4",
     "CKS_MAX_CONCURRENT_INFERENCES": "16",
 }

@@ -1,11 +1,11 @@
 """Which service settings serve best on this GPU: each variant started in turn, four wrk points.
 
     python -m benchmarks.peers.gpu_tuning            # every variant, ~5 min
-    python -m benchmarks.peers.gpu_tuning batching    # the variants whose name has "batching"
+    python -m benchmarks.peers.gpu_tuning workers     # the variants whose name has "workers"
 
 Every variant starts from ``benchmarks.peers.accelerator.CUDA_SETTINGS`` (the CUDA provider,
-with the service's heuristic cuDNN algorithms and TF32 off) and changes the batching,
-processes and threads; after a warm-up, wrk measures 1 box at concurrency 1, 4 and 16 and 4
+with the service's heuristic cuDNN algorithms and TF32 off) and changes the processes and
+threads; after a warm-up, wrk measures 1 box at concurrency 1, 4 and 16 and 4
 boxes at 16, 4 s each. The figures in docs/operations.md ("Serving from a GPU") come from
 this command on an H200.
 """
@@ -28,36 +28,20 @@ SECONDS = 4
 
 #: name -> CKS_* settings over CUDA_SETTINGS
 VARIANTS = {
-    "batching 64, window 2 ms (the cuda image before)": {
-        "CKS_MAX_INFERENCE_BATCH": "64", "CKS_BATCH_WINDOW_MS": "2",
-    },
-    "batching 64, window 0": {"CKS_MAX_INFERENCE_BATCH": "64"},
-    "batching 64, window 2 ms, 1 stream": {
-        "CKS_MAX_INFERENCE_BATCH": "64", "CKS_BATCH_WINDOW_MS": "2", "CKS_INFERENCE_STREAMS": "1",
-    },
-    "batching off": {"CKS_MAX_INFERENCE_BATCH": "0"},
-    "batching off, 8 cpu workers, 32 inferences": {
-        "CKS_MAX_INFERENCE_BATCH": "0", "CKS_CPU_WORKERS": "8", "CKS_MAX_CONCURRENT_INFERENCES": "32",
-    },
-    "batching 64, window 0, 8 cpu workers, 32 inferences": {
-        "CKS_MAX_INFERENCE_BATCH": "64", "CKS_CPU_WORKERS": "8", "CKS_MAX_CONCURRENT_INFERENCES": "32",
-    },
-    "batching off, 16 cpu workers, 64 inferences": {
-        "CKS_MAX_INFERENCE_BATCH": "0", "CKS_CPU_WORKERS": "16", "CKS_MAX_CONCURRENT_INFERENCES": "64",
-    },
-    "batching off, 4 workers, 8 cpu workers, 32 inferences": {
-        "CKS_MAX_INFERENCE_BATCH": "0", "CKS_WORKERS": "4", "CKS_CPU_WORKERS": "8",
+    "defaults": {},
+    "8 cpu workers, 32 inferences": {"CKS_CPU_WORKERS": "8", "CKS_MAX_CONCURRENT_INFERENCES": "32"},
+    "16 cpu workers, 64 inferences": {"CKS_CPU_WORKERS": "16", "CKS_MAX_CONCURRENT_INFERENCES": "64"},
+    "4 workers, 8 cpu workers, 32 inferences": {
+        "CKS_WORKERS": "4",
+        "CKS_CPU_WORKERS": "8",
         "CKS_MAX_CONCURRENT_INFERENCES": "32",
     },
-    "batching off, 8 workers, 4 cpu workers, 16 inferences": {
-        "CKS_MAX_INFERENCE_BATCH": "0", "CKS_WORKERS": "8", "CKS_CPU_WORKERS": "4",
+    "8 workers, 4 cpu workers, 16 inferences": {
+        "CKS_WORKERS": "8",
+        "CKS_CPU_WORKERS": "4",
         "CKS_MAX_CONCURRENT_INFERENCES": "16",
     },
-    "batching 8, window 0, 4 workers, 8 cpu workers, 32 inferences": {
-        "CKS_MAX_INFERENCE_BATCH": "8", "CKS_WORKERS": "4", "CKS_CPU_WORKERS": "8",
-        "CKS_MAX_CONCURRENT_INFERENCES": "32",
-    },
-}  # fmt: skip
+}
 
 
 def measure_variant(settings: dict[str, str], requests: Requests, log: Path) -> list[str]:

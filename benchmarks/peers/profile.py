@@ -31,7 +31,6 @@ STAGES = (
     ("response data + JSON", ("predict", "predict_body", "predict_json", "model_dump_json", "_respond")),
     ("multipart parsing", ("MultiPartParser", "MultipartParser", "Request.form", "_parse_multipart")),
     ("validation (pydantic)", ("model_validate_json", "_validated")),
-    ("batching hand-offs", ("MicroBatcher", "Future.set_result", "_split")),
     ("body reading", ("read_limited_body", "paced_chunks", "receive")),
 )  # fmt: skip
 OTHER = "HTTP, routing, middleware, event loop"

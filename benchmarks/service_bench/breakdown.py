@@ -1,7 +1,7 @@
 """Where the time of one predict request goes, timed in-process on the functions the route calls.
 
 Stages, in the route's order: ``decode_image`` -> ``build_batch`` (crop + normalize) ->
-``Detector.run_session`` (inference) -> ``calibrated_sets`` (heatmap statistics and
+``Detector.run`` (inference) -> ``calibrated_sets`` (heatmap statistics and
 sets) -> the rest of ``predict`` (checks, thresholds lookup) and the response body's data
 (``predict_body``; timed with the two previous stages' results cached) -> its JSON
 (``predict_json``), as the route writes them. Each iteration runs every stage once,
@@ -36,13 +36,12 @@ STAGES = ("decode", "crop", "inference", "sets", "response", "json")
 
 @contextmanager
 def service_state(model_dir: Path, inference_threads: int) -> Iterator[ServiceState]:
-    """The service's own state (model, store with the bundled calibration), batching off."""
+    """The service's own state (model, store with the bundled calibration)."""
     with tempfile.TemporaryDirectory(prefix="cks-bench-state-") as data_dir:
         settings = Settings(
             model_dir=model_dir,
             data_dir=Path(data_dir),
             inference_threads=inference_threads,
-            max_inference_batch=0,
         )
         state = build_state(settings)
         try:
@@ -91,7 +90,7 @@ def _one_iteration(state: ServiceState, sample: Sample, parameters: PredictParam
     ms: dict[str, float] = {}
     ms["decode"], image = _timed(lambda: decode_image(sample.jpeg, limit))
     ms["crop"], (batch, affines) = _timed(lambda: build_batch(image, sample.boxes, manifest))
-    ms["inference"], out = _timed(lambda: detector.run_session(batch))
+    ms["inference"], out = _timed(lambda: detector.run(batch))
     result = _heatmaps(state, out, sample, affines)
     version = registry.resolve(parameters.calibration_version)
     thresholds = registry.thresholds(

@@ -63,13 +63,10 @@ class Calibration:
 def calibration_scoring(samples_dir: Path, model_dir: Path, threads: int) -> tuple[int, float]:
     """``(instances, seconds)`` to score the COCO samples folder as ``keypoint-service calibrate`` does."""
     detector = Detector(model_dir, threads)
-    try:
-        batch = load_coco_batch(samples_dir, detector.manifest)
-        start = time.perf_counter()
-        score_batch(batch, "samples", detector, ScoreAccumulator(), max_image_pixels=10**9)
-        return batch.count, time.perf_counter() - start
-    finally:
-        detector.close()
+    batch = load_coco_batch(samples_dir, detector.manifest)
+    start = time.perf_counter()
+    score_batch(batch, "samples", detector, ScoreAccumulator(), max_image_pixels=10**9)
+    return batch.count, time.perf_counter() - start
 
 
 def store_write(instances: int, repeat: int) -> list[float]:

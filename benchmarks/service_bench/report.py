@@ -7,14 +7,14 @@ from dataclasses import dataclass
 from benchmarks.service_bench.breakdown import STAGES
 from benchmarks.service_bench.machine import Machine
 from benchmarks.service_bench.offline import Calibration, PostProcessing
-from benchmarks.service_bench.runs import BATCHED_CROPS, Memory, Point, Variant, batched_callers
+from benchmarks.service_bench.runs import BATCHED_CROPS, Memory, Point, Variant
 
 RATIO_GOAL, SPEEDUP_GOAL, MEMORY_GOAL = 0.85, 20.0, 0.05
 NOISE = 0.10  # throughput changes smaller than this are not called an effect
 STAGE_LABELS = {
     "decode": "decode (`decode_image`)",
     "crop": "crop + normalize (`build_batch`)",
-    "inference": "inference (`Detector.run_session`)",
+    "inference": "inference (`Detector.run`)",
     "sets": "scoring / sets (`calibrated_sets`)",
     "response": "response data (`predict_body`)",
     "json": "JSON (`predict_json`)",
@@ -53,13 +53,6 @@ def summary(r: Results) -> list[str]:
             f"| service / raw throughput at concurrency 16, {count} instance(s) >= {RATIO_GOAL} "
             f"| {ratio:.2f} | {_ok(ratio >= RATIO_GOAL)} |"
         )
-    crops_per_s = r.extra["batched"].runs_per_s * BATCHED_CROPS
-    for count in (1, 4):
-        ratio = r.point(count, 16).service.requests_per_s * count / crops_per_s
-        lines.append(
-            f"| same, against the raw session in batches of {BATCHED_CROPS} crops, {count} instance(s) "
-            f"| {ratio:.2f} | {_ok(ratio >= RATIO_GOAL)} |"
-        )
     worst = min(r.post, key=lambda p: p.speedup)
     lines.append(
         f"| post-processing vs per-heatmap loop >= {SPEEDUP_GOAL:.0f}x (slowest function) "
@@ -93,24 +86,6 @@ def throughput(r: Results) -> list[str]:
             f"| {p.raw_requests_per_s:.1f} | {p.raw.p50_ms:.1f} | **{p.ratio:.2f}** | {s.errors} "
             f"| {s.loadgen_cpu_share:.0%} | {p.load_1m:.1f} |"
         )
-    return lines
-
-
-def batched(r: Results) -> list[str]:
-    crops_per_s = r.extra["batched"].runs_per_s * BATCHED_CROPS
-    callers = batched_callers(r.settings)
-    lines = [
-        f"Raw session with the batching the service does: batches of {BATCHED_CROPS} crops, {callers} "
-        f"caller(s) (`CKS_INFERENCE_STREAMS` x `CKS_WORKERS`, as many as the service's inference threads): "
-        f"**{crops_per_s:.1f} crops/s**.",
-        "",
-        "| instances | service req/s at c=16 | raw batched, request-equivalents/s | service / raw batched |",
-        "|---|---|---|---|",
-    ]
-    for count in (1, 4):
-        service = r.point(count, 16).service.requests_per_s
-        equivalent = crops_per_s / count
-        lines.append(f"| {count} | {service:.1f} | {equivalent:.1f} | {service / equivalent:.2f} |")
     return lines
 
 
@@ -184,8 +159,7 @@ def ceiling(r: Results) -> list[str]:
         lines.append(
             f"- {count} instance(s): inference is {stages['inference']:.1f} ms of {total:.1f} ms per request "
             f"(p50 at concurrency 1), so with every stage CPU-bound on the same cores the service can "
-            f"reach about **{stages['inference'] / total:.2f}** of the raw per-request throughput, "
-            "unless merged batches make inference cheaper per crop."
+            f"reach about **{stages['inference'] / total:.2f}** of the raw per-request throughput."
         )
     lines.extend(overhead_bound(r))
     unbatched = r.point(1, 1).raw.runs_per_s
@@ -287,23 +261,13 @@ def render(r: Results) -> str:
         "",
         *throughput(r),
         "",
-        "**Batching is not the same on both sides.** With `CKS_MAX_INFERENCE_BATCH > 0` the service merges "
-        "the crops of concurrent requests into one onnxruntime run (up to that many crops, on "
-        "`CKS_INFERENCE_STREAMS` inference threads per worker; at most `CKS_MAX_CONCURRENT_INFERENCES` "
-        "requests are inside `predict` at once), while the per-request raw "
-        "baseline above never merges. A ratio above 1 at high concurrency is therefore possible and "
-        "means batching wins more than the service overhead costs. For the fair upper bound, here is the "
-        "raw session with the batching:",
-        "",
-        *batched(r),
-        "",
         f"JSON body (base64 image) instead of multipart, concurrency 16: "
         f"{r.extra['json-1'].requests_per_s:.1f} req/s (1 instance), "
         f"{r.extra['json-4'].requests_per_s:.1f} req/s (4 instances).",
         "",
         "## Where the time goes (one request, in-process)",
         "",
-        "Median of repeated single-threaded calls of the functions the route calls, micro-batching off "
+        "Median of repeated single-threaded calls of the functions the route calls "
         "(`rest of predict` = `predict()` with the inference and `calibrated_sets` results cached). "
         "The last stage is the service's p50 at concurrency 1 minus the in-process sum: "
         "multipart parsing, pydantic validation, the event loop, thread-pool hand-offs and the socket.",

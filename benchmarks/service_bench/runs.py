@@ -20,10 +20,7 @@ from service.detector.preprocess import build_batch
 CONCURRENCIES = (1, 4, 16)
 INSTANCE_COUNTS = (1, 4)
 BATCHED_CROPS = 16
-SETTING_NAMES = (
-    "workers", "inference_threads", "solo_inference_threads", "inference_streams", "max_inference_batch",
-    "max_concurrent_inferences", "cpu_workers",
-)  # fmt: skip
+SETTING_NAMES = ("workers", "inference_threads", "max_concurrent_inferences", "cpu_workers")
 
 
 @dataclass(frozen=True)
@@ -124,11 +121,6 @@ def raw_point(
     )  # fmt: skip
 
 
-def batched_callers(settings: dict[str, int]) -> int:
-    """Threads running merged batches in the service: the inference streams of every worker."""
-    return settings["inference_streams"] * settings["workers"]
-
-
 def warm_up(server: Server, space: Workspace, plan: Plan) -> None:
     for count in INSTANCE_COUNTS:
         run_wrk(server.url, space.scripts[count, "multipart"], 4, plan.warmup_seconds)
@@ -162,12 +154,6 @@ def headline(
                 log(format_point(points[-1]))
             extra[f"json-{count}"] = run_wrk(server.url, space.scripts[count, "json"], 16, plan.seconds)
             log(f"JSON body, {count} instance(s), c=16: {extra[f'json-{count}'].requests_per_s:.1f} req/s")
-    callers = batched_callers(space.settings)
-    extra["batched"] = raw_point(space, BATCHED_CROPS, callers, plan.seconds)
-    log(
-        f"raw batches of {BATCHED_CROPS} crops, {callers} caller(s): "
-        f"{extra['batched'].runs_per_s * BATCHED_CROPS:.1f} crops/s"
-    )
     extra["batched-1"] = raw_point(space, BATCHED_CROPS, 1, plan.tuning_seconds)
     crops_per_s = extra["batched-1"].runs_per_s * BATCHED_CROPS
     log(f"raw batches of {BATCHED_CROPS} crops, 1 caller: {crops_per_s:.1f} crops/s")
@@ -195,14 +181,6 @@ class Variant:
 
 TUNING = (
     Variant("CKS_WORKERS=2 (a process per core)", {"workers": 2}),
-    Variant(
-        "CKS_MAX_INFERENCE_BATCH=32 (micro-batching on two streams, the former default)",
-        {"max_inference_batch": 32},
-    ),
-    Variant(
-        "CKS_MAX_INFERENCE_BATCH=32, CKS_INFERENCE_STREAMS=1 (micro-batching on one stream)",
-        {"max_inference_batch": 32, "inference_streams": 1},
-    ),
     Variant("CKS_INFERENCE_THREADS=2 (two intra-op threads per run)", {"inference_threads": 2}),
     Variant("CKS_MAX_CONCURRENT_INFERENCES=16", {"max_concurrent_inferences": 16}),
     Variant("CKS_CPU_WORKERS=2", {"cpu_workers": 2}),

@@ -4,17 +4,13 @@ from __future__ import annotations
 
 import hashlib
 import time
-from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
 
-from service.detector.activity import Activity
-from service.detector.batching import MicroBatcher
-from service.detector.chooser import FasterWay
 from service.detector.manifest import MODEL_FILENAME, Manifest, ManifestError, load_manifest
 from service.detector.preprocess import build_batch
 from service.errors import InvalidInput
@@ -60,94 +56,39 @@ class Detector:
     def __init__(
         self,
         model_dir: Path,
-        intra_op_threads: int = 0,
-        max_batch: int = 0,
-        streams: int = 1,
+        threads: int = 0,
         *,
         providers: Sequence[str] = CPU,
         provider_options: Mapping[str, Mapping[str, str]] | None = None,
-        batch_window_s: float = 0.0,
-        solo_threads: int | None = None,
-        activity: Activity | None = None,
     ) -> None:
-        """``solo_threads``: intra-op threads of a second session for requests that run alone (None
-        or ``intra_op_threads``: none). A request alone in the process (``computing``) runs either
-        as every other (``intra_op_threads``) or wide (its crops split across idle ``streams``, or
-        on ``solo_threads``), whichever has been faster lately (``chooser``): a lone client gets
-        every core when that pays, and many clients share the cores through ``streams`` runs.
-        ``activity``: where requests being computed are counted (default: this process only; with
-        several workers, ``activity.worker_activity()`` counts every worker's)."""
+        """``threads``: onnxruntime intra-op threads of each run (0: onnxruntime's default)."""
         model_dir = Path(model_dir)
         self.manifest = _load_manifest(model_dir)
         model_path = model_dir / MODEL_FILENAME
         if not model_path.is_file():
             raise ModelMismatch(f"{model_path} does not exist")
         self.model_hash = file_sha256(model_path)
-        self._session = create_session(model_path, intra_op_threads, providers, provider_options)
-        self._solo_session = (
-            create_session(model_path, solo_threads, spinning=False)
-            if solo_threads is not None and solo_threads != intra_op_threads and tuple(providers) == CPU
-            else None
-        )
-        self._activity = activity or Activity()
-        self._ways = FasterWay()
+        self._session = create_session(model_path, threads, providers, provider_options)
         _check_graph(self._session, self.manifest)
         self._check_output_shape()
-        self._batcher = (
-            MicroBatcher(self.run_session, max_batch, streams, batch_window_s, run_wide=self._run_solo)
-            if max_batch > 0
-            else None
-        )
 
     @property
     def execution_providers(self) -> list[str]:
         """The providers the session really runs on, in onnxruntime's order of preference."""
         return self._session.get_providers()
 
-    def run_session(self, batch: np.ndarray) -> np.ndarray:
-        """``(N, C, H, W)`` float32 input -> ``(N, K, h, w)`` float32 heatmaps, on this thread."""
-        return self._run(self._session, batch)
-
-    def _run_solo(self, batch: np.ndarray) -> np.ndarray:
-        return self._run(self._solo_session or self._session, batch)
-
-    def _run(self, session: ort.InferenceSession, batch: np.ndarray) -> np.ndarray:
+    def run(self, batch: np.ndarray) -> np.ndarray:
+        """``(N, C, H, W)`` float32 input -> ``(N, K, h, w)`` float32 heatmaps, in one run on this
+        thread (concurrent requests run in parallel on their own threads)."""
         spec = self.manifest
         started = time.perf_counter()
-        heatmaps = session.run([spec.output.name], {spec.input.name: batch})[0]
+        heatmaps = self._session.run([spec.output.name], {spec.input.name: batch})[0]
         INFERENCE_SECONDS.observe(time.perf_counter() - started)
         BATCH_SIZE.observe(len(batch))
         return heatmaps
 
-    def run(self, batch: np.ndarray) -> np.ndarray:
-        """Like ``run_session``, merged with concurrent callers' crops when batching is on; a
-        request alone in the process may run wide (see ``__init__``)."""
-        can_widen = self._solo_session is not None or (self._batcher is not None and len(batch) > 1)
-        if not can_widen or self._activity.total() > 1:
-            return self._batcher.run(batch) if self._batcher else self.run_session(batch)
-        wide = self._ways.pick(len(batch))
-        started = time.perf_counter()
-        if self._batcher:
-            heatmaps = self._batcher.run(batch, wide)
-        else:
-            heatmaps = self._run_solo(batch) if wide else self.run_session(batch)
-        self._ways.record(len(batch), wide, time.perf_counter() - started)
-        return heatmaps
-
-    @contextmanager
-    def computing(self) -> Iterator[None]:
-        """Marks one request being computed (decode to response): ``run`` may run a request wide
-        only while no other request is, in this worker or (shared ``activity``) any other."""
-        self._activity.enter()
-        try:
-            yield
-        finally:
-            self._activity.leave()
-
     def close(self) -> None:
-        if self._batcher:
-            self._batcher.close()
-        self._activity.close()
+        """Nothing to release beyond what garbage collection frees; kept for the state's shutdown."""
 
     def infer(self, image_bgr: np.ndarray, boxes: np.ndarray, objects: list[str]) -> InstanceHeatmaps:
         """Crop all boxes, run them as one batch, keep each instance's own keypoint channels."""
@@ -158,7 +99,7 @@ class Detector:
         spec = self.manifest.input
         probe = np.zeros((2, spec.channels, spec.height, spec.width), dtype=np.float32)
         try:
-            out = self.run_session(probe)
+            out = self.run(probe)
         except Exception as error:  # onnxruntime raises its own untyped errors
             raise ModelMismatch(f"the model does not run on a manifest-shaped input: {error}") from error
         expected = (2, self.manifest.num_keypoints, self.manifest.output.height, self.manifest.output.width)
@@ -193,22 +134,11 @@ def create_session(
     intra_op_threads: int,
     providers: Sequence[str] = CPU,
     provider_options: Mapping[str, Mapping[str, str]] | None = None,
-    *,
-    spinning: bool = True,
 ) -> ort.InferenceSession:
     """The onnxruntime session the service runs: sequential, all graph optimizations, on
-    ``providers`` (checked by ``session_providers``).
-
-    ``spinning=False``: the intra-op threads sleep as soon as a run ends instead of spinning for
-    the next one (for a session that runs now and then, so its threads do not take cores from
-    the runs of the other session). (onnxruntime's ``session.force_spinning_stop``, spinning
-    during a run only, made a lone 1-crop run on 2 threads 1.8 ms against 2.2-3.3 ms, but the
-    service's p50 at concurrency 1 did not move, and the runs got twice as slow as one thread's
-    whenever another process held a core.)"""
+    ``providers`` (checked by ``session_providers``)."""
     options = ort.SessionOptions()
     options.intra_op_num_threads = intra_op_threads
-    if not spinning:
-        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
     options.inter_op_num_threads = 1
     options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL

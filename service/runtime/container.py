@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import shutil
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -21,7 +22,6 @@ from service.calibration.registry import CalibrationRegistry
 from service.calibration.stratification import difficulty_spec
 from service.calibration.submission import CalibrationJobs, SubmissionSettings
 from service.calibration.uploads import process_uploads_dir, remove_spent_job_folders
-from service.detector.activity import worker_activity
 from service.detector.session import Detector
 from service.monitoring.coverage_audits import CoverageAudits
 from service.monitoring.drift_monitor import DriftMonitor, DriftSettings
@@ -31,7 +31,7 @@ from service.runtime.audit_trail import AuditTrail
 from service.runtime.logs import ensure_logging
 from service.runtime.metrics import forget_drift_source, set_drift_source
 from service.runtime.operators import load_operators
-from service.runtime.settings import Settings
+from service.runtime.settings import Settings, removed_settings
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +84,6 @@ class ServiceState:
         shutil.rmtree(process_uploads_dir(self.uploads_dir), ignore_errors=True)  # cancelled jobs' uploads
         self.cpu_pool.shutdown(wait=True, cancel_futures=True)
         self.store.close()
-        self.detector.close()
         log.info("shutdown: done in %.2f s", time.monotonic() - started)
 
 
@@ -94,20 +93,15 @@ def build_state(settings: Settings) -> ServiceState:
     Also turns OpenCV's internal threading off for the process (``cv2.setNumThreads(1)``).
     """
     ensure_logging(settings)
+    for line in removed_settings(os.environ):
+        log.warning(line)
     operators = load_operators(settings.admin.admin_token, settings.admin.admin_tokens_file)
     settings.storage.data_dir.mkdir(parents=True, exist_ok=True)
     # Process-wide: requests already run in parallel on cpu_pool, and OpenCV's own pool would
     # split each small crop across helper threads that spin while they wait.
     cv2.setNumThreads(1)
     detector = Detector(
-        settings.model.model_dir,
-        settings.model.inference_threads,
-        settings.model.max_inference_batch,
-        settings.model.inference_streams,
-        **detector_providers(settings),
-        batch_window_s=settings.model.batch_window_ms / 1000,
-        solo_threads=settings.model.solo_threads,
-        activity=worker_activity(),
+        settings.model.model_dir, settings.model.inference_threads, **detector_providers(settings)
     )
     log.info("onnxruntime execution providers in use: %s", ", ".join(detector.execution_providers))
     kind, location = store_location(settings.storage.resolved_store_url)

@@ -25,19 +25,15 @@ import functools
 import http
 import json
 import logging
-import shutil
 import signal
-from pathlib import Path
 from types import FrameType
 from typing import Any
 
 import uvicorn
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
-from service.detector.activity import share_activity
 from service.errors import RequestTimeout
 from service.runtime.logs import uvicorn_log_config
-from service.runtime.processes import remove_dead_process_folders
 from service.runtime.settings import Settings
 
 APP = "service.api.main:app"
@@ -139,25 +135,13 @@ def _logging_options(settings: Settings) -> dict[str, Any]:
 
 
 def serve(settings: Settings, host: str | None = None, port: int | None = None) -> int:
-    """Serve until SIGTERM or SIGINT, then stop gracefully; 0 after a graceful stop. Several
-    workers count their requests in one shared file (``activity``), so that a request alone in
-    the server, not just in its worker, may take every core."""
+    """Serve until SIGTERM or SIGINT, then stop gracefully; 0 after a graceful stop."""
     previous = signal.signal(signal.SIGTERM, _exit_on_sigterm)
-    activity = (
-        _share_activity(settings.storage.data_dir / "activity") if settings.server.workers > 1 else None
-    )
     try:
         uvicorn.run(**uvicorn_options(settings, host, port))
     finally:
         signal.signal(signal.SIGTERM, previous)
-        if activity is not None:
-            shutil.rmtree(activity, ignore_errors=True)
     return 0
-
-
-def _share_activity(parent: Path) -> Path:
-    remove_dead_process_folders(parent)
-    return share_activity(parent)
 
 
 def _exit_on_sigterm(signum: int, frame: FrameType | None) -> None:

@@ -8,9 +8,9 @@ variable ``CKS_<FIELD>``, and ``Settings(max_request_bytes=...)`` takes any fiel
 from __future__ import annotations
 
 import json
-import os
 import re
 import sys
+from collections.abc import Mapping
 from functools import cached_property
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -25,6 +25,24 @@ from service.conformal.features import HEATMAP_FEATURES
 PACKAGE_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_MODEL_DIR = PACKAGE_ROOT / "models" / "lmo-synth-unet"
 README = PACKAGE_ROOT / "README.md"
+
+_ONE_RUN = (
+    "micro-batching was removed (it lost on CPU and GPU, see CHANGELOG); each request's crops are one"
+    " run on its own thread, with CKS_INFERENCE_THREADS intra-op threads"
+)
+#: Settings no longer read, which an operator may still set: what replaced each.
+REMOVED_SETTINGS = {
+    "CKS_MAX_INFERENCE_BATCH": _ONE_RUN,
+    "CKS_INFERENCE_STREAMS": _ONE_RUN,
+    "CKS_BATCH_WINDOW_MS": _ONE_RUN,
+    "CKS_SOLO_INFERENCE_THREADS": "the lone-request session was removed (it did not pay, see CHANGELOG);"
+    " every run has CKS_INFERENCE_THREADS intra-op threads",
+}
+
+
+def removed_settings(environ: Mapping[str, str]) -> list[str]:
+    """One line for each removed setting that ``environ`` still sets."""
+    return [f"{name} is no longer read: {why}" for name, why in REMOVED_SETTINGS.items() if name in environ]
 
 
 def _absolute(path: Path) -> Path:
@@ -65,40 +83,11 @@ class ModelSettings(_Group):
         ),
     )
     inference_threads: int = Field(
-        default=1, ge=0, description="onnxruntime intra-op threads per run (0 = ort default)"
-    )
-    solo_inference_threads: int = Field(
-        default=0,
+        default=1,
         ge=0,
         description=(
-            "intra-op threads of a run while the server (all its workers) computes one request only (0 = "
-            "the usable cores, a cgroup CPU quota included; equal to `CKS_INFERENCE_THREADS` = off); used"
-            " only when timed faster than the one-thread run"
-        ),
-    )
-    inference_streams: int = Field(
-        default=2,
-        ge=1,
-        le=64,
-        description="onnxruntime runs in parallel when batching is on (about one per core)",
-    )
-    max_inference_batch: int = Field(
-        default=0,
-        ge=0,
-        le=1024,
-        description=(
-            "crops of concurrent requests merged into one run (0 = off: each request's crops are one run "
-            "on its own thread, concurrent runs in parallel; merging measured 3-8% less throughput at "
-            "concurrency 16 on 2 cores, docs/performance.md tuning, and less on a GPU)"
-        ),
-    )
-    batch_window_ms: float = Field(
-        default=0.0,
-        ge=0,
-        le=1000,
-        description=(
-            "how long a merged run waits for more crops once it has one (0: runs what is queued at once; "
-            'on the H200 measured it did not pay, docs/operations.md "Serving from a GPU")'
+            "onnxruntime intra-op threads per run (0 = ort default); each request's crops are one run on "
+            "its own thread, concurrent requests' runs in parallel"
         ),
     )
     cpu_workers: int = Field(
@@ -122,22 +111,13 @@ class ModelSettings(_Group):
             raise ValueError("a provider is named twice: name each once, in order of preference")
         return providers
 
-    @property
-    def solo_threads(self) -> int:
-        """Intra-op threads of a lone request's run (CKS_SOLO_INFERENCE_THREADS resolved; with
-        CKS_INFERENCE_THREADS=0 every run has onnxruntime's default already)."""
-        if self.inference_threads == 0:
-            return 0
-        return self.solo_inference_threads or usable_cores()
-
 
 class StorageSettings(_Group):
     """Where the service writes, and the calibration store."""
 
     data_dir: AbsolutePath = Field(
         default=Path("var"),
-        description="where the service writes (SQLite store, uploads, metrics and activity files of"
-        " several workers)",
+        description="where the service writes (SQLite store, uploads, metrics files of several workers)",
     )
     store_url: str | None = Field(
         default=None, description="sqlite:///path or postgresql://...; default sqlite under data_dir"
@@ -219,13 +199,11 @@ class ServerSettings(_Group):
         ge=1,
         le=64,
         description=(
-            "uvicorn worker processes (limits below are per process); jobs and `/metrics` cover all of "
-            "them. The threads of one process share one interpreter lock, so under many concurrent "
-            "clients 2 processes serve more (docs/performance.md, tuning) at some cost in one client's "
-            "latency; a keep-alive connection stays on its worker, so keep `CKS_INFERENCE_STREAMS` at "
-            "about one per core in each; a request alone in the server (the workers count their requests "
-            "in a small file under `CKS_DATA_DIR`/activity) still runs on every core. On a GPU the CPU "
-            "work is the bottleneck: about half the cores (docs/operations.md, Serving from a GPU)"
+            "uvicorn worker processes (limits below are per process); jobs and `/metrics` cover all "
+            "of them. The threads of one process share one interpreter lock, so under many concurrent"
+            " clients 2 processes serve more (docs/performance.md, tuning) at some cost in one "
+            "client's latency (a keep-alive connection stays on its worker). On a GPU the CPU work is"
+            " the bottleneck: about half the cores (docs/operations.md, Serving from a GPU)"
         ),
     )
     max_connections: int = Field(
@@ -475,17 +453,6 @@ _GROUPS: dict[str, type[_Group]] = {
     name: field.annotation
     for name, field in Settings.model_fields.items()  # type: ignore[misc]
 }
-
-
-def usable_cores(cpu_max: Path = Path("/sys/fs/cgroup/cpu.max")) -> int:
-    """The cores this process may run on: its CPU affinity, capped by a cgroup v2 CPU quota (a
-    container limited to 2 CPUs on a 64-core node can use 2)."""
-    cores = len(os.sched_getaffinity(0))
-    try:
-        quota, period = cpu_max.read_text().split()[:2]
-    except (OSError, ValueError):
-        return cores
-    return cores if quota == "max" else max(1, min(cores, int(quota) // int(period)))
 
 
 _SHOWN_DEFAULTS = {"model_dir": "models/lmo-synth-unet (bundled)", "store_url": "sqlite under CKS_DATA_DIR"}

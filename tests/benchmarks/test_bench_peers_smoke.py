@@ -109,10 +109,9 @@ def test_unknown_peers_are_refused() -> None:
 def test_profile_samples_are_sorted_into_stages_and_waits_left_out() -> None:
     raw = "\n".join([
         "thread (1);_worker (thread.py:81);_respond (predict.py:140);decode_image (image_decoding.py:120) 30",
-        "thread (2);MicroBatcher._loop (batching.py:80);Detector.run_session (runtime.py:70);"
+        "thread (2);_worker (thread.py:81);Detector.run (runtime.py:70);"
         "Session.run (onnxruntime_inference_collection.py:406) 60",
-        "thread (3);_worker (thread.py:81);MicroBatcher.run (batching.py:47);"
-        "Condition.wait (threading.py:320) 50",
+        "thread (3);_worker (thread.py:81);Condition.wait (threading.py:320) 50",
         "thread (4);Runner.run (runners.py:118) 40",
         "thread (4);Runner.run (runners.py:118);RequestResponseCycle.send (httptools_impl.py:524) 10",
     ])  # fmt: skip
@@ -139,8 +138,10 @@ def test_gpu_mode_runs_the_service_with_gpu_settings_into_its_own_section(tmp_pa
     for section in ("bench_service", "bench_peers_gpu", "bench_peers"):
         page.write_section(output, section, f"## {section} text")
     written = output.read_text()
-    assert written.index("bench_peers text") < written.index("bench_peers_gpu text") < written.index(
-        "bench_service text"
+    assert (
+        written.index("bench_peers text")
+        < written.index("bench_peers_gpu text")
+        < written.index("bench_service text")
     )
 
 

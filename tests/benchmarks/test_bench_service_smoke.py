@@ -77,7 +77,7 @@ def _synthetic_results() -> report.Results:
     def raw_result(runs_per_s: float, batch: int = 1) -> RawResult:
         return RawResult(16, batch, runs_per_s, 50.0, 90.0)
 
-    settings = {name: getattr(Settings(), name) for name in runs.SETTING_NAMES}
+    settings = {name: Settings().value(name) for name in runs.SETTING_NAMES}
     points = [
         runs.Point(n, c, load(100.0 / n), raw_result(120.0 / n), load_1m=1.0)
         for n in runs.INSTANCE_COUNTS
@@ -101,7 +101,6 @@ def _synthetic_results() -> report.Results:
         extra={
             "json-1": load(90.0),
             "json-4": load(20.0),
-            "batched": raw_result(10.0, runs.BATCHED_CROPS),
             "batched-1": raw_result(8.0, runs.BATCHED_CROPS),
         },
         breakdown={n: {**stages, "total": float(len(STAGES))} for n in runs.INSTANCE_COUNTS},
@@ -115,13 +114,12 @@ def test_report_renders_every_section_and_tuning_row() -> None:
     text = report.render(_synthetic_results())
     for heading in ("## Goals", "## Service vs raw", "## Where the time goes", "## Tuning", "## Memory"):
         assert heading in text
-    assert "`CKS_INFERENCE_STREAMS=" in text  # the headline settings include the streams
+    assert "`CKS_INFERENCE_THREADS=" in text  # the headline settings include the threads
     for variant in runs.TUNING:
         assert f"| {variant.label} |" in text
     assert "patched_serve" not in text and "spin" not in text
 
 
-def test_raw_baseline_and_batched_bound_follow_the_service_layout() -> None:
-    settings = {"workers": 2, "inference_threads": 1, "inference_streams": 2}
-    assert runs.batched_callers(settings) == 4
+def test_tuning_points_run_at_most_as_long_as_the_headline_points() -> None:
     assert runs.Plan.for_mode(False, 4.0).tuning_seconds == 4.0
+    assert runs.Plan.for_mode(False, 20.0).tuning_seconds == runs.Plan.for_mode(False).tuning_seconds

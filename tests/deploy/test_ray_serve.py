@@ -63,7 +63,6 @@ ACTIVATION_DEADLINE_S = 1.5  # the issue's bound for every replica to serve a ne
 IMAGES = 4  # images of the calibration batch
 SETTINGS = {  # one onnxruntime thread and small admission per replica: two replicas on two cores
     "admin_token": ADMIN_TOKEN,
-    "inference_streams": 1,
     "cpu_workers": 1,
     "max_concurrent_inferences": 2,
     "max_queued_requests": 2,

@@ -49,22 +49,22 @@ def test_an_empty_or_malformed_list_is_refused(monkeypatch, value: str, message:
 
 
 def test_the_defaults_keep_todays_behaviour(monkeypatch) -> None:
-    for name in ("CKS_EXECUTION_PROVIDERS", "CKS_EXECUTION_PROVIDER_OPTIONS", "CKS_BATCH_WINDOW_MS"):
+    for name in ("CKS_EXECUTION_PROVIDERS", "CKS_EXECUTION_PROVIDER_OPTIONS"):
         monkeypatch.delenv(name, raising=False)
     settings = Settings()
-    assert settings.model.execution_providers == (CPU,) and settings.model.batch_window_ms == 0
+    assert settings.model.execution_providers == (CPU,)
     assert settings.model.execution_provider_options == {}
 
 
 def test_the_server_reports_and_logs_the_providers_in_use(tmp_path: Path) -> None:
     image, instances = sample_request()
-    settings = {"execution_providers": f'["{CPU}"]', "batch_window_ms": 2}
+    settings = {"execution_providers": f'["{CPU}"]'}
     with LiveServer(tmp_path / "data", **settings) as server:
         info = server.client.get("/v1/model")
         answer = predict(server.client, image, instances)
         log = server.log()
     assert info.status_code == 200 and info.json()["execution_providers"] == [CPU]
-    assert answer.status_code == 200, answer.text  # served through the batching window
+    assert answer.status_code == 200, answer.text
     assert f"onnxruntime execution providers in use: {CPU}" in log
 
 
@@ -79,7 +79,6 @@ def test_the_server_reports_and_logs_the_providers_in_use(tmp_path: Path) -> Non
         ({"execution_provider_options": '{"CUDAExecutionProvider": {"device_id": "1"}}'},
          ["CKS_EXECUTION_PROVIDER_OPTIONS has options for 'CUDAExecutionProvider'"]),
         ({"execution_providers": "[CPU"}, ["invalid settings: CKS_EXECUTION_PROVIDERS: not a JSON list"]),
-        ({"batch_window_ms": -1}, ["invalid settings: CKS_BATCH_WINDOW_MS"]),
     ],
 )  # fmt: skip
 def test_serve_refuses_providers_this_machine_lacks(tmp_path: Path, settings: dict, fragments: list) -> None:

@@ -7,8 +7,6 @@ real test of the aggregation.
 
 from __future__ import annotations
 
-import fcntl
-import os
 import re
 import signal
 import subprocess
@@ -19,7 +17,6 @@ import httpx
 import pytest
 from prometheus_client.mmap_dict import MmapedDict
 
-from service.detector.activity import SLOTS
 from service.runtime.settings import PACKAGE_ROOT
 from tests.service.live import ADMIN_TOKEN, Sample, cli, free_port, samples_by_image, service_env, wait_until
 from tests.service.predict_client import instances_of, predict_json
@@ -50,7 +47,6 @@ def two_workers(tmp_path: Path) -> Iterator[tuple[str, Path]]:
         process.send_signal(signal.SIGINT)
         process.wait(timeout=30)
     assert list((data / "metrics").iterdir()) == [], "serve left its metrics folder behind"
-    assert list((data / "activity").iterdir()) == [], "serve left its workers' activity file behind"
 
 
 def predict_count(text: str) -> float:
@@ -89,27 +85,3 @@ def test_metrics_sum_over_the_workers(two_workers: tuple[str, Path], samples: li
             text = client.get("/metrics").text
         assert predict_count(text) == REQUESTS, text
         assert re.search(r"^cks_predict_in_flight(\{.*\})? 0\.0$", text, re.MULTILINE), text
-
-
-def test_each_worker_counts_its_requests_in_the_shared_activity_file(two_workers: tuple[str, Path]) -> None:
-    """The workers' requests are summed across processes (service/detector/activity.py): each
-    worker holds the lock of its own slot of the one file its parent made."""
-    _, data = two_workers
-    (folder,) = (data / "activity").iterdir()  # one folder per serve process
-
-    def held() -> list[int]:
-        with open(folder / "activity", "r+b") as shared:
-            return [slot for slot in range(SLOTS) if not _free(shared.fileno(), slot)]
-
-    # /readyz answered means one worker is up; the other may still be loading its model
-    wait_until(lambda: len(held()) == 2, "both workers hold a slot", timeout=60)
-    assert len(held()) == 2, f"slots held by live workers: {held()}"
-
-
-def _free(fd: int, slot: int) -> bool:
-    try:
-        fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB, 8, slot * 8, os.SEEK_SET)
-    except OSError:
-        return False
-    fcntl.lockf(fd, fcntl.LOCK_UN, 8, slot * 8, os.SEEK_SET)
-    return True
