@@ -139,14 +139,13 @@ class Intake:
 
     def validate(self, named: NamedBatch, options: UploadOptions) -> ValidatedBatch:
         """The parent read once, then the rules that refuse a batch before it is scored."""
-        parent = None if options.append_to is None else self.parent(options.append_to)
+        parent = None
+        if options.append_to is not None:
+            parent = read_parent(self._store, self._detector, options.append_to, self._scores)
         if options.stratify is not None and GROUP in options.stratify:
             check_group_labels(named, parent)
         share = options.rejected_share(self._rules.max_rejected_share)
         return check_batch(named, parent, dedupe=options.dedupe, max_rejected_share=share)
-
-    def parent(self, version: int) -> Parent:
-        return read_parent(self._store, self._detector, version, self._scores)
 
 
 def read_parent(
