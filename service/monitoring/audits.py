@@ -160,8 +160,8 @@ class CoverageAudits(DetectorJobs):
     ) -> dict[str, Any]:
         named = prepared.named
         accumulator = ScoreAccumulator()
-        rejected = score_batch(named.batch, named.name, self._detector, accumulator,
-                               self._settings.versions.max_image_pixels, progress.advance)  # fmt: skip
+        pixels = self._settings.versions.max_image_pixels
+        rejected = score_batch(named.batch, named.name, self._detector, accumulator, pixels, progress.advance)
         check_rejected_share([*prepared.rejected, *rejected], prepared.annotations, self._share(request))
         if accumulator.count == 0:
             raise InvalidInput("no instance of the batch could be scored: every image was left out")
