@@ -140,16 +140,9 @@ def _score(
     for validated in batches:
         named = validated.named
         rejected.extend(validated.rejected)
+        prints = validated.fingerprints
         rejected.extend(
-            score_batch(
-                named.batch,
-                named.name,
-                detector,
-                accumulator,
-                max_image_pixels,
-                counted,
-                validated.fingerprints,
-            )
+            score_batch(named.batch, named.name, detector, accumulator, max_image_pixels, counted, prints)
         )
         sources.append(SourceBatch(named.name, named.sha256, named.batch.count))
     annotations = sum(v.named.batch.annotations for v in batches)
@@ -227,25 +220,20 @@ def _audit_entries(
 ) -> list[NewAuditEntry]:
     """The version's entry and, when activation was asked, its decision (all in its transaction)."""
     details = {k: summary[k] for k in ("instances", "added", "duplicates_dropped", "rejected")}
+    parent = options.append_to
     entries = [
         audit.entry(
-            operator,
-            "calibration",
-            "stored",
-            reason=options.note,
-            previous_version=options.append_to,
-            details=details,
+            operator, "calibration", "stored", reason=options.note, previous_version=parent, details=details
         )
     ]
     if comparison is not None:
         outcome = "refused" if not activated else "forced" if not comparison.allowed else "activated"
         problems = {"problems": list(comparison.problems)} if comparison.problems else {}
         reason = _activation_reason(options)
-        entries.append(
-            audit.entry(
-                operator, "activation", outcome, previous_version=previous, reason=reason, details=problems
-            )
+        decision = audit.entry(
+            operator, "activation", outcome, previous_version=previous, reason=reason, details=problems
         )
+        entries.append(decision)
     return entries
 
 
