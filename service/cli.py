@@ -76,16 +76,16 @@ def _check_port(host: str, port: int) -> None:
 def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     from calibration_store import open_store
     from service.calibration.bundle import save_bundle
-    from service.calibration.calibrate import check_parent, create_calibration
     from service.calibration.coco import NamedBatch, load_coco_batch
-    from service.calibration.intake import prepare_batch
-    from service.calibration.stratification import difficulty_spec
-    from service.calibration.submission import UploadRequest
+    from service.calibration.intake import UploadOptions, check_batch, read_parent
+    from service.calibration.stratification import difficulty_spec, parse_stratify
+    from service.calibration.versions import VersionRules, create_version
     from service.detector.session import Detector
     from service.runtime.audit_trail import AuditTrail, Operator
     from service.runtime.container import detector_providers
 
-    request = UploadRequest(
+    stratify = None if args.stratify is None else parse_stratify(args.stratify)
+    options = UploadOptions(
         args.name,
         args.note,
         args.append_to,
@@ -94,26 +94,23 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
         args.reason,
         args.dedupe,
         args.max_rejected_share,
-        args.stratify,
+        stratify,
     )
-    share = request.rejected_share(settings.calibration.max_rejected_share)
+    share = options.rejected_share(settings.calibration.max_rejected_share)
     detector = Detector(
         settings.model.model_dir, settings.model.inference_threads, **detector_providers(settings)
     )
     with open_store(settings.storage.resolved_store_url) as store:
-        parent = parent_table = None
+        parent = None
         if args.append_to is not None:
-            parent = check_parent(store, detector, args.append_to)
-            parent_table = store.load_scores(detector.model_hash, args.append_to)
+            parent = read_parent(store, detector, args.append_to)
         batches = []
         for folder in args.folders:
             if not Path(folder).is_dir():
                 raise InvalidInput(f"{folder} is not a folder (one holding annotations.json and the images)")
             batch = load_coco_batch(Path(folder), detector.manifest)
             named = NamedBatch(name=args.name or Path(folder).name, sha256=batch.sha256, batch=batch)
-            batches.append(
-                prepare_batch(named, parent, parent_table, dedupe=args.dedupe, max_rejected_share=share)
-            )
+            batches.append(check_batch(named, parent, dedupe=args.dedupe, max_rejected_share=share))
         total = sum(b.named.batch.count for b in batches)
         done = 0
 
@@ -122,15 +119,15 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
             done += count
             print(f"\rscored {done}/{total} instances", end="", file=sys.stderr, flush=True)
 
-        options = request.options(
-            Operator(args.author, "cli"),
-            settings.calibration.max_rejected_share,
+        rules = VersionRules(
+            settings.predict.max_image_pixels,
             settings.calibration.min_calibration_instances,
+            settings.calibration.max_rejected_share,
             difficulty_spec(settings),
         )
         audit = AuditTrail(store, detector.model_hash)
-        pixels = settings.predict.max_image_pixels
-        outcome = create_calibration(store, detector, batches, options, pixels, audit, progress)
+        operator = Operator(args.author, "cli")
+        outcome = create_version(store, detector, batches, parent, options, operator, rules, audit, progress)
         print(file=sys.stderr)
         if args.bundle:
             table = store.load_scores(detector.model_hash, outcome.info.number)

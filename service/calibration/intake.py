@@ -1,68 +1,220 @@
-"""A validated COCO batch made ready for scoring: repeats found (refused or dropped) and
-instances rejected by the box rule counted against the share the caller allows.
+"""From a received upload to a validated batch, or a 4xx: everything that can refuse a batch
+runs here, before an upload's 202, so a batch that would be refused never becomes a job.
 
-Both run before anything is scored (before an upload's 202): a batch that would be
-refused never becomes a job.
+Read top-down, ``Intake.take_in``: unzip within the limits and the disk budget, read the COCO
+file against the manifest, check the version to append to and read its scores (once: they
+travel with the batch to its job), refuse stratify=group without group labels, refuse
+repeats (inside the batch or in the parent; dropped instead with ``dedupe``) and more
+instances rejected by the box rule than the caller allows.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
 
-from calibration_store import ScoreTable, VersionInfo
-from service.calibration.coco import NamedBatch, Rejection
+from calibration_store import CalibrationStore, ScoreTable, VersionInfo, VersionNotFound
+from service.calibration.archive import ArchiveLimits, DiskBudget, extract_zip
+from service.calibration.coco import NamedBatch, Rejection, load_coco_batch
+from service.calibration.compatibility import version_incompatibility
 from service.calibration.fingerprints import Fingerprint, find_repeats, fingerprints
-from service.errors import Conflict, InvalidInput
+from service.calibration.stratification import GROUP, parse_stratify
+from service.detector.session import Detector
+from service.errors import Conflict, InvalidInput, NotFound
 
 #: how many repeats or rejections a refusal lists (the count is always given)
 LISTED = 20
 REJECTED_SHARE_SETTING = "CKS_MAX_REJECTED_SHARE"
+#: where a received zip is unzipped, beside it
+UNZIPPED = "batch"
 
 
 @dataclass(frozen=True)
-class PreparedBatch:
-    """A batch to score: its instances (repeats dropped), their fingerprints, what was left out."""
+class UploadOptions:
+    """What the operator asked for with an upload (kept with it, for a retry)."""
+
+    name: str | None = None
+    note: str = ""
+    append_to: int | None = None
+    activate: bool = False
+    force: bool = False
+    reason: str = ""
+    dedupe: bool = False
+    max_rejected_share: float | None = None  # None: CKS_MAX_REJECTED_SHARE
+    stratify: frozenset[str] | None = None  # None: difficulty strata when the scores carry heatmap features
+
+    def __post_init__(self) -> None:
+        if self.force and not self.reason.strip():
+            raise InvalidInput(
+                "force needs a reason (force=true&reason=..., or --force --reason ...):"
+                " say why the guardrails may be overridden"
+            )
+        if self.force and not self.activate:
+            raise InvalidInput("force only applies when activating (activate=true, or --activate)")
+
+    def rejected_share(self, default: float) -> float:
+        return default if self.max_rejected_share is None else self.max_rejected_share
+
+    def as_json(self) -> dict[str, Any]:
+        kept = asdict(self)
+        kept["stratify"] = None if self.stratify is None else sorted(self.stratify)
+        return kept
+
+    @classmethod
+    def from_json(cls, kept: dict[str, Any]) -> UploadOptions:
+        stratify = kept.get("stratify")  # a list; "difficulty+group" in uploads kept by older servers
+        return cls(**{**kept, "stratify": None if stratify is None else parse_stratify(stratify)})
+
+
+@dataclass(frozen=True)
+class Parent:
+    """The version a batch is appended to (or audited against), checked, with its scores."""
+
+    info: VersionInfo
+    scores: ScoreTable
+
+
+@dataclass(frozen=True)
+class ValidatedBatch:
+    """A batch to score: its instances (repeats dropped), their fingerprints, what was left out,
+    and the version it extends."""
 
     named: NamedBatch
     fingerprints: tuple[Fingerprint, ...]
     repeats_dropped: int
     rejected: tuple[Rejection, ...]
+    parent: Parent | None = None
 
     @property
     def annotations(self) -> int:
         """Annotations the batch held before anything was left out."""
         return self.named.batch.annotations + self.repeats_dropped
 
+    def moved(self, old: Path, new: Path) -> ValidatedBatch:
+        """The same batch once the folder it was unzipped in was renamed from ``old`` to ``new``."""
+        batch = self.named.batch
+        was, now = old.resolve(), new.resolve()
+        images = {i: replace(r, path=now / r.path.relative_to(was)) for i, r in batch.images.items()}
+        moved = replace(batch, folder=new / batch.folder.relative_to(old), images=images)
+        return replace(self, named=replace(self.named, batch=moved))
 
-def prepare_batch(
-    named: NamedBatch,
-    parent: VersionInfo | None,
-    parent_table: ScoreTable | None,
-    *,
-    dedupe: bool,
-    max_rejected_share: float,
-) -> PreparedBatch:
+
+@dataclass(frozen=True)
+class IntakeRules:
+    limits: ArchiveLimits
+    disk: DiskBudget | None
+    max_rejected_share: float
+
+
+class Intake:
+    """Checks received uploads for one detector: its manifest, the versions of its store."""
+
+    def __init__(
+        self,
+        store: CalibrationStore,
+        detector: Detector,
+        scores: Callable[[int], ScoreTable],
+        rules: IntakeRules,
+    ) -> None:
+        self._store, self._detector, self._scores, self._rules = store, detector, scores, rules
+
+    def take_in(self, archive: Path, sha256: str, options: UploadOptions) -> ValidatedBatch:
+        """A received zip (its body's ``sha256``) -> a batch ready to score, or a 4xx."""
+        named = self.unpack(archive, sha256, options.name)
+        return self.validate(named, options)
+
+    def unpack(self, archive: Path, sha256: str, name: str | None) -> NamedBatch:
+        """Unzip beside the zip within the limits and the disk budget (the zip is removed), then
+        read the COCO batch."""
+        named_as = batch_name(name, sha256)  # refused before anything is unzipped
+        unzipped = extract_zip(archive, archive.parent / UNZIPPED, self._rules.limits, self._rules.disk)
+        archive.unlink()
+        return NamedBatch(named_as, sha256, load_coco_batch(unzipped, self._detector.manifest))
+
+    def read(self, folder: Path, sha256: str, name: str | None) -> NamedBatch:
+        """The COCO batch of an unzipped ``folder`` (a kept upload), validated against the manifest."""
+        return NamedBatch(batch_name(name, sha256), sha256, load_coco_batch(folder, self._detector.manifest))
+
+    def validate(self, named: NamedBatch, options: UploadOptions) -> ValidatedBatch:
+        """The parent read once, then the rules that refuse a batch before it is scored."""
+        parent = None
+        if options.append_to is not None:
+            parent = read_parent(self._store, self._detector, options.append_to, self._scores)
+        if options.stratify is not None and GROUP in options.stratify:
+            check_group_labels(named, parent)
+        share = options.rejected_share(self._rules.max_rejected_share)
+        return check_batch(named, parent, dedupe=options.dedupe, max_rejected_share=share)
+
+
+def read_parent(
+    store: CalibrationStore,
+    detector: Detector,
+    version: int,
+    scores: Callable[[int], ScoreTable] | None = None,
+) -> Parent:
+    """The version to append to with its scores (``scores``, or the store's); refused when it is
+    missing or was scored differently."""
+    try:
+        info = store.get_version(detector.model_hash, version)
+    except VersionNotFound as error:
+        raise NotFound(f"cannot append to calibration version {version}: it does not exist") from error
+    reason = version_incompatibility(info, detector.manifest)
+    if reason is not None:
+        raise Conflict(f"cannot append: {reason}")
+    return Parent(
+        info, store.load_scores(detector.model_hash, version) if scores is None else scores(version)
+    )
+
+
+def batch_name(requested: str | None, sha256: str) -> str:
+    if requested is None:
+        return f"upload-{sha256[:12]}"
+    name = requested.strip()
+    if not name or len(name) > 200 or any(ch in name for ch in "\r\n\t"):
+        raise InvalidInput("name must be 1 to 200 printable characters on one line")
+    return name
+
+
+def check_group_labels(named: NamedBatch, parent: Parent | None) -> None:
+    """stratify=group is refused at once (422) when no instance carries a group label."""
+    inherited = parent is not None and any(block.has_groups for block in parent.scores.objects)
+    if not inherited and not any(instance.group for instance in named.batch.instances):
+        raise InvalidInput(
+            "stratify=group needs group labels, and no annotation of the batch carries one:"
+            ' add "group": "<label>" (a camera, a site) to the COCO annotations'
+        )
+
+
+def check_batch(
+    named: NamedBatch, parent: Parent | None, *, dedupe: bool, max_rejected_share: float
+) -> ValidatedBatch:
     """Refuse repeats (409, unless ``dedupe`` drops them) and too many rejected instances (422)."""
     batch = named.batch
     prints = fingerprints(batch)
-    sources = parent.source_batches if parent else ()
-    number = parent.number if parent else None
-    repeats = find_repeats(batch, prints, named.sha256, parent_table, sources, number)
+    sources = parent.info.source_batches if parent else ()
+    number = parent.info.number if parent else None
+    table = parent.scores if parent else None
+    repeats = find_repeats(batch, prints, named.sha256, table, sources, number)
     if repeats and not dedupe:
         raise _repeats_refused(repeats, batch.count)
     repeated = {(r.image_id, r.annotation_id) for r in repeats}
-    kept = [(i, p) for i, p in zip(batch.instances, prints, strict=True)
-            if (i.image_id, i.annotation_id) not in repeated]  # fmt: skip
+    kept = [
+        (i, p)
+        for i, p in zip(batch.instances, prints, strict=True)
+        if (i.image_id, i.annotation_id) not in repeated
+    ]
     check_rejected_share(batch.rejected, batch.annotations, max_rejected_share)
     if not kept:
         raise InvalidInput("no instance of the batch is left to calibrate with once repeats are dropped")
     instances = tuple(i for i, _ in kept)
-    return PreparedBatch(
+    return ValidatedBatch(
         named=replace(named, batch=replace(batch, instances=instances)),
         fingerprints=tuple(p for _, p in kept),
         repeats_dropped=len(repeats),
         rejected=batch.rejected,
+        parent=parent,
     )
 
 

@@ -1,4 +1,7 @@
-"""Background calibration jobs: run on this process's worker pool, reported from the store.
+"""Background calibration jobs: accepted after the intake (``CalibrationJobs.accept``), run
+as one step that turns the validated batch into a version (``CalibrationJobs._job``), retried
+from their kept upload when a crash interrupted them (``CalibrationJobs.retry``); run on this
+process's worker pool (``JobRunner``, which runs coverage audits too), reported from the store.
 
 Any process of any replica answers for any job, because the job's row in the calibration
 store is what clients see:
@@ -11,7 +14,7 @@ store is what clients see:
   every HEARTBEAT_S even without progress;
 - an unfinished job whose heartbeat is older than STALE_AFTER is reported interrupted:
   the process running it stopped. A calibration version is written in the job's last step,
-  in the same transaction that marks the job succeeded (create_calibration), so an
+  in the same transaction that marks the job succeeded (versions.create_version), so an
   interrupted job stored nothing; its upload is kept and it can be retried;
 - a finished job never changes (the store refuses it): a retry marks the interrupted job
   finished first, so the process presumed dead can no longer complete it;
@@ -28,8 +31,9 @@ import time
 import uuid
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import replace
+from dataclasses import asdict, dataclass, replace
 from datetime import UTC, datetime, timedelta
+from pathlib import Path
 from typing import Any
 
 from calibration_store import (
@@ -40,11 +44,18 @@ from calibration_store import (
     StoreError,
     StoreUnavailable,
 )
-from service.errors import ServiceError, StoreUnreachable, Unavailable
+from service.calibration.intake import Intake, IntakeRules, UploadOptions, ValidatedBatch
+from service.calibration.registry import CalibrationRegistry
+from service.calibration.uploads import JobFolder, UploadWorkspace
+from service.calibration.versions import VersionRules, create_version
+from service.detector.session import Detector
+from service.errors import Conflict, NotFound, ServiceError, StoreUnreachable, Unavailable
+from service.runtime.audit_trail import AuditTrail, Operator
 from service.runtime.metrics import CALIBRATION_JOBS
 from service.runtime.processes import process_owner
 
 log = logging.getLogger(__name__)
+JOB_KIND = "calibration"
 
 #: progress reaches the store at most this often per job (plus the final state)
 PROGRESS_WRITE_S = 1.0
@@ -317,3 +328,175 @@ def _final(job: JobRecord, state: str, changes: dict[str, Any]) -> JobRecord:
         log.error("job %s: cannot store its result: %s", job.id, error)
         errors = (f"internal error: the job's result cannot be stored: {error}",)
         return replace(job, state="failed", finished_at=finished_at, errors=errors)
+
+
+# -- calibration jobs --------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class JobSettings:
+    jobs_dir: Path
+    intake: IntakeRules
+    versions: VersionRules
+
+
+class DetectorJobs:
+    """What accepting and running background jobs over one detector's calibrations needs."""
+
+    def __init__(
+        self,
+        store: CalibrationStore,
+        detector: Detector,
+        registry: CalibrationRegistry,
+        runner: JobRunner,
+        audit: AuditTrail,
+        settings: JobSettings,
+    ) -> None:
+        self._store, self._detector, self._registry = store, detector, registry
+        self._runner, self._audit, self._settings = runner, audit, settings
+        self._intake = Intake(store, detector, registry.scores, settings.intake)
+
+
+class CalibrationJobs(DetectorJobs):
+    """Accepts, runs and retries calibration jobs for one detector and store."""
+
+    def accept(
+        self, workspace: UploadWorkspace, sha256: str, options: UploadOptions, operator: Operator
+    ) -> JobRecord:
+        """Take a received upload in and start its job, or refuse it (nothing is kept)."""
+        folder = JobFolder.of(self._settings.jobs_dir, new_job_id())
+        folder.adopt(workspace)
+        try:
+            batch = self._intake.take_in(folder.archive, sha256, options)
+            folder.save(_kept(options, operator, sha256, batch, folder))
+            job = self._submit(folder, batch, options, operator)
+        except BaseException:
+            folder.remove()
+            raise
+        self._audit.record(operator, "upload", "accepted", reason=options.note, details=_accepted(job, batch))
+        return job
+
+    def retry(self, job_id: str, operator: Operator) -> JobRecord:
+        """Run an interrupted job again as a new job, from its kept upload."""
+        job = self._interrupted(job_id)
+        old = JobFolder.of(self._settings.jobs_dir, job_id)
+        if not old.exists():
+            raise _not_kept(job, self._settings.jobs_dir)
+        kept = old.load()
+        options, original = UploadOptions.from_json(kept["request"]), Operator(**kept["operator"])
+        named = self._intake.read(old.root / kept["batch_dir"], kept["sha256"], options.name)
+        batch = self._intake.validate(named, options)  # refused before the job is taken over
+        new = JobFolder.of(self._settings.jobs_dir, new_job_id())
+        if self._store.get_job(job_id).state != "interrupted":  # only reported so: its process may live
+            self._take_over(job, new.job_id)
+        try:
+            old.move_to(new)  # one rename wins: a job is retried once
+        except FileNotFoundError as error:
+            raise Conflict(f"job {job_id} was retried meanwhile") from error
+        retried = self._submit(new, batch.moved(old.root, new.root), options, original)
+        self._audit.record(operator, "retry", "accepted", details={"job": job_id, "new_job": retried.id})
+        return retried
+
+    def _submit(
+        self, folder: JobFolder, batch: ValidatedBatch, options: UploadOptions, operator: Operator
+    ) -> JobRecord:
+        def job(progress: JobProgress) -> dict[str, Any]:
+            return self._job(folder, batch, options, operator, progress)
+
+        return self._runner.submit(JOB_KIND, job, batch.named.batch.count, job_id=folder.job_id)
+
+    def _job(
+        self,
+        folder: JobFolder,
+        batch: ValidatedBatch,
+        options: UploadOptions,
+        operator: Operator,
+        progress: JobProgress,
+    ) -> dict[str, Any]:
+        """Score the batch into a version (guardrails, store write, activation: one transaction)."""
+        try:
+            outcome = create_version(
+                self._store,
+                self._detector,
+                [batch],
+                batch.parent,
+                options,
+                operator,
+                self._settings.versions,
+                self._audit,
+                progress.advance,
+                job_id=folder.job_id,
+            )
+        except ServiceError as error:  # refused: its upload goes (an interrupted job keeps it)
+            details = {"job": folder.job_id, "detail": error.detail}
+            self._audit.record(operator, "calibration", "failed", reason=options.note, details=details)
+            folder.remove()
+            raise
+        folder.remove()
+        self._registry.refresh_now()
+        return outcome.summary
+
+    def _interrupted(self, job_id: str) -> JobRecord:
+        """The job to retry: an interrupted calibration job (404 or 409 otherwise)."""
+        job = self._runner.get(job_id)
+        if job is None:
+            raise NotFound(f"no job {job_id!r}: it never existed or was pruned")
+        if job.kind != JOB_KIND:
+            raise Conflict(
+                f"job {job_id} is an {job.kind} job: only calibration jobs are retried; send its batch again"
+            )
+        if job.state != "interrupted":
+            raise Conflict(f"job {job_id} is {job.state}; only an interrupted job can be retried")
+        return job
+
+    def _take_over(self, job: JobRecord, new_id: str) -> None:
+        """Mark a job reported interrupted finished (so its old process can no longer complete it);
+        one that its stopping server marked interrupted already is left as it is (finished)."""
+        try:
+            self._store.update_job(
+                job.id,
+                state="interrupted",
+                errors=job.errors,
+                finished_at=datetime.now(UTC),
+                result={**job.result, "retried_as": new_id},
+            )
+        except JobFinished as error:
+            if error.state != "interrupted":
+                raise Conflict(f"job {job.id} was retried or finished meanwhile: {error}") from error
+
+
+def _kept(
+    options: UploadOptions, operator: Operator, sha256: str, batch: ValidatedBatch, folder: JobFolder
+) -> dict[str, Any]:
+    """What is kept with an upload for a retry."""
+    batch_dir = str(batch.named.batch.folder.relative_to(folder.root))
+    return {
+        "request": options.as_json(),
+        "operator": asdict(operator),
+        "sha256": sha256,
+        "batch_dir": batch_dir,
+    }
+
+
+def _not_kept(job: JobRecord, jobs_dir: Path) -> Conflict:
+    retried_as = job.result.get("retried_as")
+    if retried_as:
+        return Conflict(f"job {job.id} was retried already, as job {retried_as}")
+    return Conflict(
+        f"the upload of job {job.id} is not kept in this server's data directory"
+        f" ({jobs_dir}): it was retried already (GET /v1/admin/audit says as"
+        f" which job), or it is kept by the server that received it ({job.owner}); retry"
+        " there, or upload the batch again"
+    )
+
+
+def _accepted(job: JobRecord, batch: ValidatedBatch) -> dict[str, Any]:
+    named = batch.named
+    return {
+        "job": job.id,
+        "batch": named.name,
+        "sha256": named.sha256,
+        "instances": named.batch.count,
+        "duplicates_dropped": batch.repeats_dropped,
+        "rejected": len(batch.rejected),
+    }

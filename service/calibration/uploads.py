@@ -1,8 +1,4 @@
-"""From an uploaded zip to a validated batch, synchronously, so that bad batches get a 4xx.
-
-Only scoring runs in the background; everything that can be refused (the archive, the
-COCO file, the image headers, repeats, the box rule, the version to append to) is
-refused before the 202.
+"""Where received uploads live on disk.
 
 An upload is received into this process's workspace folder (removed if the process
 dies mid-upload), then moved to ``<data>/jobs/<job id>`` where it stays until its job
@@ -21,10 +17,6 @@ from pathlib import Path
 from typing import Any
 
 from calibration_store import CalibrationStore, StoreError
-from service.calibration.archive import ArchiveLimits, DiskBudget, extract_zip
-from service.calibration.coco import NamedBatch, load_coco_batch
-from service.detector.manifest import Manifest
-from service.errors import InvalidInput
 from service.runtime.processes import process_folder
 
 log = logging.getLogger(__name__)
@@ -115,31 +107,3 @@ def remove_spent_job_folders(jobs_dir: Path, store: CalibrationStore) -> None:
         unclaimed = job is None and time.time() - root.stat().st_mtime > JobFolder.UNCLAIMED_AFTER_S
         if unclaimed or (job is not None and job.state in ("succeeded", "failed")):
             shutil.rmtree(root, ignore_errors=True)
-
-
-def batch_name(requested: str | None, sha256: str) -> str:
-    if requested is None:
-        return f"upload-{sha256[:12]}"
-    name = requested.strip()
-    if not name or len(name) > 200 or any(ch in name for ch in "\r\n\t"):
-        raise InvalidInput("name must be 1 to 200 printable characters on one line")
-    return name
-
-
-def validate_upload(
-    folder: JobFolder,
-    name: str,
-    sha256: str,
-    manifest: Manifest,
-    limits: ArchiveLimits,
-    disk: DiskBudget | None = None,
-) -> NamedBatch:
-    """Unzip within limits and the disk budget, and validate the COCO batch against the manifest."""
-    batch = extract_zip(folder.archive, folder.root / "batch", limits, disk)
-    folder.archive.unlink()
-    return NamedBatch(name=name, sha256=sha256, batch=load_coco_batch(batch, manifest))
-
-
-def reload_batch(folder: JobFolder, batch_dir: str, name: str, sha256: str, manifest: Manifest) -> NamedBatch:
-    """The kept batch of a job folder (``batch_dir`` relative to it), validated again for a retry."""
-    return NamedBatch(name=name, sha256=sha256, batch=load_coco_batch(folder.root / batch_dir, manifest))

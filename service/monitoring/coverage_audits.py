@@ -28,11 +28,10 @@ from calibration_store import (
     StoreError,
 )
 from service.calibration.coco import NamedBatch
-from service.calibration.intake import PreparedBatch, check_rejected_share, prepare_batch
-from service.calibration.jobs import JobProgress, new_job_id
+from service.calibration.intake import Parent, ValidatedBatch, check_batch, check_rejected_share
+from service.calibration.jobs import DetectorJobs, JobProgress, new_job_id
 from service.calibration.scoring import NONCONFORMITY_KINDS, ScoreAccumulator, score_batch
-from service.calibration.submission import DetectorJobs
-from service.calibration.uploads import JobFolder, UploadWorkspace, batch_name, validate_upload
+from service.calibration.uploads import UploadWorkspace
 from service.errors import Conflict, InvalidInput
 from service.monitoring.audit_report import DEFAULT_EPSILONS, ThresholdLookup, audit_report
 from service.runtime.audit_trail import Operator
@@ -78,9 +77,7 @@ class CoverageAudits(DetectorJobs):
         """Validate a received batch and start its audit, or refuse it (the upload is removed)."""
         try:
             version = self._registry.resolve(request.version)  # 404, 409, 503
-            named = validate_upload(JobFolder(workspace.root), batch_name(request.name, sha256), sha256,
-                                    self._detector.manifest, self._settings.limits,
-                                    self._settings.disk)  # fmt: skip
+            named = self._intake.unpack(workspace.archive, sha256, request.name)
             prepared = self._prepare(named, version, request)
             job = self._submit(workspace, prepared, version, request, operator)
         except BaseException:
@@ -116,13 +113,12 @@ class CoverageAudits(DetectorJobs):
             return None
         return older[0] if older else None
 
-    def _prepare(self, named: NamedBatch, version: int, request: AuditRequest) -> PreparedBatch:
+    def _prepare(self, named: NamedBatch, version: int, request: AuditRequest) -> ValidatedBatch:
         """Refuse instances the audited version was calibrated with (they would flatter it)."""
         info = self._store.get_version(self._detector.model_hash, version)
-        share = self._share(request)
+        audited = Parent(info, self._registry.scores(version))
         try:
-            return prepare_batch(named, info, self._registry.scores(version), dedupe=request.dedupe,
-                                 max_rejected_share=share)  # fmt: skip
+            return check_batch(named, audited, dedupe=request.dedupe, max_rejected_share=self._share(request))
         except Conflict as error:
             raise Conflict(
                 f"an audit needs instances that version {version} was not calibrated with: {error.detail}",
@@ -131,10 +127,10 @@ class CoverageAudits(DetectorJobs):
 
     def _share(self, request: AuditRequest) -> float:
         share = request.max_rejected_share
-        return self._settings.max_rejected_share if share is None else share
+        return self._settings.intake.max_rejected_share if share is None else share
 
     def _submit(
-        self, workspace: UploadWorkspace, prepared: PreparedBatch, version: int, request: AuditRequest,
+        self, workspace: UploadWorkspace, prepared: ValidatedBatch, version: int, request: AuditRequest,
         operator: Operator,
     ) -> JobRecord:  # fmt: skip
         job_id = new_job_id()
@@ -160,12 +156,12 @@ class CoverageAudits(DetectorJobs):
         return self._runner.submit(JOB_KIND, run, prepared.named.batch.count, job_id=job_id)
 
     def _measure(
-        self, prepared: PreparedBatch, version: int, request: AuditRequest, progress: JobProgress
+        self, prepared: ValidatedBatch, version: int, request: AuditRequest, progress: JobProgress
     ) -> dict[str, Any]:
         named = prepared.named
         accumulator = ScoreAccumulator()
-        rejected = score_batch(named.batch, named.name, self._detector, accumulator,
-                               self._settings.max_image_pixels, progress.advance)  # fmt: skip
+        pixels = self._settings.versions.max_image_pixels
+        rejected = score_batch(named.batch, named.name, self._detector, accumulator, pixels, progress.advance)
         check_rejected_share([*prepared.rejected, *rejected], prepared.annotations, self._share(request))
         if accumulator.count == 0:
             raise InvalidInput("no instance of the batch could be scored: every image was left out")

@@ -17,11 +17,12 @@ import cv2
 from calibration_store import CalibrationStore, ScoreTable, open_store, store_location
 from service.calibration.archive import ArchiveLimits, DiskBudget
 from service.calibration.bundle import bootstrap_default_calibration
-from service.calibration.jobs import JobRunner
+from service.calibration.intake import IntakeRules
+from service.calibration.jobs import CalibrationJobs, JobRunner, JobSettings
 from service.calibration.registry import CalibrationRegistry
 from service.calibration.stratification import difficulty_spec
-from service.calibration.submission import CalibrationJobs, SubmissionSettings
 from service.calibration.uploads import process_uploads_dir, remove_spent_job_folders
+from service.calibration.versions import VersionRules
 from service.detector.session import Detector
 from service.monitoring.coverage_audits import CoverageAudits
 from service.monitoring.drift_monitor import DriftMonitor, DriftSettings
@@ -133,8 +134,8 @@ def build_state(settings: Settings) -> ServiceState:
     remove_spent_job_folders(settings.storage.jobs_dir, store)
     jobs = JobRunner(store, settings.calibration.calibration_workers)
     audit = AuditTrail(store, detector.model_hash)
-    submission = _submission_settings(settings)
-    audits = CoverageAudits(store, detector, registry, jobs, audit, submission)
+    job_settings = _job_settings(settings)
+    audits = CoverageAudits(store, detector, registry, jobs, audit, job_settings)
     audits.publish_latest()
     drift = _drift_monitor(settings, detector, registry)
     return ServiceState(
@@ -143,7 +144,7 @@ def build_state(settings: Settings) -> ServiceState:
         store=store,
         registry=registry,
         jobs=jobs,
-        calibrations=CalibrationJobs(store, detector, registry, jobs, audit, submission),
+        calibrations=CalibrationJobs(store, detector, registry, jobs, audit, job_settings),
         audit=audit,
         operators=operators,
         cpu_pool=ThreadPoolExecutor(settings.model.cpu_workers, thread_name_prefix="cpu"),
@@ -185,15 +186,20 @@ def _drift_monitor(
     return monitor
 
 
-def _submission_settings(settings: Settings) -> SubmissionSettings:
-    return SubmissionSettings(
+def _job_settings(settings: Settings) -> JobSettings:
+    return JobSettings(
         jobs_dir=settings.storage.jobs_dir,
-        limits=ArchiveLimits.from_settings(settings),
-        max_image_pixels=settings.predict.max_image_pixels,
-        min_instances=settings.calibration.min_calibration_instances,
-        max_rejected_share=settings.calibration.max_rejected_share,
-        disk=DiskBudget.from_settings(settings),
-        difficulty=difficulty_spec(settings),
+        intake=IntakeRules(
+            limits=ArchiveLimits.from_settings(settings),
+            disk=DiskBudget.from_settings(settings),
+            max_rejected_share=settings.calibration.max_rejected_share,
+        ),
+        versions=VersionRules(
+            max_image_pixels=settings.predict.max_image_pixels,
+            min_instances=settings.calibration.min_calibration_instances,
+            max_rejected_share=settings.calibration.max_rejected_share,
+            difficulty=difficulty_spec(settings),
+        ),
     )
 
 

@@ -33,9 +33,10 @@ from service.api.admin_schemas import (
 from service.api.deps import Admin, State
 from service.api.predict_schemas import MAX_VERSION, Nonconformity
 from service.api.request_body import BodyPace, receive_upload
-from service.calibration.activation import ActivationRequest, activate, comparison_with
-from service.calibration.submission import UploadRequest
+from service.calibration.intake import UploadOptions
+from service.calibration.stratification import parse_stratify
 from service.calibration.uploads import UploadWorkspace
+from service.calibration.versions import ActivationRequest, activate, comparison_with
 from service.errors import NotFound, ServiceError, UnsupportedMediaType
 from service.runtime.audit_trail import Operator
 from service.runtime.container import ServiceState
@@ -88,8 +89,12 @@ async def refusals_audited(
     try:
         yield
     except ServiceError as error:
-        details = {**(context or {}), "status": error.status, "detail": error.detail,
-                   "errors": error.errors[:10]}  # fmt: skip
+        details = {
+            **(context or {}),
+            "status": error.status,
+            "detail": error.detail,
+            "errors": error.errors[:10],
+        }
         await run_in_threadpool(state.audit.record, operator, action, "refused", details=details, **fields)
         raise
 
@@ -139,12 +144,26 @@ async def upload_calibration(
     ] = None,
 ) -> JobOut:
     async with refusals_audited(state, who, "upload"):
-        upload = UploadRequest(name, note, append_to, activate, force, reason, dedupe, max_rejected_share,
-                               None if stratify is None else "+".join(stratify))  # fmt: skip
+        options = UploadOptions(
+            name=name,
+            note=note,
+            append_to=append_to,
+            activate=activate,
+            force=force,
+            reason=reason,
+            dedupe=dedupe,
+            max_rejected_share=max_rejected_share,
+            stratify=None if stratify is None else _stratify(stratify),
+        )
         workspace, sha256 = await receive_batch_zip(request, state)
-        job = await run_in_threadpool(state.calibrations.accept, workspace, sha256, upload, who)
+        job = await run_in_threadpool(state.calibrations.accept, workspace, sha256, options, who)
     response.headers["Location"] = f"/v1/admin/jobs/{job.id}"
     return job_out(job)
+
+
+def _stratify(values: list[str]) -> frozenset[str]:
+    # repeated values are quoted as one ("difficulty+bogus") when refused, as they always were
+    return parse_stratify("+".join(values))
 
 
 async def receive_batch_zip(request: Request, state: ServiceState) -> tuple[UploadWorkspace, str]:
@@ -251,8 +270,11 @@ async def compare_calibration(
         if reference is not None and reference < 1:
             raise NotFound(f"calibration version {reference} does not exist for this model")
         minimum = state.settings.calibration.min_calibration_instances
-        return comparison_out(comparison_with(state.registry, state.detector.manifest, version, reference,
-                                              minimum, epsilon, nonconformity))  # fmt: skip
+        return comparison_out(
+            comparison_with(
+                state.registry, state.detector.manifest, version, reference, minimum, epsilon, nonconformity
+            )
+        )
 
     return await run_in_threadpool(build)
 
@@ -270,9 +292,13 @@ async def activate_calibration(
     request = ActivationRequest(version, who, body.reason, body.force)
     async with refusals_audited(state, who, "activation", version=version, reason=body.reason):
         entry, _ = await run_in_threadpool(
-            activate, state.registry, state.detector.manifest, state.audit, request,
+            activate,
+            state.registry,
+            state.detector.manifest,
+            state.audit,
+            request,
             state.settings.calibration.min_calibration_instances,
-        )  # fmt: skip
+        )
     return activation_out(entry)
 
 
@@ -298,5 +324,10 @@ async def audit_trail(
 async def store_info(state: State, _: Admin) -> StoreInfo:
     kind, location = store_location(state.settings.storage.resolved_store_url)
     active = await run_in_threadpool(state.registry.refresh_now)
-    return StoreInfo(kind=kind, location=location, data_dir=str(state.settings.storage.data_dir),
-                     model_hash=state.detector.model_hash, active_version=active)  # fmt: skip
+    return StoreInfo(
+        kind=kind,
+        location=location,
+        data_dir=str(state.settings.storage.data_dir),
+        model_hash=state.detector.model_hash,
+        active_version=active,
+    )
