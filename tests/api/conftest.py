@@ -12,61 +12,34 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from fastapi.testclient import TestClient
 
-from service.api.app import create_app
-from service.settings import Settings
-from tests.samples import model_dir
-from tests.service_calls import ADMIN_TOKEN, ServiceCalls
-
-# What a test server process gets too (tests/live/server.py service_env): one inference thread, two
-# CPU workers, so that answers and timings do not depend on the machine's cores.
-DEFAULTS: dict[str, Any] = {"inference_threads": 1, "cpu_workers": 2}
-
-
-class InProcessService(ServiceCalls):
-    """The app of ``Settings(data_dir=..., **settings)``, started; ``client`` calls it in process."""
-
-    def __init__(self, data_dir: Path, **settings: Any) -> None:
-        self.data_dir = Path(data_dir)
-        self.settings = settings
-        values = {"model_dir": model_dir(), **DEFAULTS, **settings}
-        self.app = create_app(Settings(data_dir=self.data_dir, **values))
-        self.client = TestClient(self.app)
-
-    def __enter__(self) -> InProcessService:
-        self.client.__enter__()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.client.__exit__(*exc)
+from tests.api.in_process import InProcess
+from tests.service_calls import ADMIN_TOKEN
 
 
 @pytest.fixture(scope="module")
-def api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[InProcessService]:
+def api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[InProcess]:
     """The bundled calibration active and admin enabled, shared by one test module."""
-    with InProcessService(tmp_path_factory.mktemp("api") / "data", admin_token=ADMIN_TOKEN) as service:
+    with InProcess(tmp_path_factory.mktemp("api") / "data", admin_token=ADMIN_TOKEN) as service:
         yield service
 
 
 @pytest.fixture(scope="session")
-def limited_api(
-    tmp_path_factory: pytest.TempPathFactory, limits: dict[str, int]
-) -> Iterator[InProcessService]:
+def limited_api(tmp_path_factory: pytest.TempPathFactory, limits: dict[str, int]) -> Iterator[InProcess]:
     """Small request, image and upload limits; refusals must leave it unchanged."""
     data = tmp_path_factory.mktemp("limited") / "data"
-    with InProcessService(data, admin_token=ADMIN_TOKEN, **limits) as service:
+    with InProcess(data, admin_token=ADMIN_TOKEN, **limits) as service:
         yield service
 
 
 @pytest.fixture
-def make_api(tmp_path: Path) -> Iterator[Callable[..., InProcessService]]:
+def make_api(tmp_path: Path) -> Iterator[Callable[..., InProcess]]:
     """Start a service with these settings for this test alone (on ``data_dir`` if given)."""
-    started: list[InProcessService] = []
+    started: list[InProcess] = []
 
-    def make(data_dir: Path | None = None, **settings: Any) -> InProcessService:
+    def make(data_dir: Path | None = None, **settings: Any) -> InProcess:
         data = data_dir or tmp_path / f"data-{len(started)}"
-        started.append(InProcessService(data, **settings).__enter__())
+        started.append(InProcess(data, **settings).__enter__())
         return started[-1]
 
     yield make

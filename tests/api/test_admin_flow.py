@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.live.server import LiveServer
+from tests.api.in_process import InProcess
 from tests.predict_client import instances_of, predict_ok
 from tests.samples import Sample, batch_zip, count_instances, samples_by_image
 from tests.service_calls import ADMIN_TOKEN, assert_problem
@@ -24,23 +24,23 @@ def first_image(samples: list[Sample]) -> tuple[bytes, list[Sample]]:
     return path.read_bytes(), group
 
 
-def active(server: LiveServer) -> int:
-    response = server.client.get("/readyz")
+def active(api: InProcess) -> int:
+    response = api.client.get("/readyz")
     assert response.status_code == 200, response.text
     return response.json()["active_calibration"]
 
 
-def detail(server: LiveServer, version: int) -> dict:
-    response = server.client.get(f"/v1/admin/calibrations/{version}", headers=server.admin)
+def detail(api: InProcess, version: int) -> dict:
+    response = api.client.get(f"/v1/admin/calibrations/{version}", headers=api.admin)
     assert response.status_code == 200, response.text
     return response.json()
 
 
-def activate(server: LiveServer, version: int, reason: str, force: bool = False) -> dict:
-    response = server.client.post(
+def activate(api: InProcess, version: int, reason: str, force: bool = False) -> dict:
+    response = api.client.post(
         f"/v1/admin/calibrations/{version}/activate",
         json={"reason": reason, "force": force},
-        headers=server.admin,
+        headers=api.admin,
     )
     assert response.status_code == 200, response.text
     return response.json()
@@ -52,41 +52,41 @@ def result(version: int, instances: int, activated: bool, added: int) -> dict:
             "duplicates_dropped": 0, "rejected": 0, "rejections": []}  # fmt: skip
 
 
-def used_version(server: LiveServer, image: tuple[bytes, list[Sample]], version: int | None = None) -> dict:
+def used_version(api: InProcess, image: tuple[bytes, list[Sample]], version: int | None = None) -> dict:
     parameters: dict = {"instances": instances_of(image[1])}
     if version is not None:
         parameters["calibration_version"] = version
-    return predict_ok(server.client, image[0], parameters)
+    return predict_ok(api.client, image[0], parameters)
 
 
 def test_upload_job_activate_predict_and_roll_back(
-    server: LiveServer, samples_dir: Path, coco: dict, samples: list[Sample], first_image
+    api: InProcess, samples_dir: Path, coco: dict, samples: list[Sample], first_image
 ) -> None:
-    before = server.versions()
-    previous = active(server)
-    log_before = server.client.get("/v1/admin/activations", headers=server.admin).json()["activations"]
+    before = api.versions()
+    previous = active(api)
+    log_before = api.client.get("/v1/admin/activations", headers=api.admin).json()["activations"]
     body = batch_zip(samples_dir, coco)
     total = count_instances(coco)
 
-    response = server.upload(body, name="samples-batch", note="end-to-end test")
+    response = api.upload(body, name="samples-batch", note="end-to-end test")
     assert response.status_code == 202, response.text
     job = response.json()
     assert job["kind"] == "calibration" and job["state"] in ("queued", "running", "succeeded")
     assert job["total"] == total and job["errors"] == []
     assert response.headers["location"] == f"/v1/admin/jobs/{job['id']}"
 
-    job = server.wait_job(job["id"])
+    job = api.wait_job(job["id"])
     assert job["state"] == "succeeded", job
     assert job["done"] == job["total"] == total
     assert job["errors"] == [] and job["finished_at"] is not None
     version = job["result"]["version"]
     assert job["result"] == result(version, total, False, total)
     assert job["version"] == version
-    assert server.versions() == [*before, version]
-    assert active(server) == previous  # not activated without activate=true
-    assert server.upload_workspaces() == [], "the upload workspace was not removed"
+    assert api.versions() == [*before, version]
+    assert active(api) == previous  # not activated without activate=true
+    assert api.upload_workspaces() == [], "the upload workspace was not removed"
 
-    summary = detail(server, version)
+    summary = detail(api, version)
     assert summary["note"] == "end-to-end test" and summary["author"] == "admin"
     assert summary["instances"] == total and summary["parent_version"] is None and not summary["active"]
     assert summary["source_batches"] == [
@@ -95,36 +95,36 @@ def test_upload_job_activate_predict_and_roll_back(
     assert sum(summary["objects"].values()) == total
 
     # predict with the new version before activating it; n is the version's labeled count
-    pinned = used_version(server, first_image, version)
+    pinned = used_version(api, first_image, version)
     assert pinned["calibration"]["version"] == version
     for instance in pinned["instances"]:
         for keypoint in instance["keypoints"]:
             assert keypoint["guarantee"]["n"] == summary["labeled_per_keypoint"][keypoint["name"]]
-    assert used_version(server, first_image)["calibration"]["version"] == previous
+    assert used_version(api, first_image)["calibration"]["version"] == previous
 
-    refused = server.client.post(
-        f"/v1/admin/calibrations/{version}/activate", json={"reason": "new batch"}, headers=server.admin
+    refused = api.client.post(
+        f"/v1/admin/calibrations/{version}/activate", json={"reason": "new batch"}, headers=api.admin
     )
     problem = assert_problem(refused, 409, "activation refused", "force")
     assert problem["comparison"]["against"] == previous and not problem["comparison"]["allowed"]
-    assert active(server) == previous
-    entry = activate(server, version, "new batch", force=True)
+    assert active(api) == previous
+    entry = activate(api, version, "new batch", force=True)
     assert (entry["version"], entry["who"], entry["reason"]) == (version, "admin", "new batch")
-    assert active(server) == version
-    assert used_version(server, first_image)["calibration"]["version"] == version
-    assert used_version(server, first_image) == pinned
+    assert active(api) == version
+    assert used_version(api, first_image)["calibration"]["version"] == version
+    assert used_version(api, first_image) == pinned
 
-    listed = server.client.get("/v1/admin/calibrations", headers=server.admin).json()
+    listed = api.client.get("/v1/admin/calibrations", headers=api.admin).json()
     assert listed["active_version"] == version
     assert [v["version"] for v in listed["versions"] if v["active"]] == [version]
 
-    rollback = activate(server, previous, "roll back")
+    rollback = activate(api, previous, "roll back")
     assert rollback["version"] == previous and rollback["seq"] > entry["seq"]
-    assert active(server) == previous
-    assert used_version(server, first_image)["calibration"]["version"] == previous
-    assert server.versions() == [*before, version]  # rollback loses nothing
+    assert active(api) == previous
+    assert used_version(api, first_image)["calibration"]["version"] == previous
+    assert api.versions() == [*before, version]  # rollback loses nothing
 
-    log = server.client.get("/v1/admin/activations", headers=server.admin).json()
+    log = api.client.get("/v1/admin/activations", headers=api.admin).json()
     assert log["active_version"] == previous
     entries = log["activations"]
     assert entries[: len(log_before)] == log_before  # append-only
@@ -140,21 +140,21 @@ def test_upload_job_activate_predict_and_roll_back(
 
 
 def test_append_to_a_version_and_activate_on_success(
-    server: LiveServer, samples_dir: Path, coco: dict, first_image
+    api: InProcess, samples_dir: Path, coco: dict, first_image
 ) -> None:
-    parent = active(server)
-    parent_detail = detail(server, parent)
+    parent = active(api)
+    parent_detail = detail(api, parent)
     body = batch_zip(samples_dir, coco, images=3)
     batch_count = count_instances(coco, images=3)
 
-    job = server.calibrate(body, append_to=parent, activate=True, note="appended")
+    job = api.calibrate(body, append_to=parent, activate=True, note="appended")
     version = job["result"]["version"]
     assert job["result"] == result(version, parent_detail["instances"] + batch_count, True, batch_count)
     assert job["total"] == job["done"] == batch_count  # only the batch is scored
-    assert active(server) == version
-    assert used_version(server, first_image)["calibration"]["version"] == version
+    assert active(api) == version
+    assert used_version(api, first_image)["calibration"]["version"] == version
 
-    child = detail(server, version)
+    child = detail(api, version)
     assert child["parent_version"] == parent and child["active"]
     assert child["instances"] == parent_detail["instances"] + batch_count
     assert child["source_batches"][:-1] == parent_detail["source_batches"]
@@ -172,14 +172,14 @@ def test_append_to_a_version_and_activate_on_success(
         assert child["labeled_per_keypoint"][name] >= n
     assert sum(child["labeled_per_keypoint"].values()) > sum(parent_detail["labeled_per_keypoint"].values())
 
-    log = server.client.get("/v1/admin/activations", headers=server.admin).json()["activations"]
+    log = api.client.get("/v1/admin/activations", headers=api.admin).json()["activations"]
     assert log[-1]["version"] == version and log[-1]["reason"] == "activated on creation"
-    activate(server, parent, "restore")  # leave the active version as found
+    activate(api, parent, "restore")  # leave the active version as found
 
 
-def test_version_detail_reports_thresholds(server: LiveServer, manifest: dict) -> None:
-    version = active(server)
-    body = detail(server, version)
+def test_version_detail_reports_thresholds(api: InProcess, manifest: dict) -> None:
+    version = active(api)
+    body = detail(api, version)
     keypoints = [k["name"] for k in manifest["keypoints"]]
     objects = [o["name"] for o in manifest["objects"]]
     assert body["version"] == version and body["active"]
@@ -203,28 +203,26 @@ def test_version_detail_reports_thresholds(server: LiveServer, manifest: dict) -
         assert (rows[("peak", 0.05)]["keypoint"][name] is None) == (math.floor((n + 1) * 0.05) == 0)
 
 
-def test_missing_version_and_job_are_404(server: LiveServer) -> None:
-    missing = max(server.versions()) + 100
-    assert_problem(server.client.get(f"/v1/admin/calibrations/{missing}", headers=server.admin), 404)
-    response = server.client.post(
-        f"/v1/admin/calibrations/{missing}/activate", json={"reason": "x"}, headers=server.admin
+def test_missing_version_and_job_are_404(api: InProcess) -> None:
+    missing = max(api.versions()) + 100
+    assert_problem(api.client.get(f"/v1/admin/calibrations/{missing}", headers=api.admin), 404)
+    response = api.client.post(
+        f"/v1/admin/calibrations/{missing}/activate", json={"reason": "x"}, headers=api.admin
     )
     assert_problem(response, 404, str(missing))
-    assert_problem(server.client.get("/v1/admin/jobs/nope", headers=server.admin), 404)
+    assert_problem(api.client.get("/v1/admin/jobs/nope", headers=api.admin), 404)
 
 
 @pytest.mark.parametrize("version", ["0", "-1", str(2**31), str(2**70), "one"])
-def test_out_of_range_version_numbers_are_422(server: LiveServer, version: str) -> None:
+def test_out_of_range_version_numbers_are_422(api: InProcess, version: str) -> None:
     """Not 500: the store keeps version numbers as 32-bit integers >= 1."""
-    versions = server.versions()
-    assert_problem(
-        server.client.get(f"/v1/admin/calibrations/{version}", headers=server.admin), 422, "version"
-    )
-    response = server.client.post(
-        f"/v1/admin/calibrations/{version}/activate", json={"reason": "x"}, headers=server.admin
+    versions = api.versions()
+    assert_problem(api.client.get(f"/v1/admin/calibrations/{version}", headers=api.admin), 422, "version")
+    response = api.client.post(
+        f"/v1/admin/calibrations/{version}/activate", json={"reason": "x"}, headers=api.admin
     )
     assert_problem(response, 422, "version")
-    assert server.versions() == versions
+    assert api.versions() == versions
 
 
 ADMIN_ROUTES = [
@@ -243,26 +241,26 @@ ADMIN_ROUTES = [
 
 @pytest.mark.parametrize(("method", "path"), ADMIN_ROUTES)
 @pytest.mark.parametrize("authorization", [None, "Bearer wrong-token", f"Basic {ADMIN_TOKEN}", "Bearer"])
-def test_admin_needs_the_bearer_token(server: LiveServer, method: str, path: str, authorization) -> None:
+def test_admin_needs_the_bearer_token(api: InProcess, method: str, path: str, authorization) -> None:
     headers = {"Content-Type": "application/zip"}
     if authorization is not None:
         headers["Authorization"] = authorization
-    versions = server.versions()
-    response = server.client.request(method, path, headers=headers, content=b"PK")
+    versions = api.versions()
+    response = api.client.request(method, path, headers=headers, content=b"PK")
     assert_problem(response, 401, "Bearer")
     assert response.headers["www-authenticate"] == "Bearer"
-    assert server.versions() == versions
+    assert api.versions() == versions
 
 
 @pytest.fixture(scope="module")
-def no_admin_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
-    with LiveServer(tmp_path_factory.mktemp("no-admin") / "data") as live:
+def no_admin_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[InProcess]:
+    with InProcess(tmp_path_factory.mktemp("no-admin") / "data") as live:
         yield live
 
 
 @pytest.mark.parametrize(("method", "path"), ADMIN_ROUTES)
 def test_admin_is_disabled_without_a_configured_token(
-    no_admin_server: LiveServer, method: str, path: str, first_image
+    no_admin_server: InProcess, method: str, path: str, first_image
 ) -> None:
     for headers in ({}, {"Authorization": f"Bearer {ADMIN_TOKEN}"}):
         response = no_admin_server.client.request(method, path, headers=headers, content=b"PK")

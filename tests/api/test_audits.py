@@ -1,4 +1,4 @@
-"""Coverage audits end to end on a real server: the bundled samples agree with the bundled
+"""Coverage audits end to end on a real api: the bundled samples agree with the bundled
 calibration, the same images with labels shifted by a few pixels are flagged, audits are
 stored, listed, published as metrics and never change a calibration, and bad uploads get 4xx."""
 
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.live.server import LiveServer
+from tests.api.in_process import InProcess
 from tests.predict_client import contains, instances_of, predict_ok
 from tests.samples import Sample, batch_zip, count_instances, samples_by_image
 from tests.service_calls import ADMIN_TOKEN, assert_problem
@@ -33,25 +33,25 @@ def shifted(pixels: float):
     return mutate
 
 
-def start_audit(server: LiveServer, body: bytes, content_type: str = "application/zip", **params):
+def start_audit(api: InProcess, body: bytes, content_type: str = "application/zip", **params):
     params = {k: (str(v).lower() if isinstance(v, bool) else v) for k, v in params.items()}
-    return server.client.post(
+    return api.client.post(
         "/v1/admin/audits",
         content=body,
         params=params,
-        headers={**server.admin, "Content-Type": content_type},
+        headers={**api.admin, "Content-Type": content_type},
     )
 
 
-def run_audit(server: LiveServer, body: bytes, **params) -> dict:
+def run_audit(api: InProcess, body: bytes, **params) -> dict:
     """Audit a batch, wait for the job, return the stored audit."""
-    response = start_audit(server, body, **params)
+    response = start_audit(api, body, **params)
     assert response.status_code == 202, response.text
     job = response.json()
     assert job["kind"] == "audit" and response.headers["location"] == f"/v1/admin/jobs/{job['id']}"
-    job = server.wait_job(job["id"])
+    job = api.wait_job(job["id"])
     assert job["state"] == "succeeded", job
-    audit = server.client.get(f"/v1/admin/audits/{job['result']['audit']}", headers=server.admin)
+    audit = api.client.get(f"/v1/admin/audits/{job['result']['audit']}", headers=api.admin)
     assert audit.status_code == 200, audit.text
     return audit.json()
 
@@ -66,23 +66,23 @@ def exact_figures(report: dict) -> list[dict]:
 
 
 @pytest.fixture(scope="module")
-def calibrations(server: LiveServer) -> Iterator[tuple]:
+def calibrations(api: InProcess) -> Iterator[tuple]:
     """The versions and activation log before any audit, to check after them."""
     before = (
-        server.client.get("/v1/admin/calibrations", headers=server.admin).json(),
-        server.client.get("/v1/admin/activations", headers=server.admin).json(),
+        api.client.get("/v1/admin/calibrations", headers=api.admin).json(),
+        api.client.get("/v1/admin/activations", headers=api.admin).json(),
     )
     yield before
 
 
 @pytest.fixture(scope="module")
-def samples_audit(server: LiveServer, calibrations: tuple, samples_dir: Path, coco: dict) -> dict:
-    return run_audit(server, batch_zip(samples_dir, coco), name="samples", note="bundled samples")
+def samples_audit(api: InProcess, calibrations: tuple, samples_dir: Path, coco: dict) -> dict:
+    return run_audit(api, batch_zip(samples_dir, coco), name="samples", note="bundled samples")
 
 
 @pytest.fixture(scope="module")
-def shifted_audit(server: LiveServer, samples_audit: dict, samples_dir: Path, coco: dict) -> dict:
-    return run_audit(server, batch_zip(samples_dir, coco, mutate=shifted(SHIFT_PX)), name="shifted")
+def shifted_audit(api: InProcess, samples_audit: dict, samples_dir: Path, coco: dict) -> dict:
+    return run_audit(api, batch_zip(samples_dir, coco, mutate=shifted(SHIFT_PX)), name="shifted")
 
 
 def test_the_bundled_samples_are_covered_within_their_bands(samples_audit: dict, coco: dict) -> None:
@@ -127,7 +127,7 @@ def test_labels_shifted_by_a_few_pixels_are_flagged(shifted_audit: dict) -> None
 @pytest.mark.parametrize("kind", ["peak", "cov"])
 @pytest.mark.parametrize("scope", ["keypoint", "object"])
 def test_covered_means_inside_the_sets_that_predict_returns(
-    server: LiveServer, shifted_audit: dict, samples: list[Sample], kind: str, scope: str
+    api: InProcess, shifted_audit: dict, samples: list[Sample], kind: str, scope: str
 ) -> None:
     """The audit's count is the number of true keypoints inside the served sets (the score
     inequality and the set are one), counted here from /v1/predict on the shifted labels."""
@@ -141,7 +141,7 @@ def test_covered_means_inside_the_sets_that_predict_returns(
             "epsilon": 0.1,
             "coverage": scope,
         }
-        body = predict_ok(server.client, path.read_bytes(), parameters)
+        body = predict_ok(api.client, path.read_bytes(), parameters)
         for sample, instance in zip(group, body["instances"], strict=True):
             labeled = [
                 (x, y, k) for (x, y, v), k in zip(sample.keypoints, instance["keypoints"], strict=True) if v
@@ -159,44 +159,40 @@ def test_covered_means_inside_the_sets_that_predict_returns(
 
 
 def test_an_audit_never_changes_a_calibration(
-    server: LiveServer, calibrations: tuple, samples_audit: dict, shifted_audit: dict
+    api: InProcess, calibrations: tuple, samples_audit: dict, shifted_audit: dict
 ) -> None:
     versions, activations = calibrations
-    assert server.client.get("/v1/admin/calibrations", headers=server.admin).json() == versions
-    assert server.client.get("/v1/admin/activations", headers=server.admin).json() == activations
+    assert api.client.get("/v1/admin/calibrations", headers=api.admin).json() == versions
+    assert api.client.get("/v1/admin/activations", headers=api.admin).json() == activations
 
 
-def test_audits_are_listed_newest_first_in_pages(
-    server: LiveServer, samples_audit: dict, shifted_audit: dict
-):
-    listed = server.client.get("/v1/admin/audits", headers=server.admin).json()
+def test_audits_are_listed_newest_first_in_pages(api: InProcess, samples_audit: dict, shifted_audit: dict):
+    listed = api.client.get("/v1/admin/audits", headers=api.admin).json()
     ids = [audit["id"] for audit in listed["audits"]]
     assert ids == sorted(ids, reverse=True) and {samples_audit["id"], shifted_audit["id"]} <= set(ids)
-    first = server.client.get("/v1/admin/audits", params={"limit": 1}, headers=server.admin).json()
+    first = api.client.get("/v1/admin/audits", params={"limit": 1}, headers=api.admin).json()
     assert [a["id"] for a in first["audits"]] == ids[:1] and first["next_before"] == ids[0]
-    rest = server.client.get("/v1/admin/audits", params={"before": ids[0]}, headers=server.admin).json()
+    rest = api.client.get("/v1/admin/audits", params={"before": ids[0]}, headers=api.admin).json()
     assert [a["id"] for a in rest["audits"]] == ids[1:]
     summary = next(a for a in listed["audits"] if a["id"] == shifted_audit["id"])
     assert summary == {k: v for k, v in shifted_audit.items() if k != "report"}
-    assert_problem(
-        server.client.get("/v1/admin/audits/999999", headers=server.admin), 404, "no coverage audit"
-    )
-    assert server.client.get("/v1/admin/audits").status_code == 401
-    assert server.client.delete(f"/v1/admin/audits/{ids[0]}", headers=server.admin).status_code == 405
-    jobs = server.client.get("/v1/admin/audit", headers=server.admin).json()["entries"]
+    assert_problem(api.client.get("/v1/admin/audits/999999", headers=api.admin), 404, "no coverage audit")
+    assert api.client.get("/v1/admin/audits").status_code == 401
+    assert api.client.delete(f"/v1/admin/audits/{ids[0]}", headers=api.admin).status_code == 405
+    jobs = api.client.get("/v1/admin/audit", headers=api.admin).json()["entries"]
     job_id = next(e["details"]["job"] for e in jobs if e["action"] == "audit" and e["outcome"] == "accepted")
-    retried = server.client.post(f"/v1/admin/jobs/{job_id}/retry", headers=server.admin)
+    retried = api.client.post(f"/v1/admin/jobs/{job_id}/retry", headers=api.admin)
     assert_problem(retried, 409, "only calibration jobs are retried")
 
 
 def test_the_latest_audit_is_in_the_metrics_of_every_replica(
-    server: LiveServer, shifted_audit: dict, tmp_path: Path
+    api: InProcess, shifted_audit: dict, tmp_path: Path
 ) -> None:
-    latest = server.client.get("/v1/admin/audits", params={"limit": 1}, headers=server.admin).json()
-    report = server.client.get(f"/v1/admin/audits/{latest['audits'][0]['id']}", headers=server.admin).json()
+    latest = api.client.get("/v1/admin/audits", params={"limit": 1}, headers=api.admin).json()
+    report = api.client.get(f"/v1/admin/audits/{latest['audits'][0]['id']}", headers=api.admin).json()
     flagged = report["report"]["flagged"][0] if report["report"]["flagged"] else None
-    with LiveServer(server.data_dir, admin_token=ADMIN_TOKEN) as replica:  # reads it from the store at start
-        for live in (server, replica):
+    with InProcess(api.data_dir, admin_token=ADMIN_TOKEN) as replica:  # reads it from the store at start
+        for live in (api, replica):
             text = live.client.get("/metrics").text
             assert f'cks_audit_latest_id{{version="{report["version"]}"}} {float(report["id"])}' in text
             overall = next(
@@ -223,24 +219,24 @@ def _gauge(text: str, name: str, labels: str) -> float:
 
 
 def test_a_named_version_is_audited_and_its_own_instances_are_refused(
-    server: LiveServer, samples_dir: Path, coco: dict, samples_audit: dict
+    api: InProcess, samples_dir: Path, coco: dict, samples_audit: dict
 ) -> None:
-    job = server.calibrate(batch_zip(samples_dir, coco, images=3), name="three-images")
+    job = api.calibrate(batch_zip(samples_dir, coco, images=3), name="three-images")
     version = job["version"]
     body = batch_zip(samples_dir, coco)
     assert_problem(
-        start_audit(server, body, version=version),
+        start_audit(api, body, version=version),
         409,
         f"version {version} was not calibrated with",
         "dedupe",
     )
-    audit = run_audit(server, body, version=version, dedupe=True, epsilon=[0.2, 0.1])
+    audit = run_audit(api, body, version=version, dedupe=True, epsilon=[0.2, 0.1])
     report = audit["report"]
     assert audit["version"] == report["version"] == version
     assert report["batch"]["duplicates_dropped"] == count_instances(coco, images=3)
     assert audit["instances"] == count_instances(coco) - count_instances(coco, images=3)
     assert {s["epsilon"] for s in report["sections"]} == {0.1, 0.2}
-    metrics = server.client.get("/metrics").text  # the gauges are this audit's alone
+    metrics = api.client.get("/metrics").text  # the gauges are this audit's alone
     assert re.findall(r"^cks_audit_latest_id\{(.*)\} (\S+)$", metrics, re.MULTILINE) == [
         (f'version="{version}"', f"{float(audit['id'])}")
     ]
@@ -259,17 +255,17 @@ def test_a_named_version_is_audited_and_its_own_instances_are_refused(
     ],
 )
 def test_bad_parameters_are_refused(
-    server: LiveServer, samples_dir: Path, coco: dict, params: dict, status: int, fragment: str
+    api: InProcess, samples_dir: Path, coco: dict, params: dict, status: int, fragment: str
 ) -> None:
-    response = start_audit(server, batch_zip(samples_dir, coco, images=1), **params)
+    response = start_audit(api, batch_zip(samples_dir, coco, images=1), **params)
     assert response.status_code == status, response.text
     assert fragment in response.text
 
 
-def test_bad_uploads_are_refused(server: LiveServer, samples_dir: Path, coco: dict) -> None:
-    before = server.client.get("/v1/admin/audits", headers=server.admin).json()["audits"]
-    assert_problem(start_audit(server, b"not a zip", content_type="text/plain"), 415, "application/zip")
-    assert_problem(start_audit(server, b"not a zip"), 422, "zip")
+def test_bad_uploads_are_refused(api: InProcess, samples_dir: Path, coco: dict) -> None:
+    before = api.client.get("/v1/admin/audits", headers=api.admin).json()["audits"]
+    assert_problem(start_audit(api, b"not a zip", content_type="text/plain"), 415, "application/zip")
+    assert_problem(start_audit(api, b"not a zip"), 422, "zip")
 
     def unknown_object(doc: dict, files: dict) -> None:
         doc["categories"][0]["name"] = "spaceship"
@@ -278,16 +274,16 @@ def test_bad_uploads_are_refused(server: LiveServer, samples_dir: Path, coco: di
         doc["annotations"][0]["keypoints"] = "here"
 
     for mutate in (unknown_object, bad_json):
-        response = start_audit(server, batch_zip(samples_dir, coco, images=2, mutate=mutate))
+        response = start_audit(api, batch_zip(samples_dir, coco, images=2, mutate=mutate))
         assert response.status_code == 422, response.text
     headers = {"Content-Type": "application/zip", "Authorization": "Bearer wrong-token"}
-    response = server.client.post(
+    response = api.client.post(
         "/v1/admin/audits", content=batch_zip(samples_dir, coco, images=1), headers=headers
     )
     assert response.status_code == 401
-    assert server.client.get("/v1/admin/audits", headers=server.admin).json()["audits"] == before
-    assert server.upload_workspaces() == []
-    trail = server.client.get("/v1/admin/audit", headers=server.admin).json()["entries"]
+    assert api.client.get("/v1/admin/audits", headers=api.admin).json()["audits"] == before
+    assert api.upload_workspaces() == []
+    trail = api.client.get("/v1/admin/audit", headers=api.admin).json()["entries"]
     assert any(e["action"] == "audit" and e["outcome"] == "refused" for e in trail), json.dumps(trail)[:500]
 
 
@@ -296,7 +292,7 @@ def test_with_several_workers_the_gauges_are_the_latest_audits(
 ) -> None:
     """Each worker process keeps its own gauge values; the newest audit's must hide the older
     one's, whichever worker ran either (prometheus multiprocess mode, "mostrecent")."""
-    with LiveServer(tmp_path / "data", admin_token=ADMIN_TOKEN, workers=2) as live:
+    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN, workers=2) as live:
         run_audit(live, batch_zip(samples_dir, coco, images=4), epsilon=[0.05])
         latest = run_audit(live, batch_zip(samples_dir, coco, images=4), epsilon=[0.2])
         for _ in range(4):  # whichever worker answers

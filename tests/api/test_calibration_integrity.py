@@ -12,7 +12,7 @@ from pathlib import Path, PurePosixPath
 import pytest
 
 from service.settings import PACKAGE_ROOT
-from tests.live.server import LiveServer, cli, free_port, service_env
+from tests.live.server import InProcess, cli, free_port, service_env
 from tests.samples import batch_zip, build_zip, count_instances
 from tests.service_calls import ADMIN_TOKEN, assert_problem
 
@@ -20,12 +20,12 @@ OPERATORS = {"alice": "alice-token-0123456789", "bob": "bob-token-9876543210"}
 
 
 @pytest.fixture(scope="module")
-def named_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+def named_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[InProcess]:
     """A server with two named operators (a tokens file) and the single admin token."""
     root = tmp_path_factory.mktemp("operators")
     tokens = root / "tokens"
     tokens.write_text("# name:token\n" + "".join(f"{n}:{t}\n" for n, t in OPERATORS.items()))
-    with LiveServer(root / "data", admin_token=ADMIN_TOKEN, admin_tokens_file=tokens) as live:
+    with InProcess(root / "data", admin_token=ADMIN_TOKEN, admin_tokens_file=tokens) as live:
         yield live
 
 
@@ -33,22 +33,22 @@ def as_operator(name: str) -> dict[str, str]:
     return {"Authorization": f"Bearer {OPERATORS[name]}"}
 
 
-def audit(server: LiveServer, **params: object) -> list[dict]:
-    response = server.client.get("/v1/admin/audit", params=params, headers=server.admin)
+def audit(api: InProcess, **params: object) -> list[dict]:
+    response = api.client.get("/v1/admin/audit", params=params, headers=api.admin)
     assert response.status_code == 200, response.text
     return response.json()["entries"]
 
 
-def upload(server: LiveServer, body: bytes, operator: str = "alice", **params: object):
+def upload(api: InProcess, body: bytes, operator: str = "alice", **params: object):
     params = {k: (str(v).lower() if isinstance(v, bool) else v) for k, v in params.items()}
     headers = {**as_operator(operator), "Content-Type": "application/zip"}
-    return server.client.post("/v1/admin/calibrations", content=body, params=params, headers=headers)
+    return api.client.post("/v1/admin/calibrations", content=body, params=params, headers=headers)
 
 
-def calibrate(server: LiveServer, body: bytes, operator: str = "alice", **params: object) -> dict:
-    response = upload(server, body, operator, **params)
+def calibrate(api: InProcess, body: bytes, operator: str = "alice", **params: object) -> dict:
+    response = upload(api, body, operator, **params)
     assert response.status_code == 202, response.text
-    job = server.wait_job(response.json()["id"])
+    job = api.wait_job(response.json()["id"])
     assert job["state"] == "succeeded", job
     return job
 
@@ -71,7 +71,7 @@ def zip_of(samples_dir: Path, doc: dict) -> bytes:
 
 
 def test_the_same_zip_appended_twice_is_refused(
-    named_server: LiveServer, samples_dir: Path, coco: dict
+    named_server: InProcess, samples_dir: Path, coco: dict
 ) -> None:
     body = batch_zip(samples_dir, coco, images=3)
     version = calibrate(named_server, body)["version"]
@@ -87,7 +87,7 @@ def test_the_same_zip_appended_twice_is_refused(
 
 
 def test_overlapping_batch_is_refused_or_deduplicated(
-    named_server: LiveServer, samples_dir: Path, coco: dict
+    named_server: InProcess, samples_dir: Path, coco: dict
 ) -> None:
     first = calibrate(named_server, zip_of(samples_dir, first_images(coco, 0, 3)))["version"]
     overlap = zip_of(samples_dir, first_images(coco, 2, 6))  # image 2 is in both
@@ -102,7 +102,7 @@ def test_overlapping_batch_is_refused_or_deduplicated(
 
 
 def test_an_image_repeated_inside_a_batch_is_refused(
-    named_server: LiveServer, samples_dir: Path, coco: dict
+    named_server: InProcess, samples_dir: Path, coco: dict
 ) -> None:
     doc = first_images(coco, 0, 2)
     files = {image["file_name"]: (samples_dir / image["file_name"]).read_bytes() for image in doc["images"]}
@@ -121,7 +121,7 @@ def test_an_image_repeated_inside_a_batch_is_refused(
 
 
 def test_a_small_batch_needs_force_and_a_reason_and_is_audited(
-    named_server: LiveServer, samples_dir: Path, coco: dict
+    named_server: InProcess, samples_dir: Path, coco: dict
 ) -> None:
     active = named_server.client.get("/readyz").json()["active_calibration"]
     job = calibrate(named_server, batch_zip(samples_dir, coco), "bob", activate=True)
@@ -181,7 +181,7 @@ def test_a_small_batch_needs_force_and_a_reason_and_is_audited(
 
 
 def test_force_without_a_reason_is_refused_before_the_upload_is_read(
-    named_server: LiveServer, samples_dir: Path, coco: dict
+    named_server: InProcess, samples_dir: Path, coco: dict
 ) -> None:
     response = upload(named_server, batch_zip(samples_dir, coco, images=1), activate=True, force=True)
     assert_problem(response, 422, "force needs a reason")
@@ -192,7 +192,7 @@ def test_force_without_a_reason_is_refused_before_the_upload_is_read(
 
 @pytest.mark.parametrize("bbox", [[100, 100, 1e-6, 1e-6], [630, 10, 50, 50]])
 def test_boxes_that_predict_refuses_are_rejected_with_reasons(
-    named_server: LiveServer, samples_dir: Path, coco: dict, bbox: list[float]
+    named_server: InProcess, samples_dir: Path, coco: dict, bbox: list[float]
 ) -> None:
     doc = first_images(coco, 0, 3)
     doc["annotations"][0]["bbox"] = bbox
@@ -208,7 +208,7 @@ def test_boxes_that_predict_refuses_are_rejected_with_reasons(
 
 
 def test_an_image_that_does_not_decode_is_rejected_in_the_job(
-    named_server: LiveServer, samples_dir: Path, coco: dict
+    named_server: InProcess, samples_dir: Path, coco: dict
 ) -> None:
     doc = first_images(coco, 0, 3)
     files = {image["file_name"]: (samples_dir / image["file_name"]).read_bytes() for image in doc["images"]}
@@ -233,14 +233,14 @@ def test_an_image_that_does_not_decode_is_rejected_in_the_job(
 # ---------------------------------------------------------------- operators, audit trail, store
 
 
-def test_operators_are_named_and_the_single_token_is_admin(named_server: LiveServer) -> None:
+def test_operators_are_named_and_the_single_token_is_admin(named_server: InProcess) -> None:
     for headers in (as_operator("alice"), as_operator("bob"), named_server.admin):
         assert named_server.client.get("/v1/admin/store", headers=headers).status_code == 200
     wrong = {"Authorization": "Bearer alice-token-0123456788"}
     assert_problem(named_server.client.get("/v1/admin/store", headers=wrong), 401)
 
 
-def test_the_audit_trail_pages_and_cannot_be_edited(named_server: LiveServer) -> None:
+def test_the_audit_trail_pages_and_cannot_be_edited(named_server: InProcess) -> None:
     everything = audit(named_server, limit=1000)
     assert len(everything) >= 4
     seqs = [e["seq"] for e in everything]
@@ -254,7 +254,7 @@ def test_the_audit_trail_pages_and_cannot_be_edited(named_server: LiveServer) ->
     assert audit(named_server, limit=1000)[-len(everything) :] == everything
 
 
-def test_the_store_is_said_out_loud(named_server: LiveServer) -> None:
+def test_the_store_is_said_out_loud(named_server: InProcess) -> None:
     response = named_server.client.get("/v1/admin/store", headers=named_server.admin)
     assert response.status_code == 200, response.text
     body = response.json()

@@ -1,4 +1,4 @@
-"""Corrupt or truncated images on a real server: a 422 problem naming the fault, in predict and calibration.
+"""Corrupt or truncated images on a real api: a 422 problem naming the fault, in predict and calibration.
 
 Issue 12 item 4: a JPEG with a valid header and garbage scan data was scored and stored as
 a calibration image. Issue 13 item 3: a JPEG whose header says 6000x6000 over 640x480 of
@@ -16,9 +16,9 @@ import cv2
 import numpy as np
 import pytest
 
-from tests.live.server import LiveServer
-from tests.predict_client import instances_of, predict_json, predict_multipart
-from tests.samples import Sample, batch_files, build_zip, samples_by_image
+from tests.api.in_process import InProcess
+from tests.predict_client import predict_json, predict_multipart
+from tests.samples import batch_files, build_zip
 from tests.service_calls import assert_problem
 
 
@@ -53,13 +53,6 @@ def truncated_with_end_marker(data: bytes) -> bytes:
     return data[: (start + end) // 2] + b"\xff\xd9"
 
 
-@pytest.fixture(scope="module")
-def sample(samples: list[Sample]) -> tuple[bytes, list[dict]]:
-    """One sample JPEG and its labeled instances."""
-    path, group = next(iter(samples_by_image(samples).items()))
-    return path.read_bytes(), instances_of(group)
-
-
 @pytest.mark.parametrize(
     ("corrupt", "fragments"),
     [
@@ -75,7 +68,7 @@ def sample(samples: list[Sample]) -> tuple[bytes, list[dict]]:
 )
 @pytest.mark.parametrize("form", ["json", "multipart"])
 def test_corrupt_jpeg_predict_is_422(
-    server: LiveServer,
+    api: InProcess,
     sample: tuple[bytes, list[dict]],
     corrupt: Callable[[bytes], bytes],
     fragments: list[str],
@@ -83,12 +76,12 @@ def test_corrupt_jpeg_predict_is_422(
 ) -> None:
     image, instances = sample
     send = predict_json if form == "json" else predict_multipart
-    response = send(server.client, corrupt(image), {"instances": instances})
+    response = send(api.client, corrupt(image), {"instances": instances})
     assert_problem(response, 422, *fragments)
-    assert send(server.client, image, {"instances": instances}).status_code == 200  # the original is fine
+    assert send(api.client, image, {"instances": instances}).status_code == 200  # the original is fine
 
 
-def test_png_with_a_corrupted_chunk_crc_is_422(server: LiveServer, sample: tuple[bytes, list[dict]]) -> None:
+def test_png_with_a_corrupted_chunk_crc_is_422(api: InProcess, sample: tuple[bytes, list[dict]]) -> None:
     image, instances = sample
     ok, encoded = cv2.imencode(".png", cv2.imdecode(np.frombuffer(image, np.uint8), cv2.IMREAD_COLOR))
     assert ok
@@ -98,25 +91,25 @@ def test_png_with_a_corrupted_chunk_crc_is_422(server: LiveServer, sample: tuple
     crc_at = idat + 4 + length
     assert struct.unpack(">I", png[crc_at : crc_at + 4])[0] == zlib.crc32(png[idat : idat + 4 + length])
     broken = png[:crc_at] + bytes(b ^ 0xFF for b in png[crc_at : crc_at + 4]) + png[crc_at + 4 :]
-    response = predict_json(server.client, broken, {"instances": instances})
+    response = predict_json(api.client, broken, {"instances": instances})
     assert_problem(response, 422, "PNG image (640x480) cannot be decoded", "IDAT chunk", "CRC")
 
 
 def test_corrupt_calibration_image_fails_the_job_and_stores_nothing(
-    server: LiveServer, samples_dir: Path, coco: dict
+    api: InProcess, samples_dir: Path, coco: dict
 ) -> None:
     """Issue 12: the garbage-scan JPEG was scored and stored; now its job fails, naming the file."""
-    versions = server.versions()
-    active = server.client.get("/readyz").json()["active_calibration"]
+    versions = api.versions()
+    active = api.client.get("/readyz").json()["active_calibration"]
     doc, files = batch_files(samples_dir, coco, images=2)
     broken = doc["images"][1]["file_name"]
     files[broken] = garbage_in_scan(files[broken])
-    response = server.upload(build_zip(doc, files), activate=True)
+    response = api.upload(build_zip(doc, files), activate=True)
     assert response.status_code == 202, response.text  # header and size match: only decoding finds it
-    job = server.wait_job(response.json()["id"])
+    job = api.wait_job(response.json()["id"])
     assert job["state"] == "failed", job
     errors = " ".join(job["errors"])
     assert broken in errors and "cannot be decoded" in errors and "corrupt" in errors, job["errors"]
-    assert server.versions() == versions
-    assert server.client.get("/readyz").json()["active_calibration"] == active
-    assert server.upload_workspaces() == []
+    assert api.versions() == versions
+    assert api.client.get("/readyz").json()["active_calibration"] == active
+    assert api.upload_workspaces() == []

@@ -1,4 +1,4 @@
-"""Drift without labels on a real server: quiet on images like the calibration's, an alarm on a
+"""Drift without labels on a real api: quiet on images like the calibration's, an alarm on a
 blurred stream, the same figures in /metrics, and a clear answer where there is no reference.
 
 The live stream is the bundled samples (rendered like the bundled calibration's 600 images);
@@ -18,8 +18,8 @@ import httpx
 import numpy as np
 import pytest
 
+from tests.api.in_process import InProcess
 from tests.api.test_manifest_change import copy_model
-from tests.live.server import LiveServer
 from tests.live.test_workers import two_workers  # noqa: F401 (a fixture: two worker processes)
 from tests.predict_client import instances_of, predict_ok
 from tests.samples import Sample, samples_by_image
@@ -30,21 +30,21 @@ BLUR_SIGMAS = (5.0, 7.0, 9.0)
 
 
 @pytest.fixture(scope="module")
-def drift_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+def drift_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[InProcess]:
     """Every request computes every statistic (share 1), and a history point every 0.2 s."""
     data = tmp_path_factory.mktemp("drift") / "data"
     settings = {"drift_full_statistics_share": 1.0, "drift_history_seconds": 0.2}
-    with LiveServer(data, admin_token=ADMIN_TOKEN, **settings) as live:
+    with InProcess(data, admin_token=ADMIN_TOKEN, **settings) as live:
         yield live
 
 
-def drift(server: LiveServer) -> dict:
-    response = server.client.get("/v1/admin/drift", headers=server.admin)
+def drift(api: InProcess) -> dict:
+    response = api.client.get("/v1/admin/drift", headers=api.admin)
     assert response.status_code == 200, response.text
     return response.json()
 
 
-def send(server: LiveServer, samples: list[Sample], transform=None) -> int:
+def send(api: InProcess, samples: list[Sample], transform=None) -> int:
     """One predict per sample image with all its instances; returns the instances sent."""
     sent = 0
     for image_path, group in samples_by_image(samples).items():
@@ -52,7 +52,7 @@ def send(server: LiveServer, samples: list[Sample], transform=None) -> int:
         if transform is not None:
             pixels = transform(cv2.imdecode(np.frombuffer(image, np.uint8), cv2.IMREAD_COLOR))
             image = cv2.imencode(".jpg", pixels, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
-        predict_ok(server.client, image, {"instances": instances_of(group)})
+        predict_ok(api.client, image, {"instances": instances_of(group)})
         sent += len(group)
     return sent
 
@@ -62,7 +62,7 @@ def blurred(sigma: float):
 
 
 def test_drift_is_quiet_on_calibration_like_images_and_alarms_on_a_blurred_stream(
-    drift_server: LiveServer, samples: list[Sample]
+    drift_server: InProcess, samples: list[Sample]
 ) -> None:
     send(drift_server, samples)
     quiet = drift(drift_server)
@@ -109,7 +109,7 @@ def test_drift_is_quiet_on_calibration_like_images_and_alarms_on_a_blurred_strea
     assert 0 < quantiles["p05"] <= quantiles["p50"] <= quantiles["p95"]
 
 
-def test_drift_needs_the_admin_token(drift_server: LiveServer) -> None:
+def test_drift_needs_the_admin_token(drift_server: InProcess) -> None:
     assert_problem(drift_server.client.get("/v1/admin/drift"), 401, "Bearer")
 
 
@@ -122,22 +122,22 @@ def test_a_version_without_features_is_said_not_a_server_error(
     stripped = {key: value for key, value in bundle.items() if "/features/" not in key}
     assert len(stripped) < len(bundle), "the bundled calibration carries features"
     np.savez(model / "default_calibration.npz", **stripped)
-    with LiveServer(tmp_path / "data", admin_token=ADMIN_TOKEN, model_dir=model) as server:
-        send(server, samples[:3])
-        report = drift(server)
+    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN, model_dir=model) as api:
+        send(api, samples[:3])
+        report = drift(api)
         assert not report["reference_available"] and not report["alarm"]
         assert "carries no heatmap features" in report["reason"] and report["reference_version"] == 1
         assert all(t["statistic"] is None for k in report["keypoints"] for t in k["features"].values())
-        assert "cks_drift_reference_version 0.0" in server.client.get("/metrics").text
+        assert "cks_drift_reference_version 0.0" in api.client.get("/metrics").text
 
 
 def test_drift_off_answers_404(tmp_path: Path) -> None:
-    with LiveServer(tmp_path / "data", admin_token=ADMIN_TOKEN, drift_enabled=False) as server:
-        assert_problem(server.client.get("/v1/admin/drift", headers=server.admin), 404, "CKS_DRIFT_ENABLED")
-        assert "cks_drift_" not in server.client.get("/metrics").text
+    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN, drift_enabled=False) as api:
+        assert_problem(api.client.get("/v1/admin/drift", headers=api.admin), 404, "CKS_DRIFT_ENABLED")
+        assert "cks_drift_" not in api.client.get("/metrics").text
 
 
-def test_the_drift_document_is_json_with_the_console_keys(drift_server: LiveServer) -> None:
+def test_the_drift_document_is_json_with_the_console_keys(drift_server: InProcess) -> None:
     body = drift(drift_server)
     assert set(body) >= {
         "window",

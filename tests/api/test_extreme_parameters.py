@@ -1,4 +1,4 @@
-"""Extreme epsilon and delta on a real server: 200 (maybe with unbounded sets) or 422, never 500.
+"""Extreme epsilon and delta on a real api: 200 (maybe with unbounded sets) or 422, never 500.
 
 Issue 12 item 5: a delta with epsilon <= 5.5e-17 answered 500. Values inside (0, 1) are
 answered, subnormals and the neighbours of 0 and 1 included; values outside, written as
@@ -13,7 +13,7 @@ import math
 
 import pytest
 
-from tests.live.server import LiveServer
+from tests.api.in_process import InProcess
 from tests.predict_client import instances_of
 from tests.samples import Sample, b64, samples_by_image
 from tests.service_calls import assert_problem
@@ -29,13 +29,13 @@ def request_parts(samples: list[Sample]) -> tuple[bytes, list[dict]]:
     return path.read_bytes(), instances_of(group)
 
 
-def post(server: LiveServer, parts: tuple[bytes, list[dict]], options: dict[str, str]):
+def post(api: InProcess, parts: tuple[bytes, list[dict]], options: dict[str, str]):
     """POST JSON whose option values are written verbatim (so 1e309 stays a JSON number)."""
     image, instances = parts
     fields = [f'"image_base64": "{b64(image)}"', f'"instances": {json.dumps(instances)}']
     fields += [f'"{name}": {text}' for name, text in options.items()]
     body = "{" + ", ".join(fields) + "}"
-    return server.client.post("/v1/predict", content=body, headers={"Content-Type": "application/json"})
+    return api.client.post("/v1/predict", content=body, headers={"Content-Type": "application/json"})
 
 
 def strict_json(text: str) -> dict:
@@ -78,13 +78,13 @@ def _flatten(value: object) -> list:
 @pytest.mark.parametrize("nonconformity", ["peak", "cov"])
 @pytest.mark.parametrize("coverage", ["keypoint", "object"])
 def test_every_epsilon_and_delta_inside_the_interval_is_answered(
-    server: LiveServer, request_parts: tuple[bytes, list[dict]], nonconformity: str, coverage: str
+    api: InProcess, request_parts: tuple[bytes, list[dict]], nonconformity: str, coverage: str
 ) -> None:
     for epsilon, delta in itertools.product(INSIDE, (None, *INSIDE)):
         options = {"epsilon": epsilon, "nonconformity": f'"{nonconformity}"', "coverage": f'"{coverage}"'}
         if delta is not None:
             options["delta"] = delta
-        response = post(server, request_parts, options)
+        response = post(api, request_parts, options)
         assert response.status_code == 200, (options, response.text)
         keypoints = check_answer(
             strict_json(response.text), float(epsilon), None if delta is None else float(delta)
@@ -95,9 +95,9 @@ def test_every_epsilon_and_delta_inside_the_interval_is_answered(
             assert all(kp["set"]["type"] != "unbounded" for kp in keypoints)
 
 
-def test_the_issue_12_request(server: LiveServer, request_parts: tuple[bytes, list[dict]]) -> None:
+def test_the_issue_12_request(api: InProcess, request_parts: tuple[bytes, list[dict]]) -> None:
     """epsilon = 5.5e-17 with a delta answered 500: now every set is unbounded."""
-    response = post(server, request_parts, {"epsilon": "5.5e-17", "delta": "0.1"})
+    response = post(api, request_parts, {"epsilon": "5.5e-17", "delta": "0.1"})
     assert response.status_code == 200, response.text
     keypoints = check_answer(strict_json(response.text), 5.5e-17, 0.1)
     assert {kp["set"]["type"] for kp in keypoints} == {"unbounded"}
@@ -106,9 +106,9 @@ def test_the_issue_12_request(server: LiveServer, request_parts: tuple[bytes, li
 @pytest.mark.parametrize("name", ["epsilon", "delta"])
 @pytest.mark.parametrize("text", OUTSIDE)
 def test_values_outside_the_interval_are_422(
-    server: LiveServer, request_parts: tuple[bytes, list[dict]], name: str, text: str
+    api: InProcess, request_parts: tuple[bytes, list[dict]], name: str, text: str
 ) -> None:
-    response = post(server, request_parts, {name: text})
+    response = post(api, request_parts, {name: text})
     assert_problem(response, 422)
     if text not in ("NaN", "Infinity"):  # not JSON at all: the parser's message names the position
         assert_problem(response, 422, name)
@@ -116,7 +116,7 @@ def test_values_outside_the_interval_are_422(
 
 @pytest.mark.parametrize(("epsilon", "delta"), [("5e-324", "5e-324"), ("0.9999999999999999", None)])
 def test_multipart_and_png_rendering_answer_too(
-    server: LiveServer, request_parts: tuple[bytes, list[dict]], epsilon: str, delta: str | None
+    api: InProcess, request_parts: tuple[bytes, list[dict]], epsilon: str, delta: str | None
 ) -> None:
     image, instances = request_parts
     options = f'"epsilon": {epsilon}' + ("" if delta is None else f', "delta": {delta}')
@@ -124,9 +124,9 @@ def test_multipart_and_png_rendering_answer_too(
         "image": ("image.jpg", image, "image/jpeg"),
         "request": (None, f'{{"instances": {json.dumps(instances)}, {options}}}', "application/json"),
     }
-    response = server.client.post("/v1/predict", files=files)
+    response = api.client.post("/v1/predict", files=files)
     assert response.status_code == 200, response.text
     check_answer(strict_json(response.text), float(epsilon), None if delta is None else float(delta))
-    rendered = server.client.post("/v1/predict", files=files, headers={"Accept": "image/png"})
+    rendered = api.client.post("/v1/predict", files=files, headers={"Accept": "image/png"})
     assert rendered.status_code == 200, rendered.text
     assert rendered.headers["content-type"] == "image/png" and rendered.content.startswith(b"\x89PNG")

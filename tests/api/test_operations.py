@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.live.server import LiveServer
+from tests.api.in_process import InProcess
 from tests.predict_client import instances_of, predict_ok
 from tests.samples import Sample, batch_zip, samples_by_image
 from tests.service_calls import ADMIN_TOKEN, assert_problem
@@ -25,17 +25,17 @@ def metric_samples(text: str, name: str) -> dict[str, float]:
     return found
 
 
-def test_healthz(server: LiveServer) -> None:
-    response = server.client.get("/healthz")
+def test_healthz(api: InProcess) -> None:
+    response = api.client.get("/healthz")
     assert response.status_code == 200
     assert response.json() == {"status": "ok"}
 
 
-def test_readyz_with_an_active_calibration(server: LiveServer) -> None:
-    response = server.client.get("/readyz")
+def test_readyz_with_an_active_calibration(api: InProcess) -> None:
+    response = api.client.get("/readyz")
     assert response.status_code == 200, response.text
     body = response.json()
-    model = server.client.get("/v1/model").json()
+    model = api.client.get("/v1/model").json()
     age = body.pop("cache_age_seconds")
     assert 0 <= age < 5, age  # polled every CKS_STORE_POLL_SECONDS (1 s)
     assert body == {
@@ -49,14 +49,14 @@ def test_readyz_with_an_active_calibration(server: LiveServer) -> None:
 
 
 @pytest.fixture(scope="module")
-def unbootstrapped(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+def unbootstrapped(tmp_path_factory: pytest.TempPathFactory) -> Iterator[InProcess]:
     data = tmp_path_factory.mktemp("fresh") / "data"
-    with LiveServer(data, admin_token=ADMIN_TOKEN, bootstrap_calibration="false") as live:
+    with InProcess(data, admin_token=ADMIN_TOKEN, bootstrap_calibration="false") as live:
         yield live
 
 
 def test_readyz_is_503_without_an_active_calibration(
-    unbootstrapped: LiveServer, samples: list[Sample]
+    unbootstrapped: InProcess, samples: list[Sample]
 ) -> None:
     assert unbootstrapped.client.get("/healthz").status_code == 200  # alive, not ready
     assert_problem(unbootstrapped.client.get("/readyz"), 503, "no calibration is active")
@@ -71,7 +71,7 @@ def test_readyz_is_503_without_an_active_calibration(
 
 
 def test_readyz_becomes_200_after_a_first_calibration(
-    unbootstrapped: LiveServer, samples_dir: Path, coco: dict
+    unbootstrapped: InProcess, samples_dir: Path, coco: dict
 ) -> None:
     job = unbootstrapped.calibrate(batch_zip(samples_dir, coco, images=3), activate=True, force=True,
                                    reason="first calibration")  # fmt: skip
@@ -80,13 +80,13 @@ def test_readyz_becomes_200_after_a_first_calibration(
     assert response.json()["active_calibration"] == job["result"]["version"] == 1
 
 
-def test_metrics(server: LiveServer, samples: list[Sample], samples_dir: Path, coco: dict) -> None:
+def test_metrics(api: InProcess, samples: list[Sample], samples_dir: Path, coco: dict) -> None:
     path, group = next(iter(samples_by_image(samples).items()))
-    predict_ok(server.client, path.read_bytes(), {"instances": instances_of(group)})
-    server.calibrate(batch_zip(samples_dir, coco, images=2))
-    server.client.get("/v1/admin/calibrations/123456", headers=server.admin)  # a 404 on a templated route
+    predict_ok(api.client, path.read_bytes(), {"instances": instances_of(group)})
+    api.calibrate(batch_zip(samples_dir, coco, images=2))
+    api.client.get("/v1/admin/calibrations/123456", headers=api.admin)  # a 404 on a templated route
 
-    response = server.client.get("/metrics")
+    response = api.client.get("/metrics")
     assert response.status_code == 200
     assert response.headers["content-type"].startswith("text/plain")
     text = response.text

@@ -1,4 +1,4 @@
-"""Pose sets (PURSE) through the real server, on the bundled samples' true poses.
+"""Pose sets (PURSE) through the real api, on the bundled samples' true poses.
 
 The samples carry each object's camera matrix and true pose, and their keypoint labels are the
 exact projections of the manifest's 3D keypoints: so the true pose is in PURSE exactly when the
@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from scipy.stats import betabinom
 
-from tests.live.server import LiveServer
+from tests.api.in_process import InProcess
 from tests.predict_client import contains, predict_json, predict_ok
 from tests.samples import b64
 from tests.service_calls import ADMIN_TOKEN, assert_problem
@@ -70,7 +70,7 @@ def pose_request(annotations: list[dict], names: list[str], epsilon: float, **po
 
 
 @pytest.fixture(scope="module")
-def cases(server: LiveServer, coco: dict, samples_dir: Path, manifest: dict) -> list[Case]:
+def cases(api: InProcess, coco: dict, samples_dir: Path, manifest: dict) -> list[Case]:
     categories = {c["id"]: c["name"] for c in coco["categories"]}
     points_3d = {o["name"]: np.array(o["keypoints_3d"]) for o in manifest["objects"]}
     found = []
@@ -79,7 +79,7 @@ def cases(server: LiveServer, coco: dict, samples_dir: Path, manifest: dict) -> 
             annotations = [a for a in coco["annotations"] if a["image_id"] == image["id"]]
             names = [categories[a["category_id"]] for a in annotations]
             body = pose_request(annotations, names, epsilon)
-            result = predict_ok(server.client, (samples_dir / image["file_name"]).read_bytes(), body)
+            result = predict_ok(api.client, (samples_dir / image["file_name"]).read_bytes(), body)
             for ann, name, answer in zip(annotations, names, result["instances"], strict=True):
                 camera = np.array(ann["cam_K"])
                 rotation, translation = np.array(ann["cam_R_m2c"]), np.array(ann["cam_t_m2c"])
@@ -127,7 +127,7 @@ def test_true_poses_are_in_purse_at_the_guaranteed_rate(cases: list[Case], epsil
     assert betabinom.sf(inside - 1, m, a, b) >= BAND_ALPHA, f"{inside}/{m} true poses in PURSE: too many"
 
 
-def test_a_pose_far_from_the_truth_is_outside(server: LiveServer, coco: dict, samples_dir: Path) -> None:
+def test_a_pose_far_from_the_truth_is_outside(api: InProcess, coco: dict, samples_dir: Path) -> None:
     image = coco["images"][0]
     annotations = [a for a in coco["annotations"] if a["image_id"] == image["id"]]
     names = [c["name"] for a in annotations for c in coco["categories"] if c["id"] == a["category_id"]]
@@ -143,7 +143,7 @@ def test_a_pose_far_from_the_truth_is_outside(server: LiveServer, coco: dict, sa
         far.append({"instance": i, "rotation": turned, "translation": translation.tolist()})
         far.append({"instance": i, "rotation": rotation.tolist(), "translation": (-translation).tolist()})
     body["pose"]["check"] = far
-    result = predict_ok(server.client, (samples_dir / image["file_name"]).read_bytes(), body)
+    result = predict_ok(api.client, (samples_dir / image["file_name"]).read_bytes(), body)
     for instance in result["instances"]:
         checks = instance["pose"]["checks"]
         assert len(checks) == 3 and not any(c["inside"] for c in checks)
@@ -168,16 +168,16 @@ def test_certified_outer_bounds_contain_the_true_error(cases: list[Case]) -> Non
     assert certified > len(cases) / 2
 
 
-def test_a_pose_overlay_is_drawn(server: LiveServer, coco: dict, samples_dir: Path) -> None:
+def test_a_pose_overlay_is_drawn(api: InProcess, coco: dict, samples_dir: Path) -> None:
     image = coco["images"][0]
     annotations = [a for a in coco["annotations"] if a["image_id"] == image["id"]]
     names = [c["name"] for a in annotations for c in coco["categories"] if c["id"] == a["category_id"]]
     body = pose_request(annotations, names, 0.1, samples=0, outer_bound=False)
     image_bytes = (samples_dir / image["file_name"]).read_bytes()
     png = {"Accept": "image/png"}
-    with_pose = predict_json(server.client, image_bytes, body, headers=png)
+    with_pose = predict_json(api.client, image_bytes, body, headers=png)
     body.pop("pose")
-    without = predict_json(server.client, image_bytes, body, headers=png)
+    without = predict_json(api.client, image_bytes, body, headers=png)
     assert with_pose.status_code == without.status_code == 200
     assert with_pose.headers["content-type"] == "image/png"
     assert with_pose.content != without.content
@@ -200,32 +200,32 @@ def one_instance(coco: dict) -> tuple[dict, dict]:
     ],
 )
 def test_a_malformed_camera_matrix_is_refused(
-    server: LiveServer, coco: dict, samples_dir: Path, K, says: str
+    api: InProcess, coco: dict, samples_dir: Path, K, says: str
 ) -> None:
     body, _ = one_instance(coco)
     image = (samples_dir / coco["images"][0]["file_name"]).read_bytes()
     # written by hand: 1e999 is a valid JSON number that parses to infinity
     raw = json.dumps({**body, "image_base64": b64(image)})[:-1] + f', "pose": {{"K": {json.dumps(K)}}}}}'
-    response = server.client.post("/v1/predict", content=raw.replace("Infinity", "1e999"),
+    response = api.client.post("/v1/predict", content=raw.replace("Infinity", "1e999"),
                                    headers={"Content-Type": "application/json"})  # fmt: skip
     assert_problem(response, 422, "pose.K", says)
 
 
-def test_pose_without_object_coverage_is_refused(server: LiveServer, coco: dict, samples_dir: Path) -> None:
+def test_pose_without_object_coverage_is_refused(api: InProcess, coco: dict, samples_dir: Path) -> None:
     body, ann = one_instance(coco)
     body.update(coverage="keypoint", pose={"K": ann["cam_K"]})
     image = (samples_dir / coco["images"][0]["file_name"]).read_bytes()
-    assert_problem(predict_json(server.client, image, body), 422, "pose", "coverage 'object'")
+    assert_problem(predict_json(api.client, image, body), 422, "pose", "coverage 'object'")
 
 
-def test_bad_pose_checks_are_refused(server: LiveServer, coco: dict, samples_dir: Path) -> None:
+def test_bad_pose_checks_are_refused(api: InProcess, coco: dict, samples_dir: Path) -> None:
     body, ann = one_instance(coco)
     image = (samples_dir / coco["images"][0]["file_name"]).read_bytes()
     check = {"instance": 1, "rotation": ann["cam_R_m2c"], "translation": ann["cam_t_m2c"]}
     body["pose"] = {"K": ann["cam_K"], "check": [check]}
-    assert_problem(predict_json(server.client, image, body), 422, "pose.check", "instance 1 does not exist")
+    assert_problem(predict_json(api.client, image, body), 422, "pose.check", "instance 1 does not exist")
     body["pose"]["check"] = [{**check, "instance": 0, "rotation": np.diag([1.0, 1.0, -1.0]).tolist()}]
-    assert_problem(predict_json(server.client, image, body), 422, "pose.check.0.rotation", "not a rotation")
+    assert_problem(predict_json(api.client, image, body), 422, "pose.check.0.rotation", "not a rotation")
 
 
 def test_an_object_without_3d_keypoints_is_refused(
@@ -242,7 +242,7 @@ def test_an_object_without_3d_keypoints_is_refused(
     (model / "manifest.json").write_text(json.dumps(manifest))
     body["pose"] = {"K": ann["cam_K"]}
     image = (samples_dir / coco["images"][0]["file_name"]).read_bytes()
-    with LiveServer(tmp_path / "data", admin_token=ADMIN_TOKEN, model_dir=model) as live:
+    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN, model_dir=model) as live:
         problem = assert_problem(
             predict_json(live.client, image, body), 422, "instances[0].object", "keypoints_3d"
         )
@@ -251,7 +251,7 @@ def test_an_object_without_3d_keypoints_is_refused(
     assert problem["status"] == 422
 
 
-def test_batch_items_carry_pose_and_refuse_alone(server: LiveServer, coco: dict, samples_dir: Path) -> None:
+def test_batch_items_carry_pose_and_refuse_alone(api: InProcess, coco: dict, samples_dir: Path) -> None:
     """POST /v1/predict/batch answers pose per image; a bad pose request fails only its own item."""
     body, ann = one_instance(coco)
     image = (samples_dir / coco["images"][0]["file_name"]).read_bytes()
@@ -261,21 +261,21 @@ def test_batch_items_carry_pose_and_refuse_alone(server: LiveServer, coco: dict,
     for index, request in enumerate([good, bad]):
         parts.append((f"image_{index}", ("image.jpg", image, "image/jpeg")))
         parts.append((f"request_{index}", (None, json.dumps(request).encode(), "application/json")))
-    response = server.client.post("/v1/predict/batch", files=parts)
+    response = api.client.post("/v1/predict/batch", files=parts)
     assert response.status_code == 200, response.text
     first, second = response.json()["items"]
     assert first["status"] == 200 and first["result"]["instances"][0]["pose"]["method"] != "none"
     assert second["status"] == 422 and "coverage 'object'" in second["problem"]["detail"]
 
 
-def test_outer_splits_tighten_a_certified_bound(server: LiveServer, coco: dict, samples_dir: Path) -> None:
+def test_outer_splits_tighten_a_certified_bound(api: InProcess, coco: dict, samples_dir: Path) -> None:
     body, ann = one_instance(coco)
     image = (samples_dir / coco["images"][0]["file_name"]).read_bytes()
     check = [{"instance": 0, "rotation": ann["cam_R_m2c"], "translation": ann["cam_t_m2c"]}]
     bounds = []
     for splits in (0, 3):
         body["pose"] = {"K": ann["cam_K"], "samples": 30, "outer_splits": splits, "check": check}
-        pose = predict_ok(server.client, image, body)["instances"][0]["pose"]
+        pose = predict_ok(api.client, image, body)["instances"][0]["pose"]
         assert pose["outer_bound"]["certified"], pose["outer_bound"]
         bounds.append(pose["outer_bound"])
         if pose["checks"][0]["inside"]:
@@ -283,4 +283,4 @@ def test_outer_splits_tighten_a_certified_bound(server: LiveServer, coco: dict, 
     assert bounds[1]["rotation_deg"] < bounds[0]["rotation_deg"]
     assert bounds[1]["translation"] <= bounds[0]["translation"] * (1 + 1e-9)
     body["pose"]["outer_splits"] = 9
-    assert_problem(predict_json(server.client, image, body), 422, "pose.outer_splits")
+    assert_problem(predict_json(api.client, image, body), 422, "pose.outer_splits")

@@ -1,4 +1,4 @@
-"""POST /v1/predict/batch on a real server: one answer per image, in order, each what
+"""POST /v1/predict/batch on a real api: one answer per image, in order, each what
 POST /v1/predict would have answered for that image alone; admission counts images."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.live.server import LiveServer
+from tests.api.in_process import InProcess
 from tests.live.test_admission import hold_the_slot, metric
 from tests.predict_client import instances_of, predict_multipart
 from tests.samples import Sample, samples_by_image
@@ -43,7 +43,7 @@ def images(samples: list[Sample]) -> list[tuple[bytes, list[dict]]]:
     return [(path.read_bytes(), instances_of(group)) for path, group in samples_by_image(samples).items()]
 
 
-def test_good_and_bad_images_are_answered_in_order(server: LiveServer, images) -> None:
+def test_good_and_bad_images_are_answered_in_order(api: InProcess, images) -> None:
     (first, first_instances), (second, second_instances), (third, third_instances) = images[:3]
     truncated = first[: len(first) // 2] + b"\xff\xd9"
     singles = [  # (image, request) as POST /v1/predict takes them; None where a part is left out
@@ -62,7 +62,7 @@ def test_good_and_bad_images_are_answered_in_order(server: LiveServer, images) -
         parts += [image_part(index, image)] if image is not None else []
         parts += [request_part(index, parameters)] if parameters is not None else []
 
-    response = post_batch(server.client, parts)
+    response = post_batch(api.client, parts)
     assert response.status_code == 200, response.text
     items = response.json()["items"]
     assert len(items) == len(singles)
@@ -72,7 +72,7 @@ def test_good_and_bad_images_are_answered_in_order(server: LiveServer, images) -
             missing = f"image_{index}" if image is None else f"request_{index}"
             assert item["status"] == 422 and missing in item["problem"]["detail"], item
             continue
-        alone = predict_multipart(server.client, image, parameters)
+        alone = predict_multipart(api.client, image, parameters)
         if alone.status_code == 200:
             assert item == {"status": 200, "result": alone.json()}, index
         else:
@@ -83,25 +83,25 @@ def test_good_and_bad_images_are_answered_in_order(server: LiveServer, images) -
     assert [item["status"] for item in items] == [200, 422, 200, 422, 422, 415, 200, 422, 422]
 
 
-def test_a_malformed_batch_is_refused_whole(server: LiveServer, images) -> None:
+def test_a_malformed_batch_is_refused_whole(api: InProcess, images) -> None:
     image, instances = images[0]
     good = [image_part(0, image), request_part(0, {"instances": instances})]
-    json_body = server.client.post("/v1/predict/batch", json={"instances": instances})
+    json_body = api.client.post("/v1/predict/batch", json={"instances": instances})
     assert_problem(json_body, 415, "multipart/form-data", "image_0")
-    assert_problem(post_batch(server.client, [*good, ("picture_1", ("a.jpg", image, "image/jpeg"))]), 422,
+    assert_problem(post_batch(api.client, [*good, ("picture_1", ("a.jpg", image, "image/jpeg"))]), 422,
                    "unexpected part 'picture_1'")  # fmt: skip
-    assert_problem(post_batch(server.client, [*good, image_part(16, image), request_part(16, {})]), 422,
+    assert_problem(post_batch(api.client, [*good, image_part(16, image), request_part(16, {})]), 422,
                    "at most 16 images", "CKS_MAX_BATCH_IMAGES")  # fmt: skip
     assert_problem(
-        post_batch(server.client, [*good, image_part(0, image)]), 422, "'image_0' appears more than once"
+        post_batch(api.client, [*good, image_part(0, image)]), 422, "'image_0' appears more than once"
     )
-    empty = server.client.post(
+    empty = api.client.post(
         "/v1/predict/batch",
         content=b"--edge--\r\n",
         headers={"Content-Type": "multipart/form-data; boundary=edge"},
     )
     assert_problem(empty, 422, "the batch is empty")
-    assert post_batch(server.client, good).status_code == 200
+    assert post_batch(api.client, good).status_code == 200
 
 
 def test_admission_counts_images(tmp_path: Path, images) -> None:
@@ -125,27 +125,27 @@ def test_admission_counts_images(tmp_path: Path, images) -> None:
         "max_instances": len(slow),
         "queue_timeout_seconds": 120,
     }
-    with LiveServer(tmp_path / "data", **settings) as server, ThreadPoolExecutor(2) as pool:
-        computing = hold_the_slot(pool, server, image, slow)
+    with InProcess(tmp_path / "data", **settings) as api, ThreadPoolExecutor(2) as pool:
+        computing = hold_the_slot(pool, api, image, slow)
 
-        never = post_batch(server.client, batch_of(4))
+        never = post_batch(api.client, batch_of(4))
         assert_problem(never, 422, "a batch of 4 images needs 4 admission places", "has 3")
-        refused = post_batch(server.client, batch_of(3))
+        refused = post_batch(api.client, batch_of(3))
         assert_problem(refused, 503, "at capacity", "this batch needs 3 places", "retry after")
         assert refused.headers["retry-after"] == "1"
 
         def post_two() -> httpx.Response:
-            with httpx.Client(base_url=server.url, timeout=120) as client:
+            with httpx.Client(base_url=api.url, timeout=120) as client:
                 return post_batch(client, batch_of(2))
 
         admitted: Future = pool.submit(post_two)
-        wait_until(lambda: metric(server, "cks_predict_in_flight") == 3, "the batch of 2 holds two places")
-        single = predict_multipart(server.client, image, {"instances": instances})
+        wait_until(lambda: metric(api, "cks_predict_in_flight") == 3, "the batch of 2 holds two places")
+        single = predict_multipart(api.client, image, {"instances": instances})
         assert_problem(single, 503, "at capacity")
         assert not computing.done(), "the slow request ended too soon to test admission"
 
         assert computing.result().status_code == 200
         answer = admitted.result()
         assert answer.status_code == 200 and [i["status"] for i in answer.json()["items"]] == [200, 200]
-        assert metric(server, "cks_predict_rejected_total", '{reason="queue_full"}') == 2
-        assert metric(server, "cks_predict_in_flight") == 0
+        assert metric(api, "cks_predict_rejected_total", '{reason="queue_full"}') == 2
+        assert metric(api, "cks_predict_in_flight") == 0

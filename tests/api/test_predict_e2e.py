@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from tests.live.server import LiveServer
+from tests.api.in_process import InProcess
 from tests.predict_client import (
     contains,
     extent,
@@ -35,8 +35,8 @@ def images(samples: list[Sample]) -> list[tuple[bytes, list[Sample]]]:
 
 
 @pytest.fixture(scope="module")
-def model_info(server: LiveServer) -> dict:
-    response = server.client.get("/v1/model")
+def model_info(api: InProcess) -> dict:
+    response = api.client.get("/v1/model")
     assert response.status_code == 200, response.text
     return response.json()
 
@@ -53,24 +53,24 @@ def check_guarantee(guarantee: dict, epsilon: float, scope: str) -> None:
     assert guarantee["conditional_coverage"] == {"a": n + 1 - t, "b": t}
 
 
-def test_multipart_and_base64_json_give_the_same_answer(server: LiveServer, images) -> None:
+def test_multipart_and_base64_json_give_the_same_answer(api: InProcess, images) -> None:
     for image, group in images:
         parameters = {"instances": instances_of(group)}
-        by_form = predict_multipart(server.client, image, parameters)
-        by_json = predict_json(server.client, image, parameters)
+        by_form = predict_multipart(api.client, image, parameters)
+        by_json = predict_json(api.client, image, parameters)
         assert by_form.status_code == by_json.status_code == 200, (by_form.text, by_json.text)
         assert by_form.json() == by_json.json()
 
 
 @pytest.mark.parametrize("function", FUNCTIONS)
-def test_response_structure(server: LiveServer, images, model_info: dict, function: str) -> None:
+def test_response_structure(api: InProcess, images, model_info: dict, function: str) -> None:
     manifest = model_info["manifest"]
     names = [k["name"] for k in manifest["keypoints"]]
     objects = {o["name"]: o["keypoints"] for o in manifest["objects"]}
-    active = server.client.get("/readyz").json()["active_calibration"]
+    active = api.client.get("/readyz").json()["active_calibration"]
     for image, group in images:
         parameters = {"instances": instances_of(group), "nonconformity": function, "epsilon": 0.1}
-        body = predict_ok(server.client, image, parameters)
+        body = predict_ok(api.client, image, parameters)
         height, width = cv2.imdecode(np.frombuffer(image, np.uint8), cv2.IMREAD_UNCHANGED).shape[:2]
         assert body["image"] == {"width": width, "height": height}
         assert body["model"] == {"name": model_info["name"], "hash": model_info["hash"]}
@@ -110,9 +110,9 @@ def test_response_structure(server: LiveServer, images, model_info: dict, functi
                     assert math.isfinite(region["angle_deg"])
 
 
-def test_include_statistics(server: LiveServer, images, manifest: dict) -> None:
+def test_include_statistics(api: InProcess, images, manifest: dict) -> None:
     image, group = images[0]
-    body = predict_ok(server.client, image, {"instances": instances_of(group), "include_statistics": True})
+    body = predict_ok(api.client, image, {"instances": instances_of(group), "include_statistics": True})
     height, width = manifest["output"]["height"], manifest["output"]["width"]
     for instance in body["instances"]:
         for keypoint in instance["keypoints"]:
@@ -123,18 +123,18 @@ def test_include_statistics(server: LiveServer, images, manifest: dict) -> None:
             assert stats["gamma"] >= 0
             (a, b), (c, d) = stats["covariance"]
             assert b == pytest.approx(c) and a >= 0 and d >= 0
-    plain = predict_ok(server.client, image, {"instances": instances_of(group)})
+    plain = predict_ok(api.client, image, {"instances": instances_of(group)})
     for with_stats, without in zip(body["instances"], plain["instances"], strict=True):
         for k1, k2 in zip(with_stats["keypoints"], without["keypoints"], strict=True):
             assert k1["set"] == k2["set"]
 
 
 @pytest.mark.parametrize("function", FUNCTIONS)
-def test_pac_sets_are_at_least_as_large(server: LiveServer, images, function: str) -> None:
+def test_pac_sets_are_at_least_as_large(api: InProcess, images, function: str) -> None:
     for image, group in images[:6]:
         base = {"instances": instances_of(group), "nonconformity": function, "epsilon": 0.2}
-        marginal = predict_ok(server.client, image, base)
-        pac = predict_ok(server.client, image, {**base, "delta": 0.1})
+        marginal = predict_ok(api.client, image, base)
+        pac = predict_ok(api.client, image, {**base, "delta": 0.1})
         assert pac["calibration"]["delta"] == 0.1
         for inst, inst_pac in zip(marginal["instances"], pac["instances"], strict=True):
             for kp, kp_pac in zip(inst["keypoints"], inst_pac["keypoints"], strict=True):
@@ -152,10 +152,10 @@ def test_pac_sets_are_at_least_as_large(server: LiveServer, images, function: st
 
 
 @pytest.mark.parametrize("function", FUNCTIONS)
-def test_object_coverage_shares_one_guarantee_per_instance(server: LiveServer, images, function: str) -> None:
+def test_object_coverage_shares_one_guarantee_per_instance(api: InProcess, images, function: str) -> None:
     for image, group in images[:6]:
         parameters = {"instances": instances_of(group), "nonconformity": function, "coverage": "object"}
-        body = predict_ok(server.client, image, parameters)
+        body = predict_ok(api.client, image, parameters)
         assert body["calibration"]["coverage"] == "object"
         for instance in body["instances"]:
             guarantees = [kp["guarantee"] for kp in instance["keypoints"]]
@@ -165,14 +165,14 @@ def test_object_coverage_shares_one_guarantee_per_instance(server: LiveServer, i
                 assert contains(keypoint["set"], tuple(keypoint["point"]))
 
 
-def test_tiny_epsilon_gives_unbounded_sets(server: LiveServer, images) -> None:
+def test_tiny_epsilon_gives_unbounded_sets(api: InProcess, images) -> None:
     image, group = images[0]
-    probe = predict_ok(server.client, image, {"instances": instances_of(group)})
+    probe = predict_ok(api.client, image, {"instances": instances_of(group)})
     largest_n = max(kp["guarantee"]["n"] for inst in probe["instances"] for kp in inst["keypoints"])
     epsilon = min(0.0005, 0.5 / (largest_n + 1))  # (n + 1) * epsilon < 1: t = 0 for every keypoint
     for function in FUNCTIONS:
         parameters = {"instances": instances_of(group), "nonconformity": function, "epsilon": epsilon}
-        body = predict_ok(server.client, image, parameters)
+        body = predict_ok(api.client, image, parameters)
         for instance in body["instances"]:
             for keypoint in instance["keypoints"]:
                 assert keypoint["set"]["type"] == "unbounded", keypoint
@@ -182,10 +182,10 @@ def test_tiny_epsilon_gives_unbounded_sets(server: LiveServer, images) -> None:
 
 
 @pytest.mark.parametrize("form", ["json", "multipart"])
-def test_accept_png_returns_the_image_with_sets_drawn(server: LiveServer, images, form: str) -> None:
+def test_accept_png_returns_the_image_with_sets_drawn(api: InProcess, images, form: str) -> None:
     image, group = images[0]
     send = predict_json if form == "json" else predict_multipart
-    response = send(server.client, image, {"instances": instances_of(group)}, headers={"Accept": "image/png"})
+    response = send(api.client, image, {"instances": instances_of(group)}, headers={"Accept": "image/png"})
     assert response.status_code == 200, response.text
     assert response.headers["content-type"] == "image/png"
     assert response.content.startswith(b"\x89PNG\r\n\x1a\n")
@@ -195,18 +195,18 @@ def test_accept_png_returns_the_image_with_sets_drawn(server: LiveServer, images
     assert np.abs(drawn.astype(int) - original.astype(int)).sum() > 0  # something was drawn
 
 
-def test_explicit_calibration_version(server: LiveServer, images) -> None:
+def test_explicit_calibration_version(api: InProcess, images) -> None:
     image, group = images[0]
-    active = server.client.get("/readyz").json()["active_calibration"]
-    implicit = predict_ok(server.client, image, {"instances": instances_of(group)})
+    active = api.client.get("/readyz").json()["active_calibration"]
+    implicit = predict_ok(api.client, image, {"instances": instances_of(group)})
     explicit = predict_ok(
-        server.client, image, {"instances": instances_of(group), "calibration_version": active}
+        api.client, image, {"instances": instances_of(group), "calibration_version": active}
     )
     assert explicit == implicit
 
 
 @pytest.mark.parametrize("function", FUNCTIONS)
-def test_sets_cover_labeled_keypoints_at_the_expected_rate(server: LiveServer, images, function: str) -> None:
+def test_sets_cover_labeled_keypoints_at_the_expected_rate(api: InProcess, images, function: str) -> None:
     """Model quality: at epsilon 0.1 the sets hold >= 75% of the labeled sample keypoints.
 
     Passes only with the real bundled detector (a stand-in with random weights is not expected to).
@@ -214,7 +214,7 @@ def test_sets_cover_labeled_keypoints_at_the_expected_rate(server: LiveServer, i
     inside = total = 0
     for image, group in images:
         parameters = {"instances": instances_of(group), "nonconformity": function, "epsilon": 0.1}
-        body = predict_ok(server.client, image, parameters)
+        body = predict_ok(api.client, image, parameters)
         for sample, instance in zip(group, body["instances"], strict=True):
             for (x, y, v), keypoint in zip(sample.keypoints, instance["keypoints"], strict=True):
                 if v > 0:

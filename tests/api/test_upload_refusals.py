@@ -14,29 +14,29 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.live.server import LiveServer
+from tests.api.in_process import InProcess
 from tests.samples import batch_files, batch_zip, build_zip
 from tests.service_calls import assert_problem
 
 
-def snapshot(server: LiveServer) -> tuple[list[int], int, list[Path]]:
-    active = server.client.get("/readyz").json()["active_calibration"]
-    root = server.data_dir.parent
-    outside = sorted(p for p in root.rglob("*") if not p.is_relative_to(server.data_dir))
-    return server.versions(), active, outside
+def snapshot(api: InProcess) -> tuple[list[int], int, list[Path]]:
+    active = api.client.get("/readyz").json()["active_calibration"]
+    root = api.data_dir.parent
+    outside = sorted(p for p in root.rglob("*") if not p.is_relative_to(api.data_dir))
+    return api.versions(), active, outside
 
 
-def assert_nothing_stored(server: LiveServer, before: tuple) -> None:
-    assert snapshot(server) == before
-    assert server.upload_workspaces() == [], "an upload workspace was left behind"
+def assert_nothing_stored(api: InProcess, before: tuple) -> None:
+    assert snapshot(api) == before
+    assert api.upload_workspaces() == [], "an upload workspace was left behind"
 
 
 @pytest.fixture
-def unchanged(limited_server: LiveServer):
+def unchanged(limited_api: InProcess):
     """Asserts after the test that the refusal stored nothing."""
-    before = snapshot(limited_server)
+    before = snapshot(limited_api)
     yield
-    assert_nothing_stored(limited_server, before)
+    assert_nothing_stored(limited_api, before)
 
 
 def first_annotation(doc: dict) -> dict:
@@ -112,131 +112,127 @@ CASES: dict[str, tuple[Callable[[dict, dict], None], int, tuple[str, ...]]] = {
 
 @pytest.mark.parametrize("case", list(CASES))
 @pytest.mark.usefixtures("unchanged")
-def test_bad_batch_is_refused(limited_server: LiveServer, samples_dir: Path, coco: dict, case: str) -> None:
+def test_bad_batch_is_refused(limited_api: InProcess, samples_dir: Path, coco: dict, case: str) -> None:
     mutate, status, fragments = CASES[case]
     body = batch_zip(samples_dir, coco, images=2, mutate=mutate)
-    assert_problem(limited_server.upload(body, activate=True), status, *fragments)
+    assert_problem(limited_api.upload(body, activate=True), status, *fragments)
 
 
 @pytest.mark.usefixtures("unchanged")
-def test_invalid_json_annotations(limited_server: LiveServer, samples_dir: Path, coco: dict) -> None:
+def test_invalid_json_annotations(limited_api: InProcess, samples_dir: Path, coco: dict) -> None:
     _, files = batch_files(samples_dir, coco, images=2)
     body = build_zip(b'{"images": [{"id": 1,', files)
-    assert_problem(limited_server.upload(body), 422, "annotations.json", "not valid json")
+    assert_problem(limited_api.upload(body), 422, "annotations.json", "not valid json")
 
 
 @pytest.mark.usefixtures("unchanged")
-def test_annotations_not_an_object(limited_server: LiveServer, samples_dir: Path, coco: dict) -> None:
+def test_annotations_not_an_object(limited_api: InProcess, samples_dir: Path, coco: dict) -> None:
     _, files = batch_files(samples_dir, coco, images=2)
-    assert_problem(limited_server.upload(build_zip(b"[1, 2]", files)), 422, "annotations.json")
+    assert_problem(limited_api.upload(build_zip(b"[1, 2]", files)), 422, "annotations.json")
 
 
 @pytest.mark.usefixtures("unchanged")
-def test_symlink_in_the_zip(limited_server: LiveServer, samples_dir: Path, coco: dict) -> None:
+def test_symlink_in_the_zip(limited_api: InProcess, samples_dir: Path, coco: dict) -> None:
     doc, files = batch_files(samples_dir, coco, images=2)
     body = build_zip(doc, files, links={"images/link.jpg": "/etc/passwd"})
-    assert_problem(limited_server.upload(body), 422, "images/link.jpg", "symbolic link")
+    assert_problem(limited_api.upload(body), 422, "images/link.jpg", "symbolic link")
 
 
 @pytest.mark.usefixtures("unchanged")
-def test_not_a_zip(limited_server: LiveServer) -> None:
-    assert_problem(limited_server.upload(b"this is not a zip archive"), 422, "zip")
+def test_not_a_zip(limited_api: InProcess) -> None:
+    assert_problem(limited_api.upload(b"this is not a zip archive"), 422, "zip")
 
 
 @pytest.mark.usefixtures("unchanged")
 def test_more_files_than_the_limit(
-    limited_server: LiveServer, samples_dir: Path, coco: dict, limits: dict
+    limited_api: InProcess, samples_dir: Path, coco: dict, limits: dict
 ) -> None:
     doc, files = batch_files(samples_dir, coco, images=2)
     files.update({f"extra/{i}.txt": b"x" for i in range(limits["max_upload_files"])})
-    assert_problem(limited_server.upload(build_zip(doc, files)), 413, "CKS_MAX_UPLOAD_FILES")
+    assert_problem(limited_api.upload(build_zip(doc, files)), 413, "CKS_MAX_UPLOAD_FILES")
 
 
 @pytest.mark.usefixtures("unchanged")
 def test_more_uncompressed_bytes_than_the_limit(
-    limited_server: LiveServer, samples_dir: Path, coco: dict, limits: dict
+    limited_api: InProcess, samples_dir: Path, coco: dict, limits: dict
 ) -> None:
     doc, files = batch_files(samples_dir, coco, images=2)
     files["padding.bin"] = bytes(limits["max_upload_uncompressed_bytes"])  # zeros: tiny once deflated
     body = build_zip(doc, files)
     assert len(body) < limits["max_upload_bytes"]
-    assert_problem(limited_server.upload(body), 413, "CKS_MAX_UPLOAD_UNCOMPRESSED_BYTES")
+    assert_problem(limited_api.upload(body), 413, "CKS_MAX_UPLOAD_UNCOMPRESSED_BYTES")
 
 
 @pytest.mark.usefixtures("unchanged")
 def test_body_over_the_upload_limit(
-    limited_server: LiveServer, samples_dir: Path, coco: dict, limits: dict
+    limited_api: InProcess, samples_dir: Path, coco: dict, limits: dict
 ) -> None:
     doc, files = batch_files(samples_dir, coco, images=2)
     files["noise.bin"] = np.random.default_rng(0).bytes(limits["max_upload_bytes"])
     body = build_zip(doc, files, compression=zipfile.ZIP_STORED)
     assert len(body) > limits["max_upload_bytes"]
-    assert_problem(limited_server.upload(body), 413, "CKS_MAX_UPLOAD_BYTES")
+    assert_problem(limited_api.upload(body), 413, "CKS_MAX_UPLOAD_BYTES")
 
 
 @pytest.mark.usefixtures("unchanged")
-def test_streamed_body_over_the_upload_limit(limited_server: LiveServer, limits: dict) -> None:
+def test_streamed_body_over_the_upload_limit(limited_api: InProcess, limits: dict) -> None:
     """Chunked transfer (no Content-Length): the limit holds while streaming."""
 
     def chunks():
         for _ in range(limits["max_upload_bytes"] // 65536 + 2):
             yield bytes(65536)
 
-    response = limited_server.client.post(
+    response = limited_api.client.post(
         "/v1/admin/calibrations",
         content=chunks(),
-        headers={**limited_server.admin, "Content-Type": "application/zip"},
+        headers={**limited_api.admin, "Content-Type": "application/zip"},
     )
     assert_problem(response, 413, "CKS_MAX_UPLOAD_BYTES")
 
 
 @pytest.mark.parametrize("content_type", ["application/json", "text/plain", "multipart/form-data"])
 @pytest.mark.usefixtures("unchanged")
-def test_wrong_content_type(
-    limited_server: LiveServer, samples_dir: Path, coco: dict, content_type: str
-) -> None:
+def test_wrong_content_type(limited_api: InProcess, samples_dir: Path, coco: dict, content_type: str) -> None:
     body = batch_zip(samples_dir, coco, images=2)
-    assert_problem(limited_server.upload(body, content_type=content_type), 415, "application/zip")
+    assert_problem(limited_api.upload(body, content_type=content_type), 415, "application/zip")
 
 
 @pytest.mark.usefixtures("unchanged")
-def test_append_to_a_missing_version(limited_server: LiveServer, samples_dir: Path, coco: dict) -> None:
-    missing = max(limited_server.versions()) + 50
+def test_append_to_a_missing_version(limited_api: InProcess, samples_dir: Path, coco: dict) -> None:
+    missing = max(limited_api.versions()) + 50
     body = batch_zip(samples_dir, coco, images=2)
-    assert_problem(limited_server.upload(body, append_to=missing), 404, str(missing))
+    assert_problem(limited_api.upload(body, append_to=missing), 404, str(missing))
 
 
 @pytest.mark.parametrize(
     "params", [{"append_to": 0}, {"append_to": 2**40}, {"append_to": "two"}, {"activate": "maybe"}]
 )
 @pytest.mark.usefixtures("unchanged")
-def test_bad_query_parameters(
-    limited_server: LiveServer, samples_dir: Path, coco: dict, params: dict
-) -> None:
+def test_bad_query_parameters(limited_api: InProcess, samples_dir: Path, coco: dict, params: dict) -> None:
     body = batch_zip(samples_dir, coco, images=2)
-    assert_problem(limited_server.upload(body, **params), 422, next(iter(params)))
+    assert_problem(limited_api.upload(body, **params), 422, next(iter(params)))
 
 
 def test_undecodable_image_fails_the_job_and_stores_nothing(
-    limited_server: LiveServer, samples_dir: Path, coco: dict
+    limited_api: InProcess, samples_dir: Path, coco: dict
 ) -> None:
     """A valid header with a truncated body passes the pre-202 checks; the job then fails cleanly."""
-    before = snapshot(limited_server)
+    before = snapshot(limited_api)
     doc, files = batch_files(samples_dir, coco, images=2)
     broken = doc["images"][1]["file_name"]
     files[broken] = files[broken][: len(files[broken]) // 2]  # header intact, scan data cut, no EOI
-    response = limited_server.upload(build_zip(doc, files), activate=True)
+    response = limited_api.upload(build_zip(doc, files), activate=True)
     assert response.status_code == 202, response.text
-    job = limited_server.wait_job(response.json()["id"])
+    job = limited_api.wait_job(response.json()["id"])
     assert job["state"] == "failed", job
     assert job["result"] == {} and job["finished_at"] is not None
     assert job["errors"] and any(broken in error for error in job["errors"]), job["errors"]
-    assert_nothing_stored(limited_server, before)
+    assert_nothing_stored(limited_api, before)
 
 
-def test_a_valid_small_batch_is_accepted(limited_server: LiveServer, samples_dir: Path, coco: dict) -> None:
+def test_a_valid_small_batch_is_accepted(limited_api: InProcess, samples_dir: Path, coco: dict) -> None:
     """The limits above are tight, not closed: the same small batch unmodified goes through."""
-    before = limited_server.versions()
-    job = limited_server.calibrate(batch_zip(samples_dir, coco, images=2))
-    assert limited_server.versions() == [*before, job["result"]["version"]]
-    assert limited_server.upload_workspaces() == []
+    before = limited_api.versions()
+    job = limited_api.calibrate(batch_zip(samples_dir, coco, images=2))
+    assert limited_api.versions() == [*before, job["result"]["version"]]
+    assert limited_api.upload_workspaces() == []

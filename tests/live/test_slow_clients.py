@@ -23,8 +23,7 @@ import pytest
 
 from benchmarks.faults_clients import SLOW_BODY_HEAD, SlowClients, predict_latencies
 from tests.live.server import LiveServer, metric, read_until_closed
-from tests.predict_client import instances_of, predict_json
-from tests.samples import Sample, samples_by_image
+from tests.predict_client import predict_json
 from tests.service_calls import ADMIN_TOKEN, assert_problem, wait_until
 
 PACED = {
@@ -47,12 +46,6 @@ def paced(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
         yield server
 
 
-@pytest.fixture(scope="module")
-def sample(samples: list[Sample]) -> tuple[bytes, list]:
-    path, group = next(iter(samples_by_image(samples).items()))
-    return path.read_bytes(), instances_of(group)[:1]
-
-
 def connect(server: LiveServer) -> socket.socket:
     return socket.create_connection(("127.0.0.1", server.port), timeout=30)
 
@@ -64,7 +57,7 @@ def answer_and_time(connection: socket.socket) -> tuple[str, float]:
 
 def test_a_body_still_arriving_holds_no_place(paced: LiveServer, sample: tuple[bytes, list]) -> None:
     """The only place serves request after request while a body is missing, until its 408."""
-    image, instances = sample
+    image, instances = sample[0], sample[1][:1]  # one instance: the smallest request
     statuses = []
     with connect(paced) as slow, ThreadPoolExecutor(1) as pool:
         slow.sendall(SLOW_BODY_HEAD + b'{"instances": [' + b" " * 5000)  # then nothing: 5 s at 1000 B/s
@@ -126,7 +119,7 @@ def test_a_kept_alive_connection_gets_the_same_head_timeout(paced: LiveServer) -
 
 
 def test_bodies_being_received_share_a_byte_budget(paced: LiveServer, sample: tuple[bytes, list]) -> None:
-    image, instances = sample
+    image, instances = sample[0], sample[1][:1]  # one instance: the smallest request
     with connect(paced) as large:
         large.sendall(SLOW_BODY_HEAD.replace(b"100000", b"900000") + b" " * 350_000)
         wait_until(lambda: metric(paced, "cks_predict_receiving_bytes") > 0, "the large body is arriving")

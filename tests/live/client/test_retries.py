@@ -22,17 +22,10 @@ from keypoint_client.retry import retry_after_seconds
 from tests.live.client.faulty_proxy import Drop, FaultyProxy, Unavailable
 from tests.live.server import LiveServer, free_port
 from tests.live.test_admission import hold_the_slot, metric
-from tests.predict_client import instances_of, predict_json
-from tests.samples import Sample, samples_by_image
+from tests.predict_client import predict_json
 from tests.service_calls import ADMIN_TOKEN
 
 QUICK = RetryPolicy(attempts=3, backoff=0.05)
-
-
-@pytest.fixture(scope="module")
-def sample(samples: list[Sample]) -> tuple[bytes, list[dict]]:
-    path, group = next(iter(samples_by_image(samples).items()))
-    return path.read_bytes(), instances_of(group)
 
 
 def test_503s_are_retried_after_retry_after(server: LiveServer, sample) -> None:
