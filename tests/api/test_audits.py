@@ -285,18 +285,3 @@ def test_bad_uploads_are_refused(api: InProcess, samples_dir: Path, coco: dict) 
     assert api.upload_workspaces() == []
     trail = api.client.get("/v1/admin/audit", headers=api.admin).json()["entries"]
     assert any(e["action"] == "audit" and e["outcome"] == "refused" for e in trail), json.dumps(trail)[:500]
-
-
-def test_with_several_workers_the_gauges_are_the_latest_audits(
-    tmp_path: Path, samples_dir: Path, coco: dict
-) -> None:
-    """Each worker process keeps its own gauge values; the newest audit's must hide the older
-    one's, whichever worker ran either (prometheus multiprocess mode, "mostrecent")."""
-    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN, workers=2) as live:
-        run_audit(live, batch_zip(samples_dir, coco, images=4), epsilon=[0.05])
-        latest = run_audit(live, batch_zip(samples_dir, coco, images=4), epsilon=[0.2])
-        for _ in range(4):  # whichever worker answers
-            metrics = live.client.get("/metrics").text
-            values = re.findall(r'^cks_audit_coverage\{epsilon="([^"]+)".*\} (\S+)$', metrics, re.MULTILINE)
-            assert {epsilon for epsilon, value in values if value != "NaN"} == {"0.2"}
-            assert f'cks_audit_latest_id{{version="1"}} {float(latest["id"])}' in metrics

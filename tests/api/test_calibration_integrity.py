@@ -5,14 +5,12 @@ admin action in the audit trail under the operator's name, and the store said ou
 from __future__ import annotations
 
 import copy
-import subprocess
 from collections.abc import Iterator
 from pathlib import Path, PurePosixPath
 
 import pytest
 
-from service.settings import PACKAGE_ROOT
-from tests.live.server import InProcess, cli, free_port, service_env
+from tests.api.in_process import InProcess
 from tests.samples import batch_zip, build_zip, count_instances
 from tests.service_calls import ADMIN_TOKEN, assert_problem
 
@@ -264,14 +262,3 @@ def test_the_store_is_said_out_loud(named_server: InProcess) -> None:
     log = named_server.log()
     assert f"calibration store: sqlite at {data_dir / 'calibrations.db'}" in log
     assert body["model_hash"] in log and "admin operators: admin, alice, bob" in log
-
-
-def test_serve_refuses_a_bad_tokens_file_in_one_line(tmp_path: Path) -> None:
-    tokens = tmp_path / "tokens"
-    tokens.write_text("alice:short\n")
-    env = service_env(tmp_path / "data", admin_tokens_file=tokens, port=free_port())
-    result = subprocess.run([*cli(), "serve"], env=env, cwd=PACKAGE_ROOT, capture_output=True, text=True,
-                            timeout=60)  # fmt: skip
-    assert result.returncode == 2, result.stderr
-    assert "line 1: the token of 'alice' must be at least 16 characters" in result.stderr
-    assert "Traceback" not in result.stderr

@@ -14,13 +14,11 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
-import httpx
 import numpy as np
 import pytest
 
 from tests.api.in_process import InProcess
 from tests.api.test_manifest_change import copy_model
-from tests.live.test_workers import two_workers  # noqa: F401 (a fixture: two worker processes)
 from tests.predict_client import instances_of, predict_ok
 from tests.samples import Sample, samples_by_image
 from tests.service_calls import ADMIN_TOKEN, assert_problem, wait_until
@@ -149,26 +147,3 @@ def test_the_drift_document_is_json_with_the_console_keys(drift_server: InProces
         "set_sizes",
     }
     json.dumps(body, allow_nan=False)  # no NaN or infinity for a browser's JSON.parse
-
-
-def test_each_worker_process_keeps_and_reports_its_own_window(
-    two_workers: tuple[str, Path],  # noqa: F811
-    samples: list[Sample],
-) -> None:
-    url, _ = two_workers
-    path, group = next(iter(samples_by_image(samples).items()))
-    image, request = path.read_bytes(), {"instances": instances_of(group)}
-    requests, rows = 20, 8 * len(group)
-    for _ in range(requests):
-        with httpx.Client(base_url=url, timeout=60) as client:  # a new connection each time
-            predict_ok(client, image, request)
-    recorded: dict[int, int] = {}
-    for _ in range(60):  # until both workers have answered
-        with httpx.Client(base_url=url, timeout=60) as client:
-            report = client.get("/v1/admin/drift", headers={"Authorization": f"Bearer {ADMIN_TOKEN}"}).json()
-            metrics = client.get("/metrics").text
-        recorded[report["process"]] = report["recorded"]
-        assert "cks_drift_window_size{" in metrics  # in multiprocess mode too: the answering worker's
-        if len(recorded) == 2:
-            break
-    assert len(recorded) == 2 and sum(recorded.values()) == requests * rows, recorded

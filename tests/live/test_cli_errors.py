@@ -160,3 +160,14 @@ def test_a_successful_one_shot_command_is_quiet_on_stderr(tmp_path: Path) -> Non
     result = run(["predict", SAMPLE_IMAGE, "--instance", DUCK], tmp_path / "data")
     assert result.returncode == 0, result.stderr
     assert result.stderr == "" and '"calibration"' in result.stdout
+
+
+def test_serve_refuses_a_bad_tokens_file_in_one_line(tmp_path: Path) -> None:
+    tokens = tmp_path / "tokens"
+    tokens.write_text("alice:short\n")
+    env = service_env(tmp_path / "data", admin_tokens_file=tokens, port=free_port())
+    result = subprocess.run([*cli(), "serve"], env=env, cwd=PACKAGE_ROOT, capture_output=True, text=True,
+                            timeout=60)  # fmt: skip
+    assert result.returncode == 2, result.stderr
+    assert "line 1: the token of 'alice' must be at least 16 characters" in result.stderr
+    assert "Traceback" not in result.stderr

@@ -21,9 +21,10 @@ from prometheus_client.mmap_dict import MmapedDict
 
 from service.detector.activity import SLOTS
 from service.settings import PACKAGE_ROOT
-from tests.live.server import cli, free_port, service_env
-from tests.predict_client import instances_of, predict_json
-from tests.samples import Sample, samples_by_image
+from tests.api.test_audits import run_audit
+from tests.live.server import LiveServer, cli, free_port, service_env
+from tests.predict_client import instances_of, predict_json, predict_ok
+from tests.samples import Sample, batch_zip, samples_by_image
 from tests.service_calls import ADMIN_TOKEN, wait_until
 
 REQUESTS = 40
@@ -115,3 +116,41 @@ def _free(fd: int, slot: int) -> bool:
         return False
     fcntl.lockf(fd, fcntl.LOCK_UN, 8, slot * 8, os.SEEK_SET)
     return True
+
+
+def test_each_worker_process_keeps_and_reports_its_own_window(
+    two_workers: tuple[str, Path],  # noqa: F811
+    samples: list[Sample],
+) -> None:
+    url, _ = two_workers
+    path, group = next(iter(samples_by_image(samples).items()))
+    image, request = path.read_bytes(), {"instances": instances_of(group)}
+    requests, rows = 20, 8 * len(group)
+    for _ in range(requests):
+        with httpx.Client(base_url=url, timeout=60) as client:  # a new connection each time
+            predict_ok(client, image, request)
+    recorded: dict[int, int] = {}
+    for _ in range(60):  # until both workers have answered
+        with httpx.Client(base_url=url, timeout=60) as client:
+            report = client.get("/v1/admin/drift", headers={"Authorization": f"Bearer {ADMIN_TOKEN}"}).json()
+            metrics = client.get("/metrics").text
+        recorded[report["process"]] = report["recorded"]
+        assert "cks_drift_window_size{" in metrics  # in multiprocess mode too: the answering worker's
+        if len(recorded) == 2:
+            break
+    assert len(recorded) == 2 and sum(recorded.values()) == requests * rows, recorded
+
+
+def test_with_several_workers_the_gauges_are_the_latest_audits(
+    tmp_path: Path, samples_dir: Path, coco: dict
+) -> None:
+    """Each worker process keeps its own gauge values; the newest audit's must hide the older
+    one's, whichever worker ran either (prometheus multiprocess mode, "mostrecent")."""
+    with LiveServer(tmp_path / "data", admin_token=ADMIN_TOKEN, workers=2) as live:
+        run_audit(live, batch_zip(samples_dir, coco, images=4), epsilon=[0.05])
+        latest = run_audit(live, batch_zip(samples_dir, coco, images=4), epsilon=[0.2])
+        for _ in range(4):  # whichever worker answers
+            metrics = live.client.get("/metrics").text
+            values = re.findall(r'^cks_audit_coverage\{epsilon="([^"]+)".*\} (\S+)$', metrics, re.MULTILINE)
+            assert {epsilon for epsilon, value in values if value != "NaN"} == {"0.2"}
+            assert f'cks_audit_latest_id{{version="1"}} {float(latest["id"])}' in metrics
