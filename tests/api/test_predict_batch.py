@@ -4,18 +4,15 @@ POST /v1/predict would have answered for that image alone; admission counts imag
 from __future__ import annotations
 
 import json
-from concurrent.futures import Future, ThreadPoolExecutor
-from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
 
 from tests.api.in_process import InProcess
-from tests.live.test_admission import hold_the_slot, metric
 from tests.predict_client import instances_of, predict_multipart
 from tests.samples import Sample, samples_by_image
-from tests.service_calls import assert_problem, wait_until
+from tests.service_calls import assert_problem
 
 Part = tuple[str, tuple[str | None, bytes, str]]
 
@@ -102,50 +99,3 @@ def test_a_malformed_batch_is_refused_whole(api: InProcess, images) -> None:
     )
     assert_problem(empty, 422, "the batch is empty")
     assert post_batch(api.client, good).status_code == 200
-
-
-def test_admission_counts_images(tmp_path: Path, images) -> None:
-    """Capacity 3 (1 computing + 2 waiting), a slow request computing: a batch takes one
-    place per image, so 3 images are refused where 2 are admitted, and 4 can never be."""
-    image, instances = images[0]
-    slow = (instances * 1000)[:768]
-
-    def batch_of(count: int) -> list[Part]:
-        return [
-            part
-            for i in range(count)
-            for part in (image_part(i, image), request_part(i, {"instances": instances}))
-        ]
-
-    # The admitted batch waits for the slow request's slot: on a loaded machine that can take longer
-    # than the default queue timeout (10 s), which would turn its 200s into 503s.
-    settings = {
-        "max_concurrent_inferences": 1,
-        "max_queued_requests": 2,
-        "max_instances": len(slow),
-        "queue_timeout_seconds": 120,
-    }
-    with InProcess(tmp_path / "data", **settings) as api, ThreadPoolExecutor(2) as pool:
-        computing = hold_the_slot(pool, api, image, slow)
-
-        never = post_batch(api.client, batch_of(4))
-        assert_problem(never, 422, "a batch of 4 images needs 4 admission places", "has 3")
-        refused = post_batch(api.client, batch_of(3))
-        assert_problem(refused, 503, "at capacity", "this batch needs 3 places", "retry after")
-        assert refused.headers["retry-after"] == "1"
-
-        def post_two() -> httpx.Response:
-            with httpx.Client(base_url=api.url, timeout=120) as client:
-                return post_batch(client, batch_of(2))
-
-        admitted: Future = pool.submit(post_two)
-        wait_until(lambda: metric(api, "cks_predict_in_flight") == 3, "the batch of 2 holds two places")
-        single = predict_multipart(api.client, image, {"instances": instances})
-        assert_problem(single, 503, "at capacity")
-        assert not computing.done(), "the slow request ended too soon to test admission"
-
-        assert computing.result().status_code == 200
-        answer = admitted.result()
-        assert answer.status_code == 200 and [i["status"] for i in answer.json()["items"]] == [200, 200]
-        assert metric(api, "cks_predict_rejected_total", '{reason="queue_full"}') == 2
-        assert metric(api, "cks_predict_in_flight") == 0

@@ -15,8 +15,9 @@ from pathlib import Path
 
 import httpx
 
+from tests.api.test_predict_batch import Part, image_part, post_batch, request_part
 from tests.live.server import LiveServer, metric
-from tests.predict_client import instances_of, predict_json
+from tests.predict_client import instances_of, predict_json, predict_multipart
 from tests.samples import Sample, samples_by_image
 from tests.service_calls import assert_problem, wait_until
 
@@ -96,3 +97,50 @@ def test_a_request_waiting_longer_than_the_queue_timeout_gets_503(
         assert timed_out.headers["retry-after"] == "1"
         assert computing.result().status_code == 200
         assert metric(server, "cks_predict_rejected_total", '{reason="queue_timeout"}') == 1
+
+
+def test_admission_counts_images(tmp_path: Path, sample: tuple[bytes, list[dict]]) -> None:
+    """Capacity 3 (1 computing + 2 waiting), a slow request computing: a batch takes one
+    place per image, so 3 images are refused where 2 are admitted, and 4 can never be."""
+    image, instances = sample
+    slow = (instances * 1000)[:768]
+
+    def batch_of(count: int) -> list[Part]:
+        return [
+            part
+            for i in range(count)
+            for part in (image_part(i, image), request_part(i, {"instances": instances}))
+        ]
+
+    # The admitted batch waits for the slow request's slot: on a loaded machine that can take longer
+    # than the default queue timeout (10 s), which would turn its 200s into 503s.
+    settings = {
+        "max_concurrent_inferences": 1,
+        "max_queued_requests": 2,
+        "max_instances": len(slow),
+        "queue_timeout_seconds": 120,
+    }
+    with LiveServer(tmp_path / "data", **settings) as server, ThreadPoolExecutor(2) as pool:
+        computing = hold_the_slot(pool, server, image, slow)
+
+        never = post_batch(server.client, batch_of(4))
+        assert_problem(never, 422, "a batch of 4 images needs 4 admission places", "has 3")
+        refused = post_batch(server.client, batch_of(3))
+        assert_problem(refused, 503, "at capacity", "this batch needs 3 places", "retry after")
+        assert refused.headers["retry-after"] == "1"
+
+        def post_two() -> httpx.Response:
+            with httpx.Client(base_url=server.url, timeout=120) as client:
+                return post_batch(client, batch_of(2))
+
+        admitted: Future = pool.submit(post_two)
+        wait_until(lambda: metric(server, "cks_predict_in_flight") == 3, "the batch of 2 holds two places")
+        single = predict_multipart(server.client, image, {"instances": instances})
+        assert_problem(single, 503, "at capacity")
+        assert not computing.done(), "the slow request ended too soon to test admission"
+
+        assert computing.result().status_code == 200
+        answer = admitted.result()
+        assert answer.status_code == 200 and [i["status"] for i in answer.json()["items"]] == [200, 200]
+        assert metric(server, "cks_predict_rejected_total", '{reason="queue_full"}') == 2
+        assert metric(server, "cks_predict_in_flight") == 0
