@@ -2,14 +2,12 @@
 
 ``api`` (admin enabled, the bundled calibration active) is shared by a test module, as a server
 process used to be; ``limited_api`` (small request, image and upload limits, which refusals must
-leave unchanged) by the session; ``make_api(**settings)`` starts one for a test alone.
+leave unchanged) by the session. A test that needs other settings starts its own ``InProcess``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
-from pathlib import Path
-from typing import Any
+from collections.abc import Iterator
 
 import pytest
 
@@ -30,18 +28,3 @@ def limited_api(tmp_path_factory: pytest.TempPathFactory, limits: dict[str, int]
     data = tmp_path_factory.mktemp("limited") / "data"
     with InProcess(data, admin_token=ADMIN_TOKEN, **limits) as service:
         yield service
-
-
-@pytest.fixture
-def make_api(tmp_path: Path) -> Iterator[Callable[..., InProcess]]:
-    """Start a service with these settings for this test alone (on ``data_dir`` if given)."""
-    started: list[InProcess] = []
-
-    def make(data_dir: Path | None = None, **settings: Any) -> InProcess:
-        data = data_dir or tmp_path / f"data-{len(started)}"
-        started.append(InProcess(data, **settings).__enter__())
-        return started[-1]
-
-    yield make
-    for service in reversed(started):
-        service.__exit__(None, None, None)

@@ -1,4 +1,4 @@
-"""Coverage audits end to end on a real api: the bundled samples agree with the bundled
+"""Coverage audits end to end in process (the ASGI app): the bundled samples agree with the bundled
 calibration, the same images with labels shifted by a few pixels are flagged, audits are
 stored, listed, published as metrics and never change a calibration, and bad uploads get 4xx."""
 

@@ -19,7 +19,7 @@ OPERATORS = {"alice": "alice-token-0123456789", "bob": "bob-token-9876543210"}
 
 @pytest.fixture(scope="module")
 def named_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[InProcess]:
-    """A server with two named operators (a tokens file) and the single admin token."""
+    """A service with two named operators (a tokens file) and the single admin token."""
     root = tmp_path_factory.mktemp("operators")
     tokens = root / "tokens"
     tokens.write_text("# name:token\n" + "".join(f"{n}:{t}\n" for n, t in OPERATORS.items()))

@@ -1,4 +1,4 @@
-"""Drift without labels on a real api: quiet on images like the calibration's, an alarm on a
+"""Drift without labels in process (the ASGI app): quiet on images like the calibration's, an alarm on a
 blurred stream, the same figures in /metrics, and a clear answer where there is no reference.
 
 The live stream is the bundled samples (rendered like the bundled calibration's 600 images);

@@ -1,4 +1,4 @@
-"""Extreme epsilon and delta on a real api: 200 (maybe with unbounded sets) or 422, never 500.
+"""Extreme epsilon and delta in process (the ASGI app): 200 (maybe with unbounded sets) or 422, never 500.
 
 Issue 12 item 5: a delta with epsilon <= 5.5e-17 answered 500. Values inside (0, 1) are
 answered, subnormals and the neighbours of 0 and 1 included; values outside, written as

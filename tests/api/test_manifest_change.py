@@ -2,8 +2,8 @@
 
 The model hash covers the ONNX bytes only, so versions scored under the old top-K (or
 crop padding, input transform, channels) stay listed for the same model; using their
-thresholds with the new statistics would void the guarantee. Real uvicorn processes
-share one SQLite store across the edit.
+thresholds with the new statistics would void the guarantee. Services started in turn
+on one data directory share its SQLite store across the edit.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Pose sets (PURSE) through the real api, on the bundled samples' true poses.
+"""Pose sets (PURSE) through the ASGI app, on the bundled samples' true poses.
 
 The samples carry each object's camera matrix and true pose, and their keypoint labels are the
 exact projections of the manifest's 3D keypoints: so the true pose is in PURSE exactly when the

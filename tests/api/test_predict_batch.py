@@ -1,4 +1,4 @@
-"""POST /v1/predict/batch on a real api: one answer per image, in order, each what
+"""POST /v1/predict/batch in process (the ASGI app): one answer per image, in order, each what
 POST /v1/predict would have answered for that image alone; admission counts images."""
 
 from __future__ import annotations

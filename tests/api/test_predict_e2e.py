@@ -1,4 +1,4 @@
-"""POST /v1/predict end to end on the bundled sample images, against a real uvicorn process.
+"""POST /v1/predict end to end on the bundled sample images, in process through the ASGI app.
 
 Everything here holds for any model (structure, consistency, monotonicity) except
 ``test_sets_cover_labeled_keypoints_at_the_expected_rate``, which measures the model's

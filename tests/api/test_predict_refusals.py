@@ -1,6 +1,6 @@
 """Every bad predict request gets a precise 4xx as RFC 9457 problem+json (never a 5xx).
 
-Runs against the server with small limits (image pixels, request bytes, instances).
+Runs against the service with small limits (image pixels, request bytes, instances).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Mondrian strata end to end on a real api: the bundled version's difficulty bins, predictions
+"""Mondrian strata end to end in process (the ASGI app): the bundled version's difficulty bins, predictions
 answered by a difficulty bin or a caller group, a group-stratified upload, and the refusals."""
 
 from __future__ import annotations
