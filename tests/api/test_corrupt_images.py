@@ -1,4 +1,4 @@
-"""Corrupt or truncated images in process (the ASGI app): a 422 problem naming the fault, in predict and calibration.
+"""Corrupt or truncated images, in process: a 422 problem naming the fault, in predict and calibration.
 
 Issue 12 item 4: a JPEG with a valid header and garbage scan data was scored and stored as
 a calibration image. Issue 13 item 3: a JPEG whose header says 6000x6000 over 640x480 of
