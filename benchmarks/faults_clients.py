@@ -11,7 +11,7 @@ client is cut; the server's peak resident memory while it refuses a 16-bit RGBA 
 a 7.5 GiB zip bomb; the time from SIGTERM to exit, idle and with a calibration job and
 predicts in flight. Needs the test extras (httpx).
 
-The fault generators here are used by the tests too (tests/service/test_slow_clients.py,
+The fault generators here are used by the tests too (tests/live/test_slow_clients.py,
 test_decode_budget.py, test_shutdown.py).
 """
 

@@ -35,17 +35,11 @@ import httpx
 import numpy as np
 
 from calibration_store import open_store
+from tests.live.server import LiveServer
 from tests.postgres_cluster import PostgresCluster
-from tests.service.live import (
-    ADMIN_TOKEN,
-    LiveServer,
-    batch_zip,
-    load_samples,
-    model_dir,
-    samples_by_image,
-    wait_until,
-)
-from tests.service.predict_client import instances_of, predict_json
+from tests.predict_client import instances_of, predict_json
+from tests.samples import batch_zip, load_samples, model_dir, samples_by_image
+from tests.service_calls import ADMIN_TOKEN, wait_until
 
 #: longest any single wait of the scenario may take
 WAIT_LIMIT_S = 30.0
@@ -207,8 +201,12 @@ def run_outage(
         cluster.stop_server()
         try:
             admin_first = admin()
-            unreachable_after_s = time.monotonic() - stopped_at + seconds_until(
-                lambda: readyz_says("store", "unreachable"), "/readyz reports the store unreachable"
+            unreachable_after_s = (
+                time.monotonic()
+                - stopped_at
+                + seconds_until(
+                    lambda: readyz_says("store", "unreachable"), "/readyz reports the store unreachable"
+                )
             )
             readyz_during = readyz["last"]
             admin_known, named_active, named_other = admin(), predict_named(1), predict_named(2)
@@ -219,14 +217,20 @@ def run_outage(
         with open_store(prepared.store_url) as store:  # another replica's activation, during recovery
             store.activate(readyz_during.body["model_hash"], 2, "faults_store", "activated during recovery")
         activated_at = time.monotonic()
-        recovered_after_s = time.monotonic() - restarted_at + seconds_until(
-            lambda: readyz_says("store", "ok"), "/readyz reports the store ok"
+        recovered_after_s = (
+            time.monotonic()
+            - restarted_at
+            + seconds_until(lambda: readyz_says("store", "ok"), "/readyz reports the store ok")
         )
-        admin_ok_after_s = time.monotonic() - restarted_at + seconds_until(
-            lambda: admin().status == 200, "admin calls answer 200"
+        admin_ok_after_s = (
+            time.monotonic()
+            - restarted_at
+            + seconds_until(lambda: admin().status == 200, "admin calls answer 200")
         )
-        activation_seen_after_s = time.monotonic() - activated_at + seconds_until(
-            lambda: readyz_says("active_calibration", 2), "the activation is served"
+        activation_seen_after_s = (
+            time.monotonic()
+            - activated_at
+            + seconds_until(lambda: readyz_says("active_calibration", 2), "the activation is served")
         )
         time.sleep(after_s)
     finally:

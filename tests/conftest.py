@@ -1,16 +1,71 @@
-"""Shared fixtures. PostgreSQL: a throwaway cluster per session, a fresh database per test.
+"""Shared fixtures: the bundled model's samples, and PostgreSQL.
 
-Other test folders just request `postgres_url` (a postgresql:// URL of an empty
-database) or `postgres_cluster` (tests.postgres_cluster.PostgresCluster).
+The samples: the model directory, its manifest, the COCO annotations, every labeled instance
+(``samples``), one image with its instances (``sample``) and small limits that valid small batches
+fit (``limits``). PostgreSQL: a throwaway cluster per session, a fresh database per test; tests
+request `postgres_url` (a postgresql:// URL of an empty database) or `postgres_cluster`
+(tests.postgres_cluster.PostgresCluster).
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
 from tests.postgres_cluster import PostgresCluster
+from tests.predict_client import instances_of
+from tests.samples import Sample, batch_zip, load_samples, model_dir, samples_by_image
+
+
+@pytest.fixture(scope="session")
+def model_path() -> Path:
+    return model_dir()
+
+
+@pytest.fixture(scope="session")
+def samples_dir(model_path: Path) -> Path:
+    return model_path / "samples"
+
+
+@pytest.fixture(scope="session")
+def manifest(model_path: Path) -> dict:
+    return json.loads((model_path / "manifest.json").read_text())
+
+
+@pytest.fixture(scope="session")
+def coco(samples_dir: Path) -> dict:
+    return json.loads((samples_dir / "annotations.json").read_text())
+
+
+@pytest.fixture(scope="session")
+def samples(samples_dir: Path, coco: dict) -> list[Sample]:
+    return load_samples(samples_dir, coco)
+
+
+@pytest.fixture(scope="session")
+def sample(samples: list[Sample]) -> tuple[bytes, list[dict]]:
+    """The first sample JPEG and its labeled instances."""
+    path, group = next(iter(samples_by_image(samples).items()))
+    return path.read_bytes(), instances_of(group)
+
+
+@pytest.fixture(scope="session")
+def limits(samples_dir: Path, coco: dict) -> dict[str, int]:
+    """Small limits for refusal tests, derived from the samples so that valid small batches fit."""
+    small_batch = len(batch_zip(samples_dir, coco, images=2))
+    upload_bytes = max(1_000_000, 2 * small_batch)
+    largest_file = max((samples_dir / image["file_name"]).stat().st_size for image in coco["images"])
+    return {
+        "max_upload_bytes": upload_bytes,
+        "max_upload_uncompressed_bytes": 2 * upload_bytes,
+        "max_upload_files": 8,
+        "max_image_pixels": max(image["width"] * image["height"] for image in coco["images"]),
+        "max_request_bytes": max(300_000, 2 * largest_file),
+        "max_instances": 3,
+    }
 
 
 @pytest.fixture(scope="session")

@@ -82,8 +82,7 @@ def _run_as() -> tuple[list[str], pwd.struct_passwd | None]:
     runuser = shutil.which("runuser")
     if runuser:
         return [runuser, "-u", "postgres", "--"], account
-    return ["setpriv", f"--reuid={account.pw_uid}", f"--regid={account.pw_gid}",
-            "--init-groups"], account
+    return ["setpriv", f"--reuid={account.pw_uid}", f"--regid={account.pw_gid}", "--init-groups"], account
 
 
 def _children(parent: int) -> list[int]:
@@ -142,8 +141,17 @@ class PostgresCluster:
             for path in (self.base, self.socket_dir):
                 os.chown(path, account.pw_uid, account.pw_gid)
         self._run(
-            [str(self.bindir / "initdb"), "-D", str(self.datadir), "-U", self.user,
-             "--auth=trust", "--encoding=UTF8", "--locale=C", "--no-sync"],
+            [
+                str(self.bindir / "initdb"),
+                "-D",
+                str(self.datadir),
+                "-U",
+                self.user,
+                "--auth=trust",
+                "--encoding=UTF8",
+                "--locale=C",
+                "--no-sync",
+            ],
             "initdb",
         )
 
@@ -155,8 +163,19 @@ class PostgresCluster:
         )
         try:
             self._run(
-                [str(self.bindir / "pg_ctl"), "start", "-w", "-t", "60", "-D",
-                 str(self.datadir), "-l", str(self.base / "server.log"), "-o", options],
+                [
+                    str(self.bindir / "pg_ctl"),
+                    "start",
+                    "-w",
+                    "-t",
+                    "60",
+                    "-D",
+                    str(self.datadir),
+                    "-l",
+                    str(self.base / "server.log"),
+                    "-o",
+                    options,
+                ],
                 "pg_ctl start",
             )
         except PostgresClusterError as exc:
@@ -220,9 +239,19 @@ class PostgresCluster:
         """Stop the server (immediate mode) and delete its directory."""
         try:
             subprocess.run(
-                [*self._prefix, str(self.bindir / "pg_ctl"), "stop", "-m", "immediate", "-w",
-                 "-D", str(self.datadir)],
-                capture_output=True, timeout=60, check=False,
+                [
+                    *self._prefix,
+                    str(self.bindir / "pg_ctl"),
+                    "stop",
+                    "-m",
+                    "immediate",
+                    "-w",
+                    "-D",
+                    str(self.datadir),
+                ],
+                capture_output=True,
+                timeout=60,
+                check=False,
             )
         finally:
             shutil.rmtree(self.base, ignore_errors=True)

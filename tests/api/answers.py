@@ -22,7 +22,7 @@ from fastapi.testclient import TestClient
 
 from service.api.app import create_app
 from service.runtime.settings import Settings
-from tests.service.live import load_samples, model_dir, samples_by_image
+from tests.samples import load_samples, model_dir, samples_by_image
 
 RECORDED = Path(__file__).with_name("answers_before.json.gz")
 TOKEN = "answers-admin-token"

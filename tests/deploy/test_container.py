@@ -20,7 +20,9 @@ import pytest
 
 from service.runtime.settings import PACKAGE_ROOT
 from tests.deploy.buildah import Container, build, image_bytes, image_config, missing_tools, process_uid
-from tests.service.live import ADMIN_TOKEN, LiveServer, batch_zip, free_port
+from tests.live.server import LiveServer, free_port
+from tests.samples import batch_zip
+from tests.service_calls import ADMIN_TOKEN
 
 pytestmark = [pytest.mark.container, pytest.mark.slow]
 

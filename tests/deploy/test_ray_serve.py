@@ -44,17 +44,10 @@ from service.deploy_ray import (
     build_app,
 )
 from service.runtime.settings import PACKAGE_ROOT, Settings
-from tests.service.live import (
-    ADMIN_TOKEN,
-    batch_zip,
-    count_instances,
-    free_port,
-    load_samples,
-    samples_by_image,
-    service_env,
-    wait_until,
-)
-from tests.service.predict_client import instances_of, predict_json
+from tests.live.server import free_port, service_env
+from tests.predict_client import instances_of, predict_json
+from tests.samples import batch_zip, count_instances, load_samples, samples_by_image
+from tests.service_calls import ADMIN_TOKEN, wait_until
 
 SERVE_CONFIG = PACKAGE_ROOT / "deploy" / "ray" / "serve_config.yaml"
 REPLICAS = 2

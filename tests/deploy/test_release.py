@@ -15,7 +15,7 @@ from setuptools.config.pyprojecttoml import read_configuration
 
 from service import __version__
 from service.runtime.settings import PACKAGE_ROOT
-from tests.service.live import LiveServer
+from tests.live.server import LiveServer
 
 PYPROJECT = PACKAGE_ROOT / "pyproject.toml"
 # sha256 of https://www.apache.org/licenses/LICENSE-2.0.txt (also Debian's

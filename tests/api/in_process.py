@@ -1,0 +1,73 @@
+"""The service in process: its ASGI app started through fastapi's TestClient, real model and SQLite."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+from fastapi.testclient import TestClient
+
+from service.api.app import create_app
+from service.runtime.settings import Settings
+from tests.samples import model_dir
+from tests.service_calls import ServiceCalls
+
+# What a test server process gets too (tests/live/server.py service_env): one inference thread, two
+# CPU workers, so that answers and timings do not depend on the machine's cores.
+DEFAULTS: dict[str, Any] = {"inference_threads": 1, "cpu_workers": 2}
+# The peer address requests come from: a local caller, as a server process on loopback sees it.
+LOOPBACK_PEER = ("127.0.0.1", 50000)
+
+
+class LogLines(logging.Handler):
+    """The service's log records at INFO and above while attached, as lines: what a server logs.
+
+    pytest's handlers on the root logger keep the service from configuring logging in process
+    (service/runtime/logs.py ensure_logging), which would set these loggers to INFO as a server does.
+    """
+
+    LOGGERS = ("service", "calibration_store")
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append(f"{record.levelname} {record.name}: {record.getMessage()}")
+
+    def attach(self) -> None:
+        self.levels = {name: logging.getLogger(name).level for name in self.LOGGERS}
+        for name in self.LOGGERS:
+            logging.getLogger(name).setLevel(min(self.levels[name] or logging.INFO, logging.INFO))
+            logging.getLogger(name).addHandler(self)
+
+    def detach(self) -> None:
+        for name, level in self.levels.items():
+            logging.getLogger(name).removeHandler(self)
+            logging.getLogger(name).setLevel(level)
+
+
+class InProcess(ServiceCalls):
+    """The app of ``Settings(data_dir=..., **settings)``, started; ``client`` calls it in process."""
+
+    def __init__(self, data_dir: Path, **settings: Any) -> None:
+        self.data_dir = Path(data_dir)
+        self.settings = settings
+        values = {"model_dir": model_dir(), **DEFAULTS, **settings}
+        self.app = create_app(Settings(data_dir=self.data_dir, **values))
+        self.client = TestClient(self.app, client=LOOPBACK_PEER)
+        self.log_lines = LogLines()
+
+    def log(self) -> str:
+        """What the process logged since this service started (any service in it, for that time)."""
+        return "\n".join(self.log_lines.lines)
+
+    def __enter__(self) -> InProcess:
+        self.log_lines.attach()
+        self.client.__enter__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.client.__exit__(*exc)
+        self.log_lines.detach()

@@ -1,0 +1,101 @@
+"""POST /v1/predict/batch in process (the ASGI app): one answer per image, in order, each what
+POST /v1/predict would have answered for that image alone; admission counts images."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import httpx
+import pytest
+
+from tests.api.in_process import InProcess
+from tests.predict_client import instances_of, predict_multipart
+from tests.samples import Sample, samples_by_image
+from tests.service_calls import assert_problem
+
+Part = tuple[str, tuple[str | None, bytes, str]]
+
+
+def image_part(index: int, data: bytes) -> Part:
+    return f"image_{index}", ("image.jpg", data, "image/jpeg")
+
+
+def request_part(index: int, parameters: dict[str, Any] | str) -> Part:
+    raw = parameters if isinstance(parameters, str) else json.dumps(parameters)
+    return f"request_{index}", (None, raw.encode(), "application/json")
+
+
+def post_batch(client: httpx.Client, parts: list[Part]) -> httpx.Response:
+    return client.post("/v1/predict/batch", files=parts)
+
+
+def without_request(problem: dict) -> dict:
+    """A problem's members but those naming its request (its path, its id)."""
+    return {key: value for key, value in problem.items() if key not in ("instance", "request_id")}
+
+
+@pytest.fixture(scope="module")
+def images(samples: list[Sample]) -> list[tuple[bytes, list[dict]]]:
+    return [(path.read_bytes(), instances_of(group)) for path, group in samples_by_image(samples).items()]
+
+
+def test_good_and_bad_images_are_answered_in_order(api: InProcess, images) -> None:
+    (first, first_instances), (second, second_instances), (third, third_instances) = images[:3]
+    truncated = first[: len(first) // 2] + b"\xff\xd9"
+    singles = [  # (image, request) as POST /v1/predict takes them; None where a part is left out
+        (first, {"instances": first_instances}),
+        (truncated, {"instances": first_instances}),
+        (second, {"instances": second_instances, "nonconformity": "var", "epsilon": 0.2}),
+        (second, {"instances": []}),
+        (third, {"instances": [{"object": "no-such-object", "bbox": [10, 10, 20, 20]}]}),
+        (b"GIF89a not a JPEG", {"instances": first_instances}),
+        (third, {"instances": third_instances, "nonconformity": "peak", "coverage": "object"}),
+        (None, {"instances": first_instances}),
+        (first, None),
+    ]
+    parts = []
+    for index, (image, parameters) in enumerate(singles):
+        parts += [image_part(index, image)] if image is not None else []
+        parts += [request_part(index, parameters)] if parameters is not None else []
+
+    response = post_batch(api.client, parts)
+    assert response.status_code == 200, response.text
+    items = response.json()["items"]
+    assert len(items) == len(singles)
+
+    for index, (item, (image, parameters)) in enumerate(zip(items, singles, strict=True)):
+        if image is None or parameters is None:
+            missing = f"image_{index}" if image is None else f"request_{index}"
+            assert item["status"] == 422 and missing in item["problem"]["detail"], item
+            continue
+        alone = predict_multipart(api.client, image, parameters)
+        if alone.status_code == 200:
+            assert item == {"status": 200, "result": alone.json()}, index
+        else:
+            problem = alone.json()
+            assert item["status"] == alone.status_code == problem["status"], (index, item)
+            assert item["problem"]["instance"] == "/v1/predict/batch"
+            assert without_request(item["problem"]) == without_request(problem), index
+    assert [item["status"] for item in items] == [200, 422, 200, 422, 422, 415, 200, 422, 422]
+
+
+def test_a_malformed_batch_is_refused_whole(api: InProcess, images) -> None:
+    image, instances = images[0]
+    good = [image_part(0, image), request_part(0, {"instances": instances})]
+    json_body = api.client.post("/v1/predict/batch", json={"instances": instances})
+    assert_problem(json_body, 415, "multipart/form-data", "image_0")
+    assert_problem(post_batch(api.client, [*good, ("picture_1", ("a.jpg", image, "image/jpeg"))]), 422,
+                   "unexpected part 'picture_1'")  # fmt: skip
+    assert_problem(post_batch(api.client, [*good, image_part(16, image), request_part(16, {})]), 422,
+                   "at most 16 images", "CKS_MAX_BATCH_IMAGES")  # fmt: skip
+    assert_problem(
+        post_batch(api.client, [*good, image_part(0, image)]), 422, "'image_0' appears more than once"
+    )
+    empty = api.client.post(
+        "/v1/predict/batch",
+        content=b"--edge--\r\n",
+        headers={"Content-Type": "multipart/form-data; boundary=edge"},
+    )
+    assert_problem(empty, 422, "the batch is empty")
+    assert post_batch(api.client, good).status_code == 200

@@ -1,0 +1,238 @@
+"""Every bad calibration upload is refused with a precise 4xx and leaves nothing stored.
+
+"Nothing stored" means: the list of versions is unchanged, the active version is unchanged,
+the data directory's uploads/ folder is empty, and no file appeared outside the data directory.
+"""
+
+from __future__ import annotations
+
+import math
+import zipfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.api.in_process import InProcess
+from tests.samples import batch_files, batch_zip, build_zip
+from tests.service_calls import assert_problem
+
+
+def snapshot(api: InProcess) -> tuple[list[int], int, list[Path]]:
+    active = api.client.get("/readyz").json()["active_calibration"]
+    root = api.data_dir.parent
+    outside = sorted(p for p in root.rglob("*") if not p.is_relative_to(api.data_dir))
+    return api.versions(), active, outside
+
+
+def assert_nothing_stored(api: InProcess, before: tuple) -> None:
+    assert snapshot(api) == before
+    assert api.upload_workspaces() == [], "an upload workspace was left behind"
+
+
+@pytest.fixture
+def unchanged(limited_api: InProcess):
+    """Asserts after the test that the refusal stored nothing."""
+    before = snapshot(limited_api)
+    yield
+    assert_nothing_stored(limited_api, before)
+
+
+def first_annotation(doc: dict) -> dict:
+    return doc["annotations"][0]
+
+
+def image_of(doc: dict, annotation: dict) -> dict:
+    return next(image for image in doc["images"] if image["id"] == annotation["image_id"])
+
+
+def rename_category(doc: dict, files: dict) -> None:
+    category_id = first_annotation(doc)["category_id"]
+    for category in doc["categories"]:
+        if category["id"] == category_id:
+            category["name"] = "no-such-object"
+
+
+def drop_one_keypoint(doc: dict, files: dict) -> None:
+    first_annotation(doc)["keypoints"] = first_annotation(doc)["keypoints"][:-3]
+
+
+def delete_image_file(doc: dict, files: dict) -> None:
+    del files[image_of(doc, first_annotation(doc))["file_name"]]
+
+
+def box_outside(doc: dict, files: dict) -> None:
+    annotation = first_annotation(doc)
+    annotation["bbox"][0] = image_of(doc, annotation)["width"] + 10
+
+
+def nan_keypoint(doc: dict, files: dict) -> None:
+    first_annotation(doc)["keypoints"][0] = math.nan  # json.dumps writes NaN
+
+
+def infinite_bbox(doc: dict, files: dict) -> None:
+    first_annotation(doc)["bbox"][2] = math.inf  # json.dumps writes Infinity
+
+
+def gif_image(doc: dict, files: dict) -> None:
+    files[image_of(doc, first_annotation(doc))["file_name"]] = b"GIF89a" + b"\x00" * 100
+
+
+def wrong_declared_size(doc: dict, files: dict) -> None:
+    image_of(doc, first_annotation(doc))["width"] += 1
+
+
+def traversal(doc: dict, files: dict) -> None:
+    files["../escaped.txt"] = b"outside"
+
+
+def absolute_path(doc: dict, files: dict) -> None:
+    files["/tmp/escaped-absolute.txt"] = b"outside"
+
+
+def traversal_in_file_name(doc: dict, files: dict) -> None:
+    image_of(doc, first_annotation(doc))["file_name"] = "../../escaped.jpg"
+
+
+CASES: dict[str, tuple[Callable[[dict, dict], None], int, tuple[str, ...]]] = {
+    "unknown object name": (rename_category, 422, ("'no-such-object'", "is not an object of model")),
+    "keypoint count": (drop_one_keypoint, 422, ("annotations[0].keypoints", "keypoints")),
+    "missing image file": (delete_image_file, 422, ("missing",)),
+    "box outside the image": (box_outside, 422, ("annotations[0].bbox", "outside")),
+    "NaN keypoint": (nan_keypoint, 422, ("annotations[0].keypoints[0]", "finite")),
+    "infinite bbox": (infinite_bbox, 422, ("annotations[0].bbox[2]", "finite")),
+    "GIF image": (gif_image, 422, ("not a jpeg or png",)),
+    "declared size differs": (wrong_declared_size, 422, ("width",)),
+    "path traversal in the zip": (traversal, 422, ("../escaped.txt", "traversal")),
+    "absolute path in the zip": (absolute_path, 422, ("absolute",)),
+    "path traversal in file_name": (traversal_in_file_name, 422, ("..",)),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+@pytest.mark.usefixtures("unchanged")
+def test_bad_batch_is_refused(limited_api: InProcess, samples_dir: Path, coco: dict, case: str) -> None:
+    mutate, status, fragments = CASES[case]
+    body = batch_zip(samples_dir, coco, images=2, mutate=mutate)
+    assert_problem(limited_api.upload(body, activate=True), status, *fragments)
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_invalid_json_annotations(limited_api: InProcess, samples_dir: Path, coco: dict) -> None:
+    _, files = batch_files(samples_dir, coco, images=2)
+    body = build_zip(b'{"images": [{"id": 1,', files)
+    assert_problem(limited_api.upload(body), 422, "annotations.json", "not valid json")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_annotations_not_an_object(limited_api: InProcess, samples_dir: Path, coco: dict) -> None:
+    _, files = batch_files(samples_dir, coco, images=2)
+    assert_problem(limited_api.upload(build_zip(b"[1, 2]", files)), 422, "annotations.json")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_symlink_in_the_zip(limited_api: InProcess, samples_dir: Path, coco: dict) -> None:
+    doc, files = batch_files(samples_dir, coco, images=2)
+    body = build_zip(doc, files, links={"images/link.jpg": "/etc/passwd"})
+    assert_problem(limited_api.upload(body), 422, "images/link.jpg", "symbolic link")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_not_a_zip(limited_api: InProcess) -> None:
+    assert_problem(limited_api.upload(b"this is not a zip archive"), 422, "zip")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_more_files_than_the_limit(
+    limited_api: InProcess, samples_dir: Path, coco: dict, limits: dict
+) -> None:
+    doc, files = batch_files(samples_dir, coco, images=2)
+    files.update({f"extra/{i}.txt": b"x" for i in range(limits["max_upload_files"])})
+    assert_problem(limited_api.upload(build_zip(doc, files)), 413, "CKS_MAX_UPLOAD_FILES")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_more_uncompressed_bytes_than_the_limit(
+    limited_api: InProcess, samples_dir: Path, coco: dict, limits: dict
+) -> None:
+    doc, files = batch_files(samples_dir, coco, images=2)
+    files["padding.bin"] = bytes(limits["max_upload_uncompressed_bytes"])  # zeros: tiny once deflated
+    body = build_zip(doc, files)
+    assert len(body) < limits["max_upload_bytes"]
+    assert_problem(limited_api.upload(body), 413, "CKS_MAX_UPLOAD_UNCOMPRESSED_BYTES")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_body_over_the_upload_limit(
+    limited_api: InProcess, samples_dir: Path, coco: dict, limits: dict
+) -> None:
+    doc, files = batch_files(samples_dir, coco, images=2)
+    files["noise.bin"] = np.random.default_rng(0).bytes(limits["max_upload_bytes"])
+    body = build_zip(doc, files, compression=zipfile.ZIP_STORED)
+    assert len(body) > limits["max_upload_bytes"]
+    assert_problem(limited_api.upload(body), 413, "CKS_MAX_UPLOAD_BYTES")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_streamed_body_over_the_upload_limit(limited_api: InProcess, limits: dict) -> None:
+    """Chunked transfer (no Content-Length): the limit holds while streaming."""
+
+    def chunks():
+        for _ in range(limits["max_upload_bytes"] // 65536 + 2):
+            yield bytes(65536)
+
+    response = limited_api.client.post(
+        "/v1/admin/calibrations",
+        content=chunks(),
+        headers={**limited_api.admin, "Content-Type": "application/zip"},
+    )
+    assert_problem(response, 413, "CKS_MAX_UPLOAD_BYTES")
+
+
+@pytest.mark.parametrize("content_type", ["application/json", "text/plain", "multipart/form-data"])
+@pytest.mark.usefixtures("unchanged")
+def test_wrong_content_type(limited_api: InProcess, samples_dir: Path, coco: dict, content_type: str) -> None:
+    body = batch_zip(samples_dir, coco, images=2)
+    assert_problem(limited_api.upload(body, content_type=content_type), 415, "application/zip")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_append_to_a_missing_version(limited_api: InProcess, samples_dir: Path, coco: dict) -> None:
+    missing = max(limited_api.versions()) + 50
+    body = batch_zip(samples_dir, coco, images=2)
+    assert_problem(limited_api.upload(body, append_to=missing), 404, str(missing))
+
+
+@pytest.mark.parametrize(
+    "params", [{"append_to": 0}, {"append_to": 2**40}, {"append_to": "two"}, {"activate": "maybe"}]
+)
+@pytest.mark.usefixtures("unchanged")
+def test_bad_query_parameters(limited_api: InProcess, samples_dir: Path, coco: dict, params: dict) -> None:
+    body = batch_zip(samples_dir, coco, images=2)
+    assert_problem(limited_api.upload(body, **params), 422, next(iter(params)))
+
+
+def test_undecodable_image_fails_the_job_and_stores_nothing(
+    limited_api: InProcess, samples_dir: Path, coco: dict
+) -> None:
+    """A valid header with a truncated body passes the pre-202 checks; the job then fails cleanly."""
+    before = snapshot(limited_api)
+    doc, files = batch_files(samples_dir, coco, images=2)
+    broken = doc["images"][1]["file_name"]
+    files[broken] = files[broken][: len(files[broken]) // 2]  # header intact, scan data cut, no EOI
+    response = limited_api.upload(build_zip(doc, files), activate=True)
+    assert response.status_code == 202, response.text
+    job = limited_api.wait_job(response.json()["id"])
+    assert job["state"] == "failed", job
+    assert job["result"] == {} and job["finished_at"] is not None
+    assert job["errors"] and any(broken in error for error in job["errors"]), job["errors"]
+    assert_nothing_stored(limited_api, before)
+
+
+def test_a_valid_small_batch_is_accepted(limited_api: InProcess, samples_dir: Path, coco: dict) -> None:
+    """The limits above are tight, not closed: the same small batch unmodified goes through."""
+    before = limited_api.versions()
+    job = limited_api.calibrate(batch_zip(samples_dir, coco, images=2))
+    assert limited_api.versions() == [*before, job["result"]["version"]]
+    assert limited_api.upload_workspaces() == []

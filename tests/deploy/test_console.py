@@ -1,0 +1,181 @@
+"""The operator console in a real Chromium with every request off 127.0.0.1 refused: it loads
+without errors, asks for the admin token, then shows the model, the versions, the activation
+history, the audit run here (its coverage plotted against the bands), the drift of every
+keypoint over time and the set sizes of the predictions made here, or 'no drift data' on a
+server without drift monitoring. A screenshot goes to the test's temporary directory and to
+``test-artifacts/console.png`` (gitignored)."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from urllib.parse import urlsplit
+
+import pytest
+from playwright.sync_api import Browser, BrowserContext, ConsoleMessage
+
+from service.api.routes.console import CONSOLE_CONTENT_SECURITY_POLICY
+from service.runtime.settings import PACKAGE_ROOT
+from tests.api.test_audits import run_audit, shifted
+from tests.deploy.test_api_pages import RECORD_POLICY_VIOLATIONS, Watch, open_page, watched_context
+from tests.live.server import LiveServer
+from tests.predict_client import instances_of, predict_ok
+from tests.samples import Sample, batch_zip, samples_by_image
+from tests.service_calls import ADMIN_TOKEN
+
+pytestmark = pytest.mark.browser
+
+ARTIFACT = PACKAGE_ROOT / "test-artifacts" / "console.png"
+HISTORY_SECONDS = 0.5
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+    """A server whose drift history takes a point every half second."""
+    data = tmp_path_factory.mktemp("console") / "data"
+    with LiveServer(data, admin_token=ADMIN_TOKEN, drift_history_seconds=HISTORY_SECONDS) as live:
+        yield live
+
+
+@pytest.fixture(scope="module")
+def predictions(server: LiveServer, samples: list[Sample]) -> None:
+    """Three rounds of predictions on the samples, a few history points apart."""
+    for round_ in range(3):
+        for path, group in samples_by_image(samples).items():
+            kind = ("cov", "peak", "var")[round_]
+            predict_ok(
+                server.client, path.read_bytes(), {"instances": instances_of(group), "nonconformity": kind}
+            )
+        time.sleep(3 * HISTORY_SECONDS)
+
+
+@pytest.fixture
+def context(browser: Browser, server: LiveServer) -> Iterator[tuple[BrowserContext, Watch]]:
+    yield from watched_context(browser, server, {"width": 1400, "height": 1350})
+
+
+@pytest.fixture(scope="module")
+def audit(server: LiveServer, samples_dir: Path, coco: dict) -> dict:
+    return run_audit(server, batch_zip(samples_dir, coco, mutate=shifted(5)), name="console-test")
+
+
+def test_the_console_is_served_from_the_package_without_other_hosts(server: LiveServer) -> None:
+    for path in ("/console", "/console/console.js", "/console/console.css"):
+        response = server.client.get(path)
+        assert response.status_code == 200, path
+        assert response.headers["content-security-policy"] == CONSOLE_CONTENT_SECURITY_POLICY
+        assert not re.findall(r"https?://(?!www\.w3\.org/2000/svg)[^\s\"'<>]+", response.text), path
+    assert server.client.get("/console/secrets.txt").status_code == 404
+    assert server.client.get("/console/../v1/model").status_code in (200, 404)  # no file outside the folder
+
+
+def test_the_console_shows_the_audit_against_its_bands(
+    server: LiveServer, context: tuple[BrowserContext, Watch], audit: dict, predictions: None, tmp_path: Path
+) -> None:
+    errors: list[str] = []
+    page, watch = open_page(context, f"{server.url}/console")
+    page.on("console", lambda message: _record_error(message, errors))
+    page.wait_for_selector("#model table")
+    assert "Enter the admin token" in page.inner_text("#audits")  # nothing admin without the token
+    assert server.client.get("/v1/model").json()["hash"] in page.inner_text("#model")
+
+    page.fill("#token", server.admin_token)
+    page.click("#token-form button[type=submit]")
+    page.wait_for_selector("body[data-loaded=true]")
+    report = audit["report"]
+    section = next(s for s in report["sections"]
+                   if (s["nonconformity"], s["epsilon"], s["scope"]) == ("cov", 0.1, "keypoint"))  # fmt: skip
+    points = page.locator("#audit-plot circle.coverage")
+    assert points.count() == len([k for k in section["keypoints"] if k["coverage"] is not None])
+    assert page.locator("#audit-plot line.whisker").count() == len(section["keypoints"])
+    flagged = {k["keypoint"] for k in section["keypoints"] if k["flagged"]}
+    keypoints_of = "circles => circles.map(circle => circle.dataset.keypoint)"
+    shown = set(page.eval_on_selector_all("#audit-plot circle.flagged", keypoints_of))
+    assert shown == flagged and flagged
+    assert f"Audit #{audit['id']} of version {audit['version']}" in page.inner_text("#audit-detail")
+    assert "Recalibrate" in page.inner_text("#audit-detail")
+
+    versions = server.client.get("/v1/admin/calibrations", headers=server.admin).json()["versions"]
+    assert page.locator("#versions .body > table > tbody > tr").count() == min(10, len(versions))
+    activations = server.client.get("/v1/admin/activations", headers=server.admin).json()["activations"]
+    assert page.locator("#activations tbody tr").count() == len(activations)
+    _assert_drift_panels(server, page)
+
+    page.select_option("#audit-epsilon", "0.2")  # another epsilon redraws the plot
+    section = next(s for s in report["sections"]
+                   if (s["nonconformity"], s["epsilon"], s["scope"]) == ("cov", 0.2, "keypoint"))  # fmt: skip
+    flagged = {k["keypoint"] for k in section["keypoints"] if k["flagged"]}
+    flagged_points = "document.querySelectorAll('#audit-plot circle.flagged').length"
+    page.wait_for_function(f"{flagged_points} === {len(flagged)}")
+    page.select_option("#audit-epsilon", "0.1")
+
+    page.screenshot(path=tmp_path / "console.png", full_page=True)
+    ARTIFACT.parent.mkdir(exist_ok=True)
+    shutil.copyfile(tmp_path / "console.png", ARTIFACT)
+    print(f"screenshot: {tmp_path / 'console.png'}, copied to {ARTIFACT}")
+
+    page.reload()  # the token stays for the tab
+    page.wait_for_selector("body[data-loaded=true]")
+    assert page.locator("#audit-plot circle.coverage").count() == points.count()
+    page.click("#forget")
+    page.wait_for_function("!sessionStorage.getItem('cks-admin-token')")
+    assert "Enter the admin token" in page.inner_text("#versions")
+    watch.assert_offline_and_clean(page)
+    assert not errors, f"console errors: {errors}"
+
+
+def test_a_wrong_token_is_told_not_hidden(server: LiveServer, context: tuple[BrowserContext, Watch]) -> None:
+    browser_context, watch = context
+    page = browser_context.new_page()
+    page.goto(f"{server.url}/console")
+    page.wait_for_selector("#model table")
+    page.fill("#token", "not-the-token")
+    page.click("#token-form button[type=submit]")
+    page.wait_for_selector("body[data-loaded=true]")
+    assert "admin token was refused" in page.inner_text("#versions")
+    watch.failed.clear()  # the 401s are the point here
+    watch.assert_offline(page)
+
+
+def _record_error(message: ConsoleMessage, errors: list[str]) -> None:
+    if message.type == "error":
+        errors.append(f"{message.text} ({message.location.get('url')})")
+
+
+def _assert_drift_panels(server: LiveServer, page) -> None:  # noqa: ANN001 - a Playwright Page
+    """Drift as the server reports it: a row per keypoint with its statistics over time, and a
+    histogram of set sizes per nonconformity function predicted with."""
+    drift = server.client.get("/v1/admin/drift", headers=server.admin).json()
+    assert page.locator("#drift tbody tr").count() == len(drift["keypoints"]) > 0
+    assert len(drift["history"]) >= 2
+    with_history = {i for point in drift["history"] for i, v in enumerate(point["keypoint_statistics"]) if v}
+    assert page.locator("#drift svg.sparkline").count() >= len(with_history) > 0
+    kinds = {kind for kind, sizes in drift["set_sizes"].items() if sizes["n"] and sizes["semi_major_px"]}
+    shown = set(
+        page.eval_on_selector_all("#set-sizes svg.histogram", "plots => plots.map(p => p.dataset.kind)")
+    )
+    assert shown == kinds == {"cov", "peak", "var"}
+
+
+def test_a_server_without_drift_says_so(browser: Browser, tmp_path: Path) -> None:
+    with LiveServer(tmp_path / "data", admin_token=ADMIN_TOKEN, drift_enabled=False) as live:
+        context = browser.new_context()
+        watch = Watch(server_host=urlsplit(live.url).hostname or "")
+        context.route("**/*", watch.route)
+        context.add_init_script(RECORD_POLICY_VIOLATIONS)
+        context.on("requestfailed", watch.request_failed)
+        page = context.new_page()
+        page.on("pageerror", lambda error: watch.page_errors.append(str(error)))
+        page.goto(f"{live.url}/console")
+        page.fill("#token", ADMIN_TOKEN)
+        page.click("#token-form button[type=submit]")
+        page.wait_for_selector("body[data-loaded=true]")
+        assert "No drift data" in page.inner_text("#drift")
+        assert "not available" in page.inner_text("#set-sizes")
+        assert "No coverage audit yet" in page.inner_text("#audits")
+        watch.assert_offline(page)
+        assert not watch.page_errors
+        context.close()

@@ -1,0 +1,182 @@
+"""A job whose server process died is reported interrupted by the others, nothing of it is
+stored, and it can be retried from its kept upload by a server sharing the data directory.
+
+A real SIGKILL of a real server at the worst moments (``CKS_FAULT``, see
+``calibration_store.faults``): with the version written but not committed, and right after
+the commit. Either the version is active and its job succeeded, or nothing was written and
+the job is interrupted and retryable; on SQLite and on PostgreSQL.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+import pytest
+
+from benchmarks.faults_clients import long_batch
+from calibration_store import JobRecord, open_store
+from service.calibration.jobs import STALE_AFTER
+from tests.live.server import LiveServer
+from tests.samples import batch_zip, count_instances
+from tests.service_calls import ADMIN_TOKEN, wait_until
+
+COPIES = 6  # the samples, 6 times over: seconds of scoring, so the kill lands mid-job
+
+
+@pytest.fixture(params=["sqlite", "postgres"])
+def store_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
+    if request.param == "postgres":
+        return request.getfixturevalue("postgres_url")
+    return f"sqlite://{tmp_path}/shared/calibration.db"
+
+
+def age_heartbeat(store_url: str, job_id: str) -> None:
+    """Make the dead process's silence outlast the limit (the row as it left it, only older)."""
+    with open_store(store_url) as store:
+        store.update_job(job_id, heartbeat_at=datetime.now(UTC) - STALE_AFTER - timedelta(seconds=5))
+
+
+def killed(server: LiveServer) -> None:
+    assert server.process.wait(timeout=60) == -signal.SIGKILL, server.log()
+
+
+def test_a_killed_servers_job_is_interrupted_and_retried(
+    tmp_path: Path, samples_dir: Path, coco: dict
+) -> None:
+    store_url = f"sqlite://{tmp_path}/shared/calibration.db"
+    body = long_batch(COPIES)
+    with (
+        LiveServer(tmp_path / "a", admin_token=ADMIN_TOKEN, store_url=store_url) as a,
+        LiveServer(tmp_path / "b", admin_token=ADMIN_TOKEN, store_url=store_url) as b,
+    ):
+        response = a.upload(body, activate=True, force=True, reason="six copies")
+        assert response.status_code == 202, response.text
+        os.kill(a.process.pid, signal.SIGKILL)
+        killed(a)
+        job_id, owner = response.json()["id"], f"{socket.gethostname()}:{a.process.pid}"
+        with open_store(store_url) as store:
+            row = store.get_job(job_id)
+            assert row is not None and row.owner == owner
+            assert row.state in ("queued", "running"), f"the kill must land mid-job: {row}"
+            assert row.total == COPIES * count_instances(coco)
+        assert b.job(job_id)["state"] == row.state  # its heartbeat is recent: B reports the row
+        age_heartbeat(store_url, job_id)
+
+        job = b.job(job_id)
+        assert job["state"] == "interrupted", job
+        assert job["finished_at"] is not None and job["result"] == {} and job["version"] is None
+        (error,) = job["errors"]
+        assert owner in error and "stopped" in error and "Nothing was stored" in error, error
+        assert f"/v1/admin/jobs/{job_id}/retry" in error, error
+        assert b.versions() == [1], "the killed job stored no version"
+        # B has its own data directory: the upload is kept in A's
+        refused = b.client.post(f"/v1/admin/jobs/{job_id}/retry", headers=b.admin)
+        assert refused.status_code == 409 and "not kept in this server's data directory" in refused.text
+
+        with LiveServer(tmp_path / "a", admin_token=ADMIN_TOKEN, store_url=store_url) as again:
+            retried = again.client.post(f"/v1/admin/jobs/{job_id}/retry", headers=again.admin)
+            assert retried.status_code == 202, retried.text
+            new = again.wait_job(retried.json()["id"])
+            assert new["state"] == "succeeded" and new["result"]["activated"], new
+            assert again.versions() == [1, 2] and new["version"] == 2
+            old = again.job(job_id)
+            assert old["state"] == "interrupted" and old["result"]["retried_as"] == new["id"]
+            again_refused = again.client.post(f"/v1/admin/jobs/{job_id}/retry", headers=again.admin)
+            assert again_refused.status_code == 409, again_refused.text
+            assert not (tmp_path / "a" / "jobs" / new["id"]).exists(), "a finished job's upload was kept"
+
+
+@pytest.mark.parametrize("moment", ["version-written", "version-committed"])
+def test_sigkill_at_the_worst_moment_leaves_all_or_nothing(
+    store_url: str, moment: str, tmp_path: Path, samples_dir: Path, coco: dict
+) -> None:
+    data = tmp_path / "data"
+    body = batch_zip(samples_dir, coco, images=4)
+    server = LiveServer(data, admin_token=ADMIN_TOKEN, store_url=store_url, fault=moment).start()
+    try:
+        response = server.upload(body, activate=True, force=True, reason="crash test")
+        assert response.status_code == 202, response.text
+        job_id = response.json()["id"]
+        killed(server)
+    finally:
+        server.stop()
+    assert (data / "jobs" / job_id).is_dir(), "the upload of an unfinished job must be kept"
+    if moment == "version-written":
+        age_heartbeat(store_url, job_id)
+
+    with LiveServer(data, admin_token=ADMIN_TOKEN, store_url=store_url) as restarted:
+        active = restarted.client.get("/readyz").json()["active_calibration"]
+        job = restarted.job(job_id)
+        if moment == "version-committed":  # all of it: version, activation, the job's success
+            assert (job["state"], job["version"], active) == ("succeeded", 2, 2), job
+            assert restarted.versions() == [1, 2]
+            wait_until(lambda: not (data / "jobs" / job_id).exists(), "the spent upload is removed")
+            return
+        assert (job["state"], job["version"], active) == ("interrupted", None, 1), job  # none of it
+        assert restarted.versions() == [1]
+        retried = restarted.client.post(f"/v1/admin/jobs/{job_id}/retry", headers=restarted.admin)
+        assert retried.status_code == 202, retried.text
+        new = restarted.wait_job(retried.json()["id"])
+        assert (new["state"], new["version"]) == ("succeeded", 2), new
+        assert restarted.client.get("/readyz").json()["active_calibration"] == 2
+        entries = restarted.client.get("/v1/admin/audit", headers=restarted.admin).json()["entries"]
+        assert {(e["action"], e["outcome"]) for e in entries[:3]} == {
+            ("retry", "accepted"),
+            ("activation", "forced"),
+            ("calibration", "stored"),
+        }  # the retry's entry and the job's race
+
+
+def test_a_silent_job_row_is_reported_interrupted(tmp_path: Path) -> None:
+    """Rows written through the store API: stale unfinished ones are interrupted, others stay."""
+    store_url = f"sqlite://{tmp_path}/shared/calibration.db"
+    now = datetime.now(UTC)
+    old = now - STALE_AFTER - timedelta(seconds=1)
+    with LiveServer(tmp_path / "a", admin_token=ADMIN_TOKEN, store_url=store_url) as server:
+        with open_store(store_url) as store:
+            for job_id, heartbeat_at, state in (
+                ("stale", old, "running"),
+                ("stale-queued", old, "queued"),
+                ("fresh", now, "running"),
+                ("finished", old, "succeeded"),
+            ):
+                store.create_job(
+                    JobRecord(id=job_id, kind="calibration", owner="node-7:31337", created_at=old,
+                              heartbeat_at=heartbeat_at, state=state, done=3, total=9)
+                )  # fmt: skip
+        for job_id in ("stale", "stale-queued"):
+            job = server.job(job_id)
+            assert (job["state"], job["done"], job["total"]) == ("interrupted", 3, 9), job
+            assert "node-7:31337" in job["errors"][0] and "Nothing was stored" in job["errors"][0], job
+        assert server.job("fresh")["state"] == "running"
+        assert server.job("finished")["state"] == "succeeded"
+
+
+def test_a_job_queued_at_shutdown_is_interrupted_and_retried(
+    tmp_path: Path, samples_dir: Path, coco: dict
+) -> None:
+    """A job still queued when the server stops is stored interrupted (a final state): the
+    retry claims its kept upload by moving it, once."""
+    data = tmp_path / "data"
+    server = LiveServer(data, admin_token=ADMIN_TOKEN, calibration_workers=1).start()
+    try:
+        first = server.upload(long_batch(COPIES))
+        second = server.upload(batch_zip(samples_dir, coco, images=3))
+        assert first.status_code == second.status_code == 202, (first.text, second.text)
+        queued = second.json()["id"]
+        assert server.job(queued)["state"] == "queued"
+    finally:
+        server.stop()
+    with LiveServer(data, admin_token=ADMIN_TOKEN) as restarted:
+        job = restarted.job(queued)
+        assert job["state"] == "interrupted" and "stopped before the job started" in job["errors"][0], job
+        retried = restarted.client.post(f"/v1/admin/jobs/{queued}/retry", headers=restarted.admin)
+        assert retried.status_code == 202, retried.text
+        new = restarted.wait_job(retried.json()["id"])
+        assert new["state"] == "succeeded" and new["result"]["added"] == count_instances(coco, images=3), new
+        again = restarted.client.post(f"/v1/admin/jobs/{queued}/retry", headers=restarted.admin)
+        assert again.status_code == 409, again.text

@@ -1,0 +1,71 @@
+"""Property-based API testing with schemathesis against the committed OpenAPI document.
+
+A running server (admin enabled, so the admin routes are exercised with the token) gets
+generated requests from ``openapi/openapi.json``; none may produce a 5xx. The requests are
+counted on the server side, from its Prometheus request counter.
+"""
+
+from __future__ import annotations
+
+import re
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from service.runtime.settings import PACKAGE_ROOT
+from tests.live.server import LiveServer
+from tests.service_calls import ADMIN_TOKEN
+
+HOOKS = Path(__file__).with_name("schemathesis_hooks.py")
+MIN_REQUESTS = 500
+SAMPLE = re.compile(r'^cks_http_requests_total\{method="(\w+)",route="(.*)",status="(\d+)"\}\s+(\S+)$')
+
+
+@pytest.fixture(scope="module")
+def fuzzed_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+    with LiveServer(tmp_path_factory.mktemp("schemathesis") / "data", admin_token=ADMIN_TOKEN) as live:
+        yield live
+
+
+def requests_by_status(server: LiveServer) -> dict[tuple[str, str, str], float]:
+    counts = {}
+    for line in server.client.get("/metrics").text.splitlines():
+        match = SAMPLE.match(line)
+        if match:
+            counts[match.group(1, 2, 3)] = float(match.group(4))
+    return counts
+
+
+def test_no_server_errors_on_generated_requests(fuzzed_server: LiveServer, tmp_path: Path) -> None:
+    before = requests_by_status(fuzzed_server)
+    command = [
+        "schemathesis", "run", str(PACKAGE_ROOT / "openapi" / "openapi.json"),
+        "--url", fuzzed_server.url,
+        "--header", f"Authorization: Bearer {ADMIN_TOKEN}",
+        "--checks", "not_a_server_error",
+        "--phases", "examples,coverage,fuzzing",
+        "--max-examples", "100",
+        "--workers", "1",  # CPython 3.11's ast.parse is not thread-safe under hypothesis
+        "--seed", "20240607",
+        "--request-timeout", "30",
+        "--no-color",
+    ]  # fmt: skip
+    env = {**fuzzed_server.env, "SCHEMATHESIS_HOOKS": str(HOOKS)}
+    result = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=240)
+    output = result.stdout[-6000:] + result.stderr[-3000:]
+    after = requests_by_status(fuzzed_server)
+
+    sent = {key: after[key] - before.get(key, 0) for key in after if after[key] != before.get(key, 0)}
+    sent.pop(("GET", "/metrics", "200"), None)  # our own scrape
+    server_errors = {key: n for key, n in sent.items() if key[2].startswith("5")}
+    assert not server_errors, (
+        f"5xx responses: {server_errors}\n{output}\nserver log:\n{fuzzed_server.log()[-6000:]}"
+    )
+    assert result.returncode == 0, output
+    total = sum(sent.values())
+    print(f"schemathesis: {total:g} requests reached the server, none answered 5xx")
+    assert total >= MIN_REQUESTS, f"only {total:g} requests reached the server: {sent}\n{output}"
+    routes = {route for _, route, _ in sent}
+    assert {"/v1/predict", "/v1/admin/calibrations", "/v1/admin/calibrations/{version}/activate"} <= routes

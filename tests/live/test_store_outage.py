@@ -1,0 +1,164 @@
+"""The PostgreSQL store goes away under load and comes back: predictions never wait on it.
+
+A real server (uvicorn on loopback) on a real PostgreSQL cluster of this module's own, so
+that stopping it (``pg_ctl stop -m fast``, clients cut off) disturbs no other test. The
+scenario is the one ``python -m benchmarks.faults_store`` measures.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from benchmarks.faults_clients import long_batch
+from benchmarks.faults_store import run_outage, scene
+from calibration_store import open_store
+from service.calibration.bundle import bootstrap_default_calibration
+from service.calibration.registry import CalibrationRegistry
+from service.detector.session import Detector
+from service.errors import StoreUnreachable
+from service.runtime.settings import PACKAGE_ROOT
+from tests.live.server import cli, free_port, service_env
+from tests.postgres_cluster import PostgresCluster
+from tests.predict_client import predict_json
+from tests.samples import model_dir
+from tests.service_calls import assert_problem, wait_until
+
+POLL_S, TIMEOUT_S = 1.0, 1.5  # the defaults of CKS_STORE_POLL_SECONDS, CKS_STORE_TIMEOUT_SECONDS
+#: a poll under way when the store returns may still fail; the next one finds it
+TWO_POLLS_S = 2 * (POLL_S + TIMEOUT_S)
+
+
+@pytest.fixture(scope="module")
+def cluster() -> Iterator[PostgresCluster]:
+    with PostgresCluster.start() as cluster:
+        yield cluster
+
+
+@pytest.mark.slow
+def test_predictions_go_on_while_postgresql_is_down(cluster: PostgresCluster, tmp_path: Path) -> None:
+    with scene(tmp_path, cluster) as prepared:
+        report = run_outage(prepared, outage_s=6.0, before_s=2.0, after_s=2.0, clients=1)
+
+    for phase, figures in report.phases.items():
+        assert figures.answered > 0 and figures.failed == 0, (phase, figures)
+    during = report.phases["during"]
+    assert during.p99_ms < 1000, f"predictions waited on the store: {during}"
+
+    ready = report.readyz_during
+    assert ready.status == 200, ready
+    assert ready.body["active_calibration"] == 1 and ready.body["store"] == "unreachable", ready
+    assert "PostgreSQL" in ready.body["store_error"] and ready.body["cache_age_seconds"] > POLL_S, ready
+
+    for admin in (report.admin_first, report.admin_known):  # before and after the server knew
+        assert admin.status == 503 and admin.retry_after == "1", admin
+        assert admin.body["title"] == "Calibration store unreachable", admin
+        assert admin.seconds < 2.5, f"an admin call took {admin.seconds:.2f} s to answer 503"
+    assert report.admin_known.seconds < 0.5, report.admin_known  # no wait once the store is known down
+    assert "Predictions keep using the active calibration version 1" in report.admin_known.body["detail"]
+
+    assert report.named_active.status == 200, report.named_active  # in memory
+    other = report.named_other
+    assert other.status == 503 and other.retry_after == "1" and other.seconds < 2.5, other
+    for fragment in ("calibration version 2 is not in this server's memory", "store is unreachable",
+                     "active version 1, which still answers"):  # fmt: skip
+        assert fragment in other.body["detail"], other.body
+
+    assert report.recovered_after_s < TWO_POLLS_S, report
+    assert report.admin_ok_after_s < TWO_POLLS_S, report
+    assert report.activation_seen_after_s < TWO_POLLS_S, report
+
+
+@pytest.mark.slow
+def test_readyz_turns_503_past_the_staleness_limit_and_predictions_go_on(
+    cluster: PostgresCluster, tmp_path: Path
+) -> None:
+    with scene(tmp_path, cluster, max_cache_staleness_seconds=4) as prepared:
+        server = prepared.server
+
+        def readyz() -> httpx.Response:
+            return server.client.get("/readyz")
+
+        assert readyz().status_code == 200
+        cluster.stop_server()
+        try:
+            wait_until(lambda: readyz().status_code == 503, "/readyz turns 503", 15)
+            problem = assert_problem(readyz(), 503, "has not confirmed the cached calibration",
+                                     "CKS_MAX_CACHE_STALENESS_SECONDS = 4", "PostgreSQL")  # fmt: skip
+            assert problem["title"] == "Calibration store unreachable"
+            assert predict_json(server.client, prepared.image, prepared.parameters).status_code == 200
+        finally:
+            cluster.start_server()
+        wait_until(lambda: readyz().status_code == 200, "/readyz is 200 again", TWO_POLLS_S)
+
+
+@pytest.mark.slow
+def test_a_job_caught_by_the_outage_fails_cleanly_and_the_next_one_succeeds(
+    cluster: PostgresCluster, tmp_path: Path, samples_dir: Path, coco: dict
+) -> None:
+    body = long_batch(4)
+    with scene(tmp_path, cluster) as prepared:
+        server = prepared.server
+        response = server.upload(body)
+        assert response.status_code == 202, response.text
+        job_id = response.json()["id"]
+        cluster.stop_server()  # while the job scores, long before it writes its version
+        try:
+            wait_until(lambda: f"job {job_id}: its final state is not stored yet" in server.log(),
+                       "the job gave up writing its final state for now", timeout=60)  # fmt: skip
+        finally:
+            cluster.start_server()
+        wait_until(lambda: server.client.get("/readyz").json()["store"] == "ok", "the store is back", 30)
+        job = server.wait_job(job_id, timeout=30)  # the runner's writer lands the final state
+        assert job["state"] == "failed", job
+        assert "the calibration store was unreachable" in job["errors"][0], job
+        assert "nothing was stored: upload the batch again" in job["errors"][0], job
+        assert "internal error" not in json.dumps(job)
+        assert server.versions() == [1, 2]
+        assert server.calibrate(body)["result"]["version"] == 3
+
+
+@pytest.mark.slow
+def test_serve_refuses_to_start_without_the_store(cluster: PostgresCluster, tmp_path: Path) -> None:
+    url = cluster.create_database()
+    env = service_env(tmp_path / "data", store_url=url, port=free_port())
+    cluster.stop_server()
+    try:
+        result = subprocess.run([*cli(), "serve"], env=env, cwd=PACKAGE_ROOT, capture_output=True, text=True,
+                                timeout=90)  # fmt: skip
+    finally:
+        cluster.start_server()
+    assert result.returncode == 1, result.stderr  # the store or the system, not the command (test_cli_errors)
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith("error: the calibration store postgresql://"), last
+    assert "cannot connect to PostgreSQL" in last, last
+    assert "Traceback" not in result.stderr
+
+
+def test_a_frozen_database_is_reported_unreachable_and_the_cache_answers(cluster: PostgresCluster) -> None:
+    """SIGSTOP: connections neither fail nor answer, so no timeout fires; the poll that hangs
+    past twice the store timeout is what says the store is away."""
+    detector = Detector(model_dir())
+    with open_store(cluster.create_database(), timeout_s=0.5) as store:
+        bootstrap_default_calibration(store, detector, model_dir())
+        registry = CalibrationRegistry(store, detector.model_hash, detector.manifest, 0.2, 0.5)
+        assert registry.start() == 1
+        try:
+            cluster.freeze_server()
+            try:
+                wait_until(lambda: not registry.health().reachable, "the frozen store is reported", 10)
+                assert "the store has not answered a poll for" in registry.health().error
+                assert registry.resolve(None) == 1  # from memory, no wait
+                assert registry.thresholds(1, "cov", "keypoint", 0.1, None).values.size
+                with pytest.raises(StoreUnreachable, match="Predictions keep using the active calibration"):
+                    registry.require_store()
+            finally:
+                cluster.thaw_server()
+            wait_until(lambda: registry.health().reachable, "the thawed store answers again", 2 * 0.2 + 1.0)
+        finally:
+            registry.stop()

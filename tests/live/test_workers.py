@@ -1,0 +1,128 @@
+"""`keypoint-service serve` with CKS_WORKERS=2: /metrics sums every worker.
+
+Each request opens a new connection, so the kernel spreads them over both workers; each
+worker's own counter file must show some of them, which is what makes the summed count a
+real test of the aggregation.
+"""
+
+from __future__ import annotations
+
+import re
+import signal
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+from prometheus_client.mmap_dict import MmapedDict
+
+from service.runtime.settings import PACKAGE_ROOT
+from tests.api.test_audits import run_audit
+from tests.live.server import LiveServer, cli, free_port, service_env
+from tests.predict_client import instances_of, predict_json, predict_ok
+from tests.samples import Sample, batch_zip, samples_by_image
+from tests.service_calls import ADMIN_TOKEN, wait_until
+
+REQUESTS = 40
+
+
+@pytest.fixture
+def two_workers(tmp_path: Path) -> Iterator[tuple[str, Path]]:
+    port = free_port()
+    data = tmp_path / "data"
+    env = service_env(data, workers=2, port=port, admin_token=ADMIN_TOKEN)
+    with open(tmp_path / "serve.log", "wb") as log:
+        process = subprocess.Popen([*cli(), "serve"], env=env, cwd=PACKAGE_ROOT, stdout=log, stderr=log)
+    url = f"http://127.0.0.1:{port}"
+
+    def ready() -> bool:
+        assert process.poll() is None, (tmp_path / "serve.log").read_text()
+        try:
+            return httpx.get(f"{url}/readyz", timeout=1).status_code == 200
+        except httpx.TransportError:
+            return False
+
+    try:
+        wait_until(ready, "both workers serve", timeout=60)
+        yield url, data
+    finally:
+        process.send_signal(signal.SIGINT)
+        process.wait(timeout=30)
+    assert list((data / "metrics").iterdir()) == [], "serve left its metrics folder behind"
+
+
+def predict_count(text: str) -> float:
+    pattern = r'^cks_http_requests_total\{method="POST",route="/v1/predict",status="200"\} ([0-9.e+]+)$'
+    match = re.search(pattern, text, re.MULTILINE)
+    return float(match.group(1)) if match else 0.0
+
+
+def worker_predicts(counter_file: Path) -> float:
+    """Successful predicts counted in one worker's multiprocess counter file."""
+    values = MmapedDict(str(counter_file), read_mode=True)
+    try:
+        return sum(
+            value
+            for key, value, _ in values.read_all_values()
+            if '"cks_http_requests_total"' in key and '"/v1/predict"' in key and '"200"' in key
+        )
+    finally:
+        values.close()
+
+
+def test_metrics_sum_over_the_workers(two_workers: tuple[str, Path], samples: list[Sample]) -> None:
+    url, data = two_workers
+    path, group = next(iter(samples_by_image(samples).items()))
+    image, request = path.read_bytes(), {"instances": instances_of(group)}
+    for _ in range(REQUESTS):
+        with httpx.Client(base_url=url, timeout=60) as client:  # a new connection each time
+            assert predict_json(client, image, request).status_code == 200
+
+    (folder,) = (data / "metrics").iterdir()  # one folder per serve process
+    served = {path.name: worker_predicts(path) for path in folder.glob("counter_*.db")}
+    assert len(served) == 2 and all(served.values()), f"both workers must have served: {served}"
+    assert sum(served.values()) == REQUESTS
+    for _ in range(6):  # whichever worker answers the scrape
+        with httpx.Client(base_url=url, timeout=60) as client:
+            text = client.get("/metrics").text
+        assert predict_count(text) == REQUESTS, text
+        assert re.search(r"^cks_predict_in_flight(\{.*\})? 0\.0$", text, re.MULTILINE), text
+
+
+def test_each_worker_process_keeps_and_reports_its_own_window(
+    two_workers: tuple[str, Path],  # noqa: F811
+    samples: list[Sample],
+) -> None:
+    url, _ = two_workers
+    path, group = next(iter(samples_by_image(samples).items()))
+    image, request = path.read_bytes(), {"instances": instances_of(group)}
+    requests, rows = 20, 8 * len(group)
+    for _ in range(requests):
+        with httpx.Client(base_url=url, timeout=60) as client:  # a new connection each time
+            predict_ok(client, image, request)
+    recorded: dict[int, int] = {}
+    for _ in range(60):  # until both workers have answered
+        with httpx.Client(base_url=url, timeout=60) as client:
+            report = client.get("/v1/admin/drift", headers={"Authorization": f"Bearer {ADMIN_TOKEN}"}).json()
+            metrics = client.get("/metrics").text
+        recorded[report["process"]] = report["recorded"]
+        assert "cks_drift_window_size{" in metrics  # in multiprocess mode too: the answering worker's
+        if len(recorded) == 2:
+            break
+    assert len(recorded) == 2 and sum(recorded.values()) == requests * rows, recorded
+
+
+def test_with_several_workers_the_gauges_are_the_latest_audits(
+    tmp_path: Path, samples_dir: Path, coco: dict
+) -> None:
+    """Each worker process keeps its own gauge values; the newest audit's must hide the older
+    one's, whichever worker ran either (prometheus multiprocess mode, "mostrecent")."""
+    with LiveServer(tmp_path / "data", admin_token=ADMIN_TOKEN, workers=2) as live:
+        run_audit(live, batch_zip(samples_dir, coco, images=4), epsilon=[0.05])
+        latest = run_audit(live, batch_zip(samples_dir, coco, images=4), epsilon=[0.2])
+        for _ in range(4):  # whichever worker answers
+            metrics = live.client.get("/metrics").text
+            values = re.findall(r'^cks_audit_coverage\{epsilon="([^"]+)".*\} (\S+)$', metrics, re.MULTILINE)
+            assert {epsilon for epsilon, value in values if value != "NaN"} == {"0.2"}
+            assert f'cks_audit_latest_id{{version="1"}} {float(latest["id"])}' in metrics
