@@ -103,8 +103,11 @@ def verdict(memory: Memory) -> str:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_memory", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.bench_memory",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--requests", type=int, default=100_000, help="requests in all (default 100000)")
     parser.add_argument("--first", type=int, default=1_000, help="the baseline reading (default 1000)")
     parser.add_argument("--every", type=int, default=10_000, help="read RSS every N requests (default 10000)")

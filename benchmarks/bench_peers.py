@@ -97,13 +97,22 @@ def run(args: argparse.Namespace) -> PeerResults:
         profile = None if args.no_profile else profile_service(service, requests, plan, Path(directory))
     limits = in_process_limits(DEFAULT_MODEL_DIR, sample, BOXES, 20 if args.quick else 200)
     for limit in limits:
-        log(f"in-process, {limit.boxes} box(es): {limit.core_ms:.2f} core-ms/request, limit "
-            f"{limit.requests_per_s:.0f} req/s, best latency {limit.best_latency_ms:.2f} ms")  # fmt: skip
+        log(
+            f"in-process, {limit.boxes} box(es): {limit.core_ms:.2f} core-ms/request, limit "
+            f"{limit.requests_per_s:.0f} req/s, best latency {limit.best_latency_ms:.2f} ms"
+        )
     return PeerResults(
-        command=command_line(args), machine=machine, load_at_end=os.getloadavg(), seconds=plan.seconds,
-        rounds=plan.rounds, contenders=args.contenders, runs=runs, limits=limits, profile=profile,
+        command=command_line(args),
+        machine=machine,
+        load_at_end=os.getloadavg(),
+        seconds=plan.seconds,
+        rounds=plan.rounds,
+        contenders=args.contenders,
+        runs=runs,
+        limits=limits,
+        profile=profile,
         minutes=(time.monotonic() - started) / 60,
-    )  # fmt: skip
+    )
 
 
 def profile_service(service: Contender, requests: Requests, plan: Plan, directory: Path) -> Profile:

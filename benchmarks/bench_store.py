@@ -73,8 +73,10 @@ def bench(url: str, table: ScoreTable, repeat: int) -> dict[str, list[float]]:
 
 def report(name: str, runs: dict[str, list[float]], table: ScoreTable) -> None:
     megabytes = table.n_instances * KEYPOINTS * len(FUNCTIONS) * 8 / 1e6
-    print(f"{name}: {table.n_instances} instances x {KEYPOINTS} keypoints x "
-          f"{len(FUNCTIONS)} functions ({megabytes:.1f} MB of float64)")
+    print(
+        f"{name}: {table.n_instances} instances x {KEYPOINTS} keypoints x "
+        f"{len(FUNCTIONS)} functions ({megabytes:.1f} MB of float64)"
+    )
     for label, values in runs.items():
         print(f"  {label:<10} best {min(values):.3f} s   median {statistics.median(values):.3f} s")
 
@@ -84,8 +86,11 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--instances", type=int, default=100_000)
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--postgres", default=os.environ.get("CALIBRATION_STORE_BENCH_POSTGRES_URL"))
-    parser.add_argument("--throwaway-postgres", action="store_true",
-                        help="start a temporary cluster (needs the PostgreSQL server binaries)")
+    parser.add_argument(
+        "--throwaway-postgres",
+        action="store_true",
+        help="start a temporary cluster (needs the PostgreSQL server binaries)",
+    )
     return parser.parse_args()
 
 

@@ -156,8 +156,11 @@ def sample_request() -> tuple[bytes, list[dict]]:
     doc = json.loads((SAMPLES_DIR / "annotations.json").read_text())
     image = doc["images"][0]
     names = {c["id"]: c["name"] for c in doc["categories"]}
-    instances = [{"object": names[a["category_id"]], "bbox": a["bbox"]}
-                 for a in doc["annotations"] if a["image_id"] == image["id"]]  # fmt: skip
+    instances = [
+        {"object": names[a["category_id"]], "bbox": a["bbox"]}
+        for a in doc["annotations"]
+        if a["image_id"] == image["id"]
+    ]
     return (SAMPLES_DIR / image["file_name"]).read_bytes(), instances
 
 
@@ -261,8 +264,9 @@ def zip_bomb(uncompressed: int, name: str = "images/bomb.png") -> bytes:
     zip64 = struct.pack("<HHQQ", 1, 16, uncompressed, len(data))
     sizes = (0xFFFFFFFF, 0xFFFFFFFF, len(encoded), len(zip64))  # the real ones are in the zip64 field
     local = struct.pack("<IHHHHHIIIHH", 0x04034B50, 45, 0, 8, 0, 0x21, crc, *sizes)
-    central = struct.pack("<IHHHHHHIIIHHHHHII", 0x02014B50, 45, 45, 0, 8, 0, 0x21, crc, *sizes, 0, 0, 0, 0,
-                          local_at)  # fmt: skip
+    central = struct.pack(
+        "<IHHHHHHIIIHHHHHII", 0x02014B50, 45, 45, 0, 8, 0, 0x21, crc, *sizes, 0, 0, 0, 0, local_at
+    )
     new_directory_at = local_at + len(local) + len(encoded) + len(zip64) + len(data)
     directory = small[directory_at:end] + central + encoded + zip64
     eocd = struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, 2, 2, len(directory), new_directory_at, 0)
@@ -331,29 +335,39 @@ def slow_clients(server: Server, requests: int, slow: int) -> None:
         beside, statuses = predict_latencies(server.url, requests)
         still_open = clients.open_count()
         clients.wait_closed(timeout=60)
-    print(f"beside {slow} slow-body + {slow} slow-header connections (a byte every 0.5 s; {still_open}"
-          f" still open when it was done): {_ms(beside)}; {_counted(statuses)}")  # fmt: skip
+    print(
+        f"beside {slow} slow-body + {slow} slow-header connections (a byte every 0.5 s; {still_open}"
+        f" still open when it was done): {_ms(beside)}; {_counted(statuses)}"
+    )
     for kind, name in (("body", "slow-body"), ("head", "slow-header")):
         cut = [c.closed_after for c in clients.of(kind) if c.closed_after is not None]
         when = f"after {min(cut):.1f} to {max(cut):.1f} s" if cut else ""
-        print(f"  {name} connections: {len(cut)} of {slow} closed by the server {when};"
-              f" answers {_counted([c.status for c in clients.of(kind)])}")  # fmt: skip
+        print(
+            f"  {name} connections: {len(cut)} of {slow} closed by the server {when};"
+            f" answers {_counted([c.status for c in clients.of(kind)])}"
+        )
 
 
 def huge_images(server: Server, settings: Settings) -> None:
     instances = sample_request()[1][:1]
     budget = f"CKS_MAX_DECODED_BYTES {_mib(settings.predict.max_decoded_bytes)}"
-    for name, image in (("16-bit RGBA PNG 6324x6324 (the issue's)", flat_png(6324, 6324)),
-                        ("16-bit RGBA PNG 4000x4000", flat_png(4000, 4000))):  # fmt: skip
+    for name, image in (
+        ("16-bit RGBA PNG 6324x6324 (the issue's)", flat_png(6324, 6324)),
+        ("16-bit RGBA PNG 4000x4000", flat_png(4000, 4000)),
+    ):
         needed = decoded_bytes(image, read_image_header(image))
         started = time.perf_counter()
         rise, statuses = peak_while(server.pid, functools.partial(_post_all, server.url, image, instances, 1))
         took = time.perf_counter() - started
-        print(f"{name}: {_mib(needed)} to decode ({budget}): {_counted(statuses)} in {took:.2f} s,"
-              f" peak RSS +{_mib(rise)}")  # fmt: skip
+        print(
+            f"{name}: {_mib(needed)} to decode ({budget}): {_counted(statuses)} in {took:.2f} s,"
+            f" peak RSS +{_mib(rise)}"
+        )
         rise, statuses = peak_while(server.pid, functools.partial(_post_all, server.url, image, instances, 8))
-        print(f"  8 at once: {_counted(statuses)}, peak RSS +{_mib(rise)}"
-              f" (at most CKS_CPU_WORKERS = {settings.model.cpu_workers} decode at once)")  # fmt: skip
+        print(
+            f"  8 at once: {_counted(statuses)}, peak RSS +{_mib(rise)}"
+            f" (at most CKS_CPU_WORKERS = {settings.model.cpu_workers} decode at once)"
+        )
 
 
 def bomb(server: Server, data_dir: Path) -> None:
@@ -364,8 +378,10 @@ def bomb(server: Server, data_dir: Path) -> None:
         response = client.post("/v1/admin/calibrations", content=body, headers=headers)
         took = time.perf_counter() - started
     left = [p for folder in ("jobs", "uploads") for p in (data_dir / folder).rglob("*") if p.is_file()]
-    print(f"zip bomb of 7.5 GiB ({_mib(len(body))} zipped): {response.status_code} in {took:.2f} s,"
-          f" {sum(p.stat().st_size for p in left)} bytes left on disk")  # fmt: skip
+    print(
+        f"zip bomb of 7.5 GiB ({_mib(len(body))} zipped): {response.status_code} in {took:.2f} s,"
+        f" {sum(p.stat().st_size for p in left)} bytes left on disk"
+    )
 
 
 def sigterm(settings: dict[str, str], busy: bool) -> None:
@@ -376,10 +392,11 @@ def sigterm(settings: dict[str, str], busy: bool) -> None:
             if busy:
                 with httpx.Client(base_url=server.url, timeout=120) as client:
                     job_id = client.post(
-                        "/v1/admin/calibrations", content=long_batch(30),
+                        "/v1/admin/calibrations",
+                        content=long_batch(30),
                         params={"activate": "true", "force": "true", "reason": "benchmark"},
                         headers={"Authorization": f"Bearer {ADMIN_TOKEN}", "Content-Type": "application/zip"},
-                    ).json()["id"]  # fmt: skip
+                    ).json()["id"]
                 time.sleep(2)  # the job scores meanwhile
                 image, instances = sample_request()
                 heavy = (instances * 16)[:64]
@@ -398,8 +415,10 @@ def sigterm(settings: dict[str, str], busy: bool) -> None:
         with open_store(f"sqlite:///{data_dir}/calibrations.db") as store:
             job = store.get_job(job_id)
         statuses = [status for future in predicts for status in future.result()]
-        print(f"SIGTERM with a calibration job scoring and 8 predicts (64 instances each) in flight: {line};"
-              f" predicts {_counted(statuses)}; job {job.state} at {job.done}/{job.total}")  # fmt: skip
+        print(
+            f"SIGTERM with a calibration job scoring and 8 predicts (64 instances each) in flight: {line};"
+            f" predicts {_counted(statuses)}; job {job.state} at {job.done}/{job.total}"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -244,9 +244,20 @@ def run_outage(
         "during": between(stopped_at, restarted_at),
         "after": between(restarted_at, np.inf),
     }
-    return OutageReport(outage_s, poll_s, phases, admin_first, admin_known, readyz_during, named_active,
-                        named_other, unreachable_after_s, recovered_after_s, activation_seen_after_s,
-                        admin_ok_after_s)  # fmt: skip
+    return OutageReport(
+        outage_s,
+        poll_s,
+        phases,
+        admin_first,
+        admin_known,
+        readyz_during,
+        named_active,
+        named_other,
+        unreachable_after_s,
+        recovered_after_s,
+        activation_seen_after_s,
+        admin_ok_after_s,
+    )
 
 
 def print_report(report: OutageReport) -> None:
@@ -255,17 +266,23 @@ def print_report(report: OutageReport) -> None:
     for name, f in report.phases.items():
         print(f"{name:<12} {f.answered:>9} {f.failed:>7} {f.p50_ms:>8.1f} {f.p99_ms:>8.1f}")
     readyz = report.readyz_during.body
-    print(f"/readyz during: {report.readyz_during.status}, store {readyz.get('store')},"
-          f" cache age {readyz.get('cache_age_seconds')} s, error {readyz.get('store_error')!r}")  # fmt: skip
-    for label, call in (("admin GET, first after the stop", report.admin_first),
-                        ("admin GET, store known down", report.admin_known),
-                        ("predict naming the active version", report.named_active),
-                        ("predict naming a version not in memory", report.named_other)):  # fmt: skip
+    print(
+        f"/readyz during: {report.readyz_during.status}, store {readyz.get('store')},"
+        f" cache age {readyz.get('cache_age_seconds')} s, error {readyz.get('store_error')!r}"
+    )
+    for label, call in (
+        ("admin GET, first after the stop", report.admin_first),
+        ("admin GET, store known down", report.admin_known),
+        ("predict naming the active version", report.named_active),
+        ("predict naming a version not in memory", report.named_other),
+    ):
         print(f"{label}: {call.status} in {call.seconds:.3f} s (Retry-After: {call.retry_after})")
     print(f"/readyz reported the store unreachable {report.unreachable_after_s:.2f} s after the stop")
-    print(f"after the restart: /readyz store ok in {report.recovered_after_s:.2f} s, admin 200 by"
-          f" {report.admin_ok_after_s:.2f} s; an activation written during recovery served by"
-          f" {report.activation_seen_after_s:.2f} s after it")  # fmt: skip
+    print(
+        f"after the restart: /readyz store ok in {report.recovered_after_s:.2f} s, admin 200 by"
+        f" {report.admin_ok_after_s:.2f} s; an activation written during recovery served by"
+        f" {report.activation_seen_after_s:.2f} s after it"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

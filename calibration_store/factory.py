@@ -20,8 +20,7 @@ def sqlite_path(url: str) -> Path:
         rest = rest[2:]
         if not rest.startswith("/"):
             raise ValueError(
-                f"sqlite URL {url!r} names a host; use sqlite:///absolute/path.db"
-                " or sqlite:relative/path.db"
+                f"sqlite URL {url!r} names a host; use sqlite:///absolute/path.db or sqlite:relative/path.db"
             )
         rest = "/" + rest.lstrip("/")
     if not rest or "?" in rest or "#" in rest or rest == ":memory:":

@@ -105,8 +105,7 @@ def _jobs(timestamp: str) -> tuple[str, ...]:
     )
 
 
-_IMMUTABLE_TABLES = ("calib_versions", "calib_score_objects", "calib_score_arrays",
-                     "calib_activations")
+_IMMUTABLE_TABLES = ("calib_versions", "calib_score_objects", "calib_score_arrays", "calib_activations")
 
 
 def _sqlite_immutability(tables: tuple[str, ...] = _IMMUTABLE_TABLES) -> tuple[str, ...]:
@@ -133,9 +132,7 @@ def _postgres_immutability() -> tuple[str, ...]:
 
 
 _JOB_STATES_V3 = "'queued', 'running', 'succeeded', 'failed', 'interrupted'"
-_JOB_COLUMNS_V2 = (
-    "id, kind, owner, created_at, heartbeat_at, state, done, total, errors, result, finished_at"
-)
+_JOB_COLUMNS_V2 = "id, kind, owner, created_at, heartbeat_at, state, done, total, errors, result, finished_at"
 
 
 def _content_hashes_and_audit(blob: str, seq_column: str, timestamp: str) -> tuple[str, ...]:

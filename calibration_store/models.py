@@ -52,9 +52,7 @@ class SourceBatch:
         if not _SHA256_RE.match(digest):
             raise ValueError(f"sha256 of batch {self.name!r} must be 64 hex digits")
         object.__setattr__(self, "sha256", digest)
-        object.__setattr__(
-            self, "instances", _count(self.instances, f"instances of batch {self.name!r}")
-        )
+        object.__setattr__(self, "instances", _count(self.instances, f"instances of batch {self.name!r}"))
 
     @classmethod
     def coerce(cls, value: SourceBatch | Mapping[str, Any]) -> SourceBatch:
@@ -345,7 +343,14 @@ MAX_JOB_ID = 200
 
 #: JobRecord fields update_job may change (the rest are set once by create_job).
 JOB_MUTABLE_FIELDS: tuple[str, ...] = (
-    "state", "done", "total", "errors", "result", "finished_at", "version", "heartbeat_at"
+    "state",
+    "done",
+    "total",
+    "errors",
+    "result",
+    "finished_at",
+    "version",
+    "heartbeat_at",
 )
 
 

@@ -64,9 +64,7 @@ class EncodedBlock:
 
 def encode_block(position: int, block: ObjectScores) -> EncodedBlock:
     n, k = block.n_instances, block.keypoint_ids.size
-    arrays = tuple(
-        (fn, n, k, codec.encode_matrix(block.scores[fn])) for fn in block.functions
-    )
+    arrays = tuple((fn, n, k, codec.encode_matrix(block.scores[fn])) for fn in block.functions)
     features = tuple(
         (name, n, k, codec.encode_matrix(block.features[name])) for name in sorted(block.features)
     )
@@ -91,8 +89,7 @@ _VERSION_COLUMNS = (
 _STRATA_COLUMN = ", strata"  # written only for a version that has strata
 _ACTIVATION_COLUMNS = "seq, model_hash, number, activated_at, who, reason"
 _JOB_COLUMNS = (
-    "id, kind, owner, created_at, heartbeat_at, state, done, total, errors, result, finished_at,"
-    " version"
+    "id, kind, owner, created_at, heartbeat_at, state, done, total, errors, result, finished_at, version"
 )
 _AUDIT_COLUMNS = (
     "seq, at, model_hash, who, action, outcome, version, previous_version, reason, client, details"
@@ -339,9 +336,16 @@ class SqlStore(CalibrationStore):
             cur.execute(
                 "INSERT INTO calib_coverage_audits (model_hash, version, created_at, who, batch_sha256,"
                 f" n_instances, report) VALUES (?, ?, ?, ?, ?, ?, ?) RETURNING {_COVERAGE_AUDIT_COLUMNS}",
-                (new.model_hash, new.version, self._time_to_db(now_utc()), new.who, new.batch_sha256,
-                 new.n_instances, codec.encode_json(dict(new.report))),
-            )  # fmt: skip
+                (
+                    new.model_hash,
+                    new.version,
+                    self._time_to_db(now_utc()),
+                    new.who,
+                    new.batch_sha256,
+                    new.n_instances,
+                    codec.encode_json(dict(new.report)),
+                ),
+            )
             audit = self._coverage_audit(cur.fetchone())
             if job is not None:
                 self._mark_succeeded(cur, job.job_id, {**job.result, "audit": audit.id}, None)

@@ -159,11 +159,17 @@ def _parser() -> argparse.ArgumentParser:
         " store. Other settings come from the CKS_* environment variables, as for keypoint-service serve.",
     )
     ray_group = parser.add_argument_group("Ray")
-    ray_group.add_argument("--address", help="Ray cluster to join (default: RAY_ADDRESS, a cluster started"
-                           " on this machine with `ray start`, else a new local one)")  # fmt: skip
-    ray_group.add_argument("--detach", action="store_true",
-                           help="deploy and exit, leaving the application on the cluster (default: serve"
-                           " until Ctrl-C or SIGTERM, then stop the application)")  # fmt: skip
+    ray_group.add_argument(
+        "--address",
+        help="Ray cluster to join (default: RAY_ADDRESS, a cluster started"
+        " on this machine with `ray start`, else a new local one)",
+    )
+    ray_group.add_argument(
+        "--detach",
+        action="store_true",
+        help="deploy and exit, leaving the application on the cluster (default: serve"
+        " until Ctrl-C or SIGTERM, then stop the application)",
+    )
     http = parser.add_argument_group("Serve's HTTP proxy (one per node)")
     http.add_argument("--host", help="address the proxies listen on (default CKS_HOST)")
     http.add_argument("--port", type=int, help="port the proxies listen on (default CKS_PORT)")
@@ -188,12 +194,19 @@ def _parser() -> argparse.ArgumentParser:
         type=float,
         help="autoscaling target per replica (default CKS_MAX_CONCURRENT_INFERENCES)",
     )
-    scale.add_argument("--max-ongoing-requests", type=int,
-                       help="requests Serve sends one replica at once (default CKS_MAX_CONCURRENT_INFERENCES"
-                       f" + CKS_MAX_QUEUED_REQUESTS + {ADMIN_HEADROOM})")  # fmt: skip
+    scale.add_argument(
+        "--max-ongoing-requests",
+        type=int,
+        help="requests Serve sends one replica at once (default CKS_MAX_CONCURRENT_INFERENCES"
+        f" + CKS_MAX_QUEUED_REQUESTS + {ADMIN_HEADROOM})",
+    )
     scale.add_argument("--num-cpus", type=float, default=defaults.num_cpus, help="CPUs reserved per replica")
-    scale.add_argument("--num-gpus", type=float, default=defaults.num_gpus,
-                       help="GPUs reserved per replica (a GPU in CKS_EXECUTION_PROVIDERS)")  # fmt: skip
+    scale.add_argument(
+        "--num-gpus",
+        type=float,
+        default=defaults.num_gpus,
+        help="GPUs reserved per replica (a GPU in CKS_EXECUTION_PROVIDERS)",
+    )
     service = parser.add_argument_group("service settings (override the CKS_* variables)")
     service.add_argument("--store-url", help="CKS_STORE_URL: postgresql://user@host:5432/db")
     service.add_argument("--data-dir", help="CKS_DATA_DIR, the same path on every node (shared, for retries)")

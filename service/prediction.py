@@ -234,8 +234,16 @@ class _RequestStrata:
         stratified, refusal = registry.stratified(version, kinds, *options)
         features = heatmap_features(statistics) if DIFFICULTY in kinds else None
         groups = [p.instances[i].group for i in result.instance_index]
-        self._answers = answer_rows(stratified, refusal, (pooled.values, pooled.guarantees), result.channel,
-                                    result.instance_index, groups, features, p.group_fallback)  # fmt: skip
+        self._answers = answer_rows(
+            stratified,
+            refusal,
+            (pooled.values, pooled.guarantees),
+            result.channel,
+            result.instance_index,
+            groups,
+            features,
+            p.group_fallback,
+        )
         return self._answers.values
 
     def guarantees(self) -> list[tuple[CoverageGuarantee, Stratum | None]]:

@@ -47,7 +47,7 @@ def load_samples(samples_dir: Path, doc: dict) -> list[Sample]:
                 categories[ann["category_id"]],
                 list(ann["bbox"]),
                 triples,
-            )  # fmt: skip
+            )
         )
     return samples
 

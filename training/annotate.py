@@ -84,8 +84,11 @@ def annotate_object(rendered: Rendered, obj: Placed, limits: Limits = Limits()) 
     return {
         "category_id": obj.class_index + 1,
         "bbox": [round(float(v), 3) for v in box],
-        "keypoints": [v for (x, y), f in zip(uv, flags, strict=True) for v in (round(float(x), 3),
-                                                                                round(float(y), 3), int(f))],
+        "keypoints": [
+            v
+            for (x, y), f in zip(uv, flags, strict=True)
+            for v in (round(float(x), 3), round(float(y), 3), int(f))
+        ],
         "num_keypoints": len(flags),
         "area": float(visible),
         "iscrowd": 0,

@@ -18,8 +18,13 @@ def keypoint_names(object_name: str) -> list[str]:
 def categories() -> list[dict]:
     """One category per object class, ids 1..C in manifest order."""
     return [
-        {"id": i + 1, "name": obj.name, "supercategory": "object", "keypoints": keypoint_names(obj.name),
-         "skeleton": []}
+        {
+            "id": i + 1,
+            "name": obj.name,
+            "supercategory": "object",
+            "keypoints": keypoint_names(obj.name),
+            "skeleton": [],
+        }
         for i, obj in enumerate(OBJECT_CLASSES)
     ]
 

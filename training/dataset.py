@@ -117,8 +117,9 @@ def gaussian_targets(points: np.ndarray, height: int, width: int, sigma: float =
     return (gy[..., :, None] * gx[..., None, :]).astype(np.float32)
 
 
-def make_batch(split: Split, rows: np.ndarray, manifest: Manifest, rng: np.random.Generator | None
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def make_batch(
+    split: Split, rows: np.ndarray, manifest: Manifest, rng: np.random.Generator | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Network inputs, targets ``(B, 8, H, W)`` for the instance's own channels, those channels,
     and the keypoints in continuous heatmap coordinates ``(B, 8, 2)``."""
     boxes = split.boxes[rows]

@@ -44,8 +44,9 @@ class ImageInstances:
     objects: list[str]
 
 
-def image_instances(data: Path, model_dir: Path, max_images: int | None = None,
-                    desc: str = "evaluate") -> Iterator[ImageInstances]:
+def image_instances(
+    data: Path, model_dir: Path, max_images: int | None = None, desc: str = "evaluate"
+) -> Iterator[ImageInstances]:
     """Run the detector on the ground-truth boxes of every image of a COCO split."""
     manifest = load_manifest(model_dir)
     session = ort.InferenceSession(str(Path(model_dir) / MODEL_FILENAME), providers=["CPUExecutionProvider"])
@@ -81,8 +82,9 @@ def service_points(heatmaps: np.ndarray, manifest: Manifest, kind: str = "peak")
     return point_estimates(kind, flat, spec.normalization, spec.top_k, spec.temperature).reshape(n, k, 2)
 
 
-def collect_errors(data: Path, model_dir: Path, max_images: int | None = None,
-                   kind: str = "peak") -> dict[str, np.ndarray]:
+def collect_errors(
+    data: Path, model_dir: Path, max_images: int | None = None, kind: str = "peak"
+) -> dict[str, np.ndarray]:
     """Normalized errors, visibility flags and object names of every labelled keypoint."""
     manifest = load_manifest(model_dir)
     errors, flags, objects = [], [], []
@@ -98,8 +100,11 @@ def collect_errors(data: Path, model_dir: Path, max_images: int | None = None,
 def summarize(errors: np.ndarray) -> dict[str, float]:
     if len(errors) == 0:
         return {"count": 0, "pck": float("nan"), "median": float("nan")}
-    return {"count": int(len(errors)), "pck": float((errors <= PCK_THRESHOLD).mean()),
-            "median": float(np.median(errors))}
+    return {
+        "count": int(len(errors)),
+        "pck": float((errors <= PCK_THRESHOLD).mean()),
+        "median": float(np.median(errors)),
+    }
 
 
 def report(result: dict[str, np.ndarray]) -> dict[str, dict]:
@@ -129,8 +134,12 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--model", type=Path, required=True, help="model directory (onnx + manifest)")
-    parser.add_argument("--point", choices=POINT_KINDS, default="peak",
-                        help="evaluate the service's point for this nonconformity function")
+    parser.add_argument(
+        "--point",
+        choices=POINT_KINDS,
+        default="peak",
+        help="evaluate the service's point for this nonconformity function",
+    )
     parser.add_argument("--max-images", type=int, default=None)
     parser.add_argument("--json", type=Path, default=None, help="also write the summary as JSON")
     args = parser.parse_args(argv)

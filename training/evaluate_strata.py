@@ -92,7 +92,7 @@ def groupings(spec: DifficultySpec) -> list[Grouping]:
             f"**per keypoint, joint {signals}, {spec.bins} bins each, n >= {spec.min_instances} per bin"
             " (the service's default)**",
             difficulty(spec),
-        ),  # fmt: skip
+        ),
         Grouping("oracle: true visibility (not available at prediction)", _oracle),
     ]
 
@@ -221,10 +221,13 @@ def split_section(
         "",
     ]
     for kind in KINDS:
-        lines += [f"`{kind}`, epsilon {epsilon}:", "",
-                  "| grouping | occluded | visible | all | visible median area (px², vs pooled) |"
-                  " occluded median area vs pooled | strata | within band | under-covered beyond chance |",
-                  "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+        lines += [
+            f"`{kind}`, epsilon {epsilon}:",
+            "",
+            "| grouping | occluded | visible | all | visible median area (px², vs pooled) |"
+            " occluded median area vs pooled | strata | within band | under-covered beyond chance |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
         pooled = None
         for grouping in groupings(spec):
             outcome = evaluate(cal, test, kind, grouping, epsilon)
@@ -260,8 +263,15 @@ def load_rows(folder: Path, detector: Detector) -> Rows:
     return collect_rows(load_coco_batch(folder, detector.manifest), detector, MAX_IMAGE_PIXELS)
 
 
-def report(model: Path, calibration: Path, heldout: list[Path], epsilon: float, spec: DifficultySpec,
-           command: str, sample: int = 0) -> str:  # fmt: skip
+def report(
+    model: Path,
+    calibration: Path,
+    heldout: list[Path],
+    epsilon: float,
+    spec: DifficultySpec,
+    command: str,
+    sample: int = 0,
+) -> str:
     detector = Detector(model, 2)
     cal = load_rows(calibration, detector)
     lines = [
@@ -296,9 +306,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--signals", default=",".join(DifficultySpec().signals))
     parser.add_argument("--bins", type=int, default=DifficultySpec().bins)
     parser.add_argument("--min-instances", type=int, default=DifficultySpec().min_instances)
-    parser.add_argument("--conditional-sample", type=int, default=0,
-                        help="also conditional calibration (Gibbs et al. 2023) on this many random held-out"
-                        " keypoints (one linear program each; needs scipy)")  # fmt: skip
+    parser.add_argument(
+        "--conditional-sample",
+        type=int,
+        default=0,
+        help="also conditional calibration (Gibbs et al. 2023) on this many random held-out"
+        " keypoints (one linear program each; needs scipy)",
+    )
     args = parser.parse_args(argv)
     spec = DifficultySpec(tuple(args.signals.split(",")), args.bins, args.min_instances)
     command = shlex.join(

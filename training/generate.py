@@ -55,8 +55,17 @@ def _assemble(results: list[tuple[int, list[dict], tuple[int, int]]]) -> tuple[l
     return images, annotations
 
 
-def generate(out: Path, images: int, seed: int, split: str, width: int = 640, height: int = 480,
-             workers: int = 1, progress: bool = True, extra_occluders: int = 0) -> Path:
+def generate(
+    out: Path,
+    images: int,
+    seed: int,
+    split: str,
+    width: int = 640,
+    height: int = 480,
+    workers: int = 1,
+    progress: bool = True,
+    extra_occluders: int = 0,
+) -> Path:
     """Render ``images`` scenes into ``out`` and write ``out/annotations.json``.
 
     ``extra_occluders`` > 0 renders heavier occlusion (recorded in the annotations' info);
@@ -79,8 +88,13 @@ def generate(out: Path, images: int, seed: int, split: str, width: int = 640, he
                 bar.update()
     bar.close()
     imgs, anns = _assemble(results)
-    info = {"description": f"lmo_synth {split}", "split": split, "seed": seed, "images": images,
-            "generator": "training.generate (pybullet TinyRenderer)"}
+    info = {
+        "description": f"lmo_synth {split}",
+        "split": split,
+        "seed": seed,
+        "images": images,
+        "generator": "training.generate (pybullet TinyRenderer)",
+    }
     if extra_occluders:
         info["extra_occluders"] = extra_occluders
     path = out / ANNOTATIONS_FILENAME
@@ -99,13 +113,25 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--workers", type=int, default=1)
-    parser.add_argument("--occluders", type=int, default=0,
-                        help="extra occluders per scene, between the camera and the objects (default 0)")
+    parser.add_argument(
+        "--occluders",
+        type=int,
+        default=0,
+        help="extra occluders per scene, between the camera and the objects (default 0)",
+    )
     args = parser.parse_args(argv)
     if args.occluders < 0:
         parser.error("--occluders must be >= 0")
-    path = generate(args.out, args.images, args.seed, args.split, args.width, args.height, args.workers,
-                    extra_occluders=args.occluders)
+    path = generate(
+        args.out,
+        args.images,
+        args.seed,
+        args.split,
+        args.width,
+        args.height,
+        args.workers,
+        extra_occluders=args.occluders,
+    )
     print(f"wrote {path}")
 
 

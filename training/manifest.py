@@ -46,8 +46,15 @@ def build_manifest(name: str = MODEL_NAME, top_k: int = 100) -> Manifest:
         objects.append(ObjectSpec(name=obj.name, keypoints=tuple(channels), keypoints_3d=tuple(kps_mm)))
     return Manifest(
         name=name,
-        input=InputSpec(name="image", height=INPUT_SIZE, width=INPUT_SIZE, color="RGB", scale=255.0,
-                        mean=IMAGENET_MEAN, std=IMAGENET_STD),
+        input=InputSpec(
+            name="image",
+            height=INPUT_SIZE,
+            width=INPUT_SIZE,
+            color="RGB",
+            scale=255.0,
+            mean=IMAGENET_MEAN,
+            std=IMAGENET_STD,
+        ),
         crop=CropSpec(padding=0.25),
         output=OutputSpec(name="heatmaps", height=HEATMAP_SIZE, width=HEATMAP_SIZE),
         heatmap=HeatmapSpec(normalization="anchor", top_k=top_k),

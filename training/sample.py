@@ -1,6 +1,6 @@
 """Copy the first few images of a split (with their annotations) into a small demo sample.
 
-    python -m training.sample --data data/lmo_synth/test --out models/lmo-synth-unet/samples --images 12
+python -m training.sample --data data/lmo_synth/test --out models/lmo-synth-unet/samples --images 12
 """
 
 from __future__ import annotations

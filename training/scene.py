@@ -199,8 +199,9 @@ def _sample_camera(rng: np.random.Generator, world: World) -> Camera:
     return Camera(world.width, world.height, FOCAL, rotation, translation)
 
 
-def _place_targets(rng: np.random.Generator, world: World, spots: list[np.ndarray | None],
-                   classes: np.ndarray) -> list[Placed]:
+def _place_targets(
+    rng: np.random.Generator, world: World, spots: list[np.ndarray | None], classes: np.ndarray
+) -> list[Placed]:
     placed = []
     for cls, xy in zip(classes, spots, strict=True):
         if xy is None:
@@ -216,8 +217,9 @@ def _place_targets(rng: np.random.Generator, world: World, spots: list[np.ndarra
     return placed
 
 
-def _place_distractors(rng: np.random.Generator, world: World, chosen: np.ndarray,
-                       positions: list[np.ndarray | None]) -> None:
+def _place_distractors(
+    rng: np.random.Generator, world: World, chosen: np.ndarray, positions: list[np.ndarray | None]
+) -> None:
     for index, position in zip(chosen, positions, strict=True):
         if position is None:
             continue
@@ -288,10 +290,14 @@ def render_scene(world: World, rng: np.random.Generator, extra_occluders: int = 
     radii += [world.distractor_radius[i] for i in clutter]
     spots = _place_positions(rng, radii, spread=0.12)
     objects = _place_targets(rng, world, spots[: len(classes)], classes)
-    positions = [_ground_position(rng, xy, r) for xy, r in zip(spots[len(classes):], radii[len(classes):],
-                                                                 strict=True)]
-    targets = [objects[int(rng.integers(len(objects)))].position if objects else np.zeros(3)
-               for _ in range(occluders)]
+    positions = [
+        _ground_position(rng, xy, r)
+        for xy, r in zip(spots[len(classes) :], radii[len(classes) :], strict=True)
+    ]
+    targets = [
+        objects[int(rng.integers(len(objects)))].position if objects else np.zeros(3)
+        for _ in range(occluders)
+    ]
     positions += [_occluder_position(rng, camera, t) for t in targets]
     _place_distractors(rng, world, chosen, positions)
     rgb, depth, seg = _render(rng, world, camera)

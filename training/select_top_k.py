@@ -128,8 +128,10 @@ def main(argv: list[str] | None = None) -> None:
     if args.write:
         heatmap = manifest.heatmap.model_copy(update={"top_k": best})
         print(f"wrote {write_manifest(args.model, manifest.model_copy(update={'heatmap': heatmap}))}")
-        print("calibrations scored under the old top_k are now refused: recalibrate, e.g. "
-              f"keypoint-service calibrate <calibration split> --bundle {args.model}/default_calibration.npz")
+        print(
+            "calibrations scored under the old top_k are now refused: recalibrate, e.g. "
+            f"keypoint-service calibrate <calibration split> --bundle {args.model}/default_calibration.npz"
+        )
 
 
 if __name__ == "__main__":

@@ -28,8 +28,9 @@ from training.model import HeatmapUNet
 CHECKPOINT = "last.pt"
 
 
-def masked_mse(heatmaps: torch.Tensor, targets: torch.Tensor, channels: torch.Tensor,
-               peak_weight: float = 20.0) -> torch.Tensor:
+def masked_mse(
+    heatmaps: torch.Tensor, targets: torch.Tensor, channels: torch.Tensor, peak_weight: float = 20.0
+) -> torch.Tensor:
     """MSE to the Gaussian targets on each instance's own object channels only.
 
     Pixels are weighted ``1 + peak_weight * target`` so that the few peak pixels are not
@@ -40,8 +41,9 @@ def masked_mse(heatmaps: torch.Tensor, targets: torch.Tensor, channels: torch.Te
     return ((1.0 + peak_weight * targets) * (picked - targets) ** 2).mean() * 1000.0
 
 
-def soft_argmax_l1(heatmaps: torch.Tensor, points: torch.Tensor, channels: torch.Tensor,
-                   beta: float = 10.0) -> torch.Tensor:
+def soft_argmax_l1(
+    heatmaps: torch.Tensor, points: torch.Tensor, channels: torch.Tensor, beta: float = 10.0
+) -> torch.Tensor:
     """Auxiliary coordinate loss: L1 between the soft-argmax of ``beta * heatmap`` and the label.
 
     It gives every pixel a gradient towards the right place, which gets the heatmaps off the
@@ -80,8 +82,13 @@ def load_checkpoint(path: Path, model: torch.nn.Module, opt: torch.optim.Optimiz
     return {k: v for k, v in ckpt.items() if k not in ("model", "optimizer")}
 
 
-def train_step(model: torch.nn.Module, opt: torch.optim.Optimizer, batch: tuple[np.ndarray, ...],
-               bf16: bool = False, coord_weight: float = 0.0) -> float:
+def train_step(
+    model: torch.nn.Module,
+    opt: torch.optim.Optimizer,
+    batch: tuple[np.ndarray, ...],
+    bf16: bool = False,
+    coord_weight: float = 0.0,
+) -> float:
     """One optimizer step; with ``bf16`` the convolutions run in bfloat16 (CPU autocast), the loss in fp32."""
     inputs, targets, channels, points = (torch.from_numpy(np.ascontiguousarray(b)) for b in batch)
     with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
@@ -95,10 +102,21 @@ def train_step(model: torch.nn.Module, opt: torch.optim.Optimizer, batch: tuple[
     return float(loss.detach())
 
 
-def run(split: Split, run_dir: Path, minutes: float, batch_size: int = 32, lr: float = 2e-3, seed: int = 0,
-        resume: bool = False, max_steps: int | None = None, log_every: int = 50,
-        ckpt_minutes: float = 3.0, bf16: bool = False, coord_weight: float = 0.0,
-        init: Path | None = None) -> Path:
+def run(
+    split: Split,
+    run_dir: Path,
+    minutes: float,
+    batch_size: int = 32,
+    lr: float = 2e-3,
+    seed: int = 0,
+    resume: bool = False,
+    max_steps: int | None = None,
+    log_every: int = 50,
+    ckpt_minutes: float = 3.0,
+    bf16: bool = False,
+    coord_weight: float = 0.0,
+    init: Path | None = None,
+) -> Path:
     """Train until the time budget (or ``max_steps``) is spent; returns the checkpoint path."""
     manifest = build_manifest()
     torch.manual_seed(seed)
@@ -134,8 +152,11 @@ def run(split: Split, run_dir: Path, minutes: float, batch_size: int = 32, lr: f
         if state["step"] % log_every == 0:
             state["losses"].append([state["step"], float(np.mean(running))])
             rate = state["step"] * batch_size / max(state["elapsed"], 1e-9)
-            print(f"step {state['step']} loss {np.mean(running):.4f} lr {opt.param_groups[0]['lr']:.2e} "
-                  f"elapsed {state['elapsed'] / 60:.1f}/{minutes:.0f} min, {rate:.1f} crops/s", flush=True)
+            print(
+                f"step {state['step']} loss {np.mean(running):.4f} lr {opt.param_groups[0]['lr']:.2e} "
+                f"elapsed {state['elapsed'] / 60:.1f}/{minutes:.0f} min, {rate:.1f} crops/s",
+                flush=True,
+            )
             running = []
         if time.time() - last_ckpt > ckpt_minutes * 60:
             save_checkpoint(ckpt_path, model, opt, state)
@@ -167,8 +188,18 @@ def main(argv: list[str] | None = None) -> None:
     cv2.setNumThreads(1)
     split = load_split(args.data, build_manifest(), args.max_images)
     print(f"{len(split.images)} images, {len(split)} instances", flush=True)
-    path = run(split, args.run, args.minutes, args.batch, args.lr, args.seed, args.resume, bf16=not args.fp32,
-               coord_weight=args.coord_weight, init=args.init)
+    path = run(
+        split,
+        args.run,
+        args.minutes,
+        args.batch,
+        args.lr,
+        args.seed,
+        args.resume,
+        bf16=not args.fp32,
+        coord_weight=args.coord_weight,
+        init=args.init,
+    )
     print(f"saved {path}", flush=True)
 
 

@@ -29,6 +29,13 @@ class Keypoints:
 
 
 if __name__ == "__main__":
-    command = ["bentoml", "serve", "benchmarks.peers.bentoml_app:Keypoints", "--port", sys.argv[1],
-               "--host", "127.0.0.1"]  # fmt: skip
+    command = [
+        "bentoml",
+        "serve",
+        "benchmarks.peers.bentoml_app:Keypoints",
+        "--port",
+        sys.argv[1],
+        "--host",
+        "127.0.0.1",
+    ]
     sys.exit(subprocess.call(command))

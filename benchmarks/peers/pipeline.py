@@ -69,9 +69,12 @@ class Pipeline:
         instances: list[dict] = [{"object": name, "keypoints": []} for name in prepared.objects]
         for row, owner in enumerate(result.instance_index):
             instances[owner]["keypoints"].append(
-                {"index": int(result.channel[row]), "point": sets.centers[row].tolist(),
-                 "shape_matrix": sets.shapes[row].tolist()}
-            )  # fmt: skip
+                {
+                    "index": int(result.channel[row]),
+                    "point": sets.centers[row].tolist(),
+                    "shape_matrix": sets.shapes[row].tolist(),
+                }
+            )
         return {"instances": instances}
 
     def __call__(self, image: bytes, request: str | bytes | dict) -> dict:

@@ -22,8 +22,19 @@ from benchmarks.service_bench.server import Server
 #: (stage, function names that put a sample in it): the first row are waits (innermost frame only);
 #: otherwise the innermost frame that names a stage decides, the first row matching it
 STAGES = (
-    ("waiting (locks, queues, selector)", ("Condition.wait", "Event.wait", "Future.result", "_form_group",
-                                           "_next_group", "_worker", "Runner.run", "EpollSelector.select")),
+    (
+        "waiting (locks, queues, selector)",
+        (
+            "Condition.wait",
+            "Event.wait",
+            "Future.result",
+            "_form_group",
+            "_next_group",
+            "_worker",
+            "Runner.run",
+            "EpollSelector.select",
+        ),
+    ),
     ("inference (onnxruntime)", ("Session.run", "InferenceSession.run")),
     ("decode (JPEG)", ("decode_image",)),
     ("crop + normalize", ("build_batch",)),
@@ -32,7 +43,7 @@ STAGES = (
     ("multipart parsing", ("MultiPartParser", "MultipartParser", "Request.form", "_parse_multipart")),
     ("validation (pydantic)", ("model_validate_json", "_validated")),
     ("body reading", ("read_limited_body", "paced_chunks", "receive")),
-)  # fmt: skip
+)
 OTHER = "HTTP, routing, middleware, event loop"
 
 
@@ -82,9 +93,23 @@ def profile_under_load(server: Server, script: Path, concurrency: int, seconds: 
         return Profile(0, 0, {}, "py-spy is not installed (pip install py-spy)")
     with tempfile.TemporaryDirectory(prefix="cks-spy-") as directory:
         output = Path(directory) / "raw.txt"
-        command = [spy, "record", "-p", str(server.pid), "-d", str(max(1, round(seconds))), "-r", "100",
-                   "--nonblocking", "--threads", "--subprocesses", "-f", "raw",
-                   "-o", str(output)]  # fmt: skip
+        command = [
+            spy,
+            "record",
+            "-p",
+            str(server.pid),
+            "-d",
+            str(max(1, round(seconds))),
+            "-r",
+            "100",
+            "--nonblocking",
+            "--threads",
+            "--subprocesses",
+            "-f",
+            "raw",
+            "-o",
+            str(output),
+        ]
         with subprocess.Popen(
             command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
         ) as sampler:

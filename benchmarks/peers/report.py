@@ -14,9 +14,13 @@ from benchmarks.service_bench.machine import Machine
 
 SERVICE = "service"
 STAGE_NAMES = {
-    "decode": "decode", "crop": "crop", "inference": "inference", "sets": "sets",
-    "response": "response data", "json": "JSON",
-}  # fmt: skip
+    "decode": "decode",
+    "crop": "crop",
+    "inference": "inference",
+    "sets": "sets",
+    "response": "response data",
+    "json": "JSON",
+}
 
 
 @dataclass(frozen=True)
@@ -64,31 +68,47 @@ def goals(results: PeerResults) -> list[Goal]:
     for boxes, latency_goal, rate_goal in ((1, 1.2, 1.2), (4, 1.1, 1.1)):
         point = (boxes, 1)
         best = results.best_peer(point, by_rate=False)
-        found.append(Goal(
-            f"p50 at concurrency 1, {boxes} box(es): service / best peer", runs.p50(SERVICE, point) /
-            runs.p50(best, point), 1 / latency_goal, False,
-            f"{runs.p50(SERVICE, point):.1f} vs {runs.p50(best, point):.1f} ms, {best}",
-        ))  # fmt: skip
+        found.append(
+            Goal(
+                f"p50 at concurrency 1, {boxes} box(es): service / best peer",
+                runs.p50(SERVICE, point) / runs.p50(best, point),
+                1 / latency_goal,
+                False,
+                f"{runs.p50(SERVICE, point):.1f} vs {runs.p50(best, point):.1f} ms, {best}",
+            )
+        )
         point = (boxes, 16)
         best = results.best_peer(point, by_rate=True)
-        found.append(Goal(
-            f"req/s at concurrency 16, {boxes} box(es): service / best peer", runs.rate(SERVICE, point) /
-            runs.rate(best, point), rate_goal, True,
-            f"{runs.rate(SERVICE, point):.0f} vs {runs.rate(best, point):.0f}, {best}",
-        ))  # fmt: skip
+        found.append(
+            Goal(
+                f"req/s at concurrency 16, {boxes} box(es): service / best peer",
+                runs.rate(SERVICE, point) / runs.rate(best, point),
+                rate_goal,
+                True,
+                f"{runs.rate(SERVICE, point):.0f} vs {runs.rate(best, point):.0f}, {best}",
+            )
+        )
     for limit in results.limits:
         rate = runs.rate(SERVICE, (limit.boxes, 16))
-        found.append(Goal(
-            f"req/s at concurrency 16, {limit.boxes} box(es): service / in-process limit",
-            rate / limit.requests_per_s, 0.85, True,
-            f"{rate:.0f} vs {cores()} cores / {limit.core_ms:.2f} core-ms = {limit.requests_per_s:.0f}",
-        ))  # fmt: skip
+        found.append(
+            Goal(
+                f"req/s at concurrency 16, {limit.boxes} box(es): service / in-process limit",
+                rate / limit.requests_per_s,
+                0.85,
+                True,
+                f"{rate:.0f} vs {cores()} cores / {limit.core_ms:.2f} core-ms = {limit.requests_per_s:.0f}",
+            )
+        )
         p50 = runs.p50(SERVICE, (limit.boxes, 1))
-        found.append(Goal(
-            f"p50 at concurrency 1, {limit.boxes} box(es): service / in-process latency",
-            p50 / limit.best_latency_ms, 1.15, False,
-            f"{p50:.1f} vs {limit.best_latency_ms:.1f} ms with {limit.best_threads} intra-op thread(s)",
-        ))  # fmt: skip
+        found.append(
+            Goal(
+                f"p50 at concurrency 1, {limit.boxes} box(es): service / in-process latency",
+                p50 / limit.best_latency_ms,
+                1.15,
+                False,
+                f"{p50:.1f} vs {limit.best_latency_ms:.1f} ms with {limit.best_threads} intra-op thread(s)",
+            )
+        )
     return found
 
 
@@ -166,7 +186,8 @@ def render(results: PeerResults) -> str:
         *table(results),
         "",
         "Errors (non-2xx or socket) over the whole run: "
-        + ", ".join(f"{c.name} {results.runs.errors(c.name)}" for c in results.contenders) + ".",
+        + ", ".join(f"{c.name} {results.runs.errors(c.name)}" for c in results.contenders)
+        + ".",
         "",
         "Server core-ms per request: the CPU time of the server's process tree during the point divided by "
         "the requests it answered. Other jobs on the machine barely move it, so it compares the servers' "
@@ -187,12 +208,13 @@ def render(results: PeerResults) -> str:
         "| boxes | " + " | ".join(STAGE_NAMES.values()) + " | core-ms | limit req/s | best latency ms |",
         "|---|" + "---|" * (len(STAGE_NAMES) + 3),
         *[
-            f"| {limit.boxes} | " + " | ".join(f"{limit.stages[s]:.2f}" for s in STAGE_NAMES)
+            f"| {limit.boxes} | "
+            + " | ".join(f"{limit.stages[s]:.2f}" for s in STAGE_NAMES)
             + f" | {limit.core_ms:.2f} | {limit.requests_per_s:.0f} | {limit.best_latency_ms:.2f} "
             f"({limit.best_threads} thread(s)) |"
             for limit in results.limits
         ],
-    ]  # fmt: skip
+    ]
     return "\n".join(lines + profile_section(results)) + "\n"
 
 
@@ -213,7 +235,7 @@ def profile_section(results: PeerResults) -> list[str]:
         "| stage | share of running samples | ms per request |",
         "|---|---|---|",
         *[f"| {stage} | {share:.0%} | {share * core_ms:.2f} |" for stage, share in profile.shares.items()],
-    ]  # fmt: skip
+    ]
     return lines
 
 
@@ -232,7 +254,7 @@ def _gpu_note() -> str:
     if "CUDAExecutionProvider" not in available:
         return (
             f"Execution providers available: {listed}. No GPU build of onnxruntime here: the GPU figures "
-            "are the \"On a GPU\" section (`bench_peers --gpu` on a GPU machine; settings in "
-            "docs/operations.md, \"Serving from a GPU\")."
+            'are the "On a GPU" section (`bench_peers --gpu` on a GPU machine; settings in '
+            'docs/operations.md, "Serving from a GPU").'
         )
     return f"Execution providers available: {listed} (the service ran with its `CKS_EXECUTION_PROVIDERS`)."

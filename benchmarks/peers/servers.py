@@ -38,17 +38,19 @@ class Contender:
 
 
 SERVICE = Contender(
-    "service", None,
+    "service",
+    None,
     "its defaults (`keypoint-service serve`, no `CKS_*` set): one worker; each request's crops are one "
     "run of one intra-op thread on the request's own thread, concurrent runs in parallel",
-)  # fmt: skip
+)
 SERVICE_ON_GPU = Contender(
-    "service", None,
+    "service",
+    None,
     "`benchmarks/peers/accelerator.py` `GPU_SETTINGS`: the CUDA provider with heuristic cuDNN algorithms "
     "and TF32 off, one worker process per two cores (`CKS_WORKERS`), each request's crops one run, "
     "`CKS_CPU_WORKERS=4`, "
     "`CKS_MAX_CONCURRENT_INFERENCES=16` per worker",
-)  # fmt: skip
+)
 PEERS = (
     Contender(
         "FastAPI",

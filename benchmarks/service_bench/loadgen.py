@@ -108,9 +108,17 @@ def _children_cpu() -> float:
 
 def _wrk_command(url: str, script: Path, concurrency: int, seconds: float) -> list[str]:
     return [
-        require_wrk(), "-t1", f"-c{concurrency}", f"-d{max(1, round(seconds))}s", "--latency",
-        "--timeout", "60s", "-s", str(script), f"{url}/v1/predict",
-    ]  # fmt: skip
+        require_wrk(),
+        "-t1",
+        f"-c{concurrency}",
+        f"-d{max(1, round(seconds))}s",
+        "--latency",
+        "--timeout",
+        "60s",
+        "-s",
+        str(script),
+        f"{url}/v1/predict",
+    ]
 
 
 def run_wrk(url: str, script: Path, concurrency: int, seconds: float) -> LoadResult:

@@ -91,10 +91,20 @@ def measure_in_subprocess(
 ) -> RawResult:
     """``measure`` in a fresh interpreter, so the benchmark's own state does not share its CPU."""
     command = [
-        sys.executable, "-m", "benchmarks.service_bench.raw", str(model_dir), str(batch_path),
-        "--threads", str(threads), "--concurrency", str(concurrency), "--seconds", str(seconds),
-        "--processes", str(processes),
-    ]  # fmt: skip
+        sys.executable,
+        "-m",
+        "benchmarks.service_bench.raw",
+        str(model_dir),
+        str(batch_path),
+        "--threads",
+        str(threads),
+        "--concurrency",
+        str(concurrency),
+        "--seconds",
+        str(seconds),
+        "--processes",
+        str(processes),
+    ]
     output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
     return RawResult(**json.loads(output.strip().splitlines()[-1]))
 

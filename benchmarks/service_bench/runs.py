@@ -116,9 +116,13 @@ def raw_point(
     """The raw session in the process layout and thread settings of the headline (plus ``overrides``)."""
     settings = {**space.settings, **overrides}
     return raw.measure_in_subprocess(
-        space.model_dir, settings["inference_threads"], space.batches[crops], concurrency, seconds,
+        space.model_dir,
+        settings["inference_threads"],
+        space.batches[crops],
+        concurrency,
+        seconds,
         processes=settings["workers"],
-    )  # fmt: skip
+    )
 
 
 def warm_up(server: Server, space: Workspace, plan: Plan) -> None:

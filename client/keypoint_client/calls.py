@@ -204,8 +204,14 @@ def predict(
     """Prediction sets for one image: JPEG or PNG bytes, a path to one, or a numpy array.
     ``instances``: the objects and their boxes. Options: see ``PredictRequest``."""
     files = PredictRequest(image, instances, **options).parts()
-    return Call("POST", "/v1/predict", _model(PredictResult), files=files,
-                headers={"Accept": "application/json"}, timeout=timeout)  # fmt: skip
+    return Call(
+        "POST",
+        "/v1/predict",
+        _model(PredictResult),
+        files=files,
+        headers={"Accept": "application/json"},
+        timeout=timeout,
+    )
 
 
 def predict_png(
@@ -217,8 +223,14 @@ def predict_png(
 ) -> Call[bytes]:
     """The image with its prediction sets drawn on it, as PNG bytes (arguments as ``predict``)."""
     files = PredictRequest(image, instances, **options).parts()
-    return Call("POST", "/v1/predict", lambda response, _: response.content, files=files,
-                headers={"Accept": "image/png"}, timeout=timeout)  # fmt: skip
+    return Call(
+        "POST",
+        "/v1/predict",
+        lambda response, _: response.content,
+        files=files,
+        headers={"Accept": "image/png"},
+        timeout=timeout,
+    )
 
 
 class _BatchItem(BaseModel):
@@ -239,10 +251,11 @@ def predict_batch(
         if len(items) != len(requests):
             raise KeypointClientError(f"the service answered {len(items)} items for {len(requests)} images")
         return [
-            item.result if item.status == 200 and item.result is not None
+            item.result
+            if item.status == 200 and item.result is not None
             else problem_error(item.status, item.problem or {}, request_id)
             for item in items
-        ]  # fmt: skip
+        ]
 
     files = [part for index, request in enumerate(requests) for part in request.parts(f"_{index}")]
     return Call("POST", "/v1/predict/batch", read, files=files, timeout=timeout)
@@ -280,8 +293,16 @@ def _query(value: object) -> str | list[str]:
 def _zip_upload(path: str, archive: Path, options: Mapping[str, object], timeout: float | None) -> Call[Job]:
     params = {key: _query(value) for key, value in options.items()}
     headers = {"Content-Type": "application/zip", "Content-Length": str(archive.stat().st_size)}
-    return Call("POST", path, _model(Job), idempotent=False, params=params, upload=archive,
-                headers=headers, timeout=timeout)  # fmt: skip
+    return Call(
+        "POST",
+        path,
+        _model(Job),
+        idempotent=False,
+        params=params,
+        upload=archive,
+        headers=headers,
+        timeout=timeout,
+    )
 
 
 def upload(archive: Path, options: UploadOptions, timeout: float | None) -> Call[Job]:

@@ -107,9 +107,16 @@ def audit_page(entries: list[AuditEntry], limit: int) -> AuditPage:
 
 def audit_summary(audit: CoverageAudit) -> AuditSummaryOut:
     report = audit.report
-    return AuditSummaryOut(id=audit.id, version=audit.version, created_at=audit.created_at, who=audit.who,
-                           batch_sha256=audit.batch_sha256, instances=audit.n_instances,
-                           passed=report["passed"], flagged=len(report["flagged"]))  # fmt: skip
+    return AuditSummaryOut(
+        id=audit.id,
+        version=audit.version,
+        created_at=audit.created_at,
+        who=audit.who,
+        batch_sha256=audit.batch_sha256,
+        instances=audit.n_instances,
+        passed=report["passed"],
+        flagged=len(report["flagged"]),
+    )
 
 
 def audit_out(audit: CoverageAudit) -> AuditOut:

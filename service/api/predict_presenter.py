@@ -105,17 +105,28 @@ def _regions(centers: np.ndarray, shapes: np.ndarray, kind: str) -> list[Body]:
             regions.append({"type": "ball", "center": center, "radius": b})
         else:
             regions.append(
-                {"type": "ellipse", "center": center, "shape_matrix": shape, "semi_axes": (a, b),
-                 "angle_deg": angles[row]}
-            )  # fmt: skip
+                {
+                    "type": "ellipse",
+                    "center": center,
+                    "shape_matrix": shape,
+                    "semi_axes": (a, b),
+                    "angle_deg": angles[row],
+                }
+            )
     return regions
 
 
 def _stratum(choice: StratumChoice) -> Body:
     edges = [{"signal": s, "low": _float(lo), "high": _float(hi)} for s, lo, hi in choice.ranges] or None
     bin_ = None if choice.bin is None else int(choice.bin)
-    return {"kind": choice.kinds, "group": choice.group, "bin": bin_, "edges": edges,
-            "conditional": choice.kinds != "pooled", "fallback": choice.fallback}  # fmt: skip
+    return {
+        "kind": choice.kinds,
+        "group": choice.group,
+        "bin": bin_,
+        "edges": edges,
+        "conditional": choice.kinds != "pooled",
+        "fallback": choice.fallback,
+    }
 
 
 @lru_cache(maxsize=4096)
@@ -149,7 +160,12 @@ def _statistics(statistics: HeatmapStatistics) -> list[Body]:
     peak, mean = statistics.peak_location.tolist(), statistics.mean.tolist()
     covariance = statistics.covariance.tolist()
     return [
-        {"peak_probability": probability[i], "peak": peak[i], "mean": mean[i], "gamma": gamma[i],
-         "covariance": covariance[i]}
+        {
+            "peak_probability": probability[i],
+            "peak": peak[i],
+            "mean": mean[i],
+            "gamma": gamma[i],
+            "covariance": covariance[i],
+        }
         for i in range(len(gamma))
-    ]  # fmt: skip
+    ]

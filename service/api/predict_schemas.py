@@ -26,10 +26,13 @@ class InstanceIn(_Body):
     object: str = Field(min_length=1, max_length=200, description="object name from GET /v1/model")
     bbox: tuple[float, float, float, float] = Field(description="[x, y, width, height] in image pixels")
     group: str | None = Field(
-        default=None, min_length=1, max_length=64, pattern=r"^[ -~]+$",
+        default=None,
+        min_length=1,
+        max_length=64,
+        pattern=r"^[ -~]+$",
         description="the caller's group of this instance (camera, site) for stratify=group: its"
-        " calibration instances carried the same COCO \"group\"",
-    )  # fmt: skip
+        ' calibration instances carried the same COCO "group"',
+    )
 
     @field_validator("bbox")
     @classmethod

@@ -11,9 +11,17 @@ from service.detector.manifest import Manifest
 _SHIFT = 4  # OpenCV fixed-point bits: sub-pixel drawing
 _SCALE = 1 << _SHIFT
 _PALETTE = [
-    (75, 25, 230), (75, 180, 60), (25, 225, 255), (200, 130, 0), (48, 130, 245),
-    (180, 30, 145), (240, 240, 70), (230, 50, 240), (60, 245, 210), (190, 190, 250),
-]  # fmt: skip
+    (75, 25, 230),
+    (75, 180, 60),
+    (25, 225, 255),
+    (200, 130, 0),
+    (48, 130, 245),
+    (180, 30, 145),
+    (240, 240, 70),
+    (230, 50, 240),
+    (60, 245, 210),
+    (190, 190, 250),
+]
 
 
 def _fixed(point: tuple[float, float]) -> tuple[int, int]:

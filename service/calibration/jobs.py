@@ -148,9 +148,13 @@ class JobRunner:
         """Store a queued job, then queue it; raises Unavailable if the store cannot take it."""
         now = datetime.now(UTC)
         job = JobRecord(
-            id=job_id or new_job_id(), kind=kind, owner=self._owner, created_at=now, heartbeat_at=now,
+            id=job_id or new_job_id(),
+            kind=kind,
+            owner=self._owner,
+            created_at=now,
+            heartbeat_at=now,
             total=total,
-        )  # fmt: skip
+        )
         try:
             self._store.create_job(job)
         except StoreError as error:
@@ -201,15 +205,26 @@ class JobRunner:
         try:
             stored = self._store.get_job(job.id)
         except StoreError as failure:
-            log.warning("job %s (%s) could not be marked interrupted (%s); it will be reported interrupted"
-                        " once its heartbeat is %d s old", job.id, scored, failure,
-                        STALE_AFTER.total_seconds())  # fmt: skip
+            log.warning(
+                "job %s (%s) could not be marked interrupted (%s); it will be reported interrupted"
+                " once its heartbeat is %d s old",
+                job.id,
+                scored,
+                failure,
+                STALE_AFTER.total_seconds(),
+            )
             return
         if stored is not None and stored.state != "interrupted":
             log.info("job %s %s before it could be interrupted", job.id, stored.state)
             return
-        log.info("job %s (%s, %s) marked interrupted; its upload is kept: retry it with"
-                 " POST /v1/admin/jobs/%s/retry", job.id, job.state, scored, job.id)  # fmt: skip
+        log.info(
+            "job %s (%s, %s) marked interrupted; its upload is kept: retry it with"
+            " POST /v1/admin/jobs/%s/retry",
+            job.id,
+            job.state,
+            scored,
+            job.id,
+        )
 
     # -- running ----------------------------------------------------------------
 

@@ -293,8 +293,11 @@ class CalibrationRegistry:
                 self._counter = counter
         except StoreError as error:
             if self._polled.error is None:
-                log.warning("calibration store unreachable (%s); serving calibration version %s from memory",
-                            error, self.active_version())  # fmt: skip
+                log.warning(
+                    "calibration store unreachable (%s); serving calibration version %s from memory",
+                    error,
+                    self.active_version(),
+                )
             self._polled = _Polled(self._polled.answered_at, f"{type(error).__name__}: {error}")
             raise
         finally:

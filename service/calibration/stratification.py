@@ -108,8 +108,10 @@ class VersionStrata:
 
     @classmethod
     def from_dict(cls, value: Mapping[str, Any]) -> VersionStrata:
-        bins = {int(c): {k: DifficultyBins.from_dict(b) for k, b in keyed.items()}
-                for c, keyed in value.get("bins", {}).items()}  # fmt: skip
+        bins = {
+            int(c): {k: DifficultyBins.from_dict(b) for k, b in keyed.items()}
+            for c, keyed in value.get("bins", {}).items()
+        }
         return cls(StrataSpec.from_dict(value["spec"]), tuple(value.get("groups", ())), bins)
 
 
@@ -118,14 +120,18 @@ def fit_strata(table: ScoreTable, spec: StrataSpec) -> VersionStrata:
     (and within each group when both are asked). Refused when the table cannot carry it."""
     groups = tuple(sorted({str(g) for block in table.objects for g in block.groups if g}))
     if spec.group and not groups:
-        raise InvalidInput('stratify=group needs group labels, and no instance carries one: add "group":'
-                           ' "<label>" to the COCO annotations, or stratify by difficulty only')  # fmt: skip
+        raise InvalidInput(
+            'stratify=group needs group labels, and no instance carries one: add "group":'
+            ' "<label>" to the COCO annotations, or stratify by difficulty only'
+        )
     bins: dict[int, dict[str, DifficultyBins]] = {}
     if spec.difficulty is not None:
         if not all(block.has_features for block in table.objects):
-            raise InvalidInput("stratify=difficulty needs the heatmap features of every instance, and this"
-                               " calibration has instances scored before features were kept: upload the"
-                               " batches again without append_to, or stratify=none")  # fmt: skip
+            raise InvalidInput(
+                "stratify=difficulty needs the heatmap features of every instance, and this"
+                " calibration has instances scored before features were kept: upload the"
+                " batches again without append_to, or stratify=none"
+            )
         keys = (ALL_GROUPS, *groups) if spec.group else (ALL_GROUPS,)
         for block in table.objects:
             bins.update(_block_bins(block, spec.difficulty, keys))
@@ -195,9 +201,14 @@ class StratifiedThresholds:
 
 
 def stratified_thresholds(
-    table: ScoreTable, strata: VersionStrata, kinds: frozenset[str], kind: str, scope: str,
-    epsilon: float, delta: float | None,
-) -> StratifiedThresholds:  # fmt: skip
+    table: ScoreTable,
+    strata: VersionStrata,
+    kinds: frozenset[str],
+    kind: str,
+    scope: str,
+    epsilon: float,
+    delta: float | None,
+) -> StratifiedThresholds:
     """Thresholds of every stratum of ``kinds`` (a subset of the version's): eq. (3) per stratum."""
     keys = strata.groups if GROUP in kinds else (ALL_GROUPS,)
     answers: dict[int, dict[str, tuple[StratumAnswer, ...]]] = {}
@@ -283,8 +294,10 @@ def answer_rows(
         out_strata.append(Stratum("pooled", fallback=problem))
     if problems and fallback != "pooled":
         unique = list(dict.fromkeys(problems))
-        raise InvalidInput("; ".join(unique[:5]) + ' (or set group_fallback="pooled" to use the pooled'
-                           " threshold there)", errors=unique)  # fmt: skip
+        raise InvalidInput(
+            "; ".join(unique[:5]) + ' (or set group_fallback="pooled" to use the pooled threshold there)',
+            errors=unique,
+        )
     return RowAnswers(out_values, out_guarantees, out_strata)
 
 

@@ -136,8 +136,11 @@ class DifficultyBins:
         }
 
     def as_dict(self) -> dict[str, object]:
-        value: dict[str, object] = {"signals": list(self.signals), "edges": list(self.edges),
-                                    "counts": list(self.counts)}  # fmt: skip
+        value: dict[str, object] = {
+            "signals": list(self.signals),
+            "edges": list(self.edges),
+            "counts": list(self.counts),
+        }
         if self.inner_edges:
             value["inner_edges"] = [list(e) for e in self.inner_edges]
         return value

@@ -59,10 +59,15 @@ def validity_figure(evaluation: Evaluation, path: Path) -> Path:
     figure, axes = plt.subplots(3, len(epsilons), figsize=(3.7 * len(epsilons), 8.5), squeeze=False)
     for row, kind in enumerate(KINDS):
         for col, epsilon in enumerate(epsilons):
-            _validity_panel(axes[row, col], evaluation.validity[(kind, epsilon, "keypoint")],
-                            evaluation.validity[(kind, epsilon, "object")])  # fmt: skip
-    figure.suptitle("Empirical coverage of the batch: per keypoint (keypoint scope, histogram) and per "
-                    "object (object scope, triangles)")  # fmt: skip
+            _validity_panel(
+                axes[row, col],
+                evaluation.validity[(kind, epsilon, "keypoint")],
+                evaluation.validity[(kind, epsilon, "object")],
+            )
+    figure.suptitle(
+        "Empirical coverage of the batch: per keypoint (keypoint scope, histogram) and per "
+        "object (object scope, triangles)"
+    )
     figure.tight_layout()
     return save(figure, path)
 
@@ -80,12 +85,20 @@ def _validity_panel(ax: plt.Axes, summary: ValiditySummary, objects: ValiditySum
     lowest = min(float(coverage.min()), float(np.min(objects.coverages(), initial=1.0)))
     grid = np.linspace(max(0.0, min(summary.target - 0.25, lowest)), 1.0, 400)
     ax.axvspan(low / m, high / m, color="tab:orange", alpha=0.2, label=f"95% predictive, m={m}")
-    ax.hist(coverage, bins=20, range=(grid[0], 1.0), density=True, color="tab:blue", alpha=0.7,
-            label="keypoints")  # fmt: skip
+    ax.hist(
+        coverage, bins=20, range=(grid[0], 1.0), density=True, color="tab:blue", alpha=0.7, label="keypoints"
+    )
     ax.plot(grid, beta_pdf(grid, n + 1 - t, t), color="tab:red", label=f"Beta({n + 1 - t}, {t})")
     simultaneous = objects.coverages()
-    ax.plot(simultaneous, np.zeros_like(simultaneous), "^", color="tab:green", ms=7, clip_on=False,
-            label="objects, object scope")  # fmt: skip
+    ax.plot(
+        simultaneous,
+        np.zeros_like(simultaneous),
+        "^",
+        color="tab:green",
+        ms=7,
+        clip_on=False,
+        label="objects, object scope",
+    )
     ax.axvline(summary.target, color="k", ls="--", lw=1)
     ax.set_title(f"{summary.kind}, eps={summary.epsilon}", fontsize=10)
     ax.set_xlabel("empirical coverage")
@@ -152,8 +165,9 @@ def adaptiveness_figure(evaluation: Evaluation, path: Path) -> Path:
     labeled = rows.labeled
     visibility, fraction, side = rows.visibility[labeled], rows.visib_fract[labeled], rows.box_side[labeled]
     with_fraction = bool(np.isfinite(fraction).any())
-    figure, axes = plt.subplots(1, 2 if with_fraction else 1, figsize=(12 if with_fraction else 6, 4),
-                                squeeze=False)  # fmt: skip
+    figure, axes = plt.subplots(
+        1, 2 if with_fraction else 1, figsize=(12 if with_fraction else 6, 4), squeeze=False
+    )
     data, labels = [], []
     for kind in KINDS:
         radius = np.sqrt(evaluation.sizes[(kind, epsilon)].area / np.pi)
@@ -175,8 +189,9 @@ def _fraction_panel(ax: plt.Axes, evaluation: Evaluation, fraction: np.ndarray, 
     which = np.digitize(fraction, bins) - 1
     for kind in KINDS:
         relative = evaluation.sizes[(kind, evaluation.main_epsilon)].area / side**2
-        medians = [np.median(relative[which == i]) if (which == i).any() else np.nan
-                   for i in range(len(centers))]  # fmt: skip
+        medians = [
+            np.median(relative[which == i]) if (which == i).any() else np.nan for i in range(len(centers))
+        ]
         ax.plot(centers, medians, marker="o", label=kind)
     ax.set_xlabel("visib_fract of the object")
     ax.set_ylabel("median area / box side^2")

@@ -92,12 +92,28 @@ def validity(evaluation: Evaluation) -> list[str]:
         for epsilon in evaluation.epsilons:
             s = evaluation.validity[(kind, epsilon, "keypoint")]
             c = s.coverages()
-            rows.append([kind, f"{epsilon}", _f(1 - epsilon), _f(_mean(c)), _f(_min(c)),
-                         _f(s.fraction(lambda g: g.inside_predictive())),
-                         _f(s.fraction(lambda g: g.inside_beta())),
-                         _f(s.expected(lambda g: 1 - g.t / (g.n + 1)))])  # fmt: skip
-    header = ["function", "eps", "1-eps", "mean coverage", "min coverage", "inside (predictive)",
-              "inside (Beta)", "mean 1-t/(n+1)"]  # fmt: skip
+            rows.append(
+                [
+                    kind,
+                    f"{epsilon}",
+                    _f(1 - epsilon),
+                    _f(_mean(c)),
+                    _f(_min(c)),
+                    _f(s.fraction(lambda g: g.inside_predictive())),
+                    _f(s.fraction(lambda g: g.inside_beta())),
+                    _f(s.expected(lambda g: 1 - g.t / (g.n + 1))),
+                ]
+            )
+    header = [
+        "function",
+        "eps",
+        "1-eps",
+        "mean coverage",
+        "min coverage",
+        "inside (predictive)",
+        "inside (Beta)",
+        "mean 1-t/(n+1)",
+    ]
     lines += _table(header, rows) + unbounded(evaluation)
     return lines + object_scope(evaluation) + pac(evaluation) + bands(evaluation)
 
@@ -134,10 +150,24 @@ def object_scope(evaluation: Evaluation) -> list[str]:
             s = evaluation.validity[(kind, epsilon, "object")]
             c = s.coverages()
             per_keypoint = _mean(evaluation.validity[(kind, epsilon, "keypoint")].coverages())
-            rows.append([kind, f"{epsilon}", _f(_mean(c)), _f(_min(c)),
-                         _f(s.fraction(lambda g: g.inside_predictive())), _f(per_keypoint)])  # fmt: skip
-    header = ["function", "eps", "mean simultaneous coverage", "min over objects", "inside (predictive)",
-              "keypoint-scope coverage, for comparison"]  # fmt: skip
+            rows.append(
+                [
+                    kind,
+                    f"{epsilon}",
+                    _f(_mean(c)),
+                    _f(_min(c)),
+                    _f(s.fraction(lambda g: g.inside_predictive())),
+                    _f(per_keypoint),
+                ]
+            )
+    header = [
+        "function",
+        "eps",
+        "mean simultaneous coverage",
+        "min over objects",
+        "inside (predictive)",
+        "keypoint-scope coverage, for comparison",
+    ]
     return lines + _table(header, rows)
 
 
@@ -161,12 +191,24 @@ def pac(evaluation: Evaluation) -> list[str]:
         for epsilon in evaluation.epsilons:
             s = evaluation.validity[(kind, epsilon, PAC)]
             x = s.target
-            rows.append([kind, f"{epsilon}", _f(_mean(s.coverages())),
-                         _f(s.fraction(lambda g, x=x: g.coverage >= x - 1e-12)),
-                         _f(s.expected(lambda g, x=x: g.chance_at_least(x))),
-                         _f(s.fraction(lambda g, x=x: g.not_significantly_below(x)))])  # fmt: skip
-    header = ["function", "eps", "mean coverage", "observed >= 1-eps", "predicted >= 1-eps",
-              "not significantly below"]  # fmt: skip
+            rows.append(
+                [
+                    kind,
+                    f"{epsilon}",
+                    _f(_mean(s.coverages())),
+                    _f(s.fraction(lambda g, x=x: g.coverage >= x - 1e-12)),
+                    _f(s.expected(lambda g, x=x: g.chance_at_least(x))),
+                    _f(s.fraction(lambda g, x=x: g.not_significantly_below(x))),
+                ]
+            )
+    header = [
+        "function",
+        "eps",
+        "mean coverage",
+        "observed >= 1-eps",
+        "predicted >= 1-eps",
+        "not significantly below",
+    ]
     return lines + _table(header, rows)
 
 
@@ -189,9 +231,15 @@ def bands(evaluation: Evaluation) -> list[str]:
             s = evaluation.validity[(kind, epsilon, scope)]
             outside = [g for g in s.groups if g.m and not g.inside_predictive()]
             below = [g.name for g in outside if g.coverage < g.band()[0]]
-            rows.append([kind, s.label, _f(s.fraction(lambda g: g.inside_predictive())),
-                         f"{len(outside)} of {sum(1 for g in s.groups if g.m)}",
-                         ", ".join(below) or "none"])  # fmt: skip
+            rows.append(
+                [
+                    kind,
+                    s.label,
+                    _f(s.fraction(lambda g: g.inside_predictive())),
+                    f"{len(outside)} of {sum(1 for g in s.groups if g.m)}",
+                    ", ".join(below) or "none",
+                ]
+            )
     return lines + _table(["function", "scope", "inside", "outside", "below the band"], rows)
 
 
@@ -214,12 +262,20 @@ def tightness(evaluation: Evaluation) -> list[str]:
             sizes = evaluation.sizes[(kind, epsilon)]
             areas[kind] = sizes.median(sizes.area)
             within = float(np.mean(sizes.b <= 10.0))
-            axes = (f"a {_f(sizes.median(sizes.a), 1)}, b {_f(sizes.median(sizes.b), 1)}" if kind == "cov"
-                    else f"r {_f(sizes.median(sizes.a), 1)}")  # fmt: skip
+            axes = (
+                f"a {_f(sizes.median(sizes.a), 1)}, b {_f(sizes.median(sizes.b), 1)}"
+                if kind == "cov"
+                else f"r {_f(sizes.median(sizes.a), 1)}"
+            )
             rows.append([f"{epsilon}", kind, axes, _f(areas[kind], 0), _f(within, 3)])
         winners.append(f"eps {epsilon}: **{tightest(areas)}**")
-    header = ["eps", "function", "median radius / semi-axes (px)", "median area (px^2)",
-              "fraction with b <= 10 px"]  # fmt: skip
+    header = [
+        "eps",
+        "function",
+        "median radius / semi-axes (px)",
+        "median area (px^2)",
+        "fraction with b <= 10 px",
+    ]
     lines += _table(header, rows)
     return lines + ["Tightest by median area: " + "; ".join(winners) + ".", ""]
 
@@ -246,13 +302,25 @@ def adaptiveness(evaluation: Evaluation) -> list[str]:
     rows = []
     for kind in KINDS:
         a = evaluation.adaptive[(kind, epsilon)]
-        rows.append([kind, _f(a.median_area_visible, 0), _f(a.median_area_occluded, 0),
-                     _f(a.occluded_over_visible, 2), _f(a.rho_visib_fract),
-                     _f(a.rho_visib_fract_relative)])  # fmt: skip
+        rows.append(
+            [
+                kind,
+                _f(a.median_area_visible, 0),
+                _f(a.median_area_occluded, 0),
+                _f(a.occluded_over_visible, 2),
+                _f(a.rho_visib_fract),
+                _f(a.rho_visib_fract_relative),
+            ]
+        )
     counts = evaluation.adaptive[("cov", epsilon)]
-    header = ["function", f"median area, visible (n={counts.visible})",
-              f"median area, occluded (n={counts.occluded})", "occluded / visible",
-              "Spearman(visib_fract, area)", "Spearman(visib_fract, area / box^2)"]  # fmt: skip
+    header = [
+        "function",
+        f"median area, visible (n={counts.visible})",
+        f"median area, occluded (n={counts.occluded})",
+        "occluded / visible",
+        "Spearman(visib_fract, area)",
+        "Spearman(visib_fract, area / box^2)",
+    ]
     return lines + _table(header, rows)
 
 

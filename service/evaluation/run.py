@@ -29,8 +29,9 @@ def require_matplotlib() -> None:
     try:
         import matplotlib  # noqa: F401
     except ImportError:
-        raise MissingDependency(f"evaluate draws its figures with matplotlib, which is not installed: "
-                                f"{EVALUATE_EXTRA}") from None  # fmt: skip
+        raise MissingDependency(
+            f"evaluate draws its figures with matplotlib, which is not installed: {EVALUATE_EXTRA}"
+        ) from None
 
 
 @dataclass(frozen=True)
@@ -69,8 +70,10 @@ def resolve_version(
         info = store.get_version(detector.model_hash, version)
     except VersionNotFound:
         known = [v.number for v in store.list_versions(detector.model_hash)]
-        raise NotFound(f"calibration version {version} does not exist for this model "
-                       f"(versions: {', '.join(map(str, known)) or 'none'})") from None  # fmt: skip
+        raise NotFound(
+            f"calibration version {version} does not exist for this model "
+            f"(versions: {', '.join(map(str, known)) or 'none'})"
+        ) from None
     reason = version_incompatibility(info, detector.manifest)
     if reason is not None:
         raise Conflict(f"cannot evaluate: {reason}")
@@ -92,9 +95,11 @@ def run_evaluation(
     info, table = resolve_version(store, detector, request.version)
     batch = load_coco_batch(request.folder, detector.manifest)
     rows = collect_rows(batch, detector, max_image_pixels, progress)
-    evaluation = evaluate(rows, table, detector.manifest, detector.model_hash, info, request.epsilons,
-                          request.delta)  # fmt: skip
+    evaluation = evaluate(
+        rows, table, detector.manifest, detector.model_hash, info, request.epsilons, request.delta
+    )
     draw_figures(evaluation, request.out / "figures")
-    path = write_report(evaluation, request.title, request.command, request.folder.as_posix(),
-                        request.out / REPORT_FILENAME)  # fmt: skip
+    path = write_report(
+        evaluation, request.title, request.command, request.folder.as_posix(), request.out / REPORT_FILENAME
+    )
     return evaluation, path

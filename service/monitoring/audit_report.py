@@ -91,9 +91,13 @@ def audit_report(
 
 
 def _keypoint_section(
-    table: ScoreTable, manifest: Manifest, kind: str, values: np.ndarray, counts: Sequence[int],
+    table: ScoreTable,
+    manifest: Manifest,
+    kind: str,
+    values: np.ndarray,
+    counts: Sequence[int],
     epsilon: float,
-) -> tuple[dict[str, Any], list[_Unit]]:  # fmt: skip
+) -> tuple[dict[str, Any], list[_Unit]]:
     names = {spec.index: spec.name for spec in manifest.keypoints}
     keypoints, objects, units = [], [], []
     for block in table.objects:
@@ -103,8 +107,12 @@ def _keypoint_section(
             labeled = scores[~np.isnan(scores)]
             covered = int(np.count_nonzero(labeled <= values[channel]))
             test = coverage_test(covered, int(labeled.size), int(counts[channel]), epsilon)
-            figure = {"object": block.object_name, "keypoint": names[channel],
-                      "index": channel, **figure_of(test)}  # fmt: skip
+            figure = {
+                "object": block.object_name,
+                "keypoint": names[channel],
+                "index": channel,
+                **figure_of(test),
+            }
             keypoints.append(figure)
             own.append(test)
             units.append(_Unit(test, figure))
@@ -114,9 +122,13 @@ def _keypoint_section(
 
 
 def _object_section(
-    table: ScoreTable, manifest: Manifest, kind: str, values: np.ndarray, counts: Sequence[int],
+    table: ScoreTable,
+    manifest: Manifest,
+    kind: str,
+    values: np.ndarray,
+    counts: Sequence[int],
     epsilon: float,
-) -> tuple[dict[str, Any], list[_Unit]]:  # fmt: skip
+) -> tuple[dict[str, Any], list[_Unit]]:
     objects, units = [], []
     for block in table.objects:
         channel = int(block.keypoint_ids[0])  # one threshold and n for all of the object's channels

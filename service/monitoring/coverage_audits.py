@@ -63,8 +63,9 @@ class AuditRequest:
     def __post_init__(self) -> None:
         epsilons = tuple(sorted(set(self.epsilons)))
         if not epsilons or len(epsilons) > MAX_EPSILONS or not all(0 < e < 1 for e in epsilons):
-            raise InvalidInput(f"epsilon must be 1 to {MAX_EPSILONS} values in (0, 1), e.g."
-                               " epsilon=0.05&epsilon=0.1")  # fmt: skip
+            raise InvalidInput(
+                f"epsilon must be 1 to {MAX_EPSILONS} values in (0, 1), e.g. epsilon=0.05&epsilon=0.1"
+            )
         object.__setattr__(self, "epsilons", epsilons)
 
 
@@ -83,10 +84,17 @@ class CoverageAudits(DetectorJobs):
         except BaseException:
             workspace.remove()
             raise
-        details = {"job": job.id, "version": version, "batch": named.name, "sha256": sha256,
-                   "instances": named.batch.count, "epsilons": list(request.epsilons)}  # fmt: skip
-        self._audit.record(operator, "audit", "accepted", version=version, reason=request.note,
-                           details=details)  # fmt: skip
+        details = {
+            "job": job.id,
+            "version": version,
+            "batch": named.name,
+            "sha256": sha256,
+            "instances": named.batch.count,
+            "epsilons": list(request.epsilons),
+        }
+        self._audit.record(
+            operator, "audit", "accepted", version=version, reason=request.note, details=details
+        )
         return job
 
     def latest(self) -> CoverageAudit | None:
@@ -122,28 +130,41 @@ class CoverageAudits(DetectorJobs):
         except Conflict as error:
             raise Conflict(
                 f"an audit needs instances that version {version} was not calibrated with: {error.detail}",
-                errors=error.errors, extensions=error.extensions,
-            ) from error  # fmt: skip
+                errors=error.errors,
+                extensions=error.extensions,
+            ) from error
 
     def _share(self, request: AuditRequest) -> float:
         share = request.max_rejected_share
         return self._settings.intake.max_rejected_share if share is None else share
 
     def _submit(
-        self, workspace: UploadWorkspace, prepared: ValidatedBatch, version: int, request: AuditRequest,
+        self,
+        workspace: UploadWorkspace,
+        prepared: ValidatedBatch,
+        version: int,
+        request: AuditRequest,
         operator: Operator,
-    ) -> JobRecord:  # fmt: skip
+    ) -> JobRecord:
         job_id = new_job_id()
 
         def run(progress: JobProgress) -> dict[str, Any]:
             try:
                 report = self._measure(prepared, version, request, progress)
-                summary = {"version": version, "passed": report["passed"], "flagged": len(report["flagged"]),
-                           "instances": report["instances"]}  # fmt: skip
+                summary = {
+                    "version": version,
+                    "passed": report["passed"],
+                    "flagged": len(report["flagged"]),
+                    "instances": report["instances"],
+                }
                 new = NewCoverageAudit(
-                    model_hash=self._detector.model_hash, version=version, who=operator.name,
-                    batch_sha256=prepared.named.sha256, n_instances=report["instances"], report=report,
-                )  # fmt: skip
+                    model_hash=self._detector.model_hash,
+                    version=version,
+                    who=operator.name,
+                    batch_sha256=prepared.named.sha256,
+                    n_instances=report["instances"],
+                    report=report,
+                )
                 stored = self._store.create_coverage_audit(new, job=JobCompletion(job_id, summary))
             finally:
                 workspace.remove()
@@ -165,13 +186,27 @@ class CoverageAudits(DetectorJobs):
         check_rejected_share([*prepared.rejected, *rejected], prepared.annotations, self._share(request))
         if accumulator.count == 0:
             raise InvalidInput("no instance of the batch could be scored: every image was left out")
-        report = audit_report(accumulator.table(), self._detector.manifest, self._lookup(version),
-                              NONCONFORMITY_KINDS, request.epsilons, version)  # fmt: skip
+        report = audit_report(
+            accumulator.table(),
+            self._detector.manifest,
+            self._lookup(version),
+            NONCONFORMITY_KINDS,
+            request.epsilons,
+            version,
+        )
         rejections = [r.describe() for r in (*prepared.rejected, *rejected)]
-        return {**report, "batch": {"name": named.name, "sha256": named.sha256, "note": request.note,
-                                    "annotations": prepared.annotations, "rejected": len(rejections),
-                                    "rejections": rejections[:20],
-                                    "duplicates_dropped": prepared.repeats_dropped}}  # fmt: skip
+        return {
+            **report,
+            "batch": {
+                "name": named.name,
+                "sha256": named.sha256,
+                "note": request.note,
+                "annotations": prepared.annotations,
+                "rejected": len(rejections),
+                "rejections": rejections[:20],
+                "duplicates_dropped": prepared.repeats_dropped,
+            },
+        }
 
     def _lookup(self, version: int) -> ThresholdLookup:
         def thresholds(kind: str, scope: str, epsilon: float) -> tuple[np.ndarray, Sequence[int]]:

@@ -151,8 +151,12 @@ class DriftMonitor:
 
     def __init__(self, manifest: Manifest, reference: ReferenceSource, settings: DriftSettings) -> None:
         if settings.test == "psi" and settings.window < PSI_MIN_LIVE:
-            log.warning("drift: psi alarms need %d live values per window; CKS_DRIFT_WINDOW is %d, so"
-                        " it never alarms", PSI_MIN_LIVE, settings.window)  # fmt: skip
+            log.warning(
+                "drift: psi alarms need %d live values per window; CKS_DRIFT_WINDOW is %d, so"
+                " it never alarms",
+                PSI_MIN_LIVE,
+                settings.window,
+            )
         self.settings = settings
         self._manifest = manifest
         self._source = reference
@@ -273,10 +277,12 @@ class DriftMonitor:
             p_values = np.array([[math.nan if t.p_value is None else t.p_value for t in row] for row in rows])
             alarms = holm_rejections(p_values.ravel(), self.settings.alarm_level).reshape(p_values.shape)
             rows = [
-                [FeatureTest(t.statistic, t.p_value, bool(alarm), t.live_n, t.reference_n)
-                 for t, alarm in zip(row, alarm_row, strict=True)]
+                [
+                    FeatureTest(t.statistic, t.p_value, bool(alarm), t.live_n, t.reference_n)
+                    for t, alarm in zip(row, alarm_row, strict=True)
+                ]
                 for row, alarm_row in zip(rows, alarms, strict=True)
-            ]  # fmt: skip
+            ]
         return rows
 
     def _test(self, reference: np.ndarray | None, edges: np.ndarray | None, live: np.ndarray) -> FeatureTest:

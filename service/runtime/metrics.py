@@ -174,12 +174,14 @@ def drift_families(report: DriftReport) -> list[GaugeMetricFamily]:
     """Per keypoint and feature: statistic, p-value (ks), alarm, live window size; and totals."""
     labels = ["object", "keypoint", "feature"]
     statistic = GaugeMetricFamily(
-        "cks_drift_statistic", f"drift statistic ({report.test}) of a keypoint's live feature window",
+        "cks_drift_statistic",
+        f"drift statistic ({report.test}) of a keypoint's live feature window",
         labels=labels,
-    )  # fmt: skip
+    )
     p_value = GaugeMetricFamily("cks_drift_p_value", "Kolmogorov-Smirnov p-value (ks test)", labels=labels)
-    alarm = GaugeMetricFamily("cks_drift_alarm", "1 when the drift alarm is raised (Holm-corrected for ks)",
-                              labels=labels)  # fmt: skip
+    alarm = GaugeMetricFamily(
+        "cks_drift_alarm", "1 when the drift alarm is raised (Holm-corrected for ks)", labels=labels
+    )
     window = GaugeMetricFamily("cks_drift_window_size", "live values in the window", labels=labels)
     for keypoint in report.keypoints:
         for feature, test in keypoint.features.items():

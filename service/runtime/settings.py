@@ -330,8 +330,10 @@ class CalibrationSettings(_Group):
         names = [name.strip() for name in value.split(",") if name.strip()]
         unknown = [name for name in names if name not in HEATMAP_FEATURES]
         if not 1 <= len(names) <= 2 or unknown or len(set(names)) != len(names):
-            raise ValueError(f"give one or two distinct heatmap features of {', '.join(HEATMAP_FEATURES)},"
-                             f" comma-separated; got {value!r}")  # fmt: skip
+            raise ValueError(
+                f"give one or two distinct heatmap features of {', '.join(HEATMAP_FEATURES)},"
+                f" comma-separated; got {value!r}"
+            )
         return ",".join(names)
 
 

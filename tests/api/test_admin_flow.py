@@ -48,8 +48,15 @@ def activate(api: InProcess, version: int, reason: str, force: bool = False) -> 
 
 def result(version: int, instances: int, activated: bool, added: int) -> dict:
     """A calibration job's result when nothing was dropped or rejected."""
-    return {"version": version, "instances": instances, "activated": activated, "added": added,
-            "duplicates_dropped": 0, "rejected": 0, "rejections": []}  # fmt: skip
+    return {
+        "version": version,
+        "instances": instances,
+        "activated": activated,
+        "added": added,
+        "duplicates_dropped": 0,
+        "rejected": 0,
+        "rejections": [],
+    }
 
 
 def used_version(api: InProcess, image: tuple[bytes, list[Sample]], version: int | None = None) -> dict:

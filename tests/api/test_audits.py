@@ -131,8 +131,11 @@ def test_covered_means_inside_the_sets_that_predict_returns(
 ) -> None:
     """The audit's count is the number of true keypoints inside the served sets (the score
     inequality and the set are one), counted here from /v1/predict on the shifted labels."""
-    section = next(s for s in shifted_audit["report"]["sections"]
-                   if (s["nonconformity"], s["epsilon"], s["scope"]) == (kind, 0.1, scope))  # fmt: skip
+    section = next(
+        s
+        for s in shifted_audit["report"]["sections"]
+        if (s["nonconformity"], s["epsilon"], s["scope"]) == (kind, 0.1, scope)
+    )
     inside: dict[str, list[bool]] = {}
     for path, group in samples_by_image(samples).items():
         parameters = {

@@ -108,8 +108,11 @@ def test_an_image_repeated_inside_a_batch_is_refused(
     copy_name = str(PurePosixPath(image["file_name"]).with_name("copy.jpg"))
     files[copy_name] = files[image["file_name"]]
     doc["images"].append({**image, "id": 999, "file_name": copy_name})
-    copies = [{**a, "id": 10_000 + i, "image_id": 999} for i, a in enumerate(doc["annotations"])
-              if a["image_id"] == image["id"]]  # fmt: skip
+    copies = [
+        {**a, "id": 10_000 + i, "image_id": 999}
+        for i, a in enumerate(doc["annotations"])
+        if a["image_id"] == image["id"]
+    ]
     doc["annotations"].extend(copies)
     problem = assert_problem(upload(named_server, build_zip(doc, files)), 409, f"repeats image {image['id']}")
     assert problem["duplicates"] == len(copies)
@@ -137,9 +140,11 @@ def test_a_small_batch_needs_force_and_a_reason_and_is_audited(
     assert duck["smallest_bounded_epsilon_after"] == pytest.approx(1 / (duck["n_after"] + 1))
     assert 0 <= duck["active_coverage_of_candidate"] <= 1 and duck["set_area_ratio"] > 0
 
-    itself = named_server.client.get(f"/v1/admin/calibrations/{version}/compare",
-                                     params={"against": version, "nonconformity": "var", "epsilon": 0.2},
-                                     headers=as_operator("bob")).json()  # fmt: skip
+    itself = named_server.client.get(
+        f"/v1/admin/calibrations/{version}/compare",
+        params={"against": version, "nonconformity": "var", "epsilon": 0.2},
+        headers=as_operator("bob"),
+    ).json()
     assert (itself["against"], itself["nonconformity"], itself["epsilon"]) == (version, "var", 0.2)
     assert all(k["n_before"] == k["n_after"] for k in itself["keypoints"])
     assert itself["median_set_area_ratio"] == 1.0
@@ -166,8 +171,9 @@ def test_a_small_batch_needs_force_and_a_reason_and_is_audited(
     assert entries[0]["reason"] == "lab test" and entries[0]["previous_version"] == active
     assert entries[0]["client"] == "127.0.0.1" and entries[0]["details"]["problems"]
 
-    rollback = named_server.client.post(f"/v1/admin/calibrations/{active}/activate",
-                                        json={"reason": "restore"}, headers=as_operator("alice"))  # fmt: skip
+    rollback = named_server.client.post(
+        f"/v1/admin/calibrations/{active}/activate", json={"reason": "restore"}, headers=as_operator("alice")
+    )
     assert rollback.status_code == 200, rollback.text  # more instances: allowed without force
     entry = audit(named_server, limit=1)[0]
     assert (entry["action"], entry["outcome"], entry["who"], entry["version"]) == (

@@ -78,8 +78,11 @@ def test_versions_scored_under_other_manifest_settings_are_refused(
         assert_problem(predict_json(api.client, image, request), 503, "the active calibration version 1")
         assert_problem(
             predict_json(api.client, image, {**request, "calibration_version": 2}),
-            409, "calibration version 2 cannot be used", changed, "calibrate a new version",
-        )  # fmt: skip
+            409,
+            "calibration version 2 cannot be used",
+            changed,
+            "calibrate a new version",
+        )
         detail = api.client.get("/v1/admin/calibrations/2", headers=api.admin).json()
         assert detail["usable"] is False and changed in detail["unusable_reason"]
         before = activation_count(api)

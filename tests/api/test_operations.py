@@ -73,8 +73,9 @@ def test_readyz_is_503_without_an_active_calibration(
 def test_readyz_becomes_200_after_a_first_calibration(
     unbootstrapped: InProcess, samples_dir: Path, coco: dict
 ) -> None:
-    job = unbootstrapped.calibrate(batch_zip(samples_dir, coco, images=3), activate=True, force=True,
-                                   reason="first calibration")  # fmt: skip
+    job = unbootstrapped.calibrate(
+        batch_zip(samples_dir, coco, images=3), activate=True, force=True, reason="first calibration"
+    )
     response = unbootstrapped.client.get("/readyz")
     assert response.status_code == 200, response.text
     assert response.json()["active_calibration"] == job["result"]["version"] == 1

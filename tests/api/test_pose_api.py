@@ -206,8 +206,9 @@ def test_a_malformed_camera_matrix_is_refused(
     image = (samples_dir / coco["images"][0]["file_name"]).read_bytes()
     # written by hand: 1e999 is a valid JSON number that parses to infinity
     raw = json.dumps({**body, "image_base64": b64(image)})[:-1] + f', "pose": {{"K": {json.dumps(K)}}}}}'
-    response = api.client.post("/v1/predict", content=raw.replace("Infinity", "1e999"),
-                                   headers={"Content-Type": "application/json"})  # fmt: skip
+    response = api.client.post(
+        "/v1/predict", content=raw.replace("Infinity", "1e999"), headers={"Content-Type": "application/json"}
+    )
     assert_problem(response, 422, "pose.K", says)
 
 

@@ -85,10 +85,17 @@ def test_a_malformed_batch_is_refused_whole(api: InProcess, images) -> None:
     good = [image_part(0, image), request_part(0, {"instances": instances})]
     json_body = api.client.post("/v1/predict/batch", json={"instances": instances})
     assert_problem(json_body, 415, "multipart/form-data", "image_0")
-    assert_problem(post_batch(api.client, [*good, ("picture_1", ("a.jpg", image, "image/jpeg"))]), 422,
-                   "unexpected part 'picture_1'")  # fmt: skip
-    assert_problem(post_batch(api.client, [*good, image_part(16, image), request_part(16, {})]), 422,
-                   "at most 16 images", "CKS_MAX_BATCH_IMAGES")  # fmt: skip
+    assert_problem(
+        post_batch(api.client, [*good, ("picture_1", ("a.jpg", image, "image/jpeg"))]),
+        422,
+        "unexpected part 'picture_1'",
+    )
+    assert_problem(
+        post_batch(api.client, [*good, image_part(16, image), request_part(16, {})]),
+        422,
+        "at most 16 images",
+        "CKS_MAX_BATCH_IMAGES",
+    )
     assert_problem(
         post_batch(api.client, [*good, image_part(0, image)]), 422, "'image_0' appears more than once"
     )

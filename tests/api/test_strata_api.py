@@ -49,8 +49,10 @@ def _keypoints(body: dict) -> list[dict]:
 def test_the_bundled_version_ships_with_difficulty_strata(api: InProcess, manifest: dict) -> None:
     detail = _detail(api, 1)
     strata = detail["strata"]
-    assert strata["spec"] == {"difficulty": {"signals": ["gamma", "peak_probability"], "bins": 3,
-                                             "min_instances": 30}, "group": False}  # fmt: skip
+    assert strata["spec"] == {
+        "difficulty": {"signals": ["gamma", "peak_probability"], "bins": 3, "min_instances": 30},
+        "group": False,
+    }
     names = {k["index"]: k["name"] for k in manifest["keypoints"]}
     for channel, keyed in strata["bins"].items():
         bins = keyed["*"]
@@ -83,8 +85,14 @@ def test_difficulty_strata_answer_each_keypoint_from_its_bin(api: InProcess, fir
 def test_difficulty_bins_too_small_for_epsilon_are_refused_or_fall_back(api: InProcess, first_image) -> None:
     image, group = first_image
     parameters = {"instances": instances_of(group), "stratify": "difficulty", "epsilon": 0.02}
-    assert_problem(predict_json(api.client, image, parameters), 422, "too few", "epsilon 0.02",
-                   "needs n >= 49", "group_fallback")  # fmt: skip
+    assert_problem(
+        predict_json(api.client, image, parameters),
+        422,
+        "too few",
+        "epsilon 0.02",
+        "needs n >= 49",
+        "group_fallback",
+    )
     body = predict_ok(api.client, image, {**parameters, "group_fallback": "pooled"})
     for keypoint in _keypoints(body):
         stratum = keypoint["guarantee"]["stratum"]
@@ -103,8 +111,13 @@ def test_prediction_with_a_group_uses_that_groups_calibration(
 ) -> None:
     image, group = first_image
     instances = [{**instance, "group": "cam-a"} for instance in instances_of(group)]
-    parameters = {"instances": instances, "stratify": "group", "epsilon": 0.5,
-                  "calibration_version": grouped_version, "group_fallback": "pooled"}  # fmt: skip
+    parameters = {
+        "instances": instances,
+        "stratify": "group",
+        "epsilon": 0.5,
+        "calibration_version": grouped_version,
+        "group_fallback": "pooled",
+    }
     body = predict_ok(api.client, image, parameters)
     categories = {c["id"]: c["name"] for c in coco["categories"]}
     objects = {o["name"]: o["keypoints"] for o in manifest["objects"]}
@@ -118,8 +131,14 @@ def test_prediction_with_a_group_uses_that_groups_calibration(
     for keypoint in _keypoints(body):
         stratum, n = keypoint["guarantee"]["stratum"], labeled.get(keypoint["index"], 0)
         if n >= 1:  # t = floor((n + 1) / 2) >= 1
-            assert stratum == {"kind": "group", "group": "cam-a", "bin": None, "edges": None,
-                               "conditional": True, "fallback": None}  # fmt: skip
+            assert stratum == {
+                "kind": "group",
+                "group": "cam-a",
+                "bin": None,
+                "edges": None,
+                "conditional": True,
+                "fallback": None,
+            }
             assert keypoint["guarantee"]["n"] == n
             answered += 1
         else:
@@ -133,10 +152,19 @@ def test_unknown_or_missing_groups_are_refused_naming_the_known_ones(
     image, group = first_image
     base = {"stratify": "group", "epsilon": 0.5, "calibration_version": grouped_version}
     unknown = [{**instance, "group": "cam-z"} for instance in instances_of(group)]
-    assert_problem(predict_json(api.client, image, {**base, "instances": unknown}), 422,
-                   "instances[0]", "'cam-z' is unknown", "'cam-a', 'cam-b'")  # fmt: skip
-    assert_problem(predict_json(api.client, image, {**base, "instances": instances_of(group)}), 422,
-                   "names no group", "'cam-a', 'cam-b'")  # fmt: skip
+    assert_problem(
+        predict_json(api.client, image, {**base, "instances": unknown}),
+        422,
+        "instances[0]",
+        "'cam-z' is unknown",
+        "'cam-a', 'cam-b'",
+    )
+    assert_problem(
+        predict_json(api.client, image, {**base, "instances": instances_of(group)}),
+        422,
+        "names no group",
+        "'cam-a', 'cam-b'",
+    )
     body = predict_ok(api.client, image, {**base, "instances": unknown, "group_fallback": "pooled"})
     for keypoint in _keypoints(body):
         assert keypoint["guarantee"]["stratum"]["kind"] == "pooled"
@@ -146,14 +174,19 @@ def test_unknown_or_missing_groups_are_refused_naming_the_known_ones(
 def test_strata_a_version_lacks_are_refused(api: InProcess, grouped_version: int, first_image) -> None:
     image, group = first_image
     instances = [{**instance, "group": "cam-a"} for instance in instances_of(group)]
-    assert_problem(predict_json(api.client, image, {"instances": instances, "stratify": "group"}), 422,
-                   "version 1 has no group strata", "stratify=group")  # fmt: skip
+    assert_problem(
+        predict_json(api.client, image, {"instances": instances, "stratify": "group"}),
+        422,
+        "version 1 has no group strata",
+        "stratify=group",
+    )
     grouped = {"instances": instances, "stratify": "difficulty", "calibration_version": grouped_version}
     assert_problem(predict_json(api.client, image, grouped), 422, "no difficulty strata")
     by_object = {"instances": instances, "stratify": "difficulty", "coverage": "object"}
     assert_problem(predict_json(api.client, image, by_object), 422, "coverage=keypoint")
-    assert_problem(predict_json(api.client, image, {"instances": instances, "stratify": "bogus"}), 422,
-                   "stratify")  # fmt: skip
+    assert_problem(
+        predict_json(api.client, image, {"instances": instances, "stratify": "bogus"}), 422, "stratify"
+    )
 
 
 def test_uploads_asking_for_groups_without_labels_or_unknown_strata_are_refused(

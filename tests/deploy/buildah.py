@@ -42,8 +42,12 @@ def ensure_stand_in(tag: str, extra: str) -> None:
     root = CACHE / tag.replace(":", "_").replace("/", "_")
     if not (root / "usr").is_dir():
         packages = ",".join(p for p in ("python3,python3-venv,python3-pip,ca-certificates", extra) if p)
-        subprocess.run(["debootstrap", "--variant=minbase", f"--include={packages}", "bookworm", str(root)],
-                       check=True, capture_output=True, timeout=1200)  # fmt: skip
+        subprocess.run(
+            ["debootstrap", "--variant=minbase", f"--include={packages}", "bookworm", str(root)],
+            check=True,
+            capture_output=True,
+            timeout=1200,
+        )
     for marker in root.glob("usr/lib/python3*/EXTERNALLY-MANAGED"):
         marker.unlink()
     (root / "usr/local/bin/python").unlink(missing_ok=True)
@@ -69,8 +73,21 @@ def build(context: Path, tag: str) -> None:
     """
     for stand_in, extra in STAND_INS.items():
         ensure_stand_in(stand_in, extra)
-    buildah("bud", "--pull=never", "--layers", "--format", "docker", "-v", f"{CA_BUNDLE}:{CA_BUNDLE}:ro",
-            "--env", f"PIP_CERT={CA_BUNDLE}", "-t", tag, str(context), timeout=1800)  # fmt: skip
+    buildah(
+        "bud",
+        "--pull=never",
+        "--layers",
+        "--format",
+        "docker",
+        "-v",
+        f"{CA_BUNDLE}:{CA_BUNDLE}:ro",
+        "--env",
+        f"PIP_CERT={CA_BUNDLE}",
+        "-t",
+        tag,
+        str(context),
+        timeout=1800,
+    )
 
 
 def image_bytes(tag: str) -> int:
@@ -98,9 +115,21 @@ class Container:
         arguments = [f"--env={key}={value}" for key, value in env.items()]
         with open(log, "ab") as out:
             self._buildah = subprocess.Popen(
-                ["buildah", "run", *arguments, "-v", f"{data_dir}:/data", self.name, "--", "keypoint-service",
-                 "serve"], env=ENV, stdout=out, stderr=subprocess.STDOUT,
-            )  # fmt: skip
+                [
+                    "buildah",
+                    "run",
+                    *arguments,
+                    "-v",
+                    f"{data_dir}:/data",
+                    self.name,
+                    "--",
+                    "keypoint-service",
+                    "serve",
+                ],
+                env=ENV,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+            )
 
     def served_pid(self, timeout: float = 60) -> int:
         """The pid of the service process inside the container (a descendant of buildah run)."""

@@ -86,8 +86,11 @@ def test_the_console_shows_the_audit_against_its_bands(
     page.click("#token-form button[type=submit]")
     page.wait_for_selector("body[data-loaded=true]")
     report = audit["report"]
-    section = next(s for s in report["sections"]
-                   if (s["nonconformity"], s["epsilon"], s["scope"]) == ("cov", 0.1, "keypoint"))  # fmt: skip
+    section = next(
+        s
+        for s in report["sections"]
+        if (s["nonconformity"], s["epsilon"], s["scope"]) == ("cov", 0.1, "keypoint")
+    )
     points = page.locator("#audit-plot circle.coverage")
     assert points.count() == len([k for k in section["keypoints"] if k["coverage"] is not None])
     assert page.locator("#audit-plot line.whisker").count() == len(section["keypoints"])
@@ -105,8 +108,11 @@ def test_the_console_shows_the_audit_against_its_bands(
     _assert_drift_panels(server, page)
 
     page.select_option("#audit-epsilon", "0.2")  # another epsilon redraws the plot
-    section = next(s for s in report["sections"]
-                   if (s["nonconformity"], s["epsilon"], s["scope"]) == ("cov", 0.2, "keypoint"))  # fmt: skip
+    section = next(
+        s
+        for s in report["sections"]
+        if (s["nonconformity"], s["epsilon"], s["scope"]) == ("cov", 0.2, "keypoint")
+    )
     flagged = {k["keypoint"] for k in section["keypoints"] if k["flagged"]}
     flagged_points = "document.querySelectorAll('#audit-plot circle.flagged').length"
     page.wait_for_function(f"{flagged_points} === {len(flagged)}")

@@ -130,9 +130,13 @@ def test_the_container_serves_like_the_service_and_keeps_its_calibrations(
             assert_same_json(predict(outside.url, image_path, request), inside)
 
         body = batch_zip(samples_dir, coco, images=4)
-        response = httpx.post(f"{url}/v1/admin/calibrations", content=body, timeout=60,
-                              params={"activate": "true", "force": "true", "reason": "container test"},
-                              headers={**admin, "Content-Type": "application/zip"})  # fmt: skip
+        response = httpx.post(
+            f"{url}/v1/admin/calibrations",
+            content=body,
+            timeout=60,
+            params={"activate": "true", "force": "true", "reason": "container test"},
+            headers={**admin, "Content-Type": "application/zip"},
+        )
         assert response.status_code == 202, response.text
         job = response.json()
         deadline = time.monotonic() + 120

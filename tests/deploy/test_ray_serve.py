@@ -90,9 +90,13 @@ class Service:
             return Answer(sent, time.monotonic(), None, None, None, repr(error))
         ok = response.status_code == 200
         return Answer(
-            sent, time.monotonic(), response.status_code, response.headers.get(REPLICA_HEADER),
-            response.json()["calibration"]["version"] if ok else None, "" if ok else response.text[:300],
-        )  # fmt: skip
+            sent,
+            time.monotonic(),
+            response.status_code,
+            response.headers.get(REPLICA_HEADER),
+            response.json()["calibration"]["version"] if ok else None,
+            "" if ok else response.text[:300],
+        )
 
     @contextmanager
     def predicting(self) -> Iterator[list[Answer]]:
@@ -231,8 +235,13 @@ def job_submitted_through_one_replica_finishes_once(
 ) -> tuple[int, str]:
     """The new version and the replica that received the upload."""
     started = time.monotonic()
-    response = service.admin("POST", "/v1/admin/calibrations", content=batch, params={"note": "via Ray"},
-                             headers={"Content-Type": "application/zip"})  # fmt: skip
+    response = service.admin(
+        "POST",
+        "/v1/admin/calibrations",
+        content=batch,
+        params={"note": "via Ray"},
+        headers={"Content-Type": "application/zip"},
+    )
     assert response.status_code == 202, response.text
     job_id, receiver = response.json()["id"], response.headers[REPLICA_HEADER]
     job_path = f"/v1/admin/jobs/{job_id}"
@@ -265,8 +274,11 @@ def job_submitted_through_one_replica_finishes_once(
 def activation_through_one_replica_is_served_by_all(
     service: Service, replicas: set[str], version: int
 ) -> None:
-    response = service.admin("POST", f"/v1/admin/calibrations/{version}/activate",
-                             json={"reason": "a small batch, for the Ray test", "force": True})  # fmt: skip
+    response = service.admin(
+        "POST",
+        f"/v1/admin/calibrations/{version}/activate",
+        json={"reason": "a small batch, for the Ray test", "force": True},
+    )
     assert response.status_code == 200, response.text
     activated_at = time.monotonic()
     with service.predicting() as answers:
@@ -277,14 +289,22 @@ def activation_through_one_replica_is_served_by_all(
     assert {a.version for a in late} == {version}, [a for a in late if a.version != version]
     old = [a for a in answers if a.version != version]
     last_old = {r: max([a.done - activated_at for a in old if a.replica == r], default=0.0) for r in replicas}
-    print(f"activation through {response.headers[REPLICA_HEADER]} served by both; the last answers with the"
-          f" old version came {', '.join(f'{d:.2f} s' for d in last_old.values())} after it")  # fmt: skip
+    print(
+        f"activation through {response.headers[REPLICA_HEADER]} served by both; the last answers with the"
+        f" old version came {', '.join(f'{d:.2f} s' for d in last_old.values())} after it"
+    )
 
 
 def every_replica_refuses_a_bad_upload(service: Service, replicas: set[str]) -> None:
     """A refused upload leaves its replica's (empty) upload folder: both replicas have one now."""
-    service.from_every_replica("/v1/admin/calibrations", replicas, method="POST", status=422,
-                               content=b"not a zip", headers={"Content-Type": "application/zip"})  # fmt: skip
+    service.from_every_replica(
+        "/v1/admin/calibrations",
+        replicas,
+        method="POST",
+        status=422,
+        content=b"not a zip",
+        headers={"Content-Type": "application/zip"},
+    )
     uploads = service.data_dir / "uploads"
     assert all(process_uploads_dir(uploads, pid).is_dir() for pid in replica_pids().values())
 

@@ -94,8 +94,16 @@ class LiveServer(ServiceCalls):
             return ""
 
     def start(self) -> LiveServer:
-        command = [sys.executable, "-m", "service.cli", "serve", "--host", "127.0.0.1",
-                   "--port", str(self.port)]  # fmt: skip
+        command = [
+            sys.executable,
+            "-m",
+            "service.cli",
+            "serve",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(self.port),
+        ]
         with open(self.log_path, "wb") as log:
             self.process = subprocess.Popen(
                 command, env=self.env, cwd=PACKAGE_ROOT, stdout=log, stderr=subprocess.STDOUT

@@ -26,27 +26,39 @@ NO_SUCH = "no/such/"
 # (arguments, exit status, fragments of the error line)
 MISTAKES = [
     (["calibrate", f"{NO_SUCH}folder"], 2, [f"{NO_SUCH}folder is not a folder"]),
-    (["calibrate", SAMPLES, "--append-to", "two"], 2,
-     ["argument --append-to: invalid int value: 'two'", "(see keypoint-service calibrate --help)"]),
+    (
+        ["calibrate", SAMPLES, "--append-to", "two"],
+        2,
+        ["argument --append-to: invalid int value: 'two'", "(see keypoint-service calibrate --help)"],
+    ),
     (["calibrate", SAMPLES, "--activate", "--force"], 2, ["force needs a reason"]),
     (["predict", f"{NO_SUCH}image.jpg", "--instance", DUCK], 1, [f"{NO_SUCH}image.jpg: No such file"]),
     (["predict", "README.md", "--instance", DUCK], 2, ["not a recognised image format"]),
     (["predict", SAMPLE_IMAGE], 2, ["the following arguments are required: --instance"]),
     (["predict", SAMPLE_IMAGE, "--instance", "duck:1,2,3"], 2, ["'duck:1,2,3': use OBJECT:x,y,w,h"]),
     (["predict", SAMPLE_IMAGE, "--instance", "duck:a,2,3,4"], 2, ["'duck:a,2,3,4': use OBJECT:x,y,w,h"]),
-    (["predict", SAMPLE_IMAGE, "--instance", "goose:235,217,67,64"], 2,
-     ["instances[0].object 'goose' is not an object of model"]),
-    (["predict", SAMPLE_IMAGE, "--instance", "duck:235,217,0,64", "--epsilon", "0"], 2,
-     ["epsilon: Input should be greater than 0", "instances.0.bbox: bbox width and height must be > 0"]),
-    (["predict", SAMPLE_IMAGE, "--instance", DUCK, "--nonconformity", "max"], 2,
-     ["argument --nonconformity: invalid choice: 'max'"]),
+    (
+        ["predict", SAMPLE_IMAGE, "--instance", "goose:235,217,67,64"],
+        2,
+        ["instances[0].object 'goose' is not an object of model"],
+    ),
+    (
+        ["predict", SAMPLE_IMAGE, "--instance", "duck:235,217,0,64", "--epsilon", "0"],
+        2,
+        ["epsilon: Input should be greater than 0", "instances.0.bbox: bbox width and height must be > 0"],
+    ),
+    (
+        ["predict", SAMPLE_IMAGE, "--instance", DUCK, "--nonconformity", "max"],
+        2,
+        ["argument --nonconformity: invalid choice: 'max'"],
+    ),
     (["check-model", f"{NO_SUCH}model"], 3, [f"cannot be served: no manifest.json in {NO_SUCH}model"]),
     (["export-openapi", "--output", f"{NO_SUCH}openapi.json"], 1, [f"{NO_SUCH}openapi.json: No such file"]),
     (["manifest-schema", "--output", f"{NO_SUCH}schema.json"], 1, [f"{NO_SUCH}schema.json: No such file"]),
     (["serve", "--port", "eighty"], 2, ["argument --port: invalid int value: 'eighty'"]),
     (["frobnicate"], 2, ["argument COMMAND: invalid choice: 'frobnicate'", "(see keypoint-service --help)"]),
     ([], 2, ["the following arguments are required: COMMAND"]),
-]  # fmt: skip
+]
 
 
 def run(args: list[str], data_dir: Path, **settings: Any) -> subprocess.CompletedProcess:
@@ -97,8 +109,9 @@ def test_serve_refuses_a_port_in_use_before_loading_anything(tmp_path: Path, por
         ("sqlite://host/x", "CKS_STORE_URL: sqlite URL 'sqlite://host/x' names a host"),
     ],
 )
-@pytest.mark.parametrize("args", [["serve"], ["calibrate", SAMPLES],
-                                  ["predict", SAMPLE_IMAGE, "--instance", DUCK]])  # fmt: skip
+@pytest.mark.parametrize(
+    "args", [["serve"], ["calibrate", SAMPLES], ["predict", SAMPLE_IMAGE, "--instance", DUCK]]
+)
 def test_a_bad_store_url_is_named(tmp_path: Path, args: list[str], store_url: str, fragment: str) -> None:
     result = run(args, tmp_path / "data", port=free_port(), store_url=store_url)
     assert_one_line_error(result, 2, "invalid settings", fragment)
@@ -166,8 +179,9 @@ def test_serve_refuses_a_bad_tokens_file_in_one_line(tmp_path: Path) -> None:
     tokens = tmp_path / "tokens"
     tokens.write_text("alice:short\n")
     env = service_env(tmp_path / "data", admin_tokens_file=tokens, port=free_port())
-    result = subprocess.run([*cli(), "serve"], env=env, cwd=PACKAGE_ROOT, capture_output=True, text=True,
-                            timeout=60)  # fmt: skip
+    result = subprocess.run(
+        [*cli(), "serve"], env=env, cwd=PACKAGE_ROOT, capture_output=True, text=True, timeout=60
+    )
     assert result.returncode == 2, result.stderr
     assert "line 1: the token of 'alice' must be at least 16 characters" in result.stderr
     assert "Traceback" not in result.stderr

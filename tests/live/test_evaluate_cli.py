@@ -25,8 +25,14 @@ FIGURES = ("validity.png", "bands.png", "tightness.png", "adaptiveness.png")
 
 
 def evaluate(data_dir: Path, *args: str, expect: int = 0) -> subprocess.CompletedProcess:
-    result = subprocess.run([*cli(), "evaluate", *args], env=service_env(data_dir), cwd=PACKAGE_ROOT,
-                            capture_output=True, text=True, timeout=300)  # fmt: skip
+    result = subprocess.run(
+        [*cli(), "evaluate", *args],
+        env=service_env(data_dir),
+        cwd=PACKAGE_ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert result.returncode == expect, f"exit {result.returncode}\n{result.stdout}\n{result.stderr}"
     return result
 
@@ -53,12 +59,20 @@ def served_coverage(server: LiveServer, samples: list[Sample], kind: str, epsilo
     guarantee's n and t, from the sets POST /v1/predict answers."""
     counts: dict[str, list[int]] = {}
     for path, group in samples_by_image(samples).items():
-        parameters = {"instances": [{"object": s.object, "bbox": s.bbox} for s in group], "epsilon": epsilon,
-                      "nonconformity": kind, "coverage": scope, "calibration_version": 1}  # fmt: skip
+        parameters = {
+            "instances": [{"object": s.object, "bbox": s.bbox} for s in group],
+            "epsilon": epsilon,
+            "nonconformity": kind,
+            "coverage": scope,
+            "calibration_version": 1,
+        }
         answer = predict_ok(server.client, path.read_bytes(), parameters)
         for sample, instance in zip(group, answer["instances"], strict=True):
-            inside = [contains(k["set"], (x, y)) for k, (x, y, v) in zip(instance["keypoints"],
-                      sample.keypoints, strict=True) if v > 0]  # fmt: skip
+            inside = [
+                contains(k["set"], (x, y))
+                for k, (x, y, v) in zip(instance["keypoints"], sample.keypoints, strict=True)
+                if v > 0
+            ]
             guarantee = instance["keypoints"][0]["guarantee"]
             if scope == "object":
                 if len(inside) == len(sample.keypoints):
@@ -90,8 +104,13 @@ def test_writes_markdown_and_figures(report: Path) -> None:
         path = report / "figures" / figure
         assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size < 1_500_000
         assert f"](figures/{figure})" in text
-    for section in ("## Validity", "### Object scope", "### Per keypoint against the band", "## Tightness",
-                    "## Adaptiveness"):  # fmt: skip
+    for section in (
+        "## Validity",
+        "### Object scope",
+        "### Per keypoint against the band",
+        "## Tightness",
+        "## Adaptiveness",
+    ):
         assert section in text
     assert "n/a" not in text
 
@@ -111,8 +130,11 @@ def test_coverage_agrees_with_the_served_sets(
             inside = np.mean([inside_band(*entry) for entry in counts.values()])
             row = table[(kind, epsilon)]
             offset = 3 if scope == "keypoint" else 2  # keypoint rows also give 1-eps
-            assert row[offset : offset + 3] == [f"{coverage.mean():.3f}", f"{coverage.min():.3f}",
-                                                f"{inside:.3f}"], (kind, epsilon)  # fmt: skip
+            assert row[offset : offset + 3] == [
+                f"{coverage.mean():.3f}",
+                f"{coverage.min():.3f}",
+                f"{inside:.3f}",
+            ], (kind, epsilon)
             if epsilon == 0.1:
                 outside = sum(not inside_band(*entry) for entry in counts.values())
                 assert bands[(kind, scope)][3] == f"{outside} of {len(counts)}"
@@ -135,8 +157,9 @@ def refusal(data_dir: Path, *args: str, details: bool = False) -> str:
     found in a file, as ``calibrate`` prints it)."""
     result = evaluate(data_dir, *args, expect=2)
     first, *rest = result.stderr.strip().splitlines()
-    assert first.startswith("error: ") and (all(line.startswith("  ") for line in rest) if details
-                                            else not rest), result.stderr  # fmt: skip
+    assert first.startswith("error: ") and (
+        all(line.startswith("  ") for line in rest) if details else not rest
+    ), result.stderr
     return first
 
 
@@ -201,8 +224,16 @@ def test_a_batch_of_one_object_without_occlusion_flags(
 ) -> None:
     duck = next(o for o in manifest["objects"] if o["name"] == "duck")
     count = one_object_without_occlusion_flags(samples_dir, coco, tmp_path / "duck", "duck")
-    result = evaluate(server.data_dir, str(tmp_path / "duck"), "--out", str(tmp_path / "out"),
-                      "--epsilon", "0.001", "--epsilon", "0.1")  # fmt: skip
+    result = evaluate(
+        server.data_dir,
+        str(tmp_path / "duck"),
+        "--out",
+        str(tmp_path / "out"),
+        "--epsilon",
+        "0.001",
+        "--epsilon",
+        "0.1",
+    )
     assert f"(version 1, {count} instances)" in result.stdout
     text = (tmp_path / "out" / "evaluation.md").read_text()
     assert "Not measured: the labels of this batch do not carry both COCO visibility flags" in text

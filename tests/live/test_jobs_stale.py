@@ -145,9 +145,17 @@ def test_a_silent_job_row_is_reported_interrupted(tmp_path: Path) -> None:
                 ("finished", old, "succeeded"),
             ):
                 store.create_job(
-                    JobRecord(id=job_id, kind="calibration", owner="node-7:31337", created_at=old,
-                              heartbeat_at=heartbeat_at, state=state, done=3, total=9)
-                )  # fmt: skip
+                    JobRecord(
+                        id=job_id,
+                        kind="calibration",
+                        owner="node-7:31337",
+                        created_at=old,
+                        heartbeat_at=heartbeat_at,
+                        state=state,
+                        done=3,
+                        total=9,
+                    )
+                )
         for job_id in ("stale", "stale-queued"):
             job = server.job(job_id)
             assert (job["state"], job["done"], job["total"]) == ("interrupted", 3, 9), job

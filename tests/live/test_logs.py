@@ -67,8 +67,9 @@ def predict(client: httpx.Client, samples: list[Sample], request_id: str | None 
 Line = dict[str, Any]
 
 
-def wait_for_lines(read: Callable[[], list[Line]], condition: Callable[[Line], bool], what: str,
-                   count: int = 1) -> list[Line]:  # fmt: skip
+def wait_for_lines(
+    read: Callable[[], list[Line]], condition: Callable[[Line], bool], what: str, count: int = 1
+) -> list[Line]:
     """The parsed lines meeting ``condition``, once the server has written ``count`` of them."""
     found: list[Line] = []
 
@@ -304,8 +305,11 @@ def test_json_every_line_of_a_request_carries_its_id(json_server: tuple[httpx.Cl
     )
     assert audit["logger"] == "service.audit"
     assert (audit["action"], audit["outcome"], audit["who"], audit["reason"]) == (
-        "activation", "activated", "admin", "json"
-    )  # fmt: skip
+        "activation",
+        "activated",
+        "admin",
+        "json",
+    )
     assert (audit["version"], audit["previous_version"]) == (1, 1)
     assert access["logger"] == "service.access" and access["status"] == 200
     # lines outside any request have no id

@@ -107,8 +107,16 @@ def test_serve_exits_non_zero_naming_the_mismatch(model_path: Path, tmp_path: Pa
 def test_uvicorn_exits_non_zero_naming_the_mismatch(model_path: Path, tmp_path: Path) -> None:
     fragments = mismatched_model(model_path, tmp_path / "model", "output name")
     env = service_env(tmp_path / "data", model_dir=tmp_path / "model")
-    command = [sys.executable, "-m", "uvicorn", "service.api.main:app", "--host", "127.0.0.1",
-               "--port", str(free_port())]  # fmt: skip
+    command = [
+        sys.executable,
+        "-m",
+        "uvicorn",
+        "service.api.main:app",
+        "--host",
+        "127.0.0.1",
+        "--port",
+        str(free_port()),
+    ]
     result = run_until_exit(command, env)
     output = result.stdout + result.stderr
     assert result.returncode != 0, output

@@ -71,16 +71,24 @@ def test_the_server_reports_and_logs_the_providers_in_use(tmp_path: Path) -> Non
 @pytest.mark.parametrize(
     ("settings", "fragments"),
     [
-        ({"execution_providers": f"NoSuchExecutionProvider,{CPU}"},
-         ["'NoSuchExecutionProvider' (CKS_EXECUTION_PROVIDERS) is not a provider of",
-          f"available: {AVAILABLE}"]),
-        ({"execution_providers": f"{missing_provider()},{CPU}"},
-         [f"'{missing_provider()}' (CKS_EXECUTION_PROVIDERS) is not available", f"available: {AVAILABLE}"]),
-        ({"execution_provider_options": '{"CUDAExecutionProvider": {"device_id": "1"}}'},
-         ["CKS_EXECUTION_PROVIDER_OPTIONS has options for 'CUDAExecutionProvider'"]),
+        (
+            {"execution_providers": f"NoSuchExecutionProvider,{CPU}"},
+            [
+                "'NoSuchExecutionProvider' (CKS_EXECUTION_PROVIDERS) is not a provider of",
+                f"available: {AVAILABLE}",
+            ],
+        ),
+        (
+            {"execution_providers": f"{missing_provider()},{CPU}"},
+            [f"'{missing_provider()}' (CKS_EXECUTION_PROVIDERS) is not available", f"available: {AVAILABLE}"],
+        ),
+        (
+            {"execution_provider_options": '{"CUDAExecutionProvider": {"device_id": "1"}}'},
+            ["CKS_EXECUTION_PROVIDER_OPTIONS has options for 'CUDAExecutionProvider'"],
+        ),
         ({"execution_providers": "[CPU"}, ["invalid settings: CKS_EXECUTION_PROVIDERS: not a JSON list"]),
     ],
-)  # fmt: skip
+)
 def test_serve_refuses_providers_this_machine_lacks(tmp_path: Path, settings: dict, fragments: list) -> None:
     result = run(["serve", "--port", str(free_port())], tmp_path / "data", **settings)
     assert_one_line_error(result, 2, *fragments)

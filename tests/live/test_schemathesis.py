@@ -41,17 +41,27 @@ def requests_by_status(server: LiveServer) -> dict[tuple[str, str, str], float]:
 def test_no_server_errors_on_generated_requests(fuzzed_server: LiveServer, tmp_path: Path) -> None:
     before = requests_by_status(fuzzed_server)
     command = [
-        "schemathesis", "run", str(PACKAGE_ROOT / "openapi" / "openapi.json"),
-        "--url", fuzzed_server.url,
-        "--header", f"Authorization: Bearer {ADMIN_TOKEN}",
-        "--checks", "not_a_server_error",
-        "--phases", "examples,coverage,fuzzing",
-        "--max-examples", "100",
-        "--workers", "1",  # CPython 3.11's ast.parse is not thread-safe under hypothesis
-        "--seed", "20240607",
-        "--request-timeout", "30",
+        "schemathesis",
+        "run",
+        str(PACKAGE_ROOT / "openapi" / "openapi.json"),
+        "--url",
+        fuzzed_server.url,
+        "--header",
+        f"Authorization: Bearer {ADMIN_TOKEN}",
+        "--checks",
+        "not_a_server_error",
+        "--phases",
+        "examples,coverage,fuzzing",
+        "--max-examples",
+        "100",
+        "--workers",
+        "1",  # CPython 3.11's ast.parse is not thread-safe under hypothesis
+        "--seed",
+        "20240607",
+        "--request-timeout",
+        "30",
         "--no-color",
-    ]  # fmt: skip
+    ]
     env = {**fuzzed_server.env, "SCHEMATHESIS_HOOKS": str(HOOKS)}
     result = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=240)
     output = result.stdout[-6000:] + result.stderr[-3000:]

@@ -65,8 +65,11 @@ def test_predictions_go_on_while_postgresql_is_down(cluster: PostgresCluster, tm
     assert report.named_active.status == 200, report.named_active  # in memory
     other = report.named_other
     assert other.status == 503 and other.retry_after == "1" and other.seconds < 2.5, other
-    for fragment in ("calibration version 2 is not in this server's memory", "store is unreachable",
-                     "active version 1, which still answers"):  # fmt: skip
+    for fragment in (
+        "calibration version 2 is not in this server's memory",
+        "store is unreachable",
+        "active version 1, which still answers",
+    ):
         assert fragment in other.body["detail"], other.body
 
     assert report.recovered_after_s < TWO_POLLS_S, report
@@ -88,8 +91,13 @@ def test_readyz_turns_503_past_the_staleness_limit_and_predictions_go_on(
         cluster.stop_server()
         try:
             wait_until(lambda: readyz().status_code == 503, "/readyz turns 503", 15)
-            problem = assert_problem(readyz(), 503, "has not confirmed the cached calibration",
-                                     "CKS_MAX_CACHE_STALENESS_SECONDS = 4", "PostgreSQL")  # fmt: skip
+            problem = assert_problem(
+                readyz(),
+                503,
+                "has not confirmed the cached calibration",
+                "CKS_MAX_CACHE_STALENESS_SECONDS = 4",
+                "PostgreSQL",
+            )
             assert problem["title"] == "Calibration store unreachable"
             assert predict_json(server.client, prepared.image, prepared.parameters).status_code == 200
         finally:
@@ -109,8 +117,11 @@ def test_a_job_caught_by_the_outage_fails_cleanly_and_the_next_one_succeeds(
         job_id = response.json()["id"]
         cluster.stop_server()  # while the job scores, long before it writes its version
         try:
-            wait_until(lambda: f"job {job_id}: its final state is not stored yet" in server.log(),
-                       "the job gave up writing its final state for now", timeout=60)  # fmt: skip
+            wait_until(
+                lambda: f"job {job_id}: its final state is not stored yet" in server.log(),
+                "the job gave up writing its final state for now",
+                timeout=60,
+            )
         finally:
             cluster.start_server()
         wait_until(lambda: server.client.get("/readyz").json()["store"] == "ok", "the store is back", 30)
@@ -129,8 +140,9 @@ def test_serve_refuses_to_start_without_the_store(cluster: PostgresCluster, tmp_
     env = service_env(tmp_path / "data", store_url=url, port=free_port())
     cluster.stop_server()
     try:
-        result = subprocess.run([*cli(), "serve"], env=env, cwd=PACKAGE_ROOT, capture_output=True, text=True,
-                                timeout=90)  # fmt: skip
+        result = subprocess.run(
+            [*cli(), "serve"], env=env, cwd=PACKAGE_ROOT, capture_output=True, text=True, timeout=90
+        )
     finally:
         cluster.start_server()
     assert result.returncode == 1, result.stderr  # the store or the system, not the command (test_cli_errors)

@@ -40,8 +40,10 @@ def random_png(width: int, height: int, colour: int, depth: int, extra: bytes = 
     if depth == 16:
         rows = samples.astype(">u2").view(np.uint8).reshape(height, -1)
     else:
-        rows = np.packbits(np.unpackbits(samples.astype(np.uint8)[..., None], axis=-1)[..., 8 - depth :]
-                           .reshape(height, -1), axis=-1)  # fmt: skip
+        rows = np.packbits(
+            np.unpackbits(samples.astype(np.uint8)[..., None], axis=-1)[..., 8 - depth :].reshape(height, -1),
+            axis=-1,
+        )
     raw = b"".join(b"\x00" + row.tobytes() for row in rows)
     entries = rng.integers(0, 256, 3 * 2**depth, dtype=np.uint8).tobytes()
     palette = png_chunk(b"PLTE", entries) if colour == 3 else b""
@@ -145,8 +147,17 @@ class TestBudget:
             decode_image(bytes(short), LIMIT)
 
 
-KINDS = ("jpeg-baseline", "jpeg-progressive-444", "jpeg-progressive-420", "jpeg-cmyk", "jpeg-gray",
-         "png-rgb8", "png-rgba16", "png-gray16", "png-gray-alpha8")  # fmt: skip
+KINDS = (
+    "jpeg-baseline",
+    "jpeg-progressive-444",
+    "jpeg-progressive-420",
+    "jpeg-cmyk",
+    "jpeg-gray",
+    "png-rgb8",
+    "png-rgba16",
+    "png-gray16",
+    "png-gray-alpha8",
+)
 
 
 def _jpeg(image: np.ndarray, mode: str = "RGB", **options: object) -> bytes:
@@ -192,8 +203,14 @@ def peak_of_decode(tmp_path: Path, data: bytes, max_bytes: int = LIMIT) -> tuple
     name of the error it raised ('' if none)."""
     path = tmp_path / "image"
     path.write_bytes(data)
-    result = subprocess.run([sys.executable, "-c", _MEASURE, str(path), str(max_bytes)], cwd=PACKAGE_ROOT,
-                            capture_output=True, text=True, timeout=60, check=True)  # fmt: skip
+    result = subprocess.run(
+        [sys.executable, "-c", _MEASURE, str(path), str(max_bytes)],
+        cwd=PACKAGE_ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    )
     *error, peak = result.stdout.split()
     return int(peak), "".join(error)
 

@@ -510,9 +510,15 @@ def synthetic_jpegs() -> dict[str, bytes]:
         {"photo": photo, "odd": odd, "noise": noise}.items(), samplings.items(), (10, 95), (0, 1)
     ):
         files[f"opencv-{name}-{sampling}-q{quality}-p{progressive}"] = encode(
-            ".jpg", image, cv2.IMWRITE_JPEG_SAMPLING_FACTOR, factor, cv2.IMWRITE_JPEG_QUALITY, quality,
-            cv2.IMWRITE_JPEG_PROGRESSIVE, progressive,
-        )  # fmt: skip
+            ".jpg",
+            image,
+            cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
+            factor,
+            cv2.IMWRITE_JPEG_QUALITY,
+            quality,
+            cv2.IMWRITE_JPEG_PROGRESSIVE,
+            progressive,
+        )
     for name, image in {"photo": photo, "odd": odd, "noise": noise}.items():
         gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         files[f"opencv-{name}-gray"] = encode(".jpg", gray, cv2.IMWRITE_JPEG_QUALITY, 90)

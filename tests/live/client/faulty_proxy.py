@@ -86,11 +86,19 @@ class FaultyProxy:
                 if isinstance(fault, Drop):
                     self.close_connection = True
                 elif isinstance(fault, Unavailable):
-                    problem = {"type": "about:blank", "title": "Overloaded", "status": 503,
-                               "detail": "injected by the test's proxy", "instance": self.path}  # fmt: skip
+                    problem = {
+                        "type": "about:blank",
+                        "title": "Overloaded",
+                        "status": 503,
+                        "detail": "injected by the test's proxy",
+                        "instance": self.path,
+                    }
                     retry_after = {} if fault.retry_after is None else {"Retry-After": fault.retry_after}
-                    self._answer(503, {"Content-Type": "application/problem+json", **retry_after},
-                                 json.dumps(problem).encode())  # fmt: skip
+                    self._answer(
+                        503,
+                        {"Content-Type": "application/problem+json", **retry_after},
+                        json.dumps(problem).encode(),
+                    )
                 else:
                     self._forward(body)
 

@@ -121,8 +121,17 @@ def test_a_failed_job_and_other_refusals_are_typed(
 
 def test_waiting_ends_at_its_timeout() -> None:
     now = datetime.now(UTC)
-    running = Job(id="j", kind="calibration", state="running", done=3, total=9, errors=[], result={},
-                  created_at=now, finished_at=None)  # fmt: skip
+    running = Job(
+        id="j",
+        kind="calibration",
+        state="running",
+        done=3,
+        total=9,
+        errors=[],
+        result={},
+        created_at=now,
+        finished_at=None,
+    )
     heard: list[Job] = []
     watch = JobWatch(heard.append, poll_interval=0.5, timeout=60)
     assert watch.next_poll(running) == 0.5 and watch.next_poll(running) == 0.5 and heard == [running]

@@ -21,9 +21,18 @@ from tests.predict_client import instances_of, predict_json
 from tests.samples import Sample, samples_by_image
 
 SERVER_ONLY = {
-    "conformal-keypoint-service", "onnxruntime", "opencv-python-headless", "simplejpeg", "fastapi",
-    "starlette", "uvicorn", "python-multipart", "prometheus-client", "pydantic-settings", "numpy",
-}  # fmt: skip
+    "conformal-keypoint-service",
+    "onnxruntime",
+    "opencv-python-headless",
+    "simplejpeg",
+    "fastapi",
+    "starlette",
+    "uvicorn",
+    "python-multipart",
+    "prometheus-client",
+    "pydantic-settings",
+    "numpy",
+}
 SCATTERED = 40  # points around each set, besides its labelled keypoint
 
 # Runs inside the fresh environment, from an empty folder: argv[1] says what to ask, argv[2]

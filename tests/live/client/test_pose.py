@@ -70,8 +70,12 @@ def test_pose_blocks_are_typed_and_mirror_the_json(server: LiveServer, client: K
     result = client.predict(path, instances(annotations, names), coverage="object", epsilon=0.1, pose=pose)
 
     boxes = [{"object": name, "bbox": bbox} for name, bbox in instances(annotations, names)]
-    parameters = {"instances": boxes, "coverage": "object", "epsilon": 0.1,
-                  "pose": pose_json(annotations, samples=20)}  # fmt: skip
+    parameters = {
+        "instances": boxes,
+        "coverage": "object",
+        "epsilon": 0.1,
+        "pose": pose_json(annotations, samples=20),
+    }
     answer = predict_json(server.client, path.read_bytes(), parameters)
     assert answer.status_code == 200, answer.text
     assert result.to_dict() == answer.json()
@@ -102,8 +106,10 @@ def test_the_intrinsics_make_the_same_request(client: KeypointClient, scene) -> 
     boxes = instances(annotations, names)
     with_pose = client.predict(path, boxes, coverage="object", pose=pinhole)
     without = client.predict(path, boxes, coverage="object")
-    assert all(i.pose is not None and i.pose.inner_bound is None and i.pose.outer_bound is None
-               for i in with_pose.instances)  # fmt: skip
+    assert all(
+        i.pose is not None and i.pose.inner_bound is None and i.pose.outer_bound is None
+        for i in with_pose.instances
+    )
     # The sets do not depend on the pose option; an answer without pose has no pose key.
     assert [i.keypoints for i in with_pose.instances] == [i.keypoints for i in without.instances]
     assert all(i.pose is None and "pose" not in i.to_dict() for i in without.instances)

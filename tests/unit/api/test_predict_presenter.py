@@ -62,8 +62,10 @@ def test_the_json_is_the_models_json(state: ServiceState, scene: tuple, options:
         **options,
     }
     if "pose" in options:
-        checks = [{"instance": i, "rotation": a["cam_R_m2c"], "translation": a["cam_t_m2c"]}
-                  for i, a in enumerate(annotations)]  # fmt: skip
+        checks = [
+            {"instance": i, "rotation": a["cam_R_m2c"], "translation": a["cam_t_m2c"]}
+            for i, a in enumerate(annotations)
+        ]
         request["pose"] = {"K": annotations[0]["cam_K"], "check": checks}
     query = predict_query(PredictParameters.model_validate(request))
     manifest = state.detector.manifest

@@ -12,8 +12,9 @@ from benchmarks.service_bench.runs import Memory
 
 
 def test_a_short_run_reads_rss_at_each_checkpoint_and_gives_a_verdict(capsys) -> None:
-    bench_memory.main(["--requests", "300", "--first", "100", "--every", "100", "--load", "python",
-                       "--concurrency", "4"])  # fmt: skip
+    bench_memory.main(
+        ["--requests", "300", "--first", "100", "--every", "100", "--load", "python", "--concurrency", "4"]
+    )
     out = capsys.readouterr().out
     readings = re.findall(r"after\s+(\d+) requests: VmRSS\s+([\d.]+) MiB .*, (\d+) errors\)", out)
     assert [int(done) for done, _, _ in readings] == [100, 200, 300], out

@@ -80,8 +80,17 @@ def _results() -> PeerResults:
     stages = dict.fromkeys(("decode", "crop", "inference", "sets", "response", "json"), 1.0)
     limits = [Limit(n, 5.0 * n, 4.0 * n, 2, stages) for n in BOXES]
     machine = Machine(2, "test CPU", (0.5, 0.5, 0.5), "3.11", "1.0")
-    return PeerResults("python -m benchmarks.bench_peers --quick", machine, (1.0, 1.0, 1.0), 1.0, 1,
-                       args.contenders, runs, limits, 1.0)  # fmt: skip
+    return PeerResults(
+        "python -m benchmarks.bench_peers --quick",
+        machine,
+        (1.0, 1.0, 1.0),
+        1.0,
+        1,
+        args.contenders,
+        runs,
+        limits,
+        1.0,
+    )
 
 
 def test_the_report_gives_goals_table_and_settings_and_keeps_bench_services_section(tmp_path: Path) -> None:
@@ -107,14 +116,16 @@ def test_unknown_peers_are_refused() -> None:
 
 
 def test_profile_samples_are_sorted_into_stages_and_waits_left_out() -> None:
-    raw = "\n".join([
-        "thread (1);_worker (thread.py:81);_respond (predict.py:140);decode_image (image_decoding.py:120) 30",
-        "thread (2);_worker (thread.py:81);Detector.run (runtime.py:70);"
-        "Session.run (onnxruntime_inference_collection.py:406) 60",
-        "thread (3);_worker (thread.py:81);Condition.wait (threading.py:320) 50",
-        "thread (4);Runner.run (runners.py:118) 40",
-        "thread (4);Runner.run (runners.py:118);RequestResponseCycle.send (httptools_impl.py:524) 10",
-    ])  # fmt: skip
+    raw = "\n".join(
+        [
+            "thread (1);_worker (thread.py:81);_respond (predict.py:140);decode_image (images.py:120) 30",
+            "thread (2);_worker (thread.py:81);Detector.run (session.py:70);"
+            "Session.run (onnxruntime_inference_collection.py:406) 60",
+            "thread (3);_worker (thread.py:81);Condition.wait (threading.py:320) 50",
+            "thread (4);Runner.run (runners.py:118) 40",
+            "thread (4);Runner.run (runners.py:118);RequestResponseCycle.send (httptools_impl.py:524) 10",
+        ]
+    )
     profile = summarize(raw)
     assert (profile.samples, profile.running) == (190, 100)
     assert profile.shares == {"inference (onnxruntime)": 0.6, "decode (JPEG)": 0.3, OTHER: 0.1}

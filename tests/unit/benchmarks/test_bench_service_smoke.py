@@ -84,10 +84,13 @@ def _synthetic_results() -> report.Results:
         for c in runs.CONCURRENCIES
     ]
     tuned = [
-        runs.Variant(v.label, v.overrides, [runs.Point(n, 16, load(110.0 / n), raw_result(120.0 / n), 1.0)
-                                            for n in runs.INSTANCE_COUNTS])
+        runs.Variant(
+            v.label,
+            v.overrides,
+            [runs.Point(n, 16, load(110.0 / n), raw_result(120.0 / n), 1.0) for n in runs.INSTANCE_COUNTS],
+        )
         for v in runs.TUNING
-    ]  # fmt: skip
+    ]
     stages = {stage: 1.0 for stage in STAGES}
     return report.Results(
         command="python -m benchmarks.bench_service",

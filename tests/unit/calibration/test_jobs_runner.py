@@ -65,8 +65,11 @@ def test_job_lifecycle_is_written_through(store: CountingStore, runner: JobRunne
     stored = store.get_job(job.id)
     assert stored is not None, "the row must exist when submit returns (before the 202)"
     assert (stored.kind, stored.owner, stored.total, stored.state in ("queued", "running")) == (
-        "calibration", OWNER, 3, True,
-    )  # fmt: skip
+        "calibration",
+        OWNER,
+        3,
+        True,
+    )
     wait_until(lambda: state_of(store, job.id) == "running", what="running written")
     go.set()
     wait_until(lambda: state_of(store, job.id) == "succeeded", what="success written")
@@ -186,8 +189,17 @@ def test_a_silent_unfinished_job_is_reported_interrupted(store: CountingStore, r
     old = now - timedelta(seconds=75)
 
     def row(job_id: str, owner: str, heartbeat_at: datetime, state: str, **fields: Any) -> None:
-        store.create_job(JobRecord(id=job_id, kind="calibration", owner=owner, created_at=old,
-                                   heartbeat_at=heartbeat_at, state=state, **fields))  # fmt: skip
+        store.create_job(
+            JobRecord(
+                id=job_id,
+                kind="calibration",
+                owner=owner,
+                created_at=old,
+                heartbeat_at=heartbeat_at,
+                state=state,
+                **fields,
+            )
+        )
 
     row("dead-running", "gone-host:999", old, "running", done=2, total=10)
     row("dead-queued", "gone-host:999", old, "queued", done=2, total=10)

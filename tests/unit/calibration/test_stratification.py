@@ -34,9 +34,14 @@ def table() -> ScoreTable:
     scores[rng.random((N, 2)) < 0.1] = np.nan  # unlabeled keypoints
     groups = tuple(rng.choice(["cam-1", "cam-2", ""], N))
     features = {"gamma": gamma, "peak_probability": p_star, "anisotropy": np.ones((N, 2))}
-    block = ObjectScores("mug", np.array(CHANNELS), tuple(f"r{i}" for i in range(N)),
-                         {"cov": scores, "var": scores, "peak": scores}, features=features,
-                         groups=groups)  # fmt: skip
+    block = ObjectScores(
+        "mug",
+        np.array(CHANNELS),
+        tuple(f"r{i}" for i in range(N)),
+        {"cov": scores, "var": scores, "peak": scores},
+        features=features,
+        groups=groups,
+    )
     return ScoreTable((block,))
 
 

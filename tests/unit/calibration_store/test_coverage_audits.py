@@ -19,14 +19,19 @@ from calibration_store import (
 from tests.unit.calibration_store import rawdb
 from tests.unit.calibration_store.factories import MODEL_A, MODEL_B, new_version, score_table
 
-REPORT = {"passed": False, "flagged": [{"object": "mug", "keypoint": "mug_kp0", "p_value": 1e-9}],
-          "levels": [0.05, 0.1, 0.2], "nested": {"band": [0.8, 0.95]}}  # fmt: skip
+REPORT = {
+    "passed": False,
+    "flagged": [{"object": "mug", "keypoint": "mug_kp0", "p_value": 1e-9}],
+    "levels": [0.05, 0.1, 0.2],
+    "nested": {"band": [0.8, 0.95]},
+}
 
 
 def audit(version: int = 1, model_hash: str = MODEL_A, who: str = "alice", n: int = 52) -> NewCoverageAudit:
     digest = hashlib.sha256(f"{model_hash}{version}{who}".encode()).hexdigest()
-    return NewCoverageAudit(model_hash=model_hash, version=version, who=who, batch_sha256=digest,
-                            n_instances=n, report=REPORT)  # fmt: skip
+    return NewCoverageAudit(
+        model_hash=model_hash, version=version, who=who, batch_sha256=digest, n_instances=n, report=REPORT
+    )
 
 
 def test_an_audit_round_trips(store: CalibrationStore) -> None:
@@ -90,7 +95,13 @@ def test_the_database_refuses_to_edit_audits(store: CalibrationStore, store_url:
     ],
 )
 def test_invalid_audits_are_refused_before_the_store(changes: dict, message: str) -> None:
-    fields = {"model_hash": MODEL_A, "version": 1, "who": "alice", "batch_sha256": "0" * 64,
-              "n_instances": 1, "report": {}} | changes  # fmt: skip
+    fields = {
+        "model_hash": MODEL_A,
+        "version": 1,
+        "who": "alice",
+        "batch_sha256": "0" * 64,
+        "n_instances": 1,
+        "report": {},
+    } | changes
     with pytest.raises((ValueError, TypeError), match=message):
         NewCoverageAudit(**fields)

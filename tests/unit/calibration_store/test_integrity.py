@@ -43,8 +43,11 @@ def _hashed(block: ObjectScores) -> ObjectScores:
 
 def _job(store: CalibrationStore, job_id: str = "job-1") -> JobRecord:
     now = datetime.now(UTC)
-    return store.create_job(JobRecord(id=job_id, kind="calibration", owner="host:1", created_at=now,
-                                      heartbeat_at=now, state="running"))  # fmt: skip
+    return store.create_job(
+        JobRecord(
+            id=job_id, kind="calibration", owner="host:1", created_at=now, heartbeat_at=now, state="running"
+        )
+    )
 
 
 def _audit(action: str = "activation", outcome: str = "done", **fields: object) -> NewAuditEntry:
@@ -96,8 +99,13 @@ def test_a_finished_job_refuses_its_version_and_nothing_is_written(store: Calibr
     _job(store)
     store.update_job("job-1", state="interrupted")
     with pytest.raises(JobFinished, match="interrupted"):
-        store.create_version(new_version(), score_table(n=4), activation=ActivationIntent("alice"),
-                             job=JobCompletion("job-1"), audit=[_audit()])  # fmt: skip
+        store.create_version(
+            new_version(),
+            score_table(n=4),
+            activation=ActivationIntent("alice"),
+            job=JobCompletion("job-1"),
+            audit=[_audit()],
+        )
     assert store.list_versions(MODEL_A) == []
     assert store.active_version(MODEL_A) is None
     assert store.audit_log(MODEL_A) == []

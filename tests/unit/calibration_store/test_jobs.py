@@ -36,8 +36,11 @@ def test_create_update_get(store: CalibrationStore) -> None:
     assert (running.state, running.done, running.total) == ("running", 5, 12)
     assert before <= running.heartbeat_at <= datetime.now(UTC), "a write must refresh the heartbeat"
     assert (running.id, running.kind, running.owner, running.created_at) == (
-        "job-1", "calibration", "host-a:101", T0,
-    )  # fmt: skip
+        "job-1",
+        "calibration",
+        "host-a:101",
+        T0,
+    )
     assert store.get_job("job-1") == running
 
     finished_at = T0 + timedelta(minutes=3)
@@ -137,12 +140,25 @@ def test_prune_keeps_the_latest_finished_jobs_and_live_ones(store: CalibrationSt
 def test_prune_by_age(store: CalibrationStore) -> None:
     now = datetime.now(UTC)
     week = timedelta(days=7)
-    store.create_job(job("finished-long-ago", now - 2 * week, heartbeat_at=now - week - timedelta(minutes=1),
-                         state="failed"))  # fmt: skip
-    store.create_job(job("dead-long-ago", now - 2 * week, heartbeat_at=now - week - timedelta(minutes=1),
-                         state="running"))  # fmt: skip
-    store.create_job(job("finished-recently", now - 2 * week, heartbeat_at=now - week + timedelta(minutes=5),
-                         state="succeeded"))  # fmt: skip
+    store.create_job(
+        job(
+            "finished-long-ago",
+            now - 2 * week,
+            heartbeat_at=now - week - timedelta(minutes=1),
+            state="failed",
+        )
+    )
+    store.create_job(
+        job("dead-long-ago", now - 2 * week, heartbeat_at=now - week - timedelta(minutes=1), state="running")
+    )
+    store.create_job(
+        job(
+            "finished-recently",
+            now - 2 * week,
+            heartbeat_at=now - week + timedelta(minutes=5),
+            state="succeeded",
+        )
+    )
     store.create_job(job("queued", now, heartbeat_at=now))
     assert store.prune_jobs() == 2
     assert store.get_job("finished-long-ago") is None and store.get_job("dead-long-ago") is None

@@ -69,9 +69,15 @@ def _insert_block_schema_1(self: SqlStore, cur: Cursor, version_id: int, block: 
     cur.execute(
         "INSERT INTO calib_score_objects (version_id, position, object_name, n_instances,"
         " keypoint_ids, instance_refs) VALUES (?, ?, ?, ?, ?, ?)",
-        (version_id, block.position, block.object_name, block.n_instances, block.keypoint_ids,
-         block.instance_refs),
-    )  # fmt: skip
+        (
+            version_id,
+            block.position,
+            block.object_name,
+            block.n_instances,
+            block.keypoint_ids,
+            block.instance_refs,
+        ),
+    )
     for function, rows, cols, data in block.arrays:
         cur.execute(
             "INSERT INTO calib_score_arrays (version_id, object_name, function, n_rows,"

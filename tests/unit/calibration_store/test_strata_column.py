@@ -11,12 +11,22 @@ from calibration_store import CalibrationStore
 from tests.unit.calibration_store.factories import MODEL_A, new_version, score_table
 
 STRATA = {
-    "spec": {"difficulty": {"signals": ["gamma", "peak_probability"], "bins": 3, "min_instances": 30},
-             "group": True},
+    "spec": {
+        "difficulty": {"signals": ["gamma", "peak_probability"], "bins": 3, "min_instances": 30},
+        "group": True,
+    },
     "groups": ["cam-1", "cam-2"],
-    "bins": {"0": {"*": {"signals": ["gamma", "peak_probability"], "edges": [1.5], "counts": [40, 41],
-                         "inner_edges": [[], []]}}},
-}  # fmt: skip
+    "bins": {
+        "0": {
+            "*": {
+                "signals": ["gamma", "peak_probability"],
+                "edges": [1.5],
+                "counts": [40, 41],
+                "inner_edges": [[], []],
+            }
+        }
+    },
+}
 
 
 def test_strata_round_trip(store: CalibrationStore) -> None:

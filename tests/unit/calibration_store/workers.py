@@ -61,8 +61,11 @@ def run_jobs(url: str, barrier: Any, worker: int, count: int, results: Any) -> N
     for i in range(count):
         now = datetime.now(UTC)
         job_id = f"w{worker}-{i}"
-        store.create_job(JobRecord(id=job_id, kind="test", owner=f"worker-{worker}", created_at=now,
-                                   heartbeat_at=now, total=5))  # fmt: skip
+        store.create_job(
+            JobRecord(
+                id=job_id, kind="test", owner=f"worker-{worker}", created_at=now, heartbeat_at=now, total=5
+            )
+        )
         store.update_job(job_id, state="running")
         for done in range(1, 6):
             store.update_job(job_id, done=done)

@@ -232,8 +232,9 @@ def test_large_n(epsilon: float, delta: float) -> None:
     guarantee = coverage_guarantee(n, epsilon, delta)
     check_guarantee(guarantee, n, epsilon, delta)
     if guarantee.t:
-        assert guarantee.pac_failure_probability == pytest.approx(special.bdtr(guarantee.t - 1, n, epsilon),
-                                                                  rel=1e-6)  # fmt: skip
+        assert guarantee.pac_failure_probability == pytest.approx(
+            special.bdtr(guarantee.t - 1, n, epsilon), rel=1e-6
+        )
 
 
 @pytest.mark.parametrize("value", [0.0, -0.0, 1.0, -5e-324, 1 + 2**-52, math.inf, -math.inf, math.nan])

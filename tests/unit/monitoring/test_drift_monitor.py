@@ -129,8 +129,14 @@ def test_statistics_without_the_peak_feed_the_spread_features_only():
     monitor = _monitor(_table(rng))
     channels = np.asarray(MANIFEST.object("mug").keypoints)
     spread_only = _statistics(rng, channels.size)
-    spread_only = HeatmapStatistics(spread_only.heatmap_shape, spread_only.uninformative, None, None,
-                                    spread_only.mean, spread_only.covariance)  # fmt: skip
+    spread_only = HeatmapStatistics(
+        spread_only.heatmap_shape,
+        spread_only.uninformative,
+        None,
+        None,
+        spread_only.mean,
+        spread_only.covariance,
+    )
     monitor.record(channels, spread_only, "cov", ball_shapes(np.ones(channels.size)))
     mug = next(k for k in monitor.report().keypoints if k.object == "mug")
     assert mug.features["peak_probability"].live_n == 0 and mug.features["peak_probability"].statistic is None
