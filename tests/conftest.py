@@ -1,10 +1,11 @@
-"""Shared fixtures: the bundled model's samples, and PostgreSQL.
+"""Shared fixtures: the bundled model's samples, PostgreSQL, and a server process.
 
 The samples: the model directory, its manifest, the COCO annotations, every labeled instance
 (``samples``), one image with its instances (``sample``) and small limits that valid small batches
 fit (``limits``). PostgreSQL: a throwaway cluster per session, a fresh database per test; tests
 request `postgres_url` (a postgresql:// URL of an empty database) or `postgres_cluster`
-(tests.postgres_cluster.PostgresCluster).
+(tests.postgres_cluster.PostgresCluster). ``server``: a real server process (tests/live/server.py)
+for the tests whose point is the process or a real URL (tests/live, the browser in tests/deploy).
 """
 
 from __future__ import annotations
@@ -15,9 +16,11 @@ from pathlib import Path
 
 import pytest
 
+from tests.live.server import LiveServer
 from tests.postgres_cluster import PostgresCluster
 from tests.predict_client import instances_of
 from tests.samples import Sample, batch_zip, load_samples, model_dir, samples_by_image
+from tests.service_calls import ADMIN_TOKEN
 
 
 @pytest.fixture(scope="session")
@@ -84,3 +87,10 @@ def postgres_url(postgres_cluster: PostgresCluster) -> Iterator[str]:
     url = postgres_cluster.create_database()
     yield url
     postgres_cluster.drop_database(url.rsplit("/", 1)[1])
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+    """A server with the bundled calibration active and admin enabled, shared by one test module."""
+    with LiveServer(tmp_path_factory.mktemp("server") / "data", admin_token=ADMIN_TOKEN) as live:
+        yield live
