@@ -1,32 +1,55 @@
-"""FastAPI dependencies: the service state, what the predict routes use, and the admin bearer
-token check."""
+"""FastAPI dependencies: each long-lived part a route uses (``Registry``, ``Store``, ...), what
+the predict routes use (``Predicting``), and the admin bearer token check (``Admin``)."""
 
 from __future__ import annotations
 
 import hmac
+from collections.abc import Awaitable, Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, HTTPException, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from calibration_store import CalibrationStore
 from service.api.request_body import BodyPace, read_limited_body
+from service.calibration.jobs import CalibrationJobs, JobRunner
+from service.calibration.registry import CalibrationRegistry
+from service.detector.session import Detector
+from service.monitoring.coverage_audits import CoverageAudits
+from service.monitoring.drift_monitor import DriftMonitor
 from service.prediction import Predictor
 from service.runtime.admission import Admission
-from service.runtime.audit_trail import Operator
+from service.runtime.audit_trail import AuditTrail, Operator
 from service.runtime.container import ServiceState
+from service.runtime.settings import Settings
 
 _bearer = HTTPBearer(auto_error=False, description="CKS_ADMIN_TOKEN, or a token of CKS_ADMIN_TOKENS_FILE")
 
 
 # Dependencies are ``async def`` although they never await: FastAPI runs a plain ``def``
 # dependency on its thread pool, a thread hop on every request.
-async def get_state(request: Request) -> ServiceState:
-    return request.app.state.service
+def _part(name: str) -> Callable[[Request], Awaitable[Any]]:
+    """A dependency giving one long-lived part of the service (an attribute of ServiceState)."""
+
+    async def part(request: Request) -> Any:
+        return getattr(request.app.state.service, name)
+
+    part.__name__ = f"get_{name}"
+    return part
 
 
-State = Annotated[ServiceState, Depends(get_state)]
+Model = Annotated[Detector, Depends(_part("detector"))]
+Registry = Annotated[CalibrationRegistry, Depends(_part("registry"))]
+Store = Annotated[CalibrationStore, Depends(_part("store"))]
+Jobs = Annotated[JobRunner, Depends(_part("jobs"))]
+Calibrations = Annotated[CalibrationJobs, Depends(_part("calibrations"))]
+Trail = Annotated[AuditTrail, Depends(_part("audit"))]
+Audits = Annotated[CoverageAudits, Depends(_part("audits"))]
+Drift = Annotated[DriftMonitor | None, Depends(_part("drift"))]
+Config = Annotated[Settings, Depends(_part("settings"))]
+Operators = Annotated[dict[str, str], Depends(_part("operators"))]
 
 
 @dataclass(frozen=True)
@@ -73,21 +96,22 @@ Predicting = Annotated[PredictParts, Depends(get_predict_parts)]
 
 async def require_admin(
     request: Request,
-    state: State,
+    operators: Operators,
+    registry: Registry,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> Operator:
     """Let the request through only with a configured admin token (and a reachable store);
     returns the operator it names."""
-    if not state.operators:
+    if not operators:
         raise HTTPException(
             403, "The admin API is disabled: set CKS_ADMIN_TOKEN or CKS_ADMIN_TOKENS_FILE to enable it."
         )
-    name = None if credentials is None else _operator_name(state.operators, credentials.credentials)
+    name = None if credentials is None else _operator_name(operators, credentials.credentials)
     if name is None:
         raise HTTPException(
             401, "Send 'Authorization: Bearer <admin token>'.", headers={"WWW-Authenticate": "Bearer"}
         )
-    state.registry.require_store()  # every admin call needs the store: 503 at once while it is away
+    registry.require_store()  # every admin call needs the store: 503 at once while it is away
     return Operator(name=name, client=request.client.host if request.client else "")
 
 

@@ -3,8 +3,6 @@ activate, roll back, and read the audit trail and where the store is."""
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
-from contextlib import asynccontextmanager
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Path, Query, Request, Response
@@ -30,16 +28,13 @@ from service.api.admin_schemas import (
     VersionDetail,
     VersionList,
 )
-from service.api.deps import Admin, State
+from service.api.batch_upload import receive_batch_zip, refusals_audited
+from service.api.deps import Admin, Calibrations, Config, Jobs, Model, Registry, Store, Trail
 from service.api.predict_schemas import MAX_VERSION, Nonconformity
-from service.api.request_body import BodyPace, receive_upload
 from service.calibration.intake import UploadOptions
 from service.calibration.stratification import parse_stratify
-from service.calibration.uploads import UploadWorkspace
 from service.calibration.versions import ActivationRequest, activate, comparison_with
-from service.errors import NotFound, ServiceError, UnsupportedMediaType
-from service.runtime.audit_trail import Operator
-from service.runtime.container import ServiceState
+from service.errors import NotFound
 
 router = APIRouter(
     prefix="/v1/admin",
@@ -48,7 +43,6 @@ router = APIRouter(
 )
 VersionNumber = Annotated[int, Path(ge=1, le=MAX_VERSION, description="calibration version number")]
 
-_ZIP_TYPES = {"application/zip", "application/x-zip-compressed", "application/octet-stream"}
 _UPLOAD_OPENAPI = {
     "requestBody": {
         "required": True,
@@ -81,24 +75,6 @@ _ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
 }
 
 
-@asynccontextmanager
-async def refusals_audited(
-    state: ServiceState, operator: Operator, action: str, context: dict | None = None, **fields: Any
-) -> AsyncIterator[None]:
-    """Append every refusal of an admin action to the audit trail, then let it through."""
-    try:
-        yield
-    except ServiceError as error:
-        details = {
-            **(context or {}),
-            "status": error.status,
-            "detail": error.detail,
-            "errors": error.errors[:10],
-        }
-        await run_in_threadpool(state.audit.record, operator, action, "refused", details=details, **fields)
-        raise
-
-
 @router.post(
     "/calibrations",
     status_code=202,
@@ -109,7 +85,9 @@ async def refusals_audited(
 async def upload_calibration(
     request: Request,
     response: Response,
-    state: State,
+    calibrations: Calibrations,
+    trail: Trail,
+    settings: Config,
     who: Admin,
     name: Annotated[
         str | None, Query(max_length=200, description="batch name (default: upload-<sha256>)")
@@ -143,7 +121,7 @@ async def upload_calibration(
         ),
     ] = None,
 ) -> JobOut:
-    async with refusals_audited(state, who, "upload"):
+    async with refusals_audited(trail, who, "upload"):
         options = UploadOptions(
             name=name,
             note=note,
@@ -155,8 +133,8 @@ async def upload_calibration(
             max_rejected_share=max_rejected_share,
             stratify=None if stratify is None else _stratify(stratify),
         )
-        workspace, sha256 = await receive_batch_zip(request, state)
-        job = await run_in_threadpool(state.calibrations.accept, workspace, sha256, options, who)
+        workspace, sha256 = await receive_batch_zip(request, settings)
+        job = await run_in_threadpool(calibrations.accept, workspace, sha256, options, who)
     response.headers["Location"] = f"/v1/admin/jobs/{job.id}"
     return job_out(job)
 
@@ -164,26 +142,6 @@ async def upload_calibration(
 def _stratify(values: list[str]) -> frozenset[str]:
     # repeated values are quoted as one ("difficulty+bogus") when refused, as they always were
     return parse_stratify("+".join(values))
-
-
-async def receive_batch_zip(request: Request, state: ServiceState) -> tuple[UploadWorkspace, str]:
-    """Receive a zip body (415 for another type), paced and within the upload limits, into a new
-    upload workspace; returns it with the body's sha256 (the caller removes it when done)."""
-    content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
-    if content_type not in _ZIP_TYPES:
-        raise UnsupportedMediaType(
-            f"send the batch as a zip body (Content-Type: application/zip), not {content_type!r}"
-        )
-    settings = state.settings
-    timeout = settings.calibration.upload_read_timeout_seconds
-    pace = BodyPace.from_settings(settings, timeout, "CKS_UPLOAD_READ_TIMEOUT_SECONDS")
-    workspace = await run_in_threadpool(UploadWorkspace.create, state.uploads_dir)
-    try:
-        saved = await receive_upload(request, workspace.archive, settings.calibration.max_upload_bytes, pace)
-    except BaseException:
-        await run_in_threadpool(workspace.remove)
-        raise
-    return workspace, saved.sha256
 
 
 @router.get(
@@ -195,15 +153,15 @@ async def receive_batch_zip(request: Request, state: ServiceState) -> tuple[Uplo
         503: {"description": "The calibration store is unreachable"},
     },
 )
-async def get_job(job_id: str, state: State, _: Admin) -> JobOut:
-    job = await run_in_threadpool(state.jobs.get, job_id)
+async def get_job(job_id: str, jobs: Jobs, registry: Registry, _: Admin) -> JobOut:
+    job = await run_in_threadpool(jobs.get, job_id)
     if job is None:
         raise NotFound(
             f"no job {job_id!r}: it never existed or was pruned (a job is kept for 7 days after its"
             " last heartbeat, and of the finished jobs only the latest 1000)"
         )
     if job.state == "succeeded" and job.result.get("activated"):  # the server that says so serves it
-        await run_in_threadpool(state.registry.refresh_now)
+        await run_in_threadpool(registry.refresh_now)
     return job_out(job)
 
 
@@ -217,9 +175,11 @@ async def get_job(job_id: str, state: State, _: Admin) -> JobOut:
         409: {"description": "The job is not interrupted, or its upload is kept by another server"},
     },
 )
-async def retry_job(job_id: str, response: Response, state: State, who: Admin) -> JobOut:
-    async with refusals_audited(state, who, "retry", {"job": job_id}):
-        job = await run_in_threadpool(state.calibrations.retry, job_id, who)
+async def retry_job(
+    job_id: str, response: Response, calibrations: Calibrations, trail: Trail, who: Admin
+) -> JobOut:
+    async with refusals_audited(trail, who, "retry", {"job": job_id}):
+        job = await run_in_threadpool(calibrations.retry, job_id, who)
     response.headers["Location"] = f"/v1/admin/jobs/{job.id}"
     return job_out(job)
 
@@ -227,24 +187,26 @@ async def retry_job(job_id: str, response: Response, state: State, who: Admin) -
 @router.get(
     "/calibrations", response_model=VersionList, summary="All calibration versions of the served model"
 )
-async def list_calibrations(state: State, _: Admin) -> VersionList:
-    versions = await run_in_threadpool(state.store.list_versions, state.detector.model_hash)
-    active = await run_in_threadpool(state.registry.refresh_now)
+async def list_calibrations(store: Store, model: Model, registry: Registry, _: Admin) -> VersionList:
+    versions = await run_in_threadpool(store.list_versions, model.model_hash)
+    active = await run_in_threadpool(registry.refresh_now)
     return VersionList(
-        model_hash=state.detector.model_hash,
+        model_hash=model.model_hash,
         active_version=active,
         versions=[summarize(info, active) for info in versions],
     )
 
 
 @router.get("/calibrations/{version}", response_model=VersionDetail, summary="One version in detail")
-async def get_calibration(version: VersionNumber, state: State, _: Admin) -> VersionDetail:
+async def get_calibration(
+    version: VersionNumber, store: Store, model: Model, registry: Registry, _: Admin
+) -> VersionDetail:
     def build() -> VersionDetail:
         try:
-            info = state.store.get_version(state.detector.model_hash, version)
+            info = store.get_version(model.model_hash, version)
         except VersionNotFound as error:
             raise NotFound(f"calibration version {version} does not exist for this model") from error
-        return describe(info, state.registry.refresh_now(), state.registry, state.detector.manifest)
+        return describe(info, registry.refresh_now(), registry, model.manifest)
 
     return await run_in_threadpool(build)
 
@@ -257,7 +219,9 @@ async def get_calibration(version: VersionNumber, state: State, _: Admin) -> Ver
 )
 async def compare_calibration(
     version: VersionNumber,
-    state: State,
+    model: Model,
+    registry: Registry,
+    settings: Config,
     _: Admin,
     against: Annotated[
         Literal["active"] | int, Query(description="'active' or a version number (ge 1)")
@@ -266,14 +230,12 @@ async def compare_calibration(
     nonconformity: Annotated[Nonconformity, Query()] = "cov",
 ) -> ComparisonOut:
     def build() -> ComparisonOut:
-        reference = state.registry.refresh_now() if against == "active" else int(against)
+        reference = registry.refresh_now() if against == "active" else int(against)
         if reference is not None and reference < 1:
             raise NotFound(f"calibration version {reference} does not exist for this model")
-        minimum = state.settings.calibration.min_calibration_instances
+        minimum = settings.calibration.min_calibration_instances
         return comparison_out(
-            comparison_with(
-                state.registry, state.detector.manifest, version, reference, minimum, epsilon, nonconformity
-            )
+            comparison_with(registry, model.manifest, version, reference, minimum, epsilon, nonconformity)
         )
 
     return await run_in_threadpool(build)
@@ -286,48 +248,55 @@ async def compare_calibration(
     responses=_ACTIVATE_RESPONSES,
 )
 async def activate_calibration(
-    version: VersionNumber, state: State, who: Admin, body: ActivationIn | None = None
+    version: VersionNumber,
+    model: Model,
+    registry: Registry,
+    trail: Trail,
+    settings: Config,
+    who: Admin,
+    body: ActivationIn | None = None,
 ) -> ActivationOut:
     body = body or ActivationIn()
     request = ActivationRequest(version, who, body.reason, body.force)
-    async with refusals_audited(state, who, "activation", version=version, reason=body.reason):
+    async with refusals_audited(trail, who, "activation", version=version, reason=body.reason):
         entry, _ = await run_in_threadpool(
             activate,
-            state.registry,
-            state.detector.manifest,
-            state.audit,
+            registry,
+            model.manifest,
+            trail,
             request,
-            state.settings.calibration.min_calibration_instances,
+            settings.calibration.min_calibration_instances,
         )
     return activation_out(entry)
 
 
 @router.get("/activations", response_model=ActivationLog, summary="The append-only activation history")
-async def activation_log(state: State, _: Admin) -> ActivationLog:
-    entries = await run_in_threadpool(state.store.activation_log, state.detector.model_hash)
-    active = await run_in_threadpool(state.registry.refresh_now)
+async def activation_log(store: Store, model: Model, registry: Registry, _: Admin) -> ActivationLog:
+    entries = await run_in_threadpool(store.activation_log, model.model_hash)
+    active = await run_in_threadpool(registry.refresh_now)
     return ActivationLog(active_version=active, activations=[activation_out(e) for e in entries])
 
 
 @router.get("/audit", response_model=AuditPage, summary="The append-only audit trail, newest first")
 async def audit_trail(
-    state: State,
+    store: Store,
+    model: Model,
     _: Admin,
     before: Annotated[int | None, Query(ge=1, le=2**63 - 1, description="entries before this seq")] = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
 ) -> AuditPage:
-    entries = await run_in_threadpool(state.store.audit_log, state.detector.model_hash, before, limit)
+    entries = await run_in_threadpool(store.audit_log, model.model_hash, before, limit)
     return audit_page(entries, limit)
 
 
 @router.get("/store", response_model=StoreInfo, summary="Which calibration store this server uses")
-async def store_info(state: State, _: Admin) -> StoreInfo:
-    kind, location = store_location(state.settings.storage.resolved_store_url)
-    active = await run_in_threadpool(state.registry.refresh_now)
+async def store_info(model: Model, registry: Registry, settings: Config, _: Admin) -> StoreInfo:
+    kind, location = store_location(settings.storage.resolved_store_url)
+    active = await run_in_threadpool(registry.refresh_now)
     return StoreInfo(
         kind=kind,
         location=location,
-        data_dir=str(state.settings.storage.data_dir),
-        model_hash=state.detector.model_hash,
+        data_dir=str(settings.storage.data_dir),
+        model_hash=model.model_hash,
         active_version=active,
     )

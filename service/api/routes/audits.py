@@ -10,9 +10,9 @@ from fastapi.concurrency import run_in_threadpool
 
 from service.api.admin_presenters import audit_list, audit_out, job_out
 from service.api.admin_schemas import AuditList, AuditOut, JobOut
-from service.api.deps import Admin, State
+from service.api.batch_upload import receive_batch_zip, refusals_audited
+from service.api.deps import Admin, Audits, Config, Model, Store, Trail
 from service.api.predict_schemas import MAX_VERSION
-from service.api.routes.admin import receive_batch_zip, refusals_audited
 from service.errors import NotFound
 from service.monitoring.audit_report import DEFAULT_EPSILONS
 from service.monitoring.coverage_audits import AuditRequest
@@ -54,7 +54,9 @@ _AUDIT_OPENAPI = {
 async def start_audit(
     request: Request,
     response: Response,
-    state: State,
+    audits: Audits,
+    trail: Trail,
+    settings: Config,
     who: Admin,
     version: Annotated[
         int | None, Query(ge=1, le=MAX_VERSION, description="the version to audit (default: the active one)")
@@ -80,28 +82,28 @@ async def start_audit(
         ),
     ] = None,
 ) -> JobOut:
-    async with refusals_audited(state, who, "audit"):
+    async with refusals_audited(trail, who, "audit"):
         audit = AuditRequest(
             version, tuple(epsilon or DEFAULT_EPSILONS), name, note, dedupe, max_rejected_share
         )
-        workspace, sha256 = await receive_batch_zip(request, state)
-        job = await run_in_threadpool(state.audits.accept, workspace, sha256, audit, who)
+        workspace, sha256 = await receive_batch_zip(request, settings)
+        job = await run_in_threadpool(audits.accept, workspace, sha256, audit, who)
     response.headers["Location"] = f"/v1/admin/jobs/{job.id}"
     return job_out(job)
 
 
 @router.get("", response_model=AuditList, summary="Coverage audits of the served model, newest first")
 async def list_audits(
-    state: State,
+    store: Store,
+    model: Model,
     _: Admin,
     before: Annotated[
         int | None, Query(ge=1, le=MAX_AUDIT_ID, description="audits with a smaller id")
     ] = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
 ) -> AuditList:
-    model_hash = state.detector.model_hash
-    audits = await run_in_threadpool(state.store.coverage_audits, model_hash, before, limit)
-    return audit_list(model_hash, audits, limit)
+    audits = await run_in_threadpool(store.coverage_audits, model.model_hash, before, limit)
+    return audit_list(model.model_hash, audits, limit)
 
 
 @router.get(
@@ -112,10 +114,11 @@ async def list_audits(
 )
 async def get_audit(
     audit_id: Annotated[int, Path(ge=1, le=MAX_AUDIT_ID, description="the audit's id")],
-    state: State,
+    store: Store,
+    model: Model,
     _: Admin,
 ) -> AuditOut:
-    audit = await run_in_threadpool(state.store.coverage_audit, state.detector.model_hash, audit_id)
+    audit = await run_in_threadpool(store.coverage_audit, model.model_hash, audit_id)
     if audit is None:
         raise NotFound(f"no coverage audit {audit_id} of this model: GET /v1/admin/audits lists them")
     return audit_out(audit)

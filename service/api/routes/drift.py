@@ -7,7 +7,7 @@ from fastapi.concurrency import run_in_threadpool
 
 from service.api.admin_presenters import drift_out
 from service.api.admin_schemas import DriftOut
-from service.api.deps import Admin, State
+from service.api.deps import Admin, Drift
 from service.errors import NotFound
 
 router = APIRouter(
@@ -23,8 +23,8 @@ router = APIRouter(
     summary="Drift of the live heatmap features of every keypoint against the active calibration's",
     responses={404: {"description": "Drift monitoring is off (CKS_DRIFT_ENABLED=false)"}},
 )
-async def drift(state: State, who: Admin) -> DriftOut:
-    if state.drift is None:
+async def drift(monitor: Drift, who: Admin) -> DriftOut:
+    if monitor is None:
         raise NotFound("drift monitoring is off in this server: set CKS_DRIFT_ENABLED=true to turn it on")
-    report = await run_in_threadpool(state.drift.report)
+    report = await run_in_threadpool(monitor.report)
     return drift_out(report)

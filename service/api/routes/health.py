@@ -7,7 +7,7 @@ from typing import Literal
 from fastapi import APIRouter, Response
 from pydantic import BaseModel, Field
 
-from service.api.deps import State
+from service.api.deps import Config, Model, Registry
 from service.errors import StoreUnreachable
 from service.runtime.metrics import metrics_payload
 
@@ -49,22 +49,20 @@ async def healthz() -> Health:
         }
     },
 )
-async def readyz(state: State) -> Readiness:
-    registry = state.registry
+async def readyz(registry: Registry, model: Model, settings: Config) -> Readiness:
     active = registry.resolve(None)  # 503: none active, or unusable; never waits on the store
     health = registry.health()
-    limit = state.settings.storage.max_cache_staleness_seconds
+    limit = settings.storage.max_cache_staleness_seconds
     if limit is not None and health.age_seconds > limit:
         raise StoreUnreachable(
             f"the store has not confirmed the cached calibration for {health.age_seconds:.1f} s"
             f" (CKS_MAX_CACHE_STALENESS_SECONDS = {limit:g}): {health.error or 'its polls are slow'}",
             registry.retry_after_s,
         )
-    manifest = state.detector.manifest
     return Readiness(
         status="ready",
-        model=manifest.name,
-        model_hash=state.detector.model_hash,
+        model=model.manifest.name,
+        model_hash=model.model_hash,
         active_calibration=active,
         store="ok" if health.reachable else "unreachable",
         cache_age_seconds=round(health.age_seconds, 3),

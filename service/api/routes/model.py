@@ -6,7 +6,7 @@ from fastapi import APIRouter
 from pydantic import BaseModel, Field
 
 from service import __version__
-from service.api.deps import State
+from service.api.deps import Model
 from service.detector.manifest import Manifest
 
 router = APIRouter(tags=["model"])
@@ -25,8 +25,7 @@ class ModelInfo(BaseModel):
 
 
 @router.get("/v1/model", response_model=ModelInfo, summary="The served model, its keypoints and objects")
-async def model_info(state: State) -> ModelInfo:
-    detector = state.detector
+async def model_info(detector: Model) -> ModelInfo:
     return ModelInfo(
         name=detector.manifest.name,
         hash=detector.model_hash,
