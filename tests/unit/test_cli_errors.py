@@ -1,21 +1,32 @@
-"""The installed keypoint-service answers mistakes like a tool: one line on stderr, a non-zero
-exit status, never a traceback; --version and every command's --help with examples."""
+"""keypoint-service answers mistakes like a tool: one line on stderr, a non-zero exit status,
+never a traceback; --version and every command's --help with examples.
+
+The command's ``main`` runs in this process, with the environment a server process would get
+(``service_env``) and its own stdout and stderr; the installed entry point, run as a process,
+answers the same (``test_the_installed_command_answers_the_same``)."""
 
 from __future__ import annotations
 
+import contextlib
 import importlib.metadata
+import io
+import logging
+import os
 import socket
 import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+from unittest import mock
 
 import pytest
+from fastapi.testclient import TestClient
 
 from service import __version__
-from service.cli import EXAMPLES
-from service.runtime.settings import PACKAGE_ROOT
-from tests.live.server import LiveServer, cli, free_port, service_env
+from service.api.app import create_app
+from service.cli import EXAMPLES, main
+from service.runtime.settings import PACKAGE_ROOT, Settings
+from tests.live.server import cli, free_port, service_env
 
 SAMPLE_IMAGE = "models/lmo-synth-unet/samples/images/000000.jpg"
 DUCK = "duck:235,217,67,64"
@@ -62,10 +73,40 @@ MISTAKES = [
 
 
 def run(args: list[str], data_dir: Path, **settings: Any) -> subprocess.CompletedProcess:
+    """``keypoint-service ARGS`` in this process, as a process would run it."""
+    stdout, stderr = io.StringIO(), io.StringIO()
+    env = service_env(data_dir, **settings)
+    with (
+        mock.patch.dict(os.environ, env, clear=True),
+        _logging_restored(),
+        contextlib.redirect_stdout(stdout),
+        contextlib.redirect_stderr(stderr),
+    ):
+        try:
+            status = main(args)
+        except SystemExit as exit_:  # argparse: usage errors, --help, --version
+            status = exit_.code if isinstance(exit_.code, int) else 1
+    return subprocess.CompletedProcess(args, status, stdout.getvalue(), stderr.getvalue())
+
+
+def run_installed(args: list[str], data_dir: Path, **settings: Any) -> subprocess.CompletedProcess:
+    """The installed entry point, as a process."""
     env = service_env(data_dir, **settings)
     return subprocess.run(
         [*cli(), *args], env=env, cwd=PACKAGE_ROOT, capture_output=True, text=True, timeout=120
     )
+
+
+@contextlib.contextmanager
+def _logging_restored() -> Iterator[None]:
+    """The command configures logging for its process: undone for the tests that follow."""
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    try:
+        yield
+    finally:
+        root.handlers[:] = handlers
+        root.setLevel(level)
 
 
 def assert_one_line_error(result: subprocess.CompletedProcess, status: int, *fragments: str) -> str:
@@ -150,12 +191,21 @@ def test_a_mistake_is_one_line(tmp_path: Path, args: list[str], status: int, fra
 
 def test_version_is_the_package_version(tmp_path: Path) -> None:
     assert __version__ == importlib.metadata.version("conformal-keypoint-service")  # one source
-    result = run(["--version"], tmp_path / "data")
+    result = run_installed(["--version"], tmp_path / "data")
     assert (result.returncode, result.stdout, result.stderr) == (0, f"keypoint-service {__version__}\n", "")
 
 
-def test_the_server_reports_the_same_version(server: LiveServer, tmp_path: Path) -> None:
-    response = server.client.get("/v1/model")
+@pytest.mark.parametrize(("args", "status", "fragments"), [MISTAKES[0], MISTAKES[-2]])
+def test_the_installed_command_answers_the_same(
+    tmp_path: Path, args: list[str], status: int, fragments: list[str]
+) -> None:
+    in_process = assert_one_line_error(run(args, tmp_path / "data"), status, *fragments)
+    assert assert_one_line_error(run_installed(args, tmp_path / "data"), status, *fragments) == in_process
+
+
+def test_the_server_reports_the_same_version(tmp_path: Path) -> None:
+    with TestClient(create_app(Settings(data_dir=tmp_path / "served", inference_threads=1))) as client:
+        response = client.get("/v1/model")
     assert response.status_code == 200, response.text
     printed = run(["--version"], tmp_path / "data").stdout.split()[-1]
     assert response.json()["service_version"] == printed == __version__
