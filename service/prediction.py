@@ -160,57 +160,60 @@ class Predictor:
         """The predict use case: decode, check, pick the calibration, infer, calibrate the sets
         (pooled or per stratum), record drift, estimate poses. Every refusal comes before the
         model runs, except a stratum that cannot answer (it needs the heatmaps)."""
-        manifest = self.detector.manifest
-        image = decode_image(image_bytes, self.max_image_pixels, self.max_decoded_bytes)
-        height, width = image.shape[:2]
-        _check_instances(query.instances, manifest, width, height, self.max_instances)
-        objects = [instance.object for instance in query.instances]
-        if query.pose is not None:
-            check_pose_request(manifest, objects, query.coverage, query.pose)
-        version = self.registry.resolve(query.calibration_version)
-        kind = query.nonconformity
-        thresholds = self.registry.thresholds(version, kind, query.coverage, query.epsilon, query.delta)
+        with self.detector.computing():  # a lone request's run takes every usable core
+            manifest = self.detector.manifest
+            image = decode_image(image_bytes, self.max_image_pixels, self.max_decoded_bytes)
+            height, width = image.shape[:2]
+            _check_instances(query.instances, manifest, width, height, self.max_instances)
+            objects = [instance.object for instance in query.instances]
+            if query.pose is not None:
+                check_pose_request(manifest, objects, query.coverage, query.pose)
+            version = self.registry.resolve(query.calibration_version)
+            kind = query.nonconformity
+            thresholds = self.registry.thresholds(version, kind, query.coverage, query.epsilon, query.delta)
 
-        boxes = np.array([instance.bbox for instance in query.instances], dtype=np.float64)
-        result = self.detector.infer(image, boxes, objects)
+            boxes = np.array([instance.bbox for instance in query.instances], dtype=np.float64)
+            result = self.detector.infer(image, boxes, objects)
 
-        kinds = parse_stratify(query.stratify)
-        strata = _RequestStrata(self.registry, version, kinds, query, result, thresholds) if kinds else None
-        drift = self.drift
-        all_statistics = query.include_statistics or (drift is not None and drift.wants_all_statistics())
-        all_statistics = all_statistics or DIFFICULTY in kinds  # difficulty strata need every feature
-        row_thresholds = strata.thresholds if strata else None
-        sets = calibrated_sets(
-            result, kind, thresholds.values, manifest.heatmap, all_statistics, row_thresholds
-        )
-        if drift is not None:
-            drift.record(result.channel, sets.statistics, kind, sets.shapes)
-        if strata is not None:
-            guarantees = strata.guarantees()
-        else:
-            guarantees = [(thresholds.guarantees[c], None) for c in result.channel]
-        poses = None
-        if query.pose is not None:
-            poses = estimate_pose_sets(
-                manifest,
-                objects,
-                query.pose,
-                sets.centers,
-                sets.shapes,
+            kinds = parse_stratify(query.stratify)
+            strata = (
+                _RequestStrata(self.registry, version, kinds, query, result, thresholds) if kinds else None
+            )
+            drift = self.drift
+            all_statistics = query.include_statistics or (drift is not None and drift.wants_all_statistics())
+            all_statistics = all_statistics or DIFFICULTY in kinds  # difficulty strata need every feature
+            row_thresholds = strata.thresholds if strata else None
+            sets = calibrated_sets(
+                result, kind, thresholds.values, manifest.heatmap, all_statistics, row_thresholds
+            )
+            if drift is not None:
+                drift.record(result.channel, sets.statistics, kind, sets.shapes)
+            if strata is not None:
+                guarantees = strata.guarantees()
+            else:
+                guarantees = [(thresholds.guarantees[c], None) for c in result.channel]
+            poses = None
+            if query.pose is not None:
+                poses = estimate_pose_sets(
+                    manifest,
+                    objects,
+                    query.pose,
+                    sets.centers,
+                    sets.shapes,
+                    result.channel,
+                    result.instance_index,
+                )
+            return Prediction(
+                manifest.name,
+                self.detector.model_hash,
+                version,
+                image,
+                sets,
                 result.channel,
                 result.instance_index,
+                guarantees,
+                poses,
             )
-        return Prediction(
-            manifest.name,
-            self.detector.model_hash,
-            version,
-            image,
-            sets,
-            result.channel,
-            result.instance_index,
-            guarantees,
-            poses,
-        )
 
 
 class _RequestStrata:

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import hashlib
+import os
+import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,7 +54,11 @@ class InstanceHeatmaps:
 
 
 class Detector:
-    """A validated ONNX heatmap model and its manifest; ``run`` is thread-safe."""
+    """A validated ONNX heatmap model and its manifest; ``run`` is thread-safe.
+
+    One rule for threads: a request alone in the process runs on every usable core, and while
+    others compute too, each run has ``threads`` intra-op threads (concurrent runs in parallel).
+    """
 
     def __init__(
         self,
@@ -61,7 +68,8 @@ class Detector:
         providers: Sequence[str] = CPU,
         provider_options: Mapping[str, Mapping[str, str]] | None = None,
     ) -> None:
-        """``threads``: onnxruntime intra-op threads of each run (0: onnxruntime's default)."""
+        """``threads``: onnxruntime intra-op threads of a run beside others (0: onnxruntime's
+        default, every run). A lone request's session exists on the CPU provider only."""
         model_dir = Path(model_dir)
         self.manifest = _load_manifest(model_dir)
         model_path = model_dir / MODEL_FILENAME
@@ -69,6 +77,11 @@ class Detector:
             raise ModelMismatch(f"{model_path} does not exist")
         self.model_hash = file_sha256(model_path)
         self._session = create_session(model_path, threads, providers, provider_options)
+        cores = usable_cores()
+        alone = threads != 0 and cores > threads and tuple(providers) == CPU
+        self._alone_session = create_session(model_path, cores) if alone else None
+        self.alone_threads = cores if alone else threads
+        self._computing, self._counting = 0, threading.Lock()
         _check_graph(self._session, self.manifest)
         self._check_output_shape()
 
@@ -77,12 +90,26 @@ class Detector:
         """The providers the session really runs on, in onnxruntime's order of preference."""
         return self._session.get_providers()
 
+    @contextmanager
+    def computing(self) -> Iterator[None]:
+        """One request being computed in this process (decode to sets): while it is the only one,
+        its run takes every usable core."""
+        with self._counting:
+            self._computing += 1
+        try:
+            yield
+        finally:
+            with self._counting:
+                self._computing -= 1
+
     def run(self, batch: np.ndarray) -> np.ndarray:
         """``(N, C, H, W)`` float32 input -> ``(N, K, h, w)`` float32 heatmaps, in one run on this
         thread (concurrent requests run in parallel on their own threads)."""
         spec = self.manifest
+        alone = self._alone_session is not None and self._computing <= 1
+        session = self._alone_session if alone else self._session
         started = time.perf_counter()
-        heatmaps = self._session.run([spec.output.name], {spec.input.name: batch})[0]
+        heatmaps = session.run([spec.output.name], {spec.input.name: batch})[0]
         INFERENCE_SECONDS.observe(time.perf_counter() - started)
         BATCH_SIZE.observe(len(batch))
         return heatmaps
@@ -108,6 +135,17 @@ class Detector:
                 f"output {self.manifest.output.name!r} has shape {tuple(out.shape)} for a batch of 2, "
                 f"but the manifest implies {expected} (batch, keypoints, output.height, output.width)"
             )
+
+
+def usable_cores(cpu_max: Path = Path("/sys/fs/cgroup/cpu.max")) -> int:
+    """The cores this process may run on: its CPU affinity, capped by a cgroup v2 CPU quota (a
+    container limited to 2 CPUs on a 64-core node can use 2)."""
+    cores = len(os.sched_getaffinity(0))
+    try:
+        quota, period = cpu_max.read_text().split()[:2]
+    except (OSError, ValueError):
+        return cores
+    return cores if quota == "max" else max(1, min(cores, int(quota) // int(period)))
 
 
 def instance_heatmaps(

@@ -104,7 +104,13 @@ def build_state(settings: Settings) -> ServiceState:
     detector = Detector(
         settings.model.model_dir, settings.model.inference_threads, **detector_providers(settings)
     )
-    log.info("onnxruntime execution providers in use: %s", ", ".join(detector.execution_providers))
+    log.info(
+        "onnxruntime execution providers in use: %s; intra-op threads of a run: %d, of a request alone"
+        " in this process: %d",
+        ", ".join(detector.execution_providers),
+        settings.model.inference_threads,
+        detector.alone_threads,
+    )
     kind, location = store_location(settings.storage.resolved_store_url)
     # SQLite keeps its busy timeout: a write waiting on another writer is no outage
     options = {"timeout_s": settings.storage.store_timeout_seconds} if kind == "postgresql" else {}

@@ -35,8 +35,8 @@ REMOVED_SETTINGS = {
     "CKS_MAX_INFERENCE_BATCH": _ONE_RUN,
     "CKS_INFERENCE_STREAMS": _ONE_RUN,
     "CKS_BATCH_WINDOW_MS": _ONE_RUN,
-    "CKS_SOLO_INFERENCE_THREADS": "the lone-request session was removed (it did not pay, see CHANGELOG);"
-    " every run has CKS_INFERENCE_THREADS intra-op threads",
+    "CKS_SOLO_INFERENCE_THREADS": "a request alone in a process always runs on every usable core (its CPU"
+    " affinity and cgroup quota), and one beside others with CKS_INFERENCE_THREADS intra-op threads",
 }
 
 
@@ -86,8 +86,7 @@ class ModelSettings(_Group):
         default=1,
         ge=0,
         description=(
-            "onnxruntime intra-op threads per run (0 = ort default); each request's crops are one run on "
-            "its own thread, concurrent requests' runs in parallel"
+            "onnxruntime intra-op threads of a run while other requests compute in the same process (0 = onnxruntime's default for every run); a request alone in the process runs on every usable core (its CPU affinity and cgroup quota). Each request's crops are one run on its own thread, concurrent requests' runs in parallel"
         ),
     )
     cpu_workers: int = Field(
