@@ -86,7 +86,10 @@ class ModelSettings(_Group):
         default=1,
         ge=0,
         description=(
-            "onnxruntime intra-op threads of a run while other requests compute in the same process (0 = onnxruntime's default for every run); a request alone in the process runs on every usable core (its CPU affinity and cgroup quota). Each request's crops are one run on its own thread, concurrent requests' runs in parallel"
+            "onnxruntime intra-op threads of a run while other requests compute in the same process "
+            "(0 = onnxruntime's default for every run); a request alone in the process runs on every "
+            "usable core (its CPU affinity and cgroup quota). Each request's crops are one run on its"
+            " own thread, concurrent requests' runs in parallel"
         ),
     )
     cpu_workers: int = Field(
