@@ -11,6 +11,7 @@ for the tests whose point is the process or a real URL (tests/live, the browser 
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -21,6 +22,16 @@ from tests.postgres_cluster import PostgresCluster
 from tests.predict_client import instances_of
 from tests.samples import Sample, batch_zip, load_samples, model_dir, samples_by_image
 from tests.service_calls import ADMIN_TOKEN
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Each test worker (pytest-xdist) keeps to one core, and so do the servers it starts: four
+    workers share two cores without a lone request's runs spinning on cores others need (the
+    wide path has its own test, tests/unit/detector/test_runtime.py)."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    if worker:
+        cores = sorted(os.sched_getaffinity(0))
+        os.sched_setaffinity(0, {cores[int(worker.removeprefix("gw")) % len(cores)]})
 
 
 @pytest.fixture(scope="session")

@@ -40,8 +40,9 @@ class Contender:
 SERVICE = Contender(
     "service",
     None,
-    "its defaults (`keypoint-service serve`, no `CKS_*` set): one worker; each request's crops are one "
-    "run of one intra-op thread on the request's own thread, concurrent runs in parallel",
+    "its defaults (`keypoint-service serve`, no `CKS_*` set): one worker; a request alone in the "
+    "process runs on every core, and beside others each request's crops are one run of one intra-op "
+    "thread on the request's own thread, concurrent runs in parallel",
 )
 SERVICE_ON_GPU = Contender(
     "service",
