@@ -9,14 +9,15 @@
 # links CUDA 13 (libcublas.so.13) and asks for cuDNN 9. The build fails when they differ.
 ARG CUDA_IMAGE=nvidia/cuda:13.0.0-cudnn-runtime-ubuntu22.04
 
-# Build stage: the service's wheel (pure Python: both targets install the same one).
-FROM python:3.11-slim-bookworm AS build
+# Build stage: a wheel with the compiled anchor-median kernel (needs a C compiler).
+FROM python:3.11-bookworm AS build
 WORKDIR /src
 COPY pyproject.toml README.md ./
 COPY service ./service
 COPY calibration_store ./calibration_store
 COPY client ./client
-RUN pip wheel --no-deps --wheel-dir /wheels .
+RUN pip wheel --no-deps --wheel-dir /wheels . \
+    && python -m zipfile -l /wheels/*.whl | grep -q _upper_half  # the kernel was compiled
 
 # ---- CUDA target (--target cuda): never built for the default target, which is the last stage.
 FROM ${CUDA_IMAGE} AS cuda-python
@@ -27,6 +28,18 @@ ENV DEBIAN_FRONTEND=noninteractive \
     PATH=/opt/venv/bin:$PATH
 RUN apt-get update && apt-get install -y --no-install-recommends python3.11 python3.11-venv \
     && rm -rf /var/lib/apt/lists/* && python3.11 -m venv /opt/venv
+
+# The wheel is compiled against this image's Python and C library, not the CPU stages'.
+FROM cuda-python AS cuda-build
+RUN apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev python3.11-dev \
+    && rm -rf /var/lib/apt/lists/*
+WORKDIR /src
+COPY pyproject.toml README.md ./
+COPY service ./service
+COPY calibration_store ./calibration_store
+COPY client ./client
+RUN pip wheel --no-deps --wheel-dir /wheels . \
+    && python -m zipfile -l /wheels/*.whl | grep -q _upper_half
 
 FROM cuda-python AS cuda
 # Measured on an H200 (docs/operations.md, Serving from a GPU): the CPU work, not the model, is
@@ -40,7 +53,7 @@ ENV PYTHONUNBUFFERED=1 \
     CKS_WORKERS=4 \
     CKS_MAX_CONCURRENT_INFERENCES=16
 WORKDIR /app
-COPY --from=build /wheels /wheels
+COPY --from=cuda-build /wheels /wheels
 # onnxruntime-gpu replaces onnxruntime: both own the `onnxruntime` module, so the CPU build is
 # removed and the GPU build's files put back (the uninstall took the files the two share).
 # Then every library the CUDA provider links must be in the image, but the driver's libcuda
@@ -51,6 +64,7 @@ RUN pip install "$(ls /wheels/*.whl)[postgres,gpu]" && rm -rf /wheels \
     && python -c "import onnxruntime as o; assert 'CUDAExecutionProvider' in o.get_available_providers()" \
     && ! ldd "$(python -c "import onnxruntime as o, pathlib; print(pathlib.Path(o.__file__).parent \
          / 'capi' / 'libonnxruntime_providers_cuda.so')")" | grep "not found" | grep -v "libcuda\.so\.1" \
+    && python -c "from service.conformal.kernel import native_kernel_available as ok; assert ok()" \
     && useradd --system --uid 10001 --no-create-home --shell /usr/sbin/nologin app \
     && mkdir -p /data && chown app /data
 COPY models/lmo-synth-unet ./models/lmo-synth-unet
@@ -76,6 +90,7 @@ ENV PYTHONUNBUFFERED=1 \
 WORKDIR /app
 COPY --from=build /wheels /wheels
 RUN pip install "$(ls /wheels/*.whl)[postgres]" && rm -rf /wheels \
+    && python -c "from service.conformal.kernel import native_kernel_available as ok; assert ok()" \
     && useradd --system --uid 10001 --no-create-home --shell /usr/sbin/nologin app \
     && mkdir -p /data && chown app /data
 COPY models/lmo-synth-unet ./models/lmo-synth-unet

@@ -8,6 +8,7 @@ from benchmarks.service_bench.breakdown import STAGES
 from benchmarks.service_bench.machine import Machine
 from benchmarks.service_bench.offline import Calibration, PostProcessing
 from benchmarks.service_bench.runs import BATCHED_CROPS, Memory, Point, Variant
+from service.conformal.kernel import native_kernel_available
 
 RATIO_GOAL, SPEEDUP_GOAL, MEMORY_GOAL = 0.85, 20.0, 0.05
 NOISE = 0.10  # throughput changes smaller than this are not called an effect
@@ -287,7 +288,8 @@ def render(r: Results) -> str:
         *post_processing(r),
         "",
         "`peak` does little per heatmap besides the anchor normalization's exact median, which both "
-        "sides pay: the loop with np.median per heatmap, the service with one np.median over the batch.",
+        "sides pay: the loop with np.median, the service with the native kernel of "
+        f"`service/conformal/kernel.py` ({'built' if native_kernel_available() else 'NOT built'}).",
         "",
         "## Calibration",
         "",

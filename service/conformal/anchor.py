@@ -1,24 +1,44 @@
-"""Anchor top-K statistics read from the raw heatmap values, without a float64 copy of the batch.
+"""Anchor statistics read from the raw heatmap values, without a float64 copy of the batch.
 
 The anchor weight of a raw value v is w = fl(v - min) in float64: a monotone
-non-decreasing map of v. Order statistics commute with such a map, so the top-K
-pixels can be selected on the raw values (float32 from the detector: half the
-memory traffic of float64), and only the K selected values are converted. A
-monotone map can change a selection in one way only, by rounding two distinct
-raw values onto one weight; ``isolated`` checks that no other raw value shares
-the weight of the K-th value, and the statistics module recomputes every row
-where the check fails on the exact float64 path. The answer never depends on the
+non-decreasing map of v. Order statistics commute with such a map, so the
+argmax and the top-K pixels can be selected on the raw values (float32 from the
+detector: half the memory traffic of float64), and only the few selected values
+are converted. A monotone map can change a selection in one way only, by
+rounding two distinct raw values onto one weight; ``isolated`` checks that no
+other raw value shares the weight of a value that decides a selection (the
+argmax, the K-th value), and the statistics module recomputes every row where
+a check fails on the exact float64 path. The answer never depends on the
 shortcut.
 
-``peak`` is not read this way: its normalizer (the sum of the weights at or above
-the median) needs the exact median of every map, which the float64 path computes.
+The normalizer S of ``peak`` (the sum of the weights at or above the median)
+needs the exact median of every map; the native kernel (``kernel``) computes S
+on the raw values. Without the kernel every ``peak`` row takes the exact path.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from .kernel import upper_half_sums
 from .selection import top_k_indices
+
+
+@dataclass(frozen=True)
+class RawExtremes:
+    """Per row: first index of the largest raw value, and the min and max as float64."""
+
+    argmax: np.ndarray
+    minimum: np.ndarray
+    maximum: np.ndarray
+
+
+def raw_extremes(flat: np.ndarray) -> RawExtremes:
+    argmax = flat.argmax(axis=1)
+    maximum = flat[np.arange(flat.shape[0]), argmax]
+    return RawExtremes(argmax, flat.min(axis=1).astype(np.float64), maximum.astype(np.float64))
 
 
 def anchor_weights(values: np.ndarray, minimum: np.ndarray) -> np.ndarray:
@@ -51,3 +71,11 @@ def raw_top_k(flat: np.ndarray, k: int, minimum: np.ndarray) -> tuple[np.ndarray
     values = np.take_along_axis(flat, indices, axis=1)
     exact = isolated(values.min(axis=1), minimum)
     return indices, anchor_weights(values, minimum), exact
+
+
+def upper_half_weight_sums(flat: np.ndarray, extremes: RawExtremes) -> np.ndarray | None:
+    """S (N,) = sum of the anchor weights at or above their median (np.median's), float64.
+
+    None when the native kernel is not built: the rows need the exact path.
+    """
+    return upper_half_sums(flat, extremes.minimum, extremes.maximum)

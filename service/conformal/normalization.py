@@ -102,24 +102,9 @@ def normalized_weights(
 def _anchor(flat: np.ndarray, with_median: bool) -> np.ndarray:
     weights = flat - flat.min(axis=1, keepdims=True)
     if with_median:
-        np.multiply(weights, weights >= _median(weights), out=weights)  # zero below the median
+        median = np.median(weights, axis=1, keepdims=True)
+        np.multiply(weights, weights >= median, out=weights)  # zero below the median
     return weights
-
-
-def _median(values: np.ndarray) -> np.ndarray:
-    """np.median of each row (N, 1), the same bits, from a partition at one index.
-
-    np.median of an even row partitions at both middle indices, which costs about 8x a
-    partition at one (numpy 2.4, rows of 4096); the lower middle value is then the largest
-    value left of the upper one. The one or two middle values are averaged with ``mean``,
-    as np.median averages them.
-    """
-    half = values.shape[1] // 2
-    partitioned = np.partition(values, half, axis=1)
-    middle = partitioned[:, half : half + 1]
-    if values.shape[1] % 2 == 0:
-        middle = np.concatenate([partitioned[:, :half].max(axis=1, keepdims=True), middle], axis=1)
-    return middle.mean(axis=1, keepdims=True)
 
 
 def _softmax(flat: np.ndarray, temperature: float) -> np.ndarray:

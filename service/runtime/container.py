@@ -23,6 +23,7 @@ from service.calibration.registry import CalibrationRegistry
 from service.calibration.stratification import difficulty_spec
 from service.calibration.uploads import process_uploads_dir, remove_spent_job_folders
 from service.calibration.versions import VersionRules
+from service.conformal.kernel import native_kernel_available
 from service.detector.session import Detector
 from service.monitoring.coverage_audits import CoverageAudits
 from service.monitoring.drift_monitor import DriftMonitor, DriftSettings
@@ -137,6 +138,11 @@ def build_state(settings: Settings) -> ServiceState:
         registry.start(),
         names,
     )
+    if not native_kernel_available():
+        log.warning(
+            "the native kernel (service/conformal/kernel.py) is not built: the heatmap statistics run"
+            " on the slower numpy path; install a C compiler and reinstall the package"
+        )
     remove_spent_job_folders(settings.storage.jobs_dir, store)
     jobs = JobRunner(store, settings.calibration.calibration_workers)
     audit = AuditTrail(store, detector.model_hash)

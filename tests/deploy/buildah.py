@@ -18,7 +18,8 @@ from pathlib import Path
 
 ENV = {**os.environ, "STORAGE_DRIVER": "vfs", "BUILDAH_ISOLATION": "chroot"}
 CA_BUNDLE = "/etc/ssl/certs/ca-certificates.crt"
-STAND_INS = {  # tag -> extra Debian packages
+STAND_INS = {  # tag -> extra Debian packages (the build stage compiles the native kernel)
+    "docker.io/library/python:3.11-bookworm": "gcc,libc6-dev,python3-dev",
     "docker.io/library/python:3.11-slim-bookworm": "",
 }
 CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "base-image-stand-ins"
