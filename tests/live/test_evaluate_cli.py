@@ -14,8 +14,8 @@ import pytest
 from scipy import stats
 
 from service import cli as service_cli
-from service.runtime.settings import PACKAGE_ROOT
-from tests.live.server import LiveServer, cli, service_env
+from tests.cli_calls import run
+from tests.live.server import LiveServer, service_env
 from tests.predict_client import contains, predict_ok
 from tests.samples import Sample, samples_by_image
 
@@ -25,14 +25,8 @@ FIGURES = ("validity.png", "bands.png", "tightness.png", "adaptiveness.png")
 
 
 def evaluate(data_dir: Path, *args: str, expect: int = 0) -> subprocess.CompletedProcess:
-    result = subprocess.run(
-        [*cli(), "evaluate", *args],
-        env=service_env(data_dir),
-        cwd=PACKAGE_ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    """``keypoint-service evaluate ARGS`` (its main, in this process), with the status expected."""
+    result = run(["evaluate", *args], data_dir)
     assert result.returncode == expect, f"exit {result.returncode}\n{result.stdout}\n{result.stderr}"
     return result
 

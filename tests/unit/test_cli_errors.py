@@ -7,26 +7,20 @@ answers the same (``test_the_installed_command_answers_the_same``)."""
 
 from __future__ import annotations
 
-import contextlib
 import importlib.metadata
-import io
-import logging
-import os
 import socket
-import subprocess
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
-from unittest import mock
 
 import pytest
 from fastapi.testclient import TestClient
 
 from service import __version__
 from service.api.app import create_app
-from service.cli import EXAMPLES, main
-from service.runtime.settings import PACKAGE_ROOT, Settings
-from tests.live.server import cli, free_port, service_env
+from service.cli import EXAMPLES
+from service.runtime.settings import Settings
+from tests.cli_calls import assert_one_line_error, run, run_installed
+from tests.live.server import free_port
 
 SAMPLE_IMAGE = "models/lmo-synth-unet/samples/images/000000.jpg"
 DUCK = "duck:235,217,67,64"
@@ -70,55 +64,6 @@ MISTAKES = [
     (["frobnicate"], 2, ["argument COMMAND: invalid choice: 'frobnicate'", "(see keypoint-service --help)"]),
     ([], 2, ["the following arguments are required: COMMAND"]),
 ]
-
-
-def run(args: list[str], data_dir: Path, **settings: Any) -> subprocess.CompletedProcess:
-    """``keypoint-service ARGS`` in this process, as a process would run it."""
-    stdout, stderr = io.StringIO(), io.StringIO()
-    env = service_env(data_dir, **settings)
-    with (
-        mock.patch.dict(os.environ, env, clear=True),
-        _logging_restored(),
-        contextlib.redirect_stdout(stdout),
-        contextlib.redirect_stderr(stderr),
-    ):
-        try:
-            status = main(args)
-        except SystemExit as exit_:  # argparse: usage errors, --help, --version
-            status = exit_.code if isinstance(exit_.code, int) else 1
-    return subprocess.CompletedProcess(args, status, stdout.getvalue(), stderr.getvalue())
-
-
-def run_installed(args: list[str], data_dir: Path, **settings: Any) -> subprocess.CompletedProcess:
-    """The installed entry point, as a process."""
-    env = service_env(data_dir, **settings)
-    return subprocess.run(
-        [*cli(), *args], env=env, cwd=PACKAGE_ROOT, capture_output=True, text=True, timeout=120
-    )
-
-
-@contextlib.contextmanager
-def _logging_restored() -> Iterator[None]:
-    """The command configures logging for its process: undone for the tests that follow."""
-    root = logging.getLogger()
-    handlers, level = root.handlers[:], root.level
-    try:
-        yield
-    finally:
-        root.handlers[:] = handlers
-        root.setLevel(level)
-
-
-def assert_one_line_error(result: subprocess.CompletedProcess, status: int, *fragments: str) -> str:
-    output = f"exit {result.returncode}\nstdout:\n{result.stdout}\nstderr:\n{result.stderr}"
-    assert result.returncode == status, output
-    assert "Traceback" not in result.stderr, output
-    lines = result.stderr.splitlines()
-    assert len(lines) == 1 and "error: " in lines[0], output
-    assert result.stdout == "", output
-    for fragment in fragments:
-        assert fragment in lines[0], f"{fragment!r} not in: {lines[0]}"
-    return lines[0]
 
 
 @pytest.fixture
@@ -228,10 +173,7 @@ def test_a_successful_one_shot_command_is_quiet_on_stderr(tmp_path: Path) -> Non
 def test_serve_refuses_a_bad_tokens_file_in_one_line(tmp_path: Path) -> None:
     tokens = tmp_path / "tokens"
     tokens.write_text("alice:short\n")
-    env = service_env(tmp_path / "data", admin_tokens_file=tokens, port=free_port())
-    result = subprocess.run(
-        [*cli(), "serve"], env=env, cwd=PACKAGE_ROOT, capture_output=True, text=True, timeout=60
-    )
+    result = run(["serve"], tmp_path / "data", admin_tokens_file=tokens, port=free_port())
     assert result.returncode == 2, result.stderr
     assert "line 1: the token of 'alice' must be at least 16 characters" in result.stderr
     assert "Traceback" not in result.stderr
