@@ -16,6 +16,7 @@ from service.conformal import heatmap_statistics, kernel, nonconformity_scores
 from service.conformal.kernel import anchor_peaks, native_kernel_available, top_k_spread, upper_half_sums
 from service.conformal.selection import top_k_indices
 from service.conformal.statistics import _spread
+from tests.unit.conformal.rows import row_cases
 
 
 def median_masked_sum(flat: np.ndarray) -> np.ndarray:
@@ -50,26 +51,8 @@ def test_a_build_of_other_sources_is_not_loaded(monkeypatch):
     assert native_kernel_available()
 
 
-def _row_cases(rng: np.random.Generator) -> dict[str, np.ndarray]:
-    noise = rng.normal(size=(30, 4096))
-    return {
-        "gaussian noise": noise,
-        "few distinct values (ties at the median)": np.round(noise * 2),
-        "mostly exact zeros": np.where(rng.random((30, 4096)) < 0.7, 0.0, rng.random((30, 4096))),
-        "odd width": noise[:, :4095],
-        "width 2": noise[:, :2],
-        "width 3": noise[:, :3],
-        "constant": np.full((4, 100), 3.5),
-        "huge magnitudes": noise * 1e30,
-        "subnormal magnitudes": noise * 1e-40,
-        "two scales (weights merge)": np.hstack([noise[:, :2048] * 1e-30, noise[:, 2048:] * 1e20]),
-        "heavy tail": rng.exponential(size=(30, 4096)) ** 8,
-        "half the row at the maximum": np.where(noise > 0, noise.max(), noise),
-        "negative values only": -np.abs(noise) - 5.0,
-    }
-
-
-ROW_CASES = _row_cases(np.random.default_rng(7))
+# finite rows: non-finite ones are uninformative on both paths (test_raw_anchor.py)
+ROW_CASES = {name: rows for name, rows in row_cases(np.random.default_rng(7)).items() if name != "infinities"}
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])

@@ -7,6 +7,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from service.conformal.selection import top_k_indices
+from tests.unit.conformal.rows import row_cases
 
 
 def definition(values: np.ndarray, k: int) -> np.ndarray:
@@ -18,27 +19,7 @@ def selected(values: np.ndarray, k: int) -> np.ndarray:
     return np.sort(top_k_indices(values, k), axis=1)
 
 
-def _row_cases(rng: np.random.Generator) -> dict[str, np.ndarray]:
-    noise = rng.normal(size=(30, 4096))
-    return {
-        "gaussian noise": noise,
-        "few distinct values (ties at the k-th)": np.round(noise * 2),
-        "mostly exact zeros": np.where(rng.random((30, 4096)) < 0.7, 0.0, rng.random((30, 4096))),
-        "odd width": noise[:, :4095],
-        "width 2": noise[:, :2],
-        "width 3": noise[:, :3],
-        "constant": np.full((4, 100), 3.5),
-        "huge magnitudes": noise * 1e30,
-        "subnormal magnitudes": noise * 1e-40,
-        "two scales": np.hstack([noise[:, :2048] * 1e-30, noise[:, 2048:] * 1e20]),
-        "heavy tail": rng.exponential(size=(30, 4096)) ** 8,
-        "half the row at the maximum": np.where(noise > 0, noise.max(), noise),
-        "negative values only": -np.abs(noise) - 5.0,
-        "infinities": np.where(rng.random((30, 4096)) < 0.01, np.inf, noise) * rng.choice([-1, 1], (30, 1)),
-    }
-
-
-ROW_CASES = _row_cases(np.random.default_rng(7))
+ROW_CASES = row_cases(np.random.default_rng(7))
 
 
 @pytest.mark.parametrize("k", [1, 36, 100, 512])
