@@ -114,9 +114,6 @@ class Detector:
         BATCH_SIZE.observe(len(batch))
         return heatmaps
 
-    def close(self) -> None:
-        """Nothing to release beyond what garbage collection frees; kept for the state's shutdown."""
-
     def infer(self, image_bgr: np.ndarray, boxes: np.ndarray, objects: list[str]) -> InstanceHeatmaps:
         """Crop all boxes, run them as one batch, keep each instance's own keypoint channels."""
         batch, affines = build_batch(image_bgr, boxes, self.manifest)

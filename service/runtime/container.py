@@ -9,7 +9,6 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property
-from pathlib import Path
 from typing import Any
 
 import cv2
@@ -68,10 +67,6 @@ class ServiceState:
             settings.predict.max_instances,
         )
 
-    @property
-    def uploads_dir(self) -> Path:
-        return self.settings.storage.uploads_dir
-
     def close(self) -> None:
         """Stop: the store's poller ends, calibration jobs are interrupted, not waited for (see
         JobRunner.shutdown); uploads still being received are removed; then the store and the
@@ -83,7 +78,9 @@ class ServiceState:
             self.drift.stop()
             forget_drift_source(self.drift.report)
         self.jobs.shutdown()
-        shutil.rmtree(process_uploads_dir(self.uploads_dir), ignore_errors=True)  # cancelled jobs' uploads
+        shutil.rmtree(
+            process_uploads_dir(self.settings.storage.uploads_dir), ignore_errors=True
+        )  # cancelled jobs' uploads
         self.cpu_pool.shutdown(wait=True, cancel_futures=True)
         self.store.close()
         log.info("shutdown: done in %.2f s", time.monotonic() - started)
