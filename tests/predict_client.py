@@ -16,19 +16,27 @@ def instances_of(samples: list[Sample]) -> list[dict]:
 
 
 def predict_multipart(
-    client: httpx.Client, image: bytes, parameters: dict[str, Any], headers: dict | None = None
+    client: httpx.Client,
+    image: bytes,
+    parameters: dict[str, Any],
+    headers: dict | None = None,
+    path: str = "/v1/predict",
 ) -> httpx.Response:
     files = {
         "image": ("image.jpg", image, "image/jpeg"),
         "request": (None, json.dumps(parameters), "application/json"),
     }
-    return client.post("/v1/predict", files=files, headers=headers or {})
+    return client.post(path, files=files, headers=headers or {})
 
 
 def predict_json(
-    client: httpx.Client, image: bytes, parameters: dict[str, Any], headers: dict | None = None
+    client: httpx.Client,
+    image: bytes,
+    parameters: dict[str, Any],
+    headers: dict | None = None,
+    path: str = "/v1/predict",
 ) -> httpx.Response:
-    return client.post("/v1/predict", json={**parameters, "image_base64": b64(image)}, headers=headers or {})
+    return client.post(path, json={**parameters, "image_base64": b64(image)}, headers=headers or {})
 
 
 def predict_ok(client: httpx.Client, image: bytes, parameters: dict[str, Any]) -> dict:

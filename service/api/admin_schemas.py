@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Literal
 
-from pydantic import BaseModel, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, model_validator
 
 from service.api.predict_schemas import Nonconformity
 
@@ -59,8 +59,18 @@ class VersionList(BaseModel):
 
 
 class ActivationIn(BaseModel):
-    reason: str = Field(default="", max_length=2000, description="why; required with force")
-    force: bool = Field(
+    """force=true needs a non-blank reason (checked; JSON Schema says so with if/then)."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "if": {"properties": {"force": {"const": True}}, "required": ["force"]},
+            "then": {"required": ["reason"], "properties": {"reason": {"pattern": r"\S"}}},
+        },
+    )
+
+    reason: str = Field(default="", max_length=2000, description="why; required (not blank) with force")
+    force: StrictBool = Field(
         default=False, description="activate although the guardrails refuse it (needs a reason; audited)"
     )
 

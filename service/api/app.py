@@ -10,9 +10,10 @@ from fastapi_offline import FastAPIOffline
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service import __version__
+from service.api.contract import install_contract
 from service.api.deps import PredictParts
 from service.api.metrics_middleware import MetricsMiddleware
-from service.api.predict_schemas import PredictJson
+from service.api.predict_schemas import BatchJson, PredictJson, PredictParameters
 from service.api.problems import install_problem_handlers
 from service.api.request_id import RequestIdMiddleware
 from service.api.routes import admin, audits, console, drift, health, model, predict
@@ -87,29 +88,8 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
     app.include_router(drift.router)
     for router in (audits.router, console.router):
         app.include_router(router)
-    _document_raw_bodies(app)
+    install_contract(app, parsed_bodies=(PredictJson, PredictParameters, BatchJson))  # parsed by hand
     return app
-
-
-def _document_raw_bodies(app: FastAPI) -> None:
-    """Add the schemas of bodies parsed by hand (predict's JSON form) to the OpenAPI components.
-
-    FastAPI only collects models it validates itself, so ``#/components/schemas/PredictJson``
-    (referenced by the predict route's ``openapi_extra``) would otherwise dangle.
-    """
-    generate = app.openapi
-
-    def openapi() -> dict:
-        if app.openapi_schema is None:
-            document = generate()
-            schema = PredictJson.model_json_schema(ref_template="#/components/schemas/{model}")
-            components = document.setdefault("components", {}).setdefault("schemas", {})
-            components.update(schema.pop("$defs", {}))
-            components["PredictJson"] = schema
-            app.openapi_schema = document
-        return app.openapi_schema
-
-    app.openapi = openapi  # type: ignore[method-assign]
 
 
 class DocsPagesPolicy:

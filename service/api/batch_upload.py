@@ -16,7 +16,21 @@ from service.errors import ServiceError, UnsupportedMediaType
 from service.runtime.audit_trail import AuditTrail, Operator
 from service.runtime.settings import Settings
 
-_ZIP_TYPES = {"application/zip", "application/x-zip-compressed", "application/octet-stream"}
+_ZIP_TYPES = ("application/zip", "application/x-zip-compressed", "application/octet-stream")
+ZIP_PART = "file"  # the zip's part name when the batch comes as multipart/form-data
+ZIP_BODY: dict[str, Any] = {
+    "required": True,
+    "content": {
+        "application/zip": {"schema": {"type": "string", "format": "binary"}},
+        "multipart/form-data": {
+            "schema": {
+                "type": "object",
+                "required": [ZIP_PART],
+                "properties": {ZIP_PART: {"type": "string", "format": "binary", "description": "the zip"}},
+            }
+        },
+    },
+}
 
 
 @asynccontextmanager
@@ -38,18 +52,22 @@ async def refusals_audited(
 
 
 async def receive_batch_zip(request: Request, settings: Settings) -> tuple[UploadWorkspace, str]:
-    """Receive a zip body (415 for another type), paced and within the upload limits, into a new
-    upload workspace; returns it with the body's sha256 (the caller removes it when done)."""
+    """Receive a zip body, or a form with the zip as its part 'file' (415 for another type), paced
+    and within the upload limits, into a new upload workspace; returns it with the zip's sha256
+    (the caller removes it when done)."""
     content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
-    if content_type not in _ZIP_TYPES:
+    if content_type not in (*_ZIP_TYPES, "multipart/form-data"):
         raise UnsupportedMediaType(
-            f"send the batch as a zip body (Content-Type: application/zip), not {content_type!r}"
+            "send the batch as a zip body (Content-Type: application/zip) or as the part 'file' of"
+            f" multipart/form-data, not {content_type!r}"
         )
+    part = ZIP_PART if content_type == "multipart/form-data" else None
     timeout = settings.calibration.upload_read_timeout_seconds
     pace = BodyPace.from_settings(settings, timeout, "CKS_UPLOAD_READ_TIMEOUT_SECONDS")
     workspace = await run_in_threadpool(UploadWorkspace.create, settings.storage.uploads_dir)
     try:
-        saved = await receive_upload(request, workspace.archive, settings.calibration.max_upload_bytes, pace)
+        limit = settings.calibration.max_upload_bytes
+        saved = await receive_upload(request, workspace.archive, limit, pace, part)
     except BaseException:
         await run_in_threadpool(workspace.remove)
         raise

@@ -125,3 +125,9 @@ def _operator_name(operators: dict[str, str], presented: str) -> str | None:
 
 
 Admin = Annotated[Operator, Depends(require_admin)]
+# What require_admin answers, documented on every admin operation.
+ADMIN_RESPONSES: dict[int | str, dict[str, Any]] = {
+    401: {"description": "No token, or not an admin token: send 'Authorization: Bearer <admin token>'"},
+    403: {"description": "The admin API is disabled (no CKS_ADMIN_TOKEN nor CKS_ADMIN_TOKENS_FILE)"},
+    503: {"description": "The calibration store is unreachable (with Retry-After)"},
+}

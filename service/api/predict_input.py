@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import base64
 import binascii
+import json
 import re
+from collections.abc import Callable
+from functools import partial
 from typing import TypeVar
 
 import numpy as np
@@ -41,17 +44,21 @@ async def parse_predict(request: Request, body: bytes) -> tuple[bytes, PredictPa
     """The image and the parameters of a POST /v1/predict body (already read whole)."""
     content_type = media_type(request)
     if content_type == "application/json":
-        parameters = validated(PredictJson, body)
-        try:
-            image = base64.b64decode(parameters.image_base64, validate=True)
-        except (binascii.Error, ValueError) as error:
-            raise InvalidInput(f"image_base64 is not valid base64: {error}") from error
-        return image, parameters
+        return _from_json(body)
     if content_type == "multipart/form-data":
         return await _parse_multipart(request)
     raise UnsupportedMediaType(
         f"send application/json (image_base64) or multipart/form-data (image + request), not {content_type!r}"
     )
+
+
+def _from_json(body: bytes | str) -> tuple[bytes, PredictParameters]:
+    parameters = validated(PredictJson, body)
+    try:
+        image = base64.b64decode(parameters.image_base64, validate=True)
+    except (binascii.Error, ValueError) as error:
+        raise InvalidInput(f"image_base64 is not valid base64: {error}") from error
+    return image, parameters
 
 
 async def _parse_multipart(request: Request) -> tuple[bytes, PredictParameters]:
@@ -97,21 +104,25 @@ def _pose_options(request: PoseRequest) -> PoseOptions:
     return PoseOptions(camera, request.samples, request.outer_bound, request.outer_splits, checks)
 
 
-BatchItem = tuple[bytes | None, str | None]  # one index's image and request JSON, either may be missing
+# One image of a batch: called, its image and parameters, or the problem of that image alone.
+BatchItem = Callable[[], tuple[bytes, PredictParameters]]
+_BATCH_MEDIA = ("application/json", "multipart/form-data")
 
 
 def require_batch_media(request: Request) -> None:
-    """415 unless the batch comes as multipart (checked before its body is received)."""
-    if media_type(request) != "multipart/form-data":
+    """415 unless the batch comes as JSON or multipart (checked before its body is received)."""
+    if media_type(request) not in _BATCH_MEDIA:
         raise UnsupportedMediaType(
-            "send multipart/form-data with parts image_0, request_0, image_1, ...,"
-            f" not {media_type(request)!r}"
+            'send application/json ({"items": [...]}) or multipart/form-data (parts image_0, request_0,'
+            f" image_1, ...), not {media_type(request)!r}"
         )
 
 
-async def parse_batch(request: Request, limit: int) -> list[BatchItem]:
-    """The parts of a POST /v1/predict/batch body by index; the whole request is refused only
-    when its layout is wrong."""
+async def parse_batch(request: Request, body: bytes, limit: int) -> list[BatchItem]:
+    """The images of a POST /v1/predict/batch body; the whole request is refused only when its
+    layout is wrong."""
+    if media_type(request) == "application/json":
+        return _json_batch(body, limit)
     try:
         form = await request.form(max_files=limit, max_fields=limit)
     except Exception as error:  # starlette reports malformed multipart with several types
@@ -130,7 +141,23 @@ async def parse_batch(request: Request, limit: int) -> list[BatchItem]:
         raise InvalidInput(
             "the batch is empty: send parts image_0 and request_0 (and image_1, request_1, ...)"
         )
-    return [(images.get(index), requests.get(index)) for index in range(count)]
+    return [partial(_multipart_item, i, images.get(i), requests.get(i)) for i in range(count)]
+
+
+def _json_batch(body: bytes, limit: int) -> list[BatchItem]:
+    layout = 'send {"items": [...]}: an object whose only member, items, lists POST /v1/predict JSON bodies'
+    try:
+        envelope = json.loads(body)
+    except ValueError as error:
+        raise InvalidInput(f"the body is not JSON ({error}): {layout}") from error
+    items = envelope.get("items") if isinstance(envelope, dict) else None
+    if not isinstance(items, list) or set(envelope) != {"items"}:
+        raise InvalidInput(layout)
+    if not items:
+        raise InvalidInput("the batch is empty: send at least one item")
+    if len(items) > limit:
+        raise InvalidInput(f"{len(items)} items: at most {limit} images per batch (CKS_MAX_BATCH_IMAGES)")
+    return [partial(_from_json, json.dumps(item)) for item in items]
 
 
 async def _batch_parts(form: FormData, limit: int) -> tuple[dict[int, bytes | None], dict[int, str], list]:
@@ -158,9 +185,7 @@ async def _batch_parts(form: FormData, limit: int) -> tuple[dict[int, bytes | No
     return images, requests, problems
 
 
-def batch_item(index: int, item: BatchItem) -> tuple[bytes, PredictParameters]:
-    """One index's image and parameters, or the problem of that index alone."""
-    image, raw = item
+def _multipart_item(index: int, image: bytes | None, raw: str | None) -> tuple[bytes, PredictParameters]:
     if image is None:
         raise InvalidInput(f"multipart part 'image_{index}' (a JPEG or PNG file) is missing")
     if raw is None:

@@ -5,14 +5,16 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, field_validator
 
+from service.api.problems import Problem
 from service.pose.camera import camera_matrix_problems
 
 Nonconformity = Literal["peak", "var", "cov"]
 Coverage = Literal["keypoint", "object"]
 Stratify = Literal["none", "difficulty", "group", "difficulty+group"]
 Point = tuple[float, float]
+DOCUMENTED_BATCH_IMAGES = 16  # CKS_MAX_BATCH_IMAGES's default; the server checks its own setting
 MAX_VERSION = 2**31 - 1  # the calibration store keeps version numbers in 32-bit INTEGER columns
 
 
@@ -92,7 +94,7 @@ class PoseRequest(_Body):
     samples: int = Field(
         default=100, ge=0, le=500, description="keypoint draws for the sampled (inner) bound; 0: none"
     )
-    outer_bound: bool = Field(
+    outer_bound: StrictBool = Field(
         default=True, description="solve the convex relaxation for certified upper bounds (pose extra)"
     )
     outer_splits: int = Field(
@@ -134,7 +136,9 @@ class PredictOptions(_Body):
     calibration_version: int | None = Field(
         default=None, ge=1, le=MAX_VERSION, description="default: the active version"
     )
-    include_statistics: bool = Field(default=False, description="add raw heatmap statistics per keypoint")
+    include_statistics: StrictBool = Field(
+        default=False, description="add raw heatmap statistics per keypoint"
+    )
     stratify: Stratify | list[Stratify] = Field(
         default="none",
         description="Mondrian strata: none (pooled threshold), difficulty (bins of a label-free heatmap"
@@ -160,6 +164,16 @@ class PredictJson(PredictParameters):
     """A predict request as JSON, with the image base64-encoded."""
 
     image_base64: str = Field(min_length=1, description="JPEG or PNG file, base64 (standard alphabet)")
+
+
+class BatchJson(_Body):
+    """Several images, each as POST /v1/predict's JSON body; answered one item per image."""
+
+    items: list[PredictJson] = Field(
+        min_length=1,
+        max_length=DOCUMENTED_BATCH_IMAGES,
+        description="at most CKS_MAX_BATCH_IMAGES (default 16) images, each with its instances and options",
+    )
 
 
 class BallSet(BaseModel):
@@ -325,19 +339,6 @@ class PredictResponse(BaseModel):
     calibration: CalibrationRef
     image: ImageInfo
     instances: list[InstanceOut]
-
-
-class Problem(BaseModel):
-    """An RFC 9457 problem: what went wrong and what to fix (``application/problem+json``)."""
-
-    model_config = ConfigDict(extra="allow")
-
-    type: str = "about:blank"
-    title: str
-    status: int
-    detail: str = Field(description="what to fix")
-    instance: str | None = Field(default=None, description="the request's path")
-    errors: list[str] | None = Field(default=None, description="every problem found")
 
 
 class BatchItem(BaseModel):

@@ -3,6 +3,7 @@ POST /v1/predict would have answered for that image alone; admission counts imag
 
 from __future__ import annotations
 
+import base64
 import json
 from typing import Any
 
@@ -80,11 +81,47 @@ def test_good_and_bad_images_are_answered_in_order(api: InProcess, images) -> No
     assert [item["status"] for item in items] == [200, 422, 200, 422, 422, 415, 200, 422, 422]
 
 
+def test_a_json_batch_is_answered_as_its_multipart_twin(api: InProcess, images) -> None:
+    (first, first_instances), (second, second_instances), (third, _) = images[:3]
+    requests = [
+        {"instances": first_instances},
+        {"instances": second_instances, "nonconformity": "var", "epsilon": 0.2},
+        {"instances": [{"object": "no-such-object", "bbox": [10, 10, 20, 20]}]},
+    ]
+    pictures = [first, second, third]
+    parts = [
+        p
+        for i, (image, r) in enumerate(zip(pictures, requests, strict=True))
+        for p in (image_part(i, image), request_part(i, r))
+    ]
+    as_json = {
+        "items": [
+            {"image_base64": base64.b64encode(image).decode(), **r}
+            for image, r in zip(pictures, requests, strict=True)
+        ]
+    }
+    multipart, json_body = (
+        post_batch(api.client, parts).json(),
+        api.client.post("/v1/predict/batch", json=as_json).json(),
+    )
+    for item in (*multipart["items"], *json_body["items"]):
+        item.get("problem", {}).pop("request_id", None)
+    assert [item["status"] for item in json_body["items"]] == [200, 200, 422]
+    assert json_body == multipart
+    broken = {"items": [as_json["items"][0], {"image_base64": "@@", **requests[0]}, {"instances": []}]}
+    statuses = [item["status"] for item in api.client.post("/v1/predict/batch", json=broken).json()["items"]]
+    assert statuses == [200, 422, 422]
+
+
 def test_a_malformed_batch_is_refused_whole(api: InProcess, images) -> None:
     image, instances = images[0]
     good = [image_part(0, image), request_part(0, {"instances": instances})]
-    json_body = api.client.post("/v1/predict/batch", json={"instances": instances})
-    assert_problem(json_body, 415, "multipart/form-data", "image_0")
+    text_body = api.client.post("/v1/predict/batch", content=b"hello", headers={"Content-Type": "text/plain"})
+    assert_problem(text_body, 415, "multipart/form-data", "image_0", "application/json")
+    assert_problem(api.client.post("/v1/predict/batch", json={"instances": instances}), 422, '{"items"')
+    assert_problem(api.client.post("/v1/predict/batch", json={"items": []}), 422, "the batch is empty")
+    too_many = {"items": [{"image_base64": "AA==", "instances": instances}] * 17}
+    assert_problem(api.client.post("/v1/predict/batch", json=too_many), 422, "at most 16 images")
     assert_problem(
         post_batch(api.client, [*good, ("picture_1", ("a.jpg", image, "image/jpeg"))]),
         422,

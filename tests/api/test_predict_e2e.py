@@ -182,11 +182,13 @@ def test_tiny_epsilon_gives_unbounded_sets(api: InProcess, images) -> None:
 
 
 @pytest.mark.parametrize("form", ["json", "multipart"])
-def test_accept_png_returns_the_image_with_sets_drawn(api: InProcess, images, form: str) -> None:
+def test_the_png_operation_returns_the_image_with_sets_drawn(api: InProcess, images, form: str) -> None:
     image, group = images[0]
     send = predict_json if form == "json" else predict_multipart
-    response = send(api.client, image, {"instances": instances_of(group)}, headers={"Accept": "image/png"})
+    response = send(api.client, image, {"instances": instances_of(group)}, path="/v1/predict/png")
+    older = send(api.client, image, {"instances": instances_of(group)}, headers={"Accept": "image/png"})
     assert response.status_code == 200, response.text
+    assert older.content == response.content  # Accept: image/png on /v1/predict, as before
     assert response.headers["content-type"] == "image/png"
     assert response.content.startswith(b"\x89PNG\r\n\x1a\n")
     drawn = cv2.imdecode(np.frombuffer(response.content, np.uint8), cv2.IMREAD_COLOR)

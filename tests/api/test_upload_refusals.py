@@ -6,6 +6,7 @@ the data directory's uploads/ folder is empty, and no file appeared outside the 
 
 from __future__ import annotations
 
+import hashlib
 import math
 import zipfile
 from collections.abc import Callable
@@ -190,49 +191,69 @@ def test_streamed_body_over_the_upload_limit(limited_api: InProcess, limits: dic
     assert_problem(response, 413, "CKS_MAX_UPLOAD_BYTES")
 
 
-@pytest.mark.parametrize("content_type", ["application/json", "text/plain", "multipart/form-data"])
+@pytest.mark.parametrize("content_type", ["application/json", "text/plain"])
 @pytest.mark.usefixtures("unchanged")
 def test_wrong_content_type(limited_api: InProcess, samples_dir: Path, coco: dict, content_type: str) -> None:
     body = batch_zip(samples_dir, coco, images=2)
-    assert_problem(limited_api.upload(body, content_type=content_type), 415, "application/zip")
+    assert_problem(limited_api.upload(body, content_type=content_type), 415, "application/zip", "multipart")
 
 
-@pytest.mark.usefixtures("unchanged")
-def test_append_to_a_missing_version(limited_api: InProcess, samples_dir: Path, coco: dict) -> None:
-    missing = max(limited_api.versions()) + 50
-    body = batch_zip(samples_dir, coco, images=2)
-    assert_problem(limited_api.upload(body, append_to=missing), 404, str(missing))
+def multipart(*parts: tuple[str, bytes], boundary: str = "cut-here", close: bool = True) -> bytes:
+    body = b"".join(
+        f'--{boundary}\r\nContent-Disposition: form-data; name="{name}"; filename="b.zip"\r\n'.encode()
+        + b"Content-Type: application/zip\r\n\r\n"
+        + data
+        + b"\r\n"
+        for name, data in parts
+    )
+    return body + (f"--{boundary}--\r\n".encode() if close else b"")
 
 
 @pytest.mark.parametrize(
-    "params", [{"append_to": 0}, {"append_to": 2**40}, {"append_to": "two"}, {"activate": "maybe"}]
+    ("parts", "content_type", "fragment"),
+    [
+        ([("file", b"PK")], "multipart/form-data", "boundary"),
+        (
+            [("name", b"x"), ("file", b"PK")],
+            "multipart/form-data; boundary=cut-here",
+            "unexpected multipart part 'name'",
+        ),
+        ([("file", b"PK"), ("file", b"PK")], "multipart/form-data; boundary=cut-here", "more than once"),
+        ([], "multipart/form-data; boundary=cut-here", "'file' (the zip file) is missing"),
+    ],
 )
 @pytest.mark.usefixtures("unchanged")
-def test_bad_query_parameters(limited_api: InProcess, samples_dir: Path, coco: dict, params: dict) -> None:
-    body = batch_zip(samples_dir, coco, images=2)
-    assert_problem(limited_api.upload(body, **params), 422, next(iter(params)))
+def test_a_malformed_form_is_refused(
+    limited_api: InProcess, parts: list, content_type: str, fragment: str
+) -> None:
+    assert_problem(limited_api.upload(multipart(*parts), content_type=content_type), 422, fragment)
 
 
-def test_undecodable_image_fails_the_job_and_stores_nothing(
+@pytest.mark.usefixtures("unchanged")
+def test_a_form_cut_short_or_over_the_limit_is_refused(
+    limited_api: InProcess, samples_dir: Path, coco: dict, limits: dict
+) -> None:
+    form = "multipart/form-data; boundary=cut-here"
+    body = multipart(("file", batch_zip(samples_dir, coco, images=2)), close=False)
+    assert_problem(limited_api.upload(body, content_type=form), 422, "closing boundary")
+    huge = multipart(("file", b"\0" * (limits["max_upload_bytes"] + 1)))
+    assert_problem(limited_api.upload(huge, content_type=form), 413, "CKS_MAX_UPLOAD_BYTES")
+
+
+def test_a_form_with_the_zip_is_taken_as_the_zip(
     limited_api: InProcess, samples_dir: Path, coco: dict
 ) -> None:
-    """A valid header with a truncated body passes the pre-202 checks; the job then fails cleanly."""
-    before = snapshot(limited_api)
-    doc, files = batch_files(samples_dir, coco, images=2)
-    broken = doc["images"][1]["file_name"]
-    files[broken] = files[broken][: len(files[broken]) // 2]  # header intact, scan data cut, no EOI
-    response = limited_api.upload(build_zip(doc, files), activate=True)
-    assert response.status_code == 202, response.text
-    job = limited_api.wait_job(response.json()["id"])
-    assert job["state"] == "failed", job
-    assert job["result"] == {} and job["finished_at"] is not None
-    assert job["errors"] and any(broken in error for error in job["errors"]), job["errors"]
-    assert_nothing_stored(limited_api, before)
-
-
-def test_a_valid_small_batch_is_accepted(limited_api: InProcess, samples_dir: Path, coco: dict) -> None:
-    """The limits above are tight, not closed: the same small batch unmodified goes through."""
-    before = limited_api.versions()
-    job = limited_api.calibrate(batch_zip(samples_dir, coco, images=2))
-    assert limited_api.versions() == [*before, job["result"]["version"]]
+    zipped = batch_zip(samples_dir, coco, images=2)
+    form = limited_api.client.post(
+        "/v1/admin/calibrations",
+        files={"file": ("batch.zip", zipped, "application/zip")},
+        params={"name": "as-form"},
+        headers=limited_api.admin,
+    )
+    assert form.status_code == 202, form.text
+    job = limited_api.wait_job(form.json()["id"])
+    assert job["state"] == "succeeded", job
+    detail = limited_api.client.get(f"/v1/admin/calibrations/{job['version']}", headers=limited_api.admin)
+    batches = detail.json()["source_batches"]
+    assert batches[-1]["name"] == "as-form" and batches[-1]["sha256"] == hashlib.sha256(zipped).hexdigest()
     assert limited_api.upload_workspaces() == []

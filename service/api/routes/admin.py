@@ -28,8 +28,8 @@ from service.api.admin_schemas import (
     VersionDetail,
     VersionList,
 )
-from service.api.batch_upload import receive_batch_zip, refusals_audited
-from service.api.deps import Admin, Calibrations, Config, Jobs, Model, Registry, Store, Trail
+from service.api.batch_upload import ZIP_BODY, receive_batch_zip, refusals_audited
+from service.api.deps import ADMIN_RESPONSES, Admin, Calibrations, Config, Jobs, Model, Registry, Store, Trail
 from service.api.predict_schemas import MAX_VERSION, Nonconformity
 from service.calibration.intake import UploadOptions
 from service.calibration.stratification import parse_stratify
@@ -39,15 +39,14 @@ from service.errors import NotFound
 router = APIRouter(
     prefix="/v1/admin",
     tags=["admin"],
-    responses={503: {"description": "The calibration store is unreachable (with Retry-After)"}},
+    responses=ADMIN_RESPONSES,
 )
 VersionNumber = Annotated[int, Path(ge=1, le=MAX_VERSION, description="calibration version number")]
 
 _UPLOAD_OPENAPI = {
     "requestBody": {
-        "required": True,
+        **ZIP_BODY,
         "description": "A zip of a COCO-keypoints batch: annotations.json and the images it names",
-        "content": {"application/zip": {"schema": {"type": "string", "format": "binary"}}},
     },
     "responses": {
         "404": {"description": "append_to names a version that does not exist"},
@@ -56,7 +55,7 @@ _UPLOAD_OPENAPI = {
             " append_to): the problem lists them; or append_to was scored under other manifest settings"
         },
         "413": {"description": "The zip, its files or its unzipped size exceed the limits"},
-        "415": {"description": "Not a zip body"},
+        "415": {"description": "Neither a zip body nor multipart/form-data"},
         "422": {
             "description": "The archive or its COCO batch is invalid, more instances break the box rule"
             " than max_rejected_share allows, or force without a reason; the problem lists what to fix"
@@ -197,7 +196,12 @@ async def list_calibrations(store: Store, model: Model, registry: Registry, _: A
     )
 
 
-@router.get("/calibrations/{version}", response_model=VersionDetail, summary="One version in detail")
+@router.get(
+    "/calibrations/{version}",
+    response_model=VersionDetail,
+    summary="One version in detail",
+    responses={404: {"description": "No such version"}},
+)
 async def get_calibration(
     version: VersionNumber, store: Store, model: Model, registry: Registry, _: Admin
 ) -> VersionDetail:

@@ -7,11 +7,12 @@ from typing import Annotated
 
 from fastapi import APIRouter, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
+from pydantic import Field
 
 from service.api.admin_presenters import audit_list, audit_out, job_out
 from service.api.admin_schemas import AuditList, AuditOut, JobOut
-from service.api.batch_upload import receive_batch_zip, refusals_audited
-from service.api.deps import Admin, Audits, Config, Model, Store, Trail
+from service.api.batch_upload import ZIP_BODY, receive_batch_zip, refusals_audited
+from service.api.deps import ADMIN_RESPONSES, Admin, Audits, Config, Model, Store, Trail
 from service.api.predict_schemas import MAX_VERSION
 from service.errors import NotFound
 from service.monitoring.audit_report import DEFAULT_EPSILONS
@@ -20,16 +21,15 @@ from service.monitoring.coverage_audits import AuditRequest
 router = APIRouter(
     prefix="/v1/admin/audits",
     tags=["admin"],
-    responses={503: {"description": "The calibration store is unreachable (with Retry-After)"}},
+    responses=ADMIN_RESPONSES,
 )
 MAX_AUDIT_ID = 2**63 - 1
 
 _AUDIT_OPENAPI = {
     "requestBody": {
-        "required": True,
+        **ZIP_BODY,
         "description": "A zip of a COCO-keypoints batch (the calibration upload format): annotations.json"
         " and the images it names, labeled, and never used to calibrate the audited version",
-        "content": {"application/zip": {"schema": {"type": "string", "format": "binary"}}},
     },
     "responses": {
         "404": {"description": "version names a version that does not exist"},
@@ -38,7 +38,7 @@ _AUDIT_OPENAPI = {
             " with dedupe=true), or the version was scored under other manifest settings"
         },
         "413": {"description": "The zip, its files or its unzipped size exceed the limits"},
-        "415": {"description": "Not a zip body"},
+        "415": {"description": "Neither a zip body nor multipart/form-data"},
         "422": {"description": "The archive or its COCO batch is invalid, or an epsilon is outside (0, 1)"},
     },
 }
@@ -62,8 +62,8 @@ async def start_audit(
         int | None, Query(ge=1, le=MAX_VERSION, description="the version to audit (default: the active one)")
     ] = None,
     epsilon: Annotated[
-        list[float] | None,
-        Query(description="the epsilons to audit at, repeated (default 0.05, 0.1 and 0.2)"),
+        list[Annotated[float, Field(gt=0, lt=1)]] | None,
+        Query(description="the epsilons to audit at, each in (0, 1), repeated (default 0.05, 0.1 and 0.2)"),
     ] = None,
     name: Annotated[
         str | None, Query(max_length=200, description="batch name (default: upload-<sha256>)")

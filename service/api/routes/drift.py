@@ -7,13 +7,13 @@ from fastapi.concurrency import run_in_threadpool
 
 from service.api.admin_presenters import drift_out
 from service.api.admin_schemas import DriftOut
-from service.api.deps import Admin, Drift
+from service.api.deps import ADMIN_RESPONSES, Admin, Drift
 from service.errors import NotFound
 
 router = APIRouter(
     prefix="/v1/admin",
     tags=["admin"],
-    responses={503: {"description": "The calibration store is unreachable (with Retry-After)"}},
+    responses=ADMIN_RESPONSES,
 )
 
 

@@ -1,5 +1,5 @@
-"""POST /v1/predict and POST /v1/predict/batch: images and boxes in, keypoint prediction sets
-out (JSON, or a PNG drawing for a single image).
+"""POST /v1/predict, /v1/predict/png and /v1/predict/batch: images and boxes in, keypoint
+prediction sets out (JSON, or a PNG drawing for a single image).
 
 Both take admission places before their bodies are parsed and compute inside a slot on the CPU
 pool: receive -> parse -> ``Predictor.predict`` -> present. A batch of n images takes n places,
@@ -12,13 +12,14 @@ from __future__ import annotations
 import asyncio
 import contextvars
 import logging
+from typing import Any
 
 from fastapi import APIRouter, Request, Response
 
 from service.api.deps import Predicting, PredictParts
+from service.api.predict_bodies import BATCH_BODY, PREDICT_BODY
 from service.api.predict_input import (
     BatchItem,
-    batch_item,
     parse_batch,
     parse_predict,
     predict_query,
@@ -33,68 +34,28 @@ from service.runtime.logs import note_calibration_version
 router = APIRouter(tags=["prediction"])
 log = logging.getLogger(__name__)
 
-_MULTIPART_SCHEMA = {
-    "type": "object",
-    "required": ["image", "request"],
-    "properties": {
-        "image": {"type": "string", "format": "binary", "description": "JPEG or PNG file"},
-        "request": {
-            "type": "string",
-            "description": "JSON of PredictParameters: instances and options",
-            "contentMediaType": "application/json",
-        },
+_PREDICT_RESPONSES: dict[int | str, dict[str, Any]] = {
+    408: {"description": "The body did not arrive within CKS_REQUEST_READ_TIMEOUT_SECONDS"},
+    409: {"description": "The calibration version was scored under other manifest settings"},
+    413: {"description": "Body or image too large"},
+    415: {"description": "Not JSON or multipart, or not a JPEG/PNG image"},
+    422: {"description": "Invalid request: the problem lists what to fix"},
+    503: {
+        "description": "No active calibration, overloaded, stopping, or calibration_version names a version"
+        " not in memory while the store is unreachable (with Retry-After)"
     },
 }
-_OPENAPI = {
-    "requestBody": {
-        "required": True,
-        "content": {
-            "application/json": {"schema": {"$ref": "#/components/schemas/PredictJson"}},
-            "multipart/form-data": {"schema": _MULTIPART_SCHEMA},
-        },
+_PNG = {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}}
+_BATCH_RESPONSES: dict[int | str, dict[str, Any]] = {
+    200: {"description": "One item per image, in order: its result, or its problem (RFC 9457)"},
+    408: _PREDICT_RESPONSES[408],
+    413: {"description": "The body exceeds CKS_MAX_REQUEST_BYTES"},
+    415: {"description": "Not JSON or multipart/form-data"},
+    422: {
+        "description": "Not the documented layout (parts other than image_i and request_i, an index repeated"
+        " or beyond CKS_MAX_BATCH_IMAGES, no images, or more images than the server admits at once)"
     },
-    "responses": {
-        "200": {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}},
-        "408": {"description": "The body did not arrive within CKS_REQUEST_READ_TIMEOUT_SECONDS"},
-        "409": {"description": "The calibration version was scored under other manifest settings"},
-        "413": {"description": "Body or image too large"},
-        "415": {"description": "Not JSON or multipart, or not a JPEG/PNG image"},
-        "422": {"description": "Invalid request; the problem lists what to fix"},
-        "503": {
-            "description": "No active calibration, overloaded, or calibration_version names a version"
-            " not in memory while the store is unreachable (with Retry-After)"
-        },
-    },
-}
-
-
-_IMAGE_PART = {"type": "string", "format": "binary", "description": "JPEG or PNG file"}
-_REQUEST_PART = {
-    "type": "string",
-    "description": "JSON of PredictParameters (instances and options) for the image of the same index",
-    "contentMediaType": "application/json",
-}
-_BATCH_SCHEMA = {
-    "type": "object",
-    "description": "image_i and request_i for i = 0 .. n-1, n <= CKS_MAX_BATCH_IMAGES",
-    "required": ["image_0", "request_0"],
-    "properties": {"image_0": _IMAGE_PART, "request_0": _REQUEST_PART},
-    "patternProperties": {"^image_[0-9]+$": _IMAGE_PART, "^request_[0-9]+$": _REQUEST_PART},
-    "additionalProperties": False,
-}
-_BATCH_OPENAPI = {
-    "requestBody": {"required": True, "content": {"multipart/form-data": {"schema": _BATCH_SCHEMA}}},
-    "responses": {
-        "200": {"description": "One item per image, in order: its result, or its problem (RFC 9457)"},
-        "408": {"description": "The body did not arrive within CKS_REQUEST_READ_TIMEOUT_SECONDS"},
-        "413": {"description": "The body exceeds CKS_MAX_REQUEST_BYTES"},
-        "415": {"description": "Not multipart/form-data"},
-        "422": {
-            "description": "Parts other than image_i and request_i, an index repeated or beyond"
-            " CKS_MAX_BATCH_IMAGES, no parts, or more images than the server admits at once"
-        },
-        "503": {"description": "Not enough free places for every image of the batch (with Retry-After)"},
-    },
+    503: {"description": "Not enough free places for every image of the batch (with Retry-After)"},
 }
 
 
@@ -102,15 +63,33 @@ _BATCH_OPENAPI = {
     "/v1/predict",
     response_model=PredictResponse,
     summary="Keypoint prediction sets with a coverage guarantee",
-    openapi_extra=_OPENAPI,
+    description="The sets as JSON. (`Accept: image/png` here still answers the drawing, as before"
+    " POST /v1/predict/png existed; generated clients should call that operation.)",
+    responses=_PREDICT_RESPONSES,
+    openapi_extra={"requestBody": PREDICT_BODY},
 )
 async def predict_route(request: Request, parts: Predicting) -> Response:
+    return await _predict(request, parts, png=_wants_png(request))
+
+
+@router.post(
+    "/v1/predict/png",
+    response_class=Response,
+    summary="The image with its keypoint prediction sets drawn on it (PNG)",
+    responses={200: {"description": "The image, sets drawn", **_PNG}, **_PREDICT_RESPONSES},
+    openapi_extra={"requestBody": PREDICT_BODY},
+)
+async def predict_png_route(request: Request, parts: Predicting) -> Response:
+    return await _predict(request, parts, png=True)
+
+
+async def _predict(request: Request, parts: PredictParts, png: bool) -> Response:
     try:
         parts.admission.refuse_if_full()  # not worth receiving
         body = await parts.receive(request)  # a slow client holds no place meanwhile
         async with parts.admission.admitted():
             image, parameters = await parse_predict(request, body)
-            return await _compute(parts, image, parameters, _wants_png(request))
+            return await _compute(parts, image, parameters, png)
     except asyncio.CancelledError:  # uvicorn cancels what is left when a shutdown's grace period ends
         raise Unavailable(
             "the service stopped before this request was done (CKS_SHUTDOWN_GRACE_SECONDS): send it again",
@@ -122,13 +101,14 @@ async def predict_route(request: Request, parts: Predicting) -> Response:
     "/v1/predict/batch",
     response_model=BatchResponse,
     summary="Keypoint prediction sets for several images in one request, one answer per image",
-    openapi_extra=_BATCH_OPENAPI,
+    responses=_BATCH_RESPONSES,
+    openapi_extra={"requestBody": BATCH_BODY},
 )
 async def predict_batch_route(request: Request, parts: Predicting) -> Response:
     require_batch_media(request)
     parts.admission.refuse_if_full()  # not worth receiving
-    await parts.receive(request)  # as predict: a slow client holds no place meanwhile
-    items = await parse_batch(request, parts.max_batch_images)
+    body = await parts.receive(request)  # as predict: a slow client holds no place meanwhile
+    items = await parse_batch(request, body, parts.max_batch_images)
     capacity = parts.admission.capacity
     if len(items) > capacity:
         raise InvalidInput(
@@ -165,7 +145,7 @@ def _respond(parts: PredictParts, image: bytes, parameters: PredictParameters, p
 async def _batch_answer(request: Request, parts: PredictParts, index: int, item: BatchItem) -> bytes:
     """One image's item as JSON: its result, or the problem it alone had."""
     try:
-        image, parameters = batch_item(index, item)
+        image, parameters = item()
         response = await _compute(parts, image, parameters, png=False)
         return b'{"status":200,"result":' + bytes(response.body) + b"}"
     except ServiceError as error:
