@@ -1,6 +1,7 @@
 """The OpenAPI document as generated clients read it: what FastAPI derives from the routes, plus
-the bodies the routes parse by hand, one ``Problem`` schema for every error answer, and the
-headers the service sends (``X-Request-ID`` on every answer, ``Retry-After`` where it is sent).
+the bodies the routes parse by hand, one ``Problem`` schema for every error answer, the request id
+every operation takes, and the headers the service sends (``X-Request-ID`` on every answer,
+``Retry-After`` where it is sent).
 
 Routes describe each status they can answer in words (``responses={404: {"description": ...}}``);
 this pass gives every status of 400 and above the problem+json body, so no route repeats it.
@@ -34,6 +35,16 @@ _HEADERS: dict[str, dict[str, Any]] = {
 # The statuses whose answers carry each header besides X-Request-ID.
 _HEADER_STATUSES = {"Retry-After": {"429", "503", "507"}, "Location": {"202"}, "WWW-Authenticate": {"401"}}
 _VALIDATION_DEFAULT = "Validation Error"
+# Every operation takes the caller's request id (RequestIdMiddleware): any string is accepted.
+_REQUEST_ID_PARAMETER = {
+    "name": "X-Request-ID",
+    "in": "header",
+    "required": False,
+    "description": "your id for this request, echoed in the answer's X-Request-ID, its problem's"
+    " request_id and the service's log lines: kept if 1 to 128 visible ASCII characters, else"
+    " replaced by one the service makes up",
+    "schema": {"type": "string"},
+}
 
 
 def install_contract(app: FastAPI, parsed_bodies: tuple[type[BaseModel], ...]) -> None:
@@ -57,6 +68,7 @@ def completed(document: dict[str, Any], models: tuple[type[BaseModel], ...]) -> 
         components[model.__name__] = schema
     for operations in document["paths"].values():
         for operation in operations.values():
+            operation.setdefault("parameters", []).append(_REQUEST_ID_PARAMETER)
             for status, response in operation["responses"].items():
                 _complete(status, response)
     for unused in ("HTTPValidationError", "ValidationError"):  # FastAPI's 422 body, never sent

@@ -46,7 +46,9 @@ VersionNumber = Annotated[int, Path(ge=1, le=MAX_VERSION, description="calibrati
 _UPLOAD_OPENAPI = {
     "requestBody": {
         **ZIP_BODY,
-        "description": "A zip of a COCO-keypoints batch: annotations.json and the images it names",
+        "description": "The raw zip (Content-Type application/zip, application/x-zip-compressed or"
+        " application/octet-stream), or multipart/form-data with the zip as its part 'file'. A zip of a"
+        " COCO-keypoints batch: annotations.json and the images it names",
     },
     "responses": {
         "404": {"description": "append_to names a version that does not exist"},

@@ -28,7 +28,9 @@ MAX_AUDIT_ID = 2**63 - 1
 _AUDIT_OPENAPI = {
     "requestBody": {
         **ZIP_BODY,
-        "description": "A zip of a COCO-keypoints batch (the calibration upload format): annotations.json"
+        "description": "The raw zip (Content-Type application/zip, application/x-zip-compressed or"
+        " application/octet-stream), or multipart/form-data with the zip as its part 'file'. A zip of a"
+        " COCO-keypoints batch (the calibration upload format): annotations.json"
         " and the images it names, labeled, and never used to calibrate the audited version",
     },
     "responses": {

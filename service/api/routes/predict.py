@@ -16,6 +16,7 @@ from typing import Any
 
 from fastapi import APIRouter, Request, Response
 
+from service.api import predict_presenter
 from service.api.deps import Predicting, PredictParts
 from service.api.predict_bodies import BATCH_BODY, PREDICT_BODY
 from service.api.predict_input import (
@@ -25,7 +26,6 @@ from service.api.predict_input import (
     predict_query,
     require_batch_media,
 )
-from service.api.predict_presenter import predict_json, predict_png
 from service.api.predict_schemas import BatchResponse, PredictParameters, PredictResponse
 from service.api.problems import problem
 from service.errors import InvalidInput, ServiceError, Unavailable
@@ -45,7 +45,9 @@ _PREDICT_RESPONSES: dict[int | str, dict[str, Any]] = {
         " not in memory while the store is unreachable (with Retry-After)"
     },
 }
-_PNG = {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}}
+# Sent as image/png; application/octet-stream is listed too, the type client generators know for bytes.
+_BYTES = {"schema": {"type": "string", "format": "binary"}}
+_PNG = {"content": {"image/png": _BYTES, "application/octet-stream": _BYTES}}
 _BATCH_RESPONSES: dict[int | str, dict[str, Any]] = {
     200: {"description": "One item per image, in order: its result, or its problem (RFC 9457)"},
     408: _PREDICT_RESPONSES[408],
@@ -68,7 +70,7 @@ _BATCH_RESPONSES: dict[int | str, dict[str, Any]] = {
     responses=_PREDICT_RESPONSES,
     openapi_extra={"requestBody": PREDICT_BODY},
 )
-async def predict_route(request: Request, parts: Predicting) -> Response:
+async def predict(request: Request, parts: Predicting) -> Response:
     return await _predict(request, parts, png=_wants_png(request))
 
 
@@ -79,7 +81,7 @@ async def predict_route(request: Request, parts: Predicting) -> Response:
     responses={200: {"description": "The image, sets drawn", **_PNG}, **_PREDICT_RESPONSES},
     openapi_extra={"requestBody": PREDICT_BODY},
 )
-async def predict_png_route(request: Request, parts: Predicting) -> Response:
+async def predict_png(request: Request, parts: Predicting) -> Response:
     return await _predict(request, parts, png=True)
 
 
@@ -104,7 +106,7 @@ async def _predict(request: Request, parts: PredictParts, png: bool) -> Response
     responses=_BATCH_RESPONSES,
     openapi_extra={"requestBody": BATCH_BODY},
 )
-async def predict_batch_route(request: Request, parts: Predicting) -> Response:
+async def predict_batch(request: Request, parts: Predicting) -> Response:
     require_batch_media(request)
     parts.admission.refuse_if_full()  # not worth receiving
     body = await parts.receive(request)  # as predict: a slow client holds no place meanwhile
@@ -138,8 +140,10 @@ def _respond(parts: PredictParts, image: bytes, parameters: PredictParameters, p
     note_calibration_version(prediction.version)
     manifest = parts.predictor.detector.manifest
     if png:
-        return Response(predict_png(prediction, query, manifest), media_type="image/png")
-    return Response(predict_json(prediction, query, manifest), media_type="application/json")
+        return Response(predict_presenter.predict_png(prediction, query, manifest), media_type="image/png")
+    return Response(
+        predict_presenter.predict_json(prediction, query, manifest), media_type="application/json"
+    )
 
 
 async def _batch_answer(request: Request, parts: PredictParts, index: int, item: BatchItem) -> bytes:
