@@ -22,11 +22,20 @@ class _Body(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+def _positive_size(schema: dict) -> None:
+    """The validator's rule (width and height > 0) said in the JSON Schema too."""
+    for size in schema["prefixItems"][2:]:
+        size["exclusiveMinimum"] = 0
+
+
 class InstanceIn(_Body):
     """One object in the image: its class and its box in image pixels."""
 
     object: str = Field(min_length=1, max_length=200, description="object name from GET /v1/model")
-    bbox: tuple[float, float, float, float] = Field(description="[x, y, width, height] in image pixels")
+    bbox: tuple[float, float, float, float] = Field(
+        description="[x, y, width, height] in image pixels, width and height > 0",
+        json_schema_extra=_positive_size,
+    )
     group: str | None = Field(
         default=None,
         min_length=1,

@@ -194,4 +194,4 @@ def test_uploads_asking_for_groups_without_labels_or_unknown_strata_are_refused(
 ) -> None:
     body = batch_zip(samples_dir, coco, images=2)
     assert_problem(api.upload(body, stratify="group"), 422, "group labels", '"group"')
-    assert_problem(api.upload(body, stratify="bogus"), 422, "stratify 'bogus'", "difficulty+group")
+    assert_problem(api.upload(body, stratify="bogus"), 422, "stratify", "difficulty+group")

@@ -7,6 +7,7 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
+from pydantic import Field
 
 from calibration_store import VersionNotFound, store_location
 from service.api.admin_presenters import (
@@ -30,7 +31,8 @@ from service.api.admin_schemas import (
 )
 from service.api.batch_upload import ZIP_BODY, receive_batch_zip, refusals_audited
 from service.api.deps import ADMIN_RESPONSES, Admin, Calibrations, Config, Jobs, Model, Registry, Store, Trail
-from service.api.predict_schemas import MAX_VERSION, Nonconformity
+from service.api.job_links import JOB_LINKS, JOB_RESULT_LINKS
+from service.api.predict_schemas import MAX_VERSION, Nonconformity, Stratify
 from service.calibration.intake import UploadOptions
 from service.calibration.stratification import parse_stratify
 from service.calibration.versions import ActivationRequest, activate, comparison_with
@@ -79,6 +81,7 @@ _ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
 @router.post(
     "/calibrations",
     status_code=202,
+    responses={202: {"links": JOB_LINKS}},
     response_model=JobOut,
     summary="Upload a labeled batch; a background job scores it into a new version",
     openapi_extra=_UPLOAD_OPENAPI,
@@ -115,7 +118,7 @@ async def upload_calibration(
     ] = None,
     note: Annotated[str, Query(max_length=2000)] = "",
     stratify: Annotated[
-        list[str] | None,
+        list[Stratify] | None,
         Query(
             description="Mondrian strata to store: none, difficulty, group, difficulty+group (or the"
             " parameter repeated); default: difficulty when the scores carry heatmap features"
@@ -150,6 +153,7 @@ def _stratify(values: list[str]) -> frozenset[str]:
     response_model=JobOut,
     summary="State, progress and errors of a job (any replica answers)",
     responses={
+        200: {"links": JOB_RESULT_LINKS},
         404: {"description": "No such job (never existed, or pruned)"},
         503: {"description": "The calibration store is unreachable"},
     },
@@ -230,15 +234,14 @@ async def compare_calibration(
     settings: Config,
     _: Admin,
     against: Annotated[
-        Literal["active"] | int, Query(description="'active' or a version number (ge 1)")
+        Literal["active"] | Annotated[int, Field(ge=1, le=MAX_VERSION)],
+        Query(description="'active' or a version number"),
     ] = "active",
     epsilon: Annotated[float, Query(gt=0, lt=1, description="the epsilon the sets are compared at")] = 0.1,
     nonconformity: Annotated[Nonconformity, Query()] = "cov",
 ) -> ComparisonOut:
     def build() -> ComparisonOut:
-        reference = registry.refresh_now() if against == "active" else int(against)
-        if reference is not None and reference < 1:
-            raise NotFound(f"calibration version {reference} does not exist for this model")
+        reference = registry.refresh_now() if against == "active" else against
         minimum = settings.calibration.min_calibration_instances
         return comparison_out(
             comparison_with(registry, model.manifest, version, reference, minimum, epsilon, nonconformity)

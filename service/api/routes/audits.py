@@ -13,6 +13,7 @@ from service.api.admin_presenters import audit_list, audit_out, job_out
 from service.api.admin_schemas import AuditList, AuditOut, JobOut
 from service.api.batch_upload import ZIP_BODY, receive_batch_zip, refusals_audited
 from service.api.deps import ADMIN_RESPONSES, Admin, Audits, Config, Model, Store, Trail
+from service.api.job_links import JOB_LINKS
 from service.api.predict_schemas import MAX_VERSION
 from service.errors import NotFound
 from service.monitoring.audit_report import DEFAULT_EPSILONS
@@ -49,6 +50,7 @@ _AUDIT_OPENAPI = {
 @router.post(
     "",
     status_code=202,
+    responses={202: {"links": JOB_LINKS}},
     response_model=JobOut,
     summary="Audit a version's coverage on a labeled batch; a background job (kind audit) stores the report",
     openapi_extra=_AUDIT_OPENAPI,
