@@ -9,7 +9,7 @@ from keypoint_client.admin_models import Comparison
 if TYPE_CHECKING:
     from keypoint_client.admin_models import Job
 
-_STANDARD_MEMBERS = frozenset({"type", "title", "status", "detail", "instance", "errors", "request_id"})
+PROBLEM_MEMBERS = frozenset({"type", "title", "status", "detail", "instance", "errors", "request_id"})
 
 
 class KeypointClientError(Exception):
@@ -41,7 +41,7 @@ class ProblemError(KeypointClientError):
     @property
     def extensions(self) -> dict[str, Any]:
         """The problem's members beyond RFC 9457's and ``errors``/``request_id`` (e.g. ``comparison``)."""
-        return {key: value for key, value in self.body.items() if key not in _STANDARD_MEMBERS}
+        return {key: value for key, value in self.body.items() if key not in PROBLEM_MEMBERS}
 
 
 class BadRequest(ProblemError):

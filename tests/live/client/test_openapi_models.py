@@ -81,8 +81,8 @@ NOT_MIRRORED = {
         "ModelInfo.manifest is the manifest as a dict",
     ),
     "Problem": "raised as a ProblemError (errors.py)",
-    "HTTPValidationError": "FastAPI's default; the service answers problems instead",
-    "ValidationError": "FastAPI's default; the service answers problems instead",
+    "PredictParameters": "PredictRequest.parts writes it as the form's request part",
+    "BatchJson": "predict_batch sends the multipart form, not base64 JSON",
     "Health": "the client has no call of /healthz (ready() reads /readyz)",
 }
 
@@ -97,6 +97,10 @@ def test_the_model_mirrors_the_schema(component: str) -> None:
     assert set(model.model_fields) == set(schema["properties"]), model
     required = {name for name, field in model.model_fields.items() if field.is_required()}
     assert required == set(schema.get("required", [])), model
+
+
+def test_a_problem_error_reads_every_member_of_the_problem_schema() -> None:
+    assert set(COMPONENTS["Problem"]["properties"]) == kc.errors.PROBLEM_MEMBERS
 
 
 def test_model_info_names_the_schemas_fields() -> None:
