@@ -503,7 +503,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.run(args, settings)
     except ServiceError as error:
-        return _failed(error.detail, 2, [line for line in error.errors[:20] if line != error.detail])
+        return _failed(error.detail, 2, [line for line in error.errors[:20] if line not in error.detail])
     except ModelMismatch as error:
         return _failed(f"the model cannot be served: {error}", 3)
     except OperatorsError as error:

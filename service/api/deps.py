@@ -16,6 +16,7 @@ from calibration_store import CalibrationStore
 from service.api.request_body import BodyPace, read_limited_body
 from service.calibration.jobs import CalibrationJobs, JobRunner
 from service.calibration.registry import CalibrationRegistry
+from service.detector.manifest import Manifest
 from service.detector.session import Detector
 from service.monitoring.coverage_audits import CoverageAudits
 from service.monitoring.drift_monitor import DriftMonitor
@@ -77,6 +78,11 @@ class PredictParts:
             settings.predict.max_batch_images,
             pace,
         )
+
+    @property
+    def manifest(self) -> Manifest:
+        """The served model's: a request naming another object is told so with its other problems."""
+        return self.predictor.detector.manifest
 
     async def receive(self, request: Request) -> bytes:
         """The body within CKS_MAX_REQUEST_BYTES, paced, its bytes counted against

@@ -17,43 +17,51 @@ from pydantic import BaseModel, ValidationError
 from starlette.datastructures import FormData, UploadFile
 
 from service.api.predict_schemas import PoseRequest, PredictJson, PredictParameters
+from service.detector.manifest import Manifest
 from service.errors import InvalidInput, UnsupportedMediaType
 from service.pose import Pose, PoseOptions, as_camera_matrix
 from service.prediction import Instance, PredictQuery
 
 Model = TypeVar("Model", bound=BaseModel)
+_PREFIX = "Value error, "  # pydantic's, before the message of a validator's ValueError
 _BATCH_PART = re.compile(r"(image|request)_([0-9]{1,6})")
 
 
-def validated(model: type[Model], raw: str | bytes) -> Model:
-    """``raw`` JSON as ``model``; 422 listing every problem the schema finds."""
+def validated(model: type[Model], raw: str | bytes, manifest: Manifest | None = None) -> Model:
+    """``raw`` JSON as ``model``; 422 listing every problem the schema finds, and every instance
+    whose object is not one of ``manifest``'s."""
     try:
-        return model.model_validate_json(raw)
+        return model.model_validate_json(raw, context={"manifest": manifest})
     except ValidationError as error:
-        problems = [f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in error.errors()]
+        problems = [f"{_where(e['loc'])}: {e['msg'].removeprefix(_PREFIX)}" for e in error.errors()]
         raise InvalidInput(
             "The request does not match the schema: " + "; ".join(problems[:5]), errors=problems
         ) from error
+
+
+def _where(loc: tuple) -> str:
+    """A problem's place as the domain writes it: instances[0].bbox."""
+    return "".join(f"[{part}]" if isinstance(part, int) else f".{part}" for part in loc).lstrip(".")
 
 
 def media_type(request: Request) -> str:
     return request.headers.get("content-type", "").split(";")[0].strip().lower()
 
 
-async def parse_predict(request: Request, body: bytes) -> tuple[bytes, PredictParameters]:
+async def parse_predict(request: Request, body: bytes, manifest: Manifest) -> tuple[bytes, PredictParameters]:
     """The image and the parameters of a POST /v1/predict body (already read whole)."""
     content_type = media_type(request)
     if content_type == "application/json":
-        return _from_json(body)
+        return _from_json(body, manifest)
     if content_type == "multipart/form-data":
-        return await _parse_multipart(request)
+        return await _parse_multipart(request, manifest)
     raise UnsupportedMediaType(
         f"send application/json (image_base64) or multipart/form-data (image + request), not {content_type!r}"
     )
 
 
-def _from_json(body: bytes | str) -> tuple[bytes, PredictParameters]:
-    parameters = validated(PredictJson, body)
+def _from_json(body: bytes | str, manifest: Manifest) -> tuple[bytes, PredictParameters]:
+    parameters = validated(PredictJson, body, manifest)
     try:
         image = base64.b64decode(parameters.image_base64, validate=True)
     except (binascii.Error, ValueError) as error:
@@ -61,7 +69,7 @@ def _from_json(body: bytes | str) -> tuple[bytes, PredictParameters]:
     return image, parameters
 
 
-async def _parse_multipart(request: Request) -> tuple[bytes, PredictParameters]:
+async def _parse_multipart(request: Request, manifest: Manifest) -> tuple[bytes, PredictParameters]:
     try:
         form = await request.form(max_files=1, max_fields=2)
     except Exception as error:  # starlette reports malformed multipart with several types
@@ -73,7 +81,7 @@ async def _parse_multipart(request: Request) -> tuple[bytes, PredictParameters]:
         if raw is None:
             raise InvalidInput("multipart part 'request' (JSON with instances and options) is missing")
         raw = raw if isinstance(raw, str) else (await raw.read()).decode("utf-8", "replace")
-        return await image.read(), validated(PredictParameters, raw)
+        return await image.read(), validated(PredictParameters, raw, manifest)
     finally:
         await form.close()  # its spooled files, now rather than when collected
 
@@ -118,11 +126,11 @@ def require_batch_media(request: Request) -> None:
         )
 
 
-async def parse_batch(request: Request, body: bytes, limit: int) -> list[BatchItem]:
+async def parse_batch(request: Request, body: bytes, limit: int, manifest: Manifest) -> list[BatchItem]:
     """The images of a POST /v1/predict/batch body; the whole request is refused only when its
     layout is wrong."""
     if media_type(request) == "application/json":
-        return _json_batch(body, limit)
+        return _json_batch(body, limit, manifest)
     try:
         form = await request.form(max_files=limit, max_fields=limit)
     except Exception as error:  # starlette reports malformed multipart with several types
@@ -141,10 +149,10 @@ async def parse_batch(request: Request, body: bytes, limit: int) -> list[BatchIt
         raise InvalidInput(
             "the batch is empty: send parts image_0 and request_0 (and image_1, request_1, ...)"
         )
-    return [partial(_multipart_item, i, images.get(i), requests.get(i)) for i in range(count)]
+    return [partial(_multipart_item, i, images.get(i), requests.get(i), manifest) for i in range(count)]
 
 
-def _json_batch(body: bytes, limit: int) -> list[BatchItem]:
+def _json_batch(body: bytes, limit: int, manifest: Manifest) -> list[BatchItem]:
     layout = 'send {"items": [...]}: an object whose only member, items, lists POST /v1/predict JSON bodies'
     try:
         envelope = json.loads(body)
@@ -157,7 +165,7 @@ def _json_batch(body: bytes, limit: int) -> list[BatchItem]:
         raise InvalidInput("the batch is empty: send at least one item")
     if len(items) > limit:
         raise InvalidInput(f"{len(items)} items: at most {limit} images per batch (CKS_MAX_BATCH_IMAGES)")
-    return [partial(_from_json, json.dumps(item)) for item in items]
+    return [partial(_from_json, json.dumps(item), manifest) for item in items]
 
 
 async def _batch_parts(form: FormData, limit: int) -> tuple[dict[int, bytes | None], dict[int, str], list]:
@@ -185,9 +193,11 @@ async def _batch_parts(form: FormData, limit: int) -> tuple[dict[int, bytes | No
     return images, requests, problems
 
 
-def _multipart_item(index: int, image: bytes | None, raw: str | None) -> tuple[bytes, PredictParameters]:
+def _multipart_item(
+    index: int, image: bytes | None, raw: str | None, manifest: Manifest
+) -> tuple[bytes, PredictParameters]:
     if image is None:
         raise InvalidInput(f"multipart part 'image_{index}' (a JPEG or PNG file) is missing")
     if raw is None:
         raise InvalidInput(f"multipart part 'request_{index}' (JSON with instances and options) is missing")
-    return image, validated(PredictParameters, raw)
+    return image, validated(PredictParameters, raw, manifest)

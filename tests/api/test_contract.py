@@ -62,3 +62,10 @@ def test_every_error_the_document_names_is_a_problem_with_the_request_id_header(
         "errors",
         "request_id",
     }
+
+
+def test_every_problem_of_a_predict_request_is_in_one_answer(api: InProcess) -> None:
+    request = {"instances": [{"object": "no-such-object", "bbox": [1, 1, 10, 10]}], "epsilon": 2}
+    body = {**request, "image_base64": "AAAA"}
+    problem = assert_problem(api.client.post("/v1/predict", json=body), 422, "epsilon", "no-such-object")
+    assert len(problem["errors"]) == 2, problem

@@ -226,7 +226,7 @@ def test_bad_pose_checks_are_refused(api: InProcess, coco: dict, samples_dir: Pa
     body["pose"] = {"K": ann["cam_K"], "check": [check]}
     assert_problem(predict_json(api.client, image, body), 422, "pose.check", "instance 1 does not exist")
     body["pose"]["check"] = [{**check, "instance": 0, "rotation": np.diag([1.0, 1.0, -1.0]).tolist()}]
-    assert_problem(predict_json(api.client, image, body), 422, "pose.check.0.rotation", "not a rotation")
+    assert_problem(predict_json(api.client, image, body), 422, "pose.check[0].rotation", "not a rotation")
 
 
 def test_an_object_without_3d_keypoints_is_refused(

@@ -89,7 +89,7 @@ def test_predict_asks_a_running_service(tmp_path: Path, samples: list[Sample], s
     unknown = run(
         ["predict", str(path), "--url", server.url, "--instance", "nothing:1,1,9,9"], tmp_path, expect=2
     )
-    assert "error: instances[0].object 'nothing' is not an object" in unknown.stderr
+    assert "instances[0].object: 'nothing' is not an object" in unknown.stderr
     assert "Traceback" not in unknown.stderr
     closed = f"http://127.0.0.1:{free_port()}"
     unreachable = run(

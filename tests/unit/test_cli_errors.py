@@ -45,7 +45,7 @@ MISTAKES = [
     (
         ["predict", SAMPLE_IMAGE, "--instance", "goose:235,217,67,64"],
         2,
-        ["instances[0].object 'goose' is not an object of model"],
+        ["instances[0].object: 'goose' is not an object of model"],
     ),
     (
         ["predict", SAMPLE_IMAGE, "--instance", "duck:235,217,0,64", "--epsilon", "0"],

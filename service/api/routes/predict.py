@@ -90,7 +90,7 @@ async def _predict(request: Request, parts: PredictParts, png: bool) -> Response
         parts.admission.refuse_if_full()  # not worth receiving
         body = await parts.receive(request)  # a slow client holds no place meanwhile
         async with parts.admission.admitted():
-            image, parameters = await parse_predict(request, body)
+            image, parameters = await parse_predict(request, body, parts.manifest)
             return await _compute(parts, image, parameters, png)
     except asyncio.CancelledError:  # uvicorn cancels what is left when a shutdown's grace period ends
         raise Unavailable(
@@ -110,7 +110,7 @@ async def predict_batch(request: Request, parts: Predicting) -> Response:
     require_batch_media(request)
     parts.admission.refuse_if_full()  # not worth receiving
     body = await parts.receive(request)  # as predict: a slow client holds no place meanwhile
-    items = await parse_batch(request, body, parts.max_batch_images)
+    items = await parse_batch(request, body, parts.max_batch_images, parts.manifest)
     capacity = parts.admission.capacity
     if len(items) > capacity:
         raise InvalidInput(
