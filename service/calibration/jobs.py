@@ -388,7 +388,9 @@ class CalibrationJobs(DetectorJobs):
         except BaseException:
             folder.remove()
             raise
-        self._audit.record(operator, "upload", "accepted", reason=options.note, details=_accepted(job, batch))
+        self._audit.record(
+            operator, "upload", "accepted", reason=options.note, details=_accepted(job, batch, options)
+        )
         return job
 
     def retry(self, job_id: str, operator: Operator) -> JobRecord:
@@ -505,7 +507,7 @@ def _not_kept(job: JobRecord, jobs_dir: Path) -> Conflict:
     )
 
 
-def _accepted(job: JobRecord, batch: ValidatedBatch) -> dict[str, Any]:
+def _accepted(job: JobRecord, batch: ValidatedBatch, options: UploadOptions) -> dict[str, Any]:
     named = batch.named
     return {
         "job": job.id,
@@ -514,4 +516,5 @@ def _accepted(job: JobRecord, batch: ValidatedBatch) -> dict[str, Any]:
         "instances": named.batch.count,
         "duplicates_dropped": batch.repeats_dropped,
         "rejected": len(batch.rejected),
+        **({} if batch.duplicate_of is None else {"duplicate_of": batch.duplicate_of, "why": options.reason}),
     }

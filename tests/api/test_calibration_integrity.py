@@ -87,7 +87,7 @@ def test_the_same_zip_appended_twice_is_refused(
 def test_overlapping_batch_is_refused_or_deduplicated(
     named_server: InProcess, samples_dir: Path, coco: dict
 ) -> None:
-    first = calibrate(named_server, zip_of(samples_dir, first_images(coco, 0, 3)))["version"]
+    first = calibrate(named_server, zip_of(samples_dir, first_images(coco, 1, 3)))["version"]
     overlap = zip_of(samples_dir, first_images(coco, 2, 6))  # image 2 is in both
     repeated = len(first_images(coco, 2, 3)["annotations"])
     new = len(first_images(coco, 3, 6)["annotations"])
@@ -116,6 +116,34 @@ def test_an_image_repeated_inside_a_batch_is_refused(
     doc["annotations"].extend(copies)
     problem = assert_problem(upload(named_server, build_zip(doc, files)), 409, f"repeats image {image['id']}")
     assert problem["duplicates"] == len(copies)
+
+
+def test_identical_batches_are_refused_unless_allowed_with_a_reason(
+    named_server: InProcess, samples_dir: Path, coco: dict
+) -> None:
+    body = zip_of(samples_dir, first_images(coco, 6, 9))
+    first = calibrate(named_server, body, name="first")["version"]
+    versions = named_server.versions()
+    for copy_number in (2, 3, 4):  # the same content, also under another name and zip
+        again = body if copy_number < 4 else zip_of(samples_dir, first_images(coco, 6, 9)) + b""
+        problem = assert_problem(
+            upload(named_server, again, "bob", name=f"copy {copy_number}"), 409, f"version {first}"
+        )
+        assert problem["duplicate_of"] == first and "allow_duplicate" in problem["detail"]
+        entry = audit(named_server, limit=1)[0]
+        assert (entry["action"], entry["outcome"], entry["who"]) == ("upload", "refused", "bob")
+        assert entry["details"]["status"] == 409
+    assert named_server.versions() == versions
+    assert_problem(upload(named_server, body, allow_duplicate=True), 422, "allow_duplicate needs a reason")
+
+    job = calibrate(named_server, body, "bob", allow_duplicate=True, reason="a second copy for the demo")
+    accepted = next(e for e in audit(named_server) if e["action"] == "upload" and e["outcome"] == "accepted")
+    assert accepted["details"]["job"] == job["id"] and accepted["who"] == "bob"
+    assert accepted["details"]["duplicate_of"] == first
+    assert accepted["details"]["why"] == "a second copy for the demo"
+    assert named_server.versions() == [*versions, job["result"]["version"]]
+    other_strata = calibrate(named_server, body, stratify="none")  # another version: no strata
+    assert other_strata["result"]["version"] not in versions
 
 
 # ---------------------------------------------------------------- activation guardrails
@@ -194,12 +222,12 @@ def test_force_without_a_reason_is_refused_before_the_upload_is_read(
 # ---------------------------------------------------------------- the box rule in calibration
 
 
-@pytest.mark.parametrize("bbox", [[100, 100, 1e-6, 1e-6], [630, 10, 50, 50]])
+@pytest.mark.parametrize(("bbox", "which"), [([100, 100, 1e-6, 1e-6], 0), ([630, 10, 50, 50], 1)])
 def test_boxes_that_predict_refuses_are_rejected_with_reasons(
-    named_server: InProcess, samples_dir: Path, coco: dict, bbox: list[float]
+    named_server: InProcess, samples_dir: Path, coco: dict, bbox: list[float], which: int
 ) -> None:
-    doc = first_images(coco, 0, 3)
-    doc["annotations"][0]["bbox"] = bbox
+    doc = first_images(coco, 0, 3)  # a different annotation each: versions of the same content are refused
+    doc["annotations"][which]["bbox"] = bbox
     body = zip_of(samples_dir, doc)
     versions = named_server.versions()
     problem = assert_problem(upload(named_server, body), 422, "were rejected", "max_rejected_share", "bbox")
@@ -208,7 +236,7 @@ def test_boxes_that_predict_refuses_are_rejected_with_reasons(
 
     job = calibrate(named_server, body, max_rejected_share=0.5)
     assert job["result"]["rejected"] == 1 and job["total"] == len(doc["annotations"]) - 1
-    assert f"annotation {doc['annotations'][0]['id']}" in job["result"]["rejections"][0]
+    assert f"annotation {doc['annotations'][which]['id']}" in job["result"]["rejections"][0]
 
 
 def test_an_image_that_does_not_decode_is_rejected_in_the_job(

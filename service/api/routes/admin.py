@@ -53,7 +53,8 @@ _UPLOAD_OPENAPI = {
         "404": {"description": "append_to names a version that does not exist"},
         "409": {
             "description": "The batch repeats images or instances already counted (inside itself or in"
-            " append_to): the problem lists them; or append_to was scored under other manifest settings"
+            " append_to): the problem lists them; or append_to was scored under other manifest settings;"
+            " or the batch would make a version equal to a stored one (`duplicate_of` names it)"
         },
         "413": {"description": "The zip, its files or its unzipped size exceed the limits"},
         "415": {"description": "Not a zip body"},
@@ -99,9 +100,15 @@ async def upload_calibration(
     force: Annotated[
         bool, Query(description="with activate: activate even if the guardrails refuse (needs reason)")
     ] = False,
-    reason: Annotated[str, Query(max_length=2000, description="why (recorded; required with force)")] = "",
+    reason: Annotated[
+        str, Query(max_length=2000, description="why (recorded; required with force or allow_duplicate)")
+    ] = "",
     dedupe: Annotated[
         bool, Query(description="drop instances already counted instead of refusing the batch (409)")
+    ] = False,
+    allow_duplicate: Annotated[
+        bool,
+        Query(description="store a version equal to a stored one instead of refusing (409); needs reason"),
     ] = False,
     max_rejected_share: Annotated[
         float | None,
@@ -130,6 +137,7 @@ async def upload_calibration(
             force=force,
             reason=reason,
             dedupe=dedupe,
+            allow_duplicate=allow_duplicate,
             max_rejected_share=max_rejected_share,
             stratify=None if stratify is None else _stratify(stratify),
         )
