@@ -82,7 +82,8 @@ Coverage audits (immutable, like versions):
 
 Errors: StoreError > VersionNotFound (also a LookupError; HTTP 404), JobNotFound
 (a LookupError), JobExists (a ValueError), JobFinished, SchemaVersionError (database migrated by
-newer code), StoreUnavailable (HTTP 503).
+newer code), StoreUnavailable (HTTP 503), StoreFull (a StoreUnavailable: the database's disk is
+full; HTTP 507).
 Versions, scores, activations and audit entries are immutable (database triggers refuse
 UPDATE and DELETE); only unfinished job rows change.
 """
@@ -94,6 +95,7 @@ from .errors import (
     JobNotFound,
     SchemaVersionError,
     StoreError,
+    StoreFull,
     StoreUnavailable,
     VersionNotFound,
 )
@@ -139,6 +141,7 @@ __all__ = [
     "ScoreTable",
     "SourceBatch",
     "StoreError",
+    "StoreFull",
     "StoreUnavailable",
     "VersionInfo",
     "VersionNotFound",

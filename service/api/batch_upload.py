@@ -12,7 +12,7 @@ from fastapi.concurrency import run_in_threadpool
 
 from service.api.request_body import BodyPace, receive_upload
 from service.calibration.uploads import UploadWorkspace
-from service.errors import ServiceError, UnsupportedMediaType
+from service.errors import ServiceError, UnsupportedMediaType, disk_full_refused
 from service.runtime.audit_trail import AuditTrail, Operator
 from service.runtime.settings import Settings
 
@@ -47,10 +47,13 @@ async def receive_batch_zip(request: Request, settings: Settings) -> tuple[Uploa
         )
     timeout = settings.calibration.upload_read_timeout_seconds
     pace = BodyPace.from_settings(settings, timeout, "CKS_UPLOAD_READ_TIMEOUT_SECONDS")
-    workspace = await run_in_threadpool(UploadWorkspace.create, settings.storage.uploads_dir)
-    try:
-        saved = await receive_upload(request, workspace.archive, settings.calibration.max_upload_bytes, pace)
-    except BaseException:
-        await run_in_threadpool(workspace.remove)
-        raise
+    with disk_full_refused("the upload"):
+        workspace = await run_in_threadpool(UploadWorkspace.create, settings.storage.uploads_dir)
+        try:
+            saved = await receive_upload(
+                request, workspace.archive, settings.calibration.max_upload_bytes, pace
+            )
+        except BaseException:
+            await run_in_threadpool(workspace.remove)
+            raise
     return workspace, saved.sha256

@@ -23,7 +23,7 @@ from service.calibration.compatibility import version_incompatibility
 from service.calibration.fingerprints import Fingerprint, find_repeats, fingerprints, instance_digests
 from service.calibration.stratification import DIFFICULTY, GROUP, describe_kinds, parse_stratify, stored_kinds
 from service.detector.session import Detector
-from service.errors import Conflict, InvalidInput, NotFound
+from service.errors import Conflict, InvalidInput, NotFound, disk_full_refused
 
 #: how many repeats or rejections a refusal lists (the count is always given)
 LISTED = 20
@@ -137,7 +137,8 @@ class Intake:
         """Unzip beside the zip within the limits and the disk budget (the zip is removed), then
         read the COCO batch."""
         named_as = batch_name(name, sha256)  # refused before anything is unzipped
-        unzipped = extract_zip(archive, archive.parent / UNZIPPED, self._rules.limits, self._rules.disk)
+        with disk_full_refused("the unzipped upload"):  # what was unzipped is removed
+            unzipped = extract_zip(archive, archive.parent / UNZIPPED, self._rules.limits, self._rules.disk)
         archive.unlink()
         return NamedBatch(named_as, sha256, load_coco_batch(unzipped, self._detector.manifest))
 

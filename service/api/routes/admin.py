@@ -41,6 +41,7 @@ router = APIRouter(
     tags=["admin"],
     responses={503: {"description": "The calibration store is unreachable (with Retry-After)"}},
 )
+DISK_FULL = "No room on disk for what the call writes (a full disk or store): nothing was kept; retry later"
 VersionNumber = Annotated[int, Path(ge=1, le=MAX_VERSION, description="calibration version number")]
 
 _UPLOAD_OPENAPI = {
@@ -63,6 +64,7 @@ _UPLOAD_OPENAPI = {
             " than max_rejected_share allows, or force without a reason; the problem lists what to fix"
         },
         "503": {"description": "The calibration store could not record the job"},
+        "507": {"description": DISK_FULL},
     },
 }
 _ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
@@ -73,6 +75,7 @@ _ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
         " scored under other manifest settings"
     },
     422: {"description": "force without a reason"},
+    507: {"description": DISK_FULL},
 }
 
 
@@ -181,6 +184,7 @@ async def get_job(job_id: str, jobs: Jobs, registry: Registry, _: Admin) -> JobO
     responses={
         404: {"description": "No such job"},
         409: {"description": "The job is not interrupted, or its upload is kept by another server"},
+        507: {"description": DISK_FULL},
     },
 )
 async def retry_job(
