@@ -136,7 +136,13 @@ def store_step(work: Path) -> None:
         time.sleep(1.5)  # the job's writer lands its failed state
         retried = server.client.post(f"/v1/admin/jobs/{job_id}/retry", headers=server.admin)
         new = server.wait_job(retried.json()["id"]) if retried.status_code == 202 else {"state": "-"}
-        print(f"  space freed: retry {retried.status_code}, its job {new['state']}", flush=True)
+        refusal = [e for e in audit_entries(server) if e["action"] == "activation"][:1]
+        audited = refusal[0]["details"].get("status") if refusal else None
+        print(
+            f"  space freed: the activation's refusal audited ({audited}); retry {retried.status_code},"
+            f" its job {new['state']}",
+            flush=True,
+        )
 
 
 def duplicates_step(work: Path) -> None:

@@ -42,7 +42,8 @@ CalibrationStore (thread-safe; also a context manager that closes):
   ``activation_log(model_hash) -> list[Activation]`` oldest first.
 - ``change_counter() -> int``: grows with every creation and activation, store-wide;
   poll it (one tiny query) to notice changes made by other replicas.
-- ``create_job(job: JobRecord) -> JobRecord`` (JobExists if the id is taken),
+- ``create_job(job: JobRecord, audit=()) -> JobRecord`` (JobExists if the id is taken; the
+  audit entries in the same transaction),
   ``update_job(job_id, **fields) -> JobRecord`` (state, done, total, errors, result,
   finished_at, version, heartbeat_at; heartbeat_at defaults to now, so every write is a
   sign of life; JobNotFound; JobFinished for a job in a final state: finished jobs never

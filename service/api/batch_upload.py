@@ -10,6 +10,7 @@ from typing import Any
 from fastapi import Request
 from fastapi.concurrency import run_in_threadpool
 
+from calibration_store import StoreFull, StoreUnavailable
 from service.api.request_body import BodyPace, receive_upload
 from service.calibration.uploads import UploadWorkspace
 from service.errors import ServiceError, UnsupportedMediaType, disk_full_refused
@@ -23,7 +24,8 @@ _ZIP_TYPES = {"application/zip", "application/x-zip-compressed", "application/oc
 async def refusals_audited(
     trail: AuditTrail, operator: Operator, action: str, context: dict | None = None, **fields: Any
 ) -> AsyncIterator[None]:
-    """Append every refusal of an admin action to the audit trail, then let it through."""
+    """Append every refusal of an admin action to the audit trail before it is answered, then let
+    it through; one the store caused (unreachable, locked, full) is appended once the store can."""
     try:
         yield
     except ServiceError as error:
@@ -34,6 +36,11 @@ async def refusals_audited(
             "errors": error.errors[:10],
         }
         await run_in_threadpool(trail.record, operator, action, "refused", details=details, **fields)
+        raise
+    except StoreUnavailable as error:
+        status = 507 if isinstance(error, StoreFull) else 503
+        details = {**(context or {}), "status": status, "detail": str(error), "errors": []}
+        trail.record_later(operator, action, "refused", details=details, **fields)
         raise
 
 

@@ -29,7 +29,7 @@ import logging
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from datetime import UTC, datetime, timedelta
@@ -41,6 +41,7 @@ from calibration_store import (
     JobFinished,
     JobNotFound,
     JobRecord,
+    NewAuditEntry,
     StoreError,
     StoreFull,
     StoreUnavailable,
@@ -58,7 +59,7 @@ from service.errors import (
     Unavailable,
     disk_full_refused,
 )
-from service.runtime.audit_trail import AuditTrail, Operator
+from service.runtime.audit_trail import AuditTrail, Operator, written
 from service.runtime.metrics import CALIBRATION_JOBS
 from service.runtime.processes import process_owner
 
@@ -159,9 +160,15 @@ class JobRunner:
         self._writer.start()
 
     def submit(
-        self, kind: str, function: JobFunction, total: int = 0, job_id: str | None = None
+        self,
+        kind: str,
+        function: JobFunction,
+        total: int = 0,
+        job_id: str | None = None,
+        audit: Sequence[NewAuditEntry] = (),
     ) -> JobRecord:
-        """Store a queued job, then queue it; raises Unavailable if the store cannot take it."""
+        """Store a queued job with the ``audit`` entries that accept it (one transaction), then
+        queue it; raises Unavailable if the store cannot take them."""
         now = datetime.now(UTC)
         job = JobRecord(
             id=job_id or new_job_id(),
@@ -173,10 +180,11 @@ class JobRunner:
         )
         try:
             with disk_full_refused("the job's record"):
-                self._store.create_job(job)
+                self._store.create_job(job, audit)
         except StoreError as error:
             detail = f"the job could not be recorded, so it was not started: {error}"
             raise StoreUnreachable(detail) from error
+        written(*audit)
         with self._lock:
             self._tracked[job.id] = _Tracked(job)
         try:
@@ -416,15 +424,13 @@ class CalibrationJobs(DetectorJobs):
                 folder.adopt(workspace)
                 batch = self._intake.take_in(folder.archive, sha256, options)
                 folder.save(_kept(options, operator, sha256, batch, folder))
-            job = self._submit(folder, batch, options, operator)
+            details = _accepted(folder.job_id, batch, options)
+            accepted = self._audit.entry(operator, "upload", "accepted", reason=options.note, details=details)
+            return self._submit(folder, batch, options, operator, accepted)
         except BaseException:
             folder.remove()
             workspace.remove()  # when it was not moved
             raise
-        self._audit.record(
-            operator, "upload", "accepted", reason=options.note, details=_accepted(job, batch, options)
-        )
-        return job
 
     def retry(self, job_id: str, operator: Operator) -> JobRecord:
         """Run an interrupted job, or one failed for a full disk, again as a new job, from its
@@ -444,17 +450,30 @@ class CalibrationJobs(DetectorJobs):
             old.move_to(new)  # one rename wins: a job is retried once
         except FileNotFoundError as error:
             raise Conflict(f"job {job_id} was retried meanwhile") from error
-        retried = self._submit(new, batch.moved(old.root, new.root), options, original)
-        self._audit.record(operator, "retry", "accepted", details={"job": job_id, "new_job": retried.id})
-        return retried
+        accepted = self._audit.entry(
+            operator, "retry", "accepted", details={"job": job_id, "new_job": new.job_id}
+        )
+        try:
+            return self._submit(new, batch.moved(old.root, new.root), options, original, accepted)
+        except BaseException:
+            new.move_to(old)  # not started (a store away or full): it can be retried again
+            raise
 
     def _submit(
-        self, folder: JobFolder, batch: ValidatedBatch, options: UploadOptions, operator: Operator
+        self,
+        folder: JobFolder,
+        batch: ValidatedBatch,
+        options: UploadOptions,
+        operator: Operator,
+        accepted: NewAuditEntry,
     ) -> JobRecord:
+        """Start the job, its ``accepted`` entry stored with it."""
+
         def job(progress: JobProgress) -> dict[str, Any]:
             return self._job(folder, batch, options, operator, progress)
 
-        return self._runner.submit(JOB_KIND, job, batch.named.batch.count, job_id=folder.job_id)
+        count = batch.named.batch.count
+        return self._runner.submit(JOB_KIND, job, count, job_id=folder.job_id, audit=(accepted,))
 
     def _job(
         self,
@@ -548,10 +567,10 @@ def _not_kept(job: JobRecord, jobs_dir: Path) -> Conflict:
     )
 
 
-def _accepted(job: JobRecord, batch: ValidatedBatch, options: UploadOptions) -> dict[str, Any]:
+def _accepted(job_id: str, batch: ValidatedBatch, options: UploadOptions) -> dict[str, Any]:
     named = batch.named
     return {
-        "job": job.id,
+        "job": job_id,
         "batch": named.name,
         "sha256": named.sha256,
         "instances": named.batch.count,

@@ -5,6 +5,7 @@ admin action in the audit trail under the operator's name, and the store said ou
 from __future__ import annotations
 
 import copy
+import sqlite3
 from collections.abc import Iterator
 from pathlib import Path, PurePosixPath
 
@@ -12,7 +13,7 @@ import pytest
 
 from tests.api.in_process import InProcess
 from tests.samples import batch_zip, build_zip, count_instances
-from tests.service_calls import ADMIN_TOKEN, assert_problem
+from tests.service_calls import ADMIN_TOKEN, assert_problem, wait_until
 
 OPERATORS = {"alice": "alice-token-0123456789", "bob": "bob-token-9876543210"}
 
@@ -270,6 +271,35 @@ def test_operators_are_named_and_the_single_token_is_admin(named_server: InProce
         assert named_server.client.get("/v1/admin/store", headers=headers).status_code == 200
     wrong = {"Authorization": "Bearer alice-token-0123456788"}
     assert_problem(named_server.client.get("/v1/admin/store", headers=wrong), 401)
+
+
+@pytest.mark.slow
+def test_an_activation_refused_for_a_store_lock_timeout_is_audited(named_server: InProcess) -> None:
+    """Another writer holds SQLite's lock past the busy timeout (30 s): the activation is refused
+    (503), and its entry lands once the store can take it."""
+    locker = sqlite3.connect(named_server.data_dir / "calibrations.db", isolation_level=None)
+    locker.execute("BEGIN IMMEDIATE")
+    try:
+        refused = named_server.client.post(
+            "/v1/admin/calibrations/1/activate", json={"reason": "while locked"}, headers=as_operator("bob")
+        )
+    finally:
+        locker.execute("ROLLBACK")
+        locker.close()
+    assert_problem(refused, 503, "database is locked")
+
+    def refusal() -> dict:
+        return next((e for e in audit(named_server) if e["reason"] == "while locked"), {})
+
+    wait_until(lambda: refusal() != {}, "the refusal's entry is stored")
+    entry = refusal()
+    assert (entry["action"], entry["outcome"], entry["who"], entry["version"]) == (
+        "activation",
+        "refused",
+        "bob",
+        1,
+    )
+    assert entry["details"]["status"] == 503 and "locked" in entry["details"]["detail"], entry
 
 
 def test_the_audit_trail_pages_and_cannot_be_edited(named_server: InProcess) -> None:

@@ -103,6 +103,14 @@ def test_a_job_whose_version_finds_the_store_full_fails_and_is_retried(disk: Pat
 
         free_space(disk)
         wait_until(
+            lambda: any(
+                e["details"].get("status") == 507
+                for e in audit_entries(server)
+                if e["action"] == "activation"
+            ),
+            "the activation's refusal is in the audit trail once the store can take it",
+        )
+        wait_until(
             lambda: (
                 stored.execute("SELECT state FROM calib_jobs WHERE id = ?", (job_id,)).fetchone()[0]
                 == "failed"
