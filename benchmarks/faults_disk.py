@@ -4,8 +4,9 @@
 
 Each disk step starts one ``keypoint-service serve`` with its data directory (uploads, jobs and
 the SQLite store) on a fresh 40 MiB tmpfs and fills it: while an upload is received, while one
-is unzipped into its job's folder (12,000 one-byte files that take a page each), and while a
-job writes its version. Printed: the answers, the bytes left in ``jobs/`` and ``uploads/``, the
+is unzipped into its job's folder (12,000 one-byte files that take a page each), before a job's
+request.json is written (``CKS_FAULT=disk-full:job-request``), and while a job writes its
+version. Printed: the answers, the bytes left in ``jobs/`` and ``uploads/``, the
 audit entry, and whether the service works again once space is freed (no restart). Then four
 identical uploads, and a fifth with ``allow_duplicate`` and a reason. About a minute.
 
@@ -27,11 +28,11 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from benchmarks.faults_clients import long_batch
+from calibration_store.faults import FILLER
 from tests.live.server import LiveServer
 from tests.service_calls import ADMIN_TOKEN
 
 DISK = "40m"
-FILLER = "filler"
 COPIES = 6  # the samples, 6 times over (7.7 MB zipped): seconds of scoring
 
 
@@ -47,9 +48,9 @@ def small_disk(parent: Path, size: str = DISK) -> Iterator[Path]:
         subprocess.run(["umount", str(data)], check=True)
 
 
-def serve_on(data: Path) -> LiveServer:
+def serve_on(data: Path, **settings: str) -> LiveServer:
     """A server that leaves a small disk to fill (no free-space reserve: CKS_MIN_FREE_DISK_BYTES=0)."""
-    return LiveServer(data, admin_token=ADMIN_TOKEN, min_free_disk_bytes=0)
+    return LiveServer(data, admin_token=ADMIN_TOKEN, min_free_disk_bytes=0, **settings)
 
 
 def fill(data: Path, leave: int = 0) -> None:
@@ -121,6 +122,14 @@ def unzip_step(work: Path) -> None:
         print(f"  then another upload's job {server.calibrate(long_batch(1))['state']}", flush=True)
 
 
+def request_step(work: Path) -> None:
+    body = long_batch(1)
+    with small_disk(work) as data, serve_on(data, fault="disk-full:job-request") as server:
+        print(f"disk filled before the job's request.json: {refused_upload(server, body)}", flush=True)
+        free_space(data)
+        print(f"  space freed: the same upload's job {server.calibrate(body)['state']}", flush=True)
+
+
 def store_step(work: Path) -> None:
     with small_disk(work) as data, serve_on(data) as server:
         job_id = server.upload(long_batch(COPIES)).json()["id"]
@@ -163,7 +172,7 @@ def duplicates_step(work: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    for step in (receive_step, unzip_step, store_step, duplicates_step):
+    for step in (receive_step, unzip_step, request_step, store_step, duplicates_step):
         with tempfile.TemporaryDirectory(prefix="cks-faults-") as work:
             step(Path(work))
     return 0

@@ -46,6 +46,7 @@ from calibration_store import (
     StoreFull,
     StoreUnavailable,
 )
+from calibration_store.faults import fill_disk_point
 from service.calibration.intake import Intake, IntakeRules, UploadOptions, ValidatedBatch
 from service.calibration.registry import CalibrationRegistry
 from service.calibration.uploads import RETRYABLE, JobFolder, UploadWorkspace, retryable
@@ -423,6 +424,7 @@ class CalibrationJobs(DetectorJobs):
             with disk_full_refused("the upload's files"):
                 folder.adopt(workspace)
                 batch = self._intake.take_in(folder.archive, sha256, options)
+                fill_disk_point("job-request", self._settings.jobs_dir.parent)
                 folder.save(_kept(options, operator, sha256, batch, folder))
             details = _accepted(folder.job_id, batch, options)
             accepted = self._audit.entry(operator, "upload", "accepted", reason=options.note, details=details)

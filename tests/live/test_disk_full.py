@@ -1,6 +1,7 @@
 """A full disk is a 507, never a 500: a real server on a real 40 MiB file system (tmpfs; the
 tests run as root) that fills while it receives an upload, while it unzips it into its job's
-folder, and while its job writes the version to the store (SQLite, on the same disk).
+folder, before the job's request is written, and while its job writes the version to the store
+(SQLite, on the same disk).
 
 Each time: what was written is removed at once, the refusal is in the audit trail, and the
 service works again as soon as space is freed, without a restart.
@@ -75,6 +76,20 @@ def test_an_upload_unzipped_into_its_job_on_a_full_disk_gets_507(disk: Path) -> 
         assert_refusal_audited(server, 507)
 
         assert server.calibrate(long_batch(1))["result"]["version"] == 2  # the space is back at once
+        assert_no_500(server)
+
+
+def test_a_job_request_written_on_a_full_disk_gets_507(disk: Path) -> None:
+    """The disk fills (``CKS_FAULT=disk-full:job-request``) after the upload is unzipped into its
+    job's folder, before the job's request.json is written."""
+    body = long_batch(1)
+    with serve_on(disk, fault="disk-full:job-request") as server:
+        assert_problem(server.upload(body), 507, "file system is full", "the upload's files")
+        assert kept_files(server) == [], "the job's folder was left"
+        assert_refusal_audited(server, 507)
+
+        free_space(disk)
+        assert server.calibrate(body)["result"]["version"] == 2
         assert_no_500(server)
 
 
