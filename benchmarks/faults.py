@@ -1,22 +1,27 @@
 """Every fault of docs/operations.md, measured on real processes on loopback, one after the other.
 
-    python -m benchmarks.faults          # the store outage, then clients, images and shutdown
+    python -m benchmarks.faults          # the store outage, clients, images, shutdown, a full disk
 
-Runs ``benchmarks.faults_store`` (a PostgreSQL outage under load) and
-``benchmarks.faults_clients`` (slow clients, huge images, zip bombs, SIGTERM) with their
-defaults; each prints its own figures. Run either alone for its options (``--help``).
+Runs ``benchmarks.faults_store`` (a PostgreSQL outage under load),
+``benchmarks.faults_clients`` (slow clients, huge images, zip bombs, SIGTERM) and
+``benchmarks.faults_disk`` (a full disk, as root; identical uploads) with their defaults;
+each prints its own figures. Run one alone for its options (``--help``).
 """
 
 from __future__ import annotations
 
 import sys
 
-from benchmarks import faults_clients, faults_store
+from benchmarks import faults_clients, faults_disk, faults_store
 
 
 def main() -> int:
     status = 0
-    for name, module in (("store outage", faults_store), ("clients, images, shutdown", faults_clients)):
+    for name, module in (
+        ("store outage", faults_store),
+        ("clients, images, shutdown", faults_clients),
+        ("full disk, identical uploads", faults_disk),
+    ):
         print(f"\n=== {name} ({module.__name__})", flush=True)
         status = max(status, module.main([]) or 0)
     return status

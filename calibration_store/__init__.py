@@ -42,7 +42,8 @@ CalibrationStore (thread-safe; also a context manager that closes):
   ``activation_log(model_hash) -> list[Activation]`` oldest first.
 - ``change_counter() -> int``: grows with every creation and activation, store-wide;
   poll it (one tiny query) to notice changes made by other replicas.
-- ``create_job(job: JobRecord) -> JobRecord`` (JobExists if the id is taken),
+- ``create_job(job: JobRecord, audit=()) -> JobRecord`` (JobExists if the id is taken; the
+  audit entries in the same transaction),
   ``update_job(job_id, **fields) -> JobRecord`` (state, done, total, errors, result,
   finished_at, version, heartbeat_at; heartbeat_at defaults to now, so every write is a
   sign of life; JobNotFound; JobFinished for a job in a final state: finished jobs never
@@ -82,7 +83,8 @@ Coverage audits (immutable, like versions):
 
 Errors: StoreError > VersionNotFound (also a LookupError; HTTP 404), JobNotFound
 (a LookupError), JobExists (a ValueError), JobFinished, SchemaVersionError (database migrated by
-newer code), StoreUnavailable (HTTP 503).
+newer code), StoreUnavailable (HTTP 503), StoreFull (a StoreUnavailable: the database's disk is
+full; HTTP 507).
 Versions, scores, activations and audit entries are immutable (database triggers refuse
 UPDATE and DELETE); only unfinished job rows change.
 """
@@ -94,6 +96,7 @@ from .errors import (
     JobNotFound,
     SchemaVersionError,
     StoreError,
+    StoreFull,
     StoreUnavailable,
     VersionNotFound,
 )
@@ -139,6 +142,7 @@ __all__ = [
     "ScoreTable",
     "SourceBatch",
     "StoreError",
+    "StoreFull",
     "StoreUnavailable",
     "VersionInfo",
     "VersionNotFound",

@@ -128,8 +128,9 @@ class CalibrationStore(ABC):
         """
 
     @abstractmethod
-    def create_job(self, job: JobRecord) -> JobRecord:
-        """Store a new background job as given; raises JobExists if its id is taken."""
+    def create_job(self, job: JobRecord, audit: Sequence[NewAuditEntry] = ()) -> JobRecord:
+        """Store a new background job as given, and ``audit`` entries, in one transaction; raises
+        JobExists (writing nothing) if its id is taken."""
 
     @abstractmethod
     def update_job(self, job_id: str, **fields: Any) -> JobRecord:

@@ -47,3 +47,8 @@ class SchemaVersionError(StoreError):
 
 class StoreUnavailable(StoreError):
     """The database cannot be reached or stayed locked too long (HTTP 503; retry later)."""
+
+
+class StoreFull(StoreUnavailable):
+    """The database's disk is full: nothing of the operation was written (HTTP 507; retry
+    once space is freed)."""

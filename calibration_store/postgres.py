@@ -28,7 +28,7 @@ except ImportError as exc:  # pragma: no cover - depends on the installed extras
         ' pip install "conformal-keypoint-service[postgres]"'
     ) from exc
 
-from .errors import StoreError, StoreUnavailable
+from .errors import StoreError, StoreFull, StoreUnavailable
 from .migrations import POSTGRES_MIGRATIONS, apply_migrations
 from .sqlstore import Cursor, SqlStore
 
@@ -110,6 +110,8 @@ class PostgresStore(SqlStore):
             raise StoreError("the calibration store is closed") from exc
         except PoolTimeout as exc:
             raise StoreUnavailable(f"no PostgreSQL connection available: {exc}") from exc
+        except psycopg.errors.DiskFull as exc:
+            raise StoreFull(f"PostgreSQL error: {exc}") from exc
         except psycopg.OperationalError as exc:
             raise StoreUnavailable(f"PostgreSQL error: {exc}") from exc
 

@@ -16,7 +16,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from .errors import StoreError, StoreUnavailable
+from .errors import StoreError, StoreFull, StoreUnavailable
 from .migrations import SQLITE_MIGRATIONS, apply_migrations
 from .sqlstore import Cursor, SqlStore
 
@@ -100,7 +100,7 @@ class SQLiteStore(SqlStore):
                 yield cur
                 _execute(cur, "COMMIT")
             except sqlite3.OperationalError as exc:  # locked, disk full, I/O error
-                raise StoreUnavailable(f"SQLite error: {exc}") from exc
+                raise _unavailable(f"SQLite error: {exc}", exc) from exc
             finally:
                 if conn.in_transaction:
                     conn.execute("ROLLBACK")
@@ -123,7 +123,12 @@ def _execute(cur: sqlite3.Cursor, statement: str) -> None:
     try:
         cur.execute(statement)
     except sqlite3.OperationalError as exc:
-        raise StoreUnavailable(f"SQLite {statement} failed: {exc}") from exc
+        raise _unavailable(f"SQLite {statement} failed: {exc}", exc) from exc
+
+
+def _unavailable(message: str, error: sqlite3.OperationalError) -> StoreUnavailable:
+    full = error.sqlite_errorcode == sqlite3.SQLITE_FULL
+    return StoreFull(message) if full else StoreUnavailable(message)
 
 
 def _retry_locked(action: Any, attempts: int = 50) -> Any:

@@ -466,9 +466,10 @@ class SqlStore(CalibrationStore):
 
     # -- jobs ------------------------------------------------------------------
 
-    def create_job(self, job: JobRecord) -> JobRecord:
+    def create_job(self, job: JobRecord, audit: Sequence[NewAuditEntry] = ()) -> JobRecord:
         if not isinstance(job, JobRecord):
             raise TypeError("create_job takes a JobRecord")
+        entries = _audit_entries(audit)
         with self._transaction(write=True) as cur:
             cur.execute(
                 f"INSERT INTO calib_jobs ({_JOB_COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)"
@@ -482,6 +483,8 @@ class SqlStore(CalibrationStore):
                 ),
             )
             row = cur.fetchone()
+            for entry in entries if row is not None else ():
+                self._insert_audit(cur, entry)
         if row is None:
             raise JobExists(job.id)
         return self._job(row)

@@ -6,7 +6,12 @@ needs to know about FastAPI.
 
 from __future__ import annotations
 
+import errno
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
+
+from calibration_store import StoreFull
 
 
 class ServiceError(Exception):
@@ -52,6 +57,36 @@ class NotFound(ServiceError):
 
 class Conflict(ServiceError):
     status, title = 409, "Conflict"
+
+
+class InsufficientStorage(ServiceError):
+    """No room on disk for what the request would write: retry once space is freed."""
+
+    status, title = 507, "Insufficient storage"
+
+
+#: what a write on a full file system fails with (no space; the user's quota)
+DISK_FULL = frozenset({errno.ENOSPC, errno.EDQUOT})
+
+
+@contextmanager
+def disk_full_refused(what: str) -> Iterator[None]:
+    """A write of ``what`` that finds the disk full (``DISK_FULL``, or the store's) is a 507;
+    the caller removes what it had written."""
+    try:
+        yield
+    except OSError as error:
+        if error.errno not in DISK_FULL:
+            raise
+        raise InsufficientStorage(
+            f"the data directory's file system is full: {what} could not be written ({error.strerror})."
+            " Nothing of it was kept; retry once space is freed"
+        ) from error
+    except StoreFull as error:
+        raise InsufficientStorage(
+            f"the calibration store's disk is full: {what} could not be stored ({error}). Nothing of it"
+            " was kept; retry once space is freed"
+        ) from error
 
 
 class Unavailable(ServiceError):

@@ -10,9 +10,10 @@ from typing import Any
 from fastapi import Request
 from fastapi.concurrency import run_in_threadpool
 
+from calibration_store import StoreFull, StoreUnavailable
 from service.api.request_body import BodyPace, receive_upload
 from service.calibration.uploads import UploadWorkspace
-from service.errors import ServiceError, UnsupportedMediaType
+from service.errors import ServiceError, UnsupportedMediaType, disk_full_refused
 from service.runtime.audit_trail import AuditTrail, Operator
 from service.runtime.settings import Settings
 
@@ -39,7 +40,8 @@ ZIP_BODY: dict[str, Any] = {
 async def refusals_audited(
     trail: AuditTrail, operator: Operator, action: str, context: dict | None = None, **fields: Any
 ) -> AsyncIterator[None]:
-    """Append every refusal of an admin action to the audit trail, then let it through."""
+    """Append every refusal of an admin action to the audit trail before it is answered, then let
+    it through; one the store caused (unreachable, locked, full) is appended once the store can."""
     try:
         yield
     except ServiceError as error:
@@ -50,6 +52,11 @@ async def refusals_audited(
             "errors": error.errors[:10],
         }
         await run_in_threadpool(trail.record, operator, action, "refused", details=details, **fields)
+        raise
+    except StoreUnavailable as error:
+        status = 507 if isinstance(error, StoreFull) else 503
+        details = {**(context or {}), "status": status, "detail": str(error), "errors": []}
+        trail.record_later(operator, action, "refused", details=details, **fields)
         raise
 
 
@@ -66,11 +73,12 @@ async def receive_batch_zip(request: Request, settings: Settings) -> tuple[Uploa
     part = ZIP_PART if content_type == "multipart/form-data" else None
     timeout = settings.calibration.upload_read_timeout_seconds
     pace = BodyPace.from_settings(settings, timeout, "CKS_UPLOAD_READ_TIMEOUT_SECONDS")
-    workspace = await run_in_threadpool(UploadWorkspace.create, settings.storage.uploads_dir)
-    try:
-        limit = settings.calibration.max_upload_bytes
-        saved = await receive_upload(request, workspace.archive, limit, pace, part)
-    except BaseException:
-        await run_in_threadpool(workspace.remove)
-        raise
+    with disk_full_refused("the upload"):
+        workspace = await run_in_threadpool(UploadWorkspace.create, settings.storage.uploads_dir)
+        try:
+            limit = settings.calibration.max_upload_bytes
+            saved = await receive_upload(request, workspace.archive, limit, pace, part)
+        except BaseException:
+            await run_in_threadpool(workspace.remove)
+            raise
     return workspace, saved.sha256

@@ -11,9 +11,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
-from calibration_store import StoreUnavailable
+from calibration_store import StoreFull, StoreUnavailable
 from service.api.request_id import HEADER as REQUEST_ID_HEADER
-from service.errors import ServiceError, StoreUnreachable
+from service.errors import InsufficientStorage, ServiceError, StoreUnreachable
 from service.runtime.logs import current_request
 
 PROBLEM_JSON = "application/problem+json"
@@ -99,6 +99,13 @@ def install_problem_handlers(app: FastAPI) -> None:
     async def _store_unavailable(request: Request, exc: StoreUnavailable) -> JSONResponse:
         error = StoreUnreachable(f"the calibration store is unreachable ({exc}): retry later")
         return problem(error.status, error.title, error.detail, request, headers=error.headers)
+
+    @app.exception_handler(StoreFull)
+    async def _store_full(request: Request, exc: StoreFull) -> JSONResponse:
+        error = InsufficientStorage(
+            f"the calibration store's disk is full ({exc}): nothing was written; retry once space is freed"
+        )
+        return problem(error.status, error.title, error.detail, request)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:

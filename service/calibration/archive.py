@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO, NamedTuple
 
-from service.errors import InvalidInput, PayloadTooLarge, ServiceError
+from service.errors import InsufficientStorage, InvalidInput, PayloadTooLarge
 
 if TYPE_CHECKING:
     from service.runtime.settings import Settings
@@ -46,10 +46,6 @@ _SUPPORTED_COMPRESSION = {
 }
 _DRIVE = re.compile(r"^[A-Za-z]:")
 _IGNORED_TOP_LEVEL = frozenset({"__MACOSX"})
-
-
-class InsufficientStorage(ServiceError):
-    status, title = 507, "Insufficient storage"
 
 
 @dataclass(frozen=True)

@@ -88,6 +88,11 @@ def find_repeats(
     return repeats
 
 
+def instance_digests(table: ScoreTable) -> set[str]:
+    """The content hashes of a version's instances (less those stored before hashes were kept)."""
+    return _stored_digests(table)[1]
+
+
 def _stored_digests(table: ScoreTable | None) -> tuple[set[str], set[str]]:
     images: set[str] = set()
     instances: set[str] = set()

@@ -4,8 +4,9 @@ runs here, before an upload's 202, so a batch that would be refused never become
 Read top-down, ``Intake.take_in``: unzip within the limits and the disk budget, read the COCO
 file against the manifest, check the version to append to and read its scores (once: they
 travel with the batch to its job), refuse stratify=group without group labels, refuse
-repeats (inside the batch or in the parent; dropped instead with ``dedupe``) and more
-instances rejected by the box rule than the caller allows.
+repeats (inside the batch or in the parent; dropped instead with ``dedupe``), more
+instances rejected by the box rule than the caller allows, and a batch that would make a
+version equal to a stored one (unless ``allow_duplicate``, with a reason).
 """
 
 from __future__ import annotations
@@ -19,10 +20,10 @@ from calibration_store import CalibrationStore, ScoreTable, VersionInfo, Version
 from service.calibration.archive import ArchiveLimits, DiskBudget, extract_zip
 from service.calibration.coco import NamedBatch, Rejection, load_coco_batch
 from service.calibration.compatibility import version_incompatibility
-from service.calibration.fingerprints import Fingerprint, find_repeats, fingerprints
-from service.calibration.stratification import GROUP, parse_stratify
+from service.calibration.fingerprints import Fingerprint, find_repeats, fingerprints, instance_digests
+from service.calibration.stratification import DIFFICULTY, GROUP, describe_kinds, parse_stratify, stored_kinds
 from service.detector.session import Detector
-from service.errors import Conflict, InvalidInput, NotFound
+from service.errors import Conflict, InvalidInput, NotFound, disk_full_refused
 
 #: how many repeats or rejections a refusal lists (the count is always given)
 LISTED = 20
@@ -42,6 +43,7 @@ class UploadOptions:
     force: bool = False
     reason: str = ""
     dedupe: bool = False
+    allow_duplicate: bool = False
     max_rejected_share: float | None = None  # None: CKS_MAX_REJECTED_SHARE
     stratify: frozenset[str] | None = None  # None: difficulty strata when the scores carry heatmap features
 
@@ -53,6 +55,11 @@ class UploadOptions:
             )
         if self.force and not self.activate:
             raise InvalidInput("force only applies when activating (activate=true, or --activate)")
+        if self.allow_duplicate and not self.reason.strip():
+            raise InvalidInput(
+                "allow_duplicate needs a reason (allow_duplicate=true&reason=...):"
+                " say why a version equal to a stored one is wanted"
+            )
 
     def rejected_share(self, default: float) -> float:
         return default if self.max_rejected_share is None else self.max_rejected_share
@@ -79,13 +86,14 @@ class Parent:
 @dataclass(frozen=True)
 class ValidatedBatch:
     """A batch to score: its instances (repeats dropped), their fingerprints, what was left out,
-    and the version it extends."""
+    the version it extends, and the stored version it repeats (with ``allow_duplicate``)."""
 
     named: NamedBatch
     fingerprints: tuple[Fingerprint, ...]
     repeats_dropped: int
     rejected: tuple[Rejection, ...]
     parent: Parent | None = None
+    duplicate_of: int | None = None
 
     @property
     def annotations(self) -> int:
@@ -129,7 +137,8 @@ class Intake:
         """Unzip beside the zip within the limits and the disk budget (the zip is removed), then
         read the COCO batch."""
         named_as = batch_name(name, sha256)  # refused before anything is unzipped
-        unzipped = extract_zip(archive, archive.parent / UNZIPPED, self._rules.limits, self._rules.disk)
+        with disk_full_refused("the unzipped upload"):  # what was unzipped is removed
+            unzipped = extract_zip(archive, archive.parent / UNZIPPED, self._rules.limits, self._rules.disk)
         archive.unlink()
         return NamedBatch(named_as, sha256, load_coco_batch(unzipped, self._detector.manifest))
 
@@ -145,7 +154,30 @@ class Intake:
         if options.stratify is not None and GROUP in options.stratify:
             check_group_labels(named, parent)
         share = options.rejected_share(self._rules.max_rejected_share)
-        return check_batch(named, parent, dedupe=options.dedupe, max_rejected_share=share)
+        batch = check_batch(named, parent, dedupe=options.dedupe, max_rejected_share=share)
+        return replace(batch, duplicate_of=self.duplicate_of(batch, options))
+
+    def duplicate_of(self, batch: ValidatedBatch, options: UploadOptions) -> int | None:
+        """The stored version the batch would repeat (the same instances, the same strata asked),
+        refused (409) unless ``allow_duplicate``; None when it repeats none."""
+        instances = {p.instance for p in batch.fingerprints}
+        count = len(batch.fingerprints)
+        if batch.parent is not None:
+            instances |= instance_digests(batch.parent.scores)
+            count += batch.parent.scores.n_instances
+        if len(instances) != count:  # instances stored before hashes were kept: nothing to compare
+            return None
+        for info in self._store.list_versions(self._detector.model_hash):
+            if (
+                info.n_instances == count
+                and _same_strata(stored_kinds(info.strata), options.stratify)
+                and version_incompatibility(info, self._detector.manifest) is None
+                and instance_digests(self._scores(info.number)) == instances
+            ):
+                if not options.allow_duplicate:
+                    raise _duplicate_refused(info.number, count, options.stratify)
+                return info.number
+        return None
 
 
 def read_parent(
@@ -231,6 +263,22 @@ def check_rejected_share(rejected: Sequence[Rejection], total: int, max_share: f
         " allow a larger share to calibrate without them",
         errors=listed,
         extensions={"rejected": len(rejected), "instances": total},
+    )
+
+
+def _same_strata(stored: frozenset[str], asked: frozenset[str] | None) -> bool:
+    """Whether a version stored with ``stored`` strata is what ``asked`` would make (None: the
+    default, difficulty strata when the scores carry heatmap features)."""
+    return stored <= {DIFFICULTY} if asked is None else stored == asked
+
+
+def _duplicate_refused(version: int, count: int, stratify: frozenset[str] | None) -> Conflict:
+    strata = "" if stratify is None else f" with the same strata ({describe_kinds(stratify)})"
+    return Conflict(
+        f"the batch would make a version equal to calibration version {version}: the same {count}"
+        f" instances{strata}. Use version {version} (activate it, or pin calibration_version={version}),"
+        " or upload with allow_duplicate=true and a reason if another copy is wanted",
+        extensions={"duplicate_of": version},
     )
 
 

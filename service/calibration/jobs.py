@@ -29,7 +29,7 @@ import logging
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from datetime import UTC, datetime, timedelta
@@ -41,16 +41,26 @@ from calibration_store import (
     JobFinished,
     JobNotFound,
     JobRecord,
+    NewAuditEntry,
     StoreError,
+    StoreFull,
     StoreUnavailable,
 )
+from calibration_store.faults import fill_disk_point
 from service.calibration.intake import Intake, IntakeRules, UploadOptions, ValidatedBatch
 from service.calibration.registry import CalibrationRegistry
-from service.calibration.uploads import JobFolder, UploadWorkspace
+from service.calibration.uploads import RETRYABLE, JobFolder, UploadWorkspace, retryable
 from service.calibration.versions import VersionRules, create_version
 from service.detector.session import Detector
-from service.errors import Conflict, NotFound, ServiceError, StoreUnreachable, Unavailable
-from service.runtime.audit_trail import AuditTrail, Operator
+from service.errors import (
+    Conflict,
+    NotFound,
+    ServiceError,
+    StoreUnreachable,
+    Unavailable,
+    disk_full_refused,
+)
+from service.runtime.audit_trail import AuditTrail, Operator, written
 from service.runtime.metrics import CALIBRATION_JOBS
 from service.runtime.processes import process_owner
 
@@ -88,6 +98,14 @@ def interrupted_note(job_id: str) -> str:
         "Nothing was stored: a version is written in the same transaction that marks its job"
         f" succeeded. Retry it with POST /v1/admin/jobs/{job_id}/retry on a server sharing the data"
         " directory that received the upload (it is kept there), or upload the batch again"
+    )
+
+
+def disk_full_note(job_id: str, error: StoreFull) -> str:
+    """What a job that failed for a full disk reports."""
+    return (
+        f"disk full: the calibration store could not write the version ({error}); nothing was stored."
+        f" Its upload is kept: retry it with POST /v1/admin/jobs/{job_id}/retry once space is freed"
     )
 
 
@@ -143,9 +161,15 @@ class JobRunner:
         self._writer.start()
 
     def submit(
-        self, kind: str, function: JobFunction, total: int = 0, job_id: str | None = None
+        self,
+        kind: str,
+        function: JobFunction,
+        total: int = 0,
+        job_id: str | None = None,
+        audit: Sequence[NewAuditEntry] = (),
     ) -> JobRecord:
-        """Store a queued job, then queue it; raises Unavailable if the store cannot take it."""
+        """Store a queued job with the ``audit`` entries that accept it (one transaction), then
+        queue it; raises Unavailable if the store cannot take them."""
         now = datetime.now(UTC)
         job = JobRecord(
             id=job_id or new_job_id(),
@@ -156,10 +180,12 @@ class JobRunner:
             total=total,
         )
         try:
-            self._store.create_job(job)
+            with disk_full_refused("the job's record"):
+                self._store.create_job(job, audit)
         except StoreError as error:
             detail = f"the job could not be recorded, so it was not started: {error}"
             raise StoreUnreachable(detail) from error
+        written(*audit)
         with self._lock:
             self._tracked[job.id] = _Tracked(job)
         try:
@@ -171,12 +197,24 @@ class JobRunner:
         return job
 
     def get(self, job_id: str) -> JobRecord | None:
-        """The stored job, whichever process runs it (None if unknown or pruned)."""
+        """The stored job, whichever process runs it (None if unknown or pruned); one this process
+        runs as it knows it, alive now, when the store has not taken its latest state (a store
+        that cannot write, a full disk, would otherwise have it read interrupted)."""
+        own = self._snapshot(job_id)
         try:
             job = self._store.get_job(job_id)
         except StoreError as error:
-            raise StoreUnreachable(f"the calibration store is unreachable: {error}") from error
+            if own is None:
+                raise StoreUnreachable(f"the calibration store is unreachable: {error}") from error
+            job = None
+        if own is not None and (job is None or not job.finished):
+            return replace(own, heartbeat_at=datetime.now(UTC))
         return None if job is None else reported(job, datetime.now(UTC))
+
+    def _snapshot(self, job_id: str) -> JobRecord | None:
+        with self._lock:
+            entry = self._tracked.get(job_id)
+            return None if entry is None else entry.job
 
     def shutdown(self) -> None:
         """Stop without waiting for jobs to finish: every queued or running job is marked
@@ -245,6 +283,8 @@ class JobRunner:
             else:
                 log.warning("job %s was finished elsewhere (%s); its work here was not stored", job_id, error)
             self._forget(job_id)
+        except StoreFull as error:  # nothing committed; its upload is kept for a retry
+            self._finish(job_id, "failed", errors=(disk_full_note(job_id, error),), result={RETRYABLE: True})
         except StoreUnavailable as error:  # nothing committed: had it, the job's row would refuse this write
             detail = f"the calibration store was unreachable ({error}); nothing was stored"
             self._finish(job_id, "failed", errors=(detail + ": upload the batch again",))
@@ -380,20 +420,24 @@ class CalibrationJobs(DetectorJobs):
     ) -> JobRecord:
         """Take a received upload in and start its job, or refuse it (nothing is kept)."""
         folder = JobFolder.of(self._settings.jobs_dir, new_job_id())
-        folder.adopt(workspace)
         try:
-            batch = self._intake.take_in(folder.archive, sha256, options)
-            folder.save(_kept(options, operator, sha256, batch, folder))
-            job = self._submit(folder, batch, options, operator)
+            with disk_full_refused("the upload's files"):
+                folder.adopt(workspace)
+                batch = self._intake.take_in(folder.archive, sha256, options)
+                fill_disk_point("job-request", self._settings.jobs_dir.parent)
+                folder.save(_kept(options, operator, sha256, batch, folder))
+            details = _accepted(folder.job_id, batch, options)
+            accepted = self._audit.entry(operator, "upload", "accepted", reason=options.note, details=details)
+            return self._submit(folder, batch, options, operator, accepted)
         except BaseException:
             folder.remove()
+            workspace.remove()  # when it was not moved
             raise
-        self._audit.record(operator, "upload", "accepted", reason=options.note, details=_accepted(job, batch))
-        return job
 
     def retry(self, job_id: str, operator: Operator) -> JobRecord:
-        """Run an interrupted job again as a new job, from its kept upload."""
-        job = self._interrupted(job_id)
+        """Run an interrupted job, or one failed for a full disk, again as a new job, from its
+        kept upload."""
+        job = self._retryable(job_id)
         old = JobFolder.of(self._settings.jobs_dir, job_id)
         if not old.exists():
             raise _not_kept(job, self._settings.jobs_dir)
@@ -402,23 +446,36 @@ class CalibrationJobs(DetectorJobs):
         named = self._intake.read(old.root / kept["batch_dir"], kept["sha256"], options.name)
         batch = self._intake.validate(named, options)  # refused before the job is taken over
         new = JobFolder.of(self._settings.jobs_dir, new_job_id())
-        if self._store.get_job(job_id).state != "interrupted":  # only reported so: its process may live
+        if not self._store.get_job(job_id).finished:  # reported interrupted: its process may live
             self._take_over(job, new.job_id)
         try:
             old.move_to(new)  # one rename wins: a job is retried once
         except FileNotFoundError as error:
             raise Conflict(f"job {job_id} was retried meanwhile") from error
-        retried = self._submit(new, batch.moved(old.root, new.root), options, original)
-        self._audit.record(operator, "retry", "accepted", details={"job": job_id, "new_job": retried.id})
-        return retried
+        accepted = self._audit.entry(
+            operator, "retry", "accepted", details={"job": job_id, "new_job": new.job_id}
+        )
+        try:
+            return self._submit(new, batch.moved(old.root, new.root), options, original, accepted)
+        except BaseException:
+            new.move_to(old)  # not started (a store away or full): it can be retried again
+            raise
 
     def _submit(
-        self, folder: JobFolder, batch: ValidatedBatch, options: UploadOptions, operator: Operator
+        self,
+        folder: JobFolder,
+        batch: ValidatedBatch,
+        options: UploadOptions,
+        operator: Operator,
+        accepted: NewAuditEntry,
     ) -> JobRecord:
+        """Start the job, its ``accepted`` entry stored with it."""
+
         def job(progress: JobProgress) -> dict[str, Any]:
             return self._job(folder, batch, options, operator, progress)
 
-        return self._runner.submit(JOB_KIND, job, batch.named.batch.count, job_id=folder.job_id)
+        count = batch.named.batch.count
+        return self._runner.submit(JOB_KIND, job, count, job_id=folder.job_id, audit=(accepted,))
 
     def _job(
         self,
@@ -442,17 +499,21 @@ class CalibrationJobs(DetectorJobs):
                 progress.advance,
                 job_id=folder.job_id,
             )
-        except ServiceError as error:  # refused: its upload goes (an interrupted job keeps it)
-            details = {"job": folder.job_id, "detail": error.detail}
-            self._audit.record(operator, "calibration", "failed", reason=options.note, details=details)
+        except (JobCancelled, JobFinished, StoreFull):  # interrupted, or retryable: its upload is kept
+            raise
+        except BaseException as error:  # refused or failed for good: its upload goes
+            if isinstance(error, ServiceError):
+                details = {"job": folder.job_id, "detail": error.detail}
+                self._audit.record(operator, "calibration", "failed", reason=options.note, details=details)
             folder.remove()
             raise
         folder.remove()
         self._registry.refresh_now()
         return outcome.summary
 
-    def _interrupted(self, job_id: str) -> JobRecord:
-        """The job to retry: an interrupted calibration job (404 or 409 otherwise)."""
+    def _retryable(self, job_id: str) -> JobRecord:
+        """The job to retry: an interrupted calibration job, or one failed for a full disk (404
+        or 409 otherwise)."""
         job = self._runner.get(job_id)
         if job is None:
             raise NotFound(f"no job {job_id!r}: it never existed or was pruned")
@@ -460,8 +521,11 @@ class CalibrationJobs(DetectorJobs):
             raise Conflict(
                 f"job {job_id} is an {job.kind} job: only calibration jobs are retried; send its batch again"
             )
-        if job.state != "interrupted":
-            raise Conflict(f"job {job_id} is {job.state}; only an interrupted job can be retried")
+        if not retryable(job):
+            raise Conflict(
+                f"job {job_id} is {job.state}; only an interrupted job can be retried (or one failed for"
+                " a full disk)"
+            )
         return job
 
     def _take_over(self, job: JobRecord, new_id: str) -> None:
@@ -505,13 +569,14 @@ def _not_kept(job: JobRecord, jobs_dir: Path) -> Conflict:
     )
 
 
-def _accepted(job: JobRecord, batch: ValidatedBatch) -> dict[str, Any]:
+def _accepted(job_id: str, batch: ValidatedBatch, options: UploadOptions) -> dict[str, Any]:
     named = batch.named
     return {
-        "job": job.id,
+        "job": job_id,
         "batch": named.name,
         "sha256": named.sha256,
         "instances": named.batch.count,
         "duplicates_dropped": batch.repeats_dropped,
         "rejected": len(batch.rejected),
+        **({} if batch.duplicate_of is None else {"duplicate_of": batch.duplicate_of, "why": options.reason}),
     }

@@ -56,6 +56,11 @@ def parse_stratify(value: str | Sequence[str]) -> frozenset[str]:
     return frozenset(kinds)
 
 
+def stored_kinds(strata: Mapping[str, Any] | None) -> frozenset[str]:
+    """The kinds of strata a stored version has (``VersionInfo.strata``)."""
+    return frozenset() if strata is None else StrataSpec.from_dict(strata["spec"]).kinds
+
+
 def describe_kinds(kinds: Iterable[str]) -> str:
     return "+".join(k for k in (DIFFICULTY, GROUP) if k in kinds) or "none"
 

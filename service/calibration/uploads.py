@@ -2,7 +2,8 @@
 
 An upload is received into this process's workspace folder (removed if the process
 dies mid-upload), then moved to ``<data>/jobs/<job id>`` where it stays until its job
-succeeds or fails: a job interrupted by a crash or a restart keeps it and can be retried.
+succeeds or fails: a job interrupted by a crash or a restart, or failed for a full disk,
+keeps it and can be retried (``retryable``).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from calibration_store import CalibrationStore, StoreError
+from calibration_store import CalibrationStore, JobRecord, StoreError
 from service.runtime.processes import process_folder
 
 log = logging.getLogger(__name__)
@@ -93,9 +94,18 @@ class JobFolder:
         shutil.rmtree(self.root, ignore_errors=True)
 
 
+#: in a failed job's result: its upload is kept, and it can be retried (it failed for a full disk)
+RETRYABLE = "retryable"
+
+
+def retryable(job: JobRecord) -> bool:
+    """Whether a job can be retried from its kept upload: interrupted, or failed for a full disk."""
+    return job.state == "interrupted" or (job.state == "failed" and job.result.get(RETRYABLE) is True)
+
+
 def remove_spent_job_folders(jobs_dir: Path, store: CalibrationStore) -> None:
-    """Remove kept uploads nobody can retry: of jobs that succeeded or failed, pruned jobs,
-    and folders a crash left before their job was recorded."""
+    """Remove kept uploads nobody can retry: of jobs that succeeded or failed (unless retryable),
+    pruned jobs, and folders a crash left before their job was recorded."""
     if not jobs_dir.is_dir():
         return
     for root in jobs_dir.iterdir():
@@ -105,5 +115,5 @@ def remove_spent_job_folders(jobs_dir: Path, store: CalibrationStore) -> None:
             log.warning("could not check kept uploads in %s: %s", jobs_dir, error)
             return
         unclaimed = job is None and time.time() - root.stat().st_mtime > JobFolder.UNCLAIMED_AFTER_S
-        if unclaimed or (job is not None and job.state in ("succeeded", "failed")):
+        if unclaimed or (job is not None and job.finished and not retryable(job)):
             shutil.rmtree(root, ignore_errors=True)

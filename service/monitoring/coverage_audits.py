@@ -24,6 +24,7 @@ from calibration_store import (
     CoverageAudit,
     JobCompletion,
     JobRecord,
+    NewAuditEntry,
     NewCoverageAudit,
     StoreError,
 )
@@ -76,26 +77,26 @@ class CoverageAudits(DetectorJobs):
         self, workspace: UploadWorkspace, sha256: str, request: AuditRequest, operator: Operator
     ) -> JobRecord:
         """Validate a received batch and start its audit, or refuse it (the upload is removed)."""
+        job_id = new_job_id()
         try:
             version = self._registry.resolve(request.version)  # 404, 409, 503
             named = self._intake.unpack(workspace.archive, sha256, request.name)
             prepared = self._prepare(named, version, request)
-            job = self._submit(workspace, prepared, version, request, operator)
+            details = {
+                "job": job_id,
+                "version": version,
+                "batch": named.name,
+                "sha256": sha256,
+                "instances": named.batch.count,
+                "epsilons": list(request.epsilons),
+            }
+            accepted = self._audit.entry(
+                operator, "audit", "accepted", version=version, reason=request.note, details=details
+            )
+            return self._submit(job_id, workspace, prepared, version, request, operator, accepted)
         except BaseException:
             workspace.remove()
             raise
-        details = {
-            "job": job.id,
-            "version": version,
-            "batch": named.name,
-            "sha256": sha256,
-            "instances": named.batch.count,
-            "epsilons": list(request.epsilons),
-        }
-        self._audit.record(
-            operator, "audit", "accepted", version=version, reason=request.note, details=details
-        )
-        return job
 
     def latest(self) -> CoverageAudit | None:
         """The newest audit of the served model (None if there is none)."""
@@ -140,13 +141,15 @@ class CoverageAudits(DetectorJobs):
 
     def _submit(
         self,
+        job_id: str,
         workspace: UploadWorkspace,
         prepared: ValidatedBatch,
         version: int,
         request: AuditRequest,
         operator: Operator,
+        accepted: NewAuditEntry,
     ) -> JobRecord:
-        job_id = new_job_id()
+        """Start the audit's job, its ``accepted`` entry stored with it."""
 
         def run(progress: JobProgress) -> dict[str, Any]:
             try:
@@ -174,7 +177,8 @@ class CoverageAudits(DetectorJobs):
             self._audit.record(operator, "audit", outcome, version=version, details=details)
             return {**summary, "audit": stored.id}
 
-        return self._runner.submit(JOB_KIND, run, prepared.named.batch.count, job_id=job_id)
+        count = prepared.named.batch.count
+        return self._runner.submit(JOB_KIND, run, count, job_id=job_id, audit=(accepted,))
 
     def _measure(
         self, prepared: ValidatedBatch, version: int, request: AuditRequest, progress: JobProgress

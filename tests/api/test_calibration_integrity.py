@@ -5,6 +5,7 @@ admin action in the audit trail under the operator's name, and the store said ou
 from __future__ import annotations
 
 import copy
+import sqlite3
 from collections.abc import Iterator
 from pathlib import Path, PurePosixPath
 
@@ -12,7 +13,7 @@ import pytest
 
 from tests.api.in_process import InProcess
 from tests.samples import batch_zip, build_zip, count_instances
-from tests.service_calls import ADMIN_TOKEN, assert_problem
+from tests.service_calls import ADMIN_TOKEN, assert_problem, wait_until
 
 OPERATORS = {"alice": "alice-token-0123456789", "bob": "bob-token-9876543210"}
 
@@ -87,7 +88,7 @@ def test_the_same_zip_appended_twice_is_refused(
 def test_overlapping_batch_is_refused_or_deduplicated(
     named_server: InProcess, samples_dir: Path, coco: dict
 ) -> None:
-    first = calibrate(named_server, zip_of(samples_dir, first_images(coco, 0, 3)))["version"]
+    first = calibrate(named_server, zip_of(samples_dir, first_images(coco, 1, 3)))["version"]
     overlap = zip_of(samples_dir, first_images(coco, 2, 6))  # image 2 is in both
     repeated = len(first_images(coco, 2, 3)["annotations"])
     new = len(first_images(coco, 3, 6)["annotations"])
@@ -116,6 +117,34 @@ def test_an_image_repeated_inside_a_batch_is_refused(
     doc["annotations"].extend(copies)
     problem = assert_problem(upload(named_server, build_zip(doc, files)), 409, f"repeats image {image['id']}")
     assert problem["duplicates"] == len(copies)
+
+
+def test_identical_batches_are_refused_unless_allowed_with_a_reason(
+    named_server: InProcess, samples_dir: Path, coco: dict
+) -> None:
+    body = zip_of(samples_dir, first_images(coco, 6, 9))
+    first = calibrate(named_server, body, name="first")["version"]
+    versions = named_server.versions()
+    for copy_number in (2, 3, 4):  # the same content, also under another name and zip
+        again = body if copy_number < 4 else zip_of(samples_dir, first_images(coco, 6, 9)) + b""
+        problem = assert_problem(
+            upload(named_server, again, "bob", name=f"copy {copy_number}"), 409, f"version {first}"
+        )
+        assert problem["duplicate_of"] == first and "allow_duplicate" in problem["detail"]
+        entry = audit(named_server, limit=1)[0]
+        assert (entry["action"], entry["outcome"], entry["who"]) == ("upload", "refused", "bob")
+        assert entry["details"]["status"] == 409
+    assert named_server.versions() == versions
+    assert_problem(upload(named_server, body, allow_duplicate=True), 422, "allow_duplicate needs a reason")
+
+    job = calibrate(named_server, body, "bob", allow_duplicate=True, reason="a second copy for the demo")
+    accepted = next(e for e in audit(named_server) if e["action"] == "upload" and e["outcome"] == "accepted")
+    assert accepted["details"]["job"] == job["id"] and accepted["who"] == "bob"
+    assert accepted["details"]["duplicate_of"] == first
+    assert accepted["details"]["why"] == "a second copy for the demo"
+    assert named_server.versions() == [*versions, job["result"]["version"]]
+    other_strata = calibrate(named_server, body, stratify="none")  # another version: no strata
+    assert other_strata["result"]["version"] not in versions
 
 
 # ---------------------------------------------------------------- activation guardrails
@@ -194,12 +223,12 @@ def test_force_without_a_reason_is_refused_before_the_upload_is_read(
 # ---------------------------------------------------------------- the box rule in calibration
 
 
-@pytest.mark.parametrize("bbox", [[100, 100, 1e-6, 1e-6], [630, 10, 50, 50]])
+@pytest.mark.parametrize(("bbox", "which"), [([100, 100, 1e-6, 1e-6], 0), ([630, 10, 50, 50], 1)])
 def test_boxes_that_predict_refuses_are_rejected_with_reasons(
-    named_server: InProcess, samples_dir: Path, coco: dict, bbox: list[float]
+    named_server: InProcess, samples_dir: Path, coco: dict, bbox: list[float], which: int
 ) -> None:
-    doc = first_images(coco, 0, 3)
-    doc["annotations"][0]["bbox"] = bbox
+    doc = first_images(coco, 0, 3)  # a different annotation each: versions of the same content are refused
+    doc["annotations"][which]["bbox"] = bbox
     body = zip_of(samples_dir, doc)
     versions = named_server.versions()
     problem = assert_problem(upload(named_server, body), 422, "were rejected", "max_rejected_share", "bbox")
@@ -208,7 +237,7 @@ def test_boxes_that_predict_refuses_are_rejected_with_reasons(
 
     job = calibrate(named_server, body, max_rejected_share=0.5)
     assert job["result"]["rejected"] == 1 and job["total"] == len(doc["annotations"]) - 1
-    assert f"annotation {doc['annotations'][0]['id']}" in job["result"]["rejections"][0]
+    assert f"annotation {doc['annotations'][which]['id']}" in job["result"]["rejections"][0]
 
 
 def test_an_image_that_does_not_decode_is_rejected_in_the_job(
@@ -242,6 +271,35 @@ def test_operators_are_named_and_the_single_token_is_admin(named_server: InProce
         assert named_server.client.get("/v1/admin/store", headers=headers).status_code == 200
     wrong = {"Authorization": "Bearer alice-token-0123456788"}
     assert_problem(named_server.client.get("/v1/admin/store", headers=wrong), 401)
+
+
+@pytest.mark.slow
+def test_an_activation_refused_for_a_store_lock_timeout_is_audited(named_server: InProcess) -> None:
+    """Another writer holds SQLite's lock past the busy timeout (30 s): the activation is refused
+    (503), and its entry lands once the store can take it."""
+    locker = sqlite3.connect(named_server.data_dir / "calibrations.db", isolation_level=None)
+    locker.execute("BEGIN IMMEDIATE")
+    try:
+        refused = named_server.client.post(
+            "/v1/admin/calibrations/1/activate", json={"reason": "while locked"}, headers=as_operator("bob")
+        )
+    finally:
+        locker.execute("ROLLBACK")
+        locker.close()
+    assert_problem(refused, 503, "database is locked")
+
+    def refusal() -> dict:
+        return next((e for e in audit(named_server) if e["reason"] == "while locked"), {})
+
+    wait_until(lambda: refusal() != {}, "the refusal's entry is stored")
+    entry = refusal()
+    assert (entry["action"], entry["outcome"], entry["who"], entry["version"]) == (
+        "activation",
+        "refused",
+        "bob",
+        1,
+    )
+    assert entry["details"]["status"] == 503 and "locked" in entry["details"]["detail"], entry
 
 
 def test_the_audit_trail_pages_and_cannot_be_edited(named_server: InProcess) -> None:

@@ -18,6 +18,7 @@ import httpx
 import pytest
 
 from benchmarks.faults_clients import flat_png, peak_while, zip_bomb
+from benchmarks.faults_disk import kept_files
 from tests.live.server import LiveServer
 from tests.predict_client import instances_of, predict_multipart
 from tests.samples import Sample, batch_zip, samples_by_image
@@ -74,10 +75,6 @@ def test_accepted_sixteen_bit_pngs_stay_within_the_budget(budgeted: LiveServer, 
     rise, responses = peak_while(pid, lambda: post_all(budgeted, image, instances, 8))
     assert [r.status_code for r in responses] == [200] * 8
     assert rise <= CPU_WORKERS * BUDGET + SLACK, f"{rise / MiB:.0f} MiB for 8 at once"
-
-
-def kept_files(server: LiveServer) -> list[Path]:
-    return [p for folder in ("jobs", "uploads") for p in (server.data_dir / folder).rglob("*") if p.is_file()]
 
 
 @pytest.mark.slow

@@ -43,6 +43,7 @@ router = APIRouter(
     tags=["admin"],
     responses=ADMIN_RESPONSES,
 )
+DISK_FULL = "No room on disk for what the call writes (a full disk or store): nothing was kept; retry later"
 VersionNumber = Annotated[int, Path(ge=1, le=MAX_VERSION, description="calibration version number")]
 
 _UPLOAD_OPENAPI = {
@@ -56,7 +57,8 @@ _UPLOAD_OPENAPI = {
         "404": {"description": "append_to names a version that does not exist"},
         "409": {
             "description": "The batch repeats images or instances already counted (inside itself or in"
-            " append_to): the problem lists them; or append_to was scored under other manifest settings"
+            " append_to): the problem lists them; or append_to was scored under other manifest settings;"
+            " or the batch would make a version equal to a stored one (`duplicate_of` names it)"
         },
         "413": {"description": "The zip, its files or its unzipped size exceed the limits"},
         "415": {"description": "Neither a zip body nor multipart/form-data"},
@@ -65,6 +67,7 @@ _UPLOAD_OPENAPI = {
             " than max_rejected_share allows, or force without a reason; the problem lists what to fix"
         },
         "503": {"description": "The calibration store could not record the job"},
+        "507": {"description": DISK_FULL},
     },
 }
 _ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
@@ -75,6 +78,7 @@ _ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
         " scored under other manifest settings"
     },
     422: {"description": "force without a reason"},
+    507: {"description": DISK_FULL},
 }
 
 
@@ -103,9 +107,15 @@ async def upload_calibration(
     force: Annotated[
         bool, Query(description="with activate: activate even if the guardrails refuse (needs reason)")
     ] = False,
-    reason: Annotated[str, Query(max_length=2000, description="why (recorded; required with force)")] = "",
+    reason: Annotated[
+        str, Query(max_length=2000, description="why (recorded; required with force or allow_duplicate)")
+    ] = "",
     dedupe: Annotated[
         bool, Query(description="drop instances already counted instead of refusing the batch (409)")
+    ] = False,
+    allow_duplicate: Annotated[
+        bool,
+        Query(description="store a version equal to a stored one instead of refusing (409); needs reason"),
     ] = False,
     max_rejected_share: Annotated[
         float | None,
@@ -134,6 +144,7 @@ async def upload_calibration(
             force=force,
             reason=reason,
             dedupe=dedupe,
+            allow_duplicate=allow_duplicate,
             max_rejected_share=max_rejected_share,
             stratify=None if stratify is None else _stratify(stratify),
         )
@@ -178,6 +189,7 @@ async def get_job(job_id: str, jobs: Jobs, registry: Registry, _: Admin) -> JobO
     responses={
         404: {"description": "No such job"},
         409: {"description": "The job is not interrupted, or its upload is kept by another server"},
+        507: {"description": DISK_FULL},
     },
 )
 async def retry_job(

@@ -13,6 +13,7 @@ from calibration_store import (
     ActivationIntent,
     CalibrationStore,
     JobCompletion,
+    JobExists,
     JobFinished,
     JobNotFound,
     JobRecord,
@@ -133,6 +134,17 @@ def test_activation_appends_its_audit_entry_atomically(store: CalibrationStore) 
     with pytest.raises(StoreError):
         store.activate(MODEL_A, 9, "alice", audit=[_audit(version=9)])
     assert len(store.audit_log(MODEL_A)) == 1  # the refused activation wrote no entry
+
+
+def test_a_job_is_created_with_its_audit_entry_atomically(store: CalibrationStore) -> None:
+    now = datetime.now(UTC)
+    job = JobRecord(id="job-1", kind="calibration", owner="host:1", created_at=now, heartbeat_at=now)
+    store.create_job(job, audit=[_audit("upload", "accepted", details={"job": "job-1"})])
+    (entry,) = store.audit_log(MODEL_A)
+    assert (entry.action, entry.outcome, entry.details) == ("upload", "accepted", {"job": "job-1"})
+    with pytest.raises(JobExists):
+        store.create_job(job, audit=[_audit("upload", "accepted", details={"job": "job-1"})])
+    assert len(store.audit_log(MODEL_A)) == 1  # the job refused, its entry was not written
 
 
 def test_audit_log_pages_newest_first_per_model(store: CalibrationStore) -> None:
