@@ -94,7 +94,9 @@ def _pose_options(request: PoseRequest) -> PoseOptions:
         pose = Pose(np.array(check.rotation, dtype=np.float64), np.array(check.translation, dtype=np.float64))
         checks.setdefault(check.instance, []).append(pose)
     camera = as_camera_matrix(request.K)  # the schema has checked K already
-    return PoseOptions(camera, request.samples, request.outer_bound, request.outer_splits, checks)
+    return PoseOptions(
+        camera, request.samples, request.outer_bound, request.outer_splits, checks, request.outer_programs
+    )
 
 
 BatchItem = tuple[bytes | None, str | None]  # one index's image and request JSON, either may be missing
