@@ -63,6 +63,11 @@ def root_cells() -> list[Cell]:
     return [Cell(face, (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)) for face in range(4)]
 
 
+# The first cube is off-centre: centred at the estimate, every cube of the binary grid near it would
+# have the estimate on a corner, hence hold poses of PURSE, and would all have to be split.
+_OFFSET = (0.23, 0.13, 0.07)
+
+
 @dataclass(frozen=True)
 class Cube:
     """The rotations R_hat exp([w]) for w in the cube |w - centre|_inf <= half."""
@@ -73,7 +78,8 @@ class Cube:
     @staticmethod
     def around(radius: float) -> Cube:
         """The cube holding the ball |w| <= radius: every rotation within ``radius`` of R_hat."""
-        return Cube((0.0, 0.0, 0.0), radius)
+        offset = np.array(_OFFSET) * radius
+        return Cube(tuple(offset.tolist()), radius * (1 + max(_OFFSET)))
 
     def cap(self, estimate: np.ndarray) -> tuple[np.ndarray, float] | None:
         """(q_0, cos^2(phi)) with (q_0^T q)^2 >= cos^2(phi) over the cube (None: no constraint)."""

@@ -449,6 +449,7 @@ def _search(estimate, program, objectives, root_bounds, programs, reached):
         index = int(np.argmax([leaf.bounds[quantity] for leaf in leaves]))
         leaf = leaves[index]
         if leaf.solved[quantity]:  # each split unproves a bound: splits stay fewer than programs + 7
+            radius = min(radius, float(bounds[6]))  # PURSE's rotations are in the ball |w| <= bound
             children = [
                 _Leaf(c, leaf.bounds.copy(), np.zeros(7, dtype=bool)) for c in leaf.cube.split(radius)
             ]
