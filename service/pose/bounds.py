@@ -135,15 +135,18 @@ def boundary_poses(
             runs.append((turn, np.concatenate([to_rotation_vector(turned), np.zeros(3)])))
     poses = []
     for objective, x0 in runs:
-        with np.errstate(all="ignore"):
-            result = minimize(
-                objective,
-                x0,
-                jac=True,
-                constraints=constraints,
-                method="SLSQP",
-                options={"maxiter": 60, "ftol": 1e-9},
-            )
+        try:
+            with np.errstate(all="ignore"):
+                result = minimize(
+                    objective,
+                    x0,
+                    jac=True,
+                    constraints=constraints,
+                    method="SLSQP",
+                    options={"maxiter": 60, "ftol": 1e-9},
+                )
+        except (cv2.error, ValueError):  # a run wandering off to poses OpenCV cannot project
+            continue
         end = np.concatenate([result.x[:3], estimate.translation + step * result.x[3:]])
         origin = np.concatenate([start[:3], estimate.translation])
         pose = _inside_towards(origin, end, camera, keypoints_3d, centers, shapes)

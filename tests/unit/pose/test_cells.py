@@ -3,6 +3,8 @@ branch-and-bounds tighten certified bounds and keep them valid."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 from service.pose import PoseOptions, instance_pose_sets
@@ -85,3 +87,17 @@ def test_splitting_tightens_the_certified_bounds_and_keeps_them_valid(camera, du
         assert np.linalg.norm(estimate.translation - true_pose.translation) <= split.outer.translation
         assert split.inner.rotation_deg <= split.outer.rotation_deg
         assert split.inner.translation <= split.outer.translation
+
+
+def test_more_programs_never_loosen_the_search(camera, duck_3d, true_pose) -> None:
+    """The search only ever lowers a cube's bounds, splits cubes or drops empty ones: a larger budget
+    continues the same steps, so its bounds are at most the smaller budget's."""
+    centers, shapes = scene(camera, duck_3d, true_pose)
+    answers = [
+        instance_pose_sets(duck_3d, centers, shapes, PoseOptions(camera, samples=0, outer_programs=n))
+        for n in (0, 10, 40, 120)
+    ]
+    for looser, tighter in itertools.pairwise(answer.outer for answer in answers):
+        assert tighter.certified, tighter
+        assert tighter.rotation_deg <= looser.rotation_deg and tighter.translation <= looser.translation
+    assert answers[-1].outer.rotation_deg < 0.5 * answers[0].outer.rotation_deg
