@@ -1,18 +1,22 @@
 """Cost and tightness of pose sets (service/pose) on the bundled samples, per instance.
 
 Run: python -m benchmarks.bench_pose [--samples 100] [--epsilon 0.1 --epsilon 0.3] [--images N]
-                                    [--splits 0]
+                                    [--programs 150] [--splits 6]
 
 Object-scope sets come from the bundled model and calibration (in process, a temporary data
 directory); the camera matrix and true poses from the samples' annotations. For each instance it
-times the three steps the predict API runs, in milliseconds per instance (median and mean):
+times the steps the predict API runs, in milliseconds per instance:
     estimate  PnP on the set centres (+ refinement into PURSE when outside)
-    inner     the sampled bound: --samples draws of keypoints inside the sets, PnP, membership
-    outer     the relaxation (7 conic programs with Clarabel per rotation cell, certificates checked;
-              --splits rounds of branch-and-bound over rotation cells, as pose.outer_splits)
-and reports the tightness: outer / inner for translation and rotation (median over instances with
-both), how many outer bounds were certified, how many true poses were in PURSE, and that every
-certified bound contained the true pose's error when it was.
+    inner     --samples draws of keypoints inside the sets (PnP, membership) and the boundary search
+              (poses pushed to PURSE's edge by local optimisation): poses known to be in PURSE
+    outer     the certified bounds, side by side:
+              whole     the whole-space relaxation (7 conic programs), as outer_programs 0
+              splits    --splits rounds of the older branch-and-bound, as pose.outer_splits
+              search    the search over rotation cubes, --programs conic programs at most, as
+                        pose.outer_programs (the default)
+Per method: certified bounds, their median and 90th percentile, outer / inner per quantity (the
+inner bound is the same for all three: the farthest poses found in PURSE), the time, and how many
+certified bounds contained the true pose's error when the true pose was in PURSE.
 """
 
 from __future__ import annotations
@@ -36,7 +40,7 @@ from service.api.predict_input import predict_query  # noqa: E402
 from service.api.predict_presenter import predict_response  # noqa: E402
 from service.api.predict_schemas import BallSet, EllipseSet, PredictParameters  # noqa: E402
 from service.pose import Pose, membership  # noqa: E402
-from service.pose.bounds import inner_bound, sample_poses_in_set  # noqa: E402
+from service.pose.bounds import SampledPoses, boundary_poses, inner_bound, sample_poses_in_set  # noqa: E402
 from service.pose.estimate import pnp_on_centres, refine_into_set  # noqa: E402
 from service.pose.relaxation import outer_bound  # noqa: E402
 from service.pose.rotations import rotation_angle_deg  # noqa: E402
@@ -79,9 +83,11 @@ def instances(state, model_dir: Path, epsilon: float, images: int):
 
 
 def timed(function, *args):
-    start = time.perf_counter()
+    """(result, wall ms, CPU ms of this process): on a shared machine the CPU time is what the
+    call would take alone (the solvers run on one thread)."""
+    wall, cpu = time.perf_counter(), time.process_time()
     result = function(*args)
-    return result, (time.perf_counter() - start) * 1e3
+    return result, (time.perf_counter() - wall) * 1e3, (time.process_time() - cpu) * 1e3
 
 
 def estimate(camera, points, centers, shapes):
@@ -91,88 +97,126 @@ def estimate(camera, points, centers, shapes):
     return refine_into_set(start, camera, points, centers, shapes)
 
 
-def run(epsilon: float, samples: int, images: int, splits: int = 0) -> dict:
+def inner_poses(pose, camera, points, centers, shapes, samples: int) -> SampledPoses:
+    sampled = sample_poses_in_set(pose, camera, points, centers, shapes, samples)
+    boundary = boundary_poses(pose, camera, points, centers, shapes)
+    return SampledPoses([*sampled.poses, *boundary], sampled.tried, len(boundary))
+
+
+def methods(programs: int, splits: int) -> dict[str, tuple[int, int]]:
+    """name -> (splits, programs) of outer_bound."""
+    chosen = {"whole": (0, 0)}
+    if splits:
+        chosen[f"splits {splits}"] = (splits, 0)
+    if programs:
+        chosen[f"search {programs}"] = (0, programs)
+    return chosen
+
+
+def run(epsilon: float, samples: int, images: int, programs: int = 150, splits: int = 0) -> dict:
     with tempfile.TemporaryDirectory(prefix="bench-pose-") as data_dir:
-        return _run(Settings(data_dir=Path(data_dir)), epsilon, samples, images, splits)
+        return _run(Settings(data_dir=Path(data_dir)), epsilon, samples, images, methods(programs, splits))
 
 
-def _run(settings: Settings, epsilon: float, samples: int, images: int, splits: int) -> dict:
+def _run(settings: Settings, epsilon: float, samples: int, images: int, chosen: dict) -> dict:
     state = build_state(settings)
-    costs = {"estimate": [], "inner": [], "outer": []}
-    ratios_t, ratios_r = [], []
-    bounds = {"inner": [], "outer": [], "error": []}  # (rotation deg, translation) per instance
-    counts = {
-        "instances": 0,
-        "estimated": 0,
-        "certified": 0,
-        "true_inside": 0,
-        "certified_true_inside": 0,
-        "contained": 0,
+    costs = {"estimate": [], "inner": []}
+    counts = {"instances": 0, "estimated": 0, "true_inside": 0}
+    truth_and_inner = {"error": [], "inner": []}  # (rotation deg, translation) per estimated instance
+    outer = {
+        name: {"ms": [], "cpu": [], "bounds": [], "ratios": [], "certified": 0, "checked": 0, "contained": 0}
+        for name in chosen
     }
     try:
         for camera, points, centers, shapes, truth in instances(
             state, settings.model.model_dir, epsilon, images
         ):
             counts["instances"] += 1
-            counts["true_inside"] += membership(truth, camera, points, centers, shapes).inside
-            pose, ms = timed(estimate, camera, points, centers, shapes)
+            inside = membership(truth, camera, points, centers, shapes).inside
+            counts["true_inside"] += inside
+            pose, ms, _ = timed(estimate, camera, points, centers, shapes)
             costs["estimate"].append(ms)
             if pose is None:
                 continue
             counts["estimated"] += 1
-            sampled, ms = timed(sample_poses_in_set, pose, camera, points, centers, shapes, samples)
-            inner = inner_bound(pose, sampled)
+            found, ms, _ = timed(inner_poses, pose, camera, points, centers, shapes, samples)
             costs["inner"].append(ms)
-            outer, ms = timed(outer_bound, pose, camera, points, centers, shapes, sampled.poses, splits)
-            costs["outer"].append(ms)
-            if not outer.certified:
-                continue
-            counts["certified"] += 1
-            bounds["inner"].append((inner.rotation_deg, inner.translation))
-            bounds["outer"].append((outer.rotation_deg, outer.translation))
-            error = np.linalg.norm(pose.translation - truth.translation)
-            bounds["error"].append((rotation_angle_deg(pose.rotation, truth.rotation), error))
-            if inner.translation > 0:
-                ratios_t.append(outer.translation / inner.translation)
-                ratios_r.append(outer.rotation_deg / inner.rotation_deg)
-            if membership(truth, camera, points, centers, shapes).inside:
-                counts["certified_true_inside"] += 1
-                counts["contained"] += int(
-                    rotation_angle_deg(pose.rotation, truth.rotation) <= outer.rotation_deg
-                    and np.linalg.norm(pose.translation - truth.translation) <= outer.translation
+            inner = inner_bound(pose, found)
+            error = (
+                rotation_angle_deg(pose.rotation, truth.rotation),
+                float(np.linalg.norm(pose.translation - truth.translation)),
+            )
+            truth_and_inner["error"].append(error)
+            truth_and_inner["inner"].append((inner.rotation_deg, inner.translation))
+            for name, (splits, programs) in chosen.items():
+                bound, ms, cpu = timed(
+                    outer_bound, pose, camera, points, centers, shapes, found.poses, splits, programs
                 )
+                record = outer[name]
+                record["ms"].append(ms)
+                record["cpu"].append(cpu)
+                if not bound.certified:
+                    continue
+                record["certified"] += 1
+                record["bounds"].append((bound.rotation_deg, bound.translation))
+                if inner.translation > 0 and inner.rotation_deg > 0:
+                    record["ratios"].append(
+                        (bound.rotation_deg / inner.rotation_deg, bound.translation / inner.translation)
+                    )
+                if inside:
+                    record["checked"] += 1
+                    record["contained"] += int(
+                        error[0] <= bound.rotation_deg and error[1] <= bound.translation
+                    )
     finally:
         state.close()
-    return {"costs": costs, "ratios": (ratios_t, ratios_r), "counts": counts, "bounds": bounds}
+    return {"costs": costs, "counts": counts, "truth_and_inner": truth_and_inner, "outer": outer}
 
 
-def report(epsilon: float, samples: int, splits: int, result: dict) -> list[str]:
+def _quantiles(values, digits: int = 2) -> str:
+    """median / p90."""
+    if not values:
+        return "-"
+    return f"{statistics.median(values):.{digits}f} / {np.percentile(values, 90):.{digits}f}"
+
+
+def _pairs(pairs, unit: str = "") -> str:
+    """median / p90 of rotation (deg) and translation."""
+    if not pairs:
+        return "-"
+    rotation, translation = ([p[k] for p in pairs] for k in (0, 1))
+    return (
+        f"{statistics.median(rotation):.1f} / {np.percentile(rotation, 90):.1f} deg, "
+        f"{statistics.median(translation):.0f} / {np.percentile(translation, 90):.0f}{unit}"
+    )
+
+
+def report(epsilon: float, samples: int, result: dict) -> list[str]:
+    counts = result["counts"]
     lines = [
-        f"epsilon {epsilon:g}, object coverage, {samples} samples for the inner bound, {splits} outer splits"
+        f"epsilon {epsilon:g}, object coverage: {counts['instances']} instances, {counts['estimated']} "
+        f"estimated, true pose in PURSE {counts['true_inside']}",
+        f"{'step':<9} {'median ms':>10} {'p90 ms':>9} {'instances':>10}",
     ]
-    lines.append(f"{'step':<9} {'median ms':>10} {'mean ms':>9} {'instances':>10}")
     for step, values in result["costs"].items():
         if values:
-            median, mean = statistics.median(values), statistics.fmean(values)
-            lines.append(f"{step:<9} {median:>10.2f} {mean:>9.2f} {len(values):>10}")
-    counts = result["counts"]
-    ratios_t, ratios_r = result["ratios"]
-    if ratios_t:
-        lines.append(
-            f"tightness (outer / inner, median): translation {statistics.median(ratios_t):.1f}x, "
-            f"rotation {statistics.median(ratios_r):.1f}x"
-        )
-    for name, label in [("error", "true error"), ("inner", "inner bound"), ("outer", "outer bound")]:
-        pairs = result["bounds"][name]
-        if pairs:
-            rotation, translation = (statistics.median(p[k] for p in pairs) for k in (0, 1))
-            lines.append(f"median {label:<11}: rotation {rotation:6.1f} deg, translation {translation:7.1f}")
-    true_inside = counts["true_inside"]
+            median, p90 = statistics.median(values), np.percentile(values, 90)
+            lines.append(f"{step:<9} {median:>10.2f} {p90:>9.2f} {len(values):>10}")
+    lines.append(f"true error  (median / p90): {_pairs(result['truth_and_inner']['error'])}")
     lines.append(
-        f"instances {counts['instances']}, estimated {counts['estimated']}, outer certified "
-        f"{counts['certified']}, true pose in PURSE {true_inside}; certified bounds containing the true "
-        f"error: {counts['contained']} of {counts['certified_true_inside']} (certified, true pose in PURSE)"
+        f"inner bound (median / p90): {_pairs(result['truth_and_inner']['inner'])} "
+        f"({samples} samples + boundary search)"
     )
+    lines.append("tightness (outer / inner, median / p90) and certified outer bounds per method:")
+    for name, record in result["outer"].items():
+        ratios = record["ratios"]
+        lines.append(
+            f"  {name:<10} rotation {_quantiles([r[0] for r in ratios])}, translation "
+            f"{_quantiles([r[1] for r in ratios])}; bound {_pairs(record['bounds'])}; "
+            f"{_quantiles(record['ms'], 0)} ms wall, {_quantiles(record['cpu'], 0)} ms CPU; "
+            f"certified {record['certified']}; certified bounds containing the true error: "
+            f"{record['contained']} of {record['checked']} (true pose in PURSE)"
+        )
     return lines
 
 
@@ -181,15 +225,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--epsilon", type=float, action="append", help="repeatable; default 0.1 and 0.3")
     parser.add_argument("--samples", type=int, default=100)
     parser.add_argument("--images", type=int, default=1000, help="use the first N sample images")
-    parser.add_argument("--splits", type=int, default=0, help="branch-and-bound rounds (pose.outer_splits)")
+    parser.add_argument("--programs", type=int, default=150, help="the search's budget (pose.outer_programs)")
+    parser.add_argument(
+        "--splits", type=int, default=6, help="older branch-and-bound rounds; 0: leave it out"
+    )
     args = parser.parse_args(argv)
     previous = logging.root.manager.disable
     logging.disable(logging.INFO)  # the service's startup lines
     try:
         print(f"load avg (1m) {os.getloadavg()[0]:.2f}")
         for epsilon in args.epsilon or [0.1, 0.3]:
-            result = run(epsilon, args.samples, args.images, args.splits)
-            print("\n".join(report(epsilon, args.samples, args.splits, result)))
+            result = run(epsilon, args.samples, args.images, args.programs, args.splits)
+            print("\n".join(report(epsilon, args.samples, result)))
     finally:
         logging.disable(previous)
 

@@ -128,14 +128,16 @@ class PoseRequest(Frozen):
     ``K``: the camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in the response's image pixels
     (pixel centres at +0.5: add 0.5 to an OpenCV cx, cy). ``samples``: keypoint draws for the
     sampled inner bound (0 to 500). ``outer_bound``: certified upper bounds from the convex
-    relaxation (the server's ``pose`` extra). ``outer_splits``: branch-and-bound rounds over
-    rotations (0 to 8): tighter outer bounds for seconds per instance. ``check``: poses to test.
+    relaxation (the server's ``pose`` extra). ``outer_programs``: conic programs the search over
+    rotation cells may spend to tighten them (0 to 2000, about 1 ms each). ``outer_splits``: rounds
+    of the older branch-and-bound (0 to 8, seconds per instance). ``check``: poses to test.
     """
 
     K: Matrix3
     samples: int = 100
     outer_bound: bool = True
     outer_splits: int = 0
+    outer_programs: int = 150
     check: tuple[PoseCheck, ...] = ()
 
     @field_validator("K", mode="before")
@@ -157,15 +159,19 @@ class SampledBound(Frozen):
     translation: float
     poses_found: int
     poses_tried: int
+    boundary_poses: int = 0
 
 
 class OuterBound(Frozen):
-    """Upper bounds from the convex relaxation; trust them only when ``certified``."""
+    """Upper bounds from the convex relaxation; trust them only when ``certified``. The ratios to
+    the inner bound say how much of each may be slack (1: none)."""
 
     certified: bool = Field(description="solved and its dual certificate verified")
     status: str
     rotation_deg: float | None = None
     translation: float | None = None
+    rotation_over_inner: float | None = None
+    translation_over_inner: float | None = None
 
 
 class PoseCheckResult(Frozen):

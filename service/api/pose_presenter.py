@@ -42,6 +42,7 @@ def pose_out(answer: PoseSets) -> PoseOut:
             translation=inner.translation,
             poses_found=inner.poses_found,
             poses_tried=inner.poses_tried,
+            boundary_poses=inner.boundary_poses,
         )
         if inner is not None
         else None,
@@ -51,6 +52,7 @@ def pose_out(answer: PoseSets) -> PoseOut:
             status=outer.status,
             rotation_deg=_finite_or_none(outer.rotation_deg),
             translation=_finite_or_none(outer.translation),
+            **_tightness(answer),
         )
         if outer is not None
         else None,
@@ -64,3 +66,18 @@ def pose_out(answer: PoseSets) -> PoseOut:
             for check in answer.checks
         ],
     )
+
+
+def _ratio(outer: float | None, inner: float) -> float | None:
+    return outer / inner if outer is not None and math.isfinite(outer) and inner > 0 else None
+
+
+def _tightness(answer: PoseSets) -> dict[str, float | None]:
+    """outer / inner per quantity, for certified bounds with an inner bound to compare with."""
+    inner, outer = answer.inner, answer.outer
+    if inner is None or outer is None or not outer.certified or outer.empty:
+        return {}
+    return {
+        "rotation_over_inner": _ratio(outer.rotation_deg, inner.rotation_deg),
+        "translation_over_inner": _ratio(outer.translation, inner.translation),
+    }

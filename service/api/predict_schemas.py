@@ -121,7 +121,15 @@ class PoseRequest(_Body):
         default=0,
         ge=0,
         le=8,
-        description="branch-and-bound rounds over rotation cells: tighter outer bounds, seconds per instance",
+        description="rounds of the older branch-and-bound over rotation cells (seconds per instance); "
+        "when above 0 it replaces the rotation search of outer_programs",
+    )
+    outer_programs: int = Field(
+        default=150,
+        ge=0,
+        le=2000,
+        description="conic programs the search over rotation cells may spend to tighten the outer bound "
+        "(about 1 ms each); 0: the whole-space relaxation only",
     )
     check: list[PoseCheckIn] = Field(
         default_factory=list, max_length=100, description="poses to test for membership in PURSE"
@@ -291,6 +299,9 @@ class SampledBoundOut(BaseModel):
     translation: float
     poses_found: int
     poses_tried: int
+    boundary_poses: int = Field(
+        default=0, description="poses found by pushing the estimate to PURSE's boundary (not counted above)"
+    )
 
 
 class OuterBoundOut(BaseModel):
@@ -300,6 +311,13 @@ class OuterBoundOut(BaseModel):
     status: str
     rotation_deg: float | None = None
     translation: float | None = None
+    rotation_over_inner: float | None = Field(
+        default=None,
+        description="tightness: rotation_deg / the inner bound's (1: no slack; the worst case lies between)",
+    )
+    translation_over_inner: float | None = Field(
+        default=None, description="tightness: translation / the inner bound's (1: no slack)"
+    )
 
 
 class PoseCheckOut(BaseModel):

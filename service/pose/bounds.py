@@ -1,10 +1,16 @@
-"""The inner (sampled) bound on the pose error: poses found inside PURSE by sampling.
+"""The inner bound on the pose error: poses found inside PURSE, by sampling and on its boundary.
 
-As in the RANSAC-style search of Yang & Pavone (CVPR 2023, sec. 4.2): draw one position inside
-every keypoint's set (uniform over the ball or ellipse), solve PnP on them from the estimate,
-keep the poses that are in PURSE. The largest rotation (geodesic) and translation distances from
-the estimate to the kept poses are a lower bound on the worst-case error over PURSE: the true
-pose may be any of them. It is not an upper bound; that is the relaxation's job (relaxation.py).
+Sampling, as in the RANSAC-style search of Yang & Pavone (CVPR 2023, sec. 4.2): draw one
+position inside every keypoint's set (uniform over the ball or ellipse), solve PnP on them from
+the estimate, keep the poses that are in PURSE. Such draws rarely push every keypoint to the
+edge of its set at once, so the far poses are missed; the boundary search finds them, as the
+boundary samples of CLOSURE (Gao, Tang, Qi & Yang, 2024) do: from the estimate, local
+optimisation (SLSQP over the 6-dof pose, every set constraint kept) pushes the pose as far as
+PURSE allows along and against the line of sight and two directions across it, and away in
+rotation. The largest rotation (geodesic) and translation distances from the estimate to the
+poses found are a lower bound on the worst-case error over PURSE (every pose is checked to be in
+PURSE): the true pose may be any of them. It is not an upper bound; that is the relaxation's job
+(relaxation.py).
 """
 
 from __future__ import annotations
@@ -13,7 +19,9 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.optimize import minimize
 
+from .camera import ray_frame
 from .membership import Pose, membership
 from .rotations import from_rotation_vector, rotation_angle_deg, to_rotation_vector
 
@@ -26,12 +34,14 @@ class InnerBound:
     translation: float
     poses_found: int
     poses_tried: int
+    boundary_poses: int = 0  # how many of the poses found came from the boundary search
 
 
 @dataclass(frozen=True)
 class SampledPoses:
     poses: list[Pose]
     tried: int
+    boundary: int = 0
 
 
 def sample_points_in_sets(centers: np.ndarray, shapes: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -77,10 +87,102 @@ def sample_poses_in_set(
     return SampledPoses(found, count)
 
 
+_ROTATION_STARTS = 0.05  # radians: the rotation search starts this far from the estimate
+
+
+def boundary_poses(
+    estimate: Pose, camera: np.ndarray, keypoints_3d: np.ndarray, centers: np.ndarray, shapes: np.ndarray
+) -> list[Pose]:
+    """Poses of PURSE pushed to its boundary: the farthest along +-3 translation axes (the line of
+    sight first) and in rotation (from six small turns of the estimate). Every set must be bounded.
+
+    The pose is x = (rotation vector, u), t = t_hat + step u with step a tenth of the distance, so
+    that SLSQP sees radians and tenths of the depth on one scale."""
+    objects = keypoints_3d.astype(np.float64)
+    step = 0.1 * (float(np.linalg.norm(estimate.translation)) or 1.0)
+    start = np.concatenate([to_rotation_vector(estimate.rotation), np.zeros(3)])
+
+    def slack(x):  # 1 - (y_i - c_i)^T L_i (y_i - c_i) >= 0, with its Jacobian from OpenCV
+        projected, jacobian = cv2.projectPoints(
+            objects, x[:3], estimate.translation + step * x[3:], camera, None
+        )
+        offsets = projected.reshape(-1, 2) - centers
+        jacobian = jacobian[:, :6].reshape(-1, 2, 6) * np.r_[1.0, 1.0, 1.0, step, step, step]
+        slopes = -2 * np.einsum("ni,nij,njk->nk", offsets, shapes, jacobian)
+        return 1.0 - np.einsum("ni,nij,nj->n", offsets, shapes, offsets), slopes
+
+    def depth(x):
+        return (objects @ from_rotation_vector(x[:3]).T + estimate.translation + step * x[3:])[:, 2]
+
+    def turn(x):  # tr(R_hat^T R): smallest at the largest angle
+        rotation, jacobian = cv2.Rodrigues(x[:3])
+        return float(np.sum(estimate.rotation * rotation)), np.concatenate(
+            [jacobian @ estimate.rotation.reshape(9), np.zeros(3)]
+        )
+
+    constraints = [
+        {"type": "ineq", "fun": lambda x: slack(x)[0], "jac": lambda x: slack(x)[1]},
+        {"type": "ineq", "fun": depth},
+    ]
+    runs = [
+        (lambda x, a=sign * axis: (-float(a @ x[3:]), np.concatenate([np.zeros(3), -a])), start)
+        for axis in ray_frame(estimate.translation)
+        for sign in (1.0, -1.0)
+    ]
+    for axis in np.eye(3):
+        for sign in (1.0, -1.0):
+            turned = estimate.rotation @ from_rotation_vector(sign * _ROTATION_STARTS * axis)
+            runs.append((turn, np.concatenate([to_rotation_vector(turned), np.zeros(3)])))
+    poses = []
+    for objective, x0 in runs:
+        try:
+            with np.errstate(all="ignore"):
+                result = minimize(
+                    objective,
+                    x0,
+                    jac=True,
+                    constraints=constraints,
+                    method="SLSQP",
+                    options={"maxiter": 60, "ftol": 1e-9},
+                )
+        except (cv2.error, ValueError):  # a run wandering off to poses OpenCV cannot project
+            continue
+        end = np.concatenate([result.x[:3], estimate.translation + step * result.x[3:]])
+        origin = np.concatenate([start[:3], estimate.translation])
+        pose = _inside_towards(origin, end, camera, keypoints_3d, centers, shapes)
+        if pose is not None:
+            poses.append(pose)
+    return poses
+
+
+def _inside_towards(start, end, camera, keypoints_3d, centers, shapes) -> Pose | None:
+    """The pose at ``end`` (rotation vector, translation) if it is in PURSE, else the last one in
+    PURSE on the segment from ``start`` (found by bisection; None if ``end`` is not finite)."""
+    if not np.isfinite(end).all():
+        return None
+
+    def pose_at(fraction: float) -> Pose:
+        x = start + fraction * (end - start)
+        return Pose(from_rotation_vector(x[:3]), x[3:].copy())
+
+    if membership(pose_at(1.0), camera, keypoints_3d, centers, shapes).inside:
+        return pose_at(1.0)
+    low, high = 0.0, 1.0
+    for _ in range(30):
+        middle = (low + high) / 2
+        if membership(pose_at(middle), camera, keypoints_3d, centers, shapes).inside:
+            low = middle
+        else:
+            high = middle
+    pose = pose_at(low)
+    return pose if membership(pose, camera, keypoints_3d, centers, shapes).inside else None
+
+
 def inner_bound(estimate: Pose, sampled: SampledPoses) -> InnerBound:
     """The largest rotation and translation distances from ``estimate`` to the sampled poses."""
     rotation = max((rotation_angle_deg(estimate.rotation, p.rotation) for p in sampled.poses), default=0.0)
     translation = max(
         (float(np.linalg.norm(p.translation - estimate.translation)) for p in sampled.poses), default=0.0
     )
-    return InnerBound(rotation, translation, len(sampled.poses), sampled.tried)
+    found = len(sampled.poses) - sampled.boundary
+    return InnerBound(rotation, translation, found, sampled.tried, sampled.boundary)

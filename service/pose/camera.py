@@ -41,3 +41,13 @@ def as_camera_matrix(matrix: Sequence[Sequence[float]]) -> np.ndarray:
     if problems:
         raise ValueError("; ".join(problems))
     return np.asarray(matrix, dtype=np.float64)
+
+
+def ray_frame(translation: np.ndarray) -> np.ndarray:
+    """Orthonormal rows, the first along the line of sight to ``translation`` (the depth error
+    dominates there), the others across it."""
+    ray = translation / (np.linalg.norm(translation) or 1.0)
+    helper = np.eye(3)[int(np.argmin(np.abs(ray)))]
+    second = np.cross(ray, helper)
+    second /= np.linalg.norm(second)
+    return np.vstack([ray, second, np.cross(ray, second)])

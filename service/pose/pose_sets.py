@@ -16,7 +16,7 @@ import numpy as np
 from service.detector.manifest import Manifest
 from service.errors import InvalidInput
 
-from .bounds import InnerBound, inner_bound, sample_poses_in_set
+from .bounds import InnerBound, SampledPoses, boundary_poses, inner_bound, sample_poses_in_set
 from .estimate import pnp_on_centres, refine_into_set
 from .membership import Membership, Pose, membership
 from .relaxation import OuterBound, outer_bound
@@ -29,8 +29,9 @@ class PoseOptions:
     camera: np.ndarray  # (3, 3), validated (camera.py)
     samples: int = 100
     outer: bool = True
-    outer_splits: int = 0  # branch-and-bound rounds over rotation cells (relaxation.py)
+    outer_splits: int = 0  # rounds of the older branch-and-bound over rotation cells (relaxation.py)
     checks: dict[int, list[Pose]] = field(default_factory=dict)  # instance index -> poses
+    outer_programs: int = 150  # conic programs of the rotation search (relaxation.py)
 
 
 @dataclass(frozen=True)
@@ -123,13 +124,16 @@ def instance_pose_sets(
                 _least_violating(sampled.poses, camera, keypoints_3d, centers, shapes),
                 "sampled",
             )
+        if estimate is not None:
+            boundary = boundary_poses(estimate, camera, keypoints_3d, centers, shapes)
+            sampled = SampledPoses([*sampled.poses, *boundary], sampled.tried, len(boundary))
     note = _inner_note(bounded, options.samples)
     inner = inner_bound(estimate, sampled) if estimate is not None and sampled is not None else None
     outer = None
     if options.outer:
         found = sampled.poses if sampled is not None else []
-        splits = options.outer_splits if estimate is not None else 0
-        outer = outer_bound(estimate or start, camera, keypoints_3d, centers, shapes, found, splits)
+        splits, programs = (options.outer_splits, options.outer_programs) if estimate is not None else (0, 0)
+        outer = outer_bound(estimate or start, camera, keypoints_3d, centers, shapes, found, splits, programs)
         if estimate is None and not outer.empty:  # bounds around a pose outside PURSE mean nothing
             outer = OuterBound(False, "no estimate in PURSE to bound around; emptiness not proven")
     violation = None

@@ -16,18 +16,25 @@ translation bounded with a proven bound on ||t|| over PURSE (``_distance_bound``
 is True only when every program is solved, the recomputed dual bound agrees with the primal
 value, and it dominates the sampled poses. A relaxation whose infeasibility certificate checks
 out the same way proves PURSE empty.
+
+The whole-space relaxation is loose: conv SO(3) holds the shrunk rotations alpha R, and
+(alpha R, alpha t) projects like (R, t), so the relaxation reaches towards the camera and far in
+rotation. A rotation cell's cap keeps alpha near 1, so the search (``_search``) cuts the
+rotations near the estimate into cubes, best-first where a bound is attained, one conic program
+per step: the bounds are the worst over the cells left, valid at every step.
 """
 
 from __future__ import annotations
 
 import importlib.util
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cache
 
 import numpy as np
 
-from .cells import root_cells
+from .camera import ray_frame
+from .cells import Cube, root_cells
 from .estimate import whitening
 from .membership import Pose
 from .rotations import QUATERNION_BASIS, rotation_angle_deg
@@ -87,9 +94,8 @@ class _Program:
     reach: float  # every pose in PURSE has || t - t_hat || / scale <= reach (inf: no such bound)
 
 
-def _program(
-    estimate: Pose, camera: np.ndarray, keypoints_3d, centers, shapes, cap: tuple[np.ndarray, float] | None
-) -> _Program:
+def _program(estimate: Pose, camera: np.ndarray, keypoints_3d, centers, shapes) -> _Program:
+    """The whole-space relaxation; ``_capped`` restricts it to a rotation cell."""
     scale = float(np.linalg.norm(estimate.translation)) or 1.0
     rows, offsets = [], []
     trace = np.zeros(_N)
@@ -115,13 +121,22 @@ def _program(
         depth = slope_i * linears[i][2] + slope_j * linears[j][2]
         rows.append(-depth[None])
         offsets.append(np.array([(slope_i + slope_j) * origin[2] - distance]))
-    if cap is not None:  # the rotation cell: q_0^T Q q_0 >= cos^2(phi)
-        centre, cosine_squared = cap
-        rows.append(-np.concatenate([_quadratic_form(centre), np.zeros(3)])[None])
-        offsets.append(np.array([-cosine_squared]))
-    nonnegative = len(cuts) + (cap is not None)
     reach = (_distance_bound(camera, keypoints_3d, centers, shapes) + scale) / scale
-    return _Program(np.vstack(rows), np.concatenate(offsets), len(centers), nonnegative, scale, reach)
+    return _Program(np.vstack(rows), np.concatenate(offsets), len(centers), len(cuts), scale, reach)
+
+
+def _capped(program: _Program, cap: tuple[np.ndarray, float] | None) -> _Program:
+    """The relaxation of one rotation cell: q_0^T Q q_0 >= cos^2(phi) (None: the whole space)."""
+    if cap is None:
+        return program
+    centre, cosine_squared = cap
+    row = -np.concatenate([_quadratic_form(centre), np.zeros(3)])[None]
+    return replace(
+        program,
+        matrix=np.vstack([program.matrix, row]),
+        offset=np.append(program.offset, -cosine_squared),
+        cuts=program.cuts + 1,
+    )
 
 
 def _quadratic_form(vector: np.ndarray) -> np.ndarray:
@@ -281,15 +296,6 @@ def _farkas_verified(program: _Program, certificate: np.ndarray) -> bool:
     return bool(gap < 0 and margin > 0)
 
 
-def _ray_frame(translation: np.ndarray) -> np.ndarray:
-    """Orthonormal rows, the first along the line of sight (the depth error dominates there)."""
-    ray = translation / (np.linalg.norm(translation) or 1.0)
-    helper = np.eye(3)[int(np.argmin(np.abs(ray)))]
-    second = np.cross(ray, helper)
-    second /= np.linalg.norm(second)
-    return np.vstack([ray, second, np.cross(ray, second)])
-
-
 def _infeasible(status: str) -> bool:
     return status == "PrimalInfeasible"
 
@@ -310,33 +316,43 @@ class _CellBound:
     verified: bool = False
 
 
-def _bound_cell(estimate: Pose, data: tuple, frame: np.ndarray, cap) -> _CellBound:
-    with np.errstate(all="ignore"):
-        program = _program(estimate, *data, cap)
+def _objectives(estimate: Pose, frame: np.ndarray) -> list[np.ndarray]:
+    """The seven objectives: min -(+-e_k)^T dt for the ray frame's axes, then min tr(R_hat^T R)."""
+    translation = [np.concatenate([np.zeros(_Q), -sign * axis]) for axis in frame for sign in (1.0, -1.0)]
+    return [*translation, np.concatenate([estimate.rotation.reshape(9) @ _ROTATION_MAP, np.zeros(3)])]
+
+
+def _proven(program: _Program, objective: int, solved: _Solved) -> float:
+    """The certified bound a solved program gives: an extent (scaled) or a rotation angle (radians)."""
+    lower = solved.lower - solved.translation_residual * program.reach  # r_t^T x_t over PURSE
+    if objective < 6:
+        return -lower
+    return math.acos(min(1.0, max(-1.0, (lower - 1.0) / 2.0)))
+
+
+def _bound_cell(program: _Program, objectives: list[np.ndarray], cap) -> _CellBound:
+    program, solver, values, verified = _capped(program, cap), None, [], True
+    for k, objective in enumerate(objectives):
+        solver, solved = _minimise(program, objective, solver)
+        if _infeasible(solved.status):
+            status = "empty" if solved.agrees else "infeasibility certificate not verified"
+            return _CellBound(status, verified=solved.agrees)
+        if solved.status != "Solved":
+            kind = "translation" if k < 6 else "rotation"
+            return _CellBound(f"{kind} program: {solved.status}")
+        values.append(_proven(program, k, solved))
+        verified = verified and solved.agrees
+    smallest_trace = 1.0 + 2.0 * math.cos(values[6])
+    return _CellBound("bounded", np.array(values[:6]), smallest_trace, verified)
+
+
+def _posed(program: _Program) -> str | None:
+    """Why the relaxation cannot certify anything, if so."""
     if not (np.isfinite(program.matrix).all() and np.isfinite(program.offset).all()):
-        return _CellBound("relaxation not posed: the data overflow (extreme camera matrix or sets)")
+        return "relaxation not posed: the data overflow (extreme camera matrix or sets)"
     if not math.isfinite(program.reach):
-        return _CellBound("no proven bound on ||t|| over PURSE (no two sets apart): nothing to certify with")
-    solver, directions = None, []
-    for axis in frame:
-        for sign in (1.0, -1.0):
-            objective = np.concatenate([np.zeros(_Q), -sign * axis])  # min -(+-e)^T dt
-            solver, solved = _minimise(program, objective, solver)
-            if _infeasible(solved.status):
-                status = "empty" if solved.agrees else "infeasibility certificate not verified"
-                return _CellBound(status, verified=solved.agrees)
-            if solved.status != "Solved":
-                return _CellBound(f"translation program: {solved.status}")
-            directions.append(solved)
-    reach = program.reach  # bounds the residual's term r_t^T x_t over PURSE
-    extents = np.array([-(s.lower - s.translation_residual * reach) for s in directions])
-    rotation_objective = np.concatenate([estimate.rotation.reshape(9) @ _ROTATION_MAP, np.zeros(3)])
-    solver, solved = _minimise(program, rotation_objective, solver)
-    if solved.status != "Solved":
-        return _CellBound(f"rotation program: {solved.status}")
-    smallest_trace = solved.lower - solved.translation_residual * reach
-    verified = all(s.agrees for s in [*directions, solved])
-    return _CellBound("bounded", extents, smallest_trace, verified)
+        return "no proven bound on ||t|| over PURSE (no two sets apart): nothing to certify with"
+    return None
 
 
 def outer_bound(
@@ -347,43 +363,150 @@ def outer_bound(
     shapes: np.ndarray,
     sampled: list[Pose] | None = None,
     splits: int = 0,
+    programs: int = 0,
 ) -> OuterBound:
     """Certified upper bounds on the rotation and translation error over PURSE (see the module doc).
 
-    ``splits`` rounds of branch-and-bound over rotation cells (cells.py) tighten the bounds: each
-    round splits the cells that attain the current bounds; 0 solves the whole relaxation once.
+    ``programs`` conic programs of best-first search over rotation cubes around the estimate
+    (``_search``) tighten the whole-space bounds; ``splits`` rounds of the older branch-and-bound over
+    quaternion cells (cells.py) do too, at more cost (used when ``splits`` > 0).
     """
     if not relaxation_available():
         return OuterBound(False, "the pose extra (clarabel) is not installed")
-    data = (camera, keypoints_3d, centers, shapes)
-    frame = _ray_frame(estimate.translation)
-    scale = float(np.linalg.norm(estimate.translation)) or 1.0
-    root = _bound_cell(estimate, data, frame, None)
+    with np.errstate(all="ignore"):
+        program = _program(estimate, camera, keypoints_3d, centers, shapes)
+    problem = _posed(program)
+    if problem is not None:
+        return OuterBound(False, problem)
+    objectives = _objectives(estimate, ray_frame(estimate.translation))
+    root = _bound_cell(program, objectives, None)
     if root.status != "bounded":
         return _empty(root.verified) if root.status == "empty" else OuterBound(False, root.status)
-    leaves = [(None, root, None)]
+    sampled = sampled or []
     if splits > 0:
-        leaves = [(cell, None, root) for cell in root_cells()]
-        for round_ in range(splits + 1):
-            leaves = _evaluated(estimate, data, frame, leaves)
-            if isinstance(leaves, str):
-                return OuterBound(False, leaves)
-            if not leaves:
-                return _empty(True)
-            if round_ < splits:
-                leaves = _split_the_worst(leaves)
-    extents = np.max([bound.extents for _, bound, _ in leaves], axis=0).clip(min=0.0)
+        return _split_rounds(estimate, program, objectives, root, sampled, splits)
+    bounds = np.append(root.extents, math.acos(min(1.0, max(-1.0, (root.smallest_trace - 1.0) / 2.0))))
+    if programs > 0:
+        found = _search(estimate, program, objectives, bounds, programs, _reached(estimate, sampled))
+        if found is None:
+            return OuterBound(False, "every rotation cell proven empty, yet the estimate is in PURSE")
+        bounds, cells = found
+        detail = f"{cells} rotation cells"
+    else:
+        detail = "whole rotation space"
+    return _finish(estimate, program.scale, bounds, root.verified, sampled, detail)
+
+
+def _finish(estimate, scale, bounds, verified, sampled, detail) -> OuterBound:
+    extents = bounds[:6].clip(min=0.0)
     translation = scale * math.sqrt(sum(max(extents[2 * k], extents[2 * k + 1]) ** 2 for k in range(3)))
-    smallest_trace = min(bound.smallest_trace for _, bound, _ in leaves)
-    rotation = math.degrees(math.acos(min(1.0, max(-1.0, (smallest_trace - 1.0) / 2.0))))
-    certified = all(bound.verified for _, bound, _ in leaves) and _dominates(
-        estimate, rotation, translation, sampled or []
-    )
+    rotation = math.degrees(bounds[6])
+    certified = verified and _dominates(estimate, rotation, translation, sampled)
     status = "solved, certificate verified" if certified else "solved, certificate not verified"
-    return OuterBound(certified, f"{status} ({len(leaves)} rotation cells)", rotation, translation)
+    return OuterBound(certified, f"{status} ({detail})", rotation, translation)
 
 
-def _evaluated(estimate, data, frame, leaves):
+def _reached(estimate: Pose, poses: list[Pose]) -> tuple[float, float] | None:
+    """The largest (translation, rotation in radians) distances to poses known in PURSE, if any."""
+    if not poses:
+        return None
+    translation = max(float(np.linalg.norm(p.translation - estimate.translation)) for p in poses)
+    rotation = max(math.radians(rotation_angle_deg(estimate.rotation, p.rotation)) for p in poses)
+    return translation, rotation
+
+
+_GAP = 1.1  # the search stops once both bounds are within this factor of the poses found in PURSE
+
+
+@dataclass
+class _Leaf:
+    """A rotation cube with upper bounds on the six extents and the rotation angle over its poses;
+    ``solved[k]``: bound k was proven for this cube (otherwise it is its parent's, valid too)."""
+
+    cube: Cube
+    bounds: np.ndarray
+    solved: np.ndarray
+
+
+def _search(estimate, program, objectives, root_bounds, programs, reached):
+    """Best-first branch-and-bound over rotation cubes R = R_hat exp([w]) (cells.Cube).
+
+    The whole-space rotation bound rho puts every rotation of PURSE in the ball |w| <= rho; the
+    cube [-rho, rho]^3 is cut in eight again and again where a bound is attained. Each step proves
+    one bound for the leaf attaining the loosest quantity (a cube proven empty is dropped), or
+    splits that leaf once its bound is proven. It stops after ``programs`` conic programs, or once
+    translation and rotation are within ``_GAP`` of the poses reached in PURSE. Returns the bounds
+    (max over leaves) and the number of leaves, or None when every cube was proven empty.
+    """
+    radius = float(root_bounds[6])
+    leaves = [_Leaf(Cube.around(radius), root_bounds.copy(), np.ones(7, dtype=bool))]
+    spent = 0
+    while leaves:
+        bounds = np.max([leaf.bounds for leaf in leaves], axis=0)
+        quantity = _loosest(bounds, program.scale, reached, spent)
+        if quantity is None:
+            break
+        index = int(np.argmax([leaf.bounds[quantity] for leaf in leaves]))
+        leaf = leaves[index]
+        if leaf.solved[quantity]:  # each split unproves a bound: splits stay fewer than programs + 7
+            radius = min(radius, float(bounds[6]))  # PURSE's rotations are in the ball |w| <= bound
+            children = [
+                _Leaf(c, leaf.bounds.copy(), np.zeros(7, dtype=bool)) for c in leaf.cube.split(radius)
+            ]
+            leaves[index : index + 1] = children
+            continue
+        if spent == programs:
+            break
+        spent += 1
+        leaf.solved[quantity] = True
+        capped = _capped(program, leaf.cube.cap(estimate.rotation))
+        _, solved = _minimise(capped, objectives[quantity])
+        if _infeasible(solved.status) and solved.agrees:
+            leaves.pop(index)
+        elif solved.status == "Solved" and solved.agrees:
+            value = _proven(capped, quantity, solved)
+            if quantity == 6:
+                value = min(value, leaf.cube.farthest_angle())
+            leaf.bounds[quantity] = min(leaf.bounds[quantity], value)
+    if not leaves:
+        return None
+    return np.max([leaf.bounds for leaf in leaves], axis=0), len(leaves)
+
+
+def _loosest(bounds: np.ndarray, scale: float, reached, spent: int) -> int | None:
+    """Which bound to tighten next: the largest extent or the rotation, whichever is further from
+    the poses reached (alternately without any); None once both are within _GAP."""
+    extent = int(np.argmax(bounds[:6]))
+    if reached is None or min(reached) <= 0:
+        return extent if spent % 2 == 0 else 6
+    extents = bounds[:6].clip(min=0.0)
+    translation = scale * math.sqrt(sum(max(extents[2 * k], extents[2 * k + 1]) ** 2 for k in range(3)))
+    gaps = translation / reached[0], bounds[6] / reached[1]
+    if max(gaps) <= _GAP:
+        return None
+    return extent if gaps[0] >= gaps[1] else 6
+
+
+def _split_rounds(estimate, program, objectives, root, sampled, splits) -> OuterBound:
+    """The older branch-and-bound: rounds of splitting the quaternion cells attaining a bound."""
+    leaves = [(cell, None, root) for cell in root_cells()]
+    for round_ in range(splits + 1):
+        leaves = _evaluated(program, objectives, leaves)
+        if isinstance(leaves, str):
+            return OuterBound(False, leaves)
+        if not leaves:
+            return _empty(True)
+        if round_ < splits:
+            leaves = _split_the_worst(leaves)
+    extents = np.max([bound.extents for _, bound, _ in leaves], axis=0)
+    smallest_trace = min(bound.smallest_trace for _, bound, _ in leaves)
+    rotation = math.acos(min(1.0, max(-1.0, (smallest_trace - 1.0) / 2.0)))
+    verified = all(bound.verified for _, bound, _ in leaves)
+    bounds = np.append(extents, rotation)
+    return _finish(estimate, program.scale, bounds, verified, sampled, f"{len(leaves)} rotation cells")
+
+
+def _evaluated(program, objectives, leaves):
     """Every leaf with its bound (cells proven empty dropped), or the reason one failed.
 
     A leaf is (cell, bound or None, its parent's bound or None): a cell whose program fails keeps
@@ -392,7 +515,7 @@ def _evaluated(estimate, data, frame, leaves):
     done = []
     for cell, bound, parent in leaves:
         if bound is None:
-            bound = _bound_cell(estimate, data, frame, cell.cap())
+            bound = _bound_cell(program, objectives, cell.cap())
         if bound.status == "empty":
             continue
         if bound.status != "bounded":

@@ -22,6 +22,15 @@ def to_rotation_vector(rotation: np.ndarray) -> np.ndarray:
     return cv2.Rodrigues(np.asarray(rotation, dtype=np.float64))[0].reshape(3)
 
 
+def to_quaternion(rotation: np.ndarray) -> np.ndarray:
+    """A unit quaternion (w, x, y, z) of the rotation, in the convention of QUATERNION_BASIS."""
+    vector = to_rotation_vector(rotation)
+    angle = float(np.linalg.norm(vector))
+    if angle == 0.0:
+        return np.array([1.0, 0.0, 0.0, 0.0])
+    return np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) * vector / angle])
+
+
 def _quaternion_basis() -> np.ndarray:
     """B (3, 3, 4, 4) with R(q)_jk = q^T B_jk q for a unit quaternion q = (w, x, y, z)."""
     basis = np.zeros((3, 3, 4, 4))

@@ -269,19 +269,27 @@ def test_batch_items_carry_pose_and_refuse_alone(api: InProcess, coco: dict, sam
     assert second["status"] == 422 and "coverage 'object'" in second["problem"]["detail"]
 
 
-def test_outer_splits_tighten_a_certified_bound(api: InProcess, coco: dict, samples_dir: Path) -> None:
+def test_the_rotation_search_and_the_older_splits_tighten_a_certified_bound(
+    api: InProcess, coco: dict, samples_dir: Path
+) -> None:
     body, ann = one_instance(coco)
     image = (samples_dir / coco["images"][0]["file_name"]).read_bytes()
     check = [{"instance": 0, "rotation": ann["cam_R_m2c"], "translation": ann["cam_t_m2c"]}]
     bounds = []
-    for splits in (0, 3):
-        body["pose"] = {"K": ann["cam_K"], "samples": 30, "outer_splits": splits, "check": check}
+    for options in ({"outer_programs": 0}, {"outer_splits": 3}, {}):  # whole space, older splits, search
+        body["pose"] = {"K": ann["cam_K"], "samples": 30, "check": check, **options}
         pose = predict_ok(api.client, image, body)["instances"][0]["pose"]
-        assert pose["outer_bound"]["certified"], pose["outer_bound"]
-        bounds.append(pose["outer_bound"])
+        outer = pose["outer_bound"]
+        assert outer["certified"], outer
+        assert outer["rotation_over_inner"] >= 1 and outer["translation_over_inner"] >= 1, outer
+        bounds.append(outer)
         if pose["checks"][0]["inside"]:
-            assert geodesic_deg(pose["rotation"], ann["cam_R_m2c"]) <= pose["outer_bound"]["rotation_deg"]
-    assert bounds[1]["rotation_deg"] < bounds[0]["rotation_deg"]
-    assert bounds[1]["translation"] <= bounds[0]["translation"] * (1 + 1e-9)
+            assert geodesic_deg(pose["rotation"], ann["cam_R_m2c"]) <= outer["rotation_deg"]
+    for tighter in bounds[1:]:
+        assert tighter["rotation_deg"] < bounds[0]["rotation_deg"]
+        assert tighter["translation"] <= bounds[0]["translation"] * (1 + 1e-9)
+    assert bounds[2]["rotation_deg"] < bounds[1]["rotation_deg"]  # the search, at a fraction of the cost
     body["pose"]["outer_splits"] = 9
     assert_problem(predict_json(api.client, image, body), 422, "pose.outer_splits")
+    body["pose"] = {"K": ann["cam_K"], "outer_programs": 2001}
+    assert_problem(predict_json(api.client, image, body), 422, "pose.outer_programs")

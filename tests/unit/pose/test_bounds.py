@@ -6,7 +6,13 @@ from __future__ import annotations
 import numpy as np
 
 from service.pose import Pose, PoseOptions, instance_pose_sets, membership
-from service.pose.bounds import sample_points_in_sets, sample_poses_in_set
+from service.pose.bounds import (
+    SampledPoses,
+    boundary_poses,
+    inner_bound,
+    sample_points_in_sets,
+    sample_poses_in_set,
+)
 from service.pose.membership import set_violations
 from service.pose.relaxation import outer_bound
 from service.pose.rotations import from_rotation_vector, rotation_angle_deg
@@ -48,6 +54,17 @@ def test_sampled_poses_are_in_purse(camera, duck_3d, true_pose) -> None:
     assert all(membership(p, camera, duck_3d, centers, shapes).inside for p in sampled.poses)
 
 
+def test_the_boundary_search_finds_poses_in_purse_farther_than_sampling(camera, duck_3d, true_pose) -> None:
+    centers, shapes = scene(camera, duck_3d, true_pose)
+    sampled = sample_poses_in_set(true_pose, camera, duck_3d, centers, shapes, 100)
+    boundary = boundary_poses(true_pose, camera, duck_3d, centers, shapes)
+    assert len(boundary) == 12
+    assert all(membership(p, camera, duck_3d, centers, shapes).inside for p in boundary)
+    assert max(membership(p, camera, duck_3d, centers, shapes).worst for p in boundary) > 0.999  # on the edge
+    far, near = (inner_bound(true_pose, found) for found in (SampledPoses(boundary, 0), sampled))
+    assert far.translation > 1.2 * near.translation and far.rotation_deg > 1.2 * near.rotation_deg
+
+
 def test_the_certified_outer_bound_dominates_the_inner_bound_and_the_true_error(
     camera, duck_3d, true_pose
 ) -> None:
@@ -57,7 +74,7 @@ def test_the_certified_outer_bound_dominates_the_inner_bound_and_the_true_error(
     estimate, inner, outer = answer.estimate, answer.inner, answer.outer
     assert estimate is not None and inner is not None and outer is not None
     assert outer.certified, outer.status
-    assert inner.poses_found > 0
+    assert inner.poses_found > 0 and inner.boundary_poses == 12
     assert inner.rotation_deg <= outer.rotation_deg
     assert inner.translation <= outer.translation
     assert rotation_angle_deg(estimate.rotation, true_pose.rotation) <= outer.rotation_deg

@@ -1,12 +1,15 @@
-"""Rotation cells cover SO(3), each inside its cap; branch-and-bound tightens certified bounds."""
+"""Rotation cells cover SO(3) (or the rotations near an estimate), each inside its cap; both
+branch-and-bounds tighten certified bounds and keep them valid."""
 
 from __future__ import annotations
+
+import itertools
 
 import numpy as np
 
 from service.pose import PoseOptions, instance_pose_sets
-from service.pose.cells import Cell, root_cells
-from service.pose.rotations import rotation_angle_deg
+from service.pose.cells import Cell, Cube, root_cells
+from service.pose.rotations import from_rotation_vector, rotation_angle_deg, to_quaternion
 from tests.unit.pose.test_bounds import scene
 
 
@@ -35,15 +38,66 @@ def test_cells_cover_rotations_and_lie_in_their_caps() -> None:
         assert float(centre @ q) ** 2 >= cosine_squared - 1e-12
 
 
+def cube_of(w: np.ndarray, cubes: list[Cube]) -> Cube | None:
+    for cube in cubes:
+        if (np.abs(w - np.array(cube.centre)) <= cube.half + 1e-12).all():
+            return cube
+    return None
+
+
+def test_cubes_cover_the_ball_around_an_estimate_and_lie_in_their_caps() -> None:
+    rng = np.random.default_rng(6)
+    estimate = from_rotation_vector(np.array([0.3, -1.0, 2.0]))
+    radius = 1.2
+    cubes = [Cube.around(radius)]
+    for _ in range(3):
+        cubes = [child for cube in cubes for child in cube.split(radius)]
+    assert 64 < len(cubes) < 512  # the corners outside the ball are left out
+    for _ in range(2000):
+        w = rng.normal(size=3)
+        w *= rng.uniform(0, radius) / np.linalg.norm(w)
+        cube = cube_of(w, cubes)
+        assert cube is not None
+        rotation = estimate @ from_rotation_vector(w)
+        centre, cosine_squared = cube.cap(estimate)
+        assert float(centre @ to_quaternion(rotation)) ** 2 >= cosine_squared - 1e-12
+        assert np.radians(rotation_angle_deg(estimate, rotation)) <= cube.farthest_angle() + 1e-12
+
+
+def test_the_quaternion_is_the_rotations() -> None:
+    from service.pose.rotations import QUATERNION_BASIS
+
+    rotation = from_rotation_vector(np.array([0.4, -2.5, 1.1]))
+    q = to_quaternion(rotation)
+    assert np.allclose(np.einsum("a,jkab,b->jk", q, QUATERNION_BASIS, q), rotation)
+
+
 def test_splitting_tightens_the_certified_bounds_and_keeps_them_valid(camera, duck_3d, true_pose) -> None:
     centers, shapes = scene(camera, duck_3d, true_pose)
-    whole = instance_pose_sets(duck_3d, centers, shapes, PoseOptions(camera, samples=60))
-    split = instance_pose_sets(duck_3d, centers, shapes, PoseOptions(camera, samples=60, outer_splits=4))
-    assert whole.outer.certified and split.outer.certified, (whole.outer, split.outer)
-    assert split.outer.rotation_deg < whole.outer.rotation_deg
-    assert split.outer.translation <= whole.outer.translation * (1 + 1e-9)
-    assert "rotation cells" in split.outer.status
-    estimate = split.estimate
-    assert rotation_angle_deg(estimate.rotation, true_pose.rotation) <= split.outer.rotation_deg
-    assert np.linalg.norm(estimate.translation - true_pose.translation) <= split.outer.translation
-    assert split.inner.rotation_deg <= split.outer.rotation_deg
+    whole = instance_pose_sets(duck_3d, centers, shapes, PoseOptions(camera, samples=60, outer_programs=0))
+    assert whole.outer.certified and "whole rotation space" in whole.outer.status, whole.outer
+    for options in ({"outer_splits": 4}, {"outer_programs": 60}, {}):
+        split = instance_pose_sets(duck_3d, centers, shapes, PoseOptions(camera, samples=60, **options))
+        assert split.outer.certified, (options, split.outer)
+        assert split.outer.rotation_deg < whole.outer.rotation_deg
+        assert split.outer.translation <= whole.outer.translation * (1 + 1e-9)
+        assert "rotation cells" in split.outer.status
+        estimate = split.estimate
+        assert rotation_angle_deg(estimate.rotation, true_pose.rotation) <= split.outer.rotation_deg
+        assert np.linalg.norm(estimate.translation - true_pose.translation) <= split.outer.translation
+        assert split.inner.rotation_deg <= split.outer.rotation_deg
+        assert split.inner.translation <= split.outer.translation
+
+
+def test_more_programs_never_loosen_the_search(camera, duck_3d, true_pose) -> None:
+    """The search only ever lowers a cube's bounds, splits cubes or drops empty ones: a larger budget
+    continues the same steps, so its bounds are at most the smaller budget's."""
+    centers, shapes = scene(camera, duck_3d, true_pose)
+    answers = [
+        instance_pose_sets(duck_3d, centers, shapes, PoseOptions(camera, samples=0, outer_programs=n))
+        for n in (0, 10, 40, 120)
+    ]
+    for looser, tighter in itertools.pairwise(answer.outer for answer in answers):
+        assert tighter.certified, tighter
+        assert tighter.rotation_deg <= looser.rotation_deg and tighter.translation <= looser.translation
+    assert answers[-1].outer.rotation_deg < 0.5 * answers[0].outer.rotation_deg
