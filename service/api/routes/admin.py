@@ -60,6 +60,10 @@ _UPLOAD_OPENAPI = {
             " append_to): the problem lists them; or append_to was scored under other manifest settings;"
             " or the batch would make a version equal to a stored one (`duplicate_of` names it)"
         },
+        "408": {
+            "description": "The body did not arrive within CKS_UPLOAD_READ_TIMEOUT_SECONDS, or slower than"
+            " CKS_MIN_BODY_BYTES_PER_SECOND"
+        },
         "413": {"description": "The zip, its files or its unzipped size exceed the limits"},
         "415": {"description": "Neither a zip body nor multipart/form-data"},
         "422": {

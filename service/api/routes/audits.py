@@ -40,6 +40,10 @@ _AUDIT_OPENAPI = {
             "description": "The batch repeats instances the audited version was calibrated with (drop them"
             " with dedupe=true), or the version was scored under other manifest settings"
         },
+        "408": {
+            "description": "The body did not arrive within CKS_UPLOAD_READ_TIMEOUT_SECONDS, or slower than"
+            " CKS_MIN_BODY_BYTES_PER_SECOND"
+        },
         "413": {"description": "The zip, its files or its unzipped size exceed the limits"},
         "415": {"description": "Neither a zip body nor multipart/form-data"},
         "422": {"description": "The archive or its COCO batch is invalid, or an epsilon is outside (0, 1)"},
