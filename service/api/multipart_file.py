@@ -22,10 +22,12 @@ class FilePart:
             raise InvalidInput("multipart/form-data needs a boundary in its Content-Type")
         self._name, self._out = name, out
         self._headers: list[bytes] = []
+        self._value = bytearray()  # a header's value arrives in as many pieces as the body's chunks
         self._inside = self._found = self._ended = False
         callbacks = {
             "on_part_begin": self._headers.clear,
-            "on_header_value": self._header,
+            "on_header_value": self._header_piece,
+            "on_header_end": self._header_end,
             "on_headers_finished": self._part_begins,
             "on_part_data": self._data,
             "on_part_end": self._part_ends,
@@ -46,8 +48,12 @@ class FilePart:
         if not self._found:
             raise InvalidInput(f"multipart part {self._name!r} (the zip file) is missing")
 
-    def _header(self, data: bytes, start: int, end: int) -> None:
-        self._headers.append(data[start:end])
+    def _header_piece(self, data: bytes, start: int, end: int) -> None:
+        self._value += data[start:end]
+
+    def _header_end(self) -> None:
+        self._headers.append(bytes(self._value))
+        self._value.clear()
 
     def _part_begins(self) -> None:
         names = [parse_options_header(value)[1].get(b"name") for value in self._headers]
