@@ -20,5 +20,7 @@ def test_the_readme_examples_run(server: LiveServer, monkeypatch: pytest.MonkeyP
     assert len(examples) >= 5
     monkeypatch.chdir(PACKAGE_ROOT)
     for example in examples:
-        code = example.replace("http://127.0.0.1:8000", server.url).replace('"change-me"', repr(ADMIN_TOKEN))
+        code = example.replace("http://127.0.0.1:8000", server.url).replace(
+            '"change-me-to-a-secret"', repr(ADMIN_TOKEN)
+        )
         exec(compile(code, "client/README.md", "exec"), {"__name__": "readme"})
