@@ -18,19 +18,43 @@ def bash_blocks(text: str | None = None) -> list[str]:
     return FENCED_BASH.findall(README.read_text(encoding="utf-8") if text is None else text)
 
 
-def shell_commands(block: str) -> list[str]:
-    """The commands of a block: continued lines joined, comments and blank lines left out."""
-    joined = re.sub(r"\\\n\s*", "", block)
-    return [
-        line.strip() for line in joined.splitlines() if line.strip() and not line.lstrip().startswith("#")
-    ]
+def section(heading: str) -> str:
+    """The README's text from ``## heading`` to the next ``## `` heading."""
+    text = README.read_text(encoding="utf-8")
+    start = text.index(f"\n## {heading}\n")
+    end = text.find("\n## ", start + 1)
+    return text[start : end if end >= 0 else None]
+
+
+def commands_and_outputs(block: str) -> list[tuple[str, str]]:
+    """Each command of a block with the output its ``# `` comment lines after it show ("" if none);
+    continued lines joined. ``...`` in an output stands for whatever the service says there."""
+    pairs: list[tuple[str, str]] = []
+    for line in re.sub(r"\\\n\s*", "", block).splitlines():
+        stripped = line.strip()
+        if stripped.startswith("# ") and pairs:
+            pairs[-1] = (pairs[-1][0], pairs[-1][1] + stripped[2:].strip())
+        elif stripped and not stripped.startswith("#"):
+            pairs.append((stripped, ""))
+    return pairs
+
+
+def shows(output: str, shown: str) -> bool:
+    """Whether ``output`` holds what the README ``shown`` for it: its pieces between ``...``, in order."""
+    position = 0
+    for piece in filter(None, shown.split("...")):
+        position = output.find(piece, position)
+        if position < 0:
+            return False
+        position += len(piece)
+    return True
 
 
 def predict_example(*, accept: str = "application/json") -> tuple[Path, dict, dict[str, str]]:
     """The image, request JSON and headers of the README's first curl to /v1/predict that asks
     for ``accept`` (the JSON answer unless a ``-H 'Accept: ...'`` says otherwise)."""
     for block in bash_blocks():
-        for command in shell_commands(block):
+        for command, _ in commands_and_outputs(block):
             words = shlex.split(command.split(" #")[0])
             if words[:1] != ["curl"] or not any(w.endswith("/v1/predict") for w in words):
                 continue
