@@ -288,7 +288,7 @@ EXAMPLES = {
     "serve": """\
   keypoint-service serve
   keypoint-service serve --host 0.0.0.0 --port 8080
-  CKS_ADMIN_TOKEN=change-me CKS_LOG_FORMAT=json keypoint-service serve
+  CKS_ADMIN_TOKEN=change-me-to-a-secret CKS_LOG_FORMAT=json keypoint-service serve
 """,
     "calibrate": """\
   keypoint-service calibrate data/site_a

@@ -2,7 +2,7 @@
 
 Coordinates are image pixels, x to the right and y down, with the origin at the top-left
 corner of the top-left pixel (pixel (row r, column c) has its centre at (c + 0.5, r + 0.5)),
-as in the API. ``contains`` and ``boundary`` need numpy (``pip install 'keypoint-client[numpy]'``).
+as in the API. ``contains`` and ``boundary`` need numpy (``pip install './client[numpy]'``).
 """
 
 from __future__ import annotations

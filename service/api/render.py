@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
-from service.api.predict_schemas import BallSet, EllipseSet, InstanceOut, PredictResponse
+from service.api.predict_schemas import BallSet, EllipseSet, InstanceOut, PredictResponse, UnboundedSet
 from service.detector.manifest import Manifest
 
+Box = tuple[int, int, int, int]  # x0, y0, x1, y1 in pixels, x1 and y1 excluded
+
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
 _SHIFT = 4  # OpenCV fixed-point bits: sub-pixel drawing
 _SCALE = 1 << _SHIFT
 _PALETTE = [
@@ -52,21 +58,30 @@ def _draw_set(canvas: np.ndarray, region, colour: tuple[int, int, int], thicknes
         )
 
 
-def _draw_legend(canvas: np.ndarray, response: PredictResponse) -> None:
+def _legend_lines(response: PredictResponse) -> list[str]:
     cal = response.calibration
-    lines = [
+    return [
         f"{cal.nonconformity} sets, {100 * (1 - cal.epsilon):g}% coverage per {cal.coverage}",
         f"epsilon {cal.epsilon:g}" + (f", PAC delta {cal.delta:g}" if cal.delta else ""),
         f"calibration v{cal.version}, model {response.model.name}",
     ]
-    scale = max(0.4, min(canvas.shape[:2]) / 900)
-    sizes = [cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0] for text in lines]
+
+
+def _legend_layout(shape: tuple[int, ...], lines: list[str]) -> tuple[float, int, Box]:
+    """The legend's font scale, line height and box (top-left corner of the image)."""
+    scale = max(0.4, min(shape[:2]) / 900)
+    sizes = [cv2.getTextSize(text, _FONT, scale, 1)[0] for text in lines]
     line_height = max(h for _, h in sizes) * 2
-    width = max(w for w, _ in sizes) + 12
-    cv2.rectangle(canvas, (0, 0), (width, line_height * len(lines) + 6), (0, 0, 0), -1)
+    return scale, line_height, (0, 0, max(w for w, _ in sizes) + 12, line_height * len(lines) + 6)
+
+
+def _draw_legend(canvas: np.ndarray, response: PredictResponse) -> None:
+    lines = _legend_lines(response)
+    scale, line_height, box = _legend_layout(canvas.shape, lines)
+    cv2.rectangle(canvas, box[:2], box[2:], (0, 0, 0), -1)
     for row, text in enumerate(lines):
         origin = (6, line_height * (row + 1))
-        cv2.putText(canvas, text, origin, cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(canvas, text, origin, _FONT, scale, (255, 255, 255), 1, cv2.LINE_AA)
 
 
 _AXIS_COLOURS = [(0, 0, 255), (0, 255, 0), (255, 0, 0)]  # x red, y green, z blue (BGR)
@@ -96,6 +111,93 @@ def _draw_pose(canvas: np.ndarray, instance: InstanceOut, camera: np.ndarray, ma
         cv2.line(canvas, origin, tip, colour, 2, cv2.LINE_AA, _SHIFT)
 
 
+@dataclass(frozen=True)
+class Label:
+    """A keypoint's name, where it is drawn, and the keypoint it names."""
+
+    text: str
+    box: Box
+    keypoint: tuple[int, int]
+    colour: tuple[int, int, int]
+
+
+def _font_scale(shape: tuple[int, ...]) -> float:
+    return max(0.4, min(shape[:2]) / 1200)
+
+
+def layout_labels(shape: tuple[int, ...], response: PredictResponse) -> list[Label]:
+    """Every keypoint's label, placed where it hides no other label, no keypoint, no small set
+    and not the legend: the free place nearest its keypoint (a line joins them when apart)."""
+    scale = _font_scale(shape)
+    keypoints = [keypoint for instance in response.instances for keypoint in instance.keypoints]
+    points = [(int(k.point[0]), int(k.point[1])) for k in keypoints]
+    taken = [_legend_layout(shape, _legend_lines(response))[2]]
+    taken += [_set_box(k.set, point) for k, point in zip(keypoints, points, strict=True)]
+    labels = []
+    for keypoint, point in zip(keypoints, points, strict=True):
+        text = keypoint.name + (" (unbounded)" if keypoint.set.type == "unbounded" else "")
+        (width, height), baseline = cv2.getTextSize(text, _FONT, scale, 1)
+        box = _free_place(shape, point, (width + 4, height + baseline + 4), np.array(taken))
+        taken.append(box)
+        labels.append(Label(text, box, point, _PALETTE[keypoint.index % len(_PALETTE)]))
+    return labels
+
+
+_MARK = 4  # half the side of a keypoint's cross
+_SMALL_SET = 40  # sets with a semi-axis up to this many pixels are kept clear of labels
+_DIRECTIONS = np.deg2rad(np.arange(0, 360, 22.5))
+_RADII = np.array([3, 8, 14, 22, 32, 45, 60, 80, 105, 135, 170, 210, 260, 320, 400])
+
+
+def _set_box(region, point: tuple[int, int]) -> Box:
+    reach = _MARK
+    if isinstance(region, BallSet) and region.radius <= _SMALL_SET:
+        reach = max(reach, math.ceil(region.radius))
+    elif isinstance(region, EllipseSet) and max(region.semi_axes) <= _SMALL_SET:
+        reach = max(reach, math.ceil(max(region.semi_axes)))
+    centre = point if isinstance(region, UnboundedSet) else (int(region.center[0]), int(region.center[1]))
+    x, y = centre
+    return (x - reach, y - reach, x + reach + 1, y + reach + 1)
+
+
+def _free_place(
+    shape: tuple[int, ...], point: tuple[int, int], size: tuple[int, int], taken: np.ndarray
+) -> Box:
+    """The box of ``size`` nearest ``point`` (rings of directions) inside the image and clear of
+    ``taken``; the nearest inside when none is clear (a picture too small for its labels)."""
+    width, height = size
+    radius, angle = np.meshgrid(_RADII, _DIRECTIONS, indexing="ij")
+    radius, angle = radius.ravel(), angle.ravel()
+    x0 = np.round(point[0] + np.cos(angle) * (radius + width / 2) - width / 2).astype(int)
+    y0 = np.round(point[1] + np.sin(angle) * (radius + height / 2) - height / 2).astype(int)
+    x0 = np.clip(x0, 0, max(0, shape[1] - width))
+    y0 = np.clip(y0, 0, max(0, shape[0] - height))
+    boxes = np.stack([x0, y0, x0 + width, y0 + height], axis=1)
+    overlaps = (
+        (boxes[:, None, 0] < taken[None, :, 2])
+        & (taken[None, :, 0] < boxes[:, None, 2])
+        & (boxes[:, None, 1] < taken[None, :, 3])
+        & (taken[None, :, 1] < boxes[:, None, 3])
+    ).any(axis=1)
+    free = np.flatnonzero(~overlaps)
+    return tuple(int(v) for v in boxes[free[0] if free.size else 0])
+
+
+def _draw_labels(canvas: np.ndarray, labels: list[Label]) -> None:
+    """Lines from keypoints to their labels first, then the labels over every line."""
+    for label in labels:
+        x0, y0, x1, y1 = label.box
+        nearest = (min(max(label.keypoint[0], x0), x1 - 1), min(max(label.keypoint[1], y0), y1 - 1))
+        if abs(nearest[0] - label.keypoint[0]) + abs(nearest[1] - label.keypoint[1]) > _MARK + 2:
+            cv2.line(canvas, label.keypoint, nearest, label.colour, 1, cv2.LINE_AA)
+    scale = _font_scale(canvas.shape)
+    for label in labels:
+        x0, y0, x1, y1 = label.box
+        cv2.rectangle(canvas, (x0, y0), (x1 - 1, y1 - 1), (0, 0, 0), -1)
+        (_, height), _ = cv2.getTextSize(label.text, _FONT, scale, 1)
+        cv2.putText(canvas, label.text, (x0 + 2, y0 + 2 + height), _FONT, scale, label.colour, 1, cv2.LINE_AA)
+
+
 def render_prediction(
     image_bgr: np.ndarray,
     response: PredictResponse,
@@ -107,7 +209,6 @@ def render_prediction(
     With a camera matrix and the manifest, each instance's estimated pose is drawn too."""
     canvas = cv2.cvtColor(image_bgr, cv2.COLOR_GRAY2BGR) if image_bgr.ndim == 2 else image_bgr.copy()
     thickness = max(1, round(min(canvas.shape[:2]) / 400))
-    font_scale = max(0.35, min(canvas.shape[:2]) / 1400)
     for instance in response.instances:
         x, y, w, h = instance.bbox
         cv2.rectangle(canvas, _fixed((x, y)), _fixed((x + w, y + h)), (200, 200, 200), 1, cv2.LINE_AA, _SHIFT)
@@ -117,10 +218,8 @@ def render_prediction(
             colour = _PALETTE[keypoint.index % len(_PALETTE)]
             _draw_set(canvas, keypoint.set, colour, thickness)
             px, py = int(keypoint.point[0]), int(keypoint.point[1])
-            cv2.drawMarker(canvas, (px, py), colour, cv2.MARKER_CROSS, 6, 1)
-            label = keypoint.name + (" (unbounded)" if keypoint.set.type == "unbounded" else "")
-            anchor = (px + 4, py - 4)
-            cv2.putText(canvas, label, anchor, cv2.FONT_HERSHEY_SIMPLEX, font_scale, colour, 1, cv2.LINE_AA)
+            cv2.drawMarker(canvas, (px, py), colour, cv2.MARKER_CROSS, 2 * _MARK - 2, 1)
+    _draw_labels(canvas, layout_labels(canvas.shape, response))
     _draw_legend(canvas, response)
     ok, png = cv2.imencode(".png", canvas)
     if not ok:

@@ -2,7 +2,8 @@
 
 ``CKS_ADMIN_TOKENS_FILE`` names a file of ``name:token`` lines (``#`` starts a comment,
 blank lines are ignored); ``CKS_ADMIN_TOKEN`` still works and is the operator ``admin``.
-The name is what the audit trail and the activation log record.
+The name is what the audit trail and the activation log record. Every token, wherever it is
+configured, obeys one rule: at least 16 characters, no spaces.
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+TOKEN_SETTING = "CKS_ADMIN_TOKEN"
 TOKENS_FILE_SETTING = "CKS_ADMIN_TOKENS_FILE"
 SINGLE_TOKEN_NAME = "admin"
 MIN_TOKEN_CHARS = 16
@@ -24,6 +26,7 @@ def load_operators(single_token: str | None, tokens_file: Path | None) -> dict[s
     """Token -> operator name, from ``CKS_ADMIN_TOKEN`` and the tokens file (empty: admin off)."""
     operators: dict[str, str] = {}
     if single_token:
+        _check_token(single_token, f"{TOKEN_SETTING}: the token")
         operators[single_token] = SINGLE_TOKEN_NAME
     if tokens_file is not None:
         for number, name, token in _entries(tokens_file):
@@ -53,11 +56,16 @@ def _entries(path: Path) -> list[tuple[int, str, str]]:
             raise OperatorsError(
                 f"{where}: write 'name:token' with a name of letters, digits and . _ @ - (at most 64)"
             )
-        if len(token) < MIN_TOKEN_CHARS or any(ch.isspace() for ch in token):
-            raise OperatorsError(
-                f"{where}: the token of {name!r} must be at least {MIN_TOKEN_CHARS} characters without spaces"
-            )
+        _check_token(token, f"{where}: the token of {name!r}")
         entries.append((number, name, token))
     if not entries:
         raise OperatorsError(f"{TOKENS_FILE_SETTING} {path} names no operator; add 'name:token' lines")
     return entries
+
+
+def _check_token(token: str, what: str) -> None:
+    if len(token) < MIN_TOKEN_CHARS or any(ch.isspace() for ch in token):
+        raise OperatorsError(
+            f"{what} must be at least {MIN_TOKEN_CHARS} characters without spaces "
+            "(make one with: openssl rand -hex 16)"
+        )

@@ -184,10 +184,15 @@ class AdminSettings(_Group):
     """Who may use the admin API."""
 
     admin_token: str | None = Field(
-        default=None, description="bearer token for /v1/admin (operator 'admin'); unset disables it"
+        default=None,
+        description=(
+            "bearer token for /v1/admin (operator 'admin'): 16+ characters without spaces, like every "
+            "token; unset disables it"
+        ),
     )
     admin_tokens_file: AbsolutePath | None = Field(
-        default=None, description="file of 'name:token' lines: named admin operators for the audit trail"
+        default=None,
+        description="file of 'name:token' lines (tokens as above): named admin operators for the audit trail",
     )
 
 

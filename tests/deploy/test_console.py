@@ -2,8 +2,9 @@
 without errors, asks for the admin token, then shows the model, the versions, the activation
 history, the audit run here (its coverage plotted against the bands), the drift of every
 keypoint over time and the set sizes of the predictions made here, or 'no drift data' on a
-server without drift monitoring. A screenshot goes to the test's temporary directory and to
-``test-artifacts/console.png`` (gitignored)."""
+server without drift monitoring; at 1280 px and at a phone's 390 px nothing is cut or pushed out
+of its panel or the window. Screenshots go to the test's temporary directory and to
+``test-artifacts/console*.png`` (gitignored)."""
 
 from __future__ import annotations
 
@@ -131,6 +132,66 @@ def test_the_console_shows_the_audit_against_its_bands(
     assert "Enter the admin token" in page.inner_text("#versions")
     watch.assert_offline_and_clean(page)
     assert not errors, f"console errors: {errors}"
+
+
+# Every element drawn on the page: where it reaches beyond the window or the section holding it,
+# or cuts its own content (a scrolled or clipped box narrower than what it holds).
+CUT_OR_HIDDEN = """() => {
+  const width = document.documentElement.clientWidth;
+  const name = (el) => el.tagName.toLowerCase() + (el.id ? '#' + el.id : '') +
+    ` "${(el.textContent || '').trim().slice(0, 40)}"`;
+  const problems = [], reported = [];
+  const say = (el, text) => { reported.push(el); problems.push(`${name(el)} ${text}`); };
+  if (document.documentElement.scrollWidth > width) {
+    problems.push(`the page scrolls sideways: ${document.documentElement.scrollWidth} px > ${width}`);
+  }
+  for (const el of document.querySelectorAll('body *')) {
+    const box = el.getBoundingClientRect();
+    if ((!box.width && !box.height) || reported.some((outer) => outer.contains(el))) continue;
+    const span = `${Math.round(box.left)}..${Math.round(box.right)}`;
+    if (box.left < -0.5 || box.right > width + 0.5) say(el, `reaches ${span} of ${width} px`);
+    const section = el.parentElement.closest('section, header');
+    const outer = section && section.getBoundingClientRect();
+    if (outer && (box.left < outer.left - 0.5 || box.right > outer.right + 0.5)) {
+      const where = `${section.id || 'header'} ${Math.round(outer.left)}..${Math.round(outer.right)}`;
+      say(el, `reaches ${span} out of its ${where}`);
+    }
+    const style = getComputedStyle(el);
+    if (style.overflowX !== 'visible' && el.scrollWidth > el.clientWidth + 1) {
+      say(el, `cuts its content: ${el.scrollWidth} px in ${el.clientWidth}`);
+    }
+  }
+  return problems;
+}"""
+
+
+@pytest.fixture(params=[1280, 390], ids=["laptop", "phone"])
+def window(request: pytest.FixtureRequest, browser: Browser, server: LiveServer) -> Iterator[tuple]:
+    """A laptop's window, 1280 px wide, or a phone's, 390 px."""
+    yield from watched_context(browser, server, {"width": request.param, "height": 900})
+
+
+def test_the_console_fits_a_laptop_and_a_phone(
+    server: LiveServer, window: tuple[BrowserContext, Watch], audit: dict, predictions: None, tmp_path: Path
+) -> None:
+    page, watch = open_page(window, f"{server.url}/console")
+    page.fill("#token", server.admin_token)
+    page.click("#token-form button[type=submit]")
+    page.wait_for_selector("body[data-loaded=true]")
+    page.eval_on_selector_all("details", "all => all.forEach((details) => { details.open = true; })")
+    shot = tmp_path / f"console-{page.viewport_size['width']}.png"
+    page.screenshot(path=shot, full_page=True)
+    ARTIFACT.parent.mkdir(exist_ok=True)
+    shutil.copyfile(shot, ARTIFACT.with_name(shot.name))
+    problems = page.evaluate(CUT_OR_HIDDEN)
+    assert not problems, f"cut or hidden (screenshot {ARTIFACT.with_name(shot.name)}): {problems}"
+    watch.assert_offline_and_clean(page)  # the favicon too: no 404
+
+
+def test_the_service_has_a_favicon(server: LiveServer) -> None:
+    icon = server.client.get("/favicon.ico")
+    assert icon.status_code == 200 and icon.headers["content-type"] == "image/svg+xml"
+    assert icon.content == server.client.get("/console/favicon.svg").content
 
 
 def test_a_wrong_token_is_told_not_hidden(server: LiveServer, context: tuple[BrowserContext, Watch]) -> None:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -21,6 +20,7 @@ import pytest
 from service.runtime.settings import PACKAGE_ROOT
 from tests.deploy.buildah import Container, build, image_bytes, image_config, missing_tools, process_uid
 from tests.live.server import LiveServer, free_port
+from tests.readme import predict_example
 from tests.samples import batch_zip
 from tests.service_calls import ADMIN_TOKEN
 
@@ -40,16 +40,6 @@ def image() -> str:
     build(PACKAGE_ROOT, TAG)
     print(f"\nimage {TAG}: {image_bytes(TAG) / 1e6:.0f} MB (budget {IMAGE_BUDGET_BYTES / 1e6:.0f} MB)")
     return TAG
-
-
-def readme_request() -> tuple[Path, dict]:
-    """The image and the request JSON of the README's first curl example."""
-    text = (PACKAGE_ROOT / "README.md").read_text(encoding="utf-8")
-    section = text[text.index("## Predict") :]
-    image = re.search(r"-F image=@(\S+)", section)
-    request = re.search(r"-F 'request=(\{.*?\})'", section)
-    assert image and request, "README's Predict section lost its curl example"
-    return PACKAGE_ROOT / image.group(1), json.loads(request.group(1))
 
 
 def predict(url: str, image: Path, request: dict) -> dict:
@@ -118,7 +108,7 @@ def test_the_container_serves_like_the_service_and_keeps_its_calibrations(
     env = {"CKS_PORT": str(port), "CKS_ADMIN_TOKEN": ADMIN_TOKEN}
     log = tmp_path / "container.log"
     admin = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
-    image_path, request = readme_request()
+    image_path, request, _ = predict_example()
 
     container = Container(image, data_dir, env, log)
     try:

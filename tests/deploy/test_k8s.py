@@ -1,7 +1,8 @@
 """deploy/k8s: every manifest is valid Kubernetes, and agrees with the service it deploys.
 
-The schemas are the ones kubernetes-validate bundles (no network), for a pinned Kubernetes
-version, in strict mode (an unknown or misspelt field fails). Beyond the schemas: the probes
+The schemas are kept in the repository (tests/deploy/kubernetes_schemas.py: kubernetes-validate's
+strict schemas of the kinds used, for a pinned Kubernetes version; an unknown or misspelt field
+fails). Beyond the schemas: the probes
 ask for routes the app has, the container listens on ``CKS_PORT``, selectors find the pods,
 the Secrets the Deployment reads are those ``secrets.example.yaml`` shows, the pod runs as the
 image's user on a read-only root with its writable paths mounted, and the resources follow
@@ -16,7 +17,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-import kubernetes_validate
+import jsonschema
 import pytest
 import yaml
 
@@ -24,9 +25,9 @@ from service import __version__
 from service.api.openapi import openapi_document
 from service.runtime.operators import load_operators
 from service.runtime.settings import PACKAGE_ROOT, Settings
+from tests.deploy import kubernetes_schemas
 
 K8S = PACKAGE_ROOT / "deploy" / "k8s"
-KUBERNETES_VERSION = "1.33"
 KUSTOMIZATION = K8S / "kustomization.yaml"
 SECRETS_EXAMPLE = K8S / "secrets.example.yaml"
 MANIFESTS = sorted(path for path in K8S.glob("*.yaml") if path != KUSTOMIZATION)
@@ -99,8 +100,8 @@ def emptydir_mounts() -> dict[str, Manifest]:
 def test_manifest_is_valid_kubernetes(path: Path) -> None:
     for doc in documents(path):
         try:
-            kubernetes_validate.validate(doc, KUBERNETES_VERSION, strict=True)
-        except kubernetes_validate.ValidationError as error:
+            kubernetes_schemas.validate(doc)
+        except jsonschema.ValidationError as error:
             where = "/".join(map(str, error.path))
             pytest.fail(f"{path.name}: {doc['kind']} {doc['metadata']['name']}: {error.message} at {where}")
 

@@ -170,10 +170,16 @@ def test_a_successful_one_shot_command_is_quiet_on_stderr(tmp_path: Path) -> Non
     assert result.stderr == "" and '"calibration"' in result.stdout
 
 
-def test_serve_refuses_a_bad_tokens_file_in_one_line(tmp_path: Path) -> None:
+def test_serve_refuses_a_short_token_in_one_line(tmp_path: Path) -> None:
     tokens = tmp_path / "tokens"
     tokens.write_text("alice:short\n")
     result = run(["serve"], tmp_path / "data", admin_tokens_file=tokens, port=free_port())
     assert result.returncode == 2, result.stderr
     assert "line 1: the token of 'alice' must be at least 16 characters" in result.stderr
     assert "Traceback" not in result.stderr
+    result = run(["serve"], tmp_path / "data", admin_token="change-me", port=free_port())
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.splitlines() == [
+        "error: CKS_ADMIN_TOKEN: the token must be at least 16 characters without spaces "
+        "(make one with: openssl rand -hex 16)"
+    ]

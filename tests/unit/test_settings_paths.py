@@ -52,6 +52,17 @@ def test_a_bad_tokens_file_is_refused_naming_the_line(tmp_path: Path, text: str,
         load_operators(None, tokens)
 
 
+@pytest.mark.parametrize("token", ["change-me", "fifteen-chars15", "sixteen chars 16"])
+def test_one_rule_for_a_token_wherever_it_is_configured(tmp_path: Path, token: str) -> None:
+    tokens = tmp_path / "tokens"
+    tokens.write_text(f"alice:{token}\n")
+    with pytest.raises(OperatorsError, match="CKS_ADMIN_TOKEN: the token must be at least 16 characters"):
+        load_operators(token, None)
+    with pytest.raises(OperatorsError, match="the token of 'alice' must be at least 16 characters"):
+        load_operators(None, tokens)
+    assert load_operators("sixteen-chars-16", None) == {"sixteen-chars-16": "admin"}
+
+
 def test_a_missing_tokens_file_is_refused(tmp_path: Path) -> None:
     with pytest.raises(OperatorsError, match="cannot read"):
         load_operators(None, tmp_path / "absent")

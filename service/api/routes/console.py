@@ -16,7 +16,7 @@ from service.errors import NotFound
 router = APIRouter(include_in_schema=False)
 
 STATIC = Path(__file__).resolve().parents[2] / "console" / "static"
-_MEDIA_TYPES = {"console.js": "text/javascript", "console.css": "text/css"}
+_MEDIA_TYPES = {"console.js": "text/javascript", "console.css": "text/css", "favicon.svg": "image/svg+xml"}
 #: the page's own origin only, no inline script: the console needs nothing else
 CONSOLE_CONTENT_SECURITY_POLICY = (
     "default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' data:; connect-src 'self'; "
@@ -28,6 +28,12 @@ _HEADERS = {"Content-Security-Policy": CONSOLE_CONTENT_SECURITY_POLICY, "Cache-C
 @router.get("/console")
 async def console_page() -> Response:
     return Response((STATIC / "index.html").read_bytes(), media_type="text/html", headers=_HEADERS)
+
+
+@router.get("/favicon.ico")
+async def favicon() -> Response:
+    """The service's icon, for browsers that ask for it on any page (SVG: they read the type)."""
+    return await console_file("favicon.svg")
 
 
 @router.get("/console/{name}")

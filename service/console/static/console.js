@@ -113,15 +113,18 @@ async function loadVersions() {
   const list = await getJson("v1/admin/calibrations");
   const versions = (list.versions || []).slice(-VERSIONS_SHOWN).reverse();
   const details = await Promise.all(versions.map((v) => getJson(`v1/admin/calibrations/${v.version}`)));
+  const counts = (d) => Object.entries(d.labeled_per_keypoint || {});
   const rows = details.map((d) => {
-    const counts = Object.values(d.labeled_per_keypoint || {});
-    const perKeypoint = el("details", {}, el("summary", {}, `min ${counts.length ? Math.min(...counts) : "–"}`),
-      table(["keypoint", "n"], Object.entries(d.labeled_per_keypoint || {}).map(([k, n]) => [k, n])));
-    return [d.version + (d.active ? " (active)" : ""), when(d.created_at), d.author, d.instances, perKeypoint,
+    const least = counts(d).length ? Math.min(...counts(d).map(([, n]) => n)) : "–";
+    return [d.version + (d.active ? " (active)" : ""), when(d.created_at), d.author, d.instances, `min ${least}`,
       d.usable === false ? "unusable" : "", d.note || ""];
   });
+  // Every keypoint's n under the table, as text that wraps: a column of them would not fit a phone.
+  const perKeypoint = details.map((d) => el("details", {}, el("summary", {}, `n per keypoint, version ${d.version}`),
+    note(counts(d).map(([k, n]) => `${k}\u00a0${n}`).join(" · "))));
   const shown = versions.length < (list.versions || []).length ? note(`The latest ${versions.length} versions.`) : "";
-  show("versions", table(["version", "created", "author", "instances", "n per keypoint", "", "note"], rows), shown);
+  show("versions", table(["version", "created", "author", "instances", "n per keypoint", "", "note"], rows),
+    ...perKeypoint, shown);
 }
 
 async function loadActivations() {

@@ -150,7 +150,7 @@ def test_the_client_alone_predicts_and_agrees_with_the_server(
     answer = json.loads((tmp_path / "answer.json").read_text())
     assert answer["importable"] == {"service": False, "numpy": False}
     assert answer["results"] == expected
-    assert "pip install 'keypoint-client[numpy]'" in answer["refusal"]
+    assert "pip install './client[numpy]' from the service's checkout" in answer["refusal"]
 
     # With the numpy extra: contains() is the server's geometry.
     run(*pip, f"{source}[numpy]", cwd=tmp_path)
