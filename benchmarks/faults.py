@@ -1,10 +1,11 @@
 """Every fault of docs/operations.md, measured on real processes on loopback, one after the other.
 
-    python -m benchmarks.faults          # the store outage, then clients, images and shutdown
+    python -m benchmarks.faults          # the store outages, then clients, images and shutdown
 
-Runs ``benchmarks.faults_store`` (a PostgreSQL outage under load) and
-``benchmarks.faults_clients`` (slow clients, huge images, zip bombs, SIGTERM) with their
-defaults; each prints its own figures. Run either alone for its options (``--help``).
+Runs ``benchmarks.faults_store`` (a PostgreSQL outage under load: stopped, then frozen) and
+``benchmarks.faults_clients`` (slow clients, a flood beside a polite client, huge images, zip
+bombs, SIGTERM) with their defaults; each prints its own figures. Run either alone for its
+options (``--help``).
 """
 
 from __future__ import annotations
@@ -16,9 +17,13 @@ from benchmarks import faults_clients, faults_store
 
 def main() -> int:
     status = 0
-    for name, module in (("store outage", faults_store), ("clients, images, shutdown", faults_clients)):
-        print(f"\n=== {name} ({module.__name__})", flush=True)
-        status = max(status, module.main([]) or 0)
+    for name, module, argv in (
+        ("store outage", faults_store, []),
+        ("frozen store", faults_store, ["--freeze"]),
+        ("clients, images, shutdown", faults_clients, []),
+    ):
+        print(f"\n=== {name} ({module.__name__} {' '.join(argv)})", flush=True)
+        status = max(status, module.main(argv) or 0)
     return status
 
 

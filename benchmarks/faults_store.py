@@ -2,17 +2,20 @@
 
     python -m benchmarks.faults_store                       # 8 s outage, 2 clients
     python -m benchmarks.faults_store --outage 30 --clients 4
+    python -m benchmarks.faults_store --freeze              # SIGSTOP instead of a stop
 
 Starts a throwaway PostgreSQL cluster (the machine's server binaries, as the tests do) and
 one real server on it (uvicorn on loopback, bundled model and calibration, version 1
 active), stores a second version without activating it, then has client threads predict
 continuously with the active version while the cluster is stopped for ``--outage`` seconds
-and started again. Printed: predictions answered and failed with their latency p50/p99
-before, during and after the outage; how long an admin call took to answer 503 (the first
-one, before the server knew, and one after); /readyz during the outage; a predict naming
-the version not in memory; how long until /readyz reported the store unreachable, and ok
-again after the restart; how long an activation written to the store during recovery (as
-another replica would) took to be served; and when admin calls answered 200 again.
+and started again (or, with ``--freeze``, its processes are sent SIGSTOP and then SIGCONT: a
+database that neither refuses nor answers, as a paused VM). Printed: predictions answered
+and failed with their latency p50/p99 before, during and after the outage; how long an admin
+call took to answer 503 (the first one, before the server knew, and one after); /readyz
+during the outage; a predict naming the version not in memory; how long until /readyz
+reported the store unreachable, and ok again after the restart; how long an activation
+written to the store during recovery (as another replica would) took to be served; and when
+admin calls answered 200 again.
 
 Bounded: ``--before + --outage + --after`` seconds of load, every wait capped at
 ``WAIT_LIMIT_S``; loopback only.
@@ -92,6 +95,7 @@ class Call:
 
 @dataclass
 class OutageReport:
+    fault: str  # stopped, or frozen (SIGSTOP)
     outage_s: float
     poll_s: float
     phases: dict[str, PhaseFigures]  # before, during, after
@@ -175,9 +179,15 @@ def seconds_until(condition: Callable[[], bool], what: str) -> float:
 
 
 def run_outage(
-    prepared: Scene, outage_s: float, before_s: float = 3.0, after_s: float = 5.0, clients: int = 2
+    prepared: Scene,
+    outage_s: float,
+    before_s: float = 3.0,
+    after_s: float = 5.0,
+    clients: int = 2,
+    freeze: bool = False,
 ) -> OutageReport:
-    """Predict under load while the cluster is stopped for ``outage_s`` seconds and restarted."""
+    """Predict under load while the cluster is stopped (or frozen) for ``outage_s`` seconds and
+    restarted (thawed)."""
     server, client, cluster = prepared.server, prepared.server.client, prepared.cluster
     poll_s = float(server.settings.get("store_poll_seconds", 1.0))
     readyz: dict[str, Call] = {}
@@ -198,7 +208,7 @@ def run_outage(
     try:
         time.sleep(before_s)
         stopped_at = time.monotonic()
-        cluster.stop_server()
+        cluster.freeze_server() if freeze else cluster.stop_server()
         try:
             admin_first = admin()
             unreachable_after_s = (
@@ -213,7 +223,7 @@ def run_outage(
             time.sleep(max(0.0, stopped_at + outage_s - time.monotonic()))
         finally:
             restarted_at = time.monotonic()
-            cluster.start_server()
+            cluster.thaw_server() if freeze else cluster.start_server()
         with open_store(prepared.store_url) as store:  # another replica's activation, during recovery
             store.activate(readyz_during.body["model_hash"], 2, "faults_store", "activated during recovery")
         activated_at = time.monotonic()
@@ -245,6 +255,7 @@ def run_outage(
         "after": between(restarted_at, np.inf),
     }
     return OutageReport(
+        "frozen (SIGSTOP)" if freeze else "stopped",
         outage_s,
         poll_s,
         phases,
@@ -261,7 +272,7 @@ def run_outage(
 
 
 def print_report(report: OutageReport) -> None:
-    print(f"PostgreSQL stopped for {report.outage_s:g} s; store polled every {report.poll_s:g} s")
+    print(f"PostgreSQL {report.fault} for {report.outage_s:g} s; store polled every {report.poll_s:g} s")
     print(f"{'predictions':<12} {'answered':>9} {'failed':>7} {'p50 ms':>8} {'p99 ms':>8}")
     for name, f in report.phases.items():
         print(f"{name:<12} {f.answered:>9} {f.failed:>7} {f.p50_ms:>8.1f} {f.p99_ms:>8.1f}")
@@ -293,6 +304,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--clients", type=int, default=2, help="client threads predicting")
     parser.add_argument("--poll", type=float, default=1.0, help="CKS_STORE_POLL_SECONDS")
     parser.add_argument("--timeout", type=float, default=1.5, help="CKS_STORE_TIMEOUT_SECONDS")
+    parser.add_argument("--freeze", action="store_true", help="SIGSTOP the cluster instead of stopping it")
     args = parser.parse_args(argv)
     for name in ("outage", "before", "after", "poll", "timeout"):
         if not 0 < getattr(args, name) <= 600:
@@ -305,7 +317,7 @@ def main(argv: list[str] | None = None) -> int:
         PostgresCluster.start() as cluster,
         scene(Path(work), cluster, **settings) as prepared,
     ):
-        report = run_outage(prepared, args.outage, args.before, args.after, args.clients)
+        report = run_outage(prepared, args.outage, args.before, args.after, args.clients, args.freeze)
     print_report(report)
     return 0
 
