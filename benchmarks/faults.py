@@ -2,7 +2,8 @@
 
     python -m benchmarks.faults          # the store outages, then clients, images and shutdown
 
-Runs ``benchmarks.faults_store`` (a PostgreSQL outage under load: stopped, then frozen) and
+Runs ``benchmarks.faults_store`` (a store outage under load: PostgreSQL stopped, then frozen,
+then a SQLite store whose locks another process holds) and
 ``benchmarks.faults_clients`` (slow clients, a flood beside a polite client, huge images, zip
 bombs, SIGTERM) with their defaults; each prints its own figures. Run either alone for its
 options (``--help``).
@@ -19,7 +20,8 @@ def main() -> int:
     status = 0
     for name, module, argv in (
         ("store outage", faults_store, []),
-        ("frozen store", faults_store, ["--freeze"]),
+        ("frozen store", faults_store, ["--fault", "freeze"]),
+        ("locked SQLite store", faults_store, ["--fault", "sqlite-locked"]),
         ("clients, images, shutdown", faults_clients, []),
     ):
         print(f"\n=== {name} ({module.__name__} {' '.join(argv)})", flush=True)

@@ -85,7 +85,7 @@ def test_a_frozen_postgresql_answers_admin_calls_503_within_the_store_timeout(
     that neither fails nor answers, until the store's watchdog cuts it (CKS_STORE_TIMEOUT_SECONDS);
     before, it waited for the SIGCONT. Predictions go on; after the SIGCONT the service recovers."""
     with scene(tmp_path, cluster) as prepared:
-        report = run_outage(prepared, outage_s=4.0, before_s=1.0, after_s=1.0, clients=1, freeze=True)
+        report = run_outage(prepared, outage_s=4.0, before_s=1.0, after_s=1.0, clients=1, fault="freeze")
 
     for phase, figures in report.phases.items():
         assert figures.answered > 0 and figures.failed == 0, (phase, figures)
