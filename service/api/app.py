@@ -10,6 +10,7 @@ from fastapi_offline import FastAPIOffline
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service import __version__
+from service.api.cut_requests import AnswerCutRequests
 from service.api.deps import PredictParts
 from service.api.metrics_middleware import MetricsMiddleware
 from service.api.predict_schemas import PredictJson
@@ -78,6 +79,7 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
         description=DESCRIPTION,
         lifespan=lifespan,
     )
+    app.add_middleware(AnswerCutRequests)  # inside the metrics and the access line: they see its 503
     app.add_middleware(MetricsMiddleware)
     app.add_middleware(DocsPagesPolicy)
     app.add_middleware(RequestIdMiddleware)  # outside the access line, which logs the id

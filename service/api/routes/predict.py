@@ -27,7 +27,7 @@ from service.api.predict_input import (
 from service.api.predict_presenter import predict_json, predict_png
 from service.api.predict_schemas import BatchResponse, PredictParameters, PredictResponse
 from service.api.problems import problem
-from service.errors import InvalidInput, ServiceError, Unavailable
+from service.errors import InvalidInput, ServiceError
 from service.runtime.logs import note_calibration_version
 
 router = APIRouter(tags=["prediction"])
@@ -113,17 +113,11 @@ _BATCH_OPENAPI = {
 )
 async def predict_route(request: Request, parts: Predicting) -> Response:
     client = parts.client_of(request)
-    try:
-        parts.admission.refuse_if_full(client=client)  # not worth receiving
-        body = await parts.receive(request)  # a slow client holds no place meanwhile
-        async with parts.admission.admitted(client=client):
-            image, parameters = await parse_predict(request, body)
-            return await _compute(parts, client, image, parameters, _wants_png(request))
-    except asyncio.CancelledError:  # uvicorn cancels what is left when a shutdown's grace period ends
-        raise Unavailable(
-            "the service stopped before this request was done (CKS_SHUTDOWN_GRACE_SECONDS): send it again",
-            headers={"Retry-After": "1", "Connection": "close"},
-        ) from None
+    parts.admission.refuse_if_full(client=client)  # not worth receiving
+    body = await parts.receive(request)  # a slow client holds no place meanwhile
+    async with parts.admission.admitted(client=client):
+        image, parameters = await parse_predict(request, body)
+        return await _compute(parts, client, image, parameters, _wants_png(request))
 
 
 @router.post(
