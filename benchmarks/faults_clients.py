@@ -1,26 +1,31 @@
-"""The service under slow clients, huge images, a zip bomb and SIGTERM: the figures of
-docs/operations.md.
+"""The service under slow clients, a flood, huge images, a zip bomb and SIGTERM: the figures
+of docs/operations.md.
 
     python -m benchmarks.faults_clients
 
 Loopback only, one real ``keypoint-service serve`` process at a time (default settings
-unless said), bounded in count and time (about a minute): a normal client's latency
+unless said), bounded in count and time (about a minute and a half): a normal client's latency
 alone and beside 100 slow-body and 100 slow-header connections, and when each kind of slow
-client is cut; the server's peak resident memory while it refuses a 16-bit RGBA PNG of
-6324x6324 (under the pixel limit), eight at once, and while it decodes accepted 16-bit PNGs;
-a 7.5 GiB zip bomb; the time from SIGTERM to exit, idle and with a calibration job and
-predicts in flight. Needs the test extras (httpx).
+client is cut; a polite client (one predict every 0.2 s) alone and beside a flood of 100
+connections sending predicts back to back and 100 sending garbage, from another address;
+the server's peak resident memory while it refuses a 16-bit RGBA PNG of 6324x6324 (under
+the pixel limit), eight at once, and while it decodes accepted 16-bit PNGs; a 7.5 GiB zip bomb;
+the time from SIGTERM to exit, idle and with a calibration job and predicts in flight.
+Needs the test extras (httpx).
 
 The fault generators here are used by the tests too (tests/live/test_slow_clients.py,
-test_decode_budget.py, test_shutdown.py).
+test_fair_admission.py, test_decode_budget.py, test_shutdown.py).
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
 import functools
 import io
+import itertools
 import json
+import multiprocessing
 import os
 import re
 import selectors
@@ -32,6 +37,7 @@ import threading
 import time
 import zipfile
 import zlib
+from collections import Counter
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -54,6 +60,8 @@ SLOW_BODY_HEAD = (
     b"Content-Length: 100000\r\n\r\n"
 )
 SLOW_HEAD = b"POST /v1/predict HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Padding: " + b"a" * 4000
+#: Loopback answers from all of 127.0.0.0/8: the flood's address, another client than 127.0.0.1.
+FLOOD_ADDRESS = "127.0.0.2"
 
 
 # ---------------------------------------------------------------- slow clients
@@ -191,6 +199,87 @@ def metric(url: str, name: str, labels: str = "") -> float:
 
 def percentile(values: list[float], q: float) -> float:
     return float(np.percentile(values, q))
+
+
+def polite_client(url: str, seconds: float, interval: float = 0.2) -> tuple[list[float], list[int]]:
+    """One predict every ``interval`` seconds (on schedule, or at once when late) for ``seconds``,
+    on one keep-alive connection: seconds each took, statuses."""
+    image, instances = sample_request()
+    seconds_taken, statuses = [], []
+    with httpx.Client(base_url=url, timeout=60) as client:
+        started = time.monotonic()
+        for sent in itertools.count():
+            if max(due := started + sent * interval, time.monotonic()) >= started + seconds:
+                break
+            time.sleep(max(0.0, due - time.monotonic()))
+            began = time.perf_counter()
+            statuses.append(predict(client, image, instances).status_code)
+            seconds_taken.append(time.perf_counter() - began)
+    return seconds_taken, statuses
+
+
+class Flood:
+    """``valid`` connections posting predicts of ``instances`` boxes (the most the server takes
+    by default: the flood costs the server what it can) back to back and ``garbage`` ones posting
+    invalid predicts, all from ``address``, ignoring Retry-After. One event loop in a process of
+    its own (so that it takes no turn of this process's interpreter lock) drives them and counts
+    the answers: ``statuses`` once it is over (``"error"``: no answer)."""
+
+    def __init__(
+        self, url: str, valid: int, garbage: int = 0, address: str = FLOOD_ADDRESS, instances: int = 64
+    ) -> None:
+        context = multiprocessing.get_context("spawn")
+        self._running, self._stop = context.Event(), context.Event()
+        self._answers, answers = context.Pipe(duplex=False)
+        flood = (url, valid, garbage, address, instances)
+        self._process = context.Process(
+            target=_flood, args=(*flood, self._running, self._stop, answers), daemon=True
+        )
+        self.statuses: Counter[int | str] = Counter()
+
+    def __enter__(self) -> Flood:
+        self._process.start()
+        if not self._running.wait(60):
+            self._process.kill()
+            raise RuntimeError("the flood's process did not start within 60 s")
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        if self._answers.poll(60):  # each connection ends its request first (10 s at most)
+            self.statuses = self._answers.recv()
+        self._process.kill()
+        self._process.join()
+
+
+def _flood(url: str, valid: int, garbage: int, address: str, instances: int, *events: Any) -> None:
+    running, stop, answers = events
+    statuses: Counter[int | str] = Counter()
+
+    async def post(client: httpx.AsyncClient, files: dict) -> None:
+        while not stop.is_set():
+            try:
+                statuses[(await client.post("/v1/predict", files=files)).status_code] += 1
+            except httpx.HTTPError:
+                statuses["error"] += 1
+
+    async def run() -> None:
+        limits = httpx.Limits(max_connections=valid + garbage, max_keepalive_connections=valid + garbage)
+        transport = httpx.AsyncHTTPTransport(local_address=address, limits=limits)
+        # A refusal may come before the body is read: a short timeout ends a send that cannot finish.
+        async with httpx.AsyncClient(base_url=url, transport=transport, timeout=10) as client:
+            image, boxes = sample_request()
+            heavy = json.dumps({"instances": (boxes * instances)[:instances]})
+            valid_files = {"image": ("image", image), "request": (None, heavy)}
+            garbage_files = {"image": ("image", b"not an image"), "request": (None, "{")}
+            running.set()
+            await asyncio.gather(
+                *(post(client, valid_files) for _ in range(valid)),
+                *(post(client, garbage_files) for _ in range(garbage)),
+            )
+
+    asyncio.run(run())
+    answers.send(statuses)
 
 
 # ---------------------------------------------------------------- huge images
@@ -348,6 +437,25 @@ def slow_clients(server: Server, requests: int, slow: int) -> None:
         )
 
 
+def flood(server: Server, seconds: float, valid: int, garbage: int) -> None:
+    polite_client(server.url, 2)  # warm-up
+    alone, statuses = polite_client(server.url, seconds / 2)
+    print(
+        f"polite client alone (a predict every 0.2 s, {seconds / 2:g} s): {_ms(alone)}; {_counted(statuses)}"
+    )
+    with Flood(server.url, valid, garbage) as flooding:
+        time.sleep(1)  # the flood takes every place it can
+        beside, statuses = polite_client(server.url, seconds)
+    ok = statuses.count(200) / len(statuses)
+    print(
+        f"beside a flood from {FLOOD_ADDRESS} ({valid} connections posting predicts of 64 boxes back to"
+        f" back, {garbage}"
+        f" posting garbage) for {seconds:g} s: {100 * ok:.0f} % answered 200, {_ms(beside)}"
+        f" ({percentile(beside, 99) / percentile(alone, 99):.1f}x alone); {_counted(statuses)}"
+    )
+    print(f"  the flood's answers: {_counted(list(flooding.statuses.elements()))}")
+
+
 def huge_images(server: Server, settings: Settings) -> None:
     instances = sample_request()[1][:1]
     budget = f"CKS_MAX_DECODED_BYTES {_mib(settings.predict.max_decoded_bytes)}"
@@ -425,6 +533,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.faults_clients")
     parser.add_argument("--requests", type=int, default=40, help="normal predicts per measurement")
     parser.add_argument("--slow", type=int, default=100, help="slow-body and slow-header connections, each")
+    parser.add_argument("--flood-seconds", type=float, default=20, help="the polite client beside the flood")
+    parser.add_argument("--flood", type=int, default=100, help="flood connections posting predicts")
+    parser.add_argument("--garbage", type=int, default=100, help="flood connections posting garbage")
+    parser.add_argument("--only-flood", action="store_true", help="the flood alone, no other measurement")
     args = parser.parse_args(argv)
     settings = {"CKS_ADMIN_TOKEN": ADMIN_TOKEN, "CKS_MODEL_DIR": str(DEFAULT_MODEL_DIR)}
     print(f"default settings, {os.cpu_count()} cores, loopback; RSS: the server's peak VmHWM, reset per step")
@@ -432,6 +544,9 @@ def main(argv: list[str] | None = None) -> int:
         tempfile.TemporaryDirectory(prefix="cks-faults-") as data_dir,
         serve({**settings, "CKS_DATA_DIR": data_dir}) as server,
     ):
+        flood(server, args.flood_seconds, args.flood, args.garbage)
+        if args.only_flood:
+            return 0
         slow_clients(server, args.requests, args.slow)
         huge_images(server, Settings())
         bomb(server, Path(data_dir))

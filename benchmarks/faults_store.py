@@ -1,18 +1,23 @@
-"""What a real server does while its PostgreSQL store is down, measured end to end.
+"""What a real server does while its calibration store is away, measured end to end.
 
     python -m benchmarks.faults_store                       # 8 s outage, 2 clients
     python -m benchmarks.faults_store --outage 30 --clients 4
+    python -m benchmarks.faults_store --fault freeze        # SIGSTOP instead of a stop
+    python -m benchmarks.faults_store --fault sqlite-locked # a SQLite store, its locks held
 
 Starts a throwaway PostgreSQL cluster (the machine's server binaries, as the tests do) and
 one real server on it (uvicorn on loopback, bundled model and calibration, version 1
 active), stores a second version without activating it, then has client threads predict
 continuously with the active version while the cluster is stopped for ``--outage`` seconds
-and started again. Printed: predictions answered and failed with their latency p50/p99
-before, during and after the outage; how long an admin call took to answer 503 (the first
-one, before the server knew, and one after); /readyz during the outage; a predict naming
-the version not in memory; how long until /readyz reported the store unreachable, and ok
-again after the restart; how long an activation written to the store during recovery (as
-another replica would) took to be served; and when admin calls answered 200 again.
+and started again. ``--fault freeze`` sends its processes SIGSTOP and then SIGCONT instead
+(a database that neither refuses nor answers, as a paused VM); ``--fault sqlite-locked``
+serves from SQLite (no cluster) while another process holds the database's WAL locks.
+Printed: predictions answered and failed with their latency p50/p99 before, during and after
+the outage; how long an admin call took to answer 503 (the first one, before the server
+knew, and one after); /readyz during the outage; a predict naming the version not in memory;
+how long until /readyz reported the store unreachable, and ok again after the restart; how
+long an activation written to the store during recovery (as another replica would) took to
+be served; and when admin calls answered 200 again.
 
 Bounded: ``--before + --outage + --after`` seconds of load, every wait capped at
 ``WAIT_LIMIT_S``; loopback only.
@@ -22,11 +27,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
+import sys
 import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,7 +41,7 @@ from typing import Any
 import httpx
 import numpy as np
 
-from calibration_store import open_store
+from calibration_store import open_store, sqlite_path
 from tests.live.server import LiveServer
 from tests.postgres_cluster import PostgresCluster
 from tests.predict_client import instances_of, predict_json
@@ -92,6 +99,7 @@ class Call:
 
 @dataclass
 class OutageReport:
+    fault: str  # Fault.name
     outage_s: float
     poll_s: float
     phases: dict[str, PhaseFigures]  # before, during, after
@@ -145,9 +153,10 @@ class PredictLoad:
 
 @dataclass(frozen=True)
 class Scene:
-    """A server on a cluster's database, version 1 active and version 2 stored (not in memory)."""
+    """A server on a cluster's database (or on SQLite: no cluster), version 1 active and version 2
+    stored (not in memory)."""
 
-    cluster: PostgresCluster
+    cluster: PostgresCluster | None
     store_url: str
     server: LiveServer
     image: bytes
@@ -155,12 +164,13 @@ class Scene:
 
 
 @contextmanager
-def scene(work: Path, cluster: PostgresCluster, **settings: Any) -> Iterator[Scene]:
-    """Start a server with ``settings`` on a new database of ``cluster``, and store version 2."""
+def scene(work: Path, cluster: PostgresCluster | None, **settings: Any) -> Iterator[Scene]:
+    """Start a server with ``settings`` on a new database of ``cluster`` (None: on its SQLite
+    file), and store version 2."""
     samples_dir = model_dir() / "samples"
     coco = json.loads((samples_dir / "annotations.json").read_text())
     path, group = next(iter(samples_by_image(load_samples(samples_dir, coco)).items()))
-    url = cluster.create_database()
+    url = cluster.create_database() if cluster else f"sqlite:///{work / 'data' / 'calibrations.db'}"
     with LiveServer(work / "data", admin_token=ADMIN_TOKEN, store_url=url, **settings) as server:
         job = server.calibrate(batch_zip(samples_dir, coco, images=4))
         assert job["result"]["version"] == 2, job
@@ -174,11 +184,67 @@ def seconds_until(condition: Callable[[], bool], what: str) -> float:
     return time.monotonic() - began
 
 
+class WalLocks:
+    """Another process holding every WAL lock of a SQLite database (write, checkpoint, recovery
+    and the five read locks: bytes 120 to 127 of its -shm file), as one stuck in a checkpoint or
+    a recovery would: the service's readers and writers wait on them, then fail."""
+
+    HOLD = (
+        "import fcntl, os, sys, time\n"
+        "fd = os.open(sys.argv[1], os.O_RDWR)\n"
+        "for offset in range(120, 128): fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB, 1, offset)\n"
+        "print('held', flush=True)\n"
+        "time.sleep(3600)\n"
+    )
+
+    def __init__(self, database: Path) -> None:
+        self._shm, self._process = f"{database}-shm", None
+
+    def take(self) -> None:
+        argv = [sys.executable, "-c", self.HOLD, self._shm]
+        self._process = subprocess.Popen(argv, stdout=subprocess.PIPE, text=True)
+        assert self._process.stdout is not None and self._process.stdout.readline().strip() == "held"
+
+    def release(self) -> None:
+        if self._process is not None:
+            self._process.kill()
+            self._process.wait()
+
+
+@dataclass(frozen=True)
+class Fault:
+    """What happens to the store: its name, how it begins and how it ends."""
+
+    name: str
+    begin: Callable[[], None]
+    end: Callable[[], None]
+
+    @classmethod
+    def of(cls, kind: str, prepared: Scene) -> Fault:
+        if kind == "sqlite-locked":
+            locks = WalLocks(sqlite_path(prepared.store_url))
+            return cls("SQLite locked (another process holds its WAL locks)", locks.take, locks.release)
+        cluster = prepared.cluster
+        assert cluster is not None, f"{kind}: a PostgreSQL fault needs a cluster"
+        if kind == "freeze":
+            return cls("PostgreSQL frozen (SIGSTOP)", cluster.freeze_server, cluster.thaw_server)
+        return cls("PostgreSQL stopped", cluster.stop_server, cluster.start_server)
+
+
+FAULTS = ("stop", "freeze", "sqlite-locked")
+
+
 def run_outage(
-    prepared: Scene, outage_s: float, before_s: float = 3.0, after_s: float = 5.0, clients: int = 2
+    prepared: Scene,
+    outage_s: float,
+    before_s: float = 3.0,
+    after_s: float = 5.0,
+    clients: int = 2,
+    fault: str = "stop",
 ) -> OutageReport:
-    """Predict under load while the cluster is stopped for ``outage_s`` seconds and restarted."""
-    server, client, cluster = prepared.server, prepared.server.client, prepared.cluster
+    """Predict under load while the store is away (``fault``, one of FAULTS) for ``outage_s``
+    seconds, and after it returns."""
+    server, client, happens = prepared.server, prepared.server.client, Fault.of(fault, prepared)
     poll_s = float(server.settings.get("store_poll_seconds", 1.0))
     readyz: dict[str, Call] = {}
 
@@ -198,7 +264,7 @@ def run_outage(
     try:
         time.sleep(before_s)
         stopped_at = time.monotonic()
-        cluster.stop_server()
+        happens.begin()
         try:
             admin_first = admin()
             unreachable_after_s = (
@@ -213,7 +279,7 @@ def run_outage(
             time.sleep(max(0.0, stopped_at + outage_s - time.monotonic()))
         finally:
             restarted_at = time.monotonic()
-            cluster.start_server()
+            happens.end()
         with open_store(prepared.store_url) as store:  # another replica's activation, during recovery
             store.activate(readyz_during.body["model_hash"], 2, "faults_store", "activated during recovery")
         activated_at = time.monotonic()
@@ -245,6 +311,7 @@ def run_outage(
         "after": between(restarted_at, np.inf),
     }
     return OutageReport(
+        happens.name,
         outage_s,
         poll_s,
         phases,
@@ -261,7 +328,7 @@ def run_outage(
 
 
 def print_report(report: OutageReport) -> None:
-    print(f"PostgreSQL stopped for {report.outage_s:g} s; store polled every {report.poll_s:g} s")
+    print(f"{report.fault} for {report.outage_s:g} s; store polled every {report.poll_s:g} s")
     print(f"{'predictions':<12} {'answered':>9} {'failed':>7} {'p50 ms':>8} {'p99 ms':>8}")
     for name, f in report.phases.items():
         print(f"{name:<12} {f.answered:>9} {f.failed:>7} {f.p50_ms:>8.1f} {f.p99_ms:>8.1f}")
@@ -293,6 +360,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--clients", type=int, default=2, help="client threads predicting")
     parser.add_argument("--poll", type=float, default=1.0, help="CKS_STORE_POLL_SECONDS")
     parser.add_argument("--timeout", type=float, default=1.5, help="CKS_STORE_TIMEOUT_SECONDS")
+    parser.add_argument(
+        "--fault",
+        choices=FAULTS,
+        default="stop",
+        help="PostgreSQL stopped, frozen (SIGSTOP), or a SQLite store whose locks another process holds",
+    )
     args = parser.parse_args(argv)
     for name in ("outage", "before", "after", "poll", "timeout"):
         if not 0 < getattr(args, name) <= 600:
@@ -302,10 +375,10 @@ def main(argv: list[str] | None = None) -> int:
     settings = {"store_poll_seconds": args.poll, "store_timeout_seconds": args.timeout}
     with (
         tempfile.TemporaryDirectory(prefix="cks-faults-store-") as work,
-        PostgresCluster.start() as cluster,
+        PostgresCluster.start() if args.fault != "sqlite-locked" else nullcontext() as cluster,
         scene(Path(work), cluster, **settings) as prepared,
     ):
-        report = run_outage(prepared, args.outage, args.before, args.after, args.clients)
+        report = run_outage(prepared, args.outage, args.before, args.after, args.clients, args.fault)
     print_report(report)
     return 0
 

@@ -8,14 +8,22 @@ Migrations run under a transaction-scoped advisory lock.
 A database that is away fails an operation with StoreUnavailable after ``timeout_s``
 (waiting for a pooled connection); reconnection attempts give up after the same time, so
 the next operation after the database returns connects at once instead of waiting for the
-pool's exponential backoff (up to minutes after a long outage).
+pool's exponential backoff (up to minutes after a long outage). Every call is bounded by the
+same time: the server cancels a statement or a lock wait past it (``statement_timeout``,
+``lock_timeout``), and a watchdog cuts the connection of a database that has not answered a
+round trip within it (a frozen server, SIGSTOP or a paused VM, neither answers nor closes its
+sockets, and cannot run its own timeouts).
 """
 
 from __future__ import annotations
 
 import math
+import os
+import socket
+import threading
+import time
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from datetime import UTC, datetime
 from typing import Any
 
@@ -36,13 +44,54 @@ from .sqlstore import Cursor, SqlStore
 MIGRATION_LOCK_KEY = 0x63616C6962737430
 
 
-class _QmarkCursor:
-    """Adapts the shared '?' placeholder queries to psycopg's '%s'."""
+class _Watchdog:
+    """Cuts ``conn``'s socket once the database has not answered within ``seconds`` of the
+    last ``renew`` (each round trip renews it), so the call waiting on it fails at once."""
 
-    def __init__(self, cursor: psycopg.Cursor[Any]) -> None:
-        self._cursor = cursor
+    def __init__(self, conn: psycopg.Connection[Any], seconds: float) -> None:
+        self._conn, self._seconds = conn, seconds
+        self._deadline = time.monotonic() + seconds
+        self._done = threading.Event()
+        self.fired = False
+        threading.Thread(target=self._watch, name="store-watchdog", daemon=True).start()
+
+    def renew(self) -> None:
+        self._deadline = time.monotonic() + self._seconds
+
+    def stop(self) -> None:
+        self._done.set()
+
+    def _watch(self) -> None:
+        while not self._done.wait(max(0.0, self._deadline - time.monotonic())):
+            if time.monotonic() >= self._deadline:
+                self.fired = True
+                # (closed meanwhile: nothing to cut) the original descriptor sees the end too
+                with suppress(Exception), socket.socket(fileno=os.dup(self._conn.fileno())) as sock:
+                    sock.shutdown(socket.SHUT_RDWR)
+                return
+
+
+@contextmanager
+def _watched(conn: psycopg.Connection[Any], seconds: float) -> Iterator[_Watchdog]:
+    watchdog = _Watchdog(conn, seconds)
+    try:
+        yield watchdog
+    except psycopg.OperationalError as exc:
+        if watchdog.fired:
+            raise StoreUnavailable(f"PostgreSQL did not answer within {seconds:g} s") from exc
+        raise
+    finally:
+        watchdog.stop()
+
+
+class _QmarkCursor:
+    """Adapts the shared '?' placeholder queries to psycopg's '%s'; each renews the watchdog."""
+
+    def __init__(self, cursor: psycopg.Cursor[Any], watchdog: _Watchdog) -> None:
+        self._cursor, self._watchdog = cursor, watchdog
 
     def execute(self, sql: str, params: Sequence[Any] | None = None) -> Any:
+        self._watchdog.renew()
         if params is None:
             return self._cursor.execute(sql)
         return self._cursor.execute(sql.replace("?", "%s"), params)
@@ -69,15 +118,21 @@ class PostgresStore(SqlStore):
         timeout_s: float = 10.0,
     ) -> None:
         """connect_timeout_s: how long opening waits for the database (start-up); timeout_s: how
-        long one operation waits for a connection before StoreUnavailable."""
-        self._timeout_s = timeout_s
+        long one operation waits for a connection, and one statement or round trip for the
+        database, before StoreUnavailable."""
+        self._timeout_s, self._connect_timeout_s = timeout_s, connect_timeout_s
+        milliseconds = math.ceil(1000 * timeout_s)
         self._pool = ConnectionPool(
             url,
             min_size=min_connections,
             max_size=max_connections,
-            # libpq counts whole seconds and treats less than 2 as 2
-            kwargs={"autocommit": True, "connect_timeout": max(2, math.ceil(timeout_s))},
-            check=ConnectionPool.check_connection,
+            kwargs={
+                "autocommit": True,
+                # libpq counts whole seconds and treats less than 2 as 2
+                "connect_timeout": max(2, math.ceil(timeout_s)),
+                "options": f"-c statement_timeout={milliseconds} -c lock_timeout={milliseconds}",
+            },
+            check=self._check,
             reconnect_timeout=timeout_s,
             open=False,
             name="calibration_store",
@@ -92,20 +147,31 @@ class PostgresStore(SqlStore):
             self._pool.close()
             raise
 
+    def _check(self, conn: psycopg.Connection[Any]) -> None:
+        """The pool's check of a connection it hands out, bounded like every call."""
+        with _watched(conn, self._timeout_s):
+            ConnectionPool.check_connection(conn)
+
     def _migrate(self) -> None:
-        with self._transaction(write=True) as cur:
+        """Under a lock that replicas starting together queue for: their wait is start-up's."""
+        with self._transaction(write=True, timeout_s=self._connect_timeout_s) as cur:
+            wait = f"{math.ceil(1000 * self._connect_timeout_s)}ms"
+            cur.execute(f"SET LOCAL statement_timeout = '{wait}'")
+            cur.execute(f"SET LOCAL lock_timeout = '{wait}'")
             cur.execute("SELECT pg_advisory_xact_lock(?)", (MIGRATION_LOCK_KEY,))
             apply_migrations(cur, POSTGRES_MIGRATIONS)
 
     @contextmanager
-    def _transaction(self, write: bool) -> Iterator[Cursor]:
+    def _transaction(self, write: bool, timeout_s: float | None = None) -> Iterator[Cursor]:
         try:
             with (
                 self._pool.connection(timeout=self._timeout_s) as conn,
+                _watched(conn, timeout_s or self._timeout_s) as watchdog,
                 conn.transaction(),
                 conn.cursor(binary=True) as cursor,
             ):
-                yield _QmarkCursor(cursor)
+                yield _QmarkCursor(cursor, watchdog)
+                watchdog.renew()  # the commit's round trip
         except PoolClosed as exc:
             raise StoreError("the calibration store is closed") from exc
         except PoolTimeout as exc:

@@ -101,3 +101,7 @@ class StoreUnreachable(Unavailable):
 
     def __init__(self, detail: str, retry_after_s: int = 1) -> None:
         super().__init__(detail, headers={"Retry-After": str(retry_after_s)})
+
+
+class TooManyRequests(ServiceError):
+    status, title = 429, "Too many requests"

@@ -12,6 +12,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service import __version__
 from service.api.contract import install_contract
+from service.api.cut_requests import AnswerCutRequests
 from service.api.deps import PredictParts
 from service.api.metrics_middleware import MetricsMiddleware
 from service.api.predict_schemas import BatchJson, PredictJson, PredictParameters
@@ -81,6 +82,7 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
         lifespan=lifespan,
         generate_unique_id_function=operation_id,
     )
+    app.add_middleware(AnswerCutRequests)  # inside the metrics and the access line: they see its 503
     app.add_middleware(MetricsMiddleware)
     app.add_middleware(DocsPagesPolicy)
     app.add_middleware(RequestIdMiddleware)  # outside the access line, which logs the id

@@ -3,7 +3,6 @@ the predict routes use (``Predicting``), and the admin bearer token check (``Adm
 
 from __future__ import annotations
 
-import hmac
 from collections.abc import Awaitable, Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass
@@ -23,7 +22,9 @@ from service.monitoring.drift_monitor import DriftMonitor
 from service.prediction import Predictor
 from service.runtime.admission import Admission
 from service.runtime.audit_trail import AuditTrail, Operator
+from service.runtime.clients import ClientKeys
 from service.runtime.container import ServiceState
+from service.runtime.operators import operator_named
 from service.runtime.settings import Settings
 
 _bearer = HTTPBearer(auto_error=False, description="CKS_ADMIN_TOKEN, or a token of CKS_ADMIN_TOKENS_FILE")
@@ -63,6 +64,7 @@ class PredictParts:
     max_request_bytes: int
     max_batch_images: int
     pace: BodyPace
+    clients: ClientKeys
 
     @classmethod
     def of(cls, state: ServiceState) -> PredictParts:
@@ -77,12 +79,17 @@ class PredictParts:
             settings.predict.max_request_bytes,
             settings.predict.max_batch_images,
             pace,
+            ClientKeys(state.operators, settings.predict.client_header, settings.predict.trusted_proxies),
         )
 
     @property
     def manifest(self) -> Manifest:
         """The served model's: a request naming another object is told so with its other problems."""
         return self.predictor.detector.manifest
+
+    def client_of(self, request: Request) -> str:
+        """Whose share of the admission places this request takes (service.runtime.clients)."""
+        return self.clients.of(request.client.host if request.client else None, request.headers)
 
     async def receive(self, request: Request) -> bytes:
         """The body within CKS_MAX_REQUEST_BYTES, paced, its bytes counted against
@@ -112,22 +119,13 @@ async def require_admin(
         raise HTTPException(
             403, "The admin API is disabled: set CKS_ADMIN_TOKEN or CKS_ADMIN_TOKENS_FILE to enable it."
         )
-    name = None if credentials is None else _operator_name(operators, credentials.credentials)
+    name = None if credentials is None else operator_named(operators, credentials.credentials)
     if name is None:
         raise HTTPException(
             401, "Send 'Authorization: Bearer <admin token>'.", headers={"WWW-Authenticate": "Bearer"}
         )
     registry.require_store()  # every admin call needs the store: 503 at once while it is away
     return Operator(name=name, client=request.client.host if request.client else "")
-
-
-def _operator_name(operators: dict[str, str], presented: str) -> str | None:
-    """Compare with every token in constant time each, so timing tells nothing about which matched."""
-    found = None
-    for token, name in operators.items():
-        if hmac.compare_digest(presented.encode(), token.encode()):
-            found = name
-    return found
 
 
 Admin = Annotated[Operator, Depends(require_admin)]

@@ -162,6 +162,8 @@ def build_state(settings: Settings) -> ServiceState:
             settings.predict.max_queued_requests,
             settings.predict.queue_timeout_seconds,
             settings.predict.max_receiving_bytes,
+            settings.predict.client_share,
+            settings.model.cpu_workers,
         ),
         audits=audits,
         drift=drift,

@@ -88,7 +88,7 @@ PREDICT_RECEIVING = Gauge(
 )
 PREDICT_REJECTED = Counter(
     "cks_predict_rejected",
-    "predict requests refused with 503 by admission control",
+    "predict requests refused by admission control (503; 429 for client_share)",
     ["reason"],
     registry=REGISTRY,
 )

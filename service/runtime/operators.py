@@ -8,6 +8,7 @@ configured, obeys one rule: at least 16 characters, no spaces.
 
 from __future__ import annotations
 
+import hmac
 import re
 from pathlib import Path
 
@@ -37,6 +38,16 @@ def load_operators(single_token: str | None, tokens_file: Path | None) -> dict[s
                 raise OperatorsError(f"{where}: the name {name!r} is used twice; give each operator one name")
             operators[token] = name
     return operators
+
+
+def operator_named(operators: dict[str, str], presented: str) -> str | None:
+    """The operator whose token ``presented`` is, or None. Compares with every token in constant
+    time each, so timing tells nothing about which matched."""
+    found = None
+    for token, name in operators.items():
+        if hmac.compare_digest(presented.encode(), token.encode()):
+            found = name
+    return found
 
 
 def _entries(path: Path) -> list[tuple[int, str, str]]:

@@ -7,6 +7,7 @@ variable ``CKS_<FIELD>``, and ``Settings(max_request_bytes=...)`` takes any fiel
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import re
 import sys
@@ -134,9 +135,10 @@ class StorageSettings(_Group):
         default=1.5,
         gt=0,
         description=(
-            "longest wait for a PostgreSQL store connection; beyond it the store counts as unreachable "
-            "(admin calls answer 503, predictions go on from memory). A poll still running after twice "
-            "this (either store) counts as unreachable too"
+            "longest wait for a PostgreSQL store connection, statement, lock or round trip (a frozen"
+            " database's connection is cut); beyond it the store counts as unreachable (admin calls"
+            " answer 503, predictions go on from memory). A poll still running after twice this"
+            " (either store) counts as unreachable too"
         ),
     )
     max_cache_staleness_seconds: float | None = Field(
@@ -279,6 +281,40 @@ class PredictSettings(_Group):
     queue_timeout_seconds: float = Field(
         default=10.0, gt=0, description="longest wait for a slot before a predict request gets 503"
     )
+    client_share: float = Field(
+        default=0.5,
+        gt=0,
+        le=1,
+        description=(
+            "share of the predict places (and of the compute threads) one client may hold while other"
+            " clients have asked in the last 30 s: beyond, `429` with `Retry-After`; a client alone may"
+            " use them all; 1 = no per-client limit (docs/operations.md, Fair admission)"
+        ),
+    )
+    client_header: str | None = Field(
+        default=None,
+        description=(
+            "header naming the client when the connection comes from `CKS_TRUSTED_PROXIES` (e.g."
+            " `X-Forwarded-For`: its last untrusted entry); else a client is its admin token's"
+            " operator, or its address"
+        ),
+    )
+    trusted_proxies: Annotated[tuple[str, ...], NoDecode] = Field(
+        default=(),
+        description="addresses or networks (comma-separated) whose `CKS_CLIENT_HEADER` is believed",
+    )
+
+    @field_validator("trusted_proxies", mode="before")
+    @classmethod
+    def _networks(cls, proxies: object) -> object:
+        if isinstance(proxies, str):
+            proxies = [proxy.strip() for proxy in proxies.split(",") if proxy.strip()]
+        for proxy in proxies if isinstance(proxies, list | tuple) else ():
+            try:
+                ipaddress.ip_network(proxy, strict=False)
+            except ValueError as error:
+                raise ValueError(f"{error}: give addresses or networks such as 10.0.0.0/8") from None
+        return proxies
 
 
 class CalibrationSettings(_Group):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -17,7 +18,8 @@ import httpx
 import pytest
 
 from benchmarks.faults_clients import long_batch
-from tests.live.server import LiveServer, metric
+from benchmarks.faults_store import WalLocks
+from tests.live.server import LiveServer, metric, read_until_closed
 from tests.predict_client import instances_of, predict_json
 from tests.samples import Sample, samples_by_image
 from tests.service_calls import ADMIN_TOKEN, wait_until
@@ -134,3 +136,41 @@ def test_a_predict_outlasting_the_grace_period_is_cut(tmp_path: Path, samples: l
     log = server.log()
     in_order(log, "Shutting down", "timeout graceful shutdown exceeded", "shutdown: done in")
     assert "Exception in ASGI application" not in log, log
+
+
+@pytest.mark.slow
+def test_an_upload_and_an_admin_call_outlasting_the_grace_period_get_503(tmp_path: Path) -> None:
+    """An upload whose body is still arriving and an admin read waiting on a locked store (another
+    process holds the SQLite database's WAL locks) when the grace period ends: 503 with
+    Retry-After, like a predict, never uvicorn's 500."""
+    server = LiveServer(tmp_path / "data", admin_token=ADMIN_TOKEN, shutdown_grace_seconds=0.5).start()
+    locks = WalLocks(server.data_dir / "calibrations.db")
+    with ThreadPoolExecutor(1) as pool:
+        try:
+            upload = socket.create_connection(("127.0.0.1", server.port), timeout=60)
+            head = (
+                "POST /v1/admin/calibrations HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+                f"Authorization: Bearer {ADMIN_TOKEN}\r\nContent-Type: application/zip\r\n"
+                "Content-Length: 10000000\r\n\r\n"
+            )
+            upload.sendall(head.encode() + bytes(100_000))  # a tenth of a percent of it
+            locks.take()
+
+            def admin_read() -> httpx.Response:
+                with httpx.Client(base_url=server.url, timeout=60) as client:
+                    return client.get("/v1/admin/audit", headers=server.admin)
+
+            read = pool.submit(admin_read)
+            time.sleep(0.5)  # the read waits on the locks (SQLite gives up after about 10 s)
+            code, took, _ = terminate(server)
+            answers = read_until_closed(upload), read.result()
+        finally:
+            locks.release()
+            server.stop()
+    assert code == 0, server.log()
+    received, cut = answers
+    assert received.startswith("HTTP/1.1 503"), received
+    assert "retry-after: 1" in received.lower() and "CKS_SHUTDOWN_GRACE_SECONDS" in received, received
+    assert cut.status_code == 503 and cut.headers["retry-after"] == "1", cut.text
+    assert "CKS_SHUTDOWN_GRACE_SECONDS" in cut.json()["detail"], cut.text
+    assert "Exception in ASGI application" not in server.log(), server.log()

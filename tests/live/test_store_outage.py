@@ -78,6 +78,28 @@ def test_predictions_go_on_while_postgresql_is_down(cluster: PostgresCluster, tm
 
 
 @pytest.mark.slow
+def test_a_frozen_postgresql_answers_admin_calls_503_within_the_store_timeout(
+    cluster: PostgresCluster, tmp_path: Path
+) -> None:
+    """SIGSTOP on the cluster: an admin read sent before the server knew waits on a connection
+    that neither fails nor answers, until the store's watchdog cuts it (CKS_STORE_TIMEOUT_SECONDS);
+    before, it waited for the SIGCONT. Predictions go on; after the SIGCONT the service recovers."""
+    with scene(tmp_path, cluster) as prepared:
+        report = run_outage(prepared, outage_s=4.0, before_s=1.0, after_s=1.0, clients=1, fault="freeze")
+
+    for phase, figures in report.phases.items():
+        assert figures.answered > 0 and figures.failed == 0, (phase, figures)
+    first, known = report.admin_first, report.admin_known
+    assert first.status == 503 and first.retry_after == "1", first
+    assert first.body["title"] == "Calibration store unreachable", first
+    assert first.seconds < 2 * TIMEOUT_S, f"an admin call took {first.seconds:.2f} s to answer 503"
+    assert known.status == 503 and known.seconds < 0.5, known
+    assert report.recovered_after_s < TWO_POLLS_S, report
+    assert report.admin_ok_after_s < TWO_POLLS_S, report
+    assert report.activation_seen_after_s < TWO_POLLS_S, report
+
+
+@pytest.mark.slow
 def test_readyz_turns_503_past_the_staleness_limit_and_predictions_go_on(
     cluster: PostgresCluster, tmp_path: Path
 ) -> None:
@@ -153,8 +175,9 @@ def test_serve_refuses_to_start_without_the_store(cluster: PostgresCluster, tmp_
 
 
 def test_a_frozen_database_is_reported_unreachable_and_the_cache_answers(cluster: PostgresCluster) -> None:
-    """SIGSTOP: connections neither fail nor answer, so no timeout fires; the poll that hangs
-    past twice the store timeout is what says the store is away."""
+    """SIGSTOP: connections neither fail nor answer; the store's watchdog cuts a connection that
+    has not answered within its timeout, so the poll fails (before, it hung, and only the rule
+    for polls hanging past twice the timeout said the store was away)."""
     detector = Detector(model_dir())
     with open_store(cluster.create_database(), timeout_s=0.5) as store:
         bootstrap_default_calibration(store, detector, model_dir())
@@ -164,7 +187,8 @@ def test_a_frozen_database_is_reported_unreachable_and_the_cache_answers(cluster
             cluster.freeze_server()
             try:
                 wait_until(lambda: not registry.health().reachable, "the frozen store is reported", 10)
-                assert "the store has not answered a poll for" in registry.health().error
+                error = registry.health().error
+                assert "PostgreSQL" in error and "has not answered a poll" not in error, error
                 assert registry.resolve(None) == 1  # from memory, no wait
                 assert registry.thresholds(1, "cov", "keypoint", 0.1, None).values.size
                 with pytest.raises(StoreUnreachable, match="Predictions keep using the active calibration"):

@@ -28,7 +28,7 @@ from service.api.predict_input import (
 )
 from service.api.predict_schemas import BatchResponse, PredictParameters, PredictResponse
 from service.api.problems import problem
-from service.errors import InvalidInput, ServiceError, Unavailable
+from service.errors import InvalidInput, ServiceError
 from service.runtime.logs import note_calibration_version
 
 router = APIRouter(tags=["prediction"])
@@ -40,6 +40,10 @@ _PREDICT_RESPONSES: dict[int | str, dict[str, Any]] = {
     413: {"description": "Body or image too large"},
     415: {"description": "Not JSON or multipart, or not a JPEG/PNG image"},
     422: {"description": "Invalid request: the problem lists what to fix"},
+    429: {
+        "description": "This client holds its share of the places while others are served"
+        " (CKS_CLIENT_SHARE; with Retry-After)"
+    },
     503: {
         "description": "No active calibration, overloaded, stopping, or calibration_version names a version"
         " not in memory while the store is unreachable (with Retry-After)"
@@ -57,6 +61,7 @@ _BATCH_RESPONSES: dict[int | str, dict[str, Any]] = {
         "description": "Not the documented layout (parts other than image_i and request_i, an index repeated"
         " or beyond CKS_MAX_BATCH_IMAGES, no images, or more images than the server admits at once)"
     },
+    429: _PREDICT_RESPONSES[429],
     503: {"description": "Not enough free places for every image of the batch (with Retry-After)"},
 }
 
@@ -86,17 +91,12 @@ async def predict_png(request: Request, parts: Predicting) -> Response:
 
 
 async def _predict(request: Request, parts: PredictParts, png: bool) -> Response:
-    try:
-        parts.admission.refuse_if_full()  # not worth receiving
-        body = await parts.receive(request)  # a slow client holds no place meanwhile
-        async with parts.admission.admitted():
-            image, parameters = await parse_predict(request, body, parts.manifest)
-            return await _compute(parts, image, parameters, png)
-    except asyncio.CancelledError:  # uvicorn cancels what is left when a shutdown's grace period ends
-        raise Unavailable(
-            "the service stopped before this request was done (CKS_SHUTDOWN_GRACE_SECONDS): send it again",
-            headers={"Retry-After": "1", "Connection": "close"},
-        ) from None
+    client = parts.client_of(request)
+    parts.admission.refuse_if_full(client=client)  # not worth receiving
+    body = await parts.receive(request)  # a slow client holds no place meanwhile
+    async with parts.admission.admitted(client=client):
+        image, parameters = await parse_predict(request, body, parts.manifest)
+        return await _compute(parts, client, image, parameters, png)
 
 
 @router.post(
@@ -108,7 +108,8 @@ async def _predict(request: Request, parts: PredictParts, png: bool) -> Response
 )
 async def predict_batch(request: Request, parts: Predicting) -> Response:
     require_batch_media(request)
-    parts.admission.refuse_if_full()  # not worth receiving
+    client = parts.client_of(request)
+    parts.admission.refuse_if_full(client=client)  # not worth receiving
     body = await parts.receive(request)  # as predict: a slow client holds no place meanwhile
     items = await parse_batch(request, body, parts.max_batch_images, parts.manifest)
     capacity = parts.admission.capacity
@@ -118,17 +119,19 @@ async def predict_batch(request: Request, parts: Predicting) -> Response:
             f" {capacity} (CKS_MAX_CONCURRENT_INFERENCES + CKS_MAX_QUEUED_REQUESTS): send at most"
             f" {capacity} images per batch"
         )
-    async with parts.admission.admitted(len(items)):
+    async with parts.admission.admitted(len(items), client):
         answers = await asyncio.gather(
-            *(_batch_answer(request, parts, i, item) for i, item in enumerate(items))
+            *(_batch_answer(request, parts, client, i, item) for i, item in enumerate(items))
         )
     # Each answer is JSON already (a result as POST /v1/predict writes it, or a problem): joined.
     return Response(b'{"items":[' + b",".join(answers) + b"]}", media_type="application/json")
 
 
-async def _compute(parts: PredictParts, image: bytes, parameters: PredictParameters, png: bool) -> Response:
+async def _compute(
+    parts: PredictParts, client: str, image: bytes, parameters: PredictParameters, png: bool
+) -> Response:
     """Predict and present on the CPU pool, inside a compute slot (decoded images exist only there)."""
-    async with parts.admission.slot():
+    async with parts.admission.slot(client):
         loop = asyncio.get_running_loop()
         context = contextvars.copy_context()  # the pool's thread logs with the request's id
         return await loop.run_in_executor(parts.pool, context.run, _respond, parts, image, parameters, png)
@@ -146,11 +149,13 @@ def _respond(parts: PredictParts, image: bytes, parameters: PredictParameters, p
     )
 
 
-async def _batch_answer(request: Request, parts: PredictParts, index: int, item: BatchItem) -> bytes:
+async def _batch_answer(
+    request: Request, parts: PredictParts, client: str, index: int, item: BatchItem
+) -> bytes:
     """One image's item as JSON: its result, or the problem it alone had."""
     try:
         image, parameters = item()
-        response = await _compute(parts, image, parameters, png=False)
+        response = await _compute(parts, client, image, parameters, png=False)
         return b'{"status":200,"result":' + bytes(response.body) + b"}"
     except ServiceError as error:
         answer = problem(
