@@ -164,11 +164,16 @@ class CoverageFigureOut(BaseModel):
     promised: float | None = Field(description="1 - epsilon, the coverage the version promises")
     band: list[float] | None = Field(
         description="the coverage a valid calibration gives this batch with 95% probability: the"
-        " Beta-Binomial band for one keypoint (object in object scope), the union-bound band pooled"
+        " Beta-Binomial band for one keypoint (object in object scope); pooled, the calibration's spread"
+        " with its units perfectly correlated plus the images' cluster-robust spread (docs/operations.md)"
     )
     in_band: bool
     p_value: float = Field(
-        description="one-sided p-value of 'coverage below 1 - epsilon' (pooled: Bonferroni over its units)"
+        description="one-sided p-value of 'coverage below what the calibration promises' (pooled: normal"
+        " approximation with the band's spread)"
+    )
+    expected: float | None = Field(
+        default=None, description="pooled: the mean coverage the calibration promises its units"
     )
     n: int | None = Field(default=None, description="calibration instances behind the threshold")
     rank: int | None = Field(default=None, description="l = floor((n+1) epsilon): Beta(n+1-l, l)")
@@ -199,7 +204,7 @@ class FlaggedFigureOut(CoverageFigureOut):
     nonconformity: Nonconformity
     epsilon: float
     scope: str
-    object: str
+    object: str | None = Field(default=None, description="null: the section's overall figure")
     keypoint: str | None = None
     index: int | None = None
 
@@ -219,7 +224,7 @@ class AuditReportOut(BaseModel):
     band_level: float
     correction: str = Field(description="the multiple-testing correction of the flags: holm")
     family_alpha: float = Field(description="family-wise error rate of the flags")
-    tests: int = Field(description="exact figures tested")
+    tests: int = Field(description="figures tested (exact and pooled)")
     instances: int = Field(description="instances scored")
     passed: bool = Field(description="no figure flagged")
     flagged: list[FlaggedFigureOut] = Field(description="most significant first")
