@@ -306,11 +306,28 @@ class KindSizesOut(BaseModel):
 
 class DriftOut(BaseModel):
     window: int = Field(description="live instances kept per keypoint (CKS_DRIFT_WINDOW)")
-    statistic: Literal["ks", "psi"] = Field(description="the test (CKS_DRIFT_TEST)")
+    statistic: Literal["sequential", "ks", "psi"] = Field(description="the test (CKS_DRIFT_TEST)")
     alarm_threshold: float = Field(
-        description="ks: family-wise error rate of the Holm-corrected alarm; psi: the PSI threshold"
+        description="sequential: CKS_DRIFT_ALARM_LEVEL, at least 1/this looks between false alarms; ks:"
+        " family-wise error rate of the Holm-corrected alarm; psi: the PSI threshold"
     )
-    alarm: bool = Field(description="any keypoint's alarm is raised")
+    alarm: bool = Field(
+        description="sequential: the evidence reached its threshold; ks, psi: any keypoint's alarm is raised"
+    )
+    independent_looks: int | None = Field(
+        default=None,
+        description="sequential: the independent looks the alarm has tested since the reference version"
+        " became active (a scene's frames are one look); null for ks and psi, which count every frame",
+    )
+    frames: int | None = Field(default=None, description="sequential: frames (requests) recorded")
+    evidence: float | None = Field(
+        default=None,
+        description="sequential: the larger of the two e-CUSUMs (1: no evidence); the alarm is raised at"
+        " evidence_threshold = 2 / CKS_DRIFT_ALARM_LEVEL",
+    )
+    evidence_threshold: float | None = Field(
+        default=None, description="sequential: 2 / CKS_DRIFT_ALARM_LEVEL"
+    )
     reference_version: int | None = Field(description="the active calibration version compared with")
     reference_available: bool
     reason: str | None = Field(description="why there is no reference (null when there is)")

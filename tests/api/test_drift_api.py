@@ -29,9 +29,10 @@ BLUR_SIGMAS = (5.0, 7.0, 9.0)
 
 @pytest.fixture(scope="module")
 def drift_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[InProcess]:
-    """Every request computes every statistic (share 1), and a history point every 0.2 s."""
+    """The frame-window ks test, every request computing every statistic (share 1), a history point
+    every 0.2 s."""
     data = tmp_path_factory.mktemp("drift") / "data"
-    settings = {"drift_full_statistics_share": 1.0, "drift_history_seconds": 0.2}
+    settings = {"drift_test": "ks", "drift_full_statistics_share": 1.0, "drift_history_seconds": 0.2}
     with InProcess(data, admin_token=ADMIN_TOKEN, **settings) as live:
         yield live
 
