@@ -356,9 +356,9 @@ class DriftMonitorSettings(_Group):
     )
     drift_test: Literal["sequential", "ks", "psi"] = Field(
         default="sequential",
-        description="drift test: `sequential` (one vote per independent look, an e-CUSUM over the looks: right"
-        " on camera streams), `ks` (Kolmogorov-Smirnov p-values over every frame, Holm-corrected) or `psi`"
-        " (population stability index over 10 quantile bins)",
+        description="drift test: `sequential` (one vote per independent look, an e-CUSUM over the looks:"
+        " right on camera streams), `ks` (Kolmogorov-Smirnov p-values over every frame, Holm-corrected) or"
+        " `psi` (population stability index over 10 quantile bins)",
     )
     drift_alarm_level: float = Field(
         default=0.01,
