@@ -6,11 +6,13 @@ and a window of them is one observation repeated, not a sample. A test that coun
 independent values (the ``ks`` window) raises its alarm on any slightly unusual scene filmed
 long enough. Here:
 
-1. **Looks.** A frame is a new *look* unless at least half of its instances continue one of the
-   previous frame (same object, box overlap IoU >= ``CONTINUATION_IOU``), or its objects and
-   boxes are those of a recent look (a client replaying the same images). A static or slowly moving
-   camera stays one look however many frames it sends; a cut to another scene starts one. Only
-   a look's first frame votes: it is, on its own, an image like the calibration's.
+1. **Looks.** A frame is a new *look* unless at least half of its instances continue one of a
+   recent frame's (same object, box overlap IoU >= ``CONTINUATION_IOU``; the last
+   ``INTERLEAVED_STREAMS`` frames, so that cameras calling at once each keep their scene), or
+   its objects and boxes are those of a recent look (a client replaying the same images). A
+   static or slowly moving camera stays one look however many frames it sends; a cut to another
+   scene starts one. Only a look's first frame votes: it is, on its own, an image like the
+   calibration's.
 2. **One z per look.** Each instance's label-free features (p*, gamma, anisotropy: those the
    request computed) are ranked among the calibration's values of their keypoint, turned into
    normal scores and averaged (p* negated: a positive mean is a flatter heatmap). That mean is
@@ -50,6 +52,8 @@ CONTINUATION_IOU = 0.3
 WITHIN_FRAME_CORRELATION = 0.25
 #: e-value step: best against a shift of about this much in a look's Z
 LAMBDA = 0.5
+#: recent frames a frame may continue: cameras whose requests interleave in one process
+INTERLEAVED_STREAMS = 8
 #: recent looks whose objects and boxes a new frame must differ from
 REMEMBERED_LOOKS = 10_000
 #: sign of each feature in the flatness score: a flatter heatmap has a lower p*, larger gamma
@@ -87,7 +91,7 @@ class LookTracker:
     """Tells a new look from a frame that continues (or repeats) one."""
 
     def __init__(self) -> None:
-        self._previous: Frame | None = None
+        self._recent: deque[Frame] = deque(maxlen=INTERLEAVED_STREAMS)
         self._seen: set[bytes] = set()
         self._order: deque[bytes] = deque()
 
@@ -95,8 +99,9 @@ class LookTracker:
         """None (no boxes known): every frame is a look."""
         if frame is None:
             return True
-        previous, self._previous = self._previous, frame
-        if previous is not None and _continues(previous, frame):
+        continues = any(_continues(previous, frame) for previous in self._recent)
+        self._recent.append(frame)
+        if continues:
             return False
         key = repr((frame.objects, np.round(frame.boxes, 1).tolist())).encode()
         if key in self._seen:

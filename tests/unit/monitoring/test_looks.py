@@ -49,6 +49,13 @@ def test_a_scene_is_one_look_however_long_and_a_cut_starts_another() -> None:
     assert looks.is_new_look(None) and looks.is_new_look(None)  # without boxes every frame counts
 
 
+def test_cameras_calling_at_once_each_keep_their_scene() -> None:
+    looks = LookTracker()
+    cameras = [[_frame(("duck", 100 * c + k, 50 * c)) for k in range(50)] for c in range(3)]
+    interleaved = [frame for frames in zip(*cameras, strict=True) for frame in frames]
+    assert [looks.is_new_look(f) for f in interleaved].count(True) == 3
+
+
 def test_the_alarm_is_rare_on_independent_quiet_looks_and_fast_on_a_shift() -> None:
     rng = np.random.default_rng(3)
     level, looks, instances = 0.01, 20_000, 4
