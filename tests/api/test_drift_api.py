@@ -148,3 +148,18 @@ def test_the_drift_document_is_json_with_the_console_keys(drift_server: InProces
         "set_sizes",
     }
     json.dumps(body, allow_nan=False)  # no NaN or infinity for a browser's JSON.parse
+
+
+def test_the_samples_sent_again_and_again_are_twelve_looks_and_no_alarm(
+    samples: list[Sample], tmp_path: Path
+) -> None:
+    """Issue #28: a server that received the 12 bundled samples 18 times each showed 105 of 144
+    tests in alarm under ks; the sequential default counts each image once."""
+    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN) as api:
+        for _ in range(18):
+            send(api, samples)
+        report = drift(api)
+    images = len(samples_by_image(samples))
+    assert report["statistic"] == "sequential" and report["frames"] == 18 * images
+    assert report["independent_looks"] == images and not report["alarm"], report["evidence"]
+    assert not any(t["alarm"] for k in report["keypoints"] for t in k["features"].values())
