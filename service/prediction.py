@@ -29,6 +29,7 @@ from service.detector.manifest import HeatmapSpec, Manifest
 from service.detector.session import Detector, InstanceHeatmaps
 from service.errors import InvalidInput
 from service.monitoring.drift_monitor import DriftMonitor
+from service.monitoring.looks import Frame
 from service.pose import PoseOptions, PoseSets, check_pose_request, estimate_pose_sets
 
 
@@ -187,7 +188,7 @@ class Predictor:
                 result, kind, thresholds.values, manifest.heatmap, all_statistics, row_thresholds
             )
             if drift is not None:
-                drift.record(result.channel, sets.statistics, kind, sets.shapes)
+                drift.record(result.channel, sets.statistics, kind, sets.shapes, Frame(tuple(objects), boxes))
             if strata is not None:
                 guarantees = strata.guarantees()
             else:

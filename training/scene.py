@@ -187,16 +187,34 @@ def _rest_on_ground(vertices: np.ndarray, rotation: np.ndarray, xy: np.ndarray) 
     return np.array([xy[0], xy[1], z])
 
 
-def _sample_camera(rng: np.random.Generator, world: World) -> Camera:
+@dataclass(frozen=True)
+class CameraPose:
+    """Where the camera looks from: spherical coordinates around a target on the table."""
+
+    azimuth: float  # radians
+    elevation: float  # radians
+    distance: float  # metres
+    target: np.ndarray
+    roll: float
+
+    def camera(self, world: World) -> Camera:
+        direction = np.array(
+            [
+                np.cos(self.elevation) * np.cos(self.azimuth),
+                np.cos(self.elevation) * np.sin(self.azimuth),
+                np.sin(self.elevation),
+            ]
+        )
+        rotation, translation = look_at(self.target + self.distance * direction, self.target, self.roll)
+        return Camera(world.width, world.height, FOCAL, rotation, translation)
+
+
+def sample_pose(rng: np.random.Generator) -> CameraPose:
     azimuth = rng.uniform(0, 2 * np.pi)
     elevation = np.deg2rad(rng.uniform(15, 75))
     distance = rng.uniform(0.45, 1.0)
     target = np.array([*rng.normal(0, 0.04, 2), rng.uniform(0.0, 0.05)])
-    eye = target + distance * np.array(
-        [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)]
-    )
-    rotation, translation = look_at(eye, target, roll=rng.uniform(-0.3, 0.3))
-    return Camera(world.width, world.height, FOCAL, rotation, translation)
+    return CameraPose(azimuth, elevation, distance, target, roll=rng.uniform(-0.3, 0.3))
 
 
 def _place_targets(
@@ -280,7 +298,18 @@ def render_scene(world: World, rng: np.random.Generator, extra_occluders: int = 
     objects (heavier occlusion); with 0 the scene, and every random draw, is the default's.
     """
     world.park_all()
-    camera = _sample_camera(rng, world)
+    camera = sample_pose(rng).camera(world)
+    objects = compose_scene(world, rng, camera, extra_occluders)
+    rgb, depth, seg = _render(rng, world, camera)
+    return _with_background(
+        Rendered(rgb, depth, seg, camera, objects), texture(rng, (world.height, world.width))
+    )
+
+
+def compose_scene(
+    world: World, rng: np.random.Generator, camera: Camera, extra_occluders: int
+) -> list[Placed]:
+    """Place the ground, the annotated objects, clutter and occluders (between them and ``camera``)."""
     _setup_ground(rng, world)
     classes = rng.choice(len(OBJECT_CLASSES), int(rng.integers(3, len(OBJECT_CLASSES) + 1)), replace=False)
     chosen = rng.choice(len(world.distractors), int(rng.integers(3, 9)) + extra_occluders, replace=False)
@@ -300,7 +329,15 @@ def render_scene(world: World, rng: np.random.Generator, extra_occluders: int = 
     ]
     positions += [_occluder_position(rng, camera, t) for t in targets]
     _place_distractors(rng, world, chosen, positions)
-    rgb, depth, seg = _render(rng, world, camera)
-    background = texture(rng, (world.height, world.width))
-    rgb = np.where((seg < 0)[:, :, None], background, rgb)
-    return Rendered(rgb=rgb, depth=depth, seg=seg, camera=camera, objects=objects)
+    return objects
+
+
+def render_view(world: World, camera: Camera, light_seed: int, background: np.ndarray) -> Rendered:
+    """Render the composed scene from ``camera``; the same ``light_seed`` gives the same light."""
+    rgb, depth, seg = _render(np.random.default_rng(light_seed), world, camera)
+    return _with_background(Rendered(rgb, depth, seg, camera), background)
+
+
+def _with_background(rendered: Rendered, background: np.ndarray) -> Rendered:
+    rendered.rgb = np.where((rendered.seg < 0)[:, :, None], background, rendered.rgb)
+    return rendered

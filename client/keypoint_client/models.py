@@ -67,7 +67,9 @@ class Guarantee(Frozen):
     t: int = Field(description="rank of the threshold among them (0: unbounded)")
     epsilon: float
     coverage_lower_bound: float = Field(description="marginal coverage is at least this (1 - epsilon)")
-    coverage_upper_bound: float = Field(description="and at most this (1 - epsilon + 1/(n+1))")
+    coverage_upper_bound: float = Field(
+        description="and at most this: 1 - epsilon + 1/(n+1) without delta, (n+1-t)/(n+1) with delta"
+    )
     conditional_coverage: BetaLaw = Field(description="coverage given the calibration set ~ Beta(a, b)")
     delta: float | None = Field(default=None, description="PAC: P(coverage < 1-epsilon) <= this")
     pac_failure_probability: float | None = Field(

@@ -28,6 +28,7 @@ class CoverageFigure(Frozen):
     rank: int | None = Field(default=None, description="l = floor((n+1) epsilon): Beta(n+1-l, l)")
     adjusted_p_value: float | None = Field(default=None, description="Holm-adjusted over the audit's tests")
     flagged: bool | None = Field(default=None, description="significantly low after Holm's correction")
+    expected: float | None = Field(default=None, description="pooled: the mean coverage promised its units")
 
 
 class ObjectCoverage(CoverageFigure):
@@ -55,7 +56,7 @@ class FlaggedFigure(CoverageFigure):
     nonconformity: Nonconformity
     epsilon: float
     scope: Coverage
-    object: str
+    object: str | None = Field(default=None, description="None: the section's overall figure")
     keypoint: str | None = None
     index: int | None = None
 
@@ -160,7 +161,7 @@ class Drift(Frozen):
     worker process (``process``) sees them: each keeps its own windows."""
 
     window: int = Field(description="live instances kept per keypoint (CKS_DRIFT_WINDOW)")
-    statistic: Literal["ks", "psi"] = Field(description="the test (CKS_DRIFT_TEST)")
+    statistic: Literal["sequential", "ks", "psi"] = Field(description="the test (CKS_DRIFT_TEST)")
     alarm_threshold: float
     alarm: bool = Field(description="any keypoint's alarm is raised")
     reference_version: int | None = Field(description="the active calibration version compared with")
@@ -169,6 +170,14 @@ class Drift(Frozen):
     recorded: int = Field(description="live values recorded by this process")
     evaluated_at: float = Field(description="unix seconds of the evaluation")
     process: int = Field(description="the worker process whose windows these are")
+    independent_looks: int | None = Field(
+        default=None, description="sequential: independent looks tested (a scene's frames are one)"
+    )
+    frames: int | None = Field(default=None, description="sequential: frames (requests) recorded")
+    evidence: float | None = Field(default=None, description="sequential: the larger e-CUSUM (1: none)")
+    evidence_threshold: float | None = Field(
+        default=None, description="sequential: 2 / CKS_DRIFT_ALARM_LEVEL"
+    )
     keypoints: list[KeypointDrift]
     objects: list[ObjectDrift]
     history: list[DriftHistoryPoint] = Field(description="oldest first")

@@ -132,11 +132,16 @@ def audit_list(model_hash: str, audits: list[CoverageAudit], limit: int) -> Audi
 
 
 def drift_out(report: DriftReport) -> DriftOut:
+    sequential = report.sequential
     return DriftOut(
         window=report.window,
         statistic=report.test,
         alarm_threshold=report.alarm_threshold,
         alarm=report.alarm,
+        independent_looks=None if sequential is None else sequential.looks,
+        frames=None if sequential is None else sequential.frames,
+        evidence=None if sequential is None else sequential.evidence,
+        evidence_threshold=None if sequential is None else sequential.threshold,
         reference_version=report.version,
         reference_available=report.reference_available,
         reason=report.reason,

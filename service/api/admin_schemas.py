@@ -174,11 +174,16 @@ class CoverageFigureOut(BaseModel):
     promised: float | None = Field(description="1 - epsilon, the coverage the version promises")
     band: list[float] | None = Field(
         description="the coverage a valid calibration gives this batch with 95% probability: the"
-        " Beta-Binomial band for one keypoint (object in object scope), the union-bound band pooled"
+        " Beta-Binomial band for one keypoint (object in object scope); pooled, the calibration's spread"
+        " with its units perfectly correlated plus the images' cluster-robust spread (docs/operations.md)"
     )
     in_band: bool
     p_value: float = Field(
-        description="one-sided p-value of 'coverage below 1 - epsilon' (pooled: Bonferroni over its units)"
+        description="one-sided p-value of 'coverage below what the calibration promises' (pooled: normal"
+        " approximation with the band's spread)"
+    )
+    expected: float | None = Field(
+        default=None, description="pooled: the mean coverage the calibration promises its units"
     )
     n: int | None = Field(default=None, description="calibration instances behind the threshold")
     rank: int | None = Field(default=None, description="l = floor((n+1) epsilon): Beta(n+1-l, l)")
@@ -209,7 +214,7 @@ class FlaggedFigureOut(CoverageFigureOut):
     nonconformity: Nonconformity
     epsilon: float
     scope: str
-    object: str
+    object: str | None = Field(default=None, description="null: the section's overall figure")
     keypoint: str | None = None
     index: int | None = None
 
@@ -229,7 +234,7 @@ class AuditReportOut(BaseModel):
     band_level: float
     correction: str = Field(description="the multiple-testing correction of the flags: holm")
     family_alpha: float = Field(description="family-wise error rate of the flags")
-    tests: int = Field(description="exact figures tested")
+    tests: int = Field(description="figures tested (exact and pooled)")
     instances: int = Field(description="instances scored")
     passed: bool = Field(description="no figure flagged")
     flagged: list[FlaggedFigureOut] = Field(description="most significant first")
@@ -311,11 +316,28 @@ class KindSizesOut(BaseModel):
 
 class DriftOut(BaseModel):
     window: int = Field(description="live instances kept per keypoint (CKS_DRIFT_WINDOW)")
-    statistic: Literal["ks", "psi"] = Field(description="the test (CKS_DRIFT_TEST)")
+    statistic: Literal["sequential", "ks", "psi"] = Field(description="the test (CKS_DRIFT_TEST)")
     alarm_threshold: float = Field(
-        description="ks: family-wise error rate of the Holm-corrected alarm; psi: the PSI threshold"
+        description="sequential: CKS_DRIFT_ALARM_LEVEL, at least 1/this looks between false alarms; ks:"
+        " family-wise error rate of the Holm-corrected alarm; psi: the PSI threshold"
     )
-    alarm: bool = Field(description="any keypoint's alarm is raised")
+    alarm: bool = Field(
+        description="sequential: the evidence reached its threshold; ks, psi: any keypoint's alarm is raised"
+    )
+    independent_looks: int | None = Field(
+        default=None,
+        description="sequential: the independent looks the alarm has tested since the reference version"
+        " became active (a scene's frames are one look); null for ks and psi, which count every frame",
+    )
+    frames: int | None = Field(default=None, description="sequential: frames (requests) recorded")
+    evidence: float | None = Field(
+        default=None,
+        description="sequential: the larger of the two e-CUSUMs (1: no evidence); the alarm is raised at"
+        " evidence_threshold = 2 / CKS_DRIFT_ALARM_LEVEL",
+    )
+    evidence_threshold: float | None = Field(
+        default=None, description="sequential: 2 / CKS_DRIFT_ALARM_LEVEL"
+    )
     reference_version: int | None = Field(description="the active calibration version compared with")
     reference_available: bool
     reason: str | None = Field(description="why there is no reference (null when there is)")

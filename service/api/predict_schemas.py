@@ -227,8 +227,8 @@ PredictionSet = Annotated[BallSet | EllipseSet | UnboundedSet, Field(discriminat
 
 
 class BetaLaw(BaseModel):
-    a: int
-    b: int
+    a: int = Field(description="`n + 1 - t`")
+    b: int = Field(description="`t`")
 
 
 class SignalRange(BaseModel):
@@ -256,14 +256,24 @@ class Guarantee(BaseModel):
 
     scope: Coverage
     n: int = Field(description="calibration scores used")
-    t: int = Field(description="rank of the threshold among them (0: unbounded)")
+    t: int = Field(
+        description="rank of the threshold among them (0: unbounded): `floor((n+1) * epsilon)` without delta,"
+        " with delta the largest t up to that with pac_failure_probability <= delta"
+    )
     epsilon: float
-    coverage_lower_bound: float = Field(description="marginal coverage is at least this (1 - epsilon)")
-    coverage_upper_bound: float = Field(description="and at most this (1 - epsilon + 1/(n+1))")
+    coverage_lower_bound: float = Field(description="marginal coverage is at least this: `1 - epsilon`")
+    coverage_upper_bound: float = Field(
+        description="and at most this: `min(1, max(1 - epsilon + 1/(n+1), 1 - t/(n+1)))`; without delta"
+        " 1 - epsilon + 1/(n+1) (Theorem 1), with delta the exact marginal coverage (n+1-t)/(n+1)"
+        " (its t is smaller)"
+    )
     conditional_coverage: BetaLaw = Field(description="coverage given the calibration set ~ Beta(a, b)")
-    delta: float | None = Field(default=None, description="PAC: P(coverage < 1-epsilon) <= this")
+    delta: float | None = Field(
+        default=None,
+        description="PAC: `pac_failure_probability <= delta`, i.e. P(coverage < 1-epsilon) <= this",
+    )
     pac_failure_probability: float | None = Field(
-        default=None, description="exact P(Beta(a, b) < 1 - epsilon) for the chosen t"
+        default=None, description="exact `P(Beta(a, b) < 1 - epsilon)` for the chosen t (null without delta)"
     )
     stratum: Stratum | None = Field(
         default=None,

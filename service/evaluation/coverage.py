@@ -100,6 +100,17 @@ class ValiditySummary:
         values = [chance(g) for g in self.groups if g.m]
         return float(np.mean(values)) if values else float("nan")
 
+    def one_calibration(self) -> tuple[float, float]:
+        """Where one calibration puts a keypoint's (object's) coverage, 95% central: the Beta law
+        of the group with the median n (lower median), whatever the test batch."""
+        tested = sorted((g for g in self.groups if g.m), key=lambda g: g.n)
+        if not tested:
+            return float("nan"), float("nan")
+        median = tested[(len(tested) - 1) // 2]
+        if median.unbounded:
+            return 1.0, 1.0
+        return beta_interval(median.n + 1 - median.t, median.t, LEVEL)
+
 
 def keypoint_groups(
     covered: np.ndarray,

@@ -5,14 +5,16 @@ are significantly low flagged and what to do about it.
 An instance is covered when its nonconformity score is at most the version's threshold
 (the true keypoint lies in its set: the score and the set are the same inequality).
 - ``keypoint`` scope (each keypoint calibrated alone, the paper): a keypoint's figure is
-  exact (Beta-Binomial band, ``coverage.coverage_test``); an object's and the overall
-  figures pool its keypoints, with the union-bound band (``coverage.pooled_band``).
+  exact (Beta-Binomial band, ``coverage_law.coverage_test``); an object's and the overall
+  figures pool its keypoints (``coverage_law.pooled_test``: the calibration's spread with the
+  units perfectly correlated, the images' spread cluster-robust, one image one cluster).
 - ``object`` scope (one threshold on the max score of an object, simultaneous coverage):
   an instance counts when all its keypoints are labeled (as in calibration) and is covered
   when all of them are in their sets; an object's figure is exact, the overall one pooled.
-The flags come from Holm's step-down over every exact figure of the audit (all scores,
-epsilons and scopes), so the chance that a valid calibration gets any flag is at most
-``FAMILY_ALPHA``.
+The flags come from Holm's step-down over every figure of the audit, exact and pooled (all
+scores, epsilons and scopes), in two families at half of ``FAMILY_ALPHA`` each (the overall
+figures; all others), so the chance that a valid calibration gets any flag is at most
+``FAMILY_ALPHA`` (up to the pooled figures' normal approximation).
 """
 
 from __future__ import annotations
@@ -31,14 +33,18 @@ from service.monitoring.coverage_law import (
     FAMILY_ALPHA,
     RECALIBRATION_TOLERANCE,
     CoverageTest,
-    bonferroni_p_value,
+    PooledTest,
     coverage_test,
-    pooled_band,
+    pooled_test,
     recalibration_size,
 )
 from service.monitoring.multiple_testing import holm_adjusted
 
 SCOPES = ("keypoint", "object")
+#: the flags' two families, each Holm-corrected at FAMILY_ALPHA / 2 (Bonferroni between them): the
+#: overall figures (one per score, epsilon and scope), and every other figure, so that the headline
+#: figure is not drowned among the hundreds of keypoint figures
+FAMILIES = ("overall", "others")
 DEFAULT_EPSILONS = (0.05, 0.1, 0.2)
 
 #: (kind, scope, epsilon) -> (threshold per channel, calibration n per channel)
@@ -47,10 +53,22 @@ ThresholdLookup = Callable[[str, str, float], tuple[np.ndarray, Sequence[int]]]
 
 @dataclass
 class _Unit:
-    """One exact figure (a keypoint, or an object in object scope) and where it goes."""
+    """One exact figure (a keypoint, or an object in object scope), where it goes, and its labeled
+    and covered counts per audited image."""
 
     test: CoverageTest
     figure: dict[str, Any]
+    labeled: np.ndarray
+    covered: np.ndarray
+
+
+@dataclass
+class _Flaggable:
+    """A figure of the flag families: its p-value, where its flag goes, whether it is overall."""
+
+    p_value: float
+    figure: dict[str, Any]
+    overall: bool = False
 
 
 def audit_report(
@@ -62,19 +80,23 @@ def audit_report(
     version: int,
 ) -> dict[str, Any]:
     """The audit report (plain JSON) of the audited instances' scores ``table``."""
-    sections, units = [], []
+    sections, family = [], []
+    images = _image_rows(table)
     for kind in kinds:
         for epsilon in epsilons:
             for scope in SCOPES:
                 values, counts = thresholds(kind, scope, epsilon)
                 build = _keypoint_section if scope == "keypoint" else _object_section
-                section, section_units = build(table, manifest, kind, values, counts, epsilon)
+                section, tested = build(table, images, manifest, kind, values, counts, epsilon)
                 sections.append({"nonconformity": kind, "epsilon": epsilon, "scope": scope, **section})
-                units.extend(section_units)
-    tested = [unit for unit in units if unit.test.m > 0]
-    for unit, adjusted in zip(tested, holm_adjusted([u.test.p_value for u in tested]).tolist(), strict=True):
-        unit.figure["adjusted_p_value"] = adjusted
-        unit.figure["flagged"] = adjusted <= FAMILY_ALPHA
+                family.extend(tested)
+    for overall in (True, False):
+        members = [f for f in family if f.overall == overall]
+        adjusted = np.minimum(1.0, len(FAMILIES) * holm_adjusted([f.p_value for f in members]))
+        for member, value in zip(members, adjusted.tolist(), strict=True):
+            member.figure["adjusted_p_value"] = value
+            member.figure["flagged"] = value <= FAMILY_ALPHA
+    tested = family
     flagged = flagged_figures(sections)
     return {
         "version": version,
@@ -90,23 +112,54 @@ def audit_report(
     }
 
 
+def _image_rows(table: ScoreTable) -> tuple[int, list[np.ndarray]]:
+    """How many images the instances come from, and each block's rows' image (0..images-1).
+
+    Instances are referenced "batch:image:annotation" (service/calibration/scoring.py)."""
+    index: dict[str, int] = {}
+    rows = [
+        np.array(
+            [index.setdefault(ref.rsplit(":", 1)[0], len(index)) for ref in block.instance_refs], dtype=int
+        )
+        for block in table.objects
+    ]
+    return len(index), rows
+
+
+def _unit(
+    test: CoverageTest,
+    figure: dict[str, Any],
+    image: np.ndarray,
+    labeled: np.ndarray,
+    covered: np.ndarray,
+    images: int,
+) -> _Unit:
+    return _Unit(
+        test,
+        figure,
+        np.bincount(image[labeled], minlength=images),
+        np.bincount(image[covered], minlength=images),
+    )
+
+
 def _keypoint_section(
     table: ScoreTable,
+    images: tuple[int, list[np.ndarray]],
     manifest: Manifest,
     kind: str,
     values: np.ndarray,
     counts: Sequence[int],
     epsilon: float,
-) -> tuple[dict[str, Any], list[_Unit]]:
+) -> tuple[dict[str, Any], list[_Flaggable]]:
     names = {spec.index: spec.name for spec in manifest.keypoints}
     keypoints, objects, units = [], [], []
-    for block in table.objects:
+    for block, image in zip(table.objects, images[1], strict=True):
         own = []
         for column, channel in enumerate(int(c) for c in block.keypoint_ids):
             scores = block.scores[kind][:, column]
-            labeled = scores[~np.isnan(scores)]
-            covered = int(np.count_nonzero(labeled <= values[channel]))
-            test = coverage_test(covered, int(labeled.size), int(counts[channel]), epsilon)
+            labeled = ~np.isnan(scores)
+            covered = labeled & (np.nan_to_num(scores, nan=np.inf) <= values[channel])
+            test = coverage_test(int(covered.sum()), int(labeled.sum()), int(counts[channel]), epsilon)
             figure = {
                 "object": block.object_name,
                 "keypoint": names[channel],
@@ -114,33 +167,44 @@ def _keypoint_section(
                 **figure_of(test),
             }
             keypoints.append(figure)
-            own.append(test)
-            units.append(_Unit(test, figure))
+            own.append(_unit(test, figure, image, labeled, covered, images[0]))
         objects.append({"object": block.object_name, **pooled_figure(own)})
-    overall = pooled_figure([unit.test for unit in units])
-    return {"overall": overall, "objects": objects, "keypoints": keypoints}, units
+        units.extend(own)
+    overall = pooled_figure(units)
+    return {"overall": overall, "objects": objects, "keypoints": keypoints}, _family(units, objects, overall)
+
+
+def _family(
+    units: Sequence[_Unit], pooled: Sequence[dict[str, Any]], overall: dict[str, Any]
+) -> list[_Flaggable]:
+    """The figures a section adds to the flag families (those with instances): its exact
+    figures, its pooled objects (keypoint scope) and its overall figure."""
+    members = [_Flaggable(u.test.p_value, u.figure) for u in units if u.test.m > 0]
+    members += [_Flaggable(f["p_value"], f) for f in pooled if f["m"] > 0]
+    return members + ([_Flaggable(overall["p_value"], overall, overall=True)] if overall["m"] > 0 else [])
 
 
 def _object_section(
     table: ScoreTable,
+    images: tuple[int, list[np.ndarray]],
     manifest: Manifest,
     kind: str,
     values: np.ndarray,
     counts: Sequence[int],
     epsilon: float,
-) -> tuple[dict[str, Any], list[_Unit]]:
+) -> tuple[dict[str, Any], list[_Flaggable]]:
     objects, units = [], []
-    for block in table.objects:
+    for block, image in zip(table.objects, images[1], strict=True):
         channel = int(block.keypoint_ids[0])  # one threshold and n for all of the object's channels
         worst = object_scores(block.scores[kind])
-        complete = worst[~np.isnan(worst)]  # instances with every keypoint labeled
-        covered = int(np.count_nonzero(complete <= values[channel]))
-        test = coverage_test(covered, int(complete.size), int(counts[channel]), epsilon)
+        complete = ~np.isnan(worst)  # instances with every keypoint labeled
+        covered = complete & (np.nan_to_num(worst, nan=np.inf) <= values[channel])
+        test = coverage_test(int(covered.sum()), int(complete.sum()), int(counts[channel]), epsilon)
         figure = {"object": block.object_name, **figure_of(test)}
         objects.append(figure)
-        units.append(_Unit(test, figure))
-    overall = pooled_figure([unit.test for unit in units])
-    return {"overall": overall, "objects": objects, "keypoints": []}, units
+        units.append(_unit(test, figure, image, complete, covered, images[0]))
+    overall = pooled_figure(units)
+    return {"overall": overall, "objects": objects, "keypoints": []}, _family(units, [], overall)
 
 
 def figure_of(test: CoverageTest) -> dict[str, Any]:
@@ -161,20 +225,27 @@ def figure_of(test: CoverageTest) -> dict[str, Any]:
     }
 
 
-def pooled_figure(tests: Sequence[CoverageTest]) -> dict[str, Any]:
-    """A pooled figure: union-bound band and the Bonferroni global p-value of its units."""
-    m = sum(t.m for t in tests)
-    covered = sum(t.covered for t in tests)
-    low, high = pooled_band([t for t in tests if t.m > 0])
-    epsilon = tests[0].epsilon if tests else None
+def pooled_figure(units: Sequence[_Unit]) -> dict[str, Any]:
+    """A pooled figure: its band and p-value under the dependence of an image's keypoints
+    (``coverage_law.pooled_test``), its flag from Holm's family."""
+    tested = [u for u in units if u.test.m > 0]
+    pooled: PooledTest = pooled_test(
+        [u.test for u in tested],
+        np.stack([u.labeled for u in tested], axis=1) if tested else np.zeros((0, 0)),
+        np.stack([u.covered for u in tested], axis=1) if tested else np.zeros((0, 0)),
+    )
+    epsilon = units[0].test.epsilon if units else None
     return {
-        "m": m,
-        "covered": covered,
-        "coverage": None if m == 0 else covered / m,
+        "m": pooled.m,
+        "covered": pooled.covered,
+        "coverage": pooled.coverage,
         "promised": None if epsilon is None else 1.0 - epsilon,
-        "band": None if m == 0 else [low / m, high / m],
-        "in_band": low <= covered <= high,
-        "p_value": bonferroni_p_value([t for t in tests if t.m > 0]),
+        "expected": pooled.expected,
+        "band": None if pooled.m == 0 else list(pooled.band),
+        "in_band": pooled.in_band,
+        "p_value": pooled.p_value,
+        "adjusted_p_value": None,
+        "flagged": False,
     }
 
 
@@ -183,8 +254,8 @@ def flagged_figures(sections: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     flagged = []
     for section in sections:
         where = {name: section[name] for name in ("nonconformity", "epsilon", "scope")}
-        units = section["keypoints"] if section["scope"] == "keypoint" else section["objects"]
-        flagged.extend({**where, **unit} for unit in units if unit.get("flagged"))
+        figures = [section["overall"], *section["objects"], *section["keypoints"]]
+        flagged.extend({**where, **figure} for figure in figures if figure.get("flagged"))
     return sorted(flagged, key=lambda figure: figure["p_value"])
 
 
@@ -196,10 +267,17 @@ def advice(version: int, flagged: Sequence[dict[str, Any]], epsilons: Sequence[f
             f" coverage (Holm over {tests} tests, family-wise error {FAMILY_ALPHA:g}). About"
             f" {1 - BAND_LEVEL:.0%} of the figures may fall outside their {BAND_LEVEL:.0%} band by chance."
         )
-    objects = sorted({figure["object"] for figure in flagged})
+    objects = sorted({figure["object"] for figure in flagged if "object" in figure})
     keypoints = sorted({figure["keypoint"] for figure in flagged if "keypoint" in figure})
     needed = ", ".join(f"{recalibration_size(e)} at epsilon {e:g}" for e in sorted(epsilons))
-    where = f"keypoints {', '.join(keypoints)}" if keypoints else f"objects {', '.join(objects)}"
+    where = (
+        f"keypoints {', '.join(keypoints)}"
+        if keypoints
+        else f"objects {', '.join(objects)}"
+        if objects
+        else "the overall figures"
+    )
+    objects = objects or ["every object"]
     return (
         f"Version {version} does not hold on images like these: {len(flagged)} figures are"
         f" significantly below their promised coverage (Holm over {tests} tests, family-wise error"

@@ -29,6 +29,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from fractions import Fraction
+from statistics import NormalDist
 
 import numpy as np
 
@@ -42,6 +43,7 @@ FAMILY_ALPHA = 0.05
 #: a recalibration should keep the conditional coverage above 1 - eps - this, with BAND_LEVEL odds
 RECALIBRATION_TOLERANCE = 0.02
 _MAX_RECALIBRATION_N = 10_000_000
+_NORMAL = NormalDist()
 
 
 def covered_count_pmf(m: int, n: int, epsilon: float) -> np.ndarray:
@@ -91,21 +93,66 @@ def coverage_test(covered: int, m: int, n: int, epsilon: float, level: float = B
     return CoverageTest(m, covered, n, conformal_rank(n, epsilon), epsilon, band, p_value)
 
 
-def pooled_band(tests: Sequence[CoverageTest], level: float = BAND_LEVEL) -> tuple[int, int]:
-    """A band for the covered count pooled over several units (keypoints, objects) whatever their
-    dependence: each unit's count lies in its band at level 1 - (1-level)/U with that
-    probability, so by the union bound all do, and their sum lies in the sum of the bands,
-    with probability at least ``level``. Conservative (the units share calibration images)."""
-    if not tests:
-        return 0, 0
-    unit_level = 1.0 - (1.0 - level) / len(tests)
-    bands = [central_interval(covered_count_pmf(t.m, t.n, t.epsilon), unit_level) for t in tests]
-    return sum(low for low, _ in bands), sum(high for _, high in bands)
+@dataclass(frozen=True)
+class PooledTest:
+    """A figure pooled over several units (keypoints, objects): its band and one-sided p-value."""
+
+    m: int
+    covered: int
+    expected: float  # the mean coverage Theorem 1 promises for these units: sum w_u (1 - l_u/(n_u+1))
+    sd: float
+    band: tuple[float, float]  # coverage (a share): P(inside) ~ BAND_LEVEL under a valid calibration
+    p_value: float  # P(coverage this low): normal approximation
+
+    @property
+    def coverage(self) -> float | None:
+        return None if self.m == 0 else self.covered / self.m
+
+    @property
+    def in_band(self) -> bool:
+        return self.m == 0 or self.band[0] <= self.covered / self.m <= self.band[1]
 
 
-def bonferroni_p_value(tests: Sequence[CoverageTest]) -> float:
-    """The global test of "no unit's coverage is low": min(1, U * min p), valid under any dependence."""
-    return 1.0 if not tests else min(1.0, len(tests) * min(t.p_value for t in tests))
+def pooled_test(
+    tests: Sequence[CoverageTest], labeled: np.ndarray, covered: np.ndarray, level: float = BAND_LEVEL
+) -> PooledTest:
+    """The pooled coverage of ``tests`` (units) from ``labeled`` and ``covered`` counts per image
+    (rows) and unit (columns), with a band that holds whatever the dependence between units.
+
+    Two parts of its spread, added as variances (normal approximation):
+    - the calibration: unit u's conditional coverage c_u ~ Beta(n_u+1-l_u, l_u) (eq. 5); units
+      share calibration images, so they are taken as perfectly correlated, the worst case:
+      sd(sum w_u c_u) <= sum w_u sd(c_u), w_u = m_u / m;
+    - the audited images: given the calibration, images are independent but the keypoints of
+      one image are not (occlusion, blur, distance hit them together): the spread is the
+      cluster-robust (sandwich) one over images, from each image's covered count minus what
+      its units' own coverage predicts for it, so an image counts once, not once per keypoint;
+      never below the binomial spread of independent keypoints at the promised coverage
+      (which the sandwich underestimates with few images, or with nearly all covered).
+    """
+    m, count = int(labeled.sum()), int(covered.sum())
+    if m == 0:
+        return PooledTest(0, 0, 1.0, 0.0, (0.0, 1.0), 1.0)
+    weights = np.array([t.m for t in tests], dtype=np.float64) / m
+    a = np.array([t.n + 1 - t.rank for t in tests], dtype=np.float64)
+    b = np.array([t.rank for t in tests], dtype=np.float64)
+    expected = float(np.sum(weights * a / (a + b)))
+    calibration_sd = float(np.sum(weights * np.sqrt(a * b / ((a + b) ** 2 * (a + b + 1)))))
+    images = int(np.count_nonzero(labeled.sum(axis=1)))
+    if images < 2:
+        return PooledTest(m, count, expected, math.inf, (0.0, 1.0), 1.0)
+    own = covered.sum(axis=0) / np.maximum(labeled.sum(axis=0), 1)
+    residuals = (covered - labeled * own).sum(axis=1)
+    clustered = images / (images - 1) * float(np.sum(residuals**2))
+    independent = float(
+        np.sum(weights * m * (a / (a + b)) * (b / (a + b)))
+    )  # the floor: few or all-covered images
+    sample_sd = math.sqrt(max(clustered, independent)) / m
+    sd = math.hypot(calibration_sd, sample_sd)
+    half = _NORMAL.inv_cdf((1 + level) / 2) * sd
+    band = (max(0.0, expected - half), min(1.0, expected + half))
+    p_value = _NORMAL.cdf((count / m - expected) / sd) if sd > 0 else float(count / m < expected)
+    return PooledTest(m, count, expected, sd, band, p_value)
 
 
 def recalibration_size(

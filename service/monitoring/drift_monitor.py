@@ -8,7 +8,12 @@ feature (service/conformal/features.py: p*, gamma, anisotropy), a sliding window
 ``window`` live values is compared with the version's calibration values by a two-sample test
 (service/monitoring/two_sample.py):
 
-- ``ks`` (default): Kolmogorov-Smirnov with its p-value; the alarm is raised for the tests
+- ``sequential`` (default): the alarm of service/monitoring/looks.py, right on camera streams:
+  frames that continue a scene are one *look*, each look votes once, and an e-CUSUM over the
+  looks bounds the false alarms (on average at least ``1 / alarm_level`` looks between two).
+  The per-keypoint Kolmogorov-Smirnov tests (Holm at ``alarm_level``) run on windows of the
+  looks' first frames and say where the features moved, flagged only while the alarm is raised.
+- ``ks``: Kolmogorov-Smirnov over every frame's values with its p-value; the alarm is raised for the tests
   that Holm's step-down procedure rejects at family-wise error rate ``alarm_level`` over the
   whole family (every keypoint x feature with data), so a quiet stream raises any alarm with
   probability at most ``alarm_level`` (for a window drawn afresh; see docs/operations.md).
@@ -40,6 +45,14 @@ from calibration_store import ScoreTable
 from service.conformal import HeatmapStatistics
 from service.conformal.features import HEATMAP_FEATURES, heatmap_features
 from service.detector.manifest import Manifest
+from service.monitoring.looks import (
+    FlatnessReference,
+    Frame,
+    InstanceFeatures,
+    LookTracker,
+    SequentialAlarm,
+    SequentialState,
+)
 from service.monitoring.multiple_testing import holm_rejections
 from service.monitoring.set_sizes import KINDS, KindSizes, set_sizes, shape_entries
 from service.monitoring.two_sample import (
@@ -52,7 +65,7 @@ from service.monitoring.windows import RingWindows
 
 log = logging.getLogger(__name__)
 
-DriftTest = Literal["ks", "psi"]
+DriftTest = Literal["sequential", "ks", "psi"]
 #: the feature of the peak statistics; every other feature comes from the top-K spread
 PEAK_FEATURE = "peak_probability"
 #: live values a window needs before PSI may raise its alarm: PSI's small-sample bias is about
@@ -61,6 +74,8 @@ PSI_MIN_LIVE = 400
 _SHAPE_COLUMNS = slice(len(HEATMAP_FEATURES), len(HEATMAP_FEATURES) + 3)
 _KIND_COLUMN = len(HEATMAP_FEATURES) + 3
 _COLUMNS = _KIND_COLUMN + 1
+#: looks waiting for the next evaluation (the history ticker evaluates once a minute)
+MAX_PENDING_LOOKS = 100_000
 #: points kept in the history (6 h at one a minute)
 HISTORY_POINTS = 360
 
@@ -72,7 +87,7 @@ ReferenceSource = Callable[[], tuple[int | None, ScoreTable | None]]
 class DriftSettings:
     window: int  # live values kept per keypoint and feature
     test: DriftTest
-    alarm_level: float  # ks: family-wise error rate of the Holm-corrected family
+    alarm_level: float  # ks: family-wise error rate of the Holm-corrected family; sequential: 1 / looks
     psi_threshold: float  # psi: alarm above
     full_statistics_share: float  # share of requests that compute the statistics their score skips
     history_seconds: float  # one history point this often
@@ -134,6 +149,7 @@ class DriftReport:
     recorded: int
     evaluated_at: float
     process: int
+    sequential: SequentialState | None = None  # the sequential test's state (test sequential)
     history: list[HistoryPoint] = field(default_factory=list)
 
 
@@ -164,6 +180,18 @@ class DriftMonitor:
         # per channel, one row per live instance: the features (NaN: not computed), the set's shape
         # entries and the nonconformity function's index
         self._windows = RingWindows(self._channels, settings.window, width=_COLUMNS)
+        # sequential: the same rows of the looks' first frames only, for the per-keypoint tests
+        self._look_windows = RingWindows(self._channels, settings.window, width=_COLUMNS)
+        self._object_of = {spec.index: spec.object for spec in manifest.keypoints}
+        self._first_channels = np.zeros(self._channels, dtype=int)
+        for spec in manifest.keypoints:
+            self._first_channels[spec.index] = manifest.object(spec.object).keypoints[0]
+        self._looks = LookTracker()
+        self._pending: deque[list[InstanceFeatures]] = deque(maxlen=MAX_PENDING_LOOKS)
+        self._frames = 0
+        self._look_lock = threading.Lock()
+        self._sequential: SequentialAlarm | None = None
+        self._flatness: tuple[int, FlatnessReference] | None = None
         self._reference: _Reference | None = None
         self._evaluation_lock = threading.Lock()
         self._cached: tuple[tuple, DriftReport] | None = None
@@ -178,15 +206,40 @@ class DriftMonitor:
         return random.random() < self.settings.full_statistics_share
 
     def record(
-        self, channels: np.ndarray, statistics: HeatmapStatistics, kind: str, shapes: np.ndarray
+        self,
+        channels: np.ndarray,
+        statistics: HeatmapStatistics,
+        kind: str,
+        shapes: np.ndarray,
+        frame: Frame | None = None,
     ) -> None:
-        """Keep one request's features (those its statistics allow) and set shapes (image px)."""
+        """Keep one request's features (those its statistics allow) and set shapes (image px).
+
+        ``frame`` (the request's objects and boxes) tells a new look from a frame that continues
+        one; without it every request is a look. The sequential test keeps only looks."""
         rows = np.full((channels.size, _COLUMNS), np.nan)
         for position, values in _positions(live_features(statistics)):
             rows[:, position] = values
         rows[:, _SHAPE_COLUMNS] = shape_entries(shapes)
         rows[:, _KIND_COLUMN] = KINDS.index(kind)
         self._windows.append(channels, rows)
+        if self.settings.test != "sequential":
+            return
+        with self._look_lock:
+            self._frames += 1
+            if not self._looks.is_new_look(frame):
+                return
+            self._pending.append(self._instances(channels, rows[:, : len(HEATMAP_FEATURES)]))
+        self._look_windows.append(channels, rows)
+
+    def _instances(self, channels: np.ndarray, features: np.ndarray) -> list[InstanceFeatures]:
+        """The request's rows split by instance (each instance's channels come in manifest order)."""
+        starts = np.flatnonzero(channels == self._first_channels[channels])
+        ends = [*starts[1:], channels.size]
+        return [
+            InstanceFeatures(self._object_of[int(channels[a])], channels[a:b], features[a:b])
+            for a, b in zip(starts, ends, strict=True)
+        ]
 
     # -- reading --------------------------------------------------------------------------
 
@@ -228,11 +281,15 @@ class DriftMonitor:
 
     def _evaluate(self, version: int | None, table: ScoreTable | None, recorded: int) -> DriftReport:
         reference, reason = self._reference_for(version, table)
+        sequential = self._sequential_state(version, table if reference is not None else None)
         windows = [self._windows.window(channel) for channel in range(self._channels)]
+        tested = self._look_windows if sequential is not None else self._windows
+        tested_windows = [tested.window(channel) for channel in range(self._channels)]
         live = [
-            [_finite(window[:, position]) for window in windows] for position in range(len(HEATMAP_FEATURES))
+            [_finite(window[:, position]) for window in tested_windows]
+            for position in range(len(HEATMAP_FEATURES))
         ]
-        tests = self._tests(reference, live)
+        tests = self._tests(reference, live, sequential is None or sequential.alarm)
         rows = np.concatenate(windows)
         keypoints = [
             KeypointDrift(
@@ -253,18 +310,50 @@ class DriftMonitor:
             reason=reason,
             window=settings.window,
             test=settings.test,
-            alarm_threshold=settings.alarm_level if settings.test == "ks" else settings.psi_threshold,
-            alarm=any(o.alarm for o in objects),
+            alarm_threshold=settings.psi_threshold if settings.test == "psi" else settings.alarm_level,
+            alarm=any(o.alarm for o in objects) if sequential is None else sequential.alarm,
             keypoints=keypoints,
             objects=objects,
             set_sizes=set_sizes(rows[:, _KIND_COLUMN].astype(int), rows[:, _SHAPE_COLUMNS]),
             recorded=recorded,
             evaluated_at=time.time(),
             process=os.getpid(),
+            sequential=sequential,
         )
 
-    def _tests(self, reference: _Reference | None, live: list[list[np.ndarray]]) -> list[list[FeatureTest]]:
-        """[feature][channel] tests; the alarm of ks tests by Holm over the whole family."""
+    def _sequential_state(self, version: int | None, table: ScoreTable | None) -> SequentialState | None:
+        """Test the looks recorded since the last evaluation (in order) against the reference;
+        a new active version starts the test afresh."""
+        if self.settings.test != "sequential":
+            return None
+        with self._look_lock:
+            pending = list(self._pending)
+            self._pending.clear()
+            frames = self._frames
+        if table is None or version is None:
+            self._flatness, self._sequential = None, None
+        else:
+            if self._flatness is None or self._flatness[0] != version:
+                self._flatness = (version, FlatnessReference(table, self._channels))
+                self._sequential = SequentialAlarm(self.settings.alarm_level)
+            flatness, alarm = self._flatness[1], self._sequential
+            assert alarm is not None
+            for look in pending:
+                alarm.observe([z for z in map(flatness.instance_z, look) if z is not None])
+        alarm = self._sequential
+        return SequentialState(
+            looks=0 if alarm is None else alarm.looks,
+            frames=frames,
+            evidence=1.0 if alarm is None else alarm.evidence,
+            threshold=2.0 / self.settings.alarm_level,
+            alarm=alarm is not None and alarm.alarm,
+        )
+
+    def _tests(
+        self, reference: _Reference | None, live: list[list[np.ndarray]], may_alarm: bool
+    ) -> list[list[FeatureTest]]:
+        """[feature][channel] tests; the alarm of ks tests by Holm over the whole family (sequential:
+        only while its alarm is raised, to say where the features moved)."""
         rows = []
         for position, name in enumerate(HEATMAP_FEATURES):
             row = []
@@ -273,12 +362,12 @@ class DriftMonitor:
                 edges = None if reference is None else reference.edges[name][channel]
                 row.append(self._test(sorted_reference, edges, values))
             rows.append(row)
-        if self.settings.test == "ks":
+        if self.settings.test != "psi":
             p_values = np.array([[math.nan if t.p_value is None else t.p_value for t in row] for row in rows])
             alarms = holm_rejections(p_values.ravel(), self.settings.alarm_level).reshape(p_values.shape)
             rows = [
                 [
-                    FeatureTest(t.statistic, t.p_value, bool(alarm), t.live_n, t.reference_n)
+                    FeatureTest(t.statistic, t.p_value, bool(alarm) and may_alarm, t.live_n, t.reference_n)
                     for t, alarm in zip(row, alarm_row, strict=True)
                 ]
                 for row, alarm_row in zip(rows, alarms, strict=True)

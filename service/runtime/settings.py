@@ -395,16 +395,19 @@ class DriftMonitorSettings(_Group):
         description="live instances kept per keypoint (the drift window; each feature's window holds"
         " those that computed it)",
     )
-    drift_test: Literal["ks", "psi"] = Field(
-        default="ks",
-        description="drift test: `ks` (Kolmogorov-Smirnov p-values, Holm-corrected) or `psi` (population"
-        " stability index over 10 quantile bins)",
+    drift_test: Literal["sequential", "ks", "psi"] = Field(
+        default="sequential",
+        description="drift test: `sequential` (one vote per independent look, an e-CUSUM over the looks:"
+        " right on camera streams), `ks` (Kolmogorov-Smirnov p-values over every frame, Holm-corrected) or"
+        " `psi` (population stability index over 10 quantile bins)",
     )
     drift_alarm_level: float = Field(
         default=0.01,
         gt=0,
         lt=1,
-        description="ks: family-wise error rate of the drift alarm over all keypoints x features (Holm)",
+        description="sequential: on a stream like the calibration, at least 1 / this independent looks"
+        " between false alarms on average; ks: family-wise error rate of one evaluation over all keypoints x"
+        " features (Holm)",
     )
     drift_psi_threshold: float = Field(
         default=0.25,

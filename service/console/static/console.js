@@ -275,8 +275,10 @@ function drawDrift(drift) {
   const history = Array.isArray(drift.history) ? drift.history : [];
   const psi = drift.statistic === "psi";
   const alarmText = drift.alarm ? el("span", { class: "alarm" }, "alarm raised") : "no alarm";
-  const header = el("p", { class: "muted" },
-    `${drift.statistic === "ks" ? "Kolmogorov-Smirnov, Holm-corrected at" : "PSI, alarm above"} ${drift.alarm_threshold ?? "–"}; `,
+  const method = drift.statistic === "sequential"
+    ? `sequential test at level ${drift.alarm_threshold ?? "–"}: ${drift.independent_looks ?? 0} independent looks in ${drift.frames ?? 0} frames, evidence ${fixed(drift.evidence, 1)} of ${fixed(drift.evidence_threshold, 0)}; `
+    : `${drift.statistic === "ks" ? "Kolmogorov-Smirnov, Holm-corrected at" : "PSI, alarm above"} ${drift.alarm_threshold ?? "–"}; `;
+  const header = el("p", { class: "muted" }, method,
     `window ${drift.window ?? "–"} live instances per keypoint; reference: version ${drift.reference_version ?? "–"}; `,
     `${drift.recorded ?? 0} live values recorded; `, alarmText, ".");
   const nodes = [header];

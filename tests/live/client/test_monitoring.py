@@ -109,7 +109,7 @@ def test_drift_after_predictions(server: LiveServer, admin: KeypointClient, samp
     drift = admin.drift()
     assert isinstance(drift, Drift) and drift.recorded > before.recorded
     assert drift.reference_available and drift.reference_version == admin.versions().active_version
-    assert drift.reason is None and drift.statistic in ("ks", "psi")
+    assert drift.reason is None and drift.statistic in ("sequential", "ks", "psi")
     keypoints = {(k.object, k.keypoint) for k in drift.keypoints}
     assert len(keypoints) == len(drift.keypoints)
     assert {k.object for k in drift.keypoints} == set(admin.model().object_names)

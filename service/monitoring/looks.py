@@ -1,0 +1,233 @@
+"""A drift alarm that stays right on camera streams: one vote per independent look, summed by a
+sequential test whose false alarms are bounded.
+
+Consecutive frames of a camera show the same scene: their heatmap features are nearly equal,
+and a window of them is one observation repeated, not a sample. A test that counts frames as
+independent values (the ``ks`` window) raises its alarm on any slightly unusual scene filmed
+long enough. Here:
+
+1. **Looks.** A frame is a new *look* unless at least half of its instances continue one of a
+   recent frame's (same object, box overlap IoU >= ``CONTINUATION_IOU``; the last
+   ``INTERLEAVED_STREAMS`` frames, so that cameras calling at once each keep their scene), or
+   its objects and boxes are those of a recent look (a client replaying the same images). A
+   static or slowly moving camera stays one look however many frames it sends; a cut to another
+   scene starts one. Only a look's first frame votes: it is, on its own, an image like the
+   calibration's.
+2. **One z per look.** Each instance's label-free features (p*, gamma, anisotropy: those the
+   request computed) are ranked among the calibration's values of their keypoint, turned into
+   normal scores and averaged (p* negated: a positive mean is a flatter heatmap). That mean is
+   ranked among the calibration instances' own means (leave-one-out), z_i = Phi^-1(rank), so
+   under no drift z_i ~ N(0, 1) (exchangeability, up to the rank's discreteness). A look's
+   ``Z = sum z_i / sqrt(m (1 + (m - 1) rho))`` has variance at most 1 while the correlation of
+   instances of one image is at most ``rho`` = ``WITHIN_FRAME_CORRELATION`` (0.09-0.15 on the
+   bundled calibration's 600 images).
+3. **e-CUSUM.** Each look gives the e-values ``exp(+-lambda Z - lambda^2 / 2)`` (mean at most 1
+   under no drift), and two CUSUMs ``M = e * max(M, 1)`` (flatter, sharper) accumulate them.
+   The alarm is raised while either reaches ``2 / alarm_level``. For independent looks with no
+   drift, the mean number of looks before a false alarm is at least ``1 / alarm_level``
+   (Lorden's bound for CUSUMs of e-values: Shin, Ramdas & Rinaldo, "E-detectors", 2023); on a
+   stream of L frames a look that is at most one false alarm per ``L / alarm_level`` frames.
+
+What it assumes: looks are independent draws of the calibration's law (scene cuts separate
+independent scenes); within a look nothing is assumed. What it misses: a drift confined to one
+long look (it cannot tell an odd scene from a shifted one); a drift that leaves the features'
+law unchanged.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from statistics import NormalDist
+
+import numpy as np
+
+from calibration_store import ScoreTable
+from service.conformal.features import HEATMAP_FEATURES
+
+#: box overlap at which an instance continues one of the previous frame (same object)
+CONTINUATION_IOU = 0.3
+#: bound on the correlation of the z of two instances of one image (measured 0.09-0.15)
+WITHIN_FRAME_CORRELATION = 0.25
+#: e-value step: best against a shift of about this much in a look's Z
+LAMBDA = 0.5
+#: recent frames a frame may continue: cameras whose requests interleave in one process
+INTERLEAVED_STREAMS = 8
+#: recent looks whose objects and boxes a new frame must differ from
+REMEMBERED_LOOKS = 10_000
+#: sign of each feature in the flatness score: a flatter heatmap has a lower p*, larger gamma
+SIGNS = {"peak_probability": -1.0, "gamma": 1.0, "anisotropy": 1.0}
+_NORMAL = NormalDist()
+
+
+@dataclass(frozen=True)
+class Frame:
+    """What a request says about its image: its instances' objects and boxes (x, y, w, h)."""
+
+    objects: tuple[str, ...]
+    boxes: np.ndarray  # (N, 4)
+
+
+@dataclass(frozen=True)
+class InstanceFeatures:
+    """One instance of a look: its object, keypoint channels and features (NaN: not computed)."""
+
+    object: str
+    channels: np.ndarray  # (k,)
+    features: np.ndarray  # (k, len(HEATMAP_FEATURES))
+
+
+@dataclass(frozen=True)
+class SequentialState:
+    looks: int  # independent looks tested against the reference
+    frames: int  # frames recorded
+    evidence: float  # max of the two CUSUMs (1: none)
+    threshold: float  # 2 / alarm_level
+    alarm: bool
+
+
+class LookTracker:
+    """Tells a new look from a frame that continues (or repeats) one."""
+
+    def __init__(self) -> None:
+        self._recent: deque[Frame] = deque(maxlen=INTERLEAVED_STREAMS)
+        self._seen: set[bytes] = set()
+        self._order: deque[bytes] = deque()
+
+    def is_new_look(self, frame: Frame | None) -> bool:
+        """None (no boxes known): every frame is a look."""
+        if frame is None:
+            return True
+        continues = any(_continues(previous, frame) for previous in self._recent)
+        self._recent.append(frame)
+        if continues:
+            return False
+        key = repr((frame.objects, np.round(frame.boxes, 1).tolist())).encode()
+        if key in self._seen:
+            return False
+        self._seen.add(key)
+        self._order.append(key)
+        if len(self._order) > REMEMBERED_LOOKS:
+            self._seen.discard(self._order.popleft())
+        return True
+
+
+def _continues(previous: Frame, frame: Frame) -> bool:
+    """At least half of the frame's instances continue one of the previous frame's: objects may
+    enter or leave a moving view, while a cut to another scene rarely puts most objects back
+    where they were."""
+    matched = sum(
+        any(
+            name == other_name and _iou(box, other) >= CONTINUATION_IOU
+            for other_name, other in zip(previous.objects, previous.boxes, strict=True)
+        )
+        for name, box in zip(frame.objects, frame.boxes, strict=True)
+    )
+    return matched > 0 and 2 * matched >= len(frame.objects)
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    width = min(a[0] + a[2], b[0] + b[2]) - max(a[0], b[0])
+    height = min(a[1] + a[3], b[1] + b[3]) - max(a[1], b[1])
+    inter = max(width, 0.0) * max(height, 0.0)
+    union = a[2] * a[3] + b[2] * b[3] - inter
+    return inter / union if union > 0 else 0.0
+
+
+class FlatnessReference:
+    """The calibration side: per keypoint channel and feature its sorted values, and per object
+    and set of computed features the sorted leave-one-out flatness of its instances."""
+
+    def __init__(self, table: ScoreTable, channels: int) -> None:
+        self._sorted: list[list[np.ndarray | None]] = [[None] * channels for _ in HEATMAP_FEATURES]
+        self._blocks = {}
+        for block in table.objects:
+            matrices = [np.asarray(block.features[name], dtype=np.float64) for name in HEATMAP_FEATURES]
+            self._blocks[block.object_name] = matrices
+            for position, matrix in enumerate(matrices):
+                for column, channel in enumerate(block.keypoint_ids):
+                    column_values = matrix[:, column]
+                    self._sorted[position][int(channel)] = np.sort(column_values[np.isfinite(column_values)])
+        self._keypoints = {b.object_name: np.asarray(b.keypoint_ids, dtype=int) for b in table.objects}
+        self._flatness: dict[tuple[str, tuple[int, ...]], np.ndarray] = {}
+
+    def instance_z(self, instance: InstanceFeatures) -> float | None:
+        """z of the instance's flatness among the calibration instances' (None: nothing to rank)."""
+        used = tuple(p for p in range(len(HEATMAP_FEATURES)) if np.isfinite(instance.features[:, p]).all())
+        if not used or instance.object not in self._blocks:
+            return None
+        scores = [
+            SIGNS[HEATMAP_FEATURES[p]]
+            * _normal_scores(self._ranks(p, instance.channels, instance.features[:, p]))
+            for p in used
+        ]
+        flatness = float(np.mean(scores))
+        reference = self._reference_flatness(instance.object, used)
+        if reference.size == 0:
+            return None
+        below = np.searchsorted(reference, flatness, side="left")
+        equal = np.searchsorted(reference, flatness, side="right") - below
+        return _NORMAL.inv_cdf((below + 0.5 * equal + 0.5) / (reference.size + 1))
+
+    def _ranks(self, position: int, channels: np.ndarray, values: np.ndarray) -> np.ndarray:
+        ranks = np.empty(values.size)
+        for i, (channel, value) in enumerate(zip(channels, values, strict=True)):
+            reference = self._sorted[position][int(channel)]
+            below = np.searchsorted(reference, value, side="left")
+            equal = np.searchsorted(reference, value, side="right") - below
+            ranks[i] = (below + 0.5 * equal + 0.5) / (reference.size + 1)
+        return ranks
+
+    def _reference_flatness(self, name: str, used: tuple[int, ...]) -> np.ndarray:
+        key = (name, used)
+        if key not in self._flatness:
+            keypoints = self._keypoints[name]
+            scores = []
+            for p in used:
+                matrix = self._blocks[name][p]
+                columns = []
+                for column, channel in enumerate(keypoints):
+                    reference = self._sorted[p][int(channel)]
+                    values = matrix[:, column]
+                    # leave-one-out: a value's rank among the others, as a live value's among all
+                    below = np.searchsorted(reference, values, side="left")
+                    equal = np.searchsorted(reference, values, side="right") - below - 1
+                    columns.append((below + 0.5 * equal + 0.5) / reference.size)
+                scores.append(SIGNS[HEATMAP_FEATURES[p]] * _normal_scores(np.stack(columns, axis=1)))
+            flatness = np.mean(scores, axis=(0, 2))
+            self._flatness[key] = np.sort(flatness[np.isfinite(flatness)])
+        return self._flatness[key]
+
+
+def _normal_scores(ranks: np.ndarray) -> np.ndarray:
+    clipped = np.clip(ranks, 1e-9, 1 - 1e-9)
+    return np.vectorize(_NORMAL.inv_cdf, otypes=[float])(clipped)
+
+
+class SequentialAlarm:
+    """Two e-CUSUMs over the looks' Z (flatter and sharper heatmaps than the calibration's)."""
+
+    def __init__(self, alarm_level: float) -> None:
+        self.threshold = 2.0 / alarm_level
+        self.looks = 0
+        self._cusums = [1.0, 1.0]
+
+    def observe(self, look: list[float]) -> None:
+        """One look: the z of its instances."""
+        if not look:
+            return
+        m = len(look)
+        z = sum(look) / math.sqrt(m * (1 + (m - 1) * WITHIN_FRAME_CORRELATION))
+        for side, sign in enumerate((1.0, -1.0)):
+            log_e = sign * LAMBDA * z - LAMBDA**2 / 2
+            self._cusums[side] = math.exp(min(log_e + math.log(max(self._cusums[side], 1.0)), 700.0))
+        self.looks += 1
+
+    @property
+    def evidence(self) -> float:
+        return max(self._cusums)
+
+    @property
+    def alarm(self) -> bool:
+        return self.evidence >= self.threshold
