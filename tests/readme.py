@@ -50,18 +50,16 @@ def shows(output: str, shown: str) -> bool:
     return True
 
 
-def predict_example(*, accept: str = "application/json") -> tuple[Path, dict, dict[str, str]]:
-    """The image, request JSON and headers of the README's first curl to /v1/predict that asks
-    for ``accept`` (the JSON answer unless a ``-H 'Accept: ...'`` says otherwise)."""
+def predict_example(*, path: str = "/v1/predict") -> tuple[Path, dict, dict[str, str]]:
+    """The image, request JSON and headers of the README's first curl to ``path`` (/v1/predict
+    for the JSON answer, /v1/predict/png for the drawing)."""
     for block in bash_blocks():
         for command, _ in commands_and_outputs(block):
             words = shlex.split(command.split(" #")[0])
-            if words[:1] != ["curl"] or not any(w.endswith("/v1/predict") for w in words):
+            if words[:1] != ["curl"] or not any(w.endswith(path) for w in words):
                 continue
             options = list(zip(words, words[1:], strict=False))
             headers = dict(v.split(": ", 1) for k, v in options if k == "-H")
-            if headers.get("Accept", "application/json") != accept:
-                continue
             form = dict(v.split("=", 1) for k, v in options if k == "-F")
             return PACKAGE_ROOT / form["image"].removeprefix("@"), json.loads(form["request"]), headers
-    raise AssertionError(f"the README has no curl example of /v1/predict answering {accept}")
+    raise AssertionError(f"the README has no curl example of {path}")

@@ -90,12 +90,21 @@ class InvalidInput(ProblemError):
     """422: the request is invalid; ``errors`` lists every problem."""
 
 
+class TooManyRequests(ProblemError):
+    """429: this client holds its share of the service while others are served; ``retry_after``
+    is the server's advice in seconds (the service did not act)."""
+
+
 class ServerError(ProblemError):
     """5xx other than 503."""
 
 
 class ServiceUnavailable(ServerError):
     """503: overloaded or its store is away; ``retry_after`` is the server's advice in seconds."""
+
+
+class InsufficientStorage(ServerError):
+    """507: the service's disk is full; nothing of the request was kept."""
 
 
 _BY_STATUS: dict[int, type[ProblemError]] = {
@@ -108,7 +117,9 @@ _BY_STATUS: dict[int, type[ProblemError]] = {
     413: PayloadTooLarge,
     415: UnsupportedMediaType,
     422: InvalidInput,
+    429: TooManyRequests,
     503: ServiceUnavailable,
+    507: InsufficientStorage,
 }
 
 

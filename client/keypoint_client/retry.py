@@ -1,8 +1,9 @@
 """When to try a call again, and after how long: the decisions, without any I/O.
 
-A 503 means the service did not act (it was overloaded, or its store was away), so every
-call may be repeated after it. A connection error is repeated only when the call is
-idempotent (predict, every GET), or when nothing was sent (the connection was never made).
+A 503 or a 429 means the service did not act (it was overloaded, its store was away, or this
+client held its share of it), so every call may be repeated after it. A connection error is
+repeated only when the call is idempotent (predict, every GET), or when nothing was sent (the
+connection was never made).
 Each wait is exponential backoff with full jitter, and at least the server's ``Retry-After``.
 """
 
@@ -31,7 +32,7 @@ class RetryPolicy:
     backoff: float = 0.25
     max_backoff: float = 8.0
     max_retry_after: float = 60.0
-    statuses: frozenset[int] = field(default_factory=lambda: frozenset({503}))
+    statuses: frozenset[int] = field(default_factory=lambda: frozenset({429, 503}))
 
     def __post_init__(self) -> None:
         if self.attempts < 1:

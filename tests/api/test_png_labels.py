@@ -20,10 +20,10 @@ def _intersect(a: tuple[int, ...], b: tuple[int, ...]) -> bool:
 
 
 def test_the_readme_pictures_labels_do_not_overlap(api: InProcess) -> None:
-    image, request, headers = predict_example(accept="image/png")
+    image, request, _ = predict_example(path="/v1/predict/png")
     files = {"image": (image.name, image.read_bytes(), "image/jpeg"), "request": (None, json.dumps(request))}
     answer = api.client.post("/v1/predict", files=files)
-    drawn = api.client.post("/v1/predict", files=files, headers=headers)
+    drawn = api.client.post("/v1/predict/png", files=files)
     assert answer.status_code == drawn.status_code == 200, answer.text
     picture = cv2.imdecode(np.frombuffer(drawn.content, np.uint8), cv2.IMREAD_COLOR)
 

@@ -19,9 +19,10 @@ PASSED_BACK = ("content-type", "retry-after", "x-request-id", "location")
 
 @dataclass(frozen=True)
 class Unavailable:
-    """Answer 503 with this Retry-After (None: without one)."""
+    """Answer ``status`` (503, or 429: the client's share) with this Retry-After (None: without one)."""
 
     retry_after: str | None = "1"
+    status: int = 503
 
 
 @dataclass(frozen=True)
@@ -89,13 +90,13 @@ class FaultyProxy:
                     problem = {
                         "type": "about:blank",
                         "title": "Overloaded",
-                        "status": 503,
+                        "status": fault.status,
                         "detail": "injected by the test's proxy",
                         "instance": self.path,
                     }
                     retry_after = {} if fault.retry_after is None else {"Retry-After": fault.retry_after}
                     self._answer(
-                        503,
+                        fault.status,
                         {"Content-Type": "application/problem+json", **retry_after},
                         json.dumps(problem).encode(),
                     )

@@ -16,6 +16,7 @@ from keypoint_client import (
     KeypointClient,
     RetryPolicy,
     ServiceUnavailable,
+    TooManyRequests,
 )
 from keypoint_client.retry import retry_after_seconds
 
@@ -38,6 +39,21 @@ def test_503s_are_retried_after_retry_after(server: LiveServer, sample) -> None:
     assert len({s.request_id for s in proxy.seen}) == 1, "one call, one request id, on every attempt"
     waits = [later.at - earlier.at for earlier, later in zip(proxy.seen, proxy.seen[1:], strict=False)]
     assert all(1.0 <= wait < 1.0 + 2 * QUICK.backoff + 0.5 for wait in waits), waits
+
+
+def test_429s_are_retried_like_503s_and_end_in_their_own_error(server: LiveServer, sample) -> None:
+    image, instances = sample
+    busy = Unavailable("0", status=429)
+    with FaultyProxy(server.url, [busy]) as proxy, KeypointClient(proxy.url) as client:
+        assert client.predict(image, instances).instances
+    assert len(proxy.seen) == 2
+    with (
+        FaultyProxy(server.url, [busy] * 3) as proxy,
+        KeypointClient(proxy.url, retry=QUICK) as client,
+        pytest.raises(TooManyRequests) as refused,
+    ):
+        client.predict(image, instances)
+    assert refused.value.status == 429 and len(proxy.seen) == QUICK.attempts
 
 
 def test_attempts_are_bounded_and_end_in_a_typed_error(server: LiveServer, sample) -> None:
