@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.optimize import minimize
 
 from .camera import ray_frame
 from .membership import Pose, membership
@@ -98,6 +97,8 @@ def boundary_poses(
 
     The pose is x = (rotation vector, u), t = t_hat + step u with step a tenth of the distance, so
     that SLSQP sees radians and tenths of the depth on one scale."""
+    from scipy.optimize import minimize  # the `pose` extra (Clarabel needs SciPy): not at start-up
+
     objects = keypoints_3d.astype(np.float64)
     step = 0.1 * (float(np.linalg.norm(estimate.translation)) or 1.0)
     start = np.concatenate([to_rotation_vector(estimate.rotation), np.zeros(3)])

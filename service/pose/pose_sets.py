@@ -19,7 +19,7 @@ from service.errors import InvalidInput
 from .bounds import InnerBound, SampledPoses, boundary_poses, inner_bound, sample_poses_in_set
 from .estimate import pnp_on_centres, refine_into_set
 from .membership import Membership, Pose, membership
-from .relaxation import OuterBound, outer_bound
+from .relaxation import OuterBound, outer_bound, relaxation_available
 
 
 @dataclass(frozen=True)
@@ -124,7 +124,7 @@ def instance_pose_sets(
                 _least_violating(sampled.poses, camera, keypoints_3d, centers, shapes),
                 "sampled",
             )
-        if estimate is not None:
+        if estimate is not None and relaxation_available():  # the search needs the pose extra's SciPy
             boundary = boundary_poses(estimate, camera, keypoints_3d, centers, shapes)
             sampled = SampledPoses([*sampled.poses, *boundary], sampled.tried, len(boundary))
     note = _inner_note(bounded, options.samples)
