@@ -12,8 +12,9 @@ from __future__ import annotations
 import asyncio
 
 from starlette.requests import Request
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.types import Message, Receive, Scope, Send
 
+from service.api.http_middleware import HttpMiddleware
 from service.api.problems import problem
 from service.errors import Unavailable
 
@@ -23,16 +24,10 @@ CUT = Unavailable(
 )
 
 
-class AnswerCutRequests:
+class AnswerCutRequests(HttpMiddleware):
     """Turns the cancellation of a request whose response has not started into CUT's 503."""
 
-    def __init__(self, app: ASGIApp) -> None:
-        self.app = app
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
+    async def handle(self, scope: Scope, receive: Receive, send: Send) -> None:
         started = False
 
         async def send_noting_start(message: Message) -> None:

@@ -5,26 +5,21 @@ from __future__ import annotations
 import logging
 import time
 
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.types import Message, Receive, Scope, Send
 
+from service.api.http_middleware import HttpMiddleware
 from service.runtime.logs import ACCESS_LOGGER, current_request, log_fields
 from service.runtime.metrics import LATENCY, REQUESTS
 
 access_log = logging.getLogger(ACCESS_LOGGER)
 
 
-class MetricsMiddleware:
+class MetricsMiddleware(HttpMiddleware):
     """Counts and times every request under its route template (not the raw path), and logs
     its access line (CKS_ACCESS_LOG) with the raw path, the request id and, for a prediction,
     the calibration version that answered."""
 
-    def __init__(self, app: ASGIApp) -> None:
-        self.app = app
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
+    async def handle(self, scope: Scope, receive: Receive, send: Send) -> None:
         start = time.perf_counter()
         status = {"code": 500}
 

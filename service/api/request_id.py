@@ -6,8 +6,9 @@ import re
 import uuid
 
 from starlette.datastructures import Headers, MutableHeaders
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.types import Message, Receive, Scope, Send
 
+from service.api.http_middleware import HttpMiddleware
 from service.runtime.logs import begin_request
 
 HEADER = "X-Request-ID"
@@ -24,7 +25,7 @@ def request_id(presented: str | None) -> str:
     return uuid.uuid4().hex
 
 
-class RequestIdMiddleware:
+class RequestIdMiddleware(HttpMiddleware):
     """Makes the request's id the id of its log lines and returns it in ``X-Request-ID``.
 
     The context variable is not reset when the app returns: the server runs each request in
@@ -33,13 +34,7 @@ class RequestIdMiddleware:
     exception) still carry the id.
     """
 
-    def __init__(self, app: ASGIApp) -> None:
-        self.app = app
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
+    async def handle(self, scope: Scope, receive: Receive, send: Send) -> None:
         context = begin_request(request_id(Headers(scope=scope).get(HEADER)))
 
         async def send_with_id(message: Message) -> None:

@@ -175,6 +175,9 @@ def service(postgres_url: str, tmp_path: Path, samples_dir: Path, coco: dict) ->
     environ, sigterm = os.environ.copy(), signal.getsignal(signal.SIGTERM)
     # Ray's workers inherit the raylet's environment: they import this checkout's code.
     os.environ["PYTHONPATH"] = service_env(tmp_path)["PYTHONPATH"]
+    # Serve's controller gives its HTTP proxy 5 s to report ready, three times, then kills it: on a
+    # 2-core machine running the rest of the suite beside it, that start took longer (CI, 12:00).
+    os.environ["RAY_SERVE_PROXY_READY_CHECK_TIMEOUT_S"] = "60"
     # A cluster of the test's own ("local": never one found on the machine), on loopback.
     ray.init(address="local", num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1")
     try:
