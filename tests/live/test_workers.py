@@ -80,9 +80,13 @@ def test_metrics_sum_over_the_workers(two_workers: tuple[str, Path], samples: li
             assert predict_json(client, image, request).status_code == 200
 
     (folder,) = (data / "metrics").iterdir()  # one folder per serve process
-    served = {path.name: worker_predicts(path) for path in folder.glob("counter_*.db")}
-    assert len(served) == 2 and all(served.values()), f"both workers must have served: {served}"
-    assert sum(served.values()) == REQUESTS
+
+    def served() -> dict[str, float]:
+        return {path.name: worker_predicts(path) for path in folder.glob("counter_*.db")}
+
+    # A request is counted as its middleware finishes, just after its answer was sent.
+    wait_until(lambda: sum(served().values()) == REQUESTS, f"{REQUESTS} requests counted", timeout=10)
+    assert len(served()) == 2 and all(served().values()), f"both workers must have served: {served()}"
     for _ in range(6):  # whichever worker answers the scrape
         with httpx.Client(base_url=url, timeout=60) as client:
             text = client.get("/metrics").text
@@ -121,6 +125,13 @@ def test_with_several_workers_the_gauges_are_the_latest_audits(
     with LiveServer(tmp_path / "data", admin_token=ADMIN_TOKEN, workers=2) as live:
         run_audit(live, batch_zip(samples_dir, coco, images=4), epsilon=[0.05])
         latest = run_audit(live, batch_zip(samples_dir, coco, images=4), epsilon=[0.2])
+
+        def shows_only_the_latest() -> bool:  # the job reads succeeded just before its gauges are set
+            metrics = live.client.get("/metrics").text
+            values = re.findall(r'^cks_audit_coverage\{epsilon="([^"]+)".*\} (\S+)$', metrics, re.MULTILINE)
+            return {epsilon for epsilon, value in values if value != "NaN"} == {"0.2"}
+
+        wait_until(shows_only_the_latest, "the latest audit's gauges are published", timeout=10)
         for _ in range(4):  # whichever worker answers
             metrics = live.client.get("/metrics").text
             values = re.findall(r'^cks_audit_coverage\{epsilon="([^"]+)".*\} (\S+)$', metrics, re.MULTILINE)
