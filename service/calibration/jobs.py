@@ -487,6 +487,8 @@ class CalibrationJobs(DetectorJobs):
     ) -> dict[str, Any]:
         """Score the batch into a version (guardrails, store write, activation: one transaction)."""
         try:
+            if batch.duplicate_of is None:  # a twin accepted beside it may have been stored since
+                self._intake.duplicate_of(batch, options)  # 409 (the job fails) unless allowed
             outcome = create_version(
                 self._store,
                 self._detector,

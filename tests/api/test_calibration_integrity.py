@@ -119,6 +119,28 @@ def test_an_image_repeated_inside_a_batch_is_refused(
     assert problem["duplicates"] == len(copies)
 
 
+def test_identical_batches_sent_at_once_make_one_version(
+    named_server: InProcess, samples_dir: Path, coco: dict
+) -> None:
+    """The second is accepted while the first is being scored (jobs run one at a time), or refused
+    at once if the first was quicker: never two equal versions."""
+    body = zip_of(samples_dir, first_images(coco, 9, 12))
+    versions = named_server.versions()
+    answers = [upload(named_server, body, name=f"twin {i}") for i in (1, 2)]
+    assert answers[0].status_code == 202, answers[0].text
+    first = named_server.wait_job(answers[0].json()["id"])
+    assert first["state"] == "succeeded", first
+    if answers[1].status_code == 202:
+        twin = named_server.wait_job(answers[1].json()["id"])
+        assert (
+            twin["state"] == "failed"
+            and f"equal to calibration version {first['version']}" in twin["errors"][0]
+        )
+    else:
+        assert_problem(answers[1], 409, f"version {first['version']}")
+    assert named_server.versions() == [*versions, first["version"]]
+
+
 def test_identical_batches_are_refused_unless_allowed_with_a_reason(
     named_server: InProcess, samples_dir: Path, coco: dict
 ) -> None:
