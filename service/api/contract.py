@@ -33,7 +33,7 @@ _HEADERS: dict[str, dict[str, Any]] = {
     "WWW-Authenticate": {"description": "Bearer", "required": True, "schema": {"type": "string"}},
 }
 # The statuses whose answers carry each header besides X-Request-ID.
-_HEADER_STATUSES = {"Retry-After": {"429", "503", "507"}, "Location": {"202"}, "WWW-Authenticate": {"401"}}
+_HEADER_STATUSES = {"Retry-After": {"429", "503"}, "Location": {"202"}, "WWW-Authenticate": {"401"}}
 _VALIDATION_DEFAULT = "Validation Error"
 # Every operation takes the caller's request id (RequestIdMiddleware): any string is accepted.
 _REQUEST_ID_PARAMETER = {
