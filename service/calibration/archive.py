@@ -17,7 +17,6 @@ import shutil
 import stat
 import zipfile
 import zlib
-from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO, NamedTuple
@@ -112,13 +111,10 @@ class SavedUpload(NamedTuple):
 
 
 class UploadSink:
-    """Writes an upload to disk chunk by chunk, hashing it and enforcing a size limit.
+    """Writes an upload to disk chunk by chunk, hashing it and enforcing a size limit."""
 
-    Used by sync callers through ``save_upload`` and by the async admin route directly.
-    """
-
-    def __init__(self, dest_file: Path, max_bytes: int, setting: str = UPLOAD_BYTES_SETTING) -> None:
-        self._dest, self._max, self._setting = dest_file, max_bytes, setting
+    def __init__(self, dest_file: Path, max_bytes: int) -> None:
+        self._dest, self._max = dest_file, max_bytes
         self._digest, self._size = hashlib.sha256(), 0
         self._out: BinaryIO = open(dest_file, "wb")  # noqa: SIM115 - closed by finish/abort
 
@@ -127,7 +123,7 @@ class UploadSink:
         if self._size > self._max:
             self.abort()
             raise PayloadTooLarge(
-                f"the upload is larger than the limit of {self._max} bytes ({self._setting}); "
+                f"the upload is larger than the limit of {self._max} bytes ({UPLOAD_BYTES_SETTING}); "
                 "split the batch into smaller archives"
             )
         self._digest.update(chunk)
@@ -141,37 +137,6 @@ class UploadSink:
         """Close and delete the partial file."""
         self._out.close()
         self._dest.unlink(missing_ok=True)
-
-
-def save_upload(
-    source: Iterable[bytes] | BinaryIO,
-    dest_file: Path,
-    max_bytes: int,
-    *,
-    setting: str = UPLOAD_BYTES_SETTING,
-) -> SavedUpload:
-    """Stream ``source`` (chunks, or a binary file object) to ``dest_file``, hashing as it goes.
-
-    Refuses with ``PayloadTooLarge`` as soon as more than ``max_bytes`` arrive; on any
-    failure the partial file is deleted.
-    """
-    sink = UploadSink(dest_file, max_bytes, setting)
-    try:
-        for chunk in _chunks(source):
-            sink.write(chunk)
-    except BaseException:
-        sink.abort()
-        raise
-    return sink.finish()
-
-
-def _chunks(source: Iterable[bytes] | BinaryIO) -> Iterable[bytes]:
-    read = getattr(source, "read", None)
-    if read is None:
-        yield from source  # type: ignore[misc]
-        return
-    while chunk := read(CHUNK_BYTES):
-        yield chunk
 
 
 def extract_zip(zip_path: Path, dest: Path, limits: ArchiveLimits, disk: DiskBudget | None = None) -> Path:

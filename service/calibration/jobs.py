@@ -133,9 +133,6 @@ class JobProgress:
     def __init__(self, runner: JobRunner, job_id: str) -> None:
         self._runner, self._id = runner, job_id
 
-    def set_total(self, total: int) -> None:
-        self._runner._change(self._id, lambda job: replace(job, total=total))
-
     def advance(self, count: int = 1) -> None:
         """Count ``count`` more instances done; raises ``JobCancelled`` when the service is stopping."""
         self._runner._change(self._id, lambda job: replace(job, done=job.done + count))

@@ -7,7 +7,6 @@ import io
 import struct
 import warnings
 import zipfile
-from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import pytest
@@ -17,9 +16,9 @@ from service.calibration.archive import (
     ArchiveLimits,
     BudgetExceeded,
     SavedUpload,
+    UploadSink,
     copy_limited,
     extract_zip,
-    save_upload,
 )
 from service.errors import InvalidInput, PayloadTooLarge
 
@@ -285,34 +284,25 @@ class TestCopyLimited:
         assert copy_limited(io.BytesIO(b"abc"), out, 3) == 3 and out.getvalue() == b"abc"
 
 
-class TestSaveUpload:
-    def test_chunks(self, tmp_path: Path) -> None:
+class TestUploadSink:
+    def test_chunks_are_written_and_hashed(self, tmp_path: Path) -> None:
         chunks = [b"abc", b"", b"def" * 1000]
-        saved = save_upload(iter(chunks), tmp_path / "u.zip", 10_000)
-        assert saved == SavedUpload(3003, hashlib.sha256(b"".join(chunks)).hexdigest())
+        sink = UploadSink(tmp_path / "u.zip", 10_000)
+        for chunk in chunks:
+            sink.write(chunk)
+        assert sink.finish() == SavedUpload(3003, hashlib.sha256(b"".join(chunks)).hexdigest())
         assert (tmp_path / "u.zip").read_bytes() == b"".join(chunks)
 
-    def test_file_object(self, tmp_path: Path) -> None:
-        data = bytes(range(256)) * 10_000
-        size, sha = save_upload(io.BytesIO(data), tmp_path / "u.zip", len(data))
-        assert size == len(data) and sha == hashlib.sha256(data).hexdigest()
-
-    @pytest.mark.parametrize("source", [lambda: io.BytesIO(b"x" * 101), lambda: iter([b"x" * 60] * 2)])
-    def test_too_large(self, tmp_path: Path, source: Callable[[], Iterable[bytes]]) -> None:
+    def test_too_large(self, tmp_path: Path) -> None:
+        sink = UploadSink(tmp_path / "u.zip", 100)
+        sink.write(b"x" * 60)
         with pytest.raises(PayloadTooLarge) as info:
-            save_upload(source(), tmp_path / "u.zip", 100)
+            sink.write(b"x" * 60)
         assert "100 bytes" in info.value.detail and "CKS_MAX_UPLOAD_BYTES" in info.value.detail
         assert not (tmp_path / "u.zip").exists()
 
-    def test_setting_name_can_be_given(self, tmp_path: Path) -> None:
-        with pytest.raises(PayloadTooLarge, match="CKS_MAX_REQUEST_BYTES"):
-            save_upload([b"xx"], tmp_path / "u", 1, setting="CKS_MAX_REQUEST_BYTES")
-
-    def test_failing_source_removes_partial_file(self, tmp_path: Path) -> None:
-        def broken() -> Iterator[bytes]:
-            yield b"partial"
-            raise ConnectionResetError("client went away")
-
-        with pytest.raises(ConnectionResetError):
-            save_upload(broken(), tmp_path / "u.zip", 100)
+    def test_abort_removes_the_partial_file(self, tmp_path: Path) -> None:
+        sink = UploadSink(tmp_path / "u.zip", 100)
+        sink.write(b"partial")
+        sink.abort()
         assert not (tmp_path / "u.zip").exists()
