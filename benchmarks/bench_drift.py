@@ -60,14 +60,14 @@ if __package__ in (None, ""):
 
 from benchmarks.service_bench.breakdown import service_state  # noqa: E402
 from benchmarks.service_bench.inputs import load_sample  # noqa: E402
-from service.api.predict_input import predict_query  # noqa: E402
-from service.api.predict_presenter import predict_response  # noqa: E402
-from service.api.predict_schemas import PredictParameters  # noqa: E402
+from service.api.predict.predict_input import predict_query  # noqa: E402
+from service.api.predict.predict_presenter import predict_response  # noqa: E402
+from service.api.predict.predict_schemas import PredictParameters  # noqa: E402
 from service.detector.images import decode_image  # noqa: E402
+from service.infra.settings import Settings  # noqa: E402
 from service.monitoring.drift_monitor import DriftMonitor  # noqa: E402
 from service.prediction import calibrated_sets  # noqa: E402
-from service.runtime.container import ServiceState  # noqa: E402
-from service.runtime.settings import Settings  # noqa: E402
+from service.serving.container import ServiceState  # noqa: E402
 
 GOAL = 0.02
 KIND = "cov"

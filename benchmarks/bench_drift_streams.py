@@ -62,10 +62,10 @@ from benchmarks.service_bench.breakdown import service_state  # noqa: E402
 from calibration_store import ScoreTable  # noqa: E402
 from service.calibration.bundle import BUNDLE_FILENAME, load_bundle  # noqa: E402
 from service.conformal import HeatmapStatistics  # noqa: E402
+from service.infra.settings import Settings  # noqa: E402
 from service.monitoring.drift_monitor import DriftMonitor, DriftSettings  # noqa: E402
 from service.monitoring.looks import Frame  # noqa: E402
 from service.prediction import calibrated_sets  # noqa: E402
-from service.runtime.settings import Settings  # noqa: E402
 from training.coco import ANNOTATIONS_FILENAME, read_coco  # noqa: E402
 from training.generate import generate  # noqa: E402
 from training.streams import SHIFTS  # noqa: E402

@@ -32,7 +32,7 @@ from benchmarks.service_bench.machine import this_machine
 from benchmarks.service_bench.report import MEMORY_GOAL
 from benchmarks.service_bench.runs import Memory
 from benchmarks.service_bench.server import serve
-from service.runtime.settings import Settings
+from service.infra.settings import Settings
 
 Body = tuple[bytes, str]  # (request body, content type)
 

@@ -34,7 +34,7 @@ from benchmarks.service_bench import page
 from benchmarks.service_bench.inputs import load_sample
 from benchmarks.service_bench.loadgen import require_wrk, run_wrk
 from benchmarks.service_bench.machine import this_machine
-from service.runtime.settings import DEFAULT_MODEL_DIR
+from service.infra.settings import DEFAULT_MODEL_DIR
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OUTPUT = ROOT / "docs" / "performance.md"

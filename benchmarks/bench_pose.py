@@ -36,16 +36,16 @@ import numpy as np
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from service.api.predict_input import predict_query  # noqa: E402
-from service.api.predict_presenter import predict_response  # noqa: E402
-from service.api.predict_schemas import BallSet, EllipseSet, PredictParameters  # noqa: E402
+from service.api.predict.predict_input import predict_query  # noqa: E402
+from service.api.predict.predict_presenter import predict_response  # noqa: E402
+from service.api.predict.predict_schemas import BallSet, EllipseSet, PredictParameters  # noqa: E402
+from service.infra.settings import Settings  # noqa: E402
 from service.pose import Pose, membership  # noqa: E402
 from service.pose.bounds import SampledPoses, boundary_poses, inner_bound, sample_poses_in_set  # noqa: E402
 from service.pose.estimate import pnp_on_centres, refine_into_set  # noqa: E402
 from service.pose.relaxation import outer_bound  # noqa: E402
 from service.pose.rotations import rotation_angle_deg  # noqa: E402
-from service.runtime.container import build_state  # noqa: E402
-from service.runtime.settings import Settings  # noqa: E402
+from service.serving.container import build_state  # noqa: E402
 
 
 def set_arrays(keypoints) -> tuple[np.ndarray, np.ndarray]:

@@ -24,7 +24,7 @@ from benchmarks.service_bench.loadgen import require_wrk
 from benchmarks.service_bench.machine import this_machine
 from service.detector.manifest import load_manifest
 from service.detector.session import file_sha256
-from service.runtime.settings import DEFAULT_MODEL_DIR, Settings
+from service.infra.settings import DEFAULT_MODEL_DIR, Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OUTPUT = ROOT / "docs" / "performance.md"

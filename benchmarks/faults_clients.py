@@ -51,7 +51,7 @@ import numpy as np
 from benchmarks.service_bench.server import Server, serve
 from calibration_store import open_store
 from service.detector.images import PNG_SIGNATURE, decoded_bytes, read_image_header
-from service.runtime.settings import DEFAULT_MODEL_DIR, Settings
+from service.infra.settings import DEFAULT_MODEL_DIR, Settings
 
 SAMPLES_DIR = DEFAULT_MODEL_DIR / "samples"
 ADMIN_TOKEN = "bench-admin-token-0123456789"

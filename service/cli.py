@@ -18,8 +18,8 @@ from pydantic import ValidationError
 from calibration_store import StoreError, store_location
 from service import __version__
 from service.errors import InvalidInput, ServiceError
-from service.runtime.logs import configure_logging
-from service.runtime.settings import Settings
+from service.infra.logs import configure_logging
+from service.infra.settings import Settings
 
 
 def _serve(args: argparse.Namespace, settings: Settings) -> int:
@@ -27,11 +27,11 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
     from service.calibration.bundle import bootstrap_default_calibration
     from service.calibration.stratification import difficulty_spec
     from service.detector.session import Detector
-    from service.runtime.container import detector_providers
-    from service.runtime.metrics import enable_multiprocess
-    from service.runtime.operators import load_operators
-    from service.runtime.processes import remove_dead_process_folders
-    from service.runtime.server import serve
+    from service.infra.metrics import enable_multiprocess
+    from service.infra.operators import load_operators
+    from service.infra.processes import remove_dead_process_folders
+    from service.serving.container import detector_providers
+    from service.serving.server import serve
 
     host, port = args.host or settings.server.host, args.port or settings.server.port
     _check_port(host, port)
@@ -81,8 +81,8 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     from service.calibration.stratification import difficulty_spec, parse_stratify
     from service.calibration.versions import VersionRules, create_version
     from service.detector.session import Detector
-    from service.runtime.audit_trail import AuditTrail, Operator
-    from service.runtime.container import detector_providers
+    from service.infra.audit_trail import AuditTrail, Operator
+    from service.serving.container import detector_providers
 
     stratify = None if args.stratify is None else parse_stratify(args.stratify)
     options = UploadOptions(
@@ -148,8 +148,8 @@ def _predict(args: argparse.Namespace, settings: Settings) -> int:
 
     from keypoint_client import ConnectionFailed, KeypointClient, PoseRequest, ProblemError
 
-    from service.api.predict_schemas import PredictParameters
-    from service.runtime.loopback import served
+    from service.api.predict.predict_schemas import PredictParameters
+    from service.serving.loopback import served
 
     image = Path(args.image).read_bytes()
     options = {
@@ -236,7 +236,7 @@ def _check_model(args: argparse.Namespace, settings: Settings) -> int:
 
 
 def _export_openapi(args: argparse.Namespace, settings: Settings) -> int:
-    from service.api.openapi import openapi_document
+    from service.serving.openapi import openapi_document
 
     return _write_json(openapi_document(), args.output)
 
@@ -498,7 +498,7 @@ def main(argv: list[str] | None = None) -> int:
     if quiet:  # the pool's warning at each retry to reach PostgreSQL, before the error line says so
         logging.getLogger("psycopg.pool").setLevel(logging.ERROR)
     from service.detector.session import ModelMismatch
-    from service.runtime.operators import OperatorsError
+    from service.infra.operators import OperatorsError
 
     try:
         return args.run(args, settings)

@@ -26,9 +26,9 @@ from ray.serve import Application
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from calibration_store import store_location
-from service.api.app import create_app
-from service.runtime.processes import remove_dead_process_folders
-from service.runtime.settings import Settings
+from service.infra.processes import remove_dead_process_folders
+from service.infra.settings import Settings
+from service.serving.app import create_app
 
 APP_NAME = "keypoints"
 DEPLOYMENT_NAME = "KeypointService"

@@ -1,5 +1,5 @@
 """The predict use case: image bytes and a query in, calibrated sets, guarantees and pose sets
-out (``Predictor.predict``; service/api/predict_presenter.py turns them into the response body).
+out (``Predictor.predict``; service/api/predict/predict_presenter.py turns them into the response body).
 
 Scores live in heatmap coordinates (scale-free across object sizes); sets are mapped to
 image pixels through each instance's crop affine.

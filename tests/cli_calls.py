@@ -14,7 +14,7 @@ from typing import Any
 from unittest import mock
 
 from service.cli import main
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
 from tests.live.server import cli, service_env
 
 

@@ -7,7 +7,7 @@ import re
 import shlex
 from pathlib import Path
 
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
 
 README = PACKAGE_ROOT / "README.md"
 FENCED_BASH = re.compile(r"^```bash\n(.*?)^```", re.MULTILINE | re.DOTALL)

@@ -11,7 +11,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from service.runtime.settings import Settings
+from service.infra.settings import Settings
 
 
 def model_dir() -> Path:

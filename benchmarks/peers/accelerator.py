@@ -11,7 +11,7 @@ import os
 import shutil
 import subprocess
 
-from service.runtime.settings import Settings
+from service.infra.settings import Settings
 
 CUDA = "CUDAExecutionProvider"
 #: the model on the GPU; the service gives CUDA full fp32 and heuristic cuDNN algorithms

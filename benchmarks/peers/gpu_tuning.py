@@ -21,7 +21,7 @@ from benchmarks.peers.measure import Requests
 from benchmarks.service_bench.inputs import load_sample
 from benchmarks.service_bench.loadgen import require_wrk, run_wrk
 from benchmarks.service_bench.server import serve
-from service.runtime.settings import DEFAULT_MODEL_DIR
+from service.infra.settings import DEFAULT_MODEL_DIR
 
 POINTS = ((1, 1), (1, 4), (1, 16), (4, 16))  # (boxes, concurrency)
 SECONDS = 4

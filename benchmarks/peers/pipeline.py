@@ -22,8 +22,8 @@ from service.detector.images import decode_image
 from service.detector.manifest import MODEL_FILENAME, load_manifest
 from service.detector.preprocess import build_batch
 from service.detector.session import create_session, instance_heatmaps
+from service.infra.settings import DEFAULT_MODEL_DIR
 from service.prediction import calibrated_sets
-from service.runtime.settings import DEFAULT_MODEL_DIR
 
 #: the README's request: ``cov`` sets, keypoint coverage, epsilon 0.1
 KIND, SCOPE, EPSILON = "cov", "keypoint", 0.1

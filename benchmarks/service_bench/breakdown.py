@@ -21,15 +21,15 @@ import numpy as np
 
 from benchmarks.service_bench.inputs import Sample
 from service import prediction
-from service.api.predict_input import predict_query  # noqa: E402
-from service.api.predict_presenter import predict_json  # noqa: E402
-from service.api.predict_schemas import PredictParameters
+from service.api.predict.predict_input import predict_query  # noqa: E402
+from service.api.predict.predict_presenter import predict_json  # noqa: E402
+from service.api.predict.predict_schemas import PredictParameters
 from service.detector.images import decode_image
 from service.detector.preprocess import build_batch
 from service.detector.session import Detector, InstanceHeatmaps
+from service.infra.settings import Settings
 from service.prediction import CalibratedSets, calibrated_sets
-from service.runtime.container import ServiceState, build_state
-from service.runtime.settings import Settings
+from service.serving.container import ServiceState, build_state
 
 STAGES = ("decode", "crop", "inference", "sets", "response", "json")
 

@@ -33,7 +33,7 @@ from service.detector.manifest import (
     OutputSpec,
     load_manifest,
 )
-from service.runtime.settings import DEFAULT_MODEL_DIR
+from service.infra.settings import DEFAULT_MODEL_DIR
 from training.export import export_onnx, max_difference
 from training.manifest import IMAGENET_MEAN, IMAGENET_STD, write_manifest
 

@@ -12,20 +12,19 @@ from fastapi import Depends, HTTPException, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from calibration_store import CalibrationStore
-from service.api.request_body import BodyPace, read_limited_body
+from service.api.http.admission import Admission
+from service.api.http.clients import ClientKeys
+from service.api.http.request_body import BodyPace, read_limited_body
 from service.calibration.jobs import CalibrationJobs, JobRunner
 from service.calibration.registry import CalibrationRegistry
 from service.detector.manifest import Manifest
 from service.detector.session import Detector
+from service.infra.audit_trail import AuditTrail, Operator
+from service.infra.operators import operator_named
+from service.infra.settings import Settings
 from service.monitoring.coverage_audits import CoverageAudits
 from service.monitoring.drift_monitor import DriftMonitor
 from service.prediction import Predictor
-from service.runtime.admission import Admission
-from service.runtime.audit_trail import AuditTrail, Operator
-from service.runtime.clients import ClientKeys
-from service.runtime.container import ServiceState
-from service.runtime.operators import operator_named
-from service.runtime.settings import Settings
 
 _bearer = HTTPBearer(auto_error=False, description="CKS_ADMIN_TOKEN, or a token of CKS_ADMIN_TOKENS_FILE")
 
@@ -66,29 +65,13 @@ class PredictParts:
     pace: BodyPace
     clients: ClientKeys
 
-    @classmethod
-    def of(cls, state: ServiceState) -> PredictParts:
-        settings = state.settings
-        pace = BodyPace.from_settings(
-            settings, settings.predict.request_read_timeout_seconds, "CKS_REQUEST_READ_TIMEOUT_SECONDS"
-        )
-        return cls(
-            state.predictor,
-            state.admission,
-            state.cpu_pool,
-            settings.predict.max_request_bytes,
-            settings.predict.max_batch_images,
-            pace,
-            ClientKeys(state.operators, settings.predict.client_header, settings.predict.trusted_proxies),
-        )
-
     @property
     def manifest(self) -> Manifest:
         """The served model's: a request naming another object is told so with its other problems."""
         return self.predictor.detector.manifest
 
     def client_of(self, request: Request) -> str:
-        """Whose share of the admission places this request takes (service.runtime.clients)."""
+        """Whose share of the admission places this request takes (service.api.http.clients)."""
         return self.clients.of(request.client.host if request.client else None, request.headers)
 
     async def receive(self, request: Request) -> bytes:

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, BinaryIO, NamedTuple
 from service.errors import InsufficientStorage, InvalidInput, PayloadTooLarge
 
 if TYPE_CHECKING:
-    from service.runtime.settings import Settings
+    from service.infra.settings import Settings
 
 ANNOTATIONS_FILENAME = "annotations.json"
 CHUNK_BYTES = 1 << 20

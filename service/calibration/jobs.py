@@ -60,9 +60,9 @@ from service.errors import (
     Unavailable,
     disk_full_refused,
 )
-from service.runtime.audit_trail import AuditTrail, Operator, written
-from service.runtime.metrics import CALIBRATION_JOBS
-from service.runtime.processes import process_owner
+from service.infra.audit_trail import AuditTrail, Operator, written
+from service.infra.metrics import CALIBRATION_JOBS
+from service.infra.processes import process_owner
 
 log = logging.getLogger(__name__)
 JOB_KIND = "calibration"

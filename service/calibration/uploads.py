@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from calibration_store import CalibrationStore, JobRecord, StoreError
-from service.runtime.processes import process_folder
+from service.infra.processes import process_folder
 
 log = logging.getLogger(__name__)
 

@@ -42,8 +42,8 @@ from service.conformal.strata import DifficultySpec
 from service.detector.manifest import Manifest
 from service.detector.session import Detector
 from service.errors import Conflict, InvalidInput, NotFound
-from service.runtime.audit_trail import AuditTrail, Operator, written
-from service.runtime.metrics import CALIBRATION_INSTANCES
+from service.infra.audit_trail import AuditTrail, Operator, written
+from service.infra.metrics import CALIBRATION_INSTANCES
 
 #: rejections listed in a job's result (the count is always given)
 LISTED_REJECTIONS = 50

@@ -17,7 +17,7 @@ import onnxruntime as ort
 from service.detector.manifest import MODEL_FILENAME, Manifest, ManifestError, load_manifest
 from service.detector.preprocess import build_batch
 from service.errors import InvalidInput
-from service.runtime.metrics import BATCH_SIZE, INFERENCE_SECONDS
+from service.infra.metrics import BATCH_SIZE, INFERENCE_SECONDS
 
 CPU = ("CPUExecutionProvider",)
 #: Options the service gives a provider unless CKS_EXECUTION_PROVIDER_OPTIONS says otherwise.

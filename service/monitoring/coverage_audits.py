@@ -34,9 +34,8 @@ from service.calibration.jobs import DetectorJobs, JobProgress, new_job_id
 from service.calibration.scoring import NONCONFORMITY_KINDS, ScoreAccumulator, score_batch
 from service.calibration.uploads import UploadWorkspace
 from service.errors import Conflict, InvalidInput
-from service.monitoring.audit_report import DEFAULT_EPSILONS, ThresholdLookup, audit_report
-from service.runtime.audit_trail import Operator
-from service.runtime.metrics import (
+from service.infra.audit_trail import Operator
+from service.infra.metrics import (
     AUDIT_BAND_HIGH,
     AUDIT_BAND_LOW,
     AUDIT_COVERAGE,
@@ -44,6 +43,7 @@ from service.runtime.metrics import (
     AUDIT_LATEST,
     MULTIPROCESS_ENV,
 )
+from service.monitoring.audit_report import DEFAULT_EPSILONS, ThresholdLookup, audit_report
 
 log = logging.getLogger(__name__)
 JOB_KIND = "audit"

@@ -20,8 +20,8 @@ from typing import Any
 
 from fastapi.testclient import TestClient
 
-from service.api.app import create_app
-from service.runtime.settings import Settings
+from service.infra.settings import Settings
+from service.serving.app import create_app
 from tests.samples import load_samples, model_dir, samples_by_image
 
 RECORDED = Path(__file__).with_name("answers_before.json.gz")

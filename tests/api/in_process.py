@@ -8,8 +8,8 @@ from typing import Any
 
 from fastapi.testclient import TestClient
 
-from service.api.app import create_app
-from service.runtime.settings import Settings
+from service.infra.settings import Settings
+from service.serving.app import create_app
 from tests.samples import model_dir
 from tests.service_calls import ServiceCalls
 
@@ -24,7 +24,7 @@ class LogLines(logging.Handler):
     """The service's log records at INFO and above while attached, as lines: what a server logs.
 
     pytest's handlers on the root logger keep the service from configuring logging in process
-    (service/runtime/logs.py ensure_logging), which would set these loggers to INFO as a server does.
+    (service/infra/logs.py ensure_logging), which would set these loggers to INFO as a server does.
     """
 
     LOGGERS = ("service", "calibration_store")

@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
 from tests.api.in_process import InProcess
 from tests.service_calls import assert_problem
 

@@ -15,7 +15,7 @@ from fractions import Fraction
 
 import pytest
 
-from service.api.predict_schemas import BetaLaw, Guarantee
+from service.api.predict.predict_schemas import BetaLaw, Guarantee
 from service.conformal import beta_cdf
 from tests.api.in_process import InProcess
 from tests.predict_client import predict_ok

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import json
 
-from service.api.openapi import openapi_document
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
+from service.serving.openapi import openapi_document
 
 COMMITTED = PACKAGE_ROOT / "openapi" / "openapi.json"
 

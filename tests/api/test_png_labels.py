@@ -9,8 +9,8 @@ from itertools import combinations
 import cv2
 import numpy as np
 
-from service.api.predict_schemas import PredictResponse
-from service.api.render import layout_labels
+from service.api.predict.predict_schemas import PredictResponse
+from service.api.predict.render import layout_labels
 from tests.api.in_process import InProcess
 from tests.readme import predict_example
 

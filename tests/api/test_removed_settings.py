@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from service.api.app import create_app
-from service.runtime.settings import Settings
+from service.infra.settings import Settings
+from service.serving.app import create_app
 
 
 def test_a_removed_setting_still_set_is_named_with_what_replaced_it(

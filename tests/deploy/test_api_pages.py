@@ -25,7 +25,7 @@ from playwright.sync_api import (
     Route,
 )
 
-from service.api.app import DOCS_CONTENT_SECURITY_POLICY, DOCS_PAGES
+from service.serving.app import DOCS_CONTENT_SECURITY_POLICY, DOCS_PAGES
 from tests.live.server import LiveServer
 
 pytestmark = pytest.mark.browser

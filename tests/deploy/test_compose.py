@@ -9,7 +9,7 @@ from pathlib import Path
 
 import yaml
 
-from service.runtime.settings import PACKAGE_ROOT, Settings
+from service.infra.settings import PACKAGE_ROOT, Settings
 
 COMPOSE = PACKAGE_ROOT / "deploy" / "compose"
 

@@ -18,8 +18,8 @@ from urllib.parse import urlsplit
 import pytest
 from playwright.sync_api import Browser, BrowserContext, ConsoleMessage
 
-from service.api.routes.console import CONSOLE_CONTENT_SECURITY_POLICY
-from service.runtime.settings import PACKAGE_ROOT
+from service.api.monitoring.console_routes import CONSOLE_CONTENT_SECURITY_POLICY
+from service.infra.settings import PACKAGE_ROOT
 from tests.api.test_audits import run_audit, shifted
 from tests.deploy.test_api_pages import RECORD_POLICY_VIOLATIONS, Watch, open_page, watched_context
 from tests.live.server import LiveServer

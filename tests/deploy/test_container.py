@@ -17,7 +17,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
 from tests.deploy.buildah import Container, build, image_bytes, image_config, missing_tools, process_uid
 from tests.live.server import LiveServer, free_port
 from tests.readme import predict_example

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from service.runtime.settings import PACKAGE_ROOT, Settings
+from service.infra.settings import PACKAGE_ROOT, Settings
 
 DOCKERFILE = PACKAGE_ROOT / "Dockerfile"
 

@@ -22,9 +22,9 @@ import pytest
 import yaml
 
 from service import __version__
-from service.api.openapi import openapi_document
-from service.runtime.operators import load_operators
-from service.runtime.settings import PACKAGE_ROOT, Settings
+from service.infra.operators import load_operators
+from service.infra.settings import PACKAGE_ROOT, Settings
+from service.serving.openapi import openapi_document
 from tests.deploy import kubernetes_schemas
 
 K8S = PACKAGE_ROOT / "deploy" / "k8s"

@@ -43,7 +43,7 @@ from service.deploy_ray import (
     application,
     build_app,
 )
-from service.runtime.settings import PACKAGE_ROOT, Settings
+from service.infra.settings import PACKAGE_ROOT, Settings
 from tests.live.server import free_port, service_env
 from tests.predict_client import instances_of, predict_json
 from tests.samples import batch_zip, count_instances, load_samples, samples_by_image

@@ -14,7 +14,7 @@ import pytest
 from setuptools.config.pyprojecttoml import read_configuration
 
 from service import __version__
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
 from tests.live.server import LiveServer
 
 PYPROJECT = PACKAGE_ROOT / "pyproject.toml"
@@ -38,7 +38,14 @@ def test_the_package_version_is_service_version() -> None:
 @pytest.mark.filterwarnings("ignore:`\\[tool.setuptools.ext-modules\\]`")
 def test_the_wheel_holds_the_server_not_the_training_code() -> None:
     packages = read_configuration(PYPROJECT, expand=True)["tool"]["setuptools"]["packages"]
-    assert {"service", "service.runtime", "calibration_store", "keypoint_client"} <= set(packages)
+    assert {
+        "service",
+        "service.infra",
+        "service.serving",
+        "service.api.predict",
+        "calibration_store",
+        "keypoint_client",
+    } <= set(packages)
     assert not [name for name in packages if name.split(".")[0] in ("training", "tests", "benchmarks")]
 
 

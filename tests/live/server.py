@@ -22,7 +22,7 @@ from typing import Any
 import httpx
 
 from benchmarks import faults_clients
-from service.runtime.settings import PACKAGE_ROOT, Settings
+from service.infra.settings import PACKAGE_ROOT, Settings
 from tests.samples import model_dir
 from tests.service_calls import ServiceCalls
 

@@ -11,9 +11,9 @@ import cv2
 import numpy as np
 
 from calibration_store import open_store
-from service.api.predict_schemas import PoseOut, PredictResponse
+from service.api.predict.predict_schemas import PoseOut, PredictResponse
 from service.detector.session import file_sha256
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
 from tests.live.server import LiveServer, cli, free_port, service_env
 from tests.predict_client import predict_json
 from tests.samples import Sample, count_instances, samples_by_image

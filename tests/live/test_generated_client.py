@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
 from tests.live.server import LiveServer
 from tests.predict_client import instances_of
 from tests.samples import Sample, batch_zip, samples_by_image

@@ -15,7 +15,7 @@ from typing import Any
 import httpx
 import pytest
 
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
 from tests.live.server import LiveServer, cli, free_port, service_env
 from tests.predict_client import instances_of, predict_multipart
 from tests.samples import Sample, batch_zip, samples_by_image
@@ -120,10 +120,10 @@ def test_uvicorn_start_up_lines_are_in_the_service_format(text_server: LiveServe
     assert any(message.startswith("Started server process") for message in uvicorn), lines
     assert "Application startup complete." in uvicorn
     assert any(
-        line["logger"] == "service.runtime.container" and "serving model" in line["message"] for line in lines
+        line["logger"] == "service.serving.container" and "serving model" in line["message"] for line in lines
     )
     outside_requests = [
-        line for line in lines if line["logger"] in ("uvicorn.error", "service.runtime.container")
+        line for line in lines if line["logger"] in ("uvicorn.error", "service.serving.container")
     ]
     assert all(line["request_id"] == "-" for line in outside_requests), outside_requests
     assert not any(line["logger"] == "uvicorn.access" for line in lines), "uvicorn's own access log is on"

@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 from service.detector.session import file_sha256
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
 from tests.live.server import LiveServer, cli, service_env
 from tests.live.test_model_mismatch import run_until_exit
 from tests.predict_client import instances_of, predict_ok

@@ -7,7 +7,7 @@ import re
 from pathlib import Path
 
 from service.detector.manifest import manifest_json_schema
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
 from tests.live.server import cli, service_env
 from tests.live.test_model_mismatch import run_until_exit
 

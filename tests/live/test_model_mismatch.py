@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from service.detector.session import Detector, ModelMismatch
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
 from tests.live.server import cli, free_port, service_env
 
 
@@ -111,7 +111,7 @@ def test_uvicorn_exits_non_zero_naming_the_mismatch(model_path: Path, tmp_path: 
         sys.executable,
         "-m",
         "uvicorn",
-        "service.api.main:app",
+        "service.serving.main:app",
         "--host",
         "127.0.0.1",
         "--port",

@@ -11,7 +11,7 @@ import pytest
 from pydantic import ValidationError
 
 from benchmarks.faults_clients import predict, sample_request
-from service.runtime.settings import Settings
+from service.infra.settings import Settings
 from tests.cli_calls import assert_one_line_error, run
 from tests.live.server import LiveServer, free_port
 from tests.unit.detector.test_providers import missing_provider

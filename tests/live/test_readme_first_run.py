@@ -17,7 +17,7 @@ import subprocess
 import time
 from pathlib import Path
 
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
 from tests.live.server import LiveServer
 from tests.readme import bash_blocks, commands_and_outputs, section, shows
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
 from tests.live.server import LiveServer
 from tests.service_calls import ADMIN_TOKEN
 

@@ -22,7 +22,7 @@ from service.calibration.bundle import bootstrap_default_calibration
 from service.calibration.registry import CalibrationRegistry
 from service.detector.session import Detector
 from service.errors import StoreUnreachable
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
 from tests.live.server import cli, free_port, service_env
 from tests.postgres_cluster import PostgresCluster
 from tests.predict_client import predict_json

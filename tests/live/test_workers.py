@@ -17,7 +17,7 @@ import httpx
 import pytest
 from prometheus_client.mmap_dict import MmapedDict
 
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
 from tests.api.test_audits import run_audit
 from tests.live.server import LiveServer, cli, free_port, service_env
 from tests.predict_client import instances_of, predict_json, predict_ok

@@ -16,9 +16,9 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service import __version__
-from service.api.app import create_app
 from service.cli import EXAMPLES
-from service.runtime.settings import Settings
+from service.infra.settings import Settings
+from service.serving.app import create_app
 from tests.cli_calls import assert_one_line_error, run, run_installed
 from tests.live.server import free_port
 

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import pytest
 
-from service.runtime.settings import README, Settings, readme_with_table
+from service.infra.settings import README, Settings, readme_with_table
 
 
 def test_the_readme_settings_table_is_made_from_the_fields():
     text = README.read_text(encoding="utf-8")
-    assert readme_with_table(text) == text, "run python -m service.runtime.settings to write the table anew"
+    assert readme_with_table(text) == text, "run python -m service.infra.settings to write the table anew"
     missing = [name for name in Settings.fields() if f"| `CKS_{name.upper()}` |" not in text]
     assert not missing
 

@@ -25,7 +25,7 @@ from PIL import Image
 from benchmarks.faults_clients import flat_png, png_chunk
 from service.detector.images import PNG_SIGNATURE, decode_image, decoded_bytes, read_image_header
 from service.errors import InvalidInput, PayloadTooLarge
-from service.runtime.settings import PACKAGE_ROOT, Settings
+from service.infra.settings import PACKAGE_ROOT, Settings
 
 LIMIT = 10**8
 MiB = 2**20

@@ -1,4 +1,4 @@
-"""Fair shares of admission (service.runtime.admission) and who a client is (service.runtime.clients)."""
+"""Fair shares of admission (service.api.http.admission) and who a client is (service.api.http.clients)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ from contextlib import AsyncExitStack
 
 import pytest
 
-from service.runtime.admission import Admission, Overloaded, OverShare
-from service.runtime.clients import ClientKeys
+from service.api.http.admission import Admission, Overloaded, OverShare
+from service.api.http.clients import ClientKeys
 
 
 def test_a_client_alone_may_take_every_place() -> None:

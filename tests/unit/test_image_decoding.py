@@ -21,7 +21,7 @@ from PIL import Image
 from service.detector import images as image_decoding
 from service.detector.images import ImageHeader, decode_image, read_image_header
 from service.errors import InvalidInput, PayloadTooLarge, UnsupportedMediaType
-from service.runtime.settings import DEFAULT_MODEL_DIR
+from service.infra.settings import DEFAULT_MODEL_DIR
 
 LIMIT = 10_000_000
 SAMPLES = sorted((DEFAULT_MODEL_DIR / "samples" / "images").glob("*.jpg"))

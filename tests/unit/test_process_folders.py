@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from service.calibration.uploads import UploadWorkspace, process_uploads_dir
-from service.runtime.processes import remove_dead_process_folders
+from service.infra.processes import remove_dead_process_folders
 
 
 def dead_pid() -> int:
@@ -50,12 +50,12 @@ def test_gauges_of_a_killed_worker_leave_the_multiprocess_sums(tmp_path: Path, m
     """A worker SIGKILLed while a request was in flight must not leave a permanent offset."""
     import signal
 
-    from service.runtime.metrics import MULTIPROCESS_ENV, metrics_payload
+    from service.infra.metrics import MULTIPROCESS_ENV, metrics_payload
 
     env = {**os.environ, MULTIPROCESS_ENV: str(tmp_path)}
     code = (
         "import os, signal, sys\n"
-        "from service.runtime.metrics import PREDICT_IN_FLIGHT\n"
+        "from service.infra.metrics import PREDICT_IN_FLIGHT\n"
         "PREDICT_IN_FLIGHT.inc()\n"
         "sys.stdout.write('ready\\n'); sys.stdout.flush()\n"
         "signal.pause()\n"

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import re
 
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
 
 README = PACKAGE_ROOT / "README.md"
 CI_SCRIPT = PACKAGE_ROOT / ".ci" / "run"

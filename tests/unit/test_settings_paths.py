@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from service.runtime.operators import OperatorsError, load_operators
-from service.runtime.settings import Settings
+from service.infra.operators import OperatorsError, load_operators
+from service.infra.settings import Settings
 
 
 def test_relative_paths_are_resolved_against_the_starting_directory(

@@ -12,7 +12,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
 
 CLIENT_ROOT = PACKAGE_ROOT / "client"
 sys.path.insert(0, str(CLIENT_ROOT))

@@ -11,7 +11,7 @@ import pytest
 from keypoint_client import calls
 from pydantic import BaseModel
 
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
 
 COMPONENTS = json.loads((PACKAGE_ROOT / "openapi" / "openapi.json").read_text())["components"]["schemas"]
 MIRRORS: dict[str, type[BaseModel]] = {

@@ -5,7 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
-from service.runtime.settings import PACKAGE_ROOT
+from service.infra.settings import PACKAGE_ROOT
 from tests.live.client.conftest import CLIENT_ROOT
 
 

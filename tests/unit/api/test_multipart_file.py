@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from service.api.multipart_file import FilePart
+from service.api.http.multipart_file import FilePart
 from service.errors import InvalidInput
 
 ZIP = bytes(range(256)) * 40  # any bytes, CR and LF included

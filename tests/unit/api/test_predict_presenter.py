@@ -13,11 +13,11 @@ from pathlib import Path
 
 import pytest
 
-from service.api.predict_input import predict_query
-from service.api.predict_presenter import predict_body, predict_json, predict_response
-from service.api.predict_schemas import PredictParameters, PredictResponse
-from service.runtime.container import ServiceState, build_state
-from service.runtime.settings import Settings
+from service.api.predict.predict_input import predict_query
+from service.api.predict.predict_presenter import predict_body, predict_json, predict_response
+from service.api.predict.predict_schemas import PredictParameters, PredictResponse
+from service.infra.settings import Settings
+from service.serving.container import ServiceState, build_state
 
 
 @pytest.fixture(scope="module")

@@ -23,7 +23,7 @@ from benchmarks.service_bench import page
 from benchmarks.service_bench.inputs import load_sample
 from benchmarks.service_bench.loadgen import LoadResult
 from benchmarks.service_bench.machine import Machine
-from service.runtime.settings import DEFAULT_MODEL_DIR
+from service.infra.settings import DEFAULT_MODEL_DIR
 
 PEER = {peer.name: peer for peer in PEERS}
 

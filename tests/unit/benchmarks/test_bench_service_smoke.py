@@ -14,7 +14,7 @@ from benchmarks.service_bench.loadgen import LoadResult, parse_wrk
 from benchmarks.service_bench.machine import Machine
 from benchmarks.service_bench.offline import Calibration, PostProcessing
 from benchmarks.service_bench.raw import RawResult
-from service.runtime.settings import Settings
+from service.infra.settings import Settings
 
 WRK_OUTPUT = """\
 Running 2s test @ http://127.0.0.1:40000/v1/predict

@@ -24,7 +24,7 @@ from service.calibration.archive import (
     extract_zip,
 )
 from service.errors import PayloadTooLarge, ServiceError
-from service.runtime.settings import Settings
+from service.infra.settings import Settings
 
 MiB = 2**20
 BOMB = 64 * MiB

@@ -21,7 +21,7 @@ from service.detector.manifest import (
     load_manifest,
     validate_manifest,
 )
-from service.runtime.settings import DEFAULT_MODEL_DIR
+from service.infra.settings import DEFAULT_MODEL_DIR
 
 SOURCE = "model/manifest.json"
 

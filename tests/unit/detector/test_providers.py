@@ -8,7 +8,7 @@ import pytest
 
 from service.detector.session import Detector, _check_providers_loaded, provider_entry, session_providers
 from service.errors import InvalidInput
-from service.runtime.settings import DEFAULT_MODEL_DIR
+from service.infra.settings import DEFAULT_MODEL_DIR
 
 CPU = "CPUExecutionProvider"
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from service.detector.session import Detector, usable_cores
-from service.runtime.settings import DEFAULT_MODEL_DIR
+from service.infra.settings import DEFAULT_MODEL_DIR
 
 
 @pytest.fixture(scope="module")

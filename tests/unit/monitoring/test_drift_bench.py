@@ -7,9 +7,9 @@ import numpy as np
 from benchmarks.bench_drift import KIND, parts, predict_rounds
 from benchmarks.service_bench.breakdown import service_state
 from benchmarks.service_bench.inputs import load_sample
-from service.api.predict_schemas import PredictParameters
+from service.api.predict.predict_schemas import PredictParameters
 from service.detector.images import decode_image
-from service.runtime.settings import Settings
+from service.infra.settings import Settings
 
 
 def test_bench_drift_times_every_mode_and_part_and_leaves_the_monitor_in_place():

@@ -17,9 +17,9 @@ from calibration_store import ObjectScores, ScoreTable
 from service.conformal import HeatmapStatistics, ball_shapes
 from service.conformal.features import HEATMAP_FEATURES, heatmap_features
 from service.detector.manifest import load_manifest
+from service.infra.metrics import DriftCollector
+from service.infra.settings import DEFAULT_MODEL_DIR
 from service.monitoring.drift_monitor import PSI_MIN_LIVE, DriftMonitor, DriftSettings
-from service.runtime.metrics import DriftCollector
-from service.runtime.settings import DEFAULT_MODEL_DIR
 
 MANIFEST = load_manifest(DEFAULT_MODEL_DIR)
 K = MANIFEST.num_keypoints

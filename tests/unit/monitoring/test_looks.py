@@ -15,6 +15,7 @@ from calibration_store import ObjectScores, ScoreTable
 from service.calibration.bundle import BUNDLE_FILENAME, load_bundle
 from service.conformal import ball_shapes
 from service.conformal.features import HEATMAP_FEATURES
+from service.infra.settings import DEFAULT_MODEL_DIR
 from service.monitoring.drift_monitor import DriftMonitor
 from service.monitoring.looks import (
     WITHIN_FRAME_CORRELATION,
@@ -24,7 +25,6 @@ from service.monitoring.looks import (
     LookTracker,
     SequentialAlarm,
 )
-from service.runtime.settings import DEFAULT_MODEL_DIR
 from tests.unit.monitoring.test_drift_monitor import MANIFEST, SETTINGS, _monitor, _statistics, _table
 
 SEQUENTIAL = replace(SETTINGS, test="sequential")

@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 
+from service.infra.settings import Settings
 from service.pose import Pose
 from service.pose.membership import camera_points, project
 from service.pose.rotations import from_rotation_vector
-from service.runtime.settings import Settings
 
 
 @pytest.fixture(scope="session")

@@ -1,0 +1,84 @@
+"""A labeled batch as the admin API receives it (calibration uploads and coverage audits): the
+zip body into an upload workspace, and every refusal of the action in the audit trail."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import Request
+from fastapi.concurrency import run_in_threadpool
+
+from calibration_store import StoreFull, StoreUnavailable
+from service.api.http.request_body import BodyPace, receive_upload
+from service.calibration.uploads import UploadWorkspace
+from service.errors import ServiceError, UnsupportedMediaType, disk_full_refused
+from service.infra.audit_trail import AuditTrail, Operator
+from service.infra.settings import Settings
+
+_ZIP_TYPES = ("application/zip", "application/x-zip-compressed", "application/octet-stream")
+ZIP_PART = "file"  # the zip's part name when the batch comes as multipart/form-data
+# The raw zip is documented as application/octet-stream, the type client generators know for bytes;
+# application/zip and application/x-zip-compressed are taken the same (said in the descriptions).
+ZIP_BODY: dict[str, Any] = {
+    "required": True,
+    "content": {
+        "application/octet-stream": {"schema": {"type": "string", "format": "binary"}},
+        "multipart/form-data": {
+            "schema": {
+                "type": "object",
+                "required": [ZIP_PART],
+                "properties": {ZIP_PART: {"type": "string", "format": "binary", "description": "the zip"}},
+            }
+        },
+    },
+}
+
+
+@asynccontextmanager
+async def refusals_audited(
+    trail: AuditTrail, operator: Operator, action: str, context: dict | None = None, **fields: Any
+) -> AsyncIterator[None]:
+    """Append every refusal of an admin action to the audit trail before it is answered, then let
+    it through; one the store caused (unreachable, locked, full) is appended once the store can."""
+    try:
+        yield
+    except ServiceError as error:
+        details = {
+            **(context or {}),
+            "status": error.status,
+            "detail": error.detail,
+            "errors": error.errors[:10],
+        }
+        await run_in_threadpool(trail.record, operator, action, "refused", details=details, **fields)
+        raise
+    except StoreUnavailable as error:
+        status = 507 if isinstance(error, StoreFull) else 503
+        details = {**(context or {}), "status": status, "detail": str(error), "errors": []}
+        trail.record_later(operator, action, "refused", details=details, **fields)
+        raise
+
+
+async def receive_batch_zip(request: Request, settings: Settings) -> tuple[UploadWorkspace, str]:
+    """Receive a zip body, or a form with the zip as its part 'file' (415 for another type), paced
+    and within the upload limits, into a new upload workspace; returns it with the zip's sha256
+    (the caller removes it when done)."""
+    content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if content_type not in (*_ZIP_TYPES, "multipart/form-data"):
+        raise UnsupportedMediaType(
+            "send the batch as a zip body (Content-Type: application/zip) or as the part 'file' of"
+            f" multipart/form-data, not {content_type!r}"
+        )
+    part = ZIP_PART if content_type == "multipart/form-data" else None
+    timeout = settings.calibration.upload_read_timeout_seconds
+    pace = BodyPace.from_settings(settings, timeout, "CKS_UPLOAD_READ_TIMEOUT_SECONDS")
+    with disk_full_refused("the upload"):
+        workspace = await run_in_threadpool(UploadWorkspace.create, settings.storage.uploads_dir)
+        try:
+            limit = settings.calibration.max_upload_bytes
+            saved = await receive_upload(request, workspace.archive, limit, pace, part)
+        except BaseException:
+            await run_in_threadpool(workspace.remove)
+            raise
+    return workspace, saved.sha256

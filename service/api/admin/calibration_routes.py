@@ -1,0 +1,327 @@
+"""Calibration administration: upload batches, watch and retry jobs, list, inspect, compare,
+activate, roll back, and read the audit trail and where the store is."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Path, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from pydantic import Field
+
+from calibration_store import VersionNotFound, store_location
+from service.api.admin.admin_presenters import (
+    activation_out,
+    audit_page,
+    comparison_out,
+    describe,
+    job_out,
+    summarize,
+)
+from service.api.admin.admin_schemas import (
+    ActivationIn,
+    ActivationLog,
+    ActivationOut,
+    AuditPage,
+    ComparisonOut,
+    JobOut,
+    StoreInfo,
+    VersionDetail,
+    VersionList,
+)
+from service.api.admin.batch_upload import ZIP_BODY, receive_batch_zip, refusals_audited
+from service.api.admin.job_links import JOB_LINKS, JOB_RESULT_LINKS
+from service.api.deps import ADMIN_RESPONSES, Admin, Calibrations, Config, Jobs, Model, Registry, Store, Trail
+from service.api.predict.predict_schemas import MAX_VERSION, Nonconformity, Stratify
+from service.calibration.intake import UploadOptions
+from service.calibration.stratification import parse_stratify
+from service.calibration.versions import ActivationRequest, activate, comparison_with
+from service.errors import NotFound
+
+router = APIRouter(
+    prefix="/v1/admin",
+    tags=["admin"],
+    responses=ADMIN_RESPONSES,
+)
+DISK_FULL = "No room on disk for what the call writes (a full disk or store): nothing was kept; retry later"
+VersionNumber = Annotated[int, Path(ge=1, le=MAX_VERSION, description="calibration version number")]
+
+_UPLOAD_OPENAPI = {
+    "requestBody": {
+        **ZIP_BODY,
+        "description": "The raw zip (Content-Type application/zip, application/x-zip-compressed or"
+        " application/octet-stream), or multipart/form-data with the zip as its part 'file'. A zip of a"
+        " COCO-keypoints batch: annotations.json and the images it names",
+    },
+    "responses": {
+        "404": {"description": "append_to names a version that does not exist"},
+        "409": {
+            "description": "The batch repeats images or instances already counted (inside itself or in"
+            " append_to): the problem lists them; or append_to was scored under other manifest settings;"
+            " or the batch would make a version equal to a stored one (`duplicate_of` names it)"
+        },
+        "408": {
+            "description": "The body did not arrive within CKS_UPLOAD_READ_TIMEOUT_SECONDS, or slower than"
+            " CKS_MIN_BODY_BYTES_PER_SECOND"
+        },
+        "413": {"description": "The zip, its files or its unzipped size exceed the limits"},
+        "415": {"description": "Neither a zip body nor multipart/form-data"},
+        "422": {
+            "description": "The archive or its COCO batch is invalid, more instances break the box rule"
+            " than max_rejected_share allows, or force without a reason; the problem lists what to fix"
+        },
+        "503": {"description": "The calibration store could not record the job"},
+        "507": {"description": DISK_FULL},
+    },
+}
+_ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
+    404: {"description": "No such version"},
+    409: {
+        "description": "Refused by the guardrails (a keypoint's n below CKS_MIN_CALIBRATION_INSTANCES or"
+        " below half the active version's; the body's `comparison` says where), or the version was"
+        " scored under other manifest settings"
+    },
+    422: {"description": "force without a reason"},
+    507: {"description": DISK_FULL},
+}
+
+
+@router.post(
+    "/calibrations",
+    status_code=202,
+    responses={202: {"links": JOB_LINKS}},
+    response_model=JobOut,
+    summary="Upload a labeled batch; a background job scores it into a new version",
+    openapi_extra=_UPLOAD_OPENAPI,
+)
+async def upload_calibration(
+    request: Request,
+    response: Response,
+    calibrations: Calibrations,
+    trail: Trail,
+    settings: Config,
+    who: Admin,
+    name: Annotated[
+        str | None, Query(max_length=200, description="batch name (default: upload-<sha256>)")
+    ] = None,
+    append_to: Annotated[
+        int | None, Query(ge=1, le=MAX_VERSION, description="new version = this version + the batch")
+    ] = None,
+    activate: Annotated[bool, Query(description="activate the new version when the job succeeds")] = False,
+    force: Annotated[
+        bool, Query(description="with activate: activate even if the guardrails refuse (needs reason)")
+    ] = False,
+    reason: Annotated[
+        str, Query(max_length=2000, description="why (recorded; required with force or allow_duplicate)")
+    ] = "",
+    dedupe: Annotated[
+        bool, Query(description="drop instances already counted instead of refusing the batch (409)")
+    ] = False,
+    allow_duplicate: Annotated[
+        bool,
+        Query(description="store a version equal to a stored one instead of refusing (409); needs reason"),
+    ] = False,
+    max_rejected_share: Annotated[
+        float | None,
+        Query(
+            ge=0,
+            le=1,
+            description="share of instances the box rule or strict decoding may reject"
+            " before the batch fails (default CKS_MAX_REJECTED_SHARE)",
+        ),
+    ] = None,
+    note: Annotated[str, Query(max_length=2000)] = "",
+    stratify: Annotated[
+        list[Stratify] | None,
+        Query(
+            description="Mondrian strata to store: none, difficulty, group, difficulty+group (or the"
+            " parameter repeated); default: difficulty when the scores carry heatmap features"
+        ),
+    ] = None,
+) -> JobOut:
+    async with refusals_audited(trail, who, "upload"):
+        options = UploadOptions(
+            name=name,
+            note=note,
+            append_to=append_to,
+            activate=activate,
+            force=force,
+            reason=reason,
+            dedupe=dedupe,
+            allow_duplicate=allow_duplicate,
+            max_rejected_share=max_rejected_share,
+            stratify=None if stratify is None else _stratify(stratify),
+        )
+        workspace, sha256 = await receive_batch_zip(request, settings)
+        job = await run_in_threadpool(calibrations.accept, workspace, sha256, options, who)
+    response.headers["Location"] = f"/v1/admin/jobs/{job.id}"
+    return job_out(job)
+
+
+def _stratify(values: list[str]) -> frozenset[str]:
+    # repeated values are quoted as one ("difficulty+bogus") when refused, as they always were
+    return parse_stratify("+".join(values))
+
+
+@router.get(
+    "/jobs/{job_id}",
+    response_model=JobOut,
+    summary="State, progress and errors of a job (any replica answers)",
+    responses={
+        200: {"links": JOB_RESULT_LINKS},
+        404: {"description": "No such job (never existed, or pruned)"},
+        503: {"description": "The calibration store is unreachable"},
+    },
+)
+async def get_job(job_id: str, jobs: Jobs, registry: Registry, _: Admin) -> JobOut:
+    job = await run_in_threadpool(jobs.get, job_id)
+    if job is None:
+        raise NotFound(
+            f"no job {job_id!r}: it never existed or was pruned (a job is kept for 7 days after its"
+            " last heartbeat, and of the finished jobs only the latest 1000)"
+        )
+    if job.state == "succeeded" and job.result.get("activated"):  # the server that says so serves it
+        await run_in_threadpool(registry.refresh_now)
+    return job_out(job)
+
+
+@router.post(
+    "/jobs/{job_id}/retry",
+    status_code=202,
+    response_model=JobOut,
+    summary="Run an interrupted job again from its kept upload (a new job)",
+    responses={
+        404: {"description": "No such job"},
+        409: {"description": "The job is not interrupted, or its upload is kept by another server"},
+        507: {"description": DISK_FULL},
+    },
+)
+async def retry_job(
+    job_id: str, response: Response, calibrations: Calibrations, trail: Trail, who: Admin
+) -> JobOut:
+    async with refusals_audited(trail, who, "retry", {"job": job_id}):
+        job = await run_in_threadpool(calibrations.retry, job_id, who)
+    response.headers["Location"] = f"/v1/admin/jobs/{job.id}"
+    return job_out(job)
+
+
+@router.get(
+    "/calibrations", response_model=VersionList, summary="All calibration versions of the served model"
+)
+async def list_calibrations(store: Store, model: Model, registry: Registry, _: Admin) -> VersionList:
+    versions = await run_in_threadpool(store.list_versions, model.model_hash)
+    active = await run_in_threadpool(registry.refresh_now)
+    return VersionList(
+        model_hash=model.model_hash,
+        active_version=active,
+        versions=[summarize(info, active) for info in versions],
+    )
+
+
+@router.get(
+    "/calibrations/{version}",
+    response_model=VersionDetail,
+    summary="One version in detail",
+    responses={404: {"description": "No such version"}},
+)
+async def get_calibration(
+    version: VersionNumber, store: Store, model: Model, registry: Registry, _: Admin
+) -> VersionDetail:
+    def build() -> VersionDetail:
+        try:
+            info = store.get_version(model.model_hash, version)
+        except VersionNotFound as error:
+            raise NotFound(f"calibration version {version} does not exist for this model") from error
+        return describe(info, registry.refresh_now(), registry, model.manifest)
+
+    return await run_in_threadpool(build)
+
+
+@router.get(
+    "/calibrations/{version}/compare",
+    response_model=ComparisonOut,
+    summary="Dry run: compare a version with the active one (or another) without activating",
+    responses={404: {"description": "No such version"}},
+)
+async def compare_calibration(
+    version: VersionNumber,
+    model: Model,
+    registry: Registry,
+    settings: Config,
+    _: Admin,
+    against: Annotated[
+        Literal["active"] | Annotated[int, Field(ge=1, le=MAX_VERSION)],
+        Query(description="'active' or a version number"),
+    ] = "active",
+    epsilon: Annotated[float, Query(gt=0, lt=1, description="the epsilon the sets are compared at")] = 0.1,
+    nonconformity: Annotated[Nonconformity, Query()] = "cov",
+) -> ComparisonOut:
+    def build() -> ComparisonOut:
+        reference = registry.refresh_now() if against == "active" else against
+        minimum = settings.calibration.min_calibration_instances
+        return comparison_out(
+            comparison_with(registry, model.manifest, version, reference, minimum, epsilon, nonconformity)
+        )
+
+    return await run_in_threadpool(build)
+
+
+@router.post(
+    "/calibrations/{version}/activate",
+    response_model=ActivationOut,
+    summary="Make a version active (activating an older one is a rollback), behind the guardrails",
+    responses=_ACTIVATE_RESPONSES,
+)
+async def activate_calibration(
+    version: VersionNumber,
+    model: Model,
+    registry: Registry,
+    trail: Trail,
+    settings: Config,
+    who: Admin,
+    body: ActivationIn | None = None,
+) -> ActivationOut:
+    body = body or ActivationIn()
+    request = ActivationRequest(version, who, body.reason, body.force)
+    async with refusals_audited(trail, who, "activation", version=version, reason=body.reason):
+        entry, _ = await run_in_threadpool(
+            activate,
+            registry,
+            model.manifest,
+            trail,
+            request,
+            settings.calibration.min_calibration_instances,
+        )
+    return activation_out(entry)
+
+
+@router.get("/activations", response_model=ActivationLog, summary="The append-only activation history")
+async def activation_log(store: Store, model: Model, registry: Registry, _: Admin) -> ActivationLog:
+    entries = await run_in_threadpool(store.activation_log, model.model_hash)
+    active = await run_in_threadpool(registry.refresh_now)
+    return ActivationLog(active_version=active, activations=[activation_out(e) for e in entries])
+
+
+@router.get("/audit", response_model=AuditPage, summary="The append-only audit trail, newest first")
+async def audit_trail(
+    store: Store,
+    model: Model,
+    _: Admin,
+    before: Annotated[int | None, Query(ge=1, le=2**63 - 1, description="entries before this seq")] = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+) -> AuditPage:
+    entries = await run_in_threadpool(store.audit_log, model.model_hash, before, limit)
+    return audit_page(entries, limit)
+
+
+@router.get("/store", response_model=StoreInfo, summary="Which calibration store this server uses")
+async def store_info(model: Model, registry: Registry, settings: Config, _: Admin) -> StoreInfo:
+    kind, location = store_location(settings.storage.resolved_store_url)
+    active = await run_in_threadpool(registry.refresh_now)
+    return StoreInfo(
+        kind=kind,
+        location=location,
+        data_dir=str(settings.storage.data_dir),
+        model_hash=model.model_hash,
+        active_version=active,
+    )

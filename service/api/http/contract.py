@@ -1,0 +1,88 @@
+"""The OpenAPI document as generated clients read it: what FastAPI derives from the routes, plus
+the bodies the routes parse by hand, one ``Problem`` schema for every error answer, the request id
+every operation takes, and the headers the service sends (``X-Request-ID`` on every answer,
+``Retry-After`` where it is sent).
+
+Routes describe each status they can answer in words (``responses={404: {"description": ...}}``);
+this pass gives every status of 400 and above the problem+json body, so no route repeats it.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import FastAPI
+from pydantic import BaseModel
+
+from service.api.http.problems import PROBLEM_JSON, Problem
+
+SCHEMAS = "#/components/schemas/{model}"
+HEADERS = "#/components/headers/{name}"
+_HEADERS: dict[str, dict[str, Any]] = {
+    "X-Request-ID": {
+        "description": "the request's id: the caller's X-Request-ID (1 to 128 visible ASCII characters)"
+        " or one the service made up; quote it when reporting a problem",
+        "required": True,
+        "schema": {"type": "string"},
+    },
+    "Retry-After": {
+        "description": "seconds to wait before sending the request again",
+        "schema": {"type": "integer", "minimum": 0},
+    },
+    "Location": {"description": "where to follow the job", "required": True, "schema": {"type": "string"}},
+    "WWW-Authenticate": {"description": "Bearer", "required": True, "schema": {"type": "string"}},
+}
+# The statuses whose answers carry each header besides X-Request-ID.
+_HEADER_STATUSES = {"Retry-After": {"429", "503"}, "Location": {"202"}, "WWW-Authenticate": {"401"}}
+_VALIDATION_DEFAULT = "Validation Error"
+# Every operation takes the caller's request id (RequestIdMiddleware): any string is accepted.
+_REQUEST_ID_PARAMETER = {
+    "name": "X-Request-ID",
+    "in": "header",
+    "required": False,
+    "description": "your id for this request, echoed in the answer's X-Request-ID, its problem's"
+    " request_id and the service's log lines: kept if 1 to 128 visible ASCII characters, else"
+    " replaced by one the service makes up",
+    "schema": {"type": "string"},
+}
+
+
+def install_contract(app: FastAPI, parsed_bodies: tuple[type[BaseModel], ...]) -> None:
+    """Make ``app.openapi()`` return the completed document (built once, then cached)."""
+    generate = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            app.openapi_schema = completed(generate(), (Problem, *parsed_bodies))
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
+def completed(document: dict[str, Any], models: tuple[type[BaseModel], ...]) -> dict[str, Any]:
+    document.setdefault("components", {})["headers"] = _HEADERS
+    components = document["components"].setdefault("schemas", {})
+    for model in models:
+        schema = model.model_json_schema(ref_template=SCHEMAS)
+        components.update(schema.pop("$defs", {}))
+        components[model.__name__] = schema
+    for operations in document["paths"].values():
+        for operation in operations.values():
+            operation.setdefault("parameters", []).append(_REQUEST_ID_PARAMETER)
+            for status, response in operation["responses"].items():
+                _complete(status, response)
+    for unused in ("HTTPValidationError", "ValidationError"):  # FastAPI's 422 body, never sent
+        components.pop(unused, None)
+    return document
+
+
+def _complete(status: str, response: dict[str, Any]) -> None:
+    if int(status) >= 400:
+        response["content"] = {PROBLEM_JSON: {"schema": {"$ref": SCHEMAS.format(model="Problem")}}}
+        if response.get("description") == _VALIDATION_DEFAULT:
+            response["description"] = "The request does not match the schema: `errors` lists every problem"
+    headers = response.setdefault("headers", {})
+    headers["X-Request-ID"] = {"$ref": HEADERS.format(name="X-Request-ID")}
+    for name, statuses in _HEADER_STATUSES.items():
+        if status in statuses:
+            headers[name] = {"$ref": HEADERS.format(name=name)}

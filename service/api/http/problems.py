@@ -1,0 +1,124 @@
+"""RFC 9457 problem+json for every error the API returns, each with the request's id."""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, ConfigDict, Field
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
+
+from calibration_store import StoreFull, StoreUnavailable
+from service.api.http.request_id import HEADER as REQUEST_ID_HEADER
+from service.errors import InsufficientStorage, ServiceError, StoreUnreachable
+from service.infra.logs import current_request
+
+PROBLEM_JSON = "application/problem+json"
+log = logging.getLogger(__name__)
+_METHODS = ("DELETE", "GET", "HEAD", "PATCH", "POST", "PUT")
+_TITLES = {401: "Unauthorized", 403: "Forbidden", 404: "Not found", 405: "Method not allowed"}
+# FastAPI's answer to a JSON body it cannot decode (not UTF-8, say): a 400 no operation documents.
+_UNPARSED_BODY = "There was an error parsing the body"
+
+
+class Problem(BaseModel):
+    """An RFC 9457 problem: what went wrong and what to fix (``application/problem+json``).
+
+    Some problems carry more members (``comparison`` on a refused activation, ``duplicates``
+    on a refused upload); they are described where they are sent."""
+
+    model_config = ConfigDict(extra="allow")
+
+    type: str = Field(default="about:blank", description="always about:blank: the status says the kind")
+    title: str = Field(description="the status in words")
+    status: int = Field(description="the HTTP status")
+    detail: str = Field(description="what went wrong and what to fix")
+    instance: str | None = Field(default=None, description="the request's path")
+    errors: list[str] | None = Field(default=None, description="every problem found, when there are several")
+    request_id: str | None = Field(
+        default=None, description="the request's X-Request-ID: quote it when reporting a problem"
+    )
+
+
+def problem(
+    status: int,
+    title: str,
+    detail: str,
+    request: Request,
+    errors: list | None = None,
+    headers: dict[str, str] | None = None,
+    extensions: dict | None = None,
+) -> JSONResponse:
+    body = {"type": "about:blank", "title": title, "status": status, "detail": detail}
+    body["instance"] = request.url.path
+    if errors:
+        body["errors"] = errors
+    body.update(extensions or {})
+    context = current_request()
+    if context is not None:
+        body["request_id"] = context.request_id
+        # The 500 handler answers outside RequestIdMiddleware, which sets the header on the rest.
+        headers = {**(headers or {}), REQUEST_ID_HEADER: context.request_id}
+    return JSONResponse(body, status_code=status, media_type=PROBLEM_JSON, headers=headers)
+
+
+def _validation_errors(exc: RequestValidationError) -> list[str]:
+    messages = []
+    for error in exc.errors():
+        where = ".".join(str(part) for part in error.get("loc", ()) if part != "body")
+        messages.append(f"{where}: {error.get('msg', 'invalid')}" if where else error.get("msg", "invalid"))
+    return messages
+
+
+def install_problem_handlers(app: FastAPI) -> None:
+    @app.exception_handler(ServiceError)
+    async def _service_error(request: Request, exc: ServiceError) -> JSONResponse:
+        return problem(exc.status, exc.title, exc.detail, request, exc.errors, exc.headers, exc.extensions)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid_request(request: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = _validation_errors(exc)
+        detail = "The request does not match the schema: " + "; ".join(errors[:5])
+        return problem(422, "Invalid request", detail, request, errors)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        if exc.status_code == 400 and exc.detail == _UNPARSED_BODY:
+            detail = "The body is not JSON in UTF-8: send a JSON object"
+            return problem(422, "Invalid request", detail, request)
+        headers = exc.headers
+        if exc.status_code == 405:  # Starlette names only the methods of the first route that matched
+            headers = {**(headers or {}), "Allow": ", ".join(allowed_methods(request))}
+        title = _TITLES.get(exc.status_code, "Error")
+        return problem(exc.status_code, title, str(exc.detail), request, headers=headers)
+
+    @app.exception_handler(StoreUnavailable)
+    async def _store_unavailable(request: Request, exc: StoreUnavailable) -> JSONResponse:
+        error = StoreUnreachable(f"the calibration store is unreachable ({exc}): retry later")
+        return problem(error.status, error.title, error.detail, request, headers=error.headers)
+
+    @app.exception_handler(StoreFull)
+    async def _store_full(request: Request, exc: StoreFull) -> JSONResponse:
+        error = InsufficientStorage(
+            f"the calibration store's disk is full ({exc}): nothing was written; retry once space is freed"
+        )
+        return problem(error.status, error.title, error.detail, request)
+
+    @app.exception_handler(Exception)
+    async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+        log.exception("unhandled error on %s", request.url.path)
+        return problem(500, "Internal error", "The server failed; the error was logged.", request)
+
+
+def allowed_methods(request: Request) -> list[str]:
+    """Every method some route serves at the request's path (asked route by route, method by method:
+    included routers answer for their routes only as a whole)."""
+    routes = request.app.router.routes
+    return [
+        method
+        for method in _METHODS
+        if any(route.matches({**request.scope, "method": method})[0] is Match.FULL for route in routes)
+    ]

@@ -1,0 +1,175 @@
+"""POST /v1/predict, /v1/predict/png and /v1/predict/batch: images and boxes in, keypoint
+prediction sets out (JSON, or a PNG drawing for a single image).
+
+Both take admission places before their bodies are parsed and compute inside a slot on the CPU
+pool: receive -> parse -> ``Predictor.predict`` -> present. A batch of n images takes n places,
+so batching cannot get round CKS_MAX_CONCURRENT_INFERENCES and CKS_MAX_QUEUED_REQUESTS; each of
+its images is answered (or refused) on its own, with the status it would have had alone.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextvars
+import logging
+from typing import Any
+
+from fastapi import APIRouter, Request, Response
+
+from service.api.deps import Predicting, PredictParts
+from service.api.http.problems import problem
+from service.api.predict import predict_presenter
+from service.api.predict.predict_bodies import BATCH_BODY, PREDICT_BODY
+from service.api.predict.predict_input import (
+    BatchItem,
+    parse_batch,
+    parse_predict,
+    predict_query,
+    require_batch_media,
+)
+from service.api.predict.predict_schemas import BatchResponse, PredictParameters, PredictResponse
+from service.errors import InvalidInput, ServiceError
+from service.infra.logs import note_calibration_version
+
+router = APIRouter(tags=["prediction"])
+log = logging.getLogger(__name__)
+
+_PREDICT_RESPONSES: dict[int | str, dict[str, Any]] = {
+    408: {"description": "The body did not arrive within CKS_REQUEST_READ_TIMEOUT_SECONDS"},
+    409: {"description": "The calibration version was scored under other manifest settings"},
+    413: {"description": "Body or image too large"},
+    415: {"description": "Not JSON or multipart, or not a JPEG/PNG image"},
+    422: {"description": "Invalid request: the problem lists what to fix"},
+    429: {
+        "description": "This client holds its share of the places while others are served"
+        " (CKS_CLIENT_SHARE; with Retry-After)"
+    },
+    503: {
+        "description": "No active calibration, overloaded, stopping, or calibration_version names a version"
+        " not in memory while the store is unreachable (with Retry-After)"
+    },
+}
+# Sent as image/png; application/octet-stream is listed too, the type client generators know for bytes.
+_BYTES = {"schema": {"type": "string", "format": "binary"}}
+_PNG = {"content": {"image/png": _BYTES, "application/octet-stream": _BYTES}}
+_BATCH_RESPONSES: dict[int | str, dict[str, Any]] = {
+    200: {"description": "One item per image, in order: its result, or its problem (RFC 9457)"},
+    408: _PREDICT_RESPONSES[408],
+    413: {"description": "The body exceeds CKS_MAX_REQUEST_BYTES"},
+    415: {"description": "Not JSON or multipart/form-data"},
+    422: {
+        "description": "Not the documented layout (parts other than image_i and request_i, an index repeated"
+        " or beyond CKS_MAX_BATCH_IMAGES, no images, or more images than the server admits at once)"
+    },
+    429: _PREDICT_RESPONSES[429],
+    503: {"description": "Not enough free places for every image of the batch (with Retry-After)"},
+}
+
+
+@router.post(
+    "/v1/predict",
+    response_model=PredictResponse,
+    summary="Keypoint prediction sets with a coverage guarantee",
+    description="The sets as JSON. (`Accept: image/png` here still answers the drawing, as before"
+    " POST /v1/predict/png existed; generated clients should call that operation.)",
+    responses=_PREDICT_RESPONSES,
+    openapi_extra={"requestBody": PREDICT_BODY},
+)
+async def predict(request: Request, parts: Predicting) -> Response:
+    return await _predict(request, parts, png=_wants_png(request))
+
+
+@router.post(
+    "/v1/predict/png",
+    response_class=Response,
+    summary="The image with its keypoint prediction sets drawn on it (PNG)",
+    responses={200: {"description": "The image, sets drawn", **_PNG}, **_PREDICT_RESPONSES},
+    openapi_extra={"requestBody": PREDICT_BODY},
+)
+async def predict_png(request: Request, parts: Predicting) -> Response:
+    return await _predict(request, parts, png=True)
+
+
+async def _predict(request: Request, parts: PredictParts, png: bool) -> Response:
+    client = parts.client_of(request)
+    parts.admission.refuse_if_full(client=client)  # not worth receiving
+    body = await parts.receive(request)  # a slow client holds no place meanwhile
+    async with parts.admission.admitted(client=client):
+        image, parameters = await parse_predict(request, body, parts.manifest)
+        return await _compute(parts, client, image, parameters, png)
+
+
+@router.post(
+    "/v1/predict/batch",
+    response_model=BatchResponse,
+    summary="Keypoint prediction sets for several images in one request, one answer per image",
+    responses=_BATCH_RESPONSES,
+    openapi_extra={"requestBody": BATCH_BODY},
+)
+async def predict_batch(request: Request, parts: Predicting) -> Response:
+    require_batch_media(request)
+    client = parts.client_of(request)
+    parts.admission.refuse_if_full(client=client)  # not worth receiving
+    body = await parts.receive(request)  # as predict: a slow client holds no place meanwhile
+    items = await parse_batch(request, body, parts.max_batch_images, parts.manifest)
+    capacity = parts.admission.capacity
+    if len(items) > capacity:
+        raise InvalidInput(
+            f"a batch of {len(items)} images needs {len(items)} admission places and this server has"
+            f" {capacity} (CKS_MAX_CONCURRENT_INFERENCES + CKS_MAX_QUEUED_REQUESTS): send at most"
+            f" {capacity} images per batch"
+        )
+    async with parts.admission.admitted(len(items), client):
+        answers = await asyncio.gather(
+            *(_batch_answer(request, parts, client, i, item) for i, item in enumerate(items))
+        )
+    # Each answer is JSON already (a result as POST /v1/predict writes it, or a problem): joined.
+    return Response(b'{"items":[' + b",".join(answers) + b"]}", media_type="application/json")
+
+
+async def _compute(
+    parts: PredictParts, client: str, image: bytes, parameters: PredictParameters, png: bool
+) -> Response:
+    """Predict and present on the CPU pool, inside a compute slot (decoded images exist only there)."""
+    async with parts.admission.slot(client):
+        loop = asyncio.get_running_loop()
+        context = contextvars.copy_context()  # the pool's thread logs with the request's id
+        return await loop.run_in_executor(parts.pool, context.run, _respond, parts, image, parameters, png)
+
+
+def _respond(parts: PredictParts, image: bytes, parameters: PredictParameters, png: bool) -> Response:
+    query = predict_query(parameters)
+    prediction = parts.predictor.predict(image, query)
+    note_calibration_version(prediction.version)
+    manifest = parts.predictor.detector.manifest
+    if png:
+        return Response(predict_presenter.predict_png(prediction, query, manifest), media_type="image/png")
+    return Response(
+        predict_presenter.predict_json(prediction, query, manifest), media_type="application/json"
+    )
+
+
+async def _batch_answer(
+    request: Request, parts: PredictParts, client: str, index: int, item: BatchItem
+) -> bytes:
+    """One image's item as JSON: its result, or the problem it alone had."""
+    try:
+        image, parameters = item()
+        response = await _compute(parts, client, image, parameters, png=False)
+        return b'{"status":200,"result":' + bytes(response.body) + b"}"
+    except ServiceError as error:
+        answer = problem(
+            error.status, error.title, error.detail, request, error.errors, extensions=error.extensions
+        )
+    except Exception:
+        log.exception("unhandled error on image %d of a batch", index)
+        answer = problem(
+            500, "Internal error", "The server failed on this image; the error was logged.", request
+        )
+    # The same problem body POST /v1/predict would answer, built by the same function.
+    return b'{"status":%d,"problem":%s}' % (answer.status_code, bytes(answer.body))
+
+
+def _wants_png(request: Request) -> bool:
+    accept = request.headers.get("accept", "")
+    return "image/png" in accept and "application/json" not in accept

@@ -1,0 +1,127 @@
+"""The audit trail: every administrative action, who did it, from where and why.
+
+Entries go to the calibration store's append-only audit table (nothing in the API can
+change them) and to the log as one line each (``audit action=... outcome=... who=...``; in
+JSON those are members of the line). An entry about a stored change is written
+in the same transaction as the change (a version, an activation, an accepted upload's job);
+a refusal is appended on its own before the answer, or, when the store cannot take it then
+(the refusal was the store's), logged at once and appended as soon as the store can.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, replace
+from datetime import UTC, datetime
+from typing import Any
+
+from calibration_store import CalibrationStore, NewAuditEntry, StoreError
+from service.infra.logs import log_fields
+
+log = logging.getLogger("service.audit")  # a stable name: operators route and filter these lines by it
+#: how often entries the store could not take are tried again
+RETRY_S = 1.0
+
+
+@dataclass(frozen=True)
+class Operator:
+    """Who acts: the name of the admin token used (or a CLI user) and the client address."""
+
+    name: str
+    client: str = ""
+
+
+class AuditTrail:
+    """Builds, stores and logs the audit entries of one model."""
+
+    def __init__(self, store: CalibrationStore, model_hash: str) -> None:
+        self._store = store
+        self._model_hash = model_hash
+        self._pending: list[NewAuditEntry] = []  # oldest first
+        self._lock = threading.Lock()
+
+    def entry(
+        self,
+        operator: Operator,
+        action: str,
+        outcome: str,
+        *,
+        version: int | None = None,
+        previous_version: int | None = None,
+        reason: str = "",
+        details: dict[str, Any] | None = None,
+    ) -> NewAuditEntry:
+        return NewAuditEntry(
+            model_hash=self._model_hash,
+            who=operator.name,
+            action=action,
+            outcome=outcome,
+            version=version,
+            previous_version=previous_version,
+            reason=reason,
+            client=operator.client,
+            details=details or {},
+        )
+
+    def record(self, operator: Operator, action: str, outcome: str, **fields: Any) -> None:
+        """Append one entry on its own (a refusal, a failed job); one the store cannot take now is
+        logged and appended later (``record_later``), never raised."""
+        entry = self.entry(operator, action, outcome, **fields)
+        try:
+            self._store.append_audit(entry)
+        except StoreError as error:
+            self._defer(entry, error)
+            return
+        written(entry)
+
+    def record_later(self, operator: Operator, action: str, outcome: str, **fields: Any) -> None:
+        """Log an entry now and append it from a background thread, retried every RETRY_S until the
+        store takes it: for refusals the store caused, which waiting on it again would only delay."""
+        self._defer(self.entry(operator, action, outcome, **fields), None)
+
+    def _defer(self, entry: NewAuditEntry, error: StoreError | None) -> None:
+        happened = datetime.now(UTC).isoformat()
+        entry = replace(entry, details={**entry.details, "happened_at": happened})
+        fields = {**audit_fields(entry), "error": None if error is None else str(error)}
+        log_fields(log, "audit entry not stored yet", fields, logging.WARNING)
+        with self._lock:
+            self._pending.append(entry)
+            if len(self._pending) == 1:
+                threading.Thread(target=self._append_pending, name="audit-retry", daemon=True).start()
+
+    def _append_pending(self) -> None:
+        while True:
+            with self._lock:
+                if not self._pending:
+                    return
+                entry = self._pending[0]
+            try:
+                self._store.append_audit(entry)
+            except StoreError:
+                time.sleep(RETRY_S)
+                continue
+            written(entry)
+            with self._lock:
+                self._pending.pop(0)
+
+
+def written(*entries: NewAuditEntry) -> None:
+    """Log entries that reached the store."""
+    for entry in entries:
+        log_fields(log, "audit", audit_fields(entry))
+
+
+def audit_fields(entry: NewAuditEntry) -> dict[str, Any]:
+    """The fields of an entry's log line: who did what, with what outcome, from where, why."""
+    return {
+        "action": entry.action,
+        "outcome": entry.outcome,
+        "who": entry.who,
+        "client": entry.client,
+        "version": entry.version,
+        "previous_version": entry.previous_version,
+        "reason": entry.reason,
+        "details": dict(entry.details) or None,
+    }

@@ -1,0 +1,253 @@
+"""Prometheus metrics of the service: requests, inference batches, admission, calibration jobs,
+coverage audits, and the drift of live heatmap features (``cks_drift_*``, computed when scraped).
+
+With several worker processes (``CKS_WORKERS > 1``) ``serve`` points prometheus_client's
+multiprocess mode at a folder (``PROMETHEUS_MULTIPROC_DIR``) before the workers start:
+each worker writes its values there and ``/metrics``, whichever worker answers, reports
+the sum over all of them (gauges of live workers only). The ``cks_drift_*`` gauges are the
+exception: each worker keeps its own drift windows, and a scrape reports those of the worker
+that answers it.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any, Protocol
+
+from prometheus_client import (
+    CONTENT_TYPE_LATEST,
+    CollectorRegistry,
+    Counter,
+    Gauge,
+    Histogram,
+    generate_latest,
+    multiprocess,
+)
+from prometheus_client.core import GaugeMetricFamily
+from prometheus_client.registry import Collector
+
+from service.infra.processes import process_folder, process_running
+
+
+class DriftReading(Protocol):
+    """What ``cks_drift_*`` reads of the drift monitor's report (its ``DriftReading``)."""
+
+    test: str
+    alarm: bool
+    version: int | None
+    reference_available: bool
+    keypoints: Sequence[Any]  # each: object, keypoint, features {name: live_n, alarm, statistic, p_value}
+    objects: Sequence[Any]  # each: object, alarm
+
+
+MULTIPROCESS_ENV = "PROMETHEUS_MULTIPROC_DIR"
+log = logging.getLogger(__name__)
+
+REGISTRY = CollectorRegistry(auto_describe=True)
+
+REQUESTS = Counter(
+    "cks_http_requests", "HTTP requests by route and status", ["method", "route", "status"], registry=REGISTRY
+)
+LATENCY = Histogram(
+    "cks_http_request_seconds",
+    "HTTP request latency by route",
+    ["method", "route"],
+    buckets=(0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10),
+    registry=REGISTRY,
+)
+BATCH_SIZE = Histogram(
+    "cks_inference_batch_size",
+    "instances per onnxruntime batch",
+    buckets=(1, 2, 4, 8, 16, 32, 64, 128),
+    registry=REGISTRY,
+)
+INFERENCE_SECONDS = Histogram(
+    "cks_inference_seconds",
+    "onnxruntime run time per batch",
+    buckets=(0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1),
+    registry=REGISTRY,
+)
+PREDICT_IN_FLIGHT = Gauge(
+    "cks_predict_in_flight",
+    "predict places taken, one per request or batch image (computing or waiting)",
+    registry=REGISTRY,
+    multiprocess_mode="livesum",
+)
+PREDICT_COMPUTING = Gauge(
+    "cks_predict_computing",
+    "predict requests holding a compute slot",
+    registry=REGISTRY,
+    multiprocess_mode="livesum",
+)
+PREDICT_WAITING = Gauge(
+    "cks_predict_waiting",
+    "predict requests waiting for a compute slot",
+    registry=REGISTRY,
+    multiprocess_mode="livesum",
+)
+PREDICT_RECEIVING = Gauge(
+    "cks_predict_receiving_bytes",
+    "bytes of predict bodies still arriving (CKS_MAX_RECEIVING_BYTES)",
+    registry=REGISTRY,
+    multiprocess_mode="livesum",
+)
+PREDICT_REJECTED = Counter(
+    "cks_predict_rejected",
+    "predict requests refused by admission control (503; 429 for client_share)",
+    ["reason"],
+    registry=REGISTRY,
+)
+CALIBRATION_JOBS = Counter(
+    "cks_calibration_jobs", "calibration jobs by final state", ["state"], registry=REGISTRY
+)
+CALIBRATION_INSTANCES = Counter(
+    "cks_calibration_instances_scored", "instances scored by calibration jobs", registry=REGISTRY
+)
+
+# The latest coverage audit (service/monitoring/coverage_audits.py); replaced whole by each new audit
+_AUDIT_LABELS = ["object", "keypoint", "nonconformity", "epsilon", "scope"]
+AUDIT_COVERAGE = Gauge(
+    "cks_audit_coverage",
+    'empirical coverage in the latest coverage audit (keypoint="": pooled)',
+    _AUDIT_LABELS,
+    registry=REGISTRY,
+    multiprocess_mode="mostrecent",
+)
+AUDIT_BAND_LOW = Gauge(
+    "cks_audit_band_low",
+    "low end of the 95% band of the coverage a valid calibration gives",
+    _AUDIT_LABELS,
+    registry=REGISTRY,
+    multiprocess_mode="mostrecent",
+)
+AUDIT_BAND_HIGH = Gauge(
+    "cks_audit_band_high",
+    "high end of the 95% band of the coverage a valid calibration gives",
+    _AUDIT_LABELS,
+    registry=REGISTRY,
+    multiprocess_mode="mostrecent",
+)
+AUDIT_FLAGGED = Gauge(
+    "cks_audit_flagged",
+    "1 where the latest audit found the coverage significantly low (Holm)",
+    _AUDIT_LABELS,
+    registry=REGISTRY,
+    multiprocess_mode="mostrecent",
+)
+AUDIT_LATEST = Gauge(
+    "cks_audit_latest_id",
+    "id of the latest coverage audit, by audited version",
+    ["version"],
+    registry=REGISTRY,
+    multiprocess_mode="mostrecent",
+)
+
+
+class DriftCollector(Collector):
+    """``cks_drift_*`` from the drift monitor's report, evaluated (or read from its cache) at scrape."""
+
+    def __init__(self) -> None:
+        self.source: Callable[[], DriftReading] | None = None
+
+    def collect(self) -> Iterator[GaugeMetricFamily]:
+        if self.source is None:
+            return
+        try:
+            report = self.source()
+        except Exception:  # the other metrics must still be served; the drift figures skip a scrape
+            log.exception("drift metrics: the evaluation failed")
+            return
+        yield from drift_families(report)
+
+
+DRIFT = DriftCollector()
+REGISTRY.register(DRIFT)
+
+
+def set_drift_source(source: Callable[[], DriftReading] | None) -> None:
+    """Serve ``cks_drift_*`` from this report (the process's drift monitor); None: none."""
+    DRIFT.source = source
+
+
+def forget_drift_source(source: Callable[[], DriftReading]) -> None:
+    """Stop serving ``cks_drift_*`` from ``source``, unless another monitor has taken its place."""
+    if DRIFT.source == source:
+        DRIFT.source = None
+
+
+def drift_families(report: DriftReading) -> list[GaugeMetricFamily]:
+    """Per keypoint and feature: statistic, p-value (ks), alarm, live window size; and totals."""
+    labels = ["object", "keypoint", "feature"]
+    statistic = GaugeMetricFamily(
+        "cks_drift_statistic",
+        f"drift statistic ({report.test}) of a keypoint's live feature window",
+        labels=labels,
+    )
+    p_value = GaugeMetricFamily("cks_drift_p_value", "Kolmogorov-Smirnov p-value (ks test)", labels=labels)
+    alarm = GaugeMetricFamily(
+        "cks_drift_alarm", "1 when the drift alarm is raised (Holm-corrected for ks)", labels=labels
+    )
+    window = GaugeMetricFamily("cks_drift_window_size", "live values in the window", labels=labels)
+    for keypoint in report.keypoints:
+        for feature, test in keypoint.features.items():
+            names = [keypoint.object, keypoint.keypoint, feature]
+            window.add_metric(names, test.live_n)
+            alarm.add_metric(names, float(test.alarm))
+            if test.statistic is not None:
+                statistic.add_metric(names, test.statistic)
+            if test.p_value is not None:
+                p_value.add_metric(names, test.p_value)
+    objects = GaugeMetricFamily(
+        "cks_drift_object_alarm", "1 when any keypoint of the object alarms", labels=["object"]
+    )
+    for obj in report.objects:
+        objects.add_metric([obj.object], float(obj.alarm))
+    reference = GaugeMetricFamily(
+        "cks_drift_reference_version", "calibration version the live windows are compared with (0: none)"
+    )
+    reference.add_metric([], float(report.version or 0) if report.reference_available else 0.0)
+    any_alarm = GaugeMetricFamily("cks_drift_alarm_any", "1 when any drift alarm is raised")
+    any_alarm.add_metric([], float(report.alarm))
+    return [statistic, p_value, alarm, window, objects, reference, any_alarm]
+
+
+def metrics_payload() -> tuple[bytes, str]:
+    """The exposition text: this process's metrics, or all workers' in multiprocess mode."""
+    if folder := os.environ.get(MULTIPROCESS_ENV):
+        _forget_dead_workers(Path(folder))
+        registry = CollectorRegistry()
+        multiprocess.MultiProcessCollector(registry)
+        registry.register(DRIFT)
+        return generate_latest(registry), CONTENT_TYPE_LATEST
+    return generate_latest(REGISTRY), CONTENT_TYPE_LATEST
+
+
+def enable_multiprocess(parent: Path) -> Path:
+    """Call in the parent before worker processes start (and before they import this module).
+
+    The files go to a folder of this parent process (``<parent>/<host>--<pid>``), so another
+    server on the same data directory keeps its own sums; returns it (remove it at exit).
+    """
+    folder = process_folder(parent)
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    os.environ[MULTIPROCESS_ENV] = str(folder)
+    return folder
+
+
+def _forget_dead_workers(folder: Path) -> None:
+    """Drop live gauges of workers that died without a clean shutdown (killed, crashed)."""
+    for path in folder.glob("gauge_live*_*.db"):
+        pid = path.stem.rpartition("_")[2]
+        if pid.isdigit() and not process_running(int(pid)):
+            multiprocess.mark_process_dead(int(pid), str(folder))
+
+
+def worker_stopped() -> None:
+    """Drop this worker's live gauges from the multiprocess sums (no-op otherwise)."""
+    if os.environ.get(MULTIPROCESS_ENV):
+        multiprocess.mark_process_dead(os.getpid())

@@ -1,0 +1,530 @@
+"""All configuration, from environment variables prefixed ``CKS_`` (README, Configuration).
+
+Settings come in groups (``settings.predict.max_request_bytes``); each field is still the one
+variable ``CKS_<FIELD>``, and ``Settings(max_request_bytes=...)`` takes any field by its name.
+``python -m service.infra.settings`` writes the README's table from the fields.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import re
+import sys
+from collections.abc import Mapping
+from functools import cached_property
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic.fields import FieldInfo
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+from calibration_store import sqlite_path
+
+PACKAGE_ROOT = Path(__file__).resolve().parents[2]
+DEFAULT_MODEL_DIR = PACKAGE_ROOT / "models" / "lmo-synth-unet"
+README = PACKAGE_ROOT / "README.md"
+
+_ONE_RUN = (
+    "micro-batching was removed (it lost on CPU and GPU, see CHANGELOG); each request's crops are one"
+    " run on its own thread, with CKS_INFERENCE_THREADS intra-op threads"
+)
+#: Settings no longer read, which an operator may still set: what replaced each.
+REMOVED_SETTINGS = {
+    "CKS_MAX_INFERENCE_BATCH": _ONE_RUN,
+    "CKS_INFERENCE_STREAMS": _ONE_RUN,
+    "CKS_BATCH_WINDOW_MS": _ONE_RUN,
+    "CKS_SOLO_INFERENCE_THREADS": "a request alone in a process always runs on every usable core (its CPU"
+    " affinity and cgroup quota), and one beside others with CKS_INFERENCE_THREADS intra-op threads",
+}
+
+
+def removed_settings(environ: Mapping[str, str]) -> list[str]:
+    """One line for each removed setting that ``environ`` still sets."""
+    return [f"{name} is no longer read: {why}" for name, why in REMOVED_SETTINGS.items() if name in environ]
+
+
+def _absolute(path: Path) -> Path:
+    """Resolved once, against the directory the service starts in, and said at start-up."""
+    return path.expanduser().resolve()
+
+
+AbsolutePath = Annotated[Path, AfterValidator(_absolute)]
+
+
+class _Group(BaseSettings):
+    """One group of settings, each read from ``CKS_<FIELD>``."""
+
+    model_config = SettingsConfigDict(env_prefix="CKS_", extra="ignore", frozen=True)
+
+
+class ModelSettings(_Group):
+    """The model and how it runs: where it is, onnxruntime's providers and threads."""
+
+    model_dir: AbsolutePath = Field(
+        default=DEFAULT_MODEL_DIR, description="directory with model.onnx and manifest.json"
+    )
+    execution_providers: Annotated[tuple[str, ...], NoDecode] = Field(
+        default=("CPUExecutionProvider",),
+        description=(
+            "onnxruntime execution providers in order of preference, comma-separated or a JSON list (e.g."
+            " `CUDAExecutionProvider,CPUExecutionProvider`; GPU install: docs/operations.md, Execution "
+            "providers and GPUs); one this onnxruntime lacks is refused at start-up (exit 2), and `GET "
+            "/v1/model` reports those in use"
+        ),
+    )
+    execution_provider_options: dict[str, dict[str, str]] = Field(
+        default_factory=dict,
+        description=(
+            'JSON options per provider, e.g. `{"CUDAExecutionProvider": {"device_id": "1"}}`, over the '
+            "service's own: CUDA runs with `use_tf32=0` and `cudnn_conv_algo_search=HEURISTIC` unless "
+            "told otherwise (TF32 makes the sets depend on the batch; docs/operations.md)"
+        ),
+    )
+    inference_threads: int = Field(
+        default=1,
+        ge=0,
+        description=(
+            "onnxruntime intra-op threads of a run while other requests compute in the same process "
+            "(0 = onnxruntime's default for every run); a request alone in the process runs on every "
+            "usable core (its CPU affinity and cgroup quota). Each request's crops are one run on its"
+            " own thread, concurrent requests' runs in parallel"
+        ),
+    )
+    cpu_workers: int = Field(
+        default=4, gt=0, description="threads for decode, crop and scoring off the event loop"
+    )
+
+    @field_validator("execution_providers", mode="before")
+    @classmethod
+    def _provider_list(cls, providers: object) -> object:
+        """``A,B`` or ``["A", "B"]``; whether this onnxruntime has them is checked when the model loads."""
+        if isinstance(providers, str) and providers.strip().startswith("["):
+            try:
+                providers = json.loads(providers)
+            except json.JSONDecodeError as error:
+                raise ValueError(f"not a JSON list ({error}); or names separated by commas") from None
+        elif isinstance(providers, str):
+            providers = [name.strip() for name in providers.split(",") if name.strip()]
+        if isinstance(providers, list | tuple) and not providers:
+            raise ValueError("name at least one, e.g. CPUExecutionProvider")
+        if isinstance(providers, list | tuple) and len(set(map(str, providers))) < len(providers):
+            raise ValueError("a provider is named twice: name each once, in order of preference")
+        return providers
+
+
+class StorageSettings(_Group):
+    """Where the service writes, and the calibration store."""
+
+    data_dir: AbsolutePath = Field(
+        default=Path("var"),
+        description="where the service writes (SQLite store, uploads, metrics files of several workers)",
+    )
+    store_url: str | None = Field(
+        default=None, description="sqlite:///path or postgresql://...; default sqlite under data_dir"
+    )
+    bootstrap_calibration: bool = Field(
+        default=True, description="load the model's bundled calibration as version 1 when the store has none"
+    )
+    store_poll_seconds: float = Field(
+        default=1.0, gt=0, description="how often to look for a new active version"
+    )
+    store_timeout_seconds: float = Field(
+        default=1.5,
+        gt=0,
+        description=(
+            "longest wait for a PostgreSQL store connection, statement, lock or round trip (a frozen"
+            " database's connection is cut); beyond it the store counts as unreachable (admin calls"
+            " answer 503, predictions go on from memory). A poll still running after twice this"
+            " (either store) counts as unreachable too"
+        ),
+    )
+    max_cache_staleness_seconds: float | None = Field(
+        default=None,
+        gt=0,
+        description=(
+            "`/readyz` answers 503 once the store has not confirmed the cached calibration for this long;"
+            " unset: never (predictions go on either way)"
+        ),
+    )
+
+    @field_validator("store_url")
+    @classmethod
+    def _known_store(cls, url: str | None) -> str | None:
+        """Refused when the settings are read, naming the setting, not when the store is opened."""
+        if url is None:
+            return None
+        scheme = url.partition(":")[0].lower()
+        if scheme == "sqlite":
+            sqlite_path(url)  # says what is wrong with a sqlite URL
+        elif scheme not in ("postgresql", "postgres"):
+            raise ValueError("use sqlite:///path/to/file.db or postgresql://user@host:port/database")
+        return url
+
+    @cached_property
+    def resolved_store_url(self) -> str:
+        if not self.store_url:
+            return f"sqlite:///{self.data_dir / 'calibrations.db'}"
+        if self.store_url.startswith("sqlite:") and not self.store_url.startswith("sqlite:///"):
+            return f"sqlite:///{sqlite_path(self.store_url).resolve()}"
+        return self.store_url
+
+    @property
+    def uploads_dir(self) -> Path:
+        """Uploads being received, in one folder per process (removed when the process stops)."""
+        return self.data_dir / "uploads"
+
+    @property
+    def jobs_dir(self) -> Path:
+        """Uploads kept for their jobs until they finish, so an interrupted job can be retried."""
+        return self.data_dir / "jobs"
+
+
+class AdminSettings(_Group):
+    """Who may use the admin API."""
+
+    admin_token: str | None = Field(
+        default=None,
+        description=(
+            "bearer token for /v1/admin (operator 'admin'): 16+ characters without spaces, like every "
+            "token; unset disables it"
+        ),
+    )
+    admin_tokens_file: AbsolutePath | None = Field(
+        default=None,
+        description="file of 'name:token' lines (tokens as above): named admin operators for the audit trail",
+    )
+
+
+class ServerSettings(_Group):
+    """The HTTP server: address, processes, connections and their timeouts."""
+
+    host: str = Field(default="127.0.0.1", description="address to listen on")
+    port: int = Field(default=8000, ge=1, le=65535, description="port to listen on")
+    workers: int = Field(
+        default=1,
+        ge=1,
+        le=64,
+        description=(
+            "uvicorn worker processes (limits below are per process); jobs and `/metrics` cover all "
+            "of them. The threads of one process share one interpreter lock, so under many concurrent"
+            " clients 2 processes serve more (docs/performance.md, tuning) at some cost in one "
+            "client's latency (a keep-alive connection stays on its worker). On a GPU the CPU work is"
+            " the bottleneck: about half the cores (docs/operations.md, Serving from a GPU)"
+        ),
+    )
+    max_connections: int = Field(
+        default=1000,
+        ge=1,
+        description="open connections per process; a request beyond gets 503 (each takes a file descriptor)",
+    )
+    header_read_timeout_seconds: float = Field(
+        default=10.0,
+        gt=0,
+        description="longest time for a request's line and headers to arrive (408 and closed beyond)",
+    )
+    min_body_bytes_per_second: float = Field(
+        default=1024.0,
+        gt=0,
+        description="slowest average rate a request body may arrive at, after the grace below (408 below)",
+    )
+    body_rate_grace_seconds: float = Field(
+        default=5.0, gt=0, description="time a request body gets before its average rate is checked"
+    )
+    shutdown_grace_seconds: float = Field(
+        default=20.0,
+        ge=0,
+        description=(
+            "on SIGTERM, longest wait for in-flight requests before running jobs are interrupted (see "
+            "Deployment)"
+        ),
+    )
+
+
+class PredictSettings(_Group):
+    """Predict requests: body, image and instance limits, admission."""
+
+    max_request_bytes: int = Field(default=20 * 2**20, gt=0, description="largest predict request body")
+    max_image_pixels: int = Field(default=40_000_000, gt=0, description="largest width*height decoded")
+    max_instances: int = Field(default=64, gt=0, description="instances per predict request")
+    max_batch_images: int = Field(
+        default=16,
+        gt=0,
+        le=1024,
+        description=(
+            "images per `POST /v1/predict/batch` request (each takes one admission place; the body obeys "
+            "`CKS_MAX_REQUEST_BYTES`)"
+        ),
+    )
+    max_concurrent_inferences: int = Field(default=8, gt=0, description="predict requests computing at once")
+    max_queued_requests: int = Field(
+        default=32, ge=0, description="predict requests waiting for a slot; more get 503 at once"
+    )
+    request_read_timeout_seconds: float = Field(
+        default=30.0, gt=0, description="longest time to receive a predict request body (408 beyond)"
+    )
+    max_receiving_bytes: int = Field(
+        default=256 * 2**20,
+        gt=0,
+        description="bytes of predict bodies being received at once, all requests together (503 beyond)",
+    )
+    max_decoded_bytes: int = Field(
+        default=256 * 2**20,
+        gt=0,
+        description=(
+            "memory one image may take to decode (its real bytes: 16-bit, alpha); 413 beyond. At most "
+            "`CKS_CPU_WORKERS` images are decoded at once"
+        ),
+    )
+    queue_timeout_seconds: float = Field(
+        default=10.0, gt=0, description="longest wait for a slot before a predict request gets 503"
+    )
+    client_share: float = Field(
+        default=0.5,
+        gt=0,
+        le=1,
+        description=(
+            "share of the predict places (and of the compute threads) one client may hold while other"
+            " clients have asked in the last 30 s: beyond, `429` with `Retry-After`; a client alone may"
+            " use them all; 1 = no per-client limit (docs/operations.md, Fair admission)"
+        ),
+    )
+    client_header: str | None = Field(
+        default=None,
+        description=(
+            "header naming the client when the connection comes from `CKS_TRUSTED_PROXIES` (e.g."
+            " `X-Forwarded-For`: its last untrusted entry); else a client is its admin token's"
+            " operator, or its address"
+        ),
+    )
+    trusted_proxies: Annotated[tuple[str, ...], NoDecode] = Field(
+        default=(),
+        description="addresses or networks (comma-separated) whose `CKS_CLIENT_HEADER` is believed",
+    )
+
+    @field_validator("trusted_proxies", mode="before")
+    @classmethod
+    def _networks(cls, proxies: object) -> object:
+        if isinstance(proxies, str):
+            proxies = [proxy.strip() for proxy in proxies.split(",") if proxy.strip()]
+        for proxy in proxies if isinstance(proxies, list | tuple) else ():
+            try:
+                ipaddress.ip_network(proxy, strict=False)
+            except ValueError as error:
+                raise ValueError(f"{error}: give addresses or networks such as 10.0.0.0/8") from None
+        return proxies
+
+
+class CalibrationSettings(_Group):
+    """Calibration uploads and jobs: limits, the activation floor, difficulty strata."""
+
+    max_upload_bytes: int = Field(default=2 * 2**30, gt=0, description="largest calibration zip")
+    max_upload_files: int = Field(default=100_000, gt=0, description="most files in a calibration zip")
+    max_upload_uncompressed_bytes: int = Field(
+        default=4 * 2**30, gt=0, description="most bytes once unzipped"
+    )
+    upload_read_timeout_seconds: float = Field(
+        default=3600.0,
+        gt=0,
+        description=(
+            "longest time to receive a calibration upload (408 beyond; `CKS_MIN_BODY_BYTES_PER_SECOND` "
+            "applies too)"
+        ),
+    )
+    max_uploads_disk_bytes: int = Field(
+        default=16 * 2**30,
+        gt=0,
+        description="disk kept uploads (zips, unzipped batches of unfinished jobs) may take (507 beyond)",
+    )
+    min_free_disk_bytes: int = Field(
+        default=2**30,
+        ge=0,
+        description="free space that unzipping an upload must leave in the data directory (507 beyond)",
+    )
+    calibration_workers: int = Field(default=1, gt=0, description="calibration jobs running at once")
+    min_calibration_instances: int = Field(
+        default=100, ge=0, description="activation needs this n per keypoint (unless forced with a reason)"
+    )
+    stratum_signals: str = Field(
+        default="gamma,peak_probability",
+        description="difficulty strata: one heatmap feature, or two (comma-separated) for joint bins"
+        " (peak_probability, gamma, anisotropy)",
+    )
+    stratum_bins: int = Field(
+        default=3, ge=1, le=20, description="difficulty strata: quantile bins per signal"
+    )
+    min_stratum_instances: int = Field(
+        default=30,
+        ge=1,
+        description=(
+            "difficulty strata: least calibration scores per bin (bins merge below); bounded down to "
+            "epsilon = 1/31"
+        ),
+    )
+    max_rejected_share: float = Field(
+        default=0.0, ge=0, le=1, description="share of a batch's instances that may be rejected (default)"
+    )
+
+    @field_validator("stratum_signals")
+    @classmethod
+    def _stratum_signals(cls, value: str) -> str:
+        names = [name.strip() for name in value.split(",") if name.strip()]
+        if not 1 <= len(names) <= 2 or len(set(names)) != len(names):
+            raise ValueError(f"give one or two distinct heatmap features, comma-separated; got {value!r}")
+        return ",".join(names)  # which features exist is the domain's to say (DifficultySpec)
+
+
+class DriftMonitorSettings(_Group):
+    """The label-free drift monitor."""
+
+    drift_enabled: bool = Field(
+        default=True,
+        description="keep windows of every keypoint's live heatmap features and test them against the"
+        " active calibration's (GET /v1/admin/drift, cks_drift_* metrics)",
+    )
+    drift_window: int = Field(
+        default=500,
+        ge=10,
+        le=100_000,
+        description="live instances kept per keypoint (the drift window; each feature's window holds"
+        " those that computed it)",
+    )
+    drift_test: Literal["sequential", "ks", "psi"] = Field(
+        default="sequential",
+        description="drift test: `sequential` (one vote per independent look, an e-CUSUM over the looks:"
+        " right on camera streams), `ks` (Kolmogorov-Smirnov p-values over every frame, Holm-corrected) or"
+        " `psi` (population stability index over 10 quantile bins)",
+    )
+    drift_alarm_level: float = Field(
+        default=0.01,
+        gt=0,
+        lt=1,
+        description="sequential: on a stream like the calibration, at least 1 / this independent looks"
+        " between false alarms on average; ks: family-wise error rate of one evaluation over all keypoints x"
+        " features (Holm)",
+    )
+    drift_psi_threshold: float = Field(
+        default=0.25,
+        gt=0,
+        description="psi: a keypoint's feature alarms above this index (once it has 400 live values)",
+    )
+    drift_full_statistics_share: float = Field(
+        default=0.25,
+        ge=0,
+        le=1,
+        description="share of predictions that also compute the heatmap statistics their nonconformity"
+        " function skips, so every drift feature gets live values (the rest record theirs for free)",
+    )
+    drift_history_seconds: float = Field(
+        default=60.0, gt=0, description="one point of the drift history this often (360 points kept)"
+    )
+
+
+class LogSettings(_Group):
+    """Logging."""
+
+    log_format: Literal["text", "json"] = Field(
+        default="text",
+        description="`text` (one line: UTC time, level, logger, [request id], message) or `json`"
+        " (one JSON object a line), for the service's lines and uvicorn's alike",
+    )
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
+        default="INFO",
+        description="least severe level logged by `serve`; the other commands log warnings and errors"
+        " only unless it is set",
+    )
+    access_log: bool = Field(
+        default=True,
+        description="one line per request: method, path, status, latency, request id, calibration version",
+    )
+
+    @field_validator("log_level", mode="before")
+    @classmethod
+    def _upper(cls, level: object) -> object:
+        return level.upper() if isinstance(level, str) else level
+
+
+class Settings(BaseModel):
+    """Every setting of the service, by group."""
+
+    model_config = ConfigDict(frozen=True)
+
+    model: ModelSettings
+    storage: StorageSettings
+    admin: AdminSettings
+    server: ServerSettings
+    predict: PredictSettings
+    calibration: CalibrationSettings
+    drift: DriftMonitorSettings
+    logs: LogSettings
+
+    def __init__(self, **values: Any) -> None:
+        """Any setting by its field name (``data_dir=...``); the others from the environment."""
+        unknown = set(values) - set(Settings.fields())
+        if unknown:
+            raise TypeError(f"not settings: {', '.join(sorted(unknown))}")
+        groups, problems = {}, []
+        for name, group in _GROUPS.items():
+            try:
+                groups[name] = group(
+                    **{key: value for key, value in values.items() if key in group.model_fields}
+                )
+            except ValidationError as error:  # every group's problems are told at once
+                problems += [
+                    {key: e[key] for key in ("type", "loc", "input", "ctx") if key in e}
+                    for e in error.errors()
+                ]
+        if problems:
+            raise ValidationError.from_exception_data("Settings", problems)
+        super().__init__(**groups)
+
+    def value(self, name: str) -> Any:
+        """A setting by its field name, whatever its group."""
+        for group in (getattr(self, attribute) for attribute in _GROUPS):
+            if name in type(group).model_fields:
+                return getattr(group, name)
+        raise KeyError(name)
+
+    @classmethod
+    def fields(cls) -> dict[str, FieldInfo]:
+        """Every setting's field, by name (the variable is ``CKS_`` + the name in capitals)."""
+        return {name: field for group in _GROUPS.values() for name, field in group.model_fields.items()}
+
+
+_GROUPS: dict[str, type[_Group]] = {
+    name: field.annotation
+    for name, field in Settings.model_fields.items()  # type: ignore[misc]
+}
+
+
+_SHOWN_DEFAULTS = {"model_dir": "models/lmo-synth-unet (bundled)", "store_url": "sqlite under CKS_DATA_DIR"}
+_TABLE = re.compile(
+    r"(<!-- settings table: python -m service.infra.settings -->\n).*?(\n<!-- end of settings -->)", re.S
+)
+
+
+def settings_table() -> str:
+    """The README's Configuration table: a section per group, a row per setting."""
+    lines = []
+    for group in _GROUPS.values():
+        lines += [f"**{group.__doc__}**", "", "| variable | default | meaning |", "|---|---|---|"]
+        for name, field in group.model_fields.items():
+            default = _SHOWN_DEFAULTS.get(name, field.get_default(call_default_factory=True))
+            if isinstance(default, tuple):
+                default = ",".join(default)
+            lines.append(f"| `CKS_{name.upper()}` | `{default}` | {field.description} |")
+        lines.append("")
+    return "\n".join(lines).rstrip("\n")
+
+
+def readme_with_table(readme: str) -> str:
+    """``readme`` with its settings table made anew from the fields."""
+    if not _TABLE.search(readme):
+        raise ValueError("README.md has no settings table markers")
+    return _TABLE.sub(lambda match: match.group(1) + settings_table() + match.group(2), readme)
+
+
+if __name__ == "__main__":
+    README.write_text(readme_with_table(README.read_text(encoding="utf-8")), encoding="utf-8")
+    print(f"{README}: settings table written ({len(Settings.fields())} settings)", file=sys.stderr)

@@ -1,0 +1,222 @@
+"""The composition root: build every long-lived part of the service once, from Settings."""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Any
+
+import cv2
+
+from calibration_store import CalibrationStore, ScoreTable, open_store, store_location
+from service.api.http.admission import Admission
+from service.calibration.archive import ArchiveLimits, DiskBudget
+from service.calibration.bundle import bootstrap_default_calibration
+from service.calibration.intake import IntakeRules
+from service.calibration.jobs import CalibrationJobs, JobRunner, JobSettings
+from service.calibration.registry import CalibrationRegistry
+from service.calibration.stratification import difficulty_spec
+from service.calibration.uploads import process_uploads_dir, remove_spent_job_folders
+from service.calibration.versions import VersionRules
+from service.conformal.kernel import native_kernel_available
+from service.detector.session import Detector
+from service.infra.audit_trail import AuditTrail
+from service.infra.logs import ensure_logging
+from service.infra.metrics import forget_drift_source, set_drift_source
+from service.infra.operators import load_operators
+from service.infra.settings import Settings, removed_settings
+from service.monitoring.coverage_audits import CoverageAudits
+from service.monitoring.drift_monitor import DriftMonitor, DriftSettings
+from service.prediction import Predictor
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ServiceState:
+    """Everything a request handler may need, created at start-up and closed at shutdown."""
+
+    settings: Settings
+    detector: Detector
+    store: CalibrationStore
+    registry: CalibrationRegistry
+    jobs: JobRunner
+    calibrations: CalibrationJobs
+    audit: AuditTrail
+    operators: dict[str, str]  # admin token -> operator name
+    cpu_pool: ThreadPoolExecutor
+    admission: Admission
+    audits: CoverageAudits
+    drift: DriftMonitor | None = None  # None when CKS_DRIFT_ENABLED is false
+
+    @cached_property
+    def predictor(self) -> Predictor:
+        """The predict use case over this state's model, calibrations and drift monitor."""
+        settings = self.settings
+        return Predictor(
+            self.detector,
+            self.registry,
+            self.drift,
+            settings.predict.max_image_pixels,
+            settings.predict.max_decoded_bytes,
+            settings.predict.max_instances,
+        )
+
+    def close(self) -> None:
+        """Stop: the store's poller ends, calibration jobs are interrupted, not waited for (see
+        JobRunner.shutdown); uploads still being received are removed; then the store and the
+        model are released."""
+        started = time.monotonic()
+        log.info("shutdown: interrupting calibration jobs, then closing the store and the model")
+        self.registry.stop()
+        if self.drift is not None:
+            self.drift.stop()
+            forget_drift_source(self.drift.report)
+        self.jobs.shutdown()
+        shutil.rmtree(
+            process_uploads_dir(self.settings.storage.uploads_dir), ignore_errors=True
+        )  # cancelled jobs' uploads
+        self.cpu_pool.shutdown(wait=True, cancel_futures=True)
+        self.store.close()
+        log.info("shutdown: done in %.2f s", time.monotonic() - started)
+
+
+def build_state(settings: Settings) -> ServiceState:
+    """Load the model (refusing a manifest that does not fit it), open the store, bootstrap.
+
+    Also turns OpenCV's internal threading off for the process (``cv2.setNumThreads(1)``).
+    """
+    ensure_logging(settings)
+    for line in removed_settings(os.environ):
+        log.warning(line)
+    operators = load_operators(settings.admin.admin_token, settings.admin.admin_tokens_file)
+    settings.storage.data_dir.mkdir(parents=True, exist_ok=True)
+    # Process-wide: requests already run in parallel on cpu_pool, and OpenCV's own pool would
+    # split each small crop across helper threads that spin while they wait.
+    cv2.setNumThreads(1)
+    detector = Detector(
+        settings.model.model_dir, settings.model.inference_threads, **detector_providers(settings)
+    )
+    log.info(
+        "onnxruntime execution providers in use: %s; intra-op threads of a run: %d, of a request alone"
+        " in this process: %d",
+        ", ".join(detector.execution_providers),
+        settings.model.inference_threads,
+        detector.alone_threads,
+    )
+    kind, location = store_location(settings.storage.resolved_store_url)
+    # SQLite keeps its busy timeout: a write waiting on another writer is no outage
+    options = {"timeout_s": settings.storage.store_timeout_seconds} if kind == "postgresql" else {}
+    store = open_store(settings.storage.resolved_store_url, **options)
+    if settings.storage.bootstrap_calibration:
+        bootstrap_default_calibration(store, detector, settings.model.model_dir, difficulty_spec(settings))
+    registry = CalibrationRegistry(
+        store,
+        detector.model_hash,
+        detector.manifest,
+        settings.storage.store_poll_seconds,
+        settings.storage.store_timeout_seconds,
+    )
+    names = ", ".join(sorted(operators.values())) or "none (admin API disabled)"
+    log.info(
+        "serving model %s (sha256 %s) from %s; calibration store: %s at %s; data directory %s;"
+        " active calibration version %s; admin operators: %s",
+        detector.manifest.name,
+        detector.model_hash,
+        settings.model.model_dir,
+        kind,
+        location,
+        settings.storage.data_dir,
+        registry.start(),
+        names,
+    )
+    if not native_kernel_available():
+        log.warning(
+            "the native kernel (service/conformal/kernel.py) is not built: the heatmap statistics run"
+            " on the slower numpy path; install a C compiler and reinstall the package"
+        )
+    remove_spent_job_folders(settings.storage.jobs_dir, store)
+    jobs = JobRunner(store, settings.calibration.calibration_workers)
+    audit = AuditTrail(store, detector.model_hash)
+    job_settings = _job_settings(settings)
+    audits = CoverageAudits(store, detector, registry, jobs, audit, job_settings)
+    audits.publish_latest()
+    drift = _drift_monitor(settings, detector, registry)
+    return ServiceState(
+        settings=settings,
+        detector=detector,
+        store=store,
+        registry=registry,
+        jobs=jobs,
+        calibrations=CalibrationJobs(store, detector, registry, jobs, audit, job_settings),
+        audit=audit,
+        operators=operators,
+        cpu_pool=ThreadPoolExecutor(settings.model.cpu_workers, thread_name_prefix="cpu"),
+        admission=Admission(
+            settings.predict.max_concurrent_inferences,
+            settings.predict.max_queued_requests,
+            settings.predict.queue_timeout_seconds,
+            settings.predict.max_receiving_bytes,
+            settings.predict.client_share,
+            settings.model.cpu_workers,
+        ),
+        audits=audits,
+        drift=drift,
+    )
+
+
+def _drift_monitor(
+    settings: Settings, detector: Detector, registry: CalibrationRegistry
+) -> DriftMonitor | None:
+    """The drift monitor, its history ticker started and its report the source of cks_drift_*."""
+    if not settings.drift.drift_enabled:
+        return None
+
+    def active_calibration() -> tuple[int | None, ScoreTable | None]:
+        version = registry.active_version()
+        if version is None or registry.incompatibility(version) is not None:
+            return version, None
+        return version, registry.scores(version)
+
+    drift_settings = DriftSettings(
+        window=settings.drift.drift_window,
+        test=settings.drift.drift_test,
+        alarm_level=settings.drift.drift_alarm_level,
+        psi_threshold=settings.drift.drift_psi_threshold,
+        full_statistics_share=settings.drift.drift_full_statistics_share,
+        history_seconds=settings.drift.drift_history_seconds,
+    )
+    monitor = DriftMonitor(detector.manifest, active_calibration, drift_settings)
+    monitor.start()
+    set_drift_source(monitor.report)
+    return monitor
+
+
+def _job_settings(settings: Settings) -> JobSettings:
+    return JobSettings(
+        jobs_dir=settings.storage.jobs_dir,
+        intake=IntakeRules(
+            limits=ArchiveLimits.from_settings(settings),
+            disk=DiskBudget.from_settings(settings),
+            max_rejected_share=settings.calibration.max_rejected_share,
+        ),
+        versions=VersionRules(
+            max_image_pixels=settings.predict.max_image_pixels,
+            min_instances=settings.calibration.min_calibration_instances,
+            max_rejected_share=settings.calibration.max_rejected_share,
+            difficulty=difficulty_spec(settings),
+        ),
+    )
+
+
+def detector_providers(settings: Settings) -> dict[str, Any]:
+    """The execution provider arguments of ``Detector``, from CKS_EXECUTION_PROVIDERS(_OPTIONS)."""
+    return {
+        "providers": settings.model.execution_providers,
+        "provider_options": settings.model.execution_provider_options,
+    }
