@@ -18,7 +18,7 @@ from service.api.http.admission import Admission
 from service.calibration.archive import ArchiveLimits, DiskBudget
 from service.calibration.bundle import bootstrap_default_calibration
 from service.calibration.intake import IntakeRules
-from service.calibration.jobs import CalibrationJobs, JobRunner, JobSettings
+from service.calibration.jobs import CalibrationJobs, JobSettings
 from service.calibration.registry import CalibrationRegistry
 from service.calibration.stratification import difficulty_spec
 from service.calibration.uploads import process_uploads_dir, remove_spent_job_folders
@@ -26,6 +26,7 @@ from service.calibration.versions import VersionRules
 from service.conformal.kernel import native_kernel_available
 from service.detector.session import Detector
 from service.infra.audit_trail import AuditTrail
+from service.infra.job_engine import JobRunner
 from service.infra.logs import ensure_logging
 from service.infra.metrics import forget_drift_source, set_drift_source
 from service.infra.operators import load_operators

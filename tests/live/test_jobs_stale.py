@@ -19,7 +19,7 @@ import pytest
 
 from benchmarks.faults_clients import long_batch
 from calibration_store import JobRecord, open_store
-from service.calibration.jobs import STALE_AFTER
+from service.infra.job_engine import STALE_AFTER
 from tests.live.server import LiveServer
 from tests.samples import batch_zip, count_instances
 from tests.service_calls import ADMIN_TOKEN, wait_until

@@ -14,9 +14,9 @@ import pytest
 
 from calibration_store import JobRecord
 from calibration_store.sqlite import SQLiteStore
-from service.calibration import jobs
-from service.calibration.jobs import JobProgress, JobRunner, reported
 from service.errors import InvalidInput
+from service.infra import job_engine as jobs
+from service.infra.job_engine import JobProgress, JobRunner, reported
 from tests.service_calls import wait_until
 
 OWNER = "test-host:4242"
