@@ -52,7 +52,9 @@ class CalibrationStore(ABC):
         and nothing is written, if that job is already final or gone), and append ``audit``
         entries (an entry's version None means the new version). A process killed at any
         point leaves all of it or none of it.
-        Raises VersionNotFound if new.parent_version does not exist for new.model_hash.
+        Raises VersionNotFound if new.parent_version does not exist for new.model_hash, and
+        DuplicateVersion if a version of the model has new.content_key (one version per content
+        key, whatever the number of writers).
         """
 
     @abstractmethod

@@ -149,7 +149,8 @@ class CalibrationJobs(DetectorJobs):
             raise
         except BaseException as error:  # refused or failed for good: its upload goes
             if isinstance(error, ServiceError):
-                details = {"job": folder.job_id, "detail": error.detail}
+                twin = {k: v for k, v in error.extensions.items() if k == "duplicate_of"}
+                details = {"job": folder.job_id, "detail": error.detail, **twin}
                 self._audit.record(operator, "calibration", "failed", reason=options.note, details=details)
             folder.remove()
             raise
