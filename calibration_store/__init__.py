@@ -50,7 +50,9 @@ CalibrationStore (thread-safe; also a context manager that closes):
   finished_at, version, heartbeat_at; heartbeat_at defaults to now, so every write is a
   sign of life; JobNotFound; JobFinished for a job in a final state: finished jobs never
   change), ``get_job(job_id) -> JobRecord | None``: background jobs, visible
-  to every process sharing the store. ``prune_jobs(keep=1000, max_age=7 days) -> int``
+  to every process sharing the store. ``stale_jobs(silent_since, limit=100)``: unfinished
+  jobs whose heartbeat is older (their process stopped), for another to take over.
+  ``prune_jobs(keep=1000, max_age=7 days) -> int``
   deletes jobs whose heartbeat is older than max_age, and finished jobs with ``keep``
   newer jobs after them; a live unfinished job is never deleted.
 - ``ping() -> None`` (raises StoreUnavailable), ``close() -> None``.

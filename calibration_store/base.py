@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
-from datetime import timedelta
+from datetime import datetime, timedelta
 from types import TracebackType
 from typing import Any
 
@@ -146,6 +146,11 @@ class CalibrationStore(ABC):
     @abstractmethod
     def get_job(self, job_id: str) -> JobRecord | None:
         """The stored job, or None if there is none with this id (or it was pruned)."""
+
+    @abstractmethod
+    def stale_jobs(self, silent_since: datetime, limit: int = 100) -> list[JobRecord]:
+        """Unfinished jobs whose heartbeat is older than ``silent_since`` (their process stopped,
+        or stopped writing), oldest heartbeat first, at most ``limit``."""
 
     @abstractmethod
     def prune_jobs(self, keep: int = KEEP_JOBS, max_age: timedelta = JOB_MAX_AGE) -> int:

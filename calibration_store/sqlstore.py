@@ -532,6 +532,15 @@ class SqlStore(CalibrationStore):
         rows = self._read(f"SELECT {_JOB_COLUMNS} FROM calib_jobs WHERE id = ?", (job_id,))
         return self._job(rows[0]) if rows else None
 
+    def stale_jobs(self, silent_since: datetime, limit: int = 100) -> list[JobRecord]:
+        limit = check_number(limit, "stale jobs page size")
+        rows = self._read(
+            f"SELECT {_JOB_COLUMNS} FROM calib_jobs WHERE state NOT IN ({_FINAL_STATES_SQL})"
+            " AND heartbeat_at < ? ORDER BY heartbeat_at LIMIT ?",
+            (self._time_to_db(check_job_field("heartbeat_at", silent_since)), limit),
+        )
+        return [self._job(row) for row in rows]
+
     def prune_jobs(self, keep: int = KEEP_JOBS, max_age: timedelta = JOB_MAX_AGE) -> int:
         keep = check_number(keep, "jobs to keep")
         if not isinstance(max_age, timedelta) or max_age <= timedelta(0):

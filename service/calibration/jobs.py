@@ -28,9 +28,12 @@ from service.detector.session import Detector
 from service.errors import Conflict, NotFound, ServiceError, disk_full_refused
 from service.infra.audit_trail import AuditTrail, Operator
 from service.infra.job_engine import JobCancelled, JobProgress, JobRunner, new_job_id, retryable
+from service.infra.processes import process_owner
 
 log = logging.getLogger(__name__)
 JOB_KIND = "calibration"
+#: who retries a job of a stopped process in the audit trail (the client: the process that did)
+TAKEOVER_OPERATOR = "takeover"
 
 
 @dataclass(frozen=True)
@@ -77,6 +80,14 @@ class CalibrationJobs(DetectorJobs):
             folder.remove()
             workspace.remove()  # when it was not moved
             raise
+
+    def take_over(self, job: JobRecord) -> bool:
+        """Retry a job whose process stopped, as a new job, when its upload is kept in this
+        server's data directory (False when it is not: another server received it)."""
+        if not JobFolder.of(self._settings.jobs_dir, job.id).exists():
+            return False
+        self.retry(job.id, Operator(TAKEOVER_OPERATOR, client=process_owner()))
+        return True
 
     def retry(self, job_id: str, operator: Operator) -> JobRecord:
         """Run an interrupted job, or one failed for a full disk, again as a new job, from its

@@ -139,6 +139,8 @@ class JobProgress:
 
 
 JobFunction = Callable[[JobProgress], dict]
+#: runs a stale job of another process again, here (True), or says this process cannot read its input
+Takeover = Callable[[JobRecord], bool]
 
 
 class JobRunner:
@@ -152,6 +154,8 @@ class JobRunner:
         self._lock = threading.Lock()
         self._stopping = threading.Event()
         self._stop = threading.Event()
+        self._takeovers: dict[str, Takeover | None] = {}
+        self._swept_at = -SWEEP_S
         self._writer = threading.Thread(target=self._write_loop, name="job-writer", daemon=True)
         self._writer.start()
 
@@ -190,6 +194,13 @@ class JobRunner:
             self._finish(job.id, "interrupted", errors=(note,))
             raise Unavailable("the service is stopping: retry the job, or upload the batch again") from error
         return job
+
+    def on_stale(self, kind: str, take_over: Takeover | None) -> None:
+        """Look after stale jobs of ``kind`` (the process running them stopped): ``take_over(job)``
+        runs one again here when this process can read its input (True), or says it cannot
+        (False); None: no process can. One nobody took over is stored interrupted, as reported."""
+        with self._lock:
+            self._takeovers[kind] = take_over
 
     def get(self, job_id: str) -> JobRecord | None:
         """The stored job, whichever process runs it (None if unknown or pruned); one this process
@@ -363,6 +374,71 @@ class JobRunner:
                     continue
                 if entry.dirty or now - entry.stored_at >= HEARTBEAT_S:
                     self._write(entry)
+            if now - self._swept_at >= SWEEP_S:
+                self._sweep()
+
+    # -- stale jobs of stopped processes --------------------------------------------
+
+    def _sweep(self) -> None:
+        """Offer the stale jobs of the kinds looked after to their takeover; store interrupted
+        those nobody took over within TAKEOVER_GRACE (at once when nobody can)."""
+        with self._lock:
+            takeovers = dict(self._takeovers)
+        if not takeovers:
+            return
+        self._swept_at = time.monotonic()
+        now = datetime.now(UTC)
+        try:
+            stale = self._store.stale_jobs(now - STALE_AFTER)
+        except StoreError as error:
+            log.warning("could not look for stale jobs: %s", error)
+            return
+        for job in stale:
+            if job.kind not in takeovers or self._snapshot(job.id) is not None:
+                continue
+            take_over = takeovers[job.kind]
+            if take_over is not None and self._took_over(take_over, job):
+                continue
+            if take_over is None or now - job.heartbeat_at > STALE_AFTER + TAKEOVER_GRACE:
+                self._store_interrupted(job, now, takeover_possible=take_over is not None)
+
+    def _took_over(self, take_over: Takeover, job: JobRecord) -> bool:
+        try:
+            taken = take_over(job)
+        except Exception as error:  # e.g. taken over by another process meanwhile
+            log.warning(
+                "job %s (%s) of stopped process %s not taken over: %s", job.id, job.kind, job.owner, error
+            )
+            return False
+        if taken:
+            log.info("job %s (%s) of stopped process %s taken over", job.id, job.kind, job.owner)
+        return taken
+
+    def _store_interrupted(self, job: JobRecord, now: datetime, takeover_possible: bool) -> None:
+        """Store a stale job as it is reported, interrupted, with why nobody took it over."""
+        shown = reported(job, now)
+        nobody = (
+            f"No server that can read its upload took it over within {int(TAKEOVER_GRACE.total_seconds())} s"
+            " (its upload is not readable here)"
+            if takeover_possible
+            else "A job of this kind is not taken over by another process"
+        )
+        errors = (*shown.errors, f"{nobody}: upload the batch again.")
+        try:
+            self._store.update_job(job.id, state="interrupted", errors=errors, finished_at=shown.finished_at)
+        except JobFinished:  # taken over, or finished, meanwhile
+            return
+        except StoreError as error:
+            log.warning(
+                "job %s of stopped process %s could not be stored interrupted: %s", job.id, job.owner, error
+            )
+            return
+        log.info(
+            "job %s (%s) of stopped process %s stored interrupted: nobody took it over",
+            job.id,
+            job.kind,
+            job.owner,
+        )
 
 
 def new_job_id() -> str:
