@@ -384,7 +384,7 @@ class JobRunner:
         those nobody took over within TAKEOVER_GRACE (at once when nobody can)."""
         with self._lock:
             takeovers = dict(self._takeovers)
-        if not takeovers:
+        if not takeovers or self._stopping.is_set():  # a stopping process starts no job
             return
         self._swept_at = time.monotonic()
         now = datetime.now(UTC)
