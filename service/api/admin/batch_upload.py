@@ -13,6 +13,7 @@ from typing import Annotated, Any, TypeVar
 
 from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
+from fastapi.types import DecoratedCallable
 
 from calibration_store import JobRecord, StoreFull, StoreUnavailable
 from service.api.admin.admin_presenters import job_out
@@ -90,7 +91,9 @@ BatchRejectedShare = _rejected_share("the batch")
 AuditRejectedShare = _rejected_share("the audit")
 
 
-def upload_route(router: APIRouter, path: str, summary: str, batch: str, responses: dict[str, str]) -> Any:
+def upload_route(
+    router: APIRouter, path: str, summary: str, batch: str, responses: dict[str, str]
+) -> Callable[[DecoratedCallable], DecoratedCallable]:
     """The decorator of an upload route on ``path``: 202 with the job it starts, the body a zip of a
     COCO-keypoints ``batch``, ``responses`` its refusals besides those of receiving the zip."""
     received = {
