@@ -81,19 +81,22 @@ def measure(servers: dict[str, Server], requests: Requests, rounds: int, seconds
 
 
 def summary(runs: dict) -> list[str]:
-    lines = ["point          A req/s  B req/s  B/A paired [min..max]    A core-ms  B core-ms  B/A paired"]
+    """Per point: requests/s, then server core-ms per request, each as the medians of A and B and
+    the median of the paired ratios B/A [smallest..largest]."""
+    lines = [
+        "point         req/s: A  B  B/A paired [min..max]     core-ms/request: A  B  B/A paired [min..max]"
+    ]
     for boxes, concurrency in POINTS:
         a, b = runs["A", (boxes, concurrency)], runs["B", (boxes, concurrency)]
-        rate = [y[0] / x[0] for x, y in zip(a, b, strict=True)]
-        cost = [y[1] / x[1] for x, y in zip(a, b, strict=True)]
-        lines.append(
-            f"{boxes} box c={concurrency:<2}   {statistics.median(x[0] for x in a):8.1f} "
-            f"{statistics.median(y[0] for y in b):8.1f}  {statistics.median(rate):.3f}"
-            f" [{min(rate):.3f}..{max(rate):.3f}]"
-            f"   {statistics.median(x[1] for x in a):8.2f}  {statistics.median(y[1] for y in b):8.2f}"
-            f"  {statistics.median(cost):.3f}"
-        )
+        lines.append(f"{boxes} box c={concurrency:<2}  {_column(a, b, 0)}    {_column(a, b, 1)}")
     return lines
+
+
+def _column(a: list[tuple[float, float]], b: list[tuple[float, float]], index: int) -> str:
+    ratios = [y[index] / x[index] for x, y in zip(a, b, strict=True)]
+    medians = [statistics.median(run[index] for run in runs) for runs in (a, b)]
+    spread = f"[{min(ratios):.3f}..{max(ratios):.3f}]"
+    return f"{medians[0]:8.2f} {medians[1]:8.2f}  {statistics.median(ratios):.3f} {spread}"
 
 
 def main(argv: list[str] | None = None) -> int:
