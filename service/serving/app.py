@@ -8,7 +8,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 from fastapi.routing import APIRoute
 from fastapi_offline import FastAPIOffline
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.types import Message, Receive, Scope, Send
 
 from service import __version__
 from service.api.admin import audit_routes, calibration_routes
@@ -16,6 +16,7 @@ from service.api.deps import PredictParts
 from service.api.http.clients import ClientKeys
 from service.api.http.contract import install_contract
 from service.api.http.cut_requests import AnswerCutRequests
+from service.api.http.http_middleware import HttpMiddleware
 from service.api.http.metrics_middleware import MetricsMiddleware
 from service.api.http.problems import install_problem_handlers
 from service.api.http.request_body import BodyPace
@@ -127,15 +128,12 @@ def operation_id(route: APIRoute) -> str:
     return route.name
 
 
-class DocsPagesPolicy:
+class DocsPagesPolicy(HttpMiddleware):
     """Sends ``DOCS_CONTENT_SECURITY_POLICY`` with the API pages (``DOCS_PAGES``), nothing else."""
 
-    def __init__(self, app: ASGIApp) -> None:
-        self.app = app
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+    async def handle(self, scope: Scope, receive: Receive, send: Send) -> None:
         path = scope.get("path", "").removeprefix(scope.get("root_path", ""))
-        if scope["type"] != "http" or path not in DOCS_PAGES:
+        if path not in DOCS_PAGES:
             await self.app(scope, receive, send)
             return
 

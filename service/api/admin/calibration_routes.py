@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Path, Query, Request, Response
+from fastapi import APIRouter, Path, Query, Response
 from fastapi.concurrency import run_in_threadpool
 from pydantic import Field
 
@@ -29,8 +29,15 @@ from service.api.admin.admin_schemas import (
     VersionDetail,
     VersionList,
 )
-from service.api.admin.batch_upload import ZIP_BODY, receive_batch_zip, refusals_audited
-from service.api.admin.job_links import JOB_LINKS, JOB_RESULT_LINKS
+from service.api.admin.batch_upload import (
+    BatchName,
+    BatchRejectedShare,
+    Note,
+    Upload,
+    refusals_audited,
+    upload_route,
+)
+from service.api.admin.job_links import JOB_RESULT_LINKS
 from service.api.deps import ADMIN_RESPONSES, Admin, Calibrations, Config, Jobs, Model, Registry, Store, Trail
 from service.api.predict.predict_schemas import MAX_VERSION, Nonconformity, Stratify
 from service.calibration.intake import UploadOptions
@@ -46,36 +53,9 @@ router = APIRouter(
 DISK_FULL = "No room on disk for what the call writes (a full disk or store): nothing was kept; retry later"
 VersionNumber = Annotated[int, Path(ge=1, le=MAX_VERSION, description="calibration version number")]
 
-_UPLOAD_OPENAPI = {
-    "requestBody": {
-        **ZIP_BODY,
-        "description": "The raw zip (Content-Type application/zip, application/x-zip-compressed or"
-        " application/octet-stream), or multipart/form-data with the zip as its part 'file'. A zip of a"
-        " COCO-keypoints batch: annotations.json and the images it names",
-    },
-    "responses": {
-        "404": {"description": "append_to names a version that does not exist"},
-        "409": {
-            "description": "The batch repeats images or instances already counted (inside itself or in"
-            " append_to): the problem lists them; or append_to was scored under other manifest settings;"
-            " or the batch would make a version equal to a stored one (`duplicate_of` names it)"
-        },
-        "408": {
-            "description": "The body did not arrive within CKS_UPLOAD_READ_TIMEOUT_SECONDS, or slower than"
-            " CKS_MIN_BODY_BYTES_PER_SECOND"
-        },
-        "413": {"description": "The zip, its files or its unzipped size exceed the limits"},
-        "415": {"description": "Neither a zip body nor multipart/form-data"},
-        "422": {
-            "description": "The archive or its COCO batch is invalid, more instances break the box rule"
-            " than max_rejected_share allows, or force without a reason; the problem lists what to fix"
-        },
-        "503": {"description": "The calibration store could not record the job"},
-        "507": {"description": DISK_FULL},
-    },
-}
+_NO_SUCH_VERSION: dict[int | str, dict[str, Any]] = {404: {"description": "No such version"}}
 _ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
-    404: {"description": "No such version"},
+    **_NO_SUCH_VERSION,
     409: {
         "description": "Refused by the guardrails (a keypoint's n below CKS_MIN_CALIBRATION_INSTANCES or"
         " below half the active version's; the body's `comparison` says where), or the version was"
@@ -86,24 +66,26 @@ _ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
 }
 
 
-@router.post(
+@upload_route(
+    router,
     "/calibrations",
-    status_code=202,
-    responses={202: {"links": JOB_LINKS}},
-    response_model=JobOut,
     summary="Upload a labeled batch; a background job scores it into a new version",
-    openapi_extra=_UPLOAD_OPENAPI,
+    batch=": annotations.json and the images it names",
+    responses={
+        "404": "append_to names a version that does not exist",
+        "409": "The batch repeats images or instances already counted (inside itself or in append_to): the"
+        " problem lists them; or append_to was scored under other manifest settings; or the batch would"
+        " make a version equal to a stored one (`duplicate_of` names it)",
+        "422": "The archive or its COCO batch is invalid, more instances break the box rule than"
+        " max_rejected_share allows, or force without a reason; the problem lists what to fix",
+        "503": "The calibration store could not record the job",
+        "507": DISK_FULL,
+    },
 )
 async def upload_calibration(
-    request: Request,
-    response: Response,
+    upload: Upload,
     calibrations: Calibrations,
-    trail: Trail,
-    settings: Config,
-    who: Admin,
-    name: Annotated[
-        str | None, Query(max_length=200, description="batch name (default: upload-<sha256>)")
-    ] = None,
+    name: BatchName = None,
     append_to: Annotated[
         int | None, Query(ge=1, le=MAX_VERSION, description="new version = this version + the batch")
     ] = None,
@@ -121,16 +103,8 @@ async def upload_calibration(
         bool,
         Query(description="store a version equal to a stored one instead of refusing (409); needs reason"),
     ] = False,
-    max_rejected_share: Annotated[
-        float | None,
-        Query(
-            ge=0,
-            le=1,
-            description="share of instances the box rule or strict decoding may reject"
-            " before the batch fails (default CKS_MAX_REJECTED_SHARE)",
-        ),
-    ] = None,
-    note: Annotated[str, Query(max_length=2000)] = "",
+    max_rejected_share: BatchRejectedShare = None,
+    note: Note = "",
     stratify: Annotated[
         list[Stratify] | None,
         Query(
@@ -139,7 +113,7 @@ async def upload_calibration(
         ),
     ] = None,
 ) -> JobOut:
-    async with refusals_audited(trail, who, "upload"):
+    async with upload.audited("upload"):
         options = UploadOptions(
             name=name,
             note=note,
@@ -152,10 +126,7 @@ async def upload_calibration(
             max_rejected_share=max_rejected_share,
             stratify=None if stratify is None else _stratify(stratify),
         )
-        workspace, sha256 = await receive_batch_zip(request, settings)
-        job = await run_in_threadpool(calibrations.accept, workspace, sha256, options, who)
-    response.headers["Location"] = f"/v1/admin/jobs/{job.id}"
-    return job_out(job)
+        return await upload.start(options, calibrations.accept)
 
 
 def _stratify(values: list[str]) -> frozenset[str]:
@@ -222,7 +193,7 @@ async def list_calibrations(store: Store, model: Model, registry: Registry, _: A
     "/calibrations/{version}",
     response_model=VersionDetail,
     summary="One version in detail",
-    responses={404: {"description": "No such version"}},
+    responses=_NO_SUCH_VERSION,
 )
 async def get_calibration(
     version: VersionNumber, store: Store, model: Model, registry: Registry, _: Admin
@@ -241,7 +212,7 @@ async def get_calibration(
     "/calibrations/{version}/compare",
     response_model=ComparisonOut,
     summary="Dry run: compare a version with the active one (or another) without activating",
-    responses={404: {"description": "No such version"}},
+    responses=_NO_SUCH_VERSION,
 )
 async def compare_calibration(
     version: VersionNumber,
