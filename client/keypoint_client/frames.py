@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, TypeGuard
 
 from keypoint_client._numpy import np, require_numpy
 from keypoint_client.images import ChannelOrder, png_bytes
@@ -23,7 +23,7 @@ JPEG_QUALITY = 95
 Part = tuple[str, tuple[str | None, bytes, str]]
 
 
-def is_frame(image: object) -> bool:
+def is_frame(image: object) -> TypeGuard[NDArray[Any]]:
     """A numpy array of uint8 pixels, (H, W), (H, W, 1) or (H, W, 3): what a frame is sent as."""
     if np is None or not isinstance(image, np.ndarray) or image.dtype != np.uint8 or 0 in image.shape:
         return False
@@ -88,12 +88,12 @@ def jpeg_bytes(
 ) -> bytes:
     """A JPEG of uint8 pixels, (H, W) or (H, W, 3), by libjpeg-turbo (``pip install simplejpeg``)."""
     try:
-        import simplejpeg
+        import simplejpeg  # type: ignore[import-untyped]
     except ImportError as error:
         raise ImportError("JPEG regions need simplejpeg: pip install simplejpeg") from error
     image = np.ascontiguousarray(pixels if pixels.ndim == 3 else pixels[:, :, None])
     colorspace = "GRAY" if image.shape[2] == 1 else channel_order.upper()
-    return simplejpeg.encode_jpeg(image, quality=quality, colorspace=colorspace)
+    return bytes(simplejpeg.encode_jpeg(image, quality=quality, colorspace=colorspace))
 
 
 def _json(request: dict[str, Any]) -> Part:
