@@ -23,7 +23,7 @@ _EXAMPLE_REQUEST = {
     "instances": [{"object": "duck", "bbox": [812.0, 430.5, 96.0, 120.0]}],
     "frame": {"width": 1920, "height": 1080},
     "regions": [
-        {"x_offset": 783, "y_offset": 413, "width": 155, "height": 155, "encoding": "rgb8", "instances": [0]}
+        {"x_offset": 783, "y_offset": 413, "width": 154, "height": 155, "encoding": "rgb8", "instances": [0]}
     ],
 }
 FRAME_BODY: dict[str, Any] = {
@@ -51,7 +51,7 @@ FRAME_BODY: dict[str, Any] = {
                 "request": {"contentType": "application/json"},
                 "pixels": {"contentType": "application/octet-stream, image/jpeg, image/png"},
             },
-            "example": {"request": _EXAMPLE_REQUEST, "pixels": ["(155 * 155 * 3 bytes, RGB, row-major)"]},
+            "example": {"request": _EXAMPLE_REQUEST, "pixels": ["(155 * 154 * 3 bytes: RGB, row-major)"]},
         }
     },
 }
