@@ -25,7 +25,7 @@ from keypoint_client.admin_models import (
     VersionList,
 )
 from keypoint_client.errors import JobFailed, JobWaitTimeout, KeypointClientError, ProblemError, problem_error
-from keypoint_client.frames import FrameSending, frame_parts
+from keypoint_client.frames import FrameSending, frame_parts, is_frame
 from keypoint_client.images import ChannelOrder, ImageInput, encode_image
 from keypoint_client.models import (
     Coverage,
@@ -209,15 +209,22 @@ def predict(
 ) -> Call[PredictResult]:
     """Prediction sets for one image: JPEG or PNG bytes, a path to one, or a numpy array.
     ``instances``: the objects and their boxes. Options: see ``PredictRequest``."""
-    files = PredictRequest(image, instances, **options).parts()
-    return Call(
-        "POST",
-        "/v1/predict",
-        _model(PredictResult),
-        files=files,
-        headers={"Accept": "application/json"},
-        timeout=timeout,
-    )
+    return _predict_json("/v1/predict", PredictRequest(image, instances, **options).parts(), timeout)
+
+
+def predict_any(
+    image: ImageInput,
+    instances: Sequence[InstanceLike],
+    padding: float | None,
+    sending: FrameSending = "regions",
+    *,
+    timeout: float | None = None,
+    **options: Unpack[PredictOptions],
+) -> Call[PredictResult]:
+    """``predict_frame`` for a numpy frame (given the model's crop ``padding``), else ``predict``."""
+    if is_frame(image) and padding is not None:
+        return predict_frame(image, instances, padding, sending, timeout=timeout, **options)
+    return predict(image, instances, timeout=timeout, **options)
 
 
 def predict_frame(
@@ -233,9 +240,13 @@ def predict_frame(
     ``sending`` says (``keypoint_client.frames``); ``padding``: the model manifest's crop padding."""
     request = PredictRequest(frame, instances, **options)
     files = frame_parts(frame, request.parameters(), padding, sending, request.channel_order)
+    return _predict_json("/v1/predict/frame", files, timeout)
+
+
+def _predict_json(path: str, files: Files, timeout: float | None) -> Call[PredictResult]:
     return Call(
         "POST",
-        "/v1/predict/frame",
+        path,
         _model(PredictResult),
         files=files,
         headers={"Accept": "application/json"},

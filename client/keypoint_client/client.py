@@ -24,7 +24,7 @@ from keypoint_client.admin_models import Activation, Job
 from keypoint_client.archive import calibration_zip
 from keypoint_client.calls import DEFAULT_BATCH_SIZE, Call, JobWatch, PredictRequest
 from keypoint_client.errors import ProblemError
-from keypoint_client.frames import FrameSending, is_frame
+from keypoint_client.frames import FrameSending, crop_padding, is_frame
 from keypoint_client.images import ImageInput
 from keypoint_client.models import PredictResult
 from keypoint_client.monitoring_models import CoverageAudit
@@ -165,14 +165,10 @@ class KeypointClient(_Endpoints):
         /v1/predict/frame as ``frame_sending`` says: its boxes' regions as raw pixels (the default),
         as JPEG (lossy: the answer is the JPEG's) or PNG files, or the whole frame raw; the answer
         is the one the whole image's pixels get. Any other array is sent as a PNG."""
-        if is_frame(image):
-            if self._padding is None:
-                self._padding = float(self.model(timeout=timeout).manifest["crop"]["padding"])
-            frame = calls.predict_frame(
-                image, instances, self._padding, frame_sending, timeout=timeout, **options
-            )
-            return self._send(frame)
-        return self._send(calls.predict(image, instances, timeout=timeout, **options))
+        if is_frame(image) and self._padding is None:
+            self._padding = crop_padding(self.model(timeout=timeout))
+        call = calls.predict_any(image, instances, self._padding, frame_sending, timeout=timeout, **options)
+        return self._send(call)
 
     def predict_many(
         self,
@@ -309,14 +305,10 @@ class AsyncKeypointClient(_Endpoints):
         **options: Unpack[PredictOptions],
     ) -> PredictResult:
         """See ``KeypointClient.predict``."""
-        if is_frame(image):
-            if self._padding is None:
-                self._padding = float((await self.model(timeout=timeout)).manifest["crop"]["padding"])
-            frame = calls.predict_frame(
-                image, instances, self._padding, frame_sending, timeout=timeout, **options
-            )
-            return await self._send(frame)
-        return await self._send(calls.predict(image, instances, timeout=timeout, **options))
+        if is_frame(image) and self._padding is None:
+            self._padding = crop_padding(await self.model(timeout=timeout))
+        call = calls.predict_any(image, instances, self._padding, frame_sending, timeout=timeout, **options)
+        return await self._send(call)
 
     async def predict_many(
         self,

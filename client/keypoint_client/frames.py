@@ -15,6 +15,8 @@ from keypoint_client.images import ChannelOrder, png_bytes
 if TYPE_CHECKING:
     from numpy.typing import NDArray
 
+    from keypoint_client.models import ModelInfo
+
 # How a numpy frame is sent: its boxes' regions raw (the default), as JPEG (lossy: the answer is
 # the JPEG's) or PNG files, or the whole frame raw.
 FrameSending = Literal["regions", "jpeg-regions", "png-regions", "raw-frame"]
@@ -28,6 +30,11 @@ def is_frame(image: object) -> TypeGuard[NDArray[Any]]:
     if np is None or not isinstance(image, np.ndarray) or image.dtype != np.uint8 or 0 in image.shape:
         return False
     return image.ndim == 2 or (image.ndim == 3 and image.shape[2] in (1, 3))
+
+
+def crop_padding(model: ModelInfo) -> float:
+    """The served model's crop padding (its manifest's ``crop.padding``), which sizes the regions."""
+    return float(model.manifest["crop"]["padding"])
 
 
 def crop_context(bbox: Sequence[float], padding: float, width: int, height: int) -> tuple[int, int, int, int]:
