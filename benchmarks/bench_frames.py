@@ -25,7 +25,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -37,6 +37,7 @@ from benchmarks.peers.servers import PEERS, SERVICE
 from benchmarks.service_bench import page
 from benchmarks.service_bench.inputs import Sample, load_sample
 from benchmarks.service_bench.machine import this_machine
+from benchmarks.service_bench.server import Server
 from service.infra.settings import DEFAULT_MODEL_DIR
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -106,10 +107,11 @@ def make_point(sample: Sample, width: int, height: int, boxes: int) -> Point:
 class Contenders:
     """How each contender sends one point's frame and parses the answer."""
 
-    def __init__(self, service: str, peer: str, padding: float) -> None:
-        self.http = httpx.Client(base_url=service, timeout=120)
-        self.peer = httpx.Client(base_url=peer, timeout=120)
-        self.client = KeypointClient(service, timeout=120)
+    def __init__(self, service: Server, peer: Server, padding: float) -> None:
+        self.servers = service, peer
+        self.http = httpx.Client(base_url=service.url, timeout=120)
+        self.peer = httpx.Client(base_url=peer.url, timeout=120)
+        self.client = KeypointClient(service.url, timeout=120)
         self.padding = padding
 
     def close(self) -> None:
@@ -124,23 +126,27 @@ class Contenders:
         files = {"image": ("frame.jpg", jpeg_bytes(point.frame), "image/jpeg")}
         return _answer(http.post("/v1/predict", files=files, data={"request": json.dumps(point.parameters)}))
 
-    def sends(self, point: Point) -> dict[str, Send]:
+    def sends(self, point: Point) -> dict[str, tuple[Send, Server]]:
+        """Each contender's request, and the server that answers it."""
         instances = point.parameters["instances"]
+        service, peer = self.servers
         return {
-            CONTENDERS[0]: lambda: self.regions(point),
-            CONTENDERS[1]: lambda: self.regions(point, "jpeg-regions"),
-            CONTENDERS[2]: lambda: self.whole_jpeg(point, self.http),
-            CONTENDERS[3]: lambda: self.whole_jpeg(point, self.peer),
-            CONTENDERS[4]: lambda: self.client.predict(point.frame, instances),
-            CONTENDERS[5]: lambda: self.client.predict(jpeg_bytes(point.frame), instances),
+            CONTENDERS[0]: (lambda: self.regions(point), service),
+            CONTENDERS[1]: (lambda: self.regions(point, "jpeg-regions"), service),
+            CONTENDERS[2]: (lambda: self.whole_jpeg(point, self.http), service),
+            CONTENDERS[3]: (lambda: self.whole_jpeg(point, self.peer), peer),
+            CONTENDERS[4]: (lambda: self.client.predict(point.frame, instances), service),
+            CONTENDERS[5]: (lambda: self.client.predict(jpeg_bytes(point.frame), instances), service),
         }
 
     def check(self, point: Point) -> None:
-        """Raw regions answer as the whole frame's PNG, byte for byte; the peer as the service."""
-        files = frame_parts(point.frame, point.parameters, self.padding, "raw-frame")
-        whole = self.http.post("/v1/predict/frame", files=files).content
+        """Raw regions answer as the whole frame's PNG does, byte for byte; the peer as the service."""
+        png = cv2.imencode(".png", point.frame[:, :, ::-1])[1].tobytes()  # a raw 4K frame is above 20 MiB
+        files = {"image": ("frame.png", png, "image/png")}
+        whole = self.http.post("/v1/predict", files=files, data={"request": json.dumps(point.parameters)})
         regions = frame_parts(point.frame, point.parameters, self.padding, "regions")
-        if self.http.post("/v1/predict/frame", files=regions).content != whole:
+        answer = self.http.post("/v1/predict/frame", files=regions)
+        if whole.status_code != 200 or answer.content != whole.content:
             raise SystemExit(f"{point.name}: the raw regions' answer is not the whole frame's")
         why = difference(self.whole_jpeg(point, self.http), self.whole_jpeg(point, self.peer))
         if why is not None:
@@ -152,23 +158,42 @@ def _answer(response: httpx.Response) -> dict:
     return response.json()
 
 
-def measure(contenders: Contenders, points: list[Point], rounds: int) -> dict[tuple[str, str], list[float]]:
-    """Milliseconds per request, the contenders taking turns within each round (paired)."""
-    times: dict[tuple[str, str], list[float]] = {}
+@dataclass
+class Timings:
+    """Per (point, contender): wall milliseconds of each request, and the CPU milliseconds the
+    client process and the answering server spent on them (their sum, for a mean per request)."""
+
+    wall: dict[tuple[str, str], list[float]] = field(default_factory=dict)
+    cpu: dict[tuple[str, str], float] = field(default_factory=dict)
+
+    def add(self, key: tuple[str, str], wall_s: float, cpu_s: float) -> None:
+        self.wall.setdefault(key, []).append(1000 * wall_s)
+        self.cpu[key] = self.cpu.get(key, 0.0) + 1000 * cpu_s
+
+    def median(self, key: tuple[str, str]) -> float:
+        return statistics.median(self.wall[key])
+
+    def cpu_mean(self, key: tuple[str, str]) -> float:
+        return self.cpu[key] / len(self.wall[key])
+
+
+def measure(contenders: Contenders, points: list[Point], rounds: int) -> Timings:
+    """The contenders taking turns within each round (paired); CPU read outside the timed span."""
+    timings = Timings()
     for point in points:
         contenders.check(point)
         sends = contenders.sends(point)
-        for send in sends.values():  # warm: connections, first runs of each batch size
+        for send, _ in sends.values():  # warm: connections, first runs of each batch size
             send()
         for _ in range(rounds):
-            for name, send in sends.items():
+            for name, (send, server) in sends.items():
+                cpu_before = time.process_time() + server.cpu_seconds()
                 started = time.perf_counter()
                 send()
-                times.setdefault((point.name, name), []).append(1000 * (time.perf_counter() - started))
-        log(
-            f"{point.name}: " + ", ".join(f"{n} {statistics.median(times[point.name, n]):.1f}" for n in sends)
-        )
-    return times
+                wall = time.perf_counter() - started
+                timings.add((point.name, name), wall, time.process_time() + server.cpu_seconds() - cpu_before)
+        log(f"{point.name}: " + ", ".join(f"{n} {timings.median((point.name, n)):.1f}" for n in sends))
+    return timings
 
 
 def _cell(values: list[float]) -> str:
@@ -176,41 +201,54 @@ def _cell(values: list[float]) -> str:
     return f"{quartiles[1]:.1f} ({quartiles[0]:.1f}-{quartiles[2]:.1f})"
 
 
-def render(command: str, machine: str, points: list[Point], times: dict, rounds: int, load_after: str) -> str:
-    def median(point: Point, name: str) -> float:
-        return statistics.median(times[point.name, name])
-
+def render(command: str, machine: str, points: list[Point], timings: Timings, rounds: int, load: str) -> str:
     header = "| frame, boxes | " + " | ".join(CONTENDERS) + " |"
-    rows = [header, "|" + "---|" * (len(CONTENDERS) + 1)]
-    rows += [
-        f"| {p.name} | " + " | ".join(_cell(times[p.name, n]) for n in CONTENDERS) + " |" for p in points
+    rule = "|" + "---|" * (len(CONTENDERS) + 1)
+    walls = [header, rule]
+    walls += [
+        f"| {p.name} | " + " | ".join(_cell(timings.wall[p.name, n]) for n in CONTENDERS) + " |"
+        for p in points
+    ]
+    cpus = [header, rule]
+    cpus += [
+        f"| {p.name} | " + " | ".join(f"{timings.cpu_mean((p.name, n)):.1f}" for n in CONTENDERS) + " |"
+        for p in points
     ]
     ratios = [
-        "| frame, boxes | FastAPI whole JPEG / service raw regions | service whole JPEG / raw regions"
-        " | client JPEG + predict / client predict(frame) |",
+        "| frame, boxes | FastAPI whole JPEG / service raw regions, time (CPU) | service whole JPEG / raw"
+        " regions, time (CPU) | client JPEG + predict / client predict(frame), time (CPU) |",
         "|---|---|---|---|",
     ]
     for p in points:
-        peer, whole, raw = median(p, CONTENDERS[3]), median(p, CONTENDERS[2]), median(p, CONTENDERS[0])
-        client = median(p, CONTENDERS[5]) / median(p, CONTENDERS[4])
-        ratios.append(f"| {p.name} | **{peer / raw:.2f}** | {whole / raw:.2f} | **{client:.2f}** |")
+        cells = []
+        for slow, fast in ((3, 0), (2, 0), (5, 4)):
+            (a, b) = ((p.name, CONTENDERS[slow]), (p.name, CONTENDERS[fast]))
+            wall, cpu = timings.median(a) / timings.median(b), timings.cpu_mean(a) / timings.cpu_mean(b)
+            cells.append(f"**{wall:.2f}** ({cpu:.2f})")
+        ratios.append(f"| {p.name} | " + " | ".join(cells) + " |")
     return "\n".join(
         [
             "## A camera frame to sets (bench_frames)",
             "",
-            f"`{command}`: {machine}; load average after the run {load_after}. Milliseconds from a frame in"
-            f" memory (RGB) to the parsed answer, median (quartiles) of {rounds} requests per cell, one at a"
-            " time on a keep-alive connection, the contenders taking turns in each round; every time"
-            " includes the client's encoding (JPEG quality 95 where JPEG). Checked first: the raw regions'"
-            " answer is the whole frame's byte for byte, and the peer's is the service's for the same JPEG.",
+            f"`{command}`: {machine}; load average after the run {load}. From a frame in memory (RGB) to"
+            f" the parsed answer, {rounds} requests per cell, one at a time on a keep-alive connection, the"
+            " contenders taking turns in each round; every figure includes the client's encoding (JPEG"
+            " quality 95 where JPEG). CPU: the client process's and the answering server's CPU time per"
+            " request (less moved by other jobs on the machine than the wall time). Checked first: the raw"
+            " regions' answer is the whole frame's PNG's byte for byte, and the peer's is the service's for"
+            " the same JPEG.",
             "",
-            "### Ratios (medians of the same run)",
+            "### Ratios (wall-time medians, and mean CPU, of the same run)",
             "",
             *ratios,
             "",
-            "### Times",
+            "### Wall time, ms: median (quartiles)",
             "",
-            *rows,
+            *walls,
+            "",
+            "### CPU time, core-ms per request (client + server), mean",
+            "",
+            *cpus,
         ]
     )
 
@@ -223,15 +261,15 @@ def main(argv: list[str] | None = None) -> None:
     machine = this_machine().describe()
     logs = Path(tempfile.mkdtemp(prefix="bench-frames-"))
     with SERVICE.running(logs / "service.log") as service, PEER.running(logs / "peer.log") as peer:
-        contenders = Contenders(service.url, peer.url, padding)
+        contenders = Contenders(service, peer, padding)
         try:
-            times = measure(contenders, points, args.rounds)
+            timings = measure(contenders, points, args.rounds)
         finally:
             contenders.close()
     load_after = ", ".join(f"{v:.2f}" for v in os.getloadavg())
     command = " ".join(["python -m benchmarks.bench_frames", *(sys.argv[1:] if argv is None else argv)])
     page.write_section(
-        args.output, "bench_frames", render(command, machine, points, times, args.rounds, load_after)
+        args.output, "bench_frames", render(command, machine, points, timings, args.rounds, load_after)
     )
     log(f"wrote the bench_frames section of {args.output}")
 

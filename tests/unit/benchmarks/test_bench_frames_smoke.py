@@ -27,7 +27,7 @@ def test_frames_have_their_size_and_boxes_inside(width: int, height: int, boxes:
 def test_regions_cut_with_another_padding_are_refused_not_timed(tmp_path: Path) -> None:
     point = make_point(load_sample(DEFAULT_MODEL_DIR / "samples"), 640, 480, 1)
     with serve({}, log=tmp_path / "service.log") as server:
-        contenders = Contenders(server.url, server.url, padding=0.0)
+        contenders = Contenders(server, server, padding=0.0)
         try:
             with pytest.raises(httpx.HTTPStatusError, match="422"):
                 contenders.regions(point)
