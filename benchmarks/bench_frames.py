@@ -38,6 +38,8 @@ from benchmarks.service_bench import page
 from benchmarks.service_bench.inputs import Sample, load_sample
 from benchmarks.service_bench.machine import this_machine
 from benchmarks.service_bench.server import Server
+from service.detector.crop import crop_affines, crop_contexts, warp_crop
+from service.detector.frames import EncodedFrame, EncodedRegion, open_frame
 from service.infra.settings import DEFAULT_MODEL_DIR
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,6 +51,7 @@ from keypoint_client.frames import frame_parts, jpeg_bytes  # noqa: E402
 DEFAULT_OUTPUT = ROOT / "docs" / "performance.md"
 SIZES = ((640, 480), (1280, 720), (1920, 1080), (3840, 2160))
 BOXES = (1, 4)
+CROP_SIZE = (128, 128)  # the bundled model's input
 PEER = next(peer for peer in PEERS if peer.name == "FastAPI")
 CONTENDERS = (
     "service, raw regions",
@@ -196,12 +199,50 @@ def measure(contenders: Contenders, points: list[Point], rounds: int) -> Timings
     return timings
 
 
+def canvas_ab(point: Point, padding: float, rounds: int) -> tuple[float, float]:
+    """Median ms to cut ``point``'s crops from its raw regions in process, taking turns: as the
+    service does (the thread's zero canvas kept between frames), and with a fresh ``np.zeros``
+    canvas per region (the simplest way, what the kept canvas replaced)."""
+    boxes = np.array([instance["bbox"] for instance in point.parameters["instances"]])
+    contexts = crop_contexts(boxes, padding, point.width, point.height)
+    regions = tuple(
+        EncodedRegion(
+            int(x0), int(y0), int(x1 - x0), int(y1 - y0), "rgb8", point.frame[y0:y1, x0:x1].tobytes(), (i,)
+        )
+        for i, (x0, y0, x1, y1) in enumerate(contexts)
+    )
+    source = open_frame(EncodedFrame(point.width, point.height, regions), boxes, padding, 10**9, 10**10)
+    affines = crop_affines(boxes, padding, CROP_SIZE)
+    kept: list[float] = []
+    fresh: list[float] = []
+
+    def on_fresh_canvases() -> None:
+        for region in source.regions:
+            canvas = np.zeros((point.height, point.width, 3), dtype=np.uint8)
+            height, width = region.pixels.shape[:2]
+            canvas[region.y_offset : region.y_offset + height, region.x_offset : region.x_offset + width] = (
+                region.pixels
+            )
+            for i in region.instances or ():
+                warp_crop(canvas, affines[i], CROP_SIZE)
+
+    source.crops(affines, CROP_SIZE)  # this thread's canvas, made once
+    for _ in range(rounds):
+        for cut, into in ((lambda: source.crops(affines, CROP_SIZE), kept), (on_fresh_canvases, fresh)):
+            started = time.perf_counter()
+            cut()
+            into.append(1000 * (time.perf_counter() - started))
+    return statistics.median(kept), statistics.median(fresh)
+
+
 def _cell(values: list[float]) -> str:
     quartiles = statistics.quantiles(values, n=4) if len(values) > 1 else [values[0]] * 3
     return f"{quartiles[1]:.1f} ({quartiles[0]:.1f}-{quartiles[2]:.1f})"
 
 
-def render(command: str, machine: str, points: list[Point], timings: Timings, rounds: int, load: str) -> str:
+def render(
+    command: str, machine: str, points: list[Point], timings: Timings, rounds: int, load: str, canvas: str
+) -> str:
     header = "| frame, boxes | " + " | ".join(CONTENDERS) + " |"
     rule = "|" + "---|" * (len(CONTENDERS) + 1)
     walls = [header, rule]
@@ -249,6 +290,10 @@ def render(command: str, machine: str, points: list[Point], timings: Timings, ro
             "### CPU time, core-ms per request (client + server), mean",
             "",
             *cpus,
+            "",
+            "### The regions' canvas (in process, same run)",
+            "",
+            canvas,
         ]
     )
 
@@ -266,10 +311,20 @@ def main(argv: list[str] | None = None) -> None:
             timings = measure(contenders, points, args.rounds)
         finally:
             contenders.close()
+    largest = max(points, key=lambda p: (p.width * p.height, p.boxes))
+    kept, fresh = canvas_ab(largest, padding, args.rounds)
+    canvas = (
+        f"Cutting the {largest.boxes} crops of {largest.name.split(',')[0]} from raw regions, median of"
+        f" {args.rounds}, taking turns: {kept:.2f} ms with the thread's kept canvas (what the service"
+        f" does), {fresh:.2f} ms with a fresh `np.zeros` canvas per region, which pays a page fault for"
+        " each row a region touches."
+    )
     load_after = ", ".join(f"{v:.2f}" for v in os.getloadavg())
     command = " ".join(["python -m benchmarks.bench_frames", *(sys.argv[1:] if argv is None else argv)])
     page.write_section(
-        args.output, "bench_frames", render(command, machine, points, timings, args.rounds, load_after)
+        args.output,
+        "bench_frames",
+        render(command, machine, points, timings, args.rounds, load_after, canvas),
     )
     log(f"wrote the bench_frames section of {args.output}")
 
