@@ -64,7 +64,7 @@ def frame_parts(
     raw = "mono8" if pixels.ndim == 2 else f"{channel_order}8"
     if sending == "raw-frame":
         request = {**parameters, "frame": {"width": width, "height": height, "encoding": raw}}
-        return [_json(request), _pixels(np.ascontiguousarray(pixels).tobytes(), "application/octet-stream")]
+        return [_json(request), _pixels(pixels.tobytes(), "application/octet-stream")]
     regions, parts = [], []
     for i, instance in enumerate(parameters["instances"]):
         x0, y0, x1, y1 = crop_context(instance["bbox"], padding, width, height)
@@ -87,7 +87,7 @@ def _encoded(
         return "png", png_bytes(region, order), "image/png"
     if sending == "jpeg-regions":
         return "jpeg", jpeg_bytes(region, order), "image/jpeg"
-    return raw, np.ascontiguousarray(region).tobytes(), "application/octet-stream"
+    return raw, region.tobytes(), "application/octet-stream"  # C order, one copy
 
 
 def jpeg_bytes(
