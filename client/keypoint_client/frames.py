@@ -23,6 +23,7 @@ FrameSending = Literal["regions", "jpeg-regions", "png-regions", "raw-frame"]
 CONTEXT_MARGIN_PX = 2  # the service's: pixels beyond a crop's square its resampling may read
 JPEG_QUALITY = 95
 Part = tuple[str, tuple[str | None, bytes, str]]
+Rectangle = tuple[int, int, int, int]  # x0, y0, x1, y1: columns x0 .. x1 - 1, rows y0 .. y1 - 1
 
 
 def is_frame(image: object) -> TypeGuard[NDArray[Any]]:
@@ -37,7 +38,7 @@ def crop_padding(model: ModelInfo) -> float:
     return float(model.manifest["crop"]["padding"])
 
 
-def crop_context(bbox: Sequence[float], padding: float, width: int, height: int) -> tuple[int, int, int, int]:
+def crop_context(bbox: Sequence[float], padding: float, width: int, height: int) -> Rectangle:
     """``(x0, y0, x1, y1)``, half-open, of the pixels the service resamples a box's crop from:
     the square of side max(w, h) * (1 + padding) centred on the box, widened by
     ``CONTEXT_MARGIN_PX`` and clipped to the frame."""
@@ -66,18 +67,44 @@ def frame_parts(
         request = {**parameters, "frame": {"width": width, "height": height, "encoding": raw}}
         return [_json(request), _pixels(pixels.tobytes(), "application/octet-stream")]
     regions, parts = [], []
-    for i, instance in enumerate(parameters["instances"]):
-        x0, y0, x1, y1 = crop_context(instance["bbox"], padding, width, height)
-        if x1 <= x0 or y1 <= y0:  # a box outside the frame: the service names the problem
-            x0, y0, x1, y1 = 0, 0, min(width, 1), min(height, 1)
+    for (x0, y0, x1, y1), served in _rectangles(parameters["instances"], padding, width, height):
         encoding, data, kind = _encoded(pixels[y0:y1, x0:x1], sending, raw, channel_order)
         regions.append(
             {"x_offset": x0, "y_offset": y0, "width": x1 - x0, "height": y1 - y0, "encoding": encoding}
-            | {"instances": [i]}
+            | {"instances": served}
         )
         parts.append(_pixels(data, kind))
     request = {**parameters, "frame": {"width": width, "height": height}, "regions": regions}
     return [_json(request), *parts]
+
+
+def _rectangles(
+    instances: Sequence[dict[str, Any]], padding: float, width: int, height: int
+) -> list[tuple[Rectangle, list[int]]]:
+    """One rectangle per box's crop context, but boxes whose contexts overlap share one where
+    the rectangle around both has no more pixels than the two apart."""
+    merged: list[tuple[Rectangle, list[int]]] = []
+    for i, instance in enumerate(instances):
+        box = crop_context(instance["bbox"], padding, width, height)
+        if box[2] <= box[0] or box[3] <= box[1]:  # a box outside the frame: the service names the problem
+            box = (0, 0, min(width, 1), min(height, 1))
+        for k, (other, served) in enumerate(merged):
+            both = (
+                min(box[0], other[0]),
+                min(box[1], other[1]),
+                max(box[2], other[2]),
+                max(box[3], other[3]),
+            )
+            if _area(both) <= _area(box) + _area(other):
+                merged[k] = (both, [*served, i])
+                break
+        else:
+            merged.append((box, [i]))
+    return merged
+
+
+def _area(rectangle: Rectangle) -> int:
+    return (rectangle[2] - rectangle[0]) * (rectangle[3] - rectangle[1])
 
 
 def _encoded(

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 from keypoint_client import AsyncKeypointClient, InvalidInput, KeypointClient, png_bytes
-from keypoint_client.frames import crop_context
+from keypoint_client.frames import crop_context, frame_parts
 
 from service.detector.crop import crop_contexts
 from tests.live.server import LiveServer
@@ -65,6 +65,15 @@ def test_the_clients_crop_context_is_the_services() -> None:
     assert [crop_context(box, padding, 640, 480) for box in boxes] == [
         tuple(map(int, row)) for row in service
     ]
+
+
+def test_boxes_whose_contexts_overlap_share_a_region(client: KeypointClient, frames) -> None:
+    rgb, instances = frames[0]
+    twice = [instances[0], instances[0], *instances[1:]]
+    request = json.loads(frame_parts(rgb, {"instances": twice}, 0.25)[0][1][1])
+    served = [region["instances"] for region in request["regions"]]
+    assert served[0] == [0, 1] and sorted(i for group in served for i in group) == list(range(len(twice)))
+    assert client.predict(rgb, twice) == client.predict(png_bytes(rgb), twice)
 
 
 def test_a_box_outside_the_frame_is_the_services_problem(client: KeypointClient, frames) -> None:
