@@ -273,7 +273,9 @@ def render(
             "",
             f"`{command}`: {machine}; load average after the run {load}. From a frame in memory (RGB) to"
             f" the parsed answer, {rounds} requests per cell, one at a time on a keep-alive connection, the"
-            " contenders taking turns in each round; every figure includes the client's encoding (JPEG"
+            " contenders taking turns in each round; 4 boxes are the sample's 3 and its first again (as in"
+            " bench_peers: the client's regions share one rectangle for those two); every figure includes"
+            " the client's encoding (JPEG"
             " quality 95 where JPEG). CPU: the client process's and the answering server's CPU time per"
             " request (less moved by other jobs on the machine than the wall time). Checked first: the raw"
             " regions' answer is the whole frame's PNG's byte for byte, and the peer's is the service's for"
