@@ -22,7 +22,8 @@ from service.api.http.problems import install_problem_handlers
 from service.api.http.request_body import BodyPace
 from service.api.http.request_id import RequestIdMiddleware
 from service.api.monitoring import console_routes, drift_routes, health_routes
-from service.api.predict import model_routes, predict_routes
+from service.api.predict import frame_routes, model_routes, predict_routes
+from service.api.predict.frame_schemas import FrameRequest
 from service.api.predict.predict_schemas import BatchJson, PredictJson, PredictParameters
 from service.infra.logs import ensure_logging
 from service.infra.metrics import worker_stopped
@@ -94,6 +95,7 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
     install_problem_handlers(app)
     for routes in (
         predict_routes,
+        frame_routes,
         model_routes,
         calibration_routes,
         health_routes,
@@ -102,7 +104,9 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
         console_routes,
     ):
         app.include_router(routes.router)
-    install_contract(app, parsed_bodies=(PredictJson, PredictParameters, BatchJson))  # parsed by hand
+    install_contract(
+        app, parsed_bodies=(PredictJson, PredictParameters, BatchJson, FrameRequest)
+    )  # parsed by hand
     return app
 
 
