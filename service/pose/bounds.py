@@ -103,6 +103,7 @@ def boundary_poses(
     step = 0.1 * (float(np.linalg.norm(estimate.translation)) or 1.0)
     start = np.concatenate([to_rotation_vector(estimate.rotation), np.zeros(3)])
 
+    @_last_value
     def slack(x):  # 1 - (y_i - c_i)^T L_i (y_i - c_i) >= 0, with its Jacobian from OpenCV
         projected, jacobian = cv2.projectPoints(
             objects, x[:3], estimate.translation + step * x[3:], camera, None
@@ -112,8 +113,11 @@ def boundary_poses(
         slopes = -2 * np.einsum("ni,nij,njk->nk", offsets, shapes, jacobian)
         return 1.0 - np.einsum("ni,nij,nj->n", offsets, shapes, offsets), slopes
 
-    def depth(x):
-        return (objects @ from_rotation_vector(x[:3]).T + estimate.translation + step * x[3:])[:, 2]
+    @_last_value
+    def depth(x):  # z_i > 0, with its Jacobian (Rodrigues' d vec(R) / d rvec, row-major)
+        rotation, jacobian = cv2.Rodrigues(x[:3])
+        value = (objects @ rotation.T + estimate.translation + step * x[3:])[:, 2]
+        return value, np.hstack([objects @ jacobian[:, 6:9].T, np.tile([0.0, 0.0, step], (len(objects), 1))])
 
     def turn(x):  # tr(R_hat^T R): smallest at the largest angle
         rotation, jacobian = cv2.Rodrigues(x[:3])
@@ -123,7 +127,7 @@ def boundary_poses(
 
     constraints = [
         {"type": "ineq", "fun": lambda x: slack(x)[0], "jac": lambda x: slack(x)[1]},
-        {"type": "ineq", "fun": depth},
+        {"type": "ineq", "fun": lambda x: depth(x)[0], "jac": lambda x: depth(x)[1]},
     ]
     runs = [
         (lambda x, a=sign * axis: (-float(a @ x[3:]), np.concatenate([np.zeros(3), -a])), start)
@@ -154,6 +158,19 @@ def boundary_poses(
         if pose is not None:
             poses.append(pose)
     return poses
+
+
+def _last_value(function):
+    """``function`` remembering its last argument's value: SLSQP asks for a constraint and then its
+    Jacobian at the same point, and both come from one projection."""
+    last: list = [None, None]
+
+    def remembered(x: np.ndarray):
+        if last[0] is None or not np.array_equal(last[0], x):
+            last[:] = [x.copy(), function(x)]
+        return last[1]
+
+    return remembered
 
 
 def _inside_towards(start, end, camera, keypoints_3d, centers, shapes) -> Pose | None:
