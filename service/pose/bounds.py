@@ -67,23 +67,68 @@ def sample_poses_in_set(
     Every set must be bounded (an unbounded set has no uniform draw).
     """
     rng = np.random.default_rng(seed)
-    objects = keypoints_3d.astype(np.float64)
-    rvec0, tvec0 = to_rotation_vector(start.rotation), start.translation.astype(np.float64)
+    points = np.array([sample_points_in_sets(centers, shapes, rng) for _ in range(count)])
+    if count == 0:
+        return SampledPoses([], 0)
+    rotations, translations = _fitted_poses(start, camera, keypoints_3d.astype(np.float64), points)
     found = []
-    for _ in range(count):
-        points = sample_points_in_sets(centers, shapes, rng)
-        try:
-            ok, rvec, tvec = cv2.solvePnP(
-                objects, points, camera, None, rvec0.copy(), tvec0.copy(), True, cv2.SOLVEPNP_ITERATIVE
-            )
-        except cv2.error:
-            ok = False
-        if not ok or not np.isfinite(tvec).all():
-            continue
-        pose = Pose(from_rotation_vector(rvec), tvec.reshape(3))
-        if membership(pose, camera, keypoints_3d, centers, shapes).inside:
+    for rotation, translation in zip(rotations, translations, strict=True):
+        pose = Pose(rotation, translation)
+        if np.isfinite(translation).all() and membership(pose, camera, keypoints_3d, centers, shapes).inside:
             found.append(pose)
     return SampledPoses(found, count)
+
+
+_GAUSS_NEWTON_STEPS = 8  # from the estimate to draws inside the sets: converged to rounding by then
+
+
+def _fitted_poses(start: Pose, camera: np.ndarray, objects: np.ndarray, points: np.ndarray):
+    """Least-squares PnP for every draw at once (``points`` (S, N, 2)): Gauss-Newton from ``start``
+    on the reprojection error, the rotation updated on the left (R <- exp([w]) R), all draws in
+    one batch of 6x6 systems. Returns rotations (S, 3, 3) and translations (S, 3)."""
+    count = len(points)
+    rotations = np.repeat(start.rotation[None].astype(np.float64), count, axis=0)
+    translations = np.repeat(start.translation[None].astype(np.float64), count, axis=0)
+    focal, principal = np.array([camera[0, 0], camera[1, 1]]), camera[:2, 2]
+    with np.errstate(all="ignore"):
+        for _ in range(_GAUSS_NEWTON_STEPS):
+            turned = objects @ rotations.transpose(0, 2, 1)  # (S, N, 3): R X
+            camera_points = turned + translations[:, None]
+            depth = camera_points[..., 2:3]
+            residuals = focal * camera_points[..., :2] / depth + principal - points  # (S, N, 2)
+            projection = np.zeros(camera_points.shape[:2] + (2, 3))  # d y / d p
+            projection[..., 0, 0], projection[..., 1, 1] = focal[0] / depth[..., 0], focal[1] / depth[..., 0]
+            projection[..., :, 2] = -focal * camera_points[..., :2] / depth**2
+            turning = -_skew(turned)  # d p / d w = -[R X]_x
+            jacobian = np.concatenate([projection @ turning, projection], axis=-1)  # (S, N, 2, 6)
+            jacobian = jacobian.reshape(count, -1, 6)
+            normal = jacobian.transpose(0, 2, 1) @ jacobian
+            gradient = jacobian.transpose(0, 2, 1) @ residuals.reshape(count, -1, 1)
+            damping = 1e-9 * np.trace(normal, axis1=1, axis2=2)[:, None, None] * np.eye(6)
+            step = -np.linalg.solve(normal + damping, gradient)[..., 0]
+            rotations = _exponential(step[:, :3]) @ rotations
+            translations = translations + step[:, 3:]
+    return rotations, translations
+
+
+def _skew(vectors: np.ndarray) -> np.ndarray:
+    """[v]_x for every vector of (..., 3)."""
+    x, y, z = vectors[..., 0], vectors[..., 1], vectors[..., 2]
+    zero = np.zeros_like(x)
+    return np.stack(
+        [np.stack([zero, -z, y], -1), np.stack([z, zero, -x], -1), np.stack([-y, x, zero], -1)], -2
+    )
+
+
+def _exponential(vectors: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula for every rotation vector of (S, 3)."""
+    angle = np.linalg.norm(vectors, axis=1)[:, None, None]
+    cross = _skew(vectors)
+    small = angle < 1e-12
+    safe = np.where(small, 1.0, angle)
+    sine = np.where(small, 1.0, np.sin(safe) / safe)
+    cosine = np.where(small, 0.5, (1 - np.cos(safe)) / safe**2)
+    return np.eye(3) + sine * cross + cosine * (cross @ cross)
 
 
 _ROTATION_STARTS = 0.05  # radians: the rotation search starts this far from the estimate
