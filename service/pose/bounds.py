@@ -105,7 +105,10 @@ def _fitted_poses(start: Pose, camera: np.ndarray, objects: np.ndarray, points: 
             normal = jacobian.transpose(0, 2, 1) @ jacobian
             gradient = jacobian.transpose(0, 2, 1) @ residuals.reshape(count, -1, 1)
             damping = 1e-9 * np.trace(normal, axis1=1, axis2=2)[:, None, None] * np.eye(6)
-            step = -np.linalg.solve(normal + damping, gradient)[..., 0]
+            try:
+                step = -np.linalg.solve(normal + damping, gradient)[..., 0]
+            except np.linalg.LinAlgError:  # a degenerate draw or camera: least squares still answers
+                step = -(np.linalg.pinv(normal + damping) @ gradient)[..., 0]
             rotations = _exponential(step[:, :3]) @ rotations
             translations = translations + step[:, 3:]
     return rotations, translations
