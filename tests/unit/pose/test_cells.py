@@ -7,8 +7,9 @@ import itertools
 
 import numpy as np
 
-from service.pose import PoseOptions, instance_pose_sets
+from service.pose import Pose, PoseOptions, instance_pose_sets, membership
 from service.pose.cells import Cell, Wedge, root_cells
+from service.pose.relaxation import ROTATION_TOLERANCE, TRANSLATION_TOLERANCE
 from service.pose.rotations import from_rotation_vector, left_product, rotation_angle_deg, to_quaternion
 from tests.unit.pose.test_bounds import scene
 
@@ -123,3 +124,28 @@ def test_more_programs_never_loosen_the_search(camera, duck_3d, true_pose) -> No
         assert tighter.certified, tighter
         assert tighter.rotation_deg <= looser.rotation_deg and tighter.translation <= looser.translation
     assert answers[-1].outer.rotation_deg < 0.5 * answers[0].outer.rotation_deg
+
+
+def test_the_search_stops_within_its_stated_tolerance_and_its_bounds_hold(camera, duck_3d) -> None:
+    """On scenes whose true pose is in PURSE: the certified bounds contain the true pose's error and
+    every pose found; a search that stopped before its budget has its bounds within
+    ROTATION_TOLERANCE and TRANSLATION_TOLERANCE of the poses found."""
+    rng = np.random.default_rng(21)
+    stopped = 0
+    for _ in range(4):
+        truth = Pose(from_rotation_vector(rng.normal(size=3)), np.array([*rng.uniform(-80, 80, 2), 800.0]))
+        centers, shapes = scene(camera, duck_3d, truth, rng)
+        assert membership(truth, camera, duck_3d, centers, shapes).inside
+        answer = instance_pose_sets(
+            duck_3d, centers, shapes, PoseOptions(camera, samples=50, outer_programs=400)
+        )
+        estimate, inner, outer = answer.estimate, answer.inner, answer.outer
+        assert outer.certified, outer.status
+        assert rotation_angle_deg(estimate.rotation, truth.rotation) <= outer.rotation_deg
+        assert np.linalg.norm(estimate.translation - truth.translation) <= outer.translation
+        assert inner.rotation_deg <= outer.rotation_deg and inner.translation <= outer.translation
+        if int(outer.status.split("(")[1].split(" ")[0]) < 400:
+            stopped += 1
+            assert outer.rotation_deg <= ROTATION_TOLERANCE * inner.rotation_deg * (1 + 1e-9)
+            assert outer.translation <= TRANSLATION_TOLERANCE * inner.translation * (1 + 1e-9)
+    assert stopped >= 3
