@@ -73,22 +73,30 @@ def instances(state, model_dir: Path, epsilon: float, images: int):
     """(camera, keypoints_3d, centers, shapes, true pose) of every sample instance."""
     coco = json.loads((model_dir / "samples" / "annotations.json").read_text())
     names = {c["id"]: c["name"] for c in coco["categories"]}
-    manifest = state.detector.manifest
     for image in coco["images"][:images]:
         annotations = [a for a in coco["annotations"] if a["image_id"] == image["id"]]
         jpeg = (model_dir / "samples" / image["file_name"]).read_bytes()
-        parameters = PredictParameters(
-            instances=[{"object": names[a["category_id"]], "bbox": a["bbox"]} for a in annotations],
-            coverage="object",
-            epsilon=epsilon,
+        yield from predicted_cases(
+            state, jpeg, [names[a["category_id"]] for a in annotations], annotations, epsilon
         )
-        query = predict_query(parameters)
-        response = predict_response(state.predictor.predict(jpeg, query), query, manifest)
-        for ann, answer in zip(annotations, response.instances, strict=True):
-            centers, shapes = set_arrays(answer.keypoints)
-            points = np.array(manifest.object(answer.object).keypoints_3d)
-            truth = Pose(np.array(ann["cam_R_m2c"]), np.array(ann["cam_t_m2c"]))
-            yield np.array(ann["cam_K"]), points, centers, shapes, truth
+
+
+def predicted_cases(state, image: bytes, names: list[str], annotations: list[dict], epsilon: float):
+    """(camera, keypoints_3d, centers, shapes, true pose) per annotated instance of one image, its
+    object-scope sets predicted by the service's predictor."""
+    manifest = state.detector.manifest
+    parameters = PredictParameters(
+        instances=[{"object": n, "bbox": a["bbox"]} for n, a in zip(names, annotations, strict=True)],
+        coverage="object",
+        epsilon=epsilon,
+    )
+    query = predict_query(parameters)
+    response = predict_response(state.predictor.predict(image, query), query, manifest)
+    for ann, answer in zip(annotations, response.instances, strict=True):
+        centers, shapes = set_arrays(answer.keypoints)
+        points = np.array(manifest.object(answer.object).keypoints_3d)
+        truth = Pose(np.array(ann["cam_R_m2c"]), np.array(ann["cam_t_m2c"]))
+        yield np.array(ann["cam_K"]), points, centers, shapes, truth
 
 
 def timed(function, *args):
@@ -192,7 +200,7 @@ def sequence_instances(state, epsilon: float, seed: int, sequences: int, frames:
     from training.scene import World
     from training.streams import render_sequence
 
-    manifest, world = state.detector.manifest, World()
+    world = World()
     try:
         for s in range(sequences):
             for view in render_sequence(world, np.random.default_rng([seed, s]), frames):
@@ -200,21 +208,8 @@ def sequence_instances(state, epsilon: float, seed: int, sequences: int, frames:
                 if not annotations:
                     continue
                 names = [OBJECT_CLASSES[a["category_id"] - 1].name for a in annotations]
-                parameters = PredictParameters(
-                    instances=[
-                        {"object": n, "bbox": a["bbox"]} for n, a in zip(names, annotations, strict=True)
-                    ],
-                    coverage="object",
-                    epsilon=epsilon,
-                )
-                query = predict_query(parameters)
                 png = cv2.imencode(".png", view.rgb[:, :, ::-1])[1].tobytes()
-                response = predict_response(state.predictor.predict(png, query), query, manifest)
-                for ann, answer in zip(annotations, response.instances, strict=True):
-                    centers, shapes = set_arrays(answer.keypoints)
-                    points = np.array(manifest.object(answer.object).keypoints_3d)
-                    truth = Pose(np.array(ann["cam_R_m2c"]), np.array(ann["cam_t_m2c"]))
-                    yield np.array(ann["cam_K"]), points, centers, shapes, truth
+                yield from predicted_cases(state, png, names, annotations, epsilon)
     finally:
         world.close()
 
