@@ -38,6 +38,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -218,6 +219,7 @@ def per_instance(cases, samples: int, programs: int) -> dict:
     """The whole pose answer per instance, as the predict API computes it: times, tightness and the
     certification check."""
     record = {"ms": [], "cpu": [], "ratios": [], "certified": 0, "checked": 0, "contained": 0, "instances": 0}
+    record["why not"] = Counter()
     for camera, points, centers, shapes, truth in cases:
         options = PoseOptions(camera, samples=samples, outer_programs=programs)
         answer, ms, cpu = timed(instance_pose_sets, points, centers, shapes, options)
@@ -226,6 +228,7 @@ def per_instance(cases, samples: int, programs: int) -> dict:
         record["cpu"].append(cpu)
         outer, inner = answer.outer, answer.inner
         if answer.estimate is None or outer is None or not outer.certified or outer.empty:
+            record["why not"][_why_not(answer)] += 1
             continue
         record["certified"] += 1
         if inner is not None and inner.rotation_deg > 0 and inner.translation > 0:
@@ -242,6 +245,14 @@ def per_instance(cases, samples: int, programs: int) -> dict:
     return record
 
 
+def _why_not(answer) -> str:  # noqa: ANN001 - a PoseSets without a certified bound
+    if answer.estimate is None:
+        return "no estimate in PURSE"
+    if answer.outer is None:
+        return "no outer bound"
+    return answer.outer.status.split(":")[0]
+
+
 def report_per_instance(name: str, record: dict) -> str:
     ratios, wall = record["ratios"], record["ms"]
     spread = f"{min(wall):.0f}-{max(wall):.0f}" if wall else "-"
@@ -250,7 +261,8 @@ def report_per_instance(name: str, record: dict) -> str:
         f"  {name}: {record['instances']} instances; {_quantiles(wall, 0)} ms wall (spread {spread}), "
         f"{_quantiles(record['cpu'], 0)} ms CPU; outer / inner rotation {rotation}, translation "
         f"{translation}; certified {record['certified']}; certified bounds containing the true error: "
-        f"{record['contained']} of {record['checked']} (true pose in PURSE)"
+        f"{record['contained']} of {record['checked']} (true pose in PURSE); not certified: "
+        f"{dict(record['why not']) or 'none'}"
     )
 
 
