@@ -135,9 +135,9 @@ class StorageSettings(_Group):
         gt=0,
         description=(
             "longest wait for a PostgreSQL store connection, statement, lock or round trip (a frozen"
-            " database's connection is cut); beyond it the store counts as unreachable (admin calls"
-            " answer 503, predictions go on from memory). A poll still running after twice this"
-            " (either store) counts as unreachable too"
+            " database's connection is cut), and for a SQLite write lock (its busy timeout); beyond it"
+            " the store counts as unreachable (admin calls answer 503, predictions go on from memory)."
+            " A poll still running after twice this (either store) counts as unreachable too"
         ),
     )
     max_cache_staleness_seconds: float | None = Field(

@@ -110,8 +110,9 @@ def build_state(settings: Settings) -> ServiceState:
         detector.alone_threads,
     )
     kind, location = store_location(settings.storage.resolved_store_url)
-    # SQLite keeps its busy timeout: a write waiting on another writer is no outage
-    options = {"timeout_s": settings.storage.store_timeout_seconds} if kind == "postgresql" else {}
+    # Every lock wait is bounded alike: PostgreSQL's lock_timeout, SQLite's busy timeout
+    timeout = settings.storage.store_timeout_seconds
+    options = {"timeout_s": timeout} if kind == "postgresql" else {"busy_timeout_s": timeout}
     store = open_store(settings.storage.resolved_store_url, **options)
     if settings.storage.bootstrap_calibration:
         bootstrap_default_calibration(store, detector, settings.model.model_dir, difficulty_spec(settings))
