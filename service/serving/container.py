@@ -143,7 +143,7 @@ def build_state(settings: Settings) -> ServiceState:
         )
     remove_spent_job_folders(settings.storage.jobs_dir, store)
     jobs = JobRunner(store, settings.calibration.calibration_workers)
-    audit = AuditTrail(store, detector.model_hash)
+    audit = AuditTrail(store, detector.model_hash, settings.storage.data_dir / "audit-outbox")
     job_settings = _job_settings(settings)
     audits = CoverageAudits(store, detector, registry, jobs, audit, job_settings)
     audits.publish_latest()

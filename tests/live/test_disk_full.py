@@ -138,6 +138,13 @@ def test_a_job_whose_version_finds_the_store_full_fails_and_is_retried(disk: Pat
             "the job's failure reaches the store once there is room",
         )
         stored.close()
+        wait_until(
+            lambda: any(
+                (e["action"], e["outcome"], e["details"].get("job")) == ("calibration", "failed", job_id)
+                for e in audit_entries(server)
+            ),
+            "the job failed by the store is in the audit trail once the store can take it",
+        )
         retried = server.client.post(f"/v1/admin/jobs/{job_id}/retry", headers=server.admin)
         assert retried.status_code == 202, retried.text
         new = server.wait_job(retried.json()["id"])
