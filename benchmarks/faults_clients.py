@@ -492,6 +492,39 @@ def bomb(server: Server, data_dir: Path) -> None:
     )
 
 
+def annotations_bomb(count: int) -> bytes:
+    """The samples' first image and ``count`` copies of its first annotation (deflated: tiny)."""
+    doc = json.loads((SAMPLES_DIR / "annotations.json").read_text())
+    image, first = doc["images"][0], doc["annotations"][0]
+    doc["images"], doc["annotations"] = [image], [{**first, "id": n + 1} for n in range(count)]
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr("annotations.json", json.dumps(doc))
+        archive.writestr(image["file_name"], (SAMPLES_DIR / image["file_name"]).read_bytes())
+    return buffer.getvalue()
+
+
+def many_annotations(server: Server) -> None:
+    """200,000 annotations in a small zip, refused while a polite client predicts."""
+    body = annotations_bomb(200_000)
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}", "Content-Type": "application/zip"}
+    with httpx.Client(base_url=server.url, timeout=120) as client, ThreadPoolExecutor(1) as pool:
+        polite = pool.submit(polite_client, server.url, 6.0)
+        time.sleep(1)
+
+        def refuse() -> tuple[int, float]:
+            started = time.perf_counter()
+            status = client.post("/v1/admin/calibrations", content=body, headers=headers).status_code
+            return status, time.perf_counter() - started
+
+        rise, (status, took) = peak_while(server.pid, refuse)
+        seconds, statuses = polite.result()
+    print(
+        f"200,000 annotations ({_mib(len(body))} zipped): {status} in {took:.2f} s, peak RSS +{_mib(rise)};"
+        f" a predict every 0.2 s meanwhile: max {max(seconds) * 1000:.0f} ms, {_counted(statuses)}"
+    )
+
+
 def sigterm(settings: dict[str, str], busy: bool) -> None:
     """Time from SIGTERM to exit, idle or with a calibration job scoring and 8 predicts in flight."""
     with tempfile.TemporaryDirectory(prefix="cks-faults-") as data_dir, ThreadPoolExecutor(8) as pool:
@@ -550,6 +583,7 @@ def main(argv: list[str] | None = None) -> int:
         slow_clients(server, args.requests, args.slow)
         huge_images(server, Settings())
         bomb(server, Path(data_dir))
+        many_annotations(server)
     sigterm(settings, busy=False)
     sigterm(settings, busy=True)
     return 0

@@ -324,6 +324,19 @@ class CalibrationSettings(_Group):
     max_upload_uncompressed_bytes: int = Field(
         default=4 * 2**30, gt=0, description="most bytes once unzipped"
     )
+    max_annotations_bytes: int = Field(
+        default=16 * 2**20,
+        gt=0,
+        description=(
+            "largest annotations.json in a calibration zip (413 beyond, before it is unzipped or"
+            " parsed: parsing holds the process, its predictions included, about 1 s per 10 MB)"
+        ),
+    )
+    max_annotations: int = Field(
+        default=20_000,
+        gt=0,
+        description="most annotations in a calibration batch (413 beyond, before any is read)",
+    )
     upload_read_timeout_seconds: float = Field(
         default=3600.0,
         gt=0,
