@@ -235,6 +235,24 @@ _COVERAGE_AUDITS = "coverage audits"
 _STRATA = "Mondrian strata of calibration versions"
 _STRATA_COLUMN = ("ALTER TABLE calib_versions ADD COLUMN strata TEXT",)
 
+
+def _monitor_shares(blob: str, timestamp: str) -> tuple[str, ...]:
+    """What each replica's monitors saw lately (drift windows, looks), one row per replica and kind,
+    replaced in place: any replica merges them to answer for the fleet."""
+    return (
+        f"""CREATE TABLE calib_monitor_shares (
+            model_hash TEXT NOT NULL,
+            kind TEXT NOT NULL,
+            replica TEXT NOT NULL,
+            updated_at {timestamp} NOT NULL,
+            payload {blob} NOT NULL,
+            PRIMARY KEY (model_hash, kind, replica)
+        )""",
+    )
+
+
+_MONITOR_SHARES = "what each replica's monitors saw, merged on read"
+
 SQLITE_MIGRATIONS: tuple[Migration, ...] = (
     Migration(
         1,
@@ -267,6 +285,7 @@ SQLITE_MIGRATIONS: tuple[Migration, ...] = (
         + _sqlite_immutability(("calib_coverage_audits",)),
     ),
     Migration(6, _STRATA, _STRATA_COLUMN),
+    Migration(7, _MONITOR_SHARES, _monitor_shares("BLOB", "TEXT")),
 )
 
 POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
@@ -309,6 +328,7 @@ POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
         + _postgres_triggers(("calib_coverage_audits",)),
     ),
     Migration(6, _STRATA, _STRATA_COLUMN),
+    Migration(7, _MONITOR_SHARES, _monitor_shares("BYTEA", "TIMESTAMPTZ")),
 )
 
 

@@ -5,8 +5,9 @@ With several worker processes (``CKS_WORKERS > 1``) ``serve`` points prometheus_
 multiprocess mode at a folder (``PROMETHEUS_MULTIPROC_DIR``) before the workers start:
 each worker writes its values there and ``/metrics``, whichever worker answers, reports
 the sum over all of them (gauges of live workers only). The ``cks_drift_*`` gauges are the
-exception: each worker keeps its own drift windows, and a scrape reports those of the worker
-that answers it.
+exception: they are the fleet's (every worker and replica merges the windows all of them share
+through the store: service/monitoring/drift_shares.py), the same whichever answers, so
+Prometheus takes their max, not their sum; ``cks_drift_replicas`` says how many they cover.
 
 Those files are memory-mapped: a page the file system cannot give when it is first written
 kills the process with SIGBUS ("Fatal Python error: Bus error"). So each file's pages are
@@ -51,6 +52,7 @@ class DriftReading(Protocol):
     reference_available: bool
     keypoints: Sequence[Any]  # each: object, keypoint, features {name: live_n, alarm, statistic, p_value}
     objects: Sequence[Any]  # each: object, alarm
+    replicas: int
 
 
 MULTIPROCESS_ENV = "PROMETHEUS_MULTIPROC_DIR"
@@ -293,7 +295,11 @@ def drift_families(report: DriftReading) -> list[GaugeMetricFamily]:
     reference.add_metric([], float(report.version or 0) if report.reference_available else 0.0)
     any_alarm = GaugeMetricFamily("cks_drift_alarm_any", "1 when any drift alarm is raised")
     any_alarm.add_metric([], float(report.alarm))
-    return [statistic, p_value, alarm, window, objects, reference, any_alarm]
+    replicas = GaugeMetricFamily(
+        "cks_drift_replicas", "worker processes and replicas whose windows the cks_drift_* figures cover"
+    )
+    replicas.add_metric([], float(report.replicas))
+    return [statistic, p_value, alarm, window, objects, reference, any_alarm, replicas]
 
 
 def metrics_payload() -> tuple[bytes, str]:

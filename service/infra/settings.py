@@ -432,6 +432,15 @@ class DriftMonitorSettings(_Group):
     drift_history_seconds: float = Field(
         default=60.0, gt=0, description="one point of the drift history this often (360 points kept)"
     )
+    drift_share_seconds: float = Field(
+        default=2.0,
+        gt=0,
+        description=(
+            "how often each process writes its drift windows and looks to the store, where any worker or"
+            " replica merges them to answer for the fleet (GET /v1/admin/drift, cks_drift_*); a restart"
+            " loses at most this much; a process silent for 5 times this no longer counts"
+        ),
+    )
 
 
 class LogSettings(_Group):

@@ -32,6 +32,7 @@ from service.infra.operators import load_operators
 from service.infra.settings import Settings, removed_settings
 from service.monitoring.coverage_audits import CoverageAudits
 from service.monitoring.drift_monitor import DriftMonitor, DriftSettings
+from service.monitoring.drift_shares import DriftShares
 from service.prediction import Predictor
 
 log = logging.getLogger(__name__)
@@ -147,7 +148,7 @@ def build_state(settings: Settings) -> ServiceState:
     job_settings = _job_settings(settings)
     audits = CoverageAudits(store, detector, registry, jobs, audit, job_settings)
     audits.publish_latest()
-    drift = _drift_monitor(settings, detector, registry)
+    drift = _drift_monitor(settings, detector, registry, store)
     return ServiceState(
         settings=settings,
         detector=detector,
@@ -172,7 +173,7 @@ def build_state(settings: Settings) -> ServiceState:
 
 
 def _drift_monitor(
-    settings: Settings, detector: Detector, registry: CalibrationRegistry
+    settings: Settings, detector: Detector, registry: CalibrationRegistry, store: CalibrationStore
 ) -> DriftMonitor | None:
     """The drift monitor, its history ticker started and its report the source of cks_drift_*."""
     if not settings.drift.drift_enabled:
@@ -192,7 +193,8 @@ def _drift_monitor(
         full_statistics_share=settings.drift.drift_full_statistics_share,
         history_seconds=settings.drift.drift_history_seconds,
     )
-    monitor = DriftMonitor(detector.manifest, active_calibration, drift_settings)
+    shares = DriftShares(store, detector.model_hash, settings.drift.drift_share_seconds)
+    monitor = DriftMonitor(detector.manifest, active_calibration, drift_settings, shares)
     monitor.start()
     set_drift_source(monitor.report)
     return monitor
