@@ -65,3 +65,17 @@ def test_two_workers_answer_the_same_drift(tmp_path: Path) -> None:
             (frames, reads[0]["alarm"], reads[0]["independent_looks"], 2)
         }, [(r["process"], r["frames"], r["alarm"]) for r in reads]
         assert len({r["process"] for r in reads}) == 2, "both workers must have answered"
+
+
+def test_a_restarted_server_continues_its_windows(tmp_path: Path) -> None:
+    """SIGTERM writes the last share; the next process of this host takes it over."""
+    settings = {"admin_token": ADMIN_TOKEN, "drift_share_seconds": SHARE_S}
+    with LiveServer(tmp_path / "data", **settings) as before:
+        send_heavy_scenes(before, 10)
+        seen = drift(before.url)
+    with LiveServer(tmp_path / "data", **settings) as after:
+        wait_until(lambda: drift(after.url)["frames"] == seen["frames"], "the windows continue", timeout=30)
+        continued = drift(after.url)
+        assert continued["replicas"] == 1, continued
+        assert continued["recorded"] >= seen["recorded"] > 0, (seen, continued)
+        assert continued["independent_looks"] == seen["independent_looks"], (seen, continued)
