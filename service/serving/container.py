@@ -5,9 +5,10 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
 
@@ -54,6 +55,7 @@ class ServiceState:
     admission: Admission
     audits: CoverageAudits
     drift: DriftMonitor | None = None  # None when CKS_DRIFT_ENABLED is false
+    stopping: threading.Event = field(default_factory=threading.Event)  # set at close
 
     @cached_property
     def predictor(self) -> Predictor:
@@ -75,6 +77,7 @@ class ServiceState:
         started = time.monotonic()
         log.info("shutdown: interrupting calibration jobs, then closing the store and the model")
         self.registry.stop()
+        self.stopping.set()
         if self.drift is not None:
             self.drift.stop()
             forget_drift_source(self.drift.report)
@@ -146,8 +149,10 @@ def build_state(settings: Settings) -> ServiceState:
     jobs = JobRunner(store, settings.calibration.calibration_workers)
     audit = AuditTrail(store, detector.model_hash, settings.storage.data_dir / "audit-outbox")
     job_settings = _job_settings(settings)
+    stopping = threading.Event()  # set at close: the audit gauges' follower stops
     audits = CoverageAudits(store, detector, registry, jobs, audit, job_settings)
     audits.publish_latest()
+    audits.follow_latest(5 * settings.storage.store_poll_seconds, stopping)
     drift = _drift_monitor(settings, detector, registry, store)
     return ServiceState(
         settings=settings,
@@ -169,6 +174,7 @@ def build_state(settings: Settings) -> ServiceState:
         ),
         audits=audits,
         drift=drift,
+        stopping=stopping,
     )
 
 

@@ -1,7 +1,8 @@
-"""One drift truth for the fleet: two server processes on one real PostgreSQL store, shifted
+"""One monitoring truth for the fleet: two server processes on one real PostgreSQL store, shifted
 traffic (heavily occluded scenes) sent to replica A only; replica B raises the alarm, its answer
 covering both replicas. With CKS_WORKERS=2 the same holds for two workers of one server: reads
-in a row no longer flip between the workers' own windows.
+in a row no longer flip between the workers' own windows. A coverage audit run on one replica
+reaches the gauges of the other.
 """
 
 from __future__ import annotations
@@ -10,8 +11,10 @@ from pathlib import Path
 
 import httpx
 
+from tests.api.test_audits import run_audit
 from tests.live.server import LiveServer
 from tests.live.test_drift_streams import FRAMES_PER_SCENE, send
+from tests.samples import batch_zip
 from tests.service_calls import ADMIN_TOKEN, wait_until
 from tests.streams import render_requests
 
@@ -79,3 +82,14 @@ def test_a_restarted_server_continues_its_windows(tmp_path: Path) -> None:
         assert continued["replicas"] == 1, continued
         assert continued["recorded"] >= seen["recorded"] > 0, (seen, continued)
         assert continued["independent_looks"] == seen["independent_looks"], (seen, continued)
+
+
+def test_a_coverage_audit_run_on_one_replica_reaches_the_metrics_of_another(
+    postgres_url: str, tmp_path: Path, samples_dir: Path, coco: dict
+) -> None:
+    settings = {"admin_token": ADMIN_TOKEN, "store_url": postgres_url, "store_poll_seconds": 0.5}
+    with LiveServer(tmp_path / "a", **settings) as a, LiveServer(tmp_path / "b", **settings) as b:
+        audit = run_audit(a, batch_zip(samples_dir, coco, images=4), epsilon=[0.1])
+        assert b.client.get(f"/v1/admin/audits/{audit['id']}", headers=b.admin).status_code == 200
+        latest = f'cks_audit_latest_id{{version="1"}} {float(audit["id"])}'
+        wait_until(lambda: latest in b.client.get("/metrics").text, "B's gauges show A's audit", timeout=15)
