@@ -433,7 +433,7 @@ class DriftMonitorSettings(_Group):
         default=60.0, gt=0, description="one point of the drift history this often (360 points kept)"
     )
     drift_share_seconds: float = Field(
-        default=2.0,
+        default=5.0,
         gt=0,
         description=(
             "how often each process writes its drift windows and looks to the store, where any worker or"

@@ -3,7 +3,7 @@ replica answers for the fleet.
 
 Every ``interval`` seconds a replica (a server process: ``host:pid``) replaces its row of the
 store's ``calib_monitor_shares`` with its live windows, the windows of its looks' first frames
-and the Z of its recent looks (time-stamped): a compressed numpy payload of at most
+and the Z of its recent looks (time-stamped): a numpy payload of at most
 ``window`` rows per keypoint. A reader merges the rows of the replicas that wrote within
 ``STALE_INTERVALS`` intervals with its own live state. A process that starts takes over the
 rows of stopped processes of its host (their windows become its own), so a restart loses at
@@ -57,7 +57,7 @@ def encode_share(
 ) -> bytes:
     meta = json.dumps({"version": version, "frames": frames, "recorded": recorded}).encode()
     buffer = io.BytesIO()
-    np.savez_compressed(
+    np.savez(  # uncompressed: float windows barely compress (1.34 vs 1.21 MB) and 7x faster
         buffer,
         meta=np.frombuffer(meta, dtype=np.uint8),
         windows=np.concatenate(windows).astype(np.float32),
