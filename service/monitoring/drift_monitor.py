@@ -288,6 +288,10 @@ class DriftMonitor:
         self._ticker = threading.Thread(target=self._tick_forever, name="drift-history", daemon=True)
         self._ticker.start()
         if self._shares is not None:
+            try:  # before any request is recorded: the looks taken over come first
+                self._take_over(self._shares.take_over_stopped())
+            except StoreError as error:
+                log.warning("drift: the windows of stopped processes could not be taken over (%s)", error)
             self._sharer = threading.Thread(target=self._share_forever, name="drift-share", daemon=True)
             self._sharer.start()
 
@@ -300,10 +304,6 @@ class DriftMonitor:
     def _share_forever(self) -> None:
         """Every interval (and once more at stop), write this process's windows and looks."""
         assert self._shares is not None
-        try:
-            self._take_over(self._shares.take_over_stopped())
-        except StoreError as error:
-            log.warning("drift: the windows of stopped processes could not be taken over (%s)", error)
         while True:
             stopping = self._stop.wait(self._shares.interval)
             try:
