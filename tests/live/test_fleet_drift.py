@@ -7,6 +7,7 @@ reaches the gauges of the other.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import httpx
@@ -63,6 +64,7 @@ def test_two_workers_answer_the_same_drift(tmp_path: Path) -> None:
         send_heavy_scenes(s, SCENES // 2)
         frames = SCENES // 2 * FRAMES_PER_SCENE
         wait_until(lambda: drift(s.url)["frames"] == frames, "every frame counted", timeout=30)
+        time.sleep(3 * SHARE_S)  # each worker's last share written and read by the other
         reads = [drift(s.url) for _ in range(12)]
         assert {(r["frames"], r["alarm"], r["independent_looks"], r["replicas"]) for r in reads} == {
             (frames, reads[0]["alarm"], reads[0]["independent_looks"], 2)

@@ -91,3 +91,50 @@ def test_a_client_is_its_operator_then_a_trusted_header_then_its_address() -> No
     assert keys.of("10.1.1.1", {"x-forwarded-for": "6.6.6.6, 5.6.7.8, 10.2.2.2"}) == "5.6.7.8"
     assert keys.of("10.1.1.1", {"x-forwarded-for": " , "}) == "10.1.1.1"
     assert keys.of(None, {}) == "unknown"
+
+
+def test_at_capacity_a_light_client_takes_the_place_of_the_heaviest_users_waiting_request() -> None:
+    """Three clients of one place each (a flood spread over addresses) fill the service; a
+    client that has used nothing is admitted in place of the newest waiting request of the
+    heaviest user, which gets 503, and it computes next."""
+
+    async def scenario() -> None:
+        admission = Admission(1, 2, 5.0, 1000, client_share=1.0)  # 3 places, 1 slot
+        release, order = asyncio.Event(), []
+
+        async def hold(client: str) -> None:
+            async with admission.admitted(client=client), admission.slot(client):
+                order.append(client)
+                await release.wait()
+
+        flood = {client: asyncio.create_task(hold(client)) for client in ("a", "b", "c")}
+        await asyncio.sleep(0.05)  # a computes, b and c wait: every place taken, each used 0.05 s
+        polite = asyncio.create_task(hold("polite"))
+        await asyncio.sleep(0.01)
+        refused = [c for c, t in flood.items() if t.done() and isinstance(t.exception(), Overloaded)]
+        assert len(refused) == 1 and refused[0] in ("b", "c"), refused
+        assert "gave its place to a client that asks less" in str(flood[refused[0]].exception())
+        release.set()
+        await asyncio.gather(polite, *(t for c, t in flood.items() if c not in refused))
+        assert order[:2] == ["a", "polite"], order  # the light client computes next
+
+    asyncio.run(scenario())
+
+
+def test_at_capacity_a_heavy_user_does_not_evict_a_lighter_one() -> None:
+    async def scenario() -> None:
+        admission = Admission(1, 1, 5.0, 1000, client_share=1.0)  # 2 places
+        release = asyncio.Event()
+
+        async def hold(client: str) -> None:
+            async with admission.admitted(client=client), admission.slot(client):
+                await release.wait()
+
+        tasks = [asyncio.create_task(hold(client)) for client in ("heavy", "light")]
+        await asyncio.sleep(0.05)  # heavy computes, light waits: light has used as much, not more
+        with pytest.raises(Overloaded, match="at capacity"):
+            admission.refuse_if_full(client="heavy")
+        release.set()
+        await asyncio.gather(*tasks)
+
+    asyncio.run(scenario())
