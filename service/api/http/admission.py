@@ -19,14 +19,6 @@ request beyond its client's places is refused with 429 and ``Retry-After`` at on
 slot goes to the waiting request whose client computes least (the oldest first). So one
 client's flood is refused while another client within its share keeps being served; a client
 alone may use every place.
-
-Fair by use, not only by address: each client's use is the places it held over time (place-
-seconds, halved every ``USE_HALF_LIFE_SECONDS``). When every place is taken, a request whose
-client has used less than the heaviest user among the clients with a request waiting for a
-slot takes the place of that client's newest waiting request, which is refused (503,
-``Retry-After``). A flood spread over many addresses, each within its share, holds its places
-all the time; a client that asks little holds one briefly now and then: its request is
-admitted, and the next free slot is its own (its client computes least).
 """
 
 from __future__ import annotations
@@ -49,8 +41,6 @@ from service.infra.metrics import (
 RETRY_AFTER_SECONDS = 1
 #: A client counts as active this long after its last predict request (admitted or not).
 ACTIVE_SECONDS = 30.0
-#: a client's use (place-seconds) halves over this time
-USE_HALF_LIFE_SECONDS = 10.0
 
 
 class Overloaded(Unavailable):
@@ -89,7 +79,6 @@ class Admission:
         self._free_slots = max_concurrent
         self._waiting: list[tuple[str, asyncio.Future[None]]] = []  # oldest first
         self._asked: dict[str, float] = {}  # client -> when it last asked, least recent first
-        self._use: dict[str, tuple[float, float]] = {}  # client -> (place-seconds, as of when)
 
     @property
     def capacity(self) -> int:
@@ -111,46 +100,13 @@ class Admission:
                 f" served (CKS_CLIENT_SHARE {self._share:g} of {self.capacity}){needs}:"
                 f" retry after {RETRY_AFTER_SECONDS} s"
             )
-        if self._admitted + places > self.capacity and not self._evict_for(client, places):
+        if self._admitted + places > self.capacity:
             PREDICT_REJECTED.labels("queue_full").inc()
             raise Overloaded(
                 f"the service is at capacity ({self._max_concurrent} predict requests computing, "
                 f"{self._max_queued} waiting; CKS_MAX_CONCURRENT_INFERENCES, CKS_MAX_QUEUED_REQUESTS)"
                 f"{needs}: retry after {RETRY_AFTER_SECONDS} s"
             )
-
-    def _used(self, client: str) -> float:
-        """The client's place-seconds, decayed to now (and brought up to date)."""
-        now = time.monotonic()
-        used, since = self._use.get(client, (0.0, now))
-        decay = 0.5 ** ((now - since) / USE_HALF_LIFE_SECONDS)
-        used = used * decay + self._held[client] * (now - since)
-        if used < 1e-3 and not self._held[client]:
-            self._use.pop(client, None)
-        else:
-            self._use[client] = (used, now)
-        return used
-
-    def _evict_for(self, client: str, places: int) -> bool:
-        """Refuse ``places`` waiting requests of the heaviest user with a request waiting, if it
-        has used more than ``client``; whether it did (their places are given back as they end)."""
-        waiting = [waiter for waiter in self._waiting if not waiter[1].done()]
-        if not waiting:
-            return False
-        heaviest = max({waiter[0] for waiter in waiting}, key=self._used)
-        evicted = [waiter for waiter in waiting if waiter[0] == heaviest][-places:]  # newest first
-        if len(evicted) < places or heaviest == client or self._used(heaviest) <= self._used(client):
-            return False
-        for _, granted in evicted:
-            PREDICT_REJECTED.labels("evicted").inc()
-            granted.set_exception(
-                Overloaded(
-                    f"the service is at capacity and this client ({heaviest}) has held more predict places"
-                    " lately than any other waiting: its newest waiting request gave its place to a client"
-                    f" that asks less; retry after {RETRY_AFTER_SECONDS} s"
-                )
-            )
-        return True
 
     def _note(self, client: str) -> None:
         """Remember that ``client`` asked now; forget the clients quiet for ACTIVE_SECONDS."""
@@ -159,8 +115,6 @@ class Admission:
         self._asked[client] = now
         while now - self._asked[oldest := next(iter(self._asked))] > ACTIVE_SECONDS:
             del self._asked[oldest]
-            if not self._held[oldest]:
-                self._use.pop(oldest, None)
 
     def _shared(self) -> bool:
         """Whether more than one client is active: shares apply only then."""
@@ -195,14 +149,12 @@ class Admission:
     async def admitted(self, places: int = 1, client: str = "") -> AsyncIterator[None]:
         """Take ``places`` places (computing or waiting for a slot; one per image), or fail fast."""
         self.refuse_if_full(places, client)
-        self._used(client)  # its use so far, before it holds more
         self._admitted += places
         self._held[client] += places
         PREDICT_IN_FLIGHT.inc(places)
         try:
             yield
         finally:
-            self._used(client)  # the places it held until now
             self._admitted -= places
             self._held[client] -= places
             if not self._held[client]:
@@ -241,8 +193,8 @@ class Admission:
             async with asyncio.timeout(self._timeout):
                 await granted
         except BaseException:
-            if granted.done() and not granted.cancelled() and granted.exception() is None:
-                self._give_back(client)  # granted just as the wait ended
+            if granted.done() and not granted.cancelled():  # granted just as the wait ended
+                self._give_back(client)
             elif waiter in self._waiting:
                 self._waiting.remove(waiter)
             raise
@@ -255,8 +207,8 @@ class Admission:
         self._grant()
 
     def _grant(self) -> None:
-        """Free slots to waiting requests: the one whose client computes least, then has used least,
-        then the oldest; a client at its share of the slots waits while others are active."""
+        """Free slots to waiting requests: the one whose client computes least, oldest first; a
+        client at its share of the slots waits while others are active."""
         self._waiting = [waiter for waiter in self._waiting if not waiter[1].done()]
         while self._free_slots:
             shared = self._shared()
@@ -267,9 +219,7 @@ class Admission:
             ]
             if not eligible:
                 return
-            client, granted = min(
-                eligible, key=lambda waiter: (self._computing[waiter[0]], self._used(waiter[0]))
-            )
+            client, granted = min(eligible, key=lambda waiter: self._computing[waiter[0]])
             self._waiting.remove((client, granted))
             self._free_slots -= 1
             self._computing[client] += 1
