@@ -302,6 +302,21 @@ class PredictSettings(_Group):
         default=(),
         description="addresses or networks (comma-separated) whose `CKS_CLIENT_HEADER` is believed",
     )
+    client_ipv4_prefix: int = Field(
+        default=32,
+        ge=8,
+        le=32,
+        description=(
+            "an IPv4 client is its network of this prefix length (24: each /24 is one client, so a flood"
+            " spread over the addresses of one network shares one client's places); 32: each address"
+        ),
+    )
+    client_ipv6_prefix: int = Field(
+        default=128,
+        ge=16,
+        le=128,
+        description="an IPv6 client is its network of this prefix length (56 or 64: a site); 128: each one",
+    )
 
     @field_validator("trusted_proxies", mode="before")
     @classmethod
