@@ -10,6 +10,7 @@ from __future__ import annotations
 import re
 import signal
 import subprocess
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -25,13 +26,14 @@ from tests.samples import Sample, batch_zip, samples_by_image
 from tests.service_calls import ADMIN_TOKEN, wait_until
 
 REQUESTS = 40
+SHARE_S = 1.0  # CKS_DRIFT_SHARE_SECONDS: each worker shares its drift windows this often
 
 
 @pytest.fixture
 def two_workers(tmp_path: Path) -> Iterator[tuple[str, Path]]:
     port = free_port()
     data = tmp_path / "data"
-    env = service_env(data, workers=2, port=port, admin_token=ADMIN_TOKEN)
+    env = service_env(data, workers=2, port=port, admin_token=ADMIN_TOKEN, drift_share_seconds=SHARE_S)
     with open(tmp_path / "serve.log", "wb") as log:
         process = subprocess.Popen([*cli(), "serve"], env=env, cwd=PACKAGE_ROOT, stdout=log, stderr=log)
     url = f"http://127.0.0.1:{port}"
@@ -114,6 +116,7 @@ def test_every_worker_reports_the_windows_of_both(
             return report, client.get("/metrics").text
 
     wait_until(lambda: read()[0]["recorded"] == requests * rows, "every value shared", timeout=30)
+    time.sleep(2 * SHARE_S)  # each worker's last share written, and read by the other
     answered: set[int] = set()
     for _ in range(60):  # until both workers have answered
         report, metrics = read()
