@@ -226,7 +226,12 @@ class Flood:
     the answers: ``statuses`` once it is over (``"error"``: no answer)."""
 
     def __init__(
-        self, url: str, valid: int, garbage: int = 0, address: str = FLOOD_ADDRESS, instances: int = 64
+        self,
+        url: str,
+        valid: int,
+        garbage: int = 0,
+        address: str | tuple[str, ...] = FLOOD_ADDRESS,
+        instances: int = 64,
     ) -> None:
         context = multiprocessing.get_context("spawn")
         self._running, self._stop = context.Event(), context.Event()
@@ -252,7 +257,9 @@ class Flood:
         self._process.join()
 
 
-def _flood(url: str, valid: int, garbage: int, address: str, instances: int, *events: Any) -> None:
+def _flood(
+    url: str, valid: int, garbage: int, address: str | tuple[str, ...], instances: int, *events: Any
+) -> None:
     running, stop, answers = events
     statuses: Counter[int | str] = Counter()
 
@@ -264,19 +271,30 @@ def _flood(url: str, valid: int, garbage: int, address: str, instances: int, *ev
                 statuses["error"] += 1
 
     async def run() -> None:
+        addresses = (address,) if isinstance(address, str) else address
         limits = httpx.Limits(max_connections=valid + garbage, max_keepalive_connections=valid + garbage)
-        transport = httpx.AsyncHTTPTransport(local_address=address, limits=limits)
         # A refusal may come before the body is read: a short timeout ends a send that cannot finish.
-        async with httpx.AsyncClient(base_url=url, transport=transport, timeout=10) as client:
-            image, boxes = sample_request()
-            heavy = json.dumps({"instances": (boxes * instances)[:instances]})
-            valid_files = {"image": ("image", image), "request": (None, heavy)}
-            garbage_files = {"image": ("image", b"not an image"), "request": (None, "{")}
-            running.set()
-            await asyncio.gather(
-                *(post(client, valid_files) for _ in range(valid)),
-                *(post(client, garbage_files) for _ in range(garbage)),
+        clients = [
+            httpx.AsyncClient(
+                base_url=url,
+                transport=httpx.AsyncHTTPTransport(local_address=local, limits=limits),
+                timeout=10,
             )
+            for local in addresses
+        ]
+        image, boxes = sample_request()
+        heavy = json.dumps({"instances": (boxes * instances)[:instances]})
+        valid_files = {"image": ("image", image), "request": (None, heavy)}
+        garbage_files = {"image": ("image", b"not an image"), "request": (None, "{")}
+        running.set()
+        try:  # connections spread over the addresses in turn
+            await asyncio.gather(
+                *(post(clients[n % len(clients)], valid_files) for n in range(valid)),
+                *(post(clients[n % len(clients)], garbage_files) for n in range(garbage)),
+            )
+        finally:
+            for client in clients:
+                await client.aclose()
 
     asyncio.run(run())
     answers.send(statuses)
@@ -437,18 +455,22 @@ def slow_clients(server: Server, requests: int, slow: int) -> None:
         )
 
 
-def flood(server: Server, seconds: float, valid: int, garbage: int) -> None:
+def flood(server: Server, seconds: float, valid: int, garbage: int, addresses: int = 1) -> None:
+    """The polite client alone, then beside ``valid`` + ``garbage`` flood connections from one
+    address (FLOOD_ADDRESS) or spread over ``addresses`` (127.0.1.1, 127.0.1.2, ...)."""
     polite_client(server.url, 2)  # warm-up
     alone, statuses = polite_client(server.url, seconds / 2)
     print(
         f"polite client alone (a predict every 0.2 s, {seconds / 2:g} s): {_ms(alone)}; {_counted(statuses)}"
     )
-    with Flood(server.url, valid, garbage) as flooding:
+    spread = tuple(f"127.0.1.{n}" for n in range(1, addresses + 1)) if addresses > 1 else FLOOD_ADDRESS
+    origin = FLOOD_ADDRESS if addresses == 1 else f"{addresses} addresses"
+    with Flood(server.url, valid, garbage, spread) as flooding:
         time.sleep(1)  # the flood takes every place it can
         beside, statuses = polite_client(server.url, seconds)
     ok = statuses.count(200) / len(statuses)
     print(
-        f"beside a flood from {FLOOD_ADDRESS} ({valid} connections posting predicts of 64 boxes back to"
+        f"beside a flood from {origin} ({valid} connections posting predicts of 64 boxes back to"
         f" back, {garbage}"
         f" posting garbage) for {seconds:g} s: {100 * ok:.0f} % answered 200, {_ms(beside)}"
         f" ({percentile(beside, 99) / percentile(alone, 99):.1f}x alone); {_counted(statuses)}"
@@ -489,6 +511,39 @@ def bomb(server: Server, data_dir: Path) -> None:
     print(
         f"zip bomb of 7.5 GiB ({_mib(len(body))} zipped): {response.status_code} in {took:.2f} s,"
         f" {sum(p.stat().st_size for p in left)} bytes left on disk"
+    )
+
+
+def annotations_bomb(count: int) -> bytes:
+    """The samples' first image and ``count`` copies of its first annotation (deflated: tiny)."""
+    doc = json.loads((SAMPLES_DIR / "annotations.json").read_text())
+    image, first = doc["images"][0], doc["annotations"][0]
+    doc["images"], doc["annotations"] = [image], [{**first, "id": n + 1} for n in range(count)]
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr("annotations.json", json.dumps(doc))
+        archive.writestr(image["file_name"], (SAMPLES_DIR / image["file_name"]).read_bytes())
+    return buffer.getvalue()
+
+
+def many_annotations(server: Server) -> None:
+    """200,000 annotations in a small zip, refused while a polite client predicts."""
+    body = annotations_bomb(200_000)
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}", "Content-Type": "application/zip"}
+    with httpx.Client(base_url=server.url, timeout=120) as client, ThreadPoolExecutor(1) as pool:
+        polite = pool.submit(polite_client, server.url, 6.0)
+        time.sleep(1)
+
+        def refuse() -> tuple[int, float]:
+            started = time.perf_counter()
+            status = client.post("/v1/admin/calibrations", content=body, headers=headers).status_code
+            return status, time.perf_counter() - started
+
+        rise, (status, took) = peak_while(server.pid, refuse)
+        seconds, statuses = polite.result()
+    print(
+        f"200,000 annotations ({_mib(len(body))} zipped): {status} in {took:.2f} s, peak RSS +{_mib(rise)};"
+        f" a predict every 0.2 s meanwhile: max {max(seconds) * 1000:.0f} ms, {_counted(statuses)}"
     )
 
 
@@ -537,6 +592,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--flood", type=int, default=100, help="flood connections posting predicts")
     parser.add_argument("--garbage", type=int, default=100, help="flood connections posting garbage")
     parser.add_argument("--only-flood", action="store_true", help="the flood alone, no other measurement")
+    parser.add_argument("--flood-addresses", type=int, default=1, help="addresses the flood is spread over")
     args = parser.parse_args(argv)
     settings = {"CKS_ADMIN_TOKEN": ADMIN_TOKEN, "CKS_MODEL_DIR": str(DEFAULT_MODEL_DIR)}
     print(f"default settings, {os.cpu_count()} cores, loopback; RSS: the server's peak VmHWM, reset per step")
@@ -544,12 +600,13 @@ def main(argv: list[str] | None = None) -> int:
         tempfile.TemporaryDirectory(prefix="cks-faults-") as data_dir,
         serve({**settings, "CKS_DATA_DIR": data_dir}) as server,
     ):
-        flood(server, args.flood_seconds, args.flood, args.garbage)
+        flood(server, args.flood_seconds, args.flood, args.garbage, args.flood_addresses)
         if args.only_flood:
             return 0
         slow_clients(server, args.requests, args.slow)
         huge_images(server, Settings())
         bomb(server, Path(data_dir))
+        many_annotations(server)
     sigterm(settings, busy=False)
     sigterm(settings, busy=True)
     return 0

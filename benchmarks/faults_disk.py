@@ -18,7 +18,9 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -29,12 +31,13 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
+import httpx
 import psycopg
 
-from benchmarks.faults_clients import long_batch
+from benchmarks.faults_clients import long_batch, predict, sample_request
 from tests.live.server import LiveServer
 from tests.postgres_cluster import PostgresCluster
-from tests.service_calls import ADMIN_TOKEN
+from tests.service_calls import ADMIN_TOKEN, wait_until
 
 DISK = "40m"
 COPIES = 6  # the samples, 6 times over (7.7 MB zipped): seconds of scoring
@@ -219,6 +222,39 @@ def store_step(work: Path) -> None:
         )
 
 
+def workers_step(work: Path) -> None:
+    """CKS_WORKERS=2, the disk filled: new metric series, a worker killed and restarted, predicts."""
+    image, instances = sample_request()
+    with small_disk(work) as data, serve_on(data, workers=2) as server:
+        server.client.get("/metrics")
+        fill(data)
+        answers: list[int] = []
+        began = time.perf_counter()
+        for number in range(60):
+            with httpx.Client(base_url=server.url, timeout=60) as client:  # new connections: both workers
+                client.get(f"/v1/no-such-route-{number}")  # a new label series on the full disk
+                answers.append(predict(client, image, instances).status_code)
+            if number == 20:  # its replacement starts on the full disk (seconds: it loads the model)
+                os.kill(max(worker_pids(server.process.pid)), signal.SIGKILL)
+            if number == 40:
+                wait_until(lambda: "Application startup complete" in server.log().rpartition("died")[2])
+        took = time.perf_counter() - began
+        log = server.log()
+        print(
+            f"CKS_WORKERS=2 on a full disk, 60 predicts (a worker SIGKILLed after 21): {answers.count(200)}"
+            f" answered 200 in {took:.1f} s; workers that said 'metrics degraded':"
+            f" {log.count('metrics degraded in process')}; Bus errors: {log.count('Bus error')};"
+            f" /metrics {server.client.get('/metrics').status_code}",
+            flush=True,
+        )
+
+
+def worker_pids(parent: int) -> set[int]:
+    """The worker processes of a serve process (its children spawned by multiprocessing)."""
+    children = Path(f"/proc/{parent}/task/{parent}/children").read_text().split()
+    return {int(child) for child in children if "spawn_main" in Path(f"/proc/{child}/cmdline").read_text()}
+
+
 def duplicates_step(work: Path) -> None:
     body = long_batch(1)
     with LiveServer(work / "data", admin_token=ADMIN_TOKEN) as server:
@@ -237,7 +273,7 @@ def duplicates_step(work: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    for step in (receive_step, unzip_step, request_step, store_step, duplicates_step):
+    for step in (receive_step, unzip_step, request_step, store_step, workers_step, duplicates_step):
         with tempfile.TemporaryDirectory(prefix="cks-faults-") as work:
             step(Path(work))
     return 0

@@ -15,6 +15,7 @@ from .models import (
     CoverageAudit,
     JobCompletion,
     JobRecord,
+    MonitorShare,
     NewAuditEntry,
     NewCoverageAudit,
     NewVersion,
@@ -160,6 +161,18 @@ class CalibrationStore(ABC):
         when it is finished and at least `keep` jobs were created after it. A live
         unfinished job is never deleted.
         """
+
+    @abstractmethod
+    def put_monitor_share(self, model_hash: str, kind: str, replica: str, payload: bytes) -> None:
+        """Replace what ``replica``'s monitor of ``kind`` saw (its row, stamped now)."""
+
+    @abstractmethod
+    def monitor_shares(self, model_hash: str, kind: str) -> list[MonitorShare]:
+        """Every replica's latest share of ``kind``, oldest first."""
+
+    @abstractmethod
+    def forget_monitor_share(self, model_hash: str, kind: str, replica: str) -> bool:
+        """Remove a replica's share (taken over by another process); whether this call removed it."""
 
     @abstractmethod
     def ping(self) -> None:

@@ -244,6 +244,24 @@ _CONTENT_KEY_STATEMENTS = (
     "CREATE UNIQUE INDEX calib_versions_by_content ON calib_versions (model_hash, content_key)",
 )
 
+
+def _monitor_shares(blob: str, timestamp: str) -> tuple[str, ...]:
+    """What each replica's monitors saw lately (drift windows, looks), one row per replica and kind,
+    replaced in place: any replica merges them to answer for the fleet."""
+    return (
+        f"""CREATE TABLE calib_monitor_shares (
+            model_hash TEXT NOT NULL,
+            kind TEXT NOT NULL,
+            replica TEXT NOT NULL,
+            updated_at {timestamp} NOT NULL,
+            payload {blob} NOT NULL,
+            PRIMARY KEY (model_hash, kind, replica)
+        )""",
+    )
+
+
+_MONITOR_SHARES = "what each replica's monitors saw, merged on read"
+
 SQLITE_MIGRATIONS: tuple[Migration, ...] = (
     Migration(
         1,
@@ -277,6 +295,7 @@ SQLITE_MIGRATIONS: tuple[Migration, ...] = (
     ),
     Migration(6, _STRATA, _STRATA_COLUMN),
     Migration(7, _CONTENT_KEY, _CONTENT_KEY_STATEMENTS),
+    Migration(8, _MONITOR_SHARES, _monitor_shares("BLOB", "TEXT")),
 )
 
 POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
@@ -320,6 +339,7 @@ POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
     ),
     Migration(6, _STRATA, _STRATA_COLUMN),
     Migration(7, _CONTENT_KEY, _CONTENT_KEY_STATEMENTS),
+    Migration(8, _MONITOR_SHARES, _monitor_shares("BYTEA", "TIMESTAMPTZ")),
 )
 
 

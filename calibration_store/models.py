@@ -572,3 +572,12 @@ __all__ = [
     "check_number",
     "is_job_id",
 ]
+
+
+@dataclass(frozen=True)
+class MonitorShare:
+    """What one replica's monitor of one ``kind`` saw lately (an opaque payload), as of ``updated_at``."""
+
+    replica: str
+    updated_at: datetime
+    payload: bytes

@@ -26,6 +26,7 @@ from .models import (
     CoverageAudit,
     JobCompletion,
     JobRecord,
+    MonitorShare,
     NewAuditEntry,
     NewCoverageAudit,
     NewVersion,
@@ -325,6 +326,35 @@ class SqlStore(CalibrationStore):
             ),
         )
         return self._audit(cur.fetchone())
+
+    def put_monitor_share(self, model_hash: str, kind: str, replica: str, payload: bytes) -> None:
+        with self._transaction(write=True) as cur:
+            cur.execute(
+                "INSERT INTO calib_monitor_shares (model_hash, kind, replica, updated_at, payload)"
+                " VALUES (?, ?, ?, ?, ?) ON CONFLICT (model_hash, kind, replica)"
+                " DO UPDATE SET updated_at = excluded.updated_at, payload = excluded.payload",
+                (model_hash, kind, replica, self._time_to_db(now_utc()), payload),
+            )
+
+    def monitor_shares(self, model_hash: str, kind: str) -> list[MonitorShare]:
+        with self._transaction(write=False) as cur:
+            cur.execute(
+                "SELECT replica, updated_at, payload FROM calib_monitor_shares"
+                " WHERE model_hash = ? AND kind = ?",
+                (model_hash, kind),
+            )
+            rows = cur.fetchall()
+        shares = [MonitorShare(r[0], self._time_from_db(r[1]), bytes(r[2])) for r in rows]
+        return sorted(shares, key=lambda share: share.updated_at)
+
+    def forget_monitor_share(self, model_hash: str, kind: str, replica: str) -> bool:
+        with self._transaction(write=True) as cur:
+            cur.execute(
+                "DELETE FROM calib_monitor_shares WHERE model_hash = ? AND kind = ? AND replica = ?"
+                " RETURNING replica",
+                (model_hash, kind, replica),
+            )
+            return bool(cur.fetchall())
 
     def audit_log(self, model_hash: str, before: int | None = None, limit: int = 100) -> list[AuditEntry]:
         rows = self._newest_first(_AUDIT_COLUMNS, "calib_audit", "seq", model_hash, before, limit)

@@ -76,7 +76,7 @@ def _check_port(host: str, port: int) -> None:
 def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     from calibration_store import open_store
     from service.calibration.bundle import save_bundle
-    from service.calibration.coco import NamedBatch, load_coco_batch
+    from service.calibration.coco import AnnotationLimits, NamedBatch, load_coco_batch
     from service.calibration.intake import UploadOptions, check_batch, read_parent
     from service.calibration.stratification import difficulty_spec, parse_stratify
     from service.calibration.versions import VersionRules, create_version
@@ -108,7 +108,7 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
         for folder in args.folders:
             if not Path(folder).is_dir():
                 raise InvalidInput(f"{folder} is not a folder (one holding annotations.json and the images)")
-            batch = load_coco_batch(Path(folder), detector.manifest)
+            batch = load_coco_batch(Path(folder), detector.manifest, AnnotationLimits.from_settings(settings))
             named = NamedBatch(name=args.name or Path(folder).name, sha256=batch.sha256, batch=batch)
             batches.append(check_batch(named, parent, dedupe=args.dedupe, max_rejected_share=share))
         total = sum(b.named.batch.count for b in batches)

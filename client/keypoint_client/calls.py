@@ -438,8 +438,8 @@ def _audit_id(audit: int | Job) -> int:
 
 
 def drift(*, timeout: float | None = None) -> Call[Drift]:
-    """The live heatmap features of every keypoint tested against the active calibration's, as
-    the worker process that answers sees them (each keeps its own windows). NotFound when the
+    """The live heatmap features of every keypoint tested against the active calibration's, for
+    every worker process and replica sharing the store (``replicas``). NotFound when the
     server's drift monitoring is off."""
     return Call("GET", "/v1/admin/drift", _model(Drift), timeout=timeout)
 

@@ -157,8 +157,8 @@ class SetSizes(Frozen):
 
 
 class Drift(Frozen):
-    """The live heatmap features of every keypoint against the active calibration's, as one
-    worker process (``process``) sees them: each keeps its own windows."""
+    """The live heatmap features of every keypoint against the active calibration's, for every
+    worker process and replica that shares its windows (``replicas``), whichever answers."""
 
     window: int = Field(description="live instances kept per keypoint (CKS_DRIFT_WINDOW)")
     statistic: Literal["sequential", "ks", "psi"] = Field(description="the test (CKS_DRIFT_TEST)")
@@ -167,9 +167,13 @@ class Drift(Frozen):
     reference_version: int | None = Field(description="the active calibration version compared with")
     reference_available: bool
     reason: str | None = Field(description="why there is no reference (None when there is)")
-    recorded: int = Field(description="live values recorded by this process")
+    recorded: int = Field(description="live values recorded by the replicas covered")
     evaluated_at: float = Field(description="unix seconds of the evaluation")
-    process: int = Field(description="the worker process whose windows these are")
+    process: int = Field(description="the worker process that answered")
+    replicas: int = Field(default=1, description="worker processes and replicas covered")
+    oldest_share_seconds: float = Field(
+        default=0.0, description="age of the oldest other replica's contribution (0: one process)"
+    )
     independent_looks: int | None = Field(
         default=None, description="sequential: independent looks tested (a scene's frames are one)"
     )

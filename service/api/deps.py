@@ -19,6 +19,7 @@ from service.calibration.jobs import CalibrationJobs
 from service.calibration.registry import CalibrationRegistry
 from service.detector.manifest import Manifest
 from service.detector.session import Detector
+from service.errors import StoreUnreachable
 from service.infra.audit_trail import AuditTrail, Operator
 from service.infra.job_engine import JobRunner
 from service.infra.operators import operator_named
@@ -95,6 +96,7 @@ async def require_admin(
     request: Request,
     operators: Operators,
     registry: Registry,
+    trail: Trail,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> Operator:
     """Let the request through only with a configured admin token (and a reachable store);
@@ -108,8 +110,14 @@ async def require_admin(
         raise HTTPException(
             401, "Send 'Authorization: Bearer <admin token>'.", headers={"WWW-Authenticate": "Bearer"}
         )
-    registry.require_store()  # every admin call needs the store: 503 at once while it is away
-    return Operator(name=name, client=request.client.host if request.client else "")
+    operator = Operator(name=name, client=request.client.host if request.client else "")
+    try:
+        registry.require_store()  # every admin call needs the store: 503 at once while it is away
+    except StoreUnreachable as error:  # audited once the store is back (the outbox keeps it)
+        details = {"status": 503, "detail": error.detail, "method": request.method, "path": request.url.path}
+        trail.record_later(operator, "admin", "refused", details=details)
+        raise
+    return operator
 
 
 Admin = Annotated[Operator, Depends(require_admin)]

@@ -18,9 +18,10 @@ import stat
 import zipfile
 import zlib
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import TYPE_CHECKING, BinaryIO, NamedTuple
 
+from service.calibration.coco import AnnotationLimits
 from service.errors import InsufficientStorage, InvalidInput, PayloadTooLarge
 
 if TYPE_CHECKING:
@@ -92,15 +93,22 @@ def _tree_bytes(folder: Path) -> int:
 
 @dataclass(frozen=True)
 class ArchiveLimits:
-    """Most entries and most uncompressed bytes an uploaded archive may hold."""
+    """Most entries and most uncompressed bytes an uploaded archive may hold, and the limits of
+    its annotations.json (None: unbounded)."""
 
     max_files: int
     max_uncompressed_bytes: int
+    annotations: AnnotationLimits | None = None
 
     @classmethod
     def from_settings(cls, settings: Settings) -> ArchiveLimits:
-        """From ``Settings.max_upload_files`` and ``Settings.max_upload_uncompressed_bytes``."""
-        return cls(settings.calibration.max_upload_files, settings.calibration.max_upload_uncompressed_bytes)
+        """From the upload and annotation limits of ``Settings.calibration``."""
+        calibration = settings.calibration
+        return cls(
+            calibration.max_upload_files,
+            calibration.max_upload_uncompressed_bytes,
+            AnnotationLimits.from_settings(settings),
+        )
 
 
 class SavedUpload(NamedTuple):
@@ -190,6 +198,9 @@ def _check_members(members: list[zipfile.ZipInfo], limits: ArchiveLimits) -> Non
     if problems:
         raise _refusal(problems)
     _check_declared_size(members, limits)
+    for info in members if limits.annotations is not None else []:  # before it is unzipped
+        if PurePosixPath(info.filename).name == ANNOTATIONS_FILENAME:
+            limits.annotations.check_size(info.file_size, f"member {info.filename!r}")
 
 
 def _refusal(problems: list[str]) -> InvalidInput:

@@ -25,17 +25,46 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from service.detector.boxes import box_problem
 from service.detector.images import ImageHeader, read_image_header
 from service.detector.manifest import Manifest, ObjectSpec
-from service.errors import InvalidInput, UnsupportedMediaType
+from service.errors import InvalidInput, PayloadTooLarge, UnsupportedMediaType
+
+if TYPE_CHECKING:
+    from service.infra.settings import Settings
 
 ANNOTATIONS_FILENAME = "annotations.json"
 MAX_REPORTED_PROBLEMS = 50
+ANNOTATIONS_BYTES_SETTING = "CKS_MAX_ANNOTATIONS_BYTES"
+ANNOTATIONS_SETTING = "CKS_MAX_ANNOTATIONS"
+
+
+@dataclass(frozen=True)
+class AnnotationLimits:
+    """Most bytes ``annotations.json`` may take (checked before it is parsed: parsing holds the
+    interpreter, predictions of this process included) and most annotations it may hold
+    (checked before any is read)."""
+
+    max_bytes: int
+    max_annotations: int
+
+    @classmethod
+    def from_settings(cls, settings: Settings) -> AnnotationLimits:
+        return cls(settings.calibration.max_annotations_bytes, settings.calibration.max_annotations)
+
+    def check_size(self, size: int, where: str) -> None:
+        """413 for an ``annotations.json`` of ``size`` bytes beyond ``max_bytes``."""
+        if size > self.max_bytes:
+            raise PayloadTooLarge(
+                f"{where} takes {size} bytes, above the limit of {self.max_bytes} bytes"
+                f" ({ANNOTATIONS_BYTES_SETTING}): split the batch into smaller uploads"
+            )
+
+
 HEADER_PREFIX_BYTES = 64 * 1024
 VISIBILITY_VALUES = (0, 1, 2)
 _GROUP_RE = re.compile(r"^[\x20-\x7e]{1,64}$")  # the store's rule for group labels
@@ -129,17 +158,23 @@ class NamedBatch:
     batch: CocoBatch
 
 
-def load_coco_batch(folder: Path, manifest: Manifest) -> CocoBatch:
+def load_coco_batch(folder: Path, manifest: Manifest, limits: AnnotationLimits | None = None) -> CocoBatch:
     """Read and validate ``folder/annotations.json`` against ``manifest``.
 
     Raises one ``InvalidInput`` whose ``errors`` lists every problem found (capped at
     ``MAX_REPORTED_PROBLEMS``): malformed JSON or structure, unknown objects, wrong
     keypoint counts, non-finite numbers, bad visibilities, boxes outside their image,
     unknown or duplicate ids, unsafe, missing or mismatching image files, no annotations.
+    ``PayloadTooLarge`` beyond ``limits`` (None: unbounded).
     """
     folder = Path(folder)
-    raw = _read_annotations(folder)
+    raw = _read_annotations(folder, limits)
     sections = _sections(_parse_json(raw))
+    if limits is not None and len(sections["annotations"]) > limits.max_annotations:
+        raise PayloadTooLarge(
+            f"{ANNOTATIONS_FILENAME} holds {len(sections['annotations'])} annotations, above the limit of"
+            f" {limits.max_annotations} ({ANNOTATIONS_SETTING}): split the batch into smaller uploads"
+        )
     problems = _Problems()
     categories = _read_categories(sections["categories"], manifest, problems)
     images, refused_images = _read_images(sections["images"], folder, problems)
@@ -194,12 +229,14 @@ def _is_int(value: Any) -> bool:
 # ---------------------------------------------------------------- document
 
 
-def _read_annotations(folder: Path) -> bytes:
+def _read_annotations(folder: Path, limits: AnnotationLimits | None) -> bytes:
     path = folder / ANNOTATIONS_FILENAME
     if path.is_symlink() or not path.is_file():
         raise InvalidInput(
             f"{ANNOTATIONS_FILENAME} is missing from the batch folder (or is not a regular file)"
         )
+    if limits is not None:
+        limits.check_size(path.stat().st_size, ANNOTATIONS_FILENAME)
     return path.read_bytes()
 
 

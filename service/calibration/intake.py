@@ -18,7 +18,7 @@ from typing import Any
 
 from calibration_store import CalibrationStore, ScoreTable, VersionInfo, VersionNotFound
 from service.calibration.archive import ArchiveLimits, DiskBudget, extract_zip
-from service.calibration.coco import NamedBatch, Rejection, load_coco_batch
+from service.calibration.coco import CocoBatch, NamedBatch, Rejection, load_coco_batch
 from service.calibration.compatibility import version_incompatibility
 from service.calibration.fingerprints import Fingerprint, find_repeats, fingerprints, instance_digests
 from service.calibration.stratification import DIFFICULTY, GROUP, describe_kinds, parse_stratify, stored_kinds
@@ -140,11 +140,14 @@ class Intake:
         with disk_full_refused("the unzipped upload"):  # what was unzipped is removed
             unzipped = extract_zip(archive, archive.parent / UNZIPPED, self._rules.limits, self._rules.disk)
         archive.unlink()
-        return NamedBatch(named_as, sha256, load_coco_batch(unzipped, self._detector.manifest))
+        return NamedBatch(named_as, sha256, self._load(unzipped))
 
     def read(self, folder: Path, sha256: str, name: str | None) -> NamedBatch:
         """The COCO batch of an unzipped ``folder`` (a kept upload), validated against the manifest."""
-        return NamedBatch(batch_name(name, sha256), sha256, load_coco_batch(folder, self._detector.manifest))
+        return NamedBatch(batch_name(name, sha256), sha256, self._load(folder))
+
+    def _load(self, folder: Path) -> CocoBatch:
+        return load_coco_batch(folder, self._detector.manifest, self._rules.limits.annotations)
 
     def validate(self, named: NamedBatch, options: UploadOptions) -> ValidatedBatch:
         """The parent read once, then the rules that refuse a batch before it is scored."""

@@ -19,7 +19,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from calibration_store import CalibrationStore, JobFinished, JobRecord, NewAuditEntry, StoreFull
+from calibration_store import CalibrationStore, JobFinished, JobRecord, NewAuditEntry, StoreError, StoreFull
 from service.calibration.intake import Intake, IntakeRules, UploadOptions, ValidatedBatch
 from service.calibration.registry import CalibrationRegistry
 from service.calibration.uploads import JobFolder, UploadWorkspace
@@ -156,14 +156,20 @@ class CalibrationJobs(DetectorJobs):
                 progress.advance,
                 job_id=folder.job_id,
             )
-        except (JobCancelled, JobFinished, StoreFull):  # interrupted, or retryable: its upload is kept
+        except (JobCancelled, JobFinished):  # interrupted: its upload is kept
             raise
-        except BaseException as error:  # refused or failed for good: its upload goes
+        except BaseException as error:  # refused or failed: its upload goes, unless retryable
             if isinstance(error, ServiceError):
                 twin = {k: v for k, v in error.extensions.items() if k == "duplicate_of"}
                 details = {"job": folder.job_id, "detail": error.detail, **twin}
                 self._audit.record(operator, "calibration", "failed", reason=options.note, details=details)
-            folder.remove()
+            elif isinstance(error, StoreError):  # failed by the store: audited once it is back
+                details = {"job": folder.job_id, "detail": str(error)}
+                self._audit.record_later(
+                    operator, "calibration", "failed", reason=options.note, details=details
+                )
+            if not isinstance(error, StoreFull):  # a full disk's job is retried with its upload
+                folder.remove()
             raise
         folder.remove()
         self._registry.refresh_now()

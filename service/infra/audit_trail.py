@@ -6,19 +6,30 @@ JSON those are members of the line). An entry about a stored change is written
 in the same transaction as the change (a version, an activation, an accepted upload's job);
 a refusal is appended on its own before the answer, or, when the store cannot take it then
 (the refusal was the store's), logged at once and appended as soon as the store can.
+
+Entries waiting for the store are kept in an outbox file of this process as well
+(``<outbox>/<host>--<pid>.jsonl``, one JSON entry a line, rewritten as they are stored), so a
+stop does not lose them: the next process of this host to start adopts the outbox of every
+process that stopped and appends its entries once the store takes them. (An entry stored just
+before a crash, its outbox not yet rewritten, is appended twice: never lost.)
 """
 
 from __future__ import annotations
 
+import json
 import logging
+import os
+import socket
 import threading
 import time
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 
 from calibration_store import CalibrationStore, NewAuditEntry, StoreError
 from service.infra.logs import log_fields
+from service.infra.processes import process_folder, process_running
 
 log = logging.getLogger("service.audit")  # a stable name: operators route and filter these lines by it
 #: how often entries the store could not take are tried again
@@ -36,11 +47,16 @@ class Operator:
 class AuditTrail:
     """Builds, stores and logs the audit entries of one model."""
 
-    def __init__(self, store: CalibrationStore, model_hash: str) -> None:
+    def __init__(self, store: CalibrationStore, model_hash: str, outbox: Path | None = None) -> None:
+        """outbox: the folder of the outbox files (None: entries waiting for the store live in memory
+        only); those of stopped processes of this host are adopted now."""
         self._store = store
         self._model_hash = model_hash
         self._pending: list[NewAuditEntry] = []  # oldest first
         self._lock = threading.Lock()
+        self._outbox = None if outbox is None else outbox / f"{process_folder(outbox).name}.jsonl"
+        if outbox is not None:
+            self._adopt(outbox)
 
     def entry(
         self,
@@ -86,9 +102,15 @@ class AuditTrail:
         entry = replace(entry, details={**entry.details, "happened_at": happened})
         fields = {**audit_fields(entry), "error": None if error is None else str(error)}
         log_fields(log, "audit entry not stored yet", fields, logging.WARNING)
+        self._enqueue([entry])
+
+    def _enqueue(self, entries: list[NewAuditEntry]) -> None:
+        if not entries:
+            return
         with self._lock:
-            self._pending.append(entry)
-            if len(self._pending) == 1:
+            self._pending.extend(entries)
+            self._keep_outbox()
+            if len(self._pending) == len(entries):
                 threading.Thread(target=self._append_pending, name="audit-retry", daemon=True).start()
 
     def _append_pending(self) -> None:
@@ -105,6 +127,48 @@ class AuditTrail:
             written(entry)
             with self._lock:
                 self._pending.pop(0)
+                self._keep_outbox()
+
+    def _keep_outbox(self) -> None:
+        """Write the waiting entries to this process's outbox (removed when none wait); the lock
+        is held. A disk that cannot take it leaves them in memory only, said in the log."""
+        if self._outbox is None:
+            return
+        try:
+            if not self._pending:
+                self._outbox.unlink(missing_ok=True)
+                return
+            self._outbox.parent.mkdir(parents=True, exist_ok=True)
+            draft = self._outbox.with_name(f".{self._outbox.name}")
+            with open(draft, "w", encoding="utf-8") as out:
+                out.writelines(json.dumps(asdict(entry), default=str) + "\n" for entry in self._pending)
+                out.flush()
+                os.fsync(out.fileno())
+            draft.replace(self._outbox)
+        except OSError as error:
+            log.warning(
+                "audit outbox %s not written (%s): %d entries wait in memory only",
+                self._outbox,
+                error,
+                len(self._pending),
+            )
+
+    def _adopt(self, folder: Path) -> None:
+        """Take over the outboxes of stopped processes of this host (a rename: one adopter each)."""
+        for path in sorted(folder.glob(f"{socket.gethostname()}--*.jsonl")) if folder.is_dir() else []:
+            pid = path.stem.rpartition("--")[2]
+            if not pid.isdigit() or process_running(int(pid)):
+                continue
+            claimed = path.with_name(f".adopted-{path.name}")
+            try:
+                path.rename(claimed)
+            except FileNotFoundError:  # another process adopted it first
+                continue
+            lines = claimed.read_text(encoding="utf-8").splitlines()
+            entries = [NewAuditEntry(**json.loads(line)) for line in lines if line.strip()]
+            log.info("audit: %d entries of stopped process %s wait for the store", len(entries), pid)
+            self._enqueue(entries)  # in this process's outbox before the adopted one goes
+            claimed.unlink()
 
 
 def written(*entries: NewAuditEntry) -> None:

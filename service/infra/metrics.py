@@ -5,8 +5,16 @@ With several worker processes (``CKS_WORKERS > 1``) ``serve`` points prometheus_
 multiprocess mode at a folder (``PROMETHEUS_MULTIPROC_DIR``) before the workers start:
 each worker writes its values there and ``/metrics``, whichever worker answers, reports
 the sum over all of them (gauges of live workers only). The ``cks_drift_*`` gauges are the
-exception: each worker keeps its own drift windows, and a scrape reports those of the worker
-that answers it.
+exception: they are the fleet's (every worker and replica merges the windows all of them share
+through the store: service/monitoring/drift_shares.py), the same whichever answers, so
+Prometheus takes their max, not their sum; ``cks_drift_replicas`` says how many they cover.
+
+Those files are memory-mapped: a page the file system cannot give when it is first written
+kills the process with SIGBUS ("Fatal Python error: Bus error"). So each file's pages are
+reserved (``posix_fallocate``) before prometheus_client maps them, with room ahead for new
+label series; where the disk is full the reservation fails with ENOSPC instead, and that worker
+keeps its new series in its own memory (metrics degraded: logged once; its new series are
+missing from the sums) while it goes on serving.
 """
 
 from __future__ import annotations
@@ -14,6 +22,7 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+import struct
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, Protocol
@@ -26,6 +35,7 @@ from prometheus_client import (
     Histogram,
     generate_latest,
     multiprocess,
+    values,
 )
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.registry import Collector
@@ -42,10 +52,83 @@ class DriftReading(Protocol):
     reference_available: bool
     keypoints: Sequence[Any]  # each: object, keypoint, features {name: live_n, alarm, statistic, p_value}
     objects: Sequence[Any]  # each: object, alarm
+    replicas: int
 
 
 MULTIPROCESS_ENV = "PROMETHEUS_MULTIPROC_DIR"
 log = logging.getLogger(__name__)
+#: prometheus_client's first size of a multiprocess file; it doubles it when full
+FIRST_CAPACITY = 1 << 16
+#: free room kept reserved past a file's used bytes (new series of one request: a few keys of < 1 kB)
+HEADROOM = 1 << 14
+
+
+class ReservedValues:
+    """prometheus_client's ValueClass in multiprocess mode, with each file's pages reserved before
+    a new value (a new label series) may touch them; on a full disk: in-process values."""
+
+    def __init__(self, mapped: Any) -> None:
+        self._mapped = mapped
+        self.degraded: str | None = None  # why this process keeps new series in its own memory
+
+    def __call__(self, typ: str, *args: Any, multiprocess_mode: str = "", **kwargs: Any) -> Any:
+        if self.degraded is None:
+            prefix = f"{typ}_{multiprocess_mode}" if typ == "gauge" else typ
+            path = Path(os.environ[MULTIPROCESS_ENV], f"{prefix}_{os.getpid()}.db")
+            try:
+                reserve_pages(path)
+                return self._mapped(typ, *args, multiprocess_mode=multiprocess_mode, **kwargs)
+            except OSError as error:
+                self.degraded = f"{path.name}: {error.strerror or error}"
+                log.warning(
+                    "metrics degraded in process %d: its multiprocess files could not be reserved (%s);"
+                    " its new series are kept in its own memory and are missing from /metrics until it"
+                    " restarts with room on %s",
+                    os.getpid(),
+                    self.degraded,
+                    os.environ[MULTIPROCESS_ENV],
+                )
+        return values.MutexValue(typ, *args, multiprocess_mode=multiprocess_mode, **kwargs)
+
+
+def reserve_pages(path: Path) -> None:
+    """Make sure the file's pages past its used bytes (HEADROOM at least) are allocated, growing
+    it as prometheus_client would (first FIRST_CAPACITY, then doubled); OSError if they cannot be."""
+    descriptor = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    size = 0
+    try:
+        size = os.fstat(descriptor).st_size
+        header = os.pread(descriptor, 4, 0)
+        used = struct.unpack("i", header)[0] if len(header) == 4 else 0
+        wanted = size or FIRST_CAPACITY
+        while used + HEADROOM > wanted:
+            wanted *= 2
+        if wanted > size:
+            os.posix_fallocate(descriptor, 0, wanted)
+    except OSError:
+        if not size:  # an empty file would break every scrape's read of the folder
+            path.unlink(missing_ok=True)
+        raise
+    finally:
+        os.close(descriptor)
+
+
+def _reserved_values() -> ReservedValues | None:
+    """Put the reserving ValueClass in place in a multiprocess worker (before any metric exists)."""
+    if not os.environ.get(MULTIPROCESS_ENV) or not getattr(values.ValueClass, "_multiprocess", False):
+        return None
+    reserved = ReservedValues(values.ValueClass)
+    values.ValueClass = reserved
+    return reserved
+
+
+RESERVED = _reserved_values()
+
+
+def metrics_degraded() -> str | None:
+    """Why this process's new metric series are kept in its own memory (a full disk), or None."""
+    return None if RESERVED is None else RESERVED.degraded
+
 
 REGISTRY = CollectorRegistry(auto_describe=True)
 
@@ -212,7 +295,11 @@ def drift_families(report: DriftReading) -> list[GaugeMetricFamily]:
     reference.add_metric([], float(report.version or 0) if report.reference_available else 0.0)
     any_alarm = GaugeMetricFamily("cks_drift_alarm_any", "1 when any drift alarm is raised")
     any_alarm.add_metric([], float(report.alarm))
-    return [statistic, p_value, alarm, window, objects, reference, any_alarm]
+    replicas = GaugeMetricFamily(
+        "cks_drift_replicas", "worker processes and replicas whose windows the cks_drift_* figures cover"
+    )
+    replicas.add_metric([], float(report.replicas))
+    return [statistic, p_value, alarm, window, objects, reference, any_alarm, replicas]
 
 
 def metrics_payload() -> tuple[bytes, str]:
@@ -226,15 +313,20 @@ def metrics_payload() -> tuple[bytes, str]:
     return generate_latest(REGISTRY), CONTENT_TYPE_LATEST
 
 
-def enable_multiprocess(parent: Path) -> Path:
+def enable_multiprocess(parent: Path) -> Path | None:
     """Call in the parent before worker processes start (and before they import this module).
 
     The files go to a folder of this parent process (``<parent>/<host>--<pid>``), so another
-    server on the same data directory keeps its own sums; returns it (remove it at exit).
+    server on the same data directory keeps its own sums; returns it (remove it at exit), or
+    None where it cannot be made (a full disk): then each worker keeps its own metrics.
     """
     folder = process_folder(parent)
     shutil.rmtree(folder, ignore_errors=True)
-    folder.mkdir(parents=True)
+    try:
+        folder.mkdir(parents=True)
+    except OSError as error:
+        log.warning("metrics degraded: %s (%s); each worker reports only its own metrics", error, folder)
+        return None
     os.environ[MULTIPROCESS_ENV] = str(folder)
     return folder
 

@@ -135,9 +135,9 @@ class StorageSettings(_Group):
         gt=0,
         description=(
             "longest wait for a PostgreSQL store connection, statement, lock or round trip (a frozen"
-            " database's connection is cut); beyond it the store counts as unreachable (admin calls"
-            " answer 503, predictions go on from memory). A poll still running after twice this"
-            " (either store) counts as unreachable too"
+            " database's connection is cut), and for a SQLite write lock (its busy timeout); beyond it"
+            " the store counts as unreachable (admin calls answer 503, predictions go on from memory)."
+            " A poll still running after twice this (either store) counts as unreachable too"
         ),
     )
     max_cache_staleness_seconds: float | None = Field(
@@ -302,6 +302,21 @@ class PredictSettings(_Group):
         default=(),
         description="addresses or networks (comma-separated) whose `CKS_CLIENT_HEADER` is believed",
     )
+    client_ipv4_prefix: int = Field(
+        default=32,
+        ge=8,
+        le=32,
+        description=(
+            "an IPv4 client is its network of this prefix length (24: each /24 is one client, so a flood"
+            " spread over the addresses of one network shares one client's places); 32: each address"
+        ),
+    )
+    client_ipv6_prefix: int = Field(
+        default=128,
+        ge=16,
+        le=128,
+        description="an IPv6 client is its network of this prefix length (56 or 64: a site); 128: each one",
+    )
 
     @field_validator("trusted_proxies", mode="before")
     @classmethod
@@ -323,6 +338,19 @@ class CalibrationSettings(_Group):
     max_upload_files: int = Field(default=100_000, gt=0, description="most files in a calibration zip")
     max_upload_uncompressed_bytes: int = Field(
         default=4 * 2**30, gt=0, description="most bytes once unzipped"
+    )
+    max_annotations_bytes: int = Field(
+        default=16 * 2**20,
+        gt=0,
+        description=(
+            "largest annotations.json in a calibration zip (413 beyond, before it is unzipped or"
+            " parsed: parsing holds the process, its predictions included, about 1 s per 10 MB)"
+        ),
+    )
+    max_annotations: int = Field(
+        default=20_000,
+        gt=0,
+        description="most annotations in a calibration batch (413 beyond, before any is read)",
     )
     upload_read_timeout_seconds: float = Field(
         default=3600.0,
@@ -418,6 +446,15 @@ class DriftMonitorSettings(_Group):
     )
     drift_history_seconds: float = Field(
         default=60.0, gt=0, description="one point of the drift history this often (360 points kept)"
+    )
+    drift_share_seconds: float = Field(
+        default=5.0,
+        gt=0,
+        description=(
+            "how often each process writes its drift windows and looks to the store, where any worker or"
+            " replica merges them to answer for the fleet (GET /v1/admin/drift, cks_drift_*); a restart"
+            " loses at most this much; a process silent for 5 times this no longer counts"
+        ),
     )
 
 

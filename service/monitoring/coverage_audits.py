@@ -114,6 +114,21 @@ class CoverageAudits(DetectorJobs):
         if latest is not None:
             publish_audit(latest.id, latest.report)
 
+    def follow_latest(self, interval: float, stop: threading.Event) -> None:
+        """Publish the newest audit whichever process or replica ran it: look every ``interval``
+        seconds in a daemon thread until ``stop`` is set (a store failure skips a look)."""
+
+        def follow() -> None:
+            while not stop.wait(interval):
+                try:
+                    latest = self.latest()
+                    if latest is not None and latest.id != published_id():
+                        publish_audit(latest.id, latest.report, self._previous(latest.id))
+                except StoreError as error:
+                    log.warning("could not read the latest coverage audit for the metrics: %s", error)
+
+        threading.Thread(target=follow, name="audit-follower", daemon=True).start()
+
     def _previous(self, audit_id: int) -> CoverageAudit | None:
         """The audit before this one, whose gauges other worker processes may still publish."""
         try:
@@ -228,7 +243,7 @@ def publish_audit(audit_id: int, report: dict[str, Any], previous: CoverageAudit
     samples = _audit_samples(audit_id, report)
     stale = set() if previous is None else set(_audit_samples(previous.id, previous.report))
     with _PUBLISHED_LOCK:
-        for gauge, labels in (_PUBLISHED | stale) - samples.keys():
+        for gauge, labels in (_PUBLISHED.keys() | stale) - samples.keys():
             _forget(gauge, labels)
         for (gauge, labels), value in samples.items():
             gauge.labels(*labels).set(value)
@@ -236,8 +251,14 @@ def publish_audit(audit_id: int, report: dict[str, Any], previous: CoverageAudit
         _PUBLISHED.update(samples)
 
 
-_PUBLISHED: set[tuple[Gauge, tuple[str, ...]]] = set()
+_PUBLISHED: dict[tuple[Gauge, tuple[str, ...]], float] = {}  # the samples this process shows
 _PUBLISHED_LOCK = threading.Lock()
+
+
+def published_id() -> int | None:
+    """The id of the audit this process's gauges show (None: none)."""
+    with _PUBLISHED_LOCK:
+        return next((int(value) for (gauge, _), value in _PUBLISHED.items() if gauge is AUDIT_LATEST), None)
 
 
 def _audit_samples(audit_id: int, report: dict[str, Any]) -> dict[tuple[Gauge, tuple[str, ...]], float]:

@@ -23,7 +23,13 @@ feature (service/conformal/features.py: p*, gamma, anisotropy), a sliding window
 
 Cost: a request appends its rows to ring buffers (service/monitoring/windows.py); the tests
 run only when the report is read (``/v1/admin/drift``, ``/metrics``, the history ticker) and
-are cached until a window or the active version changes. Each process keeps its own windows.
+are cached until a window or the active version changes.
+
+A fleet (several workers or replicas on one store): each process writes what it saw to the
+store every ``CKS_DRIFT_SHARE_SECONDS`` (service/monitoring/drift_shares.py), and a report
+merges the fresh contributions of the others with its own: every window holds the values of
+all replicas, and the sequential alarm runs over the looks of all, in time order. The report
+says how many replicas it covers and the age of the oldest contribution.
 """
 
 from __future__ import annotations
@@ -41,10 +47,11 @@ from typing import Literal
 
 import numpy as np
 
-from calibration_store import ScoreTable
+from calibration_store import ScoreTable, StoreError
 from service.conformal import HeatmapStatistics
 from service.conformal.features import HEATMAP_FEATURES, heatmap_features
 from service.detector.manifest import Manifest
+from service.monitoring.drift_shares import DriftShare, DriftShares, encode_share
 from service.monitoring.looks import (
     FlatnessReference,
     Frame,
@@ -52,6 +59,7 @@ from service.monitoring.looks import (
     LookTracker,
     SequentialAlarm,
     SequentialState,
+    look_statistic,
 )
 from service.monitoring.multiple_testing import holm_rejections
 from service.monitoring.set_sizes import KINDS, KindSizes, set_sizes, shape_entries
@@ -78,6 +86,8 @@ _COLUMNS = _KIND_COLUMN + 1
 MAX_PENDING_LOOKS = 100_000
 #: points kept in the history (6 h at one a minute)
 HISTORY_POINTS = 360
+#: looks (time, Z) a process keeps to share: the sequential alarm of a fleet runs over them
+SHARED_LOOKS = 10_000
 
 #: the active version and its scores (None, None when there is none or it cannot serve)
 ReferenceSource = Callable[[], tuple[int | None, ScoreTable | None]]
@@ -151,6 +161,8 @@ class DriftReport:
     process: int
     sequential: SequentialState | None = None  # the sequential test's state (test sequential)
     history: list[HistoryPoint] = field(default_factory=list)
+    replicas: int = 1  # the processes whose windows this report covers (this one included)
+    oldest_share_seconds: float = 0.0  # age of the oldest other replica's contribution
 
 
 @dataclass(frozen=True)
@@ -165,7 +177,14 @@ class _Reference:
 class DriftMonitor:
     """Live windows of every keypoint's features, tested lazily against the active version."""
 
-    def __init__(self, manifest: Manifest, reference: ReferenceSource, settings: DriftSettings) -> None:
+    def __init__(
+        self,
+        manifest: Manifest,
+        reference: ReferenceSource,
+        settings: DriftSettings,
+        shares: DriftShares | None = None,
+    ) -> None:
+        """shares: where the replicas of a fleet meet (None: this process alone)."""
         if settings.test == "psi" and settings.window < PSI_MIN_LIVE:
             log.warning(
                 "drift: psi alarms need %d live values per window; CKS_DRIFT_WINDOW is %d, so"
@@ -187,7 +206,10 @@ class DriftMonitor:
         for spec in manifest.keypoints:
             self._first_channels[spec.index] = manifest.object(spec.object).keypoints[0]
         self._looks = LookTracker()
-        self._pending: deque[list[InstanceFeatures]] = deque(maxlen=MAX_PENDING_LOOKS)
+        self._pending: deque[tuple[float, list[InstanceFeatures]]] = deque(maxlen=MAX_PENDING_LOOKS)
+        self._shares = shares
+        self._looks_seen: deque[tuple[float, float]] = deque(maxlen=SHARED_LOOKS)  # (time, Z)
+        self._taken_over: list[DriftShare] = []  # of stopped processes: their looks join ours
         self._frames = 0
         self._look_lock = threading.Lock()
         self._sequential: SequentialAlarm | None = None
@@ -198,6 +220,7 @@ class DriftMonitor:
         self._history: deque[HistoryPoint] = deque(maxlen=HISTORY_POINTS)
         self._stop = threading.Event()
         self._ticker: threading.Thread | None = None
+        self._sharer: threading.Thread | None = None
 
     # -- hot path -------------------------------------------------------------------------
 
@@ -229,7 +252,7 @@ class DriftMonitor:
             self._frames += 1
             if not self._looks.is_new_look(frame):
                 return
-            self._pending.append(self._instances(channels, rows[:, : len(HEATMAP_FEATURES)]))
+            self._pending.append((time.time(), self._instances(channels, rows[:, : len(HEATMAP_FEATURES)])))
         self._look_windows.append(channels, rows)
 
     def _instances(self, channels: np.ndarray, features: np.ndarray) -> list[InstanceFeatures]:
@@ -244,27 +267,80 @@ class DriftMonitor:
     # -- reading --------------------------------------------------------------------------
 
     def report(self) -> DriftReport:
-        """The tests of every window against the active version (cached until either changes)."""
+        """The tests of every window (the fleet's) against the active version (cached until a
+        window, a contribution or the active version changes)."""
         version, table = self._source()
-        key = (version, self._windows.written())
+        others = [] if self._shares is None else self._shares.others()
+        key = (version, self._windows.written(), tuple((o.replica, o.updated_at) for o in others))
         with self._evaluation_lock:
             if self._cached is not None and self._cached[0] == key:
                 report = self._cached[1]
             else:
-                report = self._evaluate(version, table, key[1])
+                report = self._evaluate(version, table, key[1], others)
                 self._cached = (key, report)
             history = list(self._history)
-        return replace(report, history=history)
+        oldest = max((time.time() - share.updated_at for share in others), default=0.0)
+        return replace(report, history=history, oldest_share_seconds=oldest)
 
     def start(self) -> None:
-        """Add a history point every ``history_seconds`` (in a daemon thread) until ``stop``."""
+        """Add a history point every ``history_seconds`` (in a daemon thread) until ``stop``; in a
+        fleet, take over the windows of stopped processes of this host and share this one's."""
         self._ticker = threading.Thread(target=self._tick_forever, name="drift-history", daemon=True)
         self._ticker.start()
+        if self._shares is not None:
+            try:  # before any request is recorded: the looks taken over come first
+                self._take_over(self._shares.take_over_stopped())
+            except StoreError as error:
+                log.warning("drift: the windows of stopped processes could not be taken over (%s)", error)
+            self._sharer = threading.Thread(target=self._share_forever, name="drift-share", daemon=True)
+            self._sharer.start()
 
     def stop(self) -> None:
         self._stop.set()
-        if self._ticker is not None:
-            self._ticker.join(timeout=5.0)
+        for thread in (self._ticker, self._sharer):
+            if thread is not None:
+                thread.join(timeout=5.0)
+
+    def _share_forever(self) -> None:
+        """Every interval (and once more at stop), write this process's windows and looks."""
+        assert self._shares is not None
+        while True:
+            stopping = self._stop.wait(self._shares.interval)
+            try:
+                self.report()  # tests the pending looks: their Z are shared
+                self._shares.publish(self._share())
+            except StoreError as error:
+                log.warning("drift: this process's windows could not be shared (%s)", error)
+            except Exception:
+                log.exception("drift: sharing this process's windows failed")
+            if stopping:
+                return
+
+    def _share(self) -> bytes:
+        channels = range(self._channels)
+        with self._look_lock:
+            frames, looks = self._frames, list(self._looks_seen)
+        return encode_share(
+            None if self._flatness is None else self._flatness[0],
+            frames,
+            self._windows.written(),
+            [self._windows.window(channel) for channel in channels],
+            [self._look_windows.window(channel) for channel in channels],
+            np.array(looks, dtype=np.float64).reshape(-1, 2),
+        )
+
+    def _take_over(self, stopped: list[DriftShare]) -> None:
+        """Continue the windows and looks of stopped processes of this host as this one's."""
+        for share in stopped:
+            for target, windows in ((self._windows, share.windows), (self._look_windows, share.look_windows)):
+                for channel, rows in enumerate(windows[: self._channels]):
+                    if rows.shape[1:] == (_COLUMNS,):
+                        target.append(np.full(rows.shape[0], channel, dtype=np.int64), rows)
+            with self._look_lock:
+                self._frames += share.frames
+            self._taken_over.append(share)
+        if stopped:
+            log.info("drift: took over the windows of %d stopped process(es) of this host", len(stopped))
 
     def _tick_forever(self) -> None:
         last_recorded = -1
@@ -279,12 +355,19 @@ class DriftMonitor:
                 with self._evaluation_lock:
                     self._history.append(_history_point(report))
 
-    def _evaluate(self, version: int | None, table: ScoreTable | None, recorded: int) -> DriftReport:
+    def _evaluate(
+        self, version: int | None, table: ScoreTable | None, recorded: int, others: list[DriftShare]
+    ) -> DriftReport:
         reference, reason = self._reference_for(version, table)
         sequential = self._sequential_state(version, table if reference is not None else None)
-        windows = [self._windows.window(channel) for channel in range(self._channels)]
-        tested = self._look_windows if sequential is not None else self._windows
-        tested_windows = [tested.window(channel) for channel in range(self._channels)]
+        if sequential is not None and others:
+            sequential = self._fleet_sequential(sequential, others)
+        windows = self._merged(self._windows, [share.windows for share in others])
+        tested_windows = (
+            self._merged(self._look_windows, [share.look_windows for share in others])
+            if sequential is not None
+            else windows
+        )
         live = [
             [_finite(window[:, position]) for window in tested_windows]
             for position in range(len(HEATMAP_FEATURES))
@@ -315,11 +398,21 @@ class DriftMonitor:
             keypoints=keypoints,
             objects=objects,
             set_sizes=set_sizes(rows[:, _KIND_COLUMN].astype(int), rows[:, _SHAPE_COLUMNS]),
-            recorded=recorded,
+            recorded=recorded + sum(share.recorded for share in others),
             evaluated_at=time.time(),
             process=os.getpid(),
             sequential=sequential,
+            replicas=1 + len(others),
         )
+
+    def _merged(self, own: RingWindows, others: list[list[np.ndarray]]) -> list[np.ndarray]:
+        """Per channel: this process's window and those of the other replicas, one after another."""
+        merged = []
+        for channel in range(self._channels):
+            parts = [own.window(channel)]
+            parts += [w[channel] for w in others if channel < len(w) and w[channel].shape[1:] == (_COLUMNS,)]
+            merged.append(np.concatenate(parts) if len(parts) > 1 else parts[0])
+        return merged
 
     def _sequential_state(self, version: int | None, table: ScoreTable | None) -> SequentialState | None:
         """Test the looks recorded since the last evaluation (in order) against the reference;
@@ -336,10 +429,15 @@ class DriftMonitor:
             if self._flatness is None or self._flatness[0] != version:
                 self._flatness = (version, FlatnessReference(table, self._channels))
                 self._sequential = SequentialAlarm(self.settings.alarm_level)
+                self._replay_taken_over(version)
             flatness, alarm = self._flatness[1], self._sequential
             assert alarm is not None
-            for look in pending:
-                alarm.observe([z for z in map(flatness.instance_z, look) if z is not None])
+            for seen, look in pending:
+                z = look_statistic([z for z in map(flatness.instance_z, look) if z is not None])
+                if z is not None:
+                    alarm.observe_statistic(z)
+                    with self._look_lock:
+                        self._looks_seen.append((seen, z))
         alarm = self._sequential
         return SequentialState(
             looks=0 if alarm is None else alarm.looks,
@@ -348,6 +446,34 @@ class DriftMonitor:
             threshold=2.0 / self.settings.alarm_level,
             alarm=alarm is not None and alarm.alarm,
         )
+
+    def _replay_taken_over(self, version: int) -> None:
+        """A new reference: the looks of stopped processes of this host tested against the same
+        version go first (in time order); the others' are dropped."""
+        assert self._sequential is not None
+        looks = sorted(
+            (tuple(look) for share in self._taken_over if share.version == version for look in share.looks),
+        )
+        with self._look_lock:
+            self._looks_seen.clear()
+            self._looks_seen.extend((float(seen), float(z)) for seen, z in looks)
+        for _, z in looks:
+            self._sequential.observe_statistic(float(z))
+        self._taken_over = []
+
+    def _fleet_sequential(self, own: SequentialState, others: list[DriftShare]) -> SequentialState:
+        """The sequential alarm over the looks of every replica tested against the same version,
+        in time order (each replica's recent SHARED_LOOKS)."""
+        version = None if self._flatness is None else self._flatness[0]
+        with self._look_lock:
+            looks = [np.array(list(self._looks_seen), dtype=np.float64).reshape(-1, 2)]
+        looks += [share.looks for share in others if share.version == version]
+        merged = np.concatenate(looks)
+        alarm = SequentialAlarm(self.settings.alarm_level)
+        for z in merged[np.argsort(merged[:, 0], kind="stable"), 1]:
+            alarm.observe_statistic(float(z))
+        frames = own.frames + sum(share.frames for share in others)
+        return replace(own, looks=alarm.looks, frames=frames, evidence=alarm.evidence, alarm=alarm.alarm)
 
     def _tests(
         self, reference: _Reference | None, live: list[list[np.ndarray]], may_alarm: bool

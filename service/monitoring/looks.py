@@ -205,6 +205,15 @@ def _normal_scores(ranks: np.ndarray) -> np.ndarray:
     return np.vectorize(_NORMAL.inv_cdf, otypes=[float])(clipped)
 
 
+def look_statistic(look: list[float]) -> float | None:
+    """A look's Z from the z of its instances (None: none to rank); variance at most 1 while
+    the within-frame correlation is at most WITHIN_FRAME_CORRELATION."""
+    if not look:
+        return None
+    m = len(look)
+    return sum(look) / math.sqrt(m * (1 + (m - 1) * WITHIN_FRAME_CORRELATION))
+
+
 class SequentialAlarm:
     """Two e-CUSUMs over the looks' Z (flatter and sharper heatmaps than the calibration's)."""
 
@@ -215,10 +224,12 @@ class SequentialAlarm:
 
     def observe(self, look: list[float]) -> None:
         """One look: the z of its instances."""
-        if not look:
-            return
-        m = len(look)
-        z = sum(look) / math.sqrt(m * (1 + (m - 1) * WITHIN_FRAME_CORRELATION))
+        z = look_statistic(look)
+        if z is not None:
+            self.observe_statistic(z)
+
+    def observe_statistic(self, z: float) -> None:
+        """One look, by its Z (``look_statistic``): looks of several replicas merge in time order."""
         for side, sign in enumerate((1.0, -1.0)):
             log_e = sign * LAMBDA * z - LAMBDA**2 / 2
             self._cusums[side] = math.exp(min(log_e + math.log(max(self._cusums[side], 1.0)), 700.0))

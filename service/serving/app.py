@@ -123,7 +123,12 @@ def predict_parts(state: ServiceState) -> PredictParts:
         settings.predict.max_request_bytes,
         settings.predict.max_batch_images,
         pace,
-        ClientKeys(state.operators, settings.predict.client_header, settings.predict.trusted_proxies),
+        ClientKeys(
+            state.operators,
+            settings.predict.client_header,
+            settings.predict.trusted_proxies,
+            (settings.predict.client_ipv4_prefix, settings.predict.client_ipv6_prefix),
+        ),
     )
 
 

@@ -5,9 +5,10 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
 
@@ -35,6 +36,7 @@ from service.infra.settings import Settings, removed_settings
 from service.monitoring import coverage_audits
 from service.monitoring.coverage_audits import CoverageAudits
 from service.monitoring.drift_monitor import DriftMonitor, DriftSettings
+from service.monitoring.drift_shares import DriftShares
 from service.prediction import Predictor
 
 log = logging.getLogger(__name__)
@@ -56,6 +58,7 @@ class ServiceState:
     admission: Admission
     audits: CoverageAudits
     drift: DriftMonitor | None = None  # None when CKS_DRIFT_ENABLED is false
+    stopping: threading.Event = field(default_factory=threading.Event)  # set at close
 
     @cached_property
     def predictor(self) -> Predictor:
@@ -77,6 +80,7 @@ class ServiceState:
         started = time.monotonic()
         log.info("shutdown: interrupting calibration jobs, then closing the store and the model")
         self.registry.stop()
+        self.stopping.set()
         if self.drift is not None:
             self.drift.stop()
             forget_drift_source(self.drift.report)
@@ -113,8 +117,9 @@ def build_state(settings: Settings) -> ServiceState:
         detector.alone_threads,
     )
     kind, location = store_location(settings.storage.resolved_store_url)
-    # SQLite keeps its busy timeout: a write waiting on another writer is no outage
-    options = {"timeout_s": settings.storage.store_timeout_seconds} if kind == "postgresql" else {}
+    # Every lock wait is bounded alike: PostgreSQL's lock_timeout, SQLite's busy timeout
+    timeout = settings.storage.store_timeout_seconds
+    options = {"timeout_s": timeout} if kind == "postgresql" else {"busy_timeout_s": timeout}
     store = open_store(settings.storage.resolved_store_url, **options)
     if settings.storage.bootstrap_calibration:
         bootstrap_default_calibration(store, detector, settings.model.model_dir, difficulty_spec(settings))
@@ -145,14 +150,16 @@ def build_state(settings: Settings) -> ServiceState:
         )
     remove_spent_job_folders(settings.storage.jobs_dir, store)
     jobs = JobRunner(store, settings.calibration.calibration_workers)
-    audit = AuditTrail(store, detector.model_hash)
+    audit = AuditTrail(store, detector.model_hash, settings.storage.data_dir / "audit-outbox")
     job_settings = _job_settings(settings)
+    stopping = threading.Event()  # set at close: the audit gauges' follower stops
     audits = CoverageAudits(store, detector, registry, jobs, audit, job_settings)
     audits.publish_latest()
     calibrations = CalibrationJobs(store, detector, registry, jobs, audit, job_settings)
     jobs.on_stale(calibration_jobs.JOB_KIND, calibrations.take_over)
     jobs.on_stale(coverage_audits.JOB_KIND, None)  # its upload lives in its process's workspace
-    drift = _drift_monitor(settings, detector, registry)
+    audits.follow_latest(5 * settings.storage.store_poll_seconds, stopping)
+    drift = _drift_monitor(settings, detector, registry, store)
     return ServiceState(
         settings=settings,
         detector=detector,
@@ -173,11 +180,12 @@ def build_state(settings: Settings) -> ServiceState:
         ),
         audits=audits,
         drift=drift,
+        stopping=stopping,
     )
 
 
 def _drift_monitor(
-    settings: Settings, detector: Detector, registry: CalibrationRegistry
+    settings: Settings, detector: Detector, registry: CalibrationRegistry, store: CalibrationStore
 ) -> DriftMonitor | None:
     """The drift monitor, its history ticker started and its report the source of cks_drift_*."""
     if not settings.drift.drift_enabled:
@@ -197,7 +205,8 @@ def _drift_monitor(
         full_statistics_share=settings.drift.drift_full_statistics_share,
         history_seconds=settings.drift.drift_history_seconds,
     )
-    monitor = DriftMonitor(detector.manifest, active_calibration, drift_settings)
+    shares = DriftShares(store, detector.model_hash, settings.drift.drift_share_seconds)
+    monitor = DriftMonitor(detector.manifest, active_calibration, drift_settings, shares)
     monitor.start()
     set_drift_source(monitor.report)
     return monitor

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import sqlite3
+import time
 from collections.abc import Iterator
 from pathlib import Path, PurePosixPath
 
@@ -297,18 +298,22 @@ def test_operators_are_named_and_the_single_token_is_admin(named_server: InProce
 
 @pytest.mark.slow
 def test_an_activation_refused_for_a_store_lock_timeout_is_audited(named_server: InProcess) -> None:
-    """Another writer holds SQLite's lock past the busy timeout (30 s): the activation is refused
-    (503), and its entry lands once the store can take it."""
+    """Another writer holds SQLite's lock past the busy timeout (CKS_STORE_TIMEOUT_SECONDS, 1.5 s,
+    not SQLite's 30 s): the activation is refused (503), and its entry lands once the store can
+    take it."""
     locker = sqlite3.connect(named_server.data_dir / "calibrations.db", isolation_level=None)
     locker.execute("BEGIN IMMEDIATE")
+    began = time.monotonic()
     try:
         refused = named_server.client.post(
             "/v1/admin/calibrations/1/activate", json={"reason": "while locked"}, headers=as_operator("bob")
         )
+        waited = time.monotonic() - began
     finally:
         locker.execute("ROLLBACK")
         locker.close()
     assert_problem(refused, 503, "database is locked")
+    assert waited < 15, f"the lock wait was not bounded by CKS_STORE_TIMEOUT_SECONDS: {waited:.1f} s"
 
     def refusal() -> dict:
         return next((e for e in audit(named_server) if e["reason"] == "while locked"), {})

@@ -257,3 +257,35 @@ def test_a_form_with_the_zip_is_taken_as_the_zip(
     batches = detail.json()["source_batches"]
     assert batches[-1]["name"] == "as-form" and batches[-1]["sha256"] == hashlib.sha256(zipped).hexdigest()
     assert limited_api.upload_workspaces() == []
+
+
+def many_annotations(samples_dir: Path, coco: dict, count: int, keypoints: bool = True) -> bytes:
+    """The first two images with ``count`` copies of their first annotation (deflated: tiny)."""
+    doc, files = batch_files(samples_dir, coco, images=2)
+    first = first_annotation(doc) if keypoints else {"image_id": doc["images"][0]["id"], "category_id": 1}
+    doc["annotations"] = [{**first, "id": number + 1} for number in range(count)]
+    return build_zip(doc, files)
+
+
+def test_an_annotations_file_over_its_limit_is_refused_before_it_is_unzipped(
+    api: InProcess, samples_dir: Path, coco: dict
+) -> None:
+    """30,000 annotations of 8 keypoints: 20 MB of JSON in a zip of about 0.2 MB, above the 16 MiB
+    of CKS_MAX_ANNOTATIONS_BYTES (200,000 took 34-38 s and 700 MiB to refuse before)."""
+    before = snapshot(api)
+    body = many_annotations(samples_dir, coco, 30_000)
+    assert len(body) < 1_000_000
+    problem = assert_problem(api.upload(body), 413, "CKS_MAX_ANNOTATIONS_BYTES", "annotations.json")
+    assert "above the limit of 16777216 bytes" in problem["detail"], problem
+    assert_nothing_stored(api, before)
+
+
+def test_more_annotations_than_the_limit_are_refused_before_any_is_read(
+    api: InProcess, samples_dir: Path, coco: dict
+) -> None:
+    """20,001 small annotations fit in the bytes limit; CKS_MAX_ANNOTATIONS (20,000) refuses them."""
+    before = snapshot(api)
+    body = many_annotations(samples_dir, coco, 20_001, keypoints=False)
+    problem = assert_problem(api.upload(body), 413, "CKS_MAX_ANNOTATIONS", "20001 annotations")
+    assert "above the limit of 20000" in problem["detail"], problem
+    assert_nothing_stored(api, before)

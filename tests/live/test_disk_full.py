@@ -10,10 +10,13 @@ service works again as soon as space is freed, without a restart.
 
 from __future__ import annotations
 
+import os
+import signal
 import sqlite3
 from collections.abc import Iterator
 from pathlib import Path
 
+import httpx
 import pytest
 
 from benchmarks.faults_clients import long_batch
@@ -29,6 +32,8 @@ from benchmarks.faults_disk import (
     upload_refused_at_job_request,
 )
 from tests.live.server import LiveServer
+from tests.predict_client import instances_of, predict_json
+from tests.samples import samples_by_image
 from tests.service_calls import assert_problem, wait_until
 
 COPIES = 6  # the samples, 6 times over (7.7 MB zipped): seconds of scoring
@@ -139,10 +144,55 @@ def test_a_job_whose_version_finds_the_store_full_fails_and_is_retried(disk: Pat
             "the job's failure reaches the store once there is room",
         )
         stored.close()
+        wait_until(
+            lambda: any(
+                (e["action"], e["outcome"], e["details"].get("job")) == ("calibration", "failed", job_id)
+                for e in audit_entries(server)
+            ),
+            "the job failed by the store is in the audit trail once the store can take it",
+        )
         retried = server.client.post(f"/v1/admin/jobs/{job_id}/retry", headers=server.admin)
         assert retried.status_code == 202, retried.text
         new = server.wait_job(retried.json()["id"])
         assert (new["state"], new["version"]) == ("succeeded", 2), new
         # the job is reported succeeded before its runner removes the upload it no longer needs
         wait_until(lambda: kept_files(server) == [], "a finished job's upload is removed")
+        assert_no_500(server)
+
+
+def worker_pids(server: LiveServer) -> set[int]:
+    """The pids of the serve process's workers (its children spawned by multiprocessing)."""
+    pid = server.process.pid
+    children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    return {int(child) for child in children if "spawn_main" in Path(f"/proc/{child}/cmdline").read_text()}
+
+
+def test_with_two_workers_a_full_disk_leaves_predictions_served(disk: Path, samples: list) -> None:
+    """The Prometheus multiprocess files live on the data directory: with it full, a new label
+    series (a route or status not seen yet) and a restarted worker must not kill a worker (a
+    Bus error on an mmap page the disk cannot give); that worker's metrics degrade, stated in its
+    log, and every predict is answered."""
+    path, group = next(iter(samples_by_image(samples).items()))
+    image, request = path.read_bytes(), {"instances": instances_of(group)}
+    with serve_on(disk, workers=2) as server:
+        wait_until(lambda: len(worker_pids(server)) == 2, "both workers started", timeout=60)
+        fill(disk)
+        answers = []
+        for number in range(30):
+            with httpx.Client(base_url=server.url, timeout=60) as client:  # new connections: both workers
+                client.get(f"/v1/no-such-route-{number % 3}")  # new label series on a full disk
+                client.post("/v1/predict", json={"image_base64": "x"})  # a 422: another new series
+                answers.append(predict_json(client, image, request).status_code)
+            if number == 10:  # a worker restarted on the full disk imports the metrics afresh
+                os.kill(min(worker_pids(server)), signal.SIGKILL)
+                wait_until(lambda: len(worker_pids(server)) == 2, "the worker restarted", timeout=60)
+        assert answers == [200] * 30, answers
+        assert server.process.poll() is None
+        wait_until(lambda: "metrics degraded in process" in server.log(), "the restarted worker says so")
+        log = server.log()
+        assert "Bus error" not in log and "Fatal Python error" not in log, log
+        assert server.client.get("/metrics").status_code == 200
+
+        free_space(disk)
+        assert server.calibrate(long_batch(1))["state"] == "succeeded"
         assert_no_500(server)

@@ -23,11 +23,11 @@ from service.calibration.registry import CalibrationRegistry
 from service.detector.session import Detector
 from service.errors import StoreUnreachable
 from service.infra.settings import PACKAGE_ROOT
-from tests.live.server import cli, free_port, service_env
+from tests.live.server import LiveServer, cli, free_port, service_env
 from tests.postgres_cluster import PostgresCluster
 from tests.predict_client import predict_json
 from tests.samples import model_dir
-from tests.service_calls import assert_problem, wait_until
+from tests.service_calls import ADMIN_TOKEN, assert_problem, wait_until
 
 POLL_S, TIMEOUT_S = 1.0, 1.5  # the defaults of CKS_STORE_POLL_SECONDS, CKS_STORE_TIMEOUT_SECONDS
 #: a poll under way when the store returns may still fail; the next one finds it
@@ -198,3 +198,44 @@ def test_a_frozen_database_is_reported_unreachable_and_the_cache_answers(cluster
             wait_until(lambda: registry.health().reachable, "the thawed store answers again", 2 * 0.2 + 1.0)
         finally:
             registry.stop()
+
+
+@pytest.mark.slow
+def test_refusals_of_a_store_outage_reach_the_audit_trail_after_a_stop(
+    cluster: PostgresCluster, tmp_path: Path
+) -> None:
+    """PostgreSQL stopped: an activation and an upload are refused (503) by the store check
+    before their routes run. The server is stopped before the store returns; a new server on the
+    same data directory appends both refusals (kept in the stopped one's outbox) once it is back."""
+    url = cluster.create_database()
+    data = tmp_path / "data"
+    with LiveServer(data, admin_token=ADMIN_TOKEN, store_url=url) as server:
+        cluster.stop_server()
+        try:
+            wait_until(lambda: server.client.get("/readyz").json()["store"] == "unreachable", "store away")
+            reason = {"reason": "during the outage"}
+            activation = server.client.post(
+                "/v1/admin/calibrations/1/activate", json=reason, headers=server.admin
+            )
+            assert_problem(activation, 503, "store is unreachable")
+            assert_problem(server.upload(long_batch(1)), 503, "store is unreachable")
+        except BaseException:
+            cluster.start_server()
+            raise
+    outboxes = list((data / "audit-outbox").glob("*.jsonl"))
+    assert len(outboxes) == 1 and len(outboxes[0].read_text().splitlines()) == 2, outboxes
+    cluster.start_server()
+
+    with LiveServer(data, admin_token=ADMIN_TOKEN, store_url=url) as server:
+
+        def refusals() -> list[dict]:
+            entries = server.client.get("/v1/admin/audit", headers=server.admin).json()["entries"]
+            return [e for e in entries if (e["action"], e["outcome"]) == ("admin", "refused")]
+
+        wait_until(lambda: len(refusals()) == 2, "both refusals are in the audit trail", timeout=15)
+        paths = sorted(entry["details"]["path"] for entry in refusals())
+        assert paths == ["/v1/admin/calibrations", "/v1/admin/calibrations/1/activate"], refusals()
+        for entry in refusals():
+            assert entry["details"]["status"] == 503 and "happened_at" in entry["details"], entry
+            assert entry["who"] == "admin", entry
+        wait_until(lambda: not list((data / "audit-outbox").glob("*.jsonl")), "the outbox is emptied")

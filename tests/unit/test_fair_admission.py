@@ -91,3 +91,13 @@ def test_a_client_is_its_operator_then_a_trusted_header_then_its_address() -> No
     assert keys.of("10.1.1.1", {"x-forwarded-for": "6.6.6.6, 5.6.7.8, 10.2.2.2"}) == "5.6.7.8"
     assert keys.of("10.1.1.1", {"x-forwarded-for": " , "}) == "10.1.1.1"
     assert keys.of(None, {}) == "unknown"
+
+
+def test_an_address_stands_for_its_network_of_the_configured_prefix() -> None:
+    per_network = ClientKeys({}, prefixes=(24, 64))
+    assert per_network.of("127.0.1.17", {}) == per_network.of("127.0.1.200", {}) == "127.0.1.0/24"
+    assert per_network.of("127.0.0.1", {}) == "127.0.0.0/24"
+    assert per_network.of("2001:db8:1:2::5", {}) == "2001:db8:1:2::/64"
+    assert ClientKeys({}).of("127.0.1.17", {}) == "127.0.1.17"  # the default: each address
+    proxied = ClientKeys({}, "X-Forwarded-For", ["10.0.0.1"], prefixes=(16, 128))
+    assert proxied.of("10.0.0.1", {"x-forwarded-for": "192.168.7.9"}) == "192.168.0.0/16"

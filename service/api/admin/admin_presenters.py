@@ -148,6 +148,8 @@ def drift_out(report: DriftReport) -> DriftOut:
         recorded=report.recorded,
         evaluated_at=report.evaluated_at,
         process=report.process,
+        replicas=report.replicas,
+        oldest_share_seconds=round(report.oldest_share_seconds, 3),
         keypoints=[KeypointDriftOut.model_validate(asdict(k)) for k in report.keypoints],
         objects=[ObjectDriftOut.model_validate(asdict(o)) for o in report.objects],
         history=[HistoryPointOut.model_validate(asdict(h)) for h in report.history],

@@ -329,7 +329,9 @@ class DriftOut(BaseModel):
         description="sequential: the independent looks the alarm has tested since the reference version"
         " became active (a scene's frames are one look); null for ks and psi, which count every frame",
     )
-    frames: int | None = Field(default=None, description="sequential: frames (requests) recorded")
+    frames: int | None = Field(
+        default=None, description="sequential: frames (requests) recorded by the replicas covered"
+    )
     evidence: float | None = Field(
         default=None,
         description="sequential: the larger of the two e-CUSUMs (1: no evidence); the alarm is raised at"
@@ -341,9 +343,19 @@ class DriftOut(BaseModel):
     reference_version: int | None = Field(description="the active calibration version compared with")
     reference_available: bool
     reason: str | None = Field(description="why there is no reference (null when there is)")
-    recorded: int = Field(description="live values recorded by this process")
+    recorded: int = Field(description="live values recorded by the replicas covered")
     evaluated_at: float = Field(description="unix seconds of the evaluation")
-    process: int = Field(description="the worker process whose windows these are (each keeps its own)")
+    process: int = Field(
+        description="the worker process that answered (its windows merged with the other replicas')"
+    )
+    replicas: int = Field(
+        description="worker processes and replicas whose windows and looks this answer covers (this one"
+        " included): those that wrote to the store within 5 x CKS_DRIFT_SHARE_SECONDS"
+    )
+    oldest_share_seconds: float = Field(
+        description="age of the oldest other replica's contribution (0: this process alone); each"
+        " writes every CKS_DRIFT_SHARE_SECONDS"
+    )
     keypoints: list[KeypointDriftOut]
     objects: list[ObjectDriftOut]
     history: list[HistoryPointOut] = Field(

@@ -20,6 +20,7 @@ from service.calibration.archive import (
     copy_limited,
     extract_zip,
 )
+from service.calibration.coco import AnnotationLimits
 from service.errors import InvalidInput, PayloadTooLarge
 
 LIMITS = ArchiveLimits(max_files=50, max_uncompressed_bytes=1_000_000)
@@ -101,8 +102,10 @@ class TestExtractGood:
     def test_from_settings(self) -> None:
         from service.infra.settings import Settings
 
-        limits = ArchiveLimits.from_settings(Settings(max_upload_files=7, max_upload_uncompressed_bytes=9))
-        assert limits == ArchiveLimits(7, 9)
+        settings = Settings(
+            max_upload_files=7, max_upload_uncompressed_bytes=9, max_annotations_bytes=5, max_annotations=3
+        )
+        assert ArchiveLimits.from_settings(settings) == ArchiveLimits(7, 9, AnnotationLimits(5, 3))
 
 
 class TestRefusedNames:
