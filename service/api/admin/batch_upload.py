@@ -13,25 +13,28 @@ from fastapi.concurrency import run_in_threadpool
 from calibration_store import StoreFull, StoreUnavailable
 from service.api.http.request_body import BodyPace, receive_upload
 from service.calibration.uploads import UploadWorkspace
-from service.errors import ServiceError, UnsupportedMediaType, disk_full_refused
+from service.errors import ServiceError, disk_full_refused
 from service.infra.audit_trail import AuditTrail, Operator
 from service.infra.settings import Settings
 
-_ZIP_TYPES = ("application/zip", "application/x-zip-compressed", "application/octet-stream")
 ZIP_PART = "file"  # the zip's part name when the batch comes as multipart/form-data
-# The raw zip is documented as application/octet-stream, the type client generators know for bytes;
-# application/zip and application/x-zip-compressed are taken the same (said in the descriptions).
-ZIP_BODY: dict[str, Any] = {
+# One request content type per operation (client generators keep only one): the raw zip is documented
+# as application/octet-stream, the type generators know for bytes, and the form on its own path
+# (.../form). Either path takes either body; a raw body is judged by its bytes whatever its type.
+ZIP_RAW: dict[str, Any] = {
+    "required": True,
+    "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
+}
+ZIP_FORM: dict[str, Any] = {
     "required": True,
     "content": {
-        "application/octet-stream": {"schema": {"type": "string", "format": "binary"}},
         "multipart/form-data": {
             "schema": {
                 "type": "object",
                 "required": [ZIP_PART],
                 "properties": {ZIP_PART: {"type": "string", "format": "binary", "description": "the zip"}},
             }
-        },
+        }
     },
 }
 
@@ -61,15 +64,11 @@ async def refusals_audited(
 
 
 async def receive_batch_zip(request: Request, settings: Settings) -> tuple[UploadWorkspace, str]:
-    """Receive a zip body, or a form with the zip as its part 'file' (415 for another type), paced
-    and within the upload limits, into a new upload workspace; returns it with the zip's sha256
-    (the caller removes it when done)."""
+    """Receive a zip body, or a form with the zip as its part 'file', paced and within the upload
+    limits, into a new upload workspace; returns it with the zip's sha256 (the caller removes it
+    when done). Any type but multipart/form-data is taken as the raw zip: a zip is a zip by its
+    bytes (the archive check refuses anything else with 422), whatever Content-Type was sent."""
     content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
-    if content_type not in (*_ZIP_TYPES, "multipart/form-data"):
-        raise UnsupportedMediaType(
-            "send the batch as a zip body (Content-Type: application/zip) or as the part 'file' of"
-            f" multipart/form-data, not {content_type!r}"
-        )
     part = ZIP_PART if content_type == "multipart/form-data" else None
     timeout = settings.calibration.upload_read_timeout_seconds
     pace = BodyPace.from_settings(settings, timeout, "CKS_UPLOAD_READ_TIMEOUT_SECONDS")

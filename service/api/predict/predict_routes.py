@@ -1,6 +1,9 @@
 """POST /v1/predict, /v1/predict/png and /v1/predict/batch: images and boxes in, keypoint
 prediction sets out (JSON, or a PNG drawing for a single image).
 
+Each is documented with a JSON body, and again under .../form with a multipart body (one request
+content type per operation, for client generators); each path takes either body at run time.
+
 Both take admission places before their bodies are parsed and compute inside a slot on the CPU
 pool: receive -> parse -> ``Predictor.predict`` -> present. A batch of n images takes n places,
 so batching cannot get round CKS_MAX_CONCURRENT_INFERENCES and CKS_MAX_QUEUED_REQUESTS; each of
@@ -19,7 +22,7 @@ from fastapi import APIRouter, Request, Response
 from service.api.deps import Predicting, PredictParts
 from service.api.http.problems import problem
 from service.api.predict import predict_presenter
-from service.api.predict.predict_bodies import BATCH_BODY, PREDICT_BODY
+from service.api.predict.predict_bodies import BATCH_FORM, BATCH_JSON, PREDICT_FORM, PREDICT_JSON
 from service.api.predict.predict_input import (
     BatchItem,
     parse_batch,
@@ -66,6 +69,17 @@ _BATCH_RESPONSES: dict[int | str, dict[str, Any]] = {
 }
 
 
+_FORM = " (multipart/form-data: the image as a file, its parameters as the JSON part request)"
+
+
+@router.post(
+    "/v1/predict/form",
+    name="predict_form",
+    response_model=PredictResponse,
+    summary="Keypoint prediction sets with a coverage guarantee" + _FORM,
+    responses=_PREDICT_RESPONSES,
+    openapi_extra={"requestBody": PREDICT_FORM},
+)
 @router.post(
     "/v1/predict",
     response_model=PredictResponse,
@@ -73,18 +87,29 @@ _BATCH_RESPONSES: dict[int | str, dict[str, Any]] = {
     description="The sets as JSON. (`Accept: image/png` here still answers the drawing, as before"
     " POST /v1/predict/png existed; generated clients should call that operation.)",
     responses=_PREDICT_RESPONSES,
-    openapi_extra={"requestBody": PREDICT_BODY},
+    openapi_extra={"requestBody": PREDICT_JSON},
 )
 async def predict(request: Request, parts: Predicting) -> Response:
     return await _predict(request, parts, png=_wants_png(request))
 
 
+_PNG_ANSWERS = {200: {"description": "The image, sets drawn", **_PNG}, **_PREDICT_RESPONSES}
+
+
+@router.post(
+    "/v1/predict/png/form",
+    name="predict_png_form",
+    response_class=Response,
+    summary="The image with its keypoint prediction sets drawn on it (PNG)" + _FORM,
+    responses=_PNG_ANSWERS,
+    openapi_extra={"requestBody": PREDICT_FORM},
+)
 @router.post(
     "/v1/predict/png",
     response_class=Response,
     summary="The image with its keypoint prediction sets drawn on it (PNG)",
-    responses={200: {"description": "The image, sets drawn", **_PNG}, **_PREDICT_RESPONSES},
-    openapi_extra={"requestBody": PREDICT_BODY},
+    responses=_PNG_ANSWERS,
+    openapi_extra={"requestBody": PREDICT_JSON},
 )
 async def predict_png(request: Request, parts: Predicting) -> Response:
     return await _predict(request, parts, png=True)
@@ -100,11 +125,20 @@ async def _predict(request: Request, parts: PredictParts, png: bool) -> Response
 
 
 @router.post(
+    "/v1/predict/batch/form",
+    name="predict_batch_form",
+    response_model=BatchResponse,
+    summary="Keypoint prediction sets for several images in one request, one answer per image"
+    " (multipart/form-data: parts image_0, request_0, image_1, ...)",
+    responses=_BATCH_RESPONSES,
+    openapi_extra={"requestBody": BATCH_FORM},
+)
+@router.post(
     "/v1/predict/batch",
     response_model=BatchResponse,
     summary="Keypoint prediction sets for several images in one request, one answer per image",
     responses=_BATCH_RESPONSES,
-    openapi_extra={"requestBody": BATCH_BODY},
+    openapi_extra={"requestBody": BATCH_JSON},
 )
 async def predict_batch(request: Request, parts: Predicting) -> Response:
     require_batch_media(request)
