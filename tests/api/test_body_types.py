@@ -4,10 +4,12 @@ JSON part with or without a filename and of any JSON type, and a raw zip judged 
 
 from __future__ import annotations
 
+import base64
 import json
 from pathlib import Path
 from typing import Any
 
+import jsonschema
 import pytest
 
 from service.infra.settings import PACKAGE_ROOT
@@ -143,3 +145,37 @@ def test_the_forms_own_paths_take_the_zip_as_its_part(
     response = api.client.post(path, files=files, headers=api.admin, params=AGAIN)
     assert response.status_code == 202, response.text
     assert response.headers["location"] == f"/v1/admin/jobs/{response.json()['id']}"
+
+
+def test_the_overrides_rule_is_in_the_schema_and_the_server_keeps_it(api: InProcess) -> None:
+    """force and allow_duplicate need a non-blank reason: the document's schema refuses what the
+    server refuses, and accepts what it takes (on either upload operation)."""
+    for path in ("/v1/admin/calibrations", "/v1/admin/calibrations/form"):
+        parameters = DOCUMENT["paths"][path]["post"]["parameters"]
+        (overrides,) = [p for p in parameters if p["name"] == "overrides"]
+        assert (overrides["in"], overrides["style"], overrides["explode"]) == ("query", "form", True)
+        rule = jsonschema.Draft202012Validator(overrides["schema"])
+        for query, allowed in [
+            ({"force": True}, False),
+            ({"allow_duplicate": True, "reason": " "}, False),
+            ({"force": True, "reason": "why"}, True),
+            ({"reason": ""}, True),
+        ]:
+            assert rule.is_valid(query) is allowed, query
+            sent = {k: str(v).lower() if isinstance(v, bool) else v for k, v in query.items()}
+            params = {**sent, "activate": "true"}  # force applies to activating only (said in prose)
+            answer = api.client.post(path, content=b"PK", params=params, headers=api.admin)
+            if allowed:
+                assert_problem(answer, 422, "zip")  # past the overrides, refused for its body
+            else:
+                assert_problem(answer, 422, "needs a reason")
+
+
+def test_a_batch_item_the_schema_would_refuse_is_answered_alone(api: InProcess, sample) -> None:
+    items = DOCUMENT["components"]["schemas"]["BatchJson"]["properties"]["items"]["items"]
+    assert items["anyOf"][0] == {"$ref": "#/components/schemas/PredictJson"}
+    image, parameters = sample
+    good = {**parameters, "image_base64": base64.b64encode(image).decode()}
+    answer = api.client.post("/v1/predict/batch", json={"items": [good, {"epsilon": 2}, "text"]})
+    assert answer.status_code == 200, answer.text
+    assert [item["status"] for item in answer.json()["items"]] == [200, 422, 422]

@@ -180,6 +180,17 @@ def test_a_generated_client_drives_every_kind_of_call(
     audit = g.get_audit.sync(audit_job.result["audit"], client=admin)
     assert isinstance(audit, m.AuditOut) and audit.version == 2
 
+    again = m.UploadCalibrationOverrides(allow_duplicate=True, reason="the same batch again, on purpose")
+    third = wait(
+        g, admin, g.upload_calibration.sync(client=admin, body=File(**zip_file(whole)), overrides=again)
+    )
+    assert third.state == "succeeded" and third.version == 3, third
+    no_reason = m.UploadCalibrationOverrides(force=True)
+    refused = g.upload_calibration.sync_detailed(
+        client=admin, body=File(**zip_file(whole)), overrides=no_reason
+    )
+    assert "force needs a reason" in problem_of(refused, 422, g).detail
+
     problem_of(g.get_calibration.sync_detailed(999, client=admin), 404, g)
     huge = File(payload=BytesIO(b"\xff" * MAX_REQUEST_BYTES), file_name="big.jpg", mime_type="image/jpeg")
     too_big = m.PredictFormBody(image=huge, request=parameters(instances))

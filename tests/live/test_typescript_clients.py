@@ -44,7 +44,19 @@ CLIENTS = {
     ],
 }
 # Every operation issue 38 names, and the error statuses each driver parses as a Problem.
-CALLS = {"predict", "predict_batch", "upload_calibration", "get_job", "activate_calibration", "start_audit"}
+CALLS = {
+    "predict",
+    "predict_form",
+    "predict_png",
+    "predict_batch",
+    "predict_batch_form",
+    "upload_calibration",
+    "upload_calibration_form",
+    "upload_calibration_overrides",
+    "get_job",
+    "activate_calibration",
+    "start_audit",
+}
 PROBLEMS = {401, 404, 409, 413, 415, 422, 503}
 
 

@@ -69,6 +69,46 @@ _UPLOAD_ANSWERS: dict[str, Any] = {
     "503": {"description": "The calibration store could not record the job"},
     "507": {"description": DISK_FULL},
 }
+# force, allow_duplicate and reason as one exploded query object (sent as force=true&reason=...,
+# as always), so that JSON Schema can say the rule: either flag needs a non-blank reason.
+_NEEDS_REASON = {"required": ["reason"], "properties": {"reason": {"pattern": r"\S"}}}
+_OVERRIDES = {
+    "name": "overrides",
+    "in": "query",
+    "style": "form",
+    "explode": True,
+    "description": "sent as the query parameters force, allow_duplicate and reason (reason required,"
+    " not blank, with either flag)",
+    "schema": {
+        "type": "object",
+        "properties": {
+            "force": {
+                "type": "boolean",
+                "default": False,
+                "description": "with activate=true only: activate even if the guardrails refuse (needs reason)",
+            },
+            "allow_duplicate": {
+                "type": "boolean",
+                "default": False,
+                "description": "store a version equal to a stored one instead of refusing (409)"
+                " (needs reason)",
+            },
+            "reason": {
+                "type": "string",
+                "maxLength": 2000,
+                "default": "",
+                "description": "why (recorded; required with force or allow_duplicate)",
+            },
+        },
+        "if": {
+            "anyOf": [
+                {"properties": {flag: {"const": True}}, "required": [flag]}
+                for flag in ("force", "allow_duplicate")
+            ]
+        },
+        "then": _NEEDS_REASON,
+    },
+}
 _ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
     404: {"description": "No such version"},
     409: {
@@ -88,7 +128,7 @@ _ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
     responses={202: {"links": JOB_LINKS}},
     response_model=JobOut,
     summary="Upload a labeled batch as a form; a background job scores it into a new version",
-    openapi_extra={"requestBody": _UPLOAD_FORM, "responses": _UPLOAD_ANSWERS},
+    openapi_extra={"requestBody": _UPLOAD_FORM, "responses": _UPLOAD_ANSWERS, "parameters": [_OVERRIDES]},
 )
 @router.post(
     "/calibrations",
@@ -96,7 +136,7 @@ _ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
     responses={202: {"links": JOB_LINKS}},
     response_model=JobOut,
     summary="Upload a labeled batch; a background job scores it into a new version",
-    openapi_extra={"requestBody": _UPLOAD_RAW, "responses": _UPLOAD_ANSWERS},
+    openapi_extra={"requestBody": _UPLOAD_RAW, "responses": _UPLOAD_ANSWERS, "parameters": [_OVERRIDES]},
 )
 async def upload_calibration(
     request: Request,
@@ -112,19 +152,12 @@ async def upload_calibration(
         int | None, Query(ge=1, le=MAX_VERSION, description="new version = this version + the batch")
     ] = None,
     activate: Annotated[bool, Query(description="activate the new version when the job succeeds")] = False,
-    force: Annotated[
-        bool, Query(description="with activate: activate even if the guardrails refuse (needs reason)")
-    ] = False,
-    reason: Annotated[
-        str, Query(max_length=2000, description="why (recorded; required with force or allow_duplicate)")
-    ] = "",
+    force: Annotated[bool, Query(include_in_schema=False)] = False,  # documented in _OVERRIDES
+    reason: Annotated[str, Query(max_length=2000, include_in_schema=False)] = "",
     dedupe: Annotated[
         bool, Query(description="drop instances already counted instead of refusing the batch (409)")
     ] = False,
-    allow_duplicate: Annotated[
-        bool,
-        Query(description="store a version equal to a stored one instead of refusing (409); needs reason"),
-    ] = False,
+    allow_duplicate: Annotated[bool, Query(include_in_schema=False)] = False,
     max_rejected_share: Annotated[
         float | None,
         Query(

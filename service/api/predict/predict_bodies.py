@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from service.api.predict.predict_schemas import DOCUMENTED_BATCH_IMAGES
+from service.api.predict.predict_schemas import DOCUMENTED_BATCH_IMAGES, ITEM_ANSWERED_ALONE
 
 _SCHEMAS = "#/components/schemas/{model}"
 _IMAGE = {"type": "string", "format": "binary", "description": "JPEG or PNG file"}
@@ -27,7 +27,9 @@ def _form(schema: dict[str, Any], json_parts: list[str]) -> dict[str, Any]:
 
 def _batch_form() -> dict[str, Any]:
     indexes = range(DOCUMENTED_BATCH_IMAGES)
-    parameters = {"$ref": _SCHEMAS.format(model="PredictParameters")}
+    parameters = {
+        "anyOf": [{"$ref": _SCHEMAS.format(model="PredictParameters")}, {"description": ITEM_ANSWERED_ALONE}]
+    }
     return {
         "type": "object",
         "description": "image_i and request_i for i = 0 .. n-1, n at most CKS_MAX_BATCH_IMAGES (default 16)",

@@ -90,6 +90,13 @@ async function main(): Promise<void> {
   assert.equal(audit.data?.version, 2);
   calls.push("start_audit", "get_audit");
 
+  const again = { overrides: { allow_duplicate: true, reason: "the same batch again, on purpose" } };
+  const third = await job(await sdk.uploadCalibration({ client: admin, body: zip, query: again }));
+  assert.equal(third.version, 3, JSON.stringify(third));
+  const noReason = await sdk.uploadCalibration({ client: admin, body: zip, query: { overrides: { force: true } } });
+  assert.match(problem(noReason, 422).detail, /force needs a reason/);
+  calls.push("upload_calibration_overrides");
+
   problem(await sdk.getCalibration({ client: admin, path: { version: 999 } }), 404);
   const huge = new Uint8Array(fixture.max_request_bytes).fill(0xff);
   problem(await sdk.predictForm({ client: anyone, body: form(huge) }), 413);

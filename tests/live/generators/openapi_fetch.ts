@@ -14,7 +14,13 @@ type Parameters = Schemas["PredictParameters"];
 type Binary = string; // openapi-typescript's type for format: binary; a Blob is sent in its place
 
 const anyone = createClient<paths>({ baseUrl: fixture.url });
-const admin = createClient<paths>({ baseUrl: fixture.url, headers: { Authorization: `Bearer ${fixture.token}` } });
+// The upload's overrides (force, allow_duplicate, reason) are an exploded form-style query object,
+// as the document says; openapi-fetch's default for objects is deepObject, so the style is named here.
+const admin = createClient<paths>({
+  baseUrl: fixture.url,
+  headers: { Authorization: `Bearer ${fixture.token}` },
+  querySerializer: { object: { style: "form", explode: true } },
+});
 const stranger = createClient<paths>({ baseUrl: fixture.url, headers: { Authorization: "Bearer not-the-token" } });
 const calls: string[] = [];
 
@@ -115,6 +121,14 @@ async function main(): Promise<void> {
   const auditId = { path: { audit_id: audited.result?.audit as number } };
   assert.equal((await admin.GET("/v1/admin/audits/{audit_id}", { params: auditId })).data?.version, 2);
   calls.push("start_audit", "get_audit");
+
+  const again = { query: { overrides: { allow_duplicate: true, reason: "the same batch again, on purpose" } } };
+  const third = await job(await admin.POST("/v1/admin/calibrations", { body: zip, params: again, ...raw }));
+  assert.equal(third.version, 3, JSON.stringify(third));
+  const noReason = { query: { overrides: { force: true } } };
+  const refusedForce = await admin.POST("/v1/admin/calibrations", { body: zip, params: noReason, ...raw });
+  assert.match(problem(refusedForce, 422).detail, /force needs a reason/);
+  calls.push("upload_calibration_overrides");
 
   problem(await admin.GET("/v1/admin/calibrations/{version}", { params: { path: { version: 999 } } }), 404);
   const huge = new Uint8Array(fixture.max_request_bytes).fill(0xff);
