@@ -85,7 +85,8 @@ _OVERRIDES = {
             "force": {
                 "type": "boolean",
                 "default": False,
-                "description": "with activate=true only: activate even if the guardrails refuse (needs reason)",
+                "description": "with activate=true only: activate even if the guardrails refuse"
+                " (needs reason)",
             },
             "allow_duplicate": {
                 "type": "boolean",
