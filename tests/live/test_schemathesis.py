@@ -79,7 +79,7 @@ def test_no_server_errors_on_generated_requests(fuzzed_server: LiveServer, tmp_p
     )
     assert result.returncode == 0, output
     total = sum(sent.values())
-    print(f"schemathesis: {total:g} requests reached the server, none answered 5xx")
+    print(f"schemathesis: {total:g} requests reached the server, none answered 5xx\n{output}")
     assert total >= MIN_REQUESTS, f"only {total:g} requests reached the server: {sent}\n{output}"
     routes = {route for _, route, _ in sent}
     assert {"/v1/predict", "/v1/admin/calibrations", "/v1/admin/calibrations/{version}/activate"} <= routes
