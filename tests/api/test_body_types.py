@@ -179,3 +179,11 @@ def test_a_batch_item_the_schema_would_refuse_is_answered_alone(api: InProcess, 
     answer = api.client.post("/v1/predict/batch", json={"items": [good, {"epsilon": 2}, "text"]})
     assert answer.status_code == 200, answer.text
     assert [item["status"] for item in answer.json()["items"]] == [200, 422, 422]
+
+
+@pytest.mark.parametrize("form", ["/v1/admin/calibrations/form", "/v1/admin/audits/form", "/v1/predict/form"])
+def test_a_forms_path_allows_post_only(api: InProcess, form: str) -> None:
+    """/v1/admin/calibrations/form is its own resource, not a version: Allow names POST alone."""
+    response = api.client.request("OPTIONS", form, headers=api.admin)
+    assert_problem(response, 405)
+    assert response.headers["allow"] == "POST"

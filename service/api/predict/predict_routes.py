@@ -39,6 +39,7 @@ log = logging.getLogger(__name__)
 
 _PREDICT_RESPONSES: dict[int | str, dict[str, Any]] = {
     408: {"description": "The body did not arrive within CKS_REQUEST_READ_TIMEOUT_SECONDS"},
+    404: {"description": "calibration_version names a version that does not exist"},
     409: {"description": "The calibration version was scored under other manifest settings"},
     413: {"description": "Body or image too large"},
     415: {"description": "Not JSON or multipart, or not a JPEG/PNG image"},
