@@ -23,8 +23,8 @@ FORMS = {  # each form's own path: the JSON or raw operation's path + /form
     "/v1/predict": "/v1/predict/form",
     "/v1/predict/png": "/v1/predict/png/form",
     "/v1/predict/batch": "/v1/predict/batch/form",
-    "/v1/admin/calibrations": "/v1/admin/calibrations/form",
-    "/v1/admin/audits": "/v1/admin/audits/form",
+    "/v1/admin/calibrations": "/v1/admin/forms/calibrations",
+    "/v1/admin/audits": "/v1/admin/forms/audits",
 }
 AGAIN = {"allow_duplicate": "true", "reason": "the same samples again, sent another way"}
 
@@ -126,7 +126,7 @@ def test_a_repeated_part_and_an_image_sent_as_a_field_are_named(api: InProcess, 
 
 
 @pytest.mark.parametrize("content_type", [None, "text/plain", "application/octet-stream", "application/json"])
-@pytest.mark.parametrize("path", ["/v1/admin/calibrations", "/v1/admin/calibrations/form"])
+@pytest.mark.parametrize("path", ["/v1/admin/calibrations", "/v1/admin/forms/calibrations"])
 def test_a_raw_zip_is_judged_by_its_bytes(
     api: InProcess, samples_dir: Path, coco: dict, content_type: str | None, path: str
 ) -> None:
@@ -137,7 +137,7 @@ def test_a_raw_zip_is_judged_by_its_bytes(
     assert_problem(api.client.post(path, content=b"not a zip", headers=headers), 422, "zip")
 
 
-@pytest.mark.parametrize("path", ["/v1/admin/audits/form", "/v1/admin/calibrations/form"])
+@pytest.mark.parametrize("path", ["/v1/admin/forms/audits", "/v1/admin/forms/calibrations"])
 def test_the_forms_own_paths_take_the_zip_as_its_part(
     api: InProcess, samples_dir: Path, coco: dict, path: str
 ) -> None:
@@ -150,7 +150,7 @@ def test_the_forms_own_paths_take_the_zip_as_its_part(
 def test_the_overrides_rule_is_in_the_schema_and_the_server_keeps_it(api: InProcess) -> None:
     """force and allow_duplicate need a non-blank reason: the document's schema refuses what the
     server refuses, and accepts what it takes (on either upload operation)."""
-    for path in ("/v1/admin/calibrations", "/v1/admin/calibrations/form"):
+    for path in ("/v1/admin/calibrations", "/v1/admin/forms/calibrations"):
         parameters = DOCUMENT["paths"][path]["post"]["parameters"]
         (overrides,) = [p for p in parameters if p["name"] == "overrides"]
         assert (overrides["in"], overrides["style"], overrides["explode"]) == ("query", "form", True)
@@ -181,9 +181,11 @@ def test_a_batch_item_the_schema_would_refuse_is_answered_alone(api: InProcess, 
     assert [item["status"] for item in answer.json()["items"]] == [200, 422, 422]
 
 
-@pytest.mark.parametrize("form", ["/v1/admin/calibrations/form", "/v1/admin/audits/form", "/v1/predict/form"])
+@pytest.mark.parametrize(
+    "form", ["/v1/admin/forms/calibrations", "/v1/admin/forms/audits", "/v1/predict/form"]
+)
 def test_a_forms_path_allows_post_only(api: InProcess, form: str) -> None:
-    """/v1/admin/calibrations/form is its own resource, not a version: Allow names POST alone."""
+    """/v1/admin/forms/calibrations is its own resource, not a version: Allow names POST alone."""
     response = api.client.request("OPTIONS", form, headers=api.admin)
     assert_problem(response, 405)
     assert response.headers["allow"] == "POST"

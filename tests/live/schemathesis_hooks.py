@@ -25,14 +25,19 @@ _DOC = json.loads((_SAMPLES / "annotations.json").read_text())
 _ZIP = build_zip(*batch_files(_SAMPLES, _DOC, images=2))
 _IMAGE = (_SAMPLES / _DOC["images"][0]["file_name"]).read_bytes()
 _SIZE = (_DOC["images"][0]["width"], _DOC["images"][0]["height"])
-_UPLOADS = {"/v1/admin/calibrations", "/v1/admin/audits"}
+_UPLOADS = {
+    "/v1/admin/calibrations",
+    "/v1/admin/audits",
+    "/v1/admin/forms/calibrations",
+    "/v1/admin/forms/audits",
+}
 
 
 @schemathesis.hook("map_body")
 def real_content(ctx: schemathesis.HookContext, body: Any) -> Any:
     if ctx.operation is None or ctx.operation.method.upper() != "POST":
         return body
-    path = ctx.operation.path.removesuffix("/form")
+    path = ctx.operation.path
     if path in _UPLOADS:
         if isinstance(body, dict):  # multipart/form-data: the zip is the part 'file' (if it was sent)
             return {**body, "file": _ZIP} if "file" in body else body

@@ -20,7 +20,7 @@ from service.monitoring.audit_report import DEFAULT_EPSILONS
 from service.monitoring.coverage_audits import AuditRequest
 
 router = APIRouter(
-    prefix="/v1/admin/audits",
+    prefix="/v1/admin",
     tags=["admin"],
     responses=ADMIN_RESPONSES,
 )
@@ -51,7 +51,7 @@ _AUDIT_ANSWERS: dict[str, Any] = {
 
 
 @router.post(
-    "/form",
+    "/forms/audits",  # not /audits/form: that is also GET /audits/{audit_id}'s
     name="start_audit_form",
     status_code=202,
     responses={202: {"links": JOB_LINKS}},
@@ -61,7 +61,7 @@ _AUDIT_ANSWERS: dict[str, Any] = {
     openapi_extra={"requestBody": _AUDIT_FORM, "responses": _AUDIT_ANSWERS},
 )
 @router.post(
-    "",
+    "/audits",
     status_code=202,
     responses={202: {"links": JOB_LINKS}},
     response_model=JobOut,
@@ -109,7 +109,7 @@ async def start_audit(
     return job_out(job)
 
 
-@router.get("", response_model=AuditList, summary="Coverage audits of the served model, newest first")
+@router.get("/audits", response_model=AuditList, summary="Coverage audits of the served model, newest first")
 async def list_audits(
     store: Store,
     model: Model,
@@ -124,7 +124,7 @@ async def list_audits(
 
 
 @router.get(
-    "/{audit_id}",
+    "/audits/{audit_id}",
     response_model=AuditOut,
     summary="One coverage audit: every figure with its band and p-value, the flags and the advice",
     responses={404: {"description": "No such audit"}},

@@ -123,7 +123,7 @@ _ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
 
 
 @router.post(
-    "/calibrations/form",
+    "/forms/calibrations",  # not /calibrations/form: that is also GET /calibrations/{version}'s
     name="upload_calibration_form",
     status_code=202,
     responses={202: {"links": JOB_LINKS}},

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import re
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -115,25 +114,11 @@ def install_problem_handlers(app: FastAPI) -> None:
 
 
 def allowed_methods(request: Request) -> list[str]:
-    """The methods the document lists for the request's path, a path without parameters before a
-    template (as OpenAPI matches them: /calibrations/form is not /calibrations/{version}); for a path
-    the document leaves out, every method some route serves there (asked route by route, method by
-    method: included routers answer for their routes only as a whole)."""
-    documented = _documented_methods(request.app.openapi()["paths"], request.scope["path"])
-    if documented:
-        return documented
+    """Every method some route serves at the request's path (asked route by route, method by method:
+    included routers answer for their routes only as a whole)."""
     routes = request.app.router.routes
     return [
         method
         for method in _METHODS
         if any(route.matches({**request.scope, "method": method})[0] is Match.FULL for route in routes)
     ]
-
-
-def _documented_methods(paths: dict[str, dict], path: str) -> list[str]:
-    if path in paths:
-        listed = set(paths[path])
-    else:
-        templates = [t for t in paths if "{" in t and re.fullmatch(re.sub(r"\{[^}/]+\}", "[^/]+", t), path)]
-        listed = {method for template in templates for method in paths[template]}
-    return [method for method in _METHODS if method.lower() in listed]

@@ -104,7 +104,7 @@ async function main(): Promise<void> {
 
   const part = { file: file(bytes(fixture.part_zip), "application/zip") };
   const query = { query: { name: "part" } };
-  const second = await job(await admin.POST("/v1/admin/calibrations/form", { body: part, params: query, ...asForm }));
+  const second = await job(await admin.POST("/v1/admin/forms/calibrations", { body: part, params: query, ...asForm }));
   assert.equal(second.version, 2, JSON.stringify(second));
   calls.push("upload_calibration_form");
   const two = { path: { version: 2 } };
