@@ -7,6 +7,10 @@ jobs, and the stateful phase can follow the document's links.
 - The predicts get a real JPEG wherever an image is sent, and a box that the schema allows is
   moved inside the image (the schema cannot say the image's size). A value the schema refuses is
   left as generated, so a schema-violating request stays one.
+- Every predict also gets one request known to succeed (an example: a sample image and its
+  boxes), so successful predicts are reached whatever the fuzzer draws for the options.
+- A job is read once it has ended (the hook waits for it, as a client would poll), so the links
+  from a job to the version, activation and audit it made have their values.
 """
 
 from __future__ import annotations
@@ -14,23 +18,60 @@ from __future__ import annotations
 import base64
 import json
 import math
+import os
+import time
 from typing import Any
 
+import httpx
 import schemathesis
 
-from tests.samples import batch_files, build_zip, model_dir
+from tests.predict_client import instances_of
+from tests.samples import batch_files, build_zip, load_samples, model_dir, samples_by_image
 
 _SAMPLES = model_dir() / "samples"
 _DOC = json.loads((_SAMPLES / "annotations.json").read_text())
 _ZIP = build_zip(*batch_files(_SAMPLES, _DOC, images=2))
 _IMAGE = (_SAMPLES / _DOC["images"][0]["file_name"]).read_bytes()
 _SIZE = (_DOC["images"][0]["width"], _DOC["images"][0]["height"])
+_IMAGE_PATH, _SAMPLE = next(iter(samples_by_image(load_samples(_SAMPLES, _DOC)).items()))
+_GOOD = {"instances": instances_of(_SAMPLE)}
+_GOOD_JSON = {**_GOOD, "image_base64": base64.b64encode(_IMAGE_PATH.read_bytes()).decode()}
+_GOOD_FORM = {"image": _IMAGE_PATH.read_bytes(), "request": _GOOD}
+_GOOD_PREDICTS = {  # path -> (media type, body)
+    "/v1/predict": ("application/json", _GOOD_JSON),
+    "/v1/predict/png": ("application/json", _GOOD_JSON),
+    "/v1/predict/batch": ("application/json", {"items": [_GOOD_JSON, _GOOD_JSON]}),
+    "/v1/predict/form": ("multipart/form-data", _GOOD_FORM),
+    "/v1/predict/png/form": ("multipart/form-data", _GOOD_FORM),
+    "/v1/predict/batch/form": ("multipart/form-data", {"image_0": _GOOD_FORM["image"], "request_0": _GOOD}),
+}
 _UPLOADS = {
     "/v1/admin/calibrations",
     "/v1/admin/audits",
     "/v1/admin/forms/calibrations",
     "/v1/admin/forms/audits",
 }
+
+
+@schemathesis.hook("before_add_examples")
+def a_good_predict(ctx: schemathesis.HookContext, examples: list) -> None:
+    operation = ctx.operation
+    if operation is not None and operation.path in _GOOD_PREDICTS:
+        media_type, body = _GOOD_PREDICTS[operation.path]
+        examples.append(operation.Case(body=body, media_type=media_type))
+
+
+@schemathesis.hook("before_call")
+def job_ended_first(ctx: schemathesis.HookContext, case: Any, **kwargs: Any) -> None:
+    if case.operation.path != "/v1/admin/jobs/{job_id}" or case.method.upper() != "GET":
+        return
+    url = f"{os.environ['FUZZED_SERVER_URL']}/v1/admin/jobs/{case.path_parameters.get('job_id')}"
+    headers = {"Authorization": f"Bearer {os.environ['FUZZED_SERVER_TOKEN']}"}
+    for _ in range(300):
+        answer = httpx.get(url, headers=headers, timeout=10)
+        if answer.status_code != 200 or answer.json()["state"] not in ("queued", "running"):
+            return
+        time.sleep(0.1)
 
 
 @schemathesis.hook("map_body")
