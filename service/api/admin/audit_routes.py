@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Annotated
 
 from fastapi import APIRouter, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
@@ -11,8 +11,7 @@ from pydantic import Field
 
 from service.api.admin.admin_presenters import audit_list, audit_out, job_out
 from service.api.admin.admin_schemas import AuditList, AuditOut, JobOut
-from service.api.admin.batch_upload import ZIP_FORM, ZIP_RAW, receive_batch_zip, refusals_audited
-from service.api.admin.job_links import JOB_LINKS
+from service.api.admin.batch_upload import receive_batch_zip, refusals_audited, upload_route
 from service.api.deps import ADMIN_RESPONSES, Admin, Audits, Config, Model, Store, Trail
 from service.api.predict.predict_schemas import MAX_VERSION
 from service.errors import NotFound
@@ -26,47 +25,20 @@ router = APIRouter(
 )
 MAX_AUDIT_ID = 2**63 - 1
 
-_BATCH = (
-    "A zip of a COCO-keypoints batch (the calibration upload format): annotations.json and the images"
-    " it names, labeled, and never used to calibrate the audited version"
-)
-_AUDIT_RAW = {**ZIP_RAW, "description": "The raw zip. " + _BATCH}
-_AUDIT_FORM = {**ZIP_FORM, "description": "multipart/form-data with the zip as its part 'file'. " + _BATCH}
-_AUDIT_ANSWERS: dict[str, Any] = {
-    "404": {"description": "version names a version that does not exist"},
-    "409": {
-        "description": "The batch repeats instances the audited version was calibrated with (drop them"
-        " with dedupe=true), or the version was scored under other manifest settings"
-    },
-    "408": {
-        "description": "The body did not arrive within CKS_UPLOAD_READ_TIMEOUT_SECONDS, or slower than"
-        " CKS_MIN_BODY_BYTES_PER_SECOND"
-    },
-    "413": {"description": "The zip, its files or its unzipped size exceed the limits"},
-    "422": {
-        "description": "The body is no zip, the archive or its COCO batch is invalid, or an epsilon is"
-        " outside (0, 1)"
-    },
-}
 
-
-@router.post(
-    "/forms/audits",  # not /audits/form: that is also GET /audits/{audit_id}'s
-    name="start_audit_form",
-    status_code=202,
-    responses={202: {"links": JOB_LINKS}},
-    response_model=JobOut,
-    summary="Audit a version's coverage on a labeled batch sent as a form; a background job stores"
-    " the report",
-    openapi_extra={"requestBody": _AUDIT_FORM, "responses": _AUDIT_ANSWERS},
-)
-@router.post(
-    "/audits",
-    status_code=202,
-    responses={202: {"links": JOB_LINKS}},
-    response_model=JobOut,
+@upload_route(
+    router,
+    ("/audits", "/forms/audits"),  # not /audits/form: that is also GET /audits/{audit_id}'s
     summary="Audit a version's coverage on a labeled batch; a background job (kind audit) stores the report",
-    openapi_extra={"requestBody": _AUDIT_RAW, "responses": _AUDIT_ANSWERS},
+    batch=" (the calibration upload format): annotations.json and the images it names, labeled, and never"
+    " used to calibrate the audited version",
+    responses={
+        "404": "version names a version that does not exist",
+        "409": "The batch repeats instances the audited version was calibrated with (drop them with"
+        " dedupe=true), or the version was scored under other manifest settings",
+        "422": "The body is no zip, the archive or its COCO batch is invalid, or an epsilon is outside"
+        " (0, 1)",
+    },
 )
 async def start_audit(
     request: Request,

@@ -29,8 +29,8 @@ from service.api.admin.admin_schemas import (
     VersionDetail,
     VersionList,
 )
-from service.api.admin.batch_upload import ZIP_FORM, ZIP_RAW, receive_batch_zip, refusals_audited
-from service.api.admin.job_links import JOB_LINKS, JOB_RESULT_LINKS
+from service.api.admin.batch_upload import receive_batch_zip, refusals_audited, upload_route
+from service.api.admin.job_links import JOB_RESULT_LINKS
 from service.api.deps import ADMIN_RESPONSES, Admin, Calibrations, Config, Jobs, Model, Registry, Store, Trail
 from service.api.predict.predict_schemas import MAX_VERSION, Nonconformity, Stratify
 from service.calibration.intake import UploadOptions
@@ -46,29 +46,6 @@ router = APIRouter(
 DISK_FULL = "No room on disk for what the call writes (a full disk or store): nothing was kept; retry later"
 VersionNumber = Annotated[int, Path(ge=1, le=MAX_VERSION, description="calibration version number")]
 
-_BATCH = "A zip of a COCO-keypoints batch: annotations.json and the images it names"
-_UPLOAD_RAW = {**ZIP_RAW, "description": "The raw zip. " + _BATCH}
-_UPLOAD_FORM = {**ZIP_FORM, "description": "multipart/form-data with the zip as its part 'file'. " + _BATCH}
-_UPLOAD_ANSWERS: dict[str, Any] = {
-    "404": {"description": "append_to names a version that does not exist"},
-    "409": {
-        "description": "The batch repeats images or instances already counted (inside itself or in"
-        " append_to): the problem lists them; or append_to was scored under other manifest settings;"
-        " or the batch would make a version equal to a stored one (`duplicate_of` names it)"
-    },
-    "408": {
-        "description": "The body did not arrive within CKS_UPLOAD_READ_TIMEOUT_SECONDS, or slower than"
-        " CKS_MIN_BODY_BYTES_PER_SECOND"
-    },
-    "413": {"description": "The zip, its files or its unzipped size exceed the limits"},
-    "422": {
-        "description": "The body is no zip, the archive or its COCO batch is invalid, more instances"
-        " break the box rule than max_rejected_share allows, or force or allow_duplicate without a"
-        " reason; the problem lists what to fix"
-    },
-    "503": {"description": "The calibration store could not record the job"},
-    "507": {"description": DISK_FULL},
-}
 # force, allow_duplicate and reason as one exploded query object (sent as force=true&reason=...,
 # as always), so that JSON Schema can say the rule: either flag needs a non-blank reason.
 _NEEDS_REASON = {"required": ["reason"], "properties": {"reason": {"pattern": r"\S"}}}
@@ -122,22 +99,23 @@ _ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
 }
 
 
-@router.post(
-    "/forms/calibrations",  # not /calibrations/form: that is also GET /calibrations/{version}'s
-    name="upload_calibration_form",
-    status_code=202,
-    responses={202: {"links": JOB_LINKS}},
-    response_model=JobOut,
-    summary="Upload a labeled batch as a form; a background job scores it into a new version",
-    openapi_extra={"requestBody": _UPLOAD_FORM, "responses": _UPLOAD_ANSWERS, "parameters": [_OVERRIDES]},
-)
-@router.post(
-    "/calibrations",
-    status_code=202,
-    responses={202: {"links": JOB_LINKS}},
-    response_model=JobOut,
+@upload_route(
+    router,
+    ("/calibrations", "/forms/calibrations"),  # not /calibrations/form: GET /calibrations/{version}'s too
     summary="Upload a labeled batch; a background job scores it into a new version",
-    openapi_extra={"requestBody": _UPLOAD_RAW, "responses": _UPLOAD_ANSWERS, "parameters": [_OVERRIDES]},
+    batch=": annotations.json and the images it names",
+    responses={
+        "404": "append_to names a version that does not exist",
+        "409": "The batch repeats images or instances already counted (inside itself or in append_to):"
+        " the problem lists them; or append_to was scored under other manifest settings; or the batch"
+        " would make a version equal to a stored one (`duplicate_of` names it)",
+        "422": "The body is no zip, the archive or its COCO batch is invalid, more instances break the"
+        " box rule than max_rejected_share allows, or force or allow_duplicate without a reason; the"
+        " problem lists what to fix",
+        "503": "The calibration store could not record the job",
+        "507": DISK_FULL,
+    },
+    parameters=(_OVERRIDES,),
 )
 async def upload_calibration(
     request: Request,

@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import contextvars
 import logging
+from collections.abc import Callable
 from typing import Any
 
 from fastapi import APIRouter, Request, Response
@@ -70,47 +71,48 @@ _BATCH_RESPONSES: dict[int | str, dict[str, Any]] = {
 }
 
 
-_FORM = " (multipart/form-data: the image as a file, its parameters as the JSON part request)"
+_IMAGE_FORM = "multipart/form-data: the image as a file, its parameters as the JSON part request"
 
 
-@router.post(
-    "/v1/predict/form",
-    name="predict_form",
-    response_model=PredictResponse,
-    summary="Keypoint prediction sets with a coverage guarantee" + _FORM,
-    responses=_PREDICT_RESPONSES,
-    openapi_extra={"requestBody": PREDICT_FORM},
-)
-@router.post(
+def _json_and_form(path: str, bodies: tuple[dict, dict], form: str, summary: str, **route: Any):
+    """Register the route twice, one request content type each (client generators keep only one):
+    ``path`` documented with the JSON body, ``path``/form with the multipart one, as its own
+    operation (``<name>_form``). Either path takes either body at run time."""
+
+    def register(endpoint: Callable) -> Callable:
+        json_body, form_body = bodies
+        router.post(path, summary=summary, openapi_extra={"requestBody": json_body}, **route)(endpoint)
+        form_name, form_summary = f"{endpoint.__name__}_form", f"{summary} ({form})"
+        extra = {"requestBody": form_body}
+        router.post(f"{path}/form", name=form_name, summary=form_summary, openapi_extra=extra, **route)(
+            endpoint
+        )
+        return endpoint
+
+    return register
+
+
+@_json_and_form(
     "/v1/predict",
-    response_model=PredictResponse,
+    (PREDICT_JSON, PREDICT_FORM),
+    _IMAGE_FORM,
     summary="Keypoint prediction sets with a coverage guarantee",
     description="The sets as JSON. (`Accept: image/png` here still answers the drawing, as before"
     " POST /v1/predict/png existed; generated clients should call that operation.)",
+    response_model=PredictResponse,
     responses=_PREDICT_RESPONSES,
-    openapi_extra={"requestBody": PREDICT_JSON},
 )
 async def predict(request: Request, parts: Predicting) -> Response:
     return await _predict(request, parts, png=_wants_png(request))
 
 
-_PNG_ANSWERS = {200: {"description": "The image, sets drawn", **_PNG}, **_PREDICT_RESPONSES}
-
-
-@router.post(
-    "/v1/predict/png/form",
-    name="predict_png_form",
-    response_class=Response,
-    summary="The image with its keypoint prediction sets drawn on it (PNG)" + _FORM,
-    responses=_PNG_ANSWERS,
-    openapi_extra={"requestBody": PREDICT_FORM},
-)
-@router.post(
+@_json_and_form(
     "/v1/predict/png",
-    response_class=Response,
+    (PREDICT_JSON, PREDICT_FORM),
+    _IMAGE_FORM,
     summary="The image with its keypoint prediction sets drawn on it (PNG)",
-    responses=_PNG_ANSWERS,
-    openapi_extra={"requestBody": PREDICT_JSON},
+    response_class=Response,
+    responses={200: {"description": "The image, sets drawn", **_PNG}, **_PREDICT_RESPONSES},
 )
 async def predict_png(request: Request, parts: Predicting) -> Response:
     return await _predict(request, parts, png=True)
@@ -125,21 +127,13 @@ async def _predict(request: Request, parts: PredictParts, png: bool) -> Response
         return await _compute(parts, client, image, parameters, png)
 
 
-@router.post(
-    "/v1/predict/batch/form",
-    name="predict_batch_form",
-    response_model=BatchResponse,
-    summary="Keypoint prediction sets for several images in one request, one answer per image"
-    " (multipart/form-data: parts image_0, request_0, image_1, ...)",
-    responses=_BATCH_RESPONSES,
-    openapi_extra={"requestBody": BATCH_FORM},
-)
-@router.post(
+@_json_and_form(
     "/v1/predict/batch",
-    response_model=BatchResponse,
+    (BATCH_JSON, BATCH_FORM),
+    "multipart/form-data: parts image_0, request_0, image_1, ...",
     summary="Keypoint prediction sets for several images in one request, one answer per image",
+    response_model=BatchResponse,
     responses=_BATCH_RESPONSES,
-    openapi_extra={"requestBody": BATCH_JSON},
 )
 async def predict_batch(request: Request, parts: Predicting) -> Response:
     require_batch_media(request)
