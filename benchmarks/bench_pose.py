@@ -2,6 +2,7 @@
 
 Run: python -m benchmarks.bench_pose [--samples 100] [--epsilon 0.1 --epsilon 0.3] [--images N]
                                     [--programs 150] [--splits 6]
+                                    [--sequences 3 --frames 10 --seed 0]
 
 Object-scope sets come from the bundled model and calibration (in process, a temporary data
 directory); the camera matrix and true poses from the samples' annotations. For each instance it
@@ -17,6 +18,14 @@ times the steps the predict API runs, in milliseconds per instance:
 Per method: certified bounds, their median and 90th percentile, outer / inner per quantity (the
 inner bound is the same for all three: the farthest poses found in PURSE), the time, and how many
 certified bounds contained the true pose's error when the true pose was in PURSE.
+
+Then the whole pose answer per instance as the predict API computes it (``instance_pose_sets``
+with the request's defaults: 100 samples, the search with --programs): on the samples' single
+frames, and on ``--sequences`` camera sequences of ``--frames`` consecutive frames rendered by the
+bundled generator (training/streams.py, sequence s drawn from (--seed, s)), their sets predicted
+by the bundled model. Median, 90th percentile and spread (min-max) of wall and CPU ms, tightness
+and the certification check (certified bounds containing the true error when the true pose is in
+PURSE). Rendering and prediction are not timed.
 """
 
 from __future__ import annotations
@@ -29,6 +38,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +50,7 @@ from service.api.predict.predict_input import predict_query  # noqa: E402
 from service.api.predict.predict_presenter import predict_response  # noqa: E402
 from service.api.predict.predict_schemas import BallSet, EllipseSet, PredictParameters  # noqa: E402
 from service.infra.settings import Settings  # noqa: E402
-from service.pose import Pose, membership  # noqa: E402
+from service.pose import Pose, PoseOptions, instance_pose_sets, membership  # noqa: E402
 from service.pose.bounds import SampledPoses, boundary_poses, inner_bound, sample_poses_in_set  # noqa: E402
 from service.pose.estimate import pnp_on_centres, refine_into_set  # noqa: E402
 from service.pose.relaxation import outer_bound  # noqa: E402
@@ -64,22 +74,30 @@ def instances(state, model_dir: Path, epsilon: float, images: int):
     """(camera, keypoints_3d, centers, shapes, true pose) of every sample instance."""
     coco = json.loads((model_dir / "samples" / "annotations.json").read_text())
     names = {c["id"]: c["name"] for c in coco["categories"]}
-    manifest = state.detector.manifest
     for image in coco["images"][:images]:
         annotations = [a for a in coco["annotations"] if a["image_id"] == image["id"]]
         jpeg = (model_dir / "samples" / image["file_name"]).read_bytes()
-        parameters = PredictParameters(
-            instances=[{"object": names[a["category_id"]], "bbox": a["bbox"]} for a in annotations],
-            coverage="object",
-            epsilon=epsilon,
+        yield from predicted_cases(
+            state, jpeg, [names[a["category_id"]] for a in annotations], annotations, epsilon
         )
-        query = predict_query(parameters)
-        response = predict_response(state.predictor.predict(jpeg, query), query, manifest)
-        for ann, answer in zip(annotations, response.instances, strict=True):
-            centers, shapes = set_arrays(answer.keypoints)
-            points = np.array(manifest.object(answer.object).keypoints_3d)
-            truth = Pose(np.array(ann["cam_R_m2c"]), np.array(ann["cam_t_m2c"]))
-            yield np.array(ann["cam_K"]), points, centers, shapes, truth
+
+
+def predicted_cases(state, image: bytes, names: list[str], annotations: list[dict], epsilon: float):
+    """(camera, keypoints_3d, centers, shapes, true pose) per annotated instance of one image, its
+    object-scope sets predicted by the service's predictor."""
+    manifest = state.detector.manifest
+    parameters = PredictParameters(
+        instances=[{"object": n, "bbox": a["bbox"]} for n, a in zip(names, annotations, strict=True)],
+        coverage="object",
+        epsilon=epsilon,
+    )
+    query = predict_query(parameters)
+    response = predict_response(state.predictor.predict(image, query), query, manifest)
+    for ann, answer in zip(annotations, response.instances, strict=True):
+        centers, shapes = set_arrays(answer.keypoints)
+        points = np.array(manifest.object(answer.object).keypoints_3d)
+        truth = Pose(np.array(ann["cam_R_m2c"]), np.array(ann["cam_t_m2c"]))
+        yield np.array(ann["cam_K"]), points, centers, shapes, truth
 
 
 def timed(function, *args):
@@ -173,6 +191,81 @@ def _run(settings: Settings, epsilon: float, samples: int, images: int, chosen: 
     return {"costs": costs, "counts": counts, "truth_and_inner": truth_and_inner, "outer": outer}
 
 
+def sequence_instances(state, epsilon: float, seed: int, sequences: int, frames: int):
+    """(camera, keypoints_3d, centers, shapes, true pose) of every instance of rendered camera
+    sequences, frame after frame (training/streams.py; rendered and predicted now, not timed)."""
+    import cv2
+
+    from training.annotate import annotate_scene
+    from training.objects import OBJECT_CLASSES
+    from training.scene import World
+    from training.streams import render_sequence
+
+    world = World()
+    try:
+        for s in range(sequences):
+            for view in render_sequence(world, np.random.default_rng([seed, s]), frames):
+                annotations = annotate_scene(view)
+                if not annotations:
+                    continue
+                names = [OBJECT_CLASSES[a["category_id"] - 1].name for a in annotations]
+                png = cv2.imencode(".png", view.rgb[:, :, ::-1])[1].tobytes()
+                yield from predicted_cases(state, png, names, annotations, epsilon)
+    finally:
+        world.close()
+
+
+def per_instance(cases, samples: int, programs: int) -> dict:
+    """The whole pose answer per instance, as the predict API computes it: times, tightness and the
+    certification check."""
+    record = {"ms": [], "cpu": [], "ratios": [], "certified": 0, "checked": 0, "contained": 0, "instances": 0}
+    record["why not"] = Counter()
+    for camera, points, centers, shapes, truth in cases:
+        options = PoseOptions(camera, samples=samples, outer_programs=programs)
+        answer, ms, cpu = timed(instance_pose_sets, points, centers, shapes, options)
+        record["instances"] += 1
+        record["ms"].append(ms)
+        record["cpu"].append(cpu)
+        outer, inner = answer.outer, answer.inner
+        if answer.estimate is None or outer is None or not outer.certified or outer.empty:
+            record["why not"][_why_not(answer)] += 1
+            continue
+        record["certified"] += 1
+        if inner is not None and inner.rotation_deg > 0 and inner.translation > 0:
+            record["ratios"].append(
+                (outer.rotation_deg / inner.rotation_deg, outer.translation / inner.translation)
+            )
+        if membership(truth, camera, points, centers, shapes).inside:
+            record["checked"] += 1
+            error = (
+                rotation_angle_deg(answer.estimate.rotation, truth.rotation),
+                float(np.linalg.norm(answer.estimate.translation - truth.translation)),
+            )
+            record["contained"] += int(error[0] <= outer.rotation_deg and error[1] <= outer.translation)
+    return record
+
+
+def _why_not(answer) -> str:  # noqa: ANN001 - a PoseSets without a certified bound
+    if answer.estimate is None:
+        return "no estimate in PURSE"
+    if answer.outer is None:
+        return "no outer bound"
+    return answer.outer.status.split(":")[0]
+
+
+def report_per_instance(name: str, record: dict) -> str:
+    ratios, wall = record["ratios"], record["ms"]
+    spread = f"{min(wall):.0f}-{max(wall):.0f}" if wall else "-"
+    rotation, translation = _quantiles([r[0] for r in ratios]), _quantiles([r[1] for r in ratios])
+    return (
+        f"  {name}: {record['instances']} instances; {_quantiles(wall, 0)} ms wall (spread {spread}), "
+        f"{_quantiles(record['cpu'], 0)} ms CPU; outer / inner rotation {rotation}, translation "
+        f"{translation}; certified {record['certified']}; certified bounds containing the true error: "
+        f"{record['contained']} of {record['checked']} (true pose in PURSE); not certified: "
+        f"{dict(record['why not']) or 'none'}"
+    )
+
+
 def _quantiles(values, digits: int = 2) -> str:
     """median / p90."""
     if not values:
@@ -220,6 +313,26 @@ def report(epsilon: float, samples: int, result: dict) -> list[str]:
     return lines
 
 
+def whole_answers(epsilon: float, args) -> dict:  # noqa: ANN001 - the parsed arguments
+    """Per instance on the samples' single frames and on the rendered camera sequences."""
+    with tempfile.TemporaryDirectory(prefix="bench-pose-") as data_dir:
+        state = build_state(Settings(data_dir=Path(data_dir)))
+        try:
+            model_dir = (
+                state.detector.manifest_path.parent if hasattr(state.detector, "manifest_path") else None
+            )
+            model_dir = model_dir or Settings(data_dir=Path(data_dir)).model.model_dir
+            single = list(instances(state, model_dir, epsilon, args.images))
+            records = {"single frames (samples)": per_instance(single, args.samples, args.programs)}
+            if args.sequences > 0:
+                frames = list(sequence_instances(state, epsilon, args.seed, args.sequences, args.frames))
+                name = f"camera sequences ({args.sequences} x {args.frames} frames, seed {args.seed})"
+                records[name] = per_instance(frames, args.samples, args.programs)
+        finally:
+            state.close()
+    return records
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--epsilon", type=float, action="append", help="repeatable; default 0.1 and 0.3")
@@ -229,6 +342,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--splits", type=int, default=6, help="older branch-and-bound rounds; 0: leave it out"
     )
+    parser.add_argument("--sequences", type=int, default=3, help="rendered camera sequences; 0: none")
+    parser.add_argument("--frames", type=int, default=10, help="consecutive frames per sequence")
+    parser.add_argument("--seed", type=int, default=0, help="sequence s is drawn from (seed, s)")
     args = parser.parse_args(argv)
     previous = logging.root.manager.disable
     logging.disable(logging.INFO)  # the service's startup lines
@@ -237,6 +353,10 @@ def main(argv: list[str] | None = None) -> None:
         for epsilon in args.epsilon or [0.1, 0.3]:
             result = run(epsilon, args.samples, args.images, args.programs, args.splits)
             print("\n".join(report(epsilon, args.samples, result)))
+            steps = f"estimate, {args.samples} samples, boundary search, search {args.programs}"
+            print(f"pose sets per instance, median / p90 ({steps}):")
+            for name, record in whole_answers(epsilon, args).items():
+                print(report_per_instance(name, record))
     finally:
         logging.disable(previous)
 

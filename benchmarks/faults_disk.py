@@ -5,8 +5,9 @@
 Each disk step starts one ``keypoint-service serve`` with its data directory (uploads, jobs and
 the SQLite store) on a fresh 40 MiB tmpfs and fills it: while an upload is received, while one
 is unzipped into its job's folder (12,000 one-byte files that take a page each), before a job's
-request.json is written (``CKS_FAULT=disk-full:job-request``), and while a job writes its
-version. Printed: the answers, the bytes left in ``jobs/`` and ``uploads/``, the
+request.json is written (the store on a throwaway PostgreSQL cluster whose versions table is held
+locked while the intake reads it, between the two: see ``intake_held``), and while a job writes
+its version. Printed: the answers, the bytes left in ``jobs/`` and ``uploads/``, the
 audit entry, and whether the service works again once space is freed (no restart). Then four
 identical uploads, and a fifth with ``allow_duplicate`` and a reason. About a minute.
 
@@ -23,17 +24,24 @@ import sys
 import tempfile
 import time
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
+import psycopg
+
 from benchmarks.faults_clients import long_batch
-from calibration_store.faults import FILLER
 from tests.live.server import LiveServer
+from tests.postgres_cluster import PostgresCluster
 from tests.service_calls import ADMIN_TOKEN
 
 DISK = "40m"
 COPIES = 6  # the samples, 6 times over (7.7 MB zipped): seconds of scoring
+#: the file ``fill`` fills a file system with (``free_space`` deletes it)
+FILLER = "disk-full.filler"
+#: a server whose intake is held (``intake_held``) waits this long for the store
+HELD_STORE_TIMEOUT_S = 60
 
 
 @contextmanager
@@ -53,6 +61,11 @@ def serve_on(data: Path, **settings: str) -> LiveServer:
     return LiveServer(data, admin_token=ADMIN_TOKEN, min_free_disk_bytes=0, **settings)
 
 
+def serve_on_held(data: Path, store_url: str) -> LiveServer:
+    """``serve_on`` with its store on PostgreSQL, patient enough to wait out ``intake_held``."""
+    return serve_on(data, store_url=store_url, store_timeout_seconds=str(HELD_STORE_TIMEOUT_S))
+
+
 def fill(data: Path, leave: int = 0) -> None:
     """Fill the file system of ``data`` until about ``leave`` bytes are free."""
     with open(data / FILLER, "ab") as out:
@@ -66,6 +79,49 @@ def fill(data: Path, leave: int = 0) -> None:
 
 def free_space(data: Path) -> None:
     (data / FILLER).unlink()
+
+
+@contextmanager
+def intake_held(store_url: str, timeout_s: float = 30.0) -> Iterator[Callable[[], None]]:
+    """Hold the versions table of a PostgreSQL store locked (ACCESS EXCLUSIVE): a server's intake,
+    which reads the stored versions after it unzipped an upload into its job's folder and before
+    it writes the job's request.json (the duplicate check), waits there until the block ends.
+    Yields ``wait()``: returns once a server's connection waits on the lock."""
+    with psycopg.connect(store_url, autocommit=True) as watcher, psycopg.connect(store_url) as holder:
+        holder.execute("LOCK TABLE calib_versions IN ACCESS EXCLUSIVE MODE")
+        held_by = holder.info.backend_pid
+
+        def wait() -> None:
+            deadline = time.monotonic() + timeout_s
+            while time.monotonic() < deadline:
+                (waiting,) = watcher.execute(
+                    "SELECT count(*) FROM pg_stat_activity WHERE wait_event_type = 'Lock'"
+                    " AND datname = current_database() AND pid <> %s",
+                    (held_by,),
+                ).fetchone()
+                if waiting:
+                    return
+                time.sleep(0.01)
+            raise TimeoutError(f"no server waited on the versions table within {timeout_s} s")
+
+        try:
+            yield wait
+        finally:
+            holder.rollback()
+
+
+def upload_refused_at_job_request(server: LiveServer, store_url: str, body: bytes) -> Future:
+    """Send ``body`` and fill the disk once it is unzipped into its job's folder, before the job's
+    request.json is written; returns the answer to come."""
+    data = server.data_dir
+    with ThreadPoolExecutor(1) as sender:
+        with intake_held(store_url) as wait:
+            answer = sender.submit(server.upload, body)
+            wait()
+            unzipped = list((data / "jobs").glob("*/batch"))
+            assert unzipped and not list((data / "jobs").glob("*/batch.zip")), "the intake waits elsewhere"
+            fill(data)
+        return answer
 
 
 def many_small_files(count: int) -> bytes:
@@ -124,10 +180,19 @@ def unzip_step(work: Path) -> None:
 
 def request_step(work: Path) -> None:
     body = long_batch(1)
-    with small_disk(work) as data, serve_on(data, fault="disk-full:job-request") as server:
-        print(f"disk filled before the job's request.json: {refused_upload(server, body)}", flush=True)
-        free_space(data)
-        print(f"  space freed: the same upload's job {server.calibrate(body)['state']}", flush=True)
+    with PostgresCluster.start() as cluster:
+        url = cluster.create_database()
+        with small_disk(work) as data, serve_on_held(data, url) as server:
+            began = time.perf_counter()
+            response = upload_refused_at_job_request(server, url, body).result()
+            print(
+                f"disk filled before the job's request.json: {response.status_code} in"
+                f" {time.perf_counter() - began:.2f} s (the intake held meanwhile),"
+                f" {kept_bytes(server)} bytes left in jobs/ and uploads/, audited: {latest_entry(server)}",
+                flush=True,
+            )
+            free_space(data)
+            print(f"  space freed: the same upload's job {server.calibrate(body)['state']}", flush=True)
 
 
 def store_step(work: Path) -> None:

@@ -27,7 +27,9 @@ CalibrationStore (thread-safe; also a context manager that closes):
   In the same transaction it can activate the new version (``ActivationIntent``), mark
   the job that produced it succeeded with its number (``JobCompletion``) and append audit
   entries. ``created_at`` is set by the store (UTC). Raises VersionNotFound if
-  ``parent_version`` does not exist.
+  ``parent_version`` does not exist, and DuplicateVersion (writing nothing) if a version of the
+  model has the same ``content_key``: identical content makes one version, whatever the number
+  of processes and replicas writing at once (a unique index; None: no rule).
 - ``create_first_version(new, scores, who, reason="") -> VersionInfo | None``: version 1
   stored and activated in one transaction, or None (nothing written) if the model has
   or had a version: concurrent bootstraps of one store succeed exactly once.
@@ -48,7 +50,9 @@ CalibrationStore (thread-safe; also a context manager that closes):
   finished_at, version, heartbeat_at; heartbeat_at defaults to now, so every write is a
   sign of life; JobNotFound; JobFinished for a job in a final state: finished jobs never
   change), ``get_job(job_id) -> JobRecord | None``: background jobs, visible
-  to every process sharing the store. ``prune_jobs(keep=1000, max_age=7 days) -> int``
+  to every process sharing the store. ``stale_jobs(silent_since, limit=100)``: unfinished
+  jobs whose heartbeat is older (their process stopped), for another to take over.
+  ``prune_jobs(keep=1000, max_age=7 days) -> int``
   deletes jobs whose heartbeat is older than max_age, and finished jobs with ``keep``
   newer jobs after them; a live unfinished job is never deleted.
 - ``ping() -> None`` (raises StoreUnavailable), ``close() -> None``.
@@ -56,7 +60,7 @@ CalibrationStore (thread-safe; also a context manager that closes):
 Data classes (frozen, validated on construction: ValueError/TypeError says what to fix):
 - ``SourceBatch(name, sha256, instances)``; NewVersion also accepts plain dicts.
 - ``NewVersion(model_hash, model_name, normalization: dict, source_batches, author,
-  note="", parent_version: int | None = None)``.
+  note="", parent_version: int | None = None, strata=None, content_key: str | None = None)``.
 - ``ObjectScores(object_name, keypoint_ids: (k,) int, instance_refs: (n,) str,
   scores: {function: (n, k) float64}, image_hashes=(), instance_hashes=())``: the
   hashes are (n,) sha256 hex digests, or empty when unknown; scores finite or NaN
@@ -81,7 +85,7 @@ Coverage audits (immutable, like versions):
 - ``coverage_audits(model_hash, before=None, limit=100) -> list[CoverageAudit]`` newest
   first (id < before), ``coverage_audit(model_hash, audit_id) -> CoverageAudit | None``.
 
-Errors: StoreError > VersionNotFound (also a LookupError; HTTP 404), JobNotFound
+Errors: StoreError > VersionNotFound (also a LookupError; HTTP 404), DuplicateVersion, JobNotFound
 (a LookupError), JobExists (a ValueError), JobFinished, SchemaVersionError (database migrated by
 newer code), StoreUnavailable (HTTP 503), StoreFull (a StoreUnavailable: the database's disk is
 full; HTTP 507).
@@ -91,6 +95,7 @@ UPDATE and DELETE); only unfinished job rows change.
 
 from .base import CalibrationStore
 from .errors import (
+    DuplicateVersion,
     JobExists,
     JobFinished,
     JobNotFound,
@@ -122,6 +127,7 @@ from .models import (
 
 __all__ = [
     "DEFAULT_FUNCTIONS",
+    "DuplicateVersion",
     "FINAL_JOB_STATES",
     "JOB_STATES",
     "Activation",

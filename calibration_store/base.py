@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
-from datetime import timedelta
+from datetime import datetime, timedelta
 from types import TracebackType
 from typing import Any
 
@@ -52,7 +52,9 @@ class CalibrationStore(ABC):
         and nothing is written, if that job is already final or gone), and append ``audit``
         entries (an entry's version None means the new version). A process killed at any
         point leaves all of it or none of it.
-        Raises VersionNotFound if new.parent_version does not exist for new.model_hash.
+        Raises VersionNotFound if new.parent_version does not exist for new.model_hash, and
+        DuplicateVersion if a version of the model has new.content_key (one version per content
+        key, whatever the number of writers).
         """
 
     @abstractmethod
@@ -144,6 +146,11 @@ class CalibrationStore(ABC):
     @abstractmethod
     def get_job(self, job_id: str) -> JobRecord | None:
         """The stored job, or None if there is none with this id (or it was pruned)."""
+
+    @abstractmethod
+    def stale_jobs(self, silent_since: datetime, limit: int = 100) -> list[JobRecord]:
+        """Unfinished jobs whose heartbeat is older than ``silent_since`` (their process stopped,
+        or stopped writing), oldest heartbeat first, at most ``limit``."""
 
     @abstractmethod
     def prune_jobs(self, keep: int = KEEP_JOBS, max_age: timedelta = JOB_MAX_AGE) -> int:

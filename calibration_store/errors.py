@@ -16,6 +16,16 @@ class VersionNotFound(StoreError, LookupError):
         self.number = number
 
 
+class DuplicateVersion(StoreError):
+    """A version with the same content key is stored already (at most one per model): nothing was
+    written (HTTP 409)."""
+
+    def __init__(self, model_hash: str, number: int) -> None:
+        super().__init__(f"calibration version {number} of model {model_hash} has the same content")
+        self.model_hash = model_hash
+        self.number = number
+
+
 class JobNotFound(StoreError, LookupError):
     """No job with this id is stored (never created, or pruned)."""
 

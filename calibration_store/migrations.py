@@ -235,6 +235,15 @@ _COVERAGE_AUDITS = "coverage audits"
 _STRATA = "Mondrian strata of calibration versions"
 _STRATA_COLUMN = ("ALTER TABLE calib_versions ADD COLUMN strata TEXT",)
 
+# One version per content (the service's digest of its instances, strata and scoring settings):
+# a rule of the store, so that writers in several processes and replicas cannot both store it.
+# NULL (versions stored before, and copies made on purpose) is never equal to another NULL.
+_CONTENT_KEY = "one version per content key"
+_CONTENT_KEY_STATEMENTS = (
+    "ALTER TABLE calib_versions ADD COLUMN content_key TEXT",
+    "CREATE UNIQUE INDEX calib_versions_by_content ON calib_versions (model_hash, content_key)",
+)
+
 SQLITE_MIGRATIONS: tuple[Migration, ...] = (
     Migration(
         1,
@@ -267,6 +276,7 @@ SQLITE_MIGRATIONS: tuple[Migration, ...] = (
         + _sqlite_immutability(("calib_coverage_audits",)),
     ),
     Migration(6, _STRATA, _STRATA_COLUMN),
+    Migration(7, _CONTENT_KEY, _CONTENT_KEY_STATEMENTS),
 )
 
 POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
@@ -309,6 +319,7 @@ POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
         + _postgres_triggers(("calib_coverage_audits",)),
     ),
     Migration(6, _STRATA, _STRATA_COLUMN),
+    Migration(7, _CONTENT_KEY, _CONTENT_KEY_STATEMENTS),
 )
 
 

@@ -281,9 +281,14 @@ class NewVersion:
     note: str = ""
     parent_version: int | None = None
     strata: Mapping[str, Any] | None = None  # Mondrian strata: spec and edges (JSON), None = none
+    #: a sha256 hex digest of what the version is: at most one version per model has it (None: no rule)
+    content_key: str | None = None
 
     def __post_init__(self) -> None:
         _text(self.model_hash, "model hash")
+        key = self.content_key
+        if key is not None and not (isinstance(key, str) and _SHA256_RE.match(key)):
+            raise ValueError("content key must be a sha256 hex digest (64 lowercase hex characters)")
         if self.model_hash != self.model_hash.strip():
             raise ValueError("model hash must not have surrounding whitespace")
         _text(self.model_name, "model name")

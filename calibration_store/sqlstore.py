@@ -16,7 +16,7 @@ from typing import Any, ClassVar, Protocol
 
 from . import codec
 from .base import JOB_MAX_AGE, KEEP_JOBS, CalibrationStore
-from .errors import JobExists, JobFinished, JobNotFound, VersionNotFound
+from .errors import DuplicateVersion, JobExists, JobFinished, JobNotFound, VersionNotFound
 from .faults import crash_point
 from .models import (
     FINAL_JOB_STATES,
@@ -134,9 +134,11 @@ class SqlStore(CalibrationStore):
         _check_types(job, JobCompletion, "job")
         entries = _audit_entries(audit)
         with self._transaction(write=True) as cur:
-            number = self._next_number(cur, new.model_hash)
+            number = self._next_number(cur, new.model_hash)  # writers of one model wait here
             if new.parent_version is not None:
                 self._version_id(cur, new.model_hash, new.parent_version)
+            if new.content_key is not None:
+                self._refuse_same_content(cur, new.model_hash, new.content_key)
             self._write_version(cur, new, number, scores, blocks)
             if activation is not None:
                 self._insert_activation(cur, new.model_hash, number, activation.who, activation.reason)
@@ -147,6 +149,18 @@ class SqlStore(CalibrationStore):
             crash_point("version-written")
         crash_point("version-committed")
         return self.get_version(new.model_hash, number)
+
+    def _refuse_same_content(self, cur: Cursor, model_hash: str, content_key: str) -> None:
+        """DuplicateVersion when a version of the model has this content key. Writers of a model
+        are serialized before this read (its counter row), so it sees every committed version; the
+        unique index calib_versions_by_content holds the rule should a writer skip the read."""
+        cur.execute(
+            "SELECT number FROM calib_versions WHERE model_hash = ? AND content_key = ?",
+            (model_hash, content_key),
+        )
+        row = cur.fetchone()
+        if row is not None:
+            raise DuplicateVersion(model_hash, int(row[0]))
 
     def _complete_job(self, cur: Cursor, job: JobCompletion, number: int) -> None:
         """Mark the job succeeded with the version; refuse (rolling back) a finished or missing job."""
@@ -208,9 +222,12 @@ class SqlStore(CalibrationStore):
     def _insert_version(
         self, cur: Cursor, new: NewVersion, number: int, created_at: datetime, scores: ScoreTable
     ) -> int:
-        strata = () if new.strata is None else (codec.encode_json(new.strata),)
-        columns = _VERSION_COLUMNS.removesuffix(_STRATA_COLUMN) + (_STRATA_COLUMN if strata else "")
-        marks = ", ".join("?" * (12 + len(strata)))
+        # optional columns are named only when given (a database of an older schema lacks them)
+        optional = {"strata": None if new.strata is None else codec.encode_json(new.strata)}
+        optional["content_key"] = new.content_key
+        given = {column: value for column, value in optional.items() if value is not None}
+        columns = _VERSION_COLUMNS.removesuffix(_STRATA_COLUMN) + "".join(f", {c}" for c in given)
+        marks = ", ".join("?" * (12 + len(given)))
         cur.execute(
             f"INSERT INTO calib_versions ({columns}) VALUES ({marks}) RETURNING id",
             (
@@ -226,7 +243,7 @@ class SqlStore(CalibrationStore):
                 scores.n_instances,
                 codec.encode_json(scores.object_counts()),
                 codec.encode_json(list(scores.functions)),
-                *strata,
+                *given.values(),
             ),
         )
         return int(cur.fetchone()[0])
@@ -514,6 +531,15 @@ class SqlStore(CalibrationStore):
             return None
         rows = self._read(f"SELECT {_JOB_COLUMNS} FROM calib_jobs WHERE id = ?", (job_id,))
         return self._job(rows[0]) if rows else None
+
+    def stale_jobs(self, silent_since: datetime, limit: int = 100) -> list[JobRecord]:
+        limit = check_number(limit, "stale jobs page size")
+        rows = self._read(
+            f"SELECT {_JOB_COLUMNS} FROM calib_jobs WHERE state NOT IN ({_FINAL_STATES_SQL})"
+            " AND heartbeat_at < ? ORDER BY heartbeat_at LIMIT ?",
+            (self._time_to_db(check_job_field("heartbeat_at", silent_since)), limit),
+        )
+        return [self._job(row) for row in rows]
 
     def prune_jobs(self, keep: int = KEEP_JOBS, max_age: timedelta = JOB_MAX_AGE) -> int:
         keep = check_number(keep, "jobs to keep")

@@ -24,8 +24,9 @@ from service.conformal import (
 )
 from service.conformal.features import heatmap_features
 from service.detector.boxes import box_problem
+from service.detector.frames import EncodedFrame, ImageSource, open_frame
 from service.detector.images import decode_image
-from service.detector.manifest import HeatmapSpec, Manifest
+from service.detector.manifest import HeatmapSpec
 from service.detector.session import Detector, InstanceHeatmaps
 from service.errors import InvalidInput
 from service.monitoring.drift_monitor import DriftMonitor
@@ -33,25 +34,18 @@ from service.monitoring.looks import Frame
 from service.pose import PoseOptions, PoseSets, check_pose_request, estimate_pose_sets
 
 
-def _check_instances(
-    instances: Sequence[Instance], manifest: Manifest, width: int, height: int, limit: int
-) -> None:
-    """Refuse instances the model cannot answer for, naming each problem."""
+def _check_instances(instances: Sequence[Instance], width: int, height: int, limit: int) -> None:
+    """Refuse instances the image cannot answer for, naming each problem. Their object names and
+    box numbers were checked where the query was made (the API's request schema knows the model)."""
     if len(instances) > limit:
         raise InvalidInput(
             f"{len(instances)} instances in one request; the limit is {limit} (CKS_MAX_INSTANCES)"
         )
-    problems = []
-    known = set(manifest.object_names)
-    for i, instance in enumerate(instances):
-        if instance.object not in known:
-            problems.append(
-                f"instances[{i}].object {instance.object!r} is not an object of model {manifest.name!r} "
-                f"(known: {', '.join(manifest.object_names)})"
-            )
-        problem = box_problem(instance.bbox, width, height)
-        if problem:
-            problems.append(f"instances[{i}].bbox: {problem}")
+    problems = [
+        f"instances[{i}].bbox: {problem}"
+        for i, instance in enumerate(instances)
+        if (problem := box_problem(instance.bbox, width, height))
+    ]
     if problems:
         raise InvalidInput("; ".join(problems[:5]), errors=problems)
 
@@ -92,8 +86,8 @@ def calibrated_sets(
 
 @dataclass(frozen=True)
 class Instance:
-    """One object to locate keypoints for: its class, its box ``(x, y, w, h)`` in image pixels
-    and, for group strata, the caller's group."""
+    """One object to locate keypoints for: its class (one of the model's objects), its box
+    ``(x, y, w, h)`` of finite numbers in image pixels and, for group strata, the caller's group."""
 
     object: str
     bbox: tuple[float, float, float, float]
@@ -115,6 +109,11 @@ class PredictQuery:
     group_fallback: str = "refuse"
     pose: PoseOptions | None = None
 
+    @property
+    def boxes(self) -> np.ndarray:
+        """``(N, 4)`` ``[x, y, w, h]`` of the instances, in image pixels."""
+        return np.array([instance.bbox for instance in self.instances], dtype=np.float64)
+
 
 @dataclass(frozen=True)
 class Prediction:
@@ -123,13 +122,13 @@ class Prediction:
     Rows are (instance, keypoint) pairs in the detector's order: ``channel`` and
     ``instance_index`` say whose; ``guarantees`` gives each row's guarantee and the Mondrian
     stratum that answered it (None: pooled); ``poses`` each instance's pose sets, when asked;
-    ``image`` the decoded image (BGR or gray), for a drawing of the sets.
+    ``source`` the decoded frame (whole, or regions), for a drawing of the sets.
     """
 
     model_name: str
     model_hash: str
     version: int
-    image: np.ndarray
+    source: ImageSource
     sets: CalibratedSets
     channel: np.ndarray
     instance_index: np.ndarray
@@ -137,12 +136,17 @@ class Prediction:
     poses: list[PoseSets] | None
 
     @property
+    def image(self) -> np.ndarray:
+        """The whole image's pixels, BGR or gray (``ValueError`` when only regions were sent)."""
+        return self.source.pixels
+
+    @property
     def width(self) -> int:
-        return self.image.shape[1]
+        return self.source.width
 
     @property
     def height(self) -> int:
-        return self.image.shape[0]
+        return self.source.height
 
 
 @dataclass(frozen=True)
@@ -157,15 +161,14 @@ class Predictor:
     max_decoded_bytes: int
     max_instances: int
 
-    def predict(self, image_bytes: bytes, query: PredictQuery) -> Prediction:
-        """The predict use case: decode, check, pick the calibration, infer, calibrate the sets
-        (pooled or per stratum), record drift, estimate poses. Every refusal comes before the
-        model runs, except a stratum that cannot answer (it needs the heatmaps)."""
+    def predict(self, image: bytes | EncodedFrame, query: PredictQuery) -> Prediction:
+        """The predict use case: decode (an image file, or a frame's whole pixels or regions),
+        check, pick the calibration, infer, calibrate the sets (pooled or per stratum), record
+        drift, estimate poses. Every refusal comes before the model runs, except a stratum that
+        cannot answer (it needs the heatmaps)."""
         with self.detector.computing():  # a lone request's run takes every usable core
             manifest = self.detector.manifest
-            image = decode_image(image_bytes, self.max_image_pixels, self.max_decoded_bytes)
-            height, width = image.shape[:2]
-            _check_instances(query.instances, manifest, width, height, self.max_instances)
+            source = self._source(image, query)
             objects = [instance.object for instance in query.instances]
             if query.pose is not None:
                 check_pose_request(manifest, objects, query.coverage, query.pose)
@@ -173,8 +176,8 @@ class Predictor:
             kind = query.nonconformity
             thresholds = self.registry.thresholds(version, kind, query.coverage, query.epsilon, query.delta)
 
-            boxes = np.array([instance.bbox for instance in query.instances], dtype=np.float64)
-            result = self.detector.infer(image, boxes, objects)
+            boxes = query.boxes
+            result = self.detector.infer(source, boxes, objects)
 
             kinds = parse_stratify(query.stratify)
             strata = (
@@ -208,13 +211,25 @@ class Predictor:
                 manifest.name,
                 self.detector.model_hash,
                 version,
-                image,
+                source,
                 sets,
                 result.channel,
                 result.instance_index,
                 guarantees,
                 poses,
             )
+
+    def _source(self, image: bytes | EncodedFrame, query: PredictQuery) -> ImageSource:
+        """The request's pixels, decoded once its instances and regions are checked."""
+        manifest = self.detector.manifest
+        if isinstance(image, EncodedFrame):
+            _check_instances(query.instances, image.width, image.height, self.max_instances)
+            limits = (self.max_image_pixels, self.max_decoded_bytes)
+            return open_frame(image, query.boxes, manifest.crop.padding, *limits)
+        pixels = decode_image(image, self.max_image_pixels, self.max_decoded_bytes)
+        height, width = pixels.shape[:2]
+        _check_instances(query.instances, width, height, self.max_instances)
+        return ImageSource.whole(pixels)
 
 
 class _RequestStrata:

@@ -39,7 +39,7 @@ STAGES = (
     ("decode (JPEG)", ("decode_image",)),
     ("crop + normalize", ("build_batch",)),
     ("sets (calibrated_sets)", ("calibrated_sets",)),
-    ("response data + JSON", ("predict", "predict_body", "predict_json", "model_dump_json", "_respond")),
+    ("response data + JSON", ("predict", "predict_response", "predict_json", "model_dump_json", "_respond")),
     ("multipart parsing", ("MultiPartParser", "MultipartParser", "Request.form", "_parse_multipart")),
     ("validation (pydantic)", ("model_validate_json", "_validated")),
     ("body reading", ("read_limited_body", "paced_chunks", "receive")),

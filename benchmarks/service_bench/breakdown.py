@@ -2,9 +2,9 @@
 
 Stages, in the route's order: ``decode_image`` -> ``build_batch`` (crop + normalize) ->
 ``Detector.run`` (inference) -> ``calibrated_sets`` (heatmap statistics and
-sets) -> the rest of ``predict`` (checks, thresholds lookup) and the response body's data
-(``predict_body``; timed with the two previous stages' results cached) -> its JSON
-(``predict_json``), as the route writes them. Each iteration runs every stage once,
+sets) -> the rest of ``predict`` (checks, thresholds lookup; timed with the two previous
+stages' results cached) -> the response body (``predict_json``: the response models and their
+JSON), as the route writes them. Each iteration runs every stage once,
 so the stages are measured side by side; the figures are medians over iterations.
 """
 

@@ -1,8 +1,9 @@
-"""docs/performance.md is written by two commands, each owning one marked section of the page.
+"""docs/performance.md is written by three commands, each owning one marked section of the page.
 
 ``bench_peers`` (the service against the frameworks a user would pick instead) comes first, then
-``bench_service`` (the service against its bare model). Each command replaces only its own
-section, so either can be rerun alone; a page from before the sections counts as bench_service's.
+``bench_frames`` (a camera frame in memory to sets), then ``bench_service`` (the service against
+its bare model). Each command replaces only its own section, so any can be rerun alone; a page
+from before the sections counts as bench_service's.
 """
 
 from __future__ import annotations
@@ -11,11 +12,12 @@ import re
 from pathlib import Path
 
 TITLE = "# Performance"
-ORDER = ("bench_peers", "bench_peers_gpu", "bench_service")
+ORDER = ("bench_peers", "bench_peers_gpu", "bench_frames", "bench_service")
 INTRO = (
-    "Two commands write this page, each its own section: `python -m benchmarks.bench_peers` (the service"
+    "Three commands write this page, each its own section: `python -m benchmarks.bench_peers` (the service"
     " against the frameworks a user would pick instead, ratios first; with `--gpu`, its own section for"
-    " the model on a GPU) and"
+    " the model on a GPU), `python -m benchmarks.bench_frames` (a camera frame in memory to sets: regions"
+    " and raw pixels against the whole JPEG) and"
     " `python -m benchmarks.bench_service` "
     "(the service against its bare model: stage breakdown, memory, tuning). Do not edit by hand."
 )

@@ -17,8 +17,8 @@ STAGE_LABELS = {
     "crop": "crop + normalize (`build_batch`)",
     "inference": "inference (`Detector.run`)",
     "sets": "scoring / sets (`calibrated_sets`)",
-    "response": "response data (`predict_body`)",
-    "json": "JSON (`predict_json`)",
+    "response": "rest of predict (`Predictor.predict`)",
+    "json": "response body (`predict_json`)",
 }
 
 

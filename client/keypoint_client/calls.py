@@ -25,6 +25,7 @@ from keypoint_client.admin_models import (
     VersionList,
 )
 from keypoint_client.errors import JobFailed, JobWaitTimeout, KeypointClientError, ProblemError, problem_error
+from keypoint_client.frames import FrameSending, frame_parts, is_frame
 from keypoint_client.images import ChannelOrder, ImageInput, encode_image
 from keypoint_client.models import (
     Coverage,
@@ -41,6 +42,8 @@ from keypoint_client.retry import retry_after_seconds
 
 if TYPE_CHECKING:
     from typing import Unpack
+
+    from numpy.typing import NDArray
 
 T = TypeVar("T")
 M = TypeVar("M", bound=BaseModel)
@@ -90,7 +93,14 @@ class PredictRequest:
     def parts(self, suffix: str = "") -> Files:
         """The multipart parts ``image<suffix>`` and ``request<suffix>``."""
         encoded = encode_image(self.image, self.channel_order)
-        parameters = {
+        return [
+            (f"image{suffix}", (encoded.filename, encoded.data, encoded.content_type)),
+            (f"request{suffix}", (None, json.dumps(self.parameters()).encode(), "application/json")),
+        ]
+
+    def parameters(self) -> dict[str, Any]:
+        """The request's JSON: its instances and options."""
+        return {
             "instances": [instance_request(instance).to_dict() for instance in self.instances],
             "epsilon": self.epsilon,
             "nonconformity": self.nonconformity,
@@ -100,10 +110,6 @@ class PredictRequest:
             "include_statistics": self.include_statistics,
             "pose": None if self.pose is None else self.pose.to_dict(),
         }
-        return [
-            (f"image{suffix}", (encoded.filename, encoded.data, encoded.content_type)),
-            (f"request{suffix}", (None, json.dumps(parameters).encode(), "application/json")),
-        ]
 
 
 class UploadOptions(TypedDict, total=False):
@@ -203,10 +209,44 @@ def predict(
 ) -> Call[PredictResult]:
     """Prediction sets for one image: JPEG or PNG bytes, a path to one, or a numpy array.
     ``instances``: the objects and their boxes. Options: see ``PredictRequest``."""
-    files = PredictRequest(image, instances, **options).parts()
+    return _predict_json("/v1/predict", PredictRequest(image, instances, **options).parts(), timeout)
+
+
+def predict_any(
+    image: ImageInput,
+    instances: Sequence[InstanceLike],
+    padding: float | None,
+    sending: FrameSending = "regions",
+    *,
+    timeout: float | None = None,
+    **options: Unpack[PredictOptions],
+) -> Call[PredictResult]:
+    """``predict_frame`` for a numpy frame (given the model's crop ``padding``), else ``predict``."""
+    if is_frame(image) and padding is not None:
+        return predict_frame(image, instances, padding, sending, timeout=timeout, **options)
+    return predict(image, instances, timeout=timeout, **options)
+
+
+def predict_frame(
+    frame: NDArray[Any],
+    instances: Sequence[InstanceLike],
+    padding: float,
+    sending: FrameSending = "regions",
+    *,
+    timeout: float | None = None,
+    **options: Unpack[PredictOptions],
+) -> Call[PredictResult]:
+    """Prediction sets for a numpy frame of uint8 pixels through POST /v1/predict/frame, sent as
+    ``sending`` says (``keypoint_client.frames``); ``padding``: the model manifest's crop padding."""
+    request = PredictRequest(frame, instances, **options)
+    files = frame_parts(frame, request.parameters(), padding, sending, request.channel_order)
+    return _predict_json("/v1/predict/frame", files, timeout)
+
+
+def _predict_json(path: str, files: Files, timeout: float | None) -> Call[PredictResult]:
     return Call(
         "POST",
-        "/v1/predict",
+        path,
         _model(PredictResult),
         files=files,
         headers={"Accept": "application/json"},

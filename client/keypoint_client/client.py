@@ -13,7 +13,7 @@ import functools
 import os
 import time
 import uuid
-from collections.abc import AsyncIterator, Callable, Coroutine, Iterable, Iterator, Mapping
+from collections.abc import AsyncIterator, Callable, Coroutine, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Generic, ParamSpec, TypeVar, overload
 
@@ -24,6 +24,8 @@ from keypoint_client.admin_models import Activation, Job
 from keypoint_client.archive import calibration_zip
 from keypoint_client.calls import DEFAULT_BATCH_SIZE, Call, JobWatch, PredictRequest
 from keypoint_client.errors import ProblemError
+from keypoint_client.frames import FrameSending, crop_padding, is_frame
+from keypoint_client.images import ImageInput
 from keypoint_client.models import PredictResult
 from keypoint_client.monitoring_models import CoverageAudit
 from keypoint_client.retry import Attempts, RetryPolicy
@@ -31,7 +33,8 @@ from keypoint_client.retry import Attempts, RetryPolicy
 if TYPE_CHECKING:
     from typing import Self, Unpack
 
-    from keypoint_client.calls import AuditOptions, UploadOptions
+    from keypoint_client.calls import AuditOptions, PredictOptions, UploadOptions
+    from keypoint_client.models import InstanceLike
 
 __version__ = "0.1.0"
 T = TypeVar("T")
@@ -85,7 +88,6 @@ def _request_id() -> str:
 class _Endpoints:
     """The methods that are one call each (documented on the builders in ``calls``)."""
 
-    predict = endpoint(calls.predict)
     predict_png = endpoint(calls.predict_png)
     model = endpoint(calls.model)
     ready = endpoint(calls.ready)
@@ -122,6 +124,7 @@ class KeypointClient(_Endpoints):
     ) -> None:
         self.retry = retry or RetryPolicy()
         self._http = httpx.Client(base_url=base_url, timeout=timeout, headers=_headers(token, headers))
+        self._padding: float | None = None  # the model's crop padding, asked once for numpy frames
 
     def close(self) -> None:
         self._http.close()
@@ -145,6 +148,27 @@ class KeypointClient(_Endpoints):
             if delay is None:
                 return call.answer(response, request_id)
             time.sleep(delay)
+
+    def predict(
+        self,
+        image: ImageInput,
+        instances: Sequence[InstanceLike],
+        *,
+        frame_sending: FrameSending = "regions",
+        timeout: float | None = None,
+        **options: Unpack[PredictOptions],
+    ) -> PredictResult:
+        """Prediction sets for one image: JPEG or PNG bytes, a path to one, or a numpy array.
+        ``instances``: the objects and their boxes. Options: see ``PredictRequest``.
+
+        A numpy frame of uint8 pixels, (H, W) gray or (H, W, 3) in ``channel_order``, goes to POST
+        /v1/predict/frame as ``frame_sending`` says: its boxes' regions as raw pixels (the default),
+        as JPEG (lossy: the answer is the JPEG's) or PNG files, or the whole frame raw; the answer
+        is the one the whole image's pixels get. Any other array is sent as a PNG."""
+        if is_frame(image) and self._padding is None:
+            self._padding = crop_padding(self.model(timeout=timeout))
+        call = calls.predict_any(image, instances, self._padding, frame_sending, timeout=timeout, **options)
+        return self._send(call)
 
     def predict_many(
         self,
@@ -246,6 +270,7 @@ class AsyncKeypointClient(_Endpoints):
     ) -> None:
         self.retry = retry or RetryPolicy()
         self._http = httpx.AsyncClient(base_url=base_url, timeout=timeout, headers=_headers(token, headers))
+        self._padding: float | None = None  # the model's crop padding, asked once for numpy frames
 
     async def close(self) -> None:
         await self._http.aclose()
@@ -269,6 +294,21 @@ class AsyncKeypointClient(_Endpoints):
             if delay is None:
                 return call.answer(response, request_id)
             await asyncio.sleep(delay)
+
+    async def predict(
+        self,
+        image: ImageInput,
+        instances: Sequence[InstanceLike],
+        *,
+        frame_sending: FrameSending = "regions",
+        timeout: float | None = None,
+        **options: Unpack[PredictOptions],
+    ) -> PredictResult:
+        """See ``KeypointClient.predict``."""
+        if is_frame(image) and self._padding is None:
+            self._padding = crop_padding(await self.model(timeout=timeout))
+        call = calls.predict_any(image, instances, self._padding, frame_sending, timeout=timeout, **options)
+        return await self._send(call)
 
     async def predict_many(
         self,

@@ -15,11 +15,12 @@ from calibration_store import CalibrationStore
 from service.api.http.admission import Admission
 from service.api.http.clients import ClientKeys
 from service.api.http.request_body import BodyPace, read_limited_body
-from service.calibration.jobs import CalibrationJobs, JobRunner
+from service.calibration.jobs import CalibrationJobs
 from service.calibration.registry import CalibrationRegistry
 from service.detector.manifest import Manifest
 from service.detector.session import Detector
 from service.infra.audit_trail import AuditTrail, Operator
+from service.infra.job_engine import JobRunner
 from service.infra.operators import operator_named
 from service.infra.settings import Settings
 from service.monitoring.coverage_audits import CoverageAudits

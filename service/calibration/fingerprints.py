@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -91,6 +92,17 @@ def find_repeats(
 def instance_digests(table: ScoreTable) -> set[str]:
     """The content hashes of a version's instances (less those stored before hashes were kept)."""
     return _stored_digests(table)[1]
+
+
+def content_key(table: ScoreTable, strata: Iterable[str], scoring: Mapping[str, Any]) -> str | None:
+    """What makes two versions equal, as one sha256 (the store keeps one version per key): the
+    same instances, the same kinds of strata, scored under the same settings. None when an
+    instance's hash is unknown (stored before hashes were kept): nothing to compare."""
+    instances = instance_digests(table)
+    if len(instances) != table.n_instances:
+        return None
+    document = {"instances": sorted(instances), "strata": sorted(strata), "scoring": dict(scoring)}
+    return hashlib.sha256(json.dumps(document, sort_keys=True).encode()).hexdigest()
 
 
 def _stored_digests(table: ScoreTable | None) -> tuple[set[str], set[str]]:

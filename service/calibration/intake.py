@@ -175,7 +175,7 @@ class Intake:
                 and instance_digests(self._scores(info.number)) == instances
             ):
                 if not options.allow_duplicate:
-                    raise _duplicate_refused(info.number, count, options.stratify)
+                    raise duplicate_refused(info.number, count, options.stratify)
                 return info.number
         return None
 
@@ -272,7 +272,7 @@ def _same_strata(stored: frozenset[str], asked: frozenset[str] | None) -> bool:
     return stored <= {DIFFICULTY} if asked is None else stored == asked
 
 
-def _duplicate_refused(version: int, count: int, stratify: frozenset[str] | None) -> Conflict:
+def duplicate_refused(version: int, count: int, stratify: frozenset[str] | None) -> Conflict:
     strata = "" if stratify is None else f" with the same strata ({describe_kinds(stratify)})"
     return Conflict(
         f"the batch would make a version equal to calibration version {version}: the same {count}"

@@ -17,7 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from calibration_store import CalibrationStore, JobRecord, StoreError
+from calibration_store import CalibrationStore, StoreError
+from service.infra.job_engine import retryable
 from service.infra.processes import process_folder
 
 log = logging.getLogger(__name__)
@@ -92,15 +93,6 @@ class JobFolder:
 
     def remove(self) -> None:
         shutil.rmtree(self.root, ignore_errors=True)
-
-
-#: in a failed job's result: its upload is kept, and it can be retried (it failed for a full disk)
-RETRYABLE = "retryable"
-
-
-def retryable(job: JobRecord) -> bool:
-    """Whether a job can be retried from its kept upload: interrupted, or failed for a full disk."""
-    return job.state == "interrupted" or (job.state == "failed" and job.result.get(RETRYABLE) is True)
 
 
 def remove_spent_job_folders(jobs_dir: Path, store: CalibrationStore) -> None:

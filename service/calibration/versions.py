@@ -17,6 +17,7 @@ from calibration_store import (
     Activation,
     ActivationIntent,
     CalibrationStore,
+    DuplicateVersion,
     JobCompletion,
     NewAuditEntry,
     NewVersion,
@@ -27,6 +28,7 @@ from calibration_store import (
 )
 from service.calibration.coco import Rejection
 from service.calibration.compatibility import scoring_settings, version_incompatibility
+from service.calibration.fingerprints import content_key
 from service.calibration.guardrails import (
     REFERENCE_EPSILON,
     REFERENCE_NONCONFORMITY,
@@ -34,10 +36,16 @@ from service.calibration.guardrails import (
     compare,
     refusal_detail,
 )
-from service.calibration.intake import Parent, UploadOptions, ValidatedBatch, check_rejected_share
+from service.calibration.intake import (
+    Parent,
+    UploadOptions,
+    ValidatedBatch,
+    check_rejected_share,
+    duplicate_refused,
+)
 from service.calibration.registry import CalibrationRegistry
 from service.calibration.scoring import ScoreAccumulator, score_batch
-from service.calibration.stratification import VersionStrata, version_strata
+from service.calibration.stratification import VersionStrata, stored_kinds, version_strata
 from service.conformal.strata import DifficultySpec
 from service.detector.manifest import Manifest
 from service.detector.session import Detector
@@ -97,13 +105,16 @@ def create_version(
     activated = options.activate and (comparison.allowed or options.force)
     summary = _summary(table, scored, batches, activated, comparison)
     entries = _audit_entries(audit, options, operator, summary, comparison, previous, activated)
-    info = store.create_version(
-        _new_version(detector, scored.sources, options, operator, strata),
-        table,
-        activation=ActivationIntent(operator.name, _activation_reason(options)) if activated else None,
-        job=JobCompletion(job_id, summary) if job_id else None,
-        audit=entries,
-    )
+    try:
+        info = store.create_version(
+            _new_version(detector, table, scored.sources, options, operator, strata),
+            table,
+            activation=ActivationIntent(operator.name, _activation_reason(options)) if activated else None,
+            job=JobCompletion(job_id, summary) if job_id else None,
+            audit=entries,
+        )
+    except DuplicateVersion as error:  # a twin scored beside it, in any process, was stored first
+        raise duplicate_refused(error.number, table.n_instances, options.stratify) from error
     written(*(entry if entry.version else replace(entry, version=info.number) for entry in entries))
     return CalibrationOutcome(info, activated, comparison, {**summary, "version": info.number})
 
@@ -170,20 +181,27 @@ def _usable(store: CalibrationStore, detector: Detector, version: int) -> bool:
 
 def _new_version(
     detector: Detector,
+    table: ScoreTable,
     sources: list[SourceBatch],
     options: UploadOptions,
     operator: Operator,
     strata: VersionStrata | None,
 ) -> NewVersion:
+    """The version to store; one the store refuses if it holds the same content, unless a copy
+    was asked for (``allow_duplicate``)."""
+    scoring = scoring_settings(detector.manifest)
+    stored_strata = None if strata is None else strata.as_dict()
+    key = None if options.allow_duplicate else content_key(table, stored_kinds(stored_strata), scoring)
     return NewVersion(
         model_hash=detector.model_hash,
         model_name=detector.manifest.name,
-        normalization=scoring_settings(detector.manifest),
+        normalization=scoring,
         source_batches=sources,
         author=operator.name,
         note=options.note,
         parent_version=options.append_to,
-        strata=None if strata is None else strata.as_dict(),
+        strata=stored_strata,
+        content_key=key,
     )
 
 

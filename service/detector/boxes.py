@@ -5,12 +5,12 @@ guarantee to hold (exchangeability), so a box that prediction would refuse must 
 a calibration either: a sliver of a box turns its crop into a huge magnification and its
 labels into outlier scores that widen every set.
 
-Boxes are ``[x, y, width, height]`` in image pixels, origin at the top-left corner.
+Boxes are ``[x, y, width, height]`` in image pixels, origin at the top-left corner, finite numbers
+(their readers check that: the predict request schema, the COCO reader).
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 #: the smallest box side accepted, in image pixels
@@ -22,8 +22,6 @@ BOX_TOLERANCE_PX = 1.0
 def box_problem(bbox: Sequence[float], width: int, height: int) -> str | None:
     """Why this box cannot be used on a ``width`` x ``height`` image, or None."""
     x, y, w, h = (float(v) for v in bbox)
-    if not all(math.isfinite(v) for v in (x, y, w, h)):
-        return "box values must be finite numbers"
     if w < MIN_BOX_SIDE_PX or h < MIN_BOX_SIDE_PX:
         return f"box width and height must be at least {MIN_BOX_SIDE_PX:g} pixel, got w={w:g}, h={h:g}"
     tol = BOX_TOLERANCE_PX

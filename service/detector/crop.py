@@ -12,6 +12,8 @@ import cv2
 import numpy as np
 
 _HALF = np.array([0.5, 0.5])
+#: pixels beyond a crop's square that its resampling may read: the bilinear neighbour, and rounding
+CONTEXT_MARGIN_PX = 2
 
 
 def crop_affines(boxes: np.ndarray, padding: float, size: tuple[int, int]) -> np.ndarray:
@@ -29,6 +31,19 @@ def crop_affines(boxes: np.ndarray, padding: float, size: tuple[int, int]) -> np
     affines[:, 1, 1] = height / sides
     affines[:, :, 2] = np.stack([width / 2.0, height / 2.0]) - affines[:, [0, 1], [0, 1]] * centres
     return affines
+
+
+def crop_contexts(boxes: np.ndarray, padding: float, width: int, height: int) -> np.ndarray:
+    """The pixels each box's crop is resampled from, ``(N, 4)`` integers ``[x0, y0, x1, y1)``:
+    the crop's square (``crop_affines``), widened by ``CONTEXT_MARGIN_PX`` on every side and
+    clipped to the ``width`` x ``height`` frame. Pixels outside it never reach the crop."""
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    centres = boxes[:, :2] + boxes[:, 2:] / 2
+    halves = (np.maximum(boxes[:, 2], boxes[:, 3]) * (1.0 + padding) / 2)[:, None]
+    low = np.floor(centres - halves).astype(np.int64) - CONTEXT_MARGIN_PX
+    high = np.ceil(centres + halves).astype(np.int64) + CONTEXT_MARGIN_PX
+    size = np.array([width, height])
+    return np.concatenate([np.clip(low, 0, size), np.clip(high, 0, size)], axis=1)
 
 
 def rescale_affines(affines: np.ndarray, from_size: tuple[int, int], to_size: tuple[int, int]) -> np.ndarray:

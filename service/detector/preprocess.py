@@ -10,7 +10,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from service.detector.crop import crop_affines, rescale_affines, warp_crop
+from service.detector.crop import crop_affines, rescale_affines
+from service.detector.frames import ImageSource
 from service.detector.manifest import InputSpec, Manifest
 
 
@@ -39,15 +40,14 @@ def normalize_crops(crops: np.ndarray, spec: InputSpec) -> np.ndarray:
 
 
 def build_batch(
-    image_bgr: np.ndarray, boxes: np.ndarray, manifest: Manifest
+    image: np.ndarray | ImageSource, boxes: np.ndarray, manifest: Manifest
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Crop every box and return ``(input batch NCHW float32, image->heatmap affines (N, 2, 3))``."""
+    """Crop every box of ``image`` (BGR or gray pixels, or a source: the whole frame or regions)
+    and return ``(input batch NCHW float32, image->heatmap affines (N, 2, 3))``."""
     spec = manifest.input
     input_size = (spec.height, spec.width)
     affines = crop_affines(boxes, manifest.crop.padding, input_size)
-    channels = 1 if image_bgr.ndim == 2 else image_bgr.shape[2]
-    crops = np.empty((len(affines), spec.height, spec.width, channels), dtype=np.uint8)
-    for i, affine in enumerate(affines):
-        crops[i] = warp_crop(image_bgr, affine, input_size).reshape(spec.height, spec.width, channels)
+    source = image if isinstance(image, ImageSource) else ImageSource.whole(image)
+    crops = source.crops(affines, input_size)
     heatmap_affines = rescale_affines(affines, input_size, (manifest.output.height, manifest.output.width))
     return normalize_crops(to_model_colour(crops, spec), spec), heatmap_affines

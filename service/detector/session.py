@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
+from service.detector.frames import ImageSource
 from service.detector.manifest import MODEL_FILENAME, Manifest, ManifestError, load_manifest
 from service.detector.preprocess import build_batch
 from service.errors import InvalidInput
@@ -114,9 +115,12 @@ class Detector:
         BATCH_SIZE.observe(len(batch))
         return heatmaps
 
-    def infer(self, image_bgr: np.ndarray, boxes: np.ndarray, objects: list[str]) -> InstanceHeatmaps:
-        """Crop all boxes, run them as one batch, keep each instance's own keypoint channels."""
-        batch, affines = build_batch(image_bgr, boxes, self.manifest)
+    def infer(
+        self, image: np.ndarray | ImageSource, boxes: np.ndarray, objects: list[str]
+    ) -> InstanceHeatmaps:
+        """Crop all boxes of ``image`` (pixels, or a frame's source), run them as one batch, keep
+        each instance's own keypoint channels."""
+        batch, affines = build_batch(image, boxes, self.manifest)
         return instance_heatmaps(self.manifest, self.run(batch), objects, affines)
 
     def _check_output_shape(self) -> None:

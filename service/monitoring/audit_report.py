@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -81,13 +81,13 @@ def audit_report(
 ) -> dict[str, Any]:
     """The audit report (plain JSON) of the audited instances' scores ``table``."""
     sections, family = [], []
-    images = _image_rows(table)
+    audited = _Audited(table, _image_rows(table), {spec.index: spec.name for spec in manifest.keypoints})
     for kind in kinds:
         for epsilon in epsilons:
             for scope in SCOPES:
                 values, counts = thresholds(kind, scope, epsilon)
                 build = _keypoint_section if scope == "keypoint" else _object_section
-                section, tested = build(table, images, manifest, kind, values, counts, epsilon)
+                section, tested = build(audited, kind, values, counts, epsilon)
                 sections.append({"nonconformity": kind, "epsilon": epsilon, "scope": scope, **section})
                 family.extend(tested)
     for overall in (True, False):
@@ -110,6 +110,14 @@ def audit_report(
         "sections": sections,
         "advice": advice(version, flagged, epsilons, len(tested)),
     }
+
+
+class _Audited(NamedTuple):
+    """What every section reads: the audited scores, their image rows, the keypoints' names."""
+
+    table: ScoreTable
+    images: tuple[int, list[np.ndarray]]
+    names: dict[int, str]
 
 
 def _image_rows(table: ScoreTable) -> tuple[int, list[np.ndarray]]:
@@ -143,15 +151,9 @@ def _unit(
 
 
 def _keypoint_section(
-    table: ScoreTable,
-    images: tuple[int, list[np.ndarray]],
-    manifest: Manifest,
-    kind: str,
-    values: np.ndarray,
-    counts: Sequence[int],
-    epsilon: float,
+    audited: _Audited, kind: str, values: np.ndarray, counts: Sequence[int], epsilon: float
 ) -> tuple[dict[str, Any], list[_Flaggable]]:
-    names = {spec.index: spec.name for spec in manifest.keypoints}
+    table, images, names = audited
     keypoints, objects, units = [], [], []
     for block, image in zip(table.objects, images[1], strict=True):
         own = []
@@ -185,14 +187,9 @@ def _family(
 
 
 def _object_section(
-    table: ScoreTable,
-    images: tuple[int, list[np.ndarray]],
-    manifest: Manifest,
-    kind: str,
-    values: np.ndarray,
-    counts: Sequence[int],
-    epsilon: float,
+    audited: _Audited, kind: str, values: np.ndarray, counts: Sequence[int], epsilon: float
 ) -> tuple[dict[str, Any], list[_Flaggable]]:
+    table, images, _ = audited
     objects, units = [], []
     for block, image in zip(table.objects, images[1], strict=True):
         channel = int(block.keypoint_ids[0])  # one threshold and n for all of the object's channels

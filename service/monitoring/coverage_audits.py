@@ -30,11 +30,12 @@ from calibration_store import (
 )
 from service.calibration.coco import NamedBatch
 from service.calibration.intake import Parent, ValidatedBatch, check_batch, check_rejected_share
-from service.calibration.jobs import DetectorJobs, JobProgress, new_job_id
+from service.calibration.jobs import DetectorJobs
 from service.calibration.scoring import NONCONFORMITY_KINDS, ScoreAccumulator, score_batch
 from service.calibration.uploads import UploadWorkspace
 from service.errors import Conflict, InvalidInput
 from service.infra.audit_trail import Operator
+from service.infra.job_engine import JobProgress, new_job_id
 from service.infra.metrics import (
     AUDIT_BAND_HIGH,
     AUDIT_BAND_LOW,

@@ -67,23 +67,71 @@ def sample_poses_in_set(
     Every set must be bounded (an unbounded set has no uniform draw).
     """
     rng = np.random.default_rng(seed)
-    objects = keypoints_3d.astype(np.float64)
-    rvec0, tvec0 = to_rotation_vector(start.rotation), start.translation.astype(np.float64)
+    points = np.array([sample_points_in_sets(centers, shapes, rng) for _ in range(count)])
+    if count == 0:
+        return SampledPoses([], 0)
+    rotations, translations = _fitted_poses(start, camera, keypoints_3d.astype(np.float64), points)
     found = []
-    for _ in range(count):
-        points = sample_points_in_sets(centers, shapes, rng)
-        try:
-            ok, rvec, tvec = cv2.solvePnP(
-                objects, points, camera, None, rvec0.copy(), tvec0.copy(), True, cv2.SOLVEPNP_ITERATIVE
-            )
-        except cv2.error:
-            ok = False
-        if not ok or not np.isfinite(tvec).all():
-            continue
-        pose = Pose(from_rotation_vector(rvec), tvec.reshape(3))
-        if membership(pose, camera, keypoints_3d, centers, shapes).inside:
+    for rotation, translation in zip(rotations, translations, strict=True):
+        pose = Pose(rotation, translation)
+        if np.isfinite(translation).all() and membership(pose, camera, keypoints_3d, centers, shapes).inside:
             found.append(pose)
     return SampledPoses(found, count)
+
+
+_GAUSS_NEWTON_STEPS = 8  # from the estimate to draws inside the sets: converged to rounding by then
+
+
+def _fitted_poses(start: Pose, camera: np.ndarray, objects: np.ndarray, points: np.ndarray):
+    """Least-squares PnP for every draw at once (``points`` (S, N, 2)): Gauss-Newton from ``start``
+    on the reprojection error, the rotation updated on the left (R <- exp([w]) R), all draws in
+    one batch of 6x6 systems. Returns rotations (S, 3, 3) and translations (S, 3)."""
+    count = len(points)
+    rotations = np.repeat(start.rotation[None].astype(np.float64), count, axis=0)
+    translations = np.repeat(start.translation[None].astype(np.float64), count, axis=0)
+    focal, principal = np.array([camera[0, 0], camera[1, 1]]), camera[:2, 2]
+    with np.errstate(all="ignore"):
+        for _ in range(_GAUSS_NEWTON_STEPS):
+            turned = objects @ rotations.transpose(0, 2, 1)  # (S, N, 3): R X
+            camera_points = turned + translations[:, None]
+            depth = camera_points[..., 2:3]
+            residuals = focal * camera_points[..., :2] / depth + principal - points  # (S, N, 2)
+            projection = np.zeros(camera_points.shape[:2] + (2, 3))  # d y / d p
+            projection[..., 0, 0], projection[..., 1, 1] = focal[0] / depth[..., 0], focal[1] / depth[..., 0]
+            projection[..., :, 2] = -focal * camera_points[..., :2] / depth**2
+            turning = -_skew(turned)  # d p / d w = -[R X]_x
+            jacobian = np.concatenate([projection @ turning, projection], axis=-1)  # (S, N, 2, 6)
+            jacobian = jacobian.reshape(count, -1, 6)
+            normal = jacobian.transpose(0, 2, 1) @ jacobian
+            gradient = jacobian.transpose(0, 2, 1) @ residuals.reshape(count, -1, 1)
+            damping = 1e-9 * np.trace(normal, axis1=1, axis2=2)[:, None, None] * np.eye(6)
+            try:
+                step = -np.linalg.solve(normal + damping, gradient)[..., 0]
+            except np.linalg.LinAlgError:  # a degenerate draw or camera: least squares still answers
+                step = -(np.linalg.pinv(normal + damping) @ gradient)[..., 0]
+            rotations = _exponential(step[:, :3]) @ rotations
+            translations = translations + step[:, 3:]
+    return rotations, translations
+
+
+def _skew(vectors: np.ndarray) -> np.ndarray:
+    """[v]_x for every vector of (..., 3)."""
+    x, y, z = vectors[..., 0], vectors[..., 1], vectors[..., 2]
+    zero = np.zeros_like(x)
+    return np.stack(
+        [np.stack([zero, -z, y], -1), np.stack([z, zero, -x], -1), np.stack([-y, x, zero], -1)], -2
+    )
+
+
+def _exponential(vectors: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula for every rotation vector of (S, 3)."""
+    angle = np.linalg.norm(vectors, axis=1)[:, None, None]
+    cross = _skew(vectors)
+    small = angle < 1e-12
+    safe = np.where(small, 1.0, angle)
+    sine = np.where(small, 1.0, np.sin(safe) / safe)
+    cosine = np.where(small, 0.5, (1 - np.cos(safe)) / safe**2)
+    return np.eye(3) + sine * cross + cosine * (cross @ cross)
 
 
 _ROTATION_STARTS = 0.05  # radians: the rotation search starts this far from the estimate
@@ -103,6 +151,7 @@ def boundary_poses(
     step = 0.1 * (float(np.linalg.norm(estimate.translation)) or 1.0)
     start = np.concatenate([to_rotation_vector(estimate.rotation), np.zeros(3)])
 
+    @_last_value
     def slack(x):  # 1 - (y_i - c_i)^T L_i (y_i - c_i) >= 0, with its Jacobian from OpenCV
         projected, jacobian = cv2.projectPoints(
             objects, x[:3], estimate.translation + step * x[3:], camera, None
@@ -112,8 +161,11 @@ def boundary_poses(
         slopes = -2 * np.einsum("ni,nij,njk->nk", offsets, shapes, jacobian)
         return 1.0 - np.einsum("ni,nij,nj->n", offsets, shapes, offsets), slopes
 
-    def depth(x):
-        return (objects @ from_rotation_vector(x[:3]).T + estimate.translation + step * x[3:])[:, 2]
+    @_last_value
+    def depth(x):  # z_i > 0, with its Jacobian (Rodrigues' d vec(R) / d rvec, row-major)
+        rotation, jacobian = cv2.Rodrigues(x[:3])
+        value = (objects @ rotation.T + estimate.translation + step * x[3:])[:, 2]
+        return value, np.hstack([objects @ jacobian[:, 6:9].T, np.tile([0.0, 0.0, step], (len(objects), 1))])
 
     def turn(x):  # tr(R_hat^T R): smallest at the largest angle
         rotation, jacobian = cv2.Rodrigues(x[:3])
@@ -123,7 +175,7 @@ def boundary_poses(
 
     constraints = [
         {"type": "ineq", "fun": lambda x: slack(x)[0], "jac": lambda x: slack(x)[1]},
-        {"type": "ineq", "fun": depth},
+        {"type": "ineq", "fun": lambda x: depth(x)[0], "jac": lambda x: depth(x)[1]},
     ]
     runs = [
         (lambda x, a=sign * axis: (-float(a @ x[3:]), np.concatenate([np.zeros(3), -a])), start)
@@ -154,6 +206,19 @@ def boundary_poses(
         if pose is not None:
             poses.append(pose)
     return poses
+
+
+def _last_value(function):
+    """``function`` remembering its last argument's value: SLSQP asks for a constraint and then its
+    Jacobian at the same point, and both come from one projection."""
+    last: list = [None, None]
+
+    def remembered(x: np.ndarray):
+        if last[0] is None or not np.array_equal(last[0], x):
+            last[:] = [x.copy(), function(x)]
+        return last[1]
+
+    return remembered
 
 
 def _inside_towards(start, end, camera, keypoints_3d, centers, shapes) -> Pose | None:

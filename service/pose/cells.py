@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .rotations import from_rotation_vector, to_quaternion
+from .rotations import left_product, to_quaternion
 
 
 @dataclass(frozen=True)
@@ -66,39 +66,96 @@ def root_cells() -> list[Cell]:
 # The first cube is off-centre: centred at the estimate, every cube of the binary grid near it would
 # have the estimate on a corner, hence hold poses of PURSE, and would all have to be split.
 _OFFSET = (0.23, 0.13, 0.07)
+_LARGEST_GIBBS_ANGLE = math.radians(160.0)  # beyond, one box of Gibbs vectors would be too large
 
 
 @dataclass(frozen=True)
-class Cube:
-    """The rotations R_hat exp([w]) for w in the cube |w - centre|_inf <= half."""
+class Wedge:
+    """The rotations R_hat R(q) whose quaternion q = (q_0, .., q_3) (up to sign) has its largest
+    component in magnitude at ``face`` and u = (q_j / q_face)_{j != face} in the box [low, high]:
+    the four faces of the 4-cube around R_hat, as ``Cell`` around the identity. Face 0 holds the
+    rotations turned at most 90 degrees about every axis; there u is the Gibbs vector
+    tan(angle / 2) * axis.
 
-    centre: tuple[float, float, float]
-    half: float
+    A wedge lies in its circumscribed cap, and its box is cut out exactly by three quadratic
+    constraints, linear in the moment matrix Q = q q^T: low_j <= q_j / q_face <= high_j <=>
+    (q_j - low_j q_face)(q_j - high_j q_face) <= 0 (q_face = 0 would force q = 0)."""
+
+    face: int
+    low: tuple[float, float, float]
+    high: tuple[float, float, float]
 
     @staticmethod
-    def around(radius: float) -> Cube:
-        """The cube holding the ball |w| <= radius: every rotation within ``radius`` of R_hat."""
-        offset = np.array(_OFFSET) * radius
-        return Cube(tuple(offset.tolist()), radius * (1 + max(_OFFSET)))
+    def around(radius: float) -> list[Wedge]:
+        """Wedges holding every rotation within ``radius`` of R_hat: one box of Gibbs vectors
+        |g| <= tan(radius / 2), off-centre (``_OFFSET``: centred, the estimate would be a corner of
+        every cell near it, and all of them would hold poses of PURSE and need splitting); the four
+        faces of the 4-cube when ``radius`` is near pi."""
+        if radius > _LARGEST_GIBBS_ANGLE:
+            return [Wedge(face, (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)) for face in range(4)]
+        reach = math.tan(radius / 2)
+        centre, half = np.array(_OFFSET) * reach, reach * (1 + max(_OFFSET))
+        return [Wedge(0, tuple((centre - half).tolist()), tuple((centre + half).tolist()))]
 
-    def cap(self, estimate: np.ndarray) -> tuple[np.ndarray, float] | None:
-        """(q_0, cos^2(phi)) with (q_0^T q)^2 >= cos^2(phi) over the cube (None: no constraint)."""
-        half_angle = math.sqrt(3.0) * self.half / 2  # a quaternion turns half the rotation angle
-        if half_angle >= math.pi / 2:
-            return None
-        centre = to_quaternion(estimate @ from_rotation_vector(np.array(self.centre)))
-        return centre, math.cos(half_angle) ** 2
+    def _others(self) -> list[int]:
+        return [j for j in range(4) if j != self.face]
+
+    def _quaternion(self, u: np.ndarray) -> np.ndarray:
+        q = np.insert(np.asarray(u, dtype=np.float64), self.face, 1.0)
+        return q / np.linalg.norm(q)
+
+    def _corners(self) -> list[np.ndarray]:
+        low, high = np.array(self.low), np.array(self.high)
+        return [np.where(bits, high, low) for bits in itertools.product([0, 1], repeat=3)]
+
+    def cap(self, estimate: np.ndarray) -> tuple[np.ndarray, float]:
+        """(q_0, cos^2(phi)) with (q_0^T q)^2 >= cos^2(phi) over the wedge (as ``Cell.cap``)."""
+        centre = self._quaternion((np.array(self.low) + np.array(self.high)) / 2)
+        cosine = min(abs(float(centre @ self._quaternion(corner))) for corner in self._corners())
+        return left_product(to_quaternion(estimate)) @ centre, cosine**2
+
+    def sides(self, estimate: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per side, (a, b) in absolute quaternion coordinates: a^T q q^T b <= 0 on the wedge."""
+        left = left_product(to_quaternion(estimate))
+        pairs = []
+        for k, j in enumerate(self._others()):
+            a, b = np.zeros(4), np.zeros(4)
+            a[j] = b[j] = 1.0
+            a[self.face], b[self.face] = -self.low[k], -self.high[k]
+            pairs.append((left @ a, left @ b))
+        return pairs
+
+    def _angle_cosines(self) -> tuple[float, float]:
+        """The least and largest |cos(angle / 2)| = |q_0| / |q| over the wedge's rotations."""
+        low, high = np.array(self.low), np.array(self.high)
+        near = np.where((low <= 0) & (high >= 0), 0.0, np.minimum(np.abs(low), np.abs(high)))
+        far = np.maximum(np.abs(low), np.abs(high))
+        if self.face == 0:  # q_0 = 1: cos = 1 / sqrt(1 + |u|^2)
+            return 1 / math.sqrt(1 + float(far @ far)), 1 / math.sqrt(1 + float(near @ near))
+        # q_0 = u_0 q_face: cos = |u_0| / sqrt(1 + |u|^2), increasing in |u_0|, decreasing in the rest
+        rest_near, rest_far = float(near[1:] @ near[1:]), float(far[1:] @ far[1:])
+        least = near[0] / math.sqrt(1 + near[0] ** 2 + rest_far)
+        return least, far[0] / math.sqrt(1 + far[0] ** 2 + rest_near)
 
     def farthest_angle(self) -> float:
-        """An upper bound on the angle (radians) from R_hat to the cube's rotations."""
-        return min(math.pi, float(np.linalg.norm(np.abs(self.centre) + self.half)))
+        """An upper bound on the angle (radians) from R_hat to the wedge's rotations."""
+        return 2.0 * math.acos(min(1.0, self._angle_cosines()[0]))
 
-    def split(self, radius: float) -> list[Cube]:
-        """The eight half-size cubes, less those entirely outside the ball |w| <= radius."""
-        half = self.half / 2
+    def nearest_angle(self) -> float:
+        """A lower bound on the angle (radians) from R_hat to the wedge's rotations."""
+        return 2.0 * math.acos(min(1.0, self._angle_cosines()[1]))
+
+    def split(self, radius: float) -> list[Wedge]:
+        """The eight half-size boxes, less those holding no rotation within ``radius`` of R_hat."""
+        low, high = np.array(self.low), np.array(self.high)
+        middle = (low + high) / 2
         children = []
-        for signs in itertools.product((-1.0, 1.0), repeat=3):
-            centre = np.array(self.centre) + half * np.array(signs)
-            if np.linalg.norm(np.maximum(np.abs(centre) - half, 0.0)) <= radius:
-                children.append(Cube(tuple(centre.tolist()), half))
+        for bits in itertools.product([0, 1], repeat=3):
+            child = Wedge(
+                self.face,
+                tuple(np.where(bits, middle, low).tolist()),
+                tuple(np.where(bits, high, middle).tolist()),
+            )
+            if child.nearest_angle() <= radius:
+                children.append(child)
         return children

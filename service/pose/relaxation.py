@@ -19,9 +19,11 @@ out the same way proves PURSE empty.
 
 The whole-space relaxation is loose: conv SO(3) holds the shrunk rotations alpha R, and
 (alpha R, alpha t) projects like (R, t), so the relaxation reaches towards the camera and far in
-rotation. A rotation cell's cap keeps alpha near 1, so the search (``_search``) cuts the
-rotations near the estimate into cubes, best-first where a bound is attained, one conic program
-per step: the bounds are the worst over the cells left, valid at every step.
+rotation. Restricting the rotations to a cell keeps alpha near 1, so the search (``_Search``) cuts
+the rotations near the estimate into wedges (boxes of Gibbs vectors, cells.Wedge, whose sides are
+linear constraints on the moment matrix, exact for the wedge's rotations), best-first where a
+bound is attained, one conic program per step: the bounds are the worst over the cells left,
+valid at every step.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ from functools import cache
 import numpy as np
 
 from .camera import ray_frame
-from .cells import Cube, root_cells
+from .cells import Wedge, root_cells
 from .estimate import whitening
 from .membership import Pose
 from .rotations import QUATERNION_BASIS, rotation_angle_deg
@@ -79,6 +81,8 @@ def _rotation_map() -> np.ndarray:
 
 _ROTATION_MAP = _rotation_map()
 _SVEC_SCALE = np.array([1.0 if a == b else math.sqrt(2.0) for a, b in _TRIANGLE])
+_UPPER = tuple(np.array(index) for index in zip(*_TRIANGLE, strict=True))  # Q's entries in svec order
+_LOWER = _UPPER[::-1]
 
 
 @dataclass(frozen=True)
@@ -139,6 +143,23 @@ def _capped(program: _Program, cap: tuple[np.ndarray, float] | None) -> _Program
     )
 
 
+def _in_wedge(program: _Program, wedge: Wedge, estimate: np.ndarray) -> _Program:
+    """The relaxation of one wedge of rotations (cells.Wedge): its three sides a_k^T Q b_k <= 0,
+    exact for the wedge's rotations (Q = q q^T); they imply its circumscribed cap."""
+    sides = [np.concatenate([_bilinear_form(a, b), np.zeros(3)]) for a, b in wedge.sides(estimate)]
+    return replace(
+        program,
+        matrix=np.vstack([program.matrix, *sides]),
+        offset=np.append(program.offset, np.zeros(len(sides))),
+        cuts=program.cuts + len(sides),
+    )
+
+
+def _bilinear_form(u: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """u^T Q w as a row over Q's upper triangle (unscaled entries)."""
+    return np.array([u[a] * w[a] if a == b else u[a] * w[b] + u[b] * w[a] for a, b in _TRIANGLE])
+
+
 def _quadratic_form(vector: np.ndarray) -> np.ndarray:
     """v^T Q v as a row over Q's upper triangle (unscaled entries)."""
     return np.array([vector[a] ** 2 if a == b else 2 * vector[a] * vector[b] for a, b in _TRIANGLE])
@@ -164,11 +185,10 @@ def _depth_cuts(camera: np.ndarray, keypoints_3d: np.ndarray, centers: np.ndarra
     relaxation contains R = 0, t = 0 (every cone holds with equality at p = 0).
     """
     bounded, slopes, _, _ = _ray_slopes(camera, centers, shapes)
-    return [
+    kept = np.flatnonzero(bounded)
+    return [  # a chain through the bounded sets: all pairs cost a fifth of each solve and tighten nothing
         (i, j, slopes[i], slopes[j], float(np.linalg.norm(keypoints_3d[i] - keypoints_3d[j])))
-        for i in range(len(centers))
-        for j in range(i + 1, len(centers))
-        if bounded[i] and bounded[j]
+        for i, j in zip(kept[:-1], kept[1:], strict=True)
     ]
 
 
@@ -194,34 +214,29 @@ def _distance_bound(camera: np.ndarray, keypoints_3d, centers, shapes) -> float:
     return best
 
 
-def _cones(keypoints: int, cuts: int) -> list:
+@cache
+def _cones(keypoints: int, cuts: int) -> tuple:
     clarabel = _clarabel()
     cones = [clarabel.ZeroConeT(1), clarabel.PSDTriangleConeT(4)]
     cones += [clarabel.SecondOrderConeT(3) for _ in range(keypoints)]
-    return cones + ([clarabel.NonnegativeConeT(cuts)] if cuts else [])
+    return tuple(cones + ([clarabel.NonnegativeConeT(cuts)] if cuts else []))
 
 
 def _project_dual(dual: np.ndarray, keypoints: int, cuts: int) -> np.ndarray:
     """The multipliers projected onto the dual cones (all self-dual; the zero cone's dual is free)."""
     projected = dual.copy()
-    triangle = projected[1 : 1 + _Q]
     matrix = np.zeros((4, 4))
-    for value, (a, b), s in zip(triangle, _TRIANGLE, _SVEC_SCALE, strict=True):
-        matrix[a, b] = matrix[b, a] = value / s
+    matrix[_UPPER] = matrix[_LOWER] = projected[1 : 1 + _Q] / _SVEC_SCALE
     values, vectors = np.linalg.eigh(matrix)
     matrix = (vectors * np.maximum(values, 0.0)) @ vectors.T
-    projected[1 : 1 + _Q] = [matrix[a, b] * s for (a, b), s in zip(_TRIANGLE, _SVEC_SCALE, strict=True)]
-    for k in range(keypoints):
-        start = 1 + _Q + 3 * k
-        head, tail = projected[start], projected[start + 1 : start + 3]
-        norm = float(np.linalg.norm(tail))
-        if norm > head:  # Euclidean projection onto the second-order cone
-            if norm <= -head:
-                projected[start : start + 3] = 0.0
-            else:
-                level = (head + norm) / 2
-                projected[start] = level
-                projected[start + 1 : start + 3] = tail * (level / norm)
+    projected[1 : 1 + _Q] = matrix[_UPPER] * _SVEC_SCALE
+    cones = projected[1 + _Q : 1 + _Q + 3 * keypoints].reshape(keypoints, 3)  # a view: edits land
+    heads, norms = cones[:, 0].copy(), np.linalg.norm(cones[:, 1:], axis=1)
+    outside = norms > heads  # Euclidean projection onto the second-order cone where outside it
+    levels = np.where(norms <= -heads, 0.0, (heads + norms) / 2)
+    scale = np.divide(levels, norms, out=np.zeros_like(norms), where=norms > 0)
+    cones[outside, 0] = levels[outside]
+    cones[outside, 1:] *= scale[outside, None]
     if cuts:
         projected[-cuts:] = np.maximum(projected[-cuts:], 0.0)
     return projected
@@ -239,17 +254,27 @@ class _Solved:
 _RETRIES = ({"equilibrate_enable": False}, {"max_step_fraction": 0.95})  # when a solve stalls
 
 
-def _solver(program: _Program, objective: np.ndarray, **options):
+def _solver(program: _Program, objective: np.ndarray, pattern=None, **options):
+    """A Clarabel solver of ``program``; ``pattern`` (data, rows, columns in column-major order)
+    keeps entries that are zero here but not in the programs that will update it."""
     from scipy import sparse  # clarabel's own dependency
 
     clarabel = _clarabel()
     settings = clarabel.DefaultSettings()
     settings.verbose = False
+    settings.iterative_refinement_enable = False  # a fifth of each solve; the certificate is checked here
     for name, value in options.items():
         setattr(settings, name, value)
-    quadratic, matrix = sparse.csc_matrix((_N, _N)), sparse.csc_matrix(program.matrix)
-    cones = _cones(program.keypoints, program.cuts)
-    return clarabel.DefaultSolver(quadratic, objective, matrix, program.offset, cones, settings)
+    if pattern is None:
+        rows, columns = np.nonzero(program.matrix.T)
+        pattern = program.matrix.T[rows, columns], rows, columns
+    data, rows, columns = pattern  # built directly: scipy's conversion of a dense array costs a solve
+    pointers = np.searchsorted(rows, np.arange(_N + 1))
+    matrix = sparse.csc_matrix((data, columns, pointers), shape=program.matrix.shape)
+    cones = list(_cones(program.keypoints, program.cuts))
+    return clarabel.DefaultSolver(
+        sparse.csc_matrix((_N, _N)), objective, matrix, program.offset, cones, settings
+    )
 
 
 def _status(solution) -> str:
@@ -261,7 +286,11 @@ def _minimise(program: _Program, objective: np.ndarray, solver=None):
         solver = _solver(program, objective)
     else:
         solver.update(q=objective)
-    solution = solver.solve()
+    return solver, _outcome(program, objective, solver.solve())
+
+
+def _outcome(program: _Program, objective: np.ndarray, solution) -> _Solved:
+    """What a solution proves, its certificate checked here (a stalled solve is retried)."""
     for options in _RETRIES:
         if _status(solution) in ("Solved", "PrimalInfeasible"):
             break
@@ -270,16 +299,16 @@ def _minimise(program: _Program, objective: np.ndarray, solver=None):
     status = _status(solution)
     if status == "PrimalInfeasible":
         verified = _farkas_verified(program, np.asarray(solution.z))
-        return solver, _Solved(status, math.nan, -math.inf, math.inf, verified)
+        return _Solved(status, math.nan, -math.inf, math.inf, verified)
     if status != "Solved":
-        return solver, _Solved(status, math.nan, -math.inf, math.inf, False)
+        return _Solved(status, math.nan, -math.inf, math.inf, False)
     dual = _project_dual(np.asarray(solution.z), program.keypoints, program.cuts)
     residual = objective + program.matrix.T @ dual
     # q^T x = -b^T z + z^T s + r^T x >= -b^T z + r_Q^T x_Q + r_t^T x_t, z^T s >= 0; |Q_ab| <= 1
     lower = -float(program.offset @ dual) - float(np.abs(residual[:_Q]).sum())
     primal = float(objective @ np.asarray(solution.x))
     agrees = abs(primal - lower) <= _AGREEMENT * (1.0 + abs(primal))
-    return solver, _Solved(status, primal, lower, float(np.linalg.norm(residual[_Q:])), agrees)
+    return _Solved(status, primal, lower, float(np.linalg.norm(residual[_Q:])), agrees)
 
 
 def _farkas_verified(program: _Program, certificate: np.ndarray) -> bool:
@@ -367,9 +396,9 @@ def outer_bound(
 ) -> OuterBound:
     """Certified upper bounds on the rotation and translation error over PURSE (see the module doc).
 
-    ``programs`` conic programs of best-first search over rotation cubes around the estimate
-    (``_search``) tighten the whole-space bounds; ``splits`` rounds of the older branch-and-bound over
-    quaternion cells (cells.py) do too, at more cost (used when ``splits`` > 0).
+    ``programs`` conic programs of best-first search over rotation wedges around the estimate
+    (``_Search``) tighten the whole-space bounds; ``splits`` rounds of the older branch-and-bound
+    over quaternion cells (cells.py) do too, at more cost (used when ``splits`` > 0).
     """
     if not relaxation_available():
         return OuterBound(False, "the pose extra (clarabel) is not installed")
@@ -386,24 +415,29 @@ def outer_bound(
     if splits > 0:
         return _split_rounds(estimate, program, objectives, root, sampled, splits)
     bounds = np.append(root.extents, math.acos(min(1.0, max(-1.0, (root.smallest_trace - 1.0) / 2.0))))
-    if programs > 0:
-        found = _search(estimate, program, objectives, bounds, programs, _reached(estimate, sampled))
-        if found is None:
-            return OuterBound(False, "every rotation cell proven empty, yet the estimate is in PURSE")
-        bounds, cells = found
-        detail = f"{cells} rotation cells"
-    else:
-        detail = "whole rotation space"
+    if programs <= 0:
+        return _finish(estimate, program.scale, bounds, root.verified, sampled, "whole rotation space")
+    search = _Search(_WedgePrograms(program, estimate.rotation, objectives), _reached(estimate, sampled))
+    leaves = search.run(bounds, programs)
+    if not leaves:
+        return OuterBound(False, "every rotation cell proven empty, yet the estimate is in PURSE")
+    bounds = np.max([leaf.bounds for leaf in leaves], axis=0)
+    detail = f"{search.spent} programs, {len(leaves)} rotation cells"
     return _finish(estimate, program.scale, bounds, root.verified, sampled, detail)
 
 
 def _finish(estimate, scale, bounds, verified, sampled, detail) -> OuterBound:
-    extents = bounds[:6].clip(min=0.0)
-    translation = scale * math.sqrt(sum(max(extents[2 * k], extents[2 * k + 1]) ** 2 for k in range(3)))
     rotation = math.degrees(bounds[6])
+    translation = _radius(bounds, scale)
     certified = verified and _dominates(estimate, rotation, translation, sampled)
     status = "solved, certificate verified" if certified else "solved, certificate not verified"
     return OuterBound(certified, f"{status} ({detail})", rotation, translation)
+
+
+def _radius(bounds: np.ndarray, scale: float) -> float:
+    """The translation radius from the six extents (a box around the estimate)."""
+    extents = bounds[:6].clip(min=0.0)
+    return scale * math.sqrt(sum(max(extents[2 * k], extents[2 * k + 1]) ** 2 for k in range(3)))
 
 
 def _reached(estimate: Pose, poses: list[Pose]) -> tuple[float, float] | None:
@@ -415,76 +449,113 @@ def _reached(estimate: Pose, poses: list[Pose]) -> tuple[float, float] | None:
     return translation, rotation
 
 
-_GAP = 1.1  # the search stops once both bounds are within this factor of the poses found in PURSE
+#: the search stops once the certified bounds are within these factors of the poses found in PURSE
+ROTATION_TOLERANCE = 1.2
+TRANSLATION_TOLERANCE = 1.03
 
 
 @dataclass
 class _Leaf:
-    """A rotation cube with upper bounds on the six extents and the rotation angle over its poses;
-    ``solved[k]``: bound k was proven for this cube (otherwise it is its parent's, valid too)."""
+    """A rotation wedge with upper bounds on the six extents and the rotation angle over its poses;
+    ``solved[k]``: bound k was proven for this wedge (otherwise it is an ancestor's, valid too)."""
 
-    cube: Cube
+    cell: Wedge
     bounds: np.ndarray
     solved: np.ndarray
 
+    def children(self, radius: float) -> list[_Leaf]:
+        return [_Leaf(c, self.bounds.copy(), np.zeros(7, dtype=bool)) for c in self.cell.split(radius)]
 
-def _search(estimate, program, objectives, root_bounds, programs, reached):
-    """Best-first branch-and-bound over rotation cubes R = R_hat exp([w]) (cells.Cube).
 
-    The whole-space rotation bound rho puts every rotation of PURSE in the ball |w| <= rho; the
-    cube [-rho, rho]^3 is cut in eight again and again where a bound is attained. Each step proves
-    one bound for the leaf attaining the loosest quantity (a cube proven empty is dropped), or
-    splits that leaf once its bound is proven. It stops after ``programs`` conic programs, or once
-    translation and rotation are within ``_GAP`` of the poses reached in PURSE. Returns the bounds
-    (max over leaves) and the number of leaves, or None when every cube was proven empty.
+class _WedgePrograms:
+    """The relaxations of one search's wedges, solved by one Clarabel solver whose data is updated
+    per wedge (the sparsity stays: the wedge's rows are kept dense), which halves the cost of
+    setting up each small program."""
+
+    def __init__(self, program: _Program, estimate: np.ndarray, objectives: list[np.ndarray]) -> None:
+        self.program, self.estimate, self.objectives = program, estimate, objectives
+        pattern = np.vstack([program.matrix != 0, np.tile(np.arange(_N) < _Q, (3, 1))])
+        self._rows, self._columns = np.nonzero(pattern.T)  # column-major: compressed columns
+        self._solver = None
+
+    def solve(self, wedge: Wedge, quantity: int) -> tuple[_Program, _Solved]:
+        restricted, objective = _in_wedge(self.program, wedge, self.estimate), self.objectives[quantity]
+        data = restricted.matrix.T[self._rows, self._columns]
+        if self._solver is None:
+            self._solver = _solver(restricted, objective, pattern=(data, self._rows, self._columns))
+        else:
+            self._solver.update(A=data, b=restricted.offset, q=objective)
+        return restricted, _outcome(restricted, objective, self._solver.solve())
+
+
+class _Search:
+    """Best-first branch-and-bound over rotation wedges around the estimate (cells.Wedge).
+
+    The whole-space rotation bound rho puts every rotation of PURSE within rho of R_hat; the wedge
+    of Gibbs vectors |g| <= tan(rho / 2) is cut in eight again and again where a bound is
+    attained. Each step proves one bound for the leaf attaining the loosest quantity (a wedge
+    proven empty is dropped), or splits that leaf once its bound is proven; a leaf wholly farther
+    than the current rotation bound holds no pose of PURSE and is dropped unsolved. It stops after
+    ``programs`` conic programs, or once rotation and translation are within ROTATION_TOLERANCE
+    and TRANSLATION_TOLERANCE of the poses reached in PURSE. At every step the bounds (the worst
+    over the leaves) are valid.
     """
-    radius = float(root_bounds[6])
-    leaves = [_Leaf(Cube.around(radius), root_bounds.copy(), np.ones(7, dtype=bool))]
-    spent = 0
-    while leaves:
-        bounds = np.max([leaf.bounds for leaf in leaves], axis=0)
-        quantity = _loosest(bounds, program.scale, reached, spent)
-        if quantity is None:
-            break
-        index = int(np.argmax([leaf.bounds[quantity] for leaf in leaves]))
-        leaf = leaves[index]
-        if leaf.solved[quantity]:  # each split unproves a bound: splits stay fewer than programs + 7
-            radius = min(radius, float(bounds[6]))  # PURSE's rotations are in the ball |w| <= bound
-            children = [
-                _Leaf(c, leaf.bounds.copy(), np.zeros(7, dtype=bool)) for c in leaf.cube.split(radius)
-            ]
-            leaves[index : index + 1] = children
-            continue
-        if spent == programs:
-            break
-        spent += 1
+
+    def __init__(self, programs: _WedgePrograms, reached: tuple[float, float] | None) -> None:
+        self.programs, self.reached, self.spent = programs, reached, 0
+
+    def run(self, root_bounds: np.ndarray, budget: int) -> list[_Leaf]:
+        """The leaves left (empty: every wedge was proven empty)."""
+        radius = float(root_bounds[6])
+        roots = Wedge.around(radius)  # one wedge is split at once, the four faces solved first
+        leaves = [_Leaf(w, root_bounds.copy(), np.full(7, len(roots) == 1)) for w in roots]
+        while leaves:
+            bounds = np.max([leaf.bounds for leaf in leaves], axis=0)
+            quantity = self._loosest(bounds)
+            if quantity is None:
+                break
+            index = int(np.argmax([leaf.bounds[quantity] for leaf in leaves]))
+            leaf = leaves[index]
+            radius = min(radius, float(bounds[6]))  # PURSE's rotations are within this of R_hat
+            if leaf.cell.nearest_angle() > radius:  # its own bound is at most radius: no pose of PURSE
+                leaves.pop(index)
+            elif leaf.solved[quantity]:  # each split unproves a bound: splits stay fewer than programs + 7
+                leaves[index : index + 1] = leaf.children(radius)
+            elif self.spent == budget:
+                break
+            elif not self._prove(leaf, quantity):
+                leaves.pop(index)
+        return leaves
+
+    def _prove(self, leaf: _Leaf, quantity: int) -> bool:
+        """Solve one program for ``leaf``; False when it proves the wedge empty."""
+        self.spent += 1
         leaf.solved[quantity] = True
-        capped = _capped(program, leaf.cube.cap(estimate.rotation))
-        _, solved = _minimise(capped, objectives[quantity])
+        restricted, solved = self.programs.solve(leaf.cell, quantity)
         if _infeasible(solved.status) and solved.agrees:
-            leaves.pop(index)
-        elif solved.status == "Solved" and solved.agrees:
-            value = _proven(capped, quantity, solved)
+            return False
+        if solved.status == "Solved" and solved.agrees:
+            value = _proven(restricted, quantity, solved)
             if quantity == 6:
-                value = min(value, leaf.cube.farthest_angle())
+                value = min(value, leaf.cell.farthest_angle())
             leaf.bounds[quantity] = min(leaf.bounds[quantity], value)
-    if not leaves:
-        return None
-    return np.max([leaf.bounds for leaf in leaves], axis=0), len(leaves)
+        return True
 
-
-def _loosest(bounds: np.ndarray, scale: float, reached, spent: int) -> int | None:
-    """Which bound to tighten next: the largest extent or the rotation, whichever is further from
-    the poses reached (alternately without any); None once both are within _GAP."""
-    extent = int(np.argmax(bounds[:6]))
-    if reached is None or min(reached) <= 0:
-        return extent if spent % 2 == 0 else 6
-    extents = bounds[:6].clip(min=0.0)
-    translation = scale * math.sqrt(sum(max(extents[2 * k], extents[2 * k + 1]) ** 2 for k in range(3)))
-    gaps = translation / reached[0], bounds[6] / reached[1]
-    if max(gaps) <= _GAP:
-        return None
-    return extent if gaps[0] >= gaps[1] else 6
+    def _loosest(self, bounds: np.ndarray) -> int | None:
+        """Which bound to tighten next: the largest extent or the rotation, whichever is further
+        (relative to its tolerance) from the poses reached (alternately without any); None once
+        both are within their tolerances."""
+        extent = int(np.argmax(bounds[:6]))
+        reached = self.reached
+        if reached is None or min(reached) <= 0:
+            return extent if self.spent % 2 == 0 else 6
+        gaps = (
+            _radius(bounds, self.programs.program.scale) / reached[0] / TRANSLATION_TOLERANCE,
+            bounds[6] / reached[1] / ROTATION_TOLERANCE,
+        )
+        if max(gaps) <= 1.0:
+            return None
+        return extent if gaps[0] >= gaps[1] else 6
 
 
 def _split_rounds(estimate, program, objectives, root, sampled, splits) -> OuterBound:

@@ -31,6 +31,13 @@ def to_quaternion(rotation: np.ndarray) -> np.ndarray:
     return np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) * vector / angle])
 
 
+def left_product(q: np.ndarray) -> np.ndarray:
+    """L(q) with q (x) p = L(q) p, the Hamilton product of quaternions (w, x, y, z): the quaternion of
+    R(q) R(p)."""
+    w, x, y, z = q
+    return np.array([[w, -x, -y, -z], [x, w, -z, y], [y, z, w, -x], [z, -y, x, w]])
+
+
 def _quaternion_basis() -> np.ndarray:
     """B (3, 3, 4, 4) with R(q)_jk = q^T B_jk q for a unit quaternion q = (w, x, y, z)."""
     basis = np.zeros((3, 3, 4, 4))

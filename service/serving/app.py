@@ -8,7 +8,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 from fastapi.routing import APIRoute
 from fastapi_offline import FastAPIOffline
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.types import Message, Receive, Scope, Send
 
 from service import __version__
 from service.api.admin import audit_routes, calibration_routes
@@ -16,12 +16,14 @@ from service.api.deps import PredictParts
 from service.api.http.clients import ClientKeys
 from service.api.http.contract import install_contract
 from service.api.http.cut_requests import AnswerCutRequests
+from service.api.http.http_middleware import HttpMiddleware
 from service.api.http.metrics_middleware import MetricsMiddleware
 from service.api.http.problems import install_problem_handlers
 from service.api.http.request_body import BodyPace
 from service.api.http.request_id import RequestIdMiddleware
 from service.api.monitoring import console_routes, drift_routes, health_routes
-from service.api.predict import model_routes, predict_routes
+from service.api.predict import frame_routes, model_routes, predict_routes
+from service.api.predict.frame_schemas import FrameRequest
 from service.api.predict.predict_schemas import BatchJson, PredictJson, PredictParameters
 from service.detector.manifest import load_manifest
 from service.infra.logs import ensure_logging
@@ -94,6 +96,7 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
     install_problem_handlers(app)
     for routes in (
         predict_routes,
+        frame_routes,
         model_routes,
         calibration_routes,
         health_routes,
@@ -109,7 +112,7 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
             return load_manifest(settings.model.model_dir).object_names
         return service.detector.manifest.object_names
 
-    parsed_by_hand = (PredictJson, PredictParameters, BatchJson)
+    parsed_by_hand = (PredictJson, PredictParameters, BatchJson, FrameRequest)
     install_contract(app, parsed_bodies=parsed_by_hand, object_names=served_objects)
     return app
 
@@ -136,15 +139,12 @@ def operation_id(route: APIRoute) -> str:
     return route.name
 
 
-class DocsPagesPolicy:
+class DocsPagesPolicy(HttpMiddleware):
     """Sends ``DOCS_CONTENT_SECURITY_POLICY`` with the API pages (``DOCS_PAGES``), nothing else."""
 
-    def __init__(self, app: ASGIApp) -> None:
-        self.app = app
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+    async def handle(self, scope: Scope, receive: Receive, send: Send) -> None:
         path = scope.get("path", "").removeprefix(scope.get("root_path", ""))
-        if scope["type"] != "http" or path not in DOCS_PAGES:
+        if path not in DOCS_PAGES:
             await self.app(scope, receive, send)
             return
 

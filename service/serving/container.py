@@ -15,10 +15,11 @@ import cv2
 
 from calibration_store import CalibrationStore, ScoreTable, open_store, store_location
 from service.api.http.admission import Admission
+from service.calibration import jobs as calibration_jobs
 from service.calibration.archive import ArchiveLimits, DiskBudget
 from service.calibration.bundle import bootstrap_default_calibration
 from service.calibration.intake import IntakeRules
-from service.calibration.jobs import CalibrationJobs, JobRunner, JobSettings
+from service.calibration.jobs import CalibrationJobs, JobSettings
 from service.calibration.registry import CalibrationRegistry
 from service.calibration.stratification import difficulty_spec
 from service.calibration.uploads import process_uploads_dir, remove_spent_job_folders
@@ -26,10 +27,12 @@ from service.calibration.versions import VersionRules
 from service.conformal.kernel import native_kernel_available
 from service.detector.session import Detector
 from service.infra.audit_trail import AuditTrail
+from service.infra.job_engine import JobRunner
 from service.infra.logs import ensure_logging
 from service.infra.metrics import forget_drift_source, set_drift_source
 from service.infra.operators import load_operators
 from service.infra.settings import Settings, removed_settings
+from service.monitoring import coverage_audits
 from service.monitoring.coverage_audits import CoverageAudits
 from service.monitoring.drift_monitor import DriftMonitor, DriftSettings
 from service.prediction import Predictor
@@ -146,6 +149,9 @@ def build_state(settings: Settings) -> ServiceState:
     job_settings = _job_settings(settings)
     audits = CoverageAudits(store, detector, registry, jobs, audit, job_settings)
     audits.publish_latest()
+    calibrations = CalibrationJobs(store, detector, registry, jobs, audit, job_settings)
+    jobs.on_stale(calibration_jobs.JOB_KIND, calibrations.take_over)
+    jobs.on_stale(coverage_audits.JOB_KIND, None)  # its upload lives in its process's workspace
     drift = _drift_monitor(settings, detector, registry)
     return ServiceState(
         settings=settings,
@@ -153,7 +159,7 @@ def build_state(settings: Settings) -> ServiceState:
         store=store,
         registry=registry,
         jobs=jobs,
-        calibrations=CalibrationJobs(store, detector, registry, jobs, audit, job_settings),
+        calibrations=calibrations,
         audit=audit,
         operators=operators,
         cpu_pool=ThreadPoolExecutor(settings.model.cpu_workers, thread_name_prefix="cpu"),

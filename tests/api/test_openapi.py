@@ -24,6 +24,7 @@ def test_the_document_covers_the_documented_api() -> None:
     expected = {
         "/v1/predict": {"post"},
         "/v1/predict/batch": {"post"},
+        "/v1/predict/frame": {"post"},
         "/v1/model": {"get"},
         "/v1/admin/calibrations": {"get", "post"},
         "/v1/admin/calibrations/{version}": {"get"},

@@ -1,6 +1,7 @@
 """A full disk is a 507, never a 500: a real server on a real 40 MiB file system (tmpfs; the
 tests run as root) that fills while it receives an upload, while it unzips it into its job's
-folder, before the job's request is written, and while its job writes the version to the store
+folder, before the job's request is written (the store on PostgreSQL, held at that moment: see
+``benchmarks.faults_disk.intake_held``), and while its job writes the version to the store
 (SQLite, on the same disk).
 
 Each time: what was written is removed at once, the refusal is in the audit trail, and the
@@ -23,7 +24,9 @@ from benchmarks.faults_disk import (
     kept_files,
     many_small_files,
     serve_on,
+    serve_on_held,
     small_disk,
+    upload_refused_at_job_request,
 )
 from tests.live.server import LiveServer
 from tests.service_calls import assert_problem, wait_until
@@ -79,12 +82,15 @@ def test_an_upload_unzipped_into_its_job_on_a_full_disk_gets_507(disk: Path) -> 
         assert_no_500(server)
 
 
-def test_a_job_request_written_on_a_full_disk_gets_507(disk: Path) -> None:
-    """The disk fills (``CKS_FAULT=disk-full:job-request``) after the upload is unzipped into its
-    job's folder, before the job's request.json is written."""
+def test_a_job_request_written_on_a_full_disk_gets_507(disk: Path, postgres_url: str) -> None:
+    """The disk fills after the upload is unzipped into its job's folder, before the job's
+    request.json is written: the intake reads the stored versions between the two, and the test
+    holds that table locked (the store on PostgreSQL), fills the disk once the server waits on the
+    lock, then lets it go."""
     body = long_batch(1)
-    with serve_on(disk, fault="disk-full:job-request") as server:
-        assert_problem(server.upload(body), 507, "file system is full", "the upload's files")
+    with serve_on_held(disk, postgres_url) as server:
+        response = upload_refused_at_job_request(server, postgres_url, body).result()
+        assert_problem(response, 507, "file system is full", "the upload's files")
         assert kept_files(server) == [], "the job's folder was left"
         assert_refusal_audited(server, 507)
 

@@ -7,8 +7,11 @@ worker processes of one host (CKS_WORKERS=2).
 from __future__ import annotations
 
 import socket
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import httpx
 import pytest
 
 from calibration_store import open_store
@@ -62,3 +65,47 @@ def test_upload_on_a_poll_on_b(shared_store_url: str, tmp_path: Path, samples_di
 
         body = assert_problem(b.client.get("/v1/admin/jobs/nope", headers=b.admin), 404, "nope")
         assert "replica" not in body["detail"], body
+
+
+def test_identical_uploads_at_once_on_two_replicas_store_one_version(
+    postgres_url: str, tmp_path: Path, samples_dir: Path, coco: dict
+) -> None:
+    """Two replicas on one PostgreSQL store, two calibration workers each, the same batch sent to
+    both twice at the same moment: one version. The others are refused with the duplicate's words,
+    at the upload (409) when the version was stored by then, else in their job, which the store
+    refuses (a rule of the store, not a check of one process), with duplicate_of in the trail."""
+    body = batch_zip(samples_dir, coco, images=IMAGES)
+    settings = {"admin_token": ADMIN_TOKEN, "store_url": postgres_url, "calibration_workers": 2}
+    with LiveServer(tmp_path / "a", **settings) as a, LiveServer(tmp_path / "b", **settings) as b:
+        targets = [a, b, a, b]
+        start = threading.Barrier(len(targets))
+
+        def send(server: LiveServer) -> httpx.Response:
+            with httpx.Client(base_url=server.url, headers=server.admin, timeout=60) as client:
+                start.wait()
+                return client.post(
+                    "/v1/admin/calibrations", content=body, headers={"Content-Type": "application/zip"}
+                )
+
+        with ThreadPoolExecutor(len(targets)) as pool:
+            answers = list(pool.map(send, targets))
+        jobs = [a.wait_job(r.json()["id"]) for r in answers if r.status_code == 202]
+        stored = [job for job in jobs if job["state"] == "succeeded"]
+        assert len(stored) == 1, jobs
+        version = stored[0]["version"]
+        assert a.versions() == b.versions() == [1, version] == [1, 2]
+
+        refused_jobs = [job for job in jobs if job is not stored[0]]
+        for job in refused_jobs:
+            assert job["state"] == "failed", job
+            assert f"would make a version equal to calibration version {version}" in job["errors"][0], job
+        for refused in (r for r in answers if r.status_code != 202):
+            assert_problem(refused, 409, f"equal to calibration version {version}")
+        failed = [
+            e
+            for e in b.client.get("/v1/admin/audit", headers=b.admin).json()["entries"]
+            if (e["action"], e["outcome"]) == ("calibration", "failed")
+        ]
+        assert sorted(e["details"]["job"] for e in failed) == sorted(j["id"] for j in refused_jobs)
+        assert all(e["details"]["duplicate_of"] == version for e in failed), failed
+        print(f"answers {[r.status_code for r in answers]}, jobs {[j['state'] for j in jobs]}")

@@ -1,5 +1,7 @@
 """A job whose server process died is reported interrupted by the others, nothing of it is
-stored, and it can be retried from its kept upload by a server sharing the data directory.
+stored, and it is never left running: a server that can read its kept upload (sharing the data
+directory, or the same server restarted) takes it over; once nobody did, any server stores it
+interrupted, saying why.
 
 A real SIGKILL of a real server at the worst moments (``CKS_FAULT``, see
 ``calibration_store.faults``): with the version written but not committed, and right after
@@ -12,6 +14,7 @@ from __future__ import annotations
 import os
 import signal
 import socket
+import time
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
@@ -19,7 +22,7 @@ import pytest
 
 from benchmarks.faults_clients import long_batch
 from calibration_store import JobRecord, open_store
-from service.calibration.jobs import STALE_AFTER
+from service.infra.job_engine import STALE_AFTER, SWEEP_S, TAKEOVER_GRACE
 from tests.live.server import LiveServer
 from tests.samples import batch_zip, count_instances
 from tests.service_calls import ADMIN_TOKEN, wait_until
@@ -34,17 +37,27 @@ def store_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
     return f"sqlite://{tmp_path}/shared/calibration.db"
 
 
-def age_heartbeat(store_url: str, job_id: str) -> None:
-    """Make the dead process's silence outlast the limit (the row as it left it, only older)."""
+def age_heartbeat(store_url: str, job_id: str, silence: timedelta = STALE_AFTER) -> None:
+    """Make the dead process's silence outlast ``silence`` (the row as it left it, only older)."""
     with open_store(store_url) as store:
-        store.update_job(job_id, heartbeat_at=datetime.now(UTC) - STALE_AFTER - timedelta(seconds=5))
+        store.update_job(job_id, heartbeat_at=datetime.now(UTC) - silence - timedelta(seconds=5))
+
+
+def taken_over(server: LiveServer, job_id: str) -> str:
+    """Wait for a server's sweep to take the stale job over; the id of the job that retries it."""
+    deadline = time.monotonic() + SWEEP_S + 30
+    while "retried_as" not in (old := server.job(job_id))["result"]:
+        assert time.monotonic() < deadline, f"job {job_id} not taken over: {old}"
+        time.sleep(0.2)
+    assert old["state"] == "interrupted", old
+    return old["result"]["retried_as"]
 
 
 def killed(server: LiveServer) -> None:
     assert server.process.wait(timeout=60) == -signal.SIGKILL, server.log()
 
 
-def test_a_killed_servers_job_is_interrupted_and_retried(
+def test_a_killed_servers_job_is_interrupted_and_taken_over_by_its_restart(
     tmp_path: Path, samples_dir: Path, coco: dict
 ) -> None:
     store_url = f"sqlite://{tmp_path}/shared/calibration.db"
@@ -78,13 +91,13 @@ def test_a_killed_servers_job_is_interrupted_and_retried(
         assert refused.status_code == 409 and "not kept in this server's data directory" in refused.text
 
         with LiveServer(tmp_path / "a", admin_token=ADMIN_TOKEN, store_url=store_url) as again:
-            retried = again.client.post(f"/v1/admin/jobs/{job_id}/retry", headers=again.admin)
-            assert retried.status_code == 202, retried.text
-            new = again.wait_job(retried.json()["id"])
+            new = again.wait_job(taken_over(again, job_id))
             assert new["state"] == "succeeded" and new["result"]["activated"], new
             assert again.versions() == [1, 2] and new["version"] == 2
-            old = again.job(job_id)
-            assert old["state"] == "interrupted" and old["result"]["retried_as"] == new["id"]
+            entries = again.client.get("/v1/admin/audit", headers=again.admin).json()["entries"]
+            retry = next(e for e in entries if e["action"] == "retry")
+            assert (retry["who"], retry["details"]) == ("takeover", {"job": job_id, "new_job": new["id"]})
+            assert retry["client"] == f"{socket.gethostname()}:{again.process.pid}"
             again_refused = again.client.post(f"/v1/admin/jobs/{job_id}/retry", headers=again.admin)
             assert again_refused.status_code == 409, again_refused.text
             assert not (tmp_path / "a" / "jobs" / new["id"]).exists(), "a finished job's upload was kept"
@@ -116,11 +129,9 @@ def test_sigkill_at_the_worst_moment_leaves_all_or_nothing(
             assert restarted.versions() == [1, 2]
             wait_until(lambda: not (data / "jobs" / job_id).exists(), "the spent upload is removed")
             return
-        assert (job["state"], job["version"], active) == ("interrupted", None, 1), job  # none of it
-        assert restarted.versions() == [1]
-        retried = restarted.client.post(f"/v1/admin/jobs/{job_id}/retry", headers=restarted.admin)
-        assert retried.status_code == 202, retried.text
-        new = restarted.wait_job(retried.json()["id"])
+        assert (job["state"], job["version"]) == ("interrupted", None), job  # none of it
+        assert active == 1 or job["result"].get("retried_as"), "only its takeover may activate"
+        new = restarted.wait_job(taken_over(restarted, job_id))
         assert (new["state"], new["version"]) == ("succeeded", 2), new
         assert restarted.client.get("/readyz").json()["active_calibration"] == 2
         entries = restarted.client.get("/v1/admin/audit", headers=restarted.admin).json()["entries"]
@@ -188,3 +199,67 @@ def test_a_job_queued_at_shutdown_is_interrupted_and_retried(
         assert new["state"] == "succeeded" and new["result"]["added"] == count_instances(coco, images=3), new
         again = restarted.client.post(f"/v1/admin/jobs/{queued}/retry", headers=restarted.admin)
         assert again.status_code == 409, again.text
+
+
+def test_a_killed_replicas_job_is_taken_over_by_a_replica_sharing_its_data_directory(
+    postgres_url: str, tmp_path: Path, coco: dict
+) -> None:
+    """Two replicas on one PostgreSQL store and one data directory (a shared volume): the job of
+    the one SIGKILLed is run again by the other, once; one version."""
+    data = tmp_path / "shared-data"
+    settings = {"admin_token": ADMIN_TOKEN, "store_url": postgres_url}
+    with LiveServer(data, **settings) as a, LiveServer(data, **settings) as b:
+        response = a.upload(long_batch(COPIES), note="killed on A")
+        assert response.status_code == 202, response.text
+        job_id = response.json()["id"]
+        os.kill(a.process.pid, signal.SIGKILL)
+        killed(a)
+        assert b.job(job_id)["state"] in ("queued", "running"), "the kill must land mid-job"
+        age_heartbeat(postgres_url, job_id)
+
+        new = b.wait_job(taken_over(b, job_id))
+        assert (new["state"], new["version"], new["total"]) == (
+            "succeeded",
+            2,
+            COPIES * count_instances(coco),
+        )
+        assert b.versions() == [1, 2]
+        with open_store(postgres_url) as store:
+            assert store.get_job(new["id"]).owner == f"{socket.gethostname()}:{b.process.pid}"
+            assert store.stale_jobs(datetime.now(UTC)) == [], "no job is left unfinished"
+        refused = b.client.post(f"/v1/admin/jobs/{job_id}/retry", headers=b.admin)
+        assert refused.status_code == 409 and f"retried already, as job {new['id']}" in refused.text
+
+
+def test_a_killed_replicas_job_nobody_can_read_is_stored_interrupted(
+    postgres_url: str, tmp_path: Path
+) -> None:
+    """Two replicas on one PostgreSQL store, each with its own data directory: the job of the one
+    SIGKILLed cannot be run elsewhere; once the grace for a takeover has passed, the other stores
+    it interrupted, saying why, and never leaves it running."""
+    settings = {"admin_token": ADMIN_TOKEN, "store_url": postgres_url}
+    with LiveServer(tmp_path / "a", **settings) as a, LiveServer(tmp_path / "b", **settings) as b:
+        response = a.upload(long_batch(COPIES))
+        assert response.status_code == 202, response.text
+        job_id, owner = response.json()["id"], f"{socket.gethostname()}:{a.process.pid}"
+        os.kill(a.process.pid, signal.SIGKILL)
+        killed(a)
+        age_heartbeat(postgres_url, job_id)  # stale, within the grace: B cannot take it, waits
+        time.sleep(SWEEP_S + 1)
+        with open_store(postgres_url) as store:
+            assert store.get_job(job_id).state in ("queued", "running"), "stored before the grace ended"
+        age_heartbeat(postgres_url, job_id, STALE_AFTER + TAKEOVER_GRACE)
+
+        with open_store(postgres_url) as store:
+            wait_until(
+                lambda: store.get_job(job_id).state == "interrupted",
+                "the job stored interrupted",
+                timeout=SWEEP_S + 30,
+            )
+            row = store.get_job(job_id)
+        assert row.finished_at is not None and row.version is None
+        assert owner in row.errors[0] and "Nothing was stored" in row.errors[0], row.errors
+        assert "its upload is not readable here" in row.errors[-1], row.errors
+        assert row.errors[-1].endswith("upload the batch again."), row.errors
+        assert b.job(job_id)["errors"] == list(row.errors), "every replica reports the stored row"
+        assert b.versions() == [1]

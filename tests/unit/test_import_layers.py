@@ -119,3 +119,16 @@ def test_the_store_and_the_client_import_nothing_of_service(folder: str) -> None
         if owner(name, ("service",))
     )
     assert not leaks, "\n".join(leaks)
+
+
+def test_the_http_plumbing_imports_only_the_ground_floor() -> None:
+    """service.api.http (bodies, admission, problems, middlewares) serves every route: it is given
+    what a use case knows, and imports none of them (nor the model and the math)."""
+    allowed = ("service.api.http", "service.infra", "service.errors")
+    leaks = sorted(
+        f"{path.relative_to(ROOT)}: {name}"
+        for path in (ROOT / "service" / "api" / "http").rglob("*.py")
+        for name in imported_modules(path)
+        if owner(name, ("service",)) and not owner(name, allowed)
+    )
+    assert not leaks, "\n".join(leaks)

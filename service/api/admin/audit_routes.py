@@ -5,14 +5,14 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Path, Query, Request, Response
+from fastapi import APIRouter, Path, Query
 from fastapi.concurrency import run_in_threadpool
 from pydantic import Field
 
-from service.api.admin.admin_presenters import audit_list, audit_out, job_out
+from service.api.admin.admin_presenters import audit_list, audit_out
 from service.api.admin.admin_schemas import AuditList, AuditOut, JobOut
-from service.api.admin.batch_upload import receive_batch_zip, refusals_audited, upload_route
-from service.api.deps import ADMIN_RESPONSES, Admin, Audits, Config, Model, Store, Trail
+from service.api.admin.batch_upload import AuditRejectedShare, BatchName, Note, Upload, upload_route
+from service.api.deps import ADMIN_RESPONSES, Admin, Audits, Model, Store
 from service.api.predict.predict_schemas import MAX_VERSION
 from service.errors import NotFound
 from service.monitoring.audit_report import DEFAULT_EPSILONS
@@ -41,12 +41,8 @@ MAX_AUDIT_ID = 2**63 - 1
     },
 )
 async def start_audit(
-    request: Request,
-    response: Response,
+    upload: Upload,
     audits: Audits,
-    trail: Trail,
-    settings: Config,
-    who: Admin,
     version: Annotated[
         int | None, Query(ge=1, le=MAX_VERSION, description="the version to audit (default: the active one)")
     ] = None,
@@ -54,31 +50,18 @@ async def start_audit(
         list[Annotated[float, Field(gt=0, lt=1)]] | None,
         Query(description="the epsilons to audit at, each in (0, 1), repeated (default 0.05, 0.1 and 0.2)"),
     ] = None,
-    name: Annotated[
-        str | None, Query(max_length=200, description="batch name (default: upload-<sha256>)")
-    ] = None,
-    note: Annotated[str, Query(max_length=2000)] = "",
+    name: BatchName = None,
+    note: Note = "",
     dedupe: Annotated[
         bool, Query(description="drop instances the version was calibrated with instead of refusing (409)")
     ] = False,
-    max_rejected_share: Annotated[
-        float | None,
-        Query(
-            ge=0,
-            le=1,
-            description="share of instances the box rule or strict decoding may reject"
-            " before the audit fails (default CKS_MAX_REJECTED_SHARE)",
-        ),
-    ] = None,
+    max_rejected_share: AuditRejectedShare = None,
 ) -> JobOut:
-    async with refusals_audited(trail, who, "audit"):
+    async with upload.audited("audit"):
         audit = AuditRequest(
             version, tuple(epsilon or DEFAULT_EPSILONS), name, note, dedupe, max_rejected_share
         )
-        workspace, sha256 = await receive_batch_zip(request, settings)
-        job = await run_in_threadpool(audits.accept, workspace, sha256, audit, who)
-    response.headers["Location"] = f"/v1/admin/jobs/{job.id}"
-    return job_out(job)
+        return await upload.start(audit, audits.accept)
 
 
 @router.get("/audits", response_model=AuditList, summary="Coverage audits of the served model, newest first")

@@ -1,25 +1,35 @@
-"""A labeled batch as the admin API receives it (calibration uploads and coverage audits): the
-upload routes' documentation (one operation per request content type), the zip body into an
-upload workspace, and every refusal of the action in the audit trail."""
+"""A labeled batch as the admin API receives it (calibration uploads and coverage audits): one
+route shape (``UploadCall``: the zip body into an upload workspace, handed to a job; 202 with
+the job), its shared query parameters and documentation (one operation per request content
+type), and every refusal of the action in the audit trail."""
 
 from __future__ import annotations
 
 from collections.abc import AsyncIterator, Callable
-from contextlib import asynccontextmanager
-from typing import Any
+from contextlib import AbstractAsyncContextManager, aclosing, asynccontextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, TypeVar
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.types import DecoratedCallable
 
-from calibration_store import StoreFull, StoreUnavailable
+from calibration_store import JobRecord, StoreFull, StoreUnavailable
+from service.api.admin.admin_presenters import job_out
 from service.api.admin.admin_schemas import JobOut
 from service.api.admin.job_links import JOB_LINKS
-from service.api.http.request_body import BodyPace, receive_upload
+from service.api.deps import Admin, Config, Trail
+from service.api.http.multipart_file import FilePart
+from service.api.http.request_body import BodyPace, paced_chunks
+from service.calibration.archive import SavedUpload, UploadSink
 from service.calibration.uploads import UploadWorkspace
 from service.errors import ServiceError, disk_full_refused
 from service.infra.audit_trail import AuditTrail, Operator
 from service.infra.settings import Settings
+
+Options = TypeVar("Options")
+_FLUSH_BYTES = 1 << 20
 
 ZIP_PART = "file"  # the zip's part name when the batch comes as multipart/form-data
 # One request content type per operation (client generators keep only one): the raw zip is documented
@@ -41,41 +51,11 @@ ZIP_FORM: dict[str, Any] = {
         }
     },
 }
-
-
 _RECEIVED = {
     "408": "The body did not arrive within CKS_UPLOAD_READ_TIMEOUT_SECONDS, or slower than"
     " CKS_MIN_BODY_BYTES_PER_SECOND",
     "413": "The zip, its files or its unzipped size exceed the limits",
 }
-
-
-def upload_route(
-    router: APIRouter,
-    paths: tuple[str, str],
-    summary: str,
-    batch: str,
-    responses: dict[str, str],
-    parameters: tuple[dict[str, Any], ...] = (),
-) -> Callable[[DecoratedCallable], DecoratedCallable]:
-    """The decorator of an upload route, registered twice: the raw zip on ``paths[0]``, the form on
-    ``paths[1]`` (operation ``<name>_form``); 202 with the job it starts, the body a zip of a
-    COCO-keypoints ``batch``, ``responses`` its refusals besides those of receiving the zip."""
-    refusals = {status: {"description": text} for status, text in {**_RECEIVED, **responses}.items()}
-    raw = {**ZIP_RAW, "description": f"The raw zip. A zip of a COCO-keypoints batch{batch}"}
-    form = {**ZIP_FORM, "description": f"The zip as the part 'file'. A zip of a COCO-keypoints batch{batch}"}
-    route = {"status_code": 202, "responses": {202: {"links": JOB_LINKS}}, "response_model": JobOut}
-
-    def register(endpoint: DecoratedCallable) -> DecoratedCallable:
-        def post(path: str, body: dict[str, Any], name: str | None, summary: str) -> None:
-            extra = {"requestBody": body, "responses": refusals, "parameters": list(parameters)}
-            router.post(path, name=name, summary=summary, openapi_extra=extra, **route)(endpoint)
-
-        post(paths[0], raw, None, summary)
-        post(paths[1], form, f"{endpoint.__name__}_form", f"{summary} (multipart/form-data)")
-        return endpoint
-
-    return register
 
 
 @asynccontextmanager
@@ -102,6 +82,86 @@ async def refusals_audited(
         raise
 
 
+BatchName = Annotated[str | None, Query(max_length=200, description="batch name (default: upload-<sha256>)")]
+Note = Annotated[str, Query(max_length=2000)]
+
+
+def _rejected_share(what: str) -> Any:
+    """The ``max_rejected_share`` parameter of an upload whose failure is ``what``'s."""
+    description = (
+        "share of instances the box rule or strict decoding may reject"
+        f" before {what} fails (default CKS_MAX_REJECTED_SHARE)"
+    )
+    return Annotated[float | None, Query(ge=0, le=1, description=description)]
+
+
+BatchRejectedShare = _rejected_share("the batch")
+AuditRejectedShare = _rejected_share("the audit")
+
+
+def upload_route(
+    router: APIRouter,
+    paths: tuple[str, str],
+    summary: str,
+    batch: str,
+    responses: dict[str, str],
+    parameters: tuple[dict[str, Any], ...] = (),
+) -> Callable[[DecoratedCallable], DecoratedCallable]:
+    """The decorator of an upload route, registered twice: the raw zip on ``paths[0]``, the form on
+    ``paths[1]`` (operation ``<name>_form``); 202 with the job it starts, the body a zip of a
+    COCO-keypoints ``batch``, ``responses`` its refusals besides those of receiving the zip, and
+    ``parameters`` documented beside the route's own."""
+    refusals = {status: {"description": text} for status, text in {**_RECEIVED, **responses}.items()}
+    raw = {**ZIP_RAW, "description": f"The raw zip. A zip of a COCO-keypoints batch{batch}"}
+    form = {**ZIP_FORM, "description": f"The zip as the part 'file'. A zip of a COCO-keypoints batch{batch}"}
+    route = {"status_code": 202, "responses": {202: {"links": JOB_LINKS}}, "response_model": JobOut}
+
+    def register(endpoint: DecoratedCallable) -> DecoratedCallable:
+        def post(path: str, body: dict[str, Any], name: str | None, summary: str) -> None:
+            extra = {"requestBody": body, "responses": refusals, "parameters": list(parameters)}
+            router.post(path, name=name, summary=summary, openapi_extra=extra, **route)(endpoint)
+
+        post(paths[0], raw, None, summary)
+        post(paths[1], form, f"{endpoint.__name__}_form", f"{summary} (multipart/form-data)")
+        return endpoint
+
+    return register
+
+
+@dataclass(frozen=True)
+class UploadCall:
+    """An upload route's call: the zip it receives and who sends it (``Upload``)."""
+
+    request: Request
+    response: Response
+    trail: AuditTrail
+    settings: Settings
+    who: Operator
+
+    def audited(self, action: str) -> AbstractAsyncContextManager[None]:
+        """Every refusal inside, ``action``'s in the audit trail (``refusals_audited``)."""
+        return refusals_audited(self.trail, self.who, action)
+
+    async def start(
+        self, options: Options, accept: Callable[[UploadWorkspace, str, Options, Operator], JobRecord]
+    ) -> JobOut:
+        """Receive the zip and hand it with ``options`` to ``accept``: the job it starts, with its
+        Location."""
+        workspace, sha256 = await receive_batch_zip(self.request, self.settings)
+        job = await run_in_threadpool(accept, workspace, sha256, options, self.who)
+        self.response.headers["Location"] = f"/v1/admin/jobs/{job.id}"
+        return job_out(job)
+
+
+async def upload_call(
+    request: Request, response: Response, trail: Trail, settings: Config, who: Admin
+) -> UploadCall:
+    return UploadCall(request, response, trail, settings, who)
+
+
+Upload = Annotated[UploadCall, Depends(upload_call)]
+
+
 async def receive_batch_zip(request: Request, settings: Settings) -> tuple[UploadWorkspace, str]:
     """Receive a zip body, or a form with the zip as its part 'file', paced and within the upload
     limits, into a new upload workspace; returns it with the zip's sha256 (the caller removes it
@@ -120,3 +180,28 @@ async def receive_batch_zip(request: Request, settings: Settings) -> tuple[Uploa
             await run_in_threadpool(workspace.remove)
             raise
     return workspace, saved.sha256
+
+
+async def receive_upload(
+    request: Request, dest: Path, limit: int, pace: BodyPace, part: str | None = None
+) -> SavedUpload:
+    """Stream the body, paced, to ``dest`` (never whole in memory), hashing it; 413 beyond ``limit``.
+    With ``part``, the body is multipart/form-data and only that part's bytes are kept."""
+    sink = await run_in_threadpool(UploadSink, dest, limit)
+    pending: list[bytes] = []
+    try:
+        form = None if part is None else FilePart(request.headers.get("content-type", ""), part, sink.write)
+        write = sink.write if form is None else form.write
+        async with aclosing(paced_chunks(request, pace)) as stream:
+            async for chunk in stream:
+                pending.append(chunk)
+                if sum(map(len, pending)) >= _FLUSH_BYTES:
+                    await run_in_threadpool(write, b"".join(pending))
+                    pending.clear()
+        await run_in_threadpool(write, b"".join(pending))
+        if form is not None:
+            form.finish()
+    except BaseException:
+        sink.abort()
+        raise
+    return sink.finish()

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Path, Query, Request, Response
+from fastapi import APIRouter, Path, Query, Response
 from fastapi.concurrency import run_in_threadpool
 from pydantic import Field
 
@@ -29,7 +29,14 @@ from service.api.admin.admin_schemas import (
     VersionDetail,
     VersionList,
 )
-from service.api.admin.batch_upload import receive_batch_zip, refusals_audited, upload_route
+from service.api.admin.batch_upload import (
+    BatchName,
+    BatchRejectedShare,
+    Note,
+    Upload,
+    refusals_audited,
+    upload_route,
+)
 from service.api.admin.job_links import JOB_RESULT_LINKS
 from service.api.deps import ADMIN_RESPONSES, Admin, Calibrations, Config, Jobs, Model, Registry, Store, Trail
 from service.api.predict.predict_schemas import MAX_VERSION, Nonconformity, Stratify
@@ -87,8 +94,9 @@ _OVERRIDES = {
         "then": _NEEDS_REASON,
     },
 }
+_NO_SUCH_VERSION: dict[int | str, dict[str, Any]] = {404: {"description": "No such version"}}
 _ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
-    404: {"description": "No such version"},
+    **_NO_SUCH_VERSION,
     409: {
         "description": "Refused by the guardrails (a keypoint's n below CKS_MIN_CALIBRATION_INSTANCES or"
         " below half the active version's; the body's `comparison` says where), or the version was"
@@ -118,15 +126,9 @@ _ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
     parameters=(_OVERRIDES,),
 )
 async def upload_calibration(
-    request: Request,
-    response: Response,
+    upload: Upload,
     calibrations: Calibrations,
-    trail: Trail,
-    settings: Config,
-    who: Admin,
-    name: Annotated[
-        str | None, Query(max_length=200, description="batch name (default: upload-<sha256>)")
-    ] = None,
+    name: BatchName = None,
     append_to: Annotated[
         int | None, Query(ge=1, le=MAX_VERSION, description="new version = this version + the batch")
     ] = None,
@@ -137,16 +139,8 @@ async def upload_calibration(
         bool, Query(description="drop instances already counted instead of refusing the batch (409)")
     ] = False,
     allow_duplicate: Annotated[bool, Query(include_in_schema=False)] = False,
-    max_rejected_share: Annotated[
-        float | None,
-        Query(
-            ge=0,
-            le=1,
-            description="share of instances the box rule or strict decoding may reject"
-            " before the batch fails (default CKS_MAX_REJECTED_SHARE)",
-        ),
-    ] = None,
-    note: Annotated[str, Query(max_length=2000)] = "",
+    max_rejected_share: BatchRejectedShare = None,
+    note: Note = "",
     stratify: Annotated[
         list[Stratify] | None,
         Query(
@@ -155,7 +149,7 @@ async def upload_calibration(
         ),
     ] = None,
 ) -> JobOut:
-    async with refusals_audited(trail, who, "upload"):
+    async with upload.audited("upload"):
         options = UploadOptions(
             name=name,
             note=note,
@@ -168,10 +162,7 @@ async def upload_calibration(
             max_rejected_share=max_rejected_share,
             stratify=None if stratify is None else _stratify(stratify),
         )
-        workspace, sha256 = await receive_batch_zip(request, settings)
-        job = await run_in_threadpool(calibrations.accept, workspace, sha256, options, who)
-    response.headers["Location"] = f"/v1/admin/jobs/{job.id}"
-    return job_out(job)
+        return await upload.start(options, calibrations.accept)
 
 
 def _stratify(values: list[str]) -> frozenset[str]:
@@ -238,7 +229,7 @@ async def list_calibrations(store: Store, model: Model, registry: Registry, _: A
     "/calibrations/{version}",
     response_model=VersionDetail,
     summary="One version in detail",
-    responses={404: {"description": "No such version"}},
+    responses=_NO_SUCH_VERSION,
 )
 async def get_calibration(
     version: VersionNumber, store: Store, model: Model, registry: Registry, _: Admin
@@ -257,7 +248,7 @@ async def get_calibration(
     "/calibrations/{version}/compare",
     response_model=ComparisonOut,
     summary="Dry run: compare a version with the active one (or another) without activating",
-    responses={404: {"description": "No such version"}},
+    responses=_NO_SUCH_VERSION,
 )
 async def compare_calibration(
     version: VersionNumber,

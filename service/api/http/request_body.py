@@ -11,17 +11,11 @@ import asyncio
 from collections.abc import AsyncIterator, Callable
 from contextlib import aclosing
 from dataclasses import dataclass
-from pathlib import Path
 
 from fastapi import Request
-from fastapi.concurrency import run_in_threadpool
 
-from service.api.http.multipart_file import FilePart
-from service.calibration.archive import SavedUpload, UploadSink
 from service.errors import PayloadTooLarge, RequestTimeout
 from service.infra.settings import Settings
-
-_FLUSH_BYTES = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -89,28 +83,3 @@ async def read_limited_body(
     body = b"".join(chunks)
     request._body = body  # lets request.form() parse what was already read
     return body
-
-
-async def receive_upload(
-    request: Request, dest: Path, limit: int, pace: BodyPace, part: str | None = None
-) -> SavedUpload:
-    """Stream the body, paced, to ``dest`` (never whole in memory), hashing it; 413 beyond ``limit``.
-    With ``part``, the body is multipart/form-data and only that part's bytes are kept."""
-    sink = await run_in_threadpool(UploadSink, dest, limit)
-    pending: list[bytes] = []
-    try:
-        form = None if part is None else FilePart(request.headers.get("content-type", ""), part, sink.write)
-        write = sink.write if form is None else form.write
-        async with aclosing(paced_chunks(request, pace)) as stream:
-            async for chunk in stream:
-                pending.append(chunk)
-                if sum(map(len, pending)) >= _FLUSH_BYTES:
-                    await run_in_threadpool(write, b"".join(pending))
-                    pending.clear()
-        await run_in_threadpool(write, b"".join(pending))
-        if form is not None:
-            form.finish()
-    except BaseException:
-        sink.abort()
-        raise
-    return sink.finish()

@@ -17,7 +17,7 @@ from pydantic import BaseModel, ValidationError
 from starlette.datastructures import FormData, UploadFile
 from starlette.exceptions import HTTPException
 
-from service.api.predict.predict_schemas import PoseRequest, PredictJson, PredictParameters
+from service.api.predict.predict_schemas import PoseRequest, PredictJson, PredictOptions, PredictParameters
 from service.detector.manifest import Manifest
 from service.errors import InvalidInput, UnsupportedMediaType
 from service.pose import Pose, PoseOptions, as_camera_matrix
@@ -113,20 +113,12 @@ async def _text(part: str | UploadFile) -> str:
 
 
 def predict_query(parameters: PredictParameters) -> PredictQuery:
-    """The schema's parameters as the domain's query (checked against the model by the domain)."""
+    """The schema's parameters as the domain's query: the options as they are, the instances and
+    the pose request in domain terms (checked against the image by the domain)."""
+    options = {name: getattr(parameters, name) for name in PredictOptions.model_fields}
     instances = tuple(Instance(i.object, i.bbox, i.group) for i in parameters.instances)
-    return PredictQuery(
-        instances=instances,
-        epsilon=parameters.epsilon,
-        nonconformity=parameters.nonconformity,
-        coverage=parameters.coverage,
-        delta=parameters.delta,
-        calibration_version=parameters.calibration_version,
-        include_statistics=parameters.include_statistics,
-        stratify=parameters.stratify,
-        group_fallback=parameters.group_fallback,
-        pose=None if parameters.pose is None else _pose_options(parameters.pose),
-    )
+    pose = None if parameters.pose is None else _pose_options(parameters.pose)
+    return PredictQuery(**{**options, "instances": instances, "pose": pose})
 
 
 def _pose_options(request: PoseRequest) -> PoseOptions:

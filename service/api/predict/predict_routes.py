@@ -32,13 +32,14 @@ from service.api.predict.predict_input import (
     require_batch_media,
 )
 from service.api.predict.predict_schemas import BatchResponse, PredictParameters, PredictResponse
+from service.detector.frames import EncodedFrame
 from service.errors import InvalidInput, ServiceError
 from service.infra.logs import note_calibration_version
 
 router = APIRouter(tags=["prediction"])
 log = logging.getLogger(__name__)
 
-_PREDICT_RESPONSES: dict[int | str, dict[str, Any]] = {
+PREDICT_RESPONSES: dict[int | str, dict[str, Any]] = {
     408: {"description": "The body did not arrive within CKS_REQUEST_READ_TIMEOUT_SECONDS"},
     404: {"description": "calibration_version names a version that does not exist"},
     409: {"description": "The calibration version was scored under other manifest settings"},
@@ -59,14 +60,14 @@ _BYTES = {"schema": {"type": "string", "format": "binary"}}
 _PNG = {"content": {"image/png": _BYTES, "application/octet-stream": _BYTES}}
 _BATCH_RESPONSES: dict[int | str, dict[str, Any]] = {
     200: {"description": "One item per image, in order: its result, or its problem (RFC 9457)"},
-    408: _PREDICT_RESPONSES[408],
+    408: PREDICT_RESPONSES[408],
     413: {"description": "The body exceeds CKS_MAX_REQUEST_BYTES"},
     415: {"description": "Not JSON or multipart/form-data"},
     422: {
         "description": "Not the documented layout (parts other than image_i and request_i, an index repeated"
         " or beyond CKS_MAX_BATCH_IMAGES, no images, or more images than the server admits at once)"
     },
-    429: _PREDICT_RESPONSES[429],
+    429: PREDICT_RESPONSES[429],
     503: {"description": "Not enough free places for every image of the batch (with Retry-After)"},
 }
 
@@ -100,7 +101,7 @@ def _json_and_form(path: str, bodies: tuple[dict, dict], form: str, summary: str
     description="The sets as JSON. (`Accept: image/png` here still answers the drawing, as before"
     " POST /v1/predict/png existed; generated clients should call that operation.)",
     response_model=PredictResponse,
-    responses=_PREDICT_RESPONSES,
+    responses=PREDICT_RESPONSES,
 )
 async def predict(request: Request, parts: Predicting) -> Response:
     return await _predict(request, parts, png=_wants_png(request))
@@ -112,7 +113,7 @@ async def predict(request: Request, parts: Predicting) -> Response:
     _IMAGE_FORM,
     summary="The image with its keypoint prediction sets drawn on it (PNG)",
     response_class=Response,
-    responses={200: {"description": "The image, sets drawn", **_PNG}, **_PREDICT_RESPONSES},
+    responses={200: {"description": "The image, sets drawn", **_PNG}, **PREDICT_RESPONSES},
 )
 async def predict_png(request: Request, parts: Predicting) -> Response:
     return await _predict(request, parts, png=True)
@@ -124,7 +125,7 @@ async def _predict(request: Request, parts: PredictParts, png: bool) -> Response
     body = await parts.receive(request)  # a slow client holds no place meanwhile
     async with parts.admission.admitted(client=client):
         image, parameters = await parse_predict(request, body, parts.manifest)
-        return await _compute(parts, client, image, parameters, png)
+        return await compute(parts, client, image, parameters, png)
 
 
 @_json_and_form(
@@ -156,17 +157,20 @@ async def predict_batch(request: Request, parts: Predicting) -> Response:
     return Response(b'{"items":[' + b",".join(answers) + b"]}", media_type="application/json")
 
 
-async def _compute(
-    parts: PredictParts, client: str, image: bytes, parameters: PredictParameters, png: bool
+async def compute(
+    parts: PredictParts, client: str, image: bytes | EncodedFrame, parameters: PredictParameters, png: bool
 ) -> Response:
-    """Predict and present on the CPU pool, inside a compute slot (decoded images exist only there)."""
+    """Predict and present on the CPU pool, inside a compute slot (decoded images exist only there);
+    ``image``: a JPEG or PNG file, or a frame's pixels (POST /v1/predict/frame)."""
     async with parts.admission.slot(client):
         loop = asyncio.get_running_loop()
         context = contextvars.copy_context()  # the pool's thread logs with the request's id
         return await loop.run_in_executor(parts.pool, context.run, _respond, parts, image, parameters, png)
 
 
-def _respond(parts: PredictParts, image: bytes, parameters: PredictParameters, png: bool) -> Response:
+def _respond(
+    parts: PredictParts, image: bytes | EncodedFrame, parameters: PredictParameters, png: bool
+) -> Response:
     query = predict_query(parameters)
     prediction = parts.predictor.predict(image, query)
     note_calibration_version(prediction.version)
@@ -184,7 +188,7 @@ async def _batch_answer(
     """One image's item as JSON: its result, or the problem it alone had."""
     try:
         image, parameters = item()
-        response = await _compute(parts, client, image, parameters, png=False)
+        response = await compute(parts, client, image, parameters, png=False)
         return b'{"status":200,"result":' + bytes(response.body) + b"}"
     except ServiceError as error:
         answer = problem(

@@ -84,6 +84,10 @@ NOT_MIRRORED = {
     "PredictParameters": "PredictRequest.parts writes it as the form's request part",
     "BatchJson": "predict_batch sends the multipart form, not base64 JSON",
     "Health": "the client has no call of /healthz (ready() reads /readyz)",
+    **dict.fromkeys(
+        ["FrameRequest", "FrameIn", "RegionIn"],
+        "keypoint_client.frames.frame_parts writes it from a numpy frame",
+    ),
 }
 
 

@@ -195,3 +195,23 @@ def test_processes_share_jobs(store_url: str) -> None:
                 assert got is not None, job_id
                 assert (got.state, got.done, got.total, got.result) == ("succeeded", 5, 5, {"i": i})
                 assert got.owner == f"worker-{worker}"
+
+
+def test_stale_jobs_are_the_silent_unfinished_ones(store: CalibrationStore) -> None:
+    now = datetime.now(UTC)
+    for job_id, silent, state in (
+        ("oldest", 300, "running"),
+        ("old", 200, "queued"),
+        ("fresh", 10, "running"),
+        ("finished", 300, "failed"),
+    ):
+        at = now - timedelta(seconds=silent)
+        store.create_job(
+            JobRecord(id=job_id, kind="calibration", owner="o", created_at=at, heartbeat_at=at, state=state)
+        )
+    assert [j.id for j in store.stale_jobs(now - timedelta(seconds=60))] == ["oldest", "old"]
+    assert [j.id for j in store.stale_jobs(now - timedelta(seconds=60), limit=1)] == ["oldest"]
+    store.update_job("old")  # a sign of life
+    assert [j.id for j in store.stale_jobs(now - timedelta(seconds=60))] == ["oldest"]
+    with pytest.raises(ValueError, match="timezone-aware"):
+        store.stale_jobs(datetime.now())

@@ -82,3 +82,23 @@ def bootstrap(url: str, barrier: Any, worker: int, results: Any) -> None:
     info = store.create_first_version(new_version(author=f"w{worker}"), score_table(n=4), who=f"w{worker}")
     store.close()
     results.put((worker, None if info is None else info.number))
+
+
+def create_same_content(url: str, barrier: Any, worker: int, key: str, results: Any) -> None:
+    """Store a version with content ``key`` at the same moment as the other workers; report the
+    number, or the number of the version the store named as its twin."""
+    from dataclasses import replace
+
+    from calibration_store import DuplicateVersion
+
+    store = open_store(url)
+    barrier.wait(timeout=60)
+    try:
+        info = store.create_version(
+            replace(new_version(author=f"w{worker}"), content_key=key), score_table(n=4)
+        )
+        results.put((worker, "stored", info.number))
+    except DuplicateVersion as error:
+        results.put((worker, "refused", error.number))
+    finally:
+        store.close()

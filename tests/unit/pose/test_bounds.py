@@ -36,8 +36,8 @@ def test_points_are_drawn_inside_their_sets() -> None:
         assert (set_violations(sample_points_in_sets(centers, shapes, rng), centers, shapes) <= 1).all()
 
 
-def scene(camera, duck_3d, true_pose):
-    rng = np.random.default_rng(11)
+def scene(camera, duck_3d, true_pose, rng: np.random.Generator | None = None):
+    rng = rng or np.random.default_rng(11)
     shapes = ellipses(8, rng)
     # centres moved off the truth by half of each set's size, in random directions
     angle = rng.uniform(0, 2 * np.pi, 8)

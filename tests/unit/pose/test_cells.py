@@ -7,9 +7,10 @@ import itertools
 
 import numpy as np
 
-from service.pose import PoseOptions, instance_pose_sets
-from service.pose.cells import Cell, Cube, root_cells
-from service.pose.rotations import from_rotation_vector, rotation_angle_deg, to_quaternion
+from service.pose import Pose, PoseOptions, instance_pose_sets, membership
+from service.pose.cells import Cell, Wedge, root_cells
+from service.pose.relaxation import ROTATION_TOLERANCE, TRANSLATION_TOLERANCE
+from service.pose.rotations import from_rotation_vector, left_product, rotation_angle_deg, to_quaternion
 from tests.unit.pose.test_bounds import scene
 
 
@@ -38,30 +39,52 @@ def test_cells_cover_rotations_and_lie_in_their_caps() -> None:
         assert float(centre @ q) ** 2 >= cosine_squared - 1e-12
 
 
-def cube_of(w: np.ndarray, cubes: list[Cube]) -> Cube | None:
-    for cube in cubes:
-        if (np.abs(w - np.array(cube.centre)) <= cube.half + 1e-12).all():
-            return cube
-    return None
-
-
-def test_cubes_cover_the_ball_around_an_estimate_and_lie_in_their_caps() -> None:
+def test_wedges_cover_the_rotations_near_an_estimate_and_their_sides_cut_them_out() -> None:
+    """Every rotation within the radius lies in a wedge (three splits deep), and a wedge's rotations,
+    and only they, satisfy its three side constraints; each lies in the wedge's cap and between its
+    nearest and farthest angles."""
     rng = np.random.default_rng(6)
     estimate = from_rotation_vector(np.array([0.3, -1.0, 2.0]))
     radius = 1.2
-    cubes = [Cube.around(radius)]
+    wedges = Wedge.around(radius)
     for _ in range(3):
-        cubes = [child for cube in cubes for child in cube.split(radius)]
-    assert 64 < len(cubes) < 512  # the corners outside the ball are left out
+        wedges = [child for wedge in wedges for child in wedge.split(radius)]
+    assert 64 < len(wedges) < 512  # the corners outside the ball are left out
+    anchor = left_product(to_quaternion(estimate))
     for _ in range(2000):
         w = rng.normal(size=3)
         w *= rng.uniform(0, radius) / np.linalg.norm(w)
-        cube = cube_of(w, cubes)
-        assert cube is not None
         rotation = estimate @ from_rotation_vector(w)
-        centre, cosine_squared = cube.cap(estimate)
-        assert float(centre @ to_quaternion(rotation)) ** 2 >= cosine_squared - 1e-12
-        assert np.radians(rotation_angle_deg(estimate, rotation)) <= cube.farthest_angle() + 1e-12
+        q = to_quaternion(rotation)
+        relative = anchor.T @ q  # the quaternion of R_hat^T R
+        inside = [
+            wedge
+            for wedge in wedges
+            if all(float(a @ q) * float(b @ q) <= 1e-12 for a, b in wedge.sides(estimate))
+        ]
+        assert inside, w
+        for wedge in inside:
+            gibbs = relative[1:] / relative[0]
+            assert (np.array(wedge.low) - 1e-9 <= gibbs).all() and (
+                gibbs <= np.array(wedge.high) + 1e-9
+            ).all()
+            centre, cosine_squared = wedge.cap(estimate)
+            assert float(centre @ q) ** 2 >= cosine_squared - 1e-12
+            angle = np.radians(rotation_angle_deg(estimate, rotation))
+            assert wedge.nearest_angle() - 1e-12 <= angle <= wedge.farthest_angle() + 1e-12
+
+
+def test_the_four_faces_cover_every_rotation() -> None:
+    rng = np.random.default_rng(7)
+    estimate = from_rotation_vector(np.array([-2.0, 0.5, 0.1]))
+    faces = Wedge.around(np.radians(170.0))
+    assert len(faces) == 4
+    for _ in range(500):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        assert any(
+            all(float(a @ q) * float(b @ q) <= 1e-12 for a, b in face.sides(estimate)) for face in faces
+        )
 
 
 def test_the_quaternion_is_the_rotations() -> None:
@@ -101,3 +124,28 @@ def test_more_programs_never_loosen_the_search(camera, duck_3d, true_pose) -> No
         assert tighter.certified, tighter
         assert tighter.rotation_deg <= looser.rotation_deg and tighter.translation <= looser.translation
     assert answers[-1].outer.rotation_deg < 0.5 * answers[0].outer.rotation_deg
+
+
+def test_the_search_stops_within_its_stated_tolerance_and_its_bounds_hold(camera, duck_3d) -> None:
+    """On scenes whose true pose is in PURSE: the certified bounds contain the true pose's error and
+    every pose found; a search that stopped before its budget has its bounds within
+    ROTATION_TOLERANCE and TRANSLATION_TOLERANCE of the poses found."""
+    rng = np.random.default_rng(21)
+    stopped = 0
+    for _ in range(4):
+        truth = Pose(from_rotation_vector(rng.normal(size=3)), np.array([*rng.uniform(-80, 80, 2), 800.0]))
+        centers, shapes = scene(camera, duck_3d, truth, rng)
+        assert membership(truth, camera, duck_3d, centers, shapes).inside
+        answer = instance_pose_sets(
+            duck_3d, centers, shapes, PoseOptions(camera, samples=50, outer_programs=400)
+        )
+        estimate, inner, outer = answer.estimate, answer.inner, answer.outer
+        assert outer.certified, outer.status
+        assert rotation_angle_deg(estimate.rotation, truth.rotation) <= outer.rotation_deg
+        assert np.linalg.norm(estimate.translation - truth.translation) <= outer.translation
+        assert inner.rotation_deg <= outer.rotation_deg and inner.translation <= outer.translation
+        if int(outer.status.split("(")[1].split(" ")[0]) < 400:
+            stopped += 1
+            assert outer.rotation_deg <= ROTATION_TOLERANCE * inner.rotation_deg * (1 + 1e-9)
+            assert outer.translation <= TRANSLATION_TOLERANCE * inner.translation * (1 + 1e-9)
+    assert stopped >= 3

@@ -14,9 +14,9 @@ import pytest
 
 from calibration_store import JobRecord
 from calibration_store.sqlite import SQLiteStore
-from service.calibration import jobs
-from service.calibration.jobs import JobProgress, JobRunner, reported
 from service.errors import InvalidInput
+from service.infra import job_engine as jobs
+from service.infra.job_engine import JobProgress, JobRunner, reported
 from tests.service_calls import wait_until
 
 OWNER = "test-host:4242"
@@ -215,6 +215,55 @@ def test_a_silent_unfinished_job_is_reported_interrupted(store: CountingStore, r
     assert runner.get("alive").state == "running"
     assert runner.get("done-long-ago").state == "succeeded"
     assert runner.get("unknown") is None
+
+
+def stale_row(store: CountingStore, job_id: str, kind: str, silent: timedelta) -> None:
+    heartbeat_at = datetime.now(UTC) - silent
+    store.create_job(
+        JobRecord(
+            id=job_id, kind=kind, owner="gone-host:999", created_at=heartbeat_at, heartbeat_at=heartbeat_at
+        )
+    )
+
+
+def test_a_stale_job_is_offered_to_its_takeover_and_never_left_unfinished(store: CountingStore) -> None:
+    """Every process looks after the stale jobs of the kinds it knows: one it can read is taken
+    over; one nobody took over within the grace is stored interrupted, saying why; one of a kind
+    nobody can take over is stored interrupted at once; an unknown kind is left alone."""
+    just_stale = jobs.STALE_AFTER + timedelta(seconds=5)
+    stale_row(store, "readable", "calibration", just_stale)
+    stale_row(store, "elsewhere", "calibration", just_stale)
+    stale_row(store, "given-up", "calibration", jobs.STALE_AFTER + jobs.TAKEOVER_GRACE + timedelta(seconds=5))
+    stale_row(store, "audit", "audit", just_stale)
+    stale_row(store, "other-kind", "export", just_stale)
+    offered: list[str] = []
+
+    def take_over(job: JobRecord) -> bool:
+        offered.append(job.id)
+        if job.id != "readable":
+            return False
+        store.update_job(
+            job.id, state="interrupted", finished_at=datetime.now(UTC), result={"retried_as": "x"}
+        )
+        return True
+
+    runner = JobRunner(store, workers=1, owner=OWNER)
+    try:
+        runner.on_stale("calibration", take_over)
+        runner.on_stale("audit", None)
+        wait_until(lambda: state_of(store, "audit") == "interrupted", "a stale audit is stored interrupted")
+        wait_until(lambda: state_of(store, "given-up") == "interrupted", "a job nobody took over is stored")
+    finally:
+        runner.shutdown()
+    assert sorted(set(offered)) == ["elsewhere", "given-up", "readable"]
+    assert store.get_job("readable").result == {"retried_as": "x"}, "the takeover's own write stays"
+    assert state_of(store, "elsewhere") == "queued", "within the grace a readable copy may still take it"
+    assert state_of(store, "other-kind") == "queued"
+    given_up = store.get_job("given-up")
+    assert given_up.finished_at is not None and "gone-host:999" in given_up.errors[0]
+    assert given_up.errors[-1].startswith("No server that can read its upload took it over"), given_up.errors
+    assert "upload the batch again" in given_up.errors[-1]
+    assert "not taken over by another process" in store.get_job("audit").errors[-1]
 
 
 def test_staleness_limit() -> None:

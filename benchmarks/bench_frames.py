@@ -1,0 +1,335 @@
+"""A camera frame in memory to the parsed answer, one request at a time, side by side.
+
+    python -m benchmarks.bench_frames              # 4 sizes x 1 and 4 boxes, 15 rounds; docs/performance.md
+    python -m benchmarks.bench_frames --rounds 3 --sizes 640x480 --output /tmp/p.md   # a smoke run
+
+Frames of 640x480, 1280x720, 1920x1080 and 3840x2160 (the samples folder's busiest image scaled
+to the height, the rest of the width its mirror image), 1 and 4 boxes, concurrency 1, keep-alive
+connections. Each round sends, in turn: the service with the boxes' regions as raw pixels and as
+JPEG (POST /v1/predict/frame, the client's ``frame_parts``), the service with the whole frame as
+JPEG (POST /v1/predict), the plain FastAPI peer (benchmarks/peers/fastapi_app.py, the fastest peer
+at concurrency 1 in bench_peers) with the whole JPEG, and through the Python client
+``predict(frame)`` against JPEG encode + ``predict(jpeg bytes)``. Every time includes the
+client's encoding and the parsing of the answer. Before timing: the raw regions' answer must be
+the whole frame's (PNG) byte for byte, and the peer's the service's for the same JPEG.
+Writes the ``bench_frames`` section of docs/performance.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import httpx
+import numpy as np
+
+from benchmarks.peers.answers import difference
+from benchmarks.peers.servers import PEERS, SERVICE
+from benchmarks.service_bench import page
+from benchmarks.service_bench.inputs import Sample, load_sample
+from benchmarks.service_bench.machine import this_machine
+from benchmarks.service_bench.server import Server
+from service.detector.crop import crop_affines, crop_contexts, warp_crop
+from service.detector.frames import EncodedFrame, EncodedRegion, open_frame
+from service.infra.settings import DEFAULT_MODEL_DIR
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "client"))  # this checkout's client, not an installed copy
+
+from keypoint_client import KeypointClient  # noqa: E402
+from keypoint_client.frames import frame_parts, jpeg_bytes  # noqa: E402
+
+DEFAULT_OUTPUT = ROOT / "docs" / "performance.md"
+SIZES = ((640, 480), (1280, 720), (1920, 1080), (3840, 2160))
+BOXES = (1, 4)
+CROP_SIZE = (128, 128)  # the bundled model's input
+PEER = next(peer for peer in PEERS if peer.name == "FastAPI")
+CONTENDERS = (
+    "service, raw regions",
+    "service, JPEG regions",
+    "service, whole JPEG",
+    "FastAPI, whole JPEG",
+    "client predict(frame)",
+    "client JPEG + predict",
+)
+Send = Callable[[], object]
+
+
+def log(message: str) -> None:
+    print(message, flush=True)
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=15, help="timed requests per contender and point")
+    parser.add_argument(
+        "--sizes", default=",".join(f"{w}x{h}" for w, h in SIZES), help="e.g. 640x480,1920x1080"
+    )
+    parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT)
+    args = parser.parse_args(argv)
+    args.sizes = [tuple(int(v) for v in size.split("x")) for size in args.sizes.split(",")]
+    return args
+
+
+@dataclass(frozen=True)
+class Point:
+    """One frame size and box count: the frame (RGB) and the request's parameters."""
+
+    width: int
+    height: int
+    boxes: int
+    frame: np.ndarray
+    parameters: dict
+
+    @property
+    def name(self) -> str:
+        return f"{self.width}x{self.height}, {self.boxes} box{'es' if self.boxes > 1 else ''}"
+
+
+def make_point(sample: Sample, width: int, height: int, boxes: int) -> Point:
+    """The sample scaled to the frame's height at its left, its mirror image filling the rest."""
+    bgr = cv2.imdecode(np.frombuffer(sample.jpeg, np.uint8), cv2.IMREAD_COLOR)
+    scale = height / bgr.shape[0]
+    scaled = cv2.resize(bgr, (round(bgr.shape[1] * scale), height), interpolation=cv2.INTER_LINEAR)
+    mirrored = np.concatenate([scaled, scaled[:, ::-1]] * (1 + width // (2 * scaled.shape[1])), axis=1)
+    frame = np.ascontiguousarray(mirrored[:, :width, ::-1])  # RGB, as a camera driver gives it
+    chosen = sample.with_instances(boxes)
+    instances = [{**i, "bbox": [v * scale for v in i["bbox"]]} for i in chosen.instances]
+    return Point(width, height, boxes, frame, {"instances": instances})
+
+
+class Contenders:
+    """How each contender sends one point's frame and parses the answer."""
+
+    def __init__(self, service: Server, peer: Server, padding: float) -> None:
+        self.servers = service, peer
+        self.http = httpx.Client(base_url=service.url, timeout=120)
+        self.peer = httpx.Client(base_url=peer.url, timeout=120)
+        self.client = KeypointClient(service.url, timeout=120)
+        self.padding = padding
+
+    def close(self) -> None:
+        for closable in (self.http, self.peer, self.client):
+            closable.close()
+
+    def regions(self, point: Point, sending: str = "regions") -> dict:
+        files = frame_parts(point.frame, point.parameters, self.padding, sending)  # type: ignore[arg-type]
+        return _answer(self.http.post("/v1/predict/frame", files=files))
+
+    def whole_jpeg(self, point: Point, http: httpx.Client) -> dict:
+        files = {"image": ("frame.jpg", jpeg_bytes(point.frame), "image/jpeg")}
+        return _answer(http.post("/v1/predict", files=files, data={"request": json.dumps(point.parameters)}))
+
+    def sends(self, point: Point) -> dict[str, tuple[Send, Server]]:
+        """Each contender's request, and the server that answers it."""
+        instances = point.parameters["instances"]
+        service, peer = self.servers
+        return {
+            CONTENDERS[0]: (lambda: self.regions(point), service),
+            CONTENDERS[1]: (lambda: self.regions(point, "jpeg-regions"), service),
+            CONTENDERS[2]: (lambda: self.whole_jpeg(point, self.http), service),
+            CONTENDERS[3]: (lambda: self.whole_jpeg(point, self.peer), peer),
+            CONTENDERS[4]: (lambda: self.client.predict(point.frame, instances), service),
+            CONTENDERS[5]: (lambda: self.client.predict(jpeg_bytes(point.frame), instances), service),
+        }
+
+    def check(self, point: Point) -> None:
+        """Raw regions answer as the whole frame's PNG does, byte for byte; the peer as the service."""
+        png = cv2.imencode(".png", point.frame[:, :, ::-1])[1].tobytes()  # a raw 4K frame is above 20 MiB
+        files = {"image": ("frame.png", png, "image/png")}
+        whole = self.http.post("/v1/predict", files=files, data={"request": json.dumps(point.parameters)})
+        regions = frame_parts(point.frame, point.parameters, self.padding, "regions")
+        answer = self.http.post("/v1/predict/frame", files=regions)
+        if whole.status_code != 200 or answer.content != whole.content:
+            raise SystemExit(f"{point.name}: the raw regions' answer is not the whole frame's")
+        why = difference(self.whole_jpeg(point, self.http), self.whole_jpeg(point, self.peer))
+        if why is not None:
+            raise SystemExit(f"{point.name}: the peer's answer differs from the service's: {why}")
+
+
+def _answer(response: httpx.Response) -> dict:
+    response.raise_for_status()
+    return response.json()
+
+
+@dataclass
+class Timings:
+    """Per (point, contender): wall milliseconds of each request, and the CPU milliseconds the
+    client process and the answering server spent on them (their sum, for a mean per request)."""
+
+    wall: dict[tuple[str, str], list[float]] = field(default_factory=dict)
+    cpu: dict[tuple[str, str], float] = field(default_factory=dict)
+
+    def add(self, key: tuple[str, str], wall_s: float, cpu_s: float) -> None:
+        self.wall.setdefault(key, []).append(1000 * wall_s)
+        self.cpu[key] = self.cpu.get(key, 0.0) + 1000 * cpu_s
+
+    def median(self, key: tuple[str, str]) -> float:
+        return statistics.median(self.wall[key])
+
+    def cpu_mean(self, key: tuple[str, str]) -> float:
+        return self.cpu[key] / len(self.wall[key])
+
+
+def measure(contenders: Contenders, points: list[Point], rounds: int) -> Timings:
+    """The contenders taking turns within each round (paired); CPU read outside the timed span."""
+    timings = Timings()
+    for point in points:
+        contenders.check(point)
+        sends = contenders.sends(point)
+        for send, _ in sends.values():  # warm: connections, first runs of each batch size
+            send()
+        for _ in range(rounds):
+            for name, (send, server) in sends.items():
+                cpu_before = time.process_time() + server.cpu_seconds()
+                started = time.perf_counter()
+                send()
+                wall = time.perf_counter() - started
+                timings.add((point.name, name), wall, time.process_time() + server.cpu_seconds() - cpu_before)
+        log(f"{point.name}: " + ", ".join(f"{n} {timings.median((point.name, n)):.1f}" for n in sends))
+    return timings
+
+
+def canvas_ab(point: Point, padding: float, rounds: int) -> tuple[float, float]:
+    """Median ms to cut ``point``'s crops from its raw regions in process, taking turns: as the
+    service does (the thread's zero canvas kept between frames), and with a fresh ``np.zeros``
+    canvas per region (the simplest way, what the kept canvas replaced)."""
+    boxes = np.array([instance["bbox"] for instance in point.parameters["instances"]])
+    contexts = crop_contexts(boxes, padding, point.width, point.height)
+    regions = tuple(
+        EncodedRegion(
+            int(x0), int(y0), int(x1 - x0), int(y1 - y0), "rgb8", point.frame[y0:y1, x0:x1].tobytes(), (i,)
+        )
+        for i, (x0, y0, x1, y1) in enumerate(contexts)
+    )
+    source = open_frame(EncodedFrame(point.width, point.height, regions), boxes, padding, 10**9, 10**10)
+    affines = crop_affines(boxes, padding, CROP_SIZE)
+    kept: list[float] = []
+    fresh: list[float] = []
+
+    def on_fresh_canvases() -> None:
+        for region in source.regions:
+            canvas = np.zeros((point.height, point.width, 3), dtype=np.uint8)
+            height, width = region.pixels.shape[:2]
+            canvas[region.y_offset : region.y_offset + height, region.x_offset : region.x_offset + width] = (
+                region.pixels
+            )
+            for i in region.instances or ():
+                warp_crop(canvas, affines[i], CROP_SIZE)
+
+    source.crops(affines, CROP_SIZE)  # this thread's canvas, made once
+    for _ in range(rounds):
+        for cut, into in ((lambda: source.crops(affines, CROP_SIZE), kept), (on_fresh_canvases, fresh)):
+            started = time.perf_counter()
+            cut()
+            into.append(1000 * (time.perf_counter() - started))
+    return statistics.median(kept), statistics.median(fresh)
+
+
+def _cell(values: list[float]) -> str:
+    quartiles = statistics.quantiles(values, n=4) if len(values) > 1 else [values[0]] * 3
+    return f"{quartiles[1]:.1f} ({quartiles[0]:.1f}-{quartiles[2]:.1f})"
+
+
+def render(
+    command: str, machine: str, points: list[Point], timings: Timings, rounds: int, load: str, canvas: str
+) -> str:
+    header = "| frame, boxes | " + " | ".join(CONTENDERS) + " |"
+    rule = "|" + "---|" * (len(CONTENDERS) + 1)
+    walls = [header, rule]
+    walls += [
+        f"| {p.name} | " + " | ".join(_cell(timings.wall[p.name, n]) for n in CONTENDERS) + " |"
+        for p in points
+    ]
+    cpus = [header, rule]
+    cpus += [
+        f"| {p.name} | " + " | ".join(f"{timings.cpu_mean((p.name, n)):.1f}" for n in CONTENDERS) + " |"
+        for p in points
+    ]
+    ratios = [
+        "| frame, boxes | FastAPI whole JPEG / service raw regions, time (CPU) | service whole JPEG / raw"
+        " regions, time (CPU) | client JPEG + predict / client predict(frame), time (CPU) |",
+        "|---|---|---|---|",
+    ]
+    for p in points:
+        cells = []
+        for slow, fast in ((3, 0), (2, 0), (5, 4)):
+            (a, b) = ((p.name, CONTENDERS[slow]), (p.name, CONTENDERS[fast]))
+            wall, cpu = timings.median(a) / timings.median(b), timings.cpu_mean(a) / timings.cpu_mean(b)
+            cells.append(f"**{wall:.2f}** ({cpu:.2f})")
+        ratios.append(f"| {p.name} | " + " | ".join(cells) + " |")
+    return "\n".join(
+        [
+            "## A camera frame to sets (bench_frames)",
+            "",
+            f"`{command}`: {machine}; load average after the run {load}. From a frame in memory (RGB) to"
+            f" the parsed answer, {rounds} requests per cell, one at a time on a keep-alive connection, the"
+            " contenders taking turns in each round; 4 boxes are the sample's 3 and its first again (as in"
+            " bench_peers: the client's regions share one rectangle for those two); every figure includes"
+            " the client's encoding (JPEG"
+            " quality 95 where JPEG). CPU: the client process's and the answering server's CPU time per"
+            " request (less moved by other jobs on the machine than the wall time). Checked first: the raw"
+            " regions' answer is the whole frame's PNG's byte for byte, and the peer's is the service's for"
+            " the same JPEG.",
+            "",
+            "### Ratios (wall-time medians, and mean CPU, of the same run)",
+            "",
+            *ratios,
+            "",
+            "### Wall time, ms: median (quartiles)",
+            "",
+            *walls,
+            "",
+            "### CPU time, core-ms per request (client + server), mean",
+            "",
+            *cpus,
+            "",
+            "### The regions' canvas (in process, same run)",
+            "",
+            canvas,
+        ]
+    )
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
+    sample = load_sample(DEFAULT_MODEL_DIR / "samples")
+    padding = json.loads((DEFAULT_MODEL_DIR / "manifest.json").read_text())["crop"]["padding"]
+    points = [make_point(sample, w, h, boxes) for w, h in args.sizes for boxes in BOXES]
+    machine = this_machine().describe()
+    logs = Path(tempfile.mkdtemp(prefix="bench-frames-"))
+    with SERVICE.running(logs / "service.log") as service, PEER.running(logs / "peer.log") as peer:
+        contenders = Contenders(service, peer, padding)
+        try:
+            timings = measure(contenders, points, args.rounds)
+        finally:
+            contenders.close()
+    largest = max(points, key=lambda p: (p.width * p.height, p.boxes))
+    kept, fresh = canvas_ab(largest, padding, args.rounds)
+    canvas = (
+        f"Cutting the {largest.boxes} crops of {largest.name.split(',')[0]} from raw regions, median of"
+        f" {args.rounds}, taking turns: {kept:.2f} ms with the thread's kept canvas (what the service"
+        f" does), {fresh:.2f} ms with a fresh `np.zeros` canvas per region, which pays a page fault for"
+        " each row a region touches."
+    )
+    load_after = ", ".join(f"{v:.2f}" for v in os.getloadavg())
+    command = " ".join(["python -m benchmarks.bench_frames", *(sys.argv[1:] if argv is None else argv)])
+    page.write_section(
+        args.output,
+        "bench_frames",
+        render(command, machine, points, timings, args.rounds, load_after, canvas),
+    )
+    log(f"wrote the bench_frames section of {args.output}")
+
+
+if __name__ == "__main__":
+    main()

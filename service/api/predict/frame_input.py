@@ -1,0 +1,118 @@
+"""POST /v1/predict/frame bodies -> the domain's ``EncodedFrame`` and the request's parameters.
+
+The body is multipart/form-data, already received whole within CKS_MAX_REQUEST_BYTES: its parts
+are cut out of it in place (python-multipart's parser, one pass), so raw pixels reach the
+detector as views of the body, never copied or spooled to disk on the way.
+"""
+
+from __future__ import annotations
+
+from python_multipart.exceptions import MultipartParseError
+from python_multipart.multipart import MultipartParser, parse_options_header
+
+from service.api.predict.frame_schemas import FrameRequest
+from service.api.predict.predict_input import validated
+from service.detector.frames import RAW_CHANNELS, EncodedFrame, EncodedRegion
+from service.detector.manifest import Manifest
+from service.errors import InvalidInput, UnsupportedMediaType
+
+REQUEST_PART, PIXELS_PART = "request", "pixels"
+LAYOUT = (
+    "send multipart/form-data with the part 'request' (JSON: instances, options, frame, regions) and"
+    " one part 'pixels' per region, in the order of regions (or one, the whole frame)"
+)
+
+
+def require_multipart(content_type: str) -> None:
+    """415 unless multipart/form-data (checked before the body is received)."""
+    media = content_type.split(";")[0].strip().lower()
+    if media != "multipart/form-data":
+        raise UnsupportedMediaType(f"{LAYOUT}; not {media!r}")
+
+
+def parse_frame(content_type: str, body: bytes, manifest: Manifest) -> tuple[EncodedFrame, FrameRequest]:
+    """The frame and the parameters of a POST /v1/predict/frame body; 422 naming what to fix."""
+    parts = _parts(content_type, body)
+    names = [name for name, _ in parts]
+    if names.count(REQUEST_PART) != 1 or set(names) - {REQUEST_PART, PIXELS_PART}:
+        raise InvalidInput(f"the parts are {names}: {LAYOUT}")
+    raw = next(bytes(data) for name, data in parts if name == REQUEST_PART)
+    parameters = validated(FrameRequest, raw, manifest)
+    pixels = [data for name, data in parts if name == PIXELS_PART]
+    return _frame(parameters, pixels), parameters
+
+
+def _frame(parameters: FrameRequest, pixels: list[bytes | memoryview]) -> EncodedFrame:
+    frame, regions = parameters.frame, parameters.regions
+    if (frame.encoding is None) == (regions is None):
+        raise InvalidInput(
+            "send either frame.encoding with the whole frame as the one 'pixels' part, or regions"
+            " (each with its encoding) with one 'pixels' part per region, not both or neither"
+        )
+    expected = 1 if regions is None else len(regions)
+    if len(pixels) != expected:
+        what = "the whole frame" if regions is None else f"the {expected} regions, in order"
+        raise InvalidInput(f"{len(pixels)} 'pixels' parts, for {what}: send {expected}")
+    if regions is None:
+        assert frame.encoding is not None
+        return EncodedFrame.of_whole(
+            frame.width, frame.height, frame.encoding, _data(frame.encoding, pixels[0])
+        )
+    encoded = tuple(
+        EncodedRegion(
+            r.x_offset, r.y_offset, r.width, r.height, r.encoding, _data(r.encoding, data), tuple(r.instances)
+        )
+        for r, data in zip(regions, pixels, strict=True)
+    )
+    return EncodedFrame(frame.width, frame.height, encoded)
+
+
+def _data(encoding: str, data: bytes | memoryview) -> bytes | memoryview:
+    """Raw pixels stay a view of the body; a JPEG or PNG becomes bytes, as its decoders take it."""
+    return data if encoding in RAW_CHANNELS else bytes(data)
+
+
+def _parts(content_type: str, body: bytes) -> list[tuple[str, bytes | memoryview]]:
+    """Each part's name and bytes, in order (a view of ``body`` where the part is one piece)."""
+    _, options = parse_options_header(content_type)
+    boundary = options.get(b"boundary")
+    if not boundary:
+        raise InvalidInput("multipart/form-data needs a boundary in its Content-Type")
+    parts: list[tuple[str, list]] = []
+    headers: list[bytes] = []
+    value = bytearray()
+    whole = memoryview(body)
+
+    def header_value(data: bytes, start: int, end: int) -> None:
+        value.extend(data[start:end])
+
+    def header_end() -> None:
+        headers.append(bytes(value))
+        value.clear()
+
+    def part_begins() -> None:
+        found = [parse_options_header(v)[1].get(b"name") for v in headers]
+        name = next((n.decode("utf-8", "replace") for n in found if n), "")
+        parts.append((name, []))
+        headers.clear()
+
+    def part_data(data: bytes, start: int, end: int) -> None:
+        parts[-1][1].append(whole[start:end] if data is body else bytes(data[start:end]))
+
+    callbacks = {
+        "on_header_value": header_value,
+        "on_header_end": header_end,
+        "on_headers_finished": part_begins,
+        "on_part_data": part_data,
+    }
+    ended: list[bool] = []
+    callbacks["on_end"] = lambda: ended.append(True)
+    parser = MultipartParser(boundary, callbacks)  # type: ignore[arg-type]
+    try:
+        parser.write(body)
+        parser.finalize()
+    except MultipartParseError as error:
+        raise InvalidInput(f"malformed multipart body: {error}") from error
+    if not ended:
+        raise InvalidInput("the multipart body ends before its closing boundary")
+    return [(name, pieces[0] if len(pieces) == 1 else b"".join(pieces)) for name, pieces in parts]

@@ -1,0 +1,90 @@
+"""POST /v1/predict/frame: a camera frame's pixels, whole or as the boxes' regions, raw or as
+JPEG/PNG, to the same answer as POST /v1/predict's for the same pixels (docs/predict.md, Frames).
+
+As POST /v1/predict: admission before the body is received, then parse -> ``Predictor.predict``
+-> present inside a compute slot on the CPU pool.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, Request, Response
+
+from service.api.deps import Predicting
+from service.api.predict.frame_input import LAYOUT, parse_frame, require_multipart
+from service.api.predict.predict_routes import PREDICT_RESPONSES, compute
+from service.api.predict.predict_schemas import PredictResponse
+
+router = APIRouter(tags=["prediction"])
+
+_SCHEMAS = "#/components/schemas/{model}"
+_EXAMPLE_REQUEST = {
+    "instances": [{"object": "duck", "bbox": [812.0, 430.5, 96.0, 120.0]}],
+    "frame": {"width": 1920, "height": 1080},
+    "regions": [
+        {"x_offset": 783, "y_offset": 413, "width": 154, "height": 155, "encoding": "rgb8", "instances": [0]}
+    ],
+}
+FRAME_BODY: dict[str, Any] = {
+    "required": True,
+    "content": {
+        "multipart/form-data": {
+            "schema": {
+                "type": "object",
+                "description": LAYOUT,
+                "required": ["request", "pixels"],
+                "properties": {
+                    "request": {"$ref": _SCHEMAS.format(model="FrameRequest")},
+                    "pixels": {
+                        "type": "array",
+                        "minItems": 1,
+                        "items": {"type": "string", "format": "binary"},
+                        "description": "one part per regions[i], in order, or one part, the whole frame"
+                        " (frame.encoding): raw pixels (height * width * channels bytes, row-major) or a"
+                        " JPEG or PNG file",
+                    },
+                },
+                "additionalProperties": False,
+            },
+            "encoding": {
+                "request": {"contentType": "application/json"},
+                "pixels": {"contentType": "application/octet-stream, image/jpeg, image/png"},
+            },
+            "example": {"request": _EXAMPLE_REQUEST, "pixels": ["(155 * 154 * 3 bytes: RGB, row-major)"]},
+        }
+    },
+}
+_RESPONSES: dict[int | str, dict[str, Any]] = {
+    **PREDICT_RESPONSES,
+    413: {
+        "description": "The body exceeds CKS_MAX_REQUEST_BYTES, the frame CKS_MAX_IMAGE_PIXELS, or its"
+        " decoded pixels CKS_MAX_DECODED_BYTES"
+    },
+    415: {"description": "Not multipart/form-data, or a part that is not the JPEG/PNG its encoding says"},
+    422: {
+        "description": "Invalid request: the problem lists what to fix (parts, a region outside the frame"
+        " or missing a margin of a box's crop context, bytes that disagree with a shape, a box no region"
+        " serves)"
+    },
+}
+
+
+@router.post(
+    "/v1/predict/frame",
+    response_model=PredictResponse,
+    summary="Keypoint prediction sets for a camera frame sent whole or as its boxes' regions, raw or encoded",
+    description="The answer POST /v1/predict gives for the same pixels, byte for byte, in full-frame"
+    " pixels, when each region holds its boxes' crop contexts (docs/predict.md, Frames).",
+    responses=_RESPONSES,
+    openapi_extra={"requestBody": FRAME_BODY},
+)
+async def predict_frame(request: Request, parts: Predicting) -> Response:
+    content_type = request.headers.get("content-type", "")
+    require_multipart(content_type)
+    client = parts.client_of(request)
+    parts.admission.refuse_if_full(client=client)  # not worth receiving
+    body = await parts.receive(request)  # a slow client holds no place meanwhile
+    async with parts.admission.admitted(client=client):
+        frame, parameters = parse_frame(content_type, body, parts.manifest)
+        return await compute(parts, client, frame, parameters, png=False)

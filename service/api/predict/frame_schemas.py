@@ -1,0 +1,60 @@
+"""The request of POST /v1/predict/frame: a frame's size, and its pixels whole or as regions
+(ROS sensor_msgs/RegionOfInterest terms), raw or as JPEG/PNG files, beside the usual options."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from service.api.predict.predict_schemas import PredictParameters
+
+Encoding = Literal["rgb8", "bgr8", "mono8", "jpeg", "png"]
+_ENCODING = (
+    "rgb8, bgr8, mono8: raw 8-bit pixels as ROS sensor_msgs/Image names them, row-major, no row"
+    " padding (height * width * 3 or 1 bytes); jpeg, png: a file of exactly this size"
+)
+MAX_SIDE = 2**31 - 1
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class FrameIn(_Strict):
+    """The camera frame the boxes and the answer's pixels refer to."""
+
+    width: int = Field(gt=0, le=MAX_SIDE, description="the full frame's width in pixels")
+    height: int = Field(gt=0, le=MAX_SIDE, description="the full frame's height in pixels")
+    encoding: Encoding | None = Field(
+        default=None,
+        description="with the whole frame as the one `pixels` part: its encoding (" + _ENCODING + ");"
+        " left out when regions are sent",
+    )
+
+
+class RegionIn(_Strict):
+    """A rectangle of the frame (ROS sensor_msgs/RegionOfInterest), sent as one `pixels` part."""
+
+    x_offset: int = Field(ge=0, le=MAX_SIDE, description="its left column in the frame")
+    y_offset: int = Field(ge=0, le=MAX_SIDE, description="its top row in the frame")
+    width: int = Field(gt=0, le=MAX_SIDE, description="x_offset + width <= frame.width")
+    height: int = Field(gt=0, le=MAX_SIDE, description="y_offset + height <= frame.height")
+    encoding: Encoding = Field(description=_ENCODING)
+    instances: list[int] = Field(
+        min_length=1,
+        description="indexes into instances whose crops this region serves; each instance is served by"
+        " exactly one region, which must hold its crop context (docs/predict.md)",
+    )
+
+
+class FrameRequest(PredictParameters):
+    """The JSON part `request` of POST /v1/predict/frame."""
+
+    frame: FrameIn
+    regions: list[RegionIn] | None = Field(
+        default=None,
+        min_length=1,
+        description="the frame's regions, each sent as a `pixels` part in this order; left out when the"
+        " whole frame is the one `pixels` part (frame.encoding)",
+    )
