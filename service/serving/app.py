@@ -25,6 +25,7 @@ from service.api.monitoring import console_routes, drift_routes, health_routes
 from service.api.predict import frame_routes, model_routes, predict_routes
 from service.api.predict.frame_schemas import FrameRequest
 from service.api.predict.predict_schemas import BatchJson, PredictJson, PredictParameters
+from service.detector.manifest import load_manifest
 from service.infra.logs import ensure_logging
 from service.infra.metrics import worker_stopped
 from service.infra.settings import Settings
@@ -104,9 +105,15 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
         console_routes,
     ):
         app.include_router(routes.router)
-    install_contract(
-        app, parsed_bodies=(PredictJson, PredictParameters, BatchJson, FrameRequest)
-    )  # parsed by hand
+
+    def served_objects() -> tuple[str, ...]:
+        service = getattr(app.state, "service", None)  # started: its model; else the one it would load
+        if service is None:
+            return load_manifest(settings.model.model_dir).object_names
+        return service.detector.manifest.object_names
+
+    parsed_by_hand = (PredictJson, PredictParameters, BatchJson, FrameRequest)
+    install_contract(app, parsed_bodies=parsed_by_hand, object_names=served_objects)
     return app
 
 

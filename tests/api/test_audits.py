@@ -272,7 +272,7 @@ def test_bad_parameters_are_refused(
 
 def test_bad_uploads_are_refused(api: InProcess, samples_dir: Path, coco: dict) -> None:
     before = api.client.get("/v1/admin/audits", headers=api.admin).json()["audits"]
-    assert_problem(start_audit(api, b"not a zip", content_type="text/plain"), 415, "application/zip")
+    assert_problem(start_audit(api, b"not a zip", content_type="text/plain"), 422, "zip")
     assert_problem(start_audit(api, b"not a zip"), 422, "zip")
 
     def unknown_object(doc: dict, files: dict) -> None:

@@ -43,9 +43,13 @@ def generated(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SimpleNamesp
             for tag, operation in [
                 ("model", "model_info"),
                 ("prediction", "predict"),
+                ("prediction", "predict_form"),
                 ("prediction", "predict_png"),
+                ("prediction", "predict_png_form"),
                 ("prediction", "predict_batch"),
+                ("prediction", "predict_batch_form"),
                 ("admin", "upload_calibration"),
+                ("admin", "upload_calibration_form"),
                 ("admin", "get_job"),
                 ("admin", "get_calibration"),
                 ("admin", "compare_calibration"),
@@ -53,6 +57,7 @@ def generated(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SimpleNamesp
                 ("admin", "audit_trail"),
                 ("admin", "list_calibrations"),
                 ("admin", "start_audit"),
+                ("admin", "start_audit_form"),
                 ("admin", "get_audit"),
             ]
         ]
@@ -118,27 +123,30 @@ def test_a_generated_client_drives_every_kind_of_call(
         body = {"image_base64": base64.b64encode(image).decode(), "instances": instances, **options}
         return m.PredictJson.from_dict(body)
 
-    def form(image: bytes, instances: list[dict], body: type = m.PredictFilesBody) -> Any:
+    def form(image: bytes, instances: list[dict], body: type = m.PredictFormBody) -> Any:
         picture = File(payload=BytesIO(image), file_name="image.jpg", mime_type="image/jpeg")
         return body(image=picture, request=parameters(instances))  # each operation has its form class
 
     model = g.model_info.sync(client=anyone)
     assert isinstance(model, m.ModelInfo) and model.manifest.keypoints
 
-    problem_of(g.predict.sync_detailed(client=anyone, body=form(image, instances)), 503, g)  # none active
+    problem_of(
+        g.predict_form.sync_detailed(client=anyone, body=form(image, instances)), 503, g
+    )  # none active
     stranger = g.client.AuthenticatedClient(base_url=server.url, token="not-the-token-at-all")
     problem_of(g.list_calibrations.sync_detailed(client=stranger), 401, g)
 
     whole = batch_zip(samples_dir, coco)
-    upload = m.UploadCalibrationFilesBody(file=File(**zip_file(whole)))
-    first = wait(g, admin, g.upload_calibration.sync(client=admin, body=upload, name="first"))
+    first = wait(
+        g, admin, g.upload_calibration.sync(client=admin, body=File(**zip_file(whole)), name="first")
+    )
     assert first.state == "succeeded" and first.version == 1, first
     refused = problem_of(g.activate_calibration.sync_detailed(1, client=admin, body=m.ActivationIn()), 409, g)
     assert "CKS_MIN_CALIBRATION_INSTANCES" in refused.detail
     forced = m.ActivationIn(force=True, reason="generated client test: the samples are below the floor")
     assert g.activate_calibration.sync(1, client=admin, body=forced).version == 1
 
-    answer = g.predict.sync(client=anyone, body=form(image, instances))
+    answer = g.predict_form.sync(client=anyone, body=form(image, instances))
     assert isinstance(answer, m.PredictResponse) and len(answer.instances) == len(instances)
     same = g.predict.sync(client=anyone, body=as_json(image, instances))
     assert same.to_dict() == answer.to_dict()
@@ -146,11 +154,16 @@ def test_a_generated_client_drives_every_kind_of_call(
     items = g.predict_batch.sync(client=anyone, body=batch).items
     assert [item.status for item in items] == [200, 200, 200]
     assert items[0].result.to_dict() == answer.to_dict()
-    drawing = g.predict_png.sync(client=anyone, body=form(image, instances, m.PredictPngFilesBody))
+    parts = m.PredictBatchFormBody(image_0=form(image, instances).image, request_0=parameters(instances))
+    assert g.predict_batch_form.sync(client=anyone, body=parts).items[0].result.to_dict() == answer.to_dict()
+    drawing = g.predict_png_form.sync(client=anyone, body=form(image, instances, m.PredictPngFormBody))
     assert drawing.payload.read().startswith(b"\x89PNG\r\n\x1a\n")
+    drawn = g.predict_png.sync(client=anyone, body=as_json(image, instances))
+    assert drawn.payload.read().startswith(b"\x89PNG\r\n\x1a\n")
 
     part = batch_zip(samples_dir, coco, images=6)
-    second = wait(g, admin, g.upload_calibration.sync(client=admin, body=File(**zip_file(part)), name="part"))
+    upload = m.UploadCalibrationFormBody(file=File(**zip_file(part)))
+    second = wait(g, admin, g.upload_calibration_form.sync(client=admin, body=upload, name="part"))
     assert second.state == "succeeded" and second.version == 2, second
     comparison = g.compare_calibration.sync(2, client=admin)
     assert isinstance(comparison, m.ComparisonOut) and not comparison.allowed
@@ -161,18 +174,29 @@ def test_a_generated_client_drives_every_kind_of_call(
     actions = [entry.action for entry in g.audit_trail.sync(client=admin).entries]
     assert actions.count("activation") >= 3 and "upload" in actions, actions
 
-    audit_body = m.StartAuditFilesBody(file=File(**zip_file(whole)))  # less what version 2 was made of
-    audit_job = wait(g, admin, g.start_audit.sync(client=admin, body=audit_body, version=2, dedupe=True))
+    audit_body = m.StartAuditFormBody(file=File(**zip_file(whole)))  # less what version 2 was made of
+    audit_job = wait(g, admin, g.start_audit_form.sync(client=admin, body=audit_body, version=2, dedupe=True))
     assert audit_job.state == "succeeded", audit_job
     audit = g.get_audit.sync(audit_job.result["audit"], client=admin)
     assert isinstance(audit, m.AuditOut) and audit.version == 2
 
+    again = m.UploadCalibrationOverrides(allow_duplicate=True, reason="the same batch again, on purpose")
+    third = wait(
+        g, admin, g.upload_calibration.sync(client=admin, body=File(**zip_file(whole)), overrides=again)
+    )
+    assert third.state == "succeeded" and third.version == 3, third
+    no_reason = m.UploadCalibrationOverrides(force=True)
+    refused = g.upload_calibration.sync_detailed(
+        client=admin, body=File(**zip_file(whole)), overrides=no_reason
+    )
+    assert "force needs a reason" in problem_of(refused, 422, g).detail
+
     problem_of(g.get_calibration.sync_detailed(999, client=admin), 404, g)
     huge = File(payload=BytesIO(b"\xff" * MAX_REQUEST_BYTES), file_name="big.jpg", mime_type="image/jpeg")
-    too_big = m.PredictFilesBody(image=huge, request=parameters(instances))
-    problem_of(g.predict.sync_detailed(client=anyone, body=too_big), 413, g)
+    too_big = m.PredictFormBody(image=huge, request=parameters(instances))
+    problem_of(g.predict_form.sync_detailed(client=anyone, body=too_big), 413, g)
     gif = File(payload=BytesIO(b"GIF89a not a picture"), file_name="a.gif", mime_type="image/gif")
-    not_an_image = m.PredictPngFilesBody(image=gif, request=parameters(instances))
-    problem_of(g.predict_png.sync_detailed(client=anyone, body=not_an_image), 415, g)
+    not_an_image = m.PredictPngFormBody(image=gif, request=parameters(instances))
+    problem_of(g.predict_png_form.sync_detailed(client=anyone, body=not_an_image), 415, g)
     invalid = g.predict.sync_detailed(client=anyone, body=as_json(image, instances, epsilon=2))
     assert problem_of(invalid, 422, g).errors

@@ -22,6 +22,9 @@ from tests.service_calls import ADMIN_TOKEN
 
 CONFIG = Path(__file__).with_name("schemathesis.toml")
 MIN_REQUESTS = 500
+# Links the stateful phase follows (of the document's 11 and those it infers; 9 with this seed):
+# upload -> job, job -> version, activation and audit among them.
+MIN_LINKS_COVERED = 7
 SAMPLE = re.compile(r'^cks_http_requests_total\{method="(\w+)",route="(.*)",status="(\d+)"\}\s+(\S+)$')
 
 
@@ -66,7 +69,12 @@ def test_no_server_errors_on_generated_requests(fuzzed_server: LiveServer, tmp_p
         "30",
         "--no-color",
     ]
-    env = {**fuzzed_server.env, "SCHEMATHESIS_HOOKS": "tests.live.schemathesis_hooks"}
+    env = {
+        **fuzzed_server.env,
+        "SCHEMATHESIS_HOOKS": "tests.live.schemathesis_hooks",
+        "FUZZED_SERVER_URL": fuzzed_server.url,  # the hooks wait for jobs to end there
+        "FUZZED_SERVER_TOKEN": ADMIN_TOKEN,
+    }
     result = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=420)
     output = result.stdout[-6000:] + result.stderr[-3000:]
     after = requests_by_status(fuzzed_server)
@@ -79,9 +87,18 @@ def test_no_server_errors_on_generated_requests(fuzzed_server: LiveServer, tmp_p
     )
     assert result.returncode == 0, output
     total = sum(sent.values())
-    print(f"schemathesis: {total:g} requests reached the server, none answered 5xx")
+    print(f"schemathesis: {total:g} requests reached the server, none answered 5xx\n{output}")
+    print({key: n for key, n in sorted(sent.items()) if key[0] == "POST"})
     assert total >= MIN_REQUESTS, f"only {total:g} requests reached the server: {sent}\n{output}"
     routes = {route for _, route, _ in sent}
     assert {"/v1/predict", "/v1/admin/calibrations", "/v1/admin/calibrations/{version}/activate"} <= routes
     assert ("POST", "/v1/admin/calibrations", "202") in sent, "no upload was accepted: the hooks' zip is off"
+    assert ("POST", "/v1/admin/forms/calibrations", "202") in sent, "no form upload was accepted"
+    assert ("POST", "/v1/admin/audits", "202") in sent, "no audit was accepted"
+    for predict in ("/v1/predict", "/v1/predict/form", "/v1/predict/png", "/v1/predict/batch"):
+        assert ("POST", predict, "200") in sent, f"no successful {predict}: the hooks' image is off"
+    assert ("GET", "/v1/admin/jobs/{job_id}", "200") in sent, "no job was read"
+    assert ("GET", "/v1/admin/audits/{audit_id}", "200") in sent, "no link led from a job to its audit"
     assert "✅ Stateful" in result.stdout, output  # the phase ran (it is skipped when no link resolves)
+    links = re.search(r"API Links: +(\d+) covered / (\d+) selected", result.stdout)
+    assert links and int(links.group(1)) >= MIN_LINKS_COVERED, output

@@ -19,7 +19,7 @@ from service.monitoring.audit_report import DEFAULT_EPSILONS
 from service.monitoring.coverage_audits import AuditRequest
 
 router = APIRouter(
-    prefix="/v1/admin/audits",
+    prefix="/v1/admin",
     tags=["admin"],
     responses=ADMIN_RESPONSES,
 )
@@ -28,7 +28,7 @@ MAX_AUDIT_ID = 2**63 - 1
 
 @upload_route(
     router,
-    "",
+    ("/audits", "/forms/audits"),  # not /audits/form: that is also GET /audits/{audit_id}'s
     summary="Audit a version's coverage on a labeled batch; a background job (kind audit) stores the report",
     batch=" (the calibration upload format): annotations.json and the images it names, labeled, and never"
     " used to calibrate the audited version",
@@ -36,7 +36,8 @@ MAX_AUDIT_ID = 2**63 - 1
         "404": "version names a version that does not exist",
         "409": "The batch repeats instances the audited version was calibrated with (drop them with"
         " dedupe=true), or the version was scored under other manifest settings",
-        "422": "The archive or its COCO batch is invalid, or an epsilon is outside (0, 1)",
+        "422": "The body is no zip, the archive or its COCO batch is invalid, or an epsilon is outside"
+        " (0, 1)",
     },
 )
 async def start_audit(
@@ -63,7 +64,7 @@ async def start_audit(
         return await upload.start(audit, audits.accept)
 
 
-@router.get("", response_model=AuditList, summary="Coverage audits of the served model, newest first")
+@router.get("/audits", response_model=AuditList, summary="Coverage audits of the served model, newest first")
 async def list_audits(
     store: Store,
     model: Model,
@@ -78,7 +79,7 @@ async def list_audits(
 
 
 @router.get(
-    "/{audit_id}",
+    "/audits/{audit_id}",
     response_model=AuditOut,
     summary="One coverage audit: every figure with its band and p-value, the flags and the advice",
     responses={404: {"description": "No such audit"}},

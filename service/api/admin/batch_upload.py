@@ -1,7 +1,7 @@
 """A labeled batch as the admin API receives it (calibration uploads and coverage audits): one
 route shape (``UploadCall``: the zip body into an upload workspace, handed to a job; 202 with
-the job), its shared query parameters and documentation, and every refusal of the action in
-the audit trail."""
+the job), its shared query parameters and documentation (one operation per request content
+type), and every refusal of the action in the audit trail."""
 
 from __future__ import annotations
 
@@ -24,29 +24,37 @@ from service.api.http.multipart_file import FilePart
 from service.api.http.request_body import BodyPace, paced_chunks
 from service.calibration.archive import SavedUpload, UploadSink
 from service.calibration.uploads import UploadWorkspace
-from service.errors import ServiceError, UnsupportedMediaType, disk_full_refused
+from service.errors import ServiceError, disk_full_refused
 from service.infra.audit_trail import AuditTrail, Operator
 from service.infra.settings import Settings
 
 Options = TypeVar("Options")
 _FLUSH_BYTES = 1 << 20
 
-_ZIP_TYPES = ("application/zip", "application/x-zip-compressed", "application/octet-stream")
 ZIP_PART = "file"  # the zip's part name when the batch comes as multipart/form-data
-# The raw zip is documented as application/octet-stream, the type client generators know for bytes;
-# application/zip and application/x-zip-compressed are taken the same (said in the descriptions).
-ZIP_BODY: dict[str, Any] = {
+# One request content type per operation (client generators keep only one): the raw zip is documented
+# as application/octet-stream, the type generators know for bytes, and the form as its own operation
+# on its own path. Either path takes either body; a raw body is judged by its bytes whatever its type.
+ZIP_RAW: dict[str, Any] = {
+    "required": True,
+    "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
+}
+ZIP_FORM: dict[str, Any] = {
     "required": True,
     "content": {
-        "application/octet-stream": {"schema": {"type": "string", "format": "binary"}},
         "multipart/form-data": {
             "schema": {
                 "type": "object",
                 "required": [ZIP_PART],
                 "properties": {ZIP_PART: {"type": "string", "format": "binary", "description": "the zip"}},
             }
-        },
+        }
     },
+}
+_RECEIVED = {
+    "408": "The body did not arrive within CKS_UPLOAD_READ_TIMEOUT_SECONDS, or slower than"
+    " CKS_MIN_BODY_BYTES_PER_SECOND",
+    "413": "The zip, its files or its unzipped size exceed the limits",
 }
 
 
@@ -92,31 +100,32 @@ AuditRejectedShare = _rejected_share("the audit")
 
 
 def upload_route(
-    router: APIRouter, path: str, summary: str, batch: str, responses: dict[str, str]
+    router: APIRouter,
+    paths: tuple[str, str],
+    summary: str,
+    batch: str,
+    responses: dict[str, str],
+    parameters: tuple[dict[str, Any], ...] = (),
 ) -> Callable[[DecoratedCallable], DecoratedCallable]:
-    """The decorator of an upload route on ``path``: 202 with the job it starts, the body a zip of a
-    COCO-keypoints ``batch``, ``responses`` its refusals besides those of receiving the zip."""
-    received = {
-        "408": "The body did not arrive within CKS_UPLOAD_READ_TIMEOUT_SECONDS, or slower than"
-        " CKS_MIN_BODY_BYTES_PER_SECOND",
-        "413": "The zip, its files or its unzipped size exceed the limits",
-        "415": "Neither a zip body nor multipart/form-data",
-    }
-    body = {
-        **ZIP_BODY,
-        "description": "The raw zip (Content-Type application/zip, application/x-zip-compressed or"
-        " application/octet-stream), or multipart/form-data with the zip as its part 'file'. A zip of"
-        f" a COCO-keypoints batch{batch}",
-    }
-    refusals = {status: {"description": text} for status, text in {**received, **responses}.items()}
-    return router.post(
-        path,
-        status_code=202,
-        responses={202: {"links": JOB_LINKS}},
-        response_model=JobOut,
-        summary=summary,
-        openapi_extra={"requestBody": body, "responses": refusals},
-    )
+    """The decorator of an upload route, registered twice: the raw zip on ``paths[0]``, the form on
+    ``paths[1]`` (operation ``<name>_form``); 202 with the job it starts, the body a zip of a
+    COCO-keypoints ``batch``, ``responses`` its refusals besides those of receiving the zip, and
+    ``parameters`` documented beside the route's own."""
+    refusals = {status: {"description": text} for status, text in {**_RECEIVED, **responses}.items()}
+    raw = {**ZIP_RAW, "description": f"The raw zip. A zip of a COCO-keypoints batch{batch}"}
+    form = {**ZIP_FORM, "description": f"The zip as the part 'file'. A zip of a COCO-keypoints batch{batch}"}
+    route = {"status_code": 202, "responses": {202: {"links": JOB_LINKS}}, "response_model": JobOut}
+
+    def register(endpoint: DecoratedCallable) -> DecoratedCallable:
+        def post(path: str, body: dict[str, Any], name: str | None, summary: str) -> None:
+            extra = {"requestBody": body, "responses": refusals, "parameters": list(parameters)}
+            router.post(path, name=name, summary=summary, openapi_extra=extra, **route)(endpoint)
+
+        post(paths[0], raw, None, summary)
+        post(paths[1], form, f"{endpoint.__name__}_form", f"{summary} (multipart/form-data)")
+        return endpoint
+
+    return register
 
 
 @dataclass(frozen=True)
@@ -154,15 +163,11 @@ Upload = Annotated[UploadCall, Depends(upload_call)]
 
 
 async def receive_batch_zip(request: Request, settings: Settings) -> tuple[UploadWorkspace, str]:
-    """Receive a zip body, or a form with the zip as its part 'file' (415 for another type), paced
-    and within the upload limits, into a new upload workspace; returns it with the zip's sha256
-    (the caller removes it when done)."""
+    """Receive a zip body, or a form with the zip as its part 'file', paced and within the upload
+    limits, into a new upload workspace; returns it with the zip's sha256 (the caller removes it
+    when done). Any type but multipart/form-data is taken as the raw zip: a zip is a zip by its
+    bytes (the archive check refuses anything else with 422), whatever Content-Type was sent."""
     content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
-    if content_type not in (*_ZIP_TYPES, "multipart/form-data"):
-        raise UnsupportedMediaType(
-            "send the batch as a zip body (Content-Type: application/zip) or as the part 'file' of"
-            f" multipart/form-data, not {content_type!r}"
-        )
     part = ZIP_PART if content_type == "multipart/form-data" else None
     timeout = settings.calibration.upload_read_timeout_seconds
     pace = BodyPace.from_settings(settings, timeout, "CKS_UPLOAD_READ_TIMEOUT_SECONDS")

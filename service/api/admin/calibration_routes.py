@@ -53,6 +53,47 @@ router = APIRouter(
 DISK_FULL = "No room on disk for what the call writes (a full disk or store): nothing was kept; retry later"
 VersionNumber = Annotated[int, Path(ge=1, le=MAX_VERSION, description="calibration version number")]
 
+# force, allow_duplicate and reason as one exploded query object (sent as force=true&reason=...,
+# as always), so that JSON Schema can say the rule: either flag needs a non-blank reason.
+_NEEDS_REASON = {"required": ["reason"], "properties": {"reason": {"pattern": r"\S"}}}
+_OVERRIDES = {
+    "name": "overrides",
+    "in": "query",
+    "style": "form",
+    "explode": True,
+    "description": "sent as the query parameters force, allow_duplicate and reason (reason required,"
+    " not blank, with either flag)",
+    "schema": {
+        "type": "object",
+        "properties": {
+            "force": {
+                "type": "boolean",
+                "default": False,
+                "description": "with activate=true only: activate even if the guardrails refuse"
+                " (needs reason)",
+            },
+            "allow_duplicate": {
+                "type": "boolean",
+                "default": False,
+                "description": "store a version equal to a stored one instead of refusing (409)"
+                " (needs reason)",
+            },
+            "reason": {
+                "type": "string",
+                "maxLength": 2000,
+                "default": "",
+                "description": "why (recorded; required with force or allow_duplicate)",
+            },
+        },
+        "if": {
+            "anyOf": [
+                {"properties": {flag: {"const": True}}, "required": [flag]}
+                for flag in ("force", "allow_duplicate")
+            ]
+        },
+        "then": _NEEDS_REASON,
+    },
+}
 _NO_SUCH_VERSION: dict[int | str, dict[str, Any]] = {404: {"description": "No such version"}}
 _ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
     **_NO_SUCH_VERSION,
@@ -68,19 +109,21 @@ _ACTIVATE_RESPONSES: dict[int | str, dict[str, Any]] = {
 
 @upload_route(
     router,
-    "/calibrations",
+    ("/calibrations", "/forms/calibrations"),  # not /calibrations/form: GET /calibrations/{version}'s too
     summary="Upload a labeled batch; a background job scores it into a new version",
     batch=": annotations.json and the images it names",
     responses={
         "404": "append_to names a version that does not exist",
-        "409": "The batch repeats images or instances already counted (inside itself or in append_to): the"
-        " problem lists them; or append_to was scored under other manifest settings; or the batch would"
-        " make a version equal to a stored one (`duplicate_of` names it)",
-        "422": "The archive or its COCO batch is invalid, more instances break the box rule than"
-        " max_rejected_share allows, or force without a reason; the problem lists what to fix",
+        "409": "The batch repeats images or instances already counted (inside itself or in append_to):"
+        " the problem lists them; or append_to was scored under other manifest settings; or the batch"
+        " would make a version equal to a stored one (`duplicate_of` names it)",
+        "422": "The body is no zip, the archive or its COCO batch is invalid, more instances break the"
+        " box rule than max_rejected_share allows, or force or allow_duplicate without a reason; the"
+        " problem lists what to fix",
         "503": "The calibration store could not record the job",
         "507": DISK_FULL,
     },
+    parameters=(_OVERRIDES,),
 )
 async def upload_calibration(
     upload: Upload,
@@ -90,19 +133,12 @@ async def upload_calibration(
         int | None, Query(ge=1, le=MAX_VERSION, description="new version = this version + the batch")
     ] = None,
     activate: Annotated[bool, Query(description="activate the new version when the job succeeds")] = False,
-    force: Annotated[
-        bool, Query(description="with activate: activate even if the guardrails refuse (needs reason)")
-    ] = False,
-    reason: Annotated[
-        str, Query(max_length=2000, description="why (recorded; required with force or allow_duplicate)")
-    ] = "",
+    force: Annotated[bool, Query(include_in_schema=False)] = False,  # documented in _OVERRIDES
+    reason: Annotated[str, Query(max_length=2000, include_in_schema=False)] = "",
     dedupe: Annotated[
         bool, Query(description="drop instances already counted instead of refusing the batch (409)")
     ] = False,
-    allow_duplicate: Annotated[
-        bool,
-        Query(description="store a version equal to a stored one instead of refusing (409); needs reason"),
-    ] = False,
+    allow_duplicate: Annotated[bool, Query(include_in_schema=False)] = False,
     max_rejected_share: BatchRejectedShare = None,
     note: Note = "",
     stratify: Annotated[

@@ -1,7 +1,8 @@
 """The OpenAPI document as generated clients read it: what FastAPI derives from the routes, plus
 the bodies the routes parse by hand, one ``Problem`` schema for every error answer, the request id
-every operation takes, and the headers the service sends (``X-Request-ID`` on every answer,
-``Retry-After`` where it is sent).
+every operation takes, the headers the service sends (``X-Request-ID`` on every answer,
+``Retry-After`` where it is sent), and the served model's object names as the enum of an
+instance's ``object`` (the model is known at start-up).
 
 Routes describe each status they can answer in words (``responses={404: {"description": ...}}``);
 this pass gives every status of 400 and above the problem+json body, so no route repeats it.
@@ -9,6 +10,7 @@ this pass gives every status of 400 and above the problem+json body, so no route
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from fastapi import FastAPI
@@ -47,13 +49,18 @@ _REQUEST_ID_PARAMETER = {
 }
 
 
-def install_contract(app: FastAPI, parsed_bodies: tuple[type[BaseModel], ...]) -> None:
+def install_contract(
+    app: FastAPI, parsed_bodies: tuple[type[BaseModel], ...], object_names: Callable[[], tuple[str, ...]]
+) -> None:
     """Make ``app.openapi()`` return the completed document (built once, then cached)."""
     generate = app.openapi
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
-            app.openapi_schema = completed(generate(), (Problem, *parsed_bodies))
+            document = completed(generate(), (Problem, *parsed_bodies))
+            instance = document["components"]["schemas"]["InstanceIn"]
+            instance["properties"]["object"]["enum"] = list(object_names())
+            app.openapi_schema = document
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]

@@ -1,39 +1,35 @@
-"""How the predict routes' bodies are documented (they are parsed by hand, in predict_input):
-one image as JSON or multipart, and a batch as JSON or multipart."""
+"""How the predict routes' bodies are documented (they are parsed by hand, in predict_input): one
+request content type per operation, as every client generator can call it. One image as JSON
+(``PREDICT_JSON``) or as multipart (``PREDICT_FORM``), a batch as JSON (``BATCH_JSON``) or as
+multipart (``BATCH_FORM``). The routes take either type at run time (docs/api.md says which)."""
 
 from __future__ import annotations
 
 from typing import Any
 
-from service.api.predict.predict_schemas import DOCUMENTED_BATCH_IMAGES
+from service.api.predict.predict_schemas import DOCUMENTED_BATCH_IMAGES, ITEM_ANSWERED_ALONE
 
 _SCHEMAS = "#/components/schemas/{model}"
 _IMAGE = {"type": "string", "format": "binary", "description": "JPEG or PNG file"}
-_JSON_PART = {"request": {"contentType": "application/json"}}
+# A JSON part may come as a plain field or as a file (a Blob in FormData): both are read as JSON.
+_JSON_PART = {"contentType": "application/json"}
 
 
-PREDICT_BODY: dict[str, Any] = {
-    "required": True,
-    "content": {
-        "application/json": {"schema": {"$ref": _SCHEMAS.format(model="PredictJson")}},
-        "multipart/form-data": {
-            "schema": {
-                "type": "object",
-                "required": ["image", "request"],
-                "properties": {
-                    "image": _IMAGE,
-                    "request": {"$ref": _SCHEMAS.format(model="PredictParameters")},
-                },
-            },
-            "encoding": _JSON_PART,
-        },
-    },
-}
+def _json(model: str) -> dict[str, Any]:
+    schema = {"$ref": _SCHEMAS.format(model=model)}
+    return {"required": True, "content": {"application/json": {"schema": schema}}}
+
+
+def _form(schema: dict[str, Any], json_parts: list[str]) -> dict[str, Any]:
+    encoding = {part: _JSON_PART for part in json_parts}
+    return {"required": True, "content": {"multipart/form-data": {"schema": schema, "encoding": encoding}}}
 
 
 def _batch_form() -> dict[str, Any]:
     indexes = range(DOCUMENTED_BATCH_IMAGES)
-    parameters = {"$ref": _SCHEMAS.format(model="PredictParameters")}
+    parameters = {
+        "anyOf": [{"$ref": _SCHEMAS.format(model="PredictParameters")}, {"description": ITEM_ANSWERED_ALONE}]
+    }
     return {
         "type": "object",
         "description": "image_i and request_i for i = 0 .. n-1, n at most CKS_MAX_BATCH_IMAGES (default 16)",
@@ -46,13 +42,14 @@ def _batch_form() -> dict[str, Any]:
     }
 
 
-BATCH_BODY: dict[str, Any] = {
-    "required": True,
-    "content": {
-        "application/json": {"schema": {"$ref": _SCHEMAS.format(model="BatchJson")}},
-        "multipart/form-data": {
-            "schema": _batch_form(),
-            "encoding": {f"request_{i}": _JSON_PART["request"] for i in range(DOCUMENTED_BATCH_IMAGES)},
-        },
+PREDICT_JSON = _json("PredictJson")
+PREDICT_FORM = _form(
+    {
+        "type": "object",
+        "required": ["image", "request"],
+        "properties": {"image": _IMAGE, "request": {"$ref": _SCHEMAS.format(model="PredictParameters")}},
     },
-}
+    ["request"],
+)
+BATCH_JSON = _json("BatchJson")
+BATCH_FORM = _form(_batch_form(), [f"request_{i}" for i in range(DOCUMENTED_BATCH_IMAGES)])

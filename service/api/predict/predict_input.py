@@ -15,6 +15,7 @@ import numpy as np
 from fastapi import Request
 from pydantic import BaseModel, ValidationError
 from starlette.datastructures import FormData, UploadFile
+from starlette.exceptions import HTTPException
 
 from service.api.predict.predict_schemas import PoseRequest, PredictJson, PredictOptions, PredictParameters
 from service.detector.manifest import Manifest
@@ -69,21 +70,46 @@ def _from_json(body: bytes | str, manifest: Manifest) -> tuple[bytes, PredictPar
     return image, parameters
 
 
+_PREDICT_PARTS = "send the parts image (the JPEG or PNG file) and request (the JSON parameters), once each"
+
+
 async def _parse_multipart(request: Request, manifest: Manifest) -> tuple[bytes, PredictParameters]:
+    form = await _read_form(request, 2, _PREDICT_PARTS)  # request may come as a file (a Blob) or a field
     try:
-        form = await request.form(max_files=1, max_fields=2)
-    except Exception as error:  # starlette reports malformed multipart with several types
-        raise InvalidInput(f"malformed multipart body: {error}") from error
-    try:
+        names = [name for name, _ in form.multi_items()]
+        for name in names:
+            if name not in ("image", "request"):
+                raise InvalidInput(f"unexpected multipart part {name!r}: {_PREDICT_PARTS}")
+            if names.count(name) > 1:
+                raise InvalidInput(f"multipart part {name!r} appears more than once: {_PREDICT_PARTS}")
         image, raw = form.get("image"), form.get("request")
-        if not isinstance(image, UploadFile):
+        if image is None:
             raise InvalidInput("multipart part 'image' (a JPEG or PNG file) is missing")
+        if not isinstance(image, UploadFile):
+            raise InvalidInput("multipart part 'image' must be a file (a part with a filename), not a field")
         if raw is None:
             raise InvalidInput("multipart part 'request' (JSON with instances and options) is missing")
-        raw = raw if isinstance(raw, str) else (await raw.read()).decode("utf-8", "replace")
-        return await image.read(), validated(PredictParameters, raw, manifest)
+        return await image.read(), validated(PredictParameters, await _text(raw), manifest)
     finally:
         await form.close()  # its spooled files, now rather than when collected
+
+
+async def _read_form(request: Request, parts: int, layout: str) -> FormData:
+    """The multipart body as a form of at most ``parts`` files and ``parts`` text fields; 422 in one
+    wording for each mistake (a JSON part counts as a file when it has a filename, as a Blob does)."""
+    try:
+        return await request.form(max_files=parts, max_fields=parts)
+    except HTTPException as error:  # starlette's 400 for a body it cannot parse
+        if str(error.detail).startswith("Too many"):
+            raise InvalidInput(f"the multipart body has too many parts: {layout}") from error
+        raise InvalidInput(f"malformed multipart body: {error.detail}") from error
+    except Exception as error:  # python-multipart reports other malformations with several types
+        raise InvalidInput(f"malformed multipart body: {error}") from error
+
+
+async def _text(part: str | UploadFile) -> str:
+    """A JSON part as text: a plain field, or a file part of any type (application/json, a Blob's)."""
+    return part if isinstance(part, str) else (await part.read()).decode("utf-8", "replace")
 
 
 def predict_query(parameters: PredictParameters) -> PredictQuery:
@@ -125,13 +151,8 @@ async def parse_batch(request: Request, body: bytes, limit: int, manifest: Manif
     layout is wrong."""
     if media_type(request) == "application/json":
         return _json_batch(body, limit, manifest)
-    try:
-        form = await request.form(max_files=limit, max_fields=limit)
-    except Exception as error:  # starlette reports malformed multipart with several types
-        raise InvalidInput(
-            f"malformed multipart body, or more than {limit} images or requests"
-            f" (CKS_MAX_BATCH_IMAGES): {error}"
-        ) from error
+    layout = f"at most {limit} images and {limit} requests (CKS_MAX_BATCH_IMAGES): image_0, request_0, ..."
+    form = await _read_form(request, 2 * limit, layout)  # requests may come as files (Blobs)
     try:
         images, requests, problems = await _batch_parts(form, limit)
     finally:
@@ -181,9 +202,7 @@ async def _batch_parts(form: FormData, limit: int) -> tuple[dict[int, bytes | No
         elif match.group(1) == "image":
             images[index] = await value.read() if isinstance(value, UploadFile) else None
         else:
-            requests[index] = (
-                value if isinstance(value, str) else (await value.read()).decode("utf-8", "replace")
-            )
+            requests[index] = await _text(value)
     return images, requests, problems
 
 

@@ -1,6 +1,9 @@
 """POST /v1/predict, /v1/predict/png and /v1/predict/batch: images and boxes in, keypoint
 prediction sets out (JSON, or a PNG drawing for a single image).
 
+Each is documented with a JSON body, and again under .../form with a multipart body (one request
+content type per operation, for client generators); each path takes either body at run time.
+
 Both take admission places before their bodies are parsed and compute inside a slot on the CPU
 pool: receive -> parse -> ``Predictor.predict`` -> present. A batch of n images takes n places,
 so batching cannot get round CKS_MAX_CONCURRENT_INFERENCES and CKS_MAX_QUEUED_REQUESTS; each of
@@ -12,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import contextvars
 import logging
+from collections.abc import Callable
 from typing import Any
 
 from fastapi import APIRouter, Request, Response
@@ -19,7 +23,7 @@ from fastapi import APIRouter, Request, Response
 from service.api.deps import Predicting, PredictParts
 from service.api.http.problems import problem
 from service.api.predict import predict_presenter
-from service.api.predict.predict_bodies import BATCH_BODY, PREDICT_BODY
+from service.api.predict.predict_bodies import BATCH_FORM, BATCH_JSON, PREDICT_FORM, PREDICT_JSON
 from service.api.predict.predict_input import (
     BatchItem,
     parse_batch,
@@ -37,6 +41,7 @@ log = logging.getLogger(__name__)
 
 PREDICT_RESPONSES: dict[int | str, dict[str, Any]] = {
     408: {"description": "The body did not arrive within CKS_REQUEST_READ_TIMEOUT_SECONDS"},
+    404: {"description": "calibration_version names a version that does not exist"},
     409: {"description": "The calibration version was scored under other manifest settings"},
     413: {"description": "Body or image too large"},
     415: {"description": "Not JSON or multipart, or not a JPEG/PNG image"},
@@ -67,25 +72,48 @@ _BATCH_RESPONSES: dict[int | str, dict[str, Any]] = {
 }
 
 
-@router.post(
+_IMAGE_FORM = "multipart/form-data: the image as a file, its parameters as the JSON part request"
+
+
+def _json_and_form(path: str, bodies: tuple[dict, dict], form: str, summary: str, **route: Any):
+    """Register the route twice, one request content type each (client generators keep only one):
+    ``path`` documented with the JSON body, ``path``/form with the multipart one, as its own
+    operation (``<name>_form``). Either path takes either body at run time."""
+
+    def register(endpoint: Callable) -> Callable:
+        json_body, form_body = bodies
+        router.post(path, summary=summary, openapi_extra={"requestBody": json_body}, **route)(endpoint)
+        form_name, form_summary = f"{endpoint.__name__}_form", f"{summary} ({form})"
+        extra = {"requestBody": form_body}
+        router.post(f"{path}/form", name=form_name, summary=form_summary, openapi_extra=extra, **route)(
+            endpoint
+        )
+        return endpoint
+
+    return register
+
+
+@_json_and_form(
     "/v1/predict",
-    response_model=PredictResponse,
+    (PREDICT_JSON, PREDICT_FORM),
+    _IMAGE_FORM,
     summary="Keypoint prediction sets with a coverage guarantee",
     description="The sets as JSON. (`Accept: image/png` here still answers the drawing, as before"
     " POST /v1/predict/png existed; generated clients should call that operation.)",
+    response_model=PredictResponse,
     responses=PREDICT_RESPONSES,
-    openapi_extra={"requestBody": PREDICT_BODY},
 )
 async def predict(request: Request, parts: Predicting) -> Response:
     return await _predict(request, parts, png=_wants_png(request))
 
 
-@router.post(
+@_json_and_form(
     "/v1/predict/png",
-    response_class=Response,
+    (PREDICT_JSON, PREDICT_FORM),
+    _IMAGE_FORM,
     summary="The image with its keypoint prediction sets drawn on it (PNG)",
+    response_class=Response,
     responses={200: {"description": "The image, sets drawn", **_PNG}, **PREDICT_RESPONSES},
-    openapi_extra={"requestBody": PREDICT_BODY},
 )
 async def predict_png(request: Request, parts: Predicting) -> Response:
     return await _predict(request, parts, png=True)
@@ -100,12 +128,13 @@ async def _predict(request: Request, parts: PredictParts, png: bool) -> Response
         return await compute(parts, client, image, parameters, png)
 
 
-@router.post(
+@_json_and_form(
     "/v1/predict/batch",
-    response_model=BatchResponse,
+    (BATCH_JSON, BATCH_FORM),
+    "multipart/form-data: parts image_0, request_0, image_1, ...",
     summary="Keypoint prediction sets for several images in one request, one answer per image",
+    response_model=BatchResponse,
     responses=_BATCH_RESPONSES,
-    openapi_extra={"requestBody": BATCH_BODY},
 )
 async def predict_batch(request: Request, parts: Predicting) -> Response:
     require_batch_media(request)

@@ -194,6 +194,16 @@ class PredictJson(PredictParameters):
     image_base64: str = Field(min_length=1, description="JPEG or PNG file, base64 (standard alphabet)")
 
 
+ITEM_ANSWERED_ALONE = (
+    "anything else: this item alone is answered with status 422 and its problem, the others as usual"
+)
+
+
+def _items_answered_alone(schema: dict) -> None:
+    """An item that is no PredictJson does not refuse the batch (its own item is a 422): said so."""
+    schema["items"] = {"anyOf": [schema["items"], {"description": ITEM_ANSWERED_ALONE}]}
+
+
 class BatchJson(_Body):
     """Several images, each as POST /v1/predict's JSON body; answered one item per image."""
 
@@ -201,6 +211,7 @@ class BatchJson(_Body):
         min_length=1,
         max_length=DOCUMENTED_BATCH_IMAGES,
         description="at most CKS_MAX_BATCH_IMAGES (default 16) images, each with its instances and options",
+        json_schema_extra=_items_answered_alone,
     )
 
 
