@@ -81,6 +81,12 @@ Coverage audits (immutable, like versions):
 - ``coverage_audits(model_hash, before=None, limit=100) -> list[CoverageAudit]`` newest
   first (id < before), ``coverage_audit(model_hash, audit_id) -> CoverageAudit | None``.
 
+Feedback (calibration_store/feedback_records.py): ``retain_prediction(RetainedPrediction,
+max_rows)``, ``retained_prediction(id)``, ``oldest_retained()``, ``label_prediction(id, labels,
+who, at, audit) -> LabelOutcome`` (once per row, with its audit entry), ``labelled_predictions(
+model_hash, limit)`` (in label order), ``adaptive_state(key)`` and ``save_adaptive_state(key,
+steps_before, AdaptiveState) -> bool`` (compare-and-set on the step count).
+
 Errors: StoreError > VersionNotFound (also a LookupError; HTTP 404), JobNotFound
 (a LookupError), JobExists (a ValueError), JobFinished, SchemaVersionError (database migrated by
 newer code), StoreUnavailable (HTTP 503), StoreFull (a StoreUnavailable: the database's disk is
@@ -101,6 +107,7 @@ from .errors import (
     VersionNotFound,
 )
 from .factory import open_store, sqlite_path, store_location
+from .feedback_records import AdaptiveState, LabelOutcome, RetainedPrediction
 from .models import (
     DEFAULT_FUNCTIONS,
     FINAL_JOB_STATES,
@@ -126,6 +133,7 @@ __all__ = [
     "JOB_STATES",
     "Activation",
     "ActivationIntent",
+    "AdaptiveState",
     "AuditEntry",
     "CalibrationStore",
     "CoverageAudit",
@@ -134,11 +142,13 @@ __all__ = [
     "JobFinished",
     "JobNotFound",
     "JobRecord",
+    "LabelOutcome",
     "NewAuditEntry",
     "NewCoverageAudit",
     "NewVersion",
     "ObjectScores",
     "SchemaVersionError",
+    "RetainedPrediction",
     "ScoreTable",
     "SourceBatch",
     "StoreError",

@@ -13,6 +13,7 @@ from datetime import UTC, datetime
 from typing import Any
 
 from .errors import SchemaVersionError
+from .feedback_records import FEEDBACK_TABLES, feedback_tables
 
 
 @dataclass(frozen=True)
@@ -267,6 +268,7 @@ SQLITE_MIGRATIONS: tuple[Migration, ...] = (
         + _sqlite_immutability(("calib_coverage_audits",)),
     ),
     Migration(6, _STRATA, _STRATA_COLUMN),
+    Migration(7, FEEDBACK_TABLES, feedback_tables("TEXT")),
 )
 
 POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
@@ -309,6 +311,7 @@ POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
         + _postgres_triggers(("calib_coverage_audits",)),
     ),
     Migration(6, _STRATA, _STRATA_COLUMN),
+    Migration(7, FEEDBACK_TABLES, feedback_tables("TIMESTAMPTZ")),
 )
 
 

@@ -19,6 +19,7 @@ from service.calibration.jobs import CalibrationJobs, JobRunner
 from service.calibration.registry import CalibrationRegistry
 from service.detector.manifest import Manifest
 from service.detector.session import Detector
+from service.feedback.retention import Retention
 from service.infra.audit_trail import AuditTrail, Operator
 from service.infra.operators import operator_named
 from service.infra.settings import Settings
@@ -51,6 +52,8 @@ Audits = Annotated[CoverageAudits, Depends(_part("audits"))]
 Drift = Annotated[DriftMonitor | None, Depends(_part("drift"))]
 Config = Annotated[Settings, Depends(_part("settings"))]
 Operators = Annotated[dict[str, str], Depends(_part("operators"))]
+FeedbackSenders = Annotated[dict[str, str], Depends(_part("feedback_senders"))]
+Retaining = Annotated[Retention, Depends(_part("retention"))]
 
 
 @dataclass(frozen=True)
@@ -64,6 +67,7 @@ class PredictParts:
     max_batch_images: int
     pace: BodyPace
     clients: ClientKeys
+    retention: Retention | None = None  # None: nothing is retained (no store to keep answers in)
 
     @property
     def manifest(self) -> Manifest:
@@ -98,16 +102,28 @@ async def require_admin(
 ) -> Operator:
     """Let the request through only with a configured admin token (and a reachable store);
     returns the operator it names."""
-    if not operators:
-        raise HTTPException(
-            403, "The admin API is disabled: set CKS_ADMIN_TOKEN or CKS_ADMIN_TOKENS_FILE to enable it."
-        )
-    name = None if credentials is None else operator_named(operators, credentials.credentials)
+    disabled = "The admin API is disabled: set CKS_ADMIN_TOKEN or CKS_ADMIN_TOKENS_FILE to enable it."
+    return _token_holder(request, operators, registry, credentials, disabled, "admin token")
+
+
+def _token_holder(
+    request: Request,
+    tokens: dict[str, str],
+    registry: CalibrationRegistry,
+    credentials: HTTPAuthorizationCredentials | None,
+    disabled: str,
+    kind: str,
+) -> Operator:
+    """The operator a bearer token of ``tokens`` names: 403 with no tokens, 401 without one of
+    them, 503 while the store is away (every such call needs it)."""
+    if not tokens:
+        raise HTTPException(403, disabled)
+    name = None if credentials is None else operator_named(tokens, credentials.credentials)
     if name is None:
         raise HTTPException(
-            401, "Send 'Authorization: Bearer <admin token>'.", headers={"WWW-Authenticate": "Bearer"}
+            401, f"Send 'Authorization: Bearer <{kind}>'.", headers={"WWW-Authenticate": "Bearer"}
         )
-    registry.require_store()  # every admin call needs the store: 503 at once while it is away
+    registry.require_store()
     return Operator(name=name, client=request.client.host if request.client else "")
 
 
@@ -117,4 +133,26 @@ ADMIN_RESPONSES: dict[int | str, dict[str, Any]] = {
     401: {"description": "No token, or not an admin token: send 'Authorization: Bearer <admin token>'"},
     403: {"description": "The admin API is disabled (no CKS_ADMIN_TOKEN nor CKS_ADMIN_TOKENS_FILE)"},
     503: {"description": "The calibration store is unreachable (with Retry-After)"},
+}
+
+
+async def require_feedback_sender(
+    request: Request,
+    senders: FeedbackSenders,
+    registry: Registry,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> Operator:
+    """Let feedback through with an admin token or a ``feedback`` token (CKS_ADMIN_TOKENS_FILE)."""
+    disabled = (
+        "Feedback is disabled: give its senders tokens ('feedback name:token' lines in"
+        " CKS_ADMIN_TOKENS_FILE, or an admin token)"
+    )
+    return _token_holder(request, senders, registry, credentials, disabled, "feedback or admin token")
+
+
+FeedbackSender = Annotated[Operator, Depends(require_feedback_sender)]
+FEEDBACK_RESPONSES: dict[int | str, dict[str, Any]] = {
+    401: {"description": "No token, or neither a feedback nor an admin token"},
+    403: {"description": "Feedback is disabled (no admin token and no 'feedback name:token' line)"},
+    503: ADMIN_RESPONSES[503],
 }

@@ -7,7 +7,8 @@ import os
 import shutil
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from datetime import timedelta
 from functools import cached_property
 from typing import Any
 
@@ -25,10 +26,11 @@ from service.calibration.uploads import process_uploads_dir, remove_spent_job_fo
 from service.calibration.versions import VersionRules
 from service.conformal.kernel import native_kernel_available
 from service.detector.session import Detector
+from service.feedback.retention import Retention, RetentionRules
 from service.infra.audit_trail import AuditTrail
 from service.infra.logs import ensure_logging
 from service.infra.metrics import forget_drift_source, set_drift_source
-from service.infra.operators import load_operators
+from service.infra.operators import load_feedback_senders, load_operators
 from service.infra.settings import Settings, removed_settings
 from service.monitoring.coverage_audits import CoverageAudits
 from service.monitoring.drift_monitor import DriftMonitor, DriftSettings
@@ -53,6 +55,8 @@ class ServiceState:
     admission: Admission
     audits: CoverageAudits
     drift: DriftMonitor | None = None  # None when CKS_DRIFT_ENABLED is false
+    feedback_senders: dict[str, str] = field(default_factory=dict)  # admin and feedback tokens -> name
+    retention: Retention | None = None
 
     @cached_property
     def predictor(self) -> Predictor:
@@ -167,6 +171,17 @@ def build_state(settings: Settings) -> ServiceState:
         ),
         audits=audits,
         drift=drift,
+        feedback_senders=load_feedback_senders(settings.admin.admin_token, settings.admin.admin_tokens_file),
+        retention=Retention(store, detector.model_hash, _retention_rules(settings)),
+    )
+
+
+def _retention_rules(settings: Settings) -> RetentionRules:
+    feedback = settings.feedback
+    return RetentionRules(
+        share=feedback.feedback_retain_share,
+        max_age=timedelta(seconds=feedback.feedback_max_age_seconds),
+        max_rows=feedback.feedback_max_retained,
     )
 
 

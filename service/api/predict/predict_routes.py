@@ -12,11 +12,14 @@ from __future__ import annotations
 import asyncio
 import contextvars
 import logging
+from dataclasses import replace
 from typing import Any
 
 from fastapi import APIRouter, Request, Response
+from pydantic_core import to_json
 
 from service.api.deps import Predicting, PredictParts
+from service.api.feedback.retained_answer import served_request
 from service.api.http.problems import problem
 from service.api.predict import predict_presenter
 from service.api.predict.predict_bodies import BATCH_BODY, PREDICT_BODY
@@ -134,16 +137,28 @@ async def _compute(
     async with parts.admission.slot(client):
         loop = asyncio.get_running_loop()
         context = contextvars.copy_context()  # the pool's thread logs with the request's id
-        return await loop.run_in_executor(parts.pool, context.run, _respond, parts, image, parameters, png)
+        answer = (_respond, parts, image, parameters, png, client)
+        return await loop.run_in_executor(parts.pool, context.run, *answer)
 
 
-def _respond(parts: PredictParts, image: bytes, parameters: PredictParameters, png: bool) -> Response:
+def _respond(
+    parts: PredictParts, image: bytes, parameters: PredictParameters, png: bool, client: str
+) -> Response:
     query = predict_query(parameters)
+    retention = parts.retention
+    retained = not png and retention is not None and retention.wanted(parameters.retain)
+    query = replace(query, retain=True) if retained else query
     prediction = parts.predictor.predict(image, query)
     note_calibration_version(prediction.version)
     manifest = parts.predictor.detector.manifest
     if png:
         return Response(predict_presenter.predict_png(prediction, query, manifest), media_type="image/png")
+    if retained:
+        served = served_request(prediction, query, None)
+        prediction_id = retention.retain(prediction.version, served, image, parameters.stream, client)
+        body = predict_presenter.predict_body(prediction, query, manifest)
+        answer = to_json({**body, "prediction_id": prediction_id}, inf_nan_mode="null")
+        return Response(answer, media_type="application/json")
     return Response(
         predict_presenter.predict_json(prediction, query, manifest), media_type="application/json"
     )

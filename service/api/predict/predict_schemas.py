@@ -180,6 +180,19 @@ class PredictOptions(_Body):
         " groups) or use the pooled threshold (guarantee.stratum says so)",
     )
     pose: PoseRequest | None = Field(default=None, description="also return each instance's pose set")
+    retain: StrictBool = Field(
+        default=False,
+        description="keep this answer for feedback: it then carries a prediction_id to send the true points"
+        " to (POST /v1/feedback/{prediction_id}); CKS_FEEDBACK_RETAIN_SHARE retains a share unasked",
+    )
+    stream: str | None = Field(
+        default=None,
+        min_length=1,
+        max_length=64,
+        pattern=r"^[ -~]+$",
+        description="the camera stream this image comes from: live coverage is reported per stream, and"
+        " its frames are grouped into looks (one vote per look)",
+    )
 
 
 class PredictParameters(PredictOptions):
@@ -387,6 +400,11 @@ class PredictResponse(BaseModel):
     calibration: CalibrationRef
     image: ImageInfo
     instances: list[InstanceOut]
+    prediction_id: str | None = Field(
+        default=None,
+        exclude_if=lambda value: value is None,  # answers not retained keep their shape
+        description="present when the answer was retained for feedback: POST /v1/feedback/{prediction_id}",
+    )
 
 
 class BatchItem(BaseModel):

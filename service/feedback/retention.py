@@ -1,0 +1,111 @@
+"""Keeping a predict answer for feedback: what it must remember to judge a true point later.
+
+A retained prediction keeps, per (instance, keypoint) row, the heatmap statistics that give every
+nonconformity score of a true point (q*, p*, the top-K mean and covariance, whether the map was
+uninformative), the instance's image -> heatmap affine, the threshold and centre of the set served
+and the guarantee it came with; per request the calibration version, the query, the image's sha256
+and size, the camera stream and the client. Nothing else is needed: labels arrive as image points,
+the affine takes them to the heatmap, the statistics score them exactly as calibration would.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import random
+import secrets
+from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
+from typing import Any
+
+from calibration_store import RetainedPrediction
+from service.conformal import CoverageGuarantee
+
+#: prediction ids: "p" + creation time (ms since the epoch, 12 hex digits) + 20 random hex digits
+ID_PREFIX = "p"
+_TIME_DIGITS = 12
+
+
+@dataclass(frozen=True)
+class RetentionRules:
+    """CKS_FEEDBACK_RETAIN_SHARE, CKS_FEEDBACK_MAX_AGE_SECONDS, CKS_FEEDBACK_MAX_RETAINED."""
+
+    share: float
+    max_age: timedelta
+    max_rows: int
+
+
+@dataclass(frozen=True)
+class ServedRequest:
+    """What a retained answer was asked and served, in plain values (from the predict use case)."""
+
+    query: dict[str, Any]  # nonconformity, coverage, epsilon, delta
+    instances: list[dict[str, Any]]  # object, bbox, group, affine
+    rows: list[dict[str, Any]]
+    heatmap_shape: tuple[int, int]
+    width: int
+    height: int
+    adaptive: dict[str, Any] | None = None
+
+
+class Retention:
+    """Decides which answers are kept and writes them to the store."""
+
+    def __init__(self, store: Any, model_hash: str, rules: RetentionRules, seed: int | None = None) -> None:
+        self._store, self._model_hash, self.rules = store, model_hash, rules
+        self._random = random.Random(seed)
+
+    def wanted(self, requested: bool) -> bool:
+        """Asked for (``retain: true``), or drawn with probability CKS_FEEDBACK_RETAIN_SHARE."""
+        return requested or (self.rules.share > 0 and self._random.random() < self.rules.share)
+
+    def retain(
+        self, version: int, served: ServedRequest, image: bytes, stream: str | None, client: str
+    ) -> str:
+        """Store the answer; returns its prediction id."""
+        now = datetime.now(UTC)
+        prediction_id = new_prediction_id(now)
+        record = {
+            "query": served.query,
+            "image": {
+                "sha256": hashlib.sha256(image).hexdigest(),
+                "width": served.width,
+                "height": served.height,
+            },
+            "heatmap_shape": list(served.heatmap_shape),
+            "client": client,
+            "instances": served.instances,
+            "rows": served.rows,
+            "adaptive": served.adaptive,
+        }
+        retained = RetainedPrediction(
+            prediction_id, self._model_hash, version, stream or "", now, now + self.rules.max_age, record
+        )
+        self._store.retain_prediction(retained, self.rules.max_rows)
+        return prediction_id
+
+
+def new_prediction_id(at: datetime) -> str:
+    milliseconds = int(at.timestamp() * 1000)
+    return f"{ID_PREFIX}{milliseconds:0{_TIME_DIGITS}x}{secrets.token_hex(10)}"
+
+
+def retained_at(prediction_id: str) -> datetime | None:
+    """When a well-formed id was made (None: not an id this service makes)."""
+    digits = prediction_id[len(ID_PREFIX) : len(ID_PREFIX) + _TIME_DIGITS]
+    if not prediction_id.startswith(ID_PREFIX) or len(prediction_id) != len(ID_PREFIX) + _TIME_DIGITS + 20:
+        return None
+    try:
+        int(prediction_id[len(ID_PREFIX) :], 16)
+    except ValueError:
+        return None
+    return datetime.fromtimestamp(int(digits, 16) / 1000, UTC)
+
+
+def guarantee_values(guarantee: CoverageGuarantee) -> dict[str, Any]:
+    return {"n": guarantee.n, "t": guarantee.t, "epsilon": guarantee.epsilon, "delta": guarantee.delta}
+
+
+def finite_or_none(value: float) -> float | None:
+    """JSON keeps finite numbers only: an unbounded set's threshold is stored as null."""
+    return value if math.isfinite(value) else None

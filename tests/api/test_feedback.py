@@ -1,0 +1,166 @@
+"""Feedback on served predictions in process (the ASGI app, the real model, SQLite): a retained answer
+carries a prediction_id, its true points are judged against the sets served and stored once, with
+every refusal a clear 4xx, the feedback token's own scope, and the audit trail."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+import pytest
+
+from service.feedback.retention import new_prediction_id
+from tests.api.in_process import InProcess
+from tests.predict_client import contains, instances_of, predict_json, predict_ok
+from tests.samples import Sample, samples_by_image
+from tests.service_calls import ADMIN_TOKEN, assert_problem
+
+FEEDBACK_TOKEN = "robot-feedback-token-0001"
+
+
+@pytest.fixture(scope="module")
+def api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[InProcess]:
+    folder = tmp_path_factory.mktemp("feedback")
+    tokens = folder / "tokens"
+    tokens.write_text(f"alice:{ADMIN_TOKEN}-alice\nfeedback robot-1:{FEEDBACK_TOKEN}\n")
+    with InProcess(folder / "data", admin_token=ADMIN_TOKEN, admin_tokens_file=str(tokens)) as service:
+        yield service
+
+
+def sender(token: str = FEEDBACK_TOKEN) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token}"}
+
+
+def labels_of(group: list[Sample]) -> dict:
+    return {"instances": [{"instance": i, "keypoints": s.keypoints} for i, s in enumerate(group)]}
+
+
+def first_image(samples: list[Sample]) -> tuple[bytes, list[Sample]]:
+    path, group = next(iter(samples_by_image(samples).items()))
+    return Path(path).read_bytes(), group
+
+
+def retained(api: InProcess, image: bytes, group: list[Sample], **options) -> dict:
+    return predict_ok(api.client, image, {"instances": instances_of(group), "retain": True, **options})
+
+
+def test_an_answer_not_retained_has_no_prediction_id(api: InProcess, samples: list[Sample]) -> None:
+    image, group = first_image(samples)
+    answer = predict_ok(api.client, image, {"instances": instances_of(group)})
+    assert "prediction_id" not in answer
+
+
+def test_feedback_is_judged_against_the_sets_served_and_stored_once(
+    api: InProcess, samples: list[Sample]
+) -> None:
+    image, group = first_image(samples)
+    answer = retained(api, image, group, stream="cam-1")
+    prediction_id = answer["prediction_id"]
+    response = api.client.post(f"/v1/feedback/{prediction_id}", json=labels_of(group), headers=sender())
+    assert response.status_code == 200, response.text
+    judged = response.json()
+    served = [kp for instance in answer["instances"] for kp in instance["keypoints"]]
+    truths = [(x, y, v) for s in group for x, y, v in s.keypoints]
+    expected = [contains(kp["set"], (x, y)) for kp, (x, y, v) in zip(served, truths, strict=True) if v]
+    assert [k["covered"] for k in judged["keypoints"]] == expected
+    assert judged["labelled"] == len(expected) and judged["covered"] == sum(expected)
+    assert set(judged["keypoints"][0]["scores"]) == {"peak", "var", "cov"}
+    again = api.client.post(f"/v1/feedback/{prediction_id}", json=labels_of(group), headers=sender())
+    assert_problem(again, 409, "already")
+    log = api.client.get("/v1/admin/audit", headers=api.admin).json()
+    entries = [e for e in log["entries"] if e["action"] == "feedback"]
+    assert entries[0]["who"] == "robot-1" and entries[0]["outcome"] == "refused"
+    assert entries[1]["outcome"] == "labelled" and entries[1]["details"]["prediction_id"] == prediction_id
+
+
+def test_some_keypoints_of_some_instances(api: InProcess, samples: list[Sample]) -> None:
+    image, group = first_image(samples)
+    answer = retained(api, image, group)
+    prediction_id = answer["prediction_id"]
+    last = len(group) - 1
+    labelled = [j for j, (_, _, v) in enumerate(group[last].keypoints) if v][:2]
+    keypoints = [(x, y, v if j in labelled else 0) for j, (x, y, v) in enumerate(group[last].keypoints)]
+    body = {"instances": [{"instance": last, "keypoints": keypoints}]}
+    response = api.client.post(f"/v1/feedback/{prediction_id}", json=body, headers=sender())
+    assert response.status_code == 200, response.text
+    judged = response.json()["keypoints"]
+    served = answer["instances"][last]["keypoints"]
+    assert [(k["instance"], k["index"]) for k in judged] == [(last, served[j]["index"]) for j in labelled]
+    assert len(judged) == 2
+
+
+def test_unknown_and_expired_ids(api: InProcess) -> None:
+    unknown = new_prediction_id(datetime.now(UTC))
+    assert_problem(api.client.post(f"/v1/feedback/{unknown}", json={"instances": []}, headers=sender()), 422)
+    body = {"instances": [{"instance": 0, "keypoints": [[1, 1, 2]]}]}
+    assert_problem(api.client.post(f"/v1/feedback/{unknown}", json=body, headers=sender()), 404, "retain")
+    assert_problem(api.client.post("/v1/feedback/not-an-id", json=body, headers=sender()), 404)
+    old = new_prediction_id(datetime.now(UTC) - timedelta(days=8))
+    assert_problem(api.client.post(f"/v1/feedback/{old}", json=body, headers=sender()), 410, "no longer kept")
+
+
+def test_malformed_labels_are_422_naming_each_problem(api: InProcess, samples: list[Sample]) -> None:
+    image, group = first_image(samples)
+    prediction_id = retained(api, image, group)["prediction_id"]
+    k = len(group[0].keypoints)
+    cases = {
+        "is not an instance": [{"instance": len(group), "keypoints": group[0].keypoints}],
+        "entries but object": [{"instance": 0, "keypoints": group[0].keypoints[:-1]}],
+        "visibility 3": [{"instance": 0, "keypoints": [(1.0, 1.0, 3)] * k}],
+        "outside the": [{"instance": 0, "keypoints": [(-5.0, 1.0, 2)] * k}],
+        "no keypoint is labelled": [{"instance": 0, "keypoints": [(0.0, 0.0, 0)] * k}],
+        "labelled twice": [{"instance": 0, "keypoints": group[0].keypoints}] * 2,
+    }
+    for fragment, instances in cases.items():
+        response = api.client.post(
+            f"/v1/feedback/{prediction_id}", json={"instances": instances}, headers=sender()
+        )
+        assert_problem(response, 422, fragment)
+    assert_problem(
+        api.client.post(f"/v1/feedback/{prediction_id}", json={"instances": [], "x": 1}, headers=sender()),
+        422,
+    )
+    # nothing was stored by the refusals: the labels are still taken once
+    response = api.client.post(f"/v1/feedback/{prediction_id}", json=labels_of(group), headers=sender())
+    assert response.status_code == 200, response.text
+
+
+def test_who_may_send_feedback(api: InProcess, samples: list[Sample]) -> None:
+    image, group = first_image(samples)
+    prediction_id = retained(api, image, group)["prediction_id"]
+    url = f"/v1/feedback/{prediction_id}"
+    assert_problem(api.client.post(url, json=labels_of(group)), 401)
+    assert_problem(
+        api.client.post(url, json=labels_of(group), headers=sender("wrong-token-wrong-token")), 401
+    )
+    # the feedback token is no admin token
+    assert_problem(api.client.get("/v1/admin/audit", headers=sender()), 401)
+    assert api.client.post(url, json=labels_of(group), headers=api.admin).status_code == 200
+
+
+def test_feedback_is_off_without_tokens(tmp_path: Path, samples: list[Sample]) -> None:
+    with InProcess(tmp_path / "data", feedback_retain_share=1.0) as service:
+        image, group = first_image(samples)
+        answer = predict_ok(service.client, image, {"instances": instances_of(group)})
+        assert answer["prediction_id"]  # sampled: every answer retained at share 1
+        response = service.client.post(f"/v1/feedback/{answer['prediction_id']}", json=labels_of(group))
+        assert_problem(response, 403, "feedback name:token")
+
+
+def test_the_oldest_go_first_beyond_the_size_bound(tmp_path: Path, samples: list[Sample]) -> None:
+    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN, feedback_max_retained=2) as service:
+        image, group = first_image(samples)
+        ids = [retained(service, image, group)["prediction_id"] for _ in range(3)]
+        first = service.client.post(f"/v1/feedback/{ids[0]}", json=labels_of(group), headers=service.admin)
+        assert_problem(first, 410, "CKS_FEEDBACK_MAX_RETAINED")
+        last = service.client.post(f"/v1/feedback/{ids[2]}", json=labels_of(group), headers=service.admin)
+        assert last.status_code == 200, last.text
+
+
+def test_a_png_answer_is_not_retained(api: InProcess, samples: list[Sample]) -> None:
+    image, group = first_image(samples)
+    response = predict_json(
+        api.client, image, {"instances": instances_of(group), "retain": True}, path="/v1/predict/png"
+    )
+    assert response.status_code == 200 and response.headers["content-type"] == "image/png"
