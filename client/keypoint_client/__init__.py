@@ -71,6 +71,9 @@ from keypoint_client.monitoring_models import (
     CoverageAuditSummary,
     CoverageFigure,
     Drift,
+    FeedbackResult,
+    GroupCoverage,
+    LiveCoverage,
 )
 from keypoint_client.retry import RetryPolicy
 from keypoint_client.sets import Ball, Ellipse, PredictionSet, Unbounded
@@ -94,6 +97,9 @@ __all__ = [
     "CoverageAuditSummary",
     "CoverageFigure",
     "Drift",
+    "FeedbackResult",
+    "GroupCoverage",
+    "LiveCoverage",
     "Ellipse",
     "Forbidden",
     "Guarantee",

@@ -36,7 +36,13 @@ from keypoint_client.models import (
     Readiness,
     instance_request,
 )
-from keypoint_client.monitoring_models import CoverageAudit, CoverageAuditList, Drift
+from keypoint_client.monitoring_models import (
+    CoverageAudit,
+    CoverageAuditList,
+    Drift,
+    FeedbackResult,
+    LiveCoverage,
+)
 from keypoint_client.retry import retry_after_seconds
 
 if TYPE_CHECKING:
@@ -61,6 +67,8 @@ class PredictOptions(TypedDict, total=False):
     include_statistics: bool
     channel_order: ChannelOrder
     pose: PoseRequest | None
+    retain: bool
+    stream: str | None
 
 
 @dataclass(frozen=True)
@@ -86,6 +94,8 @@ class PredictRequest:
     include_statistics: bool = False
     channel_order: ChannelOrder = "rgb"
     pose: PoseRequest | None = None
+    retain: bool = False
+    stream: str | None = None
 
     def parts(self, suffix: str = "") -> Files:
         """The multipart parts ``image<suffix>`` and ``request<suffix>``."""
@@ -100,6 +110,10 @@ class PredictRequest:
             "include_statistics": self.include_statistics,
             "pose": None if self.pose is None else self.pose.to_dict(),
         }
+        if self.retain:  # sent only when asked: servers before feedback refuse unknown fields
+            parameters["retain"] = True
+        if self.stream is not None:
+            parameters["stream"] = self.stream
         return [
             (f"image{suffix}", (encoded.filename, encoded.data, encoded.content_type)),
             (f"request{suffix}", (None, json.dumps(parameters).encode(), "application/json")),
@@ -402,6 +416,23 @@ def drift(*, timeout: float | None = None) -> Call[Drift]:
     the worker process that answers sees them (each keeps its own windows). NotFound when the
     server's drift monitoring is off."""
     return Call("GET", "/v1/admin/drift", _model(Drift), timeout=timeout)
+
+
+def send_feedback(
+    prediction_id: str, instances: Sequence[Mapping[str, Any]], *, timeout: float | None = None
+) -> Call[FeedbackResult]:
+    """The true points of a retained prediction (``predict(..., retain=True)``'s ``prediction_id``):
+    ``instances`` as ``{"instance": i, "keypoints": [[x, y, v], ...]}`` (v = 0: not labelled). Needs
+    a feedback or admin token; ProblemError 404 (unknown), 409 (labelled already), 410 (expired)."""
+    body = {"instances": [dict(instance) for instance in instances]}
+    path = f"/v1/feedback/{quote(prediction_id, safe='')}"
+    return Call("POST", path, _model(FeedbackResult), idempotent=False, json=body, timeout=timeout)
+
+
+def live_coverage(*, timeout: float | None = None) -> Call[LiveCoverage]:
+    """The coverage the feedback labels show, per version, object, keypoint, stream and group, with
+    an anytime-valid confidence sequence and the alarm when coverage is proven below the promise."""
+    return Call("GET", "/v1/admin/coverage/live", _model(LiveCoverage), timeout=timeout)
 
 
 def store(*, timeout: float | None = None) -> Call[StoreInfo]:

@@ -100,6 +100,8 @@ class _Endpoints:
     audits = endpoint(calls.audits)
     coverage_audit = endpoint(calls.coverage_audit)
     drift = endpoint(calls.drift)
+    send_feedback = endpoint(calls.send_feedback)
+    live_coverage = endpoint(calls.live_coverage)
     store = endpoint(calls.store)
 
 

@@ -240,6 +240,7 @@ class PredictResult(Frozen):
     calibration: CalibrationRef
     image: ImageInfo
     instances: list[Instance]
+    prediction_id: str | None = None  # retained for feedback (retain=True, or sampled by the server)
 
 
 class ModelInfo(Frozen):

@@ -19,6 +19,7 @@ from service.calibration.jobs import CalibrationJobs, JobRunner
 from service.calibration.registry import CalibrationRegistry
 from service.detector.manifest import Manifest
 from service.detector.session import Detector
+from service.feedback.live_coverage import LiveCoverageReader
 from service.feedback.retention import Retention
 from service.infra.audit_trail import AuditTrail, Operator
 from service.infra.operators import operator_named
@@ -54,6 +55,7 @@ Config = Annotated[Settings, Depends(_part("settings"))]
 Operators = Annotated[dict[str, str], Depends(_part("operators"))]
 FeedbackSenders = Annotated[dict[str, str], Depends(_part("feedback_senders"))]
 Retaining = Annotated[Retention, Depends(_part("retention"))]
+LiveCoverage = Annotated[LiveCoverageReader, Depends(_part("live_coverage"))]
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from service import __version__
 from service.api.admin import audit_routes, calibration_routes
 from service.api.deps import PredictParts
-from service.api.feedback import feedback_routes
+from service.api.feedback import coverage_routes, feedback_routes
 from service.api.http.clients import ClientKeys
 from service.api.http.contract import install_contract
 from service.api.http.cut_requests import AnswerCutRequests
@@ -101,6 +101,7 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
         audit_routes,
         console_routes,
         feedback_routes,
+        coverage_routes,
     ):
         app.include_router(routes.router)
     install_contract(app, parsed_bodies=(PredictJson, PredictParameters, BatchJson))  # parsed by hand

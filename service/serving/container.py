@@ -26,10 +26,11 @@ from service.calibration.uploads import process_uploads_dir, remove_spent_job_fo
 from service.calibration.versions import VersionRules
 from service.conformal.kernel import native_kernel_available
 from service.detector.session import Detector
+from service.feedback.live_coverage import LiveCoverageReader
 from service.feedback.retention import Retention, RetentionRules
 from service.infra.audit_trail import AuditTrail
 from service.infra.logs import ensure_logging
-from service.infra.metrics import forget_drift_source, set_drift_source
+from service.infra.metrics import forget_drift_source, set_drift_source, set_feedback_source
 from service.infra.operators import load_feedback_senders, load_operators
 from service.infra.settings import Settings, removed_settings
 from service.monitoring.coverage_audits import CoverageAudits
@@ -37,6 +38,8 @@ from service.monitoring.drift_monitor import DriftMonitor, DriftSettings
 from service.prediction import Predictor
 
 log = logging.getLogger(__name__)
+#: how old the live coverage /metrics serves may be (each scrape would otherwise read every label)
+FEEDBACK_METRICS_AGE_S = 10.0
 
 
 @dataclass
@@ -57,6 +60,7 @@ class ServiceState:
     drift: DriftMonitor | None = None  # None when CKS_DRIFT_ENABLED is false
     feedback_senders: dict[str, str] = field(default_factory=dict)  # admin and feedback tokens -> name
     retention: Retention | None = None
+    live_coverage: LiveCoverageReader | None = None
 
     @cached_property
     def predictor(self) -> Predictor:
@@ -173,7 +177,19 @@ def build_state(settings: Settings) -> ServiceState:
         drift=drift,
         feedback_senders=load_feedback_senders(settings.admin.admin_token, settings.admin.admin_tokens_file),
         retention=Retention(store, detector.model_hash, _retention_rules(settings)),
+        live_coverage=_live_coverage(settings, store, detector),
     )
+
+
+def _live_coverage(settings: Settings, store: CalibrationStore, detector: Detector) -> LiveCoverageReader:
+    """The live coverage of the feedback labels, also the source of cks_feedback_*."""
+    names = [keypoint.name for keypoint in detector.manifest.keypoints]
+    feedback = settings.feedback
+    reader = LiveCoverageReader(
+        store, detector.model_hash, names, feedback.feedback_max_retained, feedback.feedback_alarm_level
+    )
+    set_feedback_source(lambda: reader.report(max_age_s=FEEDBACK_METRICS_AGE_S))
+    return reader
 
 
 def _retention_rules(settings: Settings) -> RetentionRules:

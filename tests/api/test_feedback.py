@@ -164,3 +164,51 @@ def test_a_png_answer_is_not_retained(api: InProcess, samples: list[Sample]) -> 
         api.client, image, {"instances": instances_of(group), "retain": True}, path="/v1/predict/png"
     )
     assert response.status_code == 200 and response.headers["content-type"] == "image/png"
+
+
+def send_all(service: InProcess, samples: list[Sample], shift: float, stream: str) -> None:
+    """Every sample image predicted (retained) and labelled, the labels moved ``shift`` pixels (right,
+    or left near the right edge)."""
+    for path, group in samples_by_image(samples).items():
+        answer = retained(service, Path(path).read_bytes(), group, stream=stream)
+        moved = [
+            {
+                "instance": i,
+                "keypoints": [
+                    (x + shift if x + shift <= s.width else x - shift, y, v) for x, y, v in s.keypoints
+                ],
+            }
+            for i, s in enumerate(group)
+        ]
+        response = service.client.post(
+            f"/v1/feedback/{answer['prediction_id']}", json={"instances": moved}, headers=service.admin
+        )
+        assert response.status_code == 200, response.text
+
+
+def test_live_coverage_holds_on_true_labels_and_alarms_on_labels_the_sets_miss(
+    tmp_path: Path, samples: list[Sample]
+) -> None:
+    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN, feedback_alarm_level=0.05) as service:
+        send_all(service, samples, 0.0, "cam-true")
+        live = service.client.get("/v1/admin/coverage/live", headers=service.admin)
+        assert live.status_code == 200, live.text
+        report = live.json()
+        assert report["alarm_level"] == 0.05 and not report["alarm"]
+        pooled = next(g for g in report["groups"] if g["level"] == "version")
+        labelled = sum(v > 0 for s in samples for _, _, v in s.keypoints)
+        assert pooled["labelled"] == labelled and pooled["looks"] == len(samples_by_image(samples))
+        assert pooled["lower"] <= pooled["covered"] / pooled["labelled"] <= pooled["upper"]
+        assert {g["level"] for g in report["groups"]} == {"version", "object", "keypoint", "stream"}
+        send_all(service, samples, 60.0, "cam-moved")  # labels of another scene: the sets miss them
+        report = service.client.get("/v1/admin/coverage/live", headers=service.admin).json()
+        moved = next(g for g in report["groups"] if g["level"] == "stream" and g["name"] == "cam-moved")
+        assert moved["covered"] == 0 and moved["alarm"] and moved["upper"] < moved["floor"]
+        true = next(g for g in report["groups"] if g["level"] == "stream" and g["name"] == "cam-true")
+        assert not true["alarm"]
+        metrics = service.client.get("/metrics").text
+        assert (
+            'cks_feedback_coverage_alarm{coverage="keypoint",epsilon="0.1",level="stream",name="cam-moved"'
+            in metrics
+        )
+        assert_problem(service.client.get("/v1/admin/coverage/live"), 401)

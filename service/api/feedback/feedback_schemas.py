@@ -39,3 +39,34 @@ class FeedbackOut(BaseModel):
     labelled: int = Field(description="keypoints labelled")
     covered: int = Field(description="of them, inside the set served")
     keypoints: list[JudgedKeypoint]
+
+
+class GroupCoverageOut(BaseModel):
+    level: str = Field(description="version (all keypoints), object, keypoint, stream or group")
+    name: str
+    version: int
+    nonconformity: str
+    coverage: str = Field(description="keypoint, or object (a unit is a fully labelled instance)")
+    epsilon: float
+    delta: float | None
+    labelled: int = Field(description="units labelled (keypoints, or instances with coverage object)")
+    covered: int = Field(description="of them, inside the set served")
+    looks: int = Field(description="independent looks (frames of one scene are one look): the votes")
+    look_mean: float | None = Field(description="mean vote (a look's share of covered units)")
+    lower: float = Field(description="anytime-valid lower confidence bound of the votes' mean")
+    upper: float = Field(description="anytime-valid upper confidence bound")
+    promised: float = Field(description="1 - epsilon")
+    floor: float = Field(
+        description="the least coverage the version promises: the alarm_level/2 quantile of its Beta"
+        " law (1 - epsilon with a PAC delta)"
+    )
+    alarm: bool = Field(description="coverage proven below floor")
+
+
+class LiveCoverageOut(BaseModel):
+    alarm_level: float = Field(
+        description="CKS_FEEDBACK_ALARM_LEVEL: each group's probability of a false alarm, however long"
+        " and often watched (the bounds form a confidence sequence at this level)"
+    )
+    alarm: bool
+    groups: list[GroupCoverageOut]
