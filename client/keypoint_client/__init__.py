@@ -49,6 +49,7 @@ from keypoint_client.errors import (
 )
 from keypoint_client.images import ImageInput, png_bytes
 from keypoint_client.models import (
+    AdaptiveLevel,
     Guarantee,
     Instance,
     InstanceRequest,
@@ -79,6 +80,7 @@ from keypoint_client.retry import RetryPolicy
 from keypoint_client.sets import Ball, Ellipse, PredictionSet, Unbounded
 
 __all__ = [
+    "AdaptiveLevel",
     "Activation",
     "ActivationLog",
     "ActivationRefused",

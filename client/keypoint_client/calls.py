@@ -69,6 +69,7 @@ class PredictOptions(TypedDict, total=False):
     pose: PoseRequest | None
     retain: bool
     stream: str | None
+    adaptive: bool
 
 
 @dataclass(frozen=True)
@@ -96,6 +97,7 @@ class PredictRequest:
     pose: PoseRequest | None = None
     retain: bool = False
     stream: str | None = None
+    adaptive: bool = False
 
     def parts(self, suffix: str = "") -> Files:
         """The multipart parts ``image<suffix>`` and ``request<suffix>``."""
@@ -114,6 +116,8 @@ class PredictRequest:
             parameters["retain"] = True
         if self.stream is not None:
             parameters["stream"] = self.stream
+        if self.adaptive:
+            parameters["adaptive"] = True
         return [
             (f"image{suffix}", (encoded.filename, encoded.data, encoded.content_type)),
             (f"request{suffix}", (None, json.dumps(parameters).encode(), "application/json")),

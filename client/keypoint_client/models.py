@@ -233,6 +233,19 @@ class ImageInfo(Frozen):
     height: int
 
 
+class AdaptiveLevel(Frozen):
+    """Adaptive conformal inference on a stream: |miscoverage - epsilon| <= long_run_bound."""
+
+    guarantee: str
+    epsilon: float
+    alpha: float
+    served_epsilon: float
+    gamma: float
+    steps: int
+    miscoverage: float | None
+    long_run_bound: float | None
+
+
 class PredictResult(Frozen):
     """The answer to one image: per instance, per keypoint, a set and its guarantee."""
 
@@ -241,6 +254,7 @@ class PredictResult(Frozen):
     image: ImageInfo
     instances: list[Instance]
     prediction_id: str | None = None  # retained for feedback (retain=True, or sampled by the server)
+    adaptive: AdaptiveLevel | None = None  # adaptive=True: the ACI bound that applies to these sets
 
 
 class ModelInfo(Frozen):

@@ -209,6 +209,7 @@ class GroupCoverage(Frozen):
     level: str
     name: str
     version: int
+    guarantee: str  # exchangeable, or adaptive (ACI: no floor, no alarm)
     nonconformity: Nonconformity
     coverage: Coverage
     epsilon: float

@@ -19,6 +19,7 @@ from service.calibration.jobs import CalibrationJobs, JobRunner
 from service.calibration.registry import CalibrationRegistry
 from service.detector.manifest import Manifest
 from service.detector.session import Detector
+from service.feedback.adaptive import AdaptiveSets
 from service.feedback.live_coverage import LiveCoverageReader
 from service.feedback.retention import Retention
 from service.infra.audit_trail import AuditTrail, Operator
@@ -56,6 +57,7 @@ Operators = Annotated[dict[str, str], Depends(_part("operators"))]
 FeedbackSenders = Annotated[dict[str, str], Depends(_part("feedback_senders"))]
 Retaining = Annotated[Retention, Depends(_part("retention"))]
 LiveCoverage = Annotated[LiveCoverageReader, Depends(_part("live_coverage"))]
+Adaptive = Annotated[AdaptiveSets, Depends(_part("adaptive"))]
 
 
 @dataclass(frozen=True)
@@ -70,6 +72,7 @@ class PredictParts:
     pace: BodyPace
     clients: ClientKeys
     retention: Retention | None = None  # None: nothing is retained (no store to keep answers in)
+    adaptive: AdaptiveSets | None = None  # None: no adaptive sets
 
     @property
     def manifest(self) -> Manifest:

@@ -76,7 +76,9 @@ def coverage_bounds(total: float, count: int, level: float) -> CoverageBounds:
 
 def proven_below(total: float, count: int, floor: float, level: float) -> bool:
     """Whether the votes prove, at ``level`` (one side: level / 2), a mean below ``floor``."""
-    return count > 0 and float(log_evidence_below(total, count, floor)[0]) >= math.log(2.0 / level)
+    if count == 0 or floor <= 0.0:  # nothing to prove below 0 (an adaptive stream promises no floor)
+        return False
+    return float(log_evidence_below(total, count, floor)[0]) >= math.log(2.0 / level)
 
 
 def promised_floor(n: int, t: int, epsilon: float, delta: float | None, band_level: float) -> float:

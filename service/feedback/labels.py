@@ -21,6 +21,7 @@ from calibration_store import LabelOutcome, RetainedPrediction
 from service.conformal import NONCONFORMITY_SCORES, HeatmapStatistics, get_nonconformity_score
 from service.detector.crop import apply_affines
 from service.errors import Conflict, Gone, InvalidInput, NotFound
+from service.feedback.adaptive import AdaptiveSets
 from service.feedback.retention import retained_at
 from service.infra.audit_trail import AuditTrail, Operator, written
 
@@ -55,8 +56,9 @@ def record_feedback(
     prediction_id: str,
     instances: Sequence[InstanceLabels],
     max_age_s: float,
+    adaptive: AdaptiveSets | None = None,
 ) -> Judged:
-    """The feedback use case (see the module's doc)."""
+    """The feedback use case (see the module's doc); a stream's adaptive level learns from it."""
     retained = find_retained(store, prediction_id, max_age_s)
     points = check_labels(retained.record, instances)
     rows = judge(retained.record, points)
@@ -85,6 +87,10 @@ def record_feedback(
     if outcome is LabelOutcome.MISSING:
         raise _gone(prediction_id)
     written(entry)
+    served = retained.record.get("adaptive")
+    if served is not None and adaptive is not None:
+        misses = [not covered for _, _, covered in covered_units(retained.record, rows)]
+        adaptive.learn(served["key"], served["epsilon"], misses)
     return Judged(retained, labels)
 
 
@@ -175,6 +181,23 @@ def judge(record: dict[str, Any], points: dict[int, np.ndarray]) -> list[dict[st
         row_scores = {kind: scores[kind][k] for kind in scores}
         judged.append({"row": row, "scores": row_scores, "covered": bool(row_scores[served] <= threshold)})
     return judged
+
+
+def covered_units(
+    record: dict[str, Any], judged_rows: Sequence[dict[str, Any]]
+) -> list[tuple[int, int | None, bool]]:
+    """(instance, row, covered) of each unit the query's guarantee speaks about: each labelled
+    keypoint, or (coverage object) each instance whose keypoints are all labelled (row None)."""
+    rows = record["rows"]
+    judged = {row["row"]: row["covered"] for row in judged_rows}
+    if record["query"]["coverage"] != "object":
+        return [(rows[r]["instance"], r, covered) for r, covered in judged.items()]
+    units = []
+    for index in range(len(record["instances"])):
+        members = [r for r, row in enumerate(rows) if row["instance"] == index]
+        if members and all(r in judged for r in members):
+            units.append((index, None, all(judged[r] for r in members)))
+    return units
 
 
 def kept_statistics(record: dict[str, Any], rows: Sequence[dict[str, Any]]) -> HeatmapStatistics:

@@ -23,6 +23,7 @@ import numpy as np
 
 from calibration_store import RetainedPrediction
 from service.feedback.confidence_sequence import coverage_bounds, promised_floor, proven_below
+from service.feedback.labels import covered_units
 from service.monitoring.looks import Frame, LookTracker
 
 LEVELS = ("version", "object", "keypoint", "stream", "group")
@@ -57,6 +58,7 @@ class GroupCoverage:
     level: str
     name: str
     version: int
+    guarantee: str  # exchangeable (the calibration's), or adaptive (ACI: no floor, no alarm)
     nonconformity: str
     coverage: str
     epsilon: float
@@ -83,8 +85,10 @@ def live_coverage(
     for prediction in labelled:
         record = prediction.record
         query = record["query"]
+        guarantee = "exchangeable" if record.get("adaptive") is None else "adaptive"
         base = (
             prediction.version,
+            guarantee,
             query["nonconformity"],
             query["coverage"],
             query["epsilon"],
@@ -92,7 +96,8 @@ def live_coverage(
         )
         look = looks[prediction.id]
         by_group: dict[tuple, list[Unit]] = {}
-        for unit in units(record, prediction.labels or {}, keypoint_names, level / 2, prediction.stream):
+        band = level / 2 if guarantee == "exchangeable" else 0.0  # ACI promises a long-run bound instead
+        for unit in units(record, prediction.labels or {}, keypoint_names, band, prediction.stream):
             for name_level, name in _names(unit):
                 by_group.setdefault((*base, name_level, name), []).append(unit)
         for key, members in by_group.items():
@@ -125,26 +130,18 @@ def units(
     record: dict[str, Any], labels: dict[str, Any], keypoint_names: list[str], band: float, stream: str
 ) -> Iterator[Unit]:
     """The judged units of one labelled prediction (keypoints, or whole instances: object scope)."""
-    rows = record["rows"]
-    judged = {row["row"]: row["covered"] for row in labels.get("rows", [])}
-    if record["query"]["coverage"] == "object":
-        for index, instance in enumerate(record["instances"]):
-            members = [r for r, row in enumerate(rows) if row["instance"] == index]
-            if members and all(r in judged for r in members):
-                floor = min(_floor(rows[r]["guarantee"], band) for r in members)
-                covered = all(judged[r] for r in members)
-                yield Unit(instance["object"], None, stream, instance["group"], covered, floor)
-        return
-    for r, covered in judged.items():
-        row = rows[r]
-        instance = record["instances"][row["instance"]]
-        name = keypoint_names[row["channel"]]
-        yield Unit(
-            instance["object"], name, stream, instance["group"], covered, _floor(row["guarantee"], band)
-        )
+    rows, instances = record["rows"], record["instances"]
+    for index, row, covered in covered_units(record, labels.get("rows", [])):
+        members = [r for r, kept in enumerate(rows) if kept["instance"] == index] if row is None else [row]
+        floor = min(_floor(rows[r]["guarantee"], band) for r in members)
+        name = None if row is None else keypoint_names[rows[row]["channel"]]
+        instance = instances[index]
+        yield Unit(instance["object"], name, stream, instance["group"], covered, floor)
 
 
 def _floor(guarantee: dict[str, Any], band: float) -> float:
+    if band == 0.0:
+        return 0.0
     return promised_floor(guarantee["n"], guarantee["t"], guarantee["epsilon"], guarantee["delta"], band)
 
 
@@ -160,13 +157,14 @@ def _names(unit: Unit) -> Iterator[tuple[str, str]]:
 
 
 def _report(key: tuple, votes: _Votes, level: float) -> GroupCoverage:
-    version, nonconformity, coverage, epsilon, delta, name_level, name = key
+    version, guarantee, nonconformity, coverage, epsilon, delta, name_level, name = key
     count = len(votes.looks)
     bounds = coverage_bounds(votes.total, count, level)
     return GroupCoverage(
         level=name_level,
         name=name,
         version=version,
+        guarantee=guarantee,
         nonconformity=nonconformity,
         coverage=coverage,
         epsilon=epsilon,

@@ -123,6 +123,7 @@ def predict_parts(state: ServiceState) -> PredictParts:
         pace,
         ClientKeys(state.operators, settings.predict.client_header, settings.predict.trusted_proxies),
         state.retention,
+        state.adaptive,
     )
 
 

@@ -26,6 +26,7 @@ from service.calibration.uploads import process_uploads_dir, remove_spent_job_fo
 from service.calibration.versions import VersionRules
 from service.conformal.kernel import native_kernel_available
 from service.detector.session import Detector
+from service.feedback.adaptive import AdaptiveSets
 from service.feedback.live_coverage import LiveCoverageReader
 from service.feedback.retention import Retention, RetentionRules
 from service.infra.audit_trail import AuditTrail
@@ -61,6 +62,7 @@ class ServiceState:
     feedback_senders: dict[str, str] = field(default_factory=dict)  # admin and feedback tokens -> name
     retention: Retention | None = None
     live_coverage: LiveCoverageReader | None = None
+    adaptive: AdaptiveSets | None = None
 
     @cached_property
     def predictor(self) -> Predictor:
@@ -178,6 +180,7 @@ def build_state(settings: Settings) -> ServiceState:
         feedback_senders=load_feedback_senders(settings.admin.admin_token, settings.admin.admin_tokens_file),
         retention=Retention(store, detector.model_hash, _retention_rules(settings)),
         live_coverage=_live_coverage(settings, store, detector),
+        adaptive=AdaptiveSets(store, detector.model_hash, settings.feedback.feedback_aci_gamma),
     )
 
 

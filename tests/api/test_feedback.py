@@ -212,3 +212,44 @@ def test_live_coverage_holds_on_true_labels_and_alarms_on_labels_the_sets_miss(
             in metrics
         )
         assert_problem(service.client.get("/v1/admin/coverage/live"), 401)
+
+
+def test_adaptive_sets_follow_the_streams_feedback_and_survive_a_restart(
+    tmp_path: Path, samples: list[Sample]
+) -> None:
+    image, group = first_image(samples)
+    options = {"instances": instances_of(group), "stream": "cam-9", "adaptive": True, "epsilon": 0.1}
+    gamma = 0.01
+    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN, feedback_aci_gamma=gamma) as service:
+        for refused, problem in (({"stream": None}, "needs stream"), ({"delta": 0.1}, "no delta")):
+            response = predict_json(service.client, image, {**options, **refused})
+            assert_problem(response, 422, problem)
+        first = predict_ok(service.client, image, options)
+        assert first["adaptive"] == {
+            "guarantee": "adaptive",
+            "epsilon": 0.1,
+            "alpha": 0.1,
+            "served_epsilon": 0.1,
+            "gamma": gamma,
+            "steps": 0,
+            "miscoverage": None,
+            "long_run_bound": None,
+        }
+        plain = predict_ok(service.client, image, {"instances": instances_of(group)})
+        assert first["instances"] == plain["instances"]  # alpha_1 = epsilon: the calibration's sets
+        moved = [
+            {"instance": i, "keypoints": [(5.0, 5.0, v) for _, _, v in s.keypoints]}
+            for i, s in enumerate(group)
+        ]
+        url = f"/v1/feedback/{first['prediction_id']}"
+        judged = service.client.post(url, json={"instances": moved}, headers=service.admin).json()
+        misses = judged["labelled"] - judged["covered"]
+    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN, feedback_aci_gamma=gamma) as service:
+        second = predict_ok(service.client, image, options)["adaptive"]
+        assert second["steps"] == judged["labelled"] and misses > 0
+        assert second["alpha"] == pytest.approx(0.1 + gamma * (0.1 * judged["labelled"] - misses))
+        assert second["served_epsilon"] < 0.1  # missed labels: larger sets
+        assert second["long_run_bound"] == pytest.approx((0.9 + gamma) / (gamma * judged["labelled"]))
+        live = service.client.get("/v1/admin/coverage/live", headers=service.admin).json()
+        adaptive = [g for g in live["groups"] if g["guarantee"] == "adaptive"]
+        assert adaptive and not any(g["alarm"] for g in adaptive)

@@ -6,7 +6,7 @@ import asyncio
 
 from fastapi import APIRouter
 
-from service.api.deps import FEEDBACK_RESPONSES, Config, FeedbackSender, Model, Store, Trail
+from service.api.deps import FEEDBACK_RESPONSES, Adaptive, Config, FeedbackSender, Model, Store, Trail
 from service.api.feedback.feedback_schemas import FeedbackIn, FeedbackOut, JudgedKeypoint
 from service.feedback.labels import InstanceLabels, record_feedback
 
@@ -35,10 +35,13 @@ async def send_feedback(
     trail: Trail,
     model: Model,
     config: Config,
+    adaptive: Adaptive,
 ) -> FeedbackOut:
     labels = [InstanceLabels(i.instance, tuple(i.keypoints)) for i in body.instances]
     max_age = config.feedback.feedback_max_age_seconds
-    judged = await asyncio.to_thread(record_feedback, store, trail, operator, prediction_id, labels, max_age)
+    judged = await asyncio.to_thread(
+        record_feedback, store, trail, operator, prediction_id, labels, max_age, adaptive
+    )
     rows = judged.prediction.record["rows"]
     names = model.manifest.keypoints
     keypoints = [

@@ -45,6 +45,10 @@ class GroupCoverageOut(BaseModel):
     level: str = Field(description="version (all keypoints), object, keypoint, stream or group")
     name: str
     version: int
+    guarantee: str = Field(
+        description="exchangeable (the calibration's), or adaptive (ACI sets: no floor and no alarm; their"
+        " long-run bound is in each answer's adaptive block)"
+    )
     nonconformity: str
     coverage: str = Field(description="keypoint, or object (a unit is a fully labelled instance)")
     epsilon: float

@@ -2,10 +2,42 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
+from service.api.predict.predict_schemas import PredictParameters
+from service.errors import InvalidInput
+from service.feedback.adaptive import AdaptiveSets, AdaptiveView
 from service.feedback.retention import ServedRequest, finite_or_none, guarantee_values
 from service.prediction import Prediction, PredictQuery
+
+
+def adapted_query(
+    adaptive: AdaptiveSets | None, query: PredictQuery, parameters: PredictParameters
+) -> tuple[PredictQuery, AdaptiveView | None]:
+    """With ``adaptive: true``, the query at the stream's current ACI level (and its state)."""
+    if not parameters.adaptive or adaptive is None:
+        return query, None
+    problems = [
+        problem
+        for problem, present in (
+            (
+                "adaptive needs stream (the camera stream whose feedback moves its level)",
+                parameters.stream is None,
+            ),
+            (
+                "adaptive takes no delta (its guarantee is a long-run bound, not PAC)",
+                parameters.delta is not None,
+            ),
+            ("adaptive takes no stratify (one level per stream)", query.stratify != "none"),
+        )
+        if present
+    ]
+    if problems:
+        raise InvalidInput("; ".join(problems), errors=problems)
+    target = {"nonconformity": query.nonconformity, "coverage": query.coverage, "epsilon": query.epsilon}
+    view = adaptive.view(adaptive.key(target, parameters.stream), query.epsilon)
+    return replace(query, epsilon=view.served_epsilon), view
 
 
 def served_request(
@@ -53,7 +85,7 @@ def served_request(
         query={
             "nonconformity": query.nonconformity,
             "coverage": query.coverage,
-            "epsilon": query.epsilon,
+            "epsilon": query.epsilon if adaptive is None else adaptive.epsilon,  # adaptive: the target
             "delta": query.delta,
         },
         instances=instances,
@@ -61,5 +93,5 @@ def served_request(
         heatmap_shape=statistics.heatmap_shape,
         width=prediction.width,
         height=prediction.height,
-        adaptive=adaptive,
+        adaptive=None if adaptive is None else {"key": adaptive.key, **adaptive.as_dict()},
     )

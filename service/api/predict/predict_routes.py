@@ -19,7 +19,7 @@ from fastapi import APIRouter, Request, Response
 from pydantic_core import to_json
 
 from service.api.deps import Predicting, PredictParts
-from service.api.feedback.retained_answer import served_request
+from service.api.feedback.retained_answer import adapted_query, served_request
 from service.api.http.problems import problem
 from service.api.predict import predict_presenter
 from service.api.predict.predict_bodies import BATCH_BODY, PREDICT_BODY
@@ -144,9 +144,11 @@ async def _compute(
 def _respond(
     parts: PredictParts, image: bytes, parameters: PredictParameters, png: bool, client: str
 ) -> Response:
-    query = predict_query(parameters)
+    query, adaptive = adapted_query(parts.adaptive, predict_query(parameters), parameters)
     retention = parts.retention
-    retained = not png and retention is not None and retention.wanted(parameters.retain)
+    retained = (
+        not png and retention is not None and (adaptive is not None or retention.wanted(parameters.retain))
+    )
     query = replace(query, retain=True) if retained else query
     prediction = parts.predictor.predict(image, query)
     note_calibration_version(prediction.version)
@@ -154,11 +156,13 @@ def _respond(
     if png:
         return Response(predict_presenter.predict_png(prediction, query, manifest), media_type="image/png")
     if retained:
-        served = served_request(prediction, query, None)
+        served = served_request(prediction, query, adaptive)
         prediction_id = retention.retain(prediction.version, served, image, parameters.stream, client)
         body = predict_presenter.predict_body(prediction, query, manifest)
-        answer = to_json({**body, "prediction_id": prediction_id}, inf_nan_mode="null")
-        return Response(answer, media_type="application/json")
+        kept = {"prediction_id": prediction_id} | (
+            {} if adaptive is None else {"adaptive": adaptive.as_dict()}
+        )
+        return Response(to_json(body | kept, inf_nan_mode="null"), media_type="application/json")
     return Response(
         predict_presenter.predict_json(prediction, query, manifest), media_type="application/json"
     )
