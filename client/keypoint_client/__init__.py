@@ -73,6 +73,7 @@ from keypoint_client.monitoring_models import (
     CoverageFigure,
     Drift,
     FeedbackResult,
+    FieldCalibration,
     GroupCoverage,
     LiveCoverage,
 )
@@ -100,6 +101,7 @@ __all__ = [
     "CoverageFigure",
     "Drift",
     "FeedbackResult",
+    "FieldCalibration",
     "GroupCoverage",
     "LiveCoverage",
     "Ellipse",

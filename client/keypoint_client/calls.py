@@ -41,6 +41,7 @@ from keypoint_client.monitoring_models import (
     CoverageAuditList,
     Drift,
     FeedbackResult,
+    FieldCalibration,
     LiveCoverage,
 )
 from keypoint_client.retry import retry_after_seconds
@@ -437,6 +438,14 @@ def live_coverage(*, timeout: float | None = None) -> Call[LiveCoverage]:
     """The coverage the feedback labels show, per version, object, keypoint, stream and group, with
     an anytime-valid confidence sequence and the alarm when coverage is proven below the promise."""
     return Call("GET", "/v1/admin/coverage/live", _model(LiveCoverage), timeout=timeout)
+
+
+def calibrate_from_feedback(*, timeout: float | None = None, **options: Any) -> Call[FieldCalibration]:
+    """A calibration version from the labelled feedback (no zip): ``stream``, ``served_by`` choose the
+    labels; ``note``, ``append_to``, ``activate``, ``force``, ``reason``, ``dedupe``,
+    ``allow_duplicate`` as for an upload. Conflict for repeats or a version equal to a stored one."""
+    path = "/v1/admin/calibrations/from-feedback"
+    return Call("POST", path, _model(FieldCalibration), idempotent=False, json=options, timeout=timeout)
 
 
 def store(*, timeout: float | None = None) -> Call[StoreInfo]:

@@ -102,6 +102,7 @@ class _Endpoints:
     drift = endpoint(calls.drift)
     send_feedback = endpoint(calls.send_feedback)
     live_coverage = endpoint(calls.live_coverage)
+    calibrate_from_feedback = endpoint(calls.calibrate_from_feedback)
     store = endpoint(calls.store)
 
 

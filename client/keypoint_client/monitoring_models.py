@@ -229,3 +229,11 @@ class LiveCoverage(Frozen):
     alarm_level: float
     alarm: bool
     groups: list[GroupCoverage]
+
+
+class FieldCalibration(Frozen):
+    """A version made from labelled feedback; ``summary`` as a calibration job's result."""
+
+    version: int
+    activated: bool
+    summary: dict

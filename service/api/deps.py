@@ -17,6 +17,7 @@ from service.api.http.clients import ClientKeys
 from service.api.http.request_body import BodyPace, read_limited_body
 from service.calibration.jobs import CalibrationJobs, JobRunner
 from service.calibration.registry import CalibrationRegistry
+from service.calibration.versions import VersionRules
 from service.detector.manifest import Manifest
 from service.detector.session import Detector
 from service.feedback.adaptive import AdaptiveSets
@@ -58,6 +59,7 @@ FeedbackSenders = Annotated[dict[str, str], Depends(_part("feedback_senders"))]
 Retaining = Annotated[Retention, Depends(_part("retention"))]
 LiveCoverage = Annotated[LiveCoverageReader, Depends(_part("live_coverage"))]
 Adaptive = Annotated[AdaptiveSets, Depends(_part("adaptive"))]
+NewVersionRules = Annotated[VersionRules, Depends(_part("version_rules"))]
 
 
 @dataclass(frozen=True)

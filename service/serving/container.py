@@ -63,6 +63,7 @@ class ServiceState:
     retention: Retention | None = None
     live_coverage: LiveCoverageReader | None = None
     adaptive: AdaptiveSets | None = None
+    version_rules: VersionRules | None = None  # what every new version is held to (field calibrations)
 
     @cached_property
     def predictor(self) -> Predictor:
@@ -181,6 +182,7 @@ def build_state(settings: Settings) -> ServiceState:
         retention=Retention(store, detector.model_hash, _retention_rules(settings)),
         live_coverage=_live_coverage(settings, store, detector),
         adaptive=AdaptiveSets(store, detector.model_hash, settings.feedback.feedback_aci_gamma),
+        version_rules=job_settings.versions,
     )
 
 

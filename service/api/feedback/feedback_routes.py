@@ -6,8 +6,28 @@ import asyncio
 
 from fastapi import APIRouter
 
-from service.api.deps import FEEDBACK_RESPONSES, Adaptive, Config, FeedbackSender, Model, Store, Trail
-from service.api.feedback.feedback_schemas import FeedbackIn, FeedbackOut, JudgedKeypoint
+from service.api.deps import (
+    ADMIN_RESPONSES,
+    FEEDBACK_RESPONSES,
+    Adaptive,
+    Admin,
+    Config,
+    FeedbackSender,
+    Model,
+    NewVersionRules,
+    Registry,
+    Store,
+    Trail,
+)
+from service.api.feedback.feedback_schemas import (
+    FeedbackIn,
+    FeedbackOut,
+    FieldCalibrationIn,
+    FieldCalibrationOut,
+    JudgedKeypoint,
+)
+from service.calibration.intake import UploadOptions
+from service.feedback.field_calibration import FieldSelection, calibrate_from_feedback
 from service.feedback.labels import InstanceLabels, record_feedback
 
 router = APIRouter(tags=["feedback"])
@@ -60,4 +80,38 @@ async def send_feedback(
         labelled=len(keypoints),
         covered=sum(k.covered for k in keypoints),
         keypoints=keypoints,
+    )
+
+
+@router.post(
+    "/v1/admin/calibrations/from-feedback",
+    response_model=FieldCalibrationOut,
+    status_code=201,
+    summary="A calibration version from labelled feedback (no zip): the scores an upload of the same images"
+    " and labels gives, through the same duplicate rules, guardrails and audit trail",
+    responses={
+        **ADMIN_RESPONSES,
+        404: {"description": "append_to names no version"},
+        409: {"description": "Repeats (use dedupe), a version equal to a stored one, or scored differently"},
+        422: {"description": "No labelled feedback matches, or force without a reason"},
+    },
+)
+async def calibrate_from_field(
+    body: FieldCalibrationIn,
+    operator: Admin,
+    store: Store,
+    model: Model,
+    registry: Registry,
+    trail: Trail,
+    rules: NewVersionRules,
+    config: Config,
+) -> FieldCalibrationOut:
+    options = UploadOptions(**body.model_dump(exclude={"stream", "served_by"}))
+    selection = FieldSelection(body.stream, body.served_by)
+    limit = config.feedback.feedback_max_retained
+    arguments = (store, model, registry.scores, selection, options, operator, rules, trail, limit)
+    outcome = await asyncio.to_thread(calibrate_from_feedback, *arguments)
+    registry.refresh_now()
+    return FieldCalibrationOut(
+        version=outcome.info.number, activated=outcome.activated, summary=outcome.summary
     )

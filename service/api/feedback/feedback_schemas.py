@@ -74,3 +74,28 @@ class LiveCoverageOut(BaseModel):
     )
     alarm: bool
     groups: list[GroupCoverageOut]
+
+
+class FieldCalibrationIn(BaseModel):
+    """Labelled feedback made a calibration version: which labels, and the upload's options."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    stream: str | None = Field(default=None, description="only this camera stream's labels")
+    served_by: int | None = Field(
+        default=None, ge=1, description="only labels of answers served by this version"
+    )
+    name: str | None = Field(default=None, description="the source batch's name (default feedback-<sha256>)")
+    note: str = ""
+    append_to: int | None = Field(default=None, ge=1, description="new version = this one + the labels")
+    activate: bool = False
+    force: bool = Field(default=False, description="activate past the guardrails (needs reason)")
+    reason: str = ""
+    dedupe: bool = Field(default=False, description="drop instances already counted instead of refusing")
+    allow_duplicate: bool = Field(default=False, description="store a version equal to a stored one (reason)")
+
+
+class FieldCalibrationOut(BaseModel):
+    version: int
+    activated: bool
+    summary: dict = Field(description="as a calibration job's result: instances, added, rejections, problems")

@@ -49,3 +49,8 @@ def test_feedback_and_live_coverage_across_replicas(
         assert (pooled.labelled, pooled.covered, pooled.looks) == (labelled, covered, len(images))
         stream = next(g for g in live_a.groups if g.level == "stream")
         assert stream.name == "cam-1" and not stream.alarm
+        field = on_b.calibrate_from_feedback(stream="cam-1", note="from the robot's labels")
+        assert field.version == 2 and not field.activated
+        assert field.summary["instances"] == sum(len(group) for _, group in images)
+        with pytest.raises(Conflict):
+            on_a.calibrate_from_feedback(stream="cam-1")
