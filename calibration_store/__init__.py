@@ -81,11 +81,11 @@ Coverage audits (immutable, like versions):
 - ``coverage_audits(model_hash, before=None, limit=100) -> list[CoverageAudit]`` newest
   first (id < before), ``coverage_audit(model_hash, audit_id) -> CoverageAudit | None``.
 
-Feedback (calibration_store/feedback_records.py): ``retain_prediction(RetainedPrediction,
-max_rows)``, ``retained_prediction(id)``, ``oldest_retained()``, ``label_prediction(id, labels,
-who, at, audit) -> LabelOutcome`` (once per row, with its audit entry), ``labelled_predictions(
-model_hash, limit)`` (in label order), ``adaptive_state(key)`` and ``save_adaptive_state(key,
-steps_before, AdaptiveState) -> bool`` (compare-and-set on the step count).
+Feedback (calibration_store/feedback_records.py): ``retain_predictions([RetainedPrediction],
+max_rows)`` (one transaction), ``retained_prediction(id)``, ``oldest_retained()``,
+``label_prediction(id, labels, who, at, audit) -> LabelOutcome`` (once per row, with its audit
+entry), ``labelled_predictions(model_hash, limit)`` (in label order), ``adaptive_state(key)``
+and ``save_adaptive_state(key, steps_before, AdaptiveState) -> bool`` (compare-and-set on the step count).
 
 Errors: StoreError > VersionNotFound (also a LookupError; HTTP 404), JobNotFound
 (a LookupError), JobExists (a ValueError), JobFinished, SchemaVersionError (database migrated by

@@ -11,6 +11,7 @@ so that replicas sharing the store never lose an update.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
 from enum import Enum
@@ -59,25 +60,30 @@ _RETAINED_COLUMNS = (
 class FeedbackRecords:
     """Mixed into SqlStore: the queries of retained predictions and adaptive state."""
 
-    def retain_prediction(self, retained: RetainedPrediction, max_rows: int) -> None:
-        """Store ``retained`` and then drop expired unlabelled rows and the oldest beyond ``max_rows``."""
+    def retain_predictions(self, batch: Sequence[RetainedPrediction], max_rows: int) -> None:
+        """Store ``batch`` in one transaction, then drop expired unlabelled rows and the oldest
+        beyond ``max_rows``."""
+        if not batch:
+            return
         with self._transaction(write=True) as cur:
-            cur.execute(
-                f"INSERT INTO calib_retained ({_RETAINED_COLUMNS})"
-                " VALUES (?, ?, ?, ?, ?, ?, ?, NULL, NULL, NULL)",
-                (
-                    retained.id,
-                    retained.model_hash,
-                    retained.version,
-                    retained.stream,
-                    self._time_to_db(retained.created_at),
-                    self._time_to_db(retained.expires_at),
-                    codec.encode_json(retained.record),
-                ),
-            )
+            for retained in batch:
+                cur.execute(
+                    f"INSERT INTO calib_retained ({_RETAINED_COLUMNS})"
+                    " VALUES (?, ?, ?, ?, ?, ?, ?, NULL, NULL, NULL)",
+                    (
+                        retained.id,
+                        retained.model_hash,
+                        retained.version,
+                        retained.stream,
+                        self._time_to_db(retained.created_at),
+                        self._time_to_db(retained.expires_at),
+                        codec.encode_json(retained.record),
+                    ),
+                )
+            newest = max(retained.created_at for retained in batch)
             cur.execute(
                 "DELETE FROM calib_retained WHERE labels IS NULL AND expires_at < ?",
-                (self._time_to_db(retained.created_at),),
+                (self._time_to_db(newest),),
             )
             cur.execute(  # the oldest beyond max_rows (rows retained in the same instant stay together)
                 "DELETE FROM calib_retained WHERE created_at < (SELECT created_at FROM calib_retained"

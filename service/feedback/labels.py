@@ -22,7 +22,7 @@ from service.conformal import NONCONFORMITY_SCORES, HeatmapStatistics, get_nonco
 from service.detector.crop import apply_affines
 from service.errors import Conflict, Gone, InvalidInput, NotFound
 from service.feedback.adaptive import AdaptiveSets
-from service.feedback.retention import retained_at
+from service.feedback.retention import Retention, retained_at
 from service.infra.audit_trail import AuditTrail, Operator, written
 
 VISIBILITIES = (0, 1, 2)  # COCO: not labelled, occluded, visible
@@ -57,8 +57,12 @@ def record_feedback(
     instances: Sequence[InstanceLabels],
     max_age_s: float,
     adaptive: AdaptiveSets | None = None,
+    retention: Retention | None = None,
 ) -> Judged:
-    """The feedback use case (see the module's doc); a stream's adaptive level learns from it."""
+    """The feedback use case (see the module's doc); a stream's adaptive level learns from it.
+    ``retention``: this process's, whose queued answers are written first."""
+    if retention is not None:
+        retention.flush()
     retained = find_retained(store, prediction_id, max_age_s)
     points = check_labels(retained.record, instances)
     rows = judge(retained.record, points)

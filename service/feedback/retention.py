@@ -11,16 +11,22 @@ the affine takes them to the heatmap, the statistics score them exactly as calib
 from __future__ import annotations
 
 import hashlib
+import logging
 import math
 import random
 import secrets
+import threading
+import time
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
-from calibration_store import RetainedPrediction
+from calibration_store import RetainedPrediction, StoreError
 from service.conformal import CoverageGuarantee
 
+log = logging.getLogger(__name__)
+#: how often a write the store refused is tried again
+RETRY_S = 1.0
 #: prediction ids: "p" + creation time (ms since the epoch, 12 hex digits) + 20 random hex digits
 ID_PREFIX = "p"
 _TIME_DIGITS = 12
@@ -49,11 +55,23 @@ class ServedRequest:
 
 
 class Retention:
-    """Decides which answers are kept and writes them to the store."""
+    """Decides which answers are kept and writes them to the store from a background thread.
+
+    A predict answer waits for no database write (an fsync costs more than the model's run): rows
+    are queued and written in batches, one transaction each. Feedback on a prediction this process
+    retained waits for its row (``flush``); a replica's row is there within one write, normally
+    milliseconds. A write the store refuses is retried every ``RETRY_S`` while the process runs.
+    """
 
     def __init__(self, store: Any, model_hash: str, rules: RetentionRules, seed: int | None = None) -> None:
         self._store, self._model_hash, self.rules = store, model_hash, rules
         self._random = random.Random(seed)
+        self._pending: list[RetainedPrediction] = []
+        self._changed = threading.Condition()
+        self._writing = 0  # rows taken by the writer, not yet committed
+        self._closed = False
+        self._writer = threading.Thread(target=self._write_loop, name="retention-writer", daemon=True)
+        self._writer.start()
 
     def wanted(self, requested: bool) -> bool:
         """Asked for (``retain: true``), or drawn with probability CKS_FEEDBACK_RETAIN_SHARE."""
@@ -62,7 +80,7 @@ class Retention:
     def retain(
         self, version: int, served: ServedRequest, image: bytes, stream: str | None, client: str
     ) -> str:
-        """Store the answer; returns its prediction id."""
+        """Queue the answer for the store; returns its prediction id."""
         now = datetime.now(UTC)
         prediction_id = new_prediction_id(now)
         record = {
@@ -81,8 +99,44 @@ class Retention:
         retained = RetainedPrediction(
             prediction_id, self._model_hash, version, stream or "", now, now + self.rules.max_age, record
         )
-        self._store.retain_prediction(retained, self.rules.max_rows)
+        with self._changed:
+            self._pending.append(retained)
+            self._changed.notify_all()
         return prediction_id
+
+    def flush(self, timeout_s: float = 10.0) -> None:
+        """Wait until every answer queued so far is in the store (or ``timeout_s`` has passed)."""
+        with self._changed:
+            self._changed.wait_for(lambda: not self._pending and not self._writing, timeout_s)
+
+    def close(self) -> None:
+        """Write what is queued, then stop the writer."""
+        self.flush()
+        with self._changed:
+            self._closed = True
+            self._changed.notify_all()
+        self._writer.join(timeout=10.0)
+
+    def _write_loop(self) -> None:
+        while True:
+            with self._changed:
+                self._changed.wait_for(lambda: self._pending or self._closed)
+                if self._closed and not self._pending:
+                    return
+                batch, self._pending = self._pending, []
+                self._writing = len(batch)
+            while True:
+                try:
+                    self._store.retain_predictions(batch, self.rules.max_rows)
+                    break
+                except StoreError:
+                    log.warning(
+                        "retained predictions not stored yet (%d); retrying", len(batch), exc_info=True
+                    )
+                    time.sleep(RETRY_S)
+            with self._changed:
+                self._writing = 0
+                self._changed.notify_all()
 
 
 def new_prediction_id(at: datetime) -> str:

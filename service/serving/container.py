@@ -93,6 +93,8 @@ class ServiceState:
             process_uploads_dir(self.settings.storage.uploads_dir), ignore_errors=True
         )  # cancelled jobs' uploads
         self.cpu_pool.shutdown(wait=True, cancel_futures=True)
+        if self.retention is not None:
+            self.retention.close()  # the answers retained so far reach the store
         self.store.close()
         log.info("shutdown: done in %.2f s", time.monotonic() - started)
 

@@ -16,6 +16,7 @@ from service.api.deps import (
     Model,
     NewVersionRules,
     Registry,
+    Retaining,
     Store,
     Trail,
 )
@@ -56,11 +57,12 @@ async def send_feedback(
     model: Model,
     config: Config,
     adaptive: Adaptive,
+    retention: Retaining,
 ) -> FeedbackOut:
     labels = [InstanceLabels(i.instance, tuple(i.keypoints)) for i in body.instances]
     max_age = config.feedback.feedback_max_age_seconds
     judged = await asyncio.to_thread(
-        record_feedback, store, trail, operator, prediction_id, labels, max_age, adaptive
+        record_feedback, store, trail, operator, prediction_id, labels, max_age, adaptive, retention
     )
     rows = judged.prediction.record["rows"]
     names = model.manifest.keypoints

@@ -20,7 +20,7 @@ def entry(prediction_id: str) -> NewAuditEntry:
 
 def test_a_retained_prediction_is_labelled_once_with_its_audit_entry(store: CalibrationStore) -> None:
     now = datetime.now(UTC)
-    store.retain_prediction(retained("a", now), max_rows=10)
+    store.retain_predictions([retained("a", now)], max_rows=10)
     kept = store.retained_prediction("a")
     assert kept is not None and kept.labels is None and kept.stream == "cam-1"
     assert kept.record["rows"][0]["covariance"][0][1] == 1e-17  # floats kept bit for bit
@@ -37,18 +37,19 @@ def test_a_retained_prediction_is_labelled_once_with_its_audit_entry(store: Cali
 
 def test_expired_rows_take_no_label_and_are_removed(store: CalibrationStore) -> None:
     now = datetime.now(UTC)
-    store.retain_prediction(retained("old", now - timedelta(hours=2), timedelta(hours=1)), max_rows=10)
+    store.retain_predictions([retained("old", now - timedelta(hours=2), timedelta(hours=1))], max_rows=10)
     later = now + timedelta(seconds=1)
     assert store.label_prediction("old", {}, "robot", later, entry("old")) is LabelOutcome.MISSING
     assert not [e for e in store.audit_log(MODEL) if e.action == "feedback"]
-    store.retain_prediction(retained("new", now), max_rows=10)
+    store.retain_predictions([retained("new", now)], max_rows=10)
     assert store.retained_prediction("old") is None and store.retained_prediction("new") is not None
 
 
 def test_the_oldest_rows_go_first_beyond_the_size_bound(store: CalibrationStore) -> None:
     now = datetime.now(UTC)
-    for i in range(5):
-        store.retain_prediction(retained(f"p{i}", now + timedelta(seconds=i)), max_rows=3)
+    store.retain_predictions([retained("p0", now)], max_rows=3)
+    later = [retained(f"p{i}", now + timedelta(seconds=i)) for i in range(1, 5)]
+    store.retain_predictions(later, max_rows=3)  # one batch
     kept = [i for i in range(5) if store.retained_prediction(f"p{i}") is not None]
     assert kept == [2, 3, 4]
     assert store.oldest_retained() == now + timedelta(seconds=2)
