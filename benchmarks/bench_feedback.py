@@ -43,7 +43,7 @@ if __package__ in (None, ""):
 
 from fastapi.testclient import TestClient  # noqa: E402
 
-from benchmarks.bench_drift_streams import CACHE, SEED_IN, SEED_SHIFT, rendered  # noqa: E402
+from benchmarks.bench_drift_streams import CACHE, SEED_IN, SEED_SHIFT, images_with_boxes, rendered  # noqa: E402
 from benchmarks.service_bench.breakdown import service_state  # noqa: E402
 from service.conformal import CovScore, heatmap_statistics  # noqa: E402
 from service.detector.crop import apply_affines  # noqa: E402
@@ -54,7 +54,7 @@ from service.monitoring.looks import Frame, LookTracker  # noqa: E402
 from service.serving.app import create_app  # noqa: E402
 from tests.predict_client import instances_of  # noqa: E402
 from tests.samples import load_samples, samples_by_image  # noqa: E402
-from training.coco import ANNOTATIONS_FILENAME, read_coco  # noqa: E402
+from training.coco import read_coco  # noqa: E402
 
 EPSILON, LEVEL = 0.1, 0.01
 WARM_UP, WINDOW = 300, 100
@@ -74,19 +74,9 @@ def labelled_frames(folder: Path, state) -> list[LabelledFrame]:  # noqa: ANN001
     cache = folder / f"feedback-{state.detector.model_hash[:12]}.pkl"
     if cache.exists():
         return pickle.loads(cache.read_bytes())
-    coco = read_coco(folder / ANNOTATIONS_FILENAME)
-    names = {c["id"]: c["name"] for c in coco["categories"]}
-    annotations: dict[int, list[dict]] = {}
-    for annotation in coco["annotations"]:
-        annotations.setdefault(annotation["image_id"], []).append(annotation)
     spec = state.detector.manifest.heatmap
     frames = []
-    for image in coco["images"]:
-        instances = annotations.get(image["id"], [])
-        if not instances:
-            continue
-        boxes = np.array([a["bbox"] for a in instances], dtype=np.float64)
-        objects = tuple(names[a["category_id"]] for a in instances)
+    for image, instances, objects, boxes in images_with_boxes(folder):
         result = state.detector.infer(cv2.imread(str(folder / image["file_name"])), boxes, list(objects))
         triples = np.concatenate([np.reshape(a["keypoints"], (-1, 3)) for a in instances])
         labelled = triples[:, 2] > 0

@@ -21,7 +21,14 @@ import numpy as np
 
 from calibration_store import RetainedPrediction, ScoreTable, SourceBatch
 from service.calibration.fingerprints import Fingerprint, instance_digest, instance_digests, stored_digests
-from service.calibration.intake import Parent, UploadOptions, equal_version, read_parent, repeats_refused
+from service.calibration.intake import (
+    Parent,
+    UploadOptions,
+    batch_name,
+    equal_version,
+    read_parent,
+    repeats_refused,
+)
 from service.calibration.scoring import NONCONFORMITY_KINDS, InstanceScores, ScoreAccumulator
 from service.calibration.versions import (
     CalibrationOutcome,
@@ -163,7 +170,8 @@ def _source(instances: list[FieldInstance], name: str | None) -> SourceBatch:
     digest = hashlib.sha256(
         "\n".join(f"{i.ref} {i.fingerprint.instance}" for i in instances).encode()
     ).hexdigest()
-    return SourceBatch(name or f"feedback-{digest[:12]}", digest, len(instances))
+    named = f"feedback-{digest[:12]}" if name is None else batch_name(name, digest)
+    return SourceBatch(named, digest, len(instances))
 
 
 def _scored(

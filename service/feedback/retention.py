@@ -146,14 +146,14 @@ def new_prediction_id(at: datetime) -> str:
 
 def retained_at(prediction_id: str) -> datetime | None:
     """When a well-formed id was made (None: not an id this service makes)."""
-    digits = prediction_id[len(ID_PREFIX) : len(ID_PREFIX) + _TIME_DIGITS]
     if not prediction_id.startswith(ID_PREFIX) or len(prediction_id) != len(ID_PREFIX) + _TIME_DIGITS + 20:
         return None
     try:
         int(prediction_id[len(ID_PREFIX) :], 16)
-    except ValueError:
+        milliseconds = int(prediction_id[len(ID_PREFIX) : len(ID_PREFIX) + _TIME_DIGITS], 16)
+        return datetime.fromtimestamp(milliseconds / 1000, UTC)
+    except (ValueError, OverflowError, OSError):  # not hex, or a time no clock reaches
         return None
-    return datetime.fromtimestamp(int(digits, 16) / 1000, UTC)
 
 
 def guarantee_values(guarantee: CoverageGuarantee) -> dict[str, Any]:

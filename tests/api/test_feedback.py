@@ -96,6 +96,8 @@ def test_unknown_and_expired_ids(api: InProcess) -> None:
     body = {"instances": [{"instance": 0, "keypoints": [[1, 1, 2]]}]}
     assert_problem(api.client.post(f"/v1/feedback/{unknown}", json=body, headers=sender()), 404, "retain")
     assert_problem(api.client.post("/v1/feedback/not-an-id", json=body, headers=sender()), 404)
+    beyond_clocks = "p" + "f" * 32  # a well-formed id from a time no clock reaches
+    assert_problem(api.client.post(f"/v1/feedback/{beyond_clocks}", json=body, headers=sender()), 404)
     old = new_prediction_id(datetime.now(UTC) - timedelta(days=8))
     assert_problem(api.client.post(f"/v1/feedback/{old}", json=body, headers=sender()), 410, "no longer kept")
 

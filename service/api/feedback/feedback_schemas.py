@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from service.api.predict.predict_schemas import MAX_VERSION
+
 Label = tuple[float, float, int]
 
 
@@ -81,13 +83,15 @@ class FieldCalibrationIn(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    stream: str | None = Field(default=None, description="only this camera stream's labels")
+    stream: str | None = Field(default=None, max_length=64, description="only this camera stream's labels")
     served_by: int | None = Field(
         default=None, ge=1, description="only labels of answers served by this version"
     )
     name: str | None = Field(default=None, description="the source batch's name (default feedback-<sha256>)")
     note: str = ""
-    append_to: int | None = Field(default=None, ge=1, description="new version = this one + the labels")
+    append_to: int | None = Field(
+        default=None, ge=1, le=MAX_VERSION, description="new version = this one + the labels"
+    )
     activate: bool = False
     force: bool = Field(default=False, description="activate past the guardrails (needs reason)")
     reason: str = ""
