@@ -10,6 +10,7 @@ and store the label with its audit entry in one transaction (409 when it was lab
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -26,6 +27,9 @@ from service.feedback.retention import Retention, retained_at
 from service.infra.audit_trail import AuditTrail, Operator, written
 
 VISIBILITIES = (0, 1, 2)  # COCO: not labelled, occluded, visible
+#: how long after its prediction a row may still be on its way to the store (written in the background)
+IN_FLIGHT_S = 5.0
+POLL_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -99,21 +103,30 @@ def record_feedback(
 
 
 def find_retained(store: Any, prediction_id: str, max_age_s: float) -> RetainedPrediction:
-    """The retained prediction, or 404 (never retained) / 410 (expired, or evicted by size)."""
-    retained = store.retained_prediction(prediction_id) if retained_at(prediction_id) else None
+    """The retained prediction, or 404 (never retained) / 410 (expired, or evicted by size).
+
+    A prediction made moments ago on another replica may still be on its way to the store (it
+    is written in the background): it is waited for, up to ``IN_FLIGHT_S`` after it was made."""
+    made = retained_at(prediction_id)
+    retained = store.retained_prediction(prediction_id) if made is not None else None
+    while retained is None and made is not None and _age_s(made) < IN_FLIGHT_S:
+        time.sleep(POLL_S)
+        retained = store.retained_prediction(prediction_id)
     if retained is not None:
         if retained.labels is None and retained.expires_at < datetime.now(UTC):
             raise _gone(prediction_id)
         return retained
-    made = retained_at(prediction_id)
     oldest = store.oldest_retained() if made is not None else None
-    expired = made is not None and (datetime.now(UTC) - made).total_seconds() > max_age_s
-    if made is not None and (expired or oldest is None or made < oldest):
+    if made is not None and (_age_s(made) > max_age_s or oldest is None or made < oldest):
         raise _gone(prediction_id)
     raise NotFound(
         f"no retained prediction {prediction_id!r}: send the prediction_id of an answer to a predict"
         ' request made with "retain": true (or sampled by CKS_FEEDBACK_RETAIN_SHARE)'
     )
+
+
+def _age_s(made: datetime) -> float:
+    return (datetime.now(UTC) - made).total_seconds()
 
 
 def _gone(prediction_id: str) -> Gone:

@@ -27,6 +27,8 @@ from service.conformal import CoverageGuarantee
 log = logging.getLogger(__name__)
 #: how often a write the store refused is tried again
 RETRY_S = 1.0
+#: how long the writer lets answers gather before a write (their requests finish first)
+GATHER_S = 0.05
 #: prediction ids: "p" + creation time (ms since the epoch, 12 hex digits) + 20 random hex digits
 ID_PREFIX = "p"
 _TIME_DIGITS = 12
@@ -68,7 +70,7 @@ class Retention:
         self._random = random.Random(seed)
         self._pending: list[RetainedPrediction] = []
         self._changed = threading.Condition()
-        self._writing = 0  # rows taken by the writer, not yet committed
+        self._writing = 0  # rows taken by the writer, not yet committed (-1: gathering them)
         self._closed = False
         self._writer = threading.Thread(target=self._write_loop, name="retention-writer", daemon=True)
         self._writer.start()
@@ -123,6 +125,9 @@ class Retention:
                 self._changed.wait_for(lambda: self._pending or self._closed)
                 if self._closed and not self._pending:
                     return
+                self._writing = -1  # gathering: flush waits for it too
+            time.sleep(GATHER_S)
+            with self._changed:
                 batch, self._pending = self._pending, []
                 self._writing = len(batch)
             while True:
