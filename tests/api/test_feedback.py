@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from service.api.predict.predict_schemas import PredictResponse
 from service.feedback.retention import new_prediction_id
 from tests.api.in_process import InProcess
 from tests.predict_client import contains, instances_of, predict_json, predict_ok
@@ -49,6 +50,16 @@ def test_an_answer_not_retained_has_no_prediction_id(api: InProcess, samples: li
     image, group = first_image(samples)
     answer = predict_ok(api.client, image, {"instances": instances_of(group)})
     assert "prediction_id" not in answer
+
+
+def test_a_retained_answer_is_the_documented_body_with_its_id(api: InProcess, samples: list[Sample]) -> None:
+    image, group = first_image(samples)
+    for options in ({"retain": True}, {"adaptive": True, "stream": "cam-doc"}):
+        response = predict_json(api.client, image, {"instances": instances_of(group), **options})
+        assert response.status_code == 200, response.text
+        body = PredictResponse.model_validate_json(response.content)
+        assert body.prediction_id and body.model_dump_json().encode() == response.content
+        assert (body.adaptive is not None) == ("adaptive" in options)
 
 
 def test_feedback_is_judged_against_the_sets_served_and_stored_once(

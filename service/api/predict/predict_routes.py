@@ -155,17 +155,16 @@ def _respond(
     manifest = parts.predictor.detector.manifest
     if png:
         return Response(predict_presenter.predict_png(prediction, query, manifest), media_type="image/png")
-    if retained:
+    answer = predict_presenter.predict_json(prediction, query, manifest)
+    if retained:  # prediction_id (and adaptive) follow the answer's last member, as PredictResponse has them
         served = served_request(prediction, query, adaptive)
-        prediction_id = retention.retain(prediction.version, served, image, parameters.stream, client)
-        body = predict_presenter.predict_body(prediction, query, manifest)
-        kept = {"prediction_id": prediction_id} | (
-            {} if adaptive is None else {"adaptive": adaptive.as_dict()}
-        )
-        return Response(to_json(body | kept, inf_nan_mode="null"), media_type="application/json")
-    return Response(
-        predict_presenter.predict_json(prediction, query, manifest), media_type="application/json"
-    )
+        kept = {
+            "prediction_id": retention.retain(prediction.version, served, image, parameters.stream, client)
+        }
+        if adaptive is not None:
+            kept["adaptive"] = adaptive.as_dict()
+        answer = answer[:-1] + b"," + to_json(kept)[1:]
+    return Response(answer, media_type="application/json")
 
 
 async def _batch_answer(
