@@ -12,11 +12,11 @@ nonnegative supermartingale, and by Ville's inequality P(sup_n M_n(p) >= 1/a) <=
 long and however often it is watched. The upper bound U_n is the largest p not rejected at level
 a; the lower bound mirrors it (alternatives above p). Only the sum and count of the votes enter.
 
-The alarm of a calibration version: U_n below what it promises, ``promised_floor``: the
-quantile at ``band_level`` of its conditional coverage Beta(n + 1 - t, t) (with a PAC delta:
-1 - epsilon, whose failure probability delta the version states). False alarms: at most
-``a + band_level`` (+ delta with PAC) over the whole stream, when votes are exchangeable with
-the calibration.
+The alarm of a calibration version (``BettingAlarm``): coverage proven below what it promises,
+``promised_floor``: the quantile at ``band_level`` of its conditional coverage Beta(n + 1 - t, t)
+(with a PAC delta: 1 - epsilon, whose failure probability delta the version states), by a betting
+e-process at level a. False alarms: at most ``a + band_level`` (+ delta with PAC) over the whole
+stream, when votes are exchangeable with the calibration.
 """
 
 from __future__ import annotations
@@ -74,13 +74,6 @@ def coverage_bounds(total: float, count: int, level: float) -> CoverageBounds:
     return CoverageBounds(count, total / count, 0.0 if lower == _CANDIDATES[0] else lower, upper)
 
 
-def proven_below(total: float, count: int, floor: float, level: float) -> bool:
-    """Whether the votes prove, at ``level`` (one side: level / 2), a mean below ``floor``."""
-    if count == 0 or floor <= 0.0:  # nothing to prove below 0 (an adaptive stream promises no floor)
-        return False
-    return float(log_evidence_below(total, count, floor)[0]) >= math.log(2.0 / level)
-
-
 def promised_floor(n: int, t: int, epsilon: float, delta: float | None, band_level: float) -> float:
     """The coverage a calibration promises at least: 1 - epsilon with a PAC delta, otherwise the
     ``band_level`` quantile of Beta(n + 1 - t, t) (t = 0: unbounded sets, coverage 1)."""
@@ -96,3 +89,34 @@ def promised_floor(n: int, t: int, epsilon: float, delta: float | None, band_lev
         else:
             high = middle
     return low
+
+
+class BettingAlarm:
+    """The alarm: a betting e-process (Waudby-Smith & Ramdas 2023) against "each vote's mean is at
+    least its floor", K_t = prod (1 + lambda_t (f_t - x_t)), with the predictable bet
+    lambda_t = (f_t - m) / (v + (f_t - m)^2) clipped to [0, 1 / (2 (1 - f_t))] from the running mean
+    m and variance v of the votes before t. Each factor has mean at most 1 under the null (f_t is
+    known before x_t: it is the floor of the keypoints the vote is about), so P(ever K_t >= 2 /
+    level) <= level / 2 (Ville). Its bets follow the votes' own variance: a look's share of covered
+    keypoints varies far less than one keypoint's 0/1, so it proves a shortfall in fewer looks
+    than the Bernoulli mixture behind the bounds. Once raised, the alarm stays raised."""
+
+    def __init__(self, level: float) -> None:
+        self._limit = math.log(2.0 / level)
+        self.log_wealth, self.count, self.raised = 0.0, 0, False
+        self._sum, self._squares = 0.0, 0.25  # running sums; a prior variance of 1/4
+
+    def observe(self, vote: float, floor: float) -> bool:
+        """Add one vote in [0, 1] and the coverage it promised; whether the alarm is raised."""
+        if floor <= 0.0 or floor >= 1.0:  # nothing promised, or nothing below 1 to prove
+            return self.raised
+        mean = (self._sum + floor) / (self.count + 1)  # a prior vote at the floor
+        variance = self._squares / (self.count + 1)
+        gap = floor - mean
+        bet = min(max(gap / (variance + gap * gap), 0.0), 0.5 / (1.0 - floor))
+        self.log_wealth += math.log1p(bet * (floor - vote))
+        self.count += 1
+        self._sum += vote
+        self._squares += (vote - mean) ** 2
+        self.raised = self.raised or self.log_wealth >= self._limit
+        return self.raised

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from calibration_store import RetainedPrediction
-from service.feedback.confidence_sequence import coverage_bounds, promised_floor, proven_below
+from service.feedback.confidence_sequence import BettingAlarm, coverage_bounds, promised_floor
 from service.feedback.labels import covered_units
 from service.monitoring.looks import Frame, LookTracker
 
@@ -44,6 +44,7 @@ class Unit:
 @dataclass
 class _Votes:
     promised: float
+    alarm: BettingAlarm
     floor: float = 1.0
     labelled: int = 0
     covered: int = 0
@@ -101,13 +102,15 @@ def live_coverage(
             for name_level, name in _names(unit):
                 by_group.setdefault((*base, name_level, name), []).append(unit)
         for key, members in by_group.items():
-            votes = groups.setdefault(key, _Votes(promised=1.0 - query["epsilon"]))
+            votes = groups.setdefault(key, _Votes(1.0 - query["epsilon"], BettingAlarm(level)))
             votes.labelled += len(members)
             votes.covered += sum(u.covered for u in members)
             votes.floor = min([votes.floor, *(u.floor for u in members)])
             if look not in votes.looks:
                 votes.looks.add(look)
-                votes.total += float(np.mean([u.covered for u in members]))
+                vote = float(np.mean([u.covered for u in members]))
+                votes.total += vote
+                votes.alarm.observe(vote, float(np.mean([u.floor for u in members])))
     return [_report(key, votes, level) for key, votes in sorted(groups.items(), key=lambda kv: str(kv[0]))]
 
 
@@ -177,7 +180,7 @@ def _report(key: tuple, votes: _Votes, level: float) -> GroupCoverage:
         upper=bounds.upper,
         promised=votes.promised,
         floor=votes.floor,
-        alarm=proven_below(votes.total, count, votes.floor, level),
+        alarm=votes.alarm.raised,
     )
 
 
