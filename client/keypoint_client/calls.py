@@ -444,7 +444,7 @@ def calibrate_from_feedback(*, timeout: float | None = None, **options: Any) -> 
     """A calibration version from the labelled feedback (no zip): ``stream``, ``served_by`` choose the
     labels; ``note``, ``append_to``, ``activate``, ``force``, ``reason``, ``dedupe``,
     ``allow_duplicate`` as for an upload. Conflict for repeats or a version equal to a stored one."""
-    path = "/v1/admin/calibrations/from-feedback"
+    path = "/v1/admin/field-calibrations"
     return Call("POST", path, _model(FieldCalibration), idempotent=False, json=options, timeout=timeout)
 
 

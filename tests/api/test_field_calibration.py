@@ -16,7 +16,7 @@ from tests.predict_client import instances_of, predict_ok
 from tests.samples import Sample, batch_zip, samples_by_image
 from tests.service_calls import ADMIN_TOKEN, assert_problem
 
-FROM_FEEDBACK = "/v1/admin/calibrations/from-feedback"
+FROM_FEEDBACK = "/v1/admin/field-calibrations"
 
 
 @pytest.fixture(scope="module")

@@ -86,7 +86,7 @@ async def send_feedback(
 
 
 @router.post(
-    "/v1/admin/calibrations/from-feedback",
+    "/v1/admin/field-calibrations",
     response_model=FieldCalibrationOut,
     status_code=201,
     summary="A calibration version from labelled feedback (no zip): the scores an upload of the same images"
