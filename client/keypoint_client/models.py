@@ -236,7 +236,7 @@ class ImageInfo(Frozen):
 class AdaptiveLevel(Frozen):
     """Adaptive conformal inference on a stream: |miscoverage - epsilon| <= long_run_bound."""
 
-    guarantee: str
+    guarantee: str = "adaptive"
     epsilon: float
     alpha: float
     served_epsilon: float
