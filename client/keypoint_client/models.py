@@ -253,8 +253,16 @@ class PredictResult(Frozen):
     calibration: CalibrationRef
     image: ImageInfo
     instances: list[Instance]
-    prediction_id: str | None = None  # retained for feedback (retain=True, or sampled by the server)
-    adaptive: AdaptiveLevel | None = None  # adaptive=True: the ACI bound that applies to these sets
+    prediction_id: str | None = Field(
+        default=None,
+        exclude_if=lambda value: value is None,  # answers not retained keep their shape
+        description="retained for feedback (retain=True, or sampled by the server): send_feedback's id",
+    )
+    adaptive: AdaptiveLevel | None = Field(
+        default=None,
+        exclude_if=lambda value: value is None,
+        description="adaptive=True: the ACI bound that applies to these sets",
+    )
 
 
 class ModelInfo(Frozen):
