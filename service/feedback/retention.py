@@ -111,13 +111,18 @@ class Retention:
         with self._changed:
             self._changed.wait_for(lambda: not self._pending and not self._writing, timeout_s)
 
-    def close(self) -> None:
-        """Write what is queued, then stop the writer."""
-        self.flush()
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Write what is queued (for ``timeout_s`` at most: a store that is away does not hold up a
+        shutdown), then stop the writer; rows left unwritten are logged."""
+        self.flush(timeout_s)
         with self._changed:
             self._closed = True
+            lost = len(self._pending) + max(self._writing, 0)
             self._changed.notify_all()
-        self._writer.join(timeout=10.0)
+        if lost:
+            log.warning(
+                "%d retained predictions were not stored before shutdown: their feedback gets 404", lost
+            )
 
     def _write_loop(self) -> None:
         while True:
@@ -135,6 +140,8 @@ class Retention:
                     self._store.retain_predictions(batch, self.rules.max_rows)
                     break
                 except StoreError:
+                    if self._closed:  # shutting down: close() has logged what is lost
+                        break
                     log.warning(
                         "retained predictions not stored yet (%d); retrying", len(batch), exc_info=True
                     )
