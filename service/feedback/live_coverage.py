@@ -5,8 +5,8 @@ reports the same), each stream's frames grouped into looks (service.monitoring.l
 scene are one observation, not many), then per group (the version's answers as a whole, per
 object, per keypoint, per camera stream, per caller group) the raw coverage of its labelled
 keypoints, one vote per look (the share covered among the look's first labelled frame's keypoints
-of the group), the confidence sequence of the votes' mean and the alarm when it proves coverage
-below the version's promise (service.feedback.confidence_sequence).
+of the group), the confidence sequence of the votes' mean, and the alarm (a betting e-process)
+once coverage is proven below the version's promise (service.feedback.confidence_sequence).
 
 With ``coverage: object`` a unit is an instance whose keypoints were all labelled: covered when
 every one of them is in its set (what the object guarantee speaks about).
@@ -25,8 +25,6 @@ from calibration_store import RetainedPrediction
 from service.feedback.confidence_sequence import BettingAlarm, coverage_bounds, promised_floor
 from service.feedback.labels import covered_units
 from service.monitoring.looks import Frame, LookTracker
-
-LEVELS = ("version", "object", "keypoint", "stream", "group")
 
 
 @dataclass(frozen=True)
