@@ -49,6 +49,7 @@ import argparse
 import pickle
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -112,20 +113,10 @@ def recorded_frames(folder: Path, state) -> list[RecordedFrame]:  # noqa: ANN001
     cache = folder / f"frames-{state.detector.model_hash[:12]}.pkl"
     if cache.exists():
         return pickle.loads(cache.read_bytes())
-    coco = read_coco(folder / ANNOTATIONS_FILENAME)
-    names = {c["id"]: c["name"] for c in coco["categories"]}
-    annotations: dict[int, list[dict]] = {}
-    for annotation in coco["annotations"]:
-        annotations.setdefault(annotation["image_id"], []).append(annotation)
     manifest = state.detector.manifest
     thresholds = state.registry.thresholds(state.registry.resolve(None), KIND, "keypoint", 0.1, None)
     frames = []
-    for image in coco["images"]:
-        instances = annotations.get(image["id"], [])
-        if not instances:
-            continue  # a client sends no request without a box
-        boxes = np.array([a["bbox"] for a in instances], dtype=np.float64)
-        objects = tuple(names[a["category_id"]] for a in instances)
+    for image, _, objects, boxes in images_with_boxes(folder):
         result = state.detector.infer(cv2.imread(str(folder / image["file_name"])), boxes, list(objects))
         sets = calibrated_sets(result, KIND, thresholds.values, manifest.heatmap, all_statistics=True)
         frames.append(
@@ -135,6 +126,21 @@ def recorded_frames(folder: Path, state) -> list[RecordedFrame]:  # noqa: ANN001
         )
     cache.write_bytes(pickle.dumps(frames))
     return frames
+
+
+def images_with_boxes(folder: Path) -> Iterator[tuple[dict, list[dict], tuple[str, ...], np.ndarray]]:
+    """Each rendered image that has boxes (a client sends no request without one): the image's
+    COCO entry, its annotations, their objects and boxes."""
+    coco = read_coco(folder / ANNOTATIONS_FILENAME)
+    names = {c["id"]: c["name"] for c in coco["categories"]}
+    annotations: dict[int, list[dict]] = {}
+    for annotation in coco["annotations"]:
+        annotations.setdefault(annotation["image_id"], []).append(annotation)
+    for image in coco["images"]:
+        instances = annotations.get(image["id"], [])
+        if instances:
+            boxes = np.array([a["bbox"] for a in instances], dtype=np.float64)
+            yield image, instances, tuple(names[a["category_id"]] for a in instances), boxes
 
 
 def by_sequence(frames: list[RecordedFrame]) -> list[list[RecordedFrame]]:

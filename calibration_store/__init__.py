@@ -85,6 +85,12 @@ Coverage audits (immutable, like versions):
 - ``coverage_audits(model_hash, before=None, limit=100) -> list[CoverageAudit]`` newest
   first (id < before), ``coverage_audit(model_hash, audit_id) -> CoverageAudit | None``.
 
+Feedback (calibration_store/feedback_records.py): ``retain_predictions([RetainedPrediction],
+max_rows)`` (one transaction), ``retained_prediction(id)``, ``oldest_retained()``,
+``label_prediction(id, labels, who, at, audit) -> LabelOutcome`` (once per row, with its audit
+entry), ``labelled_predictions(model_hash, limit)`` (in label order), ``adaptive_state(key)``
+and ``save_adaptive_state(key, steps_before, AdaptiveState) -> bool`` (compare-and-set on the step count).
+
 Errors: StoreError > VersionNotFound (also a LookupError; HTTP 404), DuplicateVersion, JobNotFound
 (a LookupError), JobExists (a ValueError), JobFinished, SchemaVersionError (database migrated by
 newer code), StoreUnavailable (HTTP 503), StoreFull (a StoreUnavailable: the database's disk is
@@ -106,6 +112,7 @@ from .errors import (
     VersionNotFound,
 )
 from .factory import open_store, sqlite_path, store_location
+from .feedback_records import AdaptiveState, LabelOutcome, RetainedPrediction
 from .models import (
     DEFAULT_FUNCTIONS,
     FINAL_JOB_STATES,
@@ -133,6 +140,7 @@ __all__ = [
     "JOB_STATES",
     "Activation",
     "ActivationIntent",
+    "AdaptiveState",
     "AuditEntry",
     "CalibrationStore",
     "CoverageAudit",
@@ -142,11 +150,13 @@ __all__ = [
     "JobNotFound",
     "JobRecord",
     "MonitorShare",
+    "LabelOutcome",
     "NewAuditEntry",
     "NewCoverageAudit",
     "NewVersion",
     "ObjectScores",
     "SchemaVersionError",
+    "RetainedPrediction",
     "ScoreTable",
     "SourceBatch",
     "StoreError",

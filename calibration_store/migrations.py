@@ -13,6 +13,7 @@ from datetime import UTC, datetime
 from typing import Any
 
 from .errors import SchemaVersionError
+from .feedback_records import FEEDBACK_TABLES, feedback_tables
 
 
 @dataclass(frozen=True)
@@ -296,6 +297,7 @@ SQLITE_MIGRATIONS: tuple[Migration, ...] = (
     Migration(6, _STRATA, _STRATA_COLUMN),
     Migration(7, _CONTENT_KEY, _CONTENT_KEY_STATEMENTS),
     Migration(8, _MONITOR_SHARES, _monitor_shares("BLOB", "TEXT")),
+    Migration(9, FEEDBACK_TABLES, feedback_tables("TEXT")),
 )
 
 POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
@@ -340,6 +342,7 @@ POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
     Migration(6, _STRATA, _STRATA_COLUMN),
     Migration(7, _CONTENT_KEY, _CONTENT_KEY_STATEMENTS),
     Migration(8, _MONITOR_SHARES, _monitor_shares("BYTEA", "TIMESTAMPTZ")),
+    Migration(9, FEEDBACK_TABLES, feedback_tables("TIMESTAMPTZ")),
 )
 
 

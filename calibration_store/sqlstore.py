@@ -18,6 +18,7 @@ from . import codec
 from .base import JOB_MAX_AGE, KEEP_JOBS, CalibrationStore
 from .errors import DuplicateVersion, JobExists, JobFinished, JobNotFound, VersionNotFound
 from .faults import crash_point
+from .feedback_records import FeedbackRecords
 from .models import (
     FINAL_JOB_STATES,
     Activation,
@@ -103,8 +104,8 @@ def now_utc() -> datetime:
     return datetime.now(UTC)
 
 
-class SqlStore(CalibrationStore):
-    """CalibrationStore over a SQL database; subclasses provide connections."""
+class SqlStore(FeedbackRecords, CalibrationStore):
+    """CalibrationStore over a SQL database (and the feedback records); subclasses provide connections."""
 
     #: appended to the SELECT that locks a model row before activating
     lock_clause: ClassVar[str] = ""

@@ -59,6 +59,10 @@ class Conflict(ServiceError):
     status, title = 409, "Conflict"
 
 
+class Gone(ServiceError):
+    status, title = 410, "Gone"
+
+
 class InsufficientStorage(ServiceError):
     """No room on disk for what the request would write: retry once space is freed."""
 

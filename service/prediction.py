@@ -57,6 +57,7 @@ class CalibratedSets:
     centers: np.ndarray  # (M, 2)
     shapes: np.ndarray  # (M, 2, 2), (y - c)^T L (y - c) <= 1; zeros = unbounded
     statistics: HeatmapStatistics
+    thresholds: np.ndarray | None = None  # (M,) each row's threshold (inf: unbounded)
 
 
 def calibrated_sets(
@@ -81,7 +82,7 @@ def calibrated_sets(
     per_row = channel_thresholds[result.channel] if row_thresholds is None else row_thresholds(statistics)
     centers, shapes = score.region(statistics, per_row)
     centers, shapes = map_sets_to_image(centers, shapes, result.affines[result.instance_index])
-    return CalibratedSets(centers, shapes, statistics)
+    return CalibratedSets(centers, shapes, statistics, per_row)
 
 
 @dataclass(frozen=True)
@@ -108,6 +109,7 @@ class PredictQuery:
     stratify: str | Sequence[str] = "none"  # parsed where its refusal belongs, after the model ran
     group_fallback: str = "refuse"
     pose: PoseOptions | None = None
+    retain: bool = False  # kept for feedback: every heatmap statistic is computed
 
     @property
     def boxes(self) -> np.ndarray:
@@ -134,6 +136,7 @@ class Prediction:
     instance_index: np.ndarray
     guarantees: list[tuple[CoverageGuarantee, Stratum | None]]
     poses: list[PoseSets] | None
+    affines: np.ndarray | None = None  # (N, 2, 3) each instance's image -> heatmap affine
 
     @property
     def image(self) -> np.ndarray:
@@ -186,6 +189,7 @@ class Predictor:
             drift = self.drift
             all_statistics = query.include_statistics or (drift is not None and drift.wants_all_statistics())
             all_statistics = all_statistics or DIFFICULTY in kinds  # difficulty strata need every feature
+            all_statistics = all_statistics or query.retain
             row_thresholds = strata.thresholds if strata else None
             sets = calibrated_sets(
                 result, kind, thresholds.values, manifest.heatmap, all_statistics, row_thresholds
@@ -217,6 +221,7 @@ class Predictor:
                 result.instance_index,
                 guarantees,
                 poses,
+                result.affines,
             )
 
     def _source(self, image: bytes | EncodedFrame, query: PredictQuery) -> ImageSource:

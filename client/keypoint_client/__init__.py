@@ -49,6 +49,7 @@ from keypoint_client.errors import (
 )
 from keypoint_client.images import ImageInput, png_bytes
 from keypoint_client.models import (
+    AdaptiveLevel,
     Guarantee,
     Instance,
     InstanceRequest,
@@ -71,11 +72,16 @@ from keypoint_client.monitoring_models import (
     CoverageAuditSummary,
     CoverageFigure,
     Drift,
+    FeedbackResult,
+    FieldCalibration,
+    GroupCoverage,
+    LiveCoverage,
 )
 from keypoint_client.retry import RetryPolicy
 from keypoint_client.sets import Ball, Ellipse, PredictionSet, Unbounded
 
 __all__ = [
+    "AdaptiveLevel",
     "Activation",
     "ActivationLog",
     "ActivationRefused",
@@ -94,6 +100,10 @@ __all__ = [
     "CoverageAuditSummary",
     "CoverageFigure",
     "Drift",
+    "FeedbackResult",
+    "FieldCalibration",
+    "GroupCoverage",
+    "LiveCoverage",
     "Ellipse",
     "Forbidden",
     "Guarantee",

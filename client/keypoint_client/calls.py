@@ -37,7 +37,14 @@ from keypoint_client.models import (
     Readiness,
     instance_request,
 )
-from keypoint_client.monitoring_models import CoverageAudit, CoverageAuditList, Drift
+from keypoint_client.monitoring_models import (
+    CoverageAudit,
+    CoverageAuditList,
+    Drift,
+    FeedbackResult,
+    FieldCalibration,
+    LiveCoverage,
+)
 from keypoint_client.retry import retry_after_seconds
 
 if TYPE_CHECKING:
@@ -64,6 +71,9 @@ class PredictOptions(TypedDict, total=False):
     include_statistics: bool
     channel_order: ChannelOrder
     pose: PoseRequest | None
+    retain: bool
+    stream: str | None
+    adaptive: bool
 
 
 @dataclass(frozen=True)
@@ -89,6 +99,9 @@ class PredictRequest:
     include_statistics: bool = False
     channel_order: ChannelOrder = "rgb"
     pose: PoseRequest | None = None
+    retain: bool = False
+    stream: str | None = None
+    adaptive: bool = False
 
     def parts(self, suffix: str = "") -> Files:
         """The multipart parts ``image<suffix>`` and ``request<suffix>``."""
@@ -100,7 +113,7 @@ class PredictRequest:
 
     def parameters(self) -> dict[str, Any]:
         """The request's JSON: its instances and options."""
-        return {
+        parameters = {
             "instances": [instance_request(instance).to_dict() for instance in self.instances],
             "epsilon": self.epsilon,
             "nonconformity": self.nonconformity,
@@ -110,6 +123,13 @@ class PredictRequest:
             "include_statistics": self.include_statistics,
             "pose": None if self.pose is None else self.pose.to_dict(),
         }
+        if self.retain:  # sent only when asked: servers before feedback refuse unknown fields
+            parameters["retain"] = True
+        if self.stream is not None:
+            parameters["stream"] = self.stream
+        if self.adaptive:
+            parameters["adaptive"] = True
+        return parameters
 
 
 class UploadOptions(TypedDict, total=False):
@@ -442,6 +462,31 @@ def drift(*, timeout: float | None = None) -> Call[Drift]:
     every worker process and replica sharing the store (``replicas``). NotFound when the
     server's drift monitoring is off."""
     return Call("GET", "/v1/admin/drift", _model(Drift), timeout=timeout)
+
+
+def send_feedback(
+    prediction_id: str, instances: Sequence[Mapping[str, Any]], *, timeout: float | None = None
+) -> Call[FeedbackResult]:
+    """The true points of a retained prediction (``predict(..., retain=True)``'s ``prediction_id``):
+    ``instances`` as ``{"instance": i, "keypoints": [[x, y, v], ...]}`` (v = 0: not labelled). Needs
+    a feedback or admin token; ProblemError 404 (unknown), 409 (labelled already), 410 (expired)."""
+    body = {"instances": [dict(instance) for instance in instances]}
+    path = f"/v1/feedback/{quote(prediction_id, safe='')}"
+    return Call("POST", path, _model(FeedbackResult), idempotent=False, json=body, timeout=timeout)
+
+
+def live_coverage(*, timeout: float | None = None) -> Call[LiveCoverage]:
+    """The coverage the feedback labels show, per version, object, keypoint, stream and group, with
+    an anytime-valid confidence sequence and the alarm when coverage is proven below the promise."""
+    return Call("GET", "/v1/admin/coverage/live", _model(LiveCoverage), timeout=timeout)
+
+
+def calibrate_from_feedback(*, timeout: float | None = None, **options: Any) -> Call[FieldCalibration]:
+    """A calibration version from the labelled feedback (no zip): ``stream``, ``served_by`` choose the
+    labels; ``note``, ``append_to``, ``activate``, ``force``, ``reason``, ``dedupe``,
+    ``allow_duplicate`` as for an upload. Conflict for repeats or a version equal to a stored one."""
+    path = "/v1/admin/field-calibrations"
+    return Call("POST", path, _model(FieldCalibration), idempotent=False, json=options, timeout=timeout)
 
 
 def store(*, timeout: float | None = None) -> Call[StoreInfo]:

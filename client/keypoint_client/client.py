@@ -102,6 +102,9 @@ class _Endpoints:
     audits = endpoint(calls.audits)
     coverage_audit = endpoint(calls.coverage_audit)
     drift = endpoint(calls.drift)
+    send_feedback = endpoint(calls.send_feedback)
+    live_coverage = endpoint(calls.live_coverage)
+    calibrate_from_feedback = endpoint(calls.calibrate_from_feedback)
     store = endpoint(calls.store)
 
 

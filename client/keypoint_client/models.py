@@ -233,6 +233,19 @@ class ImageInfo(Frozen):
     height: int
 
 
+class AdaptiveLevel(Frozen):
+    """Adaptive conformal inference on a stream: |miscoverage - epsilon| <= long_run_bound."""
+
+    guarantee: str = "adaptive"
+    epsilon: float
+    alpha: float
+    served_epsilon: float
+    gamma: float
+    steps: int
+    miscoverage: float | None
+    long_run_bound: float | None
+
+
 class PredictResult(Frozen):
     """The answer to one image: per instance, per keypoint, a set and its guarantee."""
 
@@ -240,6 +253,16 @@ class PredictResult(Frozen):
     calibration: CalibrationRef
     image: ImageInfo
     instances: list[Instance]
+    prediction_id: str | None = Field(
+        default=None,
+        exclude_if=lambda value: value is None,  # answers not retained keep their shape
+        description="retained for feedback (retain=True, or sampled by the server): send_feedback's id",
+    )
+    adaptive: AdaptiveLevel | None = Field(
+        default=None,
+        exclude_if=lambda value: value is None,
+        description="adaptive=True: the ACI bound that applies to these sets",
+    )
 
 
 class ModelInfo(Frozen):

@@ -186,3 +186,58 @@ class Drift(Frozen):
     objects: list[ObjectDrift]
     history: list[DriftHistoryPoint] = Field(description="oldest first")
     set_sizes: dict[str, SetSizes] = Field(description="recent sets per nonconformity function")
+
+
+# -- feedback and live coverage
+
+
+class JudgedKeypoint(Frozen):
+    instance: int
+    index: int
+    name: str
+    covered: bool = Field(description="the true point lay in the set served")
+    scores: dict[str, float]
+
+
+class FeedbackResult(Frozen):
+    prediction_id: str
+    calibration_version: int
+    labelled: int
+    covered: int
+    keypoints: list[JudgedKeypoint]
+
+
+class GroupCoverage(Frozen):
+    """The field labels' coverage of one group so far (see GET /v1/admin/coverage/live)."""
+
+    level: str
+    name: str
+    version: int
+    guarantee: str  # exchangeable, or adaptive (ACI: no floor, no alarm)
+    nonconformity: Nonconformity
+    coverage: Coverage
+    epsilon: float
+    delta: float | None
+    labelled: int
+    covered: int
+    looks: int
+    look_mean: float | None
+    lower: float
+    upper: float
+    promised: float
+    floor: float
+    alarm: bool
+
+
+class LiveCoverage(Frozen):
+    alarm_level: float
+    alarm: bool
+    groups: list[GroupCoverage]
+
+
+class FieldCalibration(Frozen):
+    """A version made from labelled feedback; ``summary`` as a calibration job's result."""
+
+    version: int
+    activated: bool
+    summary: dict

@@ -17,9 +17,13 @@ from service.api.http.clients import ClientKeys
 from service.api.http.request_body import BodyPace, read_limited_body
 from service.calibration.jobs import CalibrationJobs
 from service.calibration.registry import CalibrationRegistry
+from service.calibration.versions import VersionRules
 from service.detector.manifest import Manifest
 from service.detector.session import Detector
 from service.errors import StoreUnreachable
+from service.feedback.adaptive import AdaptiveSets
+from service.feedback.live_coverage import LiveCoverageReader
+from service.feedback.retention import Retention
 from service.infra.audit_trail import AuditTrail, Operator
 from service.infra.job_engine import JobRunner
 from service.infra.operators import operator_named
@@ -53,6 +57,11 @@ Audits = Annotated[CoverageAudits, Depends(_part("audits"))]
 Drift = Annotated[DriftMonitor | None, Depends(_part("drift"))]
 Config = Annotated[Settings, Depends(_part("settings"))]
 Operators = Annotated[dict[str, str], Depends(_part("operators"))]
+FeedbackSenders = Annotated[dict[str, str], Depends(_part("feedback_senders"))]
+Retaining = Annotated[Retention, Depends(_part("retention"))]
+LiveCoverage = Annotated[LiveCoverageReader, Depends(_part("live_coverage"))]
+Adaptive = Annotated[AdaptiveSets, Depends(_part("adaptive"))]
+NewVersionRules = Annotated[VersionRules, Depends(_part("version_rules"))]
 
 
 @dataclass(frozen=True)
@@ -66,6 +75,8 @@ class PredictParts:
     max_batch_images: int
     pace: BodyPace
     clients: ClientKeys
+    retention: Retention | None = None  # None: nothing is retained (no store to keep answers in)
+    adaptive: AdaptiveSets | None = None  # None: no adaptive sets
 
     @property
     def manifest(self) -> Manifest:
@@ -101,14 +112,27 @@ async def require_admin(
 ) -> Operator:
     """Let the request through only with a configured admin token (and a reachable store);
     returns the operator it names."""
-    if not operators:
-        raise HTTPException(
-            403, "The admin API is disabled: set CKS_ADMIN_TOKEN or CKS_ADMIN_TOKENS_FILE to enable it."
-        )
-    name = None if credentials is None else operator_named(operators, credentials.credentials)
+    disabled = "The admin API is disabled: set CKS_ADMIN_TOKEN or CKS_ADMIN_TOKENS_FILE to enable it."
+    return _token_holder(request, operators, registry, trail, credentials, disabled, "admin token")
+
+
+def _token_holder(
+    request: Request,
+    tokens: dict[str, str],
+    registry: CalibrationRegistry,
+    trail: AuditTrail,
+    credentials: HTTPAuthorizationCredentials | None,
+    disabled: str,
+    kind: str,
+) -> Operator:
+    """The operator a bearer token of ``tokens`` names: 403 with no tokens, 401 without one of
+    them, 503 while the store is away (every such call needs it)."""
+    if not tokens:
+        raise HTTPException(403, disabled)
+    name = None if credentials is None else operator_named(tokens, credentials.credentials)
     if name is None:
         raise HTTPException(
-            401, "Send 'Authorization: Bearer <admin token>'.", headers={"WWW-Authenticate": "Bearer"}
+            401, f"Send 'Authorization: Bearer <{kind}>'.", headers={"WWW-Authenticate": "Bearer"}
         )
     operator = Operator(name=name, client=request.client.host if request.client else "")
     try:
@@ -126,4 +150,27 @@ ADMIN_RESPONSES: dict[int | str, dict[str, Any]] = {
     401: {"description": "No token, or not an admin token: send 'Authorization: Bearer <admin token>'"},
     403: {"description": "The admin API is disabled (no CKS_ADMIN_TOKEN nor CKS_ADMIN_TOKENS_FILE)"},
     503: {"description": "The calibration store is unreachable (with Retry-After)"},
+}
+
+
+async def require_feedback_sender(
+    request: Request,
+    senders: FeedbackSenders,
+    registry: Registry,
+    trail: Trail,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> Operator:
+    """Let feedback through with an admin token or a ``feedback`` token (CKS_ADMIN_TOKENS_FILE)."""
+    disabled = (
+        "Feedback is disabled: give its senders tokens ('feedback name:token' lines in"
+        " CKS_ADMIN_TOKENS_FILE, or an admin token)"
+    )
+    return _token_holder(request, senders, registry, trail, credentials, disabled, "feedback or admin token")
+
+
+FeedbackSender = Annotated[Operator, Depends(require_feedback_sender)]
+FEEDBACK_RESPONSES: dict[int | str, dict[str, Any]] = {
+    401: {"description": "No token, or neither a feedback nor an admin token"},
+    403: {"description": "Feedback is disabled (no admin token and no 'feedback name:token' line)"},
+    503: ADMIN_RESPONSES[503],
 }

@@ -42,9 +42,14 @@ def fingerprints(batch: CocoBatch) -> tuple[Fingerprint, ...]:
 
 
 def _instance_digest(image_digest: str, instance: LabeledInstance) -> str:
-    labels = [[None if np.isnan(v) else float(v) for v in row] for row in instance.keypoints]
+    return instance_digest(image_digest, instance.object_name, instance.bbox, instance.keypoints)
+
+
+def instance_digest(image_digest: str, object_name: str, bbox: Sequence[float], keypoints: np.ndarray) -> str:
+    """The content hash of one instance: its image's, object, box and labels ((K, 2), NaN: none)."""
+    labels = [[None if np.isnan(v) else float(v) for v in row] for row in keypoints]
     canonical = json.dumps(
-        [image_digest, instance.object_name, [float(v) for v in instance.bbox], labels],
+        [image_digest, object_name, [float(v) for v in bbox], labels],
         separators=(",", ":"),
     )
     return hashlib.sha256(canonical.encode()).hexdigest()
@@ -68,7 +73,7 @@ def find_repeats(
         if source.sha256 == batch_sha256:
             reason = f"the same batch (sha256 {batch_sha256[:12]}) is already in {where} as {source.name!r}"
             return [Rejection(i.image_id, i.annotation_id, reason) for i in batch.instances]
-    old_images, old_instances = _stored_digests(parent)
+    old_images, old_instances = stored_digests(parent)
     image_ids: dict[str, int] = {}
     seen: set[str] = set()
     repeats = []
@@ -91,7 +96,7 @@ def find_repeats(
 
 def instance_digests(table: ScoreTable) -> set[str]:
     """The content hashes of a version's instances (less those stored before hashes were kept)."""
-    return _stored_digests(table)[1]
+    return stored_digests(table)[1]
 
 
 def content_key(table: ScoreTable, strata: Iterable[str], scoring: Mapping[str, Any]) -> str | None:
@@ -105,7 +110,8 @@ def content_key(table: ScoreTable, strata: Iterable[str], scoring: Mapping[str, 
     return hashlib.sha256(json.dumps(document, sort_keys=True).encode()).hexdigest()
 
 
-def _stored_digests(table: ScoreTable | None) -> tuple[set[str], set[str]]:
+def stored_digests(table: ScoreTable | None) -> tuple[set[str], set[str]]:
+    """The image and instance hashes a version holds (less those stored before hashes were kept)."""
     images: set[str] = set()
     instances: set[str] = set()
     for block in () if table is None else table.objects:

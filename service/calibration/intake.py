@@ -168,19 +168,32 @@ class Intake:
         if batch.parent is not None:
             instances |= instance_digests(batch.parent.scores)
             count += batch.parent.scores.n_instances
-        if len(instances) != count:  # instances stored before hashes were kept: nothing to compare
-            return None
-        for info in self._store.list_versions(self._detector.model_hash):
-            if (
-                info.n_instances == count
-                and _same_strata(stored_kinds(info.strata), options.stratify)
-                and version_incompatibility(info, self._detector.manifest) is None
-                and instance_digests(self._scores(info.number)) == instances
-            ):
-                if not options.allow_duplicate:
-                    raise duplicate_refused(info.number, count, options.stratify)
-                return info.number
+        return equal_version(self._store, self._detector, self._scores, instances, count, options)
+
+
+def equal_version(
+    store: CalibrationStore,
+    detector: Detector,
+    scores: Callable[[int], ScoreTable],
+    instances: set[str],
+    count: int,
+    options: UploadOptions,
+) -> int | None:
+    """The stored version a new one of ``count`` instances with these hashes would repeat (the same
+    instances, the same strata asked): 409 unless ``allow_duplicate``; None when it repeats none."""
+    if len(instances) != count:  # instances stored before hashes were kept: nothing to compare
         return None
+    for info in store.list_versions(detector.model_hash):
+        if (
+            info.n_instances == count
+            and _same_strata(stored_kinds(info.strata), options.stratify)
+            and version_incompatibility(info, detector.manifest) is None
+            and instance_digests(scores(info.number)) == instances
+        ):
+            if not options.allow_duplicate:
+                raise duplicate_refused(info.number, count, options.stratify)
+            return info.number
+    return None
 
 
 def read_parent(
@@ -233,7 +246,7 @@ def check_batch(
     table = parent.scores if parent else None
     repeats = find_repeats(batch, prints, named.sha256, table, sources, number)
     if repeats and not dedupe:
-        raise _repeats_refused(repeats, batch.count)
+        raise repeats_refused(repeats, batch.count)
     repeated = {(r.image_id, r.annotation_id) for r in repeats}
     kept = [
         (i, p)
@@ -285,7 +298,8 @@ def duplicate_refused(version: int, count: int, stratify: frozenset[str] | None)
     )
 
 
-def _repeats_refused(repeats: list[Rejection], count: int) -> Conflict:
+def repeats_refused(repeats: Sequence[Rejection], count: int) -> Conflict:
+    """409 listing the repeats (anything with ``describe()``), or dropping them with dedupe."""
     listed = [r.describe() for r in repeats[:LISTED]]
     if len(repeats) > LISTED:
         listed.append(f"... and {len(repeats) - LISTED} more")

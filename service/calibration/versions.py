@@ -97,13 +97,30 @@ def create_version(
     """
     share = options.rejected_share(rules.max_rejected_share)
     scored = _score(detector, batches, parent, share, rules.max_image_pixels, progress)
+    dropped = sum(v.repeats_dropped for v in batches)
+    return store_scored_version(store, detector, scored, dropped, options, operator, rules, audit, job_id)
+
+
+def store_scored_version(
+    store: CalibrationStore,
+    detector: Detector,
+    scored: ScoredInstances,
+    duplicates_dropped: int,
+    options: UploadOptions,
+    operator: Operator,
+    rules: VersionRules,
+    audit: AuditTrail,
+    job_id: str | None = None,
+) -> CalibrationOutcome:
+    """Store scored instances as one version, behind the guardrails (see ``create_version``): also
+    the way labelled feedback becomes a version (service.feedback.field_calibration)."""
     table = scored.accumulator.table()
     strata = version_strata(table, options.stratify, rules.difficulty)
     comparison, previous = None, None
     if options.activate:
         comparison, previous = _compare_with_active(store, detector, table, rules.min_instances)
     activated = options.activate and (comparison.allowed or options.force)
-    summary = _summary(table, scored, batches, activated, comparison)
+    summary = _summary(table, scored, duplicates_dropped, activated, comparison)
     entries = _audit_entries(audit, options, operator, summary, comparison, previous, activated)
     try:
         info = store.create_version(
@@ -120,7 +137,9 @@ def create_version(
 
 
 @dataclass
-class _Scored:
+class ScoredInstances:
+    """Instances scored for a new version: the parent's and the new, their sources, the rejected."""
+
     accumulator: ScoreAccumulator
     sources: list[SourceBatch]
     rejected: list[Rejection]
@@ -134,7 +153,7 @@ def _score(
     max_rejected_share: float,
     max_image_pixels: int,
     progress: Callable[[int], None],
-) -> _Scored:
+) -> ScoredInstances:
     """The parent's instances plus the batches' scored ones; refused if too many were rejected."""
     accumulator = ScoreAccumulator()
     sources: list[SourceBatch] = []
@@ -160,7 +179,7 @@ def _score(
     check_rejected_share(rejected, annotations, max_rejected_share)
     if accumulator.count == inherited:
         raise InvalidInput("no instance of the batch could be scored; nothing was stored")
-    return _Scored(accumulator, sources, rejected, accumulator.count - inherited)
+    return ScoredInstances(accumulator, sources, rejected, accumulator.count - inherited)
 
 
 def _compare_with_active(
@@ -207,8 +226,8 @@ def _new_version(
 
 def _summary(
     table: ScoreTable,
-    scored: _Scored,
-    batches: Sequence[ValidatedBatch],
+    scored: ScoredInstances,
+    duplicates_dropped: int,
     activated: bool,
     comparison: Comparison | None,
 ) -> dict[str, Any]:
@@ -217,7 +236,7 @@ def _summary(
         "instances": table.n_instances,
         "added": scored.added,
         "activated": activated,
-        "duplicates_dropped": sum(v.repeats_dropped for v in batches),
+        "duplicates_dropped": duplicates_dropped,
         "rejected": len(scored.rejected),
         "rejections": [r.describe() for r in scored.rejected[:LISTED_REJECTIONS]],
     }

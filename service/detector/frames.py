@@ -15,6 +15,7 @@ Every size is checked against the frame and the limits before any pixel is decod
 
 from __future__ import annotations
 
+import hashlib
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -63,6 +64,15 @@ class EncodedFrame:
     @classmethod
     def of_whole(cls, width: int, height: int, encoding: str, data: bytes | memoryview) -> EncodedFrame:
         return cls(width, height, (EncodedRegion(0, 0, width, height, encoding, data),), whole=True)
+
+    def sha256(self) -> str:
+        """What identifies the pixels sent: each region's place, size, encoding and bytes."""
+        digest = hashlib.sha256(b"frame %d %d" % (self.width, self.height))
+        for region in self.regions:
+            place = (region.x_offset, region.y_offset, region.width, region.height)
+            digest.update(b"region %d %d %d %d %s " % (*place, region.encoding.encode()))
+            digest.update(region.data)
+        return digest.hexdigest()
 
 
 @dataclass(frozen=True)

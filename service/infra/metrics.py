@@ -302,6 +302,73 @@ def drift_families(report: DriftReading) -> list[GaugeMetricFamily]:
     return [statistic, p_value, alarm, window, objects, reference, any_alarm, replicas]
 
 
+class CoverageReading(Protocol):
+    """One group of the live labelled coverage (service.feedback.live_coverage.GroupCoverage)."""
+
+    level: str
+    name: str
+    version: int
+    nonconformity: str
+    coverage: str
+    epsilon: float
+    looks: int
+    lower: float
+    upper: float
+    alarm: bool
+
+
+class FeedbackCollector(Collector):
+    """``cks_feedback_coverage_*`` from the live labelled coverage, at scrape (its reader caches)."""
+
+    def __init__(self) -> None:
+        self.source: Callable[[], list[CoverageReading]] | None = None
+
+    def collect(self) -> Iterator[GaugeMetricFamily]:
+        if self.source is None:
+            return
+        try:
+            groups = self.source()
+        except Exception:  # the other metrics must still be served
+            log.exception("feedback metrics: the live coverage could not be read")
+            return
+        labels = ["version", "nonconformity", "coverage", "epsilon", "level", "name"]
+        families = {
+            "lower": GaugeMetricFamily(
+                "cks_feedback_coverage_lower", "anytime-valid lower bound", labels=labels
+            ),
+            "upper": GaugeMetricFamily(
+                "cks_feedback_coverage_upper", "anytime-valid upper bound", labels=labels
+            ),
+            "looks": GaugeMetricFamily(
+                "cks_feedback_coverage_looks", "independent labelled looks", labels=labels
+            ),
+            "alarm": GaugeMetricFamily(
+                "cks_feedback_coverage_alarm", "1 when coverage is proven below the promise", labels=labels
+            ),
+        }
+        for group in groups:
+            names = [
+                str(group.version),
+                group.nonconformity,
+                group.coverage,
+                f"{group.epsilon:g}",
+                group.level,
+                group.name,
+            ]
+            for attribute, family in families.items():
+                family.add_metric(names, float(getattr(group, attribute)))
+        yield from families.values()
+
+
+FEEDBACK = FeedbackCollector()
+REGISTRY.register(FEEDBACK)
+
+
+def set_feedback_source(source: Callable[[], list[CoverageReading]] | None) -> None:
+    """Serve ``cks_feedback_coverage_*`` from this reading; None: none."""
+    FEEDBACK.source = source
+
+
 def metrics_payload() -> tuple[bytes, str]:
     """The exposition text: this process's metrics, or all workers' in multiprocess mode."""
     if folder := os.environ.get(MULTIPROCESS_ENV):
@@ -309,6 +376,7 @@ def metrics_payload() -> tuple[bytes, str]:
         registry = CollectorRegistry()
         multiprocess.MultiProcessCollector(registry)
         registry.register(DRIFT)
+        registry.register(FEEDBACK)
         return generate_latest(registry), CONTENT_TYPE_LATEST
     return generate_latest(REGISTRY), CONTENT_TYPE_LATEST
 

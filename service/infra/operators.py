@@ -4,6 +4,9 @@
 blank lines are ignored); ``CKS_ADMIN_TOKEN`` still works and is the operator ``admin``.
 The name is what the audit trail and the activation log record. Every token, wherever it is
 configured, obeys one rule: at least 16 characters, no spaces.
+
+A line ``feedback name:token`` gives a token of its own scope: it may send feedback on retained
+predictions (POST /v1/feedback/...) and nothing else. Admin tokens may send feedback too.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from pathlib import Path
 TOKEN_SETTING = "CKS_ADMIN_TOKEN"
 TOKENS_FILE_SETTING = "CKS_ADMIN_TOKENS_FILE"
 SINGLE_TOKEN_NAME = "admin"
+FEEDBACK_SCOPE = "feedback"
 MIN_TOKEN_CHARS = 16
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._@-]{0,63}$")
 
@@ -30,7 +34,7 @@ def load_operators(single_token: str | None, tokens_file: Path | None) -> dict[s
         _check_token(single_token, f"{TOKEN_SETTING}: the token")
         operators[single_token] = SINGLE_TOKEN_NAME
     if tokens_file is not None:
-        for number, name, token in _entries(tokens_file):
+        for number, name, token in _entries(tokens_file, admin=True):
             where = f"{TOKENS_FILE_SETTING} {tokens_file}, line {number}"
             if token in operators:
                 raise OperatorsError(f"{where}: this token is already given to {operators[token]!r}")
@@ -38,6 +42,17 @@ def load_operators(single_token: str | None, tokens_file: Path | None) -> dict[s
                 raise OperatorsError(f"{where}: the name {name!r} is used twice; give each operator one name")
             operators[token] = name
     return operators
+
+
+def load_feedback_senders(single_token: str | None, tokens_file: Path | None) -> dict[str, str]:
+    """Token -> name of those who may send feedback: the admins and the ``feedback`` lines."""
+    senders = load_operators(single_token, tokens_file)
+    for number, name, token in _entries(tokens_file, admin=False) if tokens_file is not None else ():
+        where = f"{TOKENS_FILE_SETTING} {tokens_file}, line {number}"
+        if token in senders:
+            raise OperatorsError(f"{where}: this token is already given to {senders[token]!r}")
+        senders[token] = name
+    return senders
 
 
 def operator_named(operators: dict[str, str], presented: str) -> str | None:
@@ -50,17 +65,20 @@ def operator_named(operators: dict[str, str], presented: str) -> str | None:
     return found
 
 
-def _entries(path: Path) -> list[tuple[int, str, str]]:
+def _entries(path: Path, admin: bool) -> list[tuple[int, str, str]]:
+    """The admin lines (``admin``), or the feedback-scoped ones."""
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as error:
         raise OperatorsError(f"{TOKENS_FILE_SETTING}: cannot read {path}: {error}") from error
-    entries = []
+    entries, named = [], 0
     for number, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()
         if not line or line.startswith("#"):
             continue
         where = f"{TOKENS_FILE_SETTING} {path}, line {number}"
+        scoped = line.startswith(FEEDBACK_SCOPE + " ")
+        line = line.removeprefix(FEEDBACK_SCOPE + " ") if scoped else line
         name, sep, token = line.partition(":")
         name, token = name.strip(), token.strip()
         if not sep or not _NAME.match(name):
@@ -68,8 +86,10 @@ def _entries(path: Path) -> list[tuple[int, str, str]]:
                 f"{where}: write 'name:token' with a name of letters, digits and . _ @ - (at most 64)"
             )
         _check_token(token, f"{where}: the token of {name!r}")
-        entries.append((number, name, token))
-    if not entries:
+        named += 1
+        if scoped != admin:
+            entries.append((number, name, token))
+    if not named:
         raise OperatorsError(f"{TOKENS_FILE_SETTING} {path} names no operator; add 'name:token' lines")
     return entries
 

@@ -458,6 +458,41 @@ class DriftMonitorSettings(_Group):
     )
 
 
+class FeedbackSettings(_Group):
+    """Feedback on served predictions: retention, live labelled coverage, adaptive sets."""
+
+    feedback_retain_share: float = Field(
+        default=0.0,
+        ge=0,
+        le=1,
+        description="share of predict answers retained for feedback without asking (`retain: true` always"
+        " retains); a retained answer carries a prediction_id",
+    )
+    feedback_max_age_seconds: float = Field(
+        default=7 * 24 * 3600.0,
+        gt=0,
+        description="how long a retained prediction waits for its feedback (then 410)",
+    )
+    feedback_max_retained: int = Field(
+        default=100_000,
+        ge=1,
+        description="retained predictions kept in the store, labelled or not; the oldest go first (then 410)",
+    )
+    feedback_alarm_level: float = Field(
+        default=0.01,
+        gt=0,
+        lt=0.5,
+        description="live coverage: probability of a false coverage alarm per group, however long it is"
+        " watched (half to the confidence sequence, half to the calibration's Beta band)",
+    )
+    feedback_aci_gamma: float = Field(
+        default=0.005,
+        gt=0,
+        lt=1,
+        description="adaptive sets: ACI step size gamma (alpha_{t+1} = alpha_t + gamma (epsilon - err_t))",
+    )
+
+
 class LogSettings(_Group):
     """Logging."""
 
@@ -494,6 +529,7 @@ class Settings(BaseModel):
     predict: PredictSettings
     calibration: CalibrationSettings
     drift: DriftMonitorSettings
+    feedback: FeedbackSettings
     logs: LogSettings
 
     def __init__(self, **values: Any) -> None:

@@ -13,6 +13,7 @@ from starlette.types import Message, Receive, Scope, Send
 from service import __version__
 from service.api.admin import audit_routes, calibration_routes
 from service.api.deps import PredictParts
+from service.api.feedback import coverage_routes, feedback_routes
 from service.api.http.clients import ClientKeys
 from service.api.http.contract import install_contract
 from service.api.http.cut_requests import AnswerCutRequests
@@ -103,6 +104,8 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
         drift_routes,
         audit_routes,
         console_routes,
+        feedback_routes,
+        coverage_routes,
     ):
         app.include_router(routes.router)
 
@@ -136,6 +139,8 @@ def predict_parts(state: ServiceState) -> PredictParts:
             settings.predict.trusted_proxies,
             (settings.predict.client_ipv4_prefix, settings.predict.client_ipv6_prefix),
         ),
+        state.retention,
+        state.adaptive,
     )
 
 

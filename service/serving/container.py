@@ -9,6 +9,7 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from datetime import timedelta
 from functools import cached_property
 from typing import Any
 
@@ -27,11 +28,14 @@ from service.calibration.uploads import process_uploads_dir, remove_spent_job_fo
 from service.calibration.versions import VersionRules
 from service.conformal.kernel import native_kernel_available
 from service.detector.session import Detector
+from service.feedback.adaptive import AdaptiveSets
+from service.feedback.live_coverage import LiveCoverageReader
+from service.feedback.retention import Retention, RetentionRules
 from service.infra.audit_trail import AuditTrail
 from service.infra.job_engine import JobRunner
 from service.infra.logs import ensure_logging
-from service.infra.metrics import forget_drift_source, set_drift_source
-from service.infra.operators import load_operators
+from service.infra.metrics import forget_drift_source, set_drift_source, set_feedback_source
+from service.infra.operators import load_feedback_senders, load_operators
 from service.infra.settings import Settings, removed_settings
 from service.monitoring import coverage_audits
 from service.monitoring.coverage_audits import CoverageAudits
@@ -40,6 +44,8 @@ from service.monitoring.drift_shares import DriftShares
 from service.prediction import Predictor
 
 log = logging.getLogger(__name__)
+#: how old the live coverage /metrics serves may be (each scrape would otherwise read every label)
+FEEDBACK_METRICS_AGE_S = 10.0
 
 
 @dataclass
@@ -59,6 +65,11 @@ class ServiceState:
     audits: CoverageAudits
     drift: DriftMonitor | None = None  # None when CKS_DRIFT_ENABLED is false
     stopping: threading.Event = field(default_factory=threading.Event)  # set at close
+    feedback_senders: dict[str, str] = field(default_factory=dict)  # admin and feedback tokens -> name
+    retention: Retention | None = None
+    live_coverage: LiveCoverageReader | None = None
+    adaptive: AdaptiveSets | None = None
+    version_rules: VersionRules | None = None  # what every new version is held to (field calibrations)
 
     @cached_property
     def predictor(self) -> Predictor:
@@ -89,6 +100,8 @@ class ServiceState:
             process_uploads_dir(self.settings.storage.uploads_dir), ignore_errors=True
         )  # cancelled jobs' uploads
         self.cpu_pool.shutdown(wait=True, cancel_futures=True)
+        if self.retention is not None:
+            self.retention.close()  # the answers retained so far reach the store
         self.store.close()
         log.info("shutdown: done in %.2f s", time.monotonic() - started)
 
@@ -181,6 +194,31 @@ def build_state(settings: Settings) -> ServiceState:
         audits=audits,
         drift=drift,
         stopping=stopping,
+        feedback_senders=load_feedback_senders(settings.admin.admin_token, settings.admin.admin_tokens_file),
+        retention=Retention(store, detector.model_hash, _retention_rules(settings)),
+        live_coverage=_live_coverage(settings, store, detector),
+        adaptive=AdaptiveSets(store, detector.model_hash, settings.feedback.feedback_aci_gamma),
+        version_rules=job_settings.versions,
+    )
+
+
+def _live_coverage(settings: Settings, store: CalibrationStore, detector: Detector) -> LiveCoverageReader:
+    """The live coverage of the feedback labels, also the source of cks_feedback_*."""
+    names = [keypoint.name for keypoint in detector.manifest.keypoints]
+    feedback = settings.feedback
+    reader = LiveCoverageReader(
+        store, detector.model_hash, names, feedback.feedback_max_retained, feedback.feedback_alarm_level
+    )
+    set_feedback_source(lambda: reader.report(max_age_s=FEEDBACK_METRICS_AGE_S))
+    return reader
+
+
+def _retention_rules(settings: Settings) -> RetentionRules:
+    feedback = settings.feedback
+    return RetentionRules(
+        share=feedback.feedback_retain_share,
+        max_age=timedelta(seconds=feedback.feedback_max_age_seconds),
+        max_rows=feedback.feedback_max_retained,
     )
 
 

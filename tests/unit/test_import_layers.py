@@ -5,7 +5,7 @@ The layers, top to bottom (docs/development.md shows the same list):
     service.serving, service.cli, service.deploy_ray      the roof: composes the service
     service.api                                            HTTP: parses and presents
     service.prediction, .calibration, .monitoring,         the use cases
-      .pose, .evaluation
+      .pose, .evaluation, .feedback
     service.detector, service.conformal                    the model and the math
     service.infra, service.errors, service                 the ground floor
 
@@ -32,6 +32,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "service.monitoring",
         "service.pose",
         "service.evaluation",
+        "service.feedback",
     ),
     ("service.detector", "service.conformal"),
     ("service.infra", "service.errors", "service"),

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import base64
 import binascii
+import dataclasses
 import json
 import re
 from collections.abc import Callable
@@ -115,7 +116,8 @@ async def _text(part: str | UploadFile) -> str:
 def predict_query(parameters: PredictParameters) -> PredictQuery:
     """The schema's parameters as the domain's query: the options as they are, the instances and
     the pose request in domain terms (checked against the image by the domain)."""
-    options = {name: getattr(parameters, name) for name in PredictOptions.model_fields}
+    asked = {field.name for field in dataclasses.fields(PredictQuery)}  # stream, adaptive: the API's
+    options = {name: getattr(parameters, name) for name in PredictOptions.model_fields if name in asked}
     instances = tuple(Instance(i.object, i.bbox, i.group) for i in parameters.instances)
     pose = None if parameters.pose is None else _pose_options(parameters.pose)
     return PredictQuery(**{**options, "instances": instances, "pose": pose})

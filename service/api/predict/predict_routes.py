@@ -14,13 +14,17 @@ from __future__ import annotations
 
 import asyncio
 import contextvars
+import hashlib
 import logging
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 from fastapi import APIRouter, Request, Response
+from pydantic_core import to_json
 
 from service.api.deps import Predicting, PredictParts
+from service.api.feedback.retained_answer import adapted_query, served_request
 from service.api.http.problems import problem
 from service.api.predict import predict_presenter
 from service.api.predict.predict_bodies import BATCH_FORM, BATCH_JSON, PREDICT_FORM, PREDICT_JSON
@@ -165,21 +169,35 @@ async def compute(
     async with parts.admission.slot(client):
         loop = asyncio.get_running_loop()
         context = contextvars.copy_context()  # the pool's thread logs with the request's id
-        return await loop.run_in_executor(parts.pool, context.run, _respond, parts, image, parameters, png)
+        answer = (_respond, parts, image, parameters, png, client)
+        return await loop.run_in_executor(parts.pool, context.run, *answer)
 
 
 def _respond(
-    parts: PredictParts, image: bytes | EncodedFrame, parameters: PredictParameters, png: bool
+    parts: PredictParts, image: bytes | EncodedFrame, parameters: PredictParameters, png: bool, client: str
 ) -> Response:
-    query = predict_query(parameters)
+    query, adaptive = adapted_query(parts.adaptive, predict_query(parameters), parameters)
+    retention = parts.retention
+    retained = (
+        not png and retention is not None and (adaptive is not None or retention.wanted(parameters.retain))
+    )
+    query = replace(query, retain=True) if retained else query
     prediction = parts.predictor.predict(image, query)
     note_calibration_version(prediction.version)
     manifest = parts.predictor.detector.manifest
     if png:
         return Response(predict_presenter.predict_png(prediction, query, manifest), media_type="image/png")
-    return Response(
-        predict_presenter.predict_json(prediction, query, manifest), media_type="application/json"
-    )
+    answer = predict_presenter.predict_json(prediction, query, manifest)
+    if retained:  # prediction_id (and adaptive) follow the answer's last member, as PredictResponse has them
+        served = served_request(prediction, query, adaptive)
+        sha256 = image.sha256() if isinstance(image, EncodedFrame) else hashlib.sha256(image).hexdigest()
+        kept = {
+            "prediction_id": retention.retain(prediction.version, served, sha256, parameters.stream, client)
+        }
+        if adaptive is not None:
+            kept["adaptive"] = adaptive.as_dict()
+        answer = answer[:-1] + b"," + to_json(kept)[1:]
+    return Response(answer, media_type="application/json")
 
 
 async def _batch_answer(

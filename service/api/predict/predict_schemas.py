@@ -180,6 +180,25 @@ class PredictOptions(_Body):
         " groups) or use the pooled threshold (guarantee.stratum says so)",
     )
     pose: PoseRequest | None = Field(default=None, description="also return each instance's pose set")
+    retain: StrictBool = Field(
+        default=False,
+        description="keep this answer for feedback: it then carries a prediction_id to send the true points"
+        " to (POST /v1/feedback/{prediction_id}); CKS_FEEDBACK_RETAIN_SHARE retains a share unasked",
+    )
+    stream: str | None = Field(
+        default=None,
+        min_length=1,
+        max_length=64,
+        pattern=r"^[ -~]+$",
+        description="the camera stream this image comes from: live coverage is reported per stream, and"
+        " its frames are grouped into looks (one vote per look)",
+    )
+    adaptive: StrictBool = Field(
+        default=False,
+        description="adaptive sets for this stream (needs stream; no delta, no stratify): the threshold"
+        " follows the stream's feedback (ACI, Gibbs & Candes 2021) and the answer's adaptive block states"
+        " the long-run bound that then applies instead of the calibration's guarantee; it is retained",
+    )
 
 
 class PredictParameters(PredictOptions):
@@ -393,11 +412,36 @@ class ImageInfo(BaseModel):
     height: int
 
 
+class AdaptiveOut(BaseModel):
+    """Adaptive conformal inference on this stream: what the sets were served at, and its bound."""
+
+    guarantee: Literal["adaptive"] = "adaptive"
+    epsilon: float = Field(description="the target miscoverage")
+    alpha: float = Field(description="alpha_t after the stream's labels so far")
+    served_epsilon: float = Field(description="the level these sets were computed at (alpha_t, clipped)")
+    gamma: float = Field(description="ACI step size (CKS_FEEDBACK_ACI_GAMMA)")
+    steps: int = Field(description="T: labels learned from")
+    miscoverage: float | None = Field(description="share of the T labels the sets missed")
+    long_run_bound: float | None = Field(
+        description="|miscoverage - epsilon| <= (max(epsilon, 1 - epsilon) + gamma) / (gamma T), any shift"
+    )
+
+
 class PredictResponse(BaseModel):
     model: ModelRef
     calibration: CalibrationRef
     image: ImageInfo
     instances: list[InstanceOut]
+    prediction_id: str | None = Field(
+        default=None,
+        exclude_if=lambda value: value is None,  # answers not retained keep their shape
+        description="present when the answer was retained for feedback: POST /v1/feedback/{prediction_id}",
+    )
+    adaptive: AdaptiveOut | None = Field(
+        default=None,
+        exclude_if=lambda value: value is None,
+        description="present with adaptive sets: the guarantee that applies is this long-run bound",
+    )
 
 
 class BatchItem(BaseModel):

@@ -69,6 +69,12 @@ MIRRORS: dict[str, type[BaseModel]] = {
     "SizeSummaryOut": kc.monitoring_models.SizeSummary,
     "KindSizesOut": kc.monitoring_models.SetSizes,
     "DriftOut": kc.Drift,
+    "AdaptiveOut": kc.AdaptiveLevel,
+    "JudgedKeypoint": kc.monitoring_models.JudgedKeypoint,
+    "FeedbackOut": kc.FeedbackResult,
+    "GroupCoverageOut": kc.GroupCoverage,
+    "LiveCoverageOut": kc.LiveCoverage,
+    "FieldCalibrationOut": kc.FieldCalibration,
 }
 
 # Components the client has no model of, and why.
@@ -88,6 +94,9 @@ NOT_MIRRORED = {
         ["FrameRequest", "FrameIn", "RegionIn"],
         "keypoint_client.frames.frame_parts writes it from a numpy frame",
     ),
+    "FeedbackIn": "send_feedback takes its instances as an argument",
+    "InstanceLabelsIn": "send_feedback takes them as dicts",
+    "FieldCalibrationIn": "calibrate_from_feedback takes its fields as arguments",
 }
 
 

@@ -1,0 +1,1 @@
+"""Feedback on served predictions: labels in, live coverage and field calibrations out."""

@@ -1,0 +1,105 @@
+"""Request and response bodies of the feedback API (pydantic v2)."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from service.api.predict.predict_schemas import MAX_VERSION
+
+Label = tuple[float, float, int]
+
+
+class InstanceLabelsIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    instance: int = Field(ge=0, description="index into the prediction's instances")
+    keypoints: list[Label] = Field(
+        description="[x, y, v] per keypoint of the instance's object, in image pixels; v = 0 not labelled,"
+        " 1 occluded, 2 visible (COCO)",
+    )
+
+
+class FeedbackIn(BaseModel):
+    """The true points of some or all of a retained prediction's instances."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    instances: list[InstanceLabelsIn] = Field(min_length=1, max_length=1000)
+
+
+class JudgedKeypoint(BaseModel):
+    instance: int
+    index: int = Field(description="manifest keypoint index")
+    name: str
+    covered: bool = Field(description="the true point lay in the set served")
+    scores: dict[str, float] = Field(description="its nonconformity score under each function")
+
+
+class FeedbackOut(BaseModel):
+    prediction_id: str
+    calibration_version: int
+    labelled: int = Field(description="keypoints labelled")
+    covered: int = Field(description="of them, inside the set served")
+    keypoints: list[JudgedKeypoint]
+
+
+class GroupCoverageOut(BaseModel):
+    level: str = Field(description="version (all keypoints), object, keypoint, stream or group")
+    name: str
+    version: int
+    guarantee: str = Field(
+        description="exchangeable (the calibration's), or adaptive (ACI sets: no floor and no alarm; their"
+        " long-run bound is in each answer's adaptive block)"
+    )
+    nonconformity: str
+    coverage: str = Field(description="keypoint, or object (a unit is a fully labelled instance)")
+    epsilon: float
+    delta: float | None
+    labelled: int = Field(description="units labelled (keypoints, or instances with coverage object)")
+    covered: int = Field(description="of them, inside the set served")
+    looks: int = Field(description="independent looks (frames of one scene are one look): the votes")
+    look_mean: float | None = Field(description="mean vote (a look's share of covered units)")
+    lower: float = Field(description="anytime-valid lower confidence bound of the votes' mean")
+    upper: float = Field(description="anytime-valid upper confidence bound")
+    promised: float = Field(description="1 - epsilon")
+    floor: float = Field(
+        description="the least coverage the version promises: the alarm_level/2 quantile of its Beta"
+        " law (1 - epsilon with a PAC delta)"
+    )
+    alarm: bool = Field(description="coverage proven below floor")
+
+
+class LiveCoverageOut(BaseModel):
+    alarm_level: float = Field(
+        description="CKS_FEEDBACK_ALARM_LEVEL: each group's probability of a false alarm, however long"
+        " and often watched (the bounds form a confidence sequence at this level)"
+    )
+    alarm: bool
+    groups: list[GroupCoverageOut]
+
+
+class FieldCalibrationIn(BaseModel):
+    """Labelled feedback made a calibration version: which labels, and the upload's options."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    stream: str | None = Field(default=None, max_length=64, description="only this camera stream's labels")
+    served_by: int | None = Field(
+        default=None, ge=1, description="only labels of answers served by this version"
+    )
+    name: str | None = Field(default=None, description="the source batch's name (default feedback-<sha256>)")
+    note: str = ""
+    append_to: int | None = Field(
+        default=None, ge=1, le=MAX_VERSION, description="new version = this one + the labels"
+    )
+    activate: bool = False
+    force: bool = Field(default=False, description="activate past the guardrails (needs reason)")
+    reason: str = ""
+    dedupe: bool = Field(default=False, description="drop instances already counted instead of refusing")
+    allow_duplicate: bool = Field(default=False, description="store a version equal to a stored one (reason)")
+
+
+class FieldCalibrationOut(BaseModel):
+    version: int
+    activated: bool
+    summary: dict = Field(description="as a calibration job's result: instances, added, rejections, problems")

@@ -1,0 +1,97 @@
+"""A Prediction (service.prediction) as what retention keeps of it (service.feedback.retention)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+from service.api.predict.predict_schemas import PredictParameters
+from service.errors import InvalidInput
+from service.feedback.adaptive import AdaptiveSets, AdaptiveView
+from service.feedback.retention import ServedRequest, finite_or_none, guarantee_values
+from service.prediction import Prediction, PredictQuery
+
+
+def adapted_query(
+    adaptive: AdaptiveSets | None, query: PredictQuery, parameters: PredictParameters
+) -> tuple[PredictQuery, AdaptiveView | None]:
+    """With ``adaptive: true``, the query at the stream's current ACI level (and its state)."""
+    if not parameters.adaptive or adaptive is None:
+        return query, None
+    problems = [
+        problem
+        for problem, present in (
+            (
+                "adaptive needs stream (the camera stream whose feedback moves its level)",
+                parameters.stream is None,
+            ),
+            (
+                "adaptive takes no delta (its guarantee is a long-run bound, not PAC)",
+                parameters.delta is not None,
+            ),
+            ("adaptive takes no stratify (one level per stream)", query.stratify != "none"),
+        )
+        if present
+    ]
+    if problems:
+        raise InvalidInput("; ".join(problems), errors=problems)
+    target = {"nonconformity": query.nonconformity, "coverage": query.coverage, "epsilon": query.epsilon}
+    view = adaptive.view(adaptive.key(target, parameters.stream), query.epsilon)
+    return replace(query, epsilon=view.served_epsilon), view
+
+
+def served_request(
+    prediction: Prediction, query: PredictQuery, adaptive: dict[str, Any] | None
+) -> ServedRequest:
+    """Every row's heatmap statistics, threshold, set centre and guarantee, and each instance's
+    object, box, group and image -> heatmap affine, as plain values."""
+    sets, statistics = prediction.sets, prediction.sets.statistics
+    assert prediction.affines is not None and sets.thresholds is not None
+    rows = [
+        {
+            "instance": instance,
+            "channel": channel,
+            "uninformative": uninformative,
+            "peak": peak,
+            "peak_probability": probability,
+            "mean": mean,
+            "covariance": covariance,
+            "threshold": finite_or_none(threshold),
+            "center": center,
+            "guarantee": guarantee_values(guarantee),
+        }
+        for instance, channel, uninformative, peak, probability, mean, covariance, threshold, center, (
+            guarantee,
+            _,
+        ) in zip(
+            prediction.instance_index.tolist(),
+            prediction.channel.tolist(),
+            statistics.uninformative.tolist(),
+            statistics.peak_location.tolist(),
+            statistics.peak_probability.tolist(),
+            statistics.mean.tolist(),
+            statistics.covariance.tolist(),
+            sets.thresholds.tolist(),
+            sets.centers.tolist(),
+            prediction.guarantees,
+            strict=True,
+        )
+    ]
+    instances = [
+        {"object": i.object, "bbox": list(i.bbox), "group": i.group, "affine": affine}
+        for i, affine in zip(query.instances, prediction.affines.tolist(), strict=True)
+    ]
+    return ServedRequest(
+        query={
+            "nonconformity": query.nonconformity,
+            "coverage": query.coverage,
+            "epsilon": query.epsilon if adaptive is None else adaptive.epsilon,  # adaptive: the target
+            "delta": query.delta,
+        },
+        instances=instances,
+        rows=rows,
+        heatmap_shape=statistics.heatmap_shape,
+        width=prediction.width,
+        height=prediction.height,
+        adaptive=None if adaptive is None else {"key": adaptive.key, **adaptive.as_dict()},
+    )

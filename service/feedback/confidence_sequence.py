@@ -1,0 +1,122 @@
+"""An anytime-valid confidence sequence for a mean coverage, and the alarm it proves.
+
+Votes x_1, x_2, ... lie in [0, 1] (a look's share of covered keypoints, or 0/1). For a candidate
+mean p, the test of "each vote's conditional mean is at least p" uses the mixture
+
+    M_n(p) = (1/J) sum_j prod_i (q_j / p)^x_i ((1 - q_j) / (1 - p))^(1 - x_i),   q_j < p,
+
+over J alternatives below p (relative gaps from 1e-3 to 0.999, evenly spaced in log). Each factor's
+expectation is at most 1 when the vote's mean is at least p (the factor is convex in x, so it is
+at most its Bernoulli value, which is 1 at mean p and decreases with the mean): M_n(p) is a
+nonnegative supermartingale, and by Ville's inequality P(sup_n M_n(p) >= 1/a) <= a, however
+long and however often it is watched. The upper bound U_n is the largest p not rejected at level
+a; the lower bound mirrors it (alternatives above p). Only the sum and count of the votes enter.
+
+The alarm of a calibration version (``BettingAlarm``): coverage proven below what it promises,
+``promised_floor``: the quantile at ``band_level`` of its conditional coverage Beta(n + 1 - t, t)
+(with a PAC delta: 1 - epsilon, whose failure probability delta the version states), by a betting
+e-process at level a. False alarms: at most ``a + band_level`` (+ delta with PAC) over the whole
+stream, when votes are exchangeable with the calibration.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.conformal import beta_cdf
+
+#: alternatives of the mixture: relative gaps to the candidate mean
+_GAPS = np.geomspace(1e-3, 0.999, 48)
+#: candidate means scanned for the bounds
+_CANDIDATES = np.linspace(0.0, 1.0, 2001)[1:-1]
+
+
+@dataclass(frozen=True)
+class CoverageBounds:
+    votes: int
+    mean: float | None
+    lower: float
+    upper: float
+
+
+def log_evidence_below(total: float, count: int, p: np.ndarray | float) -> np.ndarray:
+    """log M_n(p) against "mean >= p" for votes of sum ``total`` over ``count`` (per p)."""
+    p = np.atleast_1d(np.asarray(p, dtype=np.float64))[:, None]
+    return _log_mixture(np.asarray(total, dtype=np.float64)[..., None], count, p)
+
+
+def evidence_path(votes: np.ndarray, p: float) -> np.ndarray:
+    """log M_n(p) after each of ``votes`` (in [0, 1]), n = 1, 2, ...: the whole watched path."""
+    totals = np.cumsum(np.asarray(votes, dtype=np.float64))
+    counts = np.arange(1, totals.size + 1)
+    return _log_mixture(totals[:, None], counts[:, None], np.asarray(p, dtype=np.float64))
+
+
+def _log_mixture(total: np.ndarray, count: np.ndarray | int, p: np.ndarray) -> np.ndarray:
+    q = p * (1.0 - _GAPS)
+    terms = total * np.log(q / p) + (count - total) * np.log((1.0 - q) / (1.0 - p))
+    top = terms.max(axis=-1)
+    return top + np.log(np.exp(terms - top[..., None]).mean(axis=-1))
+
+
+def coverage_bounds(total: float, count: int, level: float) -> CoverageBounds:
+    """Two-sided confidence sequence at ``level`` (each side level / 2) for the votes' mean."""
+    if count == 0:
+        return CoverageBounds(0, None, 0.0, 1.0)
+    limit = math.log(2.0 / level)
+    above = log_evidence_below(total, count, _CANDIDATES) < limit
+    below = log_evidence_below(count - total, count, 1.0 - _CANDIDATES) < limit  # the mirror test
+    upper = float(_CANDIDATES[above].max()) if above.any() else 0.0
+    lower = float(_CANDIDATES[below].min()) if below.any() else 1.0
+    return CoverageBounds(count, total / count, 0.0 if lower == _CANDIDATES[0] else lower, upper)
+
+
+def promised_floor(n: int, t: int, epsilon: float, delta: float | None, band_level: float) -> float:
+    """The coverage a calibration promises at least: 1 - epsilon with a PAC delta, otherwise the
+    ``band_level`` quantile of Beta(n + 1 - t, t) (t = 0: unbounded sets, coverage 1)."""
+    if delta is not None:
+        return 1.0 - epsilon
+    if t == 0:
+        return 1.0
+    low, high = 0.0, 1.0
+    for _ in range(60):
+        middle = (low + high) / 2
+        if beta_cdf(middle, n + 1 - t, t) < band_level:
+            low = middle
+        else:
+            high = middle
+    return low
+
+
+class BettingAlarm:
+    """The alarm: a betting e-process (Waudby-Smith & Ramdas 2023) against "each vote's mean is at
+    least its floor", K_t = prod (1 + lambda_t (f_t - x_t)), with the predictable bet
+    lambda_t = (f_t - m) / (v + (f_t - m)^2) clipped to [0, 1 / (2 (1 - f_t))] from the running mean
+    m and variance v of the votes before t. Each factor has mean at most 1 under the null (f_t is
+    known before x_t: it is the floor of the keypoints the vote is about), so P(ever K_t >= 2 /
+    level) <= level / 2 (Ville). Its bets follow the votes' own variance: a look's share of covered
+    keypoints varies far less than one keypoint's 0/1, so it proves a shortfall in fewer looks
+    than the Bernoulli mixture behind the bounds. Once raised, the alarm stays raised."""
+
+    def __init__(self, level: float) -> None:
+        self._limit = math.log(2.0 / level)
+        self.log_wealth, self.count, self.raised = 0.0, 0, False
+        self._sum, self._squares = 0.0, 0.25  # running sums; a prior variance of 1/4
+
+    def observe(self, vote: float, floor: float) -> bool:
+        """Add one vote in [0, 1] and the coverage it promised; whether the alarm is raised."""
+        if floor <= 0.0 or floor >= 1.0:  # nothing promised, or nothing below 1 to prove
+            return self.raised
+        mean = (self._sum + floor) / (self.count + 1)  # a prior vote at the floor
+        variance = self._squares / (self.count + 1)
+        gap = floor - mean
+        bet = min(max(gap / (variance + gap * gap), 0.0), 0.5 / (1.0 - floor))
+        self.log_wealth += math.log1p(bet * (floor - vote))
+        self.count += 1
+        self._sum += vote
+        self._squares += (vote - mean) ** 2
+        self.raised = self.raised or self.log_wealth >= self._limit
+        return self.raised

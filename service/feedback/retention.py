@@ -1,0 +1,176 @@
+"""Keeping a predict answer for feedback: what it must remember to judge a true point later.
+
+A retained prediction keeps, per (instance, keypoint) row, the heatmap statistics that give every
+nonconformity score of a true point (q*, p*, the top-K mean and covariance, whether the map was
+uninformative), the instance's image -> heatmap affine, the threshold and centre of the set served
+and the guarantee it came with; per request the calibration version, the query, the image's sha256
+and size, the camera stream and the client. Nothing else is needed: labels arrive as image points,
+the affine takes them to the heatmap, the statistics score them exactly as calibration would.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import random
+import secrets
+import threading
+import time
+from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
+from typing import Any
+
+from calibration_store import RetainedPrediction, StoreError
+from service.conformal import CoverageGuarantee
+
+log = logging.getLogger(__name__)
+#: how often a write the store refused is tried again
+RETRY_S = 1.0
+#: how long the writer lets answers gather before a write (their requests finish first)
+GATHER_S = 0.05
+#: prediction ids: "p" + creation time (ms since the epoch, 12 hex digits) + 20 random hex digits
+ID_PREFIX = "p"
+_TIME_DIGITS = 12
+
+
+@dataclass(frozen=True)
+class RetentionRules:
+    """CKS_FEEDBACK_RETAIN_SHARE, CKS_FEEDBACK_MAX_AGE_SECONDS, CKS_FEEDBACK_MAX_RETAINED."""
+
+    share: float
+    max_age: timedelta
+    max_rows: int
+
+
+@dataclass(frozen=True)
+class ServedRequest:
+    """What a retained answer was asked and served, in plain values (from the predict use case)."""
+
+    query: dict[str, Any]  # nonconformity, coverage, epsilon, delta
+    instances: list[dict[str, Any]]  # object, bbox, group, affine
+    rows: list[dict[str, Any]]
+    heatmap_shape: tuple[int, int]
+    width: int
+    height: int
+    adaptive: dict[str, Any] | None = None
+
+
+class Retention:
+    """Decides which answers are kept and writes them to the store from a background thread.
+
+    A predict answer waits for no database write (an fsync costs more than the model's run): rows
+    are queued and written in batches, one transaction each. Feedback on a prediction this process
+    retained waits for its row (``flush``); a replica's row is there within one write, normally
+    milliseconds. A write the store refuses is retried every ``RETRY_S`` while the process runs.
+    """
+
+    def __init__(self, store: Any, model_hash: str, rules: RetentionRules, seed: int | None = None) -> None:
+        self._store, self._model_hash, self.rules = store, model_hash, rules
+        self._random = random.Random(seed)
+        self._pending: list[RetainedPrediction] = []
+        self._changed = threading.Condition()
+        self._writing = 0  # rows taken by the writer, not yet committed (-1: gathering them)
+        self._closed = False
+        self._writer = threading.Thread(target=self._write_loop, name="retention-writer", daemon=True)
+        self._writer.start()
+
+    def wanted(self, requested: bool) -> bool:
+        """Asked for (``retain: true``), or drawn with probability CKS_FEEDBACK_RETAIN_SHARE."""
+        return requested or (self.rules.share > 0 and self._random.random() < self.rules.share)
+
+    def retain(
+        self, version: int, served: ServedRequest, image_sha256: str, stream: str | None, client: str
+    ) -> str:
+        """Queue the answer for the store; returns its prediction id."""
+        now = datetime.now(UTC)
+        prediction_id = new_prediction_id(now)
+        record = {
+            "query": served.query,
+            "image": {
+                "sha256": image_sha256,
+                "width": served.width,
+                "height": served.height,
+            },
+            "heatmap_shape": list(served.heatmap_shape),
+            "client": client,
+            "instances": served.instances,
+            "rows": served.rows,
+            "adaptive": served.adaptive,
+        }
+        retained = RetainedPrediction(
+            prediction_id, self._model_hash, version, stream or "", now, now + self.rules.max_age, record
+        )
+        with self._changed:
+            self._pending.append(retained)
+            self._changed.notify_all()
+        return prediction_id
+
+    def flush(self, timeout_s: float = 10.0) -> None:
+        """Wait until every answer queued so far is in the store (or ``timeout_s`` has passed)."""
+        with self._changed:
+            self._changed.wait_for(lambda: not self._pending and not self._writing, timeout_s)
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Write what is queued (for ``timeout_s`` at most: a store that is away does not hold up a
+        shutdown), then stop the writer; rows left unwritten are logged."""
+        self.flush(timeout_s)
+        with self._changed:
+            self._closed = True
+            lost = len(self._pending) + max(self._writing, 0)
+            self._changed.notify_all()
+        if lost:
+            log.warning(
+                "%d retained predictions were not stored before shutdown: their feedback gets 404", lost
+            )
+
+    def _write_loop(self) -> None:
+        while True:
+            with self._changed:
+                self._changed.wait_for(lambda: self._pending or self._closed)
+                if self._closed and not self._pending:
+                    return
+                self._writing = -1  # gathering: flush waits for it too
+            time.sleep(GATHER_S)
+            with self._changed:
+                batch, self._pending = self._pending, []
+                self._writing = len(batch)
+            while True:
+                try:
+                    self._store.retain_predictions(batch, self.rules.max_rows)
+                    break
+                except StoreError:
+                    if self._closed:  # shutting down: close() has logged what is lost
+                        break
+                    log.warning(
+                        "retained predictions not stored yet (%d); retrying", len(batch), exc_info=True
+                    )
+                    time.sleep(RETRY_S)
+            with self._changed:
+                self._writing = 0
+                self._changed.notify_all()
+
+
+def new_prediction_id(at: datetime) -> str:
+    milliseconds = int(at.timestamp() * 1000)
+    return f"{ID_PREFIX}{milliseconds:0{_TIME_DIGITS}x}{secrets.token_hex(10)}"
+
+
+def retained_at(prediction_id: str) -> datetime | None:
+    """When a well-formed id was made (None: not an id this service makes)."""
+    if not prediction_id.startswith(ID_PREFIX) or len(prediction_id) != len(ID_PREFIX) + _TIME_DIGITS + 20:
+        return None
+    try:
+        int(prediction_id[len(ID_PREFIX) :], 16)
+        milliseconds = int(prediction_id[len(ID_PREFIX) : len(ID_PREFIX) + _TIME_DIGITS], 16)
+        return datetime.fromtimestamp(milliseconds / 1000, UTC)
+    except (ValueError, OverflowError, OSError):  # not hex, or a time no clock reaches
+        return None
+
+
+def guarantee_values(guarantee: CoverageGuarantee) -> dict[str, Any]:
+    return {"n": guarantee.n, "t": guarantee.t, "epsilon": guarantee.epsilon, "delta": guarantee.delta}
+
+
+def finite_or_none(value: float) -> float | None:
+    """JSON keeps finite numbers only: an unbounded set's threshold is stored as null."""
+    return value if math.isfinite(value) else None

@@ -1,0 +1,69 @@
+"""The live coverage alarm's confidence sequence: valid under continuous monitoring (simulated)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from service.feedback.confidence_sequence import BettingAlarm, coverage_bounds, evidence_path, promised_floor
+
+LEVEL = 0.05  # two-sided; the alarm is one side: level / 2
+RUNS, VOTES = 400, 2000
+
+
+def alarms(votes: np.ndarray, floor: float) -> np.ndarray:
+    """Per run: whether the alarm fired at any of its votes (read after every vote)."""
+    raised = []
+    for run in votes:
+        alarm = BettingAlarm(LEVEL)
+        raised.append(any(alarm.observe(float(vote), floor) for vote in run))
+    return np.array(raised)
+
+
+def test_false_alarms_under_the_null_are_at_most_the_stated_level_watched_after_every_vote() -> None:
+    rng = np.random.default_rng(1)
+    floor = 0.9
+    bernoulli = (rng.random((RUNS, VOTES)) < floor).astype(float)
+    look_means = rng.beta(9 * 4, 1 * 4, size=(RUNS, VOTES))  # a look's share covered, mean 0.9
+    for votes in (bernoulli, look_means):
+        rate = alarms(votes, floor).mean()
+        assert rate <= LEVEL / 2, rate
+
+
+def test_the_alarm_fires_when_coverage_is_below_the_floor() -> None:
+    rng = np.random.default_rng(2)
+    votes = rng.beta(0.86 * 40, 0.14 * 40, size=(100, VOTES))  # looks' shares, mean 0.86 < 0.9
+    assert alarms(votes, 0.9).mean() >= 0.95
+    first = []
+    for run in votes[:20]:
+        alarm = BettingAlarm(LEVEL)
+        first.append(next(i for i, vote in enumerate(run, 1) if alarm.observe(float(vote), 0.9)))
+    assert np.median(first) < 200
+
+
+def test_the_mixture_bound_rejects_what_the_alarm_proves() -> None:
+    rng = np.random.default_rng(4)
+    votes = (rng.random(3000) < 0.8).astype(float)
+    assert (evidence_path(votes, 0.9) >= math.log(2 / LEVEL)).any()
+    assert not (evidence_path((rng.random(3000) < 0.9).astype(float), 0.9) >= math.log(2 / LEVEL)).any()
+
+
+def test_the_bounds_hold_the_true_mean_at_every_time() -> None:
+    rng = np.random.default_rng(3)
+    misses = 0
+    for _ in range(100):
+        votes = rng.random(400) < 0.8
+        totals = np.cumsum(votes)
+        checks = range(9, 400, 10)
+        bounds = [coverage_bounds(float(totals[n]), n + 1, LEVEL) for n in checks]
+        misses += any(not (b.lower <= 0.8 <= b.upper) for b in bounds)
+    assert misses <= 100 * LEVEL
+
+
+def test_the_promise_is_the_beta_band_or_one_minus_epsilon_with_pac() -> None:
+    assert promised_floor(600, 60, 0.1, 0.05, 0.005) == 0.9
+    assert promised_floor(10, 0, 0.05, None, 0.005) == 1.0
+    floor = promised_floor(600, 60, 0.1, None, 0.005)
+    assert 0.85 < floor < 0.9  # Beta(541, 60)'s 0.5 % quantile
+    assert not BettingAlarm(LEVEL).observe(0.0, 0.0)  # an adaptive stream promises no floor
