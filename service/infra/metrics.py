@@ -187,6 +187,13 @@ PREDICT_REJECTED = Counter(
 CALIBRATION_JOBS = Counter(
     "cks_calibration_jobs", "calibration jobs by final state", ["state"], registry=REGISTRY
 )
+DRIFT_PROCESS_VALUES = Gauge(
+    "cks_drift_process_values",
+    "live values this process recorded into its drift windows, as of its last share (one series per"
+    " worker: pid label; sum them over workers and replicas for the fleet)",
+    registry=REGISTRY,
+    multiprocess_mode="liveall",
+)
 CALIBRATION_INSTANCES = Counter(
     "cks_calibration_instances_scored", "instances scored by calibration jobs", registry=REGISTRY
 )

@@ -45,9 +45,12 @@ def test_shifted_traffic_to_one_replica_raises_the_alarm_read_from_another(
         send_heavy_scenes(a, SCENES)
         wait_until(lambda: drift(a.url)["alarm"], "replica A's alarm", timeout=30)
         wait_until(lambda: drift(b.url)["alarm"], "replica B raises the alarm of A's traffic", timeout=30)
+        frames = SCENES * FRAMES_PER_SCENE
+        wait_until(lambda: drift(b.url)["frames"] == frames, "B covers every frame A saw", timeout=30)
+        time.sleep(3 * SHARE_S)  # A's last share written and read by B, B's by A
         seen_by_a, seen_by_b = drift(a.url), drift(b.url)
         assert seen_by_b["replicas"] == seen_by_a["replicas"] == 2, seen_by_b
-        assert seen_by_b["frames"] == seen_by_a["frames"] == SCENES * FRAMES_PER_SCENE, seen_by_b
+        assert seen_by_b["frames"] == seen_by_a["frames"] == frames, seen_by_b
         assert seen_by_b["independent_looks"] == seen_by_a["independent_looks"], (seen_by_a, seen_by_b)
         assert seen_by_b["recorded"] == seen_by_a["recorded"] > 0
         assert 0 < seen_by_b["oldest_share_seconds"] < 5 * SHARE_S + 1, seen_by_b

@@ -122,6 +122,8 @@ def test_every_worker_reports_the_windows_of_both(
         report, metrics = read()
         assert (report["recorded"], report["replicas"]) == (requests * rows, 2), report
         assert "cks_drift_window_size{" in metrics and "cks_drift_replicas 2.0" in metrics
+        per_worker = re.findall(r'^cks_drift_process_values\{pid="\d+"\} (\S+)$', metrics, re.MULTILINE)
+        assert sum(map(float, per_worker)) == requests * rows and len(per_worker) == 2, metrics
         answered.add(report["process"])
         if len(answered) == 2:
             break
