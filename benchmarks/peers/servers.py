@@ -42,7 +42,8 @@ SERVICE = Contender(
     None,
     "its defaults (`keypoint-service serve`, no `CKS_*` set): one worker; a request alone in the "
     "process runs on every core, and beside others each request's crops are one run of one intra-op "
-    "thread on the request's own thread, concurrent runs in parallel",
+    "thread on the request's own thread, concurrent runs in parallel; intra-op threads sleep between "
+    "the pieces of a run instead of spinning",
 )
 SERVICE_ON_GPU = Contender(
     "service",

@@ -77,10 +77,12 @@ class Detector:
         if not model_path.is_file():
             raise ModelMismatch(f"{model_path} does not exist")
         self.model_hash = file_sha256(model_path)
-        self._session = create_session(model_path, threads, providers, provider_options)
+        # No busy-waiting between runs: a spinning intra-op thread holds a core that the request's
+        # decode, its event loop and other requests need (bench_ab: half the server's core-ms).
+        self._session = create_session(model_path, threads, providers, provider_options, spinning=False)
         cores = usable_cores()
         alone = threads != 0 and cores > threads and tuple(providers) == CPU
-        self._alone_session = create_session(model_path, cores) if alone else None
+        self._alone_session = create_session(model_path, cores, spinning=False) if alone else None
         self.alone_threads = cores if alone else threads
         self._computing, self._counting = 0, threading.Lock()
         _check_graph(self._session, self.manifest)
@@ -173,11 +175,16 @@ def create_session(
     intra_op_threads: int,
     providers: Sequence[str] = CPU,
     provider_options: Mapping[str, Mapping[str, str]] | None = None,
+    *,
+    spinning: bool = True,
 ) -> ort.InferenceSession:
     """The onnxruntime session the service runs: sequential, all graph optimizations, on
-    ``providers`` (checked by ``session_providers``)."""
+    ``providers`` (checked by ``session_providers``); ``spinning``: whether its intra-op threads
+    busy-wait for work after each piece of a run (onnxruntime's default) or sleep."""
     options = ort.SessionOptions()
     options.intra_op_num_threads = intra_op_threads
+    if not spinning:
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
     options.inter_op_num_threads = 1
     options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.detector.session import Detector, usable_cores
+from service.detector.manifest import MODEL_FILENAME
+from service.detector.session import Detector, create_session, usable_cores
 from service.infra.settings import DEFAULT_MODEL_DIR
 
 
@@ -58,6 +59,11 @@ def test_a_lone_request_runs_wide_and_answers_as_a_request_among_others(
             narrow = [detector.run(batch) for batch in batches(detector)]
     for a, b in zip(wide, narrow, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_a_session_without_spinning_tells_onnxruntime_so() -> None:
+    session = create_session(DEFAULT_MODEL_DIR / MODEL_FILENAME, 2, spinning=False)
+    assert session.get_session_options().get_session_config_entry("session.intra_op.allow_spinning") == "0"
 
 
 @pytest.mark.parametrize(
