@@ -129,7 +129,7 @@ def _run(settings: Settings, epsilon: float, samples: int, images: int, chosen: 
     }
     try:
         for camera, points, centers, shapes, truth in instances(
-            state, settings.model.model_dir, epsilon, images
+            state, settings.model.directory, epsilon, images
         ):
             counts["instances"] += 1
             inside = membership(truth, camera, points, centers, shapes).inside

@@ -19,12 +19,9 @@ import zipfile
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, BinaryIO, NamedTuple
+from typing import BinaryIO, NamedTuple
 
 from service.errors import InsufficientStorage, InvalidInput, PayloadTooLarge
-
-if TYPE_CHECKING:
-    from service.infra.settings import Settings
 
 ANNOTATIONS_FILENAME = "annotations.json"
 CHUNK_BYTES = 1 << 20
@@ -55,14 +52,6 @@ class DiskBudget:
     folders: tuple[Path, ...]
     max_bytes: int
     min_free_bytes: int
-
-    @classmethod
-    def from_settings(cls, settings: Settings) -> DiskBudget:
-        """Kept uploads are those under the data directory's ``jobs`` and ``uploads`` folders."""
-        folders = (settings.storage.jobs_dir, settings.storage.uploads_dir)
-        return cls(
-            folders, settings.calibration.max_uploads_disk_bytes, settings.calibration.min_free_disk_bytes
-        )
 
     def check(self, incoming: int, where: Path) -> None:
         """Refuse (507) ``incoming`` more bytes under ``where`` beyond the budget or the free space."""
@@ -96,11 +85,6 @@ class ArchiveLimits:
 
     max_files: int
     max_uncompressed_bytes: int
-
-    @classmethod
-    def from_settings(cls, settings: Settings) -> ArchiveLimits:
-        """From ``Settings.max_upload_files`` and ``Settings.max_upload_uncompressed_bytes``."""
-        return cls(settings.calibration.max_upload_files, settings.calibration.max_upload_uncompressed_bytes)
 
 
 class SavedUpload(NamedTuple):

@@ -94,13 +94,13 @@ def build_state(settings: Settings) -> ServiceState:
     ensure_logging(settings)
     for line in removed_settings(os.environ):
         log.warning(line)
-    operators = load_operators(settings.admin.admin_token, settings.admin.admin_tokens_file)
+    operators = load_operators(settings.admin.token, settings.admin.tokens_file)
     settings.storage.data_dir.mkdir(parents=True, exist_ok=True)
     # Process-wide: requests already run in parallel on cpu_pool, and OpenCV's own pool would
     # split each small crop across helper threads that spin while they wait.
     cv2.setNumThreads(1)
     detector = Detector(
-        settings.model.model_dir, settings.model.inference_threads, **detector_providers(settings)
+        settings.model.directory, settings.model.inference_threads, **detector_providers(settings)
     )
     log.info(
         "onnxruntime execution providers in use: %s; intra-op threads of a run: %d, of a request alone"
@@ -109,18 +109,20 @@ def build_state(settings: Settings) -> ServiceState:
         settings.model.inference_threads,
         detector.alone_threads,
     )
-    kind, location = store_location(settings.storage.resolved_store_url)
+    kind, location = store_location(settings.storage.resolved_url)
     # SQLite keeps its busy timeout: a write waiting on another writer is no outage
-    options = {"timeout_s": settings.storage.store_timeout_seconds} if kind == "postgresql" else {}
-    store = open_store(settings.storage.resolved_store_url, **options)
+    options = {"timeout_s": settings.storage.timeout_seconds} if kind == "postgresql" else {}
+    store = open_store(settings.storage.resolved_url, **options)
     if settings.storage.bootstrap_calibration:
-        bootstrap_default_calibration(store, detector, settings.model.model_dir, difficulty_spec(settings))
+        bootstrap_default_calibration(
+            store, detector, settings.model.directory, difficulty_spec(*settings.calibration.difficulty)
+        )
     registry = CalibrationRegistry(
         store,
         detector.model_hash,
         detector.manifest,
-        settings.storage.store_poll_seconds,
-        settings.storage.store_timeout_seconds,
+        settings.storage.poll_seconds,
+        settings.storage.timeout_seconds,
     )
     names = ", ".join(sorted(operators.values())) or "none (admin API disabled)"
     log.info(
@@ -128,7 +130,7 @@ def build_state(settings: Settings) -> ServiceState:
         " active calibration version %s; admin operators: %s",
         detector.manifest.name,
         detector.model_hash,
-        settings.model.model_dir,
+        settings.model.directory,
         kind,
         location,
         settings.storage.data_dir,
@@ -141,7 +143,7 @@ def build_state(settings: Settings) -> ServiceState:
             " on the slower numpy path; install a C compiler and reinstall the package"
         )
     remove_spent_job_folders(settings.storage.jobs_dir, store)
-    jobs = JobRunner(store, settings.calibration.calibration_workers)
+    jobs = JobRunner(store, settings.calibration.workers)
     audit = AuditTrail(store, detector.model_hash)
     job_settings = _job_settings(settings)
     audits = CoverageAudits(store, detector, registry, jobs, audit, job_settings)
@@ -174,7 +176,7 @@ def _drift_monitor(
     settings: Settings, detector: Detector, registry: CalibrationRegistry
 ) -> DriftMonitor | None:
     """The drift monitor, its history ticker started and its report the source of cks_drift_*."""
-    if not settings.drift.drift_enabled:
+    if not settings.drift.enabled:
         return None
 
     def active_calibration() -> tuple[int | None, ScoreTable | None]:
@@ -184,12 +186,12 @@ def _drift_monitor(
         return version, registry.scores(version)
 
     drift_settings = DriftSettings(
-        window=settings.drift.drift_window,
-        test=settings.drift.drift_test,
-        alarm_level=settings.drift.drift_alarm_level,
-        psi_threshold=settings.drift.drift_psi_threshold,
-        full_statistics_share=settings.drift.drift_full_statistics_share,
-        history_seconds=settings.drift.drift_history_seconds,
+        window=settings.drift.window,
+        test=settings.drift.test,
+        alarm_level=settings.drift.alarm_level,
+        psi_threshold=settings.drift.psi_threshold,
+        full_statistics_share=settings.drift.full_statistics_share,
+        history_seconds=settings.drift.history_seconds,
     )
     monitor = DriftMonitor(detector.manifest, active_calibration, drift_settings)
     monitor.start()
@@ -201,15 +203,21 @@ def _job_settings(settings: Settings) -> JobSettings:
     return JobSettings(
         jobs_dir=settings.storage.jobs_dir,
         intake=IntakeRules(
-            limits=ArchiveLimits.from_settings(settings),
-            disk=DiskBudget.from_settings(settings),
+            limits=ArchiveLimits(
+                settings.calibration.max_upload_files, settings.calibration.max_upload_uncompressed_bytes
+            ),
+            disk=DiskBudget(  # kept uploads: those of the data directory's jobs and uploads folders
+                (settings.storage.jobs_dir, settings.storage.uploads_dir),
+                settings.calibration.max_uploads_disk_bytes,
+                settings.calibration.min_free_disk_bytes,
+            ),
             max_rejected_share=settings.calibration.max_rejected_share,
         ),
         versions=VersionRules(
             max_image_pixels=settings.predict.max_image_pixels,
-            min_instances=settings.calibration.min_calibration_instances,
+            min_instances=settings.calibration.min_instances,
             max_rejected_share=settings.calibration.max_rejected_share,
-            difficulty=difficulty_spec(settings),
+            difficulty=difficulty_spec(*settings.calibration.difficulty),
         ),
     )
 

@@ -99,9 +99,8 @@ class TestExtractGood:
         extract_zip(zip_path, dest, ArchiveLimits(2, len(ANNOTATIONS) + 5))
 
     def test_from_settings(self) -> None:
-        from service.infra.settings import Settings
 
-        limits = ArchiveLimits.from_settings(Settings(max_upload_files=7, max_upload_uncompressed_bytes=9))
+        limits = ArchiveLimits(max_files=7, max_uncompressed_bytes=9)
         assert limits == ArchiveLimits(7, 9)
 
 
