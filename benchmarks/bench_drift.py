@@ -158,15 +158,15 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads")
     arguments = parser.parse_args()
     settings = Settings()
-    sample = load_sample(settings.model.model_dir / "samples")
+    sample = load_sample(settings.model.directory / "samples")
     image = decode_image(sample.jpeg, settings.predict.max_image_pixels)
     print(
-        f"model: {settings.model.model_dir.name}; nonconformity {KIND};"
+        f"model: {settings.model.directory.name}; nonconformity {KIND};"
         f" {arguments.rounds} interleaved rounds;"
         f" load avg (1m) {os.getloadavg()[0]:.2f}"
     )
     print(f"goal: drift monitoring adds <= {GOAL:.0%} to predict()")
-    with service_state(settings.model.model_dir, arguments.threads) as state:
+    with service_state(settings.model.directory, arguments.threads) as state:
         for count in (1, 4):
             chosen = sample.with_instances(count)
             parameters = PredictParameters.model_validate(

@@ -153,10 +153,10 @@ def by_sequence(frames: list[RecordedFrame]) -> list[list[RecordedFrame]]:
 def monitor(method: str, table: ScoreTable, manifest) -> DriftMonitor:  # noqa: ANN001
     defaults = Settings().drift
     settings = DriftSettings(
-        window=defaults.drift_window,
+        window=defaults.window,
         test=method,
-        alarm_level=defaults.drift_alarm_level,
-        psi_threshold=defaults.drift_psi_threshold,
+        alarm_level=defaults.alarm_level,
+        psi_threshold=defaults.psi_threshold,
         full_statistics_share=1.0,
         history_seconds=3600.0,
     )
@@ -196,9 +196,9 @@ def main(argv: list[str] | None = None) -> dict[str, tuple[float, dict[str, str]
     arguments = parser.parse_args(argv)
     began = time.perf_counter()
     settings = Settings()
-    _, table = load_bundle(settings.model.model_dir / BUNDLE_FILENAME)
+    _, table = load_bundle(settings.model.directory / BUNDLE_FILENAME)
     data = {}
-    with service_state(settings.model.model_dir, 1) as state:
+    with service_state(settings.model.directory, 1) as state:
         manifest = state.detector.manifest
         for shift in SHIFTS:
             count, seed = (
@@ -215,7 +215,7 @@ def main(argv: list[str] | None = None) -> dict[str, tuple[float, dict[str, str]
     print(
         f"{len(data['none'])} in-distribution sequences of {arguments.frames} frames ({quiet} frames with"
         f" boxes), {arguments.shift_sequences} per shift; {arguments.orders} random orders; alarm read every"
-        f" {CHECK_EVERY} frames; level {Settings().drift.drift_alarm_level:g}"
+        f" {CHECK_EVERY} frames; level {Settings().drift.alarm_level:g}"
     )
     rows = {}
     for method in METHODS:

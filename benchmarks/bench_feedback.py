@@ -182,7 +182,7 @@ def retention_cost(pairs: int) -> tuple[float, float, float]:
     """p50 (ms) of POST /v1/predict without and with retain, and the median paired difference: one
     in-process app, each pair's order drawn at random, after a warm-up."""
     settings = Settings()
-    folder = settings.model.model_dir / "samples"
+    folder = settings.model.directory / "samples"
     samples = load_samples(folder, read_coco(folder / "annotations.json"))
     path, group = next(iter(samples_by_image(samples).items()))
     image = Path(path).read_bytes()
@@ -224,7 +224,7 @@ def main(argv: list[str] | None = None) -> None:
     arguments = parser.parse_args(argv)
     began = time.perf_counter()
     settings = Settings()
-    with service_state(settings.model.model_dir, 1) as state:
+    with service_state(settings.model.directory, 1) as state:
         thresholds = Thresholds(state)
         data = {}
         kinds = (("none", arguments.sequences, SEED_IN), (SHIFT, arguments.shift_sequences, SEED_SHIFT + 1))

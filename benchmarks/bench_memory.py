@@ -76,7 +76,7 @@ def checkpoints(first: int, every: int, total: int) -> list[int]:
 
 
 def measure(args: argparse.Namespace, body: Body, log_path: Path) -> Memory:
-    model_dir = str(Path(Settings().model.model_dir).resolve())
+    model_dir = str(Path(Settings().model.directory).resolve())
     memory, done = Memory(), 0
     with serve({"CKS_MODEL_DIR": model_dir}, log=log_path) as server:
         for mark in checkpoints(args.first, args.every, args.requests):
@@ -133,7 +133,7 @@ def server_settings() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    samples = Path(Settings().model.model_dir).resolve() / "samples"
+    samples = Path(Settings().model.directory).resolve() / "samples"
     sample = load_sample(samples).with_instances(args.instances)
     log_path = args.log or Path(tempfile.gettempdir()) / f"bench-memory-server-{os.getpid()}.log"
     print(f"machine: {this_machine().describe()}")

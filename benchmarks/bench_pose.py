@@ -147,7 +147,7 @@ def _run(settings: Settings, epsilon: float, samples: int, images: int, chosen: 
     }
     try:
         for camera, points, centers, shapes, truth in instances(
-            state, settings.model.model_dir, epsilon, images
+            state, settings.model.directory, epsilon, images
         ):
             counts["instances"] += 1
             inside = membership(truth, camera, points, centers, shapes).inside
@@ -321,7 +321,7 @@ def whole_answers(epsilon: float, args) -> dict:  # noqa: ANN001 - the parsed ar
             model_dir = (
                 state.detector.manifest_path.parent if hasattr(state.detector, "manifest_path") else None
             )
-            model_dir = model_dir or Settings(data_dir=Path(data_dir)).model.model_dir
+            model_dir = model_dir or Settings(data_dir=Path(data_dir)).model.directory
             single = list(instances(state, model_dir, epsilon, args.images))
             records = {"single frames (samples)": per_instance(single, args.samples, args.programs)}
             if args.sequences > 0:

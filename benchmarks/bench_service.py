@@ -66,7 +66,7 @@ def model_description(model_dir: Path) -> str:
 def run(args: argparse.Namespace) -> report.Results:
     machine = this_machine()
     log(f"machine: {machine.describe()}")
-    model_dir = Path(Settings().model.model_dir).resolve()
+    model_dir = Path(Settings().model.directory).resolve()
     samples = model_dir / "samples"
     sample = load_sample(samples)
     settings = headline_settings()

@@ -36,17 +36,17 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
     host, port = args.host or settings.server.host, args.port or settings.server.port
     _check_port(host, port)
     # Check the model and store the bundled calibration once, before workers start racing.
-    load_operators(settings.admin.admin_token, settings.admin.admin_tokens_file)
+    load_operators(settings.admin.token, settings.admin.tokens_file)
     detector = Detector(
-        settings.model.model_dir, settings.model.inference_threads, **detector_providers(settings)
+        settings.model.directory, settings.model.inference_threads, **detector_providers(settings)
     )
     settings.storage.data_dir.mkdir(parents=True, exist_ok=True)
     for shared in ("uploads", "metrics"):  # of stopped processes: uploads were never stored
         remove_dead_process_folders(settings.storage.data_dir / shared)
-    with open_store(settings.storage.resolved_store_url) as store:
+    with open_store(settings.storage.resolved_url) as store:
         if settings.storage.bootstrap_calibration:
             bootstrap_default_calibration(
-                store, detector, settings.model.model_dir, difficulty_spec(settings)
+                store, detector, settings.model.directory, difficulty_spec(*settings.calibration.difficulty)
             )
     del detector  # the serving process loads its own
     metrics = (
@@ -98,17 +98,20 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     )
     share = options.rejected_share(settings.calibration.max_rejected_share)
     detector = Detector(
-        settings.model.model_dir, settings.model.inference_threads, **detector_providers(settings)
+        settings.model.directory, settings.model.inference_threads, **detector_providers(settings)
     )
-    with open_store(settings.storage.resolved_store_url) as store:
+    with open_store(settings.storage.resolved_url) as store:
         parent = None
         if args.append_to is not None:
             parent = read_parent(store, detector, args.append_to)
         batches = []
+        limits = AnnotationLimits(
+            settings.calibration.max_annotations_bytes, settings.calibration.max_annotations
+        )
         for folder in args.folders:
             if not Path(folder).is_dir():
                 raise InvalidInput(f"{folder} is not a folder (one holding annotations.json and the images)")
-            batch = load_coco_batch(Path(folder), detector.manifest, AnnotationLimits.from_settings(settings))
+            batch = load_coco_batch(Path(folder), detector.manifest, limits)
             named = NamedBatch(name=args.name or Path(folder).name, sha256=batch.sha256, batch=batch)
             batches.append(check_batch(named, parent, dedupe=args.dedupe, max_rejected_share=share))
         total = sum(b.named.batch.count for b in batches)
@@ -121,9 +124,9 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
 
         rules = VersionRules(
             settings.predict.max_image_pixels,
-            settings.calibration.min_calibration_instances,
+            settings.calibration.min_instances,
             settings.calibration.max_rejected_share,
-            difficulty_spec(settings),
+            difficulty_spec(*settings.calibration.difficulty),
         )
         audit = AuditTrail(store, detector.model_hash)
         operator = Operator(args.author, "cli")
@@ -206,11 +209,11 @@ def _evaluate(args: argparse.Namespace, settings: Settings) -> int:
     from service.calibration.bundle import bootstrap_default_calibration
     from service.detector.session import Detector
 
-    detector = Detector(settings.model.model_dir, settings.model.inference_threads)
+    detector = Detector(settings.model.directory, settings.model.inference_threads)
     settings.storage.data_dir.mkdir(parents=True, exist_ok=True)
-    with open_store(settings.storage.resolved_store_url) as store:
+    with open_store(settings.storage.resolved_url) as store:
         if settings.storage.bootstrap_calibration:  # as serve would on its first start
-            bootstrap_default_calibration(store, detector, settings.model.model_dir)
+            bootstrap_default_calibration(store, detector, settings.model.directory)
         done = 0
 
         def progress(count: int) -> None:
@@ -229,7 +232,7 @@ def _evaluate(args: argparse.Namespace, settings: Settings) -> int:
 def _check_model(args: argparse.Namespace, settings: Settings) -> int:
     from service.detector.session import Detector
 
-    model_dir = args.model_dir or settings.model.model_dir
+    model_dir = args.model_dir or settings.model.directory
     detector = Detector(model_dir, settings.model.inference_threads)
     print(f"{model_dir}: ok, model.onnx sha256 {detector.model_hash}\n{detector.manifest.summary()}")
     return 0
@@ -493,7 +496,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValidationError as error:
         return _failed(f"invalid settings: {_problems(error, lambda loc: 'CKS_' + '_'.join(loc).upper())}", 2)
     # serve logs at CKS_LOG_LEVEL; the one-shot commands say only what went wrong unless it is set
-    quiet = args.run is not _serve and "log_level" not in settings.logs.model_fields_set
+    quiet = args.run is not _serve and "level" not in settings.logs.model_fields_set
     configure_logging(settings, "WARNING" if quiet else None)
     if quiet:  # the pool's warning at each retry to reach PostgreSQL, before the error line says so
         logging.getLogger("psycopg.pool").setLevel(logging.ERROR)
@@ -509,7 +512,7 @@ def main(argv: list[str] | None = None) -> int:
     except OperatorsError as error:
         return _failed(str(error), 2)
     except StoreError as error:
-        _, location = store_location(settings.storage.resolved_store_url)
+        _, location = store_location(settings.storage.resolved_url)
         return _failed(f"the calibration store {location} (CKS_STORE_URL): {error}", 1)
     except OSError as error:  # a file or folder that is missing, not writable, not a folder
         return _failed(f"{error.filename}: {error.strerror}" if error.filename else str(error), 1)

@@ -129,7 +129,7 @@ class KeypointService:
 
 def application(settings: Settings, scaling: Scaling) -> Application:
     """The Serve application: KeypointService with ``scaling``, every replica on ``settings``."""
-    kind, location = store_location(settings.storage.resolved_store_url)
+    kind, location = store_location(settings.storage.resolved_url)
     if kind != "postgresql":
         raise ValueError(
             f"the calibration store is {kind} ({location}), a file of one node; Ray may start replicas on"

@@ -16,7 +16,7 @@ from service.infra.settings import Settings
 
 def model_dir() -> Path:
     """The served model: CKS_MODEL_DIR, or the bundled one (never written to)."""
-    return Path(Settings().model.model_dir).resolve()
+    return Path(Settings().model.directory).resolve()
 
 
 @dataclass(frozen=True)

@@ -19,13 +19,10 @@ import zipfile
 import zlib
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
-from typing import TYPE_CHECKING, BinaryIO, NamedTuple
+from typing import BinaryIO, NamedTuple
 
 from service.calibration.coco import AnnotationLimits
 from service.errors import InsufficientStorage, InvalidInput, PayloadTooLarge
-
-if TYPE_CHECKING:
-    from service.infra.settings import Settings
 
 ANNOTATIONS_FILENAME = "annotations.json"
 CHUNK_BYTES = 1 << 20
@@ -56,14 +53,6 @@ class DiskBudget:
     folders: tuple[Path, ...]
     max_bytes: int
     min_free_bytes: int
-
-    @classmethod
-    def from_settings(cls, settings: Settings) -> DiskBudget:
-        """Kept uploads are those under the data directory's ``jobs`` and ``uploads`` folders."""
-        folders = (settings.storage.jobs_dir, settings.storage.uploads_dir)
-        return cls(
-            folders, settings.calibration.max_uploads_disk_bytes, settings.calibration.min_free_disk_bytes
-        )
 
     def check(self, incoming: int, where: Path) -> None:
         """Refuse (507) ``incoming`` more bytes under ``where`` beyond the budget or the free space."""
@@ -99,16 +88,6 @@ class ArchiveLimits:
     max_files: int
     max_uncompressed_bytes: int
     annotations: AnnotationLimits | None = None
-
-    @classmethod
-    def from_settings(cls, settings: Settings) -> ArchiveLimits:
-        """From the upload and annotation limits of ``Settings.calibration``."""
-        calibration = settings.calibration
-        return cls(
-            calibration.max_upload_files,
-            calibration.max_upload_uncompressed_bytes,
-            AnnotationLimits.from_settings(settings),
-        )
 
 
 class SavedUpload(NamedTuple):

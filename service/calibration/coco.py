@@ -25,7 +25,7 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -33,9 +33,6 @@ from service.detector.boxes import box_problem
 from service.detector.images import ImageHeader, read_image_header
 from service.detector.manifest import Manifest, ObjectSpec
 from service.errors import InvalidInput, PayloadTooLarge, UnsupportedMediaType
-
-if TYPE_CHECKING:
-    from service.infra.settings import Settings
 
 ANNOTATIONS_FILENAME = "annotations.json"
 MAX_REPORTED_PROBLEMS = 50
@@ -51,10 +48,6 @@ class AnnotationLimits:
 
     max_bytes: int
     max_annotations: int
-
-    @classmethod
-    def from_settings(cls, settings: Settings) -> AnnotationLimits:
-        return cls(settings.calibration.max_annotations_bytes, settings.calibration.max_annotations)
 
     def check_size(self, size: int, where: str) -> None:
         """413 for an ``annotations.json`` of ``size`` bytes beyond ``max_bytes``."""

@@ -27,24 +27,21 @@ from service.conformal.strata import (
     stratum_calibrations,
 )
 from service.errors import InvalidInput
-from service.infra.settings import Settings
 
 DIFFICULTY, GROUP = "difficulty", "group"
 STRATIFY_CHOICES = ("none", DIFFICULTY, GROUP, f"{DIFFICULTY}+{GROUP}")
 FALLBACKS = ("refuse", "pooled")
 
 
-def difficulty_spec(settings: Settings) -> DifficultySpec:
+def difficulty_spec(signals: Sequence[str], bins: int, min_instances: int) -> DifficultySpec:
     """The difficulty bins new versions get (CKS_STRATUM_SIGNALS, _BINS, CKS_MIN_STRATUM_INSTANCES)."""
-    signals = tuple(settings.calibration.stratum_signals.split(","))
+    signals = tuple(signals)
     if unknown := [name for name in signals if name not in HEATMAP_FEATURES]:
         raise ValueError(
             f"CKS_STRATUM_SIGNALS: unknown heatmap feature {', '.join(unknown)};"
             f" give one or two of {', '.join(HEATMAP_FEATURES)}"
         )
-    return DifficultySpec(
-        signals, settings.calibration.stratum_bins, settings.calibration.min_stratum_instances
-    )
+    return DifficultySpec(signals, bins, min_instances)
 
 
 def parse_stratify(value: str | Sequence[str]) -> frozenset[str]:

@@ -108,12 +108,12 @@ def uvicorn_log_config(settings: Settings, level: str | None = None) -> dict[str
     uvicorn's own access log stays off whatever uvicorn is told: ``service.access`` writes
     one line per request instead, with the latency, request id and calibration version.
     """
-    level = level or settings.logs.log_level
+    level = level or settings.logs.level
     return {
         "version": 1,
         "disable_existing_loggers": False,
         "filters": {"request_id": {"()": RequestIdFilter}},
-        "formatters": {"service": _formatter(settings.logs.log_format)},
+        "formatters": {"service": _formatter(settings.logs.format)},
         "handlers": {
             "stderr": {
                 "class": "logging.StreamHandler",

@@ -19,6 +19,7 @@ missing from the sums) while it goes on serving.
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import shutil
@@ -187,13 +188,6 @@ PREDICT_REJECTED = Counter(
 CALIBRATION_JOBS = Counter(
     "cks_calibration_jobs", "calibration jobs by final state", ["state"], registry=REGISTRY
 )
-DRIFT_PROCESS_VALUES = Gauge(
-    "cks_drift_process_values",
-    "live values this process recorded into its drift windows, as of its last share (one series per"
-    " worker: pid label; sum them over workers and replicas for the fleet)",
-    registry=REGISTRY,
-    multiprocess_mode="liveall",
-)
 CALIBRATION_INSTANCES = Counter(
     "cks_calibration_instances_scored", "instances scored by calibration jobs", registry=REGISTRY
 )
@@ -256,6 +250,26 @@ class DriftCollector(Collector):
 
 DRIFT = DriftCollector()
 REGISTRY.register(DRIFT)
+
+
+@functools.cache
+def drift_process_values() -> Gauge:
+    """``cks_drift_process_values``, made when a drift monitor first shares: a process without
+    one (CKS_DRIFT_ENABLED=false) exports no ``cks_drift_*`` at all."""
+    return Gauge(
+        "cks_drift_process_values",
+        "live values this process recorded into its drift windows, as of its last share (one series per"
+        " worker: pid label; sum them over workers and replicas for the fleet)",
+        registry=REGISTRY,
+        multiprocess_mode="liveall",
+    )
+
+
+def forget_drift_process_values() -> None:
+    """Stop exporting ``cks_drift_process_values`` (its drift monitor stopped)."""
+    if drift_process_values.cache_info().currsize:
+        REGISTRY.unregister(drift_process_values())
+        drift_process_values.cache_clear()
 
 
 def set_drift_source(source: Callable[[], DriftReading] | None) -> None:

@@ -54,16 +54,30 @@ AbsolutePath = Annotated[Path, AfterValidator(_absolute)]
 
 
 class _Group(BaseSettings):
-    """One group of settings, each read from ``CKS_<FIELD>``."""
+    """One group of settings, each read from its variable: ``CKS_`` + the group's prefix + the field's
+    name in capitals, or the field's own ``validation_alias`` where the variable is older than the group."""
 
-    model_config = SettingsConfigDict(env_prefix="CKS_", extra="ignore", frozen=True)
+    model_config = SettingsConfigDict(env_prefix="CKS_", extra="ignore", frozen=True, validate_by_name=True)
+
+    @classmethod
+    def variables(cls) -> dict[str, str]:
+        """Each setting's name (its variable without ``CKS_``, in lower case) -> the field holding it."""
+        prefix = cls.model_config.get("env_prefix", "CKS_").removeprefix("CKS_").lower()
+        return {
+            alias.removeprefix("CKS_").lower()
+            if isinstance(alias := field.validation_alias, str)
+            else prefix + name: name
+            for name, field in cls.model_fields.items()
+        }
 
 
 class ModelSettings(_Group):
     """The model and how it runs: where it is, onnxruntime's providers and threads."""
 
-    model_dir: AbsolutePath = Field(
-        default=DEFAULT_MODEL_DIR, description="directory with model.onnx and manifest.json"
+    directory: AbsolutePath = Field(
+        default=DEFAULT_MODEL_DIR,
+        validation_alias="CKS_MODEL_DIR",
+        description="directory with model.onnx and manifest.json",
     )
     execution_providers: Annotated[tuple[str, ...], NoDecode] = Field(
         default=("CPUExecutionProvider",),
@@ -121,16 +135,22 @@ class StorageSettings(_Group):
         default=Path("var"),
         description="where the service writes (SQLite store, uploads, metrics files of several workers)",
     )
-    store_url: str | None = Field(
-        default=None, description="sqlite:///path or postgresql://...; default sqlite under data_dir"
+    url: str | None = Field(
+        default=None,
+        validation_alias="CKS_STORE_URL",
+        description="sqlite:///path or postgresql://...; default sqlite under data_dir",
     )
     bootstrap_calibration: bool = Field(
         default=True, description="load the model's bundled calibration as version 1 when the store has none"
     )
-    store_poll_seconds: float = Field(
-        default=1.0, gt=0, description="how often to look for a new active version"
+    poll_seconds: float = Field(
+        validation_alias="CKS_STORE_POLL_SECONDS",
+        default=1.0,
+        gt=0,
+        description="how often to look for a new active version",
     )
-    store_timeout_seconds: float = Field(
+    timeout_seconds: float = Field(
+        validation_alias="CKS_STORE_TIMEOUT_SECONDS",
         default=1.5,
         gt=0,
         description=(
@@ -149,7 +169,7 @@ class StorageSettings(_Group):
         ),
     )
 
-    @field_validator("store_url")
+    @field_validator("url")
     @classmethod
     def _known_store(cls, url: str | None) -> str | None:
         """Refused when the settings are read, naming the setting, not when the store is opened."""
@@ -163,12 +183,12 @@ class StorageSettings(_Group):
         return url
 
     @cached_property
-    def resolved_store_url(self) -> str:
-        if not self.store_url:
+    def resolved_url(self) -> str:
+        if not self.url:
             return f"sqlite:///{self.data_dir / 'calibrations.db'}"
-        if self.store_url.startswith("sqlite:") and not self.store_url.startswith("sqlite:///"):
-            return f"sqlite:///{sqlite_path(self.store_url).resolve()}"
-        return self.store_url
+        if self.url.startswith("sqlite:") and not self.url.startswith("sqlite:///"):
+            return f"sqlite:///{sqlite_path(self.url).resolve()}"
+        return self.url
 
     @property
     def uploads_dir(self) -> Path:
@@ -184,14 +204,16 @@ class StorageSettings(_Group):
 class AdminSettings(_Group):
     """Who may use the admin API."""
 
-    admin_token: str | None = Field(
+    model_config = SettingsConfigDict(env_prefix="CKS_ADMIN_")
+
+    token: str | None = Field(
         default=None,
         description=(
             "bearer token for /v1/admin (operator 'admin'): 16+ characters without spaces, like every "
             "token; unset disables it"
         ),
     )
-    admin_tokens_file: AbsolutePath | None = Field(
+    tokens_file: AbsolutePath | None = Field(
         default=None,
         description="file of 'name:token' lines (tokens as above): named admin operators for the audit trail",
     )
@@ -370,9 +392,17 @@ class CalibrationSettings(_Group):
         ge=0,
         description="free space that unzipping an upload must leave in the data directory (507 beyond)",
     )
-    calibration_workers: int = Field(default=1, gt=0, description="calibration jobs running at once")
-    min_calibration_instances: int = Field(
-        default=100, ge=0, description="activation needs this n per keypoint (unless forced with a reason)"
+    workers: int = Field(
+        default=1,
+        gt=0,
+        validation_alias="CKS_CALIBRATION_WORKERS",
+        description="calibration jobs running at once",
+    )
+    min_instances: int = Field(
+        validation_alias="CKS_MIN_CALIBRATION_INSTANCES",
+        default=100,
+        ge=0,
+        description="activation needs this n per keypoint (unless forced with a reason)",
     )
     stratum_signals: str = Field(
         default="gamma,peak_probability",
@@ -394,6 +424,11 @@ class CalibrationSettings(_Group):
         default=0.0, ge=0, le=1, description="share of a batch's instances that may be rejected (default)"
     )
 
+    @property
+    def difficulty(self) -> tuple[tuple[str, ...], int, int]:
+        """The difficulty strata's signals, bins per signal and least instances per bin."""
+        return tuple(self.stratum_signals.split(",")), self.stratum_bins, self.min_stratum_instances
+
     @field_validator("stratum_signals")
     @classmethod
     def _stratum_signals(cls, value: str) -> str:
@@ -406,25 +441,27 @@ class CalibrationSettings(_Group):
 class DriftMonitorSettings(_Group):
     """The label-free drift monitor."""
 
-    drift_enabled: bool = Field(
+    model_config = SettingsConfigDict(env_prefix="CKS_DRIFT_")
+
+    enabled: bool = Field(
         default=True,
         description="keep windows of every keypoint's live heatmap features and test them against the"
         " active calibration's (GET /v1/admin/drift, cks_drift_* metrics)",
     )
-    drift_window: int = Field(
+    window: int = Field(
         default=500,
         ge=10,
         le=100_000,
         description="live instances kept per keypoint (the drift window; each feature's window holds"
         " those that computed it)",
     )
-    drift_test: Literal["sequential", "ks", "psi"] = Field(
+    test: Literal["sequential", "ks", "psi"] = Field(
         default="sequential",
         description="drift test: `sequential` (one vote per independent look, an e-CUSUM over the looks:"
         " right on camera streams), `ks` (Kolmogorov-Smirnov p-values over every frame, Holm-corrected) or"
         " `psi` (population stability index over 10 quantile bins)",
     )
-    drift_alarm_level: float = Field(
+    alarm_level: float = Field(
         default=0.01,
         gt=0,
         lt=1,
@@ -432,22 +469,22 @@ class DriftMonitorSettings(_Group):
         " between false alarms on average; ks: family-wise error rate of one evaluation over all keypoints x"
         " features (Holm)",
     )
-    drift_psi_threshold: float = Field(
+    psi_threshold: float = Field(
         default=0.25,
         gt=0,
         description="psi: a keypoint's feature alarms above this index (once it has 400 live values)",
     )
-    drift_full_statistics_share: float = Field(
+    full_statistics_share: float = Field(
         default=0.25,
         ge=0,
         le=1,
         description="share of predictions that also compute the heatmap statistics their nonconformity"
         " function skips, so every drift feature gets live values (the rest record theirs for free)",
     )
-    drift_history_seconds: float = Field(
+    history_seconds: float = Field(
         default=60.0, gt=0, description="one point of the drift history this often (360 points kept)"
     )
-    drift_share_seconds: float = Field(
+    share_seconds: float = Field(
         default=5.0,
         gt=0,
         description=(
@@ -461,31 +498,33 @@ class DriftMonitorSettings(_Group):
 class FeedbackSettings(_Group):
     """Feedback on served predictions: retention, live labelled coverage, adaptive sets."""
 
-    feedback_retain_share: float = Field(
+    model_config = SettingsConfigDict(env_prefix="CKS_FEEDBACK_")
+
+    retain_share: float = Field(
         default=0.0,
         ge=0,
         le=1,
         description="share of predict answers retained for feedback without asking (`retain: true` always"
         " retains); a retained answer carries a prediction_id",
     )
-    feedback_max_age_seconds: float = Field(
+    max_age_seconds: float = Field(
         default=7 * 24 * 3600.0,
         gt=0,
         description="how long a retained prediction waits for its feedback (then 410)",
     )
-    feedback_max_retained: int = Field(
+    max_retained: int = Field(
         default=100_000,
         ge=1,
         description="retained predictions kept in the store, labelled or not; the oldest go first (then 410)",
     )
-    feedback_alarm_level: float = Field(
+    alarm_level: float = Field(
         default=0.01,
         gt=0,
         lt=0.5,
         description="live coverage: probability of a false coverage alarm per group, however long it is"
         " watched (half to the confidence sequence, half to the calibration's Beta band)",
     )
-    feedback_aci_gamma: float = Field(
+    aci_gamma: float = Field(
         default=0.005,
         gt=0,
         lt=1,
@@ -496,22 +535,25 @@ class FeedbackSettings(_Group):
 class LogSettings(_Group):
     """Logging."""
 
-    log_format: Literal["text", "json"] = Field(
+    model_config = SettingsConfigDict(env_prefix="CKS_LOG_")
+
+    format: Literal["text", "json"] = Field(
         default="text",
         description="`text` (one line: UTC time, level, logger, [request id], message) or `json`"
         " (one JSON object a line), for the service's lines and uvicorn's alike",
     )
-    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
+    level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
         default="INFO",
         description="least severe level logged by `serve`; the other commands log warnings and errors"
         " only unless it is set",
     )
     access_log: bool = Field(
+        validation_alias="CKS_ACCESS_LOG",
         default=True,
         description="one line per request: method, path, status, latency, request id, calibration version",
     )
 
-    @field_validator("log_level", mode="before")
+    @field_validator("level", mode="before")
     @classmethod
     def _upper(cls, level: object) -> object:
         return level.upper() if isinstance(level, str) else level
@@ -533,19 +575,26 @@ class Settings(BaseModel):
     logs: LogSettings
 
     def __init__(self, **values: Any) -> None:
-        """Any setting by its field name (``data_dir=...``); the others from the environment."""
+        """Any setting by its name, the variable's without ``CKS_`` (``data_dir=...``, ``drift_window=...``);
+        the others from the environment."""
         unknown = set(values) - set(Settings.fields())
         if unknown:
             raise TypeError(f"not settings: {', '.join(sorted(unknown))}")
         groups, problems = {}, []
         for name, group in _GROUPS.items():
+            variables = group.variables()
             try:
                 groups[name] = group(
-                    **{key: value for key, value in values.items() if key in group.model_fields}
+                    **{variables[key]: value for key, value in values.items() if key in variables}
                 )
-            except ValidationError as error:  # every group's problems are told at once
+            except ValidationError as error:  # every group's problems are told at once, by setting name
+                setting = {field: key for key, field in variables.items()}
+                setting |= {
+                    f.validation_alias: key for key, f in _fields_of(group).items() if f.validation_alias
+                }
                 problems += [
                     {key: e[key] for key in ("type", "loc", "input", "ctx") if key in e}
+                    | {"loc": (setting.get(e["loc"][0], e["loc"][0]), *e["loc"][1:])}
                     for e in error.errors()
                 ]
         if problems:
@@ -553,16 +602,21 @@ class Settings(BaseModel):
         super().__init__(**groups)
 
     def value(self, name: str) -> Any:
-        """A setting by its field name, whatever its group."""
-        for group in (getattr(self, attribute) for attribute in _GROUPS):
-            if name in type(group).model_fields:
-                return getattr(group, name)
+        """A setting by its name (the variable's without ``CKS_``), whatever its group."""
+        for attribute, group in _GROUPS.items():
+            if field := group.variables().get(name):
+                return getattr(getattr(self, attribute), field)
         raise KeyError(name)
 
     @classmethod
     def fields(cls) -> dict[str, FieldInfo]:
         """Every setting's field, by name (the variable is ``CKS_`` + the name in capitals)."""
-        return {name: field for group in _GROUPS.values() for name, field in group.model_fields.items()}
+        return {name: field for group in _GROUPS.values() for name, field in _fields_of(group).items()}
+
+
+def _fields_of(group: type[_Group]) -> dict[str, FieldInfo]:
+    """A group's fields by setting name."""
+    return {name: group.model_fields[field] for name, field in group.variables().items()}
 
 
 _GROUPS: dict[str, type[_Group]] = {
@@ -582,7 +636,7 @@ def settings_table() -> str:
     lines = []
     for group in _GROUPS.values():
         lines += [f"**{group.__doc__}**", "", "| variable | default | meaning |", "|---|---|---|"]
-        for name, field in group.model_fields.items():
+        for name, field in _fields_of(group).items():
             default = _SHOWN_DEFAULTS.get(name, field.get_default(call_default_factory=True))
             if isinstance(default, tuple):
                 default = ",".join(default)

@@ -51,7 +51,7 @@ from calibration_store import ScoreTable, StoreError
 from service.conformal import HeatmapStatistics
 from service.conformal.features import HEATMAP_FEATURES, heatmap_features
 from service.detector.manifest import Manifest
-from service.infra.metrics import DRIFT_PROCESS_VALUES
+from service.infra.metrics import drift_process_values
 from service.monitoring.drift_shares import DriftShare, DriftShares, encode_share
 from service.monitoring.looks import (
     FlatnessReference,
@@ -310,7 +310,7 @@ class DriftMonitor:
             try:
                 self.report()  # tests the pending looks: their Z are shared
                 self._shares.publish(self._share())
-                DRIFT_PROCESS_VALUES.set(self._windows.written())
+                drift_process_values().set(self._windows.written())
             except StoreError as error:
                 log.warning("drift: this process's windows could not be shared (%s)", error)
             except Exception:

@@ -112,7 +112,7 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
     def served_objects() -> tuple[str, ...]:
         service = getattr(app.state, "service", None)  # started: its model; else the one it would load
         if service is None:
-            return load_manifest(settings.model.model_dir).object_names
+            return load_manifest(settings.model.directory).object_names
         return service.detector.manifest.object_names
 
     parsed_by_hand = (PredictJson, PredictParameters, BatchJson, FrameRequest)

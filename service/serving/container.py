@@ -20,6 +20,7 @@ from service.api.http.admission import Admission
 from service.calibration import jobs as calibration_jobs
 from service.calibration.archive import ArchiveLimits, DiskBudget
 from service.calibration.bundle import bootstrap_default_calibration
+from service.calibration.coco import AnnotationLimits
 from service.calibration.intake import IntakeRules
 from service.calibration.jobs import CalibrationJobs, JobSettings
 from service.calibration.registry import CalibrationRegistry
@@ -34,7 +35,12 @@ from service.feedback.retention import Retention, RetentionRules
 from service.infra.audit_trail import AuditTrail
 from service.infra.job_engine import JobRunner
 from service.infra.logs import ensure_logging
-from service.infra.metrics import forget_drift_source, set_drift_source, set_feedback_source
+from service.infra.metrics import (
+    forget_drift_process_values,
+    forget_drift_source,
+    set_drift_source,
+    set_feedback_source,
+)
 from service.infra.operators import load_feedback_senders, load_operators
 from service.infra.settings import Settings, removed_settings
 from service.monitoring import coverage_audits
@@ -95,6 +101,7 @@ class ServiceState:
         if self.drift is not None:
             self.drift.stop()
             forget_drift_source(self.drift.report)
+            forget_drift_process_values()
         self.jobs.shutdown()
         shutil.rmtree(
             process_uploads_dir(self.settings.storage.uploads_dir), ignore_errors=True
@@ -114,13 +121,13 @@ def build_state(settings: Settings) -> ServiceState:
     ensure_logging(settings)
     for line in removed_settings(os.environ):
         log.warning(line)
-    operators = load_operators(settings.admin.admin_token, settings.admin.admin_tokens_file)
+    operators = load_operators(settings.admin.token, settings.admin.tokens_file)
     settings.storage.data_dir.mkdir(parents=True, exist_ok=True)
     # Process-wide: requests already run in parallel on cpu_pool, and OpenCV's own pool would
     # split each small crop across helper threads that spin while they wait.
     cv2.setNumThreads(1)
     detector = Detector(
-        settings.model.model_dir, settings.model.inference_threads, **detector_providers(settings)
+        settings.model.directory, settings.model.inference_threads, **detector_providers(settings)
     )
     log.info(
         "onnxruntime execution providers in use: %s; intra-op threads of a run: %d, of a request alone"
@@ -129,19 +136,21 @@ def build_state(settings: Settings) -> ServiceState:
         settings.model.inference_threads,
         detector.alone_threads,
     )
-    kind, location = store_location(settings.storage.resolved_store_url)
+    kind, location = store_location(settings.storage.resolved_url)
     # Every lock wait is bounded alike: PostgreSQL's lock_timeout, SQLite's busy timeout
-    timeout = settings.storage.store_timeout_seconds
+    timeout = settings.storage.timeout_seconds
     options = {"timeout_s": timeout} if kind == "postgresql" else {"busy_timeout_s": timeout}
-    store = open_store(settings.storage.resolved_store_url, **options)
+    store = open_store(settings.storage.resolved_url, **options)
     if settings.storage.bootstrap_calibration:
-        bootstrap_default_calibration(store, detector, settings.model.model_dir, difficulty_spec(settings))
+        bootstrap_default_calibration(
+            store, detector, settings.model.directory, difficulty_spec(*settings.calibration.difficulty)
+        )
     registry = CalibrationRegistry(
         store,
         detector.model_hash,
         detector.manifest,
-        settings.storage.store_poll_seconds,
-        settings.storage.store_timeout_seconds,
+        settings.storage.poll_seconds,
+        settings.storage.timeout_seconds,
     )
     names = ", ".join(sorted(operators.values())) or "none (admin API disabled)"
     log.info(
@@ -149,7 +158,7 @@ def build_state(settings: Settings) -> ServiceState:
         " active calibration version %s; admin operators: %s",
         detector.manifest.name,
         detector.model_hash,
-        settings.model.model_dir,
+        settings.model.directory,
         kind,
         location,
         settings.storage.data_dir,
@@ -162,7 +171,7 @@ def build_state(settings: Settings) -> ServiceState:
             " on the slower numpy path; install a C compiler and reinstall the package"
         )
     remove_spent_job_folders(settings.storage.jobs_dir, store)
-    jobs = JobRunner(store, settings.calibration.calibration_workers)
+    jobs = JobRunner(store, settings.calibration.workers)
     audit = AuditTrail(store, detector.model_hash, settings.storage.data_dir / "audit-outbox")
     job_settings = _job_settings(settings)
     stopping = threading.Event()  # set at close: the audit gauges' follower stops
@@ -171,7 +180,7 @@ def build_state(settings: Settings) -> ServiceState:
     calibrations = CalibrationJobs(store, detector, registry, jobs, audit, job_settings)
     jobs.on_stale(calibration_jobs.JOB_KIND, calibrations.take_over)
     jobs.on_stale(coverage_audits.JOB_KIND, None)  # its upload lives in its process's workspace
-    audits.follow_latest(5 * settings.storage.store_poll_seconds, stopping)
+    audits.follow_latest(5 * settings.storage.poll_seconds, stopping)
     drift = _drift_monitor(settings, detector, registry, store)
     return ServiceState(
         settings=settings,
@@ -194,10 +203,10 @@ def build_state(settings: Settings) -> ServiceState:
         audits=audits,
         drift=drift,
         stopping=stopping,
-        feedback_senders=load_feedback_senders(settings.admin.admin_token, settings.admin.admin_tokens_file),
+        feedback_senders=load_feedback_senders(settings.admin.token, settings.admin.tokens_file),
         retention=Retention(store, detector.model_hash, _retention_rules(settings)),
         live_coverage=_live_coverage(settings, store, detector),
-        adaptive=AdaptiveSets(store, detector.model_hash, settings.feedback.feedback_aci_gamma),
+        adaptive=AdaptiveSets(store, detector.model_hash, settings.feedback.aci_gamma),
         version_rules=job_settings.versions,
     )
 
@@ -207,7 +216,7 @@ def _live_coverage(settings: Settings, store: CalibrationStore, detector: Detect
     names = [keypoint.name for keypoint in detector.manifest.keypoints]
     feedback = settings.feedback
     reader = LiveCoverageReader(
-        store, detector.model_hash, names, feedback.feedback_max_retained, feedback.feedback_alarm_level
+        store, detector.model_hash, names, feedback.max_retained, feedback.alarm_level
     )
     set_feedback_source(lambda: reader.report(max_age_s=FEEDBACK_METRICS_AGE_S))
     return reader
@@ -216,9 +225,9 @@ def _live_coverage(settings: Settings, store: CalibrationStore, detector: Detect
 def _retention_rules(settings: Settings) -> RetentionRules:
     feedback = settings.feedback
     return RetentionRules(
-        share=feedback.feedback_retain_share,
-        max_age=timedelta(seconds=feedback.feedback_max_age_seconds),
-        max_rows=feedback.feedback_max_retained,
+        share=feedback.retain_share,
+        max_age=timedelta(seconds=feedback.max_age_seconds),
+        max_rows=feedback.max_retained,
     )
 
 
@@ -226,7 +235,7 @@ def _drift_monitor(
     settings: Settings, detector: Detector, registry: CalibrationRegistry, store: CalibrationStore
 ) -> DriftMonitor | None:
     """The drift monitor, its history ticker started and its report the source of cks_drift_*."""
-    if not settings.drift.drift_enabled:
+    if not settings.drift.enabled:
         return None
 
     def active_calibration() -> tuple[int | None, ScoreTable | None]:
@@ -236,14 +245,14 @@ def _drift_monitor(
         return version, registry.scores(version)
 
     drift_settings = DriftSettings(
-        window=settings.drift.drift_window,
-        test=settings.drift.drift_test,
-        alarm_level=settings.drift.drift_alarm_level,
-        psi_threshold=settings.drift.drift_psi_threshold,
-        full_statistics_share=settings.drift.drift_full_statistics_share,
-        history_seconds=settings.drift.drift_history_seconds,
+        window=settings.drift.window,
+        test=settings.drift.test,
+        alarm_level=settings.drift.alarm_level,
+        psi_threshold=settings.drift.psi_threshold,
+        full_statistics_share=settings.drift.full_statistics_share,
+        history_seconds=settings.drift.history_seconds,
     )
-    shares = DriftShares(store, detector.model_hash, settings.drift.drift_share_seconds)
+    shares = DriftShares(store, detector.model_hash, settings.drift.share_seconds)
     monitor = DriftMonitor(detector.manifest, active_calibration, drift_settings, shares)
     monitor.start()
     set_drift_source(monitor.report)
@@ -254,15 +263,25 @@ def _job_settings(settings: Settings) -> JobSettings:
     return JobSettings(
         jobs_dir=settings.storage.jobs_dir,
         intake=IntakeRules(
-            limits=ArchiveLimits.from_settings(settings),
-            disk=DiskBudget.from_settings(settings),
+            limits=ArchiveLimits(
+                settings.calibration.max_upload_files,
+                settings.calibration.max_upload_uncompressed_bytes,
+                AnnotationLimits(
+                    settings.calibration.max_annotations_bytes, settings.calibration.max_annotations
+                ),
+            ),
+            disk=DiskBudget(  # kept uploads: those of the data directory's jobs and uploads folders
+                (settings.storage.jobs_dir, settings.storage.uploads_dir),
+                settings.calibration.max_uploads_disk_bytes,
+                settings.calibration.min_free_disk_bytes,
+            ),
             max_rejected_share=settings.calibration.max_rejected_share,
         ),
         versions=VersionRules(
             max_image_pixels=settings.predict.max_image_pixels,
-            min_instances=settings.calibration.min_calibration_instances,
+            min_instances=settings.calibration.min_instances,
             max_rejected_share=settings.calibration.max_rejected_share,
-            difficulty=difficulty_spec(settings),
+            difficulty=difficulty_spec(*settings.calibration.difficulty),
         ),
     )
 

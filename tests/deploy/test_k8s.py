@@ -171,11 +171,9 @@ def test_credentials_come_from_the_secrets_the_example_shows(settings: Settings,
         if "secret" in volumes[mount["name"]]
         for key in secrets[volumes[mount["name"]]["secret"]["secretName"]]
     }
-    assert settings.admin.admin_tokens_file in token_files, (
-        "CKS_ADMIN_TOKENS_FILE is not a mounted Secret key"
-    )
+    assert settings.admin.tokens_file in token_files, "CKS_ADMIN_TOKENS_FILE is not a mounted Secret key"
     example = tmp_path / "tokens"
-    example.write_text(token_files[settings.admin.admin_tokens_file], encoding="utf-8")
+    example.write_text(token_files[settings.admin.tokens_file], encoding="utf-8")
     assert sorted(load_operators(None, example).values()) == ["alice", "bob"]
 
 
@@ -195,7 +193,7 @@ def test_resources_follow_docs_performance(settings: Settings) -> None:
     assert quantity(requests["cpu"]) == quantity(limits["cpu"]) == int(cpus.group(1))
 
     assert quantity(requests["memory"]) / MIB >= max(rss_mib)
-    decoded_at_once = settings.predict.max_concurrent_inferences + settings.calibration.calibration_workers
+    decoded_at_once = settings.predict.max_concurrent_inferences + settings.calibration.workers
     images_mib = decoded_at_once * settings.predict.max_image_pixels * RGB_BYTES_PER_PIXEL / MIB
     assert quantity(limits["memory"]) / MIB >= max(rss_mib) + images_mib
 

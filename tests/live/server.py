@@ -3,7 +3,7 @@
 ``LiveServer`` starts the server the way production does (``keypoint-service serve``, run
 as ``python -m service.cli serve`` so that this checkout's code is served) with a given
 environment (a temporary data directory, an admin token, optionally a PostgreSQL store URL,
-the model directory from ``Settings().model.model_dir``), waits for ``/healthz`` and stops the
+the model directory from ``Settings().model.directory``), waits for ``/healthz`` and stops the
 process with SIGTERM at teardown. Its admin conveniences are tests/service_calls.py's, shared
 with the in-process service of tests/api.
 """

@@ -26,8 +26,8 @@ def test_settings_are_read_from_prefixed_environment(monkeypatch):
     monkeypatch.setenv("CKS_LOG_LEVEL", "debug")
     settings = Settings(max_upload_files=9)
     assert settings.predict.max_instances == 7
-    assert settings.storage.resolved_store_url == "sqlite:////tmp/x.db"
-    assert settings.logs.log_level == "DEBUG"
+    assert settings.storage.resolved_url == "sqlite:////tmp/x.db"
+    assert settings.logs.level == "DEBUG"
     assert settings.calibration.max_upload_files == 9
 
 

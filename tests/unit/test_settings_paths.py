@@ -18,9 +18,9 @@ def test_relative_paths_are_resolved_against_the_starting_directory(
     monkeypatch.delenv("CKS_STORE_URL", raising=False)
     settings = Settings()
     assert settings.storage.data_dir == tmp_path / "var"
-    assert settings.storage.resolved_store_url == f"sqlite:///{tmp_path / 'var' / 'calibrations.db'}"
+    assert settings.storage.resolved_url == f"sqlite:///{tmp_path / 'var' / 'calibrations.db'}"
     monkeypatch.setenv("CKS_STORE_URL", "sqlite:stores/cal.db")
-    assert Settings().storage.resolved_store_url == f"sqlite:///{tmp_path / 'stores' / 'cal.db'}"
+    assert Settings().storage.resolved_url == f"sqlite:///{tmp_path / 'stores' / 'cal.db'}"
 
 
 def test_operators_come_from_the_token_and_the_tokens_file(tmp_path: Path) -> None:

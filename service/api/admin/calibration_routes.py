@@ -265,7 +265,7 @@ async def compare_calibration(
 ) -> ComparisonOut:
     def build() -> ComparisonOut:
         reference = registry.refresh_now() if against == "active" else against
-        minimum = settings.calibration.min_calibration_instances
+        minimum = settings.calibration.min_instances
         return comparison_out(
             comparison_with(registry, model.manifest, version, reference, minimum, epsilon, nonconformity)
         )
@@ -297,7 +297,7 @@ async def activate_calibration(
             model.manifest,
             trail,
             request,
-            settings.calibration.min_calibration_instances,
+            settings.calibration.min_instances,
         )
     return activation_out(entry)
 
@@ -323,7 +323,7 @@ async def audit_trail(
 
 @router.get("/store", response_model=StoreInfo, summary="Which calibration store this server uses")
 async def store_info(model: Model, registry: Registry, settings: Config, _: Admin) -> StoreInfo:
-    kind, location = store_location(settings.storage.resolved_store_url)
+    kind, location = store_location(settings.storage.resolved_url)
     active = await run_in_threadpool(registry.refresh_now)
     return StoreInfo(
         kind=kind,

@@ -60,7 +60,7 @@ async def send_feedback(
     retention: Retaining,
 ) -> FeedbackOut:
     labels = [InstanceLabels(i.instance, tuple(i.keypoints)) for i in body.instances]
-    max_age = config.feedback.feedback_max_age_seconds
+    max_age = config.feedback.max_age_seconds
     judged = await asyncio.to_thread(
         record_feedback, store, trail, operator, prediction_id, labels, max_age, adaptive, retention
     )
@@ -110,7 +110,7 @@ async def calibrate_from_field(
 ) -> FieldCalibrationOut:
     options = UploadOptions(**body.model_dump(exclude={"stream", "served_by"}))
     selection = FieldSelection(body.stream, body.served_by)
-    limit = config.feedback.feedback_max_retained
+    limit = config.feedback.max_retained
     arguments = (store, model, registry.scores, selection, options, operator, rules, trail, limit)
     outcome = await asyncio.to_thread(calibrate_from_feedback, *arguments)
     registry.refresh_now()

@@ -36,7 +36,7 @@ Transfer/sec:    764.00KB
 
 @pytest.fixture(scope="module")
 def model_dir() -> Path:
-    return Path(Settings().model.model_dir).resolve()
+    return Path(Settings().model.directory).resolve()
 
 
 @pytest.fixture(scope="module")

@@ -20,7 +20,6 @@ from service.calibration.archive import (
     copy_limited,
     extract_zip,
 )
-from service.calibration.coco import AnnotationLimits
 from service.errors import InvalidInput, PayloadTooLarge
 
 LIMITS = ArchiveLimits(max_files=50, max_uncompressed_bytes=1_000_000)
@@ -98,14 +97,6 @@ class TestExtractGood:
     def test_limits_are_inclusive(self, tmp_path: Path, dest: Path) -> None:
         zip_path = make_zip(tmp_path / "b.zip", [("annotations.json", ANNOTATIONS), ("x", b"12345")])
         extract_zip(zip_path, dest, ArchiveLimits(2, len(ANNOTATIONS) + 5))
-
-    def test_from_settings(self) -> None:
-        from service.infra.settings import Settings
-
-        settings = Settings(
-            max_upload_files=7, max_upload_uncompressed_bytes=9, max_annotations_bytes=5, max_annotations=3
-        )
-        assert ArchiveLimits.from_settings(settings) == ArchiveLimits(7, 9, AnnotationLimits(5, 3))
 
 
 class TestRefusedNames:

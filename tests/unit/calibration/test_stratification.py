@@ -134,4 +134,4 @@ def test_object_scope_calibrates_each_group_on_its_fully_labeled_instances(table
 def test_an_unknown_stratum_signal_is_refused_at_start_up() -> None:
     settings = Settings(stratum_signals="gamma,sharpness")
     with pytest.raises(ValueError, match="unknown heatmap feature sharpness; give one or two of"):
-        difficulty_spec(settings)
+        difficulty_spec(*settings.calibration.difficulty)

@@ -14,10 +14,10 @@ from service.infra.settings import Settings
 
 def test_bench_drift_times_every_mode_and_part_and_leaves_the_monitor_in_place():
     settings = Settings()
-    sample = load_sample(settings.model.model_dir / "samples").with_instances(1)
+    sample = load_sample(settings.model.directory / "samples").with_instances(1)
     image = decode_image(sample.jpeg, settings.predict.max_image_pixels)
     parameters = PredictParameters.model_validate({"instances": sample.instances, "nonconformity": KIND})
-    with service_state(settings.model.model_dir, 1) as state:
+    with service_state(settings.model.directory, 1) as state:
         monitor = state.drift
         medians = predict_rounds(state, sample.jpeg, parameters, rounds=3)
         assert list(medians) == ["off", "on (share 0.25)", "on, share 1"]

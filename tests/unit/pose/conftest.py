@@ -20,7 +20,7 @@ def camera() -> np.ndarray:
 
 @pytest.fixture(scope="session")
 def duck_3d() -> np.ndarray:
-    manifest = json.loads((Settings().model.model_dir / "manifest.json").read_text())
+    manifest = json.loads((Settings().model.directory / "manifest.json").read_text())
     return np.array(next(o for o in manifest["objects"] if o["name"] == "duck")["keypoints_3d"])
 
 
