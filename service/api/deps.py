@@ -104,11 +104,25 @@ async def require_admin(
         )
     name = None if credentials is None else operator_named(operators, credentials.credentials)
     if name is None:
-        raise HTTPException(
-            401, "Send 'Authorization: Bearer <admin token>'.", headers={"WWW-Authenticate": "Bearer"}
-        )
+        raise HTTPException(401, _unauthorized(request, credentials), headers={"WWW-Authenticate": "Bearer"})
     registry.require_store()  # every admin call needs the store: 503 at once while it is away
     return Operator(name=name, client=request.client.host if request.client else "")
+
+
+def _unauthorized(request: Request, credentials: HTTPAuthorizationCredentials | None) -> str:
+    """Which of the three mistakes it is: no header, no ``Bearer `` before the token, or a token
+    that is not an admin token (never echoed)."""
+    if credentials is not None:
+        return (
+            "The bearer token is not an admin token: send CKS_ADMIN_TOKEN's value, or a token of"
+            " CKS_ADMIN_TOKENS_FILE, as 'Authorization: Bearer <admin token>'."
+        )
+    if "authorization" in request.headers:
+        return (
+            "The Authorization header does not start with 'Bearer ': write it as"
+            " 'Authorization: Bearer <admin token>' (the word Bearer, a space, then the token)."
+        )
+    return "No Authorization header: the admin API needs 'Authorization: Bearer <admin token>'."
 
 
 Admin = Annotated[Operator, Depends(require_admin)]
