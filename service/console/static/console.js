@@ -54,8 +54,9 @@ function fixed(value, digits = 3) {
 }
 
 function whenCell(text) {
-  // A date in a table never breaks at its hyphens: "2026-11-27 10:47:33 UTC" stays one line.
-  return el("span", { class: "nowrap" }, when(text));
+  // A date in a table breaks between its day and its time, never at its hyphens or colons.
+  const [day, ...time] = when(text).split(" ");
+  return el("span", {}, el("span", { class: "nowrap" }, day), " ", el("span", { class: "nowrap" }, time.join(" ")));
 }
 
 function when(text) {
