@@ -132,7 +132,7 @@ def _token_holder(
     name = None if credentials is None else operator_named(tokens, credentials.credentials)
     if name is None:
         raise HTTPException(
-            401, f"Send 'Authorization: Bearer <{kind}>'.", headers={"WWW-Authenticate": "Bearer"}
+            401, _unauthorized(request, credentials, kind), headers={"WWW-Authenticate": "Bearer"}
         )
     operator = Operator(name=name, client=request.client.host if request.client else "")
     try:
@@ -142,6 +142,24 @@ def _token_holder(
         trail.record_later(operator, "admin", "refused", details=details)
         raise
     return operator
+
+
+def _unauthorized(request: Request, credentials: HTTPAuthorizationCredentials | None, kind: str) -> str:
+    """Which of the three mistakes it is: no header, no ``Bearer `` before the token, or a token
+    that is not a ``kind`` (never echoed)."""
+    if credentials is not None:
+        article = "an" if kind[0] in "aeiou" else "a"
+        return (
+            f"The bearer token is not {article} {kind}: send CKS_ADMIN_TOKEN's value, or a token of"
+            f" CKS_ADMIN_TOKENS_FILE, as 'Authorization: Bearer <{kind}>'."
+        )
+    if "authorization" in request.headers:
+        return (
+            "The Authorization header does not start with 'Bearer ': write it as"
+            f" 'Authorization: Bearer <{kind}>' (the word Bearer, a space, then the token)."
+        )
+    path = "the admin API needs" if kind == "admin token" else "feedback needs"
+    return f"No Authorization header: {path} 'Authorization: Bearer <{kind}>'."
 
 
 Admin = Annotated[Operator, Depends(require_admin)]

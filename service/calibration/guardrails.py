@@ -141,17 +141,15 @@ def refusal_detail(comparison: Comparison) -> str:
 
 
 def _problems(name: str, n_before: int | None, n_after: int, min_instances: int) -> list[str]:
-    problems = []
+    """The keypoint's problem, one line whatever rules it breaks (none: an empty list)."""
+    reasons = []
     if n_after < min_instances:
-        problems.append(
-            f"keypoint {name!r}: n = {n_after} calibration scores, below the floor of {min_instances}"
-            f" ({MIN_INSTANCES_SETTING})"
-        )
+        reasons.append(f"below the floor of {min_instances} ({MIN_INSTANCES_SETTING})")
     if n_before is not None and n_after < LARGEST_DROP * n_before:
-        problems.append(
-            f"keypoint {name!r}: n falls from {n_before} to {n_after}, below half of the active version's"
-        )
-    return problems
+        reasons.append(f"below half of the active version's {n_before}")
+    if not reasons:
+        return []
+    return [f"keypoint {name!r}: n = {n_after} calibration scores, " + " and ".join(reasons)]
 
 
 def _smallest_epsilon(n: int) -> float | None:

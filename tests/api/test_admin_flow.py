@@ -259,6 +259,37 @@ def test_admin_needs_the_bearer_token(api: InProcess, method: str, path: str, au
     assert api.versions() == versions
 
 
+def test_each_authorization_mistake_gets_its_own_401(api: InProcess) -> None:
+    """No header, a token without 'Bearer ', a wrong token: three texts, each naming the fix."""
+    said = {}
+    for mistake, headers in {
+        "none": {},
+        "no bearer": {"Authorization": ADMIN_TOKEN},
+        "wrong": {"Authorization": "Bearer wrong-token-0123456789"},
+    }.items():
+        response = api.client.get("/v1/admin/activations", headers=headers)
+        said[mistake] = assert_problem(response, 401)["detail"]
+    assert said["none"].startswith("No Authorization header"), said
+    assert "does not start with 'Bearer '" in said["no bearer"], said
+    assert said["wrong"].startswith("The bearer token is not an admin token"), said
+    assert "CKS_ADMIN_TOKEN" in said["wrong"] and "wrong-token" not in said["wrong"], said
+    assert ADMIN_TOKEN not in said["no bearer"], said  # a token is never echoed
+    assert len(set(said.values())) == 3, said
+    assert all("'Authorization: Bearer <admin token>'" in text for text in said.values()), said
+
+
+@pytest.mark.parametrize("content_type", [None, "application/x-www-form-urlencoded"])
+def test_a_json_body_without_its_content_type_is_told_to_send_it(api: InProcess, content_type) -> None:
+    """curl -d alone sends application/x-www-form-urlencoded: the 422 says which header to add."""
+    headers = {**api.admin, **({"Content-Type": content_type} if content_type else {})}
+    body = b'{"force": true, "reason": "trying"}'
+    response = api.client.post("/v1/admin/calibrations/1/activate", content=body, headers=headers)
+    problem = assert_problem(response, 422, "must be JSON sent with 'Content-Type: application/json'")
+    sent = f"Content-Type: {content_type}" if content_type else "no Content-Type"
+    assert f"this request had {sent}" in problem["detail"], problem
+    assert "valid dictionary" not in problem["detail"], problem
+
+
 @pytest.fixture(scope="module")
 def no_admin_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[InProcess]:
     with InProcess(tmp_path_factory.mktemp("no-admin") / "data") as live:

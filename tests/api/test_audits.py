@@ -246,7 +246,7 @@ def test_a_named_version_is_audited_and_its_own_instances_are_refused(
         metrics = api.client.get("/metrics").text
         return re.findall(r"^cks_audit_latest_id\{(.*)\} (\S+)$", metrics, re.MULTILINE) == latest
 
-    wait_until(published, "the audit's gauges are published", timeout=10)
+    wait_until(published, "the audit's gauges are published")
     metrics = api.client.get("/metrics").text  # the gauges are this audit's alone
     epsilons = set(re.findall(r'^cks_audit_coverage\{epsilon="([^"]+)"', metrics, re.MULTILINE))
     assert epsilons == {"0.1", "0.2"}

@@ -181,6 +181,12 @@ def test_a_small_batch_needs_force_and_a_reason_and_is_audited(
     version = job["result"]["version"]
     assert job["result"]["activated"] is False and job["result"]["activation_problems"]
     assert named_server.client.get("/readyz").json()["active_calibration"] == active
+    # one line per keypoint, naming every rule it breaks (here the floor and half the active n)
+    problems = job["result"]["activation_problems"]
+    named = [problem.split("'")[1] for problem in problems]
+    assert len(named) == len(set(named)), problems
+    duck_kp0 = next(problem for problem in problems if problem.startswith("keypoint 'duck_kp0': n = "))
+    assert "below the floor of 100" in duck_kp0 and "below half of the active version's 413" in duck_kp0
 
     dry = named_server.client.get(f"/v1/admin/calibrations/{version}/compare", headers=as_operator("bob"))
     assert dry.status_code == 200, dry.text

@@ -219,6 +219,15 @@ def test_bad_options_are_422(
     assert_problem(response, 422, next(iter(options)))
 
 
+@pytest.mark.parametrize("epsilon", [1.5, 0, 1, -0.1, 90])
+def test_an_epsilon_outside_0_1_is_told_what_epsilon_is(
+    limited_api: InProcess, small_image: bytes, instance: dict, epsilon: float
+) -> None:
+    response = predict_json(limited_api.client, small_image, {"instances": [instance], "epsilon": epsilon})
+    body = assert_problem(response, 422, f"epsilon: {epsilon} is not a probability")
+    assert "the probability that a set misses its keypoint, between 0 and 1" in body["detail"], body
+
+
 def test_epsilon_at_the_limits_of_the_open_interval_is_accepted(
     limited_api: InProcess, small_image: bytes, instance: dict
 ) -> None:
@@ -249,6 +258,17 @@ def test_missing_or_empty_instances_are_422(
 def test_json_body_that_is_not_json_is_422(limited_api: InProcess) -> None:
     assert_problem(raw_json_post(limited_api, '{"instances": [,'), 422)
     assert_problem(raw_json_post(limited_api, "[1, 2, 3]"), 422)
+
+
+def test_a_request_part_in_single_quotes_names_the_part_and_double_quotes(
+    limited_api: InProcess, small_image: bytes, instance: dict
+) -> None:
+    single_quoted = json.dumps({"instances": [instance]}).replace('"', "'")
+    files = {"image": ("image.png", small_image, "image/png"), "request": (None, single_quoted)}
+    body = assert_problem(limited_api.client.post("/v1/predict", files=files), 422)
+    (error,) = body["errors"]
+    assert error.startswith("the multipart part 'request' is not valid JSON (key must be a string at"), error
+    assert "double quotes" in error, error
 
 
 def test_multipart_without_its_parts_is_422(

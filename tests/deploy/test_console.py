@@ -3,13 +3,15 @@ without errors, asks for the admin token, then shows the model, the versions, th
 history, the audit run here (its coverage plotted against the bands), the drift of every
 keypoint over time and the set sizes of the predictions made here, or 'no drift data' on a
 server without drift monitoring; at 1280 px and at a phone's 390 px nothing is cut or pushed out
-of its panel or the window. Screenshots go to the test's temporary directory and to
+of its panel or the window, no word or number is split across lines, and no control shows empty
+(without a token, without audits). Screenshots go to the test's temporary directory and to
 ``test-artifacts/console*.png`` (gitignored)."""
 
 from __future__ import annotations
 
 import re
 import shutil
+import struct
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -165,6 +167,60 @@ CUT_OR_HIDDEN = """() => {
 }"""
 
 
+# Every word or number on the page drawn over more than one line ("246/6" for 2466, "ad/min"),
+# and every visible control with nothing in it (an empty drop-down). A hash (in <code>) is wider
+# than a phone and may break; a line may break after a hyphen or a dash, so those end a word.
+SPLIT_OR_EMPTY = """() => {
+  const problems = [];
+  const shown = (el) => el.getClientRects().length > 0 && getComputedStyle(el).visibility !== 'hidden';
+  const name = (el) => el.tagName.toLowerCase() + (el.id ? '#' + el.id : '');
+  const walker = document.createTreeWalker(document.body, NodeFilter.SHOW_TEXT);
+  for (let node = walker.nextNode(); node; node = walker.nextNode()) {
+    const parent = node.parentElement;
+    if (!parent || parent.closest('code, svg, script, style') || !shown(parent)) continue;
+    for (const word of node.data.matchAll(/[^\\s\\-\u2013\u2014]+/g)) {
+      const range = document.createRange();
+      range.setStart(node, word.index);
+      range.setEnd(node, word.index + word[0].length);
+      const tops = [...range.getClientRects()].filter((r) => r.width > 0).map((r) => Math.round(r.top));
+      if (new Set(tops).size > 1) {
+        const where = parent.closest('section, header'), lines = new Set(tops).size;
+        const place = `${name(parent)} of ${where ? name(where) : 'body'}`;
+        problems.push(`"${word[0]}" split over ${lines} lines in ${place}`);
+      }
+    }
+  }
+  for (const control of document.querySelectorAll('select, button, label')) {
+    if (!shown(control)) continue;
+    const empty = control.tagName === 'SELECT' ? !control.options.length : !control.textContent.trim();
+    if (empty) problems.push(`an empty ${name(control)}`);
+  }
+  return problems;
+}"""
+
+
+def png_width(path: Path) -> int:
+    """The width in a PNG's IHDR chunk."""
+    data = path.read_bytes()
+    assert data.startswith(b"\x89PNG\r\n\x1a\n") and data[12:16] == b"IHDR", path
+    return struct.unpack(">I", data[16:20])[0]
+
+
+def check_and_save(page, name: str, tmp_path: Path) -> None:  # noqa: ANN001 - a Playwright Page
+    """A full-page screenshot as wide as the window, kept in test-artifacts/; then no word split and
+    no empty control on the page it shows."""
+    shot = tmp_path / name
+    page.screenshot(path=shot, full_page=True)
+    ARTIFACT.parent.mkdir(exist_ok=True)
+    shutil.copyfile(shot, ARTIFACT.with_name(name))
+    assert png_width(shot) == page.viewport_size["width"], (
+        f"{ARTIFACT.with_name(name)} is wider than the window"
+    )
+
+    problems = page.evaluate(SPLIT_OR_EMPTY)
+    assert not problems, f"split or empty (screenshot {ARTIFACT.with_name(name)}): {problems}"
+
+
 @pytest.fixture(params=[1280, 390], ids=["laptop", "phone"])
 def window(request: pytest.FixtureRequest, browser: Browser, server: LiveServer) -> Iterator[tuple]:
     """A laptop's window, 1280 px wide, or a phone's, 390 px."""
@@ -175,16 +231,18 @@ def test_the_console_fits_a_laptop_and_a_phone(
     server: LiveServer, window: tuple[BrowserContext, Watch], audit: dict, predictions: None, tmp_path: Path
 ) -> None:
     page, watch = open_page(window, f"{server.url}/console")
+    width = page.viewport_size["width"]
+    page.wait_for_selector("#model table")
+    assert "Enter the admin token" in page.inner_text("#audits")
+    check_and_save(page, f"console-{width}-no-token.png", tmp_path)  # no empty drop-downs either
     page.fill("#token", server.admin_token)
     page.click("#token-form button[type=submit]")
     page.wait_for_selector("body[data-loaded=true]")
     page.eval_on_selector_all("details", "all => all.forEach((details) => { details.open = true; })")
-    shot = tmp_path / f"console-{page.viewport_size['width']}.png"
-    page.screenshot(path=shot, full_page=True)
-    ARTIFACT.parent.mkdir(exist_ok=True)
-    shutil.copyfile(shot, ARTIFACT.with_name(shot.name))
+    name = f"console-{width}.png"
+    check_and_save(page, name, tmp_path)
     problems = page.evaluate(CUT_OR_HIDDEN)
-    assert not problems, f"cut or hidden (screenshot {ARTIFACT.with_name(shot.name)}): {problems}"
+    assert not problems, f"cut or hidden (screenshot {ARTIFACT.with_name(name)}): {problems}"
     watch.assert_offline_and_clean(page)  # the favicon too: no 404
 
 
@@ -243,6 +301,9 @@ def test_a_server_without_drift_says_so(browser: Browser, tmp_path: Path) -> Non
         assert "No drift data" in page.inner_text("#drift")
         assert "not available" in page.inner_text("#set-sizes")
         assert "No coverage audit yet" in page.inner_text("#audits")
+        for width in (1280, 390):
+            page.set_viewport_size({"width": width, "height": 900})
+            check_and_save(page, f"console-{width}-no-audits.png", tmp_path)
         watch.assert_offline(page)
         assert not watch.page_errors
         context.close()

@@ -26,7 +26,7 @@ from service.infra.settings import PACKAGE_ROOT, Settings
 from tests.samples import model_dir
 from tests.service_calls import ServiceCalls
 
-STARTUP_TIMEOUT_S = 30.0
+STARTUP_TIMEOUT_S = 60.0
 
 
 def metric(server: LiveServer, name: str, labels: str = "") -> float:

@@ -22,6 +22,9 @@ from tests.samples import Sample, samples_by_image
 from tests.service_calls import assert_problem, wait_until
 
 SLOW_INSTANCES = 128
+#: longer than the slow request computes on a busy machine (load average 10+ stretched it past the
+#: default 10 s), so that a request waiting behind it is answered, not timed out
+QUEUE_TIMEOUT_S = 300
 
 
 def post_in_background(pool: ThreadPoolExecutor, server: LiveServer, image: bytes, instances: list) -> Future:
@@ -61,7 +64,12 @@ def slot_held_by_a_slow_request(
     tmp_path: Path, samples: list[Sample], **settings: object
 ) -> Iterator[HeldSlot]:
     image, slow, quick = slow_and_quick(samples)
-    settings = {"max_concurrent_inferences": 1, "max_instances": SLOW_INSTANCES, **settings}
+    settings = {
+        "max_concurrent_inferences": 1,
+        "max_instances": SLOW_INSTANCES,
+        "queue_timeout_seconds": QUEUE_TIMEOUT_S,
+        **settings,
+    }
     with LiveServer(tmp_path / "data", **settings) as server, ThreadPoolExecutor(2) as pool:
         yield HeldSlot(server, pool, hold_the_slot(pool, server, image, slow), image, quick)
 

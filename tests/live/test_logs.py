@@ -77,7 +77,7 @@ def wait_for_lines(
         found[:] = [line for line in read() if condition(line)]
         return len(found) >= count
 
-    wait_until(written, what, timeout=10)
+    wait_until(written, what)
     return found
 
 

@@ -8,13 +8,15 @@ from pathlib import Path
 from tests.live.server import LiveServer
 from tests.predict_client import instances_of, predict_ok
 from tests.samples import Sample, batch_zip, samples_by_image
-from tests.service_calls import ADMIN_TOKEN
+from tests.service_calls import ADMIN_TOKEN, BUSY_MACHINE_MARGIN_S
 
-DEADLINE_S = 10.0
+POLL_S = 1.0  # CKS_STORE_POLL_SECONDS' default: a replica sees another's activation at its next poll
+DEADLINE_S = 2 * POLL_S + BUSY_MACHINE_MARGIN_S
 
 
 def wait_for_active(server: LiveServer, version: int, since: float) -> float:
-    """Seconds from ``since`` until the server's /readyz reports ``version`` as active."""
+    """Seconds from ``since`` until the server's /readyz reports ``version`` as active; fails
+    beyond DEADLINE_S."""
     last = None
     while time.monotonic() - since < DEADLINE_S:
         response = server.client.get("/readyz")
@@ -44,8 +46,7 @@ def test_replicas_share_the_active_version(
         assert version == 2
         assert a.client.get("/readyz").json()["active_calibration"] == version
 
-        delay = wait_for_active(b, version, activated_at)
-        assert delay < 5.0, f"replica B saw version {version} after {delay:.2f} s (design: within 1 s)"
+        wait_for_active(b, version, activated_at)  # within two polls, and a busy machine's margin
         assert predict_ok(b.client, image, parameters)["calibration"]["version"] == version
         assert b.versions() == [1, 2]
 
@@ -54,8 +55,7 @@ def test_replicas_share_the_active_version(
             "/v1/admin/calibrations/1/activate", json={"reason": "rollback from B"}, headers=b.admin
         )
         assert response.status_code == 200, response.text
-        delay = wait_for_active(a, 1, time.monotonic())
-        assert delay < 5.0, f"replica A saw the rollback after {delay:.2f} s (design: within 1 s)"
+        wait_for_active(a, 1, time.monotonic())
         assert predict_ok(a.client, image, parameters)["calibration"]["version"] == 1
         log = a.client.get("/v1/admin/activations", headers=a.admin).json()["activations"]
         assert [(e["version"], e["reason"]) for e in log[-2:]] == [

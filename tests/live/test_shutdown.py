@@ -22,11 +22,12 @@ from benchmarks.faults_store import WalLocks
 from tests.live.server import LiveServer, metric, read_until_closed
 from tests.predict_client import instances_of, predict_json
 from tests.samples import Sample, samples_by_image
-from tests.service_calls import ADMIN_TOKEN, wait_until
+from tests.service_calls import ADMIN_TOKEN, BUSY_MACHINE_MARGIN_S, wait_until
 
 COPIES = 30  # the samples 30 times over: seconds of scoring, so SIGTERM lands mid-job
 HEAVY = 128  # instances of one predict: it computes for a while
-GRACE = 10.0
+GRACE = 60.0  # time enough for four heavy predicts on a busy machine: they must end in 200
+SHORT_GRACE = 0.5  # shorter than any heavy predict: they are cut
 
 
 def heavy_predict(pool: ThreadPoolExecutor, server: LiveServer, samples: list[Sample]) -> Future:
@@ -81,7 +82,7 @@ def test_sigterm_answers_predicts_interrupts_the_job_and_exits_0(
             server.stop()
         answers = [p.result() for p in predicts]
     assert code == 0, server.log()
-    assert took < GRACE, f"exited {took:.1f} s after SIGTERM"
+    assert took < GRACE, f"exited {took:.1f} s after SIGTERM, beyond CKS_SHUTDOWN_GRACE_SECONDS"
     for response, answered in answers:
         assert isinstance(response, httpx.Response) and response.status_code == 200, response
         assert len(response.json()["instances"]) == HEAVY
@@ -117,10 +118,15 @@ def test_sigterm_answers_predicts_interrupts_the_job_and_exits_0(
 @pytest.mark.slow
 def test_a_predict_outlasting_the_grace_period_is_cut(tmp_path: Path, samples: list[Sample]) -> None:
     """Requests still computing when the grace period ends are cut; the process still exits 0."""
-    settings = {"shutdown_grace_seconds": 0.5, "max_instances": HEAVY * 4, "max_concurrent_inferences": 1}
+    settings = {"shutdown_grace_seconds": SHORT_GRACE, "max_instances": HEAVY * 4}
+    settings["max_concurrent_inferences"] = 1
     server = LiveServer(tmp_path / "data", **settings).start()
     with ThreadPoolExecutor(4) as pool:
         try:
+            started = time.monotonic()
+            response, answered = heavy_predict(pool, server, samples).result()
+            assert response.status_code == 200, response
+            one_run_s = answered - started  # what this machine needs for one, now
             predicts = [heavy_predict(pool, server, samples) for _ in range(4)]
             wait_until(lambda: metric(server, "cks_predict_waiting") == 3, "one predict computes, three wait")
             code, took, _ = terminate(server)
@@ -128,7 +134,10 @@ def test_a_predict_outlasting_the_grace_period_is_cut(tmp_path: Path, samples: l
             server.stop()
         answers = [p.result()[0] for p in predicts]
     assert code == 0, server.log()
-    assert took < 0.5 + 5, f"exited {took:.1f} s after SIGTERM"
+    # The exit waits for the run computing when the grace period ends (an onnxruntime run is not
+    # interrupted), not for the three waiting: at load average 20+ that run alone took 20 s.
+    bound = SHORT_GRACE + one_run_s + BUSY_MACHINE_MARGIN_S
+    assert took < bound, f"exited {took:.1f} s after SIGTERM; one predict computes in {one_run_s:.1f} s"
     statuses = sorted(a.status_code for a in answers)  # a TransportError here: answered by nothing
     assert statuses[-1] == 503 and set(statuses) <= {200, 503}, answers  # never a 500
     for cut in (a for a in answers if a.status_code == 503):
@@ -143,7 +152,8 @@ def test_an_upload_and_an_admin_call_outlasting_the_grace_period_get_503(tmp_pat
     """An upload whose body is still arriving and an admin read waiting on a locked store (another
     process holds the SQLite database's WAL locks) when the grace period ends: 503 with
     Retry-After, like a predict, never uvicorn's 500."""
-    server = LiveServer(tmp_path / "data", admin_token=ADMIN_TOKEN, shutdown_grace_seconds=0.5).start()
+    settings = {"admin_token": ADMIN_TOKEN, "shutdown_grace_seconds": SHORT_GRACE}
+    server = LiveServer(tmp_path / "data", **settings).start()
     locks = WalLocks(server.data_dir / "calibrations.db")
     with ThreadPoolExecutor(1) as pool:
         try:

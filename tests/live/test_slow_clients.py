@@ -24,7 +24,7 @@ import pytest
 from benchmarks.faults_clients import SLOW_BODY_HEAD, SlowClients, predict_latencies
 from tests.live.server import LiveServer, metric, read_until_closed
 from tests.predict_client import predict_json
-from tests.service_calls import ADMIN_TOKEN, assert_problem, wait_until
+from tests.service_calls import ADMIN_TOKEN, BUSY_MACHINE_MARGIN_S, assert_problem, wait_until
 
 PACED = {
     "max_concurrent_inferences": 1,
@@ -36,6 +36,7 @@ PACED = {
     "upload_read_timeout_seconds": 2,
     "max_receiving_bytes": 400_000,
 }
+HEAD_TIMEOUT_S = PACED["header_read_timeout_seconds"]
 
 
 @pytest.fixture(scope="module")
@@ -88,7 +89,8 @@ def test_a_trickled_body_is_cut_at_the_minimum_rate(paced: LiveServer) -> None:
     assert answer.startswith("HTTP/1.1 408"), answer
     body = json.loads(answer.split("\r\n\r\n", 1)[1])
     assert "CKS_MIN_BODY_BYTES_PER_SECOND" in body["detail"] and "bytes/s" in body["detail"], body
-    assert elapsed < 2.5, f"cut after {elapsed:.1f} s: the 1 s grace, not the 3 s timeout, should decide"
+    assert "CKS_REQUEST_READ_TIMEOUT_SECONDS" not in body["detail"], "the rate, not the 3 s timeout, decides"
+    assert elapsed < PACED["request_read_timeout_seconds"] + BUSY_MACHINE_MARGIN_S, elapsed
 
 
 def test_a_late_request_head_gets_408_and_its_connection_closed(paced: LiveServer) -> None:
@@ -101,7 +103,7 @@ def test_a_late_request_head_gets_408_and_its_connection_closed(paced: LiveServe
         assert "content-type: application/problem+json" in head and "connection: close" in head, head
         problem = json.loads(body)
         assert problem["status"] == 408 and "CKS_HEADER_READ_TIMEOUT_SECONDS" in problem["detail"], problem
-        assert 0.5 < elapsed < 3, elapsed
+        assert 0.5 < elapsed < HEAD_TIMEOUT_S + BUSY_MACHINE_MARGIN_S, elapsed
 
 
 def test_a_kept_alive_connection_gets_the_same_head_timeout(paced: LiveServer) -> None:
@@ -115,7 +117,7 @@ def test_a_kept_alive_connection_gets_the_same_head_timeout(paced: LiveServer) -
         connection.sendall(b"GET /healthz HTTP/1.1\r\n")  # the next request's head, unfinished
         answer, elapsed = answer_and_time(connection)
     assert answer.startswith("HTTP/1.1 408"), answer
-    assert 0.5 < elapsed < 3, elapsed
+    assert 0.5 < elapsed < HEAD_TIMEOUT_S + BUSY_MACHINE_MARGIN_S, elapsed
 
 
 def test_bodies_being_received_share_a_byte_budget(paced: LiveServer, sample: tuple[bytes, list]) -> None:
@@ -131,7 +133,7 @@ def test_bodies_being_received_share_a_byte_budget(paced: LiveServer, sample: tu
             assert responses[-1].status_code in (200, 503), responses[-1].text
             return responses[-1].status_code == 503
 
-        wait_until(refused, "a body that does not fit beside the large one's 350 kB is refused", timeout=10)
+        wait_until(refused, "a body that does not fit beside the large one's 350 kB is refused")
         response = responses[-1]
         body = assert_problem(response, 503, "CKS_MAX_RECEIVING_BYTES", "retry after")
         assert body["title"] == "Overloaded" and response.headers["retry-after"] == "1"
@@ -152,7 +154,8 @@ def test_a_slow_upload_gets_408_and_leaves_nothing(paced: LiveServer) -> None:
         )  # then nothing more: fast enough for the rate, too slow for the 2 s timeout
         answer, elapsed = answer_and_time(slow)
     assert answer.startswith("HTTP/1.1 408"), answer
-    assert "CKS_UPLOAD_READ_TIMEOUT_SECONDS" in answer and 1.5 < elapsed < 5, (answer, elapsed)
+    assert "CKS_UPLOAD_READ_TIMEOUT_SECONDS" in answer, answer
+    assert 1.5 < elapsed < PACED["upload_read_timeout_seconds"] + BUSY_MACHINE_MARGIN_S, elapsed
     wait_until(lambda: paced.upload_workspaces() == [], "the partial upload is removed")
 
 
@@ -177,23 +180,28 @@ def test_connections_beyond_the_limit_get_503(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_a_hundred_slow_bodies_and_a_hundred_slow_heads_do_not_hold_the_service(tmp_path: Path) -> None:
-    """Default settings: a normal client keeps its latency beside 200 trickling connections,
-    which are cut after the rate's grace period (bodies) and the head timeout (heads)."""
-    with LiveServer(tmp_path / "data") as server:
+    """A normal client keeps its latency beside 200 trickling connections, which are cut after the
+    rate's grace period (bodies) and the head timeout (heads). Those are 3x their defaults (5 and
+    10 s), so that the normal client is done before the cuts even on a busy machine."""
+    grace_s, head_s = 15.0, 30.0
+    settings = {"body_rate_grace_seconds": grace_s, "header_read_timeout_seconds": head_s}
+    with LiveServer(tmp_path / "data", **settings) as server:
         predict_latencies(server.url, 5)  # warm-up
-        alone, statuses = predict_latencies(server.url, 30)
+        alone, statuses = predict_latencies(server.url, 20)
         assert set(statuses) == {200}
         with SlowClients(server.port, bodies=100, heads=100) as slow:
-            beside, statuses = predict_latencies(server.url, 30)
+            beside, statuses = predict_latencies(server.url, 20)
             assert slow.open_count() == 200, "the slow clients were cut before the normal client was done"
             assert set(statuses) == {200}, statuses
             assert metric(server, "cks_predict_in_flight") == 0, "a slow body holds an admission place"
-            assert slow.wait_closed(timeout=30), f"{slow.open_count()} slow connections still open"
-        assert statistics.median(beside) <= 2 * statistics.median(alone) + 0.05, (alone, beside)
+            closed = slow.wait_closed(timeout=head_s + BUSY_MACHINE_MARGIN_S)
+            assert closed, f"{slow.open_count()} slow connections still open"
+        # held by the slow ones, its requests would wait seconds (until the cuts); noise is less
+        assert statistics.median(beside) <= 2 * statistics.median(alone) + 1.0, (alone, beside)
         for connection in slow.of("body"):
             assert connection.status == 408 and b"CKS_MIN_BODY_BYTES_PER_SECOND" in connection.answer
-            assert 4.5 < connection.closed_after < 8, connection.closed_after  # the 5 s grace
+            assert grace_s - 0.5 < connection.closed_after < grace_s + BUSY_MACHINE_MARGIN_S, connection
         for connection in slow.of("head"):
             assert connection.status == 408 and b"CKS_HEADER_READ_TIMEOUT_SECONDS" in connection.answer
-            assert 9.5 < connection.closed_after < 13, connection.closed_after  # the 10 s head timeout
+            assert head_s - 0.5 < connection.closed_after < head_s + BUSY_MACHINE_MARGIN_S, connection
         assert metric(server, "cks_predict_rejected_total", '{reason="queue_full"}') == 0

@@ -27,11 +27,16 @@ from tests.live.server import LiveServer, cli, free_port, service_env
 from tests.postgres_cluster import PostgresCluster
 from tests.predict_client import predict_json
 from tests.samples import model_dir
-from tests.service_calls import ADMIN_TOKEN, assert_problem, wait_until
+from tests.service_calls import ADMIN_TOKEN, BUSY_MACHINE_MARGIN_S, assert_problem, wait_until
 
 POLL_S, TIMEOUT_S = 1.0, 1.5  # the defaults of CKS_STORE_POLL_SECONDS, CKS_STORE_TIMEOUT_SECONDS
 #: a poll under way when the store returns may still fail; the next one finds it
 TWO_POLLS_S = 2 * (POLL_S + TIMEOUT_S)
+#: bounds on waits the behaviour allows, with room for a busy machine: each stays below OUTAGE_S,
+#: the wait of a call that waited for the store to come back
+WITHIN_TIMEOUT_S = TIMEOUT_S + BUSY_MACHINE_MARGIN_S
+WITHIN_TWO_POLLS_S = TWO_POLLS_S + BUSY_MACHINE_MARGIN_S
+OUTAGE_S = WITHIN_TIMEOUT_S + 5
 
 
 @pytest.fixture(scope="module")
@@ -43,12 +48,13 @@ def cluster() -> Iterator[PostgresCluster]:
 @pytest.mark.slow
 def test_predictions_go_on_while_postgresql_is_down(cluster: PostgresCluster, tmp_path: Path) -> None:
     with scene(tmp_path, cluster) as prepared:
-        report = run_outage(prepared, outage_s=6.0, before_s=2.0, after_s=2.0, clients=1)
+        report = run_outage(prepared, outage_s=OUTAGE_S, before_s=2.0, after_s=2.0, clients=1)
 
     for phase, figures in report.phases.items():
         assert figures.answered > 0 and figures.failed == 0, (phase, figures)
-    during = report.phases["during"]
-    assert during.p99_ms < 1000, f"predictions waited on the store: {during}"
+    before, during = report.phases["before"], report.phases["during"]
+    # one wait on the store (its timeout) would add TIMEOUT_S to the slowest predictions
+    assert during.p99_ms < before.p99_ms + 1000 * TIMEOUT_S, f"predictions waited on the store: {report}"
 
     ready = report.readyz_during
     assert ready.status == 200, ready
@@ -58,13 +64,13 @@ def test_predictions_go_on_while_postgresql_is_down(cluster: PostgresCluster, tm
     for admin in (report.admin_first, report.admin_known):  # before and after the server knew
         assert admin.status == 503 and admin.retry_after == "1", admin
         assert admin.body["title"] == "Calibration store unreachable", admin
-        assert admin.seconds < 2.5, f"an admin call took {admin.seconds:.2f} s to answer 503"
-    assert report.admin_known.seconds < 0.5, report.admin_known  # no wait once the store is known down
+        assert admin.seconds < WITHIN_TIMEOUT_S, f"an admin call took {admin.seconds:.2f} s to answer 503"
+    assert report.admin_known.seconds < TIMEOUT_S, report.admin_known  # no wait once the store is known down
     assert "Predictions keep using the active calibration version 1" in report.admin_known.body["detail"]
 
     assert report.named_active.status == 200, report.named_active  # in memory
     other = report.named_other
-    assert other.status == 503 and other.retry_after == "1" and other.seconds < 2.5, other
+    assert other.status == 503 and other.retry_after == "1" and other.seconds < WITHIN_TIMEOUT_S, other
     for fragment in (
         "calibration version 2 is not in this server's memory",
         "store is unreachable",
@@ -72,9 +78,9 @@ def test_predictions_go_on_while_postgresql_is_down(cluster: PostgresCluster, tm
     ):
         assert fragment in other.body["detail"], other.body
 
-    assert report.recovered_after_s < TWO_POLLS_S, report
-    assert report.admin_ok_after_s < TWO_POLLS_S, report
-    assert report.activation_seen_after_s < TWO_POLLS_S, report
+    assert report.recovered_after_s < WITHIN_TWO_POLLS_S, report
+    assert report.admin_ok_after_s < WITHIN_TWO_POLLS_S, report
+    assert report.activation_seen_after_s < WITHIN_TWO_POLLS_S, report
 
 
 @pytest.mark.slow
@@ -85,18 +91,19 @@ def test_a_frozen_postgresql_answers_admin_calls_503_within_the_store_timeout(
     that neither fails nor answers, until the store's watchdog cuts it (CKS_STORE_TIMEOUT_SECONDS);
     before, it waited for the SIGCONT. Predictions go on; after the SIGCONT the service recovers."""
     with scene(tmp_path, cluster) as prepared:
-        report = run_outage(prepared, outage_s=4.0, before_s=1.0, after_s=1.0, clients=1, fault="freeze")
+        report = run_outage(prepared, outage_s=OUTAGE_S, before_s=1.0, after_s=1.0, clients=1, fault="freeze")
 
     for phase, figures in report.phases.items():
         assert figures.answered > 0 and figures.failed == 0, (phase, figures)
     first, known = report.admin_first, report.admin_known
     assert first.status == 503 and first.retry_after == "1", first
     assert first.body["title"] == "Calibration store unreachable", first
-    assert first.seconds < 2 * TIMEOUT_S, f"an admin call took {first.seconds:.2f} s to answer 503"
-    assert known.status == 503 and known.seconds < 0.5, known
-    assert report.recovered_after_s < TWO_POLLS_S, report
-    assert report.admin_ok_after_s < TWO_POLLS_S, report
-    assert report.activation_seen_after_s < TWO_POLLS_S, report
+    took = first.seconds
+    assert took < WITHIN_TIMEOUT_S + TIMEOUT_S, f"an admin call took {took:.2f} s to answer 503"
+    assert known.status == 503 and known.seconds < TIMEOUT_S, known
+    assert report.recovered_after_s < WITHIN_TWO_POLLS_S, report
+    assert report.admin_ok_after_s < WITHIN_TWO_POLLS_S, report
+    assert report.activation_seen_after_s < WITHIN_TWO_POLLS_S, report
 
 
 @pytest.mark.slow
@@ -112,7 +119,7 @@ def test_readyz_turns_503_past_the_staleness_limit_and_predictions_go_on(
         assert readyz().status_code == 200
         cluster.stop_server()
         try:
-            wait_until(lambda: readyz().status_code == 503, "/readyz turns 503", 15)
+            wait_until(lambda: readyz().status_code == 503, "/readyz turns 503", 4 + WITHIN_TWO_POLLS_S)
             problem = assert_problem(
                 readyz(),
                 503,
@@ -124,7 +131,7 @@ def test_readyz_turns_503_past_the_staleness_limit_and_predictions_go_on(
             assert predict_json(server.client, prepared.image, prepared.parameters).status_code == 200
         finally:
             cluster.start_server()
-        wait_until(lambda: readyz().status_code == 200, "/readyz is 200 again", TWO_POLLS_S)
+        wait_until(lambda: readyz().status_code == 200, "/readyz is 200 again", WITHIN_TWO_POLLS_S)
 
 
 @pytest.mark.slow
@@ -132,7 +139,9 @@ def test_a_job_caught_by_the_outage_fails_cleanly_and_the_next_one_succeeds(
     cluster: PostgresCluster, tmp_path: Path, samples_dir: Path, coco: dict
 ) -> None:
     body = long_batch(4)
-    with scene(tmp_path, cluster) as prepared:
+    # After the restart a busy machine (load average 20+) took more than the default 1.5 s to hand
+    # out a fresh connection, and a job read got 503: that timeout is not what this test is about.
+    with scene(tmp_path, cluster, store_timeout_seconds=WITHIN_TIMEOUT_S) as prepared:
         server = prepared.server
         response = server.upload(body)
         assert response.status_code == 202, response.text
@@ -142,12 +151,12 @@ def test_a_job_caught_by_the_outage_fails_cleanly_and_the_next_one_succeeds(
             wait_until(
                 lambda: f"job {job_id}: its final state is not stored yet" in server.log(),
                 "the job gave up writing its final state for now",
-                timeout=60,
+                timeout=120,
             )
         finally:
             cluster.start_server()
         wait_until(lambda: server.client.get("/readyz").json()["store"] == "ok", "the store is back", 30)
-        job = server.wait_job(job_id, timeout=30)  # the runner's writer lands the final state
+        job = server.wait_job(job_id, timeout=60)  # the runner's writer lands the final state
         assert job["state"] == "failed", job
         assert "the calibration store was unreachable" in job["errors"][0], job
         assert "nothing was stored: upload the batch again" in job["errors"][0], job
@@ -186,7 +195,7 @@ def test_a_frozen_database_is_reported_unreachable_and_the_cache_answers(cluster
         try:
             cluster.freeze_server()
             try:
-                wait_until(lambda: not registry.health().reachable, "the frozen store is reported", 10)
+                wait_until(lambda: not registry.health().reachable, "the frozen store is reported")
                 error = registry.health().error
                 assert "PostgreSQL" in error and "has not answered a poll" not in error, error
                 assert registry.resolve(None) == 1  # from memory, no wait

@@ -87,7 +87,7 @@ def test_metrics_sum_over_the_workers(two_workers: tuple[str, Path], samples: li
         return {path.name: worker_predicts(path) for path in folder.glob("counter_*.db")}
 
     # A request is counted as its middleware finishes, just after its answer was sent.
-    wait_until(lambda: sum(served().values()) == REQUESTS, f"{REQUESTS} requests counted", timeout=10)
+    wait_until(lambda: sum(served().values()) == REQUESTS, f"{REQUESTS} requests counted")
     assert len(served()) == 2 and all(served().values()), f"both workers must have served: {served()}"
     for _ in range(6):  # whichever worker answers the scrape
         with httpx.Client(base_url=url, timeout=60) as client:
@@ -144,7 +144,7 @@ def test_with_several_workers_the_gauges_are_the_latest_audits(
             values = re.findall(r'^cks_audit_coverage\{epsilon="([^"]+)".*\} (\S+)$', metrics, re.MULTILINE)
             return {epsilon for epsilon, value in values if value != "NaN"} == {"0.2"}
 
-        wait_until(shows_only_the_latest, "the latest audit's gauges are published", timeout=10)
+        wait_until(shows_only_the_latest, "the latest audit's gauges are published")
         for _ in range(4):  # whichever worker answers
             metrics = live.client.get("/metrics").text
             values = re.findall(r'^cks_audit_coverage\{epsilon="([^"]+)".*\} (\S+)$', metrics, re.MULTILINE)

@@ -22,6 +22,8 @@ _METHODS = ("DELETE", "GET", "HEAD", "PATCH", "POST", "PUT")
 _TITLES = {401: "Unauthorized", 403: "Forbidden", 404: "Not found", 405: "Method not allowed"}
 # FastAPI's answer to a JSON body it cannot decode (not UTF-8, say): a 400 no operation documents.
 _UNPARSED_BODY = "There was an error parsing the body"
+# pydantic's error types for a body that is not an object (bytes, a list, a string)
+_NOT_AN_OBJECT = ("model_attributes_type", "dict_type", "model_type")
 
 
 class Problem(BaseModel):
@@ -65,12 +67,27 @@ def problem(
     return JSONResponse(body, status_code=status, media_type=PROBLEM_JSON, headers=headers)
 
 
-def _validation_errors(exc: RequestValidationError) -> list[str]:
+def _validation_errors(exc: RequestValidationError, content_type: str | None) -> list[str]:
     messages = []
     for error in exc.errors():
+        if tuple(error.get("loc", ())) == ("body",) and error.get("type") in _NOT_AN_OBJECT:
+            messages.append(_not_a_json_object(content_type))
+            continue
         where = ".".join(str(part) for part in error.get("loc", ()) if part != "body")
         messages.append(f"{where}: {error.get('msg', 'invalid')}" if where else error.get("msg", "invalid"))
     return messages
+
+
+def _not_a_json_object(content_type: str | None) -> str:
+    """A body that is not a JSON object: most often JSON sent without its Content-Type (curl -d
+    alone sends application/x-www-form-urlencoded), which FastAPI does not read as JSON."""
+    if content_type is None or "json" not in content_type.lower():
+        sent = f"Content-Type: {content_type}" if content_type else "no Content-Type"
+        return (
+            f"the body must be JSON sent with 'Content-Type: application/json' (this request had {sent}):"
+            " add -H 'Content-Type: application/json' to curl"
+        )
+    return "the body must be a JSON object: {...}"
 
 
 def install_problem_handlers(app: FastAPI) -> None:
@@ -80,7 +97,7 @@ def install_problem_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _invalid_request(request: Request, exc: RequestValidationError) -> JSONResponse:
-        errors = _validation_errors(exc)
+        errors = _validation_errors(exc, request.headers.get("content-type"))
         detail = "The request does not match the schema: " + "; ".join(errors[:5])
         return problem(422, "Invalid request", detail, request, errors)
 

@@ -15,6 +15,7 @@ from typing import TypeVar
 import numpy as np
 from fastapi import Request
 from pydantic import BaseModel, ValidationError
+from pydantic_core import ErrorDetails
 from starlette.datastructures import FormData, UploadFile
 from starlette.exceptions import HTTPException
 
@@ -29,16 +30,27 @@ _PREFIX = "Value error, "  # pydantic's, before the message of a validator's Val
 _BATCH_PART = re.compile(r"(image|request)_([0-9]{1,6})")
 
 
-def validated(model: type[Model], raw: str | bytes, manifest: Manifest | None = None) -> Model:
-    """``raw`` JSON as ``model``; 422 listing every problem the schema finds, and every instance
-    whose object is not one of ``manifest``'s."""
+def validated(
+    model: type[Model], raw: str | bytes, manifest: Manifest | None = None, part: str = "the body"
+) -> Model:
+    """``raw`` JSON (``part`` of the request) as ``model``; 422 listing every problem the schema
+    finds, and every instance whose object is not one of ``manifest``'s."""
     try:
         return model.model_validate_json(raw, context={"manifest": manifest})
     except ValidationError as error:
-        problems = [f"{_where(e['loc'])}: {e['msg'].removeprefix(_PREFIX)}" for e in error.errors()]
+        problems = [_problem(e, part) for e in error.errors()]
         raise InvalidInput(
             "The request does not match the schema: " + "; ".join(problems[:5]), errors=problems
         ) from error
+
+
+def _problem(error: ErrorDetails, part: str) -> str:
+    if error["type"] == "json_invalid":
+        return (
+            f"{part} is not valid JSON ({error['ctx']['error']}): JSON writes names and strings in double"
+            """ quotes, e.g. {"instances": [{"object": "duck", "bbox": [235, 217, 67, 64]}]}"""
+        )
+    return f"{_where(error['loc'])}: {error['msg'].removeprefix(_PREFIX)}"
 
 
 def _where(loc: tuple) -> str:
@@ -90,7 +102,9 @@ async def _parse_multipart(request: Request, manifest: Manifest) -> tuple[bytes,
             raise InvalidInput("multipart part 'image' must be a file (a part with a filename), not a field")
         if raw is None:
             raise InvalidInput("multipart part 'request' (JSON with instances and options) is missing")
-        return await image.read(), validated(PredictParameters, await _text(raw), manifest)
+        return await image.read(), validated(
+            PredictParameters, await _text(raw), manifest, "the multipart part 'request'"
+        )
     finally:
         await form.close()  # its spooled files, now rather than when collected
 
@@ -215,4 +229,4 @@ def _multipart_item(
         raise InvalidInput(f"multipart part 'image_{index}' (a JPEG or PNG file) is missing")
     if raw is None:
         raise InvalidInput(f"multipart part 'request_{index}' (JSON with instances and options) is missing")
-    return image, validated(PredictParameters, raw, manifest)
+    return image, validated(PredictParameters, raw, manifest, f"the multipart part 'request_{index}'")

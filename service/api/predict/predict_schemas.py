@@ -200,6 +200,16 @@ class PredictOptions(_Body):
         " the long-run bound that then applies instead of the calibration's guarantee; it is retained",
     )
 
+    @field_validator("epsilon", mode="before")
+    @classmethod
+    def _a_probability(cls, epsilon: object) -> object:
+        if isinstance(epsilon, int | float) and not 0 < epsilon < 1:
+            raise ValueError(
+                f"{epsilon} is not a probability: epsilon is the probability that a set misses its"
+                " keypoint, between 0 and 1 (exclusive): 0.1 gives 90 % sets"
+            )
+        return epsilon
+
 
 class PredictParameters(PredictOptions):
     """The JSON part of a multipart predict request."""

@@ -38,14 +38,25 @@ function note(text, className = "muted") {
 }
 
 function table(headers, rows) {
+  // Each cell names its column (data-label): on a phone a table with headers reads row by row.
   const head = el("tr", {}, ...headers.map((h) => el("th", {}, h)));
-  const body = rows.map((cells) => el("tr", {}, ...cells.map((cell) =>
-    cell instanceof Node ? el("td", {}, cell) : el("td", typeof cell === "number" ? { class: "num" } : {}, cell ?? ""))));
-  return el("table", {}, el("thead", {}, head), el("tbody", {}, ...body));
+  const cell = (value, i) => {
+    const attributes = headers[i] ? { "data-label": headers[i] } : {};
+    if (typeof value === "number") attributes.class = "num";
+    return el("td", attributes, value ?? "");
+  };
+  const body = rows.map((cells) => el("tr", {}, ...cells.map(cell)));
+  return el("table", headers.some(Boolean) ? { class: "rows" } : {}, el("thead", {}, head), el("tbody", {}, ...body));
 }
 
 function fixed(value, digits = 3) {
   return typeof value === "number" && Number.isFinite(value) ? value.toFixed(digits) : "–";
+}
+
+function whenCell(text) {
+  // A date in a table breaks between its day and its time, never at its hyphens or colons.
+  const [day, ...time] = when(text).split(" ");
+  return el("span", {}, el("span", { class: "nowrap" }, day), " ", el("span", { class: "nowrap" }, time.join(" ")));
 }
 
 function when(text) {
@@ -116,7 +127,7 @@ async function loadVersions() {
   const counts = (d) => Object.entries(d.labeled_per_keypoint || {});
   const rows = details.map((d) => {
     const least = counts(d).length ? Math.min(...counts(d).map(([, n]) => n)) : "–";
-    return [d.version + (d.active ? " (active)" : ""), when(d.created_at), d.author, d.instances, `min ${least}`,
+    return [d.version + (d.active ? " (active)" : ""), whenCell(d.created_at), d.author, d.instances, `min ${least}`,
       d.usable === false ? "unusable" : "", d.note || ""];
   });
   // Every keypoint's n under the table, as text that wraps: a column of them would not fit a phone.
@@ -129,7 +140,7 @@ async function loadVersions() {
 
 async function loadActivations() {
   const log = await getJson("v1/admin/activations");
-  const rows = [...(log.activations || [])].reverse().map((a) => [a.seq, a.version, when(a.activated_at), a.who, a.reason]);
+  const rows = [...(log.activations || [])].reverse().map((a) => [a.seq, a.version, whenCell(a.activated_at), a.who, a.reason]);
   show("activations", rows.length ? table(["seq", "version", "activated", "who", "reason"], rows) : note("No activation yet."));
 }
 
@@ -146,7 +157,7 @@ async function loadAudits() {
     return;
   }
   show("audits", table(["id", "version", "created", "who", "instances", "result"], audits.map((a) => [
-    a.id, a.version, when(a.created_at), a.who, a.instances,
+    a.id, a.version, whenCell(a.created_at), a.who, a.instances,
     a.passed ? el("span", { class: "pass" }, "passed") : el("span", { class: "fail" }, `${a.flagged} flagged`),
   ])));
   const choice = document.getElementById("audit-choice");
@@ -288,14 +299,17 @@ function drawDrift(drift) {
     k.object ?? "", k.keypoint ?? "",
     ...features.map((name) => {
       const feature = (k.features || {})[name] || {};
-      const p = typeof feature.p_value === "number" ? ` (p ${fixed(feature.p_value, 3)})` : "";
-      const text = `${fixed(feature.statistic)}${p}`;
-      return feature.alarm ? el("span", { class: "alarm" }, `${text} alarm`) : text;
+      // Each number whole: the statistic and its "(p 0.903)" wrap between, never inside.
+      const parts = [el("span", { class: "nowrap" }, fixed(feature.statistic))];
+      if (typeof feature.p_value === "number") parts.push(" ", el("span", { class: "nowrap" }, `(p ${fixed(feature.p_value, 3)})`));
+      if (feature.alarm) parts.push(" alarm");
+      return el("span", feature.alarm ? { class: "alarm" } : {}, ...parts);
     }),
     sparkline(historyOf(history, k), psi ? drift.alarm_threshold : undefined, Object.values(k.features || {}).some((f) => f?.alarm)),
   ]);
   const span = history.length > 1 ? ` (${history.length} points, ${when(new Date(1000 * history[0].time).toISOString())} to now)` : "";
-  nodes.push(table(["object", "keypoint", ...features, `largest statistic over time${span}`], rows));
+  nodes.push(note(`Over time: each keypoint's largest statistic${span}.`));
+  nodes.push(table(["object", "keypoint", ...features, "over time"], rows));
   show("drift", ...nodes);
 }
 

@@ -24,7 +24,7 @@ from tests.live.client.faulty_proxy import Drop, FaultyProxy, Unavailable
 from tests.live.server import LiveServer, free_port
 from tests.live.test_admission import hold_the_slot, metric
 from tests.predict_client import predict_json
-from tests.service_calls import ADMIN_TOKEN
+from tests.service_calls import ADMIN_TOKEN, BUSY_MACHINE_MARGIN_S
 
 QUICK = RetryPolicy(attempts=3, backoff=0.05)
 
@@ -38,7 +38,7 @@ def test_503s_are_retried_after_retry_after(server: LiveServer, sample) -> None:
     assert [s.path for s in proxy.seen] == ["/v1/predict"] * 3
     assert len({s.request_id for s in proxy.seen}) == 1, "one call, one request id, on every attempt"
     waits = [later.at - earlier.at for earlier, later in zip(proxy.seen, proxy.seen[1:], strict=False)]
-    assert all(1.0 <= wait < 1.0 + 2 * QUICK.backoff + 0.5 for wait in waits), waits
+    assert all(1.0 <= wait < 1.0 + 2 * QUICK.backoff + BUSY_MACHINE_MARGIN_S for wait in waits), waits
 
 
 def test_429s_are_retried_like_503s_and_end_in_their_own_error(server: LiveServer, sample) -> None:
@@ -74,7 +74,8 @@ def test_attempts_are_bounded_and_end_in_a_typed_error(server: LiveServer, sampl
         started = time.monotonic()
         with pytest.raises(ServiceUnavailable) as later:
             client.model()
-    assert later.value.retry_after == 3600 and len(proxy.seen) == 1 and time.monotonic() - started < 1
+    assert later.value.retry_after == 3600 and len(proxy.seen) == 1
+    assert time.monotonic() - started < BUSY_MACHINE_MARGIN_S  # not the hour it asked for
 
 
 def test_connection_errors_are_retried_where_safe(server: LiveServer, sample, samples_dir: Path) -> None:
@@ -100,11 +101,11 @@ def test_the_client_waits_out_a_saturated_server(tmp_path: Path, sample) -> None
     """A real server with one place, held by a slow request: the client's predict is refused
     with 503 + Retry-After by admission control, waits, and is answered."""
     image, instances = sample
-    slow = (instances * 1000)[:256]  # about a second of computing
+    slow = (instances * 1000)[:256]  # about a second of computing quiet, 10+ s on a busy machine
     settings = {"max_concurrent_inferences": 1, "max_queued_requests": 0, "max_instances": len(slow)}
     with LiveServer(tmp_path / "data", **settings) as server, ThreadPoolExecutor(1) as pool:
         computing = hold_the_slot(pool, server, image, slow)
-        with KeypointClient(server.url, retry=RetryPolicy(attempts=10, backoff=0.1)) as client:
+        with KeypointClient(server.url, retry=RetryPolicy(attempts=60, backoff=0.1)) as client:
             result = client.predict(image, instances)
         assert metric(server, "cks_predict_rejected_total", '{reason="queue_full"}') >= 1
         assert computing.result().status_code == 200

@@ -120,7 +120,7 @@ def test_heartbeat_without_progress(
     job = runner.submit("calibration", lambda progress: {} if go.wait(10) else {"late": True})
     wait_until(lambda: state_of(store, job.id) == "running", what="running written")
     first = store.get_job(job.id).heartbeat_at
-    wait_until(lambda: store.get_job(job.id).heartbeat_at > first, timeout=3, what="a fresh heartbeat")
+    wait_until(lambda: store.get_job(job.id).heartbeat_at > first, what="a fresh heartbeat")
     assert store.get_job(job.id).done == 0
     go.set()
     wait_until(lambda: state_of(store, job.id) == "succeeded", what="success written")
@@ -181,7 +181,7 @@ def test_final_state_lands_after_the_retries_run_out(
     finally:
         blocker.execute("ROLLBACK")
         blocker.close()
-    wait_until(lambda: state_of(store, job.id) == "succeeded", timeout=5, what="success written later")
+    wait_until(lambda: state_of(store, job.id) == "succeeded", what="success written later")
 
 
 def test_a_silent_unfinished_job_is_reported_interrupted(store: CountingStore, runner: JobRunner) -> None:
