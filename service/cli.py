@@ -86,15 +86,16 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
 
     stratify = None if args.stratify is None else parse_stratify(args.stratify)
     options = UploadOptions(
-        args.name,
-        args.note,
-        args.append_to,
-        args.activate,
-        args.force,
-        args.reason,
-        args.dedupe,
-        args.max_rejected_share,
-        stratify,
+        name=args.name,
+        note=args.note,
+        append_to=args.append_to,
+        activate=args.activate,
+        force=args.force,
+        reason=args.reason,
+        dedupe=args.dedupe,
+        allow_duplicate=args.allow_duplicate,
+        max_rejected_share=args.max_rejected_share,
+        stratify=stratify,
     )
     share = options.rejected_share(settings.calibration.max_rejected_share)
     detector = Detector(
@@ -393,6 +394,11 @@ def build_parser() -> argparse.ArgumentParser:
     calibrate.add_argument("--reason", default="", help="why (recorded in the activation log and the audit)")
     calibrate.add_argument(
         "--dedupe", action="store_true", help="drop instances already counted instead of refusing the batch"
+    )
+    calibrate.add_argument(
+        "--allow-duplicate",
+        action="store_true",
+        help="store a version equal to a stored one (the same instances and strata; needs --reason)",
     )
     calibrate.add_argument(
         "--max-rejected-share",

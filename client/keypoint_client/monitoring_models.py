@@ -4,7 +4,7 @@ and the drift of the live heatmap features against the active calibration's."""
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import Field
 
@@ -170,9 +170,9 @@ class Drift(Frozen):
     recorded: int = Field(description="live values recorded by the replicas covered")
     evaluated_at: float = Field(description="unix seconds of the evaluation")
     process: int = Field(description="the worker process that answered")
-    replicas: int = Field(default=1, description="worker processes and replicas covered")
+    replicas: int = Field(description="worker processes and replicas covered")
     oldest_share_seconds: float = Field(
-        default=0.0, description="age of the oldest other replica's contribution (0: one process)"
+        description="age of the oldest other replica's contribution (0: one process)"
     )
     independent_looks: int | None = Field(
         default=None, description="sequential: independent looks tested (a scene's frames are one)"
@@ -240,4 +240,4 @@ class FieldCalibration(Frozen):
 
     version: int
     activated: bool
-    summary: dict
+    summary: dict[str, Any]

@@ -153,7 +153,21 @@ def test_calibrate_creates_and_activates_a_version(
     with open_store(store_url) as store:
         assert store.active_version(model_hash) is None
 
-    forced = run(["calibrate", str(samples_dir), "--activate", "--force", "--reason", "a test batch"], data)
+    # The same batch again is a copy of version 1: refused unless asked for (--allow-duplicate)
+    again = run(["calibrate", str(samples_dir)], data, expect=2)
+    assert "equal to calibration version 1" in again.stderr
+    forced = run(
+        [
+            "calibrate",
+            str(samples_dir),
+            "--activate",
+            "--force",
+            "--allow-duplicate",
+            "--reason",
+            "a test batch",
+        ],
+        data,
+    )
     assert json.loads(forced.stdout)["activated"] is True
     with open_store(store_url) as store:
         info = store.get_version(model_hash, 2)

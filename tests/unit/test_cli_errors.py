@@ -50,7 +50,7 @@ MISTAKES = [
     (
         ["predict", SAMPLE_IMAGE, "--instance", "duck:235,217,0,64", "--epsilon", "0"],
         2,
-        ["epsilon: Input should be greater than 0", "instances.0.bbox: bbox width and height must be > 0"],
+        ["epsilon: 0.0 is not a probability", "instances.0.bbox: bbox width and height must be > 0"],
     ),
     (
         ["predict", SAMPLE_IMAGE, "--instance", DUCK, "--nonconformity", "max"],
