@@ -116,9 +116,9 @@ COMMITTED = (
 )
 
 
-def observed(watcher: psycopg.Connection, query: str, what: str) -> None:
+def observed(watcher: psycopg.Connection, query: str, what: str, *params: object) -> None:
     deadline = time.monotonic() + HELD_STORE_TIMEOUT_S
-    while watcher.execute(query).fetchone() == (0,):
+    while watcher.execute(query, params or None).fetchone() == (0,):
         assert time.monotonic() < deadline, f"the job never reached {what}"
         time.sleep(0.01)
 
@@ -137,8 +137,10 @@ def sigkill_on_postgres(server: LiveServer, store_url: str, moment: str) -> str:
         audit_lock.execute("LOCK TABLE calib_audit IN EXCLUSIVE MODE")  # the job's inserts wait
         observed(watcher, WRITTEN, "its audit entries")
         if moment == "version-committed":  # granted once the job commits; its next read waits
+            locker_pid = versions_lock.info.backend_pid
             taken = locker.submit(versions_lock.execute, "LOCK TABLE calib_versions IN ACCESS EXCLUSIVE MODE")
-            time.sleep(0.2)  # queued behind the job's transaction
+            queued = "SELECT count(*) FROM pg_locks WHERE pid = %s AND NOT granted"
+            observed(watcher, queued, "the versions lock queued", locker_pid)
             audit_lock.rollback()
             taken.result(timeout=HELD_STORE_TIMEOUT_S)
             observed(watcher, COMMITTED, "the read after its commit")
@@ -159,7 +161,11 @@ def sigkill_on_sqlite(server: LiveServer, store_url: str) -> str:
     job_id = response.json()["id"]
     locks.take()
     try:
-        wait_until(lambda: (job := server.job(job_id))["done"] == job["total"], "every instance scored")
+        wait_until(
+            lambda: (job := server.job(job_id))["done"] == job["total"],
+            "every instance scored",
+            HELD_STORE_TIMEOUT_S,
+        )
         time.sleep(1.0)  # its reads of the active version, then the write that waits
         os.kill(server.process.pid, signal.SIGKILL)
         killed(server)
