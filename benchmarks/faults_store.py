@@ -187,21 +187,24 @@ def seconds_until(condition: Callable[[], bool], what: str) -> float:
 class WalLocks:
     """Another process holding every WAL lock of a SQLite database (write, checkpoint, recovery
     and the five read locks: bytes 120 to 127 of its -shm file), as one stuck in a checkpoint or
-    a recovery would: the service's readers and writers wait on them, then fail."""
+    a recovery would: the service's readers and writers wait on them, then fail. With
+    ``WRITE_LOCK`` alone, as another writer would: writers wait, readers go on."""
 
+    EVERY_LOCK, WRITE_LOCK = range(120, 128), range(120, 121)
     HOLD = (
         "import fcntl, os, sys, time\n"
         "fd = os.open(sys.argv[1], os.O_RDWR)\n"
-        "for offset in range(120, 128): fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB, 1, offset)\n"
+        "for offset in range(int(sys.argv[2]), int(sys.argv[3])):\n"
+        "    fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB, 1, offset)\n"
         "print('held', flush=True)\n"
         "time.sleep(3600)\n"
     )
 
-    def __init__(self, database: Path) -> None:
-        self._shm, self._process = f"{database}-shm", None
+    def __init__(self, database: Path, offsets: range = EVERY_LOCK) -> None:
+        self._shm, self._offsets, self._process = f"{database}-shm", offsets, None
 
     def take(self) -> None:
-        argv = [sys.executable, "-c", self.HOLD, self._shm]
+        argv = [sys.executable, "-c", self.HOLD, self._shm, str(self._offsets.start), str(self._offsets.stop)]
         self._process = subprocess.Popen(argv, stdout=subprocess.PIPE, text=True)
         assert self._process.stdout is not None and self._process.stdout.readline().strip() == "held"
 

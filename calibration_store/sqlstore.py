@@ -17,7 +17,6 @@ from typing import Any, ClassVar, Protocol
 from . import codec
 from .base import JOB_MAX_AGE, KEEP_JOBS, CalibrationStore
 from .errors import DuplicateVersion, JobExists, JobFinished, JobNotFound, VersionNotFound
-from .faults import crash_point
 from .feedback_records import FeedbackRecords
 from .models import (
     FINAL_JOB_STATES,
@@ -148,8 +147,6 @@ class SqlStore(FeedbackRecords, CalibrationStore):
                 self._complete_job(cur, job, number)
             for entry in entries:
                 self._insert_audit(cur, replace(entry, version=number) if entry.version is None else entry)
-            crash_point("version-written")
-        crash_point("version-committed")
         return self.get_version(new.model_hash, number)
 
     def _refuse_same_content(self, cur: Cursor, model_hash: str, content_key: str) -> None:

@@ -143,3 +143,40 @@ def test_a_malformed_batch_is_refused_whole(api: InProcess, images) -> None:
     )
     assert_problem(empty, 422, "the batch is empty")
     assert post_batch(api.client, good).status_code == 200
+
+
+def test_a_json_batch_is_answered_the_same_in_any_spelling_json_allows(api: InProcess, images) -> None:
+    """Items read straight from the body (UTF-8) and bodies read whole first (UTF-16, a BOM, an
+    item's JSON broken) answer alike: escapes, spacing, a bracket or an escaped quote in a string,
+    a repeated member (the last counts)."""
+    image, instances = images[0]
+    item = {"image_base64": base64.b64encode(image).decode(), "instances": instances}
+    plain = json.dumps({"items": [item, {**item, "epsilon": 2}]})
+    name = instances[0]["object"]
+    spelled = (
+        plain.replace(f'"{name}"', '"' + "".join(f"\\u{ord(c):04x}" for c in name) + '"'),
+        plain.replace(", ", " ,\n\t").replace("{", "{ \r\n"),
+        plain.replace('"epsilon": 2', '"epsilon": 0.5, "stream": "]\\"}", "epsilon": 2, "stream": null'),
+    )
+
+    def answer(body: bytes) -> list:
+        response = api.client.post(
+            "/v1/predict/batch", content=body, headers={"Content-Type": "application/json"}
+        )
+        items = response.json()["items"]
+        return [
+            {**one, "problem": without_request(one["problem"])} if "problem" in one else one for one in items
+        ]
+
+    expected = answer(plain.encode())
+    assert [one["status"] for one in expected] == [200, 422]
+    for body in (
+        *(text.encode() for text in spelled),
+        plain.encode("utf-16"),
+        b"\xef\xbb\xbf" + plain.encode(),
+    ):
+        assert answer(body) == expected, body[:80]
+    broken = plain.replace('"instances"', '"stream": "\\ud800", "instances"', 1).encode()
+    refused, kept = answer(broken)  # a lone surrogate: read whole, the item written again, refused
+    assert (refused["status"], kept) == (422, expected[1])
+    assert "is not valid JSON (unexpected end of hex escape" in refused["problem"]["detail"], refused

@@ -3,10 +3,11 @@ stored, and it is never left running: a server that can read its kept upload (sh
 directory, or the same server restarted) takes it over; once nobody did, any server stores it
 interrupted, saying why.
 
-A real SIGKILL of a real server at the worst moments (``CKS_FAULT``, see
-``calibration_store.faults``): with the version written but not committed, and right after
-the commit. Either the version is active and its job succeeded, or nothing was written and
-the job is interrupted and retryable; on SQLite and on PostgreSQL.
+A real SIGKILL of a real server at the worst moments, held there by a lock this test takes:
+with the version written but not committed (PostgreSQL: its audit entries wait; SQLite: its write
+waits on the WAL write lock), and right after the commit (PostgreSQL: its next read waits).
+Either the version is active and its job succeeded, or nothing was written and the job is
+interrupted and retryable.
 """
 
 from __future__ import annotations
@@ -15,12 +16,15 @@ import os
 import signal
 import socket
 import time
+from concurrent.futures import ThreadPoolExecutor
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
+import psycopg
 import pytest
 
 from benchmarks.faults_clients import long_batch
+from benchmarks.faults_store import WalLocks
 from calibration_store import JobRecord, open_store
 from service.infra.job_engine import STALE_AFTER, SWEEP_S, TAKEOVER_GRACE
 from tests.live.server import LiveServer
@@ -28,13 +32,6 @@ from tests.samples import batch_zip, count_instances
 from tests.service_calls import ADMIN_TOKEN, wait_until
 
 COPIES = 6  # the samples, 6 times over: seconds of scoring, so the kill lands mid-job
-
-
-@pytest.fixture(params=["sqlite", "postgres"])
-def store_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
-    if request.param == "postgres":
-        return request.getfixturevalue("postgres_url")
-    return f"sqlite://{tmp_path}/shared/calibration.db"
 
 
 def age_heartbeat(store_url: str, job_id: str, silence: timedelta = STALE_AFTER) -> None:
@@ -103,25 +100,112 @@ def test_a_killed_servers_job_is_interrupted_and_taken_over_by_its_restart(
             assert not (tmp_path / "a" / "jobs" / new["id"]).exists(), "a finished job's upload was kept"
 
 
-@pytest.mark.parametrize("moment", ["version-written", "version-committed"])
-def test_sigkill_at_the_worst_moment_leaves_all_or_nothing(
-    store_url: str, moment: str, tmp_path: Path, samples_dir: Path, coco: dict
-) -> None:
-    data = tmp_path / "data"
-    body = batch_zip(samples_dir, coco, images=4)
-    server = LiveServer(data, admin_token=ADMIN_TOKEN, store_url=store_url, fault=moment).start()
-    try:
-        response = server.upload(body, activate=True, force=True, reason="crash test")
+#: a server waiting on a test's lock waits this long (the store timeout) rather than failing
+HELD_STORE_TIMEOUT_S = 60
+#: the version and its activation written, its audit entries waiting on the lock: not committed
+WRITTEN = (
+    "SELECT count(*) FROM pg_stat_activity a WHERE a.wait_event_type = 'Lock'"
+    " AND a.query LIKE 'INSERT INTO calib_audit%' AND EXISTS (SELECT 1 FROM pg_locks l"
+    " WHERE l.pid = a.pid AND l.granted AND l.relation = 'calib_versions'::regclass"
+    " AND l.mode = 'RowExclusiveLock')"
+)
+#: committed, the job's next read of its new version waiting on the lock
+COMMITTED = (
+    "SELECT count(*) FROM pg_stat_activity WHERE wait_event_type = 'Lock'"
+    " AND query LIKE 'SELECT % FROM calib_versions WHERE model_hash = % AND number = %'"
+)
+
+
+def observed(watcher: psycopg.Connection, query: str, what: str, *params: object) -> None:
+    deadline = time.monotonic() + HELD_STORE_TIMEOUT_S
+    while watcher.execute(query, params or None).fetchone() == (0,):
+        assert time.monotonic() < deadline, f"the job never reached {what}"
+        time.sleep(0.01)
+
+
+def sigkill_on_postgres(server: LiveServer, store_url: str, moment: str) -> str:
+    """Upload, and SIGKILL the server while its job waits on a lock this test holds: on its audit
+    entries (the version written, not committed), or on the read right after the commit."""
+    with (
+        psycopg.connect(store_url, autocommit=True) as watcher,
+        psycopg.connect(store_url) as audit_lock,
+        psycopg.connect(store_url) as versions_lock,
+        ThreadPoolExecutor(1) as locker,
+    ):
+        response = server.upload(long_batch(2), activate=True, force=True, reason="crash test")
         assert response.status_code == 202, response.text
-        job_id = response.json()["id"]
+        audit_lock.execute("LOCK TABLE calib_audit IN EXCLUSIVE MODE")  # the job's inserts wait
+        observed(watcher, WRITTEN, "its audit entries")
+        if moment == "version-committed":  # granted once the job commits; its next read waits
+            locker_pid = versions_lock.info.backend_pid
+            taken = locker.submit(versions_lock.execute, "LOCK TABLE calib_versions IN ACCESS EXCLUSIVE MODE")
+            queued = "SELECT count(*) FROM pg_locks WHERE pid = %s AND NOT granted"
+            observed(watcher, queued, "the versions lock queued", locker_pid)
+            audit_lock.rollback()
+            taken.result(timeout=HELD_STORE_TIMEOUT_S)
+            observed(watcher, COMMITTED, "the read after its commit")
+        os.kill(server.process.pid, signal.SIGKILL)
+        killed(server)
+        versions_lock.rollback()
+        audit_lock.rollback()
+    return response.json()["id"]
+
+
+def sigkill_on_sqlite(server: LiveServer, store_url: str) -> str:
+    """Upload, take the WAL write lock, and SIGKILL the server once its job scored every instance
+    and waits on the lock to write the version (an uncommitted SQLite transaction leaves the same
+    file as one never begun: its WAL frames have no commit)."""
+    locks = WalLocks(Path(store_url.removeprefix("sqlite://")), WalLocks.WRITE_LOCK)
+    response = server.upload(long_batch(2), activate=True, force=True, reason="crash test")
+    assert response.status_code == 202, response.text
+    job_id = response.json()["id"]
+    locks.take()
+    try:
+        wait_until(
+            lambda: (job := server.job(job_id))["done"] == job["total"],
+            "every instance scored",
+            HELD_STORE_TIMEOUT_S,
+        )
+        time.sleep(1.0)  # its reads of the active version, then the write that waits
+        os.kill(server.process.pid, signal.SIGKILL)
         killed(server)
     finally:
+        locks.release()
+    return job_id
+
+
+@pytest.mark.parametrize("moment", ["version-written", "version-committed"])
+def test_sigkill_at_the_worst_moment_leaves_all_or_nothing(
+    postgres_url: str, moment: str, tmp_path: Path
+) -> None:
+    data = tmp_path / "data"
+    settings = {"admin_token": ADMIN_TOKEN, "store_url": postgres_url}
+    server = LiveServer(data, store_timeout_seconds=HELD_STORE_TIMEOUT_S, **settings).start()
+    try:
+        job_id = sigkill_on_postgres(server, postgres_url, moment)
+    finally:
         server.stop()
+    after_the_kill(data, settings, job_id, moment)
+
+
+def test_sigkill_while_the_version_is_written_on_sqlite_leaves_nothing(tmp_path: Path) -> None:
+    data = tmp_path / "data"
+    settings = {"admin_token": ADMIN_TOKEN, "store_url": f"sqlite://{tmp_path}/shared/calibration.db"}
+    server = LiveServer(data, store_timeout_seconds=HELD_STORE_TIMEOUT_S, **settings).start()
+    try:
+        job_id = sigkill_on_sqlite(server, settings["store_url"])
+    finally:
+        server.stop()
+    after_the_kill(data, settings, job_id, "version-written")
+
+
+def after_the_kill(data: Path, settings: dict[str, str], job_id: str, moment: str) -> None:
+    """All of the job or none of it, seen by the server restarted on the same data."""
     assert (data / "jobs" / job_id).is_dir(), "the upload of an unfinished job must be kept"
     if moment == "version-written":
-        age_heartbeat(store_url, job_id)
+        age_heartbeat(settings["store_url"], job_id)
 
-    with LiveServer(data, admin_token=ADMIN_TOKEN, store_url=store_url) as restarted:
+    with LiveServer(data, **settings) as restarted:
         active = restarted.client.get("/readyz").json()["active_calibration"]
         job = restarted.job(job_id)
         if moment == "version-committed":  # all of it: version, activation, the job's success
