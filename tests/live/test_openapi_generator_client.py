@@ -7,9 +7,7 @@ activation, an audit and typed errors, every error status back as the document's
 from __future__ import annotations
 
 import base64
-import importlib
 import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -20,13 +18,13 @@ import pydantic
 import pytest
 
 from service.infra.settings import PACKAGE_ROOT
+from tests.live.generated_clients import MAX_REQUEST_BYTES, generated_client_server, imported_package
 from tests.live.server import LiveServer
 from tests.predict_client import instances_of
 from tests.samples import Sample, batch_zip, samples_by_image
 from tests.service_calls import ADMIN_TOKEN
 
 PACKAGE = "cks_openapi_generator_client"
-MAX_REQUEST_BYTES = 1_000_000
 # What the generator says about itself, not about the document: its OpenAPI 3.1 support is "beta",
 # and the other two it also says for a minimal valid 3.0.3 document with one schema and a
 # multipart array of files (openapi-generator-cli 7.26.0). Any other warning fails the test.
@@ -55,25 +53,15 @@ def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ModuleType]:
         line for line in output.splitlines() if "WARN" in line and not any(w in line for w in KNOWN_WARNINGS)
     ]
     assert not warnings, "\n".join(warnings)
-    sys.path.insert(0, str(out))
-    try:
-        yield importlib.import_module(PACKAGE)
-    finally:
-        sys.path.remove(str(out))
-        for name in [m for m in sys.modules if m.startswith(PACKAGE)]:
-            del sys.modules[name]
+    with imported_package(out, PACKAGE, [""]) as (package,):
+        yield package
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
     """No calibration yet (predict answers 503 until one is activated), small request limit."""
     data = tmp_path_factory.mktemp("openapi-generator-client") / "data"
-    settings = {
-        "admin_token": ADMIN_TOKEN,
-        "bootstrap_calibration": False,
-        "max_request_bytes": MAX_REQUEST_BYTES,
-    }
-    with LiveServer(data, **settings) as live:
+    with generated_client_server(data) as live:
         yield live
 
 
