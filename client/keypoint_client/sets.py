@@ -47,7 +47,7 @@ def _angles(n: int) -> NDArray[np.float64]:
 class Ball(Frozen):
     """Every point within ``radius`` of ``center`` (radius 0: the single point ``center``)."""
 
-    type: Literal["ball"] = "ball"
+    type: Literal["ball"]
     center: Point
     radius: float
 
@@ -69,7 +69,7 @@ class Ball(Frozen):
 class Ellipse(Frozen):
     """Every point y with (y - center)^T shape_matrix (y - center) <= 1."""
 
-    type: Literal["ellipse"] = "ellipse"
+    type: Literal["ellipse"]
     center: Point
     shape_matrix: tuple[Point, Point] = Field(description="L with (y-c)^T L (y-c) <= 1")
     semi_axes: Point = Field(description="(a, b), a <= b, in pixels")
@@ -99,7 +99,7 @@ class Ellipse(Frozen):
 class Unbounded(Frozen):
     """The whole plane: too few calibration scores for this epsilon (t = 0) to bound the set."""
 
-    type: Literal["unbounded"] = "unbounded"
+    type: Literal["unbounded"]
     reason: str
 
     @property

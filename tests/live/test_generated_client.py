@@ -5,9 +5,7 @@ server through every kind of call, and every error status back as a parsed ``Pro
 from __future__ import annotations
 
 import base64
-import importlib
 import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from io import BytesIO
@@ -18,13 +16,13 @@ from typing import Any
 import pytest
 
 from service.infra.settings import PACKAGE_ROOT
+from tests.live.generated_clients import MAX_REQUEST_BYTES, generated_client_server, imported_package
 from tests.live.server import LiveServer
 from tests.predict_client import instances_of
 from tests.samples import Sample, batch_zip, samples_by_image
 from tests.service_calls import ADMIN_TOKEN
 
 PACKAGE = "conformal_keypoint_service_client"
-MAX_REQUEST_BYTES = 1_000_000
 
 
 @pytest.fixture(scope="module")
@@ -36,49 +34,40 @@ def generated(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SimpleNamesp
     output = run.stdout + run.stderr
     assert run.returncode == 0, output
     assert "warning" not in output.lower(), output
-    sys.path.insert(0, str(out))
-    try:
-        names = ["client", "types", "models"] + [
-            f"api.{tag}.{operation}"
-            for tag, operation in [
-                ("model", "model_info"),
-                ("prediction", "predict"),
-                ("prediction", "predict_form"),
-                ("prediction", "predict_png"),
-                ("prediction", "predict_png_form"),
-                ("prediction", "predict_batch"),
-                ("prediction", "predict_batch_form"),
-                ("admin", "upload_calibration"),
-                ("admin", "upload_calibration_form"),
-                ("admin", "get_job"),
-                ("admin", "get_calibration"),
-                ("admin", "compare_calibration"),
-                ("admin", "activate_calibration"),
-                ("admin", "audit_trail"),
-                ("admin", "list_calibrations"),
-                ("admin", "start_audit"),
-                ("admin", "start_audit_form"),
-                ("admin", "get_audit"),
-            ]
+    names = ["client", "types", "models"] + [
+        f"api.{tag}.{operation}"
+        for tag, operation in [
+            ("model", "model_info"),
+            ("prediction", "predict"),
+            ("prediction", "predict_form"),
+            ("prediction", "predict_png"),
+            ("prediction", "predict_png_form"),
+            ("prediction", "predict_batch"),
+            ("prediction", "predict_batch_form"),
+            ("admin", "upload_calibration"),
+            ("admin", "upload_calibration_form"),
+            ("admin", "get_job"),
+            ("admin", "get_calibration"),
+            ("admin", "compare_calibration"),
+            ("admin", "activate_calibration"),
+            ("admin", "audit_trail"),
+            ("admin", "list_calibrations"),
+            ("admin", "start_audit"),
+            ("admin", "start_audit_form"),
+            ("admin", "get_audit"),
         ]
-        modules = {name.split(".")[-1]: importlib.import_module(f"{PACKAGE}.{name}") for name in names}
-        yield SimpleNamespace(**modules)
-    finally:
-        sys.path.remove(str(out))
-        for name in [m for m in sys.modules if m.startswith(PACKAGE)]:
-            del sys.modules[name]
+    ]
+    with imported_package(out, PACKAGE, names) as modules:
+        yield SimpleNamespace(
+            **{name.split(".")[-1]: module for name, module in zip(names, modules, strict=True)}
+        )
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
     """No calibration yet (predict answers 503 until one is activated), small request limit."""
     data = tmp_path_factory.mktemp("generated-client") / "data"
-    settings = {
-        "admin_token": ADMIN_TOKEN,
-        "bootstrap_calibration": False,
-        "max_request_bytes": MAX_REQUEST_BYTES,
-    }
-    with LiveServer(data, **settings) as live:
+    with generated_client_server(data) as live:
         yield live
 
 

@@ -20,6 +20,7 @@ from pathlib import Path
 import pytest
 
 from service.infra.settings import PACKAGE_ROOT
+from tests.live.generated_clients import MAX_REQUEST_BYTES, generated_client_server
 from tests.live.server import LiveServer
 from tests.predict_client import instances_of
 from tests.samples import Sample, batch_zip, samples_by_image
@@ -28,7 +29,6 @@ from tests.service_calls import ADMIN_TOKEN
 GENERATORS = Path(__file__).with_name("generators")
 BIN = GENERATORS / "node_modules" / ".bin"
 DOCUMENT = PACKAGE_ROOT / "openapi" / "openapi.json"
-MAX_REQUEST_BYTES = 1_000_000
 # driver -> the generator's command, given where to write (a directory or a file under generated/)
 CLIENTS = {
     "hey_api": ["openapi-ts", "-i", str(DOCUMENT), "-o", "generated/hey"],
@@ -99,12 +99,7 @@ def fixture_file(
 @pytest.fixture
 def server(tmp_path: Path) -> Iterator[LiveServer]:
     """A fresh server per client: no calibration yet (predict answers 503 until one is activated)."""
-    settings = {
-        "admin_token": ADMIN_TOKEN,
-        "bootstrap_calibration": False,
-        "max_request_bytes": MAX_REQUEST_BYTES,
-    }
-    with LiveServer(tmp_path / "data", **settings) as live:
+    with generated_client_server(tmp_path / "data") as live:
         yield live
 
 

@@ -244,13 +244,19 @@ class BatchJson(_Body):
     )
 
 
-class BallSet(BaseModel):
+class _SetOut(BaseModel):
+    """A prediction set, told apart by ``type``: always sent, so required in the document."""
+
+    model_config = ConfigDict(json_schema_serialization_defaults_required=True)
+
+
+class BallSet(_SetOut):
     type: Literal["ball"] = "ball"
     center: Point
     radius: float
 
 
-class EllipseSet(BaseModel):
+class EllipseSet(_SetOut):
     type: Literal["ellipse"] = "ellipse"
     center: Point
     shape_matrix: tuple[Point, Point] = Field(description="L with (y-c)^T L (y-c) <= 1")
@@ -258,12 +264,14 @@ class EllipseSet(BaseModel):
     angle_deg: float = Field(description="direction of the major axis b, degrees from +x towards +y")
 
 
-class UnboundedSet(BaseModel):
+class UnboundedSet(_SetOut):
     type: Literal["unbounded"] = "unbounded"
     reason: str
 
 
-PredictionSet = Annotated[BallSet | EllipseSet | UnboundedSet, Field(discriminator="type")]
+PredictionSet = Annotated[
+    BallSet | EllipseSet | UnboundedSet, Field(discriminator="type", title="KeypointSet")
+]  # the title names the union for generators (openapi-generator made a model "Set" of "set")
 
 
 class BetaLaw(BaseModel):
