@@ -268,3 +268,14 @@ def test_frames_above_the_pixel_and_memory_limits_are_refused_before_decoding(tm
         crop = pixels[:400]
         request, parts = regions_request(crop, parameters, "rgb8")
         assert_problem(post_frame(small, request, parts), 413, "CKS_MAX_DECODED_BYTES")
+
+
+def test_a_frame_sent_as_regions_can_be_retained_for_feedback(api: InProcess, frame) -> None:
+    pixels, parameters = frame
+    request, parts = regions_request(pixels, {**parameters, "retain": True}, "rgb8")
+    response = post_frame(api, request, parts)
+    assert response.status_code == 200, response.text
+    answer = response.json()
+    assert answer["prediction_id"]
+    plain = post_frame(api, regions_request(pixels, parameters, "rgb8")[0], parts).json()
+    assert {k: v for k, v in answer.items() if k != "prediction_id"} == plain
