@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import random
 import statistics
 import sys
 import tempfile
@@ -75,7 +76,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--sizes", default=",".join(f"{w}x{h}" for w, h in SIZES), help="e.g. 640x480,1920x1080"
     )
     parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT)
+    parser.add_argument("--seed", type=int, default=None, help="the turns' order (default: a fresh one)")
     args = parser.parse_args(argv)
+    args.seed = random.SystemRandom().randrange(2**31) if args.seed is None else args.seed
     args.sizes = [tuple(int(v) for v in size.split("x")) for size in args.sizes.split(",")]
     return args
 
@@ -180,16 +183,19 @@ class Timings:
         return self.cpu[key] / len(self.wall[key])
 
 
-def measure(contenders: Contenders, points: list[Point], rounds: int) -> Timings:
-    """The contenders taking turns within each round (paired); CPU read outside the timed span."""
+def measure(contenders: Contenders, points: list[Point], rounds: int, seed: int) -> Timings:
+    """The contenders taking turns within each round (paired), in an order drawn afresh each round:
+    a request that always followed the same one would pay for its wake (a peer's onnxruntime
+    threads spin for a while after a run); CPU read outside the timed span."""
     timings = Timings()
+    order = random.Random(seed)
     for point in points:
         contenders.check(point)
         sends = contenders.sends(point)
         for send, _ in sends.values():  # warm: connections, first runs of each batch size
             send()
         for _ in range(rounds):
-            for name, (send, server) in sends.items():
+            for name, (send, server) in order.sample(list(sends.items()), len(sends)):
                 cpu_before = time.process_time() + server.cpu_seconds()
                 started = time.perf_counter()
                 send()
@@ -241,7 +247,14 @@ def _cell(values: list[float]) -> str:
 
 
 def render(
-    command: str, machine: str, points: list[Point], timings: Timings, rounds: int, load: str, canvas: str
+    command: str,
+    machine: str,
+    points: list[Point],
+    timings: Timings,
+    rounds: int,
+    seed: int,
+    load: str,
+    canvas: str,
 ) -> str:
     header = "| frame, boxes | " + " | ".join(CONTENDERS) + " |"
     rule = "|" + "---|" * (len(CONTENDERS) + 1)
@@ -274,7 +287,8 @@ def render(
             "",
             f"`{command}`: {machine}; load average after the run {load}. From a frame in memory (RGB) to"
             f" the parsed answer, {rounds} requests per cell, one at a time on a keep-alive connection, the"
-            " contenders taking turns in each round; 4 boxes are the sample's 3 and its first again (as in"
+            f" contenders taking turns in each round in an order drawn afresh (seed {seed}); 4 boxes are"
+            " the sample's 3 and its first again (as in"
             " bench_peers: the client's regions share one rectangle for those two); every figure includes"
             " the client's encoding (JPEG"
             " quality 95 where JPEG). CPU: the client process's and the answering server's CPU time per"
@@ -311,7 +325,7 @@ def main(argv: list[str] | None = None) -> None:
     with SERVICE.running(logs / "service.log") as service, PEER.running(logs / "peer.log") as peer:
         contenders = Contenders(service, peer, padding)
         try:
-            timings = measure(contenders, points, args.rounds)
+            timings = measure(contenders, points, args.rounds, args.seed)
         finally:
             contenders.close()
     largest = max(points, key=lambda p: (p.width * p.height, p.boxes))
@@ -327,7 +341,7 @@ def main(argv: list[str] | None = None) -> None:
     page.write_section(
         args.output,
         "bench_frames",
-        render(command, machine, points, timings, args.rounds, load_after, canvas),
+        render(command, machine, points, timings, args.rounds, args.seed, load_after, canvas),
     )
     log(f"wrote the bench_frames section of {args.output}")
 
