@@ -123,8 +123,10 @@ def test_a_1080p_frame_with_boxes_at_its_edges_answers_the_same_bytes(
     api: InProcess, full_hd: tuple[np.ndarray, dict]
 ) -> None:
     pixels, parameters = full_hd
-    parameters = {**parameters, "include_statistics": True, "nonconformity": "var", "epsilon": 0.2}
+    # every heatmap statistic (what drift records and retention keep) and the difficulty strata
+    parameters = {**parameters, "include_statistics": True, "stratify": "difficulty", "epsilon": 0.2}
     expected = whole_answer(api, pixels, parameters)
+    assert b'"stratum"' in expected and b'"statistics"' in expected
     contexts = crop_contexts(np.array([i["bbox"] for i in parameters["instances"]]), PADDING, 1920, 1080)
     assert contexts[:, :2].min() == 0 and tuple(contexts[:, 2:].max(axis=0)) == (1920, 1080)
     for request, parts in (
