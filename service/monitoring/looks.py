@@ -142,17 +142,15 @@ def continues(previous: Frame, frame: Frame) -> bool:
     """At least half of the frame's instances continue one of the previous frame's: objects may
     enter or leave a moving view, while a cut to another scene rarely puts most objects back
     where they were."""
+    before = list(zip(previous.objects, previous.boxes.tolist(), strict=True))  # floats: 10x faster
     matched = sum(
-        any(
-            name == other_name and _iou(box, other) >= CONTINUATION_IOU
-            for other_name, other in zip(previous.objects, previous.boxes, strict=True)
-        )
-        for name, box in zip(frame.objects, frame.boxes, strict=True)
+        any(name == other_name and _iou(box, other) >= CONTINUATION_IOU for other_name, other in before)
+        for name, box in zip(frame.objects, frame.boxes.tolist(), strict=True)
     )
     return matched > 0 and 2 * matched >= len(frame.objects)
 
 
-def _iou(a: np.ndarray, b: np.ndarray) -> float:
+def _iou(a: list[float], b: list[float]) -> float:
     width = min(a[0] + a[2], b[0] + b[2]) - max(a[0], b[0])
     height = min(a[1] + a[3], b[1] + b[3]) - max(a[1], b[1])
     inter = max(width, 0.0) * max(height, 0.0)
