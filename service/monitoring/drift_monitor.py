@@ -220,6 +220,7 @@ class DriftMonitor:
         self._looks_seen: deque[tuple[float, float, float, int]] = deque(maxlen=SHARED_LOOKS)
         self._frame_log: deque[tuple[float, Frame]] = deque(maxlen=SHARED_FRAMES)
         self._complete_since = 0.0  # the newest frame dropped from the log
+        self._continues_others = False  # some of its looks continue another replica's: the fleet's count
         self._taken_over: list[DriftShare] = []  # of stopped processes: their looks join ours
         self._frames = 0
         self._look_lock = threading.Lock()
@@ -344,8 +345,9 @@ class DriftMonitor:
 
     def _share(self) -> bytes:
         channels = range(self._channels)
+        seen = self._replica_looks()
         with self._look_lock:
-            frames, seen = self._frames, self._replica_looks()
+            frames = self._frames
         return encode_share(
             self._version(),
             frames,
@@ -360,14 +362,17 @@ class DriftMonitor:
         return None if self._flatness is None else self._flatness[0]
 
     def _replica_looks(self) -> ReplicaLooks:
-        """This process's frames and looks (under the look lock)."""
-        looks = list(self._looks_seen)
+        """This process's frames and looks (the lock held only to copy them: requests wait on it)."""
+        with self._look_lock:
+            looks, frames = list(self._looks_seen), list(self._frame_log)
+            covered_until = self._pending[0][0] if self._pending else time.time()
+            complete_since = self._complete_since
         return ReplicaLooks(
             replica="" if self._shares is None else self._shares.replica,
-            covered_until=self._pending[0][0] if self._pending else time.time(),
-            complete_since=self._complete_since,
-            frame_times=np.array([seen for seen, _ in self._frame_log], dtype=np.float64),
-            frames=tuple(frame for _, frame in self._frame_log),
+            covered_until=covered_until,
+            complete_since=complete_since,
+            frame_times=np.array([seen for seen, _ in frames], dtype=np.float64),
+            frames=tuple(frame for _, frame in frames),
             looks=np.array([look[:2] for look in looks], dtype=np.float64).reshape(-1, 2),
             statuses=np.array([look[2] for look in looks], dtype=np.float64),
             keys=np.array([look[3] for look in looks], dtype=np.int64),
@@ -379,14 +384,14 @@ class DriftMonitor:
         assert self._shares is not None
         version = self._version()
         with self._evaluation_lock:  # no look is added meanwhile
-            with self._look_lock:
-                own = self._replica_looks()
+            own = self._replica_looks()
             fleet = [share.seen for share in others if share.version == version]
             statuses = settle(own, fleet, self._shares.read_at)
             with self._look_lock:
                 looks = zip(self._looks_seen, statuses.tolist(), strict=True)
                 decided = ((seen, z, status, key) for (seen, z, _, key), status in looks)
                 self._looks_seen = deque(decided, maxlen=SHARED_LOOKS)
+            self._continues_others = self._continues_others or bool((statuses == CONTINUED).any())
             self._cached = None
 
     def _take_over(self, stopped: list[DriftShare]) -> None:
@@ -432,7 +437,7 @@ class DriftMonitor:
     ) -> DriftReport:
         reference, reason = self._reference_for(version, table)
         sequential = self._sequential_state(version, table if reference is not None else None)
-        if sequential is not None and (others or self._continues_others()):
+        if sequential is not None and (others or self._continues_others):
             sequential = self._fleet_sequential(sequential, others)
         windows = self._merged(self._windows, [share.windows for share in others])
         tested_windows = (
@@ -486,11 +491,6 @@ class DriftMonitor:
             merged.append(np.concatenate(parts) if len(parts) > 1 else parts[0])
         return merged
 
-    def _continues_others(self) -> bool:
-        """Whether some of this process's looks continue another replica's (they do not count)."""
-        with self._look_lock:
-            return any(status == CONTINUED for _, _, status, _ in self._looks_seen)
-
     def _sequential_state(self, version: int | None, table: ScoreTable | None) -> SequentialState | None:
         """Test the looks recorded since the last evaluation (in order) against the reference;
         a new active version starts the test afresh."""
@@ -539,14 +539,14 @@ class DriftMonitor:
         for _, z, status, _ in looks:
             if status != CONTINUED:
                 self._sequential.observe_statistic(z)
+            self._continues_others = self._continues_others or status == CONTINUED
         self._taken_over = []
 
     def _fleet_sequential(self, own: SequentialState, others: list[DriftShare]) -> SequentialState:
         """The sequential alarm over the looks of every replica tested against the same version
         that count for the fleet, in time order (each replica's recent SHARED_LOOKS)."""
         version = self._version()
-        with self._look_lock:
-            fleet = [self._replica_looks()]
+        fleet = [self._replica_looks()]
         fleet += [share.seen for share in others if share.version == version]
         statuses = fleet_statuses(fleet)
         counted = zip(fleet, statuses, strict=True)

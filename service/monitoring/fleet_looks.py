@@ -24,7 +24,7 @@ has read, the same way.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -85,10 +85,6 @@ def settled_until(others: list[ReplicaLooks], read_at: float) -> float:
     """The time until which every replica's frames are known: each replica writes its row when
     it starts, so one that is not among ``others`` (read at ``read_at``) saw no frame before."""
     return min([read_at, *(other.covered_until for other in others)])
-
-
-def with_statuses(replica: ReplicaLooks, statuses: np.ndarray) -> ReplicaLooks:
-    return replace(replica, statuses=statuses)
 
 
 class _FleetFrames:

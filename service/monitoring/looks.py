@@ -12,7 +12,8 @@ long enough. Here:
    its objects and boxes are those of a recent look (a client replaying the same images). A
    static or slowly moving camera stays one look however many frames it sends; a cut to another
    scene starts one. Only a look's first frame votes: it is, on its own, an image like the
-   calibration's.
+   calibration's. In a fleet, the replicas' looks count as those of one process that saw all
+   their frames (service/monitoring/fleet_looks.py).
 2. **One z per look.** Each instance's label-free features (p*, gamma, anisotropy: those the
    request computed) are ranked among the calibration's values of their keypoint, turned into
    normal scores and averaged (p* negated: a positive mean is a flatter heatmap). That mean is
