@@ -86,13 +86,6 @@ class Fleet:
         return [decode_share(row.replica, row.updated_at.timestamp(), row.payload).seen for row in rows]
 
 
-@pytest.fixture(params=["sqlite", "postgres"])
-def store_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
-    if request.param == "sqlite":
-        return f"sqlite://{tmp_path}/data/calibration.db"
-    return request.getfixturevalue("postgres_url")
-
-
 @pytest.fixture
 def stack() -> Iterator[ExitStack]:
     with ExitStack() as opened:
