@@ -178,12 +178,14 @@ class DriftShares:
 
     def take_over_stopped(self) -> list[DriftShare]:
         """The rows of stopped processes of this host, removed from the store: their windows
-        continue in this process."""
+        continue in this process. Called before this process writes its row: a row of its own name
+        is an earlier process's with its pid (a restarted container's server is pid 1 again)."""
         host = socket.gethostname()
         taken = []
         for row in self._store.monitor_shares(self._model_hash, KIND):
             owner_host, _, pid = row.replica.rpartition(":")
-            if owner_host != host or not pid.isdigit() or process_running(int(pid)):
+            stopped = owner_host == host and pid.isdigit() and not process_running(int(pid))
+            if not stopped and row.replica != self.replica:
                 continue
             if self._store.forget_monitor_share(self._model_hash, KIND, row.replica):  # one taker
                 taken.append(decode_share(row.replica, row.updated_at.timestamp(), row.payload))

@@ -180,3 +180,36 @@ def test_a_look_is_settled_once_every_replica_shared_its_frames_up_to_it() -> No
     assert np.isnan(settle(a, [behind], read_at=10.0)[1])  # b may have frames between 3.0 and 5.0
     assert settle(a, [], read_at=4.0).tolist()[0] == COUNTED  # a replica started after 4.0 saw none
     assert np.isnan(settle(a, [], read_at=4.0)[1])
+
+
+def test_a_restart_with_the_same_pid_continues_the_windows_and_looks(
+    tmp_path: Path, stack: ExitStack
+) -> None:
+    """A restarted container's server has its predecessor's pid (1): its row is still taken over,
+    and a scene that goes on across the restart stays one look."""
+    rng = np.random.default_rng(7)
+    table = _table(rng)
+    url = f"sqlite://{tmp_path}/data/calibration.db"
+
+    def server() -> DriftMonitor:  # named host:pid, like every server process: the same here
+        return DriftMonitor(
+            MANIFEST, lambda: (1, table), SEQUENTIAL, DriftShares(open_store(url), MODEL, INTERVAL)
+        )
+
+    before = server()
+    before.start()
+    for request in _scenes(rng, 0, 10, blur=1.0):
+        _record(before, request)
+    before.stop()  # writes its row once more
+    seen = before.report()
+    after = server()
+    after.start()
+    stack.callback(after.stop)
+    continued = after.report()
+    assert seen.sequential.looks == 10 and seen.sequential.frames == 60
+    assert (continued.sequential.looks, continued.sequential.frames) == (10, 60), continued.sequential
+    assert continued.recorded == seen.recorded > 0
+    scene = _scenes(rng, 9, 1, blur=1.0)[1:]  # the last scene goes on: not a new look
+    for request in scene:
+        _record(after, request)
+    assert after.report().sequential.looks == 10
