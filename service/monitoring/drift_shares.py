@@ -7,8 +7,8 @@ windows, the windows of its looks' first frames, its recent looks (time, Z, key,
 count for the fleet) and its recent frames' objects and boxes (service/monitoring/fleet_looks.py):
 a numpy payload of at most ``window`` rows per keypoint and ``SHARED_FRAMES`` frames. A reader
 merges the rows of the replicas that wrote within ``STALE_INTERVALS`` intervals with its own
-live state. A process that starts takes over the
-rows of stopped processes of its host (their windows become its own), so a restart loses at
+live state. A process that starts takes over the rows of stopped processes of its host and
+the row of its own name (their windows, looks and frames become its own), so a restart loses at
 most the last interval.
 """
 
@@ -20,6 +20,7 @@ import logging
 import socket
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import UTC, datetime
 
@@ -97,17 +98,19 @@ def decode_share(replica: str, updated_at: float, payload: bytes) -> DriftShare:
         look_windows = _split(arrays["look_windows"], arrays["look_counts"])
         looks = arrays["looks"]
         if "look_statuses" in arrays:
-            seen = _replica_looks(replica, meta, looks, arrays)
+            seen = _decoded_looks(replica, meta, looks, arrays)
         else:  # written before looks were merged (no frames, no keys): its looks count, as they did
             old = {"covered_until": updated_at, "complete_since": 0.0}
             counted = {"look_statuses": np.full(looks.shape[0], COUNTED)}
-            seen = _replica_looks(replica, meta | old, looks, counted)
+            seen = _decoded_looks(replica, meta | old, looks, counted)
     return DriftShare(
         replica, updated_at, meta["version"], meta["frames"], meta["recorded"], windows, look_windows, seen
     )
 
 
-def _replica_looks(replica: str, meta: dict, looks: np.ndarray, arrays) -> ReplicaLooks:
+def _decoded_looks(
+    replica: str, meta: dict, looks: np.ndarray, arrays: Mapping[str, np.ndarray]
+) -> ReplicaLooks:
     names = meta.get("object_names", [])
     sizes = arrays.get("frame_sizes", np.zeros(0, dtype=np.int32))
     ends = np.cumsum(sizes)

@@ -8,6 +8,8 @@ without a store, fed the same frames, is the one process they must agree with.
 
 from __future__ import annotations
 
+import io
+import json
 import time
 from collections.abc import Iterator
 from contextlib import ExitStack
@@ -213,3 +215,25 @@ def test_a_restart_with_the_same_pid_continues_the_windows_and_looks(
     for request in scene:
         _record(after, request)
     assert after.report().sequential.looks == 10
+
+
+def test_a_row_written_before_looks_were_merged_still_counts_its_looks() -> None:
+    """A server upgraded in place takes over its predecessor's row: the older payload decodes."""
+    buffer = io.BytesIO()
+    meta = json.dumps({"version": 1, "frames": 3, "recorded": 8}).encode()
+    window = np.zeros((2, 7), dtype=np.float32)
+    np.savez(
+        buffer,
+        meta=np.frombuffer(meta, dtype=np.uint8),
+        windows=window,
+        counts=np.array([2]),
+        look_windows=window,
+        look_counts=np.array([2]),
+        looks=np.array([[10.0, 0.5], [11.0, -0.2]]),
+    )
+    share = decode_share("host:7", 12.0, buffer.getvalue())
+    assert (share.version, share.frames, share.recorded) == (1, 3, 8)
+    assert share.seen.frames == () and share.seen.covered_until == 12.0
+    newer = _replica("b", [(10.5, _frame(("duck", 0, 0)))], [10.5])
+    statuses = fleet_statuses([share.seen, newer])
+    assert statuses[0].tolist() == [COUNTED, COUNTED] and statuses[1].tolist() == [COUNTED]
