@@ -382,11 +382,9 @@ class DriftMonitor:
         """Decide for good the fleet status of this process's looks that every replica's frames
         now decide (service/monitoring/fleet_looks.py)."""
         assert self._shares is not None
-        version = self._version()
         with self._evaluation_lock:  # no look is added meanwhile
-            own = self._replica_looks()
-            fleet = [share.seen for share in others if share.version == version]
-            statuses = settle(own, fleet, self._shares.read_at)
+            own = self._replica_looks()  # every replica's frames count, whatever its version
+            statuses = settle(own, [share.seen for share in others], self._shares.read_at)
             with self._look_lock:
                 looks = zip(self._looks_seen, statuses.tolist(), strict=True)
                 decided = ((seen, z, status, key) for (seen, z, _, key), status in looks)
@@ -546,11 +544,11 @@ class DriftMonitor:
         """The sequential alarm over the looks of every replica tested against the same version
         that count for the fleet, in time order (each replica's recent SHARED_LOOKS)."""
         version = self._version()
-        fleet = [self._replica_looks()]
-        fleet += [share.seen for share in others if share.version == version]
-        statuses = fleet_statuses(fleet)
-        counted = zip(fleet, statuses, strict=True)
-        merged = np.concatenate([replica.counted(status) for replica, status in counted])
+        fleet = [self._replica_looks(), *(share.seen for share in others)]
+        statuses = fleet_statuses(fleet)  # every replica's frames count, whatever its version
+        tested = [True, *(share.version == version for share in others)]
+        counted = zip(fleet, statuses, tested, strict=True)
+        merged = np.concatenate([replica.counted(status) for replica, status, same in counted if same])
         alarm = SequentialAlarm(self.settings.alarm_level)
         for z in merged[np.argsort(merged[:, 0], kind="stable"), 1]:
             alarm.observe_statistic(float(z))
