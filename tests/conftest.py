@@ -100,6 +100,14 @@ def postgres_url(postgres_cluster: PostgresCluster) -> Iterator[str]:
     postgres_cluster.drop_database(url.rsplit("/", 1)[1])
 
 
+@pytest.fixture(params=["sqlite", "postgres"])
+def store_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
+    """URL of an empty store of each backend: a SQLite file, a real PostgreSQL database."""
+    if request.param == "sqlite":
+        return f"sqlite://{tmp_path}/data/calibration.db"
+    return request.getfixturevalue("postgres_url")
+
+
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
     """A server with the bundled calibration active and admin enabled, shared by one test module."""

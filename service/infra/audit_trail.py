@@ -11,7 +11,8 @@ Entries waiting for the store are kept in an outbox file of this process as well
 (``<outbox>/<host>--<pid>.jsonl``, one JSON entry a line, rewritten as they are stored), so a
 stop does not lose them: the next process of this host to start adopts the outbox of every
 process that stopped and appends its entries once the store takes them. (An entry stored just
-before a crash, its outbox not yet rewritten, is appended twice: never lost.)
+before a crash, its outbox not yet rewritten, is appended twice: never lost.) Another host's
+outbox is never adopted (docs/operations.md: what a host lost for good leaves).
 """
 
 from __future__ import annotations
@@ -154,10 +155,12 @@ class AuditTrail:
             )
 
     def _adopt(self, folder: Path) -> None:
-        """Take over the outboxes of stopped processes of this host (a rename: one adopter each)."""
+        """Take over the outboxes of stopped processes of this host (a rename: one adopter each),
+        that of this process's name included: an earlier process's with its pid (a restarted
+        container's server is pid 1 again), which its first rewrite would otherwise replace."""
         for path in sorted(folder.glob(f"{socket.gethostname()}--*.jsonl")) if folder.is_dir() else []:
             pid = path.stem.rpartition("--")[2]
-            if not pid.isdigit() or process_running(int(pid)):
+            if path != self._outbox and (not pid.isdigit() or process_running(int(pid))):
                 continue
             claimed = path.with_name(f".adopted-{path.name}")
             try:

@@ -28,8 +28,10 @@ are cached until a window or the active version changes.
 A fleet (several workers or replicas on one store): each process writes what it saw to the
 store every ``CKS_DRIFT_SHARE_SECONDS`` (service/monitoring/drift_shares.py), and a report
 merges the fresh contributions of the others with its own: every window holds the values of
-all replicas, and the sequential alarm runs over the looks of all, in time order. The report
-says how many replicas it covers and the age of the oldest contribution.
+all replicas, and the sequential alarm runs over the looks of all, in time order, a camera's
+frames spread over several replicas counting the looks one process would have counted
+(service/monitoring/fleet_looks.py). The report says how many replicas it covers and the age
+of the oldest contribution.
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ from service.conformal.features import HEATMAP_FEATURES, heatmap_features
 from service.detector.manifest import Manifest
 from service.infra.metrics import drift_process_values
 from service.monitoring.drift_shares import DriftShare, DriftShares, encode_share
+from service.monitoring.fleet_looks import CONTINUED, ReplicaLooks, fleet_statuses, settle
 from service.monitoring.looks import (
     FlatnessReference,
     Frame,
@@ -87,8 +90,11 @@ _COLUMNS = _KIND_COLUMN + 1
 MAX_PENDING_LOOKS = 100_000
 #: points kept in the history (6 h at one a minute)
 HISTORY_POINTS = 360
-#: looks (time, Z) a process keeps to share: the sequential alarm of a fleet runs over them
+#: looks (time, Z, status, key) a process keeps to share: the sequential alarm of a fleet runs over them
 SHARED_LOOKS = 10_000
+#: frames (time, objects, boxes) a process keeps to share: other replicas' looks are told from
+#: continuations of its frames on them (several intervals of frames at 300 frames/s per process)
+SHARED_FRAMES = 5_000
 
 #: the active version and its scores (None, None when there is none or it cannot serve)
 ReferenceSource = Callable[[], tuple[int | None, ScoreTable | None]]
@@ -207,9 +213,14 @@ class DriftMonitor:
         for spec in manifest.keypoints:
             self._first_channels[spec.index] = manifest.object(spec.object).keypoints[0]
         self._looks = LookTracker()
-        self._pending: deque[tuple[float, list[InstanceFeatures]]] = deque(maxlen=MAX_PENDING_LOOKS)
+        # looks not yet tested: (time, look key, instances)
+        self._pending: deque[tuple[float, int, list[InstanceFeatures]]] = deque(maxlen=MAX_PENDING_LOOKS)
         self._shares = shares
-        self._looks_seen: deque[tuple[float, float]] = deque(maxlen=SHARED_LOOKS)  # (time, Z)
+        # looks tested against the current version: (time, Z, fleet status, look key)
+        self._looks_seen: deque[tuple[float, float, float, int]] = deque(maxlen=SHARED_LOOKS)
+        self._frame_log: deque[tuple[float, Frame]] = deque(maxlen=SHARED_FRAMES)
+        self._complete_since = 0.0  # the newest frame dropped from the log
+        self._continues_others = False  # some of its looks continue another replica's: the fleet's count
         self._taken_over: list[DriftShare] = []  # of stopped processes: their looks join ours
         self._frames = 0
         self._look_lock = threading.Lock()
@@ -251,9 +262,15 @@ class DriftMonitor:
             return
         with self._look_lock:
             self._frames += 1
-            if not self._looks.is_new_look(frame):
+            seen = time.time()
+            if frame is not None:
+                if len(self._frame_log) == SHARED_FRAMES:
+                    self._complete_since = self._frame_log[0][0]
+                self._frame_log.append((seen, frame))
+            key = self._looks.new_look_key(frame)
+            if key is None:
                 return
-            self._pending.append((time.time(), self._instances(channels, rows[:, : len(HEATMAP_FEATURES)])))
+            self._pending.append((seen, key, self._instances(channels, rows[:, : len(HEATMAP_FEATURES)])))
         self._look_windows.append(channels, rows)
 
     def _instances(self, channels: np.ndarray, features: np.ndarray) -> list[InstanceFeatures]:
@@ -291,6 +308,7 @@ class DriftMonitor:
         if self._shares is not None:
             try:  # before any request is recorded: the looks taken over come first
                 self._take_over(self._shares.take_over_stopped())
+                self._shares.publish(self._share())  # its row says it is in the fleet
             except StoreError as error:
                 log.warning("drift: the windows of stopped processes could not be taken over (%s)", error)
             self._sharer = threading.Thread(target=self._share_forever, name="drift-share", daemon=True)
@@ -302,15 +320,22 @@ class DriftMonitor:
             if thread is not None:
                 thread.join(timeout=5.0)
 
+    def share(self) -> None:
+        """Write this process's windows and looks to the store, its looks that every replica's
+        frames now decide decided for good."""
+        assert self._shares is not None
+        self.report()  # tests the pending looks: their Z are shared
+        self._settle(self._shares.others())
+        self._shares.publish(self._share())
+        drift_process_values().set(self._windows.written())
+
     def _share_forever(self) -> None:
         """Every interval (and once more at stop), write this process's windows and looks."""
         assert self._shares is not None
         while True:
             stopping = self._stop.wait(self._shares.interval)
             try:
-                self.report()  # tests the pending looks: their Z are shared
-                self._shares.publish(self._share())
-                drift_process_values().set(self._windows.written())
+                self.share()
             except StoreError as error:
                 log.warning("drift: this process's windows could not be shared (%s)", error)
             except Exception:
@@ -320,27 +345,75 @@ class DriftMonitor:
 
     def _share(self) -> bytes:
         channels = range(self._channels)
+        seen = self._replica_looks()
         with self._look_lock:
-            frames, looks = self._frames, list(self._looks_seen)
+            frames = self._frames
         return encode_share(
-            None if self._flatness is None else self._flatness[0],
+            self._version(),
             frames,
             self._windows.written(),
             [self._windows.window(channel) for channel in channels],
             [self._look_windows.window(channel) for channel in channels],
-            np.array(looks, dtype=np.float64).reshape(-1, 2),
+            seen,
         )
 
+    def _version(self) -> int | None:
+        """The version this process's looks were tested against."""
+        return None if self._flatness is None else self._flatness[0]
+
+    def _replica_looks(self) -> ReplicaLooks:
+        """This process's frames and looks (the lock held only to copy them: requests wait on it)."""
+        with self._look_lock:
+            looks, frames = list(self._looks_seen), list(self._frame_log)
+            covered_until = self._pending[0][0] if self._pending else time.time()
+            complete_since = self._complete_since
+        return ReplicaLooks(
+            replica="" if self._shares is None else self._shares.replica,
+            covered_until=covered_until,
+            complete_since=complete_since,
+            frame_times=np.array([seen for seen, _ in frames], dtype=np.float64),
+            frames=tuple(frame for _, frame in frames),
+            looks=np.array([look[:2] for look in looks], dtype=np.float64).reshape(-1, 2),
+            statuses=np.array([look[2] for look in looks], dtype=np.float64),
+            keys=np.array([look[3] for look in looks], dtype=np.int64),
+        )
+
+    def _settle(self, others: list[DriftShare]) -> None:
+        """Decide for good the fleet status of this process's looks that every replica's frames
+        now decide (service/monitoring/fleet_looks.py)."""
+        assert self._shares is not None
+        with self._evaluation_lock:  # no look is added meanwhile
+            own = self._replica_looks()  # every replica's frames count, whatever its version
+            statuses = settle(own, [share.seen for share in others], self._shares.read_at)
+            with self._look_lock:
+                looks = zip(self._looks_seen, statuses.tolist(), strict=True)
+                decided = ((seen, z, status, key) for (seen, z, _, key), status in looks)
+                self._looks_seen = deque(decided, maxlen=SHARED_LOOKS)
+            self._continues_others = self._continues_others or bool((statuses == CONTINUED).any())
+            self._cached = None
+
     def _take_over(self, stopped: list[DriftShare]) -> None:
-        """Continue the windows and looks of stopped processes of this host as this one's."""
+        """Continue the windows, looks and frames of stopped processes of this host as this one's."""
         for share in stopped:
             for target, windows in ((self._windows, share.windows), (self._look_windows, share.look_windows)):
                 for channel, rows in enumerate(windows[: self._channels]):
                     if rows.shape[1:] == (_COLUMNS,):
                         target.append(np.full(rows.shape[0], channel, dtype=np.int64), rows)
-            with self._look_lock:
-                self._frames += share.frames
             self._taken_over.append(share)
+        frames = sorted(
+            (
+                (float(seen), frame)
+                for share in stopped
+                for seen, frame in zip(share.seen.frame_times, share.seen.frames, strict=True)
+            ),
+            key=lambda item: item[0],
+        )
+        with self._look_lock:
+            self._frames += sum(share.frames for share in stopped)
+            self._frame_log.extend(frames)
+            self._complete_since = max([self._complete_since, *(s.seen.complete_since for s in stopped)])
+            keys = [key for share in stopped for key in share.seen.keys.tolist()]
+            self._looks.remember([frame for _, frame in frames], keys)
         if stopped:
             log.info("drift: took over the windows of %d stopped process(es) of this host", len(stopped))
 
@@ -362,7 +435,7 @@ class DriftMonitor:
     ) -> DriftReport:
         reference, reason = self._reference_for(version, table)
         sequential = self._sequential_state(version, table if reference is not None else None)
-        if sequential is not None and others:
+        if sequential is not None and (others or self._continues_others):
             sequential = self._fleet_sequential(sequential, others)
         windows = self._merged(self._windows, [share.windows for share in others])
         tested_windows = (
@@ -434,12 +507,12 @@ class DriftMonitor:
                 self._replay_taken_over(version)
             flatness, alarm = self._flatness[1], self._sequential
             assert alarm is not None
-            for seen, look in pending:
+            for seen, key, look in pending:
                 z = look_statistic([z for z in map(flatness.instance_z, look) if z is not None])
                 if z is not None:
                     alarm.observe_statistic(z)
                     with self._look_lock:
-                        self._looks_seen.append((seen, z))
+                        self._looks_seen.append((seen, z, math.nan, key))
         alarm = self._sequential
         return SequentialState(
             looks=0 if alarm is None else alarm.looks,
@@ -454,23 +527,28 @@ class DriftMonitor:
         version go first (in time order); the others' are dropped."""
         assert self._sequential is not None
         looks = sorted(
-            (tuple(look) for share in self._taken_over if share.version == version for look in share.looks),
+            (float(seen), float(z), float(status), int(key))
+            for taken in (share.seen for share in self._taken_over if share.version == version)
+            for (seen, z), status, key in zip(taken.looks, taken.statuses, taken.keys, strict=True)
         )
         with self._look_lock:
             self._looks_seen.clear()
-            self._looks_seen.extend((float(seen), float(z)) for seen, z in looks)
-        for _, z in looks:
-            self._sequential.observe_statistic(float(z))
+            self._looks_seen.extend(looks)
+        for _, z, status, _ in looks:
+            if status != CONTINUED:
+                self._sequential.observe_statistic(z)
+            self._continues_others = self._continues_others or status == CONTINUED
         self._taken_over = []
 
     def _fleet_sequential(self, own: SequentialState, others: list[DriftShare]) -> SequentialState:
-        """The sequential alarm over the looks of every replica tested against the same version,
-        in time order (each replica's recent SHARED_LOOKS)."""
-        version = None if self._flatness is None else self._flatness[0]
-        with self._look_lock:
-            looks = [np.array(list(self._looks_seen), dtype=np.float64).reshape(-1, 2)]
-        looks += [share.looks for share in others if share.version == version]
-        merged = np.concatenate(looks)
+        """The sequential alarm over the looks of every replica tested against the same version
+        that count for the fleet, in time order (each replica's recent SHARED_LOOKS)."""
+        version = self._version()
+        fleet = [self._replica_looks(), *(share.seen for share in others)]
+        statuses = fleet_statuses(fleet)  # every replica's frames count, whatever its version
+        tested = [True, *(share.version == version for share in others)]
+        counted = zip(fleet, statuses, tested, strict=True)
+        merged = np.concatenate([replica.counted(status) for replica, status, same in counted if same])
         alarm = SequentialAlarm(self.settings.alarm_level)
         for z in merged[np.argsort(merged[:, 0], kind="stable"), 1]:
             alarm.observe_statistic(float(z))

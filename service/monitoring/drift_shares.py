@@ -1,12 +1,14 @@
 """What each replica's drift monitor saw, shared through the calibration store so that any
 replica answers for the fleet.
 
-Every ``interval`` seconds a replica (a server process: ``host:pid``) replaces its row of the
-store's ``calib_monitor_shares`` with its live windows, the windows of its looks' first frames
-and the Z of its recent looks (time-stamped): a numpy payload of at most
-``window`` rows per keypoint. A reader merges the rows of the replicas that wrote within
-``STALE_INTERVALS`` intervals with its own live state. A process that starts takes over the
-rows of stopped processes of its host (their windows become its own), so a restart loses at
+A replica (a server process: ``host:pid``) writes its row of the store's
+``calib_monitor_shares`` when it starts, then replaces it every ``interval`` seconds with its live
+windows, the windows of its looks' first frames, its recent looks (time, Z, key, whether they
+count for the fleet) and its recent frames' objects and boxes (service/monitoring/fleet_looks.py):
+a numpy payload of at most ``window`` rows per keypoint and ``SHARED_FRAMES`` frames. A reader
+merges the rows of the replicas that wrote within ``STALE_INTERVALS`` intervals with its own
+live state. A process that starts takes over the rows of stopped processes of its host and
+the row of its own name (their windows, looks and frames become its own), so a restart loses at
 most the last interval.
 """
 
@@ -18,6 +20,7 @@ import logging
 import socket
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import UTC, datetime
 
@@ -25,6 +28,8 @@ import numpy as np
 
 from calibration_store import CalibrationStore, StoreError
 from service.infra.processes import process_owner, process_running
+from service.monitoring.fleet_looks import COUNTED, ReplicaLooks
+from service.monitoring.looks import Frame
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +40,7 @@ STALE_INTERVALS = 5
 
 @dataclass(frozen=True)
 class DriftShare:
-    """One replica's contribution: its windows per channel, its looks (time, Z) for ``version``."""
+    """One replica's contribution: its windows per channel, its looks and frames for ``version``."""
 
     replica: str
     updated_at: float  # unix seconds
@@ -44,7 +49,7 @@ class DriftShare:
     recorded: int  # live values it recorded, ever
     windows: list[np.ndarray]  # per channel, (n, width)
     look_windows: list[np.ndarray]
-    looks: np.ndarray  # (L, 2): unix time, Z
+    seen: ReplicaLooks
 
 
 def encode_share(
@@ -53,18 +58,35 @@ def encode_share(
     recorded: int,
     windows: list[np.ndarray],
     look_windows: list[np.ndarray],
-    looks: np.ndarray,
+    seen: ReplicaLooks,
 ) -> bytes:
-    meta = json.dumps({"version": version, "frames": frames, "recorded": recorded}).encode()
+    names = sorted({name for frame in seen.frames for name in frame.objects})
+    meta = {
+        "version": version,
+        "frames": frames,
+        "recorded": recorded,
+        "covered_until": seen.covered_until,
+        "complete_since": seen.complete_since,
+        "object_names": names,
+    }
+    code = {name: i for i, name in enumerate(names)}
     buffer = io.BytesIO()
     np.savez(  # uncompressed: float windows barely compress (1.34 vs 1.21 MB) and 7x faster
         buffer,
-        meta=np.frombuffer(meta, dtype=np.uint8),
+        meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
         windows=np.concatenate(windows).astype(np.float32),
         counts=np.array([w.shape[0] for w in windows], dtype=np.int64),
         look_windows=np.concatenate(look_windows).astype(np.float32),
         look_counts=np.array([w.shape[0] for w in look_windows], dtype=np.int64),
-        looks=np.asarray(looks, dtype=np.float64).reshape(-1, 2),
+        looks=np.asarray(seen.looks, dtype=np.float64).reshape(-1, 2),
+        look_statuses=np.asarray(seen.statuses, dtype=np.float64),
+        look_keys=np.asarray(seen.keys, dtype=np.int64),
+        frame_times=np.asarray(seen.frame_times, dtype=np.float64),
+        frame_sizes=np.array([len(frame.objects) for frame in seen.frames], dtype=np.int32),
+        frame_objects=np.array([code[n] for frame in seen.frames for n in frame.objects], dtype=np.int32),
+        frame_boxes=np.concatenate([np.empty((0, 4)), *(frame.boxes for frame in seen.frames)]).astype(
+            np.float32
+        ),
     )
     return buffer.getvalue()
 
@@ -75,8 +97,38 @@ def decode_share(replica: str, updated_at: float, payload: bytes) -> DriftShare:
         windows = _split(arrays["windows"], arrays["counts"])
         look_windows = _split(arrays["look_windows"], arrays["look_counts"])
         looks = arrays["looks"]
+        if "look_statuses" in arrays:
+            seen = _decoded_looks(replica, meta, looks, arrays)
+        else:  # written before looks were merged (no frames, no keys): its looks count, as they did
+            old = {"covered_until": updated_at, "complete_since": 0.0}
+            counted = {"look_statuses": np.full(looks.shape[0], COUNTED)}
+            seen = _decoded_looks(replica, meta | old, looks, counted)
     return DriftShare(
-        replica, updated_at, meta["version"], meta["frames"], meta["recorded"], windows, look_windows, looks
+        replica, updated_at, meta["version"], meta["frames"], meta["recorded"], windows, look_windows, seen
+    )
+
+
+def _decoded_looks(
+    replica: str, meta: dict, looks: np.ndarray, arrays: Mapping[str, np.ndarray]
+) -> ReplicaLooks:
+    names = meta.get("object_names", [])
+    sizes = arrays.get("frame_sizes", np.zeros(0, dtype=np.int32))
+    ends = np.cumsum(sizes)
+    objects = [names[i] for i in arrays.get("frame_objects", np.zeros(0, dtype=np.int32)).tolist()]
+    boxes = arrays.get("frame_boxes", np.zeros((0, 4))).astype(np.float64)
+    frames = tuple(
+        Frame(tuple(objects[end - size : end]), boxes[end - size : end])
+        for size, end in zip(sizes.tolist(), ends.tolist(), strict=True)
+    )
+    return ReplicaLooks(
+        replica=replica,
+        covered_until=meta["covered_until"],
+        complete_since=meta["complete_since"],
+        frame_times=arrays.get("frame_times", np.zeros(0)),
+        frames=frames,
+        looks=looks,
+        statuses=arrays["look_statuses"],
+        keys=arrays.get("look_keys", np.zeros(looks.shape[0], dtype=np.int64)),
     )
 
 
@@ -88,9 +140,13 @@ class DriftShares:
     """This replica's row of the store, and the fresh rows of the others (read at most once per
     ``interval / 2``; the last ones read while the store is away)."""
 
-    def __init__(self, store: CalibrationStore, model_hash: str, interval: float) -> None:
-        self.replica = process_owner()
+    def __init__(
+        self, store: CalibrationStore, model_hash: str, interval: float, replica: str | None = None
+    ) -> None:
+        """replica: this process's name in the store (default ``host:pid``)."""
+        self.replica = replica or process_owner()
         self.interval = interval
+        self.read_at = 0.0  # unix seconds: when the others' rows were last read
         self._store, self._model_hash = store, model_hash
         self._read: tuple[float, list[DriftShare]] = (-float("inf"), [])
         self._lock = threading.Lock()
@@ -104,7 +160,9 @@ class DriftShares:
             read_at, shares = self._read
             if time.monotonic() - read_at >= self.interval / 2:
                 try:
+                    read_at = time.time()
                     shares = self._fresh_others()
+                    self.read_at = read_at
                 except StoreError as error:
                     log.warning("drift: the other replicas' windows could not be read (%s)", error)
                     oldest = time.time() - STALE_INTERVALS * self.interval
@@ -123,12 +181,14 @@ class DriftShares:
 
     def take_over_stopped(self) -> list[DriftShare]:
         """The rows of stopped processes of this host, removed from the store: their windows
-        continue in this process."""
+        continue in this process. Called before this process writes its row: a row of its own name
+        is an earlier process's with its pid (a restarted container's server is pid 1 again)."""
         host = socket.gethostname()
         taken = []
         for row in self._store.monitor_shares(self._model_hash, KIND):
             owner_host, _, pid = row.replica.rpartition(":")
-            if owner_host != host or not pid.isdigit() or process_running(int(pid)):
+            stopped = owner_host == host and pid.isdigit() and not process_running(int(pid))
+            if not stopped and row.replica != self.replica:
                 continue
             if self._store.forget_monitor_share(self._model_hash, KIND, row.replica):  # one taker
                 taken.append(decode_share(row.replica, row.updated_at.timestamp(), row.payload))

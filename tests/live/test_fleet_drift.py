@@ -30,11 +30,14 @@ def drift(url: str) -> dict:
     return response.json()
 
 
-def send_heavy_scenes(server: LiveServer, scenes: int) -> None:
+def send_heavy_scenes(servers: list[LiveServer], scenes: int) -> None:
+    """Each scene's frames sent to the servers in turn, as a round-robin proxy does."""
+    turn = 0
     for scene in range(scenes):
         (views,) = render_requests(9402 + scene, 1, 1, "heavy_occlusion")
         for _ in range(FRAMES_PER_SCENE):
-            send(server, views[0])
+            send(servers[turn % len(servers)], views[0])
+            turn += 1
 
 
 def test_shifted_traffic_to_one_replica_raises_the_alarm_read_from_another(
@@ -42,7 +45,7 @@ def test_shifted_traffic_to_one_replica_raises_the_alarm_read_from_another(
 ) -> None:
     settings = {"admin_token": ADMIN_TOKEN, "store_url": postgres_url, "drift_share_seconds": SHARE_S}
     with LiveServer(tmp_path / "a", **settings) as a, LiveServer(tmp_path / "b", **settings) as b:
-        send_heavy_scenes(a, SCENES)
+        send_heavy_scenes([a], SCENES)
         wait_until(lambda: drift(a.url)["alarm"], "replica A's alarm", timeout=30)
         wait_until(lambda: drift(b.url)["alarm"], "replica B raises the alarm of A's traffic", timeout=30)
         frames = SCENES * FRAMES_PER_SCENE
@@ -61,10 +64,27 @@ def test_shifted_traffic_to_one_replica_raises_the_alarm_read_from_another(
         wait_until(lambda: drift(b.url)["replicas"] == 1, "B covers itself alone", timeout=30)
 
 
+def test_a_camera_spread_over_two_replicas_counts_each_scene_once(postgres_url: str, tmp_path: Path) -> None:
+    """Each replica sees a first frame of every scene: alone, each would count it as a look."""
+    settings = {"admin_token": ADMIN_TOKEN, "store_url": postgres_url, "drift_share_seconds": SHARE_S}
+    with LiveServer(tmp_path / "a", **settings) as a, LiveServer(tmp_path / "b", **settings) as b:
+        send_heavy_scenes([a, b], SCENES // 2)
+        frames = SCENES // 2 * FRAMES_PER_SCENE
+        wait_until(
+            lambda: drift(b.url)["frames"] == drift(a.url)["frames"] == frames, "both see all", timeout=30
+        )
+        time.sleep(3 * SHARE_S)  # each replica's looks decided once the other's frames are shared
+        seen_by_a, seen_by_b = drift(a.url), drift(b.url)
+        assert seen_by_a["independent_looks"] == seen_by_b["independent_looks"], (seen_by_a, seen_by_b)
+        # one process counts at most a look per scene (tests/live/test_drift_streams.py)
+        assert 0.8 * (SCENES // 2) <= seen_by_a["independent_looks"] <= SCENES // 2, seen_by_a
+        assert seen_by_a["evidence"] == seen_by_b["evidence"]
+
+
 def test_two_workers_answer_the_same_drift(tmp_path: Path) -> None:
     with LiveServer(tmp_path / "data", admin_token=ADMIN_TOKEN, workers=2, drift_share_seconds=SHARE_S) as s:
         wait_until(lambda: drift(s.url)["replicas"] == 2, "both workers share their windows", timeout=60)
-        send_heavy_scenes(s, SCENES // 2)
+        send_heavy_scenes([s], SCENES // 2)
         frames = SCENES // 2 * FRAMES_PER_SCENE
         wait_until(lambda: drift(s.url)["frames"] == frames, "every frame counted", timeout=30)
         time.sleep(3 * SHARE_S)  # each worker's last share written and read by the other
@@ -79,7 +99,7 @@ def test_a_restarted_server_continues_its_windows(tmp_path: Path) -> None:
     """SIGTERM writes the last share; the next process of this host takes it over."""
     settings = {"admin_token": ADMIN_TOKEN, "drift_share_seconds": SHARE_S}
     with LiveServer(tmp_path / "data", **settings) as before:
-        send_heavy_scenes(before, 10)
+        send_heavy_scenes([before], 10)
         seen = drift(before.url)
     with LiveServer(tmp_path / "data", **settings) as after:
         wait_until(lambda: drift(after.url)["frames"] == seen["frames"], "the windows continue", timeout=30)

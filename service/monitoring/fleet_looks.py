@@ -1,0 +1,126 @@
+"""The looks of a fleet counted as one process would count them.
+
+A proxy that spreads one camera's frames over several replicas gives each replica a first frame
+of the camera's scene: each replica's LookTracker sees a new look, and the fleet would count as
+many looks as replicas for one scene, more independent evidence than there is (the drift alarm's
+false-alarm bound counts independent looks). So each replica shares its recent frames (time,
+objects, boxes) and its looks (time, Z, key), and a look counts for the fleet only if one
+process that had seen every replica's frames in time order would have seen a new look:
+
+- its first frame continues none of the ``INTERLEAVED_STREAMS`` frames that precede it among all
+  the replicas' frames (those of its own replica were already checked by its own tracker), and
+- no other replica's earlier look is the same image (same objects and boxes: a replayed image).
+
+A frame that one process would have called a new look but its own replica did not (its own
+recent frames reach further back than the fleet's) has no Z and does not vote: the count is
+at most one process's, never more. Where a replica's frames around a look are no longer all
+shared (its log is bounded), the look does not count either.
+
+A look is decided for good by its own replica once every other replica has shared its frames
+up to the look's time (``settled_until``); until then every reader decides it afresh on what it
+has read, the same way.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.monitoring.looks import INTERLEAVED_STREAMS, NO_KEY, Frame, continues
+
+#: status of a look: it counts for the fleet, it continues another replica's look (NaN: undecided)
+COUNTED, CONTINUED = 1.0, 0.0
+
+
+@dataclass(frozen=True)
+class ReplicaLooks:
+    """What one replica saw of the looks: its recent frames and its looks, in time order."""
+
+    replica: str
+    covered_until: float  # unix seconds: its frames and looks until then are all here
+    complete_since: float  # its frames older than this were dropped (0.0: none)
+    frame_times: np.ndarray  # (F,) unix seconds, ascending
+    frames: tuple[Frame, ...]
+    looks: np.ndarray  # (L, 2): unix time of the look's first frame, Z
+    statuses: np.ndarray  # (L,): COUNTED, CONTINUED or NaN
+    keys: np.ndarray  # (L,) int64: look_key of the look's first frame
+
+    def counted(self, statuses: np.ndarray) -> np.ndarray:
+        """(time, Z) of the looks ``statuses`` count."""
+        return self.looks[statuses == COUNTED]
+
+
+def fleet_statuses(replicas: list[ReplicaLooks]) -> list[np.ndarray]:
+    """Per replica, the status of each of its looks: the decided ones as they are, the others
+    decided on the frames and looks of ``replicas`` (a replica alone: every look counts)."""
+    if len(replicas) == 1:
+        only = replicas[0].statuses
+        return [np.where(np.isnan(only), COUNTED, only)]
+    frames = _FleetFrames(replicas)
+    first_seen = [_first_seen(r) for r in replicas]
+    statuses = []
+    for index, replica in enumerate(replicas):
+        status = replica.statuses.copy()
+        for row in np.flatnonzero(np.isnan(status)):
+            seen, key = float(replica.looks[row, 0]), int(replica.keys[row])
+            repeated = any(
+                first.get(key, math.inf) < seen for other, first in enumerate(first_seen) if other != index
+            )
+            new = key == NO_KEY or (not repeated and frames.starts_a_look(index, seen))
+            status[row] = COUNTED if new else CONTINUED
+        statuses.append(status)
+    return statuses
+
+
+def settle(own: ReplicaLooks, others: list[ReplicaLooks], read_at: float) -> np.ndarray:
+    """The statuses of this replica's looks with those up to ``settled_until`` decided for good."""
+    status = fleet_statuses([own, *others])[0]
+    keep = np.isnan(own.statuses) & (own.looks[:, 0] > settled_until(others, read_at))
+    return np.where(keep, np.nan, status)
+
+
+def settled_until(others: list[ReplicaLooks], read_at: float) -> float:
+    """The time until which every replica's frames are known: each replica writes its row when
+    it starts, so one that is not among ``others`` (read at ``read_at``) saw no frame before."""
+    return min([read_at, *(other.covered_until for other in others)])
+
+
+class _FleetFrames:
+    """Every replica's shared frames in one time order."""
+
+    def __init__(self, replicas: list[ReplicaLooks]) -> None:
+        times = np.concatenate([r.frame_times for r in replicas])
+        owners = np.concatenate([np.full(r.frame_times.size, i) for i, r in enumerate(replicas)])
+        self._order = np.lexsort((owners, times))
+        self._times, self._owners = times[self._order], owners[self._order]
+        self._frames = [frame for r in replicas for frame in r.frames]
+        self._replicas = replicas
+
+    def starts_a_look(self, replica: int, seen: float) -> bool:
+        """Whether the frame of ``replica`` at ``seen`` continues none of the other replicas'
+        frames among the fleet's recent ones (False where those are not all known)."""
+        own = self._replicas[replica]
+        place = int(np.searchsorted(own.frame_times, seen))
+        if place == own.frame_times.size or own.frame_times[place] != seen:
+            return False  # its frame left its replica's log: unknown
+        frame = own.frames[place]
+        end = int(np.searchsorted(self._times, seen))
+        start = max(0, end - INTERLEAVED_STREAMS)
+        window_start = self._times[start] if end - start == INTERLEAVED_STREAMS else 0.0  # all before
+        if any(r.complete_since > window_start for r in self._replicas):
+            return False  # some frames of that window were dropped: unknown
+        return not any(
+            continues(self._frames[self._order[i]], frame)
+            for i in range(start, end)
+            if self._owners[i] != replica
+        )
+
+
+def _first_seen(replica: ReplicaLooks) -> dict[int, float]:
+    """The time each of the replica's look keys was first seen."""
+    first: dict[int, float] = {}
+    for seen, key in zip(replica.looks[:, 0].tolist(), replica.keys.tolist(), strict=True):
+        first.setdefault(key, seen)
+    return first
