@@ -3,13 +3,19 @@
 Read top-down, ``live_coverage``: the labelled predictions (from the store, so every replica
 reports the same), each stream's frames grouped into looks (service.monitoring.looks: frames of one
 scene are one observation, not many), then per group (the version's answers as a whole, per
-object, per keypoint, per camera stream, per caller group) the raw coverage of its labelled
-keypoints, one vote per look (the share covered among the look's first labelled frame's keypoints
-of the group), the confidence sequence of the votes' mean, and the alarm (a betting e-process)
-once coverage is proven below the version's promise (service.feedback.confidence_sequence).
+object, per keypoint, per camera stream, per caller group, per Mondrian stratum) the raw
+coverage of its labelled keypoints, one vote per look (the share covered among the look's first
+labelled frame's keypoints of the group), the confidence sequence of the votes' mean, and the
+alarm (a betting e-process) once coverage is proven below the version's promise
+(service.feedback.confidence_sequence).
 
 With ``coverage: object`` a unit is an instance whose keypoints were all labelled: covered when
 every one of them is in its set (what the object guarantee speaks about).
+
+A stratum group (answers asked with ``stratify``) gathers the units its stratum's thresholds
+served, across keypoints (difficulty bins are fitted per keypoint: "difficulty bin 2" is each
+keypoint's bin 2); each unit's floor is its own stratum's (n, t), so the alarm tests each
+stratum threshold's own promise, and ``pooled`` gathers the rows that fell back to the pooled one.
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ class Unit:
     keypoint: str | None
     stream: str
     group: str | None
+    stratum: str | None  # the Mondrian stratum whose threshold served it (None: not stratified)
     covered: bool
     floor: float
 
@@ -136,8 +143,10 @@ def units(
         members = [r for r, kept in enumerate(rows) if kept["instance"] == index] if row is None else [row]
         floor = min(_floor(rows[r]["guarantee"], band) for r in members)
         name = None if row is None else keypoint_names[rows[row]["channel"]]
+        strata = {rows[r].get("stratum") for r in members}  # one per instance with coverage object
+        stratum = strata.pop() if len(strata) == 1 else None
         instance = instances[index]
-        yield Unit(instance["object"], name, stream, instance["group"], covered, floor)
+        yield Unit(instance["object"], name, stream, instance["group"], stratum, covered, floor)
 
 
 def _floor(guarantee: dict[str, Any], band: float) -> float:
@@ -155,6 +164,8 @@ def _names(unit: Unit) -> Iterator[tuple[str, str]]:
         yield "stream", unit.stream
     if unit.group:
         yield "group", unit.group
+    if unit.stratum is not None:
+        yield "stratum", unit.stratum
 
 
 def _report(key: tuple, votes: _Votes, level: float) -> GroupCoverage:

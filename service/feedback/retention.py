@@ -2,8 +2,9 @@
 
 A retained prediction keeps, per (instance, keypoint) row, the heatmap statistics that give every
 nonconformity score of a true point (q*, p*, the top-K mean and covariance, whether the map was
-uninformative), the instance's image -> heatmap affine, the threshold and centre of the set served
-and the guarantee it came with; per request the calibration version, the query, the image's sha256
+uninformative), the instance's image -> heatmap affine, the threshold and centre of the set served,
+the guarantee it came with and the name of the Mondrian stratum that gave it (live coverage counts
+per stratum); per request the calibration version, the query, the image's sha256
 and size, the camera stream and the client. Nothing else is needed: labels arrive as image points,
 the affine takes them to the heatmap, the statistics score them exactly as calibration would.
 """
@@ -21,6 +22,7 @@ from datetime import UTC, datetime, timedelta
 from typing import Any
 
 from calibration_store import RetainedPrediction, StoreError
+from service.calibration.stratification import Stratum
 from service.conformal import CoverageGuarantee
 
 log = logging.getLogger(__name__)
@@ -169,6 +171,17 @@ def retained_at(prediction_id: str) -> datetime | None:
 
 def guarantee_values(guarantee: CoverageGuarantee) -> dict[str, Any]:
     return {"n": guarantee.n, "t": guarantee.t, "epsilon": guarantee.epsilon, "delta": guarantee.delta}
+
+
+def stratum_name(stratum: Stratum | None) -> str | None:
+    """The Mondrian stratum that answered a row, as live coverage names it (None: not stratified)."""
+    if stratum is None:
+        return None
+    if stratum.kinds == "pooled":
+        return "pooled"
+    parts = [] if stratum.group is None else [f"group {stratum.group}"]
+    parts += [] if stratum.bin is None else [f"difficulty bin {stratum.bin}"]
+    return ", ".join(parts) or "all instances"
 
 
 def finite_or_none(value: float) -> float | None:
