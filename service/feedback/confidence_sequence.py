@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -77,6 +78,7 @@ def coverage_bounds(total: float, count: int, level: float) -> CoverageBounds:
     return CoverageBounds(count, total / count, lower, upper)
 
 
+@lru_cache(maxsize=4096)  # a few (n, t) per version, and 60 Beta cdfs each: read per labelled unit
 def promised_floor(n: int, t: int, epsilon: float, delta: float | None, band_level: float) -> float:
     """The coverage a calibration promises at least: 1 - epsilon with a PAC delta, otherwise the
     ``band_level`` quantile of Beta(n + 1 - t, t) (t = 0: unbounded sets, coverage 1)."""

@@ -5,13 +5,16 @@ every refusal a clear 4xx, the feedback token's own scope, and the audit trail."
 from __future__ import annotations
 
 from collections.abc import Iterator
+from dataclasses import asdict
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import pytest
 
+from calibration_store import NewAuditEntry
 from service.api.predict.predict_schemas import PredictResponse
 from service.feedback.confidence_sequence import promised_floor
+from service.feedback.live_coverage import LiveCoverageReader
 from service.feedback.retention import new_prediction_id
 from tests.api.in_process import InProcess
 from tests.predict_client import contains, instances_of, predict_json, predict_ok
@@ -307,3 +310,29 @@ def test_live_coverage_counts_each_stratum_against_its_own_promise(
         assert pooled["labelled"] == sum(labelled_by_bin.values())
         metrics = service.client.get("/metrics").text
         assert 'level="stratum",name="difficulty bin 0"' in metrics
+
+
+def test_live_coverage_folds_each_label_once_as_it_arrives(tmp_path: Path, samples: list[Sample]) -> None:
+    level = 0.05
+    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN, feedback_alarm_level=level) as service:
+        state = service.app.state.service
+        live = "/v1/admin/coverage/live"
+        first = send_all(service, samples, 0.0, "cam-a")
+        service.client.get(live, headers=service.admin)  # read: these labels are folded
+        send_all(service, samples, 60.0, "cam-b")
+        report = service.client.get(live, headers=service.admin).json()
+        names = [k.name for k in state.detector.manifest.keypoints]
+        fresh = LiveCoverageReader(state.store, state.detector.model_hash, names, 10**6, level).report()
+        assert report["groups"] == [asdict(g) for g in fresh]  # read in two goes, or all at once: the same
+
+        image, group = first_image(samples)
+        late = retained(service, image, group, stream="cam-late")  # its label commits late, stamped early
+        state.retention.flush()
+        labels = state.store.retained_prediction(first[0]["prediction_id"]).labels
+        stamped = datetime.now(UTC) - timedelta(seconds=30)  # within live_coverage.SETTLE of the newest
+        entry = NewAuditEntry(state.detector.model_hash, "late", "feedback", "labelled", version=1)
+        state.store.label_prediction(late["prediction_id"], labels, "late", stamped, entry)
+        report = service.client.get(live, headers=service.admin).json()
+        streams = {g["name"]: g for g in report["groups"] if g["level"] == "stream"}
+        assert streams["cam-late"]["labelled"] == len(labels["rows"]) and streams["cam-late"]["looks"] == 1
+        assert service.client.get(live, headers=service.admin).json() == report  # nothing counted twice
