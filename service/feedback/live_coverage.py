@@ -229,13 +229,14 @@ class LiveCoverageReader:
         self._cached: tuple[float, list[GroupCoverage]] | None = None
 
     def report(self, max_age_s: float = 0.0) -> list[GroupCoverage]:
-        """Fold the labels new since the last read; a report at most ``max_age_s`` old may be
-        given instead (then also while another read is folding)."""
+        """Fold the labels new since the last read. With ``max_age_s`` (/metrics), a report at most
+        that old may be given instead, and while another read is folding, the last one (none yet:
+        no groups), so that a scrape never waits for a process's first count of a full store."""
         cached = self._cached
         if cached is not None and time.monotonic() - cached[0] <= max_age_s:
             return cached[1]
-        if not self._lock.acquire(blocking=cached is None or max_age_s == 0.0):
-            return cached[1]  # type: ignore[index]  # only when cached
+        if not self._lock.acquire(blocking=max_age_s == 0.0):
+            return [] if cached is None else cached[1]
         try:
             self._fold_new()
             self._cached = (time.monotonic(), self._fold.report())
