@@ -37,6 +37,14 @@ function note(text, className = "muted") {
   return el("p", { class: className }, text);
 }
 
+function onlyNote(id, text) {
+  // A panel with a note only: its controls (if any) hidden, its detail (if any) emptied.
+  const section = document.getElementById(id);
+  section.querySelectorAll(".controls").forEach((controls) => { controls.hidden = true; });
+  section.querySelectorAll(".body ~ div:not(.controls)").forEach((detail) => detail.replaceChildren());
+  show(id, note(text));
+}
+
 function table(headers, rows) {
   // Each cell names its column (data-label): on a phone a table with headers reads row by row.
   const head = el("tr", {}, ...headers.map((h) => el("th", {}, h)));
@@ -149,20 +157,14 @@ async function loadActivations() {
 async function loadAudits() {
   const list = await getJson("v1/admin/audits?limit=20");
   const audits = list.audits || [];
-  const controls = document.querySelector("#audits .controls");
-  if (!audits.length) {
-    controls.hidden = true;
-    document.getElementById("audit-detail").replaceChildren();
-    show("audits", note("No coverage audit yet: POST a labeled batch to /v1/admin/audits (docs/operations.md)."));
-    return;
-  }
+  if (!audits.length) return onlyNote("audits", "No coverage audit yet: POST a labeled batch to /v1/admin/audits (docs/operations.md).");
   show("audits", table(["id", "version", "created", "who", "instances", "result"], audits.map((a) => [
     a.id, a.version, whenCell(a.created_at), a.who, a.instances,
     a.passed ? el("span", { class: "pass" }, "passed") : el("span", { class: "fail" }, `${a.flagged} flagged`),
   ])));
   const choice = document.getElementById("audit-choice");
   choice.replaceChildren(...audits.map((a) => el("option", { value: a.id }, `#${a.id} (version ${a.version})`)));
-  controls.hidden = false;
+  document.querySelector("#audits .controls").hidden = false;
   await loadAudit(audits[0].id);
 }
 
@@ -253,12 +255,8 @@ const LIVE_LEVELS = ["version", "stratum", "stream", "group", "object", "keypoin
 async function loadLiveCoverage() {
   state.live = await getJson("v1/admin/coverage/live");
   const groups = state.live.groups || [];
-  const controls = document.querySelector("#live-coverage .controls");
   if (!groups.length) {
-    controls.hidden = true;
-    document.getElementById("live-detail").replaceChildren();
-    show("live-coverage", note('No labelled feedback yet: predict with "retain": true, then POST the true points to /v1/feedback/{prediction_id} (docs/feedback.md).'));
-    return;
+    return onlyNote("live-coverage", 'No labelled feedback yet: predict with "retain": true, then POST the true points to /v1/feedback/{prediction_id} (docs/feedback.md).');
   }
   const alarms = groups.filter((g) => g.alarm).length;
   const verdict = alarms ? el("span", { class: "alarm" }, `alarm raised in ${alarms} of ${groups.length} groups`) : `no alarm in ${groups.length} groups`;
@@ -272,7 +270,7 @@ async function loadLiveCoverage() {
   const current = select.value || "summary";
   select.replaceChildren(...choices.map(([value, text]) => el("option", { value }, text)));
   select.value = choices.some(([value]) => value === current) ? current : "summary";
-  controls.hidden = false;
+  document.querySelector("#live-coverage .controls").hidden = false;
   drawLiveCoverage();
 }
 
@@ -482,10 +480,7 @@ async function loadAdmin() {
   const status = document.getElementById("token-state");
   if (!state.token) {
     status.textContent = "no token";
-    for (const id of Object.keys(ADMIN_PANELS)) show(id, note("Enter the admin token above to see this."));
-    show("set-sizes", note("Enter the admin token above to see this."));
-    for (const id of ["audits", "live-coverage"]) document.querySelector(`#${id} .controls`).hidden = true;
-    for (const id of ["audit-detail", "live-detail"]) document.getElementById(id).replaceChildren();
+    for (const id of [...Object.keys(ADMIN_PANELS), "set-sizes"]) onlyNote(id, "Enter the admin token above to see this.");
     return;
   }
   status.textContent = "token in use (this tab only)";
