@@ -28,6 +28,7 @@ stratum threshold's own promise, and ``pooled`` gathers the rows that fell back 
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import OrderedDict
@@ -38,10 +39,11 @@ from typing import Any
 
 import numpy as np
 
-from calibration_store import RetainedPrediction
+from calibration_store import RetainedPrediction, StoreError
 from service.feedback.confidence_sequence import BettingAlarm, coverage_bounds, promised_floor
 from service.feedback.labels import covered_units
 
+log = logging.getLogger(__name__)
 #: each read lists again the labels stamped this long before the newest one seen: a label stamped
 #: earlier may commit later (a slow transaction, another replica's clock)
 SETTLE = timedelta(seconds=60)
@@ -229,22 +231,34 @@ class LiveCoverageReader:
         self._cached: tuple[float, list[GroupCoverage]] | None = None
 
     def report(self, max_age_s: float = 0.0) -> list[GroupCoverage]:
-        """Fold the labels new since the last read. With ``max_age_s`` (/metrics), a report at most
-        that old may be given instead, and while another read is folding, the last one (none yet:
-        no groups), so that a scrape never waits for a process's first count of a full store."""
+        """Fold the labels new since the last read, then report. With ``max_age_s`` (/metrics,
+        which must not wait: its scrape runs on the event loop), the last report is given at
+        once (none before the first), and a fold is started in the background when it is older."""
+        if max_age_s == 0.0:
+            with self._lock:
+                return self._fold_and_report()
         cached = self._cached
-        if cached is not None and time.monotonic() - cached[0] <= max_age_s:
-            return cached[1]
-        if not self._lock.acquire(blocking=max_age_s == 0.0):
-            return [] if cached is None else cached[1]
+        if (cached is None or time.monotonic() - cached[0] > max_age_s) and self._lock.acquire(
+            blocking=False
+        ):
+            threading.Thread(target=self._fold_in_background, name="live-coverage", daemon=True).start()
+        return [] if cached is None else cached[1]
+
+    def _fold_and_report(self) -> list[GroupCoverage]:
+        report = self._fold.report() if self._fold_new() or self._cached is None else self._cached[1]
+        self._cached = (time.monotonic(), report)
+        return report
+
+    def _fold_in_background(self) -> None:
         try:
-            self._fold_new()
-            self._cached = (time.monotonic(), self._fold.report())
-            return self._cached[1]
+            self._fold_and_report()
+        except StoreError:  # the next scrape tries again
+            log.warning("live coverage: the store could not be read", exc_info=True)
         finally:
             self._lock.release()
 
-    def _fold_new(self) -> None:
+    def _fold_new(self) -> bool:
+        """Fold what is new; whether anything was."""
         since = None if self._newest is None else self._newest - SETTLE
         listed = [
             (i, at) for i, at in self._store.labelled_since(self._model_hash, since) if i not in self._recent
@@ -255,7 +269,8 @@ class LiveCoverageReader:
             for prediction_id, _ in page:
                 if prediction_id in found:  # evicted in between: gone
                     self._fold.add(found[prediction_id])
+            self._recent.update(page)  # folded: a store error on the next page refolds none of these
+            self._newest = max(page[-1][1], self._newest or page[-1][1])
         if listed:
-            self._newest = max(listed[-1][1], self._newest or listed[-1][1])
-            self._recent.update(listed)
             self._recent = {i: at for i, at in self._recent.items() if at >= self._newest - SETTLE}
+        return bool(listed)

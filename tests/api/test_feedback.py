@@ -4,6 +4,7 @@ every refusal a clear 4xx, the feedback token's own scope, and the audit trail."
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from dataclasses import asdict
 from datetime import UTC, datetime, timedelta
@@ -336,3 +337,16 @@ def test_live_coverage_folds_each_label_once_as_it_arrives(tmp_path: Path, sampl
         streams = {g["name"]: g for g in report["groups"] if g["level"] == "stream"}
         assert streams["cam-late"]["labelled"] == len(labels["rows"]) and streams["cam-late"]["looks"] == 1
         assert service.client.get(live, headers=service.admin).json() == report  # nothing counted twice
+
+
+def test_a_metrics_scrape_never_waits_for_live_coverage(tmp_path: Path, samples: list[Sample]) -> None:
+    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN) as service:
+        send_all(service, samples, 0.0, "cam-a")
+        gauge = 'cks_feedback_coverage_looks{coverage="keypoint",epsilon="0.1",level="stream",name="cam-a"'
+        # the first scrape of a process: nothing counted yet, so nothing to say, and it does not wait
+        assert gauge not in service.client.get("/metrics").text
+        deadline = time.monotonic() + 30
+        while gauge not in (text := service.client.get("/metrics").text) and time.monotonic() < deadline:
+            time.sleep(0.05)  # the count the scrape started, in the background
+        looks = len(samples_by_image(samples))
+        assert f'{gauge},nonconformity="cov",version="1"}} {float(looks)}' in text
