@@ -88,7 +88,9 @@ Coverage audits (immutable, like versions):
 Feedback (calibration_store/feedback_records.py): ``retain_predictions([RetainedPrediction],
 max_rows)`` (one transaction), ``retained_prediction(id)``, ``oldest_retained()``,
 ``label_prediction(id, labels, who, at, audit) -> LabelOutcome`` (once per row, with its audit
-entry), ``labelled_predictions(model_hash, limit)`` (in label order), ``adaptive_state(key)``
+entry), ``labelled_predictions(model_hash, limit)`` (in label order), ``labelled_since(model_hash,
+since) -> [(id, labelled_at)]`` and ``retained_predictions(ids)`` (new labels, read incrementally),
+``adaptive_state(key)``
 and ``save_adaptive_state(key, steps_before, AdaptiveState) -> bool`` (compare-and-set on the step count).
 
 Errors: StoreError > VersionNotFound (also a LookupError; HTTP 404), DuplicateVersion, JobNotFound

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import UTC, datetime
 from enum import Enum
 from typing import Any
 
@@ -52,6 +52,8 @@ class AdaptiveState:
     state: dict[str, Any]
 
 
+#: ids in one ``IN (...)`` of retained_predictions (SQLite allows 32,766 parameters; PostgreSQL 65,535)
+_IDS_PER_QUERY = 500
 _RETAINED_COLUMNS = (
     "id, model_hash, version, stream, created_at, expires_at, record, labels, labelled_at, labelled_by"
 )
@@ -133,6 +135,26 @@ class FeedbackRecords:
             (model_hash, limit),
         )
         return [self._retained(row) for row in reversed(rows)]
+
+    def labelled_since(self, model_hash: str, since: datetime | None) -> list[tuple[str, datetime]]:
+        """(id, labelled_at) of a model's rows labelled at or after ``since`` (None: all kept), in
+        label order: the cheap half of reading new labels (the records are fetched by id)."""
+        rows = self._read(
+            "SELECT id, labelled_at FROM calib_retained WHERE model_hash = ? AND labelled_at >= ?"
+            " ORDER BY labelled_at, id",
+            (model_hash, self._time_to_db(since or datetime.fromtimestamp(0, UTC))),
+        )
+        return [(row[0], self._time_from_db(row[1])) for row in rows]
+
+    def retained_predictions(self, ids: Sequence[str]) -> list[RetainedPrediction]:
+        """The kept rows of ``ids`` (those evicted since are missing), in no particular order."""
+        found: list[RetainedPrediction] = []
+        for start in range(0, len(ids), _IDS_PER_QUERY):
+            chunk = tuple(ids[start : start + _IDS_PER_QUERY])
+            marks = ", ".join("?" * len(chunk))
+            rows = self._read(f"SELECT {_RETAINED_COLUMNS} FROM calib_retained WHERE id IN ({marks})", chunk)
+            found.extend(self._retained(row) for row in rows)
+        return found
 
     def adaptive_state(self, key: str) -> AdaptiveState | None:
         rows = self._read("SELECT key, steps, state FROM calib_adaptive WHERE key = ?", (key,))

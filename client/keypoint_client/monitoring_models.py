@@ -210,7 +210,7 @@ class FeedbackResult(Frozen):
 class GroupCoverage(Frozen):
     """The field labels' coverage of one group so far (see GET /v1/admin/coverage/live)."""
 
-    level: str
+    level: str  # version, object, keypoint, stream, group (the caller's) or stratum (Mondrian)
     name: str
     version: int
     guarantee: str  # exchangeable, or adaptive (ACI: no floor, no alarm)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -71,9 +72,13 @@ def coverage_bounds(total: float, count: int, level: float) -> CoverageBounds:
     below = log_evidence_below(count - total, count, 1.0 - _CANDIDATES) < limit  # the mirror test
     upper = float(_CANDIDATES[above].max()) if above.any() else 0.0
     lower = float(_CANDIDATES[below].min()) if below.any() else 1.0
-    return CoverageBounds(count, total / count, 0.0 if lower == _CANDIDATES[0] else lower, upper)
+    # an end of the scan not rejected: the bound is the end of [0, 1] (all covered: upper 1, not 0.9995)
+    lower = 0.0 if lower == _CANDIDATES[0] else lower
+    upper = 1.0 if upper == _CANDIDATES[-1] else upper
+    return CoverageBounds(count, total / count, lower, upper)
 
 
+@lru_cache(maxsize=4096)  # a few (n, t) per version, and 60 Beta cdfs each: read per labelled unit
 def promised_floor(n: int, t: int, epsilon: float, delta: float | None, band_level: float) -> float:
     """The coverage a calibration promises at least: 1 - epsilon with a PAC delta, otherwise the
     ``band_level`` quantile of Beta(n + 1 - t, t) (t = 0: unbounded sets, coverage 1)."""

@@ -2,9 +2,11 @@
 
 A retained prediction keeps, per (instance, keypoint) row, the heatmap statistics that give every
 nonconformity score of a true point (q*, p*, the top-K mean and covariance, whether the map was
-uninformative), the instance's image -> heatmap affine, the threshold and centre of the set served
-and the guarantee it came with; per request the calibration version, the query, the image's sha256
-and size, the camera stream and the client. Nothing else is needed: labels arrive as image points,
+uninformative), the instance's image -> heatmap affine, the threshold and centre of the set served,
+the guarantee it came with and the name of the Mondrian stratum that gave it (live coverage counts
+per stratum); per request the calibration version, the query, the image's sha256
+and size, the camera stream, the client and the look (frames of one scene; live coverage counts
+one vote per look). Nothing else is needed: labels arrive as image points,
 the affine takes them to the heatmap, the statistics score them exactly as calibration would.
 """
 
@@ -16,18 +18,25 @@ import random
 import secrets
 import threading
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
+import numpy as np
+
 from calibration_store import RetainedPrediction, StoreError
+from service.calibration.stratification import Stratum
 from service.conformal import CoverageGuarantee
+from service.monitoring.looks import Frame, LookTracker
 
 log = logging.getLogger(__name__)
 #: how often a write the store refused is tried again
 RETRY_S = 1.0
 #: how long the writer lets answers gather before a write (their requests finish first)
 GATHER_S = 0.05
+#: camera streams whose looks are followed (the least recently served beyond it start afresh)
+LOOK_STREAMS = 1024
 #: prediction ids: "p" + creation time (ms since the epoch, 12 hex digits) + 20 random hex digits
 ID_PREFIX = "p"
 _TIME_DIGITS = 12
@@ -71,6 +80,8 @@ class Retention:
         self._changed = threading.Condition()
         self._writing = 0  # rows taken by the writer, not yet committed (-1: gathering them)
         self._closed = False
+        self._looks: OrderedDict[str, tuple[LookTracker, str]] = OrderedDict()
+        self._looks_lock = threading.Lock()
         self._writer = threading.Thread(target=self._write_loop, name="retention-writer", daemon=True)
         self._writer.start()
 
@@ -96,6 +107,7 @@ class Retention:
             "instances": served.instances,
             "rows": served.rows,
             "adaptive": served.adaptive,
+            "look": self._look(stream or f"client:{client}", served.instances, prediction_id),
         }
         retained = RetainedPrediction(
             prediction_id, self._model_hash, version, stream or "", now, now + self.rules.max_age, record
@@ -104,6 +116,20 @@ class Retention:
             self._pending.append(retained)
             self._changed.notify_all()
         return prediction_id
+
+    def _look(self, stream: str, instances: list[dict[str, Any]], prediction_id: str) -> str:
+        """The look this answer belongs to, named by its first retained frame: the stream's
+        retained frames in serving order through the drift monitor's look tracker (frames of one
+        scene are one observation), fixed once served, so live coverage folds each label once."""
+        frame = Frame(tuple(i["object"] for i in instances), np.array([i["bbox"] for i in instances]))
+        with self._looks_lock:
+            tracker, look = self._looks.pop(stream, (LookTracker(), prediction_id))
+            if tracker.is_new_look(frame):
+                look = prediction_id
+            self._looks[stream] = (tracker, look)
+            if len(self._looks) > LOOK_STREAMS:
+                self._looks.popitem(last=False)
+        return look
 
     def flush(self, timeout_s: float = 10.0) -> None:
         """Wait until every answer queued so far is in the store (or ``timeout_s`` has passed)."""
@@ -169,6 +195,17 @@ def retained_at(prediction_id: str) -> datetime | None:
 
 def guarantee_values(guarantee: CoverageGuarantee) -> dict[str, Any]:
     return {"n": guarantee.n, "t": guarantee.t, "epsilon": guarantee.epsilon, "delta": guarantee.delta}
+
+
+def stratum_name(stratum: Stratum | None) -> str | None:
+    """The Mondrian stratum that answered a row, as live coverage names it (None: not stratified)."""
+    if stratum is None:
+        return None
+    if stratum.kinds == "pooled":
+        return "pooled"
+    parts = [] if stratum.group is None else [f"group {stratum.group}"]
+    parts += [] if stratum.bin is None else [f"difficulty bin {stratum.bin}"]
+    return ", ".join(parts) or "all instances"
 
 
 def finite_or_none(value: float) -> float | None:

@@ -4,13 +4,18 @@ every refusal a clear 4xx, the feedback token's own scope, and the audit trail."
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
+from dataclasses import asdict
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import pytest
 
+from calibration_store import NewAuditEntry
 from service.api.predict.predict_schemas import PredictResponse
+from service.feedback.confidence_sequence import promised_floor
+from service.feedback.live_coverage import LiveCoverageReader
 from service.feedback.retention import new_prediction_id
 from tests.api.in_process import InProcess
 from tests.predict_client import contains, instances_of, predict_json, predict_ok
@@ -179,11 +184,13 @@ def test_a_png_answer_is_not_retained(api: InProcess, samples: list[Sample]) -> 
     assert response.status_code == 200 and response.headers["content-type"] == "image/png"
 
 
-def send_all(service: InProcess, samples: list[Sample], shift: float, stream: str) -> None:
+def send_all(service: InProcess, samples: list[Sample], shift: float, stream: str, **options) -> list[dict]:
     """Every sample image predicted (retained) and labelled, the labels moved ``shift`` pixels (right,
-    or left near the right edge)."""
+    or left near the right edge); the answers."""
+    answers = []
     for path, group in samples_by_image(samples).items():
-        answer = retained(service, Path(path).read_bytes(), group, stream=stream)
+        answer = retained(service, Path(path).read_bytes(), group, stream=stream, **options)
+        answers.append(answer)
         moved = [
             {
                 "instance": i,
@@ -197,6 +204,7 @@ def send_all(service: InProcess, samples: list[Sample], shift: float, stream: st
             f"/v1/feedback/{answer['prediction_id']}", json={"instances": moved}, headers=service.admin
         )
         assert response.status_code == 200, response.text
+    return answers
 
 
 def test_live_coverage_holds_on_true_labels_and_alarms_on_labels_the_sets_miss(
@@ -266,3 +274,79 @@ def test_adaptive_sets_follow_the_streams_feedback_and_survive_a_restart(
         live = service.client.get("/v1/admin/coverage/live", headers=service.admin).json()
         adaptive = [g for g in live["groups"] if g["guarantee"] == "adaptive"]
         assert adaptive and not any(g["alarm"] for g in adaptive)
+
+
+def test_live_coverage_counts_each_stratum_against_its_own_promise(
+    tmp_path: Path, samples: list[Sample]
+) -> None:
+    level = 0.05
+    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN, feedback_alarm_level=level) as service:
+        answers = send_all(service, samples, 0.0, "cam-true", stratify="difficulty")
+        labelled_by_bin: dict[str, int] = {}
+        floors: dict[str, list[float]] = {}
+        for answer, group in zip(answers, samples_by_image(samples).values(), strict=True):
+            for instance, sample in zip(answer["instances"], group, strict=True):
+                for keypoint, (_, _, v) in zip(instance["keypoints"], sample.keypoints, strict=True):
+                    guarantee = keypoint["guarantee"]
+                    name = f"difficulty bin {guarantee['stratum']['bin']}"
+                    labelled_by_bin[name] = labelled_by_bin.get(name, 0) + (v > 0)
+                    if v > 0:
+                        floor = promised_floor(guarantee["n"], guarantee["t"], 0.1, None, level / 2)
+                        floors.setdefault(name, []).append(floor)
+        report = service.client.get("/v1/admin/coverage/live", headers=service.admin).json()
+        strata = {g["name"]: g for g in report["groups"] if g["level"] == "stratum"}
+        assert len(strata) > 1 and {n: g["labelled"] for n, g in strata.items()} == {
+            name: count for name, count in labelled_by_bin.items() if count
+        }
+        for name, stratum in strata.items():  # each against its own threshold's Beta band
+            assert stratum["floor"] == pytest.approx(min(floors[name]))
+            assert not stratum["alarm"] and stratum["lower"] <= stratum["look_mean"] <= stratum["upper"]
+        # no group is stratified here: every row falls back to the pooled threshold, and is counted so
+        send_all(service, samples, 60.0, "cam-moved", stratify="group", group_fallback="pooled")
+        report = service.client.get("/v1/admin/coverage/live", headers=service.admin).json()
+        after = {g["name"]: g for g in report["groups"] if g["level"] == "stratum"}
+        assert {name: after[name] for name in strata} == strata
+        pooled = after["pooled"]
+        assert pooled["covered"] == 0 and pooled["alarm"] and pooled["upper"] < pooled["floor"]
+        assert pooled["labelled"] == sum(labelled_by_bin.values())
+        metrics = service.client.get("/metrics").text
+        assert 'level="stratum",name="difficulty bin 0"' in metrics
+
+
+def test_live_coverage_folds_each_label_once_as_it_arrives(tmp_path: Path, samples: list[Sample]) -> None:
+    level = 0.05
+    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN, feedback_alarm_level=level) as service:
+        state = service.app.state.service
+        live = "/v1/admin/coverage/live"
+        first = send_all(service, samples, 0.0, "cam-a")
+        service.client.get(live, headers=service.admin)  # read: these labels are folded
+        send_all(service, samples, 60.0, "cam-b")
+        report = service.client.get(live, headers=service.admin).json()
+        names = [k.name for k in state.detector.manifest.keypoints]
+        fresh = LiveCoverageReader(state.store, state.detector.model_hash, names, 10**6, level).report()
+        assert report["groups"] == [asdict(g) for g in fresh]  # read in two goes, or all at once: the same
+
+        image, group = first_image(samples)
+        late = retained(service, image, group, stream="cam-late")  # its label commits late, stamped early
+        state.retention.flush()
+        labels = state.store.retained_prediction(first[0]["prediction_id"]).labels
+        stamped = datetime.now(UTC) - timedelta(seconds=30)  # within live_coverage.SETTLE of the newest
+        entry = NewAuditEntry(state.detector.model_hash, "late", "feedback", "labelled", version=1)
+        state.store.label_prediction(late["prediction_id"], labels, "late", stamped, entry)
+        report = service.client.get(live, headers=service.admin).json()
+        streams = {g["name"]: g for g in report["groups"] if g["level"] == "stream"}
+        assert streams["cam-late"]["labelled"] == len(labels["rows"]) and streams["cam-late"]["looks"] == 1
+        assert service.client.get(live, headers=service.admin).json() == report  # nothing counted twice
+
+
+def test_a_metrics_scrape_never_waits_for_live_coverage(tmp_path: Path, samples: list[Sample]) -> None:
+    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN) as service:
+        send_all(service, samples, 0.0, "cam-a")
+        gauge = 'cks_feedback_coverage_looks{coverage="keypoint",epsilon="0.1",level="stream",name="cam-a"'
+        # the first scrape of a process: nothing counted yet, so nothing to say, and it does not wait
+        assert gauge not in service.client.get("/metrics").text
+        deadline = time.monotonic() + 30
+        while gauge not in (text := service.client.get("/metrics").text) and time.monotonic() < deadline:
+            time.sleep(0.05)  # the count the scrape started, in the background
+        looks = len(samples_by_image(samples))
+        assert f'{gauge},nonconformity="cov",version="1"}} {float(looks)}' in text

@@ -1,11 +1,13 @@
 """The operator console in a real Chromium with every request off 127.0.0.1 refused: it loads
 without errors, asks for the admin token, then shows the model, the versions, the activation
-history, the audit run here (its coverage plotted against the bands), the drift of every
-keypoint over time and the set sizes of the predictions made here, or 'no drift data' on a
-server without drift monitoring; at 1280 px and at a phone's 390 px nothing is cut or pushed out
-of its panel or the window, no word or number is split across lines, and no control shows empty
-(without a token, without audits). Screenshots go to the test's temporary directory and to
-``test-artifacts/console*.png`` (gitignored)."""
+history, the audit run here (its coverage plotted against the bands), the live coverage of the
+field labels sent here (per version and group: coverage so far, the confidence sequence, the
+promise, the alarm), the drift of every keypoint over time and the set sizes of the predictions
+made here, or 'no drift data' (and no feedback) on a server without drift monitoring; at 1280 px
+and at a phone's 390 px nothing is cut or pushed out of its panel or the window, no word or
+number is split across lines, and no control shows empty (without a token, without audits).
+Screenshots go to the test's temporary directory and to ``test-artifacts/console*.png``
+(gitignored)."""
 
 from __future__ import annotations
 
@@ -23,6 +25,7 @@ from playwright.sync_api import Browser, BrowserContext, ConsoleMessage
 from service.api.monitoring.console_routes import CONSOLE_CONTENT_SECURITY_POLICY
 from service.infra.settings import PACKAGE_ROOT
 from tests.api.test_audits import run_audit, shifted
+from tests.api.test_feedback import send_all
 from tests.deploy.test_api_pages import RECORD_POLICY_VIOLATIONS, Watch, open_page, watched_context
 from tests.live.server import LiveServer
 from tests.predict_client import instances_of, predict_ok
@@ -55,6 +58,14 @@ def predictions(server: LiveServer, samples: list[Sample]) -> None:
         time.sleep(3 * HISTORY_SECONDS)
 
 
+@pytest.fixture(scope="module")
+def feedback(server: LiveServer, samples: list[Sample]) -> None:
+    """Field labels of every sample: true ones from one camera (answers of difficulty strata), and
+    labels 60 px off from another (its sets miss them: its alarm is raised)."""
+    send_all(server, samples, 0.0, "cam-true", stratify="difficulty")  # type: ignore[arg-type]
+    send_all(server, samples, 60.0, "cam-moved")  # type: ignore[arg-type]
+
+
 @pytest.fixture
 def context(browser: Browser, server: LiveServer) -> Iterator[tuple[BrowserContext, Watch]]:
     yield from watched_context(browser, server, {"width": 1400, "height": 1350})
@@ -76,7 +87,12 @@ def test_the_console_is_served_from_the_package_without_other_hosts(server: Live
 
 
 def test_the_console_shows_the_audit_against_its_bands(
-    server: LiveServer, context: tuple[BrowserContext, Watch], audit: dict, predictions: None, tmp_path: Path
+    server: LiveServer,
+    context: tuple[BrowserContext, Watch],
+    audit: dict,
+    predictions: None,
+    feedback: None,
+    tmp_path: Path,
 ) -> None:
     errors: list[str] = []
     page, watch = open_page(context, f"{server.url}/console")
@@ -109,6 +125,7 @@ def test_the_console_shows_the_audit_against_its_bands(
     activations = server.client.get("/v1/admin/activations", headers=server.admin).json()["activations"]
     assert page.locator("#activations tbody tr").count() == len(activations)
     _assert_drift_panels(server, page)
+    _assert_live_coverage(server, page)
 
     page.select_option("#audit-epsilon", "0.2")  # another epsilon redraws the plot
     section = next(
@@ -228,7 +245,12 @@ def window(request: pytest.FixtureRequest, browser: Browser, server: LiveServer)
 
 
 def test_the_console_fits_a_laptop_and_a_phone(
-    server: LiveServer, window: tuple[BrowserContext, Watch], audit: dict, predictions: None, tmp_path: Path
+    server: LiveServer,
+    window: tuple[BrowserContext, Watch],
+    audit: dict,
+    predictions: None,
+    feedback: None,
+    tmp_path: Path,
 ) -> None:
     page, watch = open_page(window, f"{server.url}/console")
     width = page.viewport_size["width"]
@@ -239,6 +261,7 @@ def test_the_console_fits_a_laptop_and_a_phone(
     page.click("#token-form button[type=submit]")
     page.wait_for_selector("body[data-loaded=true]")
     page.eval_on_selector_all("details", "all => all.forEach((details) => { details.open = true; })")
+    page.select_option("#live-level", "all")  # every live coverage group drawn
     name = f"console-{width}.png"
     check_and_save(page, name, tmp_path)
     problems = page.evaluate(CUT_OR_HIDDEN)
@@ -301,9 +324,45 @@ def test_a_server_without_drift_says_so(browser: Browser, tmp_path: Path) -> Non
         assert "No drift data" in page.inner_text("#drift")
         assert "not available" in page.inner_text("#set-sizes")
         assert "No coverage audit yet" in page.inner_text("#audits")
+        assert "No labelled feedback yet" in page.inner_text("#live-coverage")
         for width in (1280, 390):
             page.set_viewport_size({"width": width, "height": 900})
             check_and_save(page, f"console-{width}-no-audits.png", tmp_path)
         watch.assert_offline(page)
         assert not watch.page_errors
         context.close()
+
+
+def _assert_live_coverage(server: LiveServer, page) -> None:  # noqa: ANN001 - a Playwright Page
+    """Live coverage as the admin API reports it: totals and alarms first, then every group with its
+    coverage so far, confidence sequence, promise and alarm state, and each level on its own."""
+    groups = server.client.get("/v1/admin/coverage/live", headers=server.admin).json()["groups"]
+    alarmed = [g for g in groups if g["alarm"]]
+    assert alarmed and any(g["level"] == "stream" and g["name"] == "cam-moved" for g in alarmed)
+    summary = page.inner_text("#live-coverage .body")
+    assert f"alarm raised in {len(alarmed)} of {len(groups)} groups" in summary, summary
+    rows = page.locator("#live-detail tbody tr")
+    assert rows.count() == len([g for g in groups if g["level"] == "version" or g["alarm"]])
+    assert "alarm raised" in page.inner_text("#live-detail")
+
+    page.select_option("#live-level", "all")
+    assert rows.count() == len(groups)
+    drawn = "plots => plots.map(p => p.dataset.level + ' ' + p.dataset.name)"
+    shown = page.eval_on_selector_all("#live-detail svg.live-interval", drawn)
+    assert sorted(shown) == sorted(f"{g['level']} {g['name']}" for g in groups)
+    for group in groups:
+        label = "all keypoints" if group["level"] == "version" else f"{group['level']}: {group['name']}"
+        row = rows.filter(
+            has=page.locator(f'svg[data-level="{group["level"]}"][data-name="{group["name"]}"]')
+        )
+        cells = row.locator("td").all_inner_texts()
+        assert cells[0] == label and cells[1] == str(group["labelled"]) and cells[3] == str(group["looks"])
+        assert cells[2] == f"{group['covered'] / group['labelled']:.3f}"
+        assert cells[5] == f"{group['lower']:.3f}–{group['upper']:.3f}"
+        assert cells[7] == f"≥ {group['floor']:.3f}"
+        assert cells[8] == ("alarm raised" if group["alarm"] else "no alarm")
+
+    page.select_option("#live-level", "stratum")  # the Mondrian strata the true camera was answered by
+    strata = [g for g in groups if g["level"] == "stratum"]
+    assert rows.count() == len(strata) > 1
+    page.select_option("#live-level", "summary")

@@ -67,3 +67,10 @@ def test_the_promise_is_the_beta_band_or_one_minus_epsilon_with_pac() -> None:
     floor = promised_floor(600, 60, 0.1, None, 0.005)
     assert 0.85 < floor < 0.9  # Beta(541, 60)'s 0.5 % quantile
     assert not BettingAlarm(LEVEL).observe(0.0, 0.0)  # an adaptive stream promises no floor
+
+
+def test_the_bounds_hold_the_mean_at_both_ends_of_the_unit_interval() -> None:
+    for total, count in ((30.0, 30), (0.0, 30), (1.0, 1)):
+        bounds = coverage_bounds(total, count, LEVEL)
+        assert bounds.lower <= total / count <= bounds.upper
+    assert coverage_bounds(30.0, 30, LEVEL).upper == 1.0 and coverage_bounds(0.0, 30, LEVEL).lower == 0.0

@@ -45,3 +45,21 @@ def test_the_share_is_drawn() -> None:
     draws = [sampled.wanted(False) for _ in range(2000)]
     assert 0.25 < sum(draws) / len(draws) < 0.35 and sampled.wanted(True)
     sampled.close()
+
+
+def test_frames_of_one_scene_share_a_look_named_by_its_first(tmp_path: Path) -> None:
+    store = open_store(f"sqlite://{tmp_path}/c.db")
+    retention = Retention(store, "f" * 64, RULES)
+
+    def at(x: float) -> ServedRequest:
+        instances = [{"object": "ape", "bbox": [x, 10.0, 50.0, 50.0], "group": None, "affine": None}]
+        return ServedRequest({"epsilon": 0.1}, instances, [], (64, 64), 640, 480)
+
+    frames = [(10.0, "cam-1"), (12.0, "cam-1"), (300.0, "cam-1"), (12.0, "cam-2"), (14.0, None)]
+    ids = [retention.retain(1, at(x), "0" * 64, stream, "robot") for x, stream in frames]
+    retention.flush()
+    looks = [store.retained_prediction(i).record["look"] for i in ids]
+    # the camera moved 2 px: one scene; then a cut; another stream, and the caller's frames, apart
+    assert looks == [ids[0], ids[0], ids[2], ids[3], ids[4]]
+    retention.close()
+    store.close()

@@ -44,7 +44,10 @@ class FeedbackOut(BaseModel):
 
 
 class GroupCoverageOut(BaseModel):
-    level: str = Field(description="version (all keypoints), object, keypoint, stream or group")
+    level: str = Field(
+        description="version (all keypoints), object, keypoint, stream, group (the caller's) or stratum"
+        " (the Mondrian stratum that answered, with stratify)",
+    )
     name: str
     version: int
     guarantee: str = Field(

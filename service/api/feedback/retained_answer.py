@@ -8,7 +8,7 @@ from typing import Any
 from service.api.predict.predict_schemas import PredictParameters
 from service.errors import InvalidInput
 from service.feedback.adaptive import AdaptiveSets, AdaptiveView
-from service.feedback.retention import ServedRequest, finite_or_none, guarantee_values
+from service.feedback.retention import ServedRequest, finite_or_none, guarantee_values, stratum_name
 from service.prediction import Prediction, PredictQuery
 
 
@@ -43,7 +43,7 @@ def adapted_query(
 def served_request(
     prediction: Prediction, query: PredictQuery, adaptive: dict[str, Any] | None
 ) -> ServedRequest:
-    """Every row's heatmap statistics, threshold, set centre and guarantee, and each instance's
+    """Every row's heatmap statistics, threshold, set centre, guarantee and stratum, and each instance's
     object, box, group and image -> heatmap affine, as plain values."""
     sets, statistics = prediction.sets, prediction.sets.statistics
     assert prediction.affines is not None and sets.thresholds is not None
@@ -59,10 +59,11 @@ def served_request(
             "threshold": finite_or_none(threshold),
             "center": center,
             "guarantee": guarantee_values(guarantee),
+            "stratum": stratum_name(stratum),
         }
         for instance, channel, uninformative, peak, probability, mean, covariance, threshold, center, (
             guarantee,
-            _,
+            stratum,
         ) in zip(
             prediction.instance_index.tolist(),
             prediction.channel.tolist(),

@@ -1,5 +1,5 @@
-// The operator console: read-only views of the model, its calibrations, coverage audits and
-// drift, drawn with plain DOM and inline SVG (no library, nothing fetched from elsewhere).
+// The operator console: read-only views of the model, its calibrations, coverage audits, live
+// coverage from field labels and drift, drawn with plain DOM and inline SVG (no library, nothing fetched from elsewhere).
 // Admin data needs the admin token; it is kept in this tab's sessionStorage only.
 "use strict";
 
@@ -7,7 +7,7 @@ const TOKEN_KEY = "cks-admin-token";
 const SVG = "http://www.w3.org/2000/svg";
 const VERSIONS_SHOWN = 10;
 
-const state = { model: null, audit: null, token: sessionStorage.getItem(TOKEN_KEY) || "" };
+const state = { model: null, audit: null, live: null, token: sessionStorage.getItem(TOKEN_KEY) || "" };
 
 // ---------------------------------------------------------------- small helpers
 
@@ -35,6 +35,14 @@ function show(id, ...nodes) {
 
 function note(text, className = "muted") {
   return el("p", { class: className }, text);
+}
+
+function onlyNote(id, text) {
+  // A panel with a note only: its controls (if any) hidden, its detail (if any) emptied.
+  const section = document.getElementById(id);
+  section.querySelectorAll(".controls").forEach((controls) => { controls.hidden = true; });
+  section.querySelectorAll(".body ~ div:not(.controls)").forEach((detail) => detail.replaceChildren());
+  show(id, note(text));
 }
 
 function table(headers, rows) {
@@ -149,20 +157,14 @@ async function loadActivations() {
 async function loadAudits() {
   const list = await getJson("v1/admin/audits?limit=20");
   const audits = list.audits || [];
-  const controls = document.querySelector("#audits .controls");
-  if (!audits.length) {
-    controls.hidden = true;
-    document.getElementById("audit-detail").replaceChildren();
-    show("audits", note("No coverage audit yet: POST a labeled batch to /v1/admin/audits (docs/operations.md)."));
-    return;
-  }
+  if (!audits.length) return onlyNote("audits", "No coverage audit yet: POST a labeled batch to /v1/admin/audits (docs/operations.md).");
   show("audits", table(["id", "version", "created", "who", "instances", "result"], audits.map((a) => [
     a.id, a.version, whenCell(a.created_at), a.who, a.instances,
     a.passed ? el("span", { class: "pass" }, "passed") : el("span", { class: "fail" }, `${a.flagged} flagged`),
   ])));
   const choice = document.getElementById("audit-choice");
   choice.replaceChildren(...audits.map((a) => el("option", { value: a.id }, `#${a.id} (version ${a.version})`)));
-  controls.hidden = false;
+  document.querySelector("#audits .controls").hidden = false;
   await loadAudit(audits[0].id);
 }
 
@@ -243,6 +245,81 @@ function coveragePlot(figures, promised) {
     const label = svg("text", { x: x(i), y: height - bottom + 8, transform: `rotate(60 ${x(i)} ${height - bottom + 8})` }, f.keypoint);
     plot.append(label);
   });
+  return plot;
+}
+
+// ---------------------------------------------------------------- live coverage from field labels
+
+const LIVE_LEVELS = ["version", "stratum", "stream", "group", "object", "keypoint"];
+
+async function loadLiveCoverage() {
+  state.live = await getJson("v1/admin/coverage/live");
+  const groups = state.live.groups || [];
+  if (!groups.length) {
+    return onlyNote("live-coverage", 'No labelled feedback yet: predict with "retain": true, then POST the true points to /v1/feedback/{prediction_id} (docs/feedback.md).');
+  }
+  const alarms = groups.filter((g) => g.alarm).length;
+  const verdict = alarms ? el("span", { class: "alarm" }, `alarm raised in ${alarms} of ${groups.length} groups`) : `no alarm in ${groups.length} groups`;
+  show("live-coverage", el("p", { class: "muted" },
+    "Per calibration version and group: the labelled keypoints' coverage so far; an anytime-valid confidence sequence of the looks' mean ",
+    "(frames of one scene vote once; valid however often it is read); the least coverage the version promises; ",
+    `an alarm once coverage is proven below it (false-alarm probability ${state.live.alarm_level} per group). `, verdict, "."));
+  const present = LIVE_LEVELS.filter((level) => groups.some((g) => g.level === level));
+  const choices = [["summary", "totals and alarms"], ["all", "every group"], ...present.map((level) => [level, `per ${level}`])];
+  const select = document.getElementById("live-level");
+  const current = select.value || "summary";
+  select.replaceChildren(...choices.map(([value, text]) => el("option", { value }, text)));
+  select.value = choices.some(([value]) => value === current) ? current : "summary";
+  document.querySelector("#live-coverage .controls").hidden = false;
+  drawLiveCoverage();
+}
+
+function drawLiveCoverage() {
+  const groups = state.live?.groups || [];
+  const shown = document.getElementById("live-level").value;
+  const wanted = (g) => shown === "all" || g.level === shown || (shown === "summary" && (g.level === "version" || g.alarm));
+  const blocks = new Map();
+  for (const g of groups.filter(wanted)) {
+    const key = JSON.stringify([g.version, g.guarantee, g.nonconformity, g.coverage, g.epsilon, g.delta]);
+    if (!blocks.has(key)) blocks.set(key, []);
+    blocks.get(key).push(g);
+  }
+  const order = (g) => [g.alarm ? 0 : 1, LIVE_LEVELS.indexOf(g.level)];
+  const nodes = [];
+  for (const members of blocks.values()) {
+    const g = members[0];
+    const query = [`${g.nonconformity}, ${g.coverage} scope, ε = ${g.epsilon}`, g.delta === null ? "" : `, δ = ${g.delta}`,
+      g.guarantee === "adaptive" ? ", adaptive sets (long-run bound: no floor, no alarm)" : ""].join("");
+    nodes.push(el("h3", {}, `Version ${g.version}: ${query}`));
+    members.sort((a, b) => { const [x, y] = [order(a), order(b)]; return x[0] - y[0] || x[1] - y[1] || a.name.localeCompare(b.name); });
+    nodes.push(table(["group", "labelled", "covered so far", "looks", "look mean", "confidence sequence", "", "promised", "alarm"],
+      members.map((m) => [
+        m.level === "version" ? "all keypoints" : `${m.level}: ${m.name}`,
+        m.labelled,
+        fixed(m.labelled ? m.covered / m.labelled : null),
+        m.looks,
+        fixed(m.look_mean),
+        el("span", { class: "nowrap interval-text" }, `${fixed(m.lower)}–${fixed(m.upper)}`),
+        intervalPlot(m),
+        m.guarantee === "adaptive" ? "long-run" : el("span", { class: "nowrap" }, `≥ ${fixed(m.floor)}`),
+        m.alarm ? el("span", { class: "alarm" }, "alarm raised") : "no alarm",
+      ])));
+  }
+  if (shown === "summary") nodes.push(note("Totals of each version and query, and every group whose alarm is raised; choose a level to see its groups."));
+  document.getElementById("live-detail").replaceChildren(...nodes);
+}
+
+function intervalPlot(group) {
+  // The confidence sequence on [0, 1]: a bar from lower to upper, the look mean a dot, the floor a tick, 1 − ε dashed.
+  const width = 160, height = 18, x = (v) => 4 + v * (width - 8);
+  const plot = svg("svg", { class: "live-interval", width, height, viewBox: `0 0 ${width} ${height}`,
+    "data-level": group.level, "data-name": group.name });
+  plot.append(svg("line", { class: "axis", x1: x(0), x2: x(1), y1: height / 2, y2: height / 2 }));
+  plot.append(svg("line", { class: group.alarm ? "interval alarm" : "interval", x1: x(group.lower), x2: x(group.upper), y1: height / 2, y2: height / 2 }));
+  if (group.guarantee !== "adaptive") plot.append(svg("line", { class: "floor", x1: x(group.floor), x2: x(group.floor), y1: 2, y2: height - 2 }));
+  plot.append(svg("line", { class: "promised", x1: x(group.promised), x2: x(group.promised), y1: 2, y2: height - 2 }));
+  if (typeof group.look_mean === "number") plot.append(svg("circle", { class: group.alarm ? "coverage flagged" : "coverage", cx: x(group.look_mean), cy: height / 2, r: 3 }));
+  plot.append(svg("title", {}, `${group.level} ${group.name}: ${fixed(group.lower)}–${fixed(group.upper)}, look mean ${fixed(group.look_mean)}, floor ${fixed(group.floor)}, 1 − ε ${fixed(group.promised)}`));
   return plot;
 }
 
@@ -395,16 +472,15 @@ function histogramPlot({ edges, counts }, kind) {
 
 // ---------------------------------------------------------------- wiring
 
-const ADMIN_PANELS = { versions: loadVersions, activations: loadActivations, audits: loadAudits, drift: loadDrift };
+const ADMIN_PANELS = {
+  versions: loadVersions, activations: loadActivations, audits: loadAudits, "live-coverage": loadLiveCoverage, drift: loadDrift,
+};
 
 async function loadAdmin() {
   const status = document.getElementById("token-state");
   if (!state.token) {
     status.textContent = "no token";
-    for (const id of Object.keys(ADMIN_PANELS)) show(id, note("Enter the admin token above to see this."));
-    show("set-sizes", note("Enter the admin token above to see this."));
-    document.querySelector("#audits .controls").hidden = true;
-    document.getElementById("audit-detail").replaceChildren();
+    for (const id of [...Object.keys(ADMIN_PANELS), "set-sizes"]) onlyNote(id, "Enter the admin token above to see this.");
     return;
   }
   status.textContent = "token in use (this tab only)";
@@ -439,6 +515,7 @@ function wire() {
     loadAudit(event.target.value).catch((error) => document.getElementById("audit-detail").replaceChildren(failure(error)));
   });
   for (const id of ["audit-kind", "audit-epsilon"]) document.getElementById(id).addEventListener("change", drawAudit);
+  document.getElementById("live-level").addEventListener("change", drawLiveCoverage);
 }
 
 wire();

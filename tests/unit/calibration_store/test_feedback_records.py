@@ -63,3 +63,23 @@ def test_adaptive_state_is_compare_and_set(store: CalibrationStore) -> None:
     assert not store.save_adaptive_state("k", 1, AdaptiveState("k", 2, {"alpha": 0.3}))
     state = store.adaptive_state("k")
     assert state is not None and state.steps == 2 and state.state == {"alpha": 0.095}
+
+
+def test_new_labels_are_read_by_id_in_label_order(store: CalibrationStore) -> None:
+    now = datetime.now(UTC)
+    store.retain_predictions([retained(name, now) for name in ("a", "b", "c", "d")], max_rows=10)
+    labels = {"rows": [{"row": 0, "covered": False}]}
+    for name, seconds in (("c", 1), ("a", 2), ("b", 2)):  # d stays unlabelled
+        at = now + timedelta(seconds=seconds)
+        assert store.label_prediction(name, labels, "robot", at, entry(name)) is LabelOutcome.LABELLED
+    assert store.labelled_since(MODEL, None) == [
+        ("c", now + timedelta(seconds=1)),
+        ("a", now + timedelta(seconds=2)),
+        ("b", now + timedelta(seconds=2)),
+    ]
+    assert [i for i, _ in store.labelled_since(MODEL, now + timedelta(seconds=2))] == ["a", "b"]
+    assert store.labelled_since("e" * 64, None) == []
+    found = store.retained_predictions(["b", "c", "gone"])
+    assert sorted(p.id for p in found) == ["b", "c"] and all(p.labels == labels for p in found)
+    many = [f"x{i}" for i in range(1200)]  # more ids than one query takes
+    assert {p.id for p in store.retained_predictions([*many, "a"])} == {"a"}
