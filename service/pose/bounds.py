@@ -6,8 +6,9 @@ the estimate, keep the poses that are in PURSE. Such draws rarely push every key
 edge of its set at once, so the far poses are missed; the boundary search finds them, as the
 boundary samples of CLOSURE (Gao, Tang, Qi & Yang, 2024) do: from the estimate, local
 optimisation (SLSQP over the 6-dof pose, every set constraint kept) pushes the pose as far as
-PURSE allows along and against the line of sight and two directions across it, and away in
-rotation. The largest rotation (geodesic) and translation distances from the estimate to the
+PURSE allows along and against the line of sight (the depth error dominates there; runs across
+it gave the farthest pose for 2 of 79 sample and sequence instances and left the medians of the
+outer / inner ratios unchanged, at a third of the cost), and away in rotation. The largest rotation (geodesic) and translation distances from the estimate to the
 poses found are a lower bound on the worst-case error over PURSE (every pose is checked to be in
 PURSE): the true pose may be any of them. It is not an upper bound; that is the relaxation's job
 (relaxation.py).
@@ -140,8 +141,8 @@ _ROTATION_STARTS = 0.05  # radians: the rotation search starts this far from the
 def boundary_poses(
     estimate: Pose, camera: np.ndarray, keypoints_3d: np.ndarray, centers: np.ndarray, shapes: np.ndarray
 ) -> list[Pose]:
-    """Poses of PURSE pushed to its boundary: the farthest along +-3 translation axes (the line of
-    sight first) and in rotation (from six small turns of the estimate). Every set must be bounded.
+    """Poses of PURSE pushed to its boundary: the farthest along and against the line of sight
+    and in rotation (from six small turns of the estimate). Every set must be bounded.
 
     The pose is x = (rotation vector, u), t = t_hat + step u with step a tenth of the distance, so
     that SLSQP sees radians and tenths of the depth on one scale."""
@@ -177,9 +178,9 @@ def boundary_poses(
         {"type": "ineq", "fun": lambda x: slack(x)[0], "jac": lambda x: slack(x)[1]},
         {"type": "ineq", "fun": lambda x: depth(x)[0], "jac": lambda x: depth(x)[1]},
     ]
+    axis = ray_frame(estimate.translation)[0]
     runs = [
         (lambda x, a=sign * axis: (-float(a @ x[3:]), np.concatenate([np.zeros(3), -a])), start)
-        for axis in ray_frame(estimate.translation)
         for sign in (1.0, -1.0)
     ]
     for axis in np.eye(3):
@@ -196,7 +197,7 @@ def boundary_poses(
                     jac=True,
                     constraints=constraints,
                     method="SLSQP",
-                    options={"maxiter": 60, "ftol": 1e-9},
+                    options={"maxiter": 60, "ftol": 1e-6},
                 )
         except (cv2.error, ValueError):  # a run wandering off to poses OpenCV cannot project
             continue
