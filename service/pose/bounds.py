@@ -8,10 +8,10 @@ boundary samples of CLOSURE (Gao, Tang, Qi & Yang, 2024) do: from the estimate, 
 optimisation (SLSQP over the 6-dof pose, every set constraint kept) pushes the pose as far as
 PURSE allows along and against the line of sight (the depth error dominates there; runs across
 it gave the farthest pose for 2 of 79 sample and sequence instances and left the medians of the
-outer / inner ratios unchanged, at a third of the cost), and away in rotation. The largest rotation (geodesic) and translation distances from the estimate to the
-poses found are a lower bound on the worst-case error over PURSE (every pose is checked to be in
-PURSE): the true pose may be any of them. It is not an upper bound; that is the relaxation's job
-(relaxation.py).
+outer / inner ratios unchanged, at a third of the search's cost), and away in rotation. The
+largest rotation (geodesic) and translation distances from the estimate to the poses found are a
+lower bound on the worst-case error over PURSE (every pose is checked to be in PURSE): the true
+pose may be any of them. It is not an upper bound; that is the relaxation's job (relaxation.py).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from .camera import ray_frame
-from .membership import Pose, membership
+from .membership import Pose, membership, poses_inside
 from .rotations import from_rotation_vector, rotation_angle_deg, to_rotation_vector
 
 
@@ -44,14 +44,17 @@ class SampledPoses:
     boundary: int = 0
 
 
-def sample_points_in_sets(centers: np.ndarray, shapes: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """One point per set, uniform over the ball or ellipse {y : (y - c)^T L (y - c) <= 1}."""
+def sample_points_in_sets(
+    centers: np.ndarray, shapes: np.ndarray, rng: np.random.Generator, count: int = 1
+) -> np.ndarray:
+    """(count, N, 2): one point per set and draw, uniform over the ball or ellipse
+    {y : (y - c)^T L (y - c) <= 1}."""
     values, vectors = np.linalg.eigh(shapes)
     half_axes = 1.0 / np.sqrt(values)  # per principal direction
-    angle = rng.uniform(0.0, 2.0 * np.pi, len(centers))
-    radius = np.sqrt(rng.uniform(0.0, 1.0, len(centers)))
-    unit_disc = np.stack([np.cos(angle), np.sin(angle)], axis=1) * radius[:, None]
-    return centers + np.einsum("nij,nj->ni", vectors, unit_disc * half_axes)
+    draws = rng.random((count, 2, len(centers)))  # per draw: the angles, then the radii
+    angle, radius = 2.0 * np.pi * draws[:, 0], np.sqrt(draws[:, 1])
+    unit_disc = np.stack([np.cos(angle), np.sin(angle)], axis=-1) * radius[..., None]
+    return centers + np.einsum("nij,snj->sni", vectors, unit_disc * half_axes)
 
 
 def sample_poses_in_set(
@@ -67,13 +70,13 @@ def sample_poses_in_set(
 
     Every set must be bounded (an unbounded set has no uniform draw).
     """
-    rng = np.random.default_rng(seed)
-    points = np.array([sample_points_in_sets(centers, shapes, rng) for _ in range(count)])
     if count == 0:
         return SampledPoses([], 0)
+    points = sample_points_in_sets(centers, shapes, np.random.default_rng(seed), count)
     rotations, translations = _fitted_poses(start, camera, keypoints_3d.astype(np.float64), points)
+    screened = poses_inside(rotations, translations, camera, keypoints_3d, centers, shapes)
     found = []
-    for rotation, translation in zip(rotations, translations, strict=True):
+    for rotation, translation in zip(rotations[screened], translations[screened], strict=True):
         pose = Pose(rotation, translation)
         if np.isfinite(translation).all() and membership(pose, camera, keypoints_3d, centers, shapes).inside:
             found.append(pose)
@@ -152,21 +155,23 @@ def boundary_poses(
     step = 0.1 * (float(np.linalg.norm(estimate.translation)) or 1.0)
     start = np.concatenate([to_rotation_vector(estimate.rotation), np.zeros(3)])
 
+    scaled = np.array([1.0, 1.0, 1.0, step, step, step])  # d (rvec, t) / d x
+    moved = np.tile([0.0, 0.0, step], (len(objects), 1))  # d z_i / d u
+
     @_last_value
-    def slack(x):  # 1 - (y_i - c_i)^T L_i (y_i - c_i) >= 0, with its Jacobian from OpenCV
+    def feasible(x):  # per keypoint, 1 - (y_i - c_i)^T L_i (y_i - c_i) >= 0 and z_i > 0, with Jacobians
         projected, jacobian = cv2.projectPoints(
             objects, x[:3], estimate.translation + step * x[3:], camera, None
         )
         offsets = projected.reshape(-1, 2) - centers
-        jacobian = jacobian[:, :6].reshape(-1, 2, 6) * np.r_[1.0, 1.0, 1.0, step, step, step]
+        jacobian = jacobian[:, :6].reshape(-1, 2, 6) * scaled
         slopes = -2 * np.einsum("ni,nij,njk->nk", offsets, shapes, jacobian)
-        return 1.0 - np.einsum("ni,nij,nj->n", offsets, shapes, offsets), slopes
-
-    @_last_value
-    def depth(x):  # z_i > 0, with its Jacobian (Rodrigues' d vec(R) / d rvec, row-major)
-        rotation, jacobian = cv2.Rodrigues(x[:3])
-        value = (objects @ rotation.T + estimate.translation + step * x[3:])[:, 2]
-        return value, np.hstack([objects @ jacobian[:, 6:9].T, np.tile([0.0, 0.0, step], (len(objects), 1))])
+        slack = 1.0 - np.einsum("ni,nij,nj->n", offsets, shapes, offsets)
+        rotation, turning = cv2.Rodrigues(x[:3])  # Rodrigues' d vec(R) / d rvec, row-major
+        depth = (objects @ rotation.T + estimate.translation + step * x[3:])[:, 2]
+        return np.concatenate([slack, depth]), np.vstack(
+            [slopes, np.hstack([objects @ turning[:, 6:9].T, moved])]
+        )
 
     def turn(x):  # tr(R_hat^T R): smallest at the largest angle
         rotation, jacobian = cv2.Rodrigues(x[:3])
@@ -174,10 +179,7 @@ def boundary_poses(
             [jacobian @ estimate.rotation.reshape(9), np.zeros(3)]
         )
 
-    constraints = [
-        {"type": "ineq", "fun": lambda x: slack(x)[0], "jac": lambda x: slack(x)[1]},
-        {"type": "ineq", "fun": lambda x: depth(x)[0], "jac": lambda x: depth(x)[1]},
-    ]
+    constraints = [{"type": "ineq", "fun": lambda x: feasible(x)[0], "jac": lambda x: feasible(x)[1]}]
     axis = ray_frame(estimate.translation)[0]
     runs = [
         (lambda x, a=sign * axis: (-float(a @ x[3:]), np.concatenate([np.zeros(3), -a])), start)
@@ -215,8 +217,9 @@ def _last_value(function):
     last: list = [None, None]
 
     def remembered(x: np.ndarray):
-        if last[0] is None or not np.array_equal(last[0], x):
-            last[:] = [x.copy(), function(x)]
+        key = x.tobytes()
+        if last[0] != key:
+            last[:] = [key, function(x)]
         return last[1]
 
     return remembered
