@@ -23,6 +23,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -145,6 +146,7 @@ class Wedge:
         forms = self.forms(left_product(to_quaternion(estimate)))
         return [(-forms[i], forms[j]) for i, j in zip(*SIDES, strict=True)]
 
+    @cached_property
     def _angle_cosines(self) -> tuple[float, float]:
         """The least and largest |cos(angle / 2)| = |q_0| / |q| over the wedge's rotations."""
         low, high = np.array(self.low), np.array(self.high)
@@ -159,11 +161,11 @@ class Wedge:
 
     def farthest_angle(self) -> float:
         """An upper bound on the angle (radians) from R_hat to the wedge's rotations."""
-        return 2.0 * math.acos(min(1.0, self._angle_cosines()[0]))
+        return 2.0 * math.acos(min(1.0, self._angle_cosines[0]))
 
     def nearest_angle(self) -> float:
         """A lower bound on the angle (radians) from R_hat to the wedge's rotations."""
-        return 2.0 * math.acos(min(1.0, self._angle_cosines()[1]))
+        return 2.0 * math.acos(min(1.0, self._angle_cosines[1]))
 
     def split(self, radius: float) -> list[Wedge]:
         """The eight half-size boxes, less those holding no rotation within ``radius`` of R_hat."""

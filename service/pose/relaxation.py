@@ -221,12 +221,13 @@ def _project_dual(dual: np.ndarray, keypoints: int, cuts: int) -> np.ndarray:
     matrix = (vectors * np.maximum(values, 0.0)) @ vectors.T
     projected[1 : 1 + _Q] = matrix[_UPPER] * _SVEC_SCALE
     cones = projected[1 + _Q : 1 + _Q + 3 * keypoints].reshape(keypoints, 3)  # a view: edits land
-    heads, norms = cones[:, 0].copy(), np.linalg.norm(cones[:, 1:], axis=1)
+    heads, norms = cones[:, 0].copy(), np.sqrt(np.einsum("ij,ij->i", cones[:, 1:], cones[:, 1:]))
     outside = norms > heads  # Euclidean projection onto the second-order cone where outside it
-    levels = np.where(norms <= -heads, 0.0, (heads + norms) / 2)
-    scale = np.divide(levels, norms, out=np.zeros_like(norms), where=norms > 0)
-    cones[outside, 0] = levels[outside]
-    cones[outside, 1:] *= scale[outside, None]
+    if outside.any():
+        levels = np.where(norms <= -heads, 0.0, (heads + norms) / 2)
+        scale = np.divide(levels, norms, out=np.zeros_like(norms), where=norms > 0)
+        cones[outside, 0] = levels[outside]
+        cones[outside, 1:] *= scale[outside, None]
     if cuts:
         projected[-cuts:] = np.maximum(projected[-cuts:], 0.0)
     return projected
