@@ -455,7 +455,10 @@ class _Leaf:
     solved: np.ndarray
 
     def children(self, radius: float) -> list[_Leaf]:
-        return [_Leaf(c, self.bounds.copy(), np.zeros(7, dtype=bool)) for c in self.cell.split(radius)]
+        leaves = [_Leaf(c, self.bounds.copy(), np.zeros(7, dtype=bool)) for c in self.cell.split(radius)]
+        for leaf in leaves:  # no rotation of a wedge is farther than its far corner: a bound for free
+            leaf.bounds[6] = min(leaf.bounds[6], leaf.cell.farthest_angle())
+        return leaves
 
 
 class _WedgePrograms:
