@@ -68,6 +68,24 @@ def membership(
     return Membership(in_front=in_front, violations=violations)
 
 
+def poses_inside(
+    rotations: np.ndarray,
+    translations: np.ndarray,
+    camera: np.ndarray,
+    keypoints_3d: np.ndarray,
+    centers: np.ndarray,
+    shapes: np.ndarray,
+) -> np.ndarray:
+    """``membership(...).inside`` for many poses at once ((P, 3, 3), (P, 3)): a screen, equal to it
+    but for rounding at the sets' edges, so a pose it admits is checked with ``membership``."""
+    points = keypoints_3d @ rotations.transpose(0, 2, 1) + translations[:, None]  # (P, N, 3)
+    homogeneous = points @ camera.T
+    with np.errstate(all="ignore"):
+        offsets = homogeneous[..., :2] / homogeneous[..., 2:3] - centers
+        quadratic = np.einsum("pni,nij,pnj->pn", offsets, shapes, offsets)
+        return ((points[..., 2] > 0) & (quadratic <= 1.0)).all(axis=1)
+
+
 def pose_in_set(
     rotation: np.ndarray,
     translation: np.ndarray,

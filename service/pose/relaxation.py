@@ -36,10 +36,10 @@ from functools import cache
 import numpy as np
 
 from .camera import ray_frame
-from .cells import Wedge, root_cells
+from .cells import SIDES, Wedge, root_cells
 from .estimate import whitening
 from .membership import Pose
-from .rotations import QUATERNION_BASIS, rotation_angle_deg
+from .rotations import QUATERNION_BASIS, left_product, rotation_angle_deg, to_quaternion
 
 _TRIANGLE = [(a, b) for b in range(4) for a in range(b + 1)]  # Clarabel's svec order: upper, by column
 _Q = len(_TRIANGLE)  # 10 entries of the 4x4 quaternion moment matrix
@@ -143,21 +143,11 @@ def _capped(program: _Program, cap: tuple[np.ndarray, float] | None) -> _Program
     )
 
 
-def _in_wedge(program: _Program, wedge: Wedge, estimate: np.ndarray) -> _Program:
-    """The relaxation of one wedge of rotations (cells.Wedge): its three sides a_k^T Q b_k <= 0,
-    exact for the wedge's rotations (Q = q q^T); they imply its circumscribed cap."""
-    sides = [np.concatenate([_bilinear_form(a, b), np.zeros(3)]) for a, b in wedge.sides(estimate)]
-    return replace(
-        program,
-        matrix=np.vstack([program.matrix, *sides]),
-        offset=np.append(program.offset, np.zeros(len(sides))),
-        cuts=program.cuts + len(sides),
-    )
-
-
-def _bilinear_form(u: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """u^T Q w as a row over Q's upper triangle (unscaled entries)."""
-    return np.array([u[a] * w[a] if a == b else u[a] * w[b] + u[b] * w[a] for a, b in _TRIANGLE])
+def _bilinear_rows(u: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """u_k^T Q w_k for every row k of u and w (k, 4), as rows over Q's upper triangle (unscaled)."""
+    a, b = _UPPER
+    products = u[:, a] * w[:, b] + u[:, b] * w[:, a]
+    return np.where(a == b, products / 2, products)
 
 
 def _quadratic_form(vector: np.ndarray) -> np.ndarray:
@@ -231,12 +221,13 @@ def _project_dual(dual: np.ndarray, keypoints: int, cuts: int) -> np.ndarray:
     matrix = (vectors * np.maximum(values, 0.0)) @ vectors.T
     projected[1 : 1 + _Q] = matrix[_UPPER] * _SVEC_SCALE
     cones = projected[1 + _Q : 1 + _Q + 3 * keypoints].reshape(keypoints, 3)  # a view: edits land
-    heads, norms = cones[:, 0].copy(), np.linalg.norm(cones[:, 1:], axis=1)
+    heads, norms = cones[:, 0].copy(), np.sqrt(np.einsum("ij,ij->i", cones[:, 1:], cones[:, 1:]))
     outside = norms > heads  # Euclidean projection onto the second-order cone where outside it
-    levels = np.where(norms <= -heads, 0.0, (heads + norms) / 2)
-    scale = np.divide(levels, norms, out=np.zeros_like(norms), where=norms > 0)
-    cones[outside, 0] = levels[outside]
-    cones[outside, 1:] *= scale[outside, None]
+    if outside.any():
+        levels = np.where(norms <= -heads, 0.0, (heads + norms) / 2)
+        scale = np.divide(levels, norms, out=np.zeros_like(norms), where=norms > 0)
+        cones[outside, 0] = levels[outside]
+        cones[outside, 1:] *= scale[outside, None]
     if cuts:
         projected[-cuts:] = np.maximum(projected[-cuts:], 0.0)
     return projected
@@ -464,27 +455,44 @@ class _Leaf:
     solved: np.ndarray
 
     def children(self, radius: float) -> list[_Leaf]:
-        return [_Leaf(c, self.bounds.copy(), np.zeros(7, dtype=bool)) for c in self.cell.split(radius)]
+        leaves = [_Leaf(c, self.bounds.copy(), np.zeros(7, dtype=bool)) for c in self.cell.split(radius)]
+        for leaf in leaves:  # no rotation of a wedge is farther than its far corner: a bound for free
+            leaf.bounds[6] = min(leaf.bounds[6], leaf.cell.farthest_angle())
+        return leaves
 
 
 class _WedgePrograms:
-    """The relaxations of one search's wedges, solved by one Clarabel solver whose data is updated
-    per wedge (the sparsity stays: the wedge's rows are kept dense), which halves the cost of
-    setting up each small program."""
+    """The relaxations of one search's wedges: the whole-space program plus a wedge's sides
+    a_k^T Q b_k <= 0 (cells.Wedge, exact for the wedge's rotations, Q = q q^T), solved by one
+    Clarabel solver whose data is updated per wedge (the sparsity stays: the sides' rows are kept
+    dense), which halves the cost of setting up each small program."""
 
     def __init__(self, program: _Program, estimate: np.ndarray, objectives: list[np.ndarray]) -> None:
-        self.program, self.estimate, self.objectives = program, estimate, objectives
-        pattern = np.vstack([program.matrix != 0, np.tile(np.arange(_N) < _Q, (3, 1))])
+        self.program, self.objectives = program, objectives
+        self._anchor = left_product(to_quaternion(estimate))
+        sides = len(SIDES[0])
+        self._matrix = np.vstack([program.matrix, np.zeros((sides, _N))])
+        self._offset = np.append(program.offset, np.zeros(sides))
+        pattern = np.vstack([program.matrix != 0, np.tile(np.arange(_N) < _Q, (sides, 1))])
         self._rows, self._columns = np.nonzero(pattern.T)  # column-major: compressed columns
+        self._data = self._matrix.T[self._rows, self._columns]
+        self._on_sides = self._columns >= len(program.matrix)  # by column of Q, then by side
         self._solver = None
 
     def solve(self, wedge: Wedge, quantity: int) -> tuple[_Program, _Solved]:
-        restricted, objective = _in_wedge(self.program, wedge, self.estimate), self.objectives[quantity]
-        data = restricted.matrix.T[self._rows, self._columns]
+        forms = wedge.forms(self._anchor)
+        sides = _bilinear_rows(-forms[SIDES[0]], forms[SIDES[1]])
+        matrix, data = self._matrix.copy(), self._data.copy()
+        matrix[len(self.program.matrix) :, :_Q] = sides
+        data[self._on_sides] = sides.T.ravel()
+        restricted = replace(
+            self.program, matrix=matrix, offset=self._offset, cuts=self.program.cuts + len(sides)
+        )
+        objective = self.objectives[quantity]
         if self._solver is None:
             self._solver = _solver(restricted, objective, pattern=(data, self._rows, self._columns))
         else:
-            self._solver.update(A=data, b=restricted.offset, q=objective)
+            self._solver.update(A=data, q=objective)
         return restricted, _outcome(restricted, objective, self._solver.solve())
 
 

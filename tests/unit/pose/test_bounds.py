@@ -33,7 +33,7 @@ def test_points_are_drawn_inside_their_sets() -> None:
     shapes = ellipses(8, rng)
     centers = rng.uniform(0, 500, (8, 2))
     for _ in range(200):
-        assert (set_violations(sample_points_in_sets(centers, shapes, rng), centers, shapes) <= 1).all()
+        assert (set_violations(sample_points_in_sets(centers, shapes, rng)[0], centers, shapes) <= 1).all()
 
 
 def scene(camera, duck_3d, true_pose, rng: np.random.Generator | None = None):
@@ -58,7 +58,7 @@ def test_the_boundary_search_finds_poses_in_purse_farther_than_sampling(camera, 
     centers, shapes = scene(camera, duck_3d, true_pose)
     sampled = sample_poses_in_set(true_pose, camera, duck_3d, centers, shapes, 100)
     boundary = boundary_poses(true_pose, camera, duck_3d, centers, shapes)
-    assert len(boundary) == 12
+    assert len(boundary) == 6  # along and against the line of sight, four turns across it
     assert all(membership(p, camera, duck_3d, centers, shapes).inside for p in boundary)
     assert max(membership(p, camera, duck_3d, centers, shapes).worst for p in boundary) > 0.999  # on the edge
     far, near = (inner_bound(true_pose, found) for found in (SampledPoses(boundary, 0), sampled))
@@ -74,7 +74,7 @@ def test_the_certified_outer_bound_dominates_the_inner_bound_and_the_true_error(
     estimate, inner, outer = answer.estimate, answer.inner, answer.outer
     assert estimate is not None and inner is not None and outer is not None
     assert outer.certified, outer.status
-    assert inner.poses_found > 0 and inner.boundary_poses == 12
+    assert inner.poses_found > 0 and inner.boundary_poses == 6
     assert inner.rotation_deg <= outer.rotation_deg
     assert inner.translation <= outer.translation
     assert rotation_angle_deg(estimate.rotation, true_pose.rotation) <= outer.rotation_deg
