@@ -441,8 +441,10 @@ def _reached(estimate: Pose, poses: list[Pose]) -> tuple[float, float] | None:
 
 
 #: the search stops once the certified bounds are within these factors of the poses found in PURSE
-ROTATION_TOLERANCE = 1.2
-TRANSLATION_TOLERANCE = 1.03
+#: (1.25 / 1.04 against 1.2 / 1.03: 7 % less CPU per instance for median outer/inner 1.22 against
+#: 1.19 rotation, same certificates; docs/pose.md)
+ROTATION_TOLERANCE = 1.25
+TRANSLATION_TOLERANCE = 1.04
 
 
 @dataclass
