@@ -15,17 +15,19 @@ Fair shares: while more than one client has asked in the last ``ACTIVE_SECONDS``
 (``service.api.http.clients``) may hold at most ``max(1, places x share)`` of the places
 (``client_share``, CKS_CLIENT_SHARE) and compute on at most ``max(1, threads x share)`` slots
 (threads: the slots that really run at once, the fewer of the slots and CKS_CPU_WORKERS); a
-request beyond its client's places is refused with 429 and ``Retry-After`` at once, and a free
-slot goes to the waiting request whose client computes least (the oldest first). So one
-client's flood is refused while another client within its share keeps being served; a client
-alone may use every place.
+request beyond its client's places is refused with 429 and ``Retry-After`` at once. A free slot
+goes to the waiting request whose client has used the least compute (start-time fair queueing:
+each client's virtual time advances by the seconds its requests hold a slot, and a client that
+was idle starts at the virtual time now, so it goes ahead of every client with work waiting;
+the oldest first among equals). So one client's flood is refused beyond its share and waits
+behind a client that asks little; a client alone may use every place.
 """
 
 from __future__ import annotations
 
 import asyncio
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import asynccontextmanager, contextmanager
 
@@ -79,11 +81,44 @@ class Admission:
         self._free_slots = max_concurrent
         self._waiting: list[tuple[str, asyncio.Future[None]]] = []  # oldest first
         self._asked: dict[str, float] = {}  # client -> when it last asked, least recent first
+        self._clock = 0.0  # virtual time: the start of the last slot granted
+        self._used: dict[str, float] = {}  # client -> its virtual time (compute seconds charged)
+        self._cost: dict[str, float] = {}  # client -> seconds its last slot was held (the next's guess)
+        self._place_waiters: dict[str, deque[asyncio.Future[None]]] = {}  # oldest first
 
     @property
     def capacity(self) -> int:
         """Places in all: computing plus waiting."""
         return self._max_concurrent + self._max_queued
+
+    async def wait_for_place(self, places: int = 1, client: str = "") -> None:
+        """Before a body is received: while ``client`` holds its share of the places, wait (holding
+        nothing) until one of its own places is given back, its requests in order, at most the
+        queue timeout; then as ``refuse_if_full``. A flood thus waits instead of coming back at once."""
+        self._note(client)
+        waits = self._over_share(client, places) or client in self._place_waiters
+        if waits and places <= self._client_places:  # a batch that can never fit is refused at once
+            await self._queue_for_place(client)
+        self.refuse_if_full(places, client)
+
+    async def _queue_for_place(self, client: str) -> None:
+        freed = asyncio.get_running_loop().create_future()
+        waiters = self._place_waiters.setdefault(client, deque())
+        waiters.append(freed)
+        try:
+            async with asyncio.timeout(self._timeout):
+                await freed
+        except TimeoutError:
+            pass  # refused below with 429
+        finally:
+            if freed in waiters:
+                waiters.remove(freed)
+            if not waiters:
+                del self._place_waiters[client]
+
+    def _over_share(self, client: str, places: int) -> bool:
+        limited = self._client_places < self.capacity and self._shared()
+        return limited and self._held[client] + places > self._client_places
 
     def refuse_if_full(self, places: int = 1, client: str = "") -> None:
         """429 when ``client`` would hold more than its share of the places while others are
@@ -91,8 +126,7 @@ class Admission:
         (CKS_MAX_QUEUED_REQUESTS)."""
         self._note(client)
         needs = f"; this batch needs {places} places, one per image" if places > 1 else ""
-        limited = self._client_places < self.capacity and self._shared()
-        if limited and self._held[client] + places > self._client_places:
+        if self._over_share(client, places):
             PREDICT_REJECTED.labels("client_share").inc()
             raise OverShare(
                 f"this client ({client}) already holds {self._held[client]} of the"
@@ -115,6 +149,8 @@ class Admission:
         self._asked[client] = now
         while now - self._asked[oldest := next(iter(self._asked))] > ACTIVE_SECONDS:
             del self._asked[oldest]
+            self._used.pop(oldest, None)
+            self._cost.pop(oldest, None)
 
     def _shared(self) -> bool:
         """Whether more than one client is active: shares apply only then."""
@@ -160,6 +196,15 @@ class Admission:
             if not self._held[client]:
                 del self._held[client]
             PREDICT_IN_FLIGHT.dec(places)
+            self._hand_over(client)
+
+    def _hand_over(self, client: str) -> None:
+        """A place ``client`` gave back goes to its oldest request waiting for one."""
+        waiters = self._place_waiters.get(client, deque())
+        while waiters:
+            if not (freed := waiters.popleft()).done():  # not one whose wait just ended
+                freed.set_result(None)
+                return
 
     @asynccontextmanager
     async def slot(self, client: str = "") -> AsyncIterator[None]:
@@ -176,10 +221,12 @@ class Admission:
         finally:
             PREDICT_WAITING.dec()
         PREDICT_COMPUTING.inc()
+        started = time.monotonic()
         try:
             yield
         finally:
             PREDICT_COMPUTING.dec()
+            self._charge(client, time.monotonic() - started)
             self._give_back(client)
 
     async def _take_slot(self, client: str) -> None:
@@ -206,9 +253,18 @@ class Admission:
         self._free_slots += 1
         self._grant()
 
+    def _charge(self, client: str, seconds: float) -> None:
+        """Correct the guess charged when ``client``'s slot was granted by what it really held."""
+        if client in self._used:
+            self._used[client] += seconds - self._cost.get(client, 0.0)
+        self._cost[client] = seconds
+
+    def _virtual_time(self, client: str) -> float:
+        return max(self._used.get(client, 0.0), self._clock)
+
     def _grant(self) -> None:
-        """Free slots to waiting requests: the one whose client computes least, oldest first; a
-        client at its share of the slots waits while others are active."""
+        """Free slots to waiting requests: the one whose client has used least (its virtual time),
+        oldest first; a client at its share of the slots waits while others are active."""
         self._waiting = [waiter for waiter in self._waiting if not waiter[1].done()]
         while self._free_slots:
             shared = self._shared()
@@ -219,8 +275,10 @@ class Admission:
             ]
             if not eligible:
                 return
-            client, granted = min(eligible, key=lambda waiter: self._computing[waiter[0]])
+            client, granted = min(eligible, key=lambda waiter: self._virtual_time(waiter[0]))
             self._waiting.remove((client, granted))
             self._free_slots -= 1
             self._computing[client] += 1
+            self._clock = self._virtual_time(client)
+            self._used[client] = self._clock + self._cost.get(client, 0.0)
             granted.set_result(None)
