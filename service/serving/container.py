@@ -33,6 +33,7 @@ from service.feedback.adaptive import AdaptiveSets
 from service.feedback.live_coverage import LiveCoverageReader
 from service.feedback.retention import Retention, RetentionRules
 from service.infra.audit_trail import AuditTrail
+from service.infra.client_board import ClientBoard
 from service.infra.job_engine import JobRunner
 from service.infra.logs import ensure_logging
 from service.infra.metrics import (
@@ -199,6 +200,7 @@ def build_state(settings: Settings) -> ServiceState:
             settings.predict.max_receiving_bytes,
             settings.predict.client_share,
             min(settings.model.cpu_workers, usable_cores()),  # the threads that really run at once
+            ClientBoard.joined(),  # the other workers' clients (CKS_WORKERS > 1)
         ),
         audits=audits,
         drift=drift,

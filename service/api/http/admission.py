@@ -32,6 +32,7 @@ from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import asynccontextmanager, contextmanager
 
 from service.errors import TooManyRequests, Unavailable
+from service.infra.client_board import ClientBoard
 from service.infra.metrics import (
     PREDICT_COMPUTING,
     PREDICT_IN_FLIGHT,
@@ -69,6 +70,7 @@ class Admission:
         max_receiving_bytes: int,
         client_share: float = 1.0,
         threads: int | None = None,
+        board: ClientBoard | None = None,
     ) -> None:
         self._max_concurrent, self._max_queued, self._timeout = max_concurrent, max_queued, timeout
         self._max_receiving = max_receiving_bytes
@@ -81,6 +83,7 @@ class Admission:
         self._free_slots = max_concurrent
         self._waiting: list[tuple[str, asyncio.Future[None]]] = []  # oldest first
         self._asked: dict[str, float] = {}  # client -> when it last asked, least recent first
+        self._board = board  # the clients of the other workers (CKS_WORKERS), where there is one
         self._clock = 0.0  # virtual time: the start of the last slot granted
         self._used: dict[str, float] = {}  # client -> its virtual time (compute seconds charged)
         self._cost: dict[str, float] = {}  # client -> seconds its last slot was held (the next's guess)
@@ -145,6 +148,8 @@ class Admission:
     def _note(self, client: str) -> None:
         """Remember that ``client`` asked now; forget the clients quiet for ACTIVE_SECONDS."""
         now = time.monotonic()
+        if self._board is not None:
+            self._board.note(client)
         self._asked.pop(client, None)
         self._asked[client] = now
         while now - self._asked[oldest := next(iter(self._asked))] > ACTIVE_SECONDS:
@@ -153,8 +158,9 @@ class Admission:
             self._cost.pop(oldest, None)
 
     def _shared(self) -> bool:
-        """Whether more than one client is active: shares apply only then."""
-        return len(self._asked) > 1
+        """Whether more than one client is active in this worker or any other: shares apply only then."""
+        board = self._board
+        return len(self._asked) > 1 or (board is not None and board.clients_since(ACTIVE_SECONDS) > 1)
 
     @contextmanager
     def receiving(self) -> Iterator[Callable[[int], None]]:

@@ -1,0 +1,116 @@
+"""Which predict clients asked lately, across the worker processes of one server (CKS_WORKERS).
+
+Fair shares apply while more than one client is active (``service.api.http.admission``); a
+worker that only ever sees a flood's connections would otherwise let it take every place
+while the polite client is served by another worker. The board is a small file in /dev/shm,
+created and allocated whole by the parent before the workers start (``client_board``), so that
+a full disk cannot touch it and a full /dev/shm is an error at start, never a Bus error later;
+without it (one worker, or /dev/shm unavailable: logged) each worker judges alone. Each worker
+claims a row (``ClientBoard.joined``) and writes only that row: the ``RECENT`` clients it saw
+last and when; any worker reads every row.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import logging
+import mmap
+import os
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from service.infra.processes import process_running
+
+log = logging.getLogger(__name__)
+
+#: The environment variable naming the board for the workers (not a setting: set by the parent).
+BOARD_VARIABLE = "KEYPOINT_SERVICE_CLIENT_BOARD"
+ROWS = 256  # workers at most (a row of a worker that died is taken again)
+RECENT = 8  # clients remembered per worker
+_COLUMNS = 1 + 2 * RECENT  # owner pid, then (client hash, asked at, ns) pairs
+_SIZE = ROWS * _COLUMNS * 8
+
+
+@contextmanager
+def client_board(workers: int, folder: Path = Path("/dev/shm")) -> Iterator[Path | None]:
+    """In the parent, around the workers' lives: the board (its path in ``BOARD_VARIABLE``), or
+    None for one worker or where it cannot be made."""
+    if workers < 2:
+        yield None
+        return
+    path = folder / f"cks-clients-{os.getpid()}"
+    try:
+        descriptor = os.open(path, os.O_CREAT | os.O_EXCL | os.O_RDWR, 0o600)
+        try:
+            os.posix_fallocate(descriptor, 0, _SIZE)  # every page now: ENOSPC here, not SIGBUS later
+        finally:
+            os.close(descriptor)
+    except OSError as error:
+        path.unlink(missing_ok=True)
+        log.warning("no client board in %s (%s): each worker keeps its own fair shares", folder, error)
+        yield None
+        return
+    os.environ[BOARD_VARIABLE] = str(path)
+    try:
+        yield path
+    finally:
+        os.environ.pop(BOARD_VARIABLE, None)
+        path.unlink(missing_ok=True)
+
+
+class ClientBoard:
+    """This process's row of the board, and what every row says."""
+
+    def __init__(self, memory: mmap.mmap, row: int) -> None:
+        self._memory = memory
+        self._rows = np.ndarray((ROWS, _COLUMNS), np.int64, memory)
+        self._mine = self._rows[row]
+
+    @classmethod
+    def joined(cls, path: str | None = None) -> ClientBoard | None:
+        """A row of the board named in the environment for this worker (None: no board, or no row
+        free; logged: this worker's shares are then its own)."""
+        path = path or os.environ.get(BOARD_VARIABLE)
+        if not path:
+            return None
+        try:
+            descriptor = os.open(path, os.O_RDWR)
+        except OSError as error:
+            log.warning("cannot open the client board %s (%s): fair shares per worker", path, error)
+            return None
+        try:
+            memory = mmap.mmap(descriptor, _SIZE)  # ValueError: smaller than a board
+            fcntl.flock(descriptor, fcntl.LOCK_EX)  # one worker claims a row at a time
+            owners = np.ndarray((ROWS, _COLUMNS), np.int64, memory)[:, 0]
+            row = next(row for row, pid in enumerate(owners) if pid == 0 or not process_running(int(pid)))
+            owners[row] = os.getpid()
+        except (OSError, ValueError, StopIteration) as error:
+            log.warning("no row of the client board %s (%r): fair shares per worker", path, error)
+            return None
+        finally:
+            os.close(descriptor)  # releases the lock; the mapping stays
+        board = cls(memory, row)
+        board._mine[1:] = 0  # a dead worker's clients
+        return board
+
+    def note(self, client: str) -> None:
+        """``client`` asked now: in place of its entry, else of the entry asked longest ago."""
+        key, pairs = _key(client), self._mine[1:].reshape(RECENT, 2)
+        found = np.flatnonzero(pairs[:, 0] == key)
+        pairs[found[0] if found.size else int(np.argmin(pairs[:, 1]))] = (key, time.monotonic_ns())
+
+    def clients_since(self, seconds_ago: float) -> int:
+        """How many distinct clients asked any worker in the last ``seconds_ago`` seconds."""
+        pairs = self._rows[:, 1:].reshape(-1, 2)
+        since = time.monotonic_ns() - int(seconds_ago * 1e9)
+        return int(np.unique(pairs[pairs[:, 1] > since, 0]).size)
+
+
+def _key(client: str) -> int:
+    """A client's number on the board, the same in every process (``hash`` is not), never 0."""
+    return int.from_bytes(hashlib.blake2b(client.encode(), digest_size=7).digest()) + 1
