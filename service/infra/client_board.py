@@ -93,7 +93,8 @@ class ClientBoard:
             log.warning("no row of the client board %s (%r): fair shares per worker", path, error)
             return None
         finally:
-            os.close(descriptor)  # releases the lock; the mapping stays
+            fcntl.flock(descriptor, fcntl.LOCK_UN)  # explicitly: the mapping holds a copy of the descriptor
+            os.close(descriptor)
         board = cls(memory, row)
         board._mine[1:] = 0  # a dead worker's clients
         return board
