@@ -32,6 +32,7 @@ log = logging.getLogger(__name__)
 BOARD_VARIABLE = "KEYPOINT_SERVICE_CLIENT_BOARD"
 ROWS = 256  # workers at most (a row of a worker that died is taken again)
 RECENT = 8  # clients remembered per worker
+REREAD_NS = 50_000_000  # how stale ``several_since`` may be
 _COLUMNS = 1 + 2 * RECENT  # owner pid, then (client hash, asked at, ns) pairs
 _SIZE = ROWS * _COLUMNS * 8
 
@@ -70,6 +71,8 @@ class ClientBoard:
         self._memory = memory
         self._rows = np.ndarray((ROWS, _COLUMNS), np.int64, memory)
         self._mine = self._rows[row]
+        self._several, self._read_at = False, -REREAD_NS - 1
+        self._noted, self._noted_at = "", 0
 
     @classmethod
     def joined(cls, path: str | None = None) -> ClientBoard | None:
@@ -100,16 +103,25 @@ class ClientBoard:
         return board
 
     def note(self, client: str) -> None:
-        """``client`` asked now: in place of its entry, else of the entry asked longest ago."""
+        """``client`` asked now: in place of its entry, else of the entry asked longest ago (not
+        again within ``REREAD_NS`` for the same client: admission notes each request more than once)."""
+        now = time.monotonic_ns()
+        if client == self._noted and now - self._noted_at < REREAD_NS:
+            return
         key, pairs = _key(client), self._mine[1:].reshape(RECENT, 2)
         found = np.flatnonzero(pairs[:, 0] == key)
-        pairs[found[0] if found.size else int(np.argmin(pairs[:, 1]))] = (key, time.monotonic_ns())
+        pairs[found[0] if found.size else int(np.argmin(pairs[:, 1]))] = (key, now)
+        self._noted, self._noted_at = client, now
 
-    def clients_since(self, seconds_ago: float) -> int:
-        """How many distinct clients asked any worker in the last ``seconds_ago`` seconds."""
-        pairs = self._rows[:, 1:].reshape(-1, 2)
-        since = time.monotonic_ns() - int(seconds_ago * 1e9)
-        return int(np.unique(pairs[pairs[:, 1] > since, 0]).size)
+    def several_since(self, seconds_ago: float) -> bool:
+        """Whether more than one client asked the workers in the last ``seconds_ago`` seconds (read
+        again at most every ``REREAD_NS``: admission asks several times per request)."""
+        now = time.monotonic_ns()
+        if now - self._read_at > REREAD_NS:
+            pairs = self._rows[self._rows[:, 0] != 0, 1:].reshape(-1, 2)  # the rows of workers
+            keys = pairs[pairs[:, 1] > now - int(seconds_ago * 1e9), 0]
+            self._several, self._read_at = bool(keys.size) and bool((keys != keys[0]).any()), now
+        return self._several
 
 
 def _key(client: str) -> int:

@@ -160,7 +160,7 @@ class Admission:
     def _shared(self) -> bool:
         """Whether more than one client is active in this worker or any other: shares apply only then."""
         board = self._board
-        return len(self._asked) > 1 or (board is not None and board.clients_since(ACTIVE_SECONDS) > 1)
+        return len(self._asked) > 1 or (board is not None and board.several_since(ACTIVE_SECONDS))
 
     @contextmanager
     def receiving(self) -> Iterator[Callable[[int], None]]:
