@@ -7,7 +7,8 @@ created and allocated whole by the parent before the workers start (``client_boa
 a full disk cannot touch it and a full /dev/shm is an error at start, never a Bus error later;
 without it (one worker, or /dev/shm unavailable: logged) each worker judges alone. Each worker
 claims a row (``ClientBoard.joined``) and writes only that row: the ``RECENT`` clients it saw
-last and when; any worker reads every row.
+last, when, and on how many of its slots each computes; any worker reads every row, so a
+client's compute share holds for the group.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ BOARD_VARIABLE = "KEYPOINT_SERVICE_CLIENT_BOARD"
 ROWS = 256  # workers at most (a row of a worker that died is taken again)
 RECENT = 8  # clients remembered per worker
 REREAD_NS = 50_000_000  # how stale ``several_since`` may be
-_COLUMNS = 1 + 2 * RECENT  # owner pid, then (client hash, asked at, ns) pairs
+_COLUMNS = 1 + 3 * RECENT  # owner pid, then (client hash, asked at in ns, slots computing) each
 _SIZE = ROWS * _COLUMNS * 8
 
 
@@ -89,8 +90,11 @@ class ClientBoard:
         try:
             memory = mmap.mmap(descriptor, _SIZE)  # ValueError: smaller than a board
             fcntl.flock(descriptor, fcntl.LOCK_EX)  # one worker claims a row at a time
-            owners = np.ndarray((ROWS, _COLUMNS), np.int64, memory)[:, 0]
-            row = next(row for row, pid in enumerate(owners) if pid == 0 or not process_running(int(pid)))
+            board = np.ndarray((ROWS, _COLUMNS), np.int64, memory)
+            owners = board[:, 0]
+            dead = [row for row, pid in enumerate(owners) if pid and not process_running(int(pid))]
+            board[dead] = 0  # what a worker that died was computing ends with it
+            row = next(row for row, pid in enumerate(owners) if pid == 0)
             owners[row] = os.getpid()
         except (OSError, ValueError, StopIteration) as error:
             log.warning("no row of the client board %s (%r): fair shares per worker", path, error)
@@ -98,28 +102,36 @@ class ClientBoard:
         finally:
             fcntl.flock(descriptor, fcntl.LOCK_UN)  # explicitly: the mapping holds a copy of the descriptor
             os.close(descriptor)
-        board = cls(memory, row)
-        board._mine[1:] = 0  # a dead worker's clients
-        return board
+        return cls(memory, row)
 
-    def note(self, client: str) -> None:
-        """``client`` asked now: in place of its entry, else of the entry asked longest ago (not
-        again within ``REREAD_NS`` for the same client: admission notes each request more than once)."""
+    def note(self, client: str, computing: int = 0) -> None:
+        """``client`` asked now, and computes on ``computing`` more (or fewer) slots of this worker:
+        in place of its entry, else of the idle entry asked longest ago (an asking alone is not
+        written again within ``REREAD_NS``: admission notes each request more than once)."""
         now = time.monotonic_ns()
-        if client == self._noted and now - self._noted_at < REREAD_NS:
+        if not computing and client == self._noted and now - self._noted_at < REREAD_NS:
             return
-        key, pairs = _key(client), self._mine[1:].reshape(RECENT, 2)
-        found = np.flatnonzero(pairs[:, 0] == key)
-        pairs[found[0] if found.size else int(np.argmin(pairs[:, 1]))] = (key, now)
+        key, entries = _key(client), self._mine[1:].reshape(RECENT, 3)
+        found = np.flatnonzero(entries[:, 0] == key)
+        idle = np.flatnonzero(entries[:, 2] == 0)
+        if not found.size and (computing < 0 or not idle.size):
+            return  # every entry computes: this client goes unseen by the other workers
+        index = found[0] if found.size else idle[np.argmin(entries[idle, 1])]
+        entries[index] = (key, now, (entries[index, 2] if found.size else 0) + computing)
         self._noted, self._noted_at = client, now
+
+    def computing(self, client: str) -> int:
+        """The slots ``client`` computes on in all the workers."""
+        entries = self._rows[self._rows[:, 0] != 0, 1:].reshape(-1, 3)
+        return int(entries[entries[:, 0] == _key(client), 2].sum())
 
     def several_since(self, seconds_ago: float) -> bool:
         """Whether more than one client asked the workers in the last ``seconds_ago`` seconds (read
         again at most every ``REREAD_NS``: admission asks several times per request)."""
         now = time.monotonic_ns()
         if now - self._read_at > REREAD_NS:
-            pairs = self._rows[self._rows[:, 0] != 0, 1:].reshape(-1, 2)  # the rows of workers
-            keys = pairs[pairs[:, 1] > now - int(seconds_ago * 1e9), 0]
+            entries = self._rows[self._rows[:, 0] != 0, 1:].reshape(-1, 3)  # the rows of workers
+            keys = entries[entries[:, 1] > now - int(seconds_ago * 1e9), 0]
             self._several, self._read_at = bool(keys.size) and bool((keys != keys[0]).any()), now
         return self._several
 

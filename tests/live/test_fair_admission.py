@@ -23,7 +23,14 @@ from benchmarks.faults_clients import Flood, polite_client
 from tests.live.server import LiveServer, metric
 
 # As many compute slots as the test server has CPU threads (tests/live/server.py): a slot is a run.
-SETTINGS = {"max_concurrent_inferences": 2, "max_queued_requests": 18, "client_share": 0.5}
+# A flood's request over its share waits up to the queue timeout for its 429: shorter than the
+# flood's own 10 s, so that the flood hears every 429 the server counts.
+SETTINGS = {
+    "max_concurrent_inferences": 2,
+    "max_queued_requests": 18,
+    "client_share": 0.5,
+    "queue_timeout_seconds": 3,
+}
 
 
 def test_a_flood_from_one_client_leaves_the_other_served(tmp_path: Path) -> None:

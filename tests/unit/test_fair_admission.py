@@ -171,6 +171,29 @@ def test_the_board_tells_a_worker_of_the_clients_of_another(tmp_path: Path) -> N
     assert not path.exists() and BOARD_VARIABLE not in os.environ
 
 
+def test_a_compute_share_holds_across_the_workers_of_a_board(tmp_path: Path) -> None:
+    async def scenario(mine: ClientBoard, other: ClientBoard) -> None:
+        admission = Admission(2, 4, 5.0, 1000, client_share=0.5, board=mine)  # 1 of 2 slots per client
+        other.note("polite")
+        other.note("flood", computing=1)  # another worker computes the flood's one slot
+        admission.refuse_if_full(client="flood")
+        waiting = asyncio.create_task(_compute(admission, "flood"))
+        await asyncio.sleep(0.1)
+        assert not waiting.done()  # a slot is free here, but not the flood's share of the group's
+        other.note("flood", computing=-1)
+        await asyncio.wait_for(waiting, 1.0)  # seen within RECHECK_SECONDS
+
+    with client_board(2, tmp_path):
+        mine, other = ClientBoard.joined(), ClientBoard.joined()
+        assert mine is not None and other is not None
+        asyncio.run(scenario(mine, other))
+
+
+async def _compute(admission: Admission, client: str) -> None:
+    async with admission.slot(client):
+        pass
+
+
 def test_without_a_board_each_worker_keeps_its_own_shares(tmp_path: Path) -> None:
     with client_board(1, tmp_path) as one_worker:
         assert one_worker is None and ClientBoard.joined() is None

@@ -44,6 +44,8 @@ from service.infra.metrics import (
 RETRY_AFTER_SECONDS = 1
 #: A client counts as active this long after its last predict request (admitted or not).
 ACTIVE_SECONDS = 30.0
+#: How often a request held back by its client's slots in other workers looks again.
+RECHECK_SECONDS = 0.02
 
 
 class Overloaded(Unavailable):
@@ -84,6 +86,7 @@ class Admission:
         self._waiting: list[tuple[str, asyncio.Future[None]]] = []  # oldest first
         self._asked: dict[str, float] = {}  # client -> when it last asked, least recent first
         self._board = board  # the clients of the other workers (CKS_WORKERS), where there is one
+        self._rechecking = False  # a look at the board's slots is due
         self._clock = 0.0  # virtual time: the start of the last slot granted
         self._used: dict[str, float] = {}  # client -> its virtual time (compute seconds charged)
         self._cost: dict[str, float] = {}  # client -> seconds its last slot was held (the next's guess)
@@ -256,8 +259,18 @@ class Admission:
         self._computing[client] -= 1
         if not self._computing[client]:
             del self._computing[client]
+        if self._board is not None:
+            self._board.note(client, computing=-1)
         self._free_slots += 1
         self._grant()
+
+    def _recheck(self) -> None:
+        self._rechecking = False
+        self._grant()
+
+    def _computing_anywhere(self, client: str) -> int:
+        """The slots ``client`` computes on, in every worker where there is a board."""
+        return self._board.computing(client) if self._board is not None else self._computing[client]
 
     def _charge(self, client: str, seconds: float) -> None:
         """Correct the guess charged when ``client``'s slot was granted by what it really held."""
@@ -274,17 +287,21 @@ class Admission:
         self._waiting = [waiter for waiter in self._waiting if not waiter[1].done()]
         while self._free_slots:
             shared = self._shared()
+            computing = {client: self._computing_anywhere(client) for client in {c for c, _ in self._waiting}}
             eligible = [
-                waiter
-                for waiter in self._waiting
-                if not shared or self._computing[waiter[0]] < self._client_slots
+                waiter for waiter in self._waiting if not shared or computing[waiter[0]] < self._client_slots
             ]
             if not eligible:
+                if self._waiting and self._board is not None and not self._rechecking:
+                    self._rechecking = True  # another worker's slot may free: look again then
+                    asyncio.get_running_loop().call_later(RECHECK_SECONDS, self._recheck)
                 return
             client, granted = min(eligible, key=lambda waiter: self._virtual_time(waiter[0]))
             self._waiting.remove((client, granted))
             self._free_slots -= 1
             self._computing[client] += 1
+            if self._board is not None:
+                self._board.note(client, computing=1)
             self._clock = self._virtual_time(client)
             self._used[client] = self._clock + self._cost.get(client, 0.0)
             granted.set_result(None)
