@@ -128,6 +128,26 @@ def test_a_request_over_its_share_waits_for_its_own_place_then_gets_429_at_the_t
     asyncio.run(scenario())
 
 
+def test_a_place_handed_over_as_another_wait_ends_leaves_the_waits_in_order() -> None:
+    async def scenario() -> None:
+        admission = Admission(1, 1, 0.1, 1000, client_share=0.5)  # 2 places, 1 per client
+        await admission.wait_for_place(client="polite")
+        async with AsyncExitStack() as held:
+            place = await held.enter_async_context(_Held(admission, "flood"))
+            handed, late = (asyncio.create_task(admission.wait_for_place(client="flood")) for _ in "ab")
+            await asyncio.sleep(0.05)
+            await place.give_back()  # to the first; the second's wait ends at the timeout
+            await handed
+            async with admission.admitted(client="flood"):  # the first takes its place
+                with pytest.raises(OverShare):
+                    await late
+                again = asyncio.create_task(admission.wait_for_place(client="flood"))
+                await asyncio.sleep(0.01)
+            await asyncio.wait_for(again, 0.05)  # a new wait is handed the next place
+
+    asyncio.run(scenario())
+
+
 def test_a_free_slot_goes_to_the_client_that_used_least_a_new_one_first() -> None:
     async def scenario() -> None:
         admission = Admission(1, 8, 5.0, 1000)

@@ -14,13 +14,18 @@ clients see a clear answer they can back off from instead of a growing queue.
 Fair shares: while more than one client has asked in the last ``ACTIVE_SECONDS``, one client
 (``service.api.http.clients``) may hold at most ``max(1, places x share)`` of the places
 (``client_share``, CKS_CLIENT_SHARE) and compute on at most ``max(1, threads x share)`` slots
-(threads: the slots that really run at once, the fewer of the slots and CKS_CPU_WORKERS); a
-request beyond its client's places is refused with 429 and ``Retry-After`` at once. A free slot
-goes to the waiting request whose client has used the least compute (start-time fair queueing:
-each client's virtual time advances by the seconds its requests hold a slot, and a client that
-was idle starts at the virtual time now, so it goes ahead of every client with work waiting;
-the oldest first among equals). So one client's flood is refused beyond its share and waits
-behind a client that asks little; a client alone may use every place.
+(threads: the slots that really run at once, the fewer of the slots, CKS_CPU_WORKERS and the
+usable cores). A request beyond its client's places waits, before its body is received and
+holding nothing, for one of its client's places, at most the queue timeout; then it is refused
+with 429 and ``Retry-After`` (a flood that ignores Retry-After would otherwise come back at once,
+and the event loop would spend itself refusing). A free slot goes to the waiting request whose
+client has used the least compute (start-time fair queueing: each client's virtual time
+advances by the seconds its requests hold a slot, and a client that was idle starts at the
+virtual time now, so it goes ahead of every client with work waiting; the oldest first among
+equals). So one client's flood waits beyond its share, behind a client
+that asks little; a client alone may use every place. With several workers, a board in shared
+memory (``service.infra.client_board``) tells each which clients the others serve and on how
+many slots, so that whether shares apply and a client's slots hold for the process group.
 """
 
 from __future__ import annotations
@@ -119,7 +124,7 @@ class Admission:
         finally:
             if freed in waiters:
                 waiters.remove(freed)
-            if not waiters:
+            if not waiters and self._place_waiters.get(client) is waiters:
                 del self._place_waiters[client]
 
     def _over_share(self, client: str, places: int) -> bool:
@@ -270,7 +275,8 @@ class Admission:
 
     def _computing_anywhere(self, client: str) -> int:
         """The slots ``client`` computes on, in every worker where there is a board."""
-        return self._board.computing(client) if self._board is not None else self._computing[client]
+        here = self._computing[client]
+        return max(here, self._board.computing(client)) if self._board is not None else here
 
     def _charge(self, client: str, seconds: float) -> None:
         """Correct the guess charged when ``client``'s slot was granted by what it really held."""
@@ -287,7 +293,8 @@ class Admission:
         self._waiting = [waiter for waiter in self._waiting if not waiter[1].done()]
         while self._free_slots:
             shared = self._shared()
-            computing = {client: self._computing_anywhere(client) for client in {c for c, _ in self._waiting}}
+            clients = {client for client, _ in self._waiting} if shared else set()
+            computing = {client: self._computing_anywhere(client) for client in clients}
             eligible = [
                 waiter for waiter in self._waiting if not shared or computing[waiter[0]] < self._client_slots
             ]
