@@ -307,9 +307,11 @@ class PredictSettings(_Group):
         gt=0,
         le=1,
         description=(
-            "share of the predict places (and of the compute threads) one client may hold while other"
-            " clients have asked in the last 30 s: beyond, `429` with `Retry-After`; a client alone may"
-            " use them all; 1 = no per-client limit (docs/operations.md, Fair admission)"
+            "share of the predict places (and of the compute threads: the fewer of `CKS_CPU_WORKERS` and"
+            " the usable cores) one client may hold while other clients have asked any worker in the last"
+            " 30 s: beyond, a request waits, its body unread, up to `CKS_QUEUE_TIMEOUT_SECONDS` for one of"
+            " its client's places, then `429` with `Retry-After`; a client alone may use them all; 1 = no"
+            " per-client limit (docs/operations.md, Fair admission)"
         ),
     )
     client_header: str | None = Field(

@@ -28,11 +28,12 @@ from service.calibration.stratification import difficulty_spec
 from service.calibration.uploads import process_uploads_dir, remove_spent_job_folders
 from service.calibration.versions import VersionRules
 from service.conformal.kernel import native_kernel_available
-from service.detector.session import Detector
+from service.detector.session import Detector, usable_cores
 from service.feedback.adaptive import AdaptiveSets
 from service.feedback.live_coverage import LiveCoverageReader
 from service.feedback.retention import Retention, RetentionRules
 from service.infra.audit_trail import AuditTrail
+from service.infra.client_board import ClientBoard
 from service.infra.job_engine import JobRunner
 from service.infra.logs import ensure_logging
 from service.infra.metrics import (
@@ -198,7 +199,8 @@ def build_state(settings: Settings) -> ServiceState:
             settings.predict.queue_timeout_seconds,
             settings.predict.max_receiving_bytes,
             settings.predict.client_share,
-            settings.model.cpu_workers,
+            min(settings.model.cpu_workers, usable_cores()),  # the threads that really run at once
+            ClientBoard.joined(),  # the other workers' clients (CKS_WORKERS > 1)
         ),
         audits=audits,
         drift=drift,

@@ -33,6 +33,7 @@ import uvicorn
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 from service.errors import RequestTimeout
+from service.infra.client_board import client_board
 from service.infra.logs import uvicorn_log_config
 from service.infra.settings import Settings
 
@@ -138,7 +139,8 @@ def serve(settings: Settings, host: str | None = None, port: int | None = None) 
     """Serve until SIGTERM or SIGINT, then stop gracefully; 0 after a graceful stop."""
     previous = signal.signal(signal.SIGTERM, _exit_on_sigterm)
     try:
-        uvicorn.run(**uvicorn_options(settings, host, port))
+        with client_board(settings.server.workers):  # before the workers start: they join it
+            uvicorn.run(**uvicorn_options(settings, host, port))
     finally:
         signal.signal(signal.SIGTERM, previous)
     return 0

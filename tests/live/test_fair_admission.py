@@ -12,13 +12,25 @@ issue 39), not on a starved client.
 
 from __future__ import annotations
 
+import re
+import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+
+from prometheus_client.mmap_dict import MmapedDict
 
 from benchmarks.faults_clients import Flood, polite_client
 from tests.live.server import LiveServer, metric
 
 # As many compute slots as the test server has CPU threads (tests/live/server.py): a slot is a run.
-SETTINGS = {"max_concurrent_inferences": 2, "max_queued_requests": 18, "client_share": 0.5}
+# A flood's request over its share waits up to the queue timeout for its 429: shorter than the
+# flood's own 10 s, so that the flood hears every 429 the server counts.
+SETTINGS = {
+    "max_concurrent_inferences": 2,
+    "max_queued_requests": 18,
+    "client_share": 0.5,
+    "queue_timeout_seconds": 3,
+}
 
 
 def test_a_flood_from_one_client_leaves_the_other_served(tmp_path: Path) -> None:
@@ -35,3 +47,39 @@ def test_a_flood_from_one_client_leaves_the_other_served(tmp_path: Path) -> None
         # The flood was refused beyond its share, and served within it.
         assert flood_answers.get(429, 0) > 0 and flood_answers.get(200, 0) > 0, flood_answers
         assert metric(server, "cks_predict_rejected_total", '{reason="client_share"}') == flood_answers[429]
+
+
+def test_with_two_workers_a_flood_is_held_to_its_share_by_each_worker(tmp_path: Path) -> None:
+    """The polite client's one connection reaches one worker; the flood's 40 reach both. The
+    worker that never sees the polite client learns of it from the client board (/dev/shm) and
+    holds the flood to its share (429 after waiting) instead of letting it take every place
+    (503 queue_full, as each worker did alone)."""
+    settings = {"max_concurrent_inferences": 2, "max_queued_requests": 4, "queue_timeout_seconds": 2}
+    with LiveServer(tmp_path / "data", workers=2, client_share=0.5, **settings) as server:
+        with ThreadPoolExecutor(1) as pool:
+            polite = pool.submit(polite_client, server.url, 10)  # one connection: one worker
+            time.sleep(1)
+            with Flood(server.url, valid=40) as flood:
+                time.sleep(8)
+            _, statuses = polite.result()
+        refused, log = _refusals_per_worker(tmp_path / "data" / "metrics"), server.log()
+    assert statuses.count(200) / len(statuses) >= 0.95, f"{statuses}; the flood's answers: {flood.statuses}"
+    assert len(refused) == 2, f"both workers must have seen the flood: {refused}"
+    for worker, reasons in refused.items():
+        assert reasons.get("client_share", 0) > 0 and reasons.get("queue_full", 0) == 0, (worker, refused)
+    assert "client board" not in log, log  # neither worker went without it
+
+
+def _refusals_per_worker(metrics: Path) -> dict[str, dict[str, float]]:
+    """cks_predict_rejected_total by reason, from each worker's own counter file."""
+    refused: dict[str, dict[str, float]] = {}
+    for counters in metrics.glob("*/counter_*.db"):
+        values = MmapedDict(str(counters), read_mode=True)
+        try:
+            for key, value, _ in values.read_all_values():
+                reason = re.search(r'"reason": ?"(\w+)"', key)
+                if '"cks_predict_rejected_total"' in key and reason:
+                    refused.setdefault(counters.name, {})[reason.group(1)] = value
+        finally:
+            values.close()
+    return refused

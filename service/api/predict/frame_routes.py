@@ -83,7 +83,7 @@ async def predict_frame(request: Request, parts: Predicting) -> Response:
     content_type = request.headers.get("content-type", "")
     require_multipart(content_type)
     client = parts.client_of(request)
-    parts.admission.refuse_if_full(client=client)  # not worth receiving
+    await parts.admission.wait_for_place(client=client)  # not worth receiving beyond its share
     body = await parts.receive(request)  # a slow client holds no place meanwhile
     async with parts.admission.admitted(client=client):
         frame, parameters = parse_frame(content_type, body, parts.manifest)

@@ -125,7 +125,7 @@ async def predict_png(request: Request, parts: Predicting) -> Response:
 
 async def _predict(request: Request, parts: PredictParts, png: bool) -> Response:
     client = parts.client_of(request)
-    parts.admission.refuse_if_full(client=client)  # not worth receiving
+    await parts.admission.wait_for_place(client=client)  # not worth receiving beyond its share
     body = await parts.receive(request)  # a slow client holds no place meanwhile
     async with parts.admission.admitted(client=client):
         image, parameters = await parse_predict(request, body, parts.manifest)
@@ -143,7 +143,7 @@ async def _predict(request: Request, parts: PredictParts, png: bool) -> Response
 async def predict_batch(request: Request, parts: Predicting) -> Response:
     require_batch_media(request)
     client = parts.client_of(request)
-    parts.admission.refuse_if_full(client=client)  # not worth receiving
+    await parts.admission.wait_for_place(client=client)  # not worth receiving beyond its share
     body = await parts.receive(request)  # as predict: a slow client holds no place meanwhile
     items = await parse_batch(request, body, parts.max_batch_images, parts.manifest)
     capacity = parts.admission.capacity
