@@ -101,9 +101,10 @@ def fill(database: Path, seed: list, have: int, rows: int, names: list[str]) -> 
                 for p in copies
             ],
         )
+        judged = [(p.id, verdicts(p, names)) for p in copies]
         connection.executemany(
-            "INSERT INTO calib_verdicts (id, verdicts) VALUES (?, ?)",
-            [(p.id, codec.encode_json(verdicts(p, names))) for p in copies],
+            "INSERT INTO calib_verdicts (id, shape, tally) VALUES (?, ?, ?)",
+            [(i, v.shape, codec.encode_json(v.tally)) for i, v in judged],
         )
 
 
@@ -111,7 +112,7 @@ def without_verdicts(database: Path, action) -> list[float]:  # noqa: ANN001
     """``action``'s wall seconds while the stored verdicts are set aside (as if labelled before)."""
     with sqlite3.connect(database) as connection:
         connection.execute("ALTER TABLE calib_verdicts RENAME TO calib_verdicts_aside")
-        connection.execute("CREATE TABLE calib_verdicts (id TEXT PRIMARY KEY, verdicts TEXT NOT NULL)")
+        connection.execute("CREATE TABLE calib_verdicts AS SELECT * FROM calib_verdicts_aside LIMIT 0")
     try:
         return action()
     finally:

@@ -3,8 +3,8 @@
 A retained prediction is a row written when a predict answer is kept for feedback: its id, model,
 calibration version, camera stream, times, and a JSON ``record`` (whatever the service needs to
 judge and recalibrate; the store does not read it). Feedback labels it once: ``label_prediction``
-sets its ``labels`` (JSON) in one transaction with the audit entry and the label's ``verdicts``
-(JSON, compact: what live coverage counts of it, read without the record; a row of
+sets its ``labels`` (JSON) in one transaction with the audit entry and the label's verdicts
+(``LabelVerdicts``: what live coverage counts of it, read without the record; a row of
 calib_verdicts, gone with its prediction), and refuses a second label.
 Rows are bounded by age (unlabelled rows past ``expires_at`` are removed) and by count (the oldest
 go first). Adaptive state is one JSON row per key, written with compare-and-set on its step count
@@ -37,6 +37,16 @@ class RetainedPrediction:
     labels: dict[str, Any] | None = None
     labelled_at: datetime | None = None
     labelled_by: str | None = None
+
+
+@dataclass(frozen=True)
+class LabelVerdicts:
+    """What live coverage counts of a label, judged once: ``shape``, text that the labels of one
+    stream share (kept as given, apart, so that a reader parses each shape once), and ``tally``,
+    what is the label's own (JSON)."""
+
+    shape: str
+    tally: dict[str, Any]
 
 
 class LabelOutcome(Enum):
@@ -111,7 +121,7 @@ class FeedbackRecords:
         who: str,
         at: datetime,
         audit: NewAuditEntry,
-        verdicts: dict[str, Any] | None = None,
+        verdicts: LabelVerdicts | None = None,
     ) -> LabelOutcome:
         """Label an unlabelled, unexpired row and append ``audit`` (and store ``verdicts``) in one
         transaction."""
@@ -125,8 +135,8 @@ class FeedbackRecords:
             if cur.fetchone() is not None:
                 if verdicts is not None:
                     cur.execute(
-                        "INSERT INTO calib_verdicts (id, verdicts) VALUES (?, ?)",
-                        (prediction_id, codec.encode_json(verdicts)),
+                        "INSERT INTO calib_verdicts (id, shape, tally) VALUES (?, ?, ?)",
+                        (prediction_id, verdicts.shape, codec.encode_json(verdicts.tally)),
                     )
                 self._insert_audit(cur, audit)
                 return LabelOutcome.LABELLED
@@ -160,11 +170,11 @@ class FeedbackRecords:
         rows = self._rows_of(f"SELECT {_RETAINED_COLUMNS} FROM calib_retained", ids)
         return [self._retained(row) for row in rows]
 
-    def label_verdicts(self, ids: Sequence[str]) -> dict[str, dict[str, Any]]:
+    def label_verdicts(self, ids: Sequence[str]) -> dict[str, LabelVerdicts]:
         """id -> the stored verdicts of those of ``ids`` that have them (rows labelled before
         schema 10, or evicted since, have none)."""
-        rows = self._rows_of("SELECT id, verdicts FROM calib_verdicts", ids)
-        return {row[0]: codec.decode_json(row[1]) for row in rows}
+        rows = self._rows_of("SELECT id, shape, tally FROM calib_verdicts", ids)
+        return {row[0]: LabelVerdicts(row[1], codec.decode_json(row[2])) for row in rows}
 
     def _rows_of(self, select: str, ids: Sequence[str]) -> list[Any]:
         """The rows of ``select`` whose id is one of ``ids``, a query per ``_IDS_PER_QUERY``."""
@@ -246,6 +256,7 @@ VERDICTS_TABLE = "the verdicts of field labels, for live coverage"
 VERDICTS_STATEMENTS = (
     """CREATE TABLE calib_verdicts (
         id TEXT PRIMARY KEY REFERENCES calib_retained (id) ON DELETE CASCADE,
-        verdicts TEXT NOT NULL
+        shape TEXT NOT NULL,
+        tally TEXT NOT NULL
     )""",
 )

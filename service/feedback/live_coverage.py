@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from calibration_store import StoreError
+from calibration_store import LabelVerdicts, StoreError
 from service.feedback.confidence_sequence import BettingAlarm, coverage_bounds, promised_floor
 from service.feedback.verdicts import verdicts
 
@@ -117,12 +117,12 @@ class CoverageFold:
         self._shapes: dict[str, _Shape] = {}
         self._voted: OrderedDict[str, None] = OrderedDict()
 
-    def add(self, verdict: dict[str, Any]) -> None:
+    def add(self, verdicts: LabelVerdicts) -> None:
         """Count one labelled prediction's verdicts: raw counts always, a vote if it opens its look."""
-        shape = self._shapes.get(verdict["shape"]) or self._parse(verdict["shape"])
-        covered = verdict["covered"]
+        shape = self._shapes.get(verdicts.shape) or self._parse(verdicts.shape)
+        covered = verdicts.tally["covered"]
         shape.pending.append(covered)
-        if self._opens_look(verdict["look"]):
+        if self._opens_look(verdicts.tally["look"]):
             for group, units, hits, floor in zip(shape.groups, shape.units, covered, shape.mean, strict=True):
                 vote = hits / units
                 group.looks += 1
@@ -273,7 +273,7 @@ class LiveCoverageReader:
             self._recent = {i: at for i, at in self._recent.items() if at >= self._newest - SETTLE}
         return bool(listed)
 
-    def _verdicts(self, ids: list[str]) -> dict[str, dict[str, Any]]:
+    def _verdicts(self, ids: list[str]) -> dict[str, LabelVerdicts]:
         """The stored verdicts of ``ids``; those labelled before they were stored (schema 9) are
         judged here from their records."""
         found = self._store.label_verdicts(ids)

@@ -9,9 +9,10 @@ when every one of them is in its set) and gathers them into the groups live cove
 version as a whole, per object, keypoint, camera stream, caller group and Mondrian stratum).
 
 What varies from label to label is little: how many units of each group were covered, and the
-look. The rest, the ``shape`` (version, guarantee, query, the groups, and per group the floor of
-each unit in unit order), repeats over the frames of a stream; it is kept as one JSON text, so
-that a reader parses each shape once and counts a label as a list of numbers. A floor is kept as
+look (its tally). The rest, the shape (version, guarantee, query, the groups, and per group the
+floor of each unit in unit order), repeats over the frames of a stream; it is kept as one JSON
+text in a column of its own, so that a reader parses each shape once and counts a label as a
+list of numbers. A floor is kept as
 the calibration guarantees (n, t, epsilon, delta) behind it, not as a number: the number depends
 on CKS_FEEDBACK_ALARM_LEVEL, which the reader applies.
 """
@@ -23,7 +24,7 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from calibration_store import RetainedPrediction
+from calibration_store import LabelVerdicts, RetainedPrediction
 
 
 @dataclass(frozen=True)
@@ -39,9 +40,10 @@ class Unit:
     guarantees: tuple[tuple[Any, ...], ...]  # (n, t, epsilon, delta) of its rows: its floor is the least
 
 
-def verdicts(prediction: RetainedPrediction, keypoint_names: list[str]) -> dict[str, Any]:
-    """The compact judgement of a labelled prediction that live coverage folds (module doc):
-    ``shape`` (JSON text), ``look``, and ``covered``, the covered units of each of the shape's groups."""
+def verdicts(prediction: RetainedPrediction, keypoint_names: list[str]) -> LabelVerdicts:
+    """The compact judgement of a labelled prediction that live coverage folds (module doc): its
+    shape (JSON text), and as its tally its ``look`` and ``covered``, the covered units of each of
+    the shape's groups."""
     record = prediction.record
     query = record["query"]
     floors: dict[tuple, int] = {}
@@ -62,11 +64,11 @@ def verdicts(prediction: RetainedPrediction, keypoint_names: list[str]) -> dict[
         "floors": [[list(g) for g in guarantees] for guarantees in floors],
         "groups": [[level, name, runs] for (level, name), (_, runs) in groups.items()],
     }
-    return {
-        "shape": json.dumps(shape, separators=(",", ":")),
+    tally = {
         "look": record.get("look", prediction.id),  # rows kept before looks: one look each
         "covered": [covered[0] for covered, _ in groups.values()],
     }
+    return LabelVerdicts(json.dumps(shape, separators=(",", ":")), tally)
 
 
 def units(

@@ -4,7 +4,14 @@ from __future__ import annotations
 
 from datetime import UTC, datetime, timedelta
 
-from calibration_store import AdaptiveState, CalibrationStore, LabelOutcome, NewAuditEntry, RetainedPrediction
+from calibration_store import (
+    AdaptiveState,
+    CalibrationStore,
+    LabelOutcome,
+    LabelVerdicts,
+    NewAuditEntry,
+    RetainedPrediction,
+)
 
 MODEL = "f" * 64
 
@@ -88,13 +95,13 @@ def test_new_labels_are_read_by_id_in_label_order(store: CalibrationStore) -> No
 def test_a_labels_verdicts_are_stored_with_it_and_go_with_its_prediction(store: CalibrationStore) -> None:
     now = datetime.now(UTC)
     store.retain_predictions([retained(name, now) for name in ("a", "b", "c")], max_rows=10)
-    verdicts = {"look": "a", "floors": [[[600, 60, 0.1, None]]], "groups": [["version", "all", 1, [0, 0]]]}
+    verdicts = LabelVerdicts('{"groups":[["version","all",[[0, 2]]]]}', {"look": "a", "covered": [1]})
     labels = {"rows": [{"row": 0, "covered": True}]}
     assert store.label_prediction("a", labels, "robot", now, entry("a"), verdicts) is LabelOutcome.LABELLED
     assert (
         store.label_prediction("b", labels, "robot", now, entry("b")) is LabelOutcome.LABELLED
     )  # none given
-    refused = {"look": "refused"}
+    refused = LabelVerdicts("{}", {"look": "refused"})
     assert (
         store.label_prediction("a", labels, "robot", now, entry("a"), refused)
         is LabelOutcome.ALREADY_LABELLED
