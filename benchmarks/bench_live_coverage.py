@@ -6,10 +6,12 @@ Each bundled sample image is predicted in process (the ASGI app, SQLite store, t
 with ``retain: true`` (every other one with ``stratify: difficulty``) and labelled with its true
 keypoints through POST /v1/feedback: real records and real labels. Those labelled rows are then
 copied, with fresh ids, 20 camera streams and one frame every 33 ms, until the store holds
-``--rows`` labelled rows (written straight into calib_retained: the read is what is measured, and
-CKS_FEEDBACK_MAX_RETAINED, 100,000 by default, is the most a read can see). Then, per size:
-GET /v1/admin/coverage/live (the admin endpoint, fresh each time), ``--reads`` times, and the same
-read split into its parts (the store's rows, then the grouping), median wall seconds of each.
+``--rows`` labelled rows (written straight into calib_retained and calib_verdicts: the read is what
+is measured, and CKS_FEEDBACK_MAX_RETAINED, 100,000 by default, is the most a read can see). Then,
+per size, median wall seconds of ``--reads`` of each: a fresh reader's full count of rows labelled
+before verdicts were stored (their verdicts removed: every record decoded and judged, what every
+first read cost before), the same with the verdicts stored, and GET /v1/admin/coverage/live (the
+admin endpoint): its first read, with nothing new, with 100 new labels.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from fastapi.testclient import TestClient  # noqa: E402
 from calibration_store import codec, sqlite_path  # noqa: E402
 from service.feedback.live_coverage import LiveCoverageReader  # noqa: E402
 from service.feedback.retention import new_prediction_id  # noqa: E402
+from service.feedback.verdicts import verdicts  # noqa: E402
 from service.infra.settings import Settings  # noqa: E402
 from service.serving.app import create_app  # noqa: E402
 from tests.predict_client import instances_of, predict_ok  # noqa: E402
@@ -63,9 +66,9 @@ def labelled_seed(client: TestClient, settings: Settings) -> None:
         assert response.status_code == 200, response.text
 
 
-def fill(database: Path, seed: list, have: int, rows: int) -> None:
-    """Copies of the ``seed`` labelled rows, fresh ids, STREAMS streams, scenes of SCENE frames (a
-    look each), until ``rows`` are labelled (``have`` are)."""
+def fill(database: Path, seed: list, have: int, rows: int, names: list[str]) -> None:
+    """Copies of the ``seed`` labelled rows and their verdicts, fresh ids, STREAMS streams, scenes
+    of SCENE frames (a look each), until ``rows`` are labelled (``have`` are)."""
     start = max(p.created_at for p in seed) + (have + 1) * FRAME
     copies, looks = [], {}
     for n in range(rows - have):
@@ -98,6 +101,24 @@ def fill(database: Path, seed: list, have: int, rows: int) -> None:
                 for p in copies
             ],
         )
+        judged = [(p.id, verdicts(p, names)) for p in copies]
+        connection.executemany(
+            "INSERT INTO calib_verdicts (id, shape, tally) VALUES (?, ?, ?)",
+            [(i, v.shape, codec.encode_json(v.tally)) for i, v in judged],
+        )
+
+
+def without_verdicts(database: Path, action) -> list[float]:  # noqa: ANN001
+    """``action``'s wall seconds while the stored verdicts are set aside (as if labelled before)."""
+    with sqlite3.connect(database) as connection:
+        connection.execute("ALTER TABLE calib_verdicts RENAME TO calib_verdicts_aside")
+        connection.execute("CREATE TABLE calib_verdicts AS SELECT * FROM calib_verdicts_aside LIMIT 0")
+    try:
+        return action()
+    finally:
+        with sqlite3.connect(database) as connection:
+            connection.execute("DROP TABLE calib_verdicts")
+            connection.execute("ALTER TABLE calib_verdicts_aside RENAME TO calib_verdicts")
 
 
 def timed(action, reads: int) -> list[float]:  # noqa: ANN001
@@ -142,18 +163,23 @@ def main(argv: list[str] | None = None) -> None:
             size = len(json.dumps(seed[0].record))
             print(f"record: {size} bytes of JSON (one labelled prediction, before its labels)")
             print(
-                "rows | full fold s (every read, before) | GET, first s | GET, nothing new s | GET, 100 new s"
+                "rows | full count, records judged s (before) | full count, verdicts s"
+                " | GET, first s | GET, nothing new s | GET, 100 new s"
             )
+
+            def fresh() -> None:
+                LiveCoverageReader(store, model_hash, names, 10**6, 0.01).report()
+
             for rows in sorted(args.rows):
-                fill(database, seed, count(), rows)
-                fresh = timed(
-                    lambda: LiveCoverageReader(store, model_hash, names, 10**6, 0.01).report(), args.reads
-                )
+                fill(database, seed, count(), rows, names)
+                judged = without_verdicts(database, lambda: timed(fresh, args.reads))
+                stored = timed(fresh, args.reads)
                 first = timed(get, 1)
                 quiet = timed(get, args.reads)
-                fill(database, seed, count(), rows + 100)
+                fill(database, seed, count(), rows + 100, names)
                 new = timed(get, 1)
-                print(f"{rows} | {spread(fresh)} | {spread(first)} | {spread(quiet)} | {spread(new)}")
+                figures = (judged, stored, first, quiet, new)
+                print(f"{rows} | " + " | ".join(spread(f) for f in figures), flush=True)
 
 
 if __name__ == "__main__":

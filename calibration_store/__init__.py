@@ -87,9 +87,10 @@ Coverage audits (immutable, like versions):
 
 Feedback (calibration_store/feedback_records.py): ``retain_predictions([RetainedPrediction],
 max_rows)`` (one transaction), ``retained_prediction(id)``, ``oldest_retained()``,
-``label_prediction(id, labels, who, at, audit) -> LabelOutcome`` (once per row, with its audit
-entry), ``labelled_predictions(model_hash, limit)`` (in label order), ``labelled_since(model_hash,
-since) -> [(id, labelled_at)]`` and ``retained_predictions(ids)`` (new labels, read incrementally),
+``label_prediction(id, labels, who, at, audit, LabelVerdicts) -> LabelOutcome`` (once per row,
+with its audit entry and verdicts), ``labelled_predictions(model_hash, limit)`` (in label order),
+``labelled_since(model_hash, since) -> [(id, labelled_at)]``, ``label_verdicts(ids)`` and
+``retained_predictions(ids)`` (new labels, read incrementally),
 ``adaptive_state(key)``
 and ``save_adaptive_state(key, steps_before, AdaptiveState) -> bool`` (compare-and-set on the step count).
 
@@ -114,7 +115,7 @@ from .errors import (
     VersionNotFound,
 )
 from .factory import open_store, sqlite_path, store_location
-from .feedback_records import AdaptiveState, LabelOutcome, RetainedPrediction
+from .feedback_records import AdaptiveState, LabelOutcome, LabelVerdicts, RetainedPrediction
 from .models import (
     DEFAULT_FUNCTIONS,
     FINAL_JOB_STATES,
@@ -153,6 +154,7 @@ __all__ = [
     "JobRecord",
     "MonitorShare",
     "LabelOutcome",
+    "LabelVerdicts",
     "NewAuditEntry",
     "NewCoverageAudit",
     "NewVersion",

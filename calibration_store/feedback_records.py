@@ -3,7 +3,9 @@
 A retained prediction is a row written when a predict answer is kept for feedback: its id, model,
 calibration version, camera stream, times, and a JSON ``record`` (whatever the service needs to
 judge and recalibrate; the store does not read it). Feedback labels it once: ``label_prediction``
-sets its ``labels`` (JSON) in one transaction with the audit entry, and refuses a second label.
+sets its ``labels`` (JSON) in one transaction with the audit entry and the label's verdicts
+(``LabelVerdicts``: what live coverage counts of it, read without the record; a row of
+calib_verdicts, gone with its prediction), and refuses a second label.
 Rows are bounded by age (unlabelled rows past ``expires_at`` are removed) and by count (the oldest
 go first). Adaptive state is one JSON row per key, written with compare-and-set on its step count
 so that replicas sharing the store never lose an update.
@@ -35,6 +37,16 @@ class RetainedPrediction:
     labels: dict[str, Any] | None = None
     labelled_at: datetime | None = None
     labelled_by: str | None = None
+
+
+@dataclass(frozen=True)
+class LabelVerdicts:
+    """What live coverage counts of a label, judged once: ``shape``, text that the labels of one
+    stream share (kept as given, apart, so that a reader parses each shape once), and ``tally``,
+    what is the label's own (JSON)."""
+
+    shape: str
+    tally: dict[str, Any]
 
 
 class LabelOutcome(Enum):
@@ -109,8 +121,10 @@ class FeedbackRecords:
         who: str,
         at: datetime,
         audit: NewAuditEntry,
+        verdicts: LabelVerdicts | None = None,
     ) -> LabelOutcome:
-        """Label an unlabelled, unexpired row and append ``audit`` in one transaction."""
+        """Label an unlabelled, unexpired row and append ``audit`` (and store ``verdicts``) in one
+        transaction."""
         when = self._time_to_db(at)
         with self._transaction(write=True) as cur:
             cur.execute(
@@ -119,6 +133,11 @@ class FeedbackRecords:
                 (codec.encode_json(labels), when, who, prediction_id, when),
             )
             if cur.fetchone() is not None:
+                if verdicts is not None:
+                    cur.execute(
+                        "INSERT INTO calib_verdicts (id, shape, tally) VALUES (?, ?, ?)",
+                        (prediction_id, verdicts.shape, codec.encode_json(verdicts.tally)),
+                    )
                 self._insert_audit(cur, audit)
                 return LabelOutcome.LABELLED
             cur.execute("SELECT labels FROM calib_retained WHERE id = ?", (prediction_id,))
@@ -148,13 +167,22 @@ class FeedbackRecords:
 
     def retained_predictions(self, ids: Sequence[str]) -> list[RetainedPrediction]:
         """The kept rows of ``ids`` (those evicted since are missing), in no particular order."""
-        found: list[RetainedPrediction] = []
+        rows = self._rows_of(f"SELECT {_RETAINED_COLUMNS} FROM calib_retained", ids)
+        return [self._retained(row) for row in rows]
+
+    def label_verdicts(self, ids: Sequence[str]) -> dict[str, LabelVerdicts]:
+        """id -> the stored verdicts of those of ``ids`` that have them (rows labelled before
+        schema 10, or evicted since, have none)."""
+        rows = self._rows_of("SELECT id, shape, tally FROM calib_verdicts", ids)
+        return {row[0]: LabelVerdicts(row[1], codec.decode_json(row[2])) for row in rows}
+
+    def _rows_of(self, select: str, ids: Sequence[str]) -> list[Any]:
+        """The rows of ``select`` whose id is one of ``ids``, a query per ``_IDS_PER_QUERY``."""
+        rows: list[Any] = []
         for start in range(0, len(ids), _IDS_PER_QUERY):
             chunk = tuple(ids[start : start + _IDS_PER_QUERY])
-            marks = ", ".join("?" * len(chunk))
-            rows = self._read(f"SELECT {_RETAINED_COLUMNS} FROM calib_retained WHERE id IN ({marks})", chunk)
-            found.extend(self._retained(row) for row in rows)
-        return found
+            rows.extend(self._read(f"{select} WHERE id IN ({', '.join('?' * len(chunk))})", chunk))
+        return rows
 
     def adaptive_state(self, key: str) -> AdaptiveState | None:
         rows = self._read("SELECT key, steps, state FROM calib_adaptive WHERE key = ?", (key,))
@@ -221,3 +249,14 @@ def feedback_tables(timestamp: str) -> tuple[str, ...]:
 
 
 FEEDBACK_TABLES = "retained predictions, their field labels, adaptive conformal state"
+
+#: Migration: the verdicts of each label (what live coverage counts), apart from the big records
+#: so that reading them reads none of a record's pages; removed with their prediction
+VERDICTS_TABLE = "the verdicts of field labels, for live coverage"
+VERDICTS_STATEMENTS = (
+    """CREATE TABLE calib_verdicts (
+        id TEXT PRIMARY KEY REFERENCES calib_retained (id) ON DELETE CASCADE,
+        shape TEXT NOT NULL,
+        tally TEXT NOT NULL
+    )""",
+)

@@ -13,7 +13,7 @@ from datetime import UTC, datetime
 from typing import Any
 
 from .errors import SchemaVersionError
-from .feedback_records import FEEDBACK_TABLES, feedback_tables
+from .feedback_records import FEEDBACK_TABLES, VERDICTS_STATEMENTS, VERDICTS_TABLE, feedback_tables
 
 
 @dataclass(frozen=True)
@@ -298,6 +298,7 @@ SQLITE_MIGRATIONS: tuple[Migration, ...] = (
     Migration(7, _CONTENT_KEY, _CONTENT_KEY_STATEMENTS),
     Migration(8, _MONITOR_SHARES, _monitor_shares("BLOB", "TEXT")),
     Migration(9, FEEDBACK_TABLES, feedback_tables("TEXT")),
+    Migration(10, VERDICTS_TABLE, VERDICTS_STATEMENTS),
 )
 
 POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
@@ -343,6 +344,7 @@ POSTGRES_MIGRATIONS: tuple[Migration, ...] = (
     Migration(7, _CONTENT_KEY, _CONTENT_KEY_STATEMENTS),
     Migration(8, _MONITOR_SHARES, _monitor_shares("BYTEA", "TIMESTAMPTZ")),
     Migration(9, FEEDBACK_TABLES, feedback_tables("TIMESTAMPTZ")),
+    Migration(10, VERDICTS_TABLE, VERDICTS_STATEMENTS),
 )
 
 

@@ -4,7 +4,8 @@ Read top-down, ``record_feedback``: find the retained prediction (404 unknown, 4
 evicted), check the labels against its instances (422 naming each problem), score every labelled
 point under the three nonconformity functions from the kept heatmap statistics (exactly as a
 calibration upload of the same image and labels would), judge whether the served set covered it,
-and store the label with its audit entry in one transaction (409 when it was labelled already).
+and store the label with its audit entry and its verdicts (what live coverage counts of it,
+service.feedback.verdicts) in one transaction (409 when it was labelled already).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from typing import Any
 
@@ -24,6 +25,7 @@ from service.detector.crop import apply_affines
 from service.errors import Conflict, Gone, InvalidInput, NotFound
 from service.feedback.adaptive import AdaptiveSets
 from service.feedback.retention import Retention, retained_at
+from service.feedback.verdicts import covered_units, verdicts
 from service.infra.audit_trail import AuditTrail, Operator, written
 
 VISIBILITIES = (0, 1, 2)  # COCO: not labelled, occluded, visible
@@ -60,6 +62,7 @@ def record_feedback(
     prediction_id: str,
     instances: Sequence[InstanceLabels],
     max_age_s: float,
+    keypoint_names: list[str],
     adaptive: AdaptiveSets | None = None,
     retention: Retention | None = None,
 ) -> Judged:
@@ -84,7 +87,8 @@ def record_feedback(
         version=retained.version,
         details={"prediction_id": prediction_id, "keypoints": len(rows), "covered": covered},
     )
-    outcome = store.label_prediction(prediction_id, labels, operator.name, datetime.now(UTC), entry)
+    counted = verdicts(replace(retained, labels=labels), keypoint_names)
+    outcome = store.label_prediction(prediction_id, labels, operator.name, datetime.now(UTC), entry, counted)
     if outcome is LabelOutcome.ALREADY_LABELLED:
         audit.record(
             operator, "feedback", "refused", version=retained.version, details={"reason": "labelled"}
@@ -198,23 +202,6 @@ def judge(record: dict[str, Any], points: dict[int, np.ndarray]) -> list[dict[st
         row_scores = {kind: scores[kind][k] for kind in scores}
         judged.append({"row": row, "scores": row_scores, "covered": bool(row_scores[served] <= threshold)})
     return judged
-
-
-def covered_units(
-    record: dict[str, Any], judged_rows: Sequence[dict[str, Any]]
-) -> list[tuple[int, int | None, bool]]:
-    """(instance, row, covered) of each unit the query's guarantee speaks about: each labelled
-    keypoint, or (coverage object) each instance whose keypoints are all labelled (row None)."""
-    rows = record["rows"]
-    judged = {row["row"]: row["covered"] for row in judged_rows}
-    if record["query"]["coverage"] != "object":
-        return [(rows[r]["instance"], r, covered) for r, covered in judged.items()]
-    units = []
-    for index in range(len(record["instances"])):
-        members = [r for r, row in enumerate(rows) if row["instance"] == index]
-        if members and all(r in judged for r in members):
-            units.append((index, None, all(judged[r] for r in members)))
-    return units
 
 
 def kept_statistics(record: dict[str, Any], rows: Sequence[dict[str, Any]]) -> HeatmapStatistics:

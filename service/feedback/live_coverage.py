@@ -1,7 +1,8 @@
 """Live labelled coverage: what the field's labels say of each calibration version's sets so far.
 
-Read top-down, ``CoverageFold.add``: each labelled prediction, as it is read, is split into its
-judged units and counted per group (the version's answers as a whole, per object, per keypoint,
+Read top-down, ``CoverageFold.add``: each labelled prediction, as it is read, comes as its
+verdicts (its judged units, already grouped: service.feedback.verdicts, stored with its label)
+and is counted per group (the version's answers as a whole, per object, per keypoint,
 per camera stream, per caller group, per Mondrian stratum): the raw coverage of its labelled
 keypoints, and one vote per look (frames of one scene are one observation, not many: the look
 was fixed when the answer was served, service.feedback.retention), cast by the look's first
@@ -10,9 +11,11 @@ votes' mean and its alarm (a betting e-process, once coverage is proven below th
 promise) are service.feedback.confidence_sequence's.
 
 ``LiveCoverageReader`` keeps one fold per process and adds only the labels that are new since
-its last read (``labelled_since`` lists ids, a cheap indexed read; only new records are fetched
-and decoded): a read costs what arrived since the previous one, not the CKS_FEEDBACK_MAX_RETAINED
-rows the store may keep (docs/feedback.md measures both). Votes are cast in the order the labels
+its last read (``labelled_since`` lists ids, a cheap indexed read; only the new labels' verdicts
+are fetched and decoded, never the records, except for rows labelled before verdicts were stored,
+which are judged here): a read costs what arrived since the previous one, and a process's first
+read decodes the compact verdicts of the CKS_FEEDBACK_MAX_RETAINED rows the store may keep
+(docs/feedback.md measures both). Votes are cast in the order the labels
 are read (label order), each label once; a raised alarm stays raised though its rows are evicted.
 A replica started later folds the labels the store still keeps, so replicas agree on the labels
 kept, not on evicted history.
@@ -28,40 +31,29 @@ stratum threshold's own promise, and ``pooled`` gathers the rows that fell back 
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any
 
 import numpy as np
 
-from calibration_store import RetainedPrediction, StoreError
+from calibration_store import LabelVerdicts, StoreError
 from service.feedback.confidence_sequence import BettingAlarm, coverage_bounds, promised_floor
-from service.feedback.labels import covered_units
+from service.feedback.verdicts import verdicts
 
 log = logging.getLogger(__name__)
 #: each read lists again the labels stamped this long before the newest one seen: a label stamped
 #: earlier may commit later (a slow transaction, another replica's clock)
 SETTLE = timedelta(seconds=60)
-#: records fetched and decoded at once (the first read of a full store folds them page by page)
+#: labels whose verdicts are fetched and decoded at once (a first read folds a full store page by page)
 PAGE = 2000
-
-
-@dataclass(frozen=True)
-class Unit:
-    """One judged keypoint (or instance, object scope) of a labelled prediction."""
-
-    object: str
-    keypoint: str | None
-    stream: str
-    group: str | None
-    stratum: str | None  # the Mondrian stratum whose threshold served it (None: not stratified)
-    covered: bool
-    floor: float
+#: verdict shapes kept parsed (the frames of a stream share one; beyond it the fold starts afresh)
+SHAPES_KEPT = 4096
 
 
 @dataclass
@@ -99,47 +91,81 @@ class GroupCoverage:
     alarm: bool
 
 
+@dataclass
+class _Shape:
+    """A verdict shape (service.feedback.verdicts), parsed: its groups' votes, and per group its
+    units, their least floor and their mean floor; ``pending``: the covered counts of the labels
+    folded since their counts were last added to the groups."""
+
+    groups: list[_Votes]
+    units: list[int]
+    least: list[float]
+    mean: list[float]
+    pending: list[list[int]] = field(default_factory=list)
+
+
 class CoverageFold:
     """Every group's live coverage, label by label; ``level`` is the false-alarm probability of
     each group's alarm (half to the sequence, half to the band); the last ``looks_kept`` looks are
-    remembered (a label of a look forgotten since votes again)."""
+    remembered (a label of a look forgotten since votes again). A label's votes are cast as it is
+    added, in label order; its raw counts are sums, added to their groups a shape at a time when
+    a report is made."""
 
-    def __init__(self, keypoint_names: list[str], level: float, looks_kept: int) -> None:
-        self._names, self.level, self._looks_kept = keypoint_names, level, looks_kept
+    def __init__(self, level: float, looks_kept: int) -> None:
+        self.level, self._looks_kept = level, looks_kept
         self._groups: dict[tuple, _Votes] = {}
+        self._shapes: dict[str, _Shape] = {}
         self._voted: OrderedDict[str, None] = OrderedDict()
 
-    def add(self, prediction: RetainedPrediction) -> None:
-        """Count one labelled prediction: raw counts always, a vote if it opens its look."""
-        record = prediction.record
-        query = record["query"]
-        guarantee = "exchangeable" if record.get("adaptive") is None else "adaptive"
-        base = (
-            prediction.version,
-            guarantee,
-            query["nonconformity"],
-            query["coverage"],
-            query["epsilon"],
-            query["delta"],
-        )
-        by_group: dict[tuple, list[Unit]] = {}
-        band = self.level / 2 if guarantee == "exchangeable" else 0.0  # ACI promises a long-run bound
-        labels = prediction.labels or {}
-        for unit in units(record, labels, self._names, band, prediction.stream):
-            for name_level, name in _names(unit):
-                by_group.setdefault((*base, name_level, name), []).append(unit)
-        votes = self._opens_look(record.get("look", prediction.id))  # rows kept before looks: one each
-        for key, members in by_group.items():
-            group = self._groups.setdefault(key, _Votes(1.0 - query["epsilon"], BettingAlarm(self.level)))
-            group.labelled += len(members)
-            group.covered += sum(u.covered for u in members)
-            group.floor = min([group.floor, *(u.floor for u in members)])
-            group.reported = None
-            if votes:
-                vote = float(np.mean([u.covered for u in members]))
+    def add(self, verdicts: LabelVerdicts) -> None:
+        """Count one labelled prediction's verdicts: raw counts always, a vote if it opens its look."""
+        shape = self._shapes.get(verdicts.shape) or self._parse(verdicts.shape)
+        covered = verdicts.tally["covered"]
+        shape.pending.append(covered)
+        if self._opens_look(verdicts.tally["look"]):
+            for group, units, hits, floor in zip(shape.groups, shape.units, covered, shape.mean, strict=True):
+                vote = hits / units
                 group.looks += 1
                 group.total += vote
-                group.alarm.observe(vote, float(np.mean([u.floor for u in members])))
+                group.alarm.observe(vote, floor)
+                group.reported = None
+
+    def _parse(self, text: str) -> _Shape:
+        if len(self._shapes) >= SHAPES_KEPT:  # labels of many shapes (streams, strata): start afresh
+            self._count()
+            self._shapes.clear()
+        shape = json.loads(text)
+        base = (shape["version"], shape["guarantee"], *shape["query"])
+        band = self.level / 2 if shape["guarantee"] == "exchangeable" else 0.0  # ACI: a long-run bound
+        floors = [min(_floor(g, band) for g in guarantees) for guarantees in shape["floors"]]
+        parsed = _Shape([], [], [], [])
+        for name_level, name, runs in shape["groups"]:
+            key = (*base, name_level, name)
+            group = self._groups.get(key)
+            if group is None:
+                group = self._groups[key] = _Votes(1.0 - shape["query"][2], BettingAlarm(self.level))
+            members = tuple(floors[floor] for floor, count in runs for _ in range(count))
+            parsed.groups.append(group)
+            parsed.units.append(len(members))
+            parsed.least.append(min(members))
+            parsed.mean.append(float(np.mean(members)))
+        self._shapes[text] = parsed
+        return parsed
+
+    def _count(self) -> None:
+        """Add the raw counts of the labels folded since the last time to their groups."""
+        for shape in self._shapes.values():
+            if shape.pending:
+                covered = np.sum(np.array(shape.pending, dtype=np.int64), axis=0).tolist()
+                labels = len(shape.pending)
+                for group, units, hits, least in zip(
+                    shape.groups, shape.units, covered, shape.least, strict=True
+                ):
+                    group.labelled += labels * units
+                    group.covered += hits
+                    group.floor = min(group.floor, least)
+                    group.reported = None
+                shape.pending.clear()
 
     def _opens_look(self, look: str) -> bool:
         if look in self._voted:
@@ -151,44 +177,15 @@ class CoverageFold:
         return True
 
     def report(self) -> list[GroupCoverage]:
+        self._count()
         for key, votes in self._groups.items():
             if votes.reported is None:
                 votes.reported = _report(key, votes, self.level)
         return [votes.reported for _, votes in sorted(self._groups.items(), key=lambda kv: str(kv[0]))]
 
 
-def units(
-    record: dict[str, Any], labels: dict[str, Any], keypoint_names: list[str], band: float, stream: str
-) -> Iterator[Unit]:
-    """The judged units of one labelled prediction (keypoints, or whole instances: object scope)."""
-    rows, instances = record["rows"], record["instances"]
-    for index, row, covered in covered_units(record, labels.get("rows", [])):
-        members = [r for r, kept in enumerate(rows) if kept["instance"] == index] if row is None else [row]
-        floor = min(_floor(rows[r]["guarantee"], band) for r in members)
-        name = None if row is None else keypoint_names[rows[row]["channel"]]
-        strata = {rows[r].get("stratum") for r in members}  # one per instance with coverage object
-        stratum = strata.pop() if len(strata) == 1 else None
-        instance = instances[index]
-        yield Unit(instance["object"], name, stream, instance["group"], stratum, covered, floor)
-
-
-def _floor(guarantee: dict[str, Any], band: float) -> float:
-    if band == 0.0:
-        return 0.0
-    return promised_floor(guarantee["n"], guarantee["t"], guarantee["epsilon"], guarantee["delta"], band)
-
-
-def _names(unit: Unit) -> Iterator[tuple[str, str]]:
-    yield "version", "all"
-    yield "object", unit.object
-    if unit.keypoint is not None:
-        yield "keypoint", f"{unit.object}/{unit.keypoint}"
-    if unit.stream:
-        yield "stream", unit.stream
-    if unit.group:
-        yield "group", unit.group
-    if unit.stratum is not None:
-        yield "stratum", unit.stratum
+def _floor(guarantee: list[Any], band: float) -> float:
+    return 0.0 if band == 0.0 else promised_floor(*guarantee, band)
 
 
 def _report(key: tuple, votes: _Votes, level: float) -> GroupCoverage:
@@ -224,7 +221,8 @@ class LiveCoverageReader:
         self, store: Any, model_hash: str, keypoint_names: list[str], looks_kept: int, level: float
     ) -> None:
         self._store, self._model_hash, self.level = store, model_hash, level
-        self._fold = CoverageFold(keypoint_names, level, looks_kept)
+        self._names = keypoint_names
+        self._fold = CoverageFold(level, looks_kept)
         self._lock = threading.Lock()
         self._recent: dict[str, datetime] = {}  # ids folded, labelled within SETTLE of the newest
         self._newest: datetime | None = None
@@ -265,7 +263,7 @@ class LiveCoverageReader:
         ]
         for start in range(0, len(listed), PAGE):
             page = listed[start : start + PAGE]
-            found = {p.id: p for p in self._store.retained_predictions([i for i, _ in page])}
+            found = self._verdicts([i for i, _ in page])
             for prediction_id, _ in page:
                 if prediction_id in found:  # evicted in between: gone
                     self._fold.add(found[prediction_id])
@@ -274,3 +272,12 @@ class LiveCoverageReader:
         if listed:
             self._recent = {i: at for i, at in self._recent.items() if at >= self._newest - SETTLE}
         return bool(listed)
+
+    def _verdicts(self, ids: list[str]) -> dict[str, LabelVerdicts]:
+        """The stored verdicts of ``ids``; those labelled before they were stored (schema 9) are
+        judged here from their records."""
+        found = self._store.label_verdicts(ids)
+        missing = [i for i in ids if i not in found]
+        if missing:
+            found.update((p.id, verdicts(p, self._names)) for p in self._store.retained_predictions(missing))
+        return found

@@ -4,6 +4,7 @@ every refusal a clear 4xx, the feedback token's own scope, and the audit trail."
 
 from __future__ import annotations
 
+import sqlite3
 import time
 from collections.abc import Iterator
 from dataclasses import asdict
@@ -12,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from calibration_store import NewAuditEntry
+from calibration_store import NewAuditEntry, sqlite_path
 from service.api.predict.predict_schemas import PredictResponse
 from service.feedback.confidence_sequence import promised_floor
 from service.feedback.live_coverage import LiveCoverageReader
@@ -337,6 +338,37 @@ def test_live_coverage_folds_each_label_once_as_it_arrives(tmp_path: Path, sampl
         streams = {g["name"]: g for g in report["groups"] if g["level"] == "stream"}
         assert streams["cam-late"]["labelled"] == len(labels["rows"]) and streams["cam-late"]["looks"] == 1
         assert service.client.get(live, headers=service.admin).json() == report  # nothing counted twice
+
+
+def test_stored_verdicts_count_as_the_records_judged_on_read(tmp_path: Path, samples: list[Sample]) -> None:
+    """A label's verdicts are stored with it; rows labelled before that (schema 9) are judged from
+    their records on read: the same labels give the same votes, looks, alarms and figures."""
+    level = 0.05
+    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN, feedback_alarm_level=level) as service:
+        state = service.app.state.service
+        send_all(service, samples, 0.0, "cam-true", stratify="difficulty")
+        send_all(service, samples, 0.0, "cam-objects", coverage="object", delta=0.1)
+        send_all(service, samples, 60.0, "cam-moved", stratify="group", group_fallback="pooled")
+        send_all(service, samples, 60.0, "cam-adaptive", adaptive=True)
+        send_all(service, samples, 2.0, None, epsilon=0.2)  # no stream: one look per answer
+        names = [k.name for k in state.detector.manifest.keypoints]
+        model_hash = state.detector.model_hash
+
+        def fresh() -> list:
+            return LiveCoverageReader(state.store, model_hash, names, 10**6, level).report()
+
+        ids = [i for i, _ in state.store.labelled_since(model_hash, None)]
+        assert len(state.store.label_verdicts(ids)) == len(ids)
+        stored = fresh()
+        with sqlite3.connect(sqlite_path(state.settings.storage.resolved_url)) as connection:
+            connection.execute("DELETE FROM calib_verdicts")  # as if labelled before verdicts were stored
+        assert state.store.label_verdicts(ids) == {}
+        judged = fresh()
+    assert judged == stored
+    assert {g.level for g in stored} == {"version", "object", "keypoint", "stream", "stratum"}
+    assert {g.guarantee for g in stored} == {"exchangeable", "adaptive"}
+    assert {g.coverage for g in stored} == {"keypoint", "object"}
+    assert any(g.alarm for g in stored) and not all(g.alarm for g in stored)
 
 
 def test_a_metrics_scrape_never_waits_for_live_coverage(tmp_path: Path, samples: list[Sample]) -> None:

@@ -61,16 +61,25 @@ async def send_feedback(
 ) -> FeedbackOut:
     labels = [InstanceLabels(i.instance, tuple(i.keypoints)) for i in body.instances]
     max_age = config.feedback.max_age_seconds
+    names = [keypoint.name for keypoint in model.manifest.keypoints]
     judged = await asyncio.to_thread(
-        record_feedback, store, trail, operator, prediction_id, labels, max_age, adaptive, retention
+        record_feedback,
+        store,
+        trail,
+        operator,
+        prediction_id,
+        labels,
+        max_age,
+        names,
+        adaptive,
+        retention,
     )
     rows = judged.prediction.record["rows"]
-    names = model.manifest.keypoints
     keypoints = [
         JudgedKeypoint(
             instance=rows[row["row"]]["instance"],
             index=rows[row["row"]]["channel"],
-            name=names[rows[row["row"]]["channel"]].name,
+            name=names[rows[row["row"]]["channel"]],
             covered=row["covered"],
             scores=row["scores"],
         )

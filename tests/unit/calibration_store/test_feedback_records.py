@@ -4,7 +4,14 @@ from __future__ import annotations
 
 from datetime import UTC, datetime, timedelta
 
-from calibration_store import AdaptiveState, CalibrationStore, LabelOutcome, NewAuditEntry, RetainedPrediction
+from calibration_store import (
+    AdaptiveState,
+    CalibrationStore,
+    LabelOutcome,
+    LabelVerdicts,
+    NewAuditEntry,
+    RetainedPrediction,
+)
 
 MODEL = "f" * 64
 
@@ -83,3 +90,25 @@ def test_new_labels_are_read_by_id_in_label_order(store: CalibrationStore) -> No
     assert sorted(p.id for p in found) == ["b", "c"] and all(p.labels == labels for p in found)
     many = [f"x{i}" for i in range(1200)]  # more ids than one query takes
     assert {p.id for p in store.retained_predictions([*many, "a"])} == {"a"}
+
+
+def test_a_labels_verdicts_are_stored_with_it_and_go_with_its_prediction(store: CalibrationStore) -> None:
+    now = datetime.now(UTC)
+    store.retain_predictions([retained(name, now) for name in ("a", "b", "c")], max_rows=10)
+    verdicts = LabelVerdicts('{"groups":[["version","all",[[0, 2]]]]}', {"look": "a", "covered": [1]})
+    labels = {"rows": [{"row": 0, "covered": True}]}
+    assert store.label_prediction("a", labels, "robot", now, entry("a"), verdicts) is LabelOutcome.LABELLED
+    assert (
+        store.label_prediction("b", labels, "robot", now, entry("b")) is LabelOutcome.LABELLED
+    )  # none given
+    refused = LabelVerdicts("{}", {"look": "refused"})
+    assert (
+        store.label_prediction("a", labels, "robot", now, entry("a"), refused)
+        is LabelOutcome.ALREADY_LABELLED
+    )
+    assert store.label_prediction("z", labels, "robot", now, entry("z"), refused) is LabelOutcome.MISSING
+    many = [f"x{i}" for i in range(1200)]  # more ids than one query takes
+    assert store.label_verdicts([*many, "a", "b", "c", "z"]) == {"a": verdicts}
+    later = [retained(f"p{i}", now + timedelta(seconds=i)) for i in range(1, 11)]
+    store.retain_predictions(later, max_rows=10)  # a, b and c are evicted, a's verdicts with it
+    assert store.retained_prediction("a") is None and store.label_verdicts(["a"]) == {}
