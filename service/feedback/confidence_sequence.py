@@ -32,8 +32,8 @@ from service.conformal import beta_cdf
 _GAPS = np.geomspace(1e-3, 0.999, 48)
 #: candidate means scanned for the bounds
 _CANDIDATES = np.linspace(0.0, 1.0, 2001)[1:-1]
-#: the alarm's bets forget the votes they are sized from: half their weight is on the last 34
-_BET_MEMORY = 0.98
+#: the alarm's bets forget the votes they are sized from: half their weight is on the last 69
+_BET_MEMORY = 0.99
 
 
 @dataclass(frozen=True)
