@@ -129,7 +129,7 @@ class Replay:
 
     static: list[tuple[int, int]]  # (misses, labelled) per frame
     adaptive: list[tuple[int, int]]
-    alarms: list[tuple[int, int]]  # (frame, look), 1-based, of each alarm (restarted after each)
+    alarms: list[int]  # frames (1-based) at which the alarm fired (restarted after each)
     levels: list[float]  # alpha before each label learned, and after the last
     served_at: list[int]  # per frame: the labels learned when it was served
     lag: int  # L: the largest label lag (updates between a label's serving and its own)
@@ -141,7 +141,7 @@ def replay(stream: list[LabelledFrame], thresholds: Thresholds, delay: int, gamm
     static_thr = thresholds.at(EPSILON)
     tracker, looks = LookTracker(), []
     alpha, levels, served_at, lag = EPSILON, [EPSILON], [], 0
-    alarm, alarms, votes = BettingAlarm(LEVEL), [], 0
+    alarm, alarms = BettingAlarm(LEVEL), []
     static, adaptive, served = [], [], []
     for position, frame in enumerate(stream, 1):
         new_look = tracker.is_new_look(frame.frame)
@@ -165,10 +165,9 @@ def replay(stream: list[LabelledFrame], thresholds: Thresholds, delay: int, gamm
         look = looks[arrived - 1]
         if missed_static.size and (arrived == 1 or looks[arrived - 2] != look):  # the look's first frame
             floor = float(thresholds.floors[stream[arrived - 1].channels].mean())
-            votes += 1
             if alarm.observe(float(1 - missed_static.mean()), floor):
-                alarms.append((position, votes))
-                alarm, votes = BettingAlarm(LEVEL), 0
+                alarms.append(position)
+                alarm = BettingAlarm(LEVEL)
     return Replay(static, adaptive, alarms, levels, served_at, lag, delay)
 
 
@@ -337,4 +336,6 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
 
 
 if __name__ == "__main__":
-    main()
+    from benchmarks.bench_feedback import main as run  # LabelledFrame pickles as the module's
+
+    run()
