@@ -129,30 +129,32 @@ class Replay:
 
     static: list[tuple[int, int]]  # (misses, labelled) per frame
     adaptive: list[tuple[int, int]]
-    alarms: list[int]  # frames (1-based) at which the alarm fired (restarted after each)
+    alarms: list[int]  # frames (1-based; past the end: after it) at which the alarm fired
     levels: list[float]  # alpha before each label learned, and after the last
     served_at: list[int]  # per frame: the labels learned when it was served
     lag: int  # L: the largest label lag (updates between a label's serving and its own)
-    delay: int  # frames: the last ``delay`` frames' labels never arrive
 
 
 def replay(stream: list[LabelledFrame], thresholds: Thresholds, delay: int, gamma: float) -> Replay:
-    """Serve every frame, learn from its labels ``delay`` frames later (see the module's doc)."""
+    """Serve every frame, learn from its labels ``delay`` frames later, the last frames' after the
+    stream ended (see the module's doc)."""
     static_thr = thresholds.at(EPSILON)
     tracker, looks = LookTracker(), []
     alpha, levels, served_at, lag = EPSILON, [EPSILON], [], 0
     alarm, alarms = BettingAlarm(LEVEL), []
     static, adaptive, served = [], [], []
-    for position, frame in enumerate(stream, 1):
-        new_look = tracker.is_new_look(frame.frame)
-        looks.append(0 if not looks else looks[-1] + new_look)
-        level = AdaptiveView("", EPSILON, alpha, gamma, 0, 0).served_epsilon
-        static_miss = frame.scores > static_thr[frame.channels]
-        adaptive_miss = frame.scores > thresholds.at(level)[frame.channels]
-        static.append((int(static_miss.sum()), frame.channels.size))
-        adaptive.append((int(adaptive_miss.sum()), frame.channels.size))
-        served.append((static_miss, adaptive_miss))
-        served_at.append(len(levels) - 1)
+    for position in range(1, len(stream) + delay + 1):
+        if position <= len(stream):
+            frame = stream[position - 1]
+            new_look = tracker.is_new_look(frame.frame)
+            looks.append(0 if not looks else looks[-1] + new_look)
+            level = AdaptiveView("", EPSILON, alpha, gamma, 0, 0).served_epsilon
+            static_miss = frame.scores > static_thr[frame.channels]
+            adaptive_miss = frame.scores > thresholds.at(level)[frame.channels]
+            static.append((int(static_miss.sum()), frame.channels.size))
+            adaptive.append((int(adaptive_miss.sum()), frame.channels.size))
+            served.append((static_miss, adaptive_miss))
+            served_at.append(len(levels) - 1)
         arrived = position - delay  # the labels of this frame (1-based) arrive now
         if arrived < 1:
             continue
@@ -168,7 +170,7 @@ def replay(stream: list[LabelledFrame], thresholds: Thresholds, delay: int, gamm
             if alarm.observe(float(1 - missed_static.mean()), floor):
                 alarms.append(position)
                 alarm = BettingAlarm(LEVEL)
-    return Replay(static, adaptive, alarms, levels, served_at, lag, delay)
+    return Replay(static, adaptive, alarms, levels, served_at, lag)
 
 
 def held_to_bound(run: Replay, start: int, gamma: float) -> tuple[float, float, float]:
@@ -178,7 +180,7 @@ def held_to_bound(run: Replay, start: int, gamma: float) -> tuple[float, float, 
     bound is the module's with alpha_1 the level then (service.feedback.adaptive)."""
     begin = sum(labelled for _, labelled in run.adaptive[:start])
     learned = len(run.levels) - 1 - begin
-    frames = slice(start, len(run.served_at) - run.delay)
+    frames = slice(start, None)
     adaptive, static = coverage(run.adaptive[frames]), coverage(run.static[frames])
     assert sum(labelled for _, labelled in run.adaptive[frames]) == learned
     return 1 - adaptive, 1 - static, long_run_bound(run.levels[begin], gamma, learned, run.lag)
@@ -283,9 +285,8 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
             replayed + len(stream),
         )
     print(
-        f"\nin distribution: {alarms} false alarms in {replayed} frames"
-        f" ({replayed - arguments.orders * delay} labelled; {arguments.orders} order(s) of {len(quiet)}"
-        " scenes, the alarm restarted after each)"
+        f"\nin distribution: {alarms} false alarms in {replayed} labelled frames ({arguments.orders}"
+        f" order(s) of {len(quiet)} scenes, the alarm restarted after each)"
     )
     warm_up = min(WARM_UP, sum(map(len, quiet)) // 2)
     runs = {}
