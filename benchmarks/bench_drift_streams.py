@@ -2,14 +2,16 @@
 the frame-window Kolmogorov-Smirnov alarm (``ks``, the old default) and the sequential alarm
 over independent looks (``sequential``, service/monitoring/looks.py) side by side.
 
-Run: python -m benchmarks.bench_drift_streams   (--frames, --sequences, --shift-sequences, --orders)
+Run: python -m benchmarks.bench_drift_streams   (--runs, --seeds, --frames, --sequences,
+--shift-sequences, --orders)
 
 Data: camera sequences of the bundled generator (training/streams.py), ``--frames`` frames of
-one scene each, with seeds the calibration never used: ``--sequences`` in distribution and
-``--shift-sequences`` of each shift (heavy occlusion, blur, low resolution, farther camera).
-Renders and the detector's statistics of every frame are cached under data/streams/ (ignored
-by git): the first run renders and infers (about 0.2 s a frame on 2 shared cores), later runs
-only replay.
+one scene each, with seeds the calibration never used: ``--sequences`` in distribution (seed
+9100, the scenes bench_feedback replays too) and, for each of ``--runs`` runs, ``--shift-sequences``
+of each shift (heavy occlusion, blur, low resolution, farther camera) on a scene seed drawn afresh
+(printed; ``--seeds`` replays them): streams nobody tuned on. Renders and the detector's statistics
+of every frame are cached under data/streams/ (ignored by git): a run renders its fresh shifts
+(0.15-0.4 s a frame on 2 shared cores), the rest only replays.
 
 Replay: the frames go through ``DriftMonitor.record`` exactly as predict records them (every
 statistic computed, as with CKS_DRIFT_FULL_STATISTICS_SHARE=1), the alarm read every
@@ -17,9 +19,9 @@ statistic computed, as with CKS_DRIFT_FULL_STATISTICS_SHARE=1), the alarm read e
 - False alarms: the in-distribution sequences in ``--orders`` random orders, one after the
   other; an alarm counts once, then the monitor starts afresh (as after an operator's check).
   Per 10,000 frames.
-- Delay: ``WARM_UP`` in-distribution frames, then the shift's sequences in a random order;
-  frames from the shift's start to the alarm (median over the orders; ">N" when not raised
-  within the N shifted frames rendered), and in how many of the orders it was raised.
+- Delay, per run: ``WARM_UP`` in-distribution frames, then the run's sequences of the shift in a
+  random order; frames from the shift's start to the alarm: min/median/max over the runs (">N"
+  when not raised within the N shifted frames rendered), and in how many runs it was raised.
 
 Measured on 2 shared cores (load average 9-10), 10 frames per scene:
 

@@ -54,6 +54,7 @@ from fastapi.testclient import TestClient  # noqa: E402
 from benchmarks.bench_drift_streams import (  # noqa: E402
     CACHE,
     SEED_IN,
+    delay_spread,
     fresh_seeds,
     images_with_boxes,
     rendered,
@@ -235,10 +236,6 @@ def in_order(scenes: list[list[LabelledFrame]], rng: np.random.Generator) -> lis
     return [frame for i in rng.permutation(len(scenes)) for frame in scenes[i]]
 
 
-def spread(values: list[int]) -> str:
-    return f"min {min(values)}, median {np.median(values):.0f}, max {max(values)}"
-
-
 def within(miscoverage: float, bound: float) -> str:
     return "within" if abs(miscoverage - EPSILON) <= bound else "outside"
 
@@ -311,11 +308,9 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
             f" static {static:.3f} ({within(static, bound)}) the bound"
             f" {bound:.3f} (L {run.lag}); whole stream adaptive {whole_adaptive:.3f}, bound {whole_bound:.3f}"
         )
-    raised = [d for d in delays if d is not None]
     print(
-        f"frames from the shift to the alarm: raised in {len(raised)}/{len(delays)} runs"
-        + (f", {spread(raised)}" if raised else "")
-        + ("" if len(raised) == len(delays) else f" (the others: > their {span}+ shifted frames)")
+        f"frames from the shift to the alarm, min/median/max over the runs (raised in):"
+        f" {delay_spread(delays, span)}"
     )
     print(f"\ncoverage per window of {WINDOW} frames after the shift (mean over runs): static / adaptive")
     for begin in range(warm_up, warm_up + span, WINDOW):
