@@ -23,26 +23,26 @@ statistic computed, as with CKS_DRIFT_FULL_STATISTICS_SHARE=1), the alarm read e
   random order; frames from the shift's start to the alarm: min/median/max over the runs (">N"
   when not raised within the N shifted frames rendered), and in how many runs it was raised.
 
-Measured on 2 shared cores (load average 9-10), 10 frames per scene:
+Measured on 2 shared cores (load average 1.5), 10 frames per scene (docs/operations.md):
 
-    $ python -m benchmarks.bench_drift_streams
-    100 in-distribution sequences of 10 frames (1000 frames with boxes), 30 per shift; 10 random
-    orders; alarm read every 10 frames; level 0.01
+    $ python -m benchmarks.bench_drift_streams \\
+        --seeds 866990420 775392690 106361530 795434330 205979320 604791570
+    1000 in-distribution sequences of 10 frames (seed 9100, 10000 frames with boxes) in 1 random
+    order(s); 30 per shift and run, 6 runs; alarm read every 10 frames; level 0.01; load 1.5
 
-    method        false alarms / 10k frames  heavy_occlusion        blur  low_resolution     farther
-                                               delay (frames)
-    ks                               1000.0       10 (10/10)  10 (10/10)      10 (10/10)  10 (10/10)
-    sequential                          1.0      185 (10/10) 150 (10/10)     >300 (3/10) >300 (0/10)
+    method      false alarms / 10k frames  heavy_occlusion      blur  low_resolution    farther
+                                      delay min/median/max (runs where raised)
+    ks                         1000.0    10/10/10 (6/6)  10/10/10 (6/6) 10/10/10 (6/6) 10/10/10 (6/6)
+    sequential                    0.0  240/290/>300 (3/6) 90/140/280 (6/6) 20/>300/>300 (1/6) >300 (0/6)
 
-    rendering and inference (cached after the first run): 1 s
-    whole run: 106 s
+    rendering and inference (cached after the first run): 429 s  (3 of the 6 seeds' shifts)
+    whole run: 481 s
 
 ``ks`` raises its alarm at every reading of an in-distribution stream (a window of one scene's
-frames is no sample), so its "delays" mean nothing. ``sequential``: one false alarm in the
-10,000 replayed frames (1,000 looks: the 100 scenes in 10 orders); heavy occlusion and blur
-are caught within 300 frames in every order; a lower resolution (x4) and a farther camera
-(x1.6) change the heatmaps too little to be seen within 30 scenes. The first run renders and
-infers the 2,200 frames: 20 minutes there (1245 s with the replay).
+frames is no sample), so its "delays" mean nothing. ``sequential``: no false alarm in the
+10,000 frames (1,000 looks); blur is caught within 300 frames in every run, heavy occlusion in
+half of them; a lower resolution (x4) and a farther camera (x1.6) change the heatmaps too little
+to be seen within 30 scenes.
 """
 
 from __future__ import annotations
