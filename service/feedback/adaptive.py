@@ -3,15 +3,21 @@
 A stream that asks for adaptive sets is served the calibration's threshold at level alpha_t
 instead of epsilon; each labelled keypoint of its retained answers (or instance, object scope)
 updates alpha_{t+1} = alpha_t + gamma (epsilon - err_t), err_t = 1 when the set served missed.
-Whatever the shift, the miscoverage over the first T labels stays within
+Labels arrive late: label t's set was served at the level of ``lag_t`` updates before its own
+(the other labels of its answer, and every label that arrived between the answer and its
+feedback). With L = max lag_t so far, alpha_t stays within [-gamma (1 - epsilon) (L + 1),
+1 + gamma epsilon (L + 1)] (an update can push alpha further past 0 or 1 only while it speaks of
+a set served before alpha got there: at most L + 1 of them), so the telescoping sum over the T
+labels learned gives, whatever the shift,
 
-    | (1/T) sum err_t - epsilon | <= (max(alpha_1, 1 - alpha_1) + gamma) / (gamma T)
+    | (1/T) sum err_t - epsilon | <= (max(alpha_1, 1 - alpha_1) + gamma (L + 1)) / (gamma T)
 
-(Gibbs & Candes, Prop. 4.1; alpha_1 = epsilon here). The bound needs the empty set served at
-alpha_t >= 1 and the whole plane at alpha_t <= 0; the service serves levels in [1e-9, 0.999] (the
-whole plane below 1 / (n + 1)), and labels that arrive after later answers were served widen the
-bound by gamma per label in flight. The state lives in the store (one row per stream and query,
-compare-and-set), so it survives restarts and replicas share it.
+(Gibbs & Candes, Prop. 4.1 is L = 0; alpha_1 = epsilon here; docs/feedback.md derives it). The
+miscoverage side needs the whole plane served at alpha_t <= 0: the service serves levels in
+[1e-9, 0.999], the whole plane below 1 / (n + 1). The other side needs the empty set at
+alpha_t >= 1, which 0.999 is not (its sets are the smallest the calibration gives): a stream
+covered even by those can cover more than the bound says, never less. The state lives in the
+store (one row per stream and query, compare-and-set), so it survives restarts and replicas share it.
 """
 
 from __future__ import annotations
@@ -38,6 +44,7 @@ class AdaptiveView:
     gamma: float
     steps: int
     errors: int
+    lag: int = 0  # the largest label lag seen (see the module's doc)
 
     @property
     def served_epsilon(self) -> float:
@@ -46,7 +53,7 @@ class AdaptiveView:
 
     @property
     def bound(self) -> float | None:
-        return long_run_bound(self.epsilon, self.gamma, self.steps)
+        return long_run_bound(self.epsilon, self.gamma, self.steps, self.lag)
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -57,6 +64,7 @@ class AdaptiveView:
             "gamma": self.gamma,
             "steps": self.steps,
             "miscoverage": None if self.steps == 0 else self.errors / self.steps,
+            "label_lag": self.lag,
             "long_run_bound": self.bound,
         }
 
@@ -66,9 +74,18 @@ def aci_step(alpha: float, epsilon: float, gamma: float, missed: bool) -> float:
     return alpha + gamma * (epsilon - float(missed))
 
 
-def long_run_bound(alpha_1: float, gamma: float, steps: int) -> float | None:
-    """(max(alpha_1, 1 - alpha_1) + gamma) / (gamma T); None before the first label."""
-    return None if steps == 0 else (max(alpha_1, 1 - alpha_1) + gamma) / (gamma * steps)
+def long_run_bound(alpha_1: float, gamma: float, steps: int, lag: int = 0) -> float | None:
+    """(max(alpha_1, 1 - alpha_1) + gamma (L + 1)) / (gamma T) with labels up to L updates late;
+    None before the first label."""
+    return None if steps == 0 else (max(alpha_1, 1 - alpha_1) + gamma * (lag + 1)) / (gamma * steps)
+
+
+def label_lags(steps_before: int, labels: int, served_steps: int | None) -> range:
+    """Each label's lag: the updates applied after its answer was served (at ``served_steps``)
+    and before its own. Unknown ``served_steps``: the lags within the answer alone (a floor)."""
+    start = steps_before - served_steps if served_steps is not None else 0
+    start = max(start, 0)
+    return range(start, start + labels)
 
 
 class AdaptiveSets:
@@ -89,16 +106,26 @@ class AdaptiveSets:
             return AdaptiveView(key, epsilon, epsilon, self.gamma, 0, 0)
         state = stored.state
         return AdaptiveView(
-            key, state["epsilon"], state["alpha"], state["gamma"], stored.steps, state["errors"]
+            key,
+            state["epsilon"],
+            state["alpha"],
+            state["gamma"],
+            stored.steps,
+            state["errors"],
+            state.get("lag", 0),
         )
 
-    def learn(self, key: str, epsilon: float, misses: list[bool]) -> AdaptiveView:
-        """Apply one update per label, in order (compare-and-set, retried when a replica wrote first)."""
+    def learn(
+        self, key: str, epsilon: float, misses: list[bool], served_steps: int | None = None
+    ) -> AdaptiveView:
+        """Apply one update per label of one answer, in order (compare-and-set, retried when a
+        replica wrote first); ``served_steps``: the answer's ``steps`` when it was served."""
         for _ in range(_CAS_ATTEMPTS):
             before = self.view(key, epsilon)
             alpha = before.alpha
             for missed in misses:
                 alpha = aci_step(alpha, before.epsilon, before.gamma, missed)
+            lags = label_lags(before.steps, len(misses), served_steps)
             after = AdaptiveView(
                 key,
                 before.epsilon,
@@ -106,8 +133,15 @@ class AdaptiveSets:
                 before.gamma,
                 before.steps + len(misses),
                 before.errors + sum(misses),
+                max(before.lag, lags[-1]) if lags else before.lag,
             )
-            state = {"epsilon": after.epsilon, "alpha": alpha, "gamma": after.gamma, "errors": after.errors}
+            state = {
+                "epsilon": after.epsilon,
+                "alpha": alpha,
+                "gamma": after.gamma,
+                "errors": after.errors,
+                "lag": after.lag,
+            }
             if self._store.save_adaptive_state(key, before.steps, AdaptiveState(key, after.steps, state)):
                 return after
         raise RuntimeError(f"adaptive state {key}: {_CAS_ATTEMPTS} writers in a row got there first")

@@ -33,6 +33,8 @@ from service.conformal import beta_cdf
 _GAPS = np.geomspace(1e-3, 0.999, 48)
 #: candidate means scanned for the bounds
 _CANDIDATES = np.linspace(0.0, 1.0, 2001)[1:-1]
+#: the alarm's bets forget the votes they are sized from: half their weight is on the last 69
+_BET_MEMORY = 0.99
 
 
 @dataclass(frozen=True)
@@ -99,29 +101,35 @@ def promised_floor(n: int, t: int, epsilon: float, delta: float | None, band_lev
 class BettingAlarm:
     """The alarm: a betting e-process (Waudby-Smith & Ramdas 2023) against "each vote's mean is at
     least its floor", K_t = prod (1 + lambda_t (f_t - x_t)), with the predictable bet
-    lambda_t = (f_t - m) / (v + (f_t - m)^2) clipped to [0, 1 / (2 (1 - f_t))] from the running mean
-    m and variance v of the votes before t. Each factor has mean at most 1 under the null (f_t is
-    known before x_t: it is the floor of the keypoints the vote is about), so P(ever K_t >= 2 /
-    level) <= level / 2 (Ville). Its bets follow the votes' own variance: a look's share of covered
-    keypoints varies far less than one keypoint's 0/1, so it proves a shortfall in fewer looks
-    than the Bernoulli mixture behind the bounds. Once raised, the alarm stays raised."""
+    lambda_t = (f_t - m) / (v + (f_t - m)^2) clipped to [0, 1 / (2 (1 - f_t))] from the mean m and
+    variance v of the votes before t, discounted by ``_BET_MEMORY`` per vote: after a long run of
+    good looks the bet turns to a shortfall within tens of looks (an undiscounted mean would
+    need as many bad looks as there were good ones), while good looks keep it at 0 and the
+    wealth where it was. Any bet fixed before x_t keeps the guarantee: each factor has mean at
+    most 1 under the null (f_t is known before x_t: it is the floor of the keypoints the vote is
+    about), so P(ever K_t >= 2 / level) <= level / 2 (Ville). Its bets follow the votes' own
+    variance: a look's share of covered keypoints varies far less than one keypoint's 0/1, so it
+    proves a shortfall in fewer looks than the Bernoulli mixture behind the bounds. Once raised,
+    the alarm stays raised."""
 
     def __init__(self, level: float) -> None:
         self._limit = math.log(2.0 / level)
         self.log_wealth, self.count, self.raised = 0.0, 0, False
-        self._sum, self._squares = 0.0, 0.25  # running sums; a prior variance of 1/4
+        self._sum, self._squares, self._weight = 0.0, 0.25, 0.0  # discounted sums; a prior variance 1/4
 
     def observe(self, vote: float, floor: float) -> bool:
         """Add one vote in [0, 1] and the coverage it promised; whether the alarm is raised."""
         if floor <= 0.0 or floor >= 1.0:  # nothing promised, or nothing below 1 to prove
             return self.raised
-        mean = (self._sum + floor) / (self.count + 1)  # a prior vote at the floor
-        variance = self._squares / (self.count + 1)
+        prior = _BET_MEMORY**self.count  # a prior vote at the floor, forgotten as the others
+        mean = (self._sum + prior * floor) / (self._weight + prior)
+        variance = self._squares / (self._weight + prior)
         gap = floor - mean
         bet = min(max(gap / (variance + gap * gap), 0.0), 0.5 / (1.0 - floor))
         self.log_wealth += math.log1p(bet * (floor - vote))
         self.count += 1
-        self._sum += vote
-        self._squares += (vote - mean) ** 2
+        self._sum = _BET_MEMORY * self._sum + vote
+        self._squares = _BET_MEMORY * self._squares + (vote - mean) ** 2
+        self._weight = _BET_MEMORY * self._weight + 1
         self.raised = self.raised or self.log_wealth >= self._limit
         return self.raised

@@ -42,6 +42,20 @@ def test_the_alarm_fires_when_coverage_is_below_the_floor() -> None:
     assert np.median(first) < 200
 
 
+def test_a_long_run_of_good_looks_does_not_hold_back_the_alarm_after_a_shift() -> None:
+    """The bet forgets: 1,000 looks well above the floor, then a shortfall, proved about as fast
+    as from the start (a running mean over all looks would bet nothing for ~1,000 more looks)."""
+    rng = np.random.default_rng(5)
+    after = []
+    for _ in range(20):
+        good = rng.beta(0.95 * 40, 0.05 * 40, size=1000)
+        shifted = rng.beta(0.86 * 40, 0.14 * 40, size=VOTES)
+        alarm = BettingAlarm(LEVEL)
+        assert not any(alarm.observe(float(vote), 0.9) for vote in good)
+        after.append(next(i for i, vote in enumerate(shifted, 1) if alarm.observe(float(vote), 0.9)))
+    assert np.median(after) < 200
+
+
 def test_the_mixture_bound_rejects_what_the_alarm_proves() -> None:
     rng = np.random.default_rng(4)
     votes = (rng.random(3000) < 0.8).astype(float)

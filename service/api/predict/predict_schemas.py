@@ -440,8 +440,13 @@ class AdaptiveOut(BaseModel):
     gamma: float = Field(description="ACI step size (CKS_FEEDBACK_ACI_GAMMA)")
     steps: int = Field(description="T: labels learned from")
     miscoverage: float | None = Field(description="share of the T labels the sets missed")
+    label_lag: int = Field(
+        description="L: the most updates a label has come after the level its set was served at"
+        " (the other labels of its answer, and those that arrived while it was in flight)"
+    )
     long_run_bound: float | None = Field(
-        description="|miscoverage - epsilon| <= (max(epsilon, 1 - epsilon) + gamma) / (gamma T), any shift"
+        description="|miscoverage - epsilon| <= (max(epsilon, 1 - epsilon) + gamma (L + 1)) / (gamma T),"
+        " any shift (docs/feedback.md)"
     )
 
 
