@@ -102,7 +102,7 @@ def record_feedback(
     served = retained.record.get("adaptive")
     if served is not None and adaptive is not None:
         misses = [not covered for _, _, covered in covered_units(retained.record, rows)]
-        adaptive.learn(served["key"], served["epsilon"], misses)
+        adaptive.learn(served["key"], served["epsilon"], misses, served.get("steps"))
     return Judged(retained, labels)
 
 

@@ -386,3 +386,24 @@ def test_a_metrics_scrape_never_waits_for_live_coverage(tmp_path: Path, samples:
             time.sleep(0.05)  # the count the scrape started, in the background
         looks = len(samples_by_image(samples))
         assert f'{gauge},nonconformity="cov",version="1"}} {float(looks)}' in text
+
+
+def test_adaptive_sets_count_the_lag_of_labels_that_arrive_after_later_answers_labels(
+    tmp_path: Path, samples: list[Sample]
+) -> None:
+    """A label learned after the labels of answers served later has their updates as its lag
+    (the long-run bound's L), not only the lag within its own answer."""
+    image, group = first_image(samples)
+    options = {"instances": instances_of(group), "stream": "cam-7", "adaptive": True, "epsilon": 0.1}
+    labels = {
+        "instances": [{"instance": i, "keypoints": s.keypoints} for i, s in enumerate(group)],
+    }
+    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN, feedback_aci_gamma=0.01) as service:
+        early, late = (predict_ok(service.client, image, options) for _ in range(2))
+        counts = []
+        for answer in (late, early):  # the early answer's labels come last
+            url = f"/v1/feedback/{answer['prediction_id']}"
+            counts.append(service.client.post(url, json=labels, headers=service.admin).json()["labelled"])
+        after = predict_ok(service.client, image, options)["adaptive"]
+    assert after["steps"] == sum(counts)
+    assert after["label_lag"] == sum(counts) - 1  # the early answer's last label: every update before it
