@@ -243,6 +243,7 @@ class AdaptiveLevel(Frozen):
     gamma: float
     steps: int
     miscoverage: float | None
+    label_lag: int  # L: the most updates a label came after its set's level (widens the bound)
     long_run_bound: float | None
 
 

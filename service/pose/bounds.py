@@ -142,6 +142,10 @@ def _exponential(vectors: np.ndarray) -> np.ndarray:
 
 
 _ROTATION_STARTS = 0.05  # radians: the rotation search starts this far from the estimate
+#: SLSQP runs converged this far: stopped at 1e-6, their poses moved in the 8th digit with the
+#: BLAS library's thread count (OPENBLAS_NUM_THREADS=1 against the default), so the same request
+#: got other inner bounds on other machines
+BOUNDARY_FTOL = 1e-9
 
 
 def boundary_poses(
@@ -189,9 +193,8 @@ def boundary_poses(
         (lambda x, a=sign * sight: (-float(a @ x[3:]), np.concatenate([np.zeros(3), -a])), start)
         for sign in (1.0, -1.0)
     ]
-    for (
-        axis
-    ) in across:  # a turn about the line of sight moves every keypoint in the image: PURSE is thin there
+    # a turn about the line of sight moves every keypoint in the image: PURSE is thin there
+    for axis in across:
         for sign in (1.0, -1.0):
             turned = from_rotation_vector(sign * _ROTATION_STARTS * axis) @ estimate.rotation
             runs.append((turn, np.concatenate([to_rotation_vector(turned), np.zeros(3)])))
@@ -205,7 +208,7 @@ def boundary_poses(
                     jac=True,
                     constraints=constraints,
                     method="SLSQP",
-                    options={"maxiter": 60, "ftol": 1e-6},
+                    options={"maxiter": 60, "ftol": BOUNDARY_FTOL},
                 )
         except (cv2.error, ValueError):  # a run wandering off to poses OpenCV cannot project
             continue
