@@ -29,12 +29,14 @@ from keypoint_client.frames import FrameSending, frame_parts, is_frame
 from keypoint_client.images import ChannelOrder, ImageInput, encode_image
 from keypoint_client.models import (
     Coverage,
+    GroupFallback,
     InstanceLike,
     ModelInfo,
     Nonconformity,
     PoseRequest,
     PredictResult,
     Readiness,
+    Stratify,
     instance_request,
 )
 from keypoint_client.monitoring_models import (
@@ -74,6 +76,8 @@ class PredictOptions(TypedDict, total=False):
     retain: bool
     stream: str | None
     adaptive: bool
+    stratify: Stratify
+    group_fallback: GroupFallback
 
 
 @dataclass(frozen=True)
@@ -87,6 +91,9 @@ class PredictRequest:
     active one. ``include_statistics``: add the raw heatmap statistics. ``channel_order``: of a
     numpy image's colour channels (``"bgr"`` for OpenCV's). ``pose``: also each instance's pose
     set, from the camera matrix (needs ``coverage="object"``; see ``PoseRequest``).
+    ``stratify``: Mondrian strata (``difficulty``, ``group`` from each instance's ``group``, or
+    both), each keypoint's guarantee then conditional on its stratum; ``group_fallback``: where a
+    keypoint has no bounded stratum, ``refuse`` (a 422) or use the ``pooled`` threshold.
     """
 
     image: ImageInput
@@ -102,6 +109,8 @@ class PredictRequest:
     retain: bool = False
     stream: str | None = None
     adaptive: bool = False
+    stratify: Stratify = "none"
+    group_fallback: GroupFallback = "refuse"
 
     def parts(self, suffix: str = "") -> Files:
         """The multipart parts ``image<suffix>`` and ``request<suffix>``."""
@@ -129,6 +138,10 @@ class PredictRequest:
             parameters["stream"] = self.stream
         if self.adaptive:
             parameters["adaptive"] = True
+        if self.stratify != "none":
+            parameters["stratify"] = self.stratify
+        if self.group_fallback != "refuse":
+            parameters["group_fallback"] = self.group_fallback
         return parameters
 
 

@@ -11,6 +11,8 @@ from keypoint_client.sets import Frozen, Point, PredictionSet
 
 Nonconformity = Literal["peak", "var", "cov"]
 Coverage = Literal["keypoint", "object"]
+Stratify = Literal["none", "difficulty", "group", "difficulty+group"]
+GroupFallback = Literal["refuse", "pooled"]
 Box = tuple[float, float, float, float]
 Vector3 = tuple[float, float, float]
 Matrix3 = tuple[Vector3, Vector3, Vector3]

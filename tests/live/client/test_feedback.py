@@ -1,6 +1,7 @@
 """Feedback end to end through the client, against two real server processes sharing PostgreSQL: an
-answer retained on one replica is labelled through the other, and both report the same live
-coverage (the store is the one truth); a second label is refused."""
+answer retained on one replica (asked with difficulty strata) is labelled through the other, and
+both report the same live coverage, per stratum too (the store is the one truth); a second label
+is refused."""
 
 from __future__ import annotations
 
@@ -27,8 +28,11 @@ def test_feedback_and_live_coverage_across_replicas(
     ):
         labelled = covered = 0
         for path, group in images:
-            result = on_a.predict(path, instances_of(group), retain=True, stream="cam-1")
+            result = on_a.predict(
+                path, instances_of(group), retain=True, stream="cam-1", stratify="difficulty"
+            )
             assert result.prediction_id
+            assert all(k.guarantee.stratum for i in result.instances for k in i.keypoints)
             labels = [
                 {"instance": i, "keypoints": [list(k) for k in s.keypoints]} for i, s in enumerate(group)
             ]
@@ -47,6 +51,9 @@ def test_feedback_and_live_coverage_across_replicas(
         assert live_a == live_b
         pooled = next(g for g in live_a.groups if g.level == "version")
         assert (pooled.labelled, pooled.covered, pooled.looks) == (labelled, covered, len(images))
+        strata = [g for g in live_a.groups if g.level == "stratum"]
+        assert strata and all(g.name.startswith("difficulty bin") for g in strata)
+        assert sum(g.labelled for g in strata) == labelled
         stream = next(g for g in live_a.groups if g.level == "stream")
         assert stream.name == "cam-1" and not stream.alarm
         field = on_b.calibrate_from_feedback(stream="cam-1", note="from the robot's labels")
