@@ -46,6 +46,9 @@ def client_board(workers: int, folder: Path = Path("/dev/shm")) -> Iterator[Path
         yield None
         return
     path = folder / f"cks-clients-{os.getpid()}"
+    # One under this process's own name was left by a predecessor killed with SIGKILL (a
+    # container restarted in place runs its server as pid 1 again): it is no one's now.
+    path.unlink(missing_ok=True)
     try:
         descriptor = os.open(path, os.O_CREAT | os.O_EXCL | os.O_RDWR, 0o600)
         try:

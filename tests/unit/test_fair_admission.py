@@ -214,6 +214,16 @@ async def _compute(admission: Admission, client: str) -> None:
         pass
 
 
+def test_a_board_left_under_this_pid_by_a_killed_predecessor_is_replaced(tmp_path: Path) -> None:
+    stale = tmp_path / f"cks-clients-{os.getpid()}"  # what a SIGKILLed pid 1 leaves in /dev/shm
+    stale.write_bytes(b"a predecessor's rows")
+    with client_board(2, tmp_path) as path:
+        assert path == stale and path.stat().st_size > len(b"a predecessor's rows")
+        board = ClientBoard.joined()
+        assert board is not None and not board.several_since(0)
+    assert not stale.exists()
+
+
 def test_without_a_board_each_worker_keeps_its_own_shares(tmp_path: Path) -> None:
     with client_board(1, tmp_path) as one_worker:
         assert one_worker is None and ClientBoard.joined() is None
