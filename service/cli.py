@@ -42,7 +42,7 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
     )
     settings.storage.data_dir.mkdir(parents=True, exist_ok=True)
     for shared in ("uploads", "metrics"):  # of stopped processes: uploads were never stored
-        remove_dead_process_folders(settings.storage.data_dir / shared)
+        remove_dead_process_folders(settings.storage.data_dir / shared, starting=True)
     with open_store(settings.storage.resolved_url) as store:
         if settings.storage.bootstrap_calibration:
             bootstrap_default_calibration(

@@ -119,7 +119,7 @@ class KeypointService:
         self._settings = settings
         # Upload workspaces of replicas killed on this node (shared data directory): their
         # uploads were never stored. `keypoint-service serve` does the same at start-up.
-        remove_dead_process_folders(settings.storage.data_dir / "uploads")
+        remove_dead_process_folders(settings.storage.data_dir / "uploads", starting=True)
 
     def __serve_build_asgi_app__(self) -> FastAPI:
         app = create_app(self._settings)

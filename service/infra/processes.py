@@ -27,16 +27,18 @@ def process_folder(parent: Path, pid: int | None = None) -> Path:
     return parent / f"{socket.gethostname()}--{pid or os.getpid()}"
 
 
-def remove_dead_process_folders(parent: Path) -> list[Path]:
+def remove_dead_process_folders(parent: Path, *, starting: bool = False) -> list[Path]:
     """Remove the folders of processes of this host that no longer run; returns them.
 
-    Folders of other hosts (a shared volume) are left to their own servers.
+    Folders of other hosts (a shared volume) are left to their own servers. ``starting``: this
+    process has made none yet, so one under its own pid is a predecessor's that had the same pid
+    (a container restarted in place runs its server as pid 1 again).
     """
     removed = []
-    host = socket.gethostname()
+    host, mine = socket.gethostname(), os.getpid() if starting else None
     for folder in sorted(parent.iterdir()) if parent.is_dir() else []:
         owner_host, _, pid = folder.name.rpartition("--")
-        if owner_host == host and pid.isdigit() and not process_running(int(pid)):
+        if owner_host == host and pid.isdigit() and (int(pid) == mine or not process_running(int(pid))):
             shutil.rmtree(folder, ignore_errors=True)
             removed.append(folder)
     if removed:

@@ -42,6 +42,17 @@ def test_only_folders_of_stopped_processes_of_this_host_are_removed(tmp_path: Pa
     assert mine.is_dir() and other_host.is_dir() and not_a_process.is_dir()
 
 
+def test_a_starting_process_removes_a_predecessors_folder_under_its_own_pid(tmp_path: Path) -> None:
+    """A container restarted in place after a SIGKILL: its server is pid 1 again, and the
+    uploads of the killed pid 1 (never stored) would otherwise stay for as long as it lives."""
+    left = process_uploads_dir(tmp_path) / "abc"
+    left.mkdir(parents=True)
+    (left / "batch.zip").write_bytes(b"x")
+    assert remove_dead_process_folders(tmp_path) == []  # a running process's own: kept
+    assert remove_dead_process_folders(tmp_path, starting=True) == [left.parent]
+    assert not left.parent.exists()
+
+
 def test_a_missing_uploads_folder_is_fine(tmp_path: Path) -> None:
     assert remove_dead_process_folders(tmp_path / "never-created") == []
 
