@@ -234,6 +234,12 @@ def _last_value(function):
     return remembered
 
 
+_BISECTION_STEPS = 30  # halvings of the segment towards the estimate
+#: the middles of the remaining halvings, as fractions of the interval left, should each land inside
+_TOWARDS_HIGH = 2.0 ** -np.arange(1, _BISECTION_STEPS + 1)
+_EDGE = 1e-9  # a batched pose this close to a set's edge or the camera plane is checked alone
+
+
 def _inside_towards(start, end, camera, keypoints_3d, centers, shapes) -> Pose | None:
     """The pose at ``end`` (rotation vector, translation) if it is in PURSE, else the last one in
     PURSE on the segment from ``start`` (found by bisection; None if ``end`` is not finite)."""
@@ -244,15 +250,39 @@ def _inside_towards(start, end, camera, keypoints_3d, centers, shapes) -> Pose |
         x = start + fraction * (end - start)
         return Pose(from_rotation_vector(x[:3]), x[3:].copy())
 
+    def inside_at(fractions: np.ndarray) -> np.ndarray:
+        """``membership(pose_at(f), ...).inside`` for every fraction, from one batch (a pose within
+        rounding of an edge is checked alone, so the answers are the single checks' answers)."""
+        x = start + fractions[:, None] * (end - start)
+        points = keypoints_3d @ _exponential(x[:, :3]).transpose(0, 2, 1) + x[:, None, 3:]
+        with np.errstate(all="ignore"):
+            homogeneous = points @ camera.T
+            offsets = homogeneous[..., :2] / homogeneous[..., 2:3] - centers
+            quadratic = np.einsum("pni,nij,pnj->pn", offsets, shapes, offsets)
+            inside = ((points[..., 2] > 0) & (quadratic <= 1.0)).all(axis=1)
+            depth_scale = _EDGE * np.abs(points).max(axis=(1, 2))
+            close = (np.abs(quadratic - 1.0) <= _EDGE) | (np.abs(points[..., 2]) <= depth_scale[:, None])
+            unsure = close.any(axis=1) | ~np.isfinite(quadratic).all(axis=1)
+        for k in np.flatnonzero(unsure):
+            inside[k] = membership(pose_at(float(fractions[k])), camera, keypoints_3d, centers, shapes).inside
+        return inside
+
     if membership(pose_at(1.0), camera, keypoints_3d, centers, shapes).inside:
         return pose_at(1.0)
-    low, high = 0.0, 1.0
-    for _ in range(30):
-        middle = (low + high) / 2
-        if membership(pose_at(middle), camera, keypoints_3d, centers, shapes).inside:
-            low = middle
-        else:
-            high = middle
+    # Bisection, its steps checked in batches: SLSQP ends a hair outside PURSE, so nearly always
+    # every middle lands inside; one batch checks the middles of that path at once (exact dyadic
+    # fractions, the very middles (low + high) / 2 one step after another would visit), and the
+    # bisection goes on from the first middle that does not
+    low, high, steps = 0.0, 1.0, _BISECTION_STEPS
+    while steps:
+        middles = high - (high - low) * _TOWARDS_HIGH[:steps]
+        inside = inside_at(middles)
+        kept = steps if inside.all() else int(inside.argmin())  # the middles inside before one outside
+        if kept:
+            low = float(middles[kept - 1])
+        if kept < steps:
+            high = float(middles[kept])
+        steps -= min(kept + 1, steps)
     pose = pose_at(low)
     return pose if membership(pose, camera, keypoints_3d, centers, shapes).inside else None
 

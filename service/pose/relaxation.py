@@ -174,11 +174,21 @@ def _capped(program: _Program, cap: tuple[np.ndarray, float] | None) -> _Program
     )
 
 
+def _outer_to_triangle() -> np.ndarray:
+    """(16, _Q): u^T Q w = (u w^T).ravel() @ this, over Q's upper triangle (unscaled): Q_ab's
+    coefficient is u_a w_b + u_b w_a off the diagonal, u_a w_a on it."""
+    mapping = np.zeros((4, 4, _Q))
+    for column, (a, b) in enumerate(_TRIANGLE):
+        mapping[a, b, column] = mapping[b, a, column] = 1.0
+    return mapping.reshape(16, _Q)
+
+
+_OUTER_TO_TRIANGLE = _outer_to_triangle()
+
+
 def _bilinear_rows(u: np.ndarray, w: np.ndarray) -> np.ndarray:
     """u_k^T Q w_k for every row k of u and w (k, 4), as rows over Q's upper triangle (unscaled)."""
-    a, b = _UPPER
-    products = u[:, a] * w[:, b] + u[:, b] * w[:, a]
-    return np.where(a == b, products / 2, products)
+    return (u[:, :, None] * w[:, None, :]).reshape(len(u), 16) @ _OUTER_TO_TRIANGLE
 
 
 def _quadratic_form(vector: np.ndarray) -> np.ndarray:
@@ -510,23 +520,25 @@ class _WedgePrograms:
         self.program, self.objectives = program, objectives
         self._anchor = left_product(to_quaternion(estimate))
         sides = len(SIDES[0])
-        self._matrix = np.vstack([program.matrix, np.zeros((sides, _N))])
-        self._offset = np.append(program.offset, np.zeros(sides))
+        # one program for every wedge: its sides' rows (the last ones) are rewritten in place per wedge
+        self._restricted = replace(
+            program,
+            matrix=np.vstack([program.matrix, np.zeros((sides, _N))]),
+            offset=np.append(program.offset, np.zeros(sides)),
+            cuts=program.cuts + sides,
+        )
         pattern = np.vstack([program.matrix != 0, np.tile(np.arange(_N) < _Q, (sides, 1))])
         self._rows, self._columns = np.nonzero(pattern.T)  # column-major: compressed columns
-        self._data = self._matrix.T[self._rows, self._columns]
+        self._data = self._restricted.matrix.T[self._rows, self._columns]
         self._on_sides = self._columns >= len(program.matrix)  # by column of Q, then by side
         self._solver = None
 
     def solve(self, wedge: Wedge, quantity: int) -> tuple[_Program, _Solved]:
         forms = wedge.forms(self._anchor)
         sides = _bilinear_rows(-forms[SIDES[0]], forms[SIDES[1]])
-        matrix, data = self._matrix.copy(), self._data.copy()
-        matrix[len(self.program.matrix) :, :_Q] = sides
+        restricted, data = self._restricted, self._data
+        restricted.matrix[len(self.program.matrix) :, :_Q] = sides
         data[self._on_sides] = sides.T.ravel()
-        restricted = replace(
-            self.program, matrix=matrix, offset=self._offset, cuts=self.program.cuts + len(sides)
-        )
         objective = self.objectives[quantity]
         if self._solver is None:
             self._solver = _solver(restricted, objective, pattern=(data, self._rows, self._columns))
@@ -557,11 +569,12 @@ class _Search:
         roots = Wedge.around(radius)  # one wedge is split at once, the four faces solved first
         leaves = [_Leaf(w, root_bounds.copy(), np.full(7, len(roots) == 1)) for w in roots]
         while leaves:
-            bounds = np.max([leaf.bounds for leaf in leaves], axis=0)
+            table = np.array([leaf.bounds for leaf in leaves])
+            bounds = table.max(axis=0)
             quantity = self._loosest(bounds)
             if quantity is None:
                 break
-            index = int(np.argmax([leaf.bounds[quantity] for leaf in leaves]))
+            index = int(table[:, quantity].argmax())
             leaf = leaves[index]
             radius = min(radius, float(bounds[6]))  # PURSE's rotations are within this of R_hat
             if leaf.cell.nearest_angle() > radius:  # its own bound is at most radius: no pose of PURSE
