@@ -77,12 +77,9 @@ def sample_poses_in_set(
         return SampledPoses([], 0)
     points = sample_points_in_sets(centers, shapes, np.random.default_rng(seed), count)
     rotations, translations = _fitted_poses(start, camera, keypoints_3d.astype(np.float64), points)
-    screened = poses_inside(rotations, translations, camera, keypoints_3d, centers, shapes)
-    found = []
-    for rotation, translation in zip(rotations[screened], translations[screened], strict=True):
-        pose = Pose(rotation, translation)
-        if np.isfinite(translation).all() and membership(pose, camera, keypoints_3d, centers, shapes).inside:
-            found.append(pose)
+    inside = poses_inside(rotations, translations, camera, keypoints_3d, centers, shapes)
+    inside &= np.isfinite(translations).all(axis=1)
+    found = [Pose(r, t) for r, t in zip(rotations[inside], translations[inside], strict=True)]
     return SampledPoses(found, count)
 
 
@@ -237,7 +234,6 @@ def _last_value(function):
 _BISECTION_STEPS = 30  # halvings of the segment towards the estimate
 #: the middles of the remaining halvings, as fractions of the interval left, should each land inside
 _TOWARDS_HIGH = 2.0 ** -np.arange(1, _BISECTION_STEPS + 1)
-_EDGE = 1e-9  # a batched pose this close to a set's edge or the camera plane is checked alone
 
 
 def _inside_towards(start, end, camera, keypoints_3d, centers, shapes) -> Pose | None:
@@ -251,21 +247,10 @@ def _inside_towards(start, end, camera, keypoints_3d, centers, shapes) -> Pose |
         return Pose(from_rotation_vector(x[:3]), x[3:].copy())
 
     def inside_at(fractions: np.ndarray) -> np.ndarray:
-        """``membership(pose_at(f), ...).inside`` for every fraction, from one batch (a pose within
-        rounding of an edge is checked alone, so the answers are the single checks' answers)."""
+        """``membership(pose_at(f), ...).inside`` for every fraction, in one batch."""
         x = start + fractions[:, None] * (end - start)
-        points = keypoints_3d @ _exponential(x[:, :3]).transpose(0, 2, 1) + x[:, None, 3:]
-        with np.errstate(all="ignore"):
-            homogeneous = points @ camera.T
-            offsets = homogeneous[..., :2] / homogeneous[..., 2:3] - centers
-            quadratic = np.einsum("pni,nij,pnj->pn", offsets, shapes, offsets)
-            inside = ((points[..., 2] > 0) & (quadratic <= 1.0)).all(axis=1)
-            depth_scale = _EDGE * np.abs(points).max(axis=(1, 2))
-            close = (np.abs(quadratic - 1.0) <= _EDGE) | (np.abs(points[..., 2]) <= depth_scale[:, None])
-            unsure = close.any(axis=1) | ~np.isfinite(quadratic).all(axis=1)
-        for k in np.flatnonzero(unsure):
-            inside[k] = membership(pose_at(float(fractions[k])), camera, keypoints_3d, centers, shapes).inside
-        return inside
+        rotations = np.array([from_rotation_vector(v) for v in x[:, :3]])  # pose_at's, exactly
+        return poses_inside(rotations, x[:, 3:], camera, keypoints_3d, centers, shapes)
 
     if membership(pose_at(1.0), camera, keypoints_3d, centers, shapes).inside:
         return pose_at(1.0)
