@@ -121,10 +121,11 @@ def _fitted_poses(start: Pose, camera: np.ndarray, objects: np.ndarray, points: 
 def _skew(vectors: np.ndarray) -> np.ndarray:
     """[v]_x for every vector of (..., 3)."""
     x, y, z = vectors[..., 0], vectors[..., 1], vectors[..., 2]
-    zero = np.zeros_like(x)
-    return np.stack(
-        [np.stack([zero, -z, y], -1), np.stack([z, zero, -x], -1), np.stack([-y, x, zero], -1)], -2
-    )
+    skew = np.zeros(vectors.shape[:-1] + (3, 3))
+    skew[..., 0, 1], skew[..., 0, 2] = -z, y
+    skew[..., 1, 0], skew[..., 1, 2] = z, -x
+    skew[..., 2, 0], skew[..., 2, 1] = -y, x
+    return skew
 
 
 def _exponential(vectors: np.ndarray) -> np.ndarray:
