@@ -77,12 +77,9 @@ def sample_poses_in_set(
         return SampledPoses([], 0)
     points = sample_points_in_sets(centers, shapes, np.random.default_rng(seed), count)
     rotations, translations = _fitted_poses(start, camera, keypoints_3d.astype(np.float64), points)
-    screened = poses_inside(rotations, translations, camera, keypoints_3d, centers, shapes)
-    found = []
-    for rotation, translation in zip(rotations[screened], translations[screened], strict=True):
-        pose = Pose(rotation, translation)
-        if np.isfinite(translation).all() and membership(pose, camera, keypoints_3d, centers, shapes).inside:
-            found.append(pose)
+    inside = poses_inside(rotations, translations, camera, keypoints_3d, centers, shapes)
+    inside &= np.isfinite(translations).all(axis=1)
+    found = [Pose(r, t) for r, t in zip(rotations[inside], translations[inside], strict=True)]
     return SampledPoses(found, count)
 
 
@@ -124,10 +121,11 @@ def _fitted_poses(start: Pose, camera: np.ndarray, objects: np.ndarray, points: 
 def _skew(vectors: np.ndarray) -> np.ndarray:
     """[v]_x for every vector of (..., 3)."""
     x, y, z = vectors[..., 0], vectors[..., 1], vectors[..., 2]
-    zero = np.zeros_like(x)
-    return np.stack(
-        [np.stack([zero, -z, y], -1), np.stack([z, zero, -x], -1), np.stack([-y, x, zero], -1)], -2
-    )
+    skew = np.zeros(vectors.shape[:-1] + (3, 3))
+    skew[..., 0, 1], skew[..., 0, 2] = -z, y
+    skew[..., 1, 0], skew[..., 1, 2] = z, -x
+    skew[..., 2, 0], skew[..., 2, 1] = -y, x
+    return skew
 
 
 def _exponential(vectors: np.ndarray) -> np.ndarray:
@@ -234,6 +232,11 @@ def _last_value(function):
     return remembered
 
 
+_BISECTION_STEPS = 30  # halvings of the segment towards the estimate
+#: the middles of the remaining halvings, as fractions of the interval left, should each land inside
+_TOWARDS_HIGH = 2.0 ** -np.arange(1, _BISECTION_STEPS + 1)
+
+
 def _inside_towards(start, end, camera, keypoints_3d, centers, shapes) -> Pose | None:
     """The pose at ``end`` (rotation vector, translation) if it is in PURSE, else the last one in
     PURSE on the segment from ``start`` (found by bisection; None if ``end`` is not finite)."""
@@ -244,15 +247,28 @@ def _inside_towards(start, end, camera, keypoints_3d, centers, shapes) -> Pose |
         x = start + fraction * (end - start)
         return Pose(from_rotation_vector(x[:3]), x[3:].copy())
 
+    def inside_at(fractions: np.ndarray) -> np.ndarray:
+        """``membership(pose_at(f), ...).inside`` for every fraction, in one batch."""
+        x = start + fractions[:, None] * (end - start)
+        rotations = np.array([from_rotation_vector(v) for v in x[:, :3]])  # pose_at's, exactly
+        return poses_inside(rotations, x[:, 3:], camera, keypoints_3d, centers, shapes)
+
     if membership(pose_at(1.0), camera, keypoints_3d, centers, shapes).inside:
         return pose_at(1.0)
-    low, high = 0.0, 1.0
-    for _ in range(30):
-        middle = (low + high) / 2
-        if membership(pose_at(middle), camera, keypoints_3d, centers, shapes).inside:
-            low = middle
-        else:
-            high = middle
+    # Bisection, its steps checked in batches: SLSQP ends a hair outside PURSE, so nearly always
+    # every middle lands inside; one batch checks the middles of that path at once (exact dyadic
+    # fractions, the very middles (low + high) / 2 one step after another would visit), and the
+    # bisection goes on from the first middle that does not
+    low, high, steps = 0.0, 1.0, _BISECTION_STEPS
+    while steps:
+        middles = high - (high - low) * _TOWARDS_HIGH[:steps]
+        inside = inside_at(middles)
+        kept = steps if inside.all() else int(inside.argmin())  # the middles inside before one outside
+        if kept:
+            low = float(middles[kept - 1])
+        if kept < steps:
+            high = float(middles[kept])
+        steps -= min(kept + 1, steps)
     pose = pose_at(low)
     return pose if membership(pose, camera, keypoints_3d, centers, shapes).inside else None
 

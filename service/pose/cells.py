@@ -82,6 +82,8 @@ def _sides() -> tuple[np.ndarray, np.ndarray]:
 
 
 SIDES = _sides()
+_OTHERS = [[j for j in range(4) if j != face] for face in range(4)]  # per face, u's components
+_LOWER_ROWS, _UPPER_ROWS = [1, 3, 5], [2, 4, 6]  # of Wedge.forms: u_k's lower and upper bound
 
 
 @dataclass(frozen=True)
@@ -113,9 +115,6 @@ class Wedge:
         centre, half = np.array(_OFFSET) * reach, reach * (1 + max(_OFFSET))
         return [Wedge(0, tuple((centre - half).tolist()), tuple((centre + half).tolist()))]
 
-    def _others(self) -> list[int]:
-        return [j for j in range(4) if j != self.face]
-
     def _quaternion(self, u: np.ndarray) -> np.ndarray:
         q = np.insert(np.asarray(u, dtype=np.float64), self.face, 1.0)
         return q / np.linalg.norm(q)
@@ -135,10 +134,12 @@ class Wedge:
         (``anchor`` = left_product(to_quaternion(R_hat))): with q_face >= 0 (q and -q are one
         rotation), q_face, then q_j - low_j q_face and high_j q_face - q_j per other component."""
         relative = np.zeros((7, 4))
+        others = _OTHERS[self.face]
         relative[0, self.face] = 1.0
-        for k, j in enumerate(self._others()):
-            relative[1 + 2 * k, [j, self.face]] = 1.0, -self.low[k]
-            relative[2 + 2 * k, [j, self.face]] = -1.0, self.high[k]
+        relative[_LOWER_ROWS, others] = 1.0
+        relative[_UPPER_ROWS, others] = -1.0
+        relative[_LOWER_ROWS, self.face] = np.negative(self.low)
+        relative[_UPPER_ROWS, self.face] = self.high
         return relative @ anchor.T
 
     def sides(self, estimate: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -148,14 +149,15 @@ class Wedge:
 
     @cached_property
     def _angle_cosines(self) -> tuple[float, float]:
-        """The least and largest |cos(angle / 2)| = |q_0| / |q| over the wedge's rotations."""
-        low, high = np.array(self.low), np.array(self.high)
-        near = np.where((low <= 0) & (high >= 0), 0.0, np.minimum(np.abs(low), np.abs(high)))
-        far = np.maximum(np.abs(low), np.abs(high))
+        """The least and largest |cos(angle / 2)| = |q_0| / |q| over the wedge's rotations (in plain
+        floats: a search computes this for every wedge it makes)."""
+        bounds = list(zip(self.low, self.high, strict=True))
+        near = [0.0 if low <= 0 <= high else min(abs(low), abs(high)) for low, high in bounds]
+        far = [max(abs(low), abs(high)) for low, high in bounds]
         if self.face == 0:  # q_0 = 1: cos = 1 / sqrt(1 + |u|^2)
-            return 1 / math.sqrt(1 + float(far @ far)), 1 / math.sqrt(1 + float(near @ near))
+            return 1 / math.sqrt(1 + _squared(far)), 1 / math.sqrt(1 + _squared(near))
         # q_0 = u_0 q_face: cos = |u_0| / sqrt(1 + |u|^2), increasing in |u_0|, decreasing in the rest
-        rest_near, rest_far = float(near[1:] @ near[1:]), float(far[1:] @ far[1:])
+        rest_near, rest_far = _squared(near[1:]), _squared(far[1:])
         least = near[0] / math.sqrt(1 + near[0] ** 2 + rest_far)
         return least, far[0] / math.sqrt(1 + far[0] ** 2 + rest_near)
 
@@ -169,15 +171,17 @@ class Wedge:
 
     def split(self, radius: float) -> list[Wedge]:
         """The eight half-size boxes, less those holding no rotation within ``radius`` of R_hat."""
-        low, high = np.array(self.low), np.array(self.high)
-        middle = (low + high) / 2
+        halves = [
+            ((low, (low + high) / 2), ((low + high) / 2, high))
+            for low, high in zip(self.low, self.high, strict=True)
+        ]
         children = []
-        for bits in itertools.product([0, 1], repeat=3):
-            child = Wedge(
-                self.face,
-                tuple(np.where(bits, middle, low).tolist()),
-                tuple(np.where(bits, high, middle).tolist()),
-            )
+        for parts in itertools.product(*halves):
+            child = Wedge(self.face, tuple(p[0] for p in parts), tuple(p[1] for p in parts))
             if child.nearest_angle() <= radius:
                 children.append(child)
         return children
+
+
+def _squared(values: list[float]) -> float:
+    return sum(value * value for value in values)

@@ -68,6 +68,10 @@ def membership(
     return Membership(in_front=in_front, violations=violations)
 
 
+#: a pose of a batch this close (relative) to a set's edge or to the camera plane is checked alone
+_EDGE = 1e-9
+
+
 def poses_inside(
     rotations: np.ndarray,
     translations: np.ndarray,
@@ -76,14 +80,22 @@ def poses_inside(
     centers: np.ndarray,
     shapes: np.ndarray,
 ) -> np.ndarray:
-    """``membership(...).inside`` for many poses at once ((P, 3, 3), (P, 3)): a screen, equal to it
-    but for rounding at the sets' edges, so a pose it admits is checked with ``membership``."""
+    """``membership(...).inside`` for many poses at once ((P, 3, 3), (P, 3)), decided in one batch
+    but for the poses within rounding of a set's edge or of the camera plane (the batch rounds
+    otherwise than one pose alone), which are checked alone: every answer is ``membership``'s."""
     points = keypoints_3d @ rotations.transpose(0, 2, 1) + translations[:, None]  # (P, N, 3)
-    homogeneous = points @ camera.T
     with np.errstate(all="ignore"):
+        homogeneous = points @ camera.T
         offsets = homogeneous[..., :2] / homogeneous[..., 2:3] - centers
         quadratic = np.einsum("pni,nij,pnj->pn", offsets, shapes, offsets)
-        return ((points[..., 2] > 0) & (quadratic <= 1.0)).all(axis=1)
+        depth = points[..., 2]
+        inside = ((depth > 0) & (quadratic <= 1.0)).all(axis=1)
+        near_plane = np.abs(depth) <= _EDGE * np.abs(points).max(axis=(1, 2))[:, None]
+        unsure = ((np.abs(quadratic - 1.0) <= _EDGE) | near_plane | ~np.isfinite(quadratic)).any(axis=1)
+    for k in np.flatnonzero(unsure):
+        pose = Pose(rotations[k], translations[k])
+        inside[k] = membership(pose, camera, keypoints_3d, centers, shapes).inside
+    return inside
 
 
 def pose_in_set(

@@ -85,10 +85,25 @@ _UPPER = tuple(np.array(index) for index in zip(*_TRIANGLE, strict=True))  # Q's
 _LOWER = _UPPER[::-1]
 
 
+def _minor_rows() -> np.ndarray:
+    """(18, _N): -A rows of the six 2x2 principal minors of Q as SOC(3) cones,
+    (Q_aa + Q_bb, 2 Q_ab, Q_aa - Q_bb), each a cone exactly when [[Q_aa, Q_ab], [Q_ab, Q_bb]] is PSD."""
+    column = {entry: k for k, entry in enumerate(_TRIANGLE)}
+    rows = np.zeros((6, 3, _N))
+    for k, (a, b) in enumerate(entry for entry in _TRIANGLE if entry[0] != entry[1]):
+        rows[k, 0, [column[a, a], column[b, b]]] = -1.0
+        rows[k, 1, column[a, b]] = -2.0
+        rows[k, 2, [column[a, a], column[b, b]]] = -1.0, 1.0
+    return rows.reshape(18, _N)
+
+
+_MINOR_ROWS = _minor_rows()
+
+
 @dataclass(frozen=True)
 class _Program:
-    """A x + s = b, s in (zero(1), PSD triangle(4), SOC(3) per keypoint, nonnegative(cuts));
-    x = (Q's upper triangle, (t - t_hat) / scale)."""
+    """A x + s = b, s in (zero(1), PSD triangle(4) or, with ``minors``, SOC(3) per 2x2 principal minor
+    of Q, SOC(3) per keypoint, nonnegative(cuts)); x = (Q's upper triangle, (t - t_hat) / scale)."""
 
     matrix: np.ndarray
     offset: np.ndarray
@@ -96,6 +111,7 @@ class _Program:
     cuts: int
     scale: float
     reach: float  # every pose in PURSE has || t - t_hat || / scale <= reach (inf: no such bound)
+    minors: bool = False  # Q's cone: its six 2x2 principal minors (SOC(3) each), not PSD(4)
 
 
 def _program(estimate: Pose, camera: np.ndarray, keypoints_3d, centers, shapes) -> _Program:
@@ -129,6 +145,21 @@ def _program(estimate: Pose, camera: np.ndarray, keypoints_3d, centers, shapes) 
     return _Program(np.vstack(rows), np.concatenate(offsets), len(centers), len(cuts), scale, reach)
 
 
+def _with_minors(program: _Program) -> _Program:
+    """``program`` with Q's PSD cone replaced by its six 2x2 principal minors (a weaker relaxation,
+    still valid: every rotation's Q = q q^T satisfies them). Within a wedge the sides hold Q near
+    rank one, where the minors bound as tightly as the PSD cone in the median program and still prove
+    99 % of the empty wedges empty, at about half of Clarabel's solve (no 4x4 eigen-decompositions
+    per iteration)."""
+    start, end = 1, 1 + _Q  # Q's PSD rows
+    return replace(
+        program,
+        matrix=np.vstack([program.matrix[:start], _MINOR_ROWS, program.matrix[end:]]),
+        offset=np.concatenate([program.offset[:start], np.zeros(len(_MINOR_ROWS)), program.offset[end:]]),
+        minors=True,
+    )
+
+
 def _capped(program: _Program, cap: tuple[np.ndarray, float] | None) -> _Program:
     """The relaxation of one rotation cell: q_0^T Q q_0 >= cos^2(phi) (None: the whole space)."""
     if cap is None:
@@ -143,11 +174,21 @@ def _capped(program: _Program, cap: tuple[np.ndarray, float] | None) -> _Program
     )
 
 
+def _outer_to_triangle() -> np.ndarray:
+    """(16, _Q): u^T Q w = (u w^T).ravel() @ this, over Q's upper triangle (unscaled): Q_ab's
+    coefficient is u_a w_b + u_b w_a off the diagonal, u_a w_a on it."""
+    mapping = np.zeros((4, 4, _Q))
+    for column, (a, b) in enumerate(_TRIANGLE):
+        mapping[a, b, column] = mapping[b, a, column] = 1.0
+    return mapping.reshape(16, _Q)
+
+
+_OUTER_TO_TRIANGLE = _outer_to_triangle()
+
+
 def _bilinear_rows(u: np.ndarray, w: np.ndarray) -> np.ndarray:
     """u_k^T Q w_k for every row k of u and w (k, 4), as rows over Q's upper triangle (unscaled)."""
-    a, b = _UPPER
-    products = u[:, a] * w[:, b] + u[:, b] * w[:, a]
-    return np.where(a == b, products / 2, products)
+    return (u[:, :, None] * w[:, None, :]).reshape(len(u), 16) @ _OUTER_TO_TRIANGLE
 
 
 def _quadratic_form(vector: np.ndarray) -> np.ndarray:
@@ -205,22 +246,27 @@ def _distance_bound(camera: np.ndarray, keypoints_3d, centers, shapes) -> float:
 
 
 @cache
-def _cones(keypoints: int, cuts: int) -> tuple:
+def _cones(keypoints: int, cuts: int, minors: bool = False) -> tuple:
     clarabel = _clarabel()
-    cones = [clarabel.ZeroConeT(1), clarabel.PSDTriangleConeT(4)]
+    cones = [clarabel.ZeroConeT(1)]
+    cones += [clarabel.SecondOrderConeT(3) for _ in range(6)] if minors else [clarabel.PSDTriangleConeT(4)]
     cones += [clarabel.SecondOrderConeT(3) for _ in range(keypoints)]
     return tuple(cones + ([clarabel.NonnegativeConeT(cuts)] if cuts else []))
 
 
-def _project_dual(dual: np.ndarray, keypoints: int, cuts: int) -> np.ndarray:
+def _project_dual(dual: np.ndarray, keypoints: int, cuts: int, minors: bool = False) -> np.ndarray:
     """The multipliers projected onto the dual cones (all self-dual; the zero cone's dual is free)."""
     projected = dual.copy()
-    matrix = np.zeros((4, 4))
-    matrix[_UPPER] = matrix[_LOWER] = projected[1 : 1 + _Q] / _SVEC_SCALE
-    values, vectors = np.linalg.eigh(matrix)
-    matrix = (vectors * np.maximum(values, 0.0)) @ vectors.T
-    projected[1 : 1 + _Q] = matrix[_UPPER] * _SVEC_SCALE
-    cones = projected[1 + _Q : 1 + _Q + 3 * keypoints].reshape(keypoints, 3)  # a view: edits land
+    if minors:
+        keypoints, start = keypoints + 6, 1
+    else:
+        matrix = np.zeros((4, 4))
+        matrix[_UPPER] = matrix[_LOWER] = projected[1 : 1 + _Q] / _SVEC_SCALE
+        values, vectors = np.linalg.eigh(matrix)
+        matrix = (vectors * np.maximum(values, 0.0)) @ vectors.T
+        projected[1 : 1 + _Q] = matrix[_UPPER] * _SVEC_SCALE
+        start = 1 + _Q
+    cones = projected[start : start + 3 * keypoints].reshape(keypoints, 3)  # a view: edits land
     heads, norms = cones[:, 0].copy(), np.sqrt(np.einsum("ij,ij->i", cones[:, 1:], cones[:, 1:]))
     outside = norms > heads  # Euclidean projection onto the second-order cone where outside it
     if outside.any():
@@ -262,7 +308,7 @@ def _solver(program: _Program, objective: np.ndarray, pattern=None, **options):
     data, rows, columns = pattern  # built directly: scipy's conversion of a dense array costs a solve
     pointers = np.searchsorted(rows, np.arange(_N + 1))
     matrix = sparse.csc_matrix((data, columns, pointers), shape=program.matrix.shape)
-    cones = list(_cones(program.keypoints, program.cuts))
+    cones = list(_cones(program.keypoints, program.cuts, program.minors))
     return clarabel.DefaultSolver(
         sparse.csc_matrix((_N, _N)), objective, matrix, program.offset, cones, settings
     )
@@ -293,7 +339,7 @@ def _outcome(program: _Program, objective: np.ndarray, solution) -> _Solved:
         return _Solved(status, math.nan, -math.inf, math.inf, verified)
     if status != "Solved":
         return _Solved(status, math.nan, -math.inf, math.inf, False)
-    dual = _project_dual(np.asarray(solution.z), program.keypoints, program.cuts)
+    dual = _project_dual(np.asarray(solution.z), program.keypoints, program.cuts, program.minors)
     residual = objective + program.matrix.T @ dual
     # q^T x = -b^T z + z^T s + r^T x >= -b^T z + r_Q^T x_Q + r_t^T x_t, z^T s >= 0; |Q_ab| <= 1
     lower = -float(program.offset @ dual) - float(np.abs(residual[:_Q]).sum())
@@ -309,7 +355,7 @@ def _farkas_verified(program: _Program, certificate: np.ndarray) -> bool:
     A^T z = 0 make that impossible. Q's part of A^T z is bounded exactly (|Q_ab| <= 1); the
     translation part must vanish to rounding (1e-9 of |b^T z|): t has no a-priori bound.
     """
-    z = _project_dual(certificate, program.keypoints, program.cuts)
+    z = _project_dual(certificate, program.keypoints, program.cuts, program.minors)
     gap = float(program.offset @ z)
     residual = program.matrix.T @ z
     margin = -gap - float(np.abs(residual[:_Q]).sum()) - float(np.linalg.norm(residual[_Q:])) * program.reach
@@ -470,26 +516,29 @@ class _WedgePrograms:
     dense), which halves the cost of setting up each small program."""
 
     def __init__(self, program: _Program, estimate: np.ndarray, objectives: list[np.ndarray]) -> None:
+        program = _with_minors(program)
         self.program, self.objectives = program, objectives
         self._anchor = left_product(to_quaternion(estimate))
         sides = len(SIDES[0])
-        self._matrix = np.vstack([program.matrix, np.zeros((sides, _N))])
-        self._offset = np.append(program.offset, np.zeros(sides))
+        # one program for every wedge: its sides' rows (the last ones) are rewritten in place per wedge
+        self._restricted = replace(
+            program,
+            matrix=np.vstack([program.matrix, np.zeros((sides, _N))]),
+            offset=np.append(program.offset, np.zeros(sides)),
+            cuts=program.cuts + sides,
+        )
         pattern = np.vstack([program.matrix != 0, np.tile(np.arange(_N) < _Q, (sides, 1))])
         self._rows, self._columns = np.nonzero(pattern.T)  # column-major: compressed columns
-        self._data = self._matrix.T[self._rows, self._columns]
+        self._data = self._restricted.matrix.T[self._rows, self._columns]
         self._on_sides = self._columns >= len(program.matrix)  # by column of Q, then by side
         self._solver = None
 
     def solve(self, wedge: Wedge, quantity: int) -> tuple[_Program, _Solved]:
         forms = wedge.forms(self._anchor)
         sides = _bilinear_rows(-forms[SIDES[0]], forms[SIDES[1]])
-        matrix, data = self._matrix.copy(), self._data.copy()
-        matrix[len(self.program.matrix) :, :_Q] = sides
+        restricted, data = self._restricted, self._data
+        restricted.matrix[len(self.program.matrix) :, :_Q] = sides
         data[self._on_sides] = sides.T.ravel()
-        restricted = replace(
-            self.program, matrix=matrix, offset=self._offset, cuts=self.program.cuts + len(sides)
-        )
         objective = self.objectives[quantity]
         if self._solver is None:
             self._solver = _solver(restricted, objective, pattern=(data, self._rows, self._columns))
@@ -520,11 +569,12 @@ class _Search:
         roots = Wedge.around(radius)  # one wedge is split at once, the four faces solved first
         leaves = [_Leaf(w, root_bounds.copy(), np.full(7, len(roots) == 1)) for w in roots]
         while leaves:
-            bounds = np.max([leaf.bounds for leaf in leaves], axis=0)
+            table = np.array([leaf.bounds for leaf in leaves])
+            bounds = table.max(axis=0)
             quantity = self._loosest(bounds)
             if quantity is None:
                 break
-            index = int(np.argmax([leaf.bounds[quantity] for leaf in leaves]))
+            index = int(table[:, quantity].argmax())
             leaf = leaves[index]
             radius = min(radius, float(bounds[6]))  # PURSE's rotations are within this of R_hat
             if leaf.cell.nearest_angle() > radius:  # its own bound is at most radius: no pose of PURSE

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from service.pose import Pose, membership, pose_in_set
+from service.pose.membership import poses_inside
 from service.pose.rotations import from_rotation_vector
 from tests.unit.pose.conftest import balls, projections
 
@@ -56,3 +57,35 @@ def test_a_keypoint_behind_the_camera_is_outside_even_in_an_unbounded_set(camera
     behind = Pose(true_pose.rotation, -true_pose.translation)
     check = membership(behind, camera, duck_3d, centers, unbounded)
     assert not check.inside and not check.in_front.any() and np.isinf(check.violations).all()
+
+
+def test_a_batch_answers_as_each_pose_alone_even_at_the_edge(camera, duck_3d, true_pose) -> None:
+    """Poses on a segment out of PURSE, across its edge to the last bit (30 representable steps on
+    each side, where a batch's rounding differs from one pose's: this scene is one where it decided
+    otherwise before), and behind the camera: ``poses_inside`` gives ``membership``'s answers."""
+    rng = np.random.default_rng(15)
+    centers = projections(true_pose, camera, duck_3d) + rng.normal(0, 1.0, (8, 2))
+    shapes = balls(np.full(8, 4.0))
+    axis = rng.normal(size=3) * 0.05
+
+    def pose_at(fraction: float) -> Pose:
+        return Pose(
+            from_rotation_vector(fraction * axis) @ true_pose.rotation, true_pose.translation + 30 * fraction
+        )
+
+    def inside(fraction: float) -> bool:
+        return membership(pose_at(fraction), camera, duck_3d, centers, shapes).inside
+
+    low, high = 0.0, 1.0
+    assert inside(low) and not inside(high)
+    for _ in range(60):
+        middle = (low + high) / 2
+        low, high = (middle, high) if inside(middle) else (low, middle)
+    fractions = [*np.linspace(0, 1, 20), low, high]
+    for _ in range(30):
+        fractions += [np.nextafter(fractions[-2], -1.0), np.nextafter(fractions[-1], 2.0)]
+    poses = [pose_at(f) for f in fractions] + [Pose(true_pose.rotation, -true_pose.translation)]
+    alone = [membership(p, camera, duck_3d, centers, shapes).inside for p in poses]
+    rotations, translations = np.array([p.rotation for p in poses]), np.array([p.translation for p in poses])
+    assert poses_inside(rotations, translations, camera, duck_3d, centers, shapes).tolist() == alone
+    assert alone.count(True) > 30 and alone.count(False) > 30
