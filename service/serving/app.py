@@ -137,6 +137,7 @@ def predict_parts(state: ServiceState) -> PredictParts:
         state.predictor,
         state.admission,
         state.cpu_pool,
+        state.background_pool,
         settings.predict.max_request_bytes,
         settings.predict.max_batch_images,
         pace,
