@@ -71,6 +71,7 @@ class PredictParts:
     predictor: Predictor
     admission: Admission
     pool: Executor
+    background_pool: Executor  # for a client's requests beyond its first while others are served
     max_request_bytes: int
     max_batch_images: int
     pace: BodyPace

@@ -18,6 +18,7 @@ from service.detector.frames import ImageSource
 from service.detector.manifest import MODEL_FILENAME, Manifest, ManifestError, load_manifest
 from service.detector.preprocess import build_batch
 from service.errors import InvalidInput
+from service.infra.cpu_priority import in_background
 from service.infra.metrics import BATCH_SIZE, INFERENCE_SECONDS
 
 CPU = ("CPUExecutionProvider",)
@@ -109,7 +110,7 @@ class Detector:
         """``(N, C, H, W)`` float32 input -> ``(N, K, h, w)`` float32 heatmaps, in one run on this
         thread (concurrent requests run in parallel on their own threads)."""
         spec = self.manifest
-        alone = self._alone_session is not None and self._computing <= 1
+        alone = self._alone_session is not None and self._computing <= 1 and not in_background()
         session = self._alone_session if alone else self._session
         started = time.perf_counter()
         heatmaps = session.run([spec.output.name], {spec.input.name: batch})[0]

@@ -34,6 +34,7 @@ from service.feedback.live_coverage import LiveCoverageReader
 from service.feedback.retention import Retention, RetentionRules
 from service.infra.audit_trail import AuditTrail
 from service.infra.client_board import ClientBoard
+from service.infra.cpu_priority import background_pool
 from service.infra.job_engine import JobRunner
 from service.infra.logs import ensure_logging
 from service.infra.metrics import (
@@ -68,6 +69,7 @@ class ServiceState:
     audit: AuditTrail
     operators: dict[str, str]  # admin token -> operator name
     cpu_pool: ThreadPoolExecutor
+    background_pool: ThreadPoolExecutor  # service.infra.cpu_priority
     admission: Admission
     audits: CoverageAudits
     drift: DriftMonitor | None = None  # None when CKS_DRIFT_ENABLED is false
@@ -107,7 +109,8 @@ class ServiceState:
         shutil.rmtree(
             process_uploads_dir(self.settings.storage.uploads_dir), ignore_errors=True
         )  # cancelled jobs' uploads
-        self.cpu_pool.shutdown(wait=True, cancel_futures=True)
+        for pool in (self.cpu_pool, self.background_pool):
+            pool.shutdown(wait=True, cancel_futures=True)
         if self.retention is not None:
             self.retention.close()  # the answers retained so far reach the store
         self.store.close()
@@ -193,6 +196,7 @@ def build_state(settings: Settings) -> ServiceState:
         audit=audit,
         operators=operators,
         cpu_pool=ThreadPoolExecutor(settings.model.cpu_workers, thread_name_prefix="cpu"),
+        background_pool=background_pool(settings.model.cpu_workers),
         admission=Admission(
             settings.predict.max_concurrent_inferences,
             settings.predict.max_queued_requests,

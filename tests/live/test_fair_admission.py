@@ -20,6 +20,7 @@ from pathlib import Path
 from prometheus_client.mmap_dict import MmapedDict
 
 from benchmarks.faults_clients import Flood, polite_client
+from service.infra.cpu_priority import BACKGROUND_NICE
 from tests.live.server import LiveServer, metric
 
 # As many compute slots as the test server has CPU threads (tests/live/server.py): a slot is a run.
@@ -41,12 +42,17 @@ def test_a_flood_from_one_client_leaves_the_other_served(tmp_path: Path) -> None
         with Flood(server.url, valid=100) as flood:
             _, statuses = polite_client(server.url, 15)
         flood_answers = dict(flood.statuses)
+        assert server.process is not None
+        nices = _thread_nices(server.process.pid)
 
         served = statuses.count(200) / len(statuses)
         assert served >= 0.95, f"{statuses}; the flood's answers: {flood_answers}"
         # The flood was refused beyond its share, and served within it.
         assert flood_answers.get(429, 0) > 0 and flood_answers.get(200, 0) > 0, flood_answers
         assert metric(server, "cks_predict_rejected_total", '{reason="client_share"}') == flood_answers[429]
+        # The flood's requests beyond its first computed on background threads, the polite
+        # client's at the process's priority (service.infra.cpu_priority).
+        assert BACKGROUND_NICE in nices.values() and nices[server.process.pid] == 0, nices
 
 
 def test_with_two_workers_a_flood_is_held_to_its_share_by_each_worker(tmp_path: Path) -> None:
@@ -68,6 +74,15 @@ def test_with_two_workers_a_flood_is_held_to_its_share_by_each_worker(tmp_path: 
     for worker, reasons in refused.items():
         assert reasons.get("client_share", 0) > 0 and reasons.get("queue_full", 0) == 0, (worker, refused)
     assert "client board" not in log, log  # neither worker went without it
+
+
+def _thread_nices(pid: int) -> dict[int, int]:
+    """Each thread's nice value (/proc/PID/task/TID/stat, field 19)."""
+    nices = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        fields = (task / "stat").read_text().rpartition(")")[2].split()
+        nices[int(task.name)] = int(fields[16])
+    return nices
 
 
 def _refusals_per_worker(metrics: Path) -> dict[str, dict[str, float]]:

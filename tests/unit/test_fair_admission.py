@@ -46,6 +46,26 @@ def test_beside_another_client_one_holds_its_share_and_gets_429() -> None:
     asyncio.run(scenario())
 
 
+def test_beside_others_a_client_with_several_requests_computes_in_the_background() -> None:
+    async def background(admission: Admission, client: str, places: int) -> bool:
+        async with AsyncExitStack() as held:
+            for _ in range(places):
+                await held.enter_async_context(admission.admitted(client=client))
+            async with admission.slot(client) as lowered:
+                return lowered
+
+    async def scenario() -> None:
+        admission = Admission(4, 8, 1.0, 1000, client_share=0.5)
+        assert not await background(admission, "flood", 3)  # alone: every place, at full priority
+        admission.refuse_if_full(client="polite")  # another client asked: shares apply
+        assert await background(admission, "flood", 3)
+        assert await background(admission, "flood", 2)
+        assert not await background(admission, "flood", 1)  # one at a time, as the polite client
+        assert not await background(admission, "polite", 1)
+
+    asyncio.run(scenario())
+
+
 def test_a_free_slot_goes_to_the_client_computing_least() -> None:
     async def scenario() -> None:
         admission = Admission(2, 6, 5.0, 1000, client_share=0.5)

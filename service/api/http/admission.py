@@ -221,8 +221,11 @@ class Admission:
                 return
 
     @asynccontextmanager
-    async def slot(self, client: str = "") -> AsyncIterator[None]:
-        """A compute slot, waited for at most the queue timeout (CKS_QUEUE_TIMEOUT_SECONDS)."""
+    async def slot(self, client: str = "") -> AsyncIterator[bool]:
+        """A compute slot, waited for at most the queue timeout (CKS_QUEUE_TIMEOUT_SECONDS); yields
+        whether to compute at background priority (``service.infra.cpu_priority``): while others
+        are served, a client holding several places, so that the kernel gives a one-at-a-time
+        client's request the cores first."""
         PREDICT_WAITING.inc()
         try:
             await self._take_slot(client)
@@ -234,10 +237,11 @@ class Admission:
             ) from None
         finally:
             PREDICT_WAITING.dec()
+        background = self._held[client] > 1 and self._shared()
         PREDICT_COMPUTING.inc()
         started = time.monotonic()
         try:
-            yield
+            yield background
         finally:
             PREDICT_COMPUTING.dec()
             self._charge(client, time.monotonic() - started)

@@ -166,11 +166,11 @@ async def compute(
 ) -> Response:
     """Predict and present on the CPU pool, inside a compute slot (decoded images exist only there);
     ``image``: a JPEG or PNG file, or a frame's pixels (POST /v1/predict/frame)."""
-    async with parts.admission.slot(client):
-        loop = asyncio.get_running_loop()
+    async with parts.admission.slot(client) as background:
+        pool = parts.background_pool if background else parts.pool
         context = contextvars.copy_context()  # the pool's thread logs with the request's id
         answer = (_respond, parts, image, parameters, png, client)
-        return await loop.run_in_executor(parts.pool, context.run, *answer)
+        return await asyncio.get_running_loop().run_in_executor(pool, context.run, *answer)
 
 
 def _respond(
