@@ -3,28 +3,33 @@
 Run: python -m benchmarks.bench_feedback   (--runs shifted runs on fresh scene seeds, printed;
 --seeds replays given ones; also --sequences, --shift-sequences, --frames, --orders, --delay,
 --gamma, --requests). Renders take about 0.15-0.4 s a frame on 2 shared cores (the 10,000
-in-distribution frames once, each fresh seed's 2,500 shifted frames every run); the replay takes
-seconds.
+in-distribution frames once, each fresh seed's shifted frames, ``--shift-sequences`` scenes of
+each shift, every run); the replay takes seconds.
 
 Data: camera sequences of the bundled generator (training/streams.py, rendered and cached with
 benchmarks/bench_drift_streams.rendered under data/streams/), seeds the calibration never used:
-``--sequences`` in distribution (seed 9100) and, per run, ``--shift-sequences`` with heavy
-occlusion on a seed drawn afresh. Every frame's true keypoints come with it (the generator's
-labels); the detector's statistics and the ``cov`` score of every labelled keypoint are cached
+``--sequences`` in distribution (seed 9100) and, per run, ``--shift-sequences`` of each shift
+of ``SHIFT_SEEDS`` on a seed drawn afresh: heavy occlusion (3 more occluders), which the label-free
+drift monitor finds, and a 4x lower resolution, which it finds late or not at all (issue 37).
+Every frame's true keypoints come with it (the generator's labels); the detector's statistics,
+the ``cov`` score of every labelled keypoint and what the drift monitor records are cached
 beside the renders.
 
 Replay (epsilon 0.1, keypoint coverage, the bundled calibration, version 1), as the service does it
 (service/feedback/): a frame is served, its labels arrive ``--delay`` frames later (a review queue
 30 frames = 1 s behind a 30 fps camera), then
-- live coverage: one vote per look (service.monitoring.looks.LookTracker), the share covered of a
-  look's first labelled frame; the alarm (service.feedback.confidence_sequence.BettingAlarm) when
-  coverage is proven below the version's floor (CKS_FEEDBACK_ALARM_LEVEL 0.01: Beta band at 0.005,
-  e-process at 0.005);
+- live coverage: one vote per look (service.monitoring.looks.LookTracker), the share covered of
+  the units of all its labelled frames, cast when the first label of the next look arrives (the
+  stream's last look stays open, as in service.feedback.live_coverage); the alarm
+  (service.feedback.confidence_sequence.BettingAlarm) when coverage is proven below the version's
+  floor (CKS_FEEDBACK_ALARM_LEVEL 0.01: Beta band at 0.005, e-process at 0.005);
 - adaptive sets: ACI with gamma ``--gamma`` on the labels in the order they arrive, the label lag
   L counted as the service counts it (service.feedback.adaptive).
 False alarms: the in-distribution sequences in ``--orders`` random orders, the alarm restarted after
-each alarm. Shift, per run: ``WARM_UP`` in-distribution frames, then the run's occluded sequences;
-frames from the shift to the alarm (min, median, max over runs); miscoverage of static and
+each alarm. Per shift and run: ``WARM_UP`` in-distribution frames, then the run's shifted
+sequences; frames from the shift to the coverage alarm and to the label-free drift alarm (the
+sequential one, as served: benchmarks.bench_drift_streams.replay, on the same frames), min,
+median, max over runs; miscoverage of static and
 adaptive sets over the labels of the shifted frames, against ACI's bound over them (alpha_1 the
 level at the shift, L the largest label lag); coverage per window of ``WINDOW`` frames.
 Retention cost: POST /v1/predict in process (the ASGI app, SQLite store) on a bundled sample image,
@@ -54,12 +59,19 @@ from fastapi.testclient import TestClient  # noqa: E402
 from benchmarks.bench_drift_streams import (  # noqa: E402
     CACHE,
     SEED_IN,
+    RecordedFrame,
+    by_sequence,
     delay_spread,
     fresh_seeds,
     images_with_boxes,
+    monitor,
+    recorded_frames,
     rendered,
 )
+from benchmarks.bench_drift_streams import replay as drift_replay  # noqa: E402
 from benchmarks.service_bench.breakdown import service_state  # noqa: E402
+from calibration_store import ScoreTable  # noqa: E402
+from service.calibration.bundle import BUNDLE_FILENAME, load_bundle  # noqa: E402
 from service.conformal import CovScore, heatmap_statistics  # noqa: E402
 from service.detector.crop import apply_affines  # noqa: E402
 from service.feedback.adaptive import AdaptiveView, aci_step, long_run_bound  # noqa: E402
@@ -73,7 +85,11 @@ from training.coco import read_coco  # noqa: E402
 
 EPSILON, LEVEL = 0.1, 0.01
 WARM_UP, WINDOW = 300, 500
-SHIFT = "heavy_occlusion"
+#: the shifts replayed, and the offset of each one's scene seed from the run's seed: heavy occlusion
+#: on the run's seed itself (as before the second shift), a lower resolution (x4) on seed + 3 (as
+#: bench_drift_streams renders it)
+SHIFT_SEEDS = {"heavy_occlusion": 0, "low_resolution": 3}
+SHIFT_SEQUENCES = 250
 
 
 @dataclass(frozen=True)
@@ -143,6 +159,8 @@ def replay(stream: list[LabelledFrame], thresholds: Thresholds, delay: int, gamm
     tracker, looks = LookTracker(), []
     alpha, levels, served_at, lag = EPSILON, [EPSILON], [], 0
     alarm, alarms = BettingAlarm(LEVEL), []
+    look_misses = look_units = 0  # the open look's labelled units (its vote waits for the next look)
+    look_floors = 0.0
     static, adaptive, served = [], [], []
     for position in range(1, len(stream) + delay + 1):
         if position <= len(stream):
@@ -165,12 +183,16 @@ def replay(stream: list[LabelledFrame], thresholds: Thresholds, delay: int, gamm
         for missed in missed_adaptive:
             alpha = aci_step(alpha, EPSILON, gamma, bool(missed))
             levels.append(alpha)
-        look = looks[arrived - 1]
-        if missed_static.size and (arrived == 1 or looks[arrived - 2] != look):  # the look's first frame
-            floor = float(thresholds.floors[stream[arrived - 1].channels].mean())
-            if alarm.observe(float(1 - missed_static.mean()), floor):
+        if (
+            arrived > 1 and looks[arrived - 2] != looks[arrived - 1] and look_units
+        ):  # the last look is complete
+            if alarm.observe(1 - look_misses / look_units, look_floors / look_units):
                 alarms.append(position)
                 alarm = BettingAlarm(LEVEL)
+            look_misses = look_units = look_floors = 0
+        look_misses += int(missed_static.sum())
+        look_units += missed_static.size
+        look_floors += float(thresholds.floors[stream[arrived - 1].channels].sum())
     return Replay(static, adaptive, alarms, levels, served_at, lag)
 
 
@@ -240,6 +262,67 @@ def within(miscoverage: float, bound: float) -> str:
     return "within" if abs(miscoverage - EPSILON) <= bound else "outside"
 
 
+def drift_delay(frames: list[RecordedFrame], start: int, table: ScoreTable, manifest) -> int | None:  # noqa: ANN001
+    """Frames from ``start`` to the label-free drift alarm (the sequential one, as served) or None."""
+    return drift_replay(lambda: monitor("sequential", table, manifest), frames, start=start)[1]
+
+
+def shifted_run(
+    labelled: list[list[LabelledFrame]], recorded: list[list[RecordedFrame]], context: dict
+) -> tuple[Replay, int | None]:
+    """One run: WARM_UP in-distribution frames, then the shift's scenes in a random order; the
+    labels' replay and the drift monitor's frames to alarm, on the same frames."""
+    quiet, quiet_recorded, rng = context["quiet"], context["quiet_recorded"], context["rng"]
+    warm, order = rng.permutation(len(quiet)), rng.permutation(len(labelled))
+    warm_up = [frame for i in warm for frame in quiet[i]][: context["warm_up"]]
+    warm_recorded = [frame for i in warm for frame in quiet_recorded[i]][: context["warm_up"]]
+    stream = warm_up + [frame for i in order for frame in labelled[i]]
+    run = replay(stream, context["thresholds"], context["delay"], context["gamma"])
+    frames = warm_recorded + [frame for i in order for frame in recorded[i]]
+    return run, drift_delay(frames, len(warm_up), context["table"], context["manifest"])
+
+
+def report_shift(shift: str, runs: dict[int, tuple[Replay, int | None]], warm_up: int, gamma: float) -> dict:
+    span = min(len(run.static) for run, _ in runs.values()) - warm_up
+    print(
+        f"\nafter {warm_up} in-distribution frames, {shift} ({span}+ frames a run): frames to the coverage"
+        f" alarm and to the label-free drift alarm; miscoverage over the labels learned of the shifted"
+        f" frames, and ACI's bound on |miscoverage - {EPSILON}| there (alpha_1 = the level at the shift,"
+        " L = the largest label lag)"
+    )
+    delays, drift, summary = [], [], {}
+    for seed, (run, drift_found) in runs.items():
+        first = next((frame - warm_up for frame in run.alarms if frame > warm_up), None)
+        delays.append(first)
+        drift.append(drift_found)
+        adaptive, static, bound = held_to_bound(run, warm_up, gamma)
+        whole_adaptive, _, whole_bound = held_to_bound(run, 0, gamma)
+        summary[seed] = (first, adaptive, static, bound, whole_adaptive, whole_bound, drift_found)
+        print(
+            f"  seed {seed}: coverage alarm {_after(first)}, drift alarm {_after(drift_found)};"
+            f" miscoverage adaptive {adaptive:.3f} ({within(adaptive, bound)}),"
+            f" static {static:.3f} ({within(static, bound)}) the bound"
+            f" {bound:.3f} (L {run.lag}); whole stream adaptive {whole_adaptive:.3f}, bound {whole_bound:.3f}"
+        )
+    print(
+        f"frames from the shift to the alarm, min/median/max over the runs (raised in): coverage"
+        f" {delay_spread(delays, span)}, drift {delay_spread(drift, span)}"
+    )
+    print(f"coverage per window of {WINDOW} frames after the shift (mean over runs): static / adaptive")
+    for begin in range(warm_up, warm_up + span, WINDOW):
+        window = slice(begin, begin + WINDOW)
+        static = np.mean([coverage(run.static[window]) for run, _ in runs.values()])
+        adaptive = np.mean([coverage(run.adaptive[window]) for run, _ in runs.values()])
+        print(
+            f"  frames {begin - warm_up:5d}-{begin - warm_up + WINDOW - 1:5d}: {static:.3f} / {adaptive:.3f}"
+        )
+    return summary
+
+
+def _after(frames: int | None) -> str:
+    return "not raised" if frames is None else f"{frames} frames after the shift"
+
+
 def main(argv: list[str] | None = None) -> dict[str, object]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=10, help="frames per sequence (one scene)")
@@ -247,7 +330,9 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
     parser.add_argument(
         "--orders", type=int, default=1, help="orders the in-distribution ones are replayed in"
     )
-    parser.add_argument("--shift-sequences", type=int, default=250, help="heavy-occlusion sequences per run")
+    parser.add_argument(
+        "--shift-sequences", type=int, default=SHIFT_SEQUENCES, help="sequences of each shift per run"
+    )
     parser.add_argument("--runs", type=int, default=4, help="shifted runs, each on fresh scene seeds")
     parser.add_argument("--seeds", type=int, nargs="+", help="replay these runs' seeds instead of fresh ones")
     parser.add_argument("--delay", type=int, default=30, help="frames between a frame and its labels")
@@ -257,19 +342,29 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
     arguments = parser.parse_args(argv)
     began = time.perf_counter()
     seeds = arguments.seeds or fresh_seeds(arguments.runs)
-    print(f"{SHIFT} scene seeds of this run: {' '.join(map(str, seeds))}; load {os.getloadavg()[0]:.1f}")
+    print(
+        f"scene seeds of this run (heavy occlusion: seed, low resolution: seed + 3):"
+        f" {' '.join(map(str, seeds))}; load {os.getloadavg()[0]:.1f}"
+    )
     settings = Settings()
+    _, table = load_bundle(settings.model.directory / BUNDLE_FILENAME)
+    frames, count = arguments.frames, arguments.shift_sequences
     with service_state(settings.model.directory, 1) as state:
-        thresholds = Thresholds(state)
-        frames, count = arguments.frames, arguments.shift_sequences
-        quiet = scenes_of(rendered(arguments.cache, "none", arguments.sequences, frames, SEED_IN), state)
+        thresholds, manifest = Thresholds(state), state.detector.manifest
+
+        def scenes(shift: str, sequences: int, seed: int) -> tuple[list, list]:
+            folder = rendered(arguments.cache, shift, sequences, frames, seed)
+            return scenes_of(folder, state), by_sequence(recorded_frames(folder, state))
+
+        quiet, quiet_recorded = scenes("none", arguments.sequences, SEED_IN)
         shifted = {
-            seed: scenes_of(rendered(arguments.cache, SHIFT, count, frames, seed), state) for seed in seeds
+            shift: {seed: scenes(shift, count, seed + offset) for seed in seeds}
+            for shift, offset in SHIFT_SEEDS.items()
         }
     prepared = time.perf_counter() - began
     gamma, delay = arguments.gamma, arguments.delay
     print(
-        f"{len(quiet)} in-distribution sequences (seed {SEED_IN}), {count} {SHIFT} sequences per run,"
+        f"{len(quiet)} in-distribution sequences (seed {SEED_IN}), {count} sequences of each shift per run,"
         f" {frames} frames each; labels {delay} frames late; epsilon {EPSILON}, alarm level {LEVEL}"
         f" (floors {thresholds.floors.min():.3f}-{thresholds.floors.max():.3f}); ACI gamma {gamma}"
     )
@@ -286,40 +381,21 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
         f" order(s) of {len(quiet)} scenes, the alarm restarted after each)"
     )
     warm_up = min(WARM_UP, sum(map(len, quiet)) // 2)
-    runs = {}
-    for seed, scenes in shifted.items():
-        runs[seed] = replay(in_order(quiet, rng)[:warm_up] + in_order(scenes, rng), thresholds, delay, gamma)
-    span = min(len(r.static) for r in runs.values()) - warm_up
-    print(
-        f"\nafter {warm_up} in-distribution frames, {SHIFT} ({span}+ frames a run): miscoverage over the"
-        f" labels learned of the shifted frames, and ACI's bound on |miscoverage - {EPSILON}| there"
-        " (alpha_1 = the level at the shift, L = the largest label lag)"
-    )
-    delays, summary = [], {}
-    for seed, run in runs.items():
-        first = next((frame - warm_up for frame in run.alarms if frame > warm_up), None)
-        delays.append(first)
-        adaptive, static, bound = held_to_bound(run, warm_up, gamma)
-        whole_adaptive, _, whole_bound = held_to_bound(run, 0, gamma)
-        summary[seed] = (first, adaptive, static, bound, whole_adaptive, whole_bound)
-        print(
-            f"  seed {seed}: alarm {'not raised' if first is None else f'{first} frames after the shift'};"
-            f" miscoverage adaptive {adaptive:.3f} ({within(adaptive, bound)}),"
-            f" static {static:.3f} ({within(static, bound)}) the bound"
-            f" {bound:.3f} (L {run.lag}); whole stream adaptive {whole_adaptive:.3f}, bound {whole_bound:.3f}"
-        )
-    print(
-        f"frames from the shift to the alarm, min/median/max over the runs (raised in):"
-        f" {delay_spread(delays, span)}"
-    )
-    print(f"\ncoverage per window of {WINDOW} frames after the shift (mean over runs): static / adaptive")
-    for begin in range(warm_up, warm_up + span, WINDOW):
-        window = slice(begin, begin + WINDOW)
-        static = np.mean([coverage(r.static[window]) for r in runs.values()])
-        adaptive = np.mean([coverage(r.adaptive[window]) for r in runs.values()])
-        print(
-            f"  frames {begin - warm_up:5d}-{begin - warm_up + WINDOW - 1:5d}: {static:.3f} / {adaptive:.3f}"
-        )
+    context = {
+        "quiet": quiet,
+        "quiet_recorded": quiet_recorded,
+        "rng": rng,
+        "warm_up": warm_up,
+        "thresholds": thresholds,
+        "delay": delay,
+        "gamma": gamma,
+        "table": table,
+        "manifest": manifest,
+    }
+    shifts = {}
+    for shift, by_seed in shifted.items():
+        runs = {seed: shifted_run(*pair, context) for seed, pair in by_seed.items()}
+        shifts[shift] = report_shift(shift, runs, warm_up, gamma)
     without, with_retain, paired = retention_cost(arguments.requests)
     print(
         f"\nretention cost, POST /v1/predict over {arguments.requests} pairs: p50 {without:.2f} ms without,"
@@ -328,7 +404,7 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
     )
     print(f"\nrendering and inference (cached after the first run): {prepared:.0f} s")
     print(f"whole run: {time.perf_counter() - began:.0f} s")
-    return {"false_alarms": alarms, "runs": summary, "retention": (without, with_retain, paired)}
+    return {"false_alarms": alarms, "shifts": shifts, "retention": (without, with_retain, paired)}
 
 
 if __name__ == "__main__":

@@ -5,18 +5,22 @@ verdicts (its judged units, already grouped: service.feedback.verdicts, stored w
 and is counted per group (the version's answers as a whole, per object, per keypoint,
 per camera stream, per caller group, per Mondrian stratum): the raw coverage of its labelled
 keypoints, and one vote per look (frames of one scene are one observation, not many: the look
-was fixed when the answer was served, service.feedback.retention), cast by the look's first
-labelled frame (its share covered of the group's units). Each group's confidence sequence of the
-votes' mean and its alarm (a betting e-process, once coverage is proven below the version's
-promise) are service.feedback.confidence_sequence's.
+was fixed when the answer was served, service.feedback.retention): the share covered of the
+group's units in all the look's labelled frames, cast when the look is complete, that is when a
+label of the next look of its stream is read (or when more than ``OPEN_LOOKS`` looks are
+open: the oldest is cast). A frame of a look already cast is counted raw, not voted again. Each
+group's confidence sequence of the votes' mean and its alarm (a betting e-process, once coverage
+is proven below the version's promise) are service.feedback.confidence_sequence's
+(docs/feedback.md derives why pooling a look's frames keeps the alarm's false-alarm rate).
 
 ``LiveCoverageReader`` keeps one fold per process and adds only the labels that are new since
 its last read (``labelled_since`` lists ids, a cheap indexed read; only the new labels' verdicts
 are fetched and decoded, never the records, except for rows labelled before verdicts were stored,
 which are judged here): a read costs what arrived since the previous one, and a process's first
 read decodes the compact verdicts of the CKS_FEEDBACK_MAX_RETAINED rows the store may keep
-(docs/feedback.md measures both). Votes are cast in the order the labels
-are read (label order), each label once; a raised alarm stays raised though its rows are evicted.
+(docs/feedback.md measures both). Looks are completed and voted in the order the labels are
+read (label order), each label once; the look still open in each stream has not voted yet (it
+is in the raw counts, not in ``looks``). A raised alarm stays raised though its rows are evicted.
 A replica started later folds the labels the store still keeps, so replicas agree on the labels
 kept, not on evicted history.
 
@@ -44,6 +48,7 @@ import numpy as np
 
 from calibration_store import LabelVerdicts, StoreError
 from service.feedback.confidence_sequence import BettingAlarm, coverage_bounds, promised_floor
+from service.feedback.retention import LOOK_STREAMS
 from service.feedback.verdicts import verdicts
 
 log = logging.getLogger(__name__)
@@ -54,9 +59,11 @@ SETTLE = timedelta(seconds=60)
 PAGE = 2000
 #: verdict shapes kept parsed (the frames of a stream share one; beyond it the fold starts afresh)
 SHAPES_KEPT = 4096
+#: looks whose votes wait for the next look of their stream (one per stream the retention follows)
+OPEN_LOOKS = LOOK_STREAMS
 
 
-@dataclass
+@dataclass(eq=False)  # kept by identity: an open look's tallies are keyed by their group
 class _Votes:
     promised: float
     alarm: BettingAlarm
@@ -97,6 +104,7 @@ class _Shape:
     units, their least floor and their mean floor; ``pending``: the covered counts of the labels
     folded since their counts were last added to the groups."""
 
+    stream: str  # its stream group's name ("": none), whose next look completes a look of it
     groups: list[_Votes]
     units: list[int]
     least: list[float]
@@ -104,31 +112,64 @@ class _Shape:
     pending: list[list[int]] = field(default_factory=list)
 
 
+@dataclass
+class _OpenLook:
+    """A look whose vote is not cast yet: per group, its covered units, units and their floors' sum."""
+
+    stream: str
+    tallies: dict[_Votes, list[float]] = field(default_factory=dict)
+
+    def add(self, shape: _Shape, covered: list[int]) -> None:
+        for group, units, hits, floor in zip(shape.groups, shape.units, covered, shape.mean, strict=True):
+            tally = self.tallies.setdefault(group, [0.0, 0.0, 0.0])
+            tally[0] += hits
+            tally[1] += units
+            tally[2] += units * floor
+
+    def cast(self) -> None:
+        """One vote per group: the share covered of its units, against their mean floor."""
+        for group, (hits, units, floors) in self.tallies.items():
+            vote = hits / units
+            group.looks += 1
+            group.total += vote
+            group.alarm.observe(vote, floors / units)
+            group.reported = None
+
+
 class CoverageFold:
     """Every group's live coverage, label by label; ``level`` is the false-alarm probability of
     each group's alarm (half to the sequence, half to the band); the last ``looks_kept`` looks are
-    remembered (a label of a look forgotten since votes again). A label's votes are cast as it is
-    added, in label order; its raw counts are sums, added to their groups a shape at a time when
-    a report is made."""
+    remembered (a label of a look forgotten since opens it again). A label joins its look's vote
+    as it is added, in label order, while the look is open; its raw counts are sums, added to
+    their groups a shape at a time when a report is made."""
 
     def __init__(self, level: float, looks_kept: int) -> None:
         self.level, self._looks_kept = level, looks_kept
         self._groups: dict[tuple, _Votes] = {}
         self._shapes: dict[str, _Shape] = {}
         self._voted: OrderedDict[str, None] = OrderedDict()
+        self._open: OrderedDict[str, _OpenLook] = OrderedDict()
+        self._open_by_stream: dict[str, str] = {}
 
     def add(self, verdicts: LabelVerdicts) -> None:
-        """Count one labelled prediction's verdicts: raw counts always, a vote if it opens its look."""
+        """Count one labelled prediction's verdicts: raw counts always; into its look's vote while
+        the look is open (a new look completes the previous look of its stream: its vote is cast)."""
         shape = self._shapes.get(verdicts.shape) or self._parse(verdicts.shape)
         covered = verdicts.tally["covered"]
         shape.pending.append(covered)
-        if self._opens_look(verdicts.tally["look"]):
-            for group, units, hits, floor in zip(shape.groups, shape.units, covered, shape.mean, strict=True):
-                vote = hits / units
-                group.looks += 1
-                group.total += vote
-                group.alarm.observe(vote, floor)
-                group.reported = None
+        look = verdicts.tally["look"]
+        if look not in self._open and self._opens_look(look):
+            previous = self._open_by_stream.pop(shape.stream, None)
+            if previous is not None:
+                self._open.pop(previous).cast()
+            self._open[look] = _OpenLook(shape.stream)
+            self._open_by_stream[shape.stream] = look
+            if len(self._open) > OPEN_LOOKS:  # a stream that went quiet: its look is complete
+                oldest, open_look = self._open.popitem(last=False)
+                del self._open_by_stream[open_look.stream]
+                open_look.cast()
+        if look in self._open:
+            self._open[look].add(shape, covered)
 
     def _parse(self, text: str) -> _Shape:
         if len(self._shapes) >= SHAPES_KEPT:  # labels of many shapes (streams, strata): start afresh
@@ -138,7 +179,8 @@ class CoverageFold:
         base = (shape["version"], shape["guarantee"], *shape["query"])
         band = self.level / 2 if shape["guarantee"] == "exchangeable" else 0.0  # ACI: a long-run bound
         floors = [min(_floor(g, band) for g in guarantees) for guarantees in shape["floors"]]
-        parsed = _Shape([], [], [], [])
+        stream = next((name for name_level, name, _ in shape["groups"] if name_level == "stream"), "")
+        parsed = _Shape(stream, [], [], [], [])
         for name_level, name, runs in shape["groups"]:
             key = (*base, name_level, name)
             group = self._groups.get(key)

@@ -31,6 +31,45 @@ def test_false_alarms_under_the_null_are_at_most_the_stated_level_watched_after_
         assert rate <= LEVEL / 2, rate
 
 
+def pooled_looks(
+    rng: np.random.Generator, mean: float, shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Looks of 1-10 frames of 10-40 units: a scene's difficulty is shared by its frames (its
+    coverage p drawn around ``mean``), each frame adds its own (p of a frame drawn around the
+    scene's). Per look: the first frame's share covered, and the share over all its frames."""
+    scene = rng.beta(mean * 20, (1 - mean) * 20, size=shape)
+    frames = rng.integers(1, 11, size=shape)
+    units = rng.integers(10, 41, size=shape)
+    first = rng.binomial(units, rng.beta(scene * 30, (1 - scene) * 30)) / units
+    pooled = np.zeros(shape)
+    for count in range(1, 11):
+        p = rng.beta(scene * 30, (1 - scene) * 30)
+        pooled += np.where(frames >= count, rng.binomial(units, p) / units, 0.0)
+    return first, pooled / frames
+
+
+def test_votes_pooled_over_a_looks_frames_keep_the_false_alarm_rate() -> None:
+    """Each frame's units are covered with the floor's probability (the null): the share over all
+    of a look's frames has the floor as its mean, whatever the frames share, so the e-process
+    keeps its level (docs/feedback.md: why pooling a look's frames is sound)."""
+    rng = np.random.default_rng(6)
+    _, pooled = pooled_looks(rng, 0.9, (RUNS, VOTES))
+    assert alarms(pooled, 0.9).mean() <= LEVEL / 2
+
+
+def test_pooled_votes_prove_a_shortfall_in_fewer_looks_than_a_looks_first_frame() -> None:
+    rng = np.random.default_rng(7)
+    first, pooled = pooled_looks(rng, 0.84, (40, VOTES))
+    looks = {}
+    for name, votes in (("first", first), ("pooled", pooled)):
+        found = []
+        for run in votes:
+            alarm = BettingAlarm(LEVEL)
+            found.append(next((i for i, vote in enumerate(run, 1) if alarm.observe(float(vote), 0.9)), VOTES))
+        looks[name] = np.median(found)
+    assert looks["pooled"] < 0.9 * looks["first"], looks  # 40.5 against 51 looks
+
+
 def test_the_alarm_fires_when_coverage_is_below_the_floor() -> None:
     rng = np.random.default_rng(2)
     votes = rng.beta(0.86 * 40, 0.14 * 40, size=(100, VOTES))  # looks' shares, mean 0.86 < 0.9
