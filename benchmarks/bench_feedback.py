@@ -21,8 +21,9 @@ Replay (epsilon 0.1, keypoint coverage, the bundled calibration, version 1), as 
 - live coverage: one vote per look (service.monitoring.looks.LookTracker), the share covered of
   the units of all its labelled frames, cast when the first label of the next look arrives (the
   stream's last look stays open, as in service.feedback.live_coverage); the alarm
-  (service.feedback.confidence_sequence.BettingAlarm) when coverage is proven below the version's
-  floor (CKS_FEEDBACK_ALARM_LEVEL 0.01: Beta band at 0.005, e-process at 0.005);
+  (service.feedback.confidence_sequence.CoverageAlarm, CKS_FEEDBACK_ALARM_LEVEL 0.01) when coverage
+  is proven below what the calibration gives (its ladder of floors: quantiles 0.002, 0.01, 0.05 of
+  each threshold's coverage law); floors printed: each threshold's 0.005 quantile;
 - adaptive sets: ACI with gamma ``--gamma`` on the labels in the order they arrive, the label lag
   L counted as the service counts it (service.feedback.adaptive).
 False alarms: the in-distribution sequences in ``--orders`` random orders, the alarm restarted after
@@ -75,7 +76,7 @@ from service.calibration.bundle import BUNDLE_FILENAME, load_bundle  # noqa: E40
 from service.conformal import CovScore, heatmap_statistics  # noqa: E402
 from service.detector.crop import apply_affines  # noqa: E402
 from service.feedback.adaptive import AdaptiveView, aci_step, long_run_bound  # noqa: E402
-from service.feedback.confidence_sequence import BettingAlarm, promised_floor  # noqa: E402
+from service.feedback.confidence_sequence import CoverageAlarm, promised_floor, rung_floors  # noqa: E402
 from service.infra.settings import Settings  # noqa: E402
 from service.monitoring.looks import Frame, LookTracker  # noqa: E402
 from service.serving.app import create_app  # noqa: E402
@@ -131,6 +132,7 @@ class Thresholds:
         self._cache: dict[float, np.ndarray] = {}
         guarantees = state.registry.thresholds(self._version, "cov", "keypoint", EPSILON, None).guarantees
         self.floors = np.array([promised_floor(g.n, g.t, g.epsilon, None, LEVEL / 2) for g in guarantees])
+        self.rungs = np.array([rung_floors(g.n, g.t, g.epsilon, None, LEVEL) for g in guarantees])
 
     def at(self, level: float) -> np.ndarray:
         if level not in self._cache:
@@ -158,9 +160,9 @@ def replay(stream: list[LabelledFrame], thresholds: Thresholds, delay: int, gamm
     static_thr = thresholds.at(EPSILON)
     tracker, looks = LookTracker(), []
     alpha, levels, served_at, lag = EPSILON, [EPSILON], [], 0
-    alarm, alarms = BettingAlarm(LEVEL), []
+    alarm, alarms = CoverageAlarm(LEVEL), []
     look_misses = look_units = 0  # the open look's labelled units (its vote waits for the next look)
-    look_floors = 0.0
+    look_floors = np.zeros(thresholds.rungs.shape[1])  # their floors' sums, per rung of the alarm
     static, adaptive, served = [], [], []
     for position in range(1, len(stream) + delay + 1):
         if position <= len(stream):
@@ -186,13 +188,14 @@ def replay(stream: list[LabelledFrame], thresholds: Thresholds, delay: int, gamm
         if (
             arrived > 1 and looks[arrived - 2] != looks[arrived - 1] and look_units
         ):  # the last look is complete
-            if alarm.observe(1 - look_misses / look_units, look_floors / look_units):
+            if alarm.observe(1 - look_misses / look_units, (look_floors / look_units).tolist()):
                 alarms.append(position)
-                alarm = BettingAlarm(LEVEL)
-            look_misses = look_units = look_floors = 0
+                alarm = CoverageAlarm(LEVEL)
+            look_misses = look_units = 0
+            look_floors = np.zeros_like(look_floors)
         look_misses += int(missed_static.sum())
         look_units += missed_static.size
-        look_floors += float(thresholds.floors[stream[arrived - 1].channels].sum())
+        look_floors += thresholds.rungs[stream[arrived - 1].channels].sum(axis=0)
     return Replay(static, adaptive, alarms, levels, served_at, lag)
 
 
@@ -363,10 +366,12 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
         }
     prepared = time.perf_counter() - began
     gamma, delay = arguments.gamma, arguments.delay
+    rungs = ", ".join(f"{rung.min():.3f}-{rung.max():.3f}" for rung in thresholds.rungs.T)
     print(
         f"{len(quiet)} in-distribution sequences (seed {SEED_IN}), {count} sequences of each shift per run,"
         f" {frames} frames each; labels {delay} frames late; epsilon {EPSILON}, alarm level {LEVEL}"
-        f" (floors {thresholds.floors.min():.3f}-{thresholds.floors.max():.3f}); ACI gamma {gamma}"
+        f" (floors {thresholds.floors.min():.3f}-{thresholds.floors.max():.3f}; the alarm's rungs"
+        f" {rungs}); ACI gamma {gamma}"
     )
     rng = np.random.default_rng(0)
     alarms = replayed = 0

@@ -47,7 +47,13 @@ from typing import Any
 import numpy as np
 
 from calibration_store import LabelVerdicts, StoreError
-from service.feedback.confidence_sequence import BettingAlarm, coverage_bounds, promised_floor
+from service.feedback.confidence_sequence import (
+    CoverageAlarm,
+    alarm_rungs,
+    coverage_bounds,
+    promised_floor,
+    rung_floors,
+)
 from service.feedback.retention import LOOK_STREAMS
 from service.feedback.verdicts import verdicts
 
@@ -66,7 +72,7 @@ OPEN_LOOKS = LOOK_STREAMS
 @dataclass(eq=False)  # kept by identity: an open look's tallies are keyed by their group
 class _Votes:
     promised: float
-    alarm: BettingAlarm
+    alarm: CoverageAlarm
     floor: float = 1.0
     labelled: int = 0
     covered: int = 0
@@ -101,14 +107,15 @@ class GroupCoverage:
 @dataclass
 class _Shape:
     """A verdict shape (service.feedback.verdicts), parsed: its groups' votes, and per group its
-    units, their least floor and their mean floor; ``pending``: the covered counts of the labels
+    units, their least floor and their mean floor on each of the alarm's rungs; ``pending``: the
+    covered counts of the labels
     folded since their counts were last added to the groups."""
 
     stream: str  # its stream group's name ("": none), whose next look completes a look of it
     groups: list[_Votes]
     units: list[int]
     least: list[float]
-    mean: list[float]
+    mean: list[np.ndarray]
     pending: list[list[int]] = field(default_factory=list)
 
 
@@ -117,22 +124,22 @@ class _OpenLook:
     """A look whose vote is not cast yet: per group, its covered units, units and their floors' sum."""
 
     stream: str
-    tallies: dict[_Votes, list[float]] = field(default_factory=dict)
+    tallies: dict[_Votes, list] = field(default_factory=dict)
 
     def add(self, shape: _Shape, covered: list[int]) -> None:
-        for group, units, hits, floor in zip(shape.groups, shape.units, covered, shape.mean, strict=True):
-            tally = self.tallies.setdefault(group, [0.0, 0.0, 0.0])
+        for group, units, hits, floors in zip(shape.groups, shape.units, covered, shape.mean, strict=True):
+            tally = self.tallies.setdefault(group, [0, 0, 0.0])
             tally[0] += hits
             tally[1] += units
-            tally[2] += units * floor
+            tally[2] = tally[2] + units * floors
 
     def cast(self) -> None:
-        """One vote per group: the share covered of its units, against their mean floor."""
+        """One vote per group: the share covered of its units, against their mean floor (per rung)."""
         for group, (hits, units, floors) in self.tallies.items():
             vote = hits / units
             group.looks += 1
             group.total += vote
-            group.alarm.observe(vote, floors / units)
+            group.alarm.observe(vote, (floors / units).tolist())
             group.reported = None
 
 
@@ -179,18 +186,22 @@ class CoverageFold:
         base = (shape["version"], shape["guarantee"], *shape["query"])
         band = self.level / 2 if shape["guarantee"] == "exchangeable" else 0.0  # ACI: a long-run bound
         floors = [min(_floor(g, band) for g in guarantees) for guarantees in shape["floors"]]
+        ladders = [
+            np.min([_rungs(g, band, self.level) for g in guarantees], axis=0)
+            for guarantees in shape["floors"]
+        ]
         stream = next((name for name_level, name, _ in shape["groups"] if name_level == "stream"), "")
         parsed = _Shape(stream, [], [], [], [])
         for name_level, name, runs in shape["groups"]:
             key = (*base, name_level, name)
             group = self._groups.get(key)
             if group is None:
-                group = self._groups[key] = _Votes(1.0 - shape["query"][2], BettingAlarm(self.level))
-            members = tuple(floors[floor] for floor, count in runs for _ in range(count))
+                group = self._groups[key] = _Votes(1.0 - shape["query"][2], CoverageAlarm(self.level))
+            members = [floor for floor, count in runs for _ in range(count)]
             parsed.groups.append(group)
             parsed.units.append(len(members))
-            parsed.least.append(min(members))
-            parsed.mean.append(float(np.mean(members)))
+            parsed.least.append(min(floors[floor] for floor in members))
+            parsed.mean.append(np.mean([ladders[floor] for floor in members], axis=0))
         self._shapes[text] = parsed
         return parsed
 
@@ -228,6 +239,11 @@ class CoverageFold:
 
 def _floor(guarantee: list[Any], band: float) -> float:
     return 0.0 if band == 0.0 else promised_floor(*guarantee, band)
+
+
+def _rungs(guarantee: list[Any], band: float, level: float) -> tuple[float, ...]:
+    """The alarm's floor of one guarantee on each rung (0: nothing promised, an adaptive stream)."""
+    return rung_floors(*guarantee, level) if band else (0.0,) * len(alarm_rungs(level))
 
 
 def _report(key: tuple, votes: _Votes, level: float) -> GroupCoverage:
