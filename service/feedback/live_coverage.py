@@ -107,39 +107,56 @@ class GroupCoverage:
 @dataclass
 class _Shape:
     """A verdict shape (service.feedback.verdicts), parsed: its groups' votes, and per group its
-    units, their least floor and their mean floor on each of the alarm's rungs; ``pending``: the
-    covered counts of the labels
-    folded since their counts were last added to the groups."""
+    units, their least floor and the sum of their floors on each of the alarm's rungs;
+    ``pending``: the covered counts of the labels folded since their counts were last added to
+    the groups."""
 
     stream: str  # its stream group's name ("": none), whose next look completes a look of it
     groups: list[_Votes]
     units: list[int]
     least: list[float]
-    mean: list[np.ndarray]
+    floors: np.ndarray  # (groups, rungs): the sum of its units' floors on each rung of the alarm
     pending: list[list[int]] = field(default_factory=list)
 
 
 @dataclass
 class _OpenLook:
-    """A look whose vote is not cast yet: per group, its covered units, units and their floors' sum."""
+    """A look whose vote is not cast yet: per shape of its labels, the covered counts summed (a
+    label costs one addition; the groups are counted once, when the look votes)."""
 
     stream: str
-    tallies: dict[_Votes, list] = field(default_factory=dict)
+    labels: dict[int, list] = field(default_factory=dict)  # id(shape): [shape, covered, labels]
 
     def add(self, shape: _Shape, covered: list[int]) -> None:
-        for group, units, hits, floors in zip(shape.groups, shape.units, covered, shape.mean, strict=True):
-            tally = self.tallies.setdefault(group, [0, 0, 0.0])
-            tally[0] += hits
-            tally[1] += units
-            tally[2] = tally[2] + units * floors
+        entry = self.labels.get(id(shape))
+        if entry is None:
+            self.labels[id(shape)] = [shape, np.array(covered, dtype=np.int64), 1]
+        else:
+            entry[1] += covered
+            entry[2] += 1
 
     def cast(self) -> None:
         """One vote per group: the share covered of its units, against their mean floor (per rung)."""
-        for group, (hits, units, floors) in self.tallies.items():
-            vote = hits / units
+        entries = list(self.labels.values())
+        groups = [group for shape, _, _ in entries for group in shape.groups]
+        counts = np.concatenate(  # per group of each shape: covered, units, the floors' sum per rung
+            [
+                np.column_stack([covered, labels * np.asarray(shape.units), labels * shape.floors])
+                for shape, covered, labels in entries
+            ]
+        )
+        if len(entries) > 1:  # labels of several shapes: a group they share is one row
+            rows: dict[_Votes, int] = {}
+            index = [rows.setdefault(group, len(rows)) for group in groups]
+            groups, merged = list(rows), np.zeros((len(rows), counts.shape[1]))
+            np.add.at(merged, index, counts)
+            counts = merged
+        votes = (counts[:, 0] / counts[:, 1]).tolist()
+        floors = (counts[:, 2:] / counts[:, 1:2]).tolist()
+        for group, vote, floor in zip(groups, votes, floors, strict=True):
             group.looks += 1
             group.total += vote
-            group.alarm.observe(vote, (floors / units).tolist())
+            group.alarm.observe(vote, floor)
             group.reported = None
 
 
@@ -191,7 +208,8 @@ class CoverageFold:
             for guarantees in shape["floors"]
         ]
         stream = next((name for name_level, name, _ in shape["groups"] if name_level == "stream"), "")
-        parsed = _Shape(stream, [], [], [], [])
+        parsed = _Shape(stream, [], [], [], np.zeros(0))
+        sums = []
         for name_level, name, runs in shape["groups"]:
             key = (*base, name_level, name)
             group = self._groups.get(key)
@@ -201,7 +219,8 @@ class CoverageFold:
             parsed.groups.append(group)
             parsed.units.append(len(members))
             parsed.least.append(min(floors[floor] for floor in members))
-            parsed.mean.append(np.mean([ladders[floor] for floor in members], axis=0))
+            sums.append(np.sum([ladders[floor] for floor in members], axis=0))
+        parsed.floors = np.array(sums).reshape(len(sums), len(alarm_rungs(self.level)))
         self._shapes[text] = parsed
         return parsed
 

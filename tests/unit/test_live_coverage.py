@@ -11,9 +11,9 @@ from service.feedback.live_coverage import CoverageFold, GroupCoverage
 UNITS = 4
 
 
-def label(stream: str, look: str, covered: int) -> LabelVerdicts:
-    """A frame's verdicts: UNITS keypoints of one calibration guarantee, ``covered`` of them."""
-    runs = [[0, UNITS]]
+def label(stream: str, look: str, covered: int, units: int = UNITS) -> LabelVerdicts:
+    """A frame's verdicts: ``units`` keypoints of one calibration guarantee, ``covered`` of them."""
+    runs = [[0, units]]
     shape = {
         "version": 1,
         "guarantee": "exchangeable",
@@ -57,3 +57,12 @@ def test_interleaved_streams_complete_only_their_own_looks() -> None:
     cam_a = group(fold, "stream", "cam-a")
     assert (cam_a.looks, cam_a.look_mean) == (1, 0.75)
     assert group(fold, "version", "all").looks == 2
+
+
+def test_a_looks_frames_of_other_shapes_pool_into_the_groups_they_share() -> None:
+    fold = CoverageFold(0.05, 100)
+    fold.add(label("cam-a", "a1", 3))  # 3 of 4
+    fold.add(label("cam-a", "a1", 2, units=2))  # another shape (2 keypoints labelled): 2 of 2
+    fold.add(label("cam-a", "a2", 0))
+    voted = group(fold, "version", "all")
+    assert (voted.looks, voted.look_mean, voted.labelled) == (1, 5 / 6, 10)
