@@ -9,9 +9,10 @@ was fixed when the answer was served, service.feedback.retention): the share cov
 group's units in all the look's labelled frames, cast when the look is complete, that is when a
 label of the next look of its stream is read (or when more than ``OPEN_LOOKS`` looks are
 open: the oldest is cast). A frame of a look already cast is counted raw, not voted again. Each
-group's confidence sequence of the votes' mean and its alarm (a betting e-process, once coverage
-is proven below the version's promise) are service.feedback.confidence_sequence's
-(docs/feedback.md derives why pooling a look's frames keeps the alarm's false-alarm rate).
+group's confidence sequence of the votes' mean and its alarm (a ladder of betting e-processes,
+once coverage is proven below what the calibration gives) are
+service.feedback.confidence_sequence's (docs/feedback.md derives why pooling a look's frames
+keeps the alarm's false-alarm rate).
 
 ``LiveCoverageReader`` keeps one fold per process and adds only the labels that are new since
 its last read (``labelled_since`` lists ids, a cheap indexed read; only the new labels' verdicts
@@ -162,10 +163,10 @@ class _OpenLook:
 
 class CoverageFold:
     """Every group's live coverage, label by label; ``level`` is the false-alarm probability of
-    each group's alarm (half to the sequence, half to the band); the last ``looks_kept`` looks are
-    remembered (a label of a look forgotten since opens it again). A label joins its look's vote
-    as it is added, in label order, while the look is open; its raw counts are sums, added to
-    their groups a shape at a time when a report is made."""
+    each group's alarm (its ladder of rungs) and of its confidence sequence; the last
+    ``looks_kept`` looks are remembered (a label of a look forgotten since opens it again). A
+    label joins its look's vote as it is added, in label order, while the look is open; its raw
+    counts are sums, added to their groups a shape at a time when a report is made."""
 
     def __init__(self, level: float, looks_kept: int) -> None:
         self.level, self._looks_kept = level, looks_kept
@@ -189,7 +190,7 @@ class CoverageFold:
             self._open[look] = _OpenLook(shape.stream)
             self._open_by_stream[shape.stream] = look
             if len(self._open) > OPEN_LOOKS:  # a stream that went quiet: its look is complete
-                oldest, open_look = self._open.popitem(last=False)
+                _, open_look = self._open.popitem(last=False)
                 del self._open_by_stream[open_look.stream]
                 open_look.cast()
         if look in self._open:
