@@ -78,7 +78,12 @@ from service.calibration.bundle import BUNDLE_FILENAME, load_bundle  # noqa: E40
 from service.conformal import CovScore, heatmap_statistics  # noqa: E402
 from service.detector.crop import apply_affines  # noqa: E402
 from service.feedback.adaptive import AdaptiveView, aci_step, long_run_bound  # noqa: E402
-from service.feedback.confidence_sequence import CoverageAlarm, promised_floor, rung_floors  # noqa: E402
+from service.feedback.confidence_sequence import (  # noqa: E402
+    BettingEProcess,
+    CoverageAlarm,
+    promised_floor,
+    rung_floors,
+)
 from service.infra.settings import Settings  # noqa: E402
 from service.monitoring.looks import Frame, LookTracker  # noqa: E402
 from service.serving.app import create_app  # noqa: E402
@@ -157,6 +162,7 @@ class Replay:
     static: list[tuple[int, int]]  # (misses, labelled) per frame
     adaptive: list[tuple[int, int]]
     alarms: list[int]  # frames (1-based; past the end: after it) at which the alarm fired
+    former: list[int]  # the same for main's former alarm (a look's first frame, one e-process)
     levels: list[float]  # alpha before each label learned, and after the last
     served_at: list[int]  # per frame: the labels learned when it was served
     lag: int  # L: the largest label lag (updates between a label's serving and its own)
@@ -169,6 +175,7 @@ def replay(stream: list[LabelledFrame], thresholds: Thresholds, delay: int, gamm
     tracker, looks = LookTracker(), []
     alpha, levels, served_at, lag = EPSILON, [EPSILON], [], 0
     alarm, alarms = CoverageAlarm(LEVEL), []
+    former, former_alarms = BettingEProcess(LEVEL / 2), []
     look_misses = look_units = 0  # the open look's labelled units (its vote waits for the next look)
     look_floors = np.zeros(thresholds.rungs.shape[1])  # their floors' sums, per rung of the alarm
     static, adaptive, served = [], [], []
@@ -193,9 +200,13 @@ def replay(stream: list[LabelledFrame], thresholds: Thresholds, delay: int, gamm
         for missed in missed_adaptive:
             alpha = aci_step(alpha, EPSILON, gamma, bool(missed))
             levels.append(alpha)
-        if (
-            arrived > 1 and looks[arrived - 2] != looks[arrived - 1] and look_units
-        ):  # the last look is complete
+        opens = arrived == 1 or looks[arrived - 2] != looks[arrived - 1]
+        if missed_static.size and opens:  # the former alarm: the look's first frame votes
+            floor = float(thresholds.floors[stream[arrived - 1].channels].mean())
+            if former.observe(float(1 - missed_static.mean()), floor):
+                former_alarms.append(position)
+                former = BettingEProcess(LEVEL / 2)
+        if arrived > 1 and opens and look_units:  # the last look is complete
             if alarm.observe(1 - look_misses / look_units, (look_floors / look_units).tolist()):
                 alarms.append(position)
                 alarm = CoverageAlarm(LEVEL)
@@ -204,7 +215,7 @@ def replay(stream: list[LabelledFrame], thresholds: Thresholds, delay: int, gamm
         look_misses += int(missed_static.sum())
         look_units += missed_static.size
         look_floors += thresholds.rungs[stream[arrived - 1].channels].sum(axis=0)
-    return Replay(static, adaptive, alarms, levels, served_at, lag)
+    return Replay(static, adaptive, alarms, former_alarms, levels, served_at, lag)
 
 
 def held_to_bound(run: Replay, start: int, gamma: float) -> tuple[float, float, float]:
@@ -283,6 +294,7 @@ def shifted_run(
     recorded: list[list[RecordedFrame]],
     context: dict,
     warm: np.ndarray | None = None,
+    drift: bool = True,
 ) -> tuple[Replay, int | None]:
     """One run: WARM_UP in-distribution frames (of the scenes in ``warm`` order, or a random
     one), then the shift's scenes in a random order; the labels' replay and the drift monitor's
@@ -294,19 +306,25 @@ def shifted_run(
     warm_recorded = [frame for i in warm for frame in quiet_recorded[i]][: context["warm_up"]]
     stream = warm_up + [frame for i in order for frame in labelled[i]]
     run = replay(stream, context["thresholds"], context["delay"], context["gamma"])
+    if not drift:
+        return run, None
     frames = warm_recorded + [frame for i in order for frame in recorded[i]]
     return run, drift_delay(frames, len(warm_up), context["table"], context["manifest"])
 
 
-def moved_labels_run(seed: int, moved: list[list[LabelledFrame]], context: dict) -> tuple[Replay, int | None]:
-    """A run of the labels-moved shift: in-distribution scenes (drawn by ``seed``), the first
-    WARM_UP frames' with their true labels, the next --shift-sequences scenes' with moved ones;
-    no scene twice (the look tracker would take a scene seen again for the same look)."""
+def moved_labels_run(
+    seed: int, moved: list[list[LabelledFrame]], context: dict, draw: int = 0
+) -> tuple[Replay, int | None]:
+    """A run of the labels-moved shift: in-distribution scenes (drawn by ``seed``, and ``draw``
+    for the paired orders), the first WARM_UP frames' with their true labels, the next
+    --shift-sequences scenes' with moved ones; no scene twice (the look tracker would take a scene
+    seen again for the same look)."""
     quiet, recorded = context["quiet"], context["quiet_recorded"]
-    order = np.random.default_rng(seed).permutation(len(quiet))
+    order = np.random.default_rng([seed, draw] if draw else seed).permutation(len(quiet))
     first = int(np.searchsorted(np.cumsum([len(quiet[i]) for i in order]), context["warm_up"])) + 1
     picked = order[first : first + context["count"]]
-    return shifted_run([moved[i] for i in picked], [recorded[i] for i in picked], context, warm=order)
+    scenes = [moved[i] for i in picked], [recorded[i] for i in picked]
+    return shifted_run(*scenes, context, warm=order, drift=not draw)
 
 
 def report_shift(shift: str, runs: dict[int, tuple[Replay, int | None]], warm_up: int, gamma: float) -> dict:
@@ -317,23 +335,26 @@ def report_shift(shift: str, runs: dict[int, tuple[Replay, int | None]], warm_up
         f" frames, and ACI's bound on |miscoverage - {EPSILON}| there (alpha_1 = the level at the shift,"
         " L = the largest label lag)"
     )
-    delays, drift, summary = [], [], {}
+    delays, former, drift, summary = [], [], [], {}
     for seed, (run, drift_found) in runs.items():
-        first = next((frame - warm_up for frame in run.alarms if frame > warm_up), None)
+        first = first_alarm(run.alarms, warm_up)
         delays.append(first)
+        former.append(first_alarm(run.former, warm_up))
         drift.append(drift_found)
         adaptive, static, bound = held_to_bound(run, warm_up, gamma)
         whole_adaptive, _, whole_bound = held_to_bound(run, 0, gamma)
         summary[seed] = (first, adaptive, static, bound, whole_adaptive, whole_bound, drift_found)
         print(
-            f"  seed {seed}: coverage alarm {_after(first)}, drift alarm {_after(drift_found)};"
+            f"  seed {seed}: coverage alarm {_after(first)} (the former alarm: {_after(former[-1])}),"
+            f" drift alarm {_after(drift_found)};"
             f" miscoverage adaptive {adaptive:.3f} ({within(adaptive, bound)}),"
             f" static {static:.3f} ({within(static, bound)}) the bound"
             f" {bound:.3f} (L {run.lag}); whole stream adaptive {whole_adaptive:.3f}, bound {whole_bound:.3f}"
         )
     print(
         f"frames from the shift to the alarm, min/median/max over the runs (raised in): coverage"
-        f" {delay_spread(delays, span)}, drift {delay_spread(drift, span)}"
+        f" {delay_spread(delays, span)} (former {delay_spread(former, span)}),"
+        f" drift {delay_spread(drift, span)}"
     )
     print(f"coverage per window of {WINDOW} frames after the shift (mean over runs): static / adaptive")
     for begin in range(warm_up, warm_up + span, WINDOW):
@@ -344,6 +365,31 @@ def report_shift(shift: str, runs: dict[int, tuple[Replay, int | None]], warm_up
             f"  frames {begin - warm_up:5d}-{begin - warm_up + WINDOW - 1:5d}: {static:.3f} / {adaptive:.3f}"
         )
     return summary
+
+
+def paired_orders(shift: str, runs: list[Replay], warm_up: int) -> None:
+    """The alarm and the former one on the same streams, each run's scenes in more orders."""
+    span = min(len(run.static) for run in runs) - warm_up
+
+    def frames(alarms: str) -> np.ndarray:  # not raised: past the end
+        return np.array([first_alarm(getattr(run, alarms), warm_up) or span + 1 for run in runs])
+
+    now, was = frames("alarms"), frames("former")
+    print(
+        f"paired, {len(runs)} streams of {shift} (more orders of each run's scenes), frames to the alarm:"
+        f" raised within {span} now {(now <= span).sum()}, former {(was <= span).sum()}; median now"
+        f" {np.median(now):.0f}, former {np.median(was):.0f}; 10-90 % now {np.quantile(now, 0.1):.0f}-"
+        f"{np.quantile(now, 0.9):.0f}, former {np.quantile(was, 0.1):.0f}-{np.quantile(was, 0.9):.0f};"
+        f" max now {_most(now, span)}, former {_most(was, span)}"
+    )
+
+
+def first_alarm(alarms: list[int], warm_up: int) -> int | None:
+    return next((frame - warm_up for frame in alarms if frame > warm_up), None)
+
+
+def _most(frames: np.ndarray, span: int) -> str:
+    return f">{span}" if frames.max() > span else str(frames.max())
 
 
 def _after(frames: int | None) -> str:
@@ -364,6 +410,12 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
     parser.add_argument("--seeds", type=int, nargs="+", help="replay these runs' seeds instead of fresh ones")
     parser.add_argument("--delay", type=int, default=30, help="frames between a frame and its labels")
     parser.add_argument("--gamma", type=float, default=0.005, help="ACI step size")
+    parser.add_argument(
+        "--paired-orders",
+        type=int,
+        default=0,
+        help="per shift and run, this many more orders of its scenes, with the alarm and the former one",
+    )
     parser.add_argument("--requests", type=int, default=300, help="pairs of predict requests (cost)")
     parser.add_argument("--cache", type=Path, default=CACHE)
     arguments = parser.parse_args(argv)
@@ -424,14 +476,20 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
         "manifest": manifest,
         "count": count,
     }
-    shifts = {}
+    shifts, orders = {}, range(arguments.paired_orders)
     for shift, by_seed in shifted.items():
         runs = {seed: shifted_run(*pair, context) for seed, pair in by_seed.items()}
         shifts[shift] = report_shift(shift, runs, warm_up, gamma)
+        if orders:
+            more = [shifted_run(*pair, context, drift=False)[0] for pair in by_seed.values() for _ in orders]
+            paired_orders(shift, more, warm_up)
     runs = {seed: moved_labels_run(seed, moved, context) for seed in seeds}
     shifts[LABELS_MOVED] = report_shift(
         f"{LABELS_MOVED} ({LABELS_MOVED_PX:g} px right)", runs, warm_up, gamma
     )
+    if orders:
+        more = [moved_labels_run(seed, moved, context, draw)[0] for seed in seeds for draw in orders]
+        paired_orders(LABELS_MOVED, more, warm_up)
     without, with_retain, paired = retention_cost(arguments.requests)
     print(
         f"\nretention cost, POST /v1/predict over {arguments.requests} pairs: p50 {without:.2f} ms without,"
