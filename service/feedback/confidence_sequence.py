@@ -12,16 +12,21 @@ nonnegative supermartingale, and by Ville's inequality P(sup_n M_n(p) >= 1/a) <=
 long and however often it is watched. The upper bound U_n is the largest p not rejected at level
 a; the lower bound mirrors it (alternatives above p). Only the sum and count of the votes enter.
 
-The alarm of a calibration version (``BettingAlarm``): coverage proven below what it promises,
-``promised_floor``: the quantile at ``band_level`` of its conditional coverage Beta(n + 1 - t, t)
-(with a PAC delta: 1 - epsilon, whose failure probability delta the version states), by a betting
-e-process at level a. False alarms: at most ``a + band_level`` (+ delta with PAC) over the whole
-stream, when votes are exchangeable with the calibration.
+The alarm of a calibration version (``CoverageAlarm``): coverage proven below what its calibration
+gives, by a ladder of betting e-processes. A threshold's conditional coverage C is random through
+its calibration draw, Beta(n + 1 - t, t) (``promised_floor``: its quantile at a level; with a PAC
+delta, 1 - epsilon). Rung i tests "each vote's mean is at least the u_i quantile phi_i" with an
+e-process that alarms at 1 / a_i; the alarm is raised once every rung has. For C in
+[phi_i, phi_(i+1)) rung i is a supermartingale, so P(alarm) <= u_0 + sum_i (u_(i+1) - u_i) a_i
+(u_m = 1), which ``alarm_rungs`` holds to the level: an unlucky calibration (C low) is paid for
+by a low rung that needs little evidence, a typical one by a high rung, closer to the votes,
+that needs much (docs/feedback.md derives it and measures what it buys).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -35,6 +40,8 @@ _GAPS = np.geomspace(1e-3, 0.999, 48)
 _CANDIDATES = np.linspace(0.0, 1.0, 2001)[1:-1]
 #: the alarm's bets forget the votes they are sized from: half their weight is on the last 69
 _BET_MEMORY = 0.99
+#: the alarm's rungs: quantile levels of a threshold's coverage law, as multiples of the alarm level
+RUNGS = (0.2, 1.0, 5.0)
 
 
 @dataclass(frozen=True)
@@ -98,8 +105,41 @@ def promised_floor(n: int, t: int, epsilon: float, delta: float | None, band_lev
     return low
 
 
-class BettingAlarm:
-    """The alarm: a betting e-process (Waudby-Smith & Ramdas 2023) against "each vote's mean is at
+def alarm_rungs(level: float) -> tuple[tuple[float, float], ...]:
+    """Per rung (u_i, a_i): its floor is the u_i quantile of the calibration's coverage law, its
+    e-process alarms at 1 / a_i. The rungs below 0.5 of ``RUNGS`` (the lowest always), each of the m
+    paying an equal share of what u_0 leaves: u_0 + sum_i (u_(i+1) - u_i) a_i <= level, u_m = 1."""
+    quantiles = [
+        level * multiple for multiple in RUNGS if level * multiple < 0.5
+    ]  # level < 0.5: one at least
+    share = (level - quantiles[0]) / len(quantiles)
+    uppers = [*quantiles[1:], 1.0]
+    return tuple((u, min(1.0, share / (upper - u))) for u, upper in zip(quantiles, uppers, strict=True))
+
+
+def rung_floors(n: int, t: int, epsilon: float, delta: float | None, level: float) -> tuple[float, ...]:
+    """A threshold's floor on each rung of the alarm at ``level`` (with a PAC delta: 1 - epsilon on each)."""
+    return tuple(promised_floor(n, t, epsilon, delta, u) for u, _ in alarm_rungs(level))
+
+
+class CoverageAlarm:
+    """The alarm of a group: raised once every rung's e-process has been (module doc), and then
+    for good. False alarms at most the level (with a PAC delta: delta + the least a_i)."""
+
+    def __init__(self, level: float) -> None:
+        self._rungs = [BettingEProcess(a) for _, a in alarm_rungs(level)]
+        self.raised = False
+
+    def observe(self, vote: float, floors: Sequence[float]) -> bool:
+        """Add one vote in [0, 1] and its floor on each rung; whether the alarm is raised."""
+        for rung, floor in zip(self._rungs, floors, strict=True):
+            rung.observe(vote, floor)
+        self.raised = self.raised or all(rung.raised for rung in self._rungs)
+        return self.raised
+
+
+class BettingEProcess:
+    """One rung: a betting e-process (Waudby-Smith & Ramdas 2023) against "each vote's mean is at
     least its floor", K_t = prod (1 + lambda_t (f_t - x_t)), with the predictable bet
     lambda_t = (f_t - m) / (v + (f_t - m)^2) clipped to [0, 1 / (2 (1 - f_t))] from the mean m and
     variance v of the votes before t, discounted by ``_BET_MEMORY`` per vote: after a long run of
@@ -107,18 +147,18 @@ class BettingAlarm:
     need as many bad looks as there were good ones), while good looks keep it at 0 and the
     wealth where it was. Any bet fixed before x_t keeps the guarantee: each factor has mean at
     most 1 under the null (f_t is known before x_t: it is the floor of the keypoints the vote is
-    about), so P(ever K_t >= 2 / level) <= level / 2 (Ville). Its bets follow the votes' own
+    about), so P(ever K_t >= 1 / alpha) <= alpha (Ville). Its bets follow the votes' own
     variance: a look's share of covered keypoints varies far less than one keypoint's 0/1, so it
     proves a shortfall in fewer looks than the Bernoulli mixture behind the bounds. Once raised,
-    the alarm stays raised."""
+    it stays raised."""
 
-    def __init__(self, level: float) -> None:
-        self._limit = math.log(2.0 / level)
+    def __init__(self, alpha: float) -> None:
+        self._limit = math.log(1.0 / alpha)
         self.log_wealth, self.count, self.raised = 0.0, 0, False
         self._sum, self._squares, self._weight = 0.0, 0.25, 0.0  # discounted sums; a prior variance 1/4
 
     def observe(self, vote: float, floor: float) -> bool:
-        """Add one vote in [0, 1] and the coverage it promised; whether the alarm is raised."""
+        """Add one vote in [0, 1] and the coverage it promised; whether the e-process has crossed."""
         if floor <= 0.0 or floor >= 1.0:  # nothing promised, or nothing below 1 to prove
             return self.raised
         prior = _BET_MEMORY**self.count  # a prior vote at the floor, forgotten as the others

@@ -5,18 +5,23 @@ verdicts (its judged units, already grouped: service.feedback.verdicts, stored w
 and is counted per group (the version's answers as a whole, per object, per keypoint,
 per camera stream, per caller group, per Mondrian stratum): the raw coverage of its labelled
 keypoints, and one vote per look (frames of one scene are one observation, not many: the look
-was fixed when the answer was served, service.feedback.retention), cast by the look's first
-labelled frame (its share covered of the group's units). Each group's confidence sequence of the
-votes' mean and its alarm (a betting e-process, once coverage is proven below the version's
-promise) are service.feedback.confidence_sequence's.
+was fixed when the answer was served, service.feedback.retention): the share covered of the
+group's units in all the look's labelled frames, cast when the look is complete, that is when a
+label of the next look of its stream is read (or when more than ``OPEN_LOOKS`` looks are
+open: the oldest is cast). A frame of a look already cast is counted raw, not voted again. Each
+group's confidence sequence of the votes' mean and its alarm (a ladder of betting e-processes,
+once coverage is proven below what the calibration gives) are
+service.feedback.confidence_sequence's (docs/feedback.md derives why pooling a look's frames
+keeps the alarm's false-alarm rate).
 
 ``LiveCoverageReader`` keeps one fold per process and adds only the labels that are new since
 its last read (``labelled_since`` lists ids, a cheap indexed read; only the new labels' verdicts
 are fetched and decoded, never the records, except for rows labelled before verdicts were stored,
 which are judged here): a read costs what arrived since the previous one, and a process's first
 read decodes the compact verdicts of the CKS_FEEDBACK_MAX_RETAINED rows the store may keep
-(docs/feedback.md measures both). Votes are cast in the order the labels
-are read (label order), each label once; a raised alarm stays raised though its rows are evicted.
+(docs/feedback.md measures both). Looks are completed and voted in the order the labels are
+read (label order), each label once; the look still open in each stream has not voted yet (it
+is in the raw counts, not in ``looks``). A raised alarm stays raised though its rows are evicted.
 A replica started later folds the labels the store still keeps, so replicas agree on the labels
 kept, not on evicted history.
 
@@ -43,7 +48,14 @@ from typing import Any
 import numpy as np
 
 from calibration_store import LabelVerdicts, StoreError
-from service.feedback.confidence_sequence import BettingAlarm, coverage_bounds, promised_floor
+from service.feedback.confidence_sequence import (
+    CoverageAlarm,
+    alarm_rungs,
+    coverage_bounds,
+    promised_floor,
+    rung_floors,
+)
+from service.feedback.retention import LOOK_STREAMS
 from service.feedback.verdicts import verdicts
 
 log = logging.getLogger(__name__)
@@ -54,12 +66,14 @@ SETTLE = timedelta(seconds=60)
 PAGE = 2000
 #: verdict shapes kept parsed (the frames of a stream share one; beyond it the fold starts afresh)
 SHAPES_KEPT = 4096
+#: looks whose votes wait for the next look of their stream (one per stream the retention follows)
+OPEN_LOOKS = LOOK_STREAMS
 
 
-@dataclass
+@dataclass(eq=False)  # kept by identity: an open look's tallies are keyed by their group
 class _Votes:
     promised: float
-    alarm: BettingAlarm
+    alarm: CoverageAlarm
     floor: float = 1.0
     labelled: int = 0
     covered: int = 0
@@ -94,41 +108,93 @@ class GroupCoverage:
 @dataclass
 class _Shape:
     """A verdict shape (service.feedback.verdicts), parsed: its groups' votes, and per group its
-    units, their least floor and their mean floor; ``pending``: the covered counts of the labels
-    folded since their counts were last added to the groups."""
+    units, their least floor and the sum of their floors on each of the alarm's rungs;
+    ``pending``: the covered counts of the labels folded since their counts were last added to
+    the groups."""
 
+    stream: str  # its stream group's name ("": none), whose next look completes a look of it
     groups: list[_Votes]
     units: list[int]
     least: list[float]
-    mean: list[float]
+    floors: np.ndarray  # (groups, rungs): the sum of its units' floors on each rung of the alarm
     pending: list[list[int]] = field(default_factory=list)
+
+
+@dataclass
+class _OpenLook:
+    """A look whose vote is not cast yet: per shape of its labels, the covered counts summed (a
+    label costs one addition; the groups are counted once, when the look votes)."""
+
+    stream: str
+    labels: dict[int, list] = field(default_factory=dict)  # id(shape): [shape, covered, labels]
+
+    def add(self, shape: _Shape, covered: list[int]) -> None:
+        entry = self.labels.get(id(shape))
+        if entry is None:
+            self.labels[id(shape)] = [shape, np.array(covered, dtype=np.int64), 1]
+        else:
+            entry[1] += covered
+            entry[2] += 1
+
+    def cast(self) -> None:
+        """One vote per group: the share covered of its units, against their mean floor (per rung)."""
+        entries = list(self.labels.values())
+        groups = [group for shape, _, _ in entries for group in shape.groups]
+        counts = np.concatenate(  # per group of each shape: covered, units, the floors' sum per rung
+            [
+                np.column_stack([covered, labels * np.asarray(shape.units), labels * shape.floors])
+                for shape, covered, labels in entries
+            ]
+        )
+        if len(entries) > 1:  # labels of several shapes: a group they share is one row
+            rows: dict[_Votes, int] = {}
+            index = [rows.setdefault(group, len(rows)) for group in groups]
+            groups, merged = list(rows), np.zeros((len(rows), counts.shape[1]))
+            np.add.at(merged, index, counts)
+            counts = merged
+        votes = (counts[:, 0] / counts[:, 1]).tolist()
+        floors = (counts[:, 2:] / counts[:, 1:2]).tolist()
+        for group, vote, floor in zip(groups, votes, floors, strict=True):
+            group.looks += 1
+            group.total += vote
+            group.alarm.observe(vote, floor)
+            group.reported = None
 
 
 class CoverageFold:
     """Every group's live coverage, label by label; ``level`` is the false-alarm probability of
-    each group's alarm (half to the sequence, half to the band); the last ``looks_kept`` looks are
-    remembered (a label of a look forgotten since votes again). A label's votes are cast as it is
-    added, in label order; its raw counts are sums, added to their groups a shape at a time when
-    a report is made."""
+    each group's alarm (its ladder of rungs) and of its confidence sequence; the last
+    ``looks_kept`` looks are remembered (a label of a look forgotten since opens it again). A
+    label joins its look's vote as it is added, in label order, while the look is open; its raw
+    counts are sums, added to their groups a shape at a time when a report is made."""
 
     def __init__(self, level: float, looks_kept: int) -> None:
         self.level, self._looks_kept = level, looks_kept
         self._groups: dict[tuple, _Votes] = {}
         self._shapes: dict[str, _Shape] = {}
         self._voted: OrderedDict[str, None] = OrderedDict()
+        self._open: OrderedDict[str, _OpenLook] = OrderedDict()
+        self._open_by_stream: dict[str, str] = {}
 
     def add(self, verdicts: LabelVerdicts) -> None:
-        """Count one labelled prediction's verdicts: raw counts always, a vote if it opens its look."""
+        """Count one labelled prediction's verdicts: raw counts always; into its look's vote while
+        the look is open (a new look completes the previous look of its stream: its vote is cast)."""
         shape = self._shapes.get(verdicts.shape) or self._parse(verdicts.shape)
         covered = verdicts.tally["covered"]
         shape.pending.append(covered)
-        if self._opens_look(verdicts.tally["look"]):
-            for group, units, hits, floor in zip(shape.groups, shape.units, covered, shape.mean, strict=True):
-                vote = hits / units
-                group.looks += 1
-                group.total += vote
-                group.alarm.observe(vote, floor)
-                group.reported = None
+        look = verdicts.tally["look"]
+        if look not in self._open and self._opens_look(look):
+            previous = self._open_by_stream.pop(shape.stream, None)
+            if previous is not None:
+                self._open.pop(previous).cast()
+            self._open[look] = _OpenLook(shape.stream)
+            self._open_by_stream[shape.stream] = look
+            if len(self._open) > OPEN_LOOKS:  # a stream that went quiet: its look is complete
+                _, open_look = self._open.popitem(last=False)
+                del self._open_by_stream[open_look.stream]
+                open_look.cast()
+        if look in self._open:
+            self._open[look].add(shape, covered)
 
     def _parse(self, text: str) -> _Shape:
         if len(self._shapes) >= SHAPES_KEPT:  # labels of many shapes (streams, strata): start afresh
@@ -138,17 +204,24 @@ class CoverageFold:
         base = (shape["version"], shape["guarantee"], *shape["query"])
         band = self.level / 2 if shape["guarantee"] == "exchangeable" else 0.0  # ACI: a long-run bound
         floors = [min(_floor(g, band) for g in guarantees) for guarantees in shape["floors"]]
-        parsed = _Shape([], [], [], [])
+        ladders = [
+            np.min([_rungs(g, band, self.level) for g in guarantees], axis=0)
+            for guarantees in shape["floors"]
+        ]
+        stream = next((name for name_level, name, _ in shape["groups"] if name_level == "stream"), "")
+        parsed = _Shape(stream, [], [], [], np.zeros(0))
+        sums = []
         for name_level, name, runs in shape["groups"]:
             key = (*base, name_level, name)
             group = self._groups.get(key)
             if group is None:
-                group = self._groups[key] = _Votes(1.0 - shape["query"][2], BettingAlarm(self.level))
-            members = tuple(floors[floor] for floor, count in runs for _ in range(count))
+                group = self._groups[key] = _Votes(1.0 - shape["query"][2], CoverageAlarm(self.level))
+            members = [floor for floor, count in runs for _ in range(count)]
             parsed.groups.append(group)
             parsed.units.append(len(members))
-            parsed.least.append(min(members))
-            parsed.mean.append(float(np.mean(members)))
+            parsed.least.append(min(floors[floor] for floor in members))
+            sums.append(np.sum([ladders[floor] for floor in members], axis=0))
+        parsed.floors = np.array(sums).reshape(len(sums), len(alarm_rungs(self.level)))
         self._shapes[text] = parsed
         return parsed
 
@@ -186,6 +259,11 @@ class CoverageFold:
 
 def _floor(guarantee: list[Any], band: float) -> float:
     return 0.0 if band == 0.0 else promised_floor(*guarantee, band)
+
+
+def _rungs(guarantee: list[Any], band: float, level: float) -> tuple[float, ...]:
+    """The alarm's floor of one guarantee on each rung (0: nothing promised, an adaptive stream)."""
+    return rung_floors(*guarantee, level) if band else (0.0,) * len(alarm_rungs(level))
 
 
 def _report(key: tuple, votes: _Votes, level: float) -> GroupCoverage:

@@ -524,7 +524,8 @@ class FeedbackSettings(_Group):
         gt=0,
         lt=0.5,
         description="live coverage: probability of a false coverage alarm per group, however long it is"
-        " watched (half to the confidence sequence, half to the calibration's Beta band)",
+        " watched (the alarm's ladder of floors over the calibration's Beta law, docs/feedback.md), and"
+        " of the confidence sequence missing the mean",
     )
     aci_gamma: float = Field(
         default=0.005,

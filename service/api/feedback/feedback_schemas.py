@@ -60,8 +60,11 @@ class GroupCoverageOut(BaseModel):
     delta: float | None
     labelled: int = Field(description="units labelled (keypoints, or instances with coverage object)")
     covered: int = Field(description="of them, inside the set served")
-    looks: int = Field(description="independent looks (frames of one scene are one look): the votes")
-    look_mean: float | None = Field(description="mean vote (a look's share of covered units)")
+    looks: int = Field(
+        description="independent looks that voted (frames of one scene are one look; a look votes once"
+        " complete: when a label of its stream's next look is read)"
+    )
+    look_mean: float | None = Field(description="mean vote (a look's share of covered units, all its frames)")
     lower: float = Field(description="anytime-valid lower confidence bound of the votes' mean")
     upper: float = Field(description="anytime-valid upper confidence bound")
     promised: float = Field(description="1 - epsilon")
@@ -69,7 +72,10 @@ class GroupCoverageOut(BaseModel):
         description="the least coverage the version promises: the alarm_level/2 quantile of its Beta"
         " law (1 - epsilon with a PAC delta)"
     )
-    alarm: bool = Field(description="coverage proven below floor")
+    alarm: bool = Field(
+        description="coverage proven below what the calibration gives: every rung of a ladder of floors"
+        " over its Beta law (around floor) crossed (docs/feedback.md)"
+    )
 
 
 class LiveCoverageOut(BaseModel):

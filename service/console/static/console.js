@@ -262,8 +262,8 @@ async function loadLiveCoverage() {
   const verdict = alarms ? el("span", { class: "alarm" }, `alarm raised in ${alarms} of ${groups.length} groups`) : `no alarm in ${groups.length} groups`;
   show("live-coverage", el("p", { class: "muted" },
     "Per calibration version and group: the labelled keypoints' coverage so far; an anytime-valid confidence sequence of the looks' mean ",
-    "(frames of one scene vote once; valid however often it is read); the least coverage the version promises; ",
-    `an alarm once coverage is proven below it (false-alarm probability ${state.live.alarm_level} per group). `, verdict, "."));
+    "(a scene's frames vote once, together; valid however often it is read); the least coverage the version promises; ",
+    `an alarm once coverage is proven below what the calibration gives (false-alarm probability ${state.live.alarm_level} per group). `, verdict, "."));
   const present = LIVE_LEVELS.filter((level) => groups.some((g) => g.level === level));
   const choices = [["summary", "totals and alarms"], ["all", "every group"], ...present.map((level) => [level, `per ${level}`])];
   const select = document.getElementById("live-level");
