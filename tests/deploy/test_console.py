@@ -19,6 +19,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from urllib.parse import urlsplit
 
+import httpx
 import pytest
 from playwright.sync_api import Browser, BrowserContext, ConsoleMessage
 
@@ -328,6 +329,8 @@ def test_a_server_without_drift_says_so(browser: Browser, tmp_path: Path) -> Non
         for width in (1280, 390):
             page.set_viewport_size({"width": width, "height": 900})
             check_and_save(page, f"console-{width}-no-audits.png", tmp_path)
+        # The metrics are the process's: a server without drift exports no cks_drift_* at all.
+        assert "cks_drift_" not in httpx.get(f"{live.url}/metrics").text
         watch.assert_offline(page)
         assert not watch.page_errors
         context.close()
