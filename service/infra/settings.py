@@ -524,8 +524,9 @@ class FeedbackSettings(_Group):
         gt=0,
         lt=0.5,
         description="live coverage: probability of a false coverage alarm per group, however long it is"
-        " watched (the alarm's ladder of floors over the calibration's Beta law, docs/feedback.md), and"
-        " of the confidence sequence missing the mean",
+        " watched (the alarm's ladder of floors over the calibration's Beta law, docs/feedback.md; exact"
+        " for a group of one threshold, at most K times it for a group of K thresholds whose coverages"
+        " do not move together), and of the confidence sequence missing the mean",
     )
     aci_gamma: float = Field(
         default=0.005,

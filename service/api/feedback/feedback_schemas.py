@@ -81,7 +81,8 @@ class GroupCoverageOut(BaseModel):
 class LiveCoverageOut(BaseModel):
     alarm_level: float = Field(
         description="CKS_FEEDBACK_ALARM_LEVEL: each group's probability of a false alarm, however long"
-        " and often watched (the bounds form a confidence sequence at this level)"
+        " and often watched (the bounds form a confidence sequence at this level); exact for a group of"
+        " one threshold, at most K times it for K thresholds whose coverages do not move together"
     )
     alarm: bool
     groups: list[GroupCoverageOut]
