@@ -43,16 +43,16 @@ from service.deploy_ray import (
     application,
     build_app,
 )
-from service.infra.settings import PACKAGE_ROOT, Settings
+from service.infra.settings import PACKAGE_ROOT, Settings, StorageSettings
 from tests.live.server import free_port, service_env
 from tests.predict_client import instances_of, predict_json
 from tests.samples import batch_zip, count_instances, load_samples, samples_by_image
-from tests.service_calls import ADMIN_TOKEN, wait_until
+from tests.service_calls import ADMIN_TOKEN, BUSY_MACHINE_MARGIN_S, wait_until
 
 SERVE_CONFIG = PACKAGE_ROOT / "deploy" / "ray" / "serve_config.yaml"
 REPLICAS = 2
 CLIENTS = 3  # clients predicting at once; each has at most one request in flight
-ACTIVATION_DEADLINE_S = 1.5  # the bound for every replica to serve a new activation
+POLL_S = StorageSettings.model_fields["poll_seconds"].default  # a replica looks for a new version
 IMAGES = 4  # images of the calibration batch
 SETTINGS = {  # one onnxruntime thread and small admission per replica: two replicas on two cores
     "admin_token": ADMIN_TOKEN,
@@ -285,11 +285,18 @@ def activation_through_one_replica_is_served_by_all(
     assert response.status_code == 200, response.text
     activated_at = time.monotonic()
     with service.predicting() as answers:
-        time.sleep(ACTIVATION_DEADLINE_S + 1.0)
+        # Every replica picks it up at its next poll (1 s); how soon is a figure (printed below,
+        # and the fleet benchmark's activation spread), not a bound a busy machine may break.
+        wait_until(
+            lambda: {a.replica for a in list(answers) if a.version == version} == replicas,
+            "every replica serving the new version",
+            POLL_S + BUSY_MACHINE_MARGIN_S,
+        )
+        time.sleep(1.0)  # and keeps serving it
     assert [a.status for a in answers] == [200] * len(answers), [a.error for a in answers if a.error]
-    late = [a for a in answers if a.sent >= activated_at + ACTIVATION_DEADLINE_S]
-    assert {a.replica for a in late} == replicas, "both replicas answered after the deadline"
-    assert {a.version for a in late} == {version}, [a for a in late if a.version != version]
+    switched = {r: min(a.sent for a in answers if a.replica == r and a.version == version) for r in replicas}
+    back = [a for a in answers if a.sent > switched[a.replica] and a.version != version]
+    assert not back, f"a replica answered with the old version after the new one: {back}"
     old = [a for a in answers if a.version != version]
     last_old = {r: max([a.done - activated_at for a in old if a.replica == r], default=0.0) for r in replicas}
     print(
