@@ -13,7 +13,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from calibration_store import CalibrationStore
 from service.api.http.admission import Admission
-from service.api.http.clients import ClientKeys
+from service.api.http.clients import Client, ClientKeys
 from service.api.http.request_body import BodyPace, read_limited_body
 from service.calibration.jobs import CalibrationJobs
 from service.calibration.registry import CalibrationRegistry
@@ -84,7 +84,7 @@ class PredictParts:
         """The served model's: a request naming another object is told so with its other problems."""
         return self.predictor.detector.manifest
 
-    def client_of(self, request: Request) -> str:
+    def client_of(self, request: Request) -> Client:
         """Whose share of the admission places this request takes (service.api.http.clients)."""
         return self.clients.of(request.client.host if request.client else None, request.headers)
 

@@ -7,8 +7,8 @@ created and allocated whole by the parent before the workers start (``client_boa
 a full disk cannot touch it and a full /dev/shm is an error at start, never a Bus error later;
 without it (one worker, or /dev/shm unavailable: logged) each worker judges alone. Each worker
 claims a row (``ClientBoard.joined``) and writes only that row: the ``RECENT`` clients it saw
-last, when, and on how many of its slots each computes; any worker reads every row, so a
-client's compute share holds for the group.
+last, when, on how many of its slots each computes, and each one's network; any worker reads
+every row, so a client's and a network's compute share hold for the group.
 """
 
 from __future__ import annotations
@@ -34,7 +34,8 @@ BOARD_VARIABLE = "KEYPOINT_SERVICE_CLIENT_BOARD"
 ROWS = 256  # workers at most (a row of a worker that died is taken again)
 RECENT = 8  # clients remembered per worker
 REREAD_NS = 50_000_000  # how stale ``several_since`` may be
-_COLUMNS = 1 + 3 * RECENT  # owner pid, then (client hash, asked at in ns, slots computing) each
+_FIELDS = 4  # per client: its hash, when it asked (ns), the slots it computes on, its network's hash
+_COLUMNS = 1 + _FIELDS * RECENT  # the owner's pid first
 _SIZE = ROWS * _COLUMNS * 8
 
 
@@ -75,7 +76,8 @@ class ClientBoard:
         self._memory = memory
         self._rows = np.ndarray((ROWS, _COLUMNS), np.int64, memory)
         self._mine = self._rows[row]
-        self._several, self._read_at = False, -REREAD_NS - 1
+        self._several = self._several_networks = False
+        self._read_at = -REREAD_NS - 1
         self._noted, self._noted_at = "", 0
 
     @classmethod
@@ -107,36 +109,60 @@ class ClientBoard:
             os.close(descriptor)
         return cls(memory, row)
 
-    def note(self, client: str, computing: int = 0) -> None:
-        """``client`` asked now, and computes on ``computing`` more (or fewer) slots of this worker:
-        in place of its entry, else of the idle entry asked longest ago (an asking alone is not
-        written again within ``REREAD_NS``: admission notes each request more than once)."""
+    def note(self, client: str, computing: int = 0, network: str | None = None) -> None:
+        """``client`` (of ``network``: itself by default) asked now, and computes on ``computing``
+        more (or fewer) slots of this worker: in place of its entry, else of the idle entry asked
+        longest ago (an asking alone is not written again within ``REREAD_NS``: admission notes
+        each request more than once)."""
         now = time.monotonic_ns()
         if not computing and client == self._noted and now - self._noted_at < REREAD_NS:
             return
-        key, entries = _key(client), self._mine[1:].reshape(RECENT, 3)
+        key, entries = _key(client), self._mine[1:].reshape(RECENT, _FIELDS)
         found = np.flatnonzero(entries[:, 0] == key)
         idle = np.flatnonzero(entries[:, 2] == 0)
         if not found.size and (computing < 0 or not idle.size):
             return  # every entry computes: this client goes unseen by the other workers
         index = found[0] if found.size else idle[np.argmin(entries[idle, 1])]
-        entries[index] = (key, now, (entries[index, 2] if found.size else 0) + computing)
+        slots = (entries[index, 2] if found.size else 0) + computing
+        entries[index] = (key, now, slots, _key(network or client))
         self._noted, self._noted_at = client, now
 
     def computing(self, client: str) -> int:
         """The slots ``client`` computes on in all the workers."""
-        entries = self._rows[self._rows[:, 0] != 0, 1:].reshape(-1, 3)
+        entries = self._entries()
         return int(entries[entries[:, 0] == _key(client), 2].sum())
+
+    def network_computing(self, network: str) -> int:
+        """The slots the clients of ``network`` compute on in all the workers."""
+        entries = self._entries()
+        return int(entries[entries[:, 3] == _key(network), 2].sum())
 
     def several_since(self, seconds_ago: float) -> bool:
         """Whether more than one client asked the workers in the last ``seconds_ago`` seconds (read
         again at most every ``REREAD_NS``: admission asks several times per request)."""
+        self._reread(seconds_ago)
+        return self._several
+
+    def several_networks_since(self, seconds_ago: float) -> bool:
+        """Whether clients of more than one network asked, as ``several_since``."""
+        self._reread(seconds_ago)
+        return self._several_networks
+
+    def _reread(self, seconds_ago: float) -> None:
         now = time.monotonic_ns()
         if now - self._read_at > REREAD_NS:
-            entries = self._rows[self._rows[:, 0] != 0, 1:].reshape(-1, 3)  # the rows of workers
-            keys = entries[entries[:, 1] > now - int(seconds_ago * 1e9), 0]
-            self._several, self._read_at = bool(keys.size) and bool((keys != keys[0]).any()), now
-        return self._several
+            entries = self._entries()
+            recent = entries[entries[:, 1] > now - int(seconds_ago * 1e9)]
+            self._several, self._several_networks = (_differ(recent[:, field]) for field in (0, 3))
+            self._read_at = now
+
+    def _entries(self) -> np.ndarray:
+        """Every entry of the rows of workers."""
+        return self._rows[self._rows[:, 0] != 0, 1:].reshape(-1, _FIELDS)
+
+
+def _differ(keys: np.ndarray) -> bool:
+    return bool(keys.size) and bool((keys != keys[0]).any())
 
 
 def _key(client: str) -> int:

@@ -331,8 +331,8 @@ class PredictSettings(_Group):
         ge=8,
         le=32,
         description=(
-            "an IPv4 client is its network of this prefix length (24: each /24 is one client, so a flood"
-            " spread over the addresses of one network shares one client's places); 32: each address"
+            "an IPv4 client is its network of this prefix length (24: each /24 is one client, its"
+            " addresses sharing one client's places); 32: each address"
         ),
     )
     client_ipv6_prefix: int = Field(
@@ -340,6 +340,22 @@ class PredictSettings(_Group):
         ge=16,
         le=128,
         description="an IPv6 client is its network of this prefix length (56 or 64: a site); 128: each one",
+    )
+    client_network_ipv4_prefix: int = Field(
+        default=24,
+        ge=0,
+        le=32,
+        description=(
+            "the network of an IPv4 client, for fair shares between networks before those between"
+            " clients: a flood spread over the addresses of one /24 holds one network's share beside"
+            " a client of another; 32 (or `CKS_CLIENT_IPV4_PREFIX`): each client its own network"
+        ),
+    )
+    client_network_ipv6_prefix: int = Field(
+        default=64,
+        ge=0,
+        le=128,
+        description="the network of an IPv6 client, as `CKS_CLIENT_NETWORK_IPV4_PREFIX`; 128: each client",
     )
 
     @field_validator("trusted_proxies", mode="before")

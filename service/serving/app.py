@@ -146,6 +146,7 @@ def predict_parts(state: ServiceState) -> PredictParts:
             settings.predict.client_header,
             settings.predict.trusted_proxies,
             (settings.predict.client_ipv4_prefix, settings.predict.client_ipv6_prefix),
+            (settings.predict.client_network_ipv4_prefix, settings.predict.client_network_ipv6_prefix),
         ),
         state.retention,
         state.adaptive,

@@ -25,6 +25,7 @@ from pydantic_core import to_json
 
 from service.api.deps import Predicting, PredictParts
 from service.api.feedback.retained_answer import adapted_query, served_request
+from service.api.http.clients import Client
 from service.api.http.problems import problem
 from service.api.predict import predict_presenter
 from service.api.predict.predict_bodies import BATCH_FORM, BATCH_JSON, PREDICT_FORM, PREDICT_JSON
@@ -162,14 +163,14 @@ async def predict_batch(request: Request, parts: Predicting) -> Response:
 
 
 async def compute(
-    parts: PredictParts, client: str, image: bytes | EncodedFrame, parameters: PredictParameters, png: bool
+    parts: PredictParts, client: Client, image: bytes | EncodedFrame, parameters: PredictParameters, png: bool
 ) -> Response:
     """Predict and present on the CPU pool, inside a compute slot (decoded images exist only there);
     ``image``: a JPEG or PNG file, or a frame's pixels (POST /v1/predict/frame)."""
     async with parts.admission.slot(client) as background:
         pool = parts.background_pool if background else parts.pool
         context = contextvars.copy_context()  # the pool's thread logs with the request's id
-        answer = (_respond, parts, image, parameters, png, client)
+        answer = (_respond, parts, image, parameters, png, client.name)
         return await asyncio.get_running_loop().run_in_executor(pool, context.run, *answer)
 
 
@@ -201,7 +202,7 @@ def _respond(
 
 
 async def _batch_answer(
-    request: Request, parts: PredictParts, client: str, index: int, item: BatchItem
+    request: Request, parts: PredictParts, client: Client, index: int, item: BatchItem
 ) -> bytes:
     """One image's item as JSON: its result, or the problem it alone had."""
     try:
