@@ -34,12 +34,13 @@ POINTS = [(boxes, concurrency) for boxes in (1, 4) for concurrency in (1, 16)]
 
 
 def export(revision: str, directory: Path) -> Path:
-    """``revision``'s tracked files in ``directory``, with this tree's built kernel (untracked)."""
+    """``revision``'s tracked files in ``directory``, with this tree's built extensions (untracked;
+    a revision that does not import one leaves it unused)."""
     directory.mkdir()
     archive = subprocess.run(["git", "-C", str(ROOT), "archive", revision], check=True, capture_output=True)
     subprocess.run(["tar", "-x", "-C", str(directory)], input=archive.stdout, check=True)
-    for kernel in (ROOT / "service" / "conformal").glob("_upper_half*.so"):
-        shutil.copy(kernel, directory / "service" / "conformal")
+    for extension in (ROOT / "service").rglob("_*.so"):
+        shutil.copy(extension, directory / extension.relative_to(ROOT))
     return directory
 
 

@@ -24,8 +24,8 @@ from service.conformal import (
 )
 from service.conformal.features import heatmap_features
 from service.detector.boxes import box_problem
-from service.detector.frames import EncodedFrame, ImageSource, open_frame
-from service.detector.images import decode_image
+from service.detector.frames import EncodedFrame, ImageSource, image_source, open_frame
+from service.detector.images import checked_image_header
 from service.detector.manifest import HeatmapSpec
 from service.detector.session import Detector, InstanceHeatmaps
 from service.errors import InvalidInput
@@ -164,14 +164,17 @@ class Predictor:
     max_decoded_bytes: int
     max_instances: int
 
-    def predict(self, image: bytes | EncodedFrame, query: PredictQuery) -> Prediction:
-        """The predict use case: decode (an image file, or a frame's whole pixels or regions),
+    def predict(
+        self, image: bytes | EncodedFrame, query: PredictQuery, whole_image: bool = False
+    ) -> Prediction:
+        """The predict use case: decode (an image file, or a frame's whole pixels or regions;
+        ``whole_image``: every pixel of a file, for a drawing of the sets, not only the boxes'),
         check, pick the calibration, infer, calibrate the sets (pooled or per stratum), record
         drift, estimate poses. Every refusal comes before the model runs, except a stratum that
         cannot answer (it needs the heatmaps)."""
         with self.detector.computing():  # a lone request's run takes every usable core
             manifest = self.detector.manifest
-            source = self._source(image, query)
+            source = self._source(image, query, whole_image)
             objects = [instance.object for instance in query.instances]
             if query.pose is not None:
                 check_pose_request(manifest, objects, query.coverage, query.pose)
@@ -224,17 +227,17 @@ class Predictor:
                 result.affines,
             )
 
-    def _source(self, image: bytes | EncodedFrame, query: PredictQuery) -> ImageSource:
-        """The request's pixels, decoded once its instances and regions are checked."""
+    def _source(self, image: bytes | EncodedFrame, query: PredictQuery, whole_image: bool) -> ImageSource:
+        """The request's pixels, decoded once its instances and regions are checked: of an image
+        file, what its boxes' crops read, or every pixel when ``whole_image``."""
         manifest = self.detector.manifest
         if isinstance(image, EncodedFrame):
             _check_instances(query.instances, image.width, image.height, self.max_instances)
             limits = (self.max_image_pixels, self.max_decoded_bytes)
             return open_frame(image, query.boxes, manifest.crop.padding, *limits)
-        pixels = decode_image(image, self.max_image_pixels, self.max_decoded_bytes)
-        height, width = pixels.shape[:2]
-        _check_instances(query.instances, width, height, self.max_instances)
-        return ImageSource.whole(pixels)
+        header = checked_image_header(image, self.max_image_pixels, self.max_decoded_bytes)
+        _check_instances(query.instances, header.width, header.height, self.max_instances)
+        return image_source(image, header, None if whole_image else query.boxes, manifest.crop.padding)
 
 
 class _RequestStrata:

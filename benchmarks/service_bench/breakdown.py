@@ -24,7 +24,8 @@ from service import prediction
 from service.api.predict.predict_input import predict_query  # noqa: E402
 from service.api.predict.predict_presenter import predict_json  # noqa: E402
 from service.api.predict.predict_schemas import PredictParameters
-from service.detector.images import decode_image
+from service.detector.frames import ImageSource, image_source
+from service.detector.images import checked_image_header
 from service.detector.preprocess import build_batch
 from service.detector.session import Detector, InstanceHeatmaps
 from service.infra.settings import Settings
@@ -69,26 +70,28 @@ def _timed(action: Callable[[], object]) -> tuple[float, object]:
 
 @contextmanager
 def _cached(
-    detector: Detector, image: np.ndarray, result: InstanceHeatmaps, sets: CalibratedSets
+    detector: Detector, image: ImageSource, result: InstanceHeatmaps, sets: CalibratedSets
 ) -> Iterator[None]:
-    """``decode_image``, ``detector.infer`` and ``calibrated_sets`` return these at once:
+    """``image_source``, ``detector.infer`` and ``calibrated_sets`` return these at once:
     ``predict`` times the rest."""
     detector.infer = lambda image, boxes, objects: result  # type: ignore[method-assign]
-    originals = prediction.calibrated_sets, prediction.decode_image
+    originals = prediction.calibrated_sets, prediction.image_source
     prediction.calibrated_sets = lambda *args, **kwargs: sets
-    prediction.decode_image = lambda *args, **kwargs: image
+    prediction.image_source = lambda *args, **kwargs: image
     try:
         yield
     finally:
         del detector.infer
-        prediction.calibrated_sets, prediction.decode_image = originals
+        prediction.calibrated_sets, prediction.image_source = originals
 
 
 def _one_iteration(state: ServiceState, sample: Sample, parameters: PredictParameters) -> dict[str, float]:
     manifest, detector, registry = state.detector.manifest, state.detector, state.registry
     limit = state.settings.predict.max_image_pixels
     ms: dict[str, float] = {}
-    ms["decode"], image = _timed(lambda: decode_image(sample.jpeg, limit))
+    header = checked_image_header(sample.jpeg, limit)
+    padding = manifest.crop.padding
+    ms["decode"], image = _timed(lambda: image_source(sample.jpeg, header, sample.boxes, padding))
     ms["crop"], (batch, affines) = _timed(lambda: build_batch(image, sample.boxes, manifest))
     ms["inference"], out = _timed(lambda: detector.run(batch))
     result = _heatmaps(state, out, sample, affines)

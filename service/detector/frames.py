@@ -24,7 +24,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.detector.crop import CONTEXT_MARGIN_PX, crop_contexts, warp_crop
-from service.detector.images import decode_image, decoded_bytes, read_image_header
+from service.detector.images import (
+    ImageHeader,
+    decode_checked,
+    decode_image,
+    decode_jpeg_window,
+    decoded_bytes,
+    read_image_header,
+)
 from service.errors import InvalidInput, PayloadTooLarge
 
 #: raw 8-bit encodings, as ROS sensor_msgs/Image names them, and their channels
@@ -142,6 +149,23 @@ class ImageSource:
             yield canvas
         finally:
             window[...] = 0
+
+
+def image_source(data: bytes, header: ImageHeader, boxes: np.ndarray | None, padding: float) -> ImageSource:
+    """An image file's pixels (``header`` checked) that the crops of ``boxes`` read: of a JPEG, one
+    window around all their crop contexts (the rest not decoded: a 200x200 window of a 640x480
+    JPEG took 0.86 ms against 1.29 ms for the whole); the whole image for a PNG, a CMYK JPEG, or
+    where ``boxes`` is None (a drawing of the sets needs every pixel)."""
+    window = None
+    if boxes is not None and len(boxes):
+        contexts = crop_contexts(boxes, padding, header.width, header.height)
+        x0, y0 = (int(v) for v in contexts[:, :2].min(axis=0))
+        x1, y1 = (int(v) for v in contexts[:, 2:].max(axis=0))
+        if x0 < x1 and y0 < y1:
+            window = decode_jpeg_window(data, header, (x0, y0, x1, y1))
+    if window is None:
+        return ImageSource.whole(decode_checked(data, header))
+    return ImageSource(header.width, header.height, (Region(window.x, window.y, window.pixels),))
 
 
 def open_frame(

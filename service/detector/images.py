@@ -9,7 +9,10 @@ applied: pixel coordinates mean what the file's raw raster means.
 
 JPEG: libjpeg-turbo through ``simplejpeg``, ``strict=True`` (every libjpeg warning is an
 error), bit-identical to OpenCV's ``imdecode(IMREAD_UNCHANGED)``, which the bundled
-calibration was scored with. libjpeg decodes a file cut between scans with an EOI appended
+calibration was scored with. ``decode_jpeg_window`` decodes only a window of it (the system's
+libjpeg-turbo, through the C extension ``_jpeg_window``: rows above skipped, columns beside
+cropped, rows below never read), to the same pixels there; corrupt data in the rows below is
+then not seen, since they are not decoded. libjpeg decodes a file cut between scans with an EOI appended
 silently, so the segments are walked first: every DCT coefficient of every component must
 arrive before EOI. PNG: every chunk up to ``IEND`` complete with a matching CRC (libpng only
 warns about some), then OpenCV (libpng) straight to 8 bits, alpha dropped; 16-bit samples
@@ -30,6 +33,11 @@ import numpy as np
 import simplejpeg
 
 from service.errors import InvalidInput, PayloadTooLarge, UnsupportedMediaType
+
+try:  # built from service/detector/native/jpeg_window.c where libjpeg's headers were found
+    from service.detector._jpeg_window import decode_window as _decode_window
+except ImportError:  # pragma: no cover - then JPEGs are decoded whole, to the same pixels
+    _decode_window = None
 
 ACCEPTED_FORMATS = "JPEG or PNG"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -86,6 +94,11 @@ def decode_image(data: bytes, max_pixels: int, max_bytes: int | None = None) -> 
     of memory (``CKS_MAX_DECODED_BYTES``; None: no such limit). ``InvalidInput`` for a good
     header followed by corrupt, truncated or too little data.
     """
+    return decode_checked(data, checked_image_header(data, max_pixels, max_bytes))
+
+
+def checked_image_header(data: bytes, max_pixels: int, max_bytes: int | None = None) -> ImageHeader:
+    """The header of an image that may be decoded: ``decode_image``'s refusals, before decoding."""
     header = read_image_header(data)
     name, size = header.format.upper(), f"{header.width}x{header.height}"
     if header.pixels > max_pixels:
@@ -100,7 +113,36 @@ def decode_image(data: bytes, max_pixels: int, max_bytes: int | None = None) -> 
             f" of {max_bytes} bytes (CKS_MAX_DECODED_BYTES); send a smaller image (16-bit samples and"
             " progressive JPEGs take more memory per pixel)"
         )
+    return header
+
+
+def decode_checked(data: bytes, header: ImageHeader) -> np.ndarray:
+    """The whole image whose ``header`` ``checked_image_header`` gave."""
     return _decode_jpeg(data, header) if header.format == "jpeg" else _decode_png(data, header)
+
+
+def decode_jpeg_window(data: bytes, header: ImageHeader, window: tuple[int, int, int, int]) -> Window | None:
+    """The pixels of a JPEG (``header`` checked) that cover ``window`` (``x0, y0, x1, y1``,
+    half-open, inside the image), and where they lie: the full decode's pixels there, the rows
+    below never read. None where this cannot be done: a CMYK JPEG, or the extension not built."""
+    if _decode_window is None or header.format != "jpeg" or header.channels not in (1, 3):
+        return None
+    gray = header.channels == 1
+    try:
+        pixels, x, y, width, height = _decode_window(data, *window, gray)
+    except ValueError as exc:
+        raise _corrupt(header, f"the file is corrupt or shorter than its size says (libjpeg: {exc})") from exc
+    shape = (height, width) if gray else (height, width, 3)
+    return Window(x, y, np.frombuffer(pixels, np.uint8).reshape(shape))
+
+
+@dataclass(frozen=True)
+class Window:
+    """Decoded pixels of a rectangle of an image at ``(x, y)``: BGR ``(h, w, 3)`` or gray ``(h, w)``."""
+
+    x: int
+    y: int
+    pixels: np.ndarray
 
 
 def decoded_bytes(data: bytes, header: ImageHeader) -> int:

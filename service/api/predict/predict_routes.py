@@ -183,7 +183,7 @@ def _respond(
         not png and retention is not None and (adaptive is not None or retention.wanted(parameters.retain))
     )
     query = replace(query, retain=True) if retained else query
-    prediction = parts.predictor.predict(image, query)
+    prediction = parts.predictor.predict(image, query, whole_image=png)
     note_calibration_version(prediction.version)
     manifest = parts.predictor.detector.manifest
     if png:
