@@ -9,7 +9,8 @@
 # links CUDA 13 (libcublas.so.13) and asks for cuDNN 9. The build fails when they differ.
 ARG CUDA_IMAGE=nvidia/cuda:13.0.0-cudnn-runtime-ubuntu22.04
 
-# Build stage: a wheel with the compiled anchor-median kernel (needs a C compiler).
+# Build stage: a wheel with the compiled anchor-median kernel and JPEG windows (a C compiler and
+# libjpeg's headers: both in this image).
 FROM python:3.11-bookworm AS build
 WORKDIR /src
 COPY pyproject.toml README.md ./
@@ -17,7 +18,8 @@ COPY service ./service
 COPY calibration_store ./calibration_store
 COPY client ./client
 RUN pip wheel --no-deps --wheel-dir /wheels . \
-    && python -m zipfile -l /wheels/*.whl | grep -q _upper_half  # the kernel was compiled
+    && python -m zipfile -l /wheels/*.whl | grep -q _upper_half \
+    && python -m zipfile -l /wheels/*.whl | grep -q _jpeg_window  # both were compiled
 
 # ---- CUDA target (--target cuda): never built for the default target, which is the last stage.
 FROM ${CUDA_IMAGE} AS cuda-python
@@ -89,8 +91,12 @@ ENV PYTHONUNBUFFERED=1 \
 
 WORKDIR /app
 COPY --from=build /wheels /wheels
-RUN pip install "$(ls /wheels/*.whl)[postgres]" && rm -rf /wheels \
+# libjpeg-turbo's runtime for the JPEG windows (service/detector/native/jpeg_window.c).
+RUN apt-get update && apt-get install -y --no-install-recommends libjpeg62-turbo \
+    && rm -rf /var/lib/apt/lists/* \
+    && pip install "$(ls /wheels/*.whl)[postgres]" && rm -rf /wheels \
     && python -c "from service.conformal.kernel import native_kernel_available as ok; assert ok()" \
+    && python -c "from service.detector.images import jpeg_windows_available as ok; assert ok()" \
     && useradd --system --uid 10001 --no-create-home --shell /usr/sbin/nologin app \
     && mkdir -p /data && chown app /data
 COPY models/lmo-synth-unet ./models/lmo-synth-unet

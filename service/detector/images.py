@@ -34,10 +34,16 @@ import simplejpeg
 
 from service.errors import InvalidInput, PayloadTooLarge, UnsupportedMediaType
 
+_JPEG_WINDOW_VERSION = 1  # service/detector/native/jpeg_window.c's VERSION
 try:  # built from service/detector/native/jpeg_window.c where libjpeg's headers were found
-    from service.detector._jpeg_window import decode_window as _decode_window
+    from service.detector import _jpeg_window
 except ImportError:  # pragma: no cover - then JPEGs are decoded whole, to the same pixels
-    _decode_window = None
+    _jpeg_window = None
+_decode_window = (
+    _jpeg_window.decode_window
+    if _jpeg_window is not None and getattr(_jpeg_window, "VERSION", None) == _JPEG_WINDOW_VERSION
+    else None  # a build of older sources
+)
 
 ACCEPTED_FORMATS = "JPEG or PNG"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -119,6 +125,11 @@ def checked_image_header(data: bytes, max_pixels: int, max_bytes: int | None = N
 def decode_checked(data: bytes, header: ImageHeader) -> np.ndarray:
     """The whole image whose ``header`` ``checked_image_header`` gave."""
     return _decode_jpeg(data, header) if header.format == "jpeg" else _decode_png(data, header)
+
+
+def jpeg_windows_available() -> bool:
+    """Whether ``decode_jpeg_window`` can decode windows (its C extension built from these sources)."""
+    return _decode_window is not None
 
 
 def decode_jpeg_window(data: bytes, header: ImageHeader, window: tuple[int, int, int, int]) -> Window | None:

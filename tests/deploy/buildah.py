@@ -14,14 +14,16 @@ import shutil
 import signal
 import subprocess
 import time
+import zlib
 from pathlib import Path
 
 ENV = {**os.environ, "STORAGE_DRIVER": "vfs", "BUILDAH_ISOLATION": "chroot"}
 CA_BUNDLE = "/etc/ssl/certs/ca-certificates.crt"
-STAND_INS = {  # tag -> extra Debian packages (the build stage compiles the native kernel)
-    "docker.io/library/python:3.11-bookworm": "gcc,libc6-dev,python3-dev",
+STAND_INS = {  # tag -> extra Debian packages (the build stage compiles the native extensions)
+    "docker.io/library/python:3.11-bookworm": "gcc,libc6-dev,python3-dev,libjpeg62-turbo-dev",
     "docker.io/library/python:3.11-slim-bookworm": "",
 }
+_PACKAGES_LABEL = '{{index .OCIv1.Config.Labels "stand-in-packages"}}'
 CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "base-image-stand-ins"
 
 
@@ -37,12 +39,16 @@ def buildah(*args: str, timeout: float = 600, check: bool = True) -> str:
 
 
 def ensure_stand_in(tag: str, extra: str) -> None:
-    """A minimal Debian root with python3 and pip, committed under ``tag`` (made once)."""
+    """A minimal Debian root with python3 and pip, committed under ``tag`` (made once, and again
+    when its packages change)."""
+    packages = ",".join(p for p in ("python3,python3-venv,python3-pip,ca-certificates", extra) if p)
     if buildah("images", "-q", tag, check=False):
-        return
-    root = CACHE / tag.replace(":", "_").replace("/", "_")
+        made_with = buildah("inspect", "--type", "image", "--format", _PACKAGES_LABEL, tag, check=False)
+        if made_with == packages:
+            return
+        buildah("rmi", "-f", tag, check=False)
+    root = CACHE / f"{tag.replace(':', '_').replace('/', '_')}-{zlib.crc32(packages.encode()):08x}"
     if not (root / "usr").is_dir():
-        packages = ",".join(p for p in ("python3,python3-venv,python3-pip,ca-certificates", extra) if p)
         subprocess.run(
             ["debootstrap", "--variant=minbase", f"--include={packages}", "bookworm", str(root)],
             check=True,
@@ -61,6 +67,7 @@ def ensure_stand_in(tag: str, extra: str) -> None:
     subprocess.run(["cp", "-a", f"{root}/.", f"{mount}/"], check=True, timeout=600)
     buildah("umount", container)
     buildah("config", "--env", "PATH=/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin", container)
+    buildah("config", "--label", f"stand-in-packages={packages}", container)
     buildah("commit", "-q", container, tag)
     buildah("rm", container)
 
