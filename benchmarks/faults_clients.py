@@ -34,6 +34,7 @@ import socket
 import struct
 import tempfile
 import threading
+import sys
 import time
 import zipfile
 import zlib
@@ -213,8 +214,11 @@ def polite_client(url: str, seconds: float, interval: float = 0.2) -> tuple[list
                 break
             time.sleep(max(0.0, due - time.monotonic()))
             began = time.perf_counter()
-            statuses.append(predict(client, image, instances).status_code)
+            answer = predict(client, image, instances)
             seconds_taken.append(time.perf_counter() - began)
+            statuses.append(answer.status_code)
+            if answer.status_code != 200:  # why, for the record
+                print(f"polite client: {answer.status_code} {answer.text[:300]}", file=sys.stderr)
     return seconds_taken, statuses
 
 

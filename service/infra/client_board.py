@@ -111,9 +111,9 @@ class ClientBoard:
 
     def note(self, client: str, computing: int = 0, network: str | None = None) -> None:
         """``client`` (of ``network``: itself by default) asked now, and computes on ``computing``
-        more (or fewer) slots of this worker: in place of its entry, else of the idle entry asked
-        longest ago (an asking alone is not written again within ``REREAD_NS``: admission notes
-        each request more than once)."""
+        more (or fewer) slots of this worker: in place of its entry, else of an idle one
+        (``_replaceable``; an asking alone is not written again within ``REREAD_NS``: admission
+        notes each request more than once)."""
         now = time.monotonic_ns()
         if not computing and client == self._noted and now - self._noted_at < REREAD_NS:
             return
@@ -122,7 +122,7 @@ class ClientBoard:
         idle = np.flatnonzero(entries[:, 2] == 0)
         if not found.size and (computing < 0 or not idle.size):
             return  # every entry computes: this client goes unseen by the other workers
-        index = found[0] if found.size else idle[np.argmin(entries[idle, 1])]
+        index = found[0] if found.size else _replaceable(entries, idle)
         slots = (entries[index, 2] if found.size else 0) + computing
         entries[index] = (key, now, slots, _key(network or client))
         self._noted, self._noted_at = client, now
@@ -159,6 +159,16 @@ class ClientBoard:
     def _entries(self) -> np.ndarray:
         """Every entry of the rows of workers."""
         return self._rows[self._rows[:, 0] != 0, 1:].reshape(-1, _FIELDS)
+
+
+def _replaceable(entries: np.ndarray, idle: np.ndarray) -> int:
+    """The idle entry asked longest ago, of a network that has another entry where there is one:
+    a flood from many addresses of one network does not push a lone client of another network
+    off the board (the other workers would then not hold the flood's network to its share)."""
+    networks = entries[:, 3]
+    crowded = idle[[np.count_nonzero(networks == networks[i]) > 1 for i in idle]]
+    candidates = crowded if crowded.size else idle
+    return int(candidates[np.argmin(entries[candidates, 1])])
 
 
 def _differ(keys: np.ndarray) -> bool:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import time
 from contextlib import AsyncExitStack
 from pathlib import Path
 
@@ -366,6 +367,17 @@ def test_a_networks_compute_share_holds_across_the_workers_of_a_board(tmp_path: 
         for client in _SPREAD[:3]:
             board.note(client.name, network=client.network)
         assert board.several_since(30) and not board.several_networks_since(30)
+
+
+def test_a_flood_of_one_network_leaves_a_lone_client_of_another_on_the_board(tmp_path: Path) -> None:
+    with client_board(2, tmp_path):
+        mine, other = ClientBoard.joined(), ClientBoard.joined()
+        assert mine is not None and other is not None
+        mine.note(_POLITE.name, network=_POLITE.network)
+        for client in _SPREAD[:40]:  # far more clients than a row holds, all of one network
+            time.sleep(0.001)
+            mine.note(client.name, network=client.network)
+        assert other.several_networks_since(30)  # the other worker still sees two networks
 
 
 def test_a_board_left_under_this_pid_by_a_killed_predecessor_is_replaced(tmp_path: Path) -> None:
