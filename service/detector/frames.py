@@ -26,6 +26,7 @@ import numpy as np
 from service.detector.crop import CONTEXT_MARGIN_PX, crop_contexts, warp_crop
 from service.detector.images import (
     ImageHeader,
+    checked_image_header,
     decode_checked,
     decode_image,
     decode_jpeg_window,
@@ -183,7 +184,10 @@ def open_frame(
     if problems:
         raise InvalidInput("; ".join(problems[:5]), errors=problems)
     _check_budget(frame, max_bytes)
-    whole_limit = max_bytes if frame.whole else None  # a whole JPEG or PNG: decode_image checks it
+    if frame.whole and frame.regions[0].encoding == "jpeg":  # only the window its boxes need
+        data = frame.regions[0].data
+        return image_source(data, checked_image_header(data, max_pixels, max_bytes), boxes, padding)
+    whole_limit = max_bytes if frame.whole else None  # a whole PNG: decode_image checks it
     regions = tuple(_decoded(region, max_pixels, whole_limit) for region in frame.regions)
     if len({region.pixels.ndim for region in regions}) > 1:
         raise InvalidInput(

@@ -119,6 +119,23 @@ def test_regions_and_whole_frames_raw_or_png_answer_the_whole_images_bytes(
             assert response.content == expected, request.get("regions", request["frame"])
 
 
+def test_a_whole_jpeg_decoded_in_a_window_answers_as_its_full_decode(
+    api: InProcess, frames: list[tuple[np.ndarray, dict]], full_hd: tuple[np.ndarray, dict]
+) -> None:
+    """POST /v1/predict and /frame decode a whole JPEG only around its boxes
+    (service/detector/native/jpeg_window.c): the answer is its fully decoded pixels' (as PNG)."""
+    for pixels, parameters in [*frames, full_hd]:
+        jpeg = cv2.imencode(".jpg", pixels, [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes()
+        expected = whole_answer(api, decode_image(jpeg, 10**8), parameters)
+        files = {"image": ("frame.jpg", jpeg, "image/jpeg")}
+        response = api.client.post("/v1/predict", files=files, data={"request": json.dumps(parameters)})
+        assert response.status_code == 200 and response.content == expected
+        height, width = pixels.shape[:2]
+        request = {**parameters, "frame": {"width": width, "height": height, "encoding": "jpeg"}}
+        response = post_frame(api, request, [jpeg])
+        assert response.status_code == 200 and response.content == expected
+
+
 def test_a_1080p_frame_with_boxes_at_its_edges_answers_the_same_bytes(
     api: InProcess, full_hd: tuple[np.ndarray, dict]
 ) -> None:
