@@ -32,9 +32,9 @@ import selectors
 import signal
 import socket
 import struct
+import sys
 import tempfile
 import threading
-import sys
 import time
 import zipfile
 import zlib
