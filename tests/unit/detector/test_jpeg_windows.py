@@ -21,7 +21,7 @@ from service.detector.images import (
     jpeg_windows_available,
     read_image_header,
 )
-from service.errors import InvalidInput
+from service.errors import InvalidInput, PayloadTooLarge, UnsupportedMediaType
 from service.infra.settings import DEFAULT_MODEL_DIR
 
 SAMPLES = sorted((DEFAULT_MODEL_DIR / "samples" / "images").glob("*.jpg"))
@@ -80,6 +80,39 @@ def test_corrupt_data_below_and_above_the_window_is_refused() -> None:
         corrupt = data[:offset] + bytes(32) + data[offset + 32 :]
         with pytest.raises(InvalidInput, match="Corrupt JPEG data"):
             decode_jpeg_window(corrupt, header, (300, 200, 340, 240))
+
+
+def test_a_window_refuses_a_damaged_jpeg_exactly_when_the_full_decode_does() -> None:
+    """1 to 3 random bytes changed anywhere (headers, tables, scan data), 600 times: both decoders
+    refuse the file, or both decode it to the same pixels in the window."""
+    rng = np.random.default_rng(7)
+    files = [path.read_bytes() for path in SAMPLES]
+    window = (200, 150, 400, 350)
+    outcomes = []
+    for case in range(600):
+        data = bytearray(files[case % len(files)])
+        for _ in range(rng.integers(1, 4)):
+            data[int(rng.integers(2, len(data)))] = int(rng.integers(0, 256))
+        try:
+            header = checked_image_header(bytes(data), LIMIT)
+        except (InvalidInput, PayloadTooLarge, UnsupportedMediaType):
+            continue  # refused before any decoding, as by decode_image
+        if header.width < 400 or header.height < 350:
+            continue  # a damaged size: the window is outside it
+        try:
+            whole = decode_image(bytes(data), LIMIT)
+        except InvalidInput:
+            whole = None
+        try:
+            decoded = decode_jpeg_window(bytes(data), header, window)
+        except InvalidInput:
+            decoded = None
+        assert (whole is None) == (decoded is None), case
+        if decoded is not None and whole is not None:
+            inside = decoded.pixels[150 - decoded.y : 350 - decoded.y, 200 - decoded.x : 400 - decoded.x]
+            assert np.array_equal(inside, whole[150:350, 200:400]), case
+        outcomes.append(whole is None)
+    assert 0 < sum(outcomes) < len(outcomes)  # some damage refused, some harmless
 
 
 def test_the_crops_of_a_windowed_source_are_the_whole_images() -> None:
