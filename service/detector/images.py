@@ -10,9 +10,9 @@ applied: pixel coordinates mean what the file's raw raster means.
 JPEG: libjpeg-turbo through ``simplejpeg``, ``strict=True`` (every libjpeg warning is an
 error), bit-identical to OpenCV's ``imdecode(IMREAD_UNCHANGED)``, which the bundled
 calibration was scored with. ``decode_jpeg_window`` decodes only a window of it (the system's
-libjpeg-turbo, through the C extension ``_jpeg_window``: rows above skipped, columns beside
-cropped, rows below never read), to the same pixels there; corrupt data in the rows below is
-then not seen, since they are not decoded. libjpeg decodes a file cut between scans with an EOI appended
+libjpeg-turbo, through the C extension ``_jpeg_window``: rows above and below it entropy-decoded
+only, columns beside it not at all), to the same pixels there and with the same strictness:
+corrupt data anywhere is still refused. libjpeg decodes a file cut between scans with an EOI appended
 silently, so the segments are walked first: every DCT coefficient of every component must
 arrive before EOI. PNG: every chunk up to ``IEND`` complete with a matching CRC (libpng only
 warns about some), then OpenCV (libpng) straight to 8 bits, alpha dropped; 16-bit samples
@@ -134,8 +134,8 @@ def jpeg_windows_available() -> bool:
 
 def decode_jpeg_window(data: bytes, header: ImageHeader, window: tuple[int, int, int, int]) -> Window | None:
     """The pixels of a JPEG (``header`` checked) that cover ``window`` (``x0, y0, x1, y1``,
-    half-open, inside the image), and where they lie: the full decode's pixels there, the rows
-    below never read. None where this cannot be done: a CMYK JPEG, or the extension not built."""
+    half-open, inside the image), and where they lie: the full decode's pixels there. None where
+    this cannot be done: a CMYK JPEG, or the extension not built."""
     if _decode_window is None or header.format != "jpeg" or header.channels not in (1, 3):
         return None
     gray = header.channels == 1

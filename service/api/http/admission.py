@@ -353,16 +353,29 @@ class Admission:
         self._rechecking = False
         self._grant()
 
-    def _may_compute(self, client: Client, shared: bool, networks_shared: bool) -> bool:
-        """Whether ``client`` and its network compute on fewer slots than their shares (those that
-        apply), in every worker where there is a board."""
+    def _at_share(self, waiting: list[Client]) -> tuple[set[str], set[str]]:
+        """The waiting clients (names) and networks that compute on their share of the slots,
+        where that share applies, in every worker where there is a board: each looked up once per
+        grant, not once per waiting request."""
         board = self._board
-        slots = self._computing[client.name], self._network_computing[client.network]
-        if board is not None:
-            anywhere = board.computing(client.name), board.network_computing(client.network)
-            slots = (max(slots[0], anywhere[0]), max(slots[1], anywhere[1]))
-        over = (shared and slots[0] >= self._client_slots, networks_shared and slots[1] >= self._client_slots)
-        return not any(over)
+        clients = {c.name for c in waiting} if self._shared() else set()
+        networks = {c.network for c in waiting} if self._networks_shared() else set()
+        return (
+            {
+                name
+                for name in clients
+                if self._at_its_share(self._computing, name, board and board.computing)
+            },
+            {
+                net
+                for net in networks
+                if self._at_its_share(self._network_computing, net, board and board.network_computing)
+            },
+        )
+
+    def _at_its_share(self, here: Counter[str], key: str, anywhere: Callable[[str], int] | None) -> bool:
+        """Whether ``key`` computes on its share of the slots here, or in all workers."""
+        return max(here[key], anywhere(key) if anywhere else 0) >= self._client_slots
 
     def _grant(self) -> None:
         """Free slots to waiting requests: of the network that has used least (its virtual time),
@@ -370,8 +383,8 @@ class Admission:
         waits while others are active."""
         self._waiting = [waiter for waiter in self._waiting if not waiter[1].done()]
         while self._free_slots:
-            shared = self._shared(), self._networks_shared()
-            eligible = [waiter for waiter in self._waiting if self._may_compute(waiter[0], *shared)]
+            clients, networks = self._at_share([client for client, _ in self._waiting])
+            eligible = [w for w in self._waiting if w[0].name not in clients and w[0].network not in networks]
             if not eligible:
                 if self._waiting and self._board is not None and not self._rechecking:
                     self._rechecking = True  # another worker's slot may free: look again then
