@@ -2,6 +2,7 @@
 
     python -m benchmarks.bench_frames              # 4 sizes x 1 and 4 boxes, 15 rounds; docs/performance.md
     python -m benchmarks.bench_frames --rounds 3 --sizes 640x480 --output /tmp/p.md   # a smoke run
+    python -m benchmarks.bench_frames --gap-ms 0   # each request right after the previous one
 
 Frames of 640x480, 1280x720, 1920x1080 and 3840x2160 (the samples folder's busiest image scaled
 to the height, the rest of the width its mirror image), 1 and 4 boxes, concurrency 1, keep-alive
@@ -12,7 +13,10 @@ at concurrency 1 in bench_peers) with the whole JPEG, and through the Python cli
 ``predict(frame)`` against JPEG encode + ``predict(jpeg bytes)``. Every time includes the
 client's encoding and the parsing of the answer. Before timing: the raw regions' answer must be
 the whole frame's (PNG) byte for byte, and the peer's the service's for the same JPEG.
-Writes the ``bench_frames`` section of docs/performance.md.
+Each request starts ``--gap-ms`` (50) after the previous one ended, as frames come from a camera:
+longer than the peer's onnxruntime threads spin after its run (30-40 ms of CPU measured), so
+that no request pays for another contender's. Writes the ``bench_frames`` section of
+docs/performance.md.
 """
 
 from __future__ import annotations
@@ -77,6 +81,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     )
     parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT)
     parser.add_argument("--seed", type=int, default=None, help="the turns' order (default: a fresh one)")
+    parser.add_argument(
+        "--gap-ms", type=float, default=50.0, help="idle time before each timed request (a camera's cadence)"
+    )
     args = parser.parse_args(argv)
     args.seed = random.SystemRandom().randrange(2**31) if args.seed is None else args.seed
     args.sizes = [tuple(int(v) for v in size.split("x")) for size in args.sizes.split(",")]
@@ -183,10 +190,10 @@ class Timings:
         return self.cpu[key] / len(self.wall[key])
 
 
-def measure(contenders: Contenders, points: list[Point], rounds: int, seed: int) -> Timings:
-    """The contenders taking turns within each round (paired), in an order drawn afresh each round:
-    a request that always followed the same one would pay for its wake (a peer's onnxruntime
-    threads spin for a while after a run); CPU read outside the timed span."""
+def measure(contenders: Contenders, points: list[Point], rounds: int, seed: int, gap_s: float) -> Timings:
+    """The contenders taking turns within each round (paired), in an order drawn afresh each round,
+    each request ``gap_s`` after the previous one (a peer's onnxruntime threads spin for a while
+    after its run, on the cores the next request needs); CPU read outside the timed span."""
     timings = Timings()
     order = random.Random(seed)
     for point in points:
@@ -196,6 +203,7 @@ def measure(contenders: Contenders, points: list[Point], rounds: int, seed: int)
             send()
         for _ in range(rounds):
             for name, (send, server) in order.sample(list(sends.items()), len(sends)):
+                time.sleep(gap_s)
                 cpu_before = time.process_time() + server.cpu_seconds()
                 started = time.perf_counter()
                 send()
@@ -253,6 +261,7 @@ def render(
     timings: Timings,
     rounds: int,
     seed: int,
+    gap_ms: float,
     load: str,
     canvas: str,
 ) -> str:
@@ -287,7 +296,10 @@ def render(
             "",
             f"`{command}`: {machine}; load average after the run {load}. From a frame in memory (RGB) to"
             f" the parsed answer, {rounds} requests per cell, one at a time on a keep-alive connection, the"
-            f" contenders taking turns in each round in an order drawn afresh (seed {seed}); 4 boxes are"
+            f" contenders taking turns in each round in an order drawn afresh (seed {seed}), each request"
+            f" {gap_ms:g} ms after the previous one ended (as frames come from a camera; and the peer's"
+            " onnxruntime threads spin for 30-40 ms of CPU after its run, which the next request would"
+            " pay for); 4 boxes are"
             " the sample's 3 and its first again (as in"
             " bench_peers: the client's regions share one rectangle for those two); every figure includes"
             " the client's encoding (JPEG"
@@ -325,7 +337,7 @@ def main(argv: list[str] | None = None) -> None:
     with SERVICE.running(logs / "service.log") as service, PEER.running(logs / "peer.log") as peer:
         contenders = Contenders(service, peer, padding)
         try:
-            timings = measure(contenders, points, args.rounds, args.seed)
+            timings = measure(contenders, points, args.rounds, args.seed, args.gap_ms / 1000)
         finally:
             contenders.close()
     largest = max(points, key=lambda p: (p.width * p.height, p.boxes))
@@ -341,7 +353,7 @@ def main(argv: list[str] | None = None) -> None:
     page.write_section(
         args.output,
         "bench_frames",
-        render(command, machine, points, timings, args.rounds, args.seed, load_after, canvas),
+        render(command, machine, points, timings, args.rounds, args.seed, args.gap_ms, load_after, canvas),
     )
     log(f"wrote the bench_frames section of {args.output}")
 

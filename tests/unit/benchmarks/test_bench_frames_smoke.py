@@ -42,5 +42,6 @@ def test_a_short_run_writes_its_section(tmp_path: Path) -> None:
     written = output.read_text()
     assert written.index("bench_frames:begin") < written.index("bench_service:begin")
     assert "| 640x480, 1 box |" in written and "| 640x480, 4 boxes |" in written
+    assert "each request 50 ms after the previous one ended" in written
     for name in CONTENDERS:
         assert name in written
