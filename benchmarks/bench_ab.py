@@ -6,31 +6,41 @@
 Each revision is exported (``git archive``, with this tree's built C kernel copied in) and served
 with its defaults (``keypoint-service serve``, the bundled model), both servers up side by side
 and loaded one at a time: POST /v1/predict, multipart, the sample image with 1 and 4 boxes, at
-concurrency 1 and 16 (wrk). Rounds alternate which revision goes first. Prints every run, then
-per point the medians and the median of the paired ratios B/A with their spread, requests/s and
-server core-ms per request; and the load average, which a shared machine's figures depend on.
+concurrency 1 and 16 (wrk); then frames as a camera sends them, one at a time ``--gap-ms`` (30)
+apart (a robot's loop, where the server sits idle between frames): a 1920x1080 frame's regions
+as raw pixels (POST /v1/predict/frame) with 4 and 1 boxes, and the README's request with 1 box.
+Rounds alternate which revision goes first. Prints every run, then per point the medians and
+the median of the paired ratios B/A with their spread: requests/s (wrk) or the median latency
+(paced frames), and server core-ms per request; and the load average, which a shared machine's
+figures depend on.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import statistics
 import subprocess
 import sys
 import tempfile
+import time
 from contextlib import ExitStack
 from pathlib import Path
 
+import httpx
+
+from benchmarks.bench_frames import frame_parts, make_point
 from benchmarks.peers.measure import Requests
-from benchmarks.service_bench.inputs import load_sample
+from benchmarks.service_bench.inputs import Sample, load_sample
 from benchmarks.service_bench.loadgen import require_wrk, run_wrk
 from benchmarks.service_bench.server import Server, free_port, launch
 from service.infra.settings import DEFAULT_MODEL_DIR
 
 ROOT = Path(__file__).resolve().parents[1]
 POINTS = [(boxes, concurrency) for boxes in (1, 4) for concurrency in (1, 16)]
+PACED_REQUESTS = 20  # per point, revision and round
 
 
 def export(revision: str, directory: Path) -> Path:
@@ -81,6 +91,56 @@ def measure(servers: dict[str, Server], requests: Requests, rounds: int, seconds
     return runs
 
 
+def paced_bodies(sample: Sample) -> dict[str, tuple[str, bytes, str]]:
+    """Each paced point's path, body and content type: a 1920x1080 frame's regions, raw (as the
+    client sends a numpy frame), with 4 and 1 boxes, and the README's request with 1 box."""
+    padding = json.loads((DEFAULT_MODEL_DIR / "manifest.json").read_text())["crop"]["padding"]
+    bodies = {}
+    for boxes in (4, 1):
+        point = make_point(sample, 1920, 1080, boxes)
+        files = frame_parts(point.frame, point.parameters, padding, "regions")
+        request = httpx.Request("POST", "http://service/v1/predict/frame", files=files)
+        name = f"1080p regions, {boxes} box{'es' if boxes > 1 else ''}"
+        bodies[name] = ("/v1/predict/frame", request.read(), request.headers["content-type"])
+    body, content_type = sample.with_instances(1).multipart_body()
+    bodies["README, 1 box"] = ("/v1/predict", body, content_type)
+    return bodies
+
+
+def measure_paced(servers: dict[str, Server], sample: Sample, rounds: int, gap_s: float) -> dict:
+    """Median latency (ms) and server core-ms per request, per (revision, paced point): each
+    request ``gap_s`` after the previous answer, on a keep-alive connection."""
+    bodies = paced_bodies(sample)
+    clients = {name: httpx.Client(base_url=server.url, timeout=60) for name, server in servers.items()}
+    runs: dict = {(name, point): [] for name in servers for point in bodies}
+    try:
+        for round_number in range(rounds):
+            for index, (point, (path, body, content_type)) in enumerate(bodies.items()):
+                for name in "AB" if (round_number + index) % 2 == 0 else "BA":
+                    client, server = clients[name], servers[name]
+                    client.post(path, content=body, headers={"content-type": content_type})  # warm
+                    before, latencies = server.cpu_seconds(), []
+                    for _ in range(PACED_REQUESTS):
+                        time.sleep(gap_s)
+                        started = time.perf_counter()
+                        client.post(
+                            path, content=body, headers={"content-type": content_type}
+                        ).raise_for_status()
+                        latencies.append(1e3 * (time.perf_counter() - started))
+                    core_ms = (server.cpu_seconds() - before) * 1e3 / PACED_REQUESTS
+                    p50 = statistics.median(latencies)
+                    runs[name, point].append((p50, core_ms))
+                    print(
+                        f"round {round_number + 1} {name} {point:<21} paced  p50 {p50:7.2f} ms"
+                        f"  {core_ms:6.2f} core-ms/request  load {os.getloadavg()[0]:.1f}",
+                        flush=True,
+                    )
+    finally:
+        for client in clients.values():
+            client.close()
+    return runs
+
+
 def summary(runs: dict) -> list[str]:
     """Per point: requests/s, then server core-ms per request, each as the medians of A and B and
     the median of the paired ratios B/A [smallest..largest]."""
@@ -90,6 +150,15 @@ def summary(runs: dict) -> list[str]:
     for boxes, concurrency in POINTS:
         a, b = runs["A", (boxes, concurrency)], runs["B", (boxes, concurrency)]
         lines.append(f"{boxes} box c={concurrency:<2}  {_column(a, b, 0)}    {_column(a, b, 1)}")
+    return lines
+
+
+def paced_summary(runs: dict, gap_ms: float) -> list[str]:
+    """Per paced point: the median latency, then server core-ms per request, as ``summary``."""
+    lines = [f"paced, {gap_ms:g} ms apart        p50 ms: A  B  B/A paired [min..max]       core-ms/request"]
+    for point in dict.fromkeys(point for _, point in runs):
+        a, b = runs["A", point], runs["B", point]
+        lines.append(f"{point:<22} {_column(a, b, 0)}    {_column(a, b, 1)}")
     return lines
 
 
@@ -106,12 +175,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("b", help="revision B, e.g. HEAD")
     parser.add_argument("--rounds", type=int, default=6)
     parser.add_argument("--seconds", type=float, default=4.0, help="seconds per point and revision")
+    parser.add_argument(
+        "--gap-ms", type=float, default=30.0, help="between paced frames (a camera's cadence)"
+    )
     args = parser.parse_args(argv)
     require_wrk()
     print(f"A = {args.a}, B = {args.b}; load {os.getloadavg()} on {os.cpu_count()} cores", flush=True)
     with tempfile.TemporaryDirectory(prefix="cks-ab-") as directory, ExitStack() as stack:
         work = Path(directory)
-        requests = Requests.write(work, load_sample(DEFAULT_MODEL_DIR / "samples"))
+        sample = load_sample(DEFAULT_MODEL_DIR / "samples")
+        requests = Requests.write(work, sample)
         servers = {}
         for name, revision in (("A", args.a), ("B", args.b)):
             tree = export(revision, work / name)
@@ -120,7 +193,9 @@ def main(argv: list[str] | None = None) -> int:
             argv_, env = server_argv_env(tree, work / f"data-{name}", port)
             servers[name] = stack.enter_context(launch(argv_, env, port, work / f"{name}.log"))
         runs = measure(servers, requests, args.rounds, args.seconds)
-    print("\n".join(["", *summary(runs), f"load at the end {os.getloadavg()}"]))
+        paced = measure_paced(servers, sample, args.rounds, args.gap_ms / 1000)
+    lines = ["", *summary(runs), "", *paced_summary(paced, args.gap_ms), f"load at the end {os.getloadavg()}"]
+    print("\n".join(lines))
     return 0
 
 
