@@ -9,8 +9,8 @@
 # links CUDA 13 (libcublas.so.13) and asks for cuDNN 9. The build fails when they differ.
 ARG CUDA_IMAGE=nvidia/cuda:13.0.0-cudnn-runtime-ubuntu22.04
 
-# Build stage: a wheel with the compiled anchor-median kernel and JPEG windows (a C compiler and
-# libjpeg's headers: both in this image).
+# Build stage: a wheel with the compiled anchor-median kernel, JPEG windows and the threads keeping
+# cores awake (a C compiler and libjpeg's headers: both in this image).
 FROM python:3.11-bookworm AS build
 WORKDIR /src
 COPY pyproject.toml README.md ./
@@ -19,7 +19,8 @@ COPY calibration_store ./calibration_store
 COPY client ./client
 RUN pip wheel --no-deps --wheel-dir /wheels . \
     && python -m zipfile -l /wheels/*.whl | grep -q _upper_half \
-    && python -m zipfile -l /wheels/*.whl | grep -q _jpeg_window  # both were compiled
+    && python -m zipfile -l /wheels/*.whl | grep -q _jpeg_window \
+    && python -m zipfile -l /wheels/*.whl | grep -q _keep_awake  # all three were compiled
 
 # ---- CUDA target (--target cuda): never built for the default target, which is the last stage.
 FROM ${CUDA_IMAGE} AS cuda-python
@@ -41,7 +42,8 @@ COPY service ./service
 COPY calibration_store ./calibration_store
 COPY client ./client
 RUN pip wheel --no-deps --wheel-dir /wheels . \
-    && python -m zipfile -l /wheels/*.whl | grep -q _upper_half
+    && python -m zipfile -l /wheels/*.whl | grep -q _upper_half \
+    && python -m zipfile -l /wheels/*.whl | grep -q _keep_awake
 
 FROM cuda-python AS cuda
 # Measured on an H200 (docs/operations.md, Serving from a GPU): the CPU work, not the model, is
@@ -67,6 +69,7 @@ RUN pip install "$(ls /wheels/*.whl)[postgres,gpu]" && rm -rf /wheels \
     && ! ldd "$(python -c "import onnxruntime as o, pathlib; print(pathlib.Path(o.__file__).parent \
          / 'capi' / 'libonnxruntime_providers_cuda.so')")" | grep "not found" | grep -v "libcuda\.so\.1" \
     && python -c "from service.conformal.kernel import native_kernel_available as ok; assert ok()" \
+    && python -c "from service.infra.keep_awake import keep_awake_available as ok; assert ok()" \
     && useradd --system --uid 10001 --no-create-home --shell /usr/sbin/nologin app \
     && mkdir -p /data && chown app /data
 COPY models/lmo-synth-unet ./models/lmo-synth-unet
@@ -97,6 +100,7 @@ RUN apt-get update && apt-get install -y --no-install-recommends libjpeg62-turbo
     && pip install "$(ls /wheels/*.whl)[postgres]" && rm -rf /wheels \
     && python -c "from service.conformal.kernel import native_kernel_available as ok; assert ok()" \
     && python -c "from service.detector.images import jpeg_windows_available as ok; assert ok()" \
+    && python -c "from service.infra.keep_awake import keep_awake_available as ok; assert ok()" \
     && useradd --system --uid 10001 --no-create-home --shell /usr/sbin/nologin app \
     && mkdir -p /data && chown app /data
 COPY models/lmo-synth-unet ./models/lmo-synth-unet

@@ -7,7 +7,7 @@ import os
 import threading
 import time
 from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +19,7 @@ from service.detector.manifest import MODEL_FILENAME, Manifest, ManifestError, l
 from service.detector.preprocess import build_batch
 from service.errors import InvalidInput
 from service.infra.cpu_priority import in_background
+from service.infra.keep_awake import keep_awake
 from service.infra.metrics import BATCH_SIZE, INFERENCE_SECONDS
 
 CPU = ("CPUExecutionProvider",)
@@ -84,6 +85,7 @@ class Detector:
         cores = usable_cores()
         alone = threads != 0 and cores > threads and tuple(providers) == CPU
         self._alone_session = create_session(model_path, cores, spinning=False) if alone else None
+        self._keep_awake = keep_awake(cores) if alone else None
         self.alone_threads = cores if alone else threads
         self._computing, self._counting = 0, threading.Lock()
         _check_graph(self._session, self.manifest)
@@ -112,8 +114,10 @@ class Detector:
         spec = self.manifest
         alone = self._alone_session is not None and self._computing <= 1 and not in_background()
         session = self._alone_session if alone else self._session
+        awake = self._keep_awake.during() if alone and self._keep_awake is not None else nullcontext()
         started = time.perf_counter()
-        heatmaps = session.run([spec.output.name], {spec.input.name: batch})[0]
+        with awake:  # the run's threads find their cores awake (service.infra.keep_awake)
+            heatmaps = session.run([spec.output.name], {spec.input.name: batch})[0]
         INFERENCE_SECONDS.observe(time.perf_counter() - started)
         BATCH_SIZE.observe(len(batch))
         return heatmaps
