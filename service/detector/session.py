@@ -70,9 +70,11 @@ class Detector:
         *,
         providers: Sequence[str] = CPU,
         provider_options: Mapping[str, Mapping[str, str]] | None = None,
+        keep_cores_awake: bool = True,
     ) -> None:
         """``threads``: onnxruntime intra-op threads of a run beside others (0: onnxruntime's
-        default, every run). A lone request's session exists on the CPU provider only."""
+        default, every run). A lone request's session exists on the CPU provider only, and its
+        runs keep the other cores awake (``keep_cores_awake``, service.infra.keep_awake)."""
         model_dir = Path(model_dir)
         self.manifest = _load_manifest(model_dir)
         model_path = model_dir / MODEL_FILENAME
@@ -85,7 +87,7 @@ class Detector:
         cores = usable_cores()
         alone = threads != 0 and cores > threads and tuple(providers) == CPU
         self._alone_session = create_session(model_path, cores, spinning=False) if alone else None
-        self._keep_awake = keep_awake(cores) if alone else None
+        self._keep_awake = keep_awake(cores) if alone and keep_cores_awake else None
         self.alone_threads = cores if alone else threads
         self._computing, self._counting = 0, threading.Lock()
         _check_graph(self._session, self.manifest)

@@ -106,6 +106,16 @@ class ModelSettings(_Group):
             " own thread, concurrent requests' runs in parallel"
         ),
     )
+    keep_cores_awake: bool = Field(
+        default=True,
+        description=(
+            "while a request alone in the process runs on every core, keep the other cores awake with "
+            "busy-waiting threads of the lowest priority (Linux, the service's C extension): between "
+            "frames an idle core halts, and waking it slows the run (bench_ab, paced frames: a 1080p "
+            "frame's 4 boxes answered 17 % sooner) for about 20 % more CPU per such request; false "
+            "saves that CPU (docs/operations.md, Idle cores between frames)"
+        ),
+    )
     cpu_workers: int = Field(
         default=4, gt=0, description="threads for decode, crop and scoring off the event loop"
     )

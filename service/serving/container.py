@@ -131,7 +131,10 @@ def build_state(settings: Settings) -> ServiceState:
     # split each small crop across helper threads that spin while they wait.
     cv2.setNumThreads(1)
     detector = Detector(
-        settings.model.directory, settings.model.inference_threads, **detector_providers(settings)
+        settings.model.directory,
+        settings.model.inference_threads,
+        **detector_providers(settings),
+        keep_cores_awake=settings.model.keep_cores_awake,
     )
     log.info(
         "onnxruntime execution providers in use: %s; intra-op threads of a run: %d, of a request alone"

@@ -119,3 +119,14 @@ def test_a_lone_run_keeps_the_other_cores_awake_and_a_run_beside_others_does_not
         _soon(_all("S"), "asleep after the run")
         with detector.computing():  # a second request: neither run is alone
             assert _states_during(detector, batch) == {"S"}
+
+
+def test_a_detector_told_not_to_leaves_the_cores_asleep(on_every_core: int) -> None:
+    detector = Detector(DEFAULT_MODEL_DIR, threads=1, keep_cores_awake=False)  # CKS_KEEP_CORES_AWAKE
+    spec = detector.manifest.input
+    batch = np.zeros((32, spec.channels, spec.height, spec.width), np.float32)
+    with KeepAwake(1).during():  # the threads exist (they are started once per process)
+        pass
+    _soon(_all("S"), "asleep before the run")
+    with detector.computing():
+        assert _states_during(detector, batch) == {"S"}
