@@ -1,9 +1,9 @@
 """Keeping the other cores awake while a lone request's model run spreads over them.
 
 An idle core halts, and on a virtual machine waking it again costs far more than the pieces of
-work onnxruntime hands its intra-op threads, which sleep between pieces: after the service had
-sat idle between frames, as it does at a camera's cadence, a lone request's run of 4 crops on 2
-threads took 9.3 ms instead of 5.4 ms. While such a run computes, one thread per other core
+work onnxruntime hands its intra-op threads, which sleep between pieces: a 1080p frame's 4 boxes
+took 11.9 ms back to back and 14.4 ms at a camera's cadence, the difference in the model's run
+(docs/operations.md, Idle cores between frames). While such a run computes, one thread per other core
 busy-waits at the lowest priority (``SCHED_IDLE``), so those cores do not halt between the
 run's pieces, and give way at once to any thread with work, the run's own included. Between
 runs they sleep.
