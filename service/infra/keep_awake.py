@@ -24,7 +24,7 @@ try:
 except ImportError:  # not built (no C compiler, not Linux): the cores sleep between pieces
     _keep_awake = None
 
-_KEEP_AWAKE_VERSION = 1  # native/keep_awake.c's VERSION: an extension built from older sources is not used
+_KEEP_AWAKE_VERSION = 2  # native/keep_awake.c's VERSION: an extension built from older sources is not used
 _native = _keep_awake if getattr(_keep_awake, "VERSION", None) == _KEEP_AWAKE_VERSION else None
 
 

@@ -8,6 +8,7 @@
 #include <linux/futex.h>
 #include <pthread.h>
 #include <sched.h>
+#include <signal.h>
 #include <stdatomic.h>
 #include <sys/syscall.h>
 #include <unistd.h>
@@ -21,7 +22,7 @@
 #define RELAX() ((void)0)
 #endif
 
-#define VERSION 1
+#define VERSION 2
 
 static _Atomic int wanted = 0;   /* runs holding the cores awake */
 static _Atomic int threads = 0;  /* threads started */
@@ -45,6 +46,11 @@ static void *keep_awake(void *unused) {
 static PyObject *start(PyObject *self, PyObject *args) {
     int count;
     if (!PyArg_ParseTuple(args, "i", &count)) return NULL;
+    /* The threads block every signal (inherited from here): the interpreter's handlers are the
+     * main thread's business, and a signal would wake a sleeping thread for nothing. */
+    sigset_t every, kept;
+    sigfillset(&every);
+    pthread_sigmask(SIG_BLOCK, &every, &kept);
     pthread_mutex_lock(&starting);
     while (atomic_load(&threads) < count) {
         pthread_t thread;
@@ -58,6 +64,7 @@ static PyObject *start(PyObject *self, PyObject *args) {
         atomic_fetch_add(&threads, 1);
     }
     pthread_mutex_unlock(&starting);
+    pthread_sigmask(SIG_SETMASK, &kept, NULL);
     return PyLong_FromLong(atomic_load(&threads));
 }
 

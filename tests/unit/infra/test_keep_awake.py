@@ -4,6 +4,7 @@ runs they sleep; they keep awake only the cores a run may use."""
 from __future__ import annotations
 
 import os
+import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -42,6 +43,12 @@ def _state(tid: int) -> str:
     return (TASKS / str(tid) / "stat").read_text().rpartition(")")[2].split()[0]
 
 
+def _blocks_signals(tid: int) -> bool:
+    status = (TASKS / str(tid) / "status").read_text()
+    blocked = int(next(line for line in status.splitlines() if line.startswith("SigBlk:")).split()[1], 16)
+    return all(blocked & (1 << (number - 1)) for number in (signal.SIGINT, signal.SIGTERM, signal.SIGCHLD))
+
+
 def _soon(condition: Callable[[], bool], what: str) -> None:
     deadline = time.monotonic() + 10
     while not condition():
@@ -60,6 +67,7 @@ def test_the_threads_busy_wait_at_the_lowest_priority_during_a_run_and_sleep_bet
         with awake.during():
             _soon(_all("R", at_least=2), "the threads busy-wait while a run holds them")
             assert {os.sched_getscheduler(tid) for tid in _awake_threads()} == {os.SCHED_IDLE}
+            assert all(_blocks_signals(tid) for tid in _awake_threads()), "signals are the main thread's"
         _soon(_all("S"), "the threads sleep once the run is over")
         time.sleep(0.05)
         assert _all("S")()
