@@ -3,10 +3,10 @@
 An idle core halts, and on a virtual machine waking it again costs far more than the pieces of
 work onnxruntime hands its intra-op threads, which sleep between pieces: a 1080p frame's 4 boxes
 took 11.9 ms back to back and 14.4 ms at a camera's cadence, the difference in the model's run
-(docs/operations.md, Idle cores between frames). While such a run computes, one thread per other core
-busy-waits at the lowest priority (``SCHED_IDLE``), so those cores do not halt between the
-run's pieces, and give way at once to any thread with work, the run's own included. Between
-runs they sleep.
+(docs/operations.md, Idle cores between frames). While such a run computes, one thread per
+other core busy-waits at the lowest priority (``SCHED_IDLE``), so those cores do not halt
+between the run's pieces, and give way at once to any thread with work, the run's own
+included. Between runs they sleep.
 
 The threads are the C extension ``_keep_awake``'s (Linux): they never take the interpreter
 lock, which a thread of the lowest priority could otherwise hold up the others with. Without

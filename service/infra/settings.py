@@ -111,9 +111,9 @@ class ModelSettings(_Group):
         description=(
             "while a request alone in the process runs on every core, keep the other cores awake with "
             "busy-waiting threads of the lowest priority (Linux, the service's C extension): between "
-            "frames an idle core halts, and waking it slows the run (bench_ab, paced frames: a 1080p "
-            "frame's 4 boxes answered 17 % sooner) for about 20 % more CPU per such request; false "
-            "saves that CPU (docs/operations.md, Idle cores between frames)"
+            "frames an idle core halts, and waking it slows the run (bench_ab, frames 30 ms apart: a "
+            "1080p frame's 4 boxes answered a fifth sooner) for 10-33 % more CPU per such request; "
+            "false saves that CPU (docs/operations.md, Idle cores between frames)"
         ),
     )
     cpu_workers: int = Field(
