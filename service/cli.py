@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import shlex
 import shutil
 import socket
@@ -19,7 +20,7 @@ from calibration_store import StoreError, store_location
 from service import __version__
 from service.errors import InvalidInput, ServiceError
 from service.infra.logs import configure_logging
-from service.infra.settings import Settings
+from service.infra.settings import RemovedSettings, Settings, refuse_removed_settings
 
 
 def _serve(args: argparse.Namespace, settings: Settings) -> int:
@@ -499,8 +500,11 @@ def main(argv: list[str] | None = None) -> int:
     args.argv = sys.argv[1:] if argv is None else list(argv)  # as typed: the report states its command
     try:
         settings = Settings()
+        refuse_removed_settings(os.environ)
     except ValidationError as error:
         return _failed(f"invalid settings: {_problems(error, lambda loc: 'CKS_' + '_'.join(loc).upper())}", 2)
+    except RemovedSettings as error:
+        return _failed(str(error), 2)
     # serve logs at CKS_LOG_LEVEL; the one-shot commands say only what went wrong unless it is set
     quiet = args.run is not _serve and "level" not in settings.logs.model_fields_set
     configure_logging(settings, "WARNING" if quiet else None)

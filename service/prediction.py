@@ -39,7 +39,7 @@ def _check_instances(instances: Sequence[Instance], width: int, height: int, lim
     box numbers were checked where the query was made (the API's request schema knows the model)."""
     if len(instances) > limit:
         raise InvalidInput(
-            f"{len(instances)} instances in one request; the limit is {limit} (CKS_MAX_INSTANCES)"
+            f"{len(instances)} instances in one request; the limit is {limit}: send the rest in another"
         )
     problems = [
         f"instances[{i}].bbox: {problem}"
@@ -155,7 +155,7 @@ class Prediction:
 @dataclass(frozen=True)
 class Predictor:
     """The long-lived parts a prediction reads, and the limits it enforces (CKS_MAX_IMAGE_PIXELS,
-    CKS_MAX_DECODED_BYTES, CKS_MAX_INSTANCES)."""
+    the decoded bytes and the instances of an image)."""
 
     detector: Detector
     registry: CalibrationRegistry

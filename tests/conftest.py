@@ -74,12 +74,15 @@ def limits(samples_dir: Path, coco: dict) -> dict[str, int]:
     largest_file = max((samples_dir / image["file_name"]).stat().st_size for image in coco["images"])
     return {
         "max_upload_bytes": upload_bytes,
-        "max_upload_uncompressed_bytes": 2 * upload_bytes,
-        "max_upload_files": 8,
         "max_image_pixels": max(image["width"] * image["height"] for image in coco["images"]),
         "max_request_bytes": max(300_000, 2 * largest_file),
-        "max_instances": 3,
     }
+
+
+@pytest.fixture(scope="session")
+def fixed_limits() -> dict[str, int]:
+    """Small fixed limits of the service (service.serving.container) for refusal tests."""
+    return {"MAX_UPLOAD_FILES": 8, "MAX_INSTANCES": 3}
 
 
 @pytest.fixture(scope="session")

@@ -13,8 +13,8 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from calibration_store import CalibrationStore
 from service.api.http.admission import Admission
-from service.api.http.clients import Client, ClientKeys
-from service.api.http.request_body import BodyPace, read_limited_body
+from service.api.http.callers import Callers
+from service.api.http.request_body import read_limited_body
 from service.calibration.jobs import CalibrationJobs
 from service.calibration.registry import CalibrationRegistry
 from service.calibration.versions import VersionRules
@@ -71,11 +71,8 @@ class PredictParts:
     predictor: Predictor
     admission: Admission
     pool: Executor
-    background_pool: Executor  # for a client's requests beyond its first while others are served
     max_request_bytes: int
-    max_batch_images: int
-    pace: BodyPace
-    clients: ClientKeys
+    callers: Callers
     retention: Retention | None = None  # None: nothing is retained (no store to keep answers in)
     adaptive: AdaptiveSets | None = None  # None: no adaptive sets
 
@@ -84,17 +81,13 @@ class PredictParts:
         """The served model's: a request naming another object is told so with its other problems."""
         return self.predictor.detector.manifest
 
-    def client_of(self, request: Request) -> Client:
-        """Whose share of the admission places this request takes (service.api.http.clients)."""
-        return self.clients.of(request.client.host if request.client else None, request.headers)
+    def caller_of(self, request: Request) -> str:
+        """Whose share of the admission places this request takes (service.api.http.callers)."""
+        return self.callers.of(request)
 
     async def receive(self, request: Request) -> bytes:
-        """The body within CKS_MAX_REQUEST_BYTES, paced, its bytes counted against
-        CKS_MAX_RECEIVING_BYTES while it arrives."""
-        with self.admission.receiving() as count:
-            return await read_limited_body(
-                request, self.max_request_bytes, "CKS_MAX_REQUEST_BYTES", self.pace, count
-            )
+        """The body within CKS_MAX_REQUEST_BYTES, in time."""
+        return await read_limited_body(request, self.max_request_bytes, "CKS_MAX_REQUEST_BYTES")
 
 
 async def get_predict_parts(request: Request) -> PredictParts:

@@ -174,8 +174,8 @@ def open_frame(
 ) -> ImageSource:
     """Check the frame's regions against the frame, the boxes (``[x, y, w, h]`` in frame pixels,
     checked already) and the limits, then decode them. ``PayloadTooLarge`` above
-    CKS_MAX_IMAGE_PIXELS or CKS_MAX_DECODED_BYTES; ``InvalidInput`` naming every region that lies
-    outside the frame, disagrees with its bytes, or misses a margin of a box it serves."""
+    CKS_MAX_IMAGE_PIXELS or the decoded bytes one image may take; ``InvalidInput`` naming every
+    region that lies outside the frame, disagrees with its bytes, or misses a margin of a box it serves."""
     _check_frame_size(frame, max_pixels)
     problems = [problem for region in frame.regions for problem in _placement_problems(frame, region)]
     if not problems:
@@ -290,7 +290,7 @@ def _check_budget(frame: EncodedFrame, max_bytes: int) -> None:
         what = "the frame" if frame.whole else f"the {len(frame.regions)} regions"
         raise PayloadTooLarge(
             f"decoding {what} would take {needed} bytes of memory, above the limit of {max_bytes} bytes"
-            " (CKS_MAX_DECODED_BYTES); send smaller regions"
+            " per image; send smaller regions"
         )
 
 

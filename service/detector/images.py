@@ -97,7 +97,7 @@ def decode_image(data: bytes, max_pixels: int, max_bytes: int | None = None) -> 
 
     ``PayloadTooLarge``, before anything is decoded, when ``width * height`` exceeds
     ``max_pixels`` (``CKS_MAX_IMAGE_PIXELS``) or the decode would take more than ``max_bytes``
-    of memory (``CKS_MAX_DECODED_BYTES``; None: no such limit). ``InvalidInput`` for a good
+    of memory (None: no such limit). ``InvalidInput`` for a good
     header followed by corrupt, truncated or too little data.
     """
     return decode_checked(data, checked_image_header(data, max_pixels, max_bytes))
@@ -116,7 +116,7 @@ def checked_image_header(data: bytes, max_pixels: int, max_bytes: int | None = N
     if max_bytes is not None and needed > max_bytes:
         raise PayloadTooLarge(
             f"decoding the {name} image ({size}) would take {needed} bytes of memory, above the limit"
-            f" of {max_bytes} bytes (CKS_MAX_DECODED_BYTES); send a smaller image (16-bit samples and"
+            f" of {max_bytes} bytes per image; send a smaller image (16-bit samples and"
             " progressive JPEGs take more memory per pixel)"
         )
     return header

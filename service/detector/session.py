@@ -7,7 +7,7 @@ import os
 import threading
 import time
 from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager, nullcontext
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,8 +18,6 @@ from service.detector.frames import ImageSource
 from service.detector.manifest import MODEL_FILENAME, Manifest, ManifestError, load_manifest
 from service.detector.preprocess import build_batch
 from service.errors import InvalidInput
-from service.infra.cpu_priority import in_background
-from service.infra.keep_awake import keep_awake
 from service.infra.metrics import BATCH_SIZE, INFERENCE_SECONDS
 
 CPU = ("CPUExecutionProvider",)
@@ -70,11 +68,9 @@ class Detector:
         *,
         providers: Sequence[str] = CPU,
         provider_options: Mapping[str, Mapping[str, str]] | None = None,
-        keep_cores_awake: bool = True,
     ) -> None:
         """``threads``: onnxruntime intra-op threads of a run beside others (0: onnxruntime's
-        default, every run). A lone request's session exists on the CPU provider only, and its
-        runs keep the other cores awake (``keep_cores_awake``, service.infra.keep_awake)."""
+        default, every run). A lone request's session exists on the CPU provider only."""
         model_dir = Path(model_dir)
         self.manifest = _load_manifest(model_dir)
         model_path = model_dir / MODEL_FILENAME
@@ -87,7 +83,6 @@ class Detector:
         cores = usable_cores()
         alone = threads != 0 and cores > threads and tuple(providers) == CPU
         self._alone_session = create_session(model_path, cores, spinning=False) if alone else None
-        self._keep_awake = keep_awake(cores) if alone and keep_cores_awake else None
         self.alone_threads = cores if alone else threads
         self._computing, self._counting = 0, threading.Lock()
         _check_graph(self._session, self.manifest)
@@ -114,12 +109,10 @@ class Detector:
         """``(N, C, H, W)`` float32 input -> ``(N, K, h, w)`` float32 heatmaps, in one run on this
         thread (concurrent requests run in parallel on their own threads)."""
         spec = self.manifest
-        alone = self._alone_session is not None and self._computing <= 1 and not in_background()
+        alone = self._alone_session is not None and self._computing <= 1
         session = self._alone_session if alone else self._session
-        awake = self._keep_awake.during() if alone and self._keep_awake is not None else nullcontext()
         started = time.perf_counter()
-        with awake:  # the run's threads find their cores awake (service.infra.keep_awake)
-            heatmaps = session.run([spec.output.name], {spec.input.name: batch})[0]
+        heatmaps = session.run([spec.output.name], {spec.input.name: batch})[0]
         INFERENCE_SECONDS.observe(time.perf_counter() - started)
         BATCH_SIZE.observe(len(batch))
         return heatmaps

@@ -6,7 +6,9 @@ The name is what the audit trail and the activation log record. Every token, whe
 configured, obeys one rule: at least 16 characters, no spaces.
 
 A line ``feedback name:token`` gives a token of its own scope: it may send feedback on retained
-predictions (POST /v1/feedback/...) and nothing else. Admin tokens may send feedback too.
+predictions (POST /v1/feedback/...) and nothing else. A line ``predict name:token`` gives a
+predict token: once the file has one, predict requests need a predict (or admin) token, and each
+token holder is one caller for admission's cap. Admin tokens may send feedback and predict too.
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ TOKEN_SETTING = "CKS_ADMIN_TOKEN"
 TOKENS_FILE_SETTING = "CKS_ADMIN_TOKENS_FILE"
 SINGLE_TOKEN_NAME = "admin"
 FEEDBACK_SCOPE = "feedback"
+PREDICT_SCOPE = "predict"
+SCOPES = (FEEDBACK_SCOPE, PREDICT_SCOPE)
 MIN_TOKEN_CHARS = 16
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._@-]{0,63}$")
 
@@ -34,7 +38,7 @@ def load_operators(single_token: str | None, tokens_file: Path | None) -> dict[s
         _check_token(single_token, f"{TOKEN_SETTING}: the token")
         operators[single_token] = SINGLE_TOKEN_NAME
     if tokens_file is not None:
-        for number, name, token in _entries(tokens_file, admin=True):
+        for number, name, token in _entries(tokens_file, scope=None):
             where = f"{TOKENS_FILE_SETTING} {tokens_file}, line {number}"
             if token in operators:
                 raise OperatorsError(f"{where}: this token is already given to {operators[token]!r}")
@@ -46,8 +50,21 @@ def load_operators(single_token: str | None, tokens_file: Path | None) -> dict[s
 
 def load_feedback_senders(single_token: str | None, tokens_file: Path | None) -> dict[str, str]:
     """Token -> name of those who may send feedback: the admins and the ``feedback`` lines."""
+    return _scoped(single_token, tokens_file, FEEDBACK_SCOPE)
+
+
+def load_predict_callers(single_token: str | None, tokens_file: Path | None) -> dict[str, str]:
+    """Token -> name of those who may predict where predict tokens are on (the ``predict`` lines and
+    the admins); empty where the file has no ``predict`` line: predict needs no token then."""
+    if tokens_file is None or not _entries(tokens_file, scope=PREDICT_SCOPE):
+        return {}
+    return _scoped(single_token, tokens_file, PREDICT_SCOPE)
+
+
+def _scoped(single_token: str | None, tokens_file: Path | None, scope: str) -> dict[str, str]:
+    """The admins' tokens and those of ``scope``'s lines."""
     senders = load_operators(single_token, tokens_file)
-    for number, name, token in _entries(tokens_file, admin=False) if tokens_file is not None else ():
+    for number, name, token in _entries(tokens_file, scope) if tokens_file is not None else ():
         where = f"{TOKENS_FILE_SETTING} {tokens_file}, line {number}"
         if token in senders:
             raise OperatorsError(f"{where}: this token is already given to {senders[token]!r}")
@@ -65,8 +82,8 @@ def operator_named(operators: dict[str, str], presented: str) -> str | None:
     return found
 
 
-def _entries(path: Path, admin: bool) -> list[tuple[int, str, str]]:
-    """The admin lines (``admin``), or the feedback-scoped ones."""
+def _entries(path: Path, scope: str | None) -> list[tuple[int, str, str]]:
+    """The lines of ``scope`` (None: the admin lines, which name no scope)."""
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as error:
@@ -77,8 +94,8 @@ def _entries(path: Path, admin: bool) -> list[tuple[int, str, str]]:
         if not line or line.startswith("#"):
             continue
         where = f"{TOKENS_FILE_SETTING} {path}, line {number}"
-        scoped = line.startswith(FEEDBACK_SCOPE + " ")
-        line = line.removeprefix(FEEDBACK_SCOPE + " ") if scoped else line
+        line_scope = next((s for s in SCOPES if line.startswith(s + " ")), None)
+        line = line.removeprefix(f"{line_scope} ") if line_scope else line
         name, sep, token = line.partition(":")
         name, token = name.strip(), token.strip()
         if not sep or not _NAME.match(name):
@@ -87,7 +104,7 @@ def _entries(path: Path, admin: bool) -> list[tuple[int, str, str]]:
             )
         _check_token(token, f"{where}: the token of {name!r}")
         named += 1
-        if scoped != admin:
+        if line_scope == scope:
             entries.append((number, name, token))
     if not named:
         raise OperatorsError(f"{TOKENS_FILE_SETTING} {path} names no operator; add 'name:token' lines")

@@ -27,22 +27,69 @@ DEFAULT_MODEL_DIR = PACKAGE_ROOT / "models" / "lmo-synth-unet"
 README = PACKAGE_ROOT / "README.md"
 
 _ONE_RUN = (
-    "micro-batching was removed (it lost on CPU and GPU, see CHANGELOG); each request's crops are one"
-    " run on its own thread, with CKS_INFERENCE_THREADS intra-op threads"
+    "micro-batching was removed; each request's crops are one run on its own thread, with"
+    " CKS_INFERENCE_THREADS intra-op threads"
 )
-#: Settings no longer read, which an operator may still set: what replaced each.
+_PROXY = "the proxy in front of the service does this (deploy/haproxy/haproxy.cfg, docs/deploy.md)"
+_CALLER = (
+    "a caller is its predict token (a 'predict name:token' line of CKS_ADMIN_TOKENS_FILE) or its address,"
+    " and each caller's share is CKS_CLIENT_SHARE; shares by network are the proxy's (deploy/haproxy)"
+)
+_FIXED = "fixed at {}"
+#: Settings no longer read: what replaced each. One that is still set stops the start-up.
 REMOVED_SETTINGS = {
     "CKS_MAX_INFERENCE_BATCH": _ONE_RUN,
     "CKS_INFERENCE_STREAMS": _ONE_RUN,
     "CKS_BATCH_WINDOW_MS": _ONE_RUN,
-    "CKS_SOLO_INFERENCE_THREADS": "a request alone in a process always runs on every usable core (its CPU"
-    " affinity and cgroup quota), and one beside others with CKS_INFERENCE_THREADS intra-op threads",
+    "CKS_SOLO_INFERENCE_THREADS": "a request alone in a process always runs on every usable core, and one"
+    " beside others with CKS_INFERENCE_THREADS intra-op threads",
+    "CKS_KEEP_CORES_AWAKE": "removed with its mechanism: onnxruntime's own threads run a lone request",
+    "CKS_CPU_WORKERS": "the threads for decode, crop and scoring are CKS_MAX_CONCURRENT_INFERENCES",
+    "CKS_STORE_POLL_SECONDS": _FIXED.format("1 s"),
+    "CKS_STORE_TIMEOUT_SECONDS": _FIXED.format("1.5 s"),
+    "CKS_MAX_CACHE_STALENESS_SECONDS": "/readyz reports the store's state in its body; predictions go on"
+    " from memory while the store is away",
+    "CKS_MAX_CONNECTIONS": _PROXY + " (maxconn)",
+    "CKS_HEADER_READ_TIMEOUT_SECONDS": _PROXY + " (timeout http-request)",
+    "CKS_MIN_BODY_BYTES_PER_SECOND": _PROXY + " (timeout http-request)",
+    "CKS_BODY_RATE_GRACE_SECONDS": _PROXY + " (timeout http-request)",
+    "CKS_MAX_BATCH_IMAGES": _FIXED.format("16 images per batch"),
+    "CKS_REQUEST_READ_TIMEOUT_SECONDS": _FIXED.format("30 s") + "; cutting slow clients sooner: " + _PROXY,
+    "CKS_MAX_RECEIVING_BYTES": _PROXY + ": it buffers request bodies (option http-buffer-request)",
+    "CKS_MAX_DECODED_BYTES": _FIXED.format("256 MiB of decoded pixels per image"),
+    "CKS_QUEUE_TIMEOUT_SECONDS": _FIXED.format("10 s"),
+    "CKS_CLIENT_HEADER": "X-Forwarded-For from CKS_TRUSTED_PROXIES names the caller",
+    "CKS_CLIENT_IPV4_PREFIX": _CALLER,
+    "CKS_CLIENT_IPV6_PREFIX": _CALLER,
+    "CKS_CLIENT_NETWORK_IPV4_PREFIX": _CALLER,
+    "CKS_CLIENT_NETWORK_IPV6_PREFIX": _CALLER,
+    "CKS_MAX_UPLOAD_FILES": _FIXED.format("100,000 files"),
+    "CKS_MAX_UPLOAD_UNCOMPRESSED_BYTES": _FIXED.format("twice CKS_MAX_UPLOAD_BYTES"),
+    "CKS_MAX_ANNOTATIONS_BYTES": _FIXED.format("16 MiB"),
+    "CKS_MAX_ANNOTATIONS": _FIXED.format("20,000"),
+    "CKS_UPLOAD_READ_TIMEOUT_SECONDS": _FIXED.format("1 h"),
+    "CKS_MIN_FREE_DISK_BYTES": _FIXED.format("1 GiB"),
+    "CKS_STRATUM_SIGNALS": _FIXED.format("gamma,peak_probability"),
+    "CKS_STRATUM_BINS": _FIXED.format("3"),
+    "CKS_MIN_STRATUM_INSTANCES": _FIXED.format("30"),
+    "CKS_MAX_REJECTED_SHARE": "an upload's max_rejected_share query option (default 0)",
+    "CKS_DRIFT_PSI_THRESHOLD": _FIXED.format("0.25"),
+    "CKS_DRIFT_FULL_STATISTICS_SHARE": _FIXED.format("0.25"),
+    "CKS_DRIFT_HISTORY_SECONDS": _FIXED.format("60 s"),
+    "CKS_MAX_INSTANCES": _FIXED.format("64 instances per image"),
+    "CKS_FEEDBACK_ACI_GAMMA": _FIXED.format("0.005"),
 }
 
 
-def removed_settings(environ: Mapping[str, str]) -> list[str]:
-    """One line for each removed setting that ``environ`` still sets."""
-    return [f"{name} is no longer read: {why}" for name, why in REMOVED_SETTINGS.items() if name in environ]
+class RemovedSettings(ValueError):
+    """Settings still set that are no longer read; the message says what replaced each."""
+
+
+def refuse_removed_settings(environ: Mapping[str, str]) -> None:
+    """Stop the start-up while ``environ`` sets a removed setting: its value would be ignored silently."""
+    lines = [f"{name} is no longer read: {why}" for name, why in REMOVED_SETTINGS.items() if name in environ]
+    if lines:
+        raise RemovedSettings("; ".join(lines) + ". Unset " + ("it." if len(lines) == 1 else "them."))
 
 
 def _absolute(path: Path) -> Path:
@@ -102,22 +149,9 @@ class ModelSettings(_Group):
         description=(
             "onnxruntime intra-op threads of a run while other requests compute in the same process "
             "(0 = onnxruntime's default for every run); a request alone in the process runs on every "
-            "usable core (its CPU affinity and cgroup quota). Each request's crops are one run on its"
-            " own thread, concurrent requests' runs in parallel"
+            "usable core (its CPU affinity and cgroup quota). Raise it on a many-core machine whose load"
+            " is a few clients at a time"
         ),
-    )
-    keep_cores_awake: bool = Field(
-        default=True,
-        description=(
-            "while a request alone in the process runs on every core, keep the other cores awake with "
-            "busy-waiting threads of the lowest priority (Linux, the service's C extension): between "
-            "frames an idle core halts, and waking it slows the run (bench_ab, frames 30 ms apart: a "
-            "1080p frame's 4 boxes answered a fifth sooner) for 10-33 % more CPU per such request; "
-            "false saves that CPU (docs/operations.md, Idle cores between frames)"
-        ),
-    )
-    cpu_workers: int = Field(
-        default=4, gt=0, description="threads for decode, crop and scoring off the event loop"
     )
 
     @field_validator("execution_providers", mode="before")
@@ -152,31 +186,6 @@ class StorageSettings(_Group):
     )
     bootstrap_calibration: bool = Field(
         default=True, description="load the model's bundled calibration as version 1 when the store has none"
-    )
-    poll_seconds: float = Field(
-        validation_alias="CKS_STORE_POLL_SECONDS",
-        default=1.0,
-        gt=0,
-        description="how often to look for a new active version",
-    )
-    timeout_seconds: float = Field(
-        validation_alias="CKS_STORE_TIMEOUT_SECONDS",
-        default=1.5,
-        gt=0,
-        description=(
-            "longest wait for a PostgreSQL store connection, statement, lock or round trip (a frozen"
-            " database's connection is cut), and for a SQLite write lock (its busy timeout); beyond it"
-            " the store counts as unreachable (admin calls answer 503, predictions go on from memory)."
-            " A poll still running after twice this (either store) counts as unreachable too"
-        ),
-    )
-    max_cache_staleness_seconds: float | None = Field(
-        default=None,
-        gt=0,
-        description=(
-            "`/readyz` answers 503 once the store has not confirmed the cached calibration for this long;"
-            " unset: never (predictions go on either way)"
-        ),
     )
 
     @field_validator("url")
@@ -225,12 +234,16 @@ class AdminSettings(_Group):
     )
     tokens_file: AbsolutePath | None = Field(
         default=None,
-        description="file of 'name:token' lines (tokens as above): named admin operators for the audit trail",
+        description=(
+            "file of 'name:token' lines (tokens as above): named admin operators for the audit trail;"
+            " 'feedback name:token' lines may only send feedback; 'predict name:token' lines turn predict"
+            " tokens on: predict then needs a predict or admin token, and each holder is one caller"
+        ),
     )
 
 
 class ServerSettings(_Group):
-    """The HTTP server: address, processes, connections and their timeouts."""
+    """The HTTP server: address, processes, shutdown."""
 
     host: str = Field(default="127.0.0.1", description="address to listen on")
     port: int = Field(default=8000, ge=1, le=65535, description="port to listen on")
@@ -239,30 +252,10 @@ class ServerSettings(_Group):
         ge=1,
         le=64,
         description=(
-            "uvicorn worker processes (limits below are per process); jobs and `/metrics` cover all "
-            "of them. The threads of one process share one interpreter lock, so under many concurrent"
-            " clients 2 processes serve more (docs/performance.md, tuning) at some cost in one "
-            "client's latency (a keep-alive connection stays on its worker). On a GPU the CPU work is"
-            " the bottleneck: about half the cores (docs/operations.md, Serving from a GPU)"
+            "uvicorn worker processes (the predict limits below are per process); jobs and `/metrics`"
+            " cover all of them. Raise it when many clients at once keep one process's interpreter busy"
+            " (docs/performance.md); on a GPU, about half the cores"
         ),
-    )
-    max_connections: int = Field(
-        default=1000,
-        ge=1,
-        description="open connections per process; a request beyond gets 503 (each takes a file descriptor)",
-    )
-    header_read_timeout_seconds: float = Field(
-        default=10.0,
-        gt=0,
-        description="longest time for a request's line and headers to arrive (408 and closed beyond)",
-    )
-    min_body_bytes_per_second: float = Field(
-        default=1024.0,
-        gt=0,
-        description="slowest average rate a request body may arrive at, after the grace below (408 below)",
-    )
-    body_rate_grace_seconds: float = Field(
-        default=5.0, gt=0, description="time a request body gets before its average rate is checked"
     )
     shutdown_grace_seconds: float = Field(
         default=20.0,
@@ -279,93 +272,31 @@ class PredictSettings(_Group):
 
     max_request_bytes: int = Field(default=20 * 2**20, gt=0, description="largest predict request body")
     max_image_pixels: int = Field(default=40_000_000, gt=0, description="largest width*height decoded")
-    max_instances: int = Field(default=64, gt=0, description="instances per predict request")
-    max_batch_images: int = Field(
-        default=16,
+    max_concurrent_inferences: int = Field(
+        default=8,
         gt=0,
-        le=1024,
-        description=(
-            "images per `POST /v1/predict/batch` request (each takes one admission place; the body obeys "
-            "`CKS_MAX_REQUEST_BYTES`)"
-        ),
+        description="predict requests computing at once (and the threads that decode, crop and score them)",
     )
-    max_concurrent_inferences: int = Field(default=8, gt=0, description="predict requests computing at once")
     max_queued_requests: int = Field(
         default=32, ge=0, description="predict requests waiting for a slot; more get 503 at once"
-    )
-    request_read_timeout_seconds: float = Field(
-        default=30.0, gt=0, description="longest time to receive a predict request body (408 beyond)"
-    )
-    max_receiving_bytes: int = Field(
-        default=256 * 2**20,
-        gt=0,
-        description="bytes of predict bodies being received at once, all requests together (503 beyond)",
-    )
-    max_decoded_bytes: int = Field(
-        default=256 * 2**20,
-        gt=0,
-        description=(
-            "memory one image may take to decode (its real bytes: 16-bit, alpha); 413 beyond. At most "
-            "`CKS_CPU_WORKERS` images are decoded at once"
-        ),
-    )
-    queue_timeout_seconds: float = Field(
-        default=10.0, gt=0, description="longest wait for a slot before a predict request gets 503"
     )
     client_share: float = Field(
         default=0.5,
         gt=0,
         le=1,
         description=(
-            "share of the predict places (and of the compute threads: the fewer of `CKS_CPU_WORKERS` and"
-            " the usable cores) one client may hold while other clients have asked any worker in the last"
-            " 30 s: beyond, a request waits, its body unread, up to `CKS_QUEUE_TIMEOUT_SECONDS` for one of"
-            " its client's places, then `429` with `Retry-After`; a client alone may use them all; 1 = no"
-            " per-client limit (docs/operations.md, Fair admission)"
-        ),
-    )
-    client_header: str | None = Field(
-        default=None,
-        description=(
-            "header naming the client when the connection comes from `CKS_TRUSTED_PROXIES` (e.g."
-            " `X-Forwarded-For`: its last untrusted entry); else a client is its admin token's"
-            " operator, or its address"
+            "share of the predict places (and of the compute threads that run at once) one caller may hold"
+            " while other callers have asked in the last 30 s: beyond, a request waits, its body unread, up"
+            " to 10 s for one of its caller's places, then `429` with `Retry-After`; a caller alone may use"
+            " them all. A caller is its predict token, else its address. 1 = no cap per caller"
         ),
     )
     trusted_proxies: Annotated[tuple[str, ...], NoDecode] = Field(
         default=(),
-        description="addresses or networks (comma-separated) whose `CKS_CLIENT_HEADER` is believed",
-    )
-    client_ipv4_prefix: int = Field(
-        default=32,
-        ge=8,
-        le=32,
         description=(
-            "an IPv4 client is its network of this prefix length (24: each /24 is one client, its"
-            " addresses sharing one client's places); 32: each address"
+            "addresses or networks (comma-separated) of the proxies in front of the service, whose"
+            " `X-Forwarded-For` names the caller; set it to the proxy's address behind deploy/haproxy"
         ),
-    )
-    client_ipv6_prefix: int = Field(
-        default=128,
-        ge=16,
-        le=128,
-        description="an IPv6 client is its network of this prefix length (56 or 64: a site); 128: each one",
-    )
-    client_network_ipv4_prefix: int = Field(
-        default=24,
-        ge=0,
-        le=32,
-        description=(
-            "the network of an IPv4 client, for fair shares between networks before those between"
-            " clients: a flood spread over the addresses of one /24 holds one network's share beside"
-            " a client of another; 32 (or `CKS_CLIENT_IPV4_PREFIX`): each client its own network"
-        ),
-    )
-    client_network_ipv6_prefix: int = Field(
-        default=64,
-        ge=0,
-        le=128,
-        description="the network of an IPv6 client, as `CKS_CLIENT_NETWORK_IPV4_PREFIX`; 128: each client",
     )
 
     @field_validator("trusted_proxies", mode="before")
@@ -382,43 +313,13 @@ class PredictSettings(_Group):
 
 
 class CalibrationSettings(_Group):
-    """Calibration uploads and jobs: limits, the activation floor, difficulty strata."""
+    """Calibration uploads and jobs: limits and the activation floor."""
 
     max_upload_bytes: int = Field(default=2 * 2**30, gt=0, description="largest calibration zip")
-    max_upload_files: int = Field(default=100_000, gt=0, description="most files in a calibration zip")
-    max_upload_uncompressed_bytes: int = Field(
-        default=4 * 2**30, gt=0, description="most bytes once unzipped"
-    )
-    max_annotations_bytes: int = Field(
-        default=16 * 2**20,
-        gt=0,
-        description=(
-            "largest annotations.json in a calibration zip (413 beyond, before it is unzipped or"
-            " parsed: parsing holds the process, its predictions included, about 1 s per 10 MB)"
-        ),
-    )
-    max_annotations: int = Field(
-        default=20_000,
-        gt=0,
-        description="most annotations in a calibration batch (413 beyond, before any is read)",
-    )
-    upload_read_timeout_seconds: float = Field(
-        default=3600.0,
-        gt=0,
-        description=(
-            "longest time to receive a calibration upload (408 beyond; `CKS_MIN_BODY_BYTES_PER_SECOND` "
-            "applies too)"
-        ),
-    )
     max_uploads_disk_bytes: int = Field(
         default=16 * 2**30,
         gt=0,
         description="disk kept uploads (zips, unzipped batches of unfinished jobs) may take (507 beyond)",
-    )
-    min_free_disk_bytes: int = Field(
-        default=2**30,
-        ge=0,
-        description="free space that unzipping an upload must leave in the data directory (507 beyond)",
     )
     workers: int = Field(
         default=1,
@@ -432,38 +333,6 @@ class CalibrationSettings(_Group):
         ge=0,
         description="activation needs this n per keypoint (unless forced with a reason)",
     )
-    stratum_signals: str = Field(
-        default="gamma,peak_probability",
-        description="difficulty strata: one heatmap feature, or two (comma-separated) for joint bins"
-        " (peak_probability, gamma, anisotropy)",
-    )
-    stratum_bins: int = Field(
-        default=3, ge=1, le=20, description="difficulty strata: quantile bins per signal"
-    )
-    min_stratum_instances: int = Field(
-        default=30,
-        ge=1,
-        description=(
-            "difficulty strata: least calibration scores per bin (bins merge below); bounded down to "
-            "epsilon = 1/31"
-        ),
-    )
-    max_rejected_share: float = Field(
-        default=0.0, ge=0, le=1, description="share of a batch's instances that may be rejected (default)"
-    )
-
-    @property
-    def difficulty(self) -> tuple[tuple[str, ...], int, int]:
-        """The difficulty strata's signals, bins per signal and least instances per bin."""
-        return tuple(self.stratum_signals.split(",")), self.stratum_bins, self.min_stratum_instances
-
-    @field_validator("stratum_signals")
-    @classmethod
-    def _stratum_signals(cls, value: str) -> str:
-        names = [name.strip() for name in value.split(",") if name.strip()]
-        if not 1 <= len(names) <= 2 or len(set(names)) != len(names):
-            raise ValueError(f"give one or two distinct heatmap features, comma-separated; got {value!r}")
-        return ",".join(names)  # which features exist is the domain's to say (DifficultySpec)
 
 
 class DriftMonitorSettings(_Group):
@@ -497,28 +366,14 @@ class DriftMonitorSettings(_Group):
         " between false alarms on average; ks: family-wise error rate of one evaluation over all keypoints x"
         " features (Holm)",
     )
-    psi_threshold: float = Field(
-        default=0.25,
-        gt=0,
-        description="psi: a keypoint's feature alarms above this index (once it has 400 live values)",
-    )
-    full_statistics_share: float = Field(
-        default=0.25,
-        ge=0,
-        le=1,
-        description="share of predictions that also compute the heatmap statistics their nonconformity"
-        " function skips, so every drift feature gets live values (the rest record theirs for free)",
-    )
-    history_seconds: float = Field(
-        default=60.0, gt=0, description="one point of the drift history this often (360 points kept)"
-    )
     share_seconds: float = Field(
         default=5.0,
         gt=0,
         description=(
             "how often each process writes its drift windows and looks to the store, where any worker or"
             " replica merges them to answer for the fleet (GET /v1/admin/drift, cks_drift_*); a restart"
-            " loses at most this much; a process silent for 5 times this no longer counts"
+            " loses at most this much. Raise it for a fleet of many replicas: each writes its windows"
+            " this often"
         ),
     )
 
@@ -553,12 +408,6 @@ class FeedbackSettings(_Group):
         " watched (the alarm's ladder of floors over the calibration's Beta law, docs/feedback.md; exact"
         " for a group of one threshold, at most K times it for a group of K thresholds whose coverages"
         " do not move together), and of the confidence sequence missing the mean",
-    )
-    aci_gamma: float = Field(
-        default=0.005,
-        gt=0,
-        lt=1,
-        description="adaptive sets: ACI step size gamma (alpha_{t+1} = alpha_t + gamma (epsilon - err_t))",
     )
 
 

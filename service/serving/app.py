@@ -15,13 +15,13 @@ from service import __version__
 from service.api.admin import audit_routes, calibration_routes
 from service.api.deps import PredictParts
 from service.api.feedback import coverage_routes, feedback_routes
-from service.api.http.clients import ClientKeys
+from service.api.http.callers import Callers
 from service.api.http.contract import install_contract
 from service.api.http.cut_requests import AnswerCutRequests
+from service.api.http.header_limits import HeaderLimits
 from service.api.http.http_middleware import HttpMiddleware
 from service.api.http.metrics_middleware import MetricsMiddleware
 from service.api.http.problems import install_problem_handlers
-from service.api.http.request_body import BodyPace
 from service.api.http.request_id import RequestIdMiddleware
 from service.api.monitoring import console_routes, drift_routes, health_routes
 from service.api.predict import frame_routes, model_routes, predict_routes
@@ -100,6 +100,7 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
     app.add_middleware(AnswerCutRequests)  # inside the metrics and the access line: they see its 503
     app.add_middleware(MetricsMiddleware)
     app.add_middleware(DocsPagesPolicy)
+    app.add_middleware(HeaderLimits)  # outside the metrics: headers refused before anything reads them
     app.add_middleware(RequestIdMiddleware)  # outside the access line, which logs the id
     install_problem_handlers(app)
     for routes in (
@@ -129,25 +130,12 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
 
 def predict_parts(state: ServiceState) -> PredictParts:
     """What the predict routes take from the service (``service.api.deps.Predicting``)."""
-    settings = state.settings
-    pace = BodyPace.from_settings(
-        settings, settings.predict.request_read_timeout_seconds, "CKS_REQUEST_READ_TIMEOUT_SECONDS"
-    )
     return PredictParts(
         state.predictor,
         state.admission,
         state.cpu_pool,
-        state.background_pool,
-        settings.predict.max_request_bytes,
-        settings.predict.max_batch_images,
-        pace,
-        ClientKeys(
-            state.operators,
-            settings.predict.client_header,
-            settings.predict.trusted_proxies,
-            (settings.predict.client_ipv4_prefix, settings.predict.client_ipv6_prefix),
-            (settings.predict.client_network_ipv4_prefix, settings.predict.client_network_ipv6_prefix),
-        ),
+        state.settings.predict.max_request_bytes,
+        Callers(state.predict_callers),
         state.retention,
         state.adaptive,
     )

@@ -27,14 +27,11 @@ from service.calibration.registry import CalibrationRegistry
 from service.calibration.stratification import difficulty_spec
 from service.calibration.uploads import process_uploads_dir, remove_spent_job_folders
 from service.calibration.versions import VersionRules
-from service.conformal.kernel import native_kernel_available
 from service.detector.session import Detector, usable_cores
 from service.feedback.adaptive import AdaptiveSets
 from service.feedback.live_coverage import LiveCoverageReader
 from service.feedback.retention import Retention, RetentionRules
 from service.infra.audit_trail import AuditTrail
-from service.infra.client_board import ClientBoard
-from service.infra.cpu_priority import background_pool
 from service.infra.job_engine import JobRunner
 from service.infra.logs import ensure_logging
 from service.infra.metrics import (
@@ -43,8 +40,8 @@ from service.infra.metrics import (
     set_drift_source,
     set_feedback_source,
 )
-from service.infra.operators import load_feedback_senders, load_operators
-from service.infra.settings import Settings, removed_settings
+from service.infra.operators import load_feedback_senders, load_operators, load_predict_callers
+from service.infra.settings import Settings, refuse_removed_settings
 from service.monitoring import coverage_audits
 from service.monitoring.coverage_audits import CoverageAudits
 from service.monitoring.drift_monitor import DriftMonitor, DriftSettings
@@ -54,6 +51,18 @@ from service.prediction import Predictor
 log = logging.getLogger(__name__)
 #: how old the live coverage /metrics serves may be (each scrape would otherwise read every label)
 FEEDBACK_METRICS_AGE_S = 10.0
+#: how often the store is asked for a new active version, and how long any store call may wait
+STORE_POLL_SECONDS = 1.0
+STORE_TIMEOUT_SECONDS = 1.5
+# Fixed parts that were settings once (service.infra.settings.REMOVED_SETTINGS says which).
+DIFFICULTY = difficulty_spec(("gamma", "peak_probability"), 3, 30)
+MAX_UPLOAD_FILES, MAX_ANNOTATIONS_BYTES, MAX_ANNOTATIONS = 100_000, 16 * 2**20, 20_000
+MIN_FREE_DISK_BYTES = 2**30
+MAX_DECODED_BYTES = 256 * 2**20  # an image's decoded pixels (16-bit and alpha take more per pixel)
+DRIFT_PSI_THRESHOLD, DRIFT_FULL_STATISTICS_SHARE = 0.25, 0.25
+DRIFT_HISTORY_SECONDS = 60.0
+MAX_INSTANCES = 64  # per image
+ACI_GAMMA = 0.005
 
 
 @dataclass
@@ -69,12 +78,12 @@ class ServiceState:
     audit: AuditTrail
     operators: dict[str, str]  # admin token -> operator name
     cpu_pool: ThreadPoolExecutor
-    background_pool: ThreadPoolExecutor  # service.infra.cpu_priority
     admission: Admission
     audits: CoverageAudits
     drift: DriftMonitor | None = None  # None when CKS_DRIFT_ENABLED is false
     stopping: threading.Event = field(default_factory=threading.Event)  # set at close
     feedback_senders: dict[str, str] = field(default_factory=dict)  # admin and feedback tokens -> name
+    predict_callers: dict[str, str] = field(default_factory=dict)  # empty: predict needs no token
     retention: Retention | None = None
     live_coverage: LiveCoverageReader | None = None
     adaptive: AdaptiveSets | None = None
@@ -89,8 +98,8 @@ class ServiceState:
             self.registry,
             self.drift,
             settings.predict.max_image_pixels,
-            settings.predict.max_decoded_bytes,
-            settings.predict.max_instances,
+            MAX_DECODED_BYTES,
+            MAX_INSTANCES,
         )
 
     def close(self) -> None:
@@ -109,8 +118,7 @@ class ServiceState:
         shutil.rmtree(
             process_uploads_dir(self.settings.storage.uploads_dir), ignore_errors=True
         )  # cancelled jobs' uploads
-        for pool in (self.cpu_pool, self.background_pool):
-            pool.shutdown(wait=True, cancel_futures=True)
+        self.cpu_pool.shutdown(wait=True, cancel_futures=True)
         if self.retention is not None:
             self.retention.close()  # the answers retained so far reach the store
         self.store.close()
@@ -123,8 +131,7 @@ def build_state(settings: Settings) -> ServiceState:
     Also turns OpenCV's internal threading off for the process (``cv2.setNumThreads(1)``).
     """
     ensure_logging(settings)
-    for line in removed_settings(os.environ):
-        log.warning(line)
+    refuse_removed_settings(os.environ)
     operators = load_operators(settings.admin.token, settings.admin.tokens_file)
     settings.storage.data_dir.mkdir(parents=True, exist_ok=True)
     # Process-wide: requests already run in parallel on cpu_pool, and OpenCV's own pool would
@@ -134,7 +141,6 @@ def build_state(settings: Settings) -> ServiceState:
         settings.model.directory,
         settings.model.inference_threads,
         **detector_providers(settings),
-        keep_cores_awake=settings.model.keep_cores_awake,
     )
     log.info(
         "onnxruntime execution providers in use: %s; intra-op threads of a run: %d, of a request alone"
@@ -145,19 +151,17 @@ def build_state(settings: Settings) -> ServiceState:
     )
     kind, location = store_location(settings.storage.resolved_url)
     # Every lock wait is bounded alike: PostgreSQL's lock_timeout, SQLite's busy timeout
-    timeout = settings.storage.timeout_seconds
+    timeout = STORE_TIMEOUT_SECONDS
     options = {"timeout_s": timeout} if kind == "postgresql" else {"busy_timeout_s": timeout}
     store = open_store(settings.storage.resolved_url, **options)
     if settings.storage.bootstrap_calibration:
-        bootstrap_default_calibration(
-            store, detector, settings.model.directory, difficulty_spec(*settings.calibration.difficulty)
-        )
+        bootstrap_default_calibration(store, detector, settings.model.directory, DIFFICULTY)
     registry = CalibrationRegistry(
         store,
         detector.model_hash,
         detector.manifest,
-        settings.storage.poll_seconds,
-        settings.storage.timeout_seconds,
+        STORE_POLL_SECONDS,
+        STORE_TIMEOUT_SECONDS,
     )
     names = ", ".join(sorted(operators.values())) or "none (admin API disabled)"
     log.info(
@@ -172,11 +176,6 @@ def build_state(settings: Settings) -> ServiceState:
         registry.start(),
         names,
     )
-    if not native_kernel_available():
-        log.warning(
-            "the native kernel (service/conformal/kernel.py) is not built: the heatmap statistics run"
-            " on the slower numpy path; install a C compiler and reinstall the package"
-        )
     remove_spent_job_folders(settings.storage.jobs_dir, store)
     jobs = JobRunner(store, settings.calibration.workers)
     audit = AuditTrail(store, detector.model_hash, settings.storage.data_dir / "audit-outbox")
@@ -187,8 +186,9 @@ def build_state(settings: Settings) -> ServiceState:
     calibrations = CalibrationJobs(store, detector, registry, jobs, audit, job_settings)
     jobs.on_stale(calibration_jobs.JOB_KIND, calibrations.take_over)
     jobs.on_stale(coverage_audits.JOB_KIND, None)  # its upload lives in its process's workspace
-    audits.follow_latest(5 * settings.storage.poll_seconds, stopping)
+    audits.follow_latest(5 * STORE_POLL_SECONDS, stopping)
     drift = _drift_monitor(settings, detector, registry, store)
+    predict = settings.predict
     return ServiceState(
         settings=settings,
         detector=detector,
@@ -198,24 +198,21 @@ def build_state(settings: Settings) -> ServiceState:
         calibrations=calibrations,
         audit=audit,
         operators=operators,
-        cpu_pool=ThreadPoolExecutor(settings.model.cpu_workers, thread_name_prefix="cpu"),
-        background_pool=background_pool(settings.model.cpu_workers),
+        cpu_pool=ThreadPoolExecutor(predict.max_concurrent_inferences, thread_name_prefix="cpu"),
         admission=Admission(
-            settings.predict.max_concurrent_inferences,
-            settings.predict.max_queued_requests,
-            settings.predict.queue_timeout_seconds,
-            settings.predict.max_receiving_bytes,
-            settings.predict.client_share,
-            min(settings.model.cpu_workers, usable_cores()),  # the threads that really run at once
-            ClientBoard.joined(),  # the other workers' clients (CKS_WORKERS > 1)
+            predict.max_concurrent_inferences,
+            predict.max_queued_requests,
+            predict.client_share,
+            min(predict.max_concurrent_inferences, usable_cores()),  # the threads that really run at once
         ),
         audits=audits,
         drift=drift,
         stopping=stopping,
         feedback_senders=load_feedback_senders(settings.admin.token, settings.admin.tokens_file),
+        predict_callers=load_predict_callers(settings.admin.token, settings.admin.tokens_file),
         retention=Retention(store, detector.model_hash, _retention_rules(settings)),
         live_coverage=_live_coverage(settings, store, detector),
-        adaptive=AdaptiveSets(store, detector.model_hash, settings.feedback.aci_gamma),
+        adaptive=AdaptiveSets(store, detector.model_hash, ACI_GAMMA),
         version_rules=job_settings.versions,
     )
 
@@ -257,9 +254,9 @@ def _drift_monitor(
         window=settings.drift.window,
         test=settings.drift.test,
         alarm_level=settings.drift.alarm_level,
-        psi_threshold=settings.drift.psi_threshold,
-        full_statistics_share=settings.drift.full_statistics_share,
-        history_seconds=settings.drift.history_seconds,
+        psi_threshold=DRIFT_PSI_THRESHOLD,
+        full_statistics_share=DRIFT_FULL_STATISTICS_SHARE,
+        history_seconds=DRIFT_HISTORY_SECONDS,
     )
     shares = DriftShares(store, detector.model_hash, settings.drift.share_seconds)
     monitor = DriftMonitor(detector.manifest, active_calibration, drift_settings, shares)
@@ -273,24 +270,22 @@ def _job_settings(settings: Settings) -> JobSettings:
         jobs_dir=settings.storage.jobs_dir,
         intake=IntakeRules(
             limits=ArchiveLimits(
-                settings.calibration.max_upload_files,
-                settings.calibration.max_upload_uncompressed_bytes,
-                AnnotationLimits(
-                    settings.calibration.max_annotations_bytes, settings.calibration.max_annotations
-                ),
+                MAX_UPLOAD_FILES,
+                2 * settings.calibration.max_upload_bytes,
+                AnnotationLimits(MAX_ANNOTATIONS_BYTES, MAX_ANNOTATIONS),
             ),
             disk=DiskBudget(  # kept uploads: those of the data directory's jobs and uploads folders
                 (settings.storage.jobs_dir, settings.storage.uploads_dir),
                 settings.calibration.max_uploads_disk_bytes,
-                settings.calibration.min_free_disk_bytes,
+                MIN_FREE_DISK_BYTES,
             ),
-            max_rejected_share=settings.calibration.max_rejected_share,
+            max_rejected_share=0.0,
         ),
         versions=VersionRules(
             max_image_pixels=settings.predict.max_image_pixels,
             min_instances=settings.calibration.min_instances,
-            max_rejected_share=settings.calibration.max_rejected_share,
-            difficulty=difficulty_spec(*settings.calibration.difficulty),
+            max_rejected_share=0.0,
+            difficulty=DIFFICULTY,
         ),
     )
 

@@ -173,7 +173,7 @@ def _timeless(value: Any) -> Any:
 def collect(data_dir: Path) -> dict[str, Any]:
     """Every recorded answer of a fresh service on ``data_dir``, and the scores it stores."""
     samples_dir = model_dir() / "samples"
-    settings = Settings(data_dir=data_dir, admin_token=TOKEN, inference_threads=1, cpu_workers=2)
+    settings = Settings(data_dir=data_dir, admin_token=TOKEN, inference_threads=1)
     answers: dict[str, Any] = {}
     with TestClient(create_app(settings)) as client:
         for name, path, arguments in _requests(samples_dir):

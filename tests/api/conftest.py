@@ -23,8 +23,10 @@ def api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[InProcess]:
 
 
 @pytest.fixture(scope="session")
-def limited_api(tmp_path_factory: pytest.TempPathFactory, limits: dict[str, int]) -> Iterator[InProcess]:
+def limited_api(
+    tmp_path_factory: pytest.TempPathFactory, limits: dict[str, int], fixed_limits: dict[str, int]
+) -> Iterator[InProcess]:
     """Small request, image and upload limits; refusals must leave it unchanged."""
     data = tmp_path_factory.mktemp("limited") / "data"
-    with InProcess(data, admin_token=ADMIN_TOKEN, **limits) as service:
+    with InProcess(data, fixed_limits, admin_token=ADMIN_TOKEN, **limits) as service:
         yield service

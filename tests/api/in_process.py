@@ -6,16 +6,18 @@ import logging
 from pathlib import Path
 from typing import Any
 
+import pytest
 from fastapi.testclient import TestClient
 
 from service.infra.settings import Settings
+from service.serving import container
 from service.serving.app import create_app
 from tests.samples import model_dir
 from tests.service_calls import ServiceCalls
 
 # What a test server process gets too (tests/live/server.py service_env): one inference thread, two
 # CPU workers, so that answers and timings do not depend on the machine's cores.
-DEFAULTS: dict[str, Any] = {"inference_threads": 1, "cpu_workers": 2}
+DEFAULTS: dict[str, Any] = {"inference_threads": 1}
 # The peer address requests come from: a local caller, as a server process on loopback sees it.
 LOOPBACK_PEER = ("127.0.0.1", 50000)
 
@@ -49,11 +51,17 @@ class LogLines(logging.Handler):
 
 
 class InProcess(ServiceCalls):
-    """The app of ``Settings(data_dir=..., **settings)``, started; ``client`` calls it in process."""
+    """The app of ``Settings(data_dir=..., **settings)``, started; ``client`` calls it in process.
 
-    def __init__(self, data_dir: Path, **settings: Any) -> None:
+    ``fixed`` changes fixed values of ``service.serving.container`` (``{"MAX_UPLOAD_FILES": 8}``)
+    while the service runs: small limits that keep a refusal test small."""
+
+    def __init__(self, data_dir: Path, fixed: dict[str, Any] | None = None, **settings: Any) -> None:
         self.data_dir = Path(data_dir)
         self.settings = settings
+        self.fixed = pytest.MonkeyPatch()
+        for name, value in (fixed or {}).items():
+            self.fixed.setattr(container, name, value)
         values = {"model_dir": model_dir(), **DEFAULTS, **settings}
         self.app = create_app(Settings(data_dir=self.data_dir, **values))
         self.client = TestClient(self.app, client=LOOPBACK_PEER)
@@ -71,3 +79,4 @@ class InProcess(ServiceCalls):
     def __exit__(self, *exc: object) -> None:
         self.client.__exit__(*exc)
         self.log_lines.detach()
+        self.fixed.undo()

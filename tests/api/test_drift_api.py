@@ -32,8 +32,8 @@ def drift_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[InProcess
     """The frame-window ks test, every request computing every statistic (share 1), a history point
     every 0.2 s."""
     data = tmp_path_factory.mktemp("drift") / "data"
-    settings = {"drift_test": "ks", "drift_full_statistics_share": 1.0, "drift_history_seconds": 0.2}
-    with InProcess(data, admin_token=ADMIN_TOKEN, **settings) as live:
+    fixed = {"DRIFT_FULL_STATISTICS_SHARE": 1.0, "DRIFT_HISTORY_SECONDS": 0.2}
+    with InProcess(data, fixed, admin_token=ADMIN_TOKEN, drift_test="ks") as live:
         yield live
 
 

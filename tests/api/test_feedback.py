@@ -243,7 +243,7 @@ def test_adaptive_sets_follow_the_streams_feedback_and_survive_a_restart(
     image, group = first_image(samples)
     options = {"instances": instances_of(group), "stream": "cam-9", "adaptive": True, "epsilon": 0.1}
     gamma = 0.01
-    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN, feedback_aci_gamma=gamma) as service:
+    with InProcess(tmp_path / "data", {"ACI_GAMMA": gamma}, admin_token=ADMIN_TOKEN) as service:
         for refused, problem in (({"stream": None}, "needs stream"), ({"delta": 0.1}, "no delta")):
             response = predict_json(service.client, image, {**options, **refused})
             assert_problem(response, 422, problem)
@@ -268,7 +268,7 @@ def test_adaptive_sets_follow_the_streams_feedback_and_survive_a_restart(
         url = f"/v1/feedback/{first['prediction_id']}"
         judged = service.client.post(url, json={"instances": moved}, headers=service.admin).json()
         misses = judged["labelled"] - judged["covered"]
-    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN, feedback_aci_gamma=gamma) as service:
+    with InProcess(tmp_path / "data", {"ACI_GAMMA": gamma}, admin_token=ADMIN_TOKEN) as service:
         second = predict_ok(service.client, image, options)["adaptive"]
         assert second["steps"] == judged["labelled"] and misses > 0
         assert second["alpha"] == pytest.approx(0.1 + gamma * (0.1 * judged["labelled"] - misses))
@@ -400,7 +400,7 @@ def test_adaptive_sets_count_the_lag_of_labels_that_arrive_after_later_answers_l
     labels = {
         "instances": [{"instance": i, "keypoints": s.keypoints} for i, s in enumerate(group)],
     }
-    with InProcess(tmp_path / "data", admin_token=ADMIN_TOKEN, feedback_aci_gamma=0.01) as service:
+    with InProcess(tmp_path / "data", {"ACI_GAMMA": 0.01}, admin_token=ADMIN_TOKEN) as service:
         early, late = (predict_ok(service.client, image, options) for _ in range(2))
         counts = []
         for answer in (late, early):  # the early answer's labels come last

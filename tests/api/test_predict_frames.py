@@ -279,14 +279,14 @@ def test_mixed_gray_and_colour_regions_are_refused(api: InProcess, frame) -> Non
 
 def test_frames_above_the_pixel_and_memory_limits_are_refused_before_decoding(tmp_path: Path, frames) -> None:
     pixels, parameters = frames[0]
-    with InProcess(tmp_path / "data", max_image_pixels=640 * 479, max_decoded_bytes=30_000) as small:
+    with InProcess(tmp_path / "data", {"MAX_DECODED_BYTES": 30_000}, max_image_pixels=640 * 479) as small:
         whole, data = whole_request(pixels, parameters, "bgr8")
         assert_problem(post_frame(small, whole, data), 413, "640x480 = 307200 pixels", "CKS_MAX_IMAGE_PIXELS")
         tall = {**whole, "frame": {"width": 640, "height": 2**31 - 1, "encoding": "bgr8"}}
         assert_problem(post_frame(small, tall, data), 413, "CKS_MAX_IMAGE_PIXELS")
         crop = pixels[:400]
         request, parts = regions_request(crop, parameters, "rgb8")
-        assert_problem(post_frame(small, request, parts), 413, "CKS_MAX_DECODED_BYTES")
+        assert_problem(post_frame(small, request, parts), 413, "above the limit of 30000 bytes")
 
 
 def test_a_frame_sent_as_regions_can_be_retained_for_feedback(api: InProcess, frame) -> None:

@@ -132,13 +132,13 @@ def test_streamed_body_over_the_request_limit_is_413(limited_api: InProcess, lim
 
 
 def test_more_instances_than_the_limit_is_422(
-    limited_api: InProcess, small_image: bytes, instance: dict, limits: dict
+    limited_api: InProcess, small_image: bytes, instance: dict, fixed_limits: dict
 ) -> None:
-    instances = [instance] * (limits["max_instances"] + 1)
+    instances = [instance] * (fixed_limits["MAX_INSTANCES"] + 1)
     response = predict_json(limited_api.client, small_image, {"instances": instances})
-    assert_problem(response, 422, "CKS_MAX_INSTANCES")
+    assert_problem(response, 422, "4 instances in one request; the limit is 3")
     at_limit = predict_json(
-        limited_api.client, small_image, {"instances": [instance] * limits["max_instances"]}
+        limited_api.client, small_image, {"instances": [instance] * fixed_limits["MAX_INSTANCES"]}
     )
     assert at_limit.status_code == 200, at_limit.text
 

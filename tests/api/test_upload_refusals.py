@@ -146,11 +146,11 @@ def test_not_a_zip(limited_api: InProcess) -> None:
 
 @pytest.mark.usefixtures("unchanged")
 def test_more_files_than_the_limit(
-    limited_api: InProcess, samples_dir: Path, coco: dict, limits: dict
+    limited_api: InProcess, samples_dir: Path, coco: dict, fixed_limits: dict
 ) -> None:
     doc, files = batch_files(samples_dir, coco, images=2)
-    files.update({f"extra/{i}.txt": b"x" for i in range(limits["max_upload_files"])})
-    assert_problem(limited_api.upload(build_zip(doc, files)), 413, "CKS_MAX_UPLOAD_FILES")
+    files.update({f"extra/{i}.txt": b"x" for i in range(fixed_limits["MAX_UPLOAD_FILES"])})
+    assert_problem(limited_api.upload(build_zip(doc, files)), 413, "above the limit of 8")
 
 
 @pytest.mark.usefixtures("unchanged")
@@ -158,10 +158,12 @@ def test_more_uncompressed_bytes_than_the_limit(
     limited_api: InProcess, samples_dir: Path, coco: dict, limits: dict
 ) -> None:
     doc, files = batch_files(samples_dir, coco, images=2)
-    files["padding.bin"] = bytes(limits["max_upload_uncompressed_bytes"])  # zeros: tiny once deflated
+    files["padding.bin"] = bytes(2 * limits["max_upload_bytes"])  # zeros: tiny once deflated
     body = build_zip(doc, files)
     assert len(body) < limits["max_upload_bytes"]
-    assert_problem(limited_api.upload(body), 413, "CKS_MAX_UPLOAD_UNCOMPRESSED_BYTES")
+    assert_problem(
+        limited_api.upload(body), 413, f"above the limit of {2 * limits['max_upload_bytes']} bytes"
+    )
 
 
 @pytest.mark.usefixtures("unchanged")

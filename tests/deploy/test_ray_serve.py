@@ -56,7 +56,6 @@ POLL_S = StorageSettings.model_fields["poll_seconds"].default  # a replica looks
 IMAGES = 4  # images of the calibration batch
 SETTINGS = {  # one onnxruntime thread and small admission per replica: two replicas on two cores
     "admin_token": ADMIN_TOKEN,
-    "cpu_workers": 1,
     "max_concurrent_inferences": 2,
     "max_queued_requests": 2,
 }

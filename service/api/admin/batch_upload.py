@@ -21,7 +21,7 @@ from service.api.admin.admin_schemas import JobOut
 from service.api.admin.job_links import JOB_LINKS
 from service.api.deps import Admin, Config, Trail
 from service.api.http.multipart_file import FilePart
-from service.api.http.request_body import BodyPace, paced_chunks
+from service.api.http.request_body import UPLOAD_TIMEOUT_SECONDS, timed_chunks
 from service.calibration.archive import SavedUpload, UploadSink
 from service.calibration.uploads import UploadWorkspace
 from service.errors import ServiceError, disk_full_refused
@@ -163,36 +163,33 @@ Upload = Annotated[UploadCall, Depends(upload_call)]
 
 
 async def receive_batch_zip(request: Request, settings: Settings) -> tuple[UploadWorkspace, str]:
-    """Receive a zip body, or a form with the zip as its part 'file', paced and within the upload
+    """Receive a zip body, or a form with the zip as its part 'file', in time and within the upload
     limits, into a new upload workspace; returns it with the zip's sha256 (the caller removes it
     when done). Any type but multipart/form-data is taken as the raw zip: a zip is a zip by its
     bytes (the archive check refuses anything else with 422), whatever Content-Type was sent."""
     content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     part = ZIP_PART if content_type == "multipart/form-data" else None
-    timeout = settings.calibration.upload_read_timeout_seconds
-    pace = BodyPace.from_settings(settings, timeout, "CKS_UPLOAD_READ_TIMEOUT_SECONDS")
     with disk_full_refused("the upload"):
         workspace = await run_in_threadpool(UploadWorkspace.create, settings.storage.uploads_dir)
         try:
             limit = settings.calibration.max_upload_bytes
-            saved = await receive_upload(request, workspace.archive, limit, pace, part)
+            saved = await receive_upload(request, workspace.archive, limit, part)
         except BaseException:
             await run_in_threadpool(workspace.remove)
             raise
     return workspace, saved.sha256
 
 
-async def receive_upload(
-    request: Request, dest: Path, limit: int, pace: BodyPace, part: str | None = None
-) -> SavedUpload:
-    """Stream the body, paced, to ``dest`` (never whole in memory), hashing it; 413 beyond ``limit``.
-    With ``part``, the body is multipart/form-data and only that part's bytes are kept."""
+async def receive_upload(request: Request, dest: Path, limit: int, part: str | None = None) -> SavedUpload:
+    """Stream the body, within UPLOAD_TIMEOUT_SECONDS, to ``dest`` (never whole in memory), hashing
+    it; 413 beyond ``limit``. With ``part``, the body is multipart/form-data and only that part's
+    bytes are kept."""
     sink = await run_in_threadpool(UploadSink, dest, limit)
     pending: list[bytes] = []
     try:
         form = None if part is None else FilePart(request.headers.get("content-type", ""), part, sink.write)
         write = sink.write if form is None else form.write
-        async with aclosing(paced_chunks(request, pace)) as stream:
+        async with aclosing(timed_chunks(request, UPLOAD_TIMEOUT_SECONDS)) as stream:
             async for chunk in stream:
                 pending.append(chunk)
                 if sum(map(len, pending)) >= _FLUSH_BYTES:

@@ -7,8 +7,7 @@ from typing import Literal
 from fastapi import APIRouter, Response
 from pydantic import BaseModel, Field
 
-from service.api.deps import Config, Model, Registry
-from service.errors import StoreUnreachable
+from service.api.deps import Model, Registry
 from service.infra.metrics import metrics_payload
 
 router = APIRouter(tags=["operations"])
@@ -42,23 +41,11 @@ async def healthz() -> Health:
     "/readyz",
     response_model=Readiness,
     summary="Model loaded, a calibration active and in memory (the store's health is in the body)",
-    responses={
-        503: {
-            "description": "No calibration active or usable, or the store has not confirmed the cached"
-            " one for over CKS_MAX_CACHE_STALENESS_SECONDS"
-        }
-    },
+    responses={503: {"description": "No calibration active or usable"}},
 )
-async def readyz(registry: Registry, model: Model, settings: Config) -> Readiness:
+async def readyz(registry: Registry, model: Model) -> Readiness:
     active = registry.resolve(None)  # 503: none active, or unusable; never waits on the store
     health = registry.health()
-    limit = settings.storage.max_cache_staleness_seconds
-    if limit is not None and health.age_seconds > limit:
-        raise StoreUnreachable(
-            f"the store has not confirmed the cached calibration for {health.age_seconds:.1f} s"
-            f" (CKS_MAX_CACHE_STALENESS_SECONDS = {limit:g}): {health.error or 'its polls are slow'}",
-            registry.retry_after_s,
-        )
     return Readiness(
         status="ready",
         model=model.manifest.name,

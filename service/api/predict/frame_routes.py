@@ -59,7 +59,7 @@ _RESPONSES: dict[int | str, dict[str, Any]] = {
     **PREDICT_RESPONSES,
     413: {
         "description": "The body exceeds CKS_MAX_REQUEST_BYTES, the frame CKS_MAX_IMAGE_PIXELS, or its"
-        " decoded pixels CKS_MAX_DECODED_BYTES"
+        " decoded pixels 256 MiB"
     },
     415: {"description": "Not multipart/form-data, or a part that is not the JPEG/PNG its encoding says"},
     422: {
@@ -82,9 +82,9 @@ _RESPONSES: dict[int | str, dict[str, Any]] = {
 async def predict_frame(request: Request, parts: Predicting) -> Response:
     content_type = request.headers.get("content-type", "")
     require_multipart(content_type)
-    client = parts.client_of(request)
-    await parts.admission.wait_for_place(client=client)  # not worth receiving beyond its share
+    caller = parts.caller_of(request)
+    await parts.admission.wait_for_place(caller)  # not worth receiving beyond its share
     body = await parts.receive(request)  # a slow client holds no place meanwhile
-    async with parts.admission.admitted(client=client):
+    async with parts.admission.admitted(caller):
         frame, parameters = parse_frame(content_type, body, parts.manifest)
-        return await compute(parts, client, frame, parameters, png=False)
+        return await compute(parts, caller, frame, parameters, png=False)

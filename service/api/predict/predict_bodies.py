@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from service.api.predict.predict_schemas import DOCUMENTED_BATCH_IMAGES, ITEM_ANSWERED_ALONE
+from service.api.predict.predict_schemas import ITEM_ANSWERED_ALONE, MAX_BATCH_IMAGES
 
 _SCHEMAS = "#/components/schemas/{model}"
 _IMAGE = {"type": "string", "format": "binary", "description": "JPEG or PNG file"}
@@ -26,7 +26,7 @@ def _form(schema: dict[str, Any], json_parts: list[str]) -> dict[str, Any]:
 
 
 def _batch_form() -> dict[str, Any]:
-    indexes = range(DOCUMENTED_BATCH_IMAGES)
+    indexes = range(MAX_BATCH_IMAGES)
     parameters = {
         "anyOf": [{"$ref": _SCHEMAS.format(model="PredictParameters")}, {"description": ITEM_ANSWERED_ALONE}]
     }
@@ -52,4 +52,4 @@ PREDICT_FORM = _form(
     ["request"],
 )
 BATCH_JSON = _json("BatchJson")
-BATCH_FORM = _form(_batch_form(), [f"request_{i}" for i in range(DOCUMENTED_BATCH_IMAGES)])
+BATCH_FORM = _form(_batch_form(), [f"request_{i}" for i in range(MAX_BATCH_IMAGES)])

@@ -25,7 +25,6 @@ from pydantic_core import to_json
 
 from service.api.deps import Predicting, PredictParts
 from service.api.feedback.retained_answer import adapted_query, served_request
-from service.api.http.clients import Client
 from service.api.http.problems import problem
 from service.api.predict import predict_presenter
 from service.api.predict.predict_bodies import BATCH_FORM, BATCH_JSON, PREDICT_FORM, PREDICT_JSON
@@ -36,7 +35,12 @@ from service.api.predict.predict_input import (
     predict_query,
     require_batch_media,
 )
-from service.api.predict.predict_schemas import BatchResponse, PredictParameters, PredictResponse
+from service.api.predict.predict_schemas import (
+    MAX_BATCH_IMAGES,
+    BatchResponse,
+    PredictParameters,
+    PredictResponse,
+)
 from service.detector.frames import EncodedFrame
 from service.errors import InvalidInput, ServiceError
 from service.infra.logs import note_calibration_version
@@ -125,12 +129,12 @@ async def predict_png(request: Request, parts: Predicting) -> Response:
 
 
 async def _predict(request: Request, parts: PredictParts, png: bool) -> Response:
-    client = parts.client_of(request)
-    await parts.admission.wait_for_place(client=client)  # not worth receiving beyond its share
+    caller = parts.caller_of(request)
+    await parts.admission.wait_for_place(caller)  # not worth receiving beyond its share
     body = await parts.receive(request)  # a slow client holds no place meanwhile
-    async with parts.admission.admitted(client=client):
+    async with parts.admission.admitted(caller):
         image, parameters = await parse_predict(request, body, parts.manifest)
-        return await compute(parts, client, image, parameters, png)
+        return await compute(parts, caller, image, parameters, png)
 
 
 @_json_and_form(
@@ -143,10 +147,10 @@ async def _predict(request: Request, parts: PredictParts, png: bool) -> Response
 )
 async def predict_batch(request: Request, parts: Predicting) -> Response:
     require_batch_media(request)
-    client = parts.client_of(request)
-    await parts.admission.wait_for_place(client=client)  # not worth receiving beyond its share
+    caller = parts.caller_of(request)
+    await parts.admission.wait_for_place(caller)  # not worth receiving beyond its share
     body = await parts.receive(request)  # as predict: a slow client holds no place meanwhile
-    items = await parse_batch(request, body, parts.max_batch_images, parts.manifest)
+    items = await parse_batch(request, body, MAX_BATCH_IMAGES, parts.manifest)
     capacity = parts.admission.capacity
     if len(items) > capacity:
         raise InvalidInput(
@@ -154,24 +158,23 @@ async def predict_batch(request: Request, parts: Predicting) -> Response:
             f" {capacity} (CKS_MAX_CONCURRENT_INFERENCES + CKS_MAX_QUEUED_REQUESTS): send at most"
             f" {capacity} images per batch"
         )
-    async with parts.admission.admitted(len(items), client):
+    async with parts.admission.admitted(caller, len(items)):
         answers = await asyncio.gather(
-            *(_batch_answer(request, parts, client, i, item) for i, item in enumerate(items))
+            *(_batch_answer(request, parts, caller, i, item) for i, item in enumerate(items))
         )
     # Each answer is JSON already (a result as POST /v1/predict writes it, or a problem): joined.
     return Response(b'{"items":[' + b",".join(answers) + b"]}", media_type="application/json")
 
 
 async def compute(
-    parts: PredictParts, client: Client, image: bytes | EncodedFrame, parameters: PredictParameters, png: bool
+    parts: PredictParts, caller: str, image: bytes | EncodedFrame, parameters: PredictParameters, png: bool
 ) -> Response:
     """Predict and present on the CPU pool, inside a compute slot (decoded images exist only there);
     ``image``: a JPEG or PNG file, or a frame's pixels (POST /v1/predict/frame)."""
-    async with parts.admission.slot(client) as background:
-        pool = parts.background_pool if background else parts.pool
+    async with parts.admission.slot(caller):
         context = contextvars.copy_context()  # the pool's thread logs with the request's id
-        answer = (_respond, parts, image, parameters, png, client.name)
-        return await asyncio.get_running_loop().run_in_executor(pool, context.run, *answer)
+        answer = (_respond, parts, image, parameters, png, caller)
+        return await asyncio.get_running_loop().run_in_executor(parts.pool, context.run, *answer)
 
 
 def _respond(
@@ -202,12 +205,12 @@ def _respond(
 
 
 async def _batch_answer(
-    request: Request, parts: PredictParts, client: Client, index: int, item: BatchItem
+    request: Request, parts: PredictParts, caller: str, index: int, item: BatchItem
 ) -> bytes:
     """One image's item as JSON: its result, or the problem it alone had."""
     try:
         image, parameters = item()
-        response = await compute(parts, client, image, parameters, png=False)
+        response = await compute(parts, caller, image, parameters, png=False)
         return b'{"status":200,"result":' + bytes(response.body) + b"}"
     except ServiceError as error:
         answer = problem(

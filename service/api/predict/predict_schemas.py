@@ -14,7 +14,7 @@ Nonconformity = Literal["peak", "var", "cov"]
 Coverage = Literal["keypoint", "object"]
 Stratify = Literal["none", "difficulty", "group", "difficulty+group"]
 Point = tuple[float, float]
-DOCUMENTED_BATCH_IMAGES = 16  # CKS_MAX_BATCH_IMAGES's default; the server checks its own setting
+MAX_BATCH_IMAGES = 16  # images per POST /v1/predict/batch
 MAX_VERSION = 2**31 - 1  # the calibration store keeps version numbers in 32-bit INTEGER columns
 
 
@@ -238,7 +238,7 @@ class BatchJson(_Body):
 
     items: list[PredictJson] = Field(
         min_length=1,
-        max_length=DOCUMENTED_BATCH_IMAGES,
+        max_length=MAX_BATCH_IMAGES,
         description="at most CKS_MAX_BATCH_IMAGES (default 16) images, each with its instances and options",
         json_schema_extra=_items_answered_alone,
     )
