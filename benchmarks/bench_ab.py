@@ -32,13 +32,19 @@ from pathlib import Path
 import httpx
 
 from benchmarks.bench_frames import frame_parts, make_point
-from benchmarks.peers.measure import Requests
-from benchmarks.service_bench.inputs import Sample, load_sample
-from benchmarks.service_bench.loadgen import require_wrk, run_wrk
-from benchmarks.service_bench.server import Server, free_port, launch
+from benchmarks.harness import (
+    ROOT,
+    Requests,
+    Sample,
+    Server,
+    free_port,
+    launch,
+    load_sample,
+    require_wrk,
+    run_wrk,
+)
 from service.infra.settings import DEFAULT_MODEL_DIR
 
-ROOT = Path(__file__).resolve().parents[1]
 POINTS = [(boxes, concurrency) for boxes in (1, 4) for concurrency in (1, 16)]
 PACED_REQUESTS = 20  # per point, revision and round
 
@@ -183,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"A = {args.a}, B = {args.b}; load {os.getloadavg()} on {os.cpu_count()} cores", flush=True)
     with tempfile.TemporaryDirectory(prefix="cks-ab-") as directory, ExitStack() as stack:
         work = Path(directory)
-        sample = load_sample(DEFAULT_MODEL_DIR / "samples")
+        sample = load_sample()
         requests = Requests.write(work, sample)
         servers = {}
         for name, revision in (("A", args.a), ("B", args.b)):

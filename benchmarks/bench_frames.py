@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import random
 import statistics
 import sys
@@ -37,26 +36,28 @@ import cv2
 import httpx
 import numpy as np
 
+from benchmarks.harness import (
+    BOXES,
+    PERFORMANCE_PAGE,
+    ROOT,
+    Sample,
+    Server,
+    load_average,
+    load_sample,
+    log,
+    this_machine,
+    write_section,
+)
 from benchmarks.peers.answers import difference
 from benchmarks.peers.servers import PEERS, SERVICE
-from benchmarks.service_bench import page
-from benchmarks.service_bench.inputs import Sample, load_sample
-from benchmarks.service_bench.machine import this_machine
-from benchmarks.service_bench.server import Server
-from service.detector.crop import crop_affines, crop_contexts, warp_crop
-from service.detector.frames import EncodedFrame, EncodedRegion, open_frame
 from service.infra.settings import DEFAULT_MODEL_DIR
 
-ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "client"))  # this checkout's client, not an installed copy
 
 from keypoint_client import KeypointClient  # noqa: E402
 from keypoint_client.frames import frame_parts, jpeg_bytes  # noqa: E402
 
-DEFAULT_OUTPUT = ROOT / "docs" / "performance.md"
 SIZES = ((640, 480), (1280, 720), (1920, 1080), (3840, 2160))
-BOXES = (1, 4)
-CROP_SIZE = (128, 128)  # the bundled model's input
 PEER = next(peer for peer in PEERS if peer.name == "FastAPI")
 CONTENDERS = (
     "service, raw regions",
@@ -69,17 +70,13 @@ CONTENDERS = (
 Send = Callable[[], object]
 
 
-def log(message: str) -> None:
-    print(message, flush=True)
-
-
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=15, help="timed requests per contender and point")
     parser.add_argument(
         "--sizes", default=",".join(f"{w}x{h}" for w, h in SIZES), help="e.g. 640x480,1920x1080"
     )
-    parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT)
+    parser.add_argument("--output", type=Path, default=PERFORMANCE_PAGE)
     parser.add_argument("--seed", type=int, default=None, help="the turns' order (default: a fresh one)")
     parser.add_argument(
         "--gap-ms", type=float, default=50.0, help="idle time before each timed request (a camera's cadence)"
@@ -213,42 +210,6 @@ def measure(contenders: Contenders, points: list[Point], rounds: int, seed: int,
     return timings
 
 
-def canvas_ab(point: Point, padding: float, rounds: int) -> tuple[float, float]:
-    """Median ms to cut ``point``'s crops from its raw regions in process, taking turns: as the
-    service does (the thread's zero canvas kept between frames), and with a fresh ``np.zeros``
-    canvas per region (the simplest way, what the kept canvas replaced)."""
-    boxes = np.array([instance["bbox"] for instance in point.parameters["instances"]])
-    contexts = crop_contexts(boxes, padding, point.width, point.height)
-    regions = tuple(
-        EncodedRegion(
-            int(x0), int(y0), int(x1 - x0), int(y1 - y0), "rgb8", point.frame[y0:y1, x0:x1].tobytes(), (i,)
-        )
-        for i, (x0, y0, x1, y1) in enumerate(contexts)
-    )
-    source = open_frame(EncodedFrame(point.width, point.height, regions), boxes, padding, 10**9, 10**10)
-    affines = crop_affines(boxes, padding, CROP_SIZE)
-    kept: list[float] = []
-    fresh: list[float] = []
-
-    def on_fresh_canvases() -> None:
-        for region in source.regions:
-            canvas = np.zeros((point.height, point.width, 3), dtype=np.uint8)
-            height, width = region.pixels.shape[:2]
-            canvas[region.y_offset : region.y_offset + height, region.x_offset : region.x_offset + width] = (
-                region.pixels
-            )
-            for i in region.instances or ():
-                warp_crop(canvas, affines[i], CROP_SIZE)
-
-    source.crops(affines, CROP_SIZE)  # this thread's canvas, made once
-    for _ in range(rounds):
-        for cut, into in ((lambda: source.crops(affines, CROP_SIZE), kept), (on_fresh_canvases, fresh)):
-            started = time.perf_counter()
-            cut()
-            into.append(1000 * (time.perf_counter() - started))
-    return statistics.median(kept), statistics.median(fresh)
-
-
 def _cell(values: list[float]) -> str:
     quartiles = statistics.quantiles(values, n=4) if len(values) > 1 else [values[0]] * 3
     return f"{quartiles[1]:.1f} ({quartiles[0]:.1f}-{quartiles[2]:.1f})"
@@ -263,7 +224,6 @@ def render(
     seed: int,
     gap_ms: float,
     load: str,
-    canvas: str,
 ) -> str:
     header = "| frame, boxes | " + " | ".join(CONTENDERS) + " |"
     rule = "|" + "---|" * (len(CONTENDERS) + 1)
@@ -319,17 +279,13 @@ def render(
             "### CPU time, core-ms per request (client + server), mean",
             "",
             *cpus,
-            "",
-            "### The regions' canvas (in process, same run)",
-            "",
-            canvas,
         ]
     )
 
 
 def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
-    sample = load_sample(DEFAULT_MODEL_DIR / "samples")
+    sample = load_sample()
     padding = json.loads((DEFAULT_MODEL_DIR / "manifest.json").read_text())["crop"]["padding"]
     points = [make_point(sample, w, h, boxes) for w, h in args.sizes for boxes in BOXES]
     machine = this_machine().describe()
@@ -340,21 +296,9 @@ def main(argv: list[str] | None = None) -> None:
             timings = measure(contenders, points, args.rounds, args.seed, args.gap_ms / 1000)
         finally:
             contenders.close()
-    largest = max(points, key=lambda p: (p.width * p.height, p.boxes))
-    kept, fresh = canvas_ab(largest, padding, args.rounds)
-    canvas = (
-        f"Cutting the {largest.boxes} crops of {largest.name.split(',')[0]} from raw regions, median of"
-        f" {args.rounds}, taking turns: {kept:.2f} ms with the thread's kept canvas (what the service"
-        f" does), {fresh:.2f} ms with a fresh `np.zeros` canvas per region, which pays a page fault for"
-        " each row a region touches."
-    )
-    load_after = ", ".join(f"{v:.2f}" for v in os.getloadavg())
     command = " ".join(["python -m benchmarks.bench_frames", *(sys.argv[1:] if argv is None else argv)])
-    page.write_section(
-        args.output,
-        "bench_frames",
-        render(command, machine, points, timings, args.rounds, args.seed, args.gap_ms, load_after, canvas),
-    )
+    text = render(command, machine, points, timings, args.rounds, args.seed, args.gap_ms, load_average())
+    write_section(args.output, "bench_frames", text)
     log(f"wrote the bench_frames section of {args.output}")
 
 

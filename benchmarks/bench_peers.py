@@ -8,7 +8,7 @@
 Needs wrk (``apt-get install -y wrk``) and the ``peers`` extra (``pip install -e '.[peers]'``:
 LitServe, BentoML, Ray Serve). Every server computes the same sets with the service's own
 functions; each peer's answer is checked against the service's before it is timed. Writes the
-``bench_peers`` section of docs/performance.md (``bench_service`` writes the rest of the page);
+``bench_peers`` section of docs/performance.md;
 with ``--gpu`` every server runs the model through onnxruntime's CUDA provider (the service with
 the ``cuda`` image's settings) and the run writes the ``bench_peers_gpu`` section instead.
 """
@@ -24,25 +24,26 @@ from pathlib import Path
 
 import onnxruntime
 
+from benchmarks.harness import (
+    BOXES,
+    PERFORMANCE_PAGE,
+    Requests,
+    load_sample,
+    log,
+    require_wrk,
+    run_wrk,
+    this_machine,
+    write_section,
+)
 from benchmarks.peers.accelerator import CUDA, GPU_SETTINGS, on_gpu
-from benchmarks.peers.limit import in_process_limits
-from benchmarks.peers.measure import BOXES, Plan, Requests, measure
+from benchmarks.peers.measure import Plan, measure
 from benchmarks.peers.profile import Profile, profile_under_load
 from benchmarks.peers.report import PeerResults, goals, render
 from benchmarks.peers.servers import PEERS, SERVICE, SERVICE_ON_GPU, Contender
-from benchmarks.service_bench import page
-from benchmarks.service_bench.inputs import load_sample
-from benchmarks.service_bench.loadgen import require_wrk, run_wrk
-from benchmarks.service_bench.machine import this_machine
+from benchmarks.stages import in_process_limits
 from service.infra.settings import DEFAULT_MODEL_DIR
 
-ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_OUTPUT = ROOT / "docs" / "performance.md"
 PROFILE_CONCURRENCY = 16
-
-
-def log(message: str) -> None:
-    print(message, flush=True)
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -54,7 +55,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--peers", default=",".join(p.name for p in PEERS), help="comma-separated peers (default: all)"
     )
     parser.add_argument(
-        "--output", type=Path, default=DEFAULT_OUTPUT, help="the page to write its section in"
+        "--output", type=Path, default=PERFORMANCE_PAGE, help="the page to write its section in"
     )
     parser.add_argument("--no-write", action="store_true", help="print the section, do not write the page")
     parser.add_argument("--no-profile", action="store_true", help="skip the py-spy profile of the service")
@@ -88,7 +89,7 @@ def run(args: argparse.Namespace) -> PeerResults:
     machine = this_machine()
     log(f"machine: {machine.describe()}")
     plan = Plan.for_mode(args.quick, args.duration, args.rounds)
-    sample = load_sample(DEFAULT_MODEL_DIR / "samples")
+    sample = load_sample()
     with tempfile.TemporaryDirectory(prefix="cks-peers-") as directory:
         requests = Requests.write(Path(directory), sample)
         log(f"server logs in {directory} while the run lasts")
@@ -144,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     text = render(results)
     log("\n" + text)
     if not args.no_write:
-        page.write_section(args.output, args.section, text)
+        write_section(args.output, args.section, text)
         log(f"wrote the {args.section} section of {args.output}")
     missed = [goal.text for goal in goals(results) if not goal.met]
     log(f"goals: {len(goals(results)) - len(missed)} met, {len(missed)} NOT met")

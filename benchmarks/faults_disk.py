@@ -1,29 +1,15 @@
-"""A full disk and identical uploads, on real servers: the figures of docs/operations.md.
-
-    python -m benchmarks.faults_disk     # as root: it mounts a 40 MiB tmpfs per step
-
-Each disk step starts one ``keypoint-service serve`` with its data directory (uploads, jobs and
-the SQLite store) on a fresh 40 MiB tmpfs and fills it: while an upload is received, while one
-is unzipped into its job's folder (12,000 one-byte files that take a page each), before a job's
-request.json is written (the store on a throwaway PostgreSQL cluster whose versions table is held
-locked while the intake reads it, between the two: see ``intake_held``), and while a job writes
-its version. Printed: the answers, the bytes left in ``jobs/`` and ``uploads/``, the
-audit entry, and whether the service works again once space is freed (no restart). Then four
-identical uploads, and a fifth with ``allow_duplicate`` and a reason. About a minute.
-
-The fault generators here are used by the tests too (tests/live/test_disk_full.py).
+"""A full disk, for the live tests (test_disk_full): a server's data directory (uploads, jobs and
+the SQLite store) on a small tmpfs (as root), filled while it receives an upload, while it unzips
+one into its job's folder, before a job's request.json is written (the store on PostgreSQL, its
+versions table held locked meanwhile: ``intake_held``), or while a job writes its version.
 """
 
 from __future__ import annotations
 
 import io
 import json
-import os
 import shutil
-import signal
 import subprocess
-import sys
-import tempfile
 import time
 import zipfile
 from collections.abc import Callable, Iterator
@@ -31,20 +17,14 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
-import httpx
 import psycopg
 
-from benchmarks.faults_clients import long_batch, predict, sample_request
 from tests.live.server import LiveServer
-from tests.postgres_cluster import PostgresCluster
-from tests.service_calls import ADMIN_TOKEN, wait_until
+from tests.service_calls import ADMIN_TOKEN
 
 DISK = "40m"
-COPIES = 6  # the samples, 6 times over (7.7 MB zipped): seconds of scoring
 #: the file ``fill`` fills a file system with (``free_space`` deletes it)
 FILLER = "disk-full.filler"
-#: a server whose intake is held (``intake_held``) waits this long for the store
-HELD_STORE_TIMEOUT_S = 60
 
 
 @contextmanager
@@ -60,13 +40,13 @@ def small_disk(parent: Path, size: str = DISK) -> Iterator[Path]:
 
 
 def serve_on(data: Path, **settings: str) -> LiveServer:
-    """A server that leaves a small disk to fill (no free-space reserve: CKS_MIN_FREE_DISK_BYTES=0)."""
-    return LiveServer(data, admin_token=ADMIN_TOKEN, min_free_disk_bytes=0, **settings)
+    """A server with its data directory on a small disk."""
+    return LiveServer(data, admin_token=ADMIN_TOKEN, **settings)
 
 
 def serve_on_held(data: Path, store_url: str) -> LiveServer:
-    """``serve_on`` with its store on PostgreSQL, patient enough to wait out ``intake_held``."""
-    return serve_on(data, store_url=store_url, store_timeout_seconds=str(HELD_STORE_TIMEOUT_S))
+    """``serve_on`` with its store on PostgreSQL, for ``intake_held``."""
+    return serve_on(data, store_url=store_url)
 
 
 def fill(data: Path, leave: int = 0) -> None:
@@ -142,142 +122,5 @@ def kept_files(server: LiveServer) -> list[Path]:
     return [p for folder in ("jobs", "uploads") for p in (server.data_dir / folder).rglob("*") if p.is_file()]
 
 
-def kept_bytes(server: LiveServer) -> int:
-    return sum(p.stat().st_size for p in kept_files(server))
-
-
 def audit_entries(server: LiveServer) -> list[dict]:
     return server.client.get("/v1/admin/audit", headers=server.admin).json()["entries"]
-
-
-def latest_entry(server: LiveServer) -> str:
-    entry = audit_entries(server)[0]
-    return f"{entry['action']} {entry['outcome']} {entry['details'].get('status', '')}".rstrip()
-
-
-def refused_upload(server: LiveServer, body: bytes) -> str:
-    began = time.perf_counter()
-    response = server.upload(body)
-    took = time.perf_counter() - began
-    return (
-        f"{response.status_code} in {took:.2f} s, {kept_bytes(server)} bytes left in jobs/ and uploads/,"
-        f" audited: {latest_entry(server)}"
-    )
-
-
-def receive_step(work: Path) -> None:
-    body = long_batch(1)
-    with small_disk(work) as data, serve_on(data) as server:
-        fill(data, leave=len(body) // 2)
-        print(f"upload received on a full disk: {refused_upload(server, body)}", flush=True)
-        free_space(data)
-        print(f"  space freed: the same upload's job {server.calibrate(body)['state']}", flush=True)
-
-
-def unzip_step(work: Path) -> None:
-    with small_disk(work) as data, serve_on(data) as server:
-        body = many_small_files(12_000)
-        print(f"upload unzipped on a full disk (12,000 files): {refused_upload(server, body)}", flush=True)
-        print(f"  then another upload's job {server.calibrate(long_batch(1))['state']}", flush=True)
-
-
-def request_step(work: Path) -> None:
-    body = long_batch(1)
-    with PostgresCluster.start() as cluster:
-        url = cluster.create_database()
-        with small_disk(work) as data, serve_on_held(data, url) as server:
-            began = time.perf_counter()
-            response = upload_refused_at_job_request(server, url, body).result()
-            print(
-                f"disk filled before the job's request.json: {response.status_code} in"
-                f" {time.perf_counter() - began:.2f} s (the intake held meanwhile),"
-                f" {kept_bytes(server)} bytes left in jobs/ and uploads/, audited: {latest_entry(server)}",
-                flush=True,
-            )
-            free_space(data)
-            print(f"  space freed: the same upload's job {server.calibrate(body)['state']}", flush=True)
-
-
-def store_step(work: Path) -> None:
-    with small_disk(work) as data, serve_on(data) as server:
-        job_id = server.upload(long_batch(COPIES)).json()["id"]
-        fill(data)
-        job = server.wait_job(job_id)
-        kept = (data / "jobs" / job_id).is_dir()
-        print(
-            f"a job's version written on a full disk: {job['state']}, {job['errors'][0][:60]}...", flush=True
-        )
-        activation = server.client.post("/v1/admin/calibrations/1/activate", json={}, headers=server.admin)
-        print(f"  upload kept: {kept}; an activation meanwhile: {activation.status_code}", flush=True)
-        free_space(data)
-        time.sleep(1.5)  # the job's writer lands its failed state
-        retried = server.client.post(f"/v1/admin/jobs/{job_id}/retry", headers=server.admin)
-        new = server.wait_job(retried.json()["id"]) if retried.status_code == 202 else {"state": "-"}
-        refusal = [e for e in audit_entries(server) if e["action"] == "activation"][:1]
-        audited = refusal[0]["details"].get("status") if refusal else None
-        print(
-            f"  space freed: the activation's refusal audited ({audited}); retry {retried.status_code},"
-            f" its job {new['state']}",
-            flush=True,
-        )
-
-
-def workers_step(work: Path) -> None:
-    """CKS_WORKERS=2, the disk filled: new metric series, a worker killed and restarted, predicts."""
-    image, instances = sample_request()
-    with small_disk(work) as data, serve_on(data, workers=2) as server:
-        server.client.get("/metrics")
-        fill(data)
-        answers: list[int] = []
-        began = time.perf_counter()
-        for number in range(60):
-            with httpx.Client(base_url=server.url, timeout=60) as client:  # new connections: both workers
-                client.get(f"/v1/no-such-route-{number}")  # a new label series on the full disk
-                answers.append(predict(client, image, instances).status_code)
-            if number == 20:  # its replacement starts on the full disk (seconds: it loads the model)
-                os.kill(max(worker_pids(server.process.pid)), signal.SIGKILL)
-            if number == 40:
-                wait_until(lambda: "Application startup complete" in server.log().rpartition("died")[2])
-        took = time.perf_counter() - began
-        log = server.log()
-        print(
-            f"CKS_WORKERS=2 on a full disk, 60 predicts (a worker SIGKILLed after 21): {answers.count(200)}"
-            f" answered 200 in {took:.1f} s; workers that said 'metrics degraded':"
-            f" {log.count('metrics degraded in process')}; Bus errors: {log.count('Bus error')};"
-            f" /metrics {server.client.get('/metrics').status_code}",
-            flush=True,
-        )
-
-
-def worker_pids(parent: int) -> set[int]:
-    """The worker processes of a serve process (its children spawned by multiprocessing)."""
-    children = Path(f"/proc/{parent}/task/{parent}/children").read_text().split()
-    return {int(child) for child in children if "spawn_main" in Path(f"/proc/{child}/cmdline").read_text()}
-
-
-def duplicates_step(work: Path) -> None:
-    body = long_batch(1)
-    with LiveServer(work / "data", admin_token=ADMIN_TOKEN) as server:
-        server.calibrate(body)
-        answers = [server.upload(body) for _ in range(3)]
-        named = {r.json().get("duplicate_of") for r in answers}
-        print(f"four identical uploads: 202, then {[r.status_code for r in answers]} naming version {named}")
-        allowed = server.calibrate(body, allow_duplicate=True, reason="a copy on purpose")
-        entry = next(
-            e for e in audit_entries(server) if (e["action"], e["outcome"]) == ("upload", "accepted")
-        )
-        audited = {k: entry["details"].get(k) for k in ("duplicate_of", "why")}
-        print(
-            f"  with allow_duplicate and a reason: version {allowed['result']['version']}, audited {audited}"
-        )
-
-
-def main(argv: list[str] | None = None) -> int:
-    for step in (receive_step, unzip_step, request_step, store_step, workers_step, duplicates_step):
-        with tempfile.TemporaryDirectory(prefix="cks-faults-") as work:
-            step(Path(work))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))

@@ -1,39 +1,26 @@
-"""What a real server does while its calibration store is away, measured end to end.
+"""A real server while its calibration store is away, for the live tests (test_store_outage,
+test_sqlite_outage, test_jobs_stale, test_shutdown).
 
-    python -m benchmarks.faults_store                       # 8 s outage, 2 clients
-    python -m benchmarks.faults_store --outage 30 --clients 4
-    python -m benchmarks.faults_store --fault freeze        # SIGSTOP instead of a stop
-    python -m benchmarks.faults_store --fault sqlite-locked # a SQLite store, its locks held
-
-Starts a throwaway PostgreSQL cluster (the machine's server binaries, as the tests do) and
-one real server on it (uvicorn on loopback, bundled model and calibration, version 1
-active), stores a second version without activating it, then has client threads predict
-continuously with the active version while the cluster is stopped for ``--outage`` seconds
-and started again. ``--fault freeze`` sends its processes SIGSTOP and then SIGCONT instead
-(a database that neither refuses nor answers, as a paused VM); ``--fault sqlite-locked``
-serves from SQLite (no cluster) while another process holds the database's WAL locks.
-Printed: predictions answered and failed with their latency p50/p99 before, during and after
-the outage; how long an admin call took to answer 503 (the first one, before the server
-knew, and one after); /readyz during the outage; a predict naming the version not in memory;
-how long until /readyz reported the store unreachable, and ok again after the restart; how
-long an activation written to the store during recovery (as another replica would) took to
-be served; and when admin calls answered 200 again.
-
-Bounded: ``--before + --outage + --after`` seconds of load, every wait capped at
-``WAIT_LIMIT_S``; loopback only.
+``scene`` starts one real server on a throwaway PostgreSQL cluster's database (or on SQLite),
+bundled model and calibration, version 1 active, and stores a second version without activating
+it. ``run_outage`` has client threads predict continuously with the active version while the
+store is away (``fault``: the cluster stopped, frozen with SIGSTOP as a paused VM would be, or a
+SQLite store whose WAL locks another process holds) and after it returns, and reports the
+predictions answered and failed before, during and after; how admin calls, /readyz and a predict
+naming a version not in memory answered meanwhile; and how long the server took to notice, to
+recover, and to serve an activation written to the store during recovery (as another replica
+would). Every wait is capped at ``WAIT_LIMIT_S``.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager, nullcontext
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -101,7 +88,6 @@ class Call:
 class OutageReport:
     fault: str  # Fault.name
     outage_s: float
-    poll_s: float
     phases: dict[str, PhaseFigures]  # before, during, after
     admin_first: Call  # sent right after the stop, before the server knew
     admin_known: Call  # sent once /readyz said the store is unreachable
@@ -234,9 +220,6 @@ class Fault:
         return cls("PostgreSQL stopped", cluster.stop_server, cluster.start_server)
 
 
-FAULTS = ("stop", "freeze", "sqlite-locked")
-
-
 def run_outage(
     prepared: Scene,
     outage_s: float,
@@ -245,10 +228,9 @@ def run_outage(
     clients: int = 2,
     fault: str = "stop",
 ) -> OutageReport:
-    """Predict under load while the store is away (``fault``, one of FAULTS) for ``outage_s``
-    seconds, and after it returns."""
+    """Predict under load while the store is away (``fault``: "stop", "freeze" or "sqlite-locked")
+    for ``outage_s`` seconds, and after it returns."""
     server, client, happens = prepared.server, prepared.server.client, Fault.of(fault, prepared)
-    poll_s = float(server.settings.get("store_poll_seconds", 1.0))
     readyz: dict[str, Call] = {}
 
     def readyz_says(key: str, value: object) -> bool:
@@ -316,7 +298,6 @@ def run_outage(
     return OutageReport(
         happens.name,
         outage_s,
-        poll_s,
         phases,
         admin_first,
         admin_known,
@@ -328,63 +309,3 @@ def run_outage(
         activation_seen_after_s,
         admin_ok_after_s,
     )
-
-
-def print_report(report: OutageReport) -> None:
-    print(f"{report.fault} for {report.outage_s:g} s; store polled every {report.poll_s:g} s")
-    print(f"{'predictions':<12} {'answered':>9} {'failed':>7} {'p50 ms':>8} {'p99 ms':>8}")
-    for name, f in report.phases.items():
-        print(f"{name:<12} {f.answered:>9} {f.failed:>7} {f.p50_ms:>8.1f} {f.p99_ms:>8.1f}")
-    readyz = report.readyz_during.body
-    print(
-        f"/readyz during: {report.readyz_during.status}, store {readyz.get('store')},"
-        f" cache age {readyz.get('cache_age_seconds')} s, error {readyz.get('store_error')!r}"
-    )
-    for label, call in (
-        ("admin GET, first after the stop", report.admin_first),
-        ("admin GET, store known down", report.admin_known),
-        ("predict naming the active version", report.named_active),
-        ("predict naming a version not in memory", report.named_other),
-    ):
-        print(f"{label}: {call.status} in {call.seconds:.3f} s (Retry-After: {call.retry_after})")
-    print(f"/readyz reported the store unreachable {report.unreachable_after_s:.2f} s after the stop")
-    print(
-        f"after the restart: /readyz store ok in {report.recovered_after_s:.2f} s, admin 200 by"
-        f" {report.admin_ok_after_s:.2f} s; an activation written during recovery served by"
-        f" {report.activation_seen_after_s:.2f} s after it"
-    )
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--outage", type=float, default=8.0, help="seconds the cluster stays stopped")
-    parser.add_argument("--before", type=float, default=3.0, help="seconds of load before the stop")
-    parser.add_argument("--after", type=float, default=5.0, help="seconds of load after recovery")
-    parser.add_argument("--clients", type=int, default=2, help="client threads predicting")
-    parser.add_argument("--poll", type=float, default=1.0, help="CKS_STORE_POLL_SECONDS")
-    parser.add_argument("--timeout", type=float, default=1.5, help="CKS_STORE_TIMEOUT_SECONDS")
-    parser.add_argument(
-        "--fault",
-        choices=FAULTS,
-        default="stop",
-        help="PostgreSQL stopped, frozen (SIGSTOP), or a SQLite store whose locks another process holds",
-    )
-    args = parser.parse_args(argv)
-    for name in ("outage", "before", "after", "poll", "timeout"):
-        if not 0 < getattr(args, name) <= 600:
-            parser.error(f"--{name} must be in (0, 600] seconds")
-    if not 1 <= args.clients <= 32:
-        parser.error("--clients must be 1 to 32")
-    settings = {"store_poll_seconds": args.poll, "store_timeout_seconds": args.timeout}
-    with (
-        tempfile.TemporaryDirectory(prefix="cks-faults-store-") as work,
-        PostgresCluster.start() if args.fault != "sqlite-locked" else nullcontext() as cluster,
-        scene(Path(work), cluster, **settings) as prepared,
-    ):
-        report = run_outage(prepared, args.outage, args.before, args.after, args.clients, args.fault)
-    print_report(report)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -1,7 +1,5 @@
-"""A real fleet: three replicas behind Debian's HAProxy on one real PostgreSQL, under steady
-predict load: the figures of docs/deploy.md ("A fleet behind a proxy").
-
-    python -m benchmarks.fleet     # as root or with PostgreSQL's and HAProxy's binaries
+"""A real fleet, for the live test (test_fleet): three replicas behind Debian's HAProxy on one real
+PostgreSQL, under steady predict load (docs/deploy.md, "A fleet behind a proxy").
 
 Three ``keypoint-service serve`` processes share a throwaway PostgreSQL cluster; HAProxy
 spreads requests over them (round robin, ``/readyz`` checked every 300 ms, a request whose
@@ -9,8 +7,8 @@ server failed or vanished retried on another). ``CLIENTS`` threads predict back 
 the proxy with the Python client, which retries an idempotent call once (``attempts=2``).
 Under that load: the replicas' drift answers are read directly from each (they must agree);
 version 2 is activated through the proxy and each replica's ``/readyz`` is watched until it
-serves it (the spread); replica 2 is SIGKILLed, then replica 3 drained with SIGTERM. Printed:
-requests answered and lost per phase, the activation spread, the drift agreement. About a minute.
+serves it (the spread); replica 2 is SIGKILLed, then replica 3 drained with SIGTERM. Reported:
+requests answered and lost per phase, the activation spread, the drift answers. About a minute.
 """
 
 from __future__ import annotations
@@ -19,8 +17,6 @@ import json
 import shutil
 import signal
 import subprocess
-import sys
-import tempfile
 import threading
 import time
 from collections import Counter
@@ -32,7 +28,7 @@ from pathlib import Path
 import httpx
 from keypoint_client import KeypointClient, RetryPolicy
 
-from benchmarks.faults_clients import sample_request
+from benchmarks.load import sample_request
 from tests.live.server import LiveServer, free_port
 from tests.postgres_cluster import PostgresCluster
 from tests.samples import batch_zip, model_dir
@@ -40,8 +36,8 @@ from tests.service_calls import ADMIN_TOKEN, wait_until
 
 REPLICAS = 3
 CLIENTS = 3
-POLL_S = 1.0  # CKS_STORE_POLL_SECONDS (the default): how soon a replica serves a new activation
-SHARE_S = 1.0  # CKS_DRIFT_SHARE_SECONDS
+POLL_S = 1.0  # how often a replica reads the store: how soon it serves a new activation
+SHARE_S = 5.0  # how often a replica shares its drift windows with the others (the service's interval)
 HAPROXY_CONFIG = """
 global
     tune.bufsize 1048576
@@ -156,7 +152,7 @@ def drift_of(url: str) -> dict:
 
 def run_fleet(work: Path, cluster: PostgresCluster) -> FleetReport:
     url = cluster.create_database()
-    settings = {"admin_token": ADMIN_TOKEN, "store_url": url, "drift_share_seconds": SHARE_S}
+    settings = {"admin_token": ADMIN_TOKEN, "store_url": url}
     with ExitStack() as stack:
         replicas = [
             stack.enter_context(LiveServer(work / f"replica{n}", **settings)) for n in range(1, REPLICAS + 1)
@@ -203,25 +199,3 @@ def run_fleet(work: Path, cluster: PostgresCluster) -> FleetReport:
         time.sleep(2)
         load.stop()
         return FleetReport(load.outcomes, spread, drift, drained_exit)
-
-
-def print_report(report: FleetReport) -> None:
-    print(f"{REPLICAS} replicas behind HAProxy on one PostgreSQL; {CLIENTS} clients predicting back to back")
-    for phase, outcomes in report.outcomes.items():
-        print(f"  {phase}: " + ", ".join(f"{count} {outcome}" for outcome, count in outcomes.items()))
-    spread = ", ".join(f"{s:.2f}" for s in report.activation_spread_s)
-    print(f"activation through the proxy served by each replica after: {spread} s (poll {POLL_S:g} s)")
-    keys = ("replicas", "frames", "recorded", "independent_looks", "alarm")
-    answers = [tuple(d.get(k) for k in keys) for d in report.drift]
-    print(f"drift read from each replica ({', '.join(keys)}): {answers}")
-    print(f"the drained replica exited with status {report.drained_exit}")
-
-
-def main() -> int:
-    with tempfile.TemporaryDirectory(prefix="cks-fleet-") as work, PostgresCluster.start() as cluster:
-        print_report(run_fleet(Path(work), cluster))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -17,13 +17,11 @@ CUDA = "CUDAExecutionProvider"
 #: the model on the GPU; the service gives CUDA full fp32 and heuristic cuDNN algorithms
 #: (``service.detector.session.PROVIDER_DEFAULTS``), the peers' sessions too
 CUDA_SETTINGS = {"CKS_EXECUTION_PROVIDERS": f"{CUDA},CPUExecutionProvider"}
-#: what served best on the GPU machine measured (``python -m benchmarks.peers.gpu_tuning``,
-#: docs/operations.md "Serving from a GPU"): the CPU work (decode, crop, sets) spread over
-#: processes, each request its own run
+#: what served best on the GPU machine measured (docs/operations.md "Serving from a GPU"): the
+#: CPU work (decode, crop, sets) spread over processes, each request its own run
 GPU_SETTINGS = {
     **CUDA_SETTINGS,
     "CKS_WORKERS": str(max(1, len(os.sched_getaffinity(0)) // 2)),
-    "CKS_CPU_WORKERS": "4",
     "CKS_MAX_CONCURRENT_INFERENCES": "16",
 }
 

@@ -7,14 +7,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from benchmarks.harness import BOXES, LoadResult, Requests, run_wrk
 from benchmarks.peers.accelerator import on_gpu
 from benchmarks.peers.answers import GPU_TOLERANCE, TOLERANCE, difference, post
 from benchmarks.peers.servers import Contender
-from benchmarks.service_bench.inputs import Sample
-from benchmarks.service_bench.loadgen import LoadResult, run_wrk, write_script
 
 CONCURRENCIES = (1, 4, 16)
-BOXES = (1, 4)
 Point = tuple[int, int]  # (boxes per image, concurrency)
 
 
@@ -53,24 +51,6 @@ class Runs:
 
     def errors(self, name: str) -> int:
         return sum(r.errors for runs in self.results[name].values() for r in runs)
-
-
-@dataclass(frozen=True)
-class Requests:
-    """The README's request with 1 and 4 boxes: multipart bodies and their wrk scripts."""
-
-    bodies: dict[int, tuple[bytes, str]]
-    scripts: dict[int, Path]
-
-    @staticmethod
-    def write(directory: Path, sample: Sample) -> Requests:
-        bodies, scripts = {}, {}
-        for boxes in BOXES:
-            bodies[boxes] = sample.with_instances(boxes).multipart_body()
-            folder = directory / f"boxes-{boxes}"
-            folder.mkdir()
-            scripts[boxes] = write_script(folder, *bodies[boxes])
-        return Requests(bodies, scripts)
 
 
 def check_answers(url: str, requests: Requests, reference: dict[int, dict]) -> dict[int, dict]:

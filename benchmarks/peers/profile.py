@@ -16,8 +16,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from benchmarks.service_bench.loadgen import run_wrk
-from benchmarks.service_bench.server import Server
+from benchmarks.harness import Server, run_wrk
 
 #: (stage, function names that put a sample in it): the first row are waits (innermost frame only);
 #: otherwise the innermost frame that names a stage decides, the first row matching it
@@ -42,7 +41,7 @@ STAGES = (
     ("response data + JSON", ("predict", "predict_response", "predict_json", "model_dump_json", "_respond")),
     ("multipart parsing", ("MultiPartParser", "MultipartParser", "Request.form", "_parse_multipart")),
     ("validation (pydantic)", ("model_validate_json", "_validated")),
-    ("body reading", ("read_limited_body", "paced_chunks", "receive")),
+    ("body reading", ("read_limited_body", "receive")),
 )
 OTHER = "HTTP, routing, middleware, event loop"
 

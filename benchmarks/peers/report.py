@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from benchmarks.harness import BOXES, Machine
 from benchmarks.peers.accelerator import execution_providers, gpu_names, on_gpu
 from benchmarks.peers.answers import GPU_TOLERANCE, TOLERANCE
-from benchmarks.peers.limit import Limit, cores
-from benchmarks.peers.measure import BOXES, CONCURRENCIES, Runs
+from benchmarks.peers.measure import CONCURRENCIES, Runs
 from benchmarks.peers.profile import Profile
 from benchmarks.peers.servers import Contender
-from benchmarks.service_bench.machine import Machine
+from benchmarks.stages import Limit, cores
 
 SERVICE = "service"
 STAGE_NAMES = {
@@ -200,7 +200,7 @@ def render(results: PeerResults) -> str:
         "### In-process limit (same run)",
         "",
         "The service's own functions called in one process, no HTTP "
-        "(`benchmarks/service_bench/breakdown.py`): stage medians (wall ms) with one intra-op thread; "
+        "(`benchmarks/stages.py`): stage medians (wall ms) with one intra-op thread; "
         "core-ms = the process's CPU time per request over those calls (not inflated by other jobs on the "
         "machine); limit = cores / core-ms; best latency = the smallest wall-clock total with one intra-op "
         "thread or one per core.",

@@ -9,7 +9,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from benchmarks.service_bench.server import Server, free_port, launch, serve
+from benchmarks.harness import Server, free_port, launch, serve
 
 
 @dataclass(frozen=True)
@@ -50,7 +50,6 @@ SERVICE_ON_GPU = Contender(
     None,
     "`benchmarks/peers/accelerator.py` `GPU_SETTINGS`: the CUDA provider with heuristic cuDNN algorithms "
     "and TF32 off, one worker process per two cores (`CKS_WORKERS`), each request's crops one run, "
-    "`CKS_CPU_WORKERS=4`, "
     "`CKS_MAX_CONCURRENT_INFERENCES=16` per worker",
 )
 PEERS = (

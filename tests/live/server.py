@@ -21,7 +21,7 @@ from typing import Any
 
 import httpx
 
-from benchmarks import faults_clients
+from benchmarks import load
 from service.infra.settings import PACKAGE_ROOT, Settings
 from tests.samples import model_dir
 from tests.service_calls import ServiceCalls
@@ -31,7 +31,7 @@ STARTUP_TIMEOUT_S = 60.0
 
 def metric(server: LiveServer, name: str, labels: str = "") -> float:
     """A sample of the server's /metrics (0 when absent)."""
-    return faults_clients.metric(server.url, name, labels)
+    return load.metric(server.url, name, labels)
 
 
 def read_until_closed(connection: socket.socket) -> str:

@@ -2,8 +2,8 @@
 steady predict load through the Python client (an idempotent call retried once). No request is
 lost while one replica is SIGKILLed and another drained with SIGTERM; an activation through the
 proxy reaches every replica within the store's poll interval (with a margin for a loaded
-machine); the drift answer read from each replica directly is the same. The scenario and its
-figures: ``python -m benchmarks.fleet`` (docs/deploy.md)."""
+machine); the drift answer read from each replica directly is the same. The scenario:
+``benchmarks.fleet.run_fleet`` (docs/deploy.md)."""
 
 from __future__ import annotations
 

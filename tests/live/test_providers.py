@@ -10,7 +10,7 @@ import onnxruntime as ort
 import pytest
 from pydantic import ValidationError
 
-from benchmarks.faults_clients import predict, sample_request
+from benchmarks.load import predict, sample_request
 from service.infra.settings import Settings
 from tests.cli_calls import assert_one_line_error, run
 from tests.live.server import LiveServer, free_port

@@ -2,8 +2,8 @@
 
 A real server on its SQLite file, and a real second process holding every WAL lock of that
 database (as one stuck in a checkpoint or a recovery would): the service's reads and writes
-wait on SQLite's own retries (about 10 s, then "locking protocol"). The scenario is the one
-``python -m benchmarks.faults_store --fault sqlite-locked`` measures.
+wait on SQLite's own retries (about 10 s, then "locking protocol"). The scenario:
+``benchmarks.faults_store.run_outage`` with ``fault="sqlite-locked"``.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 A real server (uvicorn on loopback) on a real PostgreSQL cluster of this module's own, so
 that stopping it (``pg_ctl stop -m fast``, clients cut off) disturbs no other test. The
-scenario is the one ``python -m benchmarks.faults_store`` measures.
+scenario: ``benchmarks.faults_store.run_outage``.
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ import subprocess
 from pathlib import Path
 
 from benchmarks.bench_ab import POINTS, ROOT, export, paced_bodies, paced_summary, server_argv_env, summary
-from benchmarks.service_bench.inputs import load_sample
+from benchmarks.harness import load_sample
 from service.api.predict.frame_input import parse_frame
 from service.detector.manifest import load_manifest
 from service.infra.settings import DEFAULT_MODEL_DIR
@@ -36,7 +36,7 @@ def test_the_summary_gives_the_median_of_paired_ratios() -> None:
 
 
 def test_the_paced_frames_are_1080p_regions_the_service_parses() -> None:
-    bodies = paced_bodies(load_sample(DEFAULT_MODEL_DIR / "samples"))
+    bodies = paced_bodies(load_sample())
     manifest = load_manifest(DEFAULT_MODEL_DIR)
     frames = [
         (body, content_type) for path, body, content_type in bodies.values() if path == "/v1/predict/frame"

@@ -9,14 +9,12 @@ import httpx
 import pytest
 
 from benchmarks.bench_frames import CONTENDERS, Contenders, main, make_point
-from benchmarks.service_bench.inputs import load_sample
-from benchmarks.service_bench.server import serve
-from service.infra.settings import DEFAULT_MODEL_DIR
+from benchmarks.harness import load_sample, serve
 
 
 @pytest.mark.parametrize(("width", "height", "boxes"), [(640, 480, 1), (1920, 1080, 4), (3840, 2160, 4)])
 def test_frames_have_their_size_and_boxes_inside(width: int, height: int, boxes: int) -> None:
-    point = make_point(load_sample(DEFAULT_MODEL_DIR / "samples"), width, height, boxes)
+    point = make_point(load_sample(), width, height, boxes)
     assert point.frame.shape == (height, width, 3) and point.frame.flags.c_contiguous
     assert len(point.parameters["instances"]) == boxes
     for instance in point.parameters["instances"]:
@@ -25,7 +23,7 @@ def test_frames_have_their_size_and_boxes_inside(width: int, height: int, boxes:
 
 
 def test_regions_cut_with_another_padding_are_refused_not_timed(tmp_path: Path) -> None:
-    point = make_point(load_sample(DEFAULT_MODEL_DIR / "samples"), 640, 480, 1)
+    point = make_point(load_sample(), 640, 480, 1)
     with serve({}, log=tmp_path / "service.log") as server:
         contenders = Contenders(server, server, padding=0.0)
         try:

@@ -1,4 +1,5 @@
-"""Where the time of one predict request goes, timed in-process on the functions the route calls.
+"""Where the time of one predict request goes, timed in-process on the functions the route calls,
+and what that makes the most a server could do (``in_process_limits``).
 
 Stages, in the route's order: ``decode_image`` -> ``build_batch`` (crop + normalize) ->
 ``Detector.run`` (inference) -> ``calibrated_sets`` (heatmap statistics and
@@ -10,19 +11,21 @@ so the stages are measured side by side; the figures are medians over iterations
 
 from __future__ import annotations
 
+import os
 import statistics
 import tempfile
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.service_bench.inputs import Sample
+from benchmarks.harness import Sample
 from service import prediction
-from service.api.predict.predict_input import predict_query  # noqa: E402
-from service.api.predict.predict_presenter import predict_json  # noqa: E402
+from service.api.predict.predict_input import predict_query
+from service.api.predict.predict_presenter import predict_json
 from service.api.predict.predict_schemas import PredictParameters
 from service.detector.frames import ImageSource, image_source
 from service.detector.images import checked_image_header
@@ -117,3 +120,46 @@ def stage_breakdown(state: ServiceState, sample: Sample, iterations: int) -> dic
     medians = {stage: statistics.median(run[stage] for run in runs) for stage in STAGES}
     medians["total"] = sum(medians.values())
     return medians
+
+
+@dataclass(frozen=True)
+class Limit:
+    """The in-process limit: core-ms per request is the process's CPU time per request while the
+    breakdown runs with one intra-op thread (CPU, not wall time: other jobs on the machine do not
+    inflate it), so many clients get at most cores / core-ms; one client at best the smallest
+    wall-clock total over the thread settings (one intra-op thread, or one per core)."""
+
+    boxes: int
+    core_ms: float  # CPU time per request, one intra-op thread
+    best_latency_ms: float  # smallest total over the thread settings
+    best_threads: int
+    stages: dict[str, float]  # one intra-op thread
+
+    @property
+    def requests_per_s(self) -> float:
+        return cores() * 1e3 / self.core_ms
+
+
+def cores() -> int:
+    return len(os.sched_getaffinity(0))
+
+
+def in_process_limits(
+    model_dir: Path, sample: Sample, boxes: tuple[int, ...], iterations: int
+) -> list[Limit]:
+    """One ``Limit`` per box count, the stages timed with one intra-op thread and with one per core."""
+    totals: dict[int, dict[int, dict[str, float]]] = {}
+    core_ms: dict[int, float] = {}
+    for threads in sorted({1, cores()}):
+        with service_state(model_dir, threads) as state:
+            totals[threads] = {}
+            for n in boxes:
+                started = time.process_time()
+                totals[threads][n] = stage_breakdown(state, sample.with_instances(n), iterations)
+                if threads == 1:  # iterations plus the warm-up
+                    core_ms[n] = (time.process_time() - started) * 1e3 / (iterations + 1)
+    limits = []
+    for n in boxes:
+        best = min(totals, key=lambda t: totals[t][n]["total"])
+        limits.append(Limit(n, core_ms[n], totals[best][n]["total"], best, totals[1][n]))
+    return limits

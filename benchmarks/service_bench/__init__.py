@@ -1,1 +1,0 @@
-"""Parts of ``benchmarks.bench_service``: inputs, server, load generator, raw baseline, report."""
