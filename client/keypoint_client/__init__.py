@@ -11,19 +11,6 @@ See README.md for the rest: many images per call, pose sets, retries, calibratio
 administration, coverage audits and drift.
 """
 
-from keypoint_client.admin_models import (
-    Activation,
-    ActivationLog,
-    AuditEntry,
-    AuditPage,
-    Comparison,
-    Job,
-    KeypointChange,
-    StoreInfo,
-    VersionDetail,
-    VersionList,
-    VersionSummary,
-)
 from keypoint_client.calls import AuditOptions, PredictOptions, PredictRequest, UploadOptions
 from keypoint_client.client import AsyncKeypointClient, KeypointClient, __version__
 from keypoint_client.errors import (
@@ -49,36 +36,48 @@ from keypoint_client.errors import (
 )
 from keypoint_client.images import ImageInput, png_bytes
 from keypoint_client.models import (
+    Activation,
+    ActivationLog,
     AdaptiveLevel,
+    AuditEntry,
+    AuditPage,
+    AuditReport,
+    Ball,
+    Comparison,
+    CoverageAudit,
+    CoverageAuditList,
+    CoverageAuditSummary,
+    CoverageFigure,
+    Drift,
+    Ellipse,
+    FeedbackResult,
+    FieldCalibration,
+    GroupCoverage,
     Guarantee,
     Instance,
     InstanceRequest,
+    Job,
     Keypoint,
+    KeypointChange,
     KeypointStatistics,
+    LiveCoverage,
     ModelInfo,
     OuterBound,
     Pose,
     PoseCheck,
     PoseCheckResult,
     PoseRequest,
+    PredictionSet,
     PredictResult,
     Readiness,
     SampledBound,
-)
-from keypoint_client.monitoring_models import (
-    AuditReport,
-    CoverageAudit,
-    CoverageAuditList,
-    CoverageAuditSummary,
-    CoverageFigure,
-    Drift,
-    FeedbackResult,
-    FieldCalibration,
-    GroupCoverage,
-    LiveCoverage,
+    StoreInfo,
+    Unbounded,
+    VersionDetail,
+    VersionList,
+    VersionSummary,
 )
 from keypoint_client.retry import RetryPolicy
-from keypoint_client.sets import Ball, Ellipse, PredictionSet, Unbounded
 
 __all__ = [
     "AdaptiveLevel",

@@ -14,38 +14,31 @@ from urllib.parse import quote
 import httpx
 from pydantic import BaseModel
 
-from keypoint_client.admin_models import (
-    Activation,
-    ActivationLog,
-    AuditPage,
-    Comparison,
-    Job,
-    StoreInfo,
-    VersionDetail,
-    VersionList,
-)
+from keypoint_client import generated_models as api
 from keypoint_client.errors import JobFailed, JobWaitTimeout, KeypointClientError, ProblemError, problem_error
 from keypoint_client.frames import FrameSending, frame_parts, is_frame
 from keypoint_client.images import ChannelOrder, ImageInput, encode_image
 from keypoint_client.models import (
-    Coverage,
-    GroupFallback,
-    InstanceLike,
-    ModelInfo,
-    Nonconformity,
-    PoseRequest,
-    PredictResult,
-    Readiness,
-    Stratify,
-    instance_request,
-)
-from keypoint_client.monitoring_models import (
+    Activation,
+    ActivationLog,
+    AuditPage,
+    Comparison,
     CoverageAudit,
     CoverageAuditList,
     Drift,
     FeedbackResult,
     FieldCalibration,
+    InstanceLike,
+    Job,
     LiveCoverage,
+    ModelInfo,
+    PoseRequest,
+    PredictResult,
+    Readiness,
+    StoreInfo,
+    VersionDetail,
+    VersionList,
+    instance_request,
 )
 from keypoint_client.retry import retry_after_seconds
 
@@ -60,6 +53,11 @@ Files = list[tuple[str, tuple[str | None, bytes, str]]]
 Params = Mapping[str, str | list[str]]
 Reader = Callable[[httpx.Response, str], T]
 DEFAULT_BATCH_SIZE = 16  # the service's default CKS_MAX_BATCH_IMAGES
+# The values the document lists for these options of a prediction.
+Nonconformity = Literal["peak", "var", "cov"]
+Coverage = Literal["keypoint", "object"]
+Stratify = Literal["none", "difficulty", "group", "difficulty+group"]
+GroupFallback = Literal["refuse", "pooled"]
 
 
 class PredictOptions(TypedDict, total=False):
@@ -306,27 +304,17 @@ def predict_png(
     )
 
 
-class _BatchItem(BaseModel):
-    status: int
-    result: PredictResult | None = None
-    problem: dict[str, Any] | None = None
-
-
-class _BatchAnswer(BaseModel):
-    items: list[_BatchItem]
-
-
 def predict_batch(
     requests: Sequence[PredictRequest], timeout: float | None
 ) -> Call[list[PredictResult | ProblemError]]:
     def read(response: httpx.Response, request_id: str) -> list[PredictResult | ProblemError]:
-        items = _BatchAnswer.model_validate_json(response.content).items
+        items = api.BatchResponse.model_validate_json(response.content).items
         if len(items) != len(requests):
             raise KeypointClientError(f"the service answered {len(items)} items for {len(requests)} images")
         return [
             item.result
             if item.status == 200 and item.result is not None
-            else problem_error(item.status, item.problem or {}, request_id)
+            else problem_error(item.status, item.problem.to_dict() if item.problem else {}, request_id)
             for item in items
         ]
 
@@ -494,12 +482,41 @@ def live_coverage(*, timeout: float | None = None) -> Call[LiveCoverage]:
     return Call("GET", "/v1/admin/coverage/live", _model(LiveCoverage), timeout=timeout)
 
 
-def calibrate_from_feedback(*, timeout: float | None = None, **options: Any) -> Call[FieldCalibration]:
-    """A calibration version from the labelled feedback (no zip): ``stream``, ``served_by`` choose the
-    labels; ``note``, ``append_to``, ``activate``, ``force``, ``reason``, ``dedupe``,
-    ``allow_duplicate`` as for an upload. Conflict for repeats or a version equal to a stored one."""
-    path = "/v1/admin/field-calibrations"
-    return Call("POST", path, _model(FieldCalibration), idempotent=False, json=options, timeout=timeout)
+def calibrate_from_feedback(
+    *,
+    stream: str | None = None,
+    served_by: int | None = None,
+    name: str | None = None,
+    note: str = "",
+    append_to: int | None = None,
+    activate: bool = False,
+    force: bool = False,
+    reason: str = "",
+    dedupe: bool = False,
+    allow_duplicate: bool = False,
+    timeout: float | None = None,
+) -> Call[FieldCalibration]:
+    """A calibration version from the labelled feedback (no zip). Which labels: a camera
+    ``stream``'s only, those of answers ``served_by`` a version only (default every label).
+    ``name`` of the source batch (default feedback-<sha256>), ``note`` stored with the version,
+    ``append_to`` a version (new version = it + the labels), ``activate`` it (``force`` past the
+    guardrails, with a ``reason``), ``dedupe`` (drop instances already counted instead of
+    refusing), ``allow_duplicate`` (store a version equal to a stored one). Conflict for repeats
+    or a version equal to a stored one; InvalidInput when no labelled feedback matches."""
+    body = api.FieldCalibrationIn(
+        stream=stream,
+        served_by=served_by,
+        name=name,
+        note=note,
+        append_to=append_to,
+        activate=activate,
+        force=force,
+        reason=reason,
+        dedupe=dedupe,
+        allow_duplicate=allow_duplicate,
+    )
+    path, read = "/v1/admin/field-calibrations", _model(FieldCalibration)
+    return Call("POST", path, read, idempotent=False, json=body.to_dict(), timeout=timeout)
 
 
 def store(*, timeout: float | None = None) -> Call[StoreInfo]:

@@ -20,14 +20,12 @@ from typing import TYPE_CHECKING, Any, Generic, ParamSpec, TypeVar, overload
 import httpx
 
 from keypoint_client import calls
-from keypoint_client.admin_models import Activation, Job
 from keypoint_client.archive import calibration_zip
 from keypoint_client.calls import DEFAULT_BATCH_SIZE, Call, JobWatch, PredictRequest
 from keypoint_client.errors import ProblemError
 from keypoint_client.frames import FrameSending, crop_padding, is_frame
 from keypoint_client.images import ImageInput
-from keypoint_client.models import PredictResult
-from keypoint_client.monitoring_models import CoverageAudit
+from keypoint_client.models import Activation, CoverageAudit, Job, PredictResult
 from keypoint_client.retry import Attempts, RetryPolicy
 
 if TYPE_CHECKING:

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from keypoint_client.admin_models import Comparison
+from keypoint_client.generated_models import Problem
+from keypoint_client.models import Comparison
 
 if TYPE_CHECKING:
-    from keypoint_client.admin_models import Job
+    from keypoint_client.models import Job
 
-PROBLEM_MEMBERS = frozenset({"type", "title", "status", "detail", "instance", "errors", "request_id"})
+PROBLEM_MEMBERS = frozenset(Problem.model_fields)
 
 
 class KeypointClientError(Exception):

@@ -35,7 +35,7 @@ def is_frame(image: object) -> TypeGuard[NDArray[Any]]:
 
 def crop_padding(model: ModelInfo) -> float:
     """The served model's crop padding (its manifest's ``crop.padding``), which sizes the regions."""
-    return float(model.manifest["crop"]["padding"])
+    return model.manifest.crop.padding
 
 
 def crop_context(bbox: Sequence[float], padding: float, width: int, height: int) -> Rectangle:

@@ -1,4 +1,5 @@
-"""Prediction sets: a ball, an ellipse or the whole plane, with membership, area and outline.
+"""The geometry of prediction sets: membership, area and outline of a ball, an ellipse or the
+whole plane, inherited by the generated BallSet, EllipseSet and UnboundedSet.
 
 Coordinates are image pixels, x to the right and y down, with the origin at the top-left
 corner of the top-left pixel (pixel (row r, column c) has its centre at (c + 0.5, r + 0.5)),
@@ -8,25 +9,15 @@ as in the API. ``contains`` and ``boundary`` need numpy (``pip install './client
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Annotated, Any, Literal
-
-from pydantic import BaseModel, ConfigDict, Field
+from typing import TYPE_CHECKING
 
 from keypoint_client._numpy import np, require_numpy
+from keypoint_client.bases import Frozen
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike, NDArray
 
 Point = tuple[float, float]
-
-
-class Frozen(BaseModel):
-    """An immutable body of the API; ``to_dict()`` is its JSON form."""
-
-    model_config = ConfigDict(frozen=True)
-
-    def to_dict(self) -> dict[str, Any]:
-        return self.model_dump(mode="json")
 
 
 def _offsets(points: ArrayLike, center: Point) -> NDArray[np.float64]:
@@ -44,12 +35,12 @@ def _angles(n: int) -> NDArray[np.float64]:
     return np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
 
 
-class Ball(Frozen):
+class BallGeometry(Frozen):
     """Every point within ``radius`` of ``center`` (radius 0: the single point ``center``)."""
 
-    type: Literal["ball"]
-    center: Point
-    radius: float
+    if TYPE_CHECKING:
+        center: Point
+        radius: float
 
     @property
     def area(self) -> float:
@@ -66,14 +57,14 @@ class Ball(Frozen):
         return np.asarray(self.center) + self.radius * np.stack([np.cos(angles), np.sin(angles)], axis=1)
 
 
-class Ellipse(Frozen):
+class EllipseGeometry(Frozen):
     """Every point y with (y - center)^T shape_matrix (y - center) <= 1."""
 
-    type: Literal["ellipse"]
-    center: Point
-    shape_matrix: tuple[Point, Point] = Field(description="L with (y-c)^T L (y-c) <= 1")
-    semi_axes: Point = Field(description="(a, b), a <= b, in pixels")
-    angle_deg: float = Field(description="direction of the major axis b, degrees from +x towards +y")
+    if TYPE_CHECKING:
+        center: Point
+        shape_matrix: tuple[Point, Point]
+        semi_axes: Point
+        angle_deg: float
 
     @property
     def area(self) -> float:
@@ -96,11 +87,8 @@ class Ellipse(Frozen):
         return np.asarray(outline + np.sin(angles)[:, None] * minor * across, dtype=np.float64)
 
 
-class Unbounded(Frozen):
+class UnboundedGeometry(Frozen):
     """The whole plane: too few calibration scores for this epsilon (t = 0) to bound the set."""
-
-    type: Literal["unbounded"]
-    reason: str
 
     @property
     def area(self) -> float:
@@ -115,6 +103,3 @@ class Unbounded(Frozen):
         """No boundary: an empty (0, 2) array (there is nothing to draw)."""
         _angles(n)
         return np.empty((0, 2))
-
-
-PredictionSet = Annotated[Ball | Ellipse | Unbounded, Field(discriminator="type")]

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from calibration_store import open_store
-from service.api.predict.predict_schemas import PoseOut, PredictResponse
+from service.api.predict.predict_schemas import PoseOut
 from service.detector.session import file_sha256
 from service.infra.settings import PACKAGE_ROOT
 from tests.live.server import LiveServer, cli, free_port, service_env
@@ -44,14 +44,20 @@ def predict_args(path: Path, group: list[Sample], *options: str) -> tuple[list[s
     return args, {"instances": instances}
 
 
-def services_answers(server: LiveServer, path: Path, parameters: dict) -> tuple[str, bytes]:
-    """The JSON as the command line printed it before it used the client (PredictResponse's
-    model_dump_json(indent=2)), and the PNG the service draws."""
+def services_answers(server: LiveServer, path: Path, parameters: dict) -> tuple[dict, bytes]:
+    """The service's JSON answer, and the PNG it draws."""
     image = path.read_bytes()
     answer = predict_json(server.client, image, parameters)
     drawn = predict_json(server.client, image, parameters, headers={"Accept": "image/png"})
     assert answer.status_code == drawn.status_code == 200, answer.text
-    return PredictResponse.model_validate_json(answer.content).model_dump_json(indent=2) + "\n", drawn.content
+    return answer.json(), drawn.content
+
+
+def printed_answer(printed: str) -> dict:
+    """What the command line printed: the client's result, members in the document's order."""
+    answer = json.loads(printed)
+    assert list(answer) == sorted(answer) and printed.endswith("}\n")
+    return answer
 
 
 def test_predict_prints_json_and_writes_a_png(
@@ -74,8 +80,8 @@ def test_predict_prints_json_and_writes_a_png(
     assert drawn is not None and drawn.shape[:2] == image.shape[:2]
     assert (tmp_path / "out.png").read_bytes().startswith(b"\x89PNG")
     assert np.any(drawn != cv2.imread(str(path), cv2.IMREAD_COLOR))
-    # The same output as before it used the client: the same text, the same drawing.
-    assert (printed, (tmp_path / "out.png").read_bytes()) == services_answers(
+    # The service's answer and drawing.
+    assert (printed_answer(printed), (tmp_path / "out.png").read_bytes()) == services_answers(
         server, path, {**parameters, "nonconformity": "var"}
     )
 
@@ -84,7 +90,9 @@ def test_predict_asks_a_running_service(tmp_path: Path, samples: list[Sample], s
     path, group = list(samples_by_image(samples).items())[1]
     args, parameters = predict_args(path, group, "--url", server.url, "--png", str(tmp_path / "out.png"))
     printed = run(args, tmp_path / "data").stdout
-    assert (printed, (tmp_path / "out.png").read_bytes()) == services_answers(server, path, parameters)
+    assert (printed_answer(printed), (tmp_path / "out.png").read_bytes()) == services_answers(
+        server, path, parameters
+    )
 
     unknown = run(
         ["predict", str(path), "--url", server.url, "--instance", "nothing:1,1,9,9"], tmp_path, expect=2
@@ -115,7 +123,7 @@ def test_predict_prints_and_draws_the_pose(
     printed = run(args, tmp_path / "data").stdout
     parameters |= {"coverage": "object"}
     answer, drawn = services_answers(server, path, parameters | {"pose": {"K": camera}})
-    assert (printed, png.read_bytes()) == (answer, drawn)
+    assert (printed_answer(printed), png.read_bytes()) == (answer, drawn)
     poses = [instance["pose"] for instance in json.loads(printed)["instances"]]
     assert len(poses) == len(group) and all(set(pose) == set(PoseOut.model_fields) for pose in poses)
     assert drawn != services_answers(server, path, parameters)[1], "the PNG draws the poses"

@@ -1,12 +1,11 @@
-"""The client installed alone into a fresh virtual environment: pip brings httpx and pydantic
-and nothing of the server; it predicts against a real server without numpy; with its numpy
-extra, its contains() agrees with the server's own set geometry on the bundled samples'
-labelled keypoints and on points scattered around every set."""
+"""The client installed alone into a fresh virtual environment, from the checkout, which keeps no
+build output: pip brings httpx and pydantic and nothing of the server; it predicts against a
+real server without numpy; with its numpy extra, its contains() agrees with the server's own
+set geometry on the bundled samples' labelled keypoints and on points scattered around every set."""
 
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -67,6 +66,10 @@ def run(*command: str | Path, cwd: Path) -> str:
     return result.stdout
 
 
+def files(folder: Path) -> set[Path]:
+    return {path for path in folder.rglob("*") if "__pycache__" not in path.parts}
+
+
 def python_says(python: Path, expression: str, cwd: Path) -> Any:
     """The JSON value of ``expression`` evaluated by ``python``."""
     code = f"import importlib.metadata, importlib.util, json, pathlib; print(json.dumps({expression}))"
@@ -123,14 +126,12 @@ def questions(server: LiveServer, samples: list[Sample]) -> tuple[list[dict], li
 def test_the_client_alone_predicts_and_agrees_with_the_server(
     server: LiveServer, samples: list[Sample], tmp_path: Path
 ) -> None:
-    # Built from a copy: pip's build of a folder writes into it (build/, *.egg-info).
-    source = shutil.copytree(
-        CLIENT_ROOT, tmp_path / "client", ignore=shutil.ignore_patterns("build", "*.egg-info")
-    )
     run(sys.executable, "-m", "venv", tmp_path / "venv", cwd=tmp_path)
     python = tmp_path / "venv" / "bin" / "python"
     pip = (python, "-m", "pip", "install", "--quiet", "--disable-pip-version-check")
-    run(*pip, source, cwd=tmp_path)
+    checkout = files(CLIENT_ROOT)
+    run(*pip, CLIENT_ROOT, cwd=tmp_path)
+    assert files(CLIENT_ROOT) == checkout, "the install left files in the checkout"
 
     alone = installed(python, tmp_path)
     assert {"keypoint-client", "httpx", "pydantic"} <= alone and not alone & SERVER_ONLY, sorted(alone)
@@ -156,7 +157,7 @@ def test_the_client_alone_predicts_and_agrees_with_the_server(
     assert "pip install './client[numpy]' from the service's checkout" in answer["refusal"]
 
     # With the numpy extra: contains() is the server's geometry.
-    run(*pip, f"{source}[numpy]", cwd=tmp_path)
+    run(*pip, f"{CLIENT_ROOT}[numpy]", cwd=tmp_path)
     assert installed(python, tmp_path) - alone == {"numpy"}
     run(python, "script.py", "job.json", "answer.json", cwd=tmp_path)
     answer = json.loads((tmp_path / "answer.json").read_text())
