@@ -9,8 +9,8 @@
 # links CUDA 13 (libcublas.so.13) and asks for cuDNN 9. The build fails when they differ.
 ARG CUDA_IMAGE=nvidia/cuda:13.0.0-cudnn-runtime-ubuntu22.04
 
-# Build stage: a wheel with the compiled anchor-median kernel, JPEG windows and the threads keeping
-# cores awake (a C compiler and libjpeg's headers: both in this image).
+# Build stage: a wheel with the compiled JPEG windows (a C compiler and libjpeg's headers: both in
+# this image).
 FROM python:3.11-bookworm AS build
 WORKDIR /src
 COPY pyproject.toml README.md ./
@@ -18,9 +18,7 @@ COPY service ./service
 COPY calibration_store ./calibration_store
 COPY client ./client
 RUN pip wheel --no-deps --wheel-dir /wheels . \
-    && python -m zipfile -l /wheels/*.whl | grep -q _upper_half \
-    && python -m zipfile -l /wheels/*.whl | grep -q _jpeg_window \
-    && python -m zipfile -l /wheels/*.whl | grep -q _keep_awake  # all three were compiled
+    && python -m zipfile -l /wheels/*.whl | grep -q _jpeg_window  # it was compiled
 
 # ---- CUDA target (--target cuda): never built for the default target, which is the last stage.
 FROM ${CUDA_IMAGE} AS cuda-python
@@ -35,6 +33,7 @@ RUN apt-get update && apt-get install -y --no-install-recommends python3.11 pyth
 # The wheel is compiled against this image's Python and C library, not the CPU stages'.
 FROM cuda-python AS cuda-build
 RUN apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev python3.11-dev \
+        libjpeg-turbo8-dev \
     && rm -rf /var/lib/apt/lists/*
 WORKDIR /src
 COPY pyproject.toml README.md ./
@@ -42,8 +41,7 @@ COPY service ./service
 COPY calibration_store ./calibration_store
 COPY client ./client
 RUN pip wheel --no-deps --wheel-dir /wheels . \
-    && python -m zipfile -l /wheels/*.whl | grep -q _upper_half \
-    && python -m zipfile -l /wheels/*.whl | grep -q _keep_awake
+    && python -m zipfile -l /wheels/*.whl | grep -q _jpeg_window
 
 FROM cuda-python AS cuda
 # Measured on an H200 (docs/operations.md, Serving from a GPU): the CPU work, not the model, is
@@ -62,14 +60,15 @@ COPY --from=cuda-build /wheels /wheels
 # removed and the GPU build's files put back (the uninstall took the files the two share).
 # Then every library the CUDA provider links must be in the image, but the driver's libcuda
 # (mounted by --gpus): otherwise onnxruntime would fall back to the CPU at start-up.
-RUN pip install "$(ls /wheels/*.whl)[postgres,gpu]" && rm -rf /wheels \
+RUN apt-get update && apt-get install -y --no-install-recommends libjpeg-turbo8 \
+    && rm -rf /var/lib/apt/lists/* \
+    && pip install "$(ls /wheels/*.whl)[postgres,gpu]" && rm -rf /wheels \
     && pip uninstall -y onnxruntime \
     && pip install --force-reinstall --no-deps "onnxruntime-gpu>=1.17" \
     && python -c "import onnxruntime as o; assert 'CUDAExecutionProvider' in o.get_available_providers()" \
     && ! ldd "$(python -c "import onnxruntime as o, pathlib; print(pathlib.Path(o.__file__).parent \
          / 'capi' / 'libonnxruntime_providers_cuda.so')")" | grep "not found" | grep -v "libcuda\.so\.1" \
-    && python -c "from service.conformal.kernel import native_kernel_available as ok; assert ok()" \
-    && python -c "from service.infra.keep_awake import keep_awake_available as ok; assert ok()" \
+    && python -c "from service.detector.images import jpeg_windows_available as ok; assert ok()" \
     && useradd --system --uid 10001 --no-create-home --shell /usr/sbin/nologin app \
     && mkdir -p /data && chown app /data
 COPY models/lmo-synth-unet ./models/lmo-synth-unet
@@ -98,9 +97,7 @@ COPY --from=build /wheels /wheels
 RUN apt-get update && apt-get install -y --no-install-recommends libjpeg62-turbo \
     && rm -rf /var/lib/apt/lists/* \
     && pip install "$(ls /wheels/*.whl)[postgres]" && rm -rf /wheels \
-    && python -c "from service.conformal.kernel import native_kernel_available as ok; assert ok()" \
     && python -c "from service.detector.images import jpeg_windows_available as ok; assert ok()" \
-    && python -c "from service.infra.keep_awake import keep_awake_available as ok; assert ok()" \
     && useradd --system --uid 10001 --no-create-home --shell /usr/sbin/nologin app \
     && mkdir -p /data && chown app /data
 COPY models/lmo-synth-unet ./models/lmo-synth-unet

@@ -1,10 +1,5 @@
 """Conformal keypoint core: numpy, no I/O, vectorized over a batch of heatmaps.
 
-One optional C kernel (``kernel``, built by pip when a compiler is present) computes
-the exact median behind ``peak``'s normalizer and the top-K selection and spread behind
-``var`` and ``cov``; without it numpy gives the same selections, the spread bit for
-bit and ``peak``'s normalizer to a few ulp.
-
 Implements "Conformal Semantic Keypoint Detection with Statistical Guarantees"
 (Yang & Pavone); see DESIGN.md, "Numerics contract". Heatmap coordinates: pixel
 (row r, col c) has centre (c + 0.5, r + 0.5); points are (x, y).

@@ -12,8 +12,7 @@ a check fails on the exact float64 path. The answer never depends on the
 shortcut.
 
 The normalizer S of ``peak`` (the sum of the weights at or above the median)
-needs the exact median of every map; the native kernel (``kernel``) computes S
-on the raw values. Without the kernel every ``peak`` row takes the exact path.
+needs the exact median of every map: ``peak`` rows take the exact float64 path.
 """
 
 from __future__ import annotations
@@ -22,7 +21,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .kernel import upper_half_sums
 from .selection import top_k_indices
 
 
@@ -71,11 +69,3 @@ def raw_top_k(flat: np.ndarray, k: int, minimum: np.ndarray) -> tuple[np.ndarray
     values = np.take_along_axis(flat, indices, axis=1)
     exact = isolated(values.min(axis=1), minimum)
     return indices, anchor_weights(values, minimum), exact
-
-
-def upper_half_weight_sums(flat: np.ndarray, extremes: RawExtremes) -> np.ndarray | None:
-    """S (N,) = sum of the anchor weights at or above their median (np.median's), float64.
-
-    None when the native kernel is not built: the rows need the exact path.
-    """
-    return upper_half_sums(flat, extremes.minimum, extremes.maximum)

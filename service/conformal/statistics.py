@@ -28,14 +28,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from .anchor import raw_top_k
-from .kernel import anchor_peaks, native_kernel_available, top_k_spread
 from .normalization import as_raw_batch, normalized_weights
 from .selection import top_k_indices
 
 PIXEL_VARIANCE = 1.0 / 12.0
 DEFAULT_TOP_K = 100
-_MIN_RAW_WIDTH = 1024  # smaller maps without the native kernel: the float64 path is cheap
-_SUM_LANES = 8  # SUM_LANES of native/upper_half.c: the spread's summation order
+_MIN_RAW_WIDTH = 1024  # smaller maps: the float64 path is cheap
 
 
 @dataclass(frozen=True)
@@ -93,7 +91,7 @@ def heatmap_statistics(
     k = min(int(top_k), height * width)
     flat = heatmaps.reshape(heatmaps.shape[0], -1)
     parts = (k, width, include_peak, include_spread)
-    raw = flat.shape[1] >= _MIN_RAW_WIDTH or native_kernel_available()
+    raw = flat.shape[1] >= _MIN_RAW_WIDTH and not include_peak  # peak's median needs every weight
     if normalization == "anchor" and raw and 2 * k <= flat.shape[1]:
         fields, uninformative = _raw_anchor_fields(flat, *parts)
     else:
@@ -130,21 +128,11 @@ def _weight_fields(
 def _raw_anchor_fields(
     flat: np.ndarray, k: int, width: int, peak: bool, spread: bool
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """``anchor`` selected on the raw values (see ``anchor``); rows left unsettled go exact.
-
-    With the native kernel every finite row is settled (overflowing weights aside);
-    without it, every ``peak`` row goes exact and the top-K rows whose selection
-    rounding could change.
-    """
-    peaks = anchor_peaks(flat) if peak else None
-    top = top_k_spread(flat, k, width) if spread else None
-    native = peaks if peaks is not None else top
-    if native is not None:
-        minimum, maximum = native.minimum, native.maximum
-    else:
-        minimum, maximum = _extremes(flat)
+    """``anchor``'s top-K selected on the raw values (see ``anchor``); rows whose selection
+    rounding could change go exact."""
+    minimum, maximum = _extremes(flat)
     finite = np.isfinite(minimum) & np.isfinite(maximum)
-    if native is None and not finite.all():  # degenerate rows: uniform statistics; zeros keep numpy quiet
+    if not finite.all():  # degenerate rows: uniform statistics; zeros keep numpy quiet
         flat = np.where(finite[:, None], flat, 0)
         minimum, maximum = _extremes(flat)
     span = maximum - minimum
@@ -152,14 +140,7 @@ def _raw_anchor_fields(
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         exact = ~np.isfinite(span * (2 * flat.shape[1]))  # float64 weights could overflow
         fields: dict[str, np.ndarray] = {}
-        if peaks is not None:
-            fields.update(_peak(peaks.argmax, span / peaks.sums, width))
-        elif peak:  # no native kernel: every row takes the exact path
-            exact[:] = True
-            fields.update(_peak(np.zeros(flat.shape[0], np.intp), np.full(flat.shape[0], np.nan), width))
-        if top is not None:
-            fields.update(_spread_fields(top.spread))
-        elif spread:
+        if spread:
             indices, top_weights, ok = raw_top_k(flat, k, minimum)
             exact |= ~ok
             fields.update(_spread(indices, top_weights, width))
@@ -185,41 +166,19 @@ def _peak(argmax: np.ndarray, probability: np.ndarray, width: int) -> dict[str, 
 
 
 def _spread(indices: np.ndarray, top_weights: np.ndarray, width: int) -> dict[str, np.ndarray]:
-    """Mean and covariance of the pixel centres of ``indices`` (N, k, ascending) under the weights.
-
-    Every term and sum is formed as the native kernel forms it (``kernel.top_k_spread``),
-    so that both paths give the same bits.
-    """
-    probabilities = top_weights / _lane_sums(top_weights)[:, None]
+    """Mean and covariance of the pixel centres of ``indices`` (N, k, ascending) under the weights."""
+    probabilities = top_weights / top_weights.sum(axis=-1)[:, None]
     x, y = pixel_centers(indices, width)
-    mean_x, mean_y = _lane_sums(np.stack([probabilities * x, probabilities * y]))
+    mean_x, mean_y = np.stack([probabilities * x, probabilities * y]).sum(axis=-1)
     dx, dy = x - mean_x[:, None], y - mean_y[:, None]
     weighted_dx, weighted_dy = probabilities * dx, probabilities * dy
-    sxx, sxy, syy = _lane_sums(np.stack([weighted_dx * dx, weighted_dx * dy, weighted_dy * dy]))
+    sxx, sxy, syy = np.stack([weighted_dx * dx, weighted_dx * dy, weighted_dy * dy]).sum(axis=-1)
     return _spread_fields(np.stack([mean_x, mean_y, sxx, sxy, syy], axis=1))
 
 
 def _spread_fields(spread: np.ndarray) -> dict[str, np.ndarray]:
     """Mean (N, 2) and covariance (N, 2, 2) from the columns (mean x, mean y, Sxx, Sxy, Syy)."""
     return {"mean": spread[:, :2].copy(), "covariance": spread[:, [2, 3, 3, 4]].reshape(-1, 2, 2)}
-
-
-def _lane_sums(terms: np.ndarray) -> np.ndarray:
-    """Sums over the last axis in the native kernel's fixed order.
-
-    Term j goes to lane j % 8; each lane adds its terms in order to +0.0, and the
-    lanes l0..l7 are combined as ((l0 + l4) + (l2 + l6)) + ((l1 + l5) + (l3 + l7)),
-    as ``sum_lanes`` in native/upper_half.c does. The padding adds +0.0, which
-    changes no lane (a lane that starts at +0.0 never holds -0.0).
-    """
-    *outer, count = terms.shape
-    chunks = -(-count // _SUM_LANES) + 1  # one leading chunk of zeros: the lanes' start
-    padded = np.zeros((*outer, chunks * _SUM_LANES))
-    padded[..., _SUM_LANES : _SUM_LANES + count] = terms
-    lanes = np.add.accumulate(padded.reshape(*outer, chunks, _SUM_LANES), axis=-2)[..., -1, :]
-    pairs = lanes[..., :4] + lanes[..., 4:]
-    pairs = pairs[..., :2] + pairs[..., 2:]
-    return pairs[..., 0] + pairs[..., 1]
 
 
 def _use_uniform_statistics(

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from service.conformal import heatmap_statistics, kernel, nonconformity_scores
-from service.conformal.anchor import isolated, raw_extremes, raw_top_k, upper_half_weight_sums
+from service.conformal import heatmap_statistics, nonconformity_scores
+from service.conformal.anchor import isolated, raw_extremes, raw_top_k
 from service.conformal.normalization import normalized_weights
 from service.conformal.selection import top_k_indices
 
@@ -56,21 +56,9 @@ def test_isolated_detects_raw_values_merged_by_rounding():
     np.testing.assert_array_equal(isolated(values, minimum), [False, True])
 
 
-def test_upper_half_sums_equal_the_median_masked_sum():
-    rng = np.random.default_rng(2)
-    raw = mixed_heatmaps(rng, 90).astype(np.float32).reshape(90, -1)
-    raw[:5] = np.round(raw[:5])  # ties at the median
-    sums = upper_half_weight_sums(raw, raw_extremes(raw))
-    expected = normalized_weights(raw.astype(np.float64)).totals
-    np.testing.assert_allclose(sums, expected, rtol=1e-12)
-
-
 @pytest.mark.parametrize("kind", KINDS)
-def test_without_the_native_kernel_the_numpy_path_matches_the_reference(float32_batch, monkeypatch, kind):
+def test_the_numpy_path_matches_the_reference(float32_batch, kind):
     heatmaps, keypoints = float32_batch
-    monkeypatch.setattr(kernel, "_library", lambda: None)  # as if the kernel were not built
-    flat = heatmaps.reshape(len(heatmaps), -1)
-    assert upper_half_weight_sums(flat, raw_extremes(flat)) is None
     expected = _reference(kind, heatmaps, keypoints)
     np.testing.assert_allclose(nonconformity_scores(kind, heatmaps, keypoints), expected, rtol=1e-9)
 
