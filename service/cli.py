@@ -26,12 +26,14 @@ from service.infra.settings import RemovedSettings, Settings, refuse_removed_set
 def _serve(args: argparse.Namespace, settings: Settings) -> int:
     from calibration_store import open_store
     from service.calibration.bundle import bootstrap_default_calibration
-    from service.calibration.stratification import difficulty_spec
     from service.detector.session import Detector
     from service.infra.metrics import enable_multiprocess
     from service.infra.operators import load_operators
     from service.infra.processes import remove_dead_process_folders
-    from service.serving.container import detector_providers
+    from service.serving.container import (
+        DIFFICULTY,
+        detector_providers,
+    )
     from service.serving.server import serve
 
     host, port = args.host or settings.server.host, args.port or settings.server.port
@@ -46,9 +48,7 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
         remove_dead_process_folders(settings.storage.data_dir / shared, starting=True)
     with open_store(settings.storage.resolved_url) as store:
         if settings.storage.bootstrap_calibration:
-            bootstrap_default_calibration(
-                store, detector, settings.model.directory, difficulty_spec(*settings.calibration.difficulty)
-            )
+            bootstrap_default_calibration(store, detector, settings.model.directory, DIFFICULTY)
     del detector  # the serving process loads its own
     metrics = (
         enable_multiprocess(settings.storage.data_dir / "metrics") if settings.server.workers > 1 else None
@@ -79,11 +79,16 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     from service.calibration.bundle import save_bundle
     from service.calibration.coco import AnnotationLimits, NamedBatch, load_coco_batch
     from service.calibration.intake import UploadOptions, check_batch, read_parent
-    from service.calibration.stratification import difficulty_spec, parse_stratify
+    from service.calibration.stratification import parse_stratify
     from service.calibration.versions import VersionRules, create_version
     from service.detector.session import Detector
     from service.infra.audit_trail import AuditTrail, Operator
-    from service.serving.container import detector_providers
+    from service.serving.container import (
+        DIFFICULTY,
+        MAX_ANNOTATIONS,
+        MAX_ANNOTATIONS_BYTES,
+        detector_providers,
+    )
 
     stratify = None if args.stratify is None else parse_stratify(args.stratify)
     options = UploadOptions(
@@ -98,7 +103,7 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
         max_rejected_share=args.max_rejected_share,
         stratify=stratify,
     )
-    share = options.rejected_share(settings.calibration.max_rejected_share)
+    share = options.rejected_share(0.0)
     detector = Detector(
         settings.model.directory, settings.model.inference_threads, **detector_providers(settings)
     )
@@ -107,9 +112,7 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
         if args.append_to is not None:
             parent = read_parent(store, detector, args.append_to)
         batches = []
-        limits = AnnotationLimits(
-            settings.calibration.max_annotations_bytes, settings.calibration.max_annotations
-        )
+        limits = AnnotationLimits(MAX_ANNOTATIONS_BYTES, MAX_ANNOTATIONS)
         for folder in args.folders:
             if not Path(folder).is_dir():
                 raise InvalidInput(f"{folder} is not a folder (one holding annotations.json and the images)")
@@ -127,8 +130,8 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
         rules = VersionRules(
             settings.predict.max_image_pixels,
             settings.calibration.min_instances,
-            settings.calibration.max_rejected_share,
-            difficulty_spec(*settings.calibration.difficulty),
+            0.0,
+            DIFFICULTY,
         )
         audit = AuditTrail(store, detector.model_hash)
         operator = Operator(args.author, "cli")

@@ -62,7 +62,6 @@ def service_env(data_dir: Path, **settings: Any) -> dict[str, str]:
     env["CKS_DATA_DIR"] = str(data_dir)
     env["CKS_WORKERS"] = "1"  # one process unless a test asks for more (test_workers)
     env["CKS_INFERENCE_THREADS"] = "1"
-    env["CKS_CPU_WORKERS"] = "2"
     env["PYTHONUNBUFFERED"] = "1"
     env["PYTHONPATH"] = os.pathsep.join(
         filter(None, [str(PACKAGE_ROOT), str(PACKAGE_ROOT / "client"), os.environ.get("PYTHONPATH")])

@@ -79,6 +79,7 @@ class Admission:
     def refuse_if_full(self, caller: str, places: int = 1) -> None:
         """429 when ``caller`` would hold more than its share while others are active; 503 unless
         ``places`` places (one per image) are free."""
+        self._note(caller)
         needs = f"; this batch needs {places} places, one per image" if places > 1 else ""
         if self._over_share(caller, places):
             PREDICT_REJECTED.labels("client_share").inc()
@@ -116,6 +117,7 @@ class Admission:
     @asynccontextmanager
     async def slot(self, caller: str) -> AsyncIterator[None]:
         """A compute slot, waited for at most the timeout (then 503)."""
+        self._note(caller)
         granted = asyncio.get_running_loop().create_future()
         self._slot_waiters.append((caller, granted))
         self._grant()

@@ -49,14 +49,18 @@ router = APIRouter(tags=["prediction"])
 log = logging.getLogger(__name__)
 
 PREDICT_RESPONSES: dict[int | str, dict[str, Any]] = {
-    408: {"description": "The body did not arrive within CKS_REQUEST_READ_TIMEOUT_SECONDS"},
+    401: {
+        "description": "Predict tokens are on ('predict name:token' lines in CKS_ADMIN_TOKENS_FILE) and"
+        " the request has no valid predict or admin token"
+    },
+    408: {"description": "The body did not arrive within 30 s"},
     404: {"description": "calibration_version names a version that does not exist"},
     409: {"description": "The calibration version was scored under other manifest settings"},
     413: {"description": "Body or image too large"},
     415: {"description": "Not JSON or multipart, or not a JPEG/PNG image"},
     422: {"description": "Invalid request: the problem lists what to fix"},
     429: {
-        "description": "This client holds its share of the places while others are served"
+        "description": "This caller holds its share of the places while others are served"
         " (CKS_CLIENT_SHARE; with Retry-After)"
     },
     503: {
@@ -69,12 +73,13 @@ _BYTES = {"schema": {"type": "string", "format": "binary"}}
 _PNG = {"content": {"image/png": _BYTES, "application/octet-stream": _BYTES}}
 _BATCH_RESPONSES: dict[int | str, dict[str, Any]] = {
     200: {"description": "One item per image, in order: its result, or its problem (RFC 9457)"},
+    401: PREDICT_RESPONSES[401],
     408: PREDICT_RESPONSES[408],
     413: {"description": "The body exceeds CKS_MAX_REQUEST_BYTES"},
     415: {"description": "Not JSON or multipart/form-data"},
     422: {
         "description": "Not the documented layout (parts other than image_i and request_i, an index repeated"
-        " or beyond CKS_MAX_BATCH_IMAGES, no images, or more images than the server admits at once)"
+        " or beyond 16 images, no images, or more images than the server admits at once)"
     },
     429: PREDICT_RESPONSES[429],
     503: {"description": "Not enough free places for every image of the batch (with Retry-After)"},
