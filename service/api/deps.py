@@ -81,9 +81,9 @@ class PredictParts:
         """The served model's: a request naming another object is told so with its other problems."""
         return self.predictor.detector.manifest
 
-    def caller_of(self, request: Request) -> str:
+    async def caller_of(self, request: Request) -> str:
         """Whose share of the admission places this request takes (service.api.http.callers)."""
-        return self.callers.of(request)
+        return await self.callers.of(request)
 
     async def receive(self, request: Request) -> bytes:
         """The body within CKS_MAX_REQUEST_BYTES, in time."""

@@ -82,7 +82,7 @@ _RESPONSES: dict[int | str, dict[str, Any]] = {
 async def predict_frame(request: Request, parts: Predicting) -> Response:
     content_type = request.headers.get("content-type", "")
     require_multipart(content_type)
-    caller = parts.caller_of(request)
+    caller = await parts.caller_of(request)
     await parts.admission.wait_for_place(caller)  # not worth receiving beyond its share
     body = await parts.receive(request)  # a slow client holds no place meanwhile
     async with parts.admission.admitted(caller):

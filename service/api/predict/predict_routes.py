@@ -134,7 +134,7 @@ async def predict_png(request: Request, parts: Predicting) -> Response:
 
 
 async def _predict(request: Request, parts: PredictParts, png: bool) -> Response:
-    caller = parts.caller_of(request)
+    caller = await parts.caller_of(request)
     await parts.admission.wait_for_place(caller)  # not worth receiving beyond its share
     body = await parts.receive(request)  # a slow client holds no place meanwhile
     async with parts.admission.admitted(caller):
@@ -152,7 +152,7 @@ async def _predict(request: Request, parts: PredictParts, png: bool) -> Response
 )
 async def predict_batch(request: Request, parts: Predicting) -> Response:
     require_batch_media(request)
-    caller = parts.caller_of(request)
+    caller = await parts.caller_of(request)
     await parts.admission.wait_for_place(caller)  # not worth receiving beyond its share
     body = await parts.receive(request)  # as predict: a slow client holds no place meanwhile
     items = await parse_batch(request, body, MAX_BATCH_IMAGES, parts.manifest)

@@ -1,0 +1,122 @@
+"""A polite client stays served beside a flood: >= 99 % of its requests answered, its p99 at most 3x
+its quiet p99. The server process and the proxy are the point: real connections from many
+addresses of 127.0.0.0/8, the flood driven by a process of its own.
+
+- through the shipped proxy (deploy/haproxy/haproxy.cfg), beside a flood from 100 addresses of one
+  /24: the proxy's share per network;
+- straight to the service, beside a flood from one address: the service's cap per caller;
+- with predict tokens on, beside a flood from 100 /24 networks without tokens (401), and beside a
+  flood from another token holder: a caller is its token.
+"""
+
+from __future__ import annotations
+
+import subprocess
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from benchmarks.fleet import haproxy_binary
+from benchmarks.load import Flood, polite_client
+from tests.live.server import LiveServer, free_port
+from tests.service_calls import ADMIN_TOKEN, wait_until
+
+SHIPPED = Path(__file__).resolve().parents[2] / "deploy" / "haproxy" / "haproxy.cfg"
+QUIET_S, FLOODED_S, INTERVAL_S = 8.0, 15.0, 0.1
+POLITE_TOKEN = "polite-robot-token-0123456789"
+FLOOD_TOKEN = "flooding-robot-token-0123456789"
+
+
+def shipped_proxy_config(port: int, servers: list[str]) -> str:
+    """deploy/haproxy/haproxy.cfg as shipped, bound to ``port``, in front of ``servers``."""
+    lines = SHIPPED.read_text().splitlines()
+    bind = [i for i, line in enumerate(lines) if line.strip().startswith("bind ")]
+    server = [i for i, line in enumerate(lines) if line.strip().startswith("server ")]
+    assert len(bind) == 1 and len(server) == 1, "the shipped config has one bind and one server line"
+    lines[bind[0]] = f"    bind 127.0.0.1:{port}"
+    lines[server[0] :] = [f"    server r{n} {s} check" for n, s in enumerate(servers)]
+    return "\n".join(lines) + "\n"
+
+
+@contextmanager
+def shipped_proxy(work: Path, servers: list[str]) -> Iterator[str]:
+    binary = haproxy_binary()
+    assert binary, "HAProxy is not installed: apt-get install haproxy (.ci/run does)"
+    port = free_port()
+    config = work / "haproxy.cfg"
+    config.write_text(shipped_proxy_config(port, servers))
+    process = subprocess.Popen([binary, "-f", str(config), "-db"], stderr=subprocess.PIPE, text=True)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        wait_until(lambda: _ready(url, process), "HAProxy answers", timeout=30)
+        yield url
+    finally:
+        process.terminate()
+        process.wait(timeout=10)
+
+
+def _ready(url: str, process: subprocess.Popen) -> bool:
+    assert process.poll() is None, process.stderr.read() if process.stderr else ""
+    try:
+        return httpx.get(f"{url}/readyz", timeout=2).status_code == 200
+    except httpx.TransportError:
+        return False
+
+
+def assert_served_beside(url: str, flood: Flood, token: str | None = None) -> None:
+    quiet, statuses = polite_client(url, QUIET_S, INTERVAL_S, token=token)
+    assert set(statuses) == {200}, statuses
+    with flood:
+        flooded, statuses = polite_client(url, FLOODED_S, INTERVAL_S, token=token)
+    answered = statuses.count(200) / len(statuses)
+    quiet_p99, flooded_p99 = np.percentile(quiet, 99), np.percentile(flooded, 99)
+    report = (
+        f"polite: {answered:.1%} of {len(statuses)} answered, p99 {flooded_p99 * 1e3:.0f} ms beside the flood"
+        f" against {quiet_p99 * 1e3:.0f} ms quiet; the flood got {dict(flood.statuses)}"
+    )
+    print(report)
+    assert answered >= 0.99, report
+    assert flooded_p99 <= 3 * quiet_p99, report
+
+
+@pytest.fixture(scope="module")
+def open_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+    """Predict tokens off; X-Forwarded-For believed from the proxy's address."""
+    data = tmp_path_factory.mktemp("open") / "data"
+    with LiveServer(data, trusted_proxies="127.0.0.1") as server:
+        yield server
+
+
+@pytest.fixture(scope="module")
+def token_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+    folder = tmp_path_factory.mktemp("tokens")
+    tokens = folder / "tokens"
+    tokens.write_text(f"predict polite:{POLITE_TOKEN}\npredict flood:{FLOOD_TOKEN}\n")
+    with LiveServer(folder / "data", admin_token=ADMIN_TOKEN, admin_tokens_file=tokens) as server:
+        yield server
+
+
+def test_a_flood_from_one_network_through_the_shipped_proxy(open_service: LiveServer, tmp_path: Path) -> None:
+    one_network = [f"127.0.1.{n}" for n in range(1, 101)]
+    with shipped_proxy(tmp_path, [open_service.url.removeprefix("http://")]) as proxy:
+        assert_served_beside(proxy, Flood(proxy, 100, addresses=one_network))
+
+
+def test_a_flood_from_one_address_straight_to_the_service(open_service: LiveServer) -> None:
+    assert_served_beside(open_service.url, Flood(open_service.url, 100, addresses=["127.0.2.1"]))
+
+
+def test_a_tokenless_flood_from_100_networks_beside_a_token_holder(token_service: LiveServer) -> None:
+    networks = [f"127.1.{n}.1" for n in range(100)]
+    flood = Flood(token_service.url, 100, addresses=networks)
+    assert_served_beside(token_service.url, flood, token=POLITE_TOKEN)
+    assert set(flood.statuses) <= {401, "error"} and flood.statuses[401], flood.statuses
+
+
+def test_a_flood_from_another_token_holder(token_service: LiveServer) -> None:
+    flood = Flood(token_service.url, 100, addresses=["127.0.3.1"], token=FLOOD_TOKEN)
+    assert_served_beside(token_service.url, flood, token=POLITE_TOKEN)
