@@ -1,8 +1,5 @@
-"""Sizes of recent prediction sets, per nonconformity function, for the operators' plots.
-
-The hot path keeps each set's shape matrix L (its three distinct entries, ``shape_entries``)
-in the drift windows; sizes are derived when read: semi-major axis b (the radius of a ball)
-and area pi a b, in image px.
+"""Sizes of recent prediction sets, per nonconformity function, for the operators' plots: the drift
+windows keep each set's shape entries, read as semi-major axis b and area pi a b (image px).
 """
 
 from __future__ import annotations
