@@ -67,14 +67,14 @@ class CoverageTest:
         return self.band[0] <= self.covered <= self.band[1]
 
 
-def coverage_test(covered: int, m: int, n: int, epsilon: float, level: float = BAND_LEVEL) -> CoverageTest:
+def coverage_test(covered: int, m: int, n: int, epsilon: float) -> CoverageTest:
     """The band and the one-sided p-value of ``covered`` out of ``m`` (Theorem 1, eq. 5)."""
     if not 0 <= covered <= m:
         raise ValueError(f"covered must be in [0, m], got {covered} of {m}")
     pmf = covered_count_pmf(m, n, epsilon)
     p_value = float(min(1.0, pmf[: covered + 1].sum()))
     return CoverageTest(
-        m, covered, n, conformal_rank(n, epsilon), epsilon, central_interval(pmf, level), p_value
+        m, covered, n, conformal_rank(n, epsilon), epsilon, central_interval(pmf, BAND_LEVEL), p_value
     )
 
 
@@ -98,9 +98,7 @@ class PooledTest:
         return self.m == 0 or self.band[0] <= self.covered / self.m <= self.band[1]
 
 
-def pooled_test(
-    tests: Sequence[CoverageTest], labeled: np.ndarray, covered: np.ndarray, level: float = BAND_LEVEL
-) -> PooledTest:
+def pooled_test(tests: Sequence[CoverageTest], labeled: np.ndarray, covered: np.ndarray) -> PooledTest:
     """The pooled coverage of ``tests`` (units) from ``labeled`` and ``covered`` counts per image
     (rows) and unit (columns), with a band that holds whatever the dependence between units.
 
@@ -126,26 +124,24 @@ def pooled_test(
     clustered = images / (images - 1) * float(np.sum(residuals**2))
     independent = float(np.sum(weights * m * (a / (a + b)) * (b / (a + b))))
     sd = math.hypot(calibration_sd, math.sqrt(max(clustered, independent)) / m)
-    half = _NORMAL.inv_cdf((1 + level) / 2) * sd
+    half = _NORMAL.inv_cdf((1 + BAND_LEVEL) / 2) * sd
     band = (max(0.0, expected - half), min(1.0, expected + half))
     p_value = _NORMAL.cdf((count / m - expected) / sd) if sd > 0 else float(count / m < expected)
     return PooledTest(m, count, expected, sd, band, p_value)
 
 
-def recalibration_size(
-    epsilon: float, tolerance: float = RECALIBRATION_TOLERANCE, level: float = BAND_LEVEL
-) -> int:
-    """The smallest n with bounded sets whose conditional coverage stays above 1 - eps - tolerance
-    with probability ``level``: P(Beta(n+1-l, l) < 1 - eps - tolerance) <= 1 - level (eq. 5), by
-    doubling then bisection (the probability shrinks as n grows, up to the floor in l)."""
-    target = 1.0 - epsilon - tolerance
+def recalibration_size(epsilon: float) -> int:
+    """The smallest n with bounded sets whose conditional coverage stays above 1 - eps - tol
+    (RECALIBRATION_TOLERANCE) with probability BAND_LEVEL: P(Beta(n+1-l, l) < 1 - eps - tol) <= 1 - BAND_LEVEL
+    (eq. 5), by doubling then bisection (the probability shrinks as n grows, up to the floor in l)."""
+    target = 1.0 - epsilon - RECALIBRATION_TOLERANCE
     floor = conformal_floor(epsilon)
     if target <= 0 or floor >= _MAX_RECALIBRATION_N:
         return floor
 
     def enough(n: int) -> bool:
         rank = conformal_rank(n, epsilon)
-        return rank >= 1 and beta_cdf(target, n + 1 - rank, rank) <= 1.0 - level
+        return rank >= 1 and beta_cdf(target, n + 1 - rank, rank) <= 1.0 - BAND_LEVEL
 
     low = high = floor
     while not enough(high):

@@ -184,12 +184,10 @@ class DriftMonitor:
     ) -> None:
         """shares: where the replicas of a fleet meet (None: this process alone)."""
         if settings.test == "psi" and settings.window < PSI_MIN_LIVE:
-            log.warning(
-                "drift: psi alarms need %d live values per window; CKS_DRIFT_WINDOW is %d, so"
-                " it never alarms",
-                PSI_MIN_LIVE,
-                settings.window,
+            never = (
+                "drift: psi alarms need %d live values per window; CKS_DRIFT_WINDOW is %d, so it never alarms"
             )
+            log.warning(never, PSI_MIN_LIVE, settings.window)
         self.settings = settings
         self._manifest = manifest
         self._source = reference

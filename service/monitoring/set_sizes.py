@@ -45,9 +45,7 @@ def set_sizes(kinds: np.ndarray, entries: np.ndarray) -> dict[str, KindSizes]:
 
 
 def _kind_sizes(entries: np.ndarray) -> KindSizes:
-    shapes = np.empty((len(entries), 2, 2))
-    shapes[:, 0, 0], shapes[:, 0, 1], shapes[:, 1, 0], shapes[:, 1, 1] = entries.T[[0, 1, 1, 2]]
-    semi_minor, semi_major, _ = ellipse_axes(shapes)
+    semi_minor, semi_major, _ = ellipse_axes(entries[:, [0, 1, 1, 2]].reshape(-1, 2, 2))
     bounded = np.isfinite(semi_major)
     return KindSizes(
         n=len(entries),
