@@ -1,24 +1,19 @@
-"""Label-free drift: each keypoint's heatmap features (p*, gamma, anisotropy) on live traffic
-against the same features on the active version's calibration images.
+"""Label-free drift: each keypoint's heatmap features (p*, gamma, anisotropy) on live traffic against
+the same features on the active version's calibration images. The conformal guarantee needs test
+images exchangeable with the calibration ones; without labels, a change in the law of what the
+detector sees is the warning. Per channel and feature, a window of the last ``window`` live values
+meets the calibration values in a two-sample test (two_sample.py), by ``test``:
 
-The conformal guarantee (Yang & Pavone, Theorem 1) needs test images exchangeable with the
-calibration ones; without labels, a change in the law of what the detector sees is the warning.
-Per channel and feature, a window of the last ``window`` live values meets the calibration values
-in a two-sample test (service/monitoring/two_sample.py):
+- ``sequential`` (default): the e-CUSUM over independent looks of looks.py; per-keypoint KS tests
+  (Holm) on the looks' first frames say where the features moved, flagged only while it alarms;
+- ``ks``: KS over every frame's values, alarms where Holm rejects at family-wise error ``alarm_level``
+  over every keypoint x feature (for a window drawn afresh; docs/operations.md);
+- ``psi``: the population stability index, alarm above ``psi_threshold`` once a window holds
+  ``PSI_MIN_LIVE`` values (a score: no multiplicity correction).
 
-- ``sequential`` (default): the e-CUSUM over independent looks of service/monitoring/looks.py (on
-  average at least ``1 / alarm_level`` looks between false alarms); per-keypoint KS tests (Holm) on
-  windows of the looks' first frames say where the features moved, flagged only while it alarms.
-- ``ks``: Kolmogorov-Smirnov over every frame's values, alarms where Holm rejects at family-wise
-  error ``alarm_level`` over every keypoint x feature (for a window drawn afresh; docs/operations.md).
-- ``psi``: the population stability index over ten quantile bins of the reference, alarm above
-  ``psi_threshold`` once a window holds ``PSI_MIN_LIVE`` values (a score: no multiplicity correction).
-
-Requests append rows to ring buffers; the tests run when the report is read and are cached until a
-window, a replica's contribution or the active version changes. In a fleet each process shares its
-windows, looks and frames through the store (drift_shares.py) and a report merges the fresh ones of
-the others with its own, the sequential alarm counting the looks one process would have counted
-(fleet_looks.py).
+Requests append rows to ring buffers; the tests run when the report is read, cached until a window,
+a replica's contribution or the version changes. A fleet shares windows, looks and frames through
+the store (drift_shares.py), its sequential alarm counting the looks one process would (fleet_looks.py).
 """
 
 from __future__ import annotations
