@@ -1,9 +1,6 @@
-"""Adaptiveness: do sets grow where the detector should be unsure (occlusion)?
-
-Set area is compared between visible (COCO v = 2) and occluded (v = 1) keypoints, and
-ranked against the fraction of the object that is visible (``visib_fract``) with a
-Spearman correlation (average ranks for ties), both raw and relative to the box area
-(object size alone also moves pixel areas).
+"""Adaptiveness: do sets grow where the detector should be unsure (occlusion)? Set area of visible
+(COCO v = 2) against occluded (v = 1) keypoints, and its Spearman correlation (average ranks for
+ties) with the object's visible fraction, raw and relative to the box area (size alone moves areas).
 """
 
 from __future__ import annotations
@@ -15,16 +12,10 @@ import numpy as np
 
 def average_ranks(values: np.ndarray) -> np.ndarray:
     """Ranks 1..n, tied values sharing the mean of their ranks."""
-    values = np.asarray(values, dtype=np.float64)
-    order = np.argsort(values, kind="stable")
-    ordered = values[order]
-    starts = np.r_[True, ordered[1:] != ordered[:-1]]
-    group = np.cumsum(starts) - 1
-    first = np.flatnonzero(starts)
-    last = np.r_[first[1:], values.size] - 1
-    ranks = np.empty(values.size)
-    ranks[order] = (first[group] + last[group]) / 2 + 1
-    return ranks
+    _, group, counts = np.unique(
+        np.asarray(values, dtype=np.float64), return_inverse=True, return_counts=True
+    )
+    return (np.cumsum(counts) - (counts - 1) / 2)[group]
 
 
 def spearman(x: np.ndarray, y: np.ndarray) -> float:

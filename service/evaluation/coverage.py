@@ -1,11 +1,8 @@
-"""Validity: per-keypoint (and per-object) empirical coverage of a labeled batch against
-the exact law of Theorem 1 (Yang & Pavone, conformal keypoint sets).
-
-The true coverage given the calibration set is Beta(n+1-t, t); the number of covered
-points among the m test points is then BetaBinomial(m, n+1-t, t), exactly. A group is
-*inside* when its covered count lies in the central 95% interval of that law, so about
-95% of groups should be inside. The plain Beta interval on coverage (ignoring the test
-set's own binomial noise) is reported too: it is narrower, so it is a stricter check.
+"""Validity: per-keypoint (and per-object) empirical coverage of a labeled batch against the exact law
+of Theorem 1 (Yang & Pavone): given the calibration set the coverage is Beta(n+1-t, t), so the covered
+count of m test points is BetaBinomial(m, n+1-t, t). A group is *inside* when its count lies in the
+central 95% interval of that law (about 95% should be); the plain Beta interval, which ignores the
+test set's own binomial noise, is a stricter check.
 """
 
 from __future__ import annotations
@@ -92,12 +89,9 @@ class ValiditySummary:
     def coverages(self) -> np.ndarray:
         return np.array([g.coverage for g in self.groups if g.m])
 
-    def fraction(self, predicate) -> float:
-        flags = [predicate(g) for g in self.groups if g.m]
-        return float(np.mean(flags)) if flags else float("nan")
-
-    def expected(self, chance) -> float:
-        values = [chance(g) for g in self.groups if g.m]
+    def average(self, of) -> float:
+        """The mean of ``of`` (a share when it says yes or no) over the groups with test points."""
+        values = [of(g) for g in self.groups if g.m]
         return float(np.mean(values)) if values else float("nan")
 
     def one_calibration(self) -> tuple[float, float]:

@@ -1,8 +1,6 @@
-"""The evaluation's figures (matplotlib, Agg, small PNGs): coverage histograms, per-keypoint
-coverage against its band, CDFs of set sizes, adaptiveness.
-
-matplotlib is optional (the ``evaluate`` extra): import this module only after checking
-that it is installed (``service.evaluation.run.require_matplotlib``).
+"""The evaluation's figures (matplotlib, Agg, small PNGs): coverage histograms, per-keypoint coverage
+against its band, CDFs of set sizes, adaptiveness. matplotlib is optional (the ``evaluate`` extra):
+import this module only once ``service.evaluation.run.require_matplotlib`` passed.
 """
 
 from __future__ import annotations
@@ -43,14 +41,10 @@ def save(figure: plt.Figure, path: Path) -> Path:
 def draw_figures(evaluation: Evaluation, folder: Path) -> list[Path]:
     """Every figure of the report into ``folder``; adaptiveness only when the labels carry
     both visibility flags."""
-    paths = [
-        validity_figure(evaluation, folder / VALIDITY),
-        band_figure(evaluation, folder / BANDS),
-        tightness_figure(evaluation, folder / TIGHTNESS),
-    ]
+    figures = [(validity_figure, VALIDITY), (band_figure, BANDS), (tightness_figure, TIGHTNESS)]
     if evaluation.has_occlusion_flags:
-        paths.append(adaptiveness_figure(evaluation, folder / ADAPTIVENESS))
-    return paths
+        figures.append((adaptiveness_figure, ADAPTIVENESS))
+    return [draw(evaluation, folder / name) for draw, name in figures]
 
 
 def validity_figure(evaluation: Evaluation, path: Path) -> Path:
@@ -59,11 +53,8 @@ def validity_figure(evaluation: Evaluation, path: Path) -> Path:
     figure, axes = plt.subplots(3, len(epsilons), figsize=(3.7 * len(epsilons), 8.5), squeeze=False)
     for row, kind in enumerate(KINDS):
         for col, epsilon in enumerate(epsilons):
-            _validity_panel(
-                axes[row, col],
-                evaluation.validity[(kind, epsilon, "keypoint")],
-                evaluation.validity[(kind, epsilon, "object")],
-            )
+            scopes = (evaluation.validity[(kind, epsilon, scope)] for scope in ("keypoint", "object"))
+            _validity_panel(axes[row, col], *scopes)
     figure.suptitle(
         "Empirical coverage of the batch: per keypoint (keypoint scope, histogram) and per "
         "object (object scope, triangles)"

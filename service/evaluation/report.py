@@ -29,8 +29,9 @@ def _min(values: np.ndarray) -> float:
     return float(values.min()) if values.size else float("nan")
 
 
-def _table(header: list[str], rows: list[list[str]]) -> list[str]:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+def _table(header: str, rows: list[list[str]]) -> list[str]:
+    """A Markdown table; ``header``: its cells joined by " | "."""
+    lines = ["| " + header + " |", "|" + "---|" * len(header.split(" | "))]
     return lines + ["| " + " | ".join(row) + " |" for row in rows] + [""]
 
 
@@ -99,31 +100,11 @@ def validity(evaluation: Evaluation) -> list[str]:
         for epsilon in evaluation.epsilons:
             s = evaluation.validity[(kind, epsilon, "keypoint")]
             c = s.coverages()
-            rows.append(
-                [
-                    kind,
-                    f"{epsilon}",
-                    _f(1 - epsilon),
-                    _f(_mean(c)),
-                    _f(_min(c)),
-                    _f(s.fraction(lambda g: g.inside_predictive())),
-                    _f(s.fraction(lambda g: g.inside_beta())),
-                    _f(s.expected(lambda g: 1 - g.t / (g.n + 1))),
-                    _interval(s.one_calibration()),
-                ]
-            )
-    header = [
-        "function",
-        "eps",
-        "1-eps",
-        "mean coverage",
-        "min coverage",
-        "inside (predictive)",
-        "inside (Beta)",
-        "mean 1-t/(n+1)",
-        "one calibration, 95%",
-    ]
-    lines += _table(header, rows) + unbounded(evaluation)
+            inside = [s.average(lambda g: g.inside_predictive()), s.average(lambda g: g.inside_beta())]
+            figures = [1 - epsilon, _mean(c), _min(c), *inside, s.average(lambda g: 1 - g.t / (g.n + 1))]
+            rows.append([kind, f"{epsilon}", *map(_f, figures), _interval(s.one_calibration())])
+    header = "function | eps | 1-eps | mean coverage | min coverage | inside (predictive) | inside (Beta)"
+    lines += _table(f"{header} | mean 1-t/(n+1) | one calibration, 95%", rows) + unbounded(evaluation)
     return lines + object_scope(evaluation) + pac(evaluation) + bands(evaluation)
 
 
@@ -163,27 +144,10 @@ def object_scope(evaluation: Evaluation) -> list[str]:
             s = evaluation.validity[(kind, epsilon, "object")]
             c = s.coverages()
             per_keypoint = _mean(evaluation.validity[(kind, epsilon, "keypoint")].coverages())
-            rows.append(
-                [
-                    kind,
-                    f"{epsilon}",
-                    _f(_mean(c)),
-                    _f(_min(c)),
-                    _f(s.fraction(lambda g: g.inside_predictive())),
-                    _interval(s.one_calibration()),
-                    _f(per_keypoint),
-                ]
-            )
-    header = [
-        "function",
-        "eps",
-        "mean simultaneous coverage",
-        "min over objects",
-        "inside (predictive)",
-        "one calibration, 95%",
-        "keypoint-scope coverage, for comparison",
-    ]
-    return lines + _table(header, rows)
+            figures = map(_f, [_mean(c), _min(c), s.average(lambda g: g.inside_predictive())])
+            rows.append([kind, f"{epsilon}", *figures, _interval(s.one_calibration()), _f(per_keypoint)])
+    header = "function | eps | mean simultaneous coverage | min over objects | inside (predictive)"
+    return lines + _table(f"{header} | one calibration, 95% | keypoint-scope coverage, for comparison", rows)
 
 
 def pac(evaluation: Evaluation) -> list[str]:
@@ -206,24 +170,16 @@ def pac(evaluation: Evaluation) -> list[str]:
         for epsilon in evaluation.epsilons:
             s = evaluation.validity[(kind, epsilon, PAC)]
             x = s.target
-            rows.append(
-                [
-                    kind,
-                    f"{epsilon}",
-                    _f(_mean(s.coverages())),
-                    _f(s.fraction(lambda g, x=x: g.coverage >= x - 1e-12)),
-                    _f(s.expected(lambda g, x=x: g.chance_at_least(x))),
-                    _f(s.fraction(lambda g, x=x: g.not_significantly_below(x))),
-                ]
-            )
-    header = [
-        "function",
-        "eps",
-        "mean coverage",
-        "observed >= 1-eps",
-        "predicted >= 1-eps",
-        "not significantly below",
-    ]
+            figures = [
+                _mean(s.coverages()),
+                s.average(lambda g, x=x: g.coverage >= x - 1e-12),
+                s.average(lambda g, x=x: g.chance_at_least(x)),
+                s.average(lambda g, x=x: g.not_significantly_below(x)),
+            ]
+            rows.append([kind, f"{epsilon}", *map(_f, figures)])
+    header = (
+        "function | eps | mean coverage | observed >= 1-eps | predicted >= 1-eps | not significantly below"
+    )
     return lines + _table(header, rows)
 
 
@@ -246,16 +202,10 @@ def bands(evaluation: Evaluation) -> list[str]:
             s = evaluation.validity[(kind, epsilon, scope)]
             outside = [g for g in s.groups if g.m and not g.inside_predictive()]
             below = [g.name for g in outside if g.coverage < g.band()[0]]
-            rows.append(
-                [
-                    kind,
-                    s.label,
-                    _f(s.fraction(lambda g: g.inside_predictive())),
-                    f"{len(outside)} of {sum(1 for g in s.groups if g.m)}",
-                    ", ".join(below) or "none",
-                ]
-            )
-    return lines + _table(["function", "scope", "inside", "outside", "below the band"], rows)
+            inside = _f(s.average(lambda g: g.inside_predictive()))
+            tested = sum(1 for g in s.groups if g.m)
+            rows.append([kind, s.label, inside, f"{len(outside)} of {tested}", ", ".join(below) or "none"])
+    return lines + _table("function | scope | inside | outside | below the band", rows)
 
 
 def tightness(evaluation: Evaluation) -> list[str]:
@@ -284,13 +234,7 @@ def tightness(evaluation: Evaluation) -> list[str]:
             )
             rows.append([f"{epsilon}", kind, axes, _f(areas[kind], 0), _f(within, 3)])
         winners.append(f"eps {epsilon}: **{tightest(areas)}**")
-    header = [
-        "eps",
-        "function",
-        "median radius / semi-axes (px)",
-        "median area (px^2)",
-        "fraction with b <= 10 px",
-    ]
+    header = "eps | function | median radius / semi-axes (px) | median area (px^2) | fraction with b <= 10 px"
     lines += _table(header, rows)
     return lines + ["Tightest by median area: " + "; ".join(winners) + ".", ""]
 
@@ -317,26 +261,14 @@ def adaptiveness(evaluation: Evaluation) -> list[str]:
     rows = []
     for kind in KINDS:
         a = evaluation.adaptive[(kind, epsilon)]
-        rows.append(
-            [
-                kind,
-                _f(a.median_area_visible, 0),
-                _f(a.median_area_occluded, 0),
-                _f(a.occluded_over_visible, 2),
-                _f(a.rho_visib_fract),
-                _f(a.rho_visib_fract_relative),
-            ]
-        )
+        areas = [_f(a.median_area_visible, 0), _f(a.median_area_occluded, 0), _f(a.occluded_over_visible, 2)]
+        rows.append([kind, *areas, _f(a.rho_visib_fract), _f(a.rho_visib_fract_relative)])
     counts = evaluation.adaptive[("cov", epsilon)]
-    header = [
-        "function",
-        f"median area, visible (n={counts.visible})",
-        f"median area, occluded (n={counts.occluded})",
-        "occluded / visible",
-        "Spearman(visib_fract, area)",
-        "Spearman(visib_fract, area / box^2)",
-    ]
-    return lines + _table(header, rows)
+    header = (
+        f"function | median area, visible (n={counts.visible}) | median area, occluded (n={counts.occluded})"
+    )
+    spearman = "Spearman(visib_fract, area) | Spearman(visib_fract, area / box^2)"
+    return lines + _table(f"{header} | occluded / visible | {spearman}", rows)
 
 
 def write_report(evaluation: Evaluation, title: str, command: str, folder: str, path: Path) -> Path:

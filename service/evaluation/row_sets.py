@@ -1,10 +1,7 @@
-"""Image-space sets of every row for per-channel thresholds, via the service's own steps.
-
-``row_sets`` composes the same public steps as ``service.prediction.calibrated_sets``
-(``region`` of the nonconformity function, then ``map_sets_to_image``) on the rows'
-heatmap statistics; coverage is whether the true keypoint lies in the image-space set
-(``contains``). ``covered_by_score`` is the ICP definition (score <= threshold): both
-agree up to floating point, and the report says on how many keypoints.
+"""Image-space sets of every row for per-channel thresholds, by the steps ``predict`` takes (the
+function's ``region``, then ``map_sets_to_image``); coverage is whether the true keypoint lies in the
+set (``contains``). ``covered_by_score`` is the ICP definition (score <= threshold): the report says
+on how many keypoints both agree.
 """
 
 from __future__ import annotations

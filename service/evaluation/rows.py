@@ -1,11 +1,7 @@
-"""One inference pass over a labeled COCO folder: per (instance, keypoint) row, everything
-the evaluation needs (the three scores, heatmap statistics, crop affine, label, COCO
-visibility flag), so no heatmap has to be kept.
-
-The detector runs once per image (all boxes in one batch). Scores come from the service's
-``score_image`` (the numbers a calibration stores); the same detector output gives the
-heatmap statistics (the service's ``heatmap_statistics`` with the manifest's settings),
-from which ``service.evaluation.row_sets`` builds the very sets ``predict`` answers with.
+"""One inference pass over a labeled COCO folder (the detector once per image): per (instance, keypoint)
+row everything the evaluation needs, so no heatmap is kept: the three scores (the service's
+``score_image``), the heatmap statistics the sets are built from (service.evaluation.row_sets), the
+crop affine, the label and its COCO visibility flag.
 """
 
 from __future__ import annotations
@@ -68,11 +64,8 @@ def collect_rows(
     max_image_pixels: int,
     progress: Callable[[int], None] = lambda count: None,
 ) -> Rows:
-    """Run the detector once per image of a validated batch and collect every row.
-
-    An image that does not decode by the predict rule is refused (naming the file): an
-    evaluation that silently skipped images would measure another batch.
-    """
+    """Run the detector once per image of a validated batch and collect every row; an image that
+    does not decode by the predict rule is refused (skipping it would measure another batch)."""
     flags = _visibility_flags(batch)
     recorder = _RecordingDetector(detector)
     parts: list[dict[str, np.ndarray]] = []

@@ -1,8 +1,6 @@
-"""Tightness: sizes of the ICP sets in image pixels (the paper's Fig. 3).
-
-Balls (peak, var) by their radius, ellipses (cov) by their semi-axes a <= b; areas
-pi r^2 and pi a b make the three functions comparable. Unbounded sets (t = 0) have
-infinite size and stay in the medians as such.
+"""Tightness: sizes of the ICP sets in image pixels (the paper's Fig. 3): balls by their radius,
+ellipses by their semi-axes a <= b, areas pi r^2 and pi a b to compare them. Unbounded sets (t = 0)
+have infinite size and stay in the medians as such.
 """
 
 from __future__ import annotations

@@ -1,23 +1,19 @@
 """Adaptive conformal inference (Gibbs & Candes 2021) per camera stream, driven by feedback labels.
 
-A stream that asks for adaptive sets is served the calibration's threshold at level alpha_t
-instead of epsilon; each labelled keypoint of its retained answers (or instance, object scope)
-updates alpha_{t+1} = alpha_t + gamma (epsilon - err_t), err_t = 1 when the set served missed.
-Labels arrive late: label t's set was served at the level of ``lag_t`` updates before its own
-(the other labels of its answer, and every label that arrived between the answer and its
-feedback). With L = max lag_t so far, alpha_t stays within [-gamma (1 - epsilon) (L + 1),
-1 + gamma epsilon (L + 1)] (an update can push alpha further past 0 or 1 only while it speaks of
-a set served before alpha got there: at most L + 1 of them), so the telescoping sum over the T
-labels learned gives, whatever the shift,
+A stream asking for adaptive sets is served the calibration's threshold at level alpha_t instead of
+epsilon; each labelled keypoint of its retained answers (instance, object scope) updates
+alpha_{t+1} = alpha_t + gamma (epsilon - err_t), err_t = 1 when the set served missed. Label t's set
+was served ``lag_t`` updates before its own (the other labels of its answer, and those learned
+between the answer and its feedback). With L = max lag_t, alpha_t stays within
+[-gamma (1 - epsilon) (L + 1), 1 + gamma epsilon (L + 1)], so over the T labels learned, whatever
+the shift (Prop. 4.1 is L = 0; alpha_1 = epsilon; docs/feedback.md derives it):
 
     | (1/T) sum err_t - epsilon | <= (max(alpha_1, 1 - alpha_1) + gamma (L + 1)) / (gamma T)
 
-(Gibbs & Candes, Prop. 4.1 is L = 0; alpha_1 = epsilon here; docs/feedback.md derives it). The
-miscoverage side needs the whole plane served at alpha_t <= 0: the service serves levels in
-[1e-9, 0.999], the whole plane below 1 / (n + 1). The other side needs the empty set at
-alpha_t >= 1, which 0.999 is not (its sets are the smallest the calibration gives): a stream
-covered even by those can cover more than the bound says, never less. The state lives in the
-store (one row per stream and query, compare-and-set), so it survives restarts and replicas share it.
+Served levels lie in [1e-9, 0.999]: the whole plane below 1 / (n + 1) as the miscoverage side needs,
+but not the empty set at alpha >= 1, so a stream covered even by the smallest sets can cover more
+than the bound says, never less. The state lives in the store (one row per stream and query,
+compare-and-set): it survives restarts and replicas share it.
 """
 
 from __future__ import annotations
@@ -27,6 +23,8 @@ from typing import Any
 
 from calibration_store import AdaptiveState
 
+#: the ACI step size gamma
+ACI_GAMMA = 0.005
 #: levels served: the registry's thresholds need 0 < epsilon < 1
 LOWEST_LEVEL, HIGHEST_LEVEL = 1e-9, 0.999
 #: served levels are rounded to this grid: the threshold cache stays small
@@ -80,18 +78,10 @@ def long_run_bound(alpha_1: float, gamma: float, steps: int, lag: int = 0) -> fl
     return None if steps == 0 else (max(alpha_1, 1 - alpha_1) + gamma * (lag + 1)) / (gamma * steps)
 
 
-def label_lags(steps_before: int, labels: int, served_steps: int | None) -> range:
-    """Each label's lag: the updates applied after its answer was served (at ``served_steps``)
-    and before its own. Unknown ``served_steps``: the lags within the answer alone (a floor)."""
-    start = steps_before - served_steps if served_steps is not None else 0
-    start = max(start, 0)
-    return range(start, start + labels)
-
-
 class AdaptiveSets:
     """Reads and advances each stream's alpha_t in the store."""
 
-    def __init__(self, store: Any, model_hash: str, gamma: float) -> None:
+    def __init__(self, store: Any, model_hash: str, gamma: float = ACI_GAMMA) -> None:
         self._store, self._model_hash, self.gamma = store, model_hash, gamma
 
     def key(self, query: dict[str, Any], stream: str) -> str:
@@ -105,43 +95,31 @@ class AdaptiveSets:
         if stored is None:
             return AdaptiveView(key, epsilon, epsilon, self.gamma, 0, 0)
         state = stored.state
-        return AdaptiveView(
-            key,
-            state["epsilon"],
-            state["alpha"],
-            state["gamma"],
-            stored.steps,
-            state["errors"],
-            state.get("lag", 0),
-        )
+        values = (state["epsilon"], state["alpha"], state["gamma"], stored.steps, state["errors"])
+        return AdaptiveView(key, *values, state.get("lag", 0))
 
     def learn(
         self, key: str, epsilon: float, misses: list[bool], served_steps: int | None = None
     ) -> AdaptiveView:
         """Apply one update per label of one answer, in order (compare-and-set, retried when a
-        replica wrote first); ``served_steps``: the answer's ``steps`` when it was served."""
+        replica wrote first); ``served_steps``: the answer's ``steps`` when it was served (unknown:
+        the lags within the answer alone, a floor)."""
         for _ in range(_CAS_ATTEMPTS):
             before = self.view(key, epsilon)
             alpha = before.alpha
             for missed in misses:
                 alpha = aci_step(alpha, before.epsilon, before.gamma, missed)
-            lags = label_lags(before.steps, len(misses), served_steps)
-            after = AdaptiveView(
-                key,
-                before.epsilon,
-                alpha,
-                before.gamma,
-                before.steps + len(misses),
-                before.errors + sum(misses),
-                max(before.lag, lags[-1]) if lags else before.lag,
-            )
+            first_lag = 0 if served_steps is None else max(before.steps - served_steps, 0)
+            lag = max(before.lag, first_lag + len(misses) - 1) if misses else before.lag
+            steps, errors = before.steps + len(misses), before.errors + sum(misses)
+            after = AdaptiveView(key, before.epsilon, alpha, before.gamma, steps, errors, lag)
             state = {
                 "epsilon": after.epsilon,
                 "alpha": alpha,
                 "gamma": after.gamma,
-                "errors": after.errors,
-                "lag": after.lag,
+                "errors": errors,
+                "lag": lag,
             }
-            if self._store.save_adaptive_state(key, before.steps, AdaptiveState(key, after.steps, state)):
+            if self._store.save_adaptive_state(key, before.steps, AdaptiveState(key, steps, state)):
                 return after
         raise RuntimeError(f"adaptive state {key}: {_CAS_ATTEMPTS} writers in a row got there first")

@@ -1,26 +1,18 @@
 """An anytime-valid confidence sequence for a mean coverage, and the alarm it proves.
 
-Votes x_1, x_2, ... lie in [0, 1] (a look's share of covered keypoints, or 0/1). For a candidate
-mean p, the test of "each vote's conditional mean is at least p" uses the mixture
+Votes x_i lie in [0, 1] (a look's share of covered keypoints, or 0/1). Against "each vote's mean is
+at least p" the mixture M_n(p) = (1/J) sum_j prod_i (q_j / p)^x_i ((1 - q_j) / (1 - p))^(1 - x_i) over
+J alternatives q_j < p is a nonnegative supermartingale (each factor is convex in x, so at most its
+Bernoulli value: 1 at mean p, less above), and by Ville P(sup_n M_n(p) >= 1/a) <= a however long it
+is watched. The upper bound is the largest p not rejected at level a; the lower bound mirrors it.
 
-    M_n(p) = (1/J) sum_j prod_i (q_j / p)^x_i ((1 - q_j) / (1 - p))^(1 - x_i),   q_j < p,
-
-over J alternatives below p (relative gaps from 1e-3 to 0.999, evenly spaced in log). Each factor's
-expectation is at most 1 when the vote's mean is at least p (the factor is convex in x, so it is
-at most its Bernoulli value, which is 1 at mean p and decreases with the mean): M_n(p) is a
-nonnegative supermartingale, and by Ville's inequality P(sup_n M_n(p) >= 1/a) <= a, however
-long and however often it is watched. The upper bound U_n is the largest p not rejected at level
-a; the lower bound mirrors it (alternatives above p). Only the sum and count of the votes enter.
-
-The alarm of a calibration version (``CoverageAlarm``): coverage proven below what its calibration
-gives, by a ladder of betting e-processes. A threshold's conditional coverage C is random through
-its calibration draw, Beta(n + 1 - t, t) (``promised_floor``: its quantile at a level; with a PAC
-delta, 1 - epsilon). Rung i tests "each vote's mean is at least the u_i quantile phi_i" with an
-e-process that alarms at 1 / a_i; the alarm is raised once every rung has. For C in
-[phi_i, phi_(i+1)) rung i is a supermartingale, so P(alarm) <= u_0 + sum_i (u_(i+1) - u_i) a_i
-(u_m = 1), which ``alarm_rungs`` holds to the level: an unlucky calibration (C low) is paid for
-by a low rung that needs little evidence, a typical one by a high rung, closer to the votes,
-that needs much (docs/feedback.md derives it and measures what it buys).
+The alarm of a version (``CoverageAlarm``): coverage proven below what its calibration gives. A
+threshold's conditional coverage C is Beta(n + 1 - t, t) through its calibration draw (with a PAC
+delta, at least 1 - epsilon). Rung i tests "each vote's mean is at least the u_i quantile of that
+law" with an e-process alarming at 1 / a_i; the alarm is raised once every rung has. For C between
+rungs i and i + 1 rung i is a supermartingale, so P(alarm) <= u_0 + sum_i (u_(i+1) - u_i) a_i, which
+``alarm_rungs`` holds to the level: an unlucky calibration is caught by a low rung needing little
+evidence, a typical one by a high rung, closer to the votes (docs/feedback.md).
 """
 
 from __future__ import annotations
@@ -52,12 +44,6 @@ class CoverageBounds:
     upper: float
 
 
-def log_evidence_below(total: float, count: int, p: np.ndarray | float) -> np.ndarray:
-    """log M_n(p) against "mean >= p" for votes of sum ``total`` over ``count`` (per p)."""
-    p = np.atleast_1d(np.asarray(p, dtype=np.float64))[:, None]
-    return _log_mixture(np.asarray(total, dtype=np.float64)[..., None], count, p)
-
-
 def evidence_path(votes: np.ndarray, p: float) -> np.ndarray:
     """log M_n(p) after each of ``votes`` (in [0, 1]), n = 1, 2, ...: the whole watched path."""
     totals = np.cumsum(np.asarray(votes, dtype=np.float64))
@@ -77,8 +63,9 @@ def coverage_bounds(total: float, count: int, level: float) -> CoverageBounds:
     if count == 0:
         return CoverageBounds(0, None, 0.0, 1.0)
     limit = math.log(2.0 / level)
-    above = log_evidence_below(total, count, _CANDIDATES) < limit
-    below = log_evidence_below(count - total, count, 1.0 - _CANDIDATES) < limit  # the mirror test
+    above = _log_mixture(np.array([total], dtype=np.float64), count, _CANDIDATES[:, None]) < limit
+    mirror = np.array([count - total], dtype=np.float64)
+    below = _log_mixture(mirror, count, 1.0 - _CANDIDATES[:, None]) < limit
     upper = float(_CANDIDATES[above].max()) if above.any() else 0.0
     lower = float(_CANDIDATES[below].min()) if below.any() else 1.0
     # an end of the scan not rejected: the bound is the end of [0, 1] (all covered: upper 1, not 0.9995)
@@ -109,9 +96,8 @@ def alarm_rungs(level: float) -> tuple[tuple[float, float], ...]:
     """Per rung (u_i, a_i): its floor is the u_i quantile of the calibration's coverage law, its
     e-process alarms at 1 / a_i. The rungs below 0.5 of ``RUNGS`` (the lowest always), each of the m
     paying an equal share of what u_0 leaves: u_0 + sum_i (u_(i+1) - u_i) a_i <= level, u_m = 1."""
-    quantiles = [
-        level * multiple for multiple in RUNGS if level * multiple < 0.5
-    ]  # level < 0.5: one at least
+    # level < 0.5: one rung at least
+    quantiles = [level * multiple for multiple in RUNGS if level * multiple < 0.5]
     share = (level - quantiles[0]) / len(quantiles)
     uppers = [*quantiles[1:], 1.0]
     return tuple((u, min(1.0, share / (upper - u))) for u, upper in zip(quantiles, uppers, strict=True))
@@ -140,17 +126,12 @@ class CoverageAlarm:
 
 class BettingEProcess:
     """One rung: a betting e-process (Waudby-Smith & Ramdas 2023) against "each vote's mean is at
-    least its floor", K_t = prod (1 + lambda_t (f_t - x_t)), with the predictable bet
-    lambda_t = (f_t - m) / (v + (f_t - m)^2) clipped to [0, 1 / (2 (1 - f_t))] from the mean m and
-    variance v of the votes before t, discounted by ``_BET_MEMORY`` per vote: after a long run of
-    good looks the bet turns to a shortfall within tens of looks (an undiscounted mean would
-    need as many bad looks as there were good ones), while good looks keep it at 0 and the
-    wealth where it was. Any bet fixed before x_t keeps the guarantee: each factor has mean at
-    most 1 under the null (f_t is known before x_t: it is the floor of the keypoints the vote is
-    about), so P(ever K_t >= 1 / alpha) <= alpha (Ville). Its bets follow the votes' own
-    variance: a look's share of covered keypoints varies far less than one keypoint's 0/1, so it
-    proves a shortfall in fewer looks than the Bernoulli mixture behind the bounds. Once raised,
-    it stays raised."""
+    least its floor", K_t = prod (1 + lambda_t (f_t - x_t)). The bet
+    lambda_t = (f_t - m) / (v + (f_t - m)^2), clipped to [0, 1 / (2 (1 - f_t))], comes from the mean m
+    and variance v of the earlier votes, discounted by ``_BET_MEMORY`` so that a shortfall after a long
+    good run is bet on within tens of looks. A bet fixed before x_t keeps each factor's mean at most 1
+    under the null, so P(ever K_t >= 1 / alpha) <= alpha (Ville); following the votes' own variance, it
+    proves a shortfall in fewer looks than the Bernoulli mixture of the bounds. Once raised, it stays."""
 
     def __init__(self, alpha: float) -> None:
         self._limit = math.log(1.0 / alpha)

@@ -1,13 +1,11 @@
 """Recalibration from the field: labelled feedback becomes a calibration version without a zip.
 
-Read top-down, ``calibrate_from_feedback``: the labelled predictions chosen (a stream, the version
-that served them), each labelled instance's scores (those its feedback stored, computed from the
-kept heatmap statistics as scoring an upload computes them from the heatmaps), heatmap features
-and fingerprint (the sha256 of the image sent, and of image, object, box and labels: what an
-upload of the same image file and labels gets), then the upload's rules: repeats inside the
-selection or in the version appended to (409, or dropped with ``dedupe``), a version equal to a
-stored one (409 unless ``allow_duplicate``), then the guardrails, the activation floor and the
-audit trail of every new version (service.calibration.versions.store_scored_version).
+``calibrate_from_feedback``: the labelled predictions chosen (a stream, the version that served
+them), each labelled instance's stored scores, heatmap features and fingerprint (what an upload of
+the same image file and labels gets), then an upload's rules: repeats in the selection or in the
+version appended to (409, or dropped with ``dedupe``), a version equal to a stored one (409 unless
+``allow_duplicate``), the guardrails, the activation floor and the audit trail of every new version
+(service.calibration.versions.store_scored_version).
 """
 
 from __future__ import annotations
@@ -182,14 +180,7 @@ def _scored(
     if parent is not None:
         accumulator.extend(parent.scores)
         sources.extend(parent.info.source_batches)
-    for instance in instances:
-        keypoint_ids = detector.manifest.object(instance.object_name).keypoints
-        accumulator.add(
-            instance.object_name,
-            keypoint_ids,
-            instance.ref,
-            instance.scores,
-            instance.fingerprint,
-            instance.group,
-        )
+    for i in instances:
+        keypoint_ids = detector.manifest.object(i.object_name).keypoints
+        accumulator.add(i.object_name, keypoint_ids, i.ref, i.scores, i.fingerprint, i.group)
     return ScoredInstances(accumulator, [*sources, source], [], len(instances))

@@ -1,11 +1,10 @@
 """Feedback on a retained prediction: true image points in, a judged and stored label out.
 
-Read top-down, ``record_feedback``: find the retained prediction (404 unknown, 410 expired or
-evicted), check the labels against its instances (422 naming each problem), score every labelled
-point under the three nonconformity functions from the kept heatmap statistics (exactly as a
-calibration upload of the same image and labels would), judge whether the served set covered it,
-and store the label with its audit entry and its verdicts (what live coverage counts of it,
-service.feedback.verdicts) in one transaction (409 when it was labelled already).
+``record_feedback``: find the retained prediction (404 unknown, 410 expired or evicted), check the
+labels against its instances (422 naming each problem), score every labelled point under the three
+nonconformity functions from the kept heatmap statistics (as a calibration upload of the same image
+and labels would), judge whether the served set covered it, and store the label with its audit
+entry and verdicts (service.feedback.verdicts) in one transaction (409 when labelled already).
 """
 
 from __future__ import annotations
@@ -73,20 +72,11 @@ def record_feedback(
     retained = find_retained(store, prediction_id, max_age_s)
     points = check_labels(retained.record, instances)
     rows = judge(retained.record, points)
-    labels = {
-        "instances": [
-            {"instance": i.instance, "keypoints": [list(k) for k in i.keypoints]} for i in instances
-        ],
-        "rows": rows,
-    }
+    given = [{"instance": i.instance, "keypoints": [list(k) for k in i.keypoints]} for i in instances]
+    labels = {"instances": given, "rows": rows}
     covered = sum(row["covered"] for row in rows)
-    entry = audit.entry(
-        operator,
-        "feedback",
-        "labelled",
-        version=retained.version,
-        details={"prediction_id": prediction_id, "keypoints": len(rows), "covered": covered},
-    )
+    details = {"prediction_id": prediction_id, "keypoints": len(rows), "covered": covered}
+    entry = audit.entry(operator, "feedback", "labelled", version=retained.version, details=details)
     counted = verdicts(replace(retained, labels=labels), keypoint_names)
     outcome = store.label_prediction(prediction_id, labels, operator.name, datetime.now(UTC), entry, counted)
     if outcome is LabelOutcome.ALREADY_LABELLED:
@@ -107,10 +97,9 @@ def record_feedback(
 
 
 def find_retained(store: Any, prediction_id: str, max_age_s: float) -> RetainedPrediction:
-    """The retained prediction, or 404 (never retained) / 410 (expired, or evicted by size).
-
-    A prediction made moments ago on another replica may still be on its way to the store (it
-    is written in the background): it is waited for, up to ``IN_FLIGHT_S`` after it was made."""
+    """The retained prediction, or 404 (never retained) / 410 (expired, or evicted by size); one made
+    moments ago on another replica may still be on its way (written in the background): it is waited
+    for, up to ``IN_FLIGHT_S`` after it was made."""
     made = retained_at(prediction_id)
     retained = store.retained_prediction(prediction_id) if made is not None else None
     while retained is None and made is not None and _age_s(made) < IN_FLIGHT_S:

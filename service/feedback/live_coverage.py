@@ -1,37 +1,22 @@
 """Live labelled coverage: what the field's labels say of each calibration version's sets so far.
 
-Read top-down, ``CoverageFold.add``: each labelled prediction, as it is read, comes as its
-verdicts (its judged units, already grouped: service.feedback.verdicts, stored with its label)
-and is counted per group (the version's answers as a whole, per object, per keypoint,
-per camera stream, per caller group, per Mondrian stratum): the raw coverage of its labelled
-keypoints, and one vote per look (frames of one scene are one observation, not many: the look
+``CoverageFold.add`` counts each labelled prediction's verdicts (service.feedback.verdicts) in its
+groups (the version, each object, keypoint, camera stream, caller group, Mondrian stratum): the raw
+coverage of its units, and one vote per look (frames of one scene are one observation; the look
 was fixed when the answer was served, service.feedback.retention): the share covered of the
-group's units in all the look's labelled frames, cast when the look is complete, that is when a
-label of the next look of its stream is read (or when more than ``OPEN_LOOKS`` looks are
-open: the oldest is cast). A frame of a look already cast is counted raw, not voted again. Each
-group's confidence sequence of the votes' mean and its alarm (a ladder of betting e-processes,
-once coverage is proven below what the calibration gives) are
-service.feedback.confidence_sequence's (docs/feedback.md derives why pooling a look's frames
-keeps the alarm's false-alarm rate).
+group's units over all the look's labelled frames, cast when a label of the next look of its
+stream is read (or when more than ``OPEN_LOOKS`` looks are open: the oldest). A frame of a look
+already cast counts raw only. Each group's confidence sequence and alarm (a ladder of betting
+e-processes, raised once coverage is proven below what the calibration gives) are
+service.feedback.confidence_sequence's; docs/feedback.md derives why pooling a look's frames keeps
+the false-alarm rate.
 
-``LiveCoverageReader`` keeps one fold per process and adds only the labels that are new since
-its last read (``labelled_since`` lists ids, a cheap indexed read; only the new labels' verdicts
-are fetched and decoded, never the records, except for rows labelled before verdicts were stored,
-which are judged here): a read costs what arrived since the previous one, and a process's first
-read decodes the compact verdicts of the CKS_FEEDBACK_MAX_RETAINED rows the store may keep
-(docs/feedback.md measures both). Looks are completed and voted in the order the labels are
-read (label order), each label once; the look still open in each stream has not voted yet (it
-is in the raw counts, not in ``looks``). A raised alarm stays raised though its rows are evicted.
-A replica started later folds the labels the store still keeps, so replicas agree on the labels
-kept, not on evicted history.
-
-With ``coverage: object`` a unit is an instance whose keypoints were all labelled: covered when
-every one of them is in its set (what the object guarantee speaks about).
-
-A stratum group (answers asked with ``stratify``) gathers the units its stratum's thresholds
-served, across keypoints (difficulty bins are fitted per keypoint: "difficulty bin 2" is each
-keypoint's bin 2); each unit's floor is its own stratum's (n, t), so the alarm tests each
-stratum threshold's own promise, and ``pooled`` gathers the rows that fell back to the pooled one.
+``LiveCoverageReader`` keeps one fold per process and adds the labels new since its last read (their
+ids, then only their verdicts: a read costs what arrived since). Looks vote in label order, each
+label once; a raised alarm stays raised though its rows are evicted; replicas agree on the labels
+the store keeps. With ``coverage: object`` a unit is an instance whose keypoints were all labelled,
+covered when all are in their sets. A stratum group gathers the units its stratum's thresholds
+served, each unit's floor its own stratum's (n, t); ``pooled`` the rows that fell back to the pool.
 """
 
 from __future__ import annotations
@@ -107,10 +92,8 @@ class GroupCoverage:
 
 @dataclass
 class _Shape:
-    """A verdict shape (service.feedback.verdicts), parsed: its groups' votes, and per group its
-    units, their least floor and the sum of their floors on each of the alarm's rungs;
-    ``pending``: the covered counts of the labels folded since their counts were last added to
-    the groups."""
+    """A verdict shape (service.feedback.verdicts), parsed: per group its votes, units, their least
+    floor and their floors' sum on each rung; ``pending``: covered counts not yet added to the groups."""
 
     stream: str  # its stream group's name ("": none), whose next look completes a look of it
     groups: list[_Votes]
@@ -122,8 +105,7 @@ class _Shape:
 
 @dataclass
 class _OpenLook:
-    """A look whose vote is not cast yet: per shape of its labels, the covered counts summed (a
-    label costs one addition; the groups are counted once, when the look votes)."""
+    """A look whose vote is not cast yet: per shape of its labels, the covered counts summed."""
 
     stream: str
     labels: dict[int, list] = field(default_factory=dict)  # id(shape): [shape, covered, labels]
@@ -162,11 +144,9 @@ class _OpenLook:
 
 
 class CoverageFold:
-    """Every group's live coverage, label by label; ``level`` is the false-alarm probability of
-    each group's alarm (its ladder of rungs) and of its confidence sequence; the last
-    ``looks_kept`` looks are remembered (a label of a look forgotten since opens it again). A
-    label joins its look's vote as it is added, in label order, while the look is open; its raw
-    counts are sums, added to their groups a shape at a time when a report is made."""
+    """Every group's live coverage, label by label; ``level``: the false-alarm probability of each
+    group's alarm and confidence sequence; the last ``looks_kept`` looks are remembered (a label of
+    a look forgotten since opens it again)."""
 
     def __init__(self, level: float, looks_kept: int) -> None:
         self.level, self._looks_kept = level, looks_kept
@@ -177,8 +157,8 @@ class CoverageFold:
         self._open_by_stream: dict[str, str] = {}
 
     def add(self, verdicts: LabelVerdicts) -> None:
-        """Count one labelled prediction's verdicts: raw counts always; into its look's vote while
-        the look is open (a new look completes the previous look of its stream: its vote is cast)."""
+        """Count one labelled prediction's verdicts: raw counts always, its look's vote while the look
+        is open (a new look casts the vote of its stream's previous one)."""
         shape = self._shapes.get(verdicts.shape) or self._parse(verdicts.shape)
         covered = verdicts.tally["covered"]
         shape.pending.append(covered)
@@ -202,10 +182,14 @@ class CoverageFold:
             self._shapes.clear()
         shape = json.loads(text)
         base = (shape["version"], shape["guarantee"], *shape["query"])
-        band = self.level / 2 if shape["guarantee"] == "exchangeable" else 0.0  # ACI: a long-run bound
-        floors = [min(_floor(g, band) for g in guarantees) for guarantees in shape["floors"]]
+        exchangeable = shape["guarantee"] == "exchangeable"  # else ACI: a long-run bound, no floor
+        nothing = (0.0,) * len(alarm_rungs(self.level))
+        floors = [
+            min(promised_floor(*g, self.level / 2) if exchangeable else 0.0 for g in guarantees)
+            for guarantees in shape["floors"]
+        ]
         ladders = [
-            np.min([_rungs(g, band, self.level) for g in guarantees], axis=0)
+            np.min([rung_floors(*g, self.level) if exchangeable else nothing for g in guarantees], axis=0)
             for guarantees in shape["floors"]
         ]
         stream = next((name for name_level, name, _ in shape["groups"] if name_level == "stream"), "")
@@ -257,19 +241,9 @@ class CoverageFold:
         return [votes.reported for _, votes in sorted(self._groups.items(), key=lambda kv: str(kv[0]))]
 
 
-def _floor(guarantee: list[Any], band: float) -> float:
-    return 0.0 if band == 0.0 else promised_floor(*guarantee, band)
-
-
-def _rungs(guarantee: list[Any], band: float, level: float) -> tuple[float, ...]:
-    """The alarm's floor of one guarantee on each rung (0: nothing promised, an adaptive stream)."""
-    return rung_floors(*guarantee, level) if band else (0.0,) * len(alarm_rungs(level))
-
-
 def _report(key: tuple, votes: _Votes, level: float) -> GroupCoverage:
     version, guarantee, nonconformity, coverage, epsilon, delta, name_level, name = key
-    count = votes.looks
-    bounds = coverage_bounds(votes.total, count, level)
+    bounds = coverage_bounds(votes.total, votes.looks, level)
     return GroupCoverage(
         level=name_level,
         name=name,
@@ -281,7 +255,7 @@ def _report(key: tuple, votes: _Votes, level: float) -> GroupCoverage:
         delta=delta,
         labelled=votes.labelled,
         covered=votes.covered,
-        looks=count,
+        looks=votes.looks,
         look_mean=bounds.mean,
         lower=bounds.lower,
         upper=bounds.upper,
@@ -292,8 +266,7 @@ def _report(key: tuple, votes: _Votes, level: float) -> GroupCoverage:
 
 
 class LiveCoverageReader:
-    """The live coverage of one model, read incrementally from the store (see the module's doc):
-    fresh for the admin API, cached a few seconds for /metrics."""
+    """The live coverage of one model, read incrementally from the store (see the module's doc)."""
 
     def __init__(
         self, store: Any, model_hash: str, keypoint_names: list[str], looks_kept: int, level: float
@@ -307,9 +280,8 @@ class LiveCoverageReader:
         self._cached: tuple[float, list[GroupCoverage]] | None = None
 
     def report(self, max_age_s: float = 0.0) -> list[GroupCoverage]:
-        """Fold the labels new since the last read, then report. With ``max_age_s`` (/metrics,
-        which must not wait: its scrape runs on the event loop), the last report is given at
-        once (none before the first), and a fold is started in the background when it is older."""
+        """Fold the labels new since the last read, then report. With ``max_age_s`` (/metrics: its
+        scrape must not wait) the last report comes at once, refreshed in the background when older."""
         if max_age_s == 0.0:
             with self._lock:
                 return self._fold_and_report()

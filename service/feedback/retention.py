@@ -1,13 +1,10 @@
 """Keeping a predict answer for feedback: what it must remember to judge a true point later.
 
-A retained prediction keeps, per (instance, keypoint) row, the heatmap statistics that give every
-nonconformity score of a true point (q*, p*, the top-K mean and covariance, whether the map was
-uninformative), the instance's image -> heatmap affine, the threshold and centre of the set served,
-the guarantee it came with and the name of the Mondrian stratum that gave it (live coverage counts
-per stratum); per request the calibration version, the query, the image's sha256
-and size, the camera stream, the client and the look (frames of one scene; live coverage counts
-one vote per look). Nothing else is needed: labels arrive as image points,
-the affine takes them to the heatmap, the statistics score them exactly as calibration would.
+Per (instance, keypoint) row: the heatmap statistics that give every nonconformity score of a true
+point, the instance's image -> heatmap affine, the threshold and centre of the set served, its
+guarantee and Mondrian stratum; per request: the version, the query, the image's sha256 and size,
+the camera stream, the client and the look (live coverage votes once per look). Labels arrive as
+image points; the affine takes them to the heatmap, the statistics score them as calibration would.
 """
 
 from __future__ import annotations
@@ -65,13 +62,10 @@ class ServedRequest:
 
 
 class Retention:
-    """Decides which answers are kept and writes them to the store from a background thread.
-
-    A predict answer waits for no database write (an fsync costs more than the model's run): rows
-    are queued and written in batches, one transaction each. Feedback on a prediction this process
-    retained waits for its row (``flush``); a replica's row is there within one write, normally
-    milliseconds. A write the store refuses is retried every ``RETRY_S`` while the process runs.
-    """
+    """Decides which answers are kept and writes them to the store from a background thread: a
+    predict answer waits for no database write (an fsync costs more than the model's run); batches
+    go in one transaction each, a refused one retried every ``RETRY_S``. Feedback on a prediction
+    this process retained waits for its row (``flush``)."""
 
     def __init__(self, store: Any, model_hash: str, rules: RetentionRules, seed: int | None = None) -> None:
         self._store, self._model_hash, self.rules = store, model_hash, rules
@@ -97,11 +91,7 @@ class Retention:
         prediction_id = new_prediction_id(now)
         record = {
             "query": served.query,
-            "image": {
-                "sha256": image_sha256,
-                "width": served.width,
-                "height": served.height,
-            },
+            "image": {"sha256": image_sha256, "width": served.width, "height": served.height},
             "heatmap_shape": list(served.heatmap_shape),
             "client": client,
             "instances": served.instances,
@@ -118,9 +108,8 @@ class Retention:
         return prediction_id
 
     def _look(self, stream: str, instances: list[dict[str, Any]], prediction_id: str) -> str:
-        """The look this answer belongs to, named by its first retained frame: the stream's
-        retained frames in serving order through the drift monitor's look tracker (frames of one
-        scene are one observation), fixed once served, so live coverage folds each label once."""
+        """The look this answer belongs to, named by its first retained frame (the drift monitor's
+        look tracker over the stream's retained frames), fixed once served."""
         frame = Frame(tuple(i["object"] for i in instances), np.array([i["bbox"] for i in instances]))
         with self._looks_lock:
             tracker, look = self._looks.pop(stream, (LookTracker(), prediction_id))

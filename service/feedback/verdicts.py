@@ -1,43 +1,27 @@
 """The verdicts of a label: what live coverage counts of a labelled prediction, judged once.
 
-A label's judgement never changes once made, so the feedback use case judges it when it stores
-the label and keeps the result beside it (calib_verdicts, about 2 KB where the retained record is
-11 KB of heatmap statistics): live coverage then reads these, never the records (docs/feedback.md,
-"what a read costs"). ``verdicts`` splits the prediction into its judged units (each labelled
-keypoint, or with ``coverage: object`` each instance whose keypoints were all labelled: covered
-when every one of them is in its set) and gathers them into the groups live coverage counts (the
-version as a whole, per object, keypoint, camera stream, caller group and Mondrian stratum).
-
-What varies from label to label is little: how many units of each group were covered, and the
-look (its tally). The rest, the shape (version, guarantee, query, the groups, and per group the
-floor of each unit in unit order), repeats over the frames of a stream; it is kept as one JSON
-text in a column of its own, so that a reader parses each shape once and counts a label as a
-list of numbers. A floor is kept as
-the calibration guarantees (n, t, epsilon, delta) behind it, not as a number: the number depends
-on CKS_FEEDBACK_ALARM_LEVEL, which the reader applies.
+A label's judgement never changes, so the feedback use case judges it when it stores the label and
+keeps the result beside it (about 2 KB where the record is 11 KB): live coverage reads these, never
+the records (docs/feedback.md). ``verdicts`` splits the prediction into its judged units (labelled
+keypoints, or with ``coverage: object`` instances whose keypoints were all labelled) and gathers
+them into the groups live coverage counts. What varies between labels (the covered units per group,
+the look) is the tally; the rest (version, guarantee, query, groups, each unit's floor) is the
+shape, one JSON text that repeats over a stream's frames and is parsed once. A floor is kept as
+the guarantees (n, t, epsilon, delta) behind it: its number depends on CKS_FEEDBACK_ALARM_LEVEL,
+which the reader applies.
 """
 
 from __future__ import annotations
 
 import json
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from operator import itemgetter
 from typing import Any
 
 from calibration_store import LabelVerdicts, RetainedPrediction
 
-
-@dataclass(frozen=True)
-class Unit:
-    """One judged keypoint (or instance, object scope) of a labelled prediction."""
-
-    object: str
-    keypoint: str | None
-    stream: str
-    group: str | None
-    stratum: str | None  # the Mondrian stratum whose threshold served it (None: not stratified)
-    covered: bool
-    guarantees: tuple[tuple[Any, ...], ...]  # (n, t, epsilon, delta) of its rows: its floor is the least
+#: a row's guarantee as the shape keeps it
+_GUARANTEE = itemgetter("n", "t", "epsilon", "delta")
 
 
 def verdicts(prediction: RetainedPrediction, keypoint_names: list[str]) -> LabelVerdicts:
@@ -48,11 +32,12 @@ def verdicts(prediction: RetainedPrediction, keypoint_names: list[str]) -> Label
     query = record["query"]
     floors: dict[tuple, int] = {}
     groups: dict[tuple[str, str], tuple[list[int], list[list[int]]]] = {}
-    for unit in units(record, (prediction.labels or {}).get("rows", []), keypoint_names, prediction.stream):
-        floor = floors.setdefault(unit.guarantees, len(floors))
-        for name in group_names(unit):
+    judged = (prediction.labels or {}).get("rows", [])
+    for guarantees, unit_covered, names in _units(record, judged, keypoint_names, prediction.stream):
+        floor = floors.setdefault(guarantees, len(floors))
+        for name in names:
             covered, runs = groups.setdefault(name, ([0], []))
-            covered[0] += unit.covered
+            covered[0] += unit_covered
             if runs and runs[-1][0] == floor:
                 runs[-1][1] += 1
             else:
@@ -71,19 +56,27 @@ def verdicts(prediction: RetainedPrediction, keypoint_names: list[str]) -> Label
     return LabelVerdicts(json.dumps(shape, separators=(",", ":")), tally)
 
 
-def units(
+def _units(
     record: dict[str, Any], judged_rows: Sequence[dict[str, Any]], keypoint_names: list[str], stream: str
-) -> Iterator[Unit]:
-    """The judged units of one labelled prediction (keypoints, or whole instances: object scope)."""
+) -> Iterator[tuple[tuple[tuple[Any, ...], ...], bool, list[tuple[str, str]]]]:
+    """Per judged unit (keypoint, or whole instance: object scope): the guarantees of its rows (its
+    floor is the least), whether it is covered, and the groups (level, name) it counts in."""
     rows, instances = record["rows"], record["instances"]
     for index, row, covered in covered_units(record, judged_rows):
         members = [r for r, kept in enumerate(rows) if kept["instance"] == index] if row is None else [row]
-        guarantees = tuple(dict.fromkeys(_guarantee(rows[r]["guarantee"]) for r in members))
-        name = None if row is None else keypoint_names[rows[row]["channel"]]
-        strata = {rows[r].get("stratum") for r in members}  # one per instance with coverage object
-        stratum = strata.pop() if len(strata) == 1 else None
+        guarantees = tuple(dict.fromkeys(_GUARANTEE(rows[r]["guarantee"]) for r in members))
         instance = instances[index]
-        yield Unit(instance["object"], name, stream, instance["group"], stratum, covered, guarantees)
+        groups = [("version", "all"), ("object", instance["object"])]
+        if row is not None:
+            groups.append(("keypoint", f"{instance['object']}/{keypoint_names[rows[row]['channel']]}"))
+        if stream:
+            groups.append(("stream", stream))
+        if instance["group"]:
+            groups.append(("group", instance["group"]))
+        strata = {rows[r].get("stratum") for r in members}  # one per instance with coverage object
+        if len(strata) == 1 and (stratum := strata.pop()) is not None:  # the Mondrian stratum that served it
+            groups.append(("stratum", stratum))
+        yield guarantees, covered, groups
 
 
 def covered_units(
@@ -101,21 +94,3 @@ def covered_units(
         if members and all(r in judged for r in members):
             units.append((index, None, all(judged[r] for r in members)))
     return units
-
-
-def group_names(unit: Unit) -> Iterator[tuple[str, str]]:
-    """The groups a unit counts in: (level, name)."""
-    yield "version", "all"
-    yield "object", unit.object
-    if unit.keypoint is not None:
-        yield "keypoint", f"{unit.object}/{unit.keypoint}"
-    if unit.stream:
-        yield "stream", unit.stream
-    if unit.group:
-        yield "group", unit.group
-    if unit.stratum is not None:
-        yield "stratum", unit.stratum
-
-
-def _guarantee(guarantee: dict[str, Any]) -> tuple[Any, ...]:
-    return (guarantee["n"], guarantee["t"], guarantee["epsilon"], guarantee["delta"])

@@ -1,19 +1,13 @@
-"""The report of a coverage audit: the empirical coverage of a calibration version's sets on
-a labeled batch, figure by figure against what Theorem 1 predicts, with the keypoints that
-are significantly low flagged and what to do about it.
+"""The report of a coverage audit: the empirical coverage of a version's sets on a labeled batch,
+figure by figure against what Theorem 1 predicts, the significantly low ones flagged, and advice.
 
-An instance is covered when its nonconformity score is at most the version's threshold
-(the true keypoint lies in its set: the score and the set are the same inequality).
-- ``keypoint`` scope (each keypoint calibrated alone, the paper): a keypoint's figure is
-  exact (Beta-Binomial band, ``coverage_law.coverage_test``); an object's and the overall
-  figures pool its keypoints (``coverage_law.pooled_test``: the calibration's spread with the
-  units perfectly correlated, the images' spread cluster-robust, one image one cluster).
-- ``object`` scope (one threshold on the max score of an object, simultaneous coverage):
-  an instance counts when all its keypoints are labeled (as in calibration) and is covered
-  when all of them are in their sets; an object's figure is exact, the overall one pooled.
-The flags come from Holm's step-down over every figure of the audit, exact and pooled (all
-scores, epsilons and scopes), in two families at half of ``FAMILY_ALPHA`` each (the overall
-figures; all others), so the chance that a valid calibration gets any flag is at most
+An instance is covered when its score is at most the version's threshold (the true keypoint lies in
+its set). ``keypoint`` scope: a keypoint's figure is exact (``coverage_law.coverage_test``), an
+object's and the overall one pool keypoints (``coverage_law.pooled_test``). ``object`` scope (one
+threshold on an object's max score): an instance counts when all its keypoints are labeled and is
+covered when all are in their sets; an object's figure is exact, the overall one pooled. Flags come
+from Holm's step-down over every figure of the audit in two families at ``FAMILY_ALPHA / 2`` each
+(the overall figures; all others), so a valid calibration gets any flag with probability at most
 ``FAMILY_ALPHA`` (up to the pooled figures' normal approximation).
 """
 
@@ -21,7 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
@@ -33,7 +27,6 @@ from service.monitoring.coverage_law import (
     FAMILY_ALPHA,
     RECALIBRATION_TOLERANCE,
     CoverageTest,
-    PooledTest,
     coverage_test,
     pooled_test,
     recalibration_size,
@@ -41,9 +34,8 @@ from service.monitoring.coverage_law import (
 from service.monitoring.multiple_testing import holm_adjusted
 
 SCOPES = ("keypoint", "object")
-#: the flags' two families, each Holm-corrected at FAMILY_ALPHA / 2 (Bonferroni between them): the
-#: overall figures (one per score, epsilon and scope), and every other figure, so that the headline
-#: figure is not drowned among the hundreds of keypoint figures
+#: the flags' two families, each Holm-corrected at FAMILY_ALPHA / 2: the overall figures, so that the
+#: headline is not drowned among hundreds of keypoint figures, and every other figure
 FAMILIES = ("overall", "others")
 DEFAULT_EPSILONS = (0.05, 0.1, 0.2)
 
@@ -53,22 +45,13 @@ ThresholdLookup = Callable[[str, str, float], tuple[np.ndarray, Sequence[int]]]
 
 @dataclass
 class _Unit:
-    """One exact figure (a keypoint, or an object in object scope), where it goes, and its labeled
-    and covered counts per audited image."""
+    """One exact figure (a keypoint, or an object in object scope) and its labeled and covered
+    counts per audited image."""
 
     test: CoverageTest
     figure: dict[str, Any]
     labeled: np.ndarray
     covered: np.ndarray
-
-
-@dataclass
-class _Flaggable:
-    """A figure of the flag families: its p-value, where its flag goes, whether it is overall."""
-
-    p_value: float
-    figure: dict[str, Any]
-    overall: bool = False
 
 
 def audit_report(
@@ -80,128 +63,85 @@ def audit_report(
     version: int,
 ) -> dict[str, Any]:
     """The audit report (plain JSON) of the audited instances' scores ``table``."""
-    sections, family = [], []
-    audited = _Audited(table, _image_rows(table), {spec.index: spec.name for spec in manifest.keypoints})
+    sections, family = [], []  # family: (p-value, figure, overall) of every figure with instances
+    images = _image_rows(table)
+    names = {spec.index: spec.name for spec in manifest.keypoints}
     for kind in kinds:
         for epsilon in epsilons:
             for scope in SCOPES:
                 values, counts = thresholds(kind, scope, epsilon)
-                build = _keypoint_section if scope == "keypoint" else _object_section
-                section, tested = build(audited, kind, values, counts, epsilon)
+                section = _section(table, images, names, kind, scope, values, counts, epsilon)
                 sections.append({"nonconformity": kind, "epsilon": epsilon, "scope": scope, **section})
-                family.extend(tested)
+                pooled = section["objects"] if scope == "keypoint" else []
+                exact = section["keypoints"] if scope == "keypoint" else section["objects"]
+                family += [(f, False) for f in (*exact, *pooled) if f["m"] > 0]
+                family += [(section["overall"], True)] if section["overall"]["m"] > 0 else []
     for overall in (True, False):
-        members = [f for f in family if f.overall == overall]
-        adjusted = np.minimum(1.0, len(FAMILIES) * holm_adjusted([f.p_value for f in members]))
-        for member, value in zip(members, adjusted.tolist(), strict=True):
-            member.figure["adjusted_p_value"] = value
-            member.figure["flagged"] = value <= FAMILY_ALPHA
-    tested = family
+        members = [figure for figure, is_overall in family if is_overall == overall]
+        adjusted = np.minimum(1.0, len(FAMILIES) * holm_adjusted([f["p_value"] for f in members]))
+        for figure, value in zip(members, adjusted.tolist(), strict=True):
+            figure["adjusted_p_value"], figure["flagged"] = value, value <= FAMILY_ALPHA
     flagged = flagged_figures(sections)
     return {
         "version": version,
         "band_level": BAND_LEVEL,
         "correction": "holm",
         "family_alpha": FAMILY_ALPHA,
-        "tests": len(tested),
+        "tests": len(family),
         "instances": table.n_instances,
         "passed": not flagged,
         "flagged": flagged,
         "sections": sections,
-        "advice": advice(version, flagged, epsilons, len(tested)),
+        "advice": advice(version, flagged, epsilons, len(family)),
     }
 
 
-class _Audited(NamedTuple):
-    """What every section reads: the audited scores, their image rows, the keypoints' names."""
-
-    table: ScoreTable
-    images: tuple[int, list[np.ndarray]]
-    names: dict[int, str]
-
-
 def _image_rows(table: ScoreTable) -> tuple[int, list[np.ndarray]]:
-    """How many images the instances come from, and each block's rows' image (0..images-1).
-
-    Instances are referenced "batch:image:annotation" (service/calibration/scoring.py)."""
+    """How many images the instances come from, and each block's rows' image (0..images-1);
+    instances are referenced "batch:image:annotation" (service/calibration/scoring.py)."""
     index: dict[str, int] = {}
     rows = [
-        np.array(
-            [index.setdefault(ref.rsplit(":", 1)[0], len(index)) for ref in block.instance_refs], dtype=int
-        )
-        for block in table.objects
+        np.array([index.setdefault(ref.rsplit(":", 1)[0], len(index)) for ref in b.instance_refs], dtype=int)
+        for b in table.objects
     ]
     return len(index), rows
 
 
-def _unit(
-    test: CoverageTest,
-    figure: dict[str, Any],
-    image: np.ndarray,
-    labeled: np.ndarray,
-    covered: np.ndarray,
-    images: int,
-) -> _Unit:
-    return _Unit(
-        test,
-        figure,
-        np.bincount(image[labeled], minlength=images),
-        np.bincount(image[covered], minlength=images),
-    )
-
-
-def _keypoint_section(
-    audited: _Audited, kind: str, values: np.ndarray, counts: Sequence[int], epsilon: float
-) -> tuple[dict[str, Any], list[_Flaggable]]:
-    table, images, names = audited
+def _section(
+    table: ScoreTable,
+    images: tuple[int, list[np.ndarray]],
+    names: dict[int, str],
+    kind: str,
+    scope: str,
+    values: np.ndarray,
+    counts: Sequence[int],
+    epsilon: float,
+) -> dict[str, Any]:
+    """One scope's figures: exact per keypoint (keypoint scope) or per object (object scope, an
+    instance's max score over its keypoints: labeled when all are), pooled per object and overall."""
     keypoints, objects, units = [], [], []
     for block, image in zip(table.objects, images[1], strict=True):
+        scores = block.scores[kind]
+        if scope == "keypoint":
+            channels = [int(c) for c in block.keypoint_ids]
+            columns = [(scores[:, i], c, {"keypoint": names[c], "index": c}) for i, c in enumerate(channels)]
+        else:  # one threshold and n for all of the object's channels
+            columns = [(object_scores(scores), int(block.keypoint_ids[0]), {})]
         own = []
-        for column, channel in enumerate(int(c) for c in block.keypoint_ids):
-            scores = block.scores[kind][:, column]
-            labeled = ~np.isnan(scores)
-            covered = labeled & (np.nan_to_num(scores, nan=np.inf) <= values[channel])
+        for column, channel, where in columns:
+            labeled = ~np.isnan(column)
+            covered = labeled & (np.nan_to_num(column, nan=np.inf) <= values[channel])
             test = coverage_test(int(covered.sum()), int(labeled.sum()), int(counts[channel]), epsilon)
-            figure = {
-                "object": block.object_name,
-                "keypoint": names[channel],
-                "index": channel,
-                **figure_of(test),
-            }
-            keypoints.append(figure)
-            own.append(_unit(test, figure, image, labeled, covered, images[0]))
-        objects.append({"object": block.object_name, **pooled_figure(own)})
-        units.extend(own)
-    overall = pooled_figure(units)
-    return {"overall": overall, "objects": objects, "keypoints": keypoints}, _family(units, objects, overall)
-
-
-def _family(
-    units: Sequence[_Unit], pooled: Sequence[dict[str, Any]], overall: dict[str, Any]
-) -> list[_Flaggable]:
-    """The figures a section adds to the flag families (those with instances): its exact
-    figures, its pooled objects (keypoint scope) and its overall figure."""
-    members = [_Flaggable(u.test.p_value, u.figure) for u in units if u.test.m > 0]
-    members += [_Flaggable(f["p_value"], f) for f in pooled if f["m"] > 0]
-    return members + ([_Flaggable(overall["p_value"], overall, overall=True)] if overall["m"] > 0 else [])
-
-
-def _object_section(
-    audited: _Audited, kind: str, values: np.ndarray, counts: Sequence[int], epsilon: float
-) -> tuple[dict[str, Any], list[_Flaggable]]:
-    table, images, _ = audited
-    objects, units = [], []
-    for block, image in zip(table.objects, images[1], strict=True):
-        channel = int(block.keypoint_ids[0])  # one threshold and n for all of the object's channels
-        worst = object_scores(block.scores[kind])
-        complete = ~np.isnan(worst)  # instances with every keypoint labeled
-        covered = complete & (np.nan_to_num(worst, nan=np.inf) <= values[channel])
-        test = coverage_test(int(covered.sum()), int(complete.sum()), int(counts[channel]), epsilon)
-        figure = {"object": block.object_name, **figure_of(test)}
-        objects.append(figure)
-        units.append(_unit(test, figure, image, complete, covered, images[0]))
-    overall = pooled_figure(units)
-    return {"overall": overall, "objects": objects, "keypoints": []}, _family(units, [], overall)
+            figure = {"object": block.object_name, **where, **figure_of(test)}
+            counted = [np.bincount(image[rows], minlength=images[0]) for rows in (labeled, covered)]
+            own.append(_Unit(test, figure, *counted))
+        units += own
+        if scope == "keypoint":
+            keypoints += [unit.figure for unit in own]
+            objects.append({"object": block.object_name, **pooled_figure(own)})
+        else:
+            objects += [unit.figure for unit in own]
+    return {"overall": pooled_figure(units), "objects": objects, "keypoints": keypoints}
 
 
 def figure_of(test: CoverageTest) -> dict[str, Any]:
@@ -223,14 +163,13 @@ def figure_of(test: CoverageTest) -> dict[str, Any]:
 
 
 def pooled_figure(units: Sequence[_Unit]) -> dict[str, Any]:
-    """A pooled figure: its band and p-value under the dependence of an image's keypoints
-    (``coverage_law.pooled_test``), its flag from Holm's family."""
+    """A pooled figure: its band and p-value under the dependence of an image's keypoints."""
     tested = [u for u in units if u.test.m > 0]
-    pooled: PooledTest = pooled_test(
-        [u.test for u in tested],
-        np.stack([u.labeled for u in tested], axis=1) if tested else np.zeros((0, 0)),
-        np.stack([u.covered for u in tested], axis=1) if tested else np.zeros((0, 0)),
-    )
+    counts = [
+        np.stack([getattr(u, name) for u in tested], axis=1) if tested else np.zeros((0, 0))
+        for name in ("labeled", "covered")
+    ]
+    pooled = pooled_test([u.test for u in tested], *counts)
     epsilon = units[0].test.epsilon if units else None
     return {
         "m": pooled.m,
@@ -247,7 +186,7 @@ def pooled_figure(units: Sequence[_Unit]) -> dict[str, Any]:
 
 
 def flagged_figures(sections: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Every flagged exact figure, most significant first, with where it is."""
+    """Every flagged figure, most significant first, with where it is."""
     flagged = []
     for section in sections:
         where = {name: section[name] for name in ("nonconformity", "epsilon", "scope")}

@@ -1,10 +1,7 @@
 """Coverage audits as background jobs: a labeled batch, checked like a calibration upload, is
-scored by the served detector against a version's thresholds; the report is stored in the
-calibration store (immutable) and its figures published as Prometheus gauges.
-
-An audit never changes a calibration. Its upload stays in this process's workspace folder
-(removed when the job ends, and by the next start after a crash): an interrupted audit is
-not retried, the batch is uploaded again.
+scored by the served detector against a version's thresholds; the report is stored (immutable) and
+its figures published as Prometheus gauges. An audit never changes a calibration; its upload stays
+in this process's workspace until the job ends (an interrupted audit is not retried).
 """
 
 from __future__ import annotations
@@ -99,44 +96,33 @@ class CoverageAudits(DetectorJobs):
             workspace.remove()
             raise
 
-    def latest(self) -> CoverageAudit | None:
-        """The newest audit of the served model (None if there is none)."""
-        audits = self._store.coverage_audits(self._detector.model_hash, limit=1)
-        return audits[0] if audits else None
-
     def publish_latest(self) -> None:
-        """Set the gauges from the newest stored audit (at start-up; a store failure is logged)."""
-        try:
-            latest = self.latest()
-        except StoreError as error:
-            log.warning("could not read the latest coverage audit for the metrics: %s", error)
-            return
+        """Set the gauges from the newest stored audit (at start-up)."""
+        latest = self._newest()
         if latest is not None:
             publish_audit(latest.id, latest.report)
 
     def follow_latest(self, interval: float, stop: threading.Event) -> None:
         """Publish the newest audit whichever process or replica ran it: look every ``interval``
-        seconds in a daemon thread until ``stop`` is set (a store failure skips a look)."""
+        seconds in a daemon thread until ``stop`` is set."""
 
         def follow() -> None:
             while not stop.wait(interval):
-                try:
-                    latest = self.latest()
-                    if latest is not None and latest.id != published_id():
-                        publish_audit(latest.id, latest.report, self._previous(latest.id))
-                except StoreError as error:
-                    log.warning("could not read the latest coverage audit for the metrics: %s", error)
+                latest = self._newest()
+                if latest is not None and latest.id != published_id():
+                    publish_audit(latest.id, latest.report, self._newest(before=latest.id))
 
         threading.Thread(target=follow, name="audit-follower", daemon=True).start()
 
-    def _previous(self, audit_id: int) -> CoverageAudit | None:
-        """The audit before this one, whose gauges other worker processes may still publish."""
+    def _newest(self, before: int | None = None) -> CoverageAudit | None:
+        """The newest audit of the served model (older than ``before``: the one whose gauges other
+        worker processes may still publish); None if none, or the store failed (logged)."""
         try:
-            older = self._store.coverage_audits(self._detector.model_hash, before=audit_id, limit=1)
+            audits = self._store.coverage_audits(self._detector.model_hash, before=before, limit=1)
         except StoreError as error:
-            log.warning("could not read the previous coverage audit for the metrics: %s", error)
+            log.warning("could not read the coverage audits for the metrics: %s", error)
             return None
-        return older[0] if older else None
+        return audits[0] if audits else None
 
     def _prepare(self, named: NamedBatch, version: int, request: AuditRequest) -> ValidatedBatch:
         """Refuse instances the audited version was calibrated with (they would flatter it)."""
@@ -187,7 +173,7 @@ class CoverageAudits(DetectorJobs):
                 stored = self._store.create_coverage_audit(new, job=JobCompletion(job_id, summary))
             finally:
                 workspace.remove()
-            publish_audit(stored.id, stored.report, self._previous(stored.id))
+            publish_audit(stored.id, stored.report, self._newest(before=stored.id))
             outcome = "passed" if report["passed"] else "failed"
             details = {"job": job_id, "audit": stored.id, "flagged": summary["flagged"]}
             self._audit.record(operator, "audit", outcome, version=version, details=details)

@@ -1,30 +1,18 @@
-"""What Theorem 1 predicts for the empirical coverage of a labeled test batch, and how to
-tell a calibration that no longer holds from bad luck.
+"""What Theorem 1 predicts for the empirical coverage of a labeled test batch, and how to tell a
+calibration that no longer holds from bad luck.
 
-Yang & Pavone, "Conformal Semantic Keypoint Detection with Statistical Guarantees",
-Theorem 1 (after Vovk 2012, "Conditional validity of inductive conformal predictors"):
-with n calibration scores and rank l = floor((n+1) eps), the coverage of the sets
-*conditional on the calibration set* is a random variable
-
-    c ~ Beta(n + 1 - l, l)                                          (eq. 5)
-
-over the draws of calibration sets. A batch of m new instances, exchangeable with the
-calibration ones, is covered c·m times on average and, given c, the covered count is
-Binomial(m, c). Unconditionally the covered count is the mixture
-
-    C ~ BetaBinomial(m, n + 1 - l, l),
-
-whose central 95% interval is the band an audit's coverage falls in when the calibration
-is valid, and whose lower tail P(C <= covered) is the p-value of "the coverage is below
-what the calibration promises". l = 0 (n + 1 < 1/eps) means unbounded sets: everything
-is covered.
-
-Pure numpy and ``math``: scipy is not a runtime dependency (its ``stats.betabinom`` is
-what the tests compare with).
+Yang & Pavone, Theorem 1 (after Vovk 2012): with n calibration scores and rank l = floor((n+1) eps),
+the coverage conditional on the calibration set is c ~ Beta(n + 1 - l, l) (eq. 5). Given c, the
+covered count of m exchangeable test instances is Binomial(m, c); unconditionally it is
+C ~ BetaBinomial(m, n + 1 - l, l): its central interval is the band a valid calibration's coverage
+falls in, and P(C <= covered) the p-value of "the coverage is below what the calibration promises".
+l = 0 (n + 1 < 1/eps) means unbounded sets: everything is covered. Pure numpy (scipy's
+``stats.betabinom`` is what the tests compare with).
 """
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -47,20 +35,16 @@ _NORMAL = NormalDist()
 
 
 def covered_count_pmf(m: int, n: int, epsilon: float) -> np.ndarray:
-    """P(C = k), k = 0..m: the covered count of m test instances under a valid calibration of
-    n scores at ``epsilon`` (BetaBinomial(m, n+1-l, l); all mass at m when l = 0)."""
+    """P(C = k), k = 0..m, under a valid calibration of n scores at ``epsilon`` (all mass at m when l = 0)."""
     rank = conformal_rank(n, epsilon)
     if rank == 0:
-        pmf = np.zeros(m + 1)
-        pmf[m] = 1.0
-        return pmf
+        return np.eye(m + 1)[m]
     return betabinomial_pmf(m, n + 1 - rank, rank)
 
 
 @dataclass(frozen=True)
 class CoverageTest:
-    """One audited figure: m instances of which ``covered`` fell in their sets, against what a
-    valid calibration of n scores at rank l predicts."""
+    """One audited figure: ``covered`` of m instances against a valid calibration of n scores at rank l."""
 
     m: int
     covered: int
@@ -83,14 +67,15 @@ class CoverageTest:
         return self.band[0] <= self.covered <= self.band[1]
 
 
-def coverage_test(covered: int, m: int, n: int, epsilon: float, level: float = BAND_LEVEL) -> CoverageTest:
+def coverage_test(covered: int, m: int, n: int, epsilon: float) -> CoverageTest:
     """The band and the one-sided p-value of ``covered`` out of ``m`` (Theorem 1, eq. 5)."""
     if not 0 <= covered <= m:
         raise ValueError(f"covered must be in [0, m], got {covered} of {m}")
     pmf = covered_count_pmf(m, n, epsilon)
     p_value = float(min(1.0, pmf[: covered + 1].sum()))
-    band = central_interval(pmf, level)
-    return CoverageTest(m, covered, n, conformal_rank(n, epsilon), epsilon, band, p_value)
+    return CoverageTest(
+        m, covered, n, conformal_rank(n, epsilon), epsilon, central_interval(pmf, BAND_LEVEL), p_value
+    )
 
 
 @dataclass(frozen=True)
@@ -99,7 +84,7 @@ class PooledTest:
 
     m: int
     covered: int
-    expected: float  # the mean coverage Theorem 1 promises for these units: sum w_u (1 - l_u/(n_u+1))
+    expected: float  # the mean coverage promised for these units: sum w_u (1 - l_u/(n_u+1))
     sd: float
     band: tuple[float, float]  # coverage (a share): P(inside) ~ BAND_LEVEL under a valid calibration
     p_value: float  # P(coverage this low): normal approximation
@@ -113,22 +98,15 @@ class PooledTest:
         return self.m == 0 or self.band[0] <= self.covered / self.m <= self.band[1]
 
 
-def pooled_test(
-    tests: Sequence[CoverageTest], labeled: np.ndarray, covered: np.ndarray, level: float = BAND_LEVEL
-) -> PooledTest:
+def pooled_test(tests: Sequence[CoverageTest], labeled: np.ndarray, covered: np.ndarray) -> PooledTest:
     """The pooled coverage of ``tests`` (units) from ``labeled`` and ``covered`` counts per image
     (rows) and unit (columns), with a band that holds whatever the dependence between units.
 
-    Two parts of its spread, added as variances (normal approximation):
-    - the calibration: unit u's conditional coverage c_u ~ Beta(n_u+1-l_u, l_u) (eq. 5); units
-      share calibration images, so they are taken as perfectly correlated, the worst case:
-      sd(sum w_u c_u) <= sum w_u sd(c_u), w_u = m_u / m;
-    - the audited images: given the calibration, images are independent but the keypoints of
-      one image are not (occlusion, blur, distance hit them together): the spread is the
-      cluster-robust (sandwich) one over images, from each image's covered count minus what
-      its units' own coverage predicts for it, so an image counts once, not once per keypoint;
-      never below the binomial spread of independent keypoints at the promised coverage
-      (which the sandwich underestimates with few images, or with nearly all covered).
+    Two variances add up (normal approximation): the calibration's, c_u ~ Beta(n_u+1-l_u, l_u)
+    taken perfectly correlated across units (they share calibration images: the worst case,
+    sd <= sum w_u sd(c_u), w_u = m_u / m); and the audited images', cluster-robust over images
+    (the keypoints of one image fail together: an image counts once), never below the binomial
+    spread of independent keypoints (the sandwich underestimates with few images or all covered).
     """
     m, count = int(labeled.sum()), int(covered.sum())
     if m == 0:
@@ -144,45 +122,33 @@ def pooled_test(
     own = covered.sum(axis=0) / np.maximum(labeled.sum(axis=0), 1)
     residuals = (covered - labeled * own).sum(axis=1)
     clustered = images / (images - 1) * float(np.sum(residuals**2))
-    independent = float(
-        np.sum(weights * m * (a / (a + b)) * (b / (a + b)))
-    )  # the floor: few or all-covered images
-    sample_sd = math.sqrt(max(clustered, independent)) / m
-    sd = math.hypot(calibration_sd, sample_sd)
-    half = _NORMAL.inv_cdf((1 + level) / 2) * sd
+    independent = float(np.sum(weights * m * (a / (a + b)) * (b / (a + b))))
+    sd = math.hypot(calibration_sd, math.sqrt(max(clustered, independent)) / m)
+    half = _NORMAL.inv_cdf((1 + BAND_LEVEL) / 2) * sd
     band = (max(0.0, expected - half), min(1.0, expected + half))
     p_value = _NORMAL.cdf((count / m - expected) / sd) if sd > 0 else float(count / m < expected)
     return PooledTest(m, count, expected, sd, band, p_value)
 
 
-def recalibration_size(
-    epsilon: float, tolerance: float = RECALIBRATION_TOLERANCE, level: float = BAND_LEVEL
-) -> int:
-    """The smallest n with bounded sets (l >= 1, i.e. 1/(n+1) <= eps) whose conditional coverage
-    stays above 1 - eps - tolerance with probability ``level``:
-    P(Beta(n+1-l, l) < 1 - eps - tolerance) <= 1 - level (eq. 5). Found by bisection (the
-    probability shrinks as n grows, up to the floor in l)."""
-    target = 1.0 - epsilon - tolerance
+def recalibration_size(epsilon: float) -> int:
+    """The smallest n with bounded sets whose conditional coverage stays above 1 - eps - tol
+    (RECALIBRATION_TOLERANCE) with probability BAND_LEVEL: P(Beta(n+1-l, l) < 1 - eps - tol) <= 1 - BAND_LEVEL
+    (eq. 5), by doubling then bisection (the probability shrinks as n grows, up to the floor in l)."""
+    target = 1.0 - epsilon - RECALIBRATION_TOLERANCE
     floor = conformal_floor(epsilon)
     if target <= 0 or floor >= _MAX_RECALIBRATION_N:
         return floor
 
     def enough(n: int) -> bool:
         rank = conformal_rank(n, epsilon)
-        return rank >= 1 and beta_cdf(target, n + 1 - rank, rank) <= 1.0 - level
+        return rank >= 1 and beta_cdf(target, n + 1 - rank, rank) <= 1.0 - BAND_LEVEL
 
     low = high = floor
     while not enough(high):
         low, high = high, high * 2
         if high > _MAX_RECALIBRATION_N:
             return _MAX_RECALIBRATION_N
-    while low < high:
-        middle = (low + high) // 2
-        if enough(middle):
-            high = middle
-        else:
-            low = middle + 1
-    return high
+    return low + bisect.bisect_left(range(low, high), True, key=enough)
 
 
 def conformal_floor(epsilon: float) -> int:

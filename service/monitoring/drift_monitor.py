@@ -1,37 +1,19 @@
-"""Drift of the live inputs without labels: each keypoint's heatmap features on live traffic
-against the same features on the calibration images of the active version.
+"""Label-free drift: each keypoint's heatmap features (p*, gamma, anisotropy) on live traffic against
+the same features on the active version's calibration images. The conformal guarantee needs test
+images exchangeable with the calibration ones; without labels, a change in the law of what the
+detector sees is the warning. Per channel and feature, a window of the last ``window`` live values
+meets the calibration values in a two-sample test (two_sample.py), by ``test``:
 
-The conformal guarantee (Yang & Pavone, Theorem 1) holds while test images are exchangeable
-with the calibration images. Labels are needed to measure coverage; without them, a change in
-the law of what the detector sees is the warning sign. Per keypoint channel and per label-free
-feature (service/conformal/features.py: p*, gamma, anisotropy), a sliding window of the last
-``window`` live values is compared with the version's calibration values by a two-sample test
-(service/monitoring/two_sample.py):
+- ``sequential`` (default): the e-CUSUM over independent looks of looks.py; per-keypoint KS tests
+  (Holm) on the looks' first frames say where the features moved, flagged only while it alarms;
+- ``ks``: KS over every frame's values, alarms where Holm rejects at family-wise error ``alarm_level``
+  over every keypoint x feature (for a window drawn afresh; docs/operations.md);
+- ``psi``: the population stability index, alarm above ``psi_threshold`` once a window holds
+  ``PSI_MIN_LIVE`` values (a score: no multiplicity correction).
 
-- ``sequential`` (default): the alarm of service/monitoring/looks.py, right on camera streams:
-  frames that continue a scene are one *look*, each look votes once, and an e-CUSUM over the
-  looks bounds the false alarms (on average at least ``1 / alarm_level`` looks between two).
-  The per-keypoint Kolmogorov-Smirnov tests (Holm at ``alarm_level``) run on windows of the
-  looks' first frames and say where the features moved, flagged only while the alarm is raised.
-- ``ks``: Kolmogorov-Smirnov over every frame's values with its p-value; the alarm is raised for the tests
-  that Holm's step-down procedure rejects at family-wise error rate ``alarm_level`` over the
-  whole family (every keypoint x feature with data), so a quiet stream raises any alarm with
-  probability at most ``alarm_level`` (for a window drawn afresh; see docs/operations.md).
-- ``psi``: the population stability index over ten quantile bins of the reference; the alarm
-  is PSI > ``psi_threshold`` once the window holds ``PSI_MIN_LIVE`` = 400 values (a fixed threshold,
-  no multiplicity correction: PSI is a score, not a test).
-
-Cost: a request appends its rows to ring buffers (service/monitoring/windows.py); the tests
-run only when the report is read (``/v1/admin/drift``, ``/metrics``, the history ticker) and
-are cached until a window or the active version changes.
-
-A fleet (several workers or replicas on one store): each process writes what it saw to the
-store every ``CKS_DRIFT_SHARE_SECONDS`` (service/monitoring/drift_shares.py), and a report
-merges the fresh contributions of the others with its own: every window holds the values of
-all replicas, and the sequential alarm runs over the looks of all, in time order, a camera's
-frames spread over several replicas counting the looks one process would have counted
-(service/monitoring/fleet_looks.py). The report says how many replicas it covers and the age
-of the oldest contribution.
+Requests append rows to ring buffers; the tests run when the report is read, cached until a window,
+a replica's contribution or the version changes. A fleet shares windows, looks and frames through
+the store (drift_shares.py), its sequential alarm counting the looks one process would (fleet_looks.py).
 """
 
 from __future__ import annotations
@@ -43,7 +25,7 @@ import random
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
@@ -64,6 +46,7 @@ from service.monitoring.looks import (
     SequentialAlarm,
     SequentialState,
     look_statistic,
+    sorted_features,
 )
 from service.monitoring.multiple_testing import holm_rejections
 from service.monitoring.set_sizes import KINDS, KindSizes, set_sizes, shape_entries
@@ -78,10 +61,13 @@ from service.monitoring.windows import RingWindows
 log = logging.getLogger(__name__)
 
 DriftTest = Literal["sequential", "ks", "psi"]
-#: the feature of the peak statistics; every other feature comes from the top-K spread
-PEAK_FEATURE = "peak_probability"
-#: live values a window needs before PSI may raise its alarm: PSI's small-sample bias is about
-#: (bins - 1)(1/n + 1/m), 0.11 at n = 100 (quiet streams then cross 0.25 on some of 144 tests)
+#: psi: a feature alarms above this index
+PSI_THRESHOLD = 0.25
+#: share of requests that also compute the statistics their score skips, so every feature gets values
+FULL_STATISTICS_SHARE = 0.25
+#: seconds between two points of the history
+HISTORY_SECONDS = 60.0
+#: live values before PSI may alarm: its small-sample bias (bins - 1)(1/n + 1/m) is 0.11 at n = 100
 PSI_MIN_LIVE = 400
 _SHAPE_COLUMNS = slice(len(HEATMAP_FEATURES), len(HEATMAP_FEATURES) + 3)
 _KIND_COLUMN = len(HEATMAP_FEATURES) + 3
@@ -90,10 +76,10 @@ _COLUMNS = _KIND_COLUMN + 1
 MAX_PENDING_LOOKS = 100_000
 #: points kept in the history (6 h at one a minute)
 HISTORY_POINTS = 360
-#: looks (time, Z, status, key) a process keeps to share: the sequential alarm of a fleet runs over them
+#: looks (time, Z, status, key) a process keeps to share: a fleet's sequential alarm runs over them
 SHARED_LOOKS = 10_000
-#: frames (time, objects, boxes) a process keeps to share: other replicas' looks are told from
-#: continuations of its frames on them (several intervals of frames at 300 frames/s per process)
+#: frames (time, objects, boxes) a process keeps to share, to tell other replicas' looks from
+#: continuations of its frames (several intervals at 300 frames/s)
 SHARED_FRAMES = 5_000
 
 #: the active version and its scores (None, None when there is none or it cannot serve)
@@ -104,10 +90,10 @@ ReferenceSource = Callable[[], tuple[int | None, ScoreTable | None]]
 class DriftSettings:
     window: int  # live values kept per keypoint and feature
     test: DriftTest
-    alarm_level: float  # ks: family-wise error rate of the Holm-corrected family; sequential: 1 / looks
-    psi_threshold: float  # psi: alarm above
-    full_statistics_share: float  # share of requests that compute the statistics their score skips
-    history_seconds: float  # one history point this often
+    alarm_level: float  # ks: family-wise error of the Holm family; sequential: 1 / looks
+    psi_threshold: float = PSI_THRESHOLD
+    full_statistics_share: float = FULL_STATISTICS_SHARE
+    history_seconds: float = HISTORY_SECONDS
 
 
 @dataclass(frozen=True)
@@ -131,8 +117,8 @@ class KeypointDrift:
 
 @dataclass(frozen=True)
 class ObjectDrift:
-    """Per feature: the largest statistic of the object's keypoints, their smallest p-value times
-    their number (Bonferroni within the object), alarm if any keypoint's is raised."""
+    """Per feature: the largest statistic of its keypoints, their smallest p-value times their
+    number (Bonferroni), alarm if any keypoint's is raised."""
 
     object: str
     keypoints: list[int]
@@ -174,11 +160,11 @@ class DriftReport:
 
 @dataclass(frozen=True)
 class _Reference:
-    """Sorted calibration values per feature and channel (None: channel not in the version)."""
+    """[feature][channel]: sorted calibration values and PSI bin edges (None: no values)."""
 
     version: int
-    values: dict[str, list[np.ndarray | None]]
-    edges: dict[str, list[np.ndarray | None]]
+    values: list[list[np.ndarray | None]]
+    edges: list[list[np.ndarray | None]]
 
 
 class DriftMonitor:
@@ -193,27 +179,21 @@ class DriftMonitor:
     ) -> None:
         """shares: where the replicas of a fleet meet (None: this process alone)."""
         if settings.test == "psi" and settings.window < PSI_MIN_LIVE:
-            log.warning(
-                "drift: psi alarms need %d live values per window; CKS_DRIFT_WINDOW is %d, so"
-                " it never alarms",
-                PSI_MIN_LIVE,
-                settings.window,
+            never = (
+                "drift: psi alarms need %d live values per window; CKS_DRIFT_WINDOW is %d, so it never alarms"
             )
+            log.warning(never, PSI_MIN_LIVE, settings.window)
         self.settings = settings
         self._manifest = manifest
         self._source = reference
         self._channels = manifest.num_keypoints
-        # per channel, one row per live instance: the features (NaN: not computed), the set's shape
-        # entries and the nonconformity function's index
+        # per channel, one row per live instance: features (NaN: not computed), set shape entries, kind
         self._windows = RingWindows(self._channels, settings.window, width=_COLUMNS)
-        # sequential: the same rows of the looks' first frames only, for the per-keypoint tests
+        # sequential: the rows of the looks' first frames only, for the per-keypoint tests
         self._look_windows = RingWindows(self._channels, settings.window, width=_COLUMNS)
         self._object_of = {spec.index: spec.object for spec in manifest.keypoints}
-        self._first_channels = np.zeros(self._channels, dtype=int)
-        for spec in manifest.keypoints:
-            self._first_channels[spec.index] = manifest.object(spec.object).keypoints[0]
+        self._first_channels = np.array([manifest.object(k.object).keypoints[0] for k in manifest.keypoints])
         self._looks = LookTracker()
-        # looks not yet tested: (time, look key, instances)
         self._pending: deque[tuple[float, int, list[InstanceFeatures]]] = deque(maxlen=MAX_PENDING_LOOKS)
         self._shares = shares
         # looks tested against the current version: (time, Z, fleet status, look key)
@@ -234,8 +214,6 @@ class DriftMonitor:
         self._ticker: threading.Thread | None = None
         self._sharer: threading.Thread | None = None
 
-    # -- hot path -------------------------------------------------------------------------
-
     def wants_all_statistics(self) -> bool:
         """Whether this request should compute every heatmap statistic, not only its score's."""
         return random.random() < self.settings.full_statistics_share
@@ -253,8 +231,10 @@ class DriftMonitor:
         ``frame`` (the request's objects and boxes) tells a new look from a frame that continues
         one; without it every request is a look. The sequential test keeps only looks."""
         rows = np.full((channels.size, _COLUMNS), np.nan)
-        for position, values in _positions(live_features(statistics)):
-            rows[:, position] = values
+        features = live_features(statistics)
+        for position, name in enumerate(HEATMAP_FEATURES):
+            if name in features:
+                rows[:, position] = features[name]
         rows[:, _SHAPE_COLUMNS] = shape_entries(shapes)
         rows[:, _KIND_COLUMN] = KINDS.index(kind)
         self._windows.append(channels, rows)
@@ -282,26 +262,20 @@ class DriftMonitor:
             for a, b in zip(starts, ends, strict=True)
         ]
 
-    # -- reading --------------------------------------------------------------------------
-
     def report(self) -> DriftReport:
-        """The tests of every window (the fleet's) against the active version (cached until a
-        window, a contribution or the active version changes)."""
+        """The tests of every window (the fleet's) against the active version (cached)."""
         version, table = self._source()
         others = [] if self._shares is None else self._shares.others()
         key = (version, self._windows.written(), tuple((o.replica, o.updated_at) for o in others))
         with self._evaluation_lock:
-            if self._cached is not None and self._cached[0] == key:
-                report = self._cached[1]
-            else:
-                report = self._evaluate(version, table, key[1], others)
-                self._cached = (key, report)
-            history = list(self._history)
+            if self._cached is None or self._cached[0] != key:
+                self._cached = (key, self._evaluate(version, table, key[1], others))
+            report, history = self._cached[1], list(self._history)
         oldest = max((time.time() - share.updated_at for share in others), default=0.0)
         return replace(report, history=history, oldest_share_seconds=oldest)
 
     def start(self) -> None:
-        """Add a history point every ``history_seconds`` (in a daemon thread) until ``stop``; in a
+        """Add a history point every ``history_seconds`` (a daemon thread) until ``stop``; in a
         fleet, take over the windows of stopped processes of this host and share this one's."""
         self._ticker = threading.Thread(target=self._tick_forever, name="drift-history", daemon=True)
         self._ticker.start()
@@ -344,18 +318,12 @@ class DriftMonitor:
                 return
 
     def _share(self) -> bytes:
-        channels = range(self._channels)
         seen = self._replica_looks()
         with self._look_lock:
             frames = self._frames
-        return encode_share(
-            self._version(),
-            frames,
-            self._windows.written(),
-            [self._windows.window(channel) for channel in channels],
-            [self._look_windows.window(channel) for channel in channels],
-            seen,
-        )
+        version, recorded = self._version(), self._windows.written()
+        windows = [[w.window(c) for c in range(self._channels)] for w in (self._windows, self._look_windows)]
+        return encode_share(version, frames, recorded, *windows, seen)
 
     def _version(self) -> int | None:
         """The version this process's looks were tested against."""
@@ -400,14 +368,8 @@ class DriftMonitor:
                     if rows.shape[1:] == (_COLUMNS,):
                         target.append(np.full(rows.shape[0], channel, dtype=np.int64), rows)
             self._taken_over.append(share)
-        frames = sorted(
-            (
-                (float(seen), frame)
-                for share in stopped
-                for seen, frame in zip(share.seen.frame_times, share.seen.frames, strict=True)
-            ),
-            key=lambda item: item[0],
-        )
+        seen = (zip(s.seen.frame_times, s.seen.frames, strict=True) for s in stopped)
+        frames = sorted(((float(t), frame) for pairs in seen for t, frame in pairs), key=lambda item: item[0])
         with self._look_lock:
             self._frames += sum(share.frames for share in stopped)
             self._frame_log.extend(frames)
@@ -438,30 +400,18 @@ class DriftMonitor:
         if sequential is not None and (others or self._continues_others):
             sequential = self._fleet_sequential(sequential, others)
         windows = self._merged(self._windows, [share.windows for share in others])
-        tested_windows = (
-            self._merged(self._look_windows, [share.look_windows for share in others])
-            if sequential is not None
-            else windows
-        )
-        live = [
-            [_finite(window[:, position]) for window in tested_windows]
-            for position in range(len(HEATMAP_FEATURES))
-        ]
+        if sequential is not None:
+            tested = self._merged(self._look_windows, [share.look_windows for share in others])
+        else:
+            tested = windows
+        live = [[w[np.isfinite(w[:, p]), p] for w in tested] for p in range(len(HEATMAP_FEATURES))]
         tests = self._tests(reference, live, sequential is None or sequential.alarm)
-        rows = np.concatenate(windows)
+        by_channel = [dict(zip(HEATMAP_FEATURES, column, strict=True)) for column in zip(*tests, strict=True)]
         keypoints = [
-            KeypointDrift(
-                object=spec.object,
-                keypoint=spec.name,
-                index=spec.index,
-                features={
-                    name: tests[position][spec.index] for position, name in enumerate(HEATMAP_FEATURES)
-                },
-            )
-            for spec in self._manifest.keypoints
+            KeypointDrift(k.object, k.name, k.index, by_channel[k.index]) for k in self._manifest.keypoints
         ]
         objects = [_object_drift(obj.name, list(obj.keypoints), keypoints) for obj in self._manifest.objects]
-        settings = self.settings
+        rows, settings = np.concatenate(windows), self.settings
         return DriftReport(
             version=version,
             reference_available=reference is not None,
@@ -558,40 +508,34 @@ class DriftMonitor:
     def _tests(
         self, reference: _Reference | None, live: list[list[np.ndarray]], may_alarm: bool
     ) -> list[list[FeatureTest]]:
-        """[feature][channel] tests; the alarm of ks tests by Holm over the whole family (sequential:
+        """[feature][channel] tests; ks alarms where Holm rejects over the whole family (sequential:
         only while its alarm is raised, to say where the features moved)."""
-        rows = []
-        for position, name in enumerate(HEATMAP_FEATURES):
-            row = []
-            for channel, values in enumerate(live[position]):
-                sorted_reference = None if reference is None else reference.values[name][channel]
-                edges = None if reference is None else reference.edges[name][channel]
-                row.append(self._test(sorted_reference, edges, values))
-            rows.append(row)
-        if self.settings.test != "psi":
-            p_values = np.array([[math.nan if t.p_value is None else t.p_value for t in row] for row in rows])
-            alarms = holm_rejections(p_values.ravel(), self.settings.alarm_level).reshape(p_values.shape)
-            rows = [
-                [
-                    FeatureTest(t.statistic, t.p_value, bool(alarm) and may_alarm, t.live_n, t.reference_n)
-                    for t, alarm in zip(row, alarm_row, strict=True)
-                ]
-                for row, alarm_row in zip(rows, alarms, strict=True)
-            ]
-        return rows
-
-    def _test(self, reference: np.ndarray | None, edges: np.ndarray | None, live: np.ndarray) -> FeatureTest:
-        reference_n = 0 if reference is None else reference.size
-        if reference is None or edges is None or live.size == 0:  # edges exist for every non-empty reference
-            return FeatureTest(None, None, False, live.size, reference_n)
+        rows = [
+            [self._test(reference, p, c, values) for c, values in enumerate(row)]
+            for p, row in enumerate(live)
+        ]
         if self.settings.test == "psi":
-            score = population_stability_index(reference, live, edges)
+            return rows
+        p_values = np.array([[math.nan if t.p_value is None else t.p_value for t in row] for row in rows])
+        alarms = holm_rejections(p_values.ravel(), self.settings.alarm_level).reshape(p_values.shape)
+        return [
+            [replace(t, alarm=bool(alarm) and may_alarm) for t, alarm in zip(row, alarm_row, strict=True)]
+            for row, alarm_row in zip(rows, alarms, strict=True)
+        ]
+
+    def _test(
+        self, reference: _Reference | None, position: int, channel: int, live: np.ndarray
+    ) -> FeatureTest:
+        values = None if reference is None else reference.values[position][channel]
+        n = 0 if values is None else values.size
+        if reference is None or values is None or n == 0 or live.size == 0:
+            return FeatureTest(None, None, False, live.size, n)
+        if self.settings.test == "psi":
+            score = population_stability_index(values, live, reference.edges[position][channel])
             alarm = live.size >= PSI_MIN_LIVE and score > self.settings.psi_threshold
-            return FeatureTest(score, None, alarm, live.size, reference_n)
-        statistic = ks_statistic(reference, live)
-        return FeatureTest(
-            statistic, ks_p_value(statistic, live.size, reference_n), False, live.size, reference_n
-        )
+            return FeatureTest(score, None, alarm, live.size, n)
+        statistic = ks_statistic(values, live)
+        return FeatureTest(statistic, ks_p_value(statistic, live.size, n), False, live.size, n)
 
     def _reference_for(
         self, version: int | None, table: ScoreTable | None
@@ -607,16 +551,17 @@ class DriftMonitor:
                 " were stored): recalibrate, or append a batch to it, to get a drift reference"
             )
         if self._reference is None or self._reference.version != version:
-            self._reference = _reference(version, table, self._channels)
+            values = sorted_features(table, self._channels)
+            edges = [
+                [None if v is None or not v.size else quantile_bin_edges(v) for v in row] for row in values
+            ]
+            self._reference = _Reference(version, values, edges)
         return self._reference, None
 
 
 def live_features(statistics: HeatmapStatistics) -> dict[str, np.ndarray]:
-    """The features ``statistics`` allow: p* needs the peak, gamma and anisotropy the spread.
-
-    Computed by ``heatmap_features``, the calibration's own function; a part that was not
-    computed is filled with a placeholder and its features dropped.
-    """
+    """The features ``statistics`` allow (p* needs the peak, gamma and anisotropy the spread), by
+    the calibration's own ``heatmap_features``: a part not computed gets a placeholder, dropped after."""
     rows = statistics.uninformative.size
     has_peak, has_spread = statistics.peak_probability is not None, statistics.covariance is not None
     if not (has_peak and has_spread):
@@ -626,39 +571,22 @@ def live_features(statistics: HeatmapStatistics) -> dict[str, np.ndarray]:
             covariance=statistics.covariance if has_spread else np.broadcast_to(np.eye(2), (rows, 2, 2)),
         )
     features = heatmap_features(statistics)
-    return {name: v for name, v in features.items() if (has_peak if name == PEAK_FEATURE else has_spread)}
+    return {
+        name: v for name, v in features.items() if (has_peak if name == "peak_probability" else has_spread)
+    }
 
 
-def _positions(features: dict[str, np.ndarray]) -> list[tuple[int, np.ndarray]]:
-    return [(position, features[name]) for position, name in enumerate(HEATMAP_FEATURES) if name in features]
-
-
-def _finite(values: np.ndarray) -> np.ndarray:
-    return values[np.isfinite(values)]
-
-
-def _reference(version: int, table: ScoreTable, channels: int) -> _Reference:
-    values: dict[str, list[np.ndarray | None]] = {name: [None] * channels for name in HEATMAP_FEATURES}
-    edges: dict[str, list[np.ndarray | None]] = {name: [None] * channels for name in HEATMAP_FEATURES}
-    for block in table.objects:
-        for name in HEATMAP_FEATURES:
-            matrix = np.asarray(block.features[name], dtype=np.float64)
-            for column, channel in enumerate(block.keypoint_ids):
-                column_values = matrix[:, column]
-                column_values = np.sort(column_values[np.isfinite(column_values)])
-                values[name][int(channel)] = column_values
-                edges[name][int(channel)] = quantile_bin_edges(column_values) if column_values.size else None
-    return _Reference(version, values, edges)
+def _largest(tests: Iterable[FeatureTest]) -> float | None:
+    return max((t.statistic for t in tests if t.statistic is not None), default=None)
 
 
 def _object_drift(name: str, channels: list[int], keypoints: list[KeypointDrift]) -> ObjectDrift:
     features = {}
     for feature in HEATMAP_FEATURES:
         tests = [keypoints[channel].features[feature] for channel in channels]
-        statistics = [t.statistic for t in tests if t.statistic is not None]
         p_values = [t.p_value for t in tests if t.p_value is not None]
         features[feature] = FeatureTest(
-            statistic=max(statistics) if statistics else None,
+            statistic=_largest(tests),
             p_value=min(1.0, len(p_values) * min(p_values)) if p_values else None,
             alarm=any(t.alarm for t in tests),
             live_n=min(t.live_n for t in tests),
@@ -668,16 +596,12 @@ def _object_drift(name: str, channels: list[int], keypoints: list[KeypointDrift]
 
 
 def _history_point(report: DriftReport) -> HistoryPoint:
-    def largest(tests: dict[str, FeatureTest]) -> float | None:
-        statistics = [t.statistic for t in tests.values() if t.statistic is not None]
-        return max(statistics) if statistics else None
-
     return HistoryPoint(
         time=report.evaluated_at,
         version=report.version,
         recorded=report.recorded,
         alarm=report.alarm,
         alarms=sum(t.alarm for k in report.keypoints for t in k.features.values()),
-        keypoint_statistics=[largest(k.features) for k in report.keypoints],
-        object_statistics={o.object: largest(o.features) for o in report.objects},
+        keypoint_statistics=[_largest(k.features.values()) for k in report.keypoints],
+        object_statistics={o.object: _largest(o.features.values()) for o in report.objects},
     )

@@ -1,15 +1,12 @@
 """What each replica's drift monitor saw, shared through the calibration store so that any
 replica answers for the fleet.
 
-A replica (a server process: ``host:pid``) writes its row of the store's
-``calib_monitor_shares`` when it starts, then replaces it every ``interval`` seconds with its live
-windows, the windows of its looks' first frames, its recent looks (time, Z, key, whether they
-count for the fleet) and its recent frames' objects and boxes (service/monitoring/fleet_looks.py):
-a numpy payload of at most ``window`` rows per keypoint and ``SHARED_FRAMES`` frames. A reader
-merges the rows of the replicas that wrote within ``STALE_INTERVALS`` intervals with its own
-live state. A process that starts takes over the rows of stopped processes of its host and
-the row of its own name (their windows, looks and frames become its own), so a restart loses at
-most the last interval.
+A replica (a server process, ``host:pid``) writes its row of ``calib_monitor_shares`` when it
+starts, then every ``interval`` seconds: its live windows, its looks' first frames' windows, its
+recent looks (time, Z, key, fleet status) and frames (objects, boxes), as one numpy payload. A
+reader merges the rows written within ``STALE_INTERVALS`` intervals with its own state. A starting
+process takes over the rows of stopped processes of its host and of its own name, so a restart
+loses at most the last interval.
 """
 
 from __future__ import annotations
@@ -20,7 +17,6 @@ import logging
 import socket
 import threading
 import time
-from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import UTC, datetime
 
@@ -36,6 +32,8 @@ log = logging.getLogger(__name__)
 KIND = "drift"
 #: a replica whose row is older than this many intervals no longer counts (stopped or cut off)
 STALE_INTERVALS = 5
+#: seconds between two writes of a process's row (a restart loses at most this much)
+SHARE_SECONDS = 5.0
 
 
 @dataclass(frozen=True)
@@ -92,35 +90,21 @@ def encode_share(
 
 
 def decode_share(replica: str, updated_at: float, payload: bytes) -> DriftShare:
-    with np.load(io.BytesIO(payload)) as arrays:
-        meta = json.loads(arrays["meta"].tobytes())
-        windows = _split(arrays["windows"], arrays["counts"])
-        look_windows = _split(arrays["look_windows"], arrays["look_counts"])
-        looks = arrays["looks"]
-        if "look_statuses" in arrays:
-            seen = _decoded_looks(replica, meta, looks, arrays)
-        else:  # written before looks were merged (no frames, no keys): its looks count, as they did
-            old = {"covered_until": updated_at, "complete_since": 0.0}
-            counted = {"look_statuses": np.full(looks.shape[0], COUNTED)}
-            seen = _decoded_looks(replica, meta | old, looks, counted)
-    return DriftShare(
-        replica, updated_at, meta["version"], meta["frames"], meta["recorded"], windows, look_windows, seen
-    )
-
-
-def _decoded_looks(
-    replica: str, meta: dict, looks: np.ndarray, arrays: Mapping[str, np.ndarray]
-) -> ReplicaLooks:
+    with np.load(io.BytesIO(payload)) as stored:
+        arrays = {name: stored[name] for name in stored.files}
+    meta, looks = json.loads(arrays["meta"].tobytes()), arrays["looks"]
+    if "look_statuses" not in arrays:  # written before looks were merged (no frames, no keys): they count
+        meta |= {"covered_until": updated_at, "complete_since": 0.0}
+        arrays["look_statuses"] = np.full(looks.shape[0], COUNTED)
     names = meta.get("object_names", [])
-    sizes = arrays.get("frame_sizes", np.zeros(0, dtype=np.int32))
-    ends = np.cumsum(sizes)
+    sizes = arrays.get("frame_sizes", np.zeros(0, dtype=np.int32)).tolist()
     objects = [names[i] for i in arrays.get("frame_objects", np.zeros(0, dtype=np.int32)).tolist()]
     boxes = arrays.get("frame_boxes", np.zeros((0, 4))).astype(np.float64)
+    ends = np.cumsum(sizes, dtype=np.int64).tolist()
     frames = tuple(
-        Frame(tuple(objects[end - size : end]), boxes[end - size : end])
-        for size, end in zip(sizes.tolist(), ends.tolist(), strict=True)
+        Frame(tuple(objects[e - n : e]), boxes[e - n : e]) for n, e in zip(sizes, ends, strict=True)
     )
-    return ReplicaLooks(
+    seen = ReplicaLooks(
         replica=replica,
         covered_until=meta["covered_until"],
         complete_since=meta["complete_since"],
@@ -130,10 +114,13 @@ def _decoded_looks(
         statuses=arrays["look_statuses"],
         keys=arrays.get("look_keys", np.zeros(looks.shape[0], dtype=np.int64)),
     )
-
-
-def _split(rows: np.ndarray, counts: np.ndarray) -> list[np.ndarray]:
-    return np.split(rows.astype(np.float64), np.cumsum(counts)[:-1])
+    windows, look_windows = (
+        np.split(arrays[rows].astype(np.float64), np.cumsum(arrays[counts])[:-1])
+        for rows, counts in (("windows", "counts"), ("look_windows", "look_counts"))
+    )
+    return DriftShare(
+        replica, updated_at, meta["version"], meta["frames"], meta["recorded"], windows, look_windows, seen
+    )
 
 
 class DriftShares:
@@ -141,7 +128,11 @@ class DriftShares:
     ``interval / 2``; the last ones read while the store is away)."""
 
     def __init__(
-        self, store: CalibrationStore, model_hash: str, interval: float, replica: str | None = None
+        self,
+        store: CalibrationStore,
+        model_hash: str,
+        interval: float = SHARE_SECONDS,
+        replica: str | None = None,
     ) -> None:
         """replica: this process's name in the store (default ``host:pid``)."""
         self.replica = replica or process_owner()

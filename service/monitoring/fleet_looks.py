@@ -1,24 +1,14 @@
 """The looks of a fleet counted as one process would count them.
 
-A proxy that spreads one camera's frames over several replicas gives each replica a first frame
-of the camera's scene: each replica's LookTracker sees a new look, and the fleet would count as
-many looks as replicas for one scene, more independent evidence than there is (the drift alarm's
-false-alarm bound counts independent looks). So each replica shares its recent frames (time,
-objects, boxes) and its looks (time, Z, key), and a look counts for the fleet only if one
-process that had seen every replica's frames in time order would have seen a new look:
-
-- its first frame continues none of the ``INTERLEAVED_STREAMS`` frames that precede it among all
-  the replicas' frames (those of its own replica were already checked by its own tracker), and
-- no other replica's earlier look is the same image (same objects and boxes: a replayed image).
-
-A frame that one process would have called a new look but its own replica did not (its own
-recent frames reach further back than the fleet's) has no Z and does not vote: the count is
-at most one process's, never more. Where a replica's frames around a look are no longer all
-shared (its log is bounded), the look does not count either.
-
-A look is decided for good by its own replica once every other replica has shared its frames
-up to the look's time (``settled_until``); until then every reader decides it afresh on what it
-has read, the same way.
+A proxy spreading one camera's frames over several replicas gives each a first frame of the scene:
+each would see a new look, more independent evidence than there is (the drift alarm's false-alarm
+bound counts independent looks). So each replica shares its recent frames and looks, and a look
+counts for the fleet only if one process seeing every replica's frames in time order would have
+seen a new look: its first frame continues none of the ``INTERLEAVED_STREAMS`` frames before it
+among all replicas' frames, and no other replica's earlier look is the same image. A look whose
+neighbouring frames are no longer all shared does not count: the count is at most one process's.
+A look is decided for good by its own replica once every other replica has shared its frames up to
+the look's time (``settled_until``); until then every reader decides it afresh, the same way.
 """
 
 from __future__ import annotations
@@ -59,7 +49,8 @@ def fleet_statuses(replicas: list[ReplicaLooks]) -> list[np.ndarray]:
         only = replicas[0].statuses
         return [np.where(np.isnan(only), COUNTED, only)]
     frames = _FleetFrames(replicas)
-    first_seen = [_first_seen(r) for r in replicas]
+    # per replica, the time each of its look keys was first seen
+    first_seen = [dict(zip(r.keys[::-1].tolist(), r.looks[::-1, 0].tolist(), strict=True)) for r in replicas]
     statuses = []
     for index, replica in enumerate(replicas):
         status = replica.statuses.copy()
@@ -116,11 +107,3 @@ class _FleetFrames:
             for i in range(start, end)
             if self._owners[i] != replica
         )
-
-
-def _first_seen(replica: ReplicaLooks) -> dict[int, float]:
-    """The time each of the replica's look keys was first seen."""
-    first: dict[int, float] = {}
-    for seen, key in zip(replica.looks[:, 0].tolist(), replica.keys.tolist(), strict=True):
-        first.setdefault(key, seen)
-    return first

@@ -1,38 +1,25 @@
 """A drift alarm that stays right on camera streams: one vote per independent look, summed by a
 sequential test whose false alarms are bounded.
 
-Consecutive frames of a camera show the same scene: their heatmap features are nearly equal,
-and a window of them is one observation repeated, not a sample. A test that counts frames as
-independent values (the ``ks`` window) raises its alarm on any slightly unusual scene filmed
-long enough. Here:
+Consecutive frames of a camera show one scene: a window of them is one observation repeated, and
+a test that counts frames as independent (``ks``) alarms on any odd scene filmed long enough.
 
-1. **Looks.** A frame is a new *look* unless at least half of its instances continue one of a
-   recent frame's (same object, box overlap IoU >= ``CONTINUATION_IOU``; the last
-   ``INTERLEAVED_STREAMS`` frames, so that cameras calling at once each keep their scene), or
-   its objects and boxes are those of a recent look (a client replaying the same images). A
-   static or slowly moving camera stays one look however many frames it sends; a cut to another
-   scene starts one. Only a look's first frame votes: it is, on its own, an image like the
-   calibration's. In a fleet, the replicas' looks count as those of one process that saw all
-   their frames (service/monitoring/fleet_looks.py).
-2. **One z per look.** Each instance's label-free features (p*, gamma, anisotropy: those the
-   request computed) are ranked among the calibration's values of their keypoint, turned into
-   normal scores and averaged (p* negated: a positive mean is a flatter heatmap). That mean is
-   ranked among the calibration instances' own means (leave-one-out), z_i = Phi^-1(rank), so
-   under no drift z_i ~ N(0, 1) (exchangeability, up to the rank's discreteness). A look's
+1. **Looks.** A frame is a new look unless at least half of its instances continue one of the last
+   ``INTERLEAVED_STREAMS`` frames' (same object, IoU >= ``CONTINUATION_IOU``), or its objects and
+   boxes are those of a recent look (a replayed image). Only a look's first frame votes; in a fleet
+   the replicas' looks count as one process's would (service/monitoring/fleet_looks.py).
+2. **One Z per look.** Each instance's features are ranked among its keypoints' calibration values,
+   turned into normal scores and averaged (p* negated: positive is flatter); that mean, ranked among
+   the calibration instances' own (leave-one-out), gives z_i ~ N(0, 1) under no drift. A look's
    ``Z = sum z_i / sqrt(m (1 + (m - 1) rho))`` has variance at most 1 while the correlation of
-   instances of one image is at most ``rho`` = ``WITHIN_FRAME_CORRELATION`` (0.09-0.15 on the
-   bundled calibration's 600 images).
-3. **e-CUSUM.** Each look gives the e-values ``exp(+-lambda Z - lambda^2 / 2)`` (mean at most 1
-   under no drift), and two CUSUMs ``M = e * max(M, 1)`` (flatter, sharper) accumulate them.
-   The alarm is raised while either reaches ``2 / alarm_level``. For independent looks with no
-   drift, the mean number of looks before a false alarm is at least ``1 / alarm_level``
-   (Lorden's bound for CUSUMs of e-values: Shin, Ramdas & Rinaldo, "E-detectors", 2023); on a
-   stream of L frames a look that is at most one false alarm per ``L / alarm_level`` frames.
+   instances of one image is at most ``rho`` = ``WITHIN_FRAME_CORRELATION``.
+3. **e-CUSUM.** Each look gives e-values ``exp(+-lambda Z - lambda^2 / 2)`` (mean at most 1 under no
+   drift) and two CUSUMs ``M = e * max(M, 1)`` accumulate them; the alarm is raised while either
+   reaches ``2 / alarm_level``: at least ``1 / alarm_level`` independent quiet looks between false
+   alarms on average (Lorden's bound for e-detectors: Shin, Ramdas & Rinaldo, 2023).
 
-What it assumes: looks are independent draws of the calibration's law (scene cuts separate
-independent scenes); within a look nothing is assumed. What it misses: a drift confined to one
-long look (it cannot tell an odd scene from a shifted one); a drift that leaves the features'
-law unchanged.
+It assumes looks are independent draws of the calibration's law; it misses a drift confined to one
+long look, and one that leaves the features' law unchanged.
 """
 
 from __future__ import annotations
@@ -48,7 +35,7 @@ import numpy as np
 from calibration_store import ScoreTable
 from service.conformal.features import HEATMAP_FEATURES
 
-#: box overlap at which an instance continues one of the previous frame (same object)
+#: box overlap at which an instance continues one of a previous frame (same object)
 CONTINUATION_IOU = 0.3
 #: bound on the correlation of the z of two instances of one image (measured 0.09-0.15)
 WITHIN_FRAME_CORRELATION = 0.25
@@ -104,16 +91,14 @@ class LookTracker:
         return self.new_look_key(frame) is not None
 
     def new_look_key(self, frame: Frame | None) -> int | None:
-        """The ``look_key`` of the look ``frame`` starts (NO_KEY without boxes), None when it
-        continues or repeats one."""
+        """The key of the look ``frame`` starts (NO_KEY without boxes), None when it continues or
+        repeats one."""
         if frame is None:
             return NO_KEY
         continued = any(continues(previous, frame) for previous in self._recent)
         self._recent.append(frame)
-        if continued:
-            return None
-        key = look_key(frame)
-        if key in self._seen:
+        key = None if continued else look_key(frame)
+        if key is None or key in self._seen:
             return None
         self._remember_key(key)
         return key
@@ -133,16 +118,14 @@ class LookTracker:
 
 
 def look_key(frame: Frame) -> int:
-    """The frame's objects and boxes (to 0.1 px) as a 64-bit number, the same in every process:
-    an image sent again has the key of its first look."""
+    """The frame's objects and boxes (to 0.1 px) as a 64-bit number, the same in every process."""
     text = repr((frame.objects, np.round(frame.boxes, 1).tolist())).encode()
     return int.from_bytes(hashlib.blake2b(text, digest_size=8).digest(), "little", signed=True)
 
 
 def continues(previous: Frame, frame: Frame) -> bool:
     """At least half of the frame's instances continue one of the previous frame's: objects may
-    enter or leave a moving view, while a cut to another scene rarely puts most objects back
-    where they were."""
+    enter or leave a moving view; a cut rarely puts most objects back where they were."""
     before = list(zip(previous.objects, previous.boxes.tolist(), strict=True))  # floats: 10x faster
     matched = sum(
         any(name == other_name and _iou(box, other) >= CONTINUATION_IOU for other_name, other in before)
@@ -159,20 +142,35 @@ def _iou(a: list[float], b: list[float]) -> float:
     return inter / union if union > 0 else 0.0
 
 
+def sorted_features(table: ScoreTable, channels: int) -> list[list[np.ndarray | None]]:
+    """[feature][channel]: the calibration's finite values, sorted (None: channel not in the version)."""
+    values: list[list[np.ndarray | None]] = [[None] * channels for _ in HEATMAP_FEATURES]
+    for block in table.objects:
+        for position, name in enumerate(HEATMAP_FEATURES):
+            matrix = np.asarray(block.features[name], dtype=np.float64)
+            for column, channel in enumerate(block.keypoint_ids):
+                values[position][int(channel)] = np.sort(matrix[np.isfinite(matrix[:, column]), column])
+    return values
+
+
+def _ranks(reference: np.ndarray, values: np.ndarray | float, leave_one_out: bool = False) -> np.ndarray:
+    """Mid-ranks in (0, 1) among the sorted ``reference``; leave_one_out: values of the reference,
+    each ranked among the others (as a live value among all)."""
+    below = np.searchsorted(reference, values, side="left")
+    equal = np.searchsorted(reference, values, side="right") - below - leave_one_out
+    return (below + 0.5 * equal + 0.5) / (reference.size + 1 - leave_one_out)
+
+
 class FlatnessReference:
     """The calibration side: per keypoint channel and feature its sorted values, and per object
     and set of computed features the sorted leave-one-out flatness of its instances."""
 
     def __init__(self, table: ScoreTable, channels: int) -> None:
-        self._sorted: list[list[np.ndarray | None]] = [[None] * channels for _ in HEATMAP_FEATURES]
-        self._blocks = {}
-        for block in table.objects:
-            matrices = [np.asarray(block.features[name], dtype=np.float64) for name in HEATMAP_FEATURES]
-            self._blocks[block.object_name] = matrices
-            for position, matrix in enumerate(matrices):
-                for column, channel in enumerate(block.keypoint_ids):
-                    column_values = matrix[:, column]
-                    self._sorted[position][int(channel)] = np.sort(column_values[np.isfinite(column_values)])
+        self._sorted = sorted_features(table, channels)
+        self._blocks = {
+            b.object_name: [np.asarray(b.features[name], dtype=np.float64) for name in HEATMAP_FEATURES]
+            for b in table.objects
+        }
         self._keypoints = {b.object_name: np.asarray(b.keypoint_ids, dtype=int) for b in table.objects}
         self._flatness: dict[tuple[str, tuple[int, ...]], np.ndarray] = {}
 
@@ -181,44 +179,27 @@ class FlatnessReference:
         used = tuple(p for p in range(len(HEATMAP_FEATURES)) if np.isfinite(instance.features[:, p]).all())
         if not used or instance.object not in self._blocks:
             return None
-        scores = [
-            SIGNS[HEATMAP_FEATURES[p]]
-            * _normal_scores(self._ranks(p, instance.channels, instance.features[:, p]))
-            for p in used
-        ]
-        flatness = float(np.mean(scores))
+        scores = []
+        for p in used:
+            values = zip(instance.channels, instance.features[:, p], strict=True)
+            ranks = np.array([_ranks(self._sorted[p][int(channel)], value) for channel, value in values])
+            scores.append(SIGNS[HEATMAP_FEATURES[p]] * _normal_scores(ranks))
         reference = self._reference_flatness(instance.object, used)
         if reference.size == 0:
             return None
-        below = np.searchsorted(reference, flatness, side="left")
-        equal = np.searchsorted(reference, flatness, side="right") - below
-        return _NORMAL.inv_cdf((below + 0.5 * equal + 0.5) / (reference.size + 1))
-
-    def _ranks(self, position: int, channels: np.ndarray, values: np.ndarray) -> np.ndarray:
-        ranks = np.empty(values.size)
-        for i, (channel, value) in enumerate(zip(channels, values, strict=True)):
-            reference = self._sorted[position][int(channel)]
-            below = np.searchsorted(reference, value, side="left")
-            equal = np.searchsorted(reference, value, side="right") - below
-            ranks[i] = (below + 0.5 * equal + 0.5) / (reference.size + 1)
-        return ranks
+        return _NORMAL.inv_cdf(_ranks(reference, float(np.mean(scores))))
 
     def _reference_flatness(self, name: str, used: tuple[int, ...]) -> np.ndarray:
         key = (name, used)
         if key not in self._flatness:
-            keypoints = self._keypoints[name]
             scores = []
             for p in used:
                 matrix = self._blocks[name][p]
-                columns = []
-                for column, channel in enumerate(keypoints):
-                    reference = self._sorted[p][int(channel)]
-                    values = matrix[:, column]
-                    # leave-one-out: a value's rank among the others, as a live value's among all
-                    below = np.searchsorted(reference, values, side="left")
-                    equal = np.searchsorted(reference, values, side="right") - below - 1
-                    columns.append((below + 0.5 * equal + 0.5) / reference.size)
-                scores.append(SIGNS[HEATMAP_FEATURES[p]] * _normal_scores(np.stack(columns, axis=1)))
+                ranks = [
+                    _ranks(self._sorted[p][int(channel)], matrix[:, column], leave_one_out=True)
+                    for column, channel in enumerate(self._keypoints[name])
+                ]
+                scores.append(SIGNS[HEATMAP_FEATURES[p]] * _normal_scores(np.stack(ranks, axis=1)))
             flatness = np.mean(scores, axis=(0, 2))
             self._flatness[key] = np.sort(flatness[np.isfinite(flatness)])
         return self._flatness[key]
@@ -230,8 +211,7 @@ def _normal_scores(ranks: np.ndarray) -> np.ndarray:
 
 
 def look_statistic(look: list[float]) -> float | None:
-    """A look's Z from the z of its instances (None: none to rank); variance at most 1 while
-    the within-frame correlation is at most WITHIN_FRAME_CORRELATION."""
+    """A look's Z from the z of its instances (None: none to rank)."""
     if not look:
         return None
     m = len(look)
@@ -253,7 +233,7 @@ class SequentialAlarm:
             self.observe_statistic(z)
 
     def observe_statistic(self, z: float) -> None:
-        """One look, by its Z (``look_statistic``): looks of several replicas merge in time order."""
+        """One look, by its Z: looks of several replicas merge in time order."""
         for side, sign in enumerate((1.0, -1.0)):
             log_e = sign * LAMBDA * z - LAMBDA**2 / 2
             self._cusums[side] = math.exp(min(log_e + math.log(max(self._cusums[side], 1.0)), 700.0))

@@ -1,7 +1,5 @@
-"""Holm's step-down correction (Holm 1979), shared by coverage audits and the drift alarm.
-
-Many figures are tested at once (every keypoint, score, epsilon; every keypoint x feature):
-Holm controls the family-wise error rate at alpha under any dependence between the tests.
+"""Holm's step-down correction (Holm 1979), shared by coverage audits and the drift alarm: it controls
+the family-wise error rate at alpha under any dependence between the tests.
 """
 
 from __future__ import annotations
@@ -12,11 +10,8 @@ import numpy as np
 
 
 def holm_adjusted(p_values: Sequence[float] | np.ndarray) -> np.ndarray:
-    """Holm's adjusted p-values: a hypothesis is rejected at level alpha where adjusted <= alpha.
-
-    Sorted ascending, p_(r) becomes max over r' <= r of min(1, (N - r') p_(r')) (r from 0).
-    NaN p-values (tests not run) stay NaN and are not counted in N.
-    """
+    """Holm's adjusted p-values (rejected at alpha where adjusted <= alpha): sorted ascending, p_(r)
+    becomes max over r' <= r of min(1, (N - r') p_(r')); NaN (tests not run) stay NaN, not counted in N."""
     p_values = np.asarray(p_values, dtype=np.float64)
     adjusted = np.full(p_values.shape, np.nan)
     flat = p_values.ravel()

@@ -1,8 +1,5 @@
-"""Sizes of recent prediction sets, per nonconformity function, for the operators' plots.
-
-The hot path keeps each set's shape matrix L (its three distinct entries, ``shape_entries``)
-in the drift windows; sizes are derived when read: semi-major axis b (the radius of a ball)
-and area pi a b, in image px.
+"""Sizes of recent prediction sets, per nonconformity function, for the operators' plots: the drift
+windows keep each set's shape entries, read as semi-major axis b and area pi a b (image px).
 """
 
 from __future__ import annotations
@@ -48,9 +45,7 @@ def set_sizes(kinds: np.ndarray, entries: np.ndarray) -> dict[str, KindSizes]:
 
 
 def _kind_sizes(entries: np.ndarray) -> KindSizes:
-    shapes = np.empty((len(entries), 2, 2))
-    shapes[:, 0, 0], shapes[:, 0, 1], shapes[:, 1, 0], shapes[:, 1, 1] = entries.T[[0, 1, 1, 2]]
-    semi_minor, semi_major, _ = ellipse_axes(shapes)
+    semi_minor, semi_major, _ = ellipse_axes(entries[:, [0, 1, 1, 2]].reshape(-1, 2, 2))
     bounded = np.isfinite(semi_major)
     return KindSizes(
         n=len(entries),

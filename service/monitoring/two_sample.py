@@ -1,15 +1,10 @@
 """Two-sample tests of a live window against a reference sample, in numpy (no scipy at run time).
 
-- Kolmogorov-Smirnov: D = sup_t |F_ref(t) - F_live(t)| and its two-sided p-value, exact for
-  small samples (the lattice-path count of Hodges, "The significance probability of the
-  Smirnov two-sample test", Ark. Mat. 3, 1958) and asymptotic beyond (Kolmogorov's limit law
-  with Stephens' small-sample correction, Stephens, JRSS B 32, 1970; Numerical Recipes 14.3).
+- Kolmogorov-Smirnov: D = sup_t |F_ref(t) - F_live(t)| and its two-sided p-value, exact for small
+  samples (Hodges' lattice-path count, Ark. Mat. 3, 1958), else Kolmogorov's limit law with
+  Stephens' correction (JRSS B 32, 1970; Numerical Recipes 14.3). Continuous data (no ties) assumed.
 - Population stability index over quantile bins of the reference (Yurdakul, 2018):
   PSI = sum_b (live_b - ref_b) ln(live_b / ref_b) over bin shares.
-- Holm's step-down correction (Holm, Scand. J. Statist. 6, 1979): which of a family of
-  p-values are rejected at family-wise error rate alpha.
-
-The p-values assume continuous data (no ties), as heatmap features are.
 """
 
 from __future__ import annotations
@@ -68,12 +63,10 @@ def kolmogorov_sf(x: float) -> float:
 def _exact_p_value(numerator: int, n: int, m: int) -> float:
     """1 - P(every lattice point (i, j) of a random path to (n, m) has |i m - j n| < numerator).
 
-    u(i, j) = paths to (i, j) staying inside / C(i + j, i) obeys
-    u(i, j) = u(i-1, j) i / (i + j) + u(i, j-1) j / (i + j): a probability, so it never
-    overflows. Row i is inside on one interval [lo, hi] of j, where the recurrence in j is
-    first order with u(i, lo - 1) = 0; it is solved at once with cumulative sums and products
-    (in logs): u_j = Q_j sum_{t=lo..j} a_t u(i-1, t) / Q_t, Q_j = prod_{t=lo+1..j} t / (i + t).
-    n <= m: n rows of length m + 1.
+    u(i, j) = (paths to (i, j) staying inside) / C(i + j, i) = u(i-1, j) i / (i + j) + u(i, j-1) j / (i + j)
+    is a probability (no overflow). Row i is inside on one interval [lo, hi] of j, where the recurrence
+    is first order: u_j = Q_j sum_{t=lo..j} a_t u(i-1, t) / Q_t, Q_j = prod_{t=lo+1..j} t / (i + t),
+    solved at once with cumulative sums and products (in logs). n <= m: n rows of length m + 1.
     """
     if numerator <= 0:
         return 1.0

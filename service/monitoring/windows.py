@@ -1,8 +1,5 @@
-"""Sliding windows of live values: fixed numpy ring buffers, one per keyed stream.
-
-The hot path is one vectorized append per request (a few numpy calls on its rows, whatever
-their number) under a lock held for microseconds; readers copy a window out under the same
-lock and compute on the copy.
+"""Sliding windows of live values: fixed numpy ring buffers, one per keyed stream. A request is one
+vectorized append under a lock held for microseconds; readers copy a window out and compute on it.
 """
 
 from __future__ import annotations
