@@ -28,6 +28,7 @@ from service.calibration.stratification import difficulty_spec
 from service.calibration.uploads import process_uploads_dir, remove_spent_job_folders
 from service.calibration.versions import VersionRules
 from service.detector.session import Detector, usable_cores
+from service.feedback import adaptive
 from service.feedback.adaptive import AdaptiveSets
 from service.feedback.live_coverage import LiveCoverageReader
 from service.feedback.retention import Retention, RetentionRules
@@ -42,7 +43,7 @@ from service.infra.metrics import (
 )
 from service.infra.operators import load_feedback_senders, load_operators, load_predict_callers
 from service.infra.settings import Settings, refuse_removed_settings
-from service.monitoring import coverage_audits
+from service.monitoring import coverage_audits, drift_monitor
 from service.monitoring.coverage_audits import CoverageAudits
 from service.monitoring.drift_monitor import DriftMonitor, DriftSettings
 from service.monitoring.drift_shares import DriftShares
@@ -59,10 +60,10 @@ DIFFICULTY = difficulty_spec(("gamma", "peak_probability"), 3, 30)
 MAX_UPLOAD_FILES, MAX_ANNOTATIONS_BYTES, MAX_ANNOTATIONS = 100_000, 16 * 2**20, 20_000
 MIN_FREE_DISK_BYTES = 2**30
 MAX_DECODED_BYTES = 256 * 2**20  # an image's decoded pixels (16-bit and alpha take more per pixel)
-DRIFT_PSI_THRESHOLD, DRIFT_FULL_STATISTICS_SHARE = 0.25, 0.25
-DRIFT_HISTORY_SECONDS = 60.0
+DRIFT_PSI_THRESHOLD, DRIFT_HISTORY_SECONDS = drift_monitor.PSI_THRESHOLD, drift_monitor.HISTORY_SECONDS
+DRIFT_FULL_STATISTICS_SHARE = drift_monitor.FULL_STATISTICS_SHARE
 MAX_INSTANCES = 64  # per image
-ACI_GAMMA = 0.005
+ACI_GAMMA = adaptive.ACI_GAMMA
 
 
 @dataclass
