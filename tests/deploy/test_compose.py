@@ -39,12 +39,18 @@ def test_the_build_context_holds_the_dockerfile_and_secrets_are_files() -> None:
     assert any(volume.endswith(":/data") for volume in service["volumes"])  # one shared data volume
 
 
-def test_the_proxy_lets_uploads_through() -> None:
-    conf = (COMPOSE / "nginx.conf").read_text(encoding="utf-8")
-    assert "client_max_body_size 2g;" in conf
-    assert Settings().calibration.max_upload_bytes <= 2 * 2**30
-    mounted = compose()["services"]["proxy"]["volumes"][0].split(":")[0]
-    assert (COMPOSE / mounted).resolve() == (COMPOSE / "nginx.conf").resolve()
+def test_the_proxy_runs_the_shipped_edge_configuration() -> None:
+    config = compose()
+    proxy, service = config["services"]["proxy"], config["services"]["keypoints"]
+    mounted = proxy["volumes"][0].split(":")[0]
+    assert (COMPOSE / mounted).resolve() == PACKAGE_ROOT / "deploy" / "haproxy" / "haproxy.cfg"
+    shipped = (PACKAGE_ROOT / "deploy" / "haproxy" / "haproxy.cfg").read_text(encoding="utf-8")
+    for variable in proxy["environment"]:
+        assert f"${{{variable}-" in shipped, variable  # each one the configuration reads
+    assert proxy["environment"]["CKS_PROXY_REPLICAS"] == str(service["deploy"]["replicas"])
+    address = proxy["networks"]["edge"]["ipv4_address"]
+    assert service["environment"]["CKS_TRUSTED_PROXIES"] == address  # X-Forwarded-For from it alone
+    assert "client_max_body_size" not in shipped and "http-request deny" not in shipped  # uploads pass
 
 
 def test_the_readme_points_at_it() -> None:

@@ -35,7 +35,7 @@ def shipped_proxy_config(port: int, servers: list[str]) -> str:
     """deploy/haproxy/haproxy.cfg as shipped, bound to ``port``, in front of ``servers``."""
     lines = SHIPPED.read_text().splitlines()
     bind = [i for i, line in enumerate(lines) if line.strip().startswith("bind ")]
-    server = [i for i, line in enumerate(lines) if line.strip().startswith("server ")]
+    server = [i for i, line in enumerate(lines) if line.strip().startswith("server")]
     assert len(bind) == 1 and len(server) == 1, "the shipped config has one bind and one server line"
     lines[bind[0]] = f"    bind 127.0.0.1:{port}"
     lines[server[0] :] = [f"    server r{n} {s} check" for n, s in enumerate(servers)]
