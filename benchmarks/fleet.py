@@ -38,27 +38,18 @@ REPLICAS = 3
 CLIENTS = 3
 POLL_S = 1.0  # how often a replica reads the store: how soon it serves a new activation
 SHARE_S = 5.0  # how often a replica shares its drift windows with the others (the service's interval)
-HAPROXY_CONFIG = """
-global
-    tune.bufsize 1048576
-defaults
-    mode http
-    timeout connect 2s
-    timeout client 60s
-    timeout server 60s
-    retries 2
-    option redispatch 1
-    option http-buffer-request
-    retry-on conn-failure empty-response response-timeout 502 503
-frontend service
-    bind 127.0.0.1:{port}
-    default_backend replicas
-backend replicas
-    balance roundrobin
-    option httpchk GET /readyz
-    default-server inter 300ms fall 1 rise 2
-{servers}
-"""
+SHIPPED_PROXY = Path(__file__).resolve().parents[1] / "deploy" / "haproxy" / "haproxy.cfg"
+
+
+def shipped_proxy_config(port: int, servers: list[str]) -> str:
+    """deploy/haproxy/haproxy.cfg as shipped, bound to ``port``, in front of ``servers`` (host:port)."""
+    lines = SHIPPED_PROXY.read_text().splitlines()
+    bind = [i for i, line in enumerate(lines) if line.strip().startswith("bind ")]
+    server = [i for i, line in enumerate(lines) if line.strip().startswith("server")]
+    assert len(bind) == 1 and len(server) == 1, "the shipped config has one bind and one server line"
+    lines[bind[0]] = f"    bind 127.0.0.1:{port}"
+    lines[server[0] :] = [f"    server r{n} {address} check" for n, address in enumerate(servers, 1)]
+    return "\n".join(lines) + "\n"
 
 
 @dataclass
@@ -120,11 +111,8 @@ def haproxy_binary() -> str | None:
 @contextmanager
 def haproxy(backends: list[str], work: Path) -> Iterator[str]:
     port = free_port()
-    servers = "\n".join(
-        f"    server r{n} {url.removeprefix('http://')} check" for n, url in enumerate(backends, 1)
-    )
     config = work / "haproxy.cfg"
-    config.write_text(HAPROXY_CONFIG.format(port=port, servers=servers))
+    config.write_text(shipped_proxy_config(port, [url.removeprefix("http://") for url in backends]))
     binary = haproxy_binary()
     assert binary, "HAProxy is not installed: apt-get install haproxy (.ci/run does)"
     process = subprocess.Popen([binary, "-f", str(config), "-db"], stderr=subprocess.PIPE, text=True)

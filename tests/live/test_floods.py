@@ -11,71 +11,35 @@ addresses of 127.0.0.0/8, the flood driven by a process of its own.
 
 from __future__ import annotations
 
-import subprocess
 from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
-import httpx
 import numpy as np
 import pytest
 
-from benchmarks.fleet import haproxy_binary
+from benchmarks.fleet import haproxy
 from benchmarks.load import Flood, polite_client
-from tests.live.server import LiveServer, free_port
-from tests.service_calls import ADMIN_TOKEN, wait_until
+from tests.live.server import LiveServer
+from tests.service_calls import ADMIN_TOKEN
 
-SHIPPED = Path(__file__).resolve().parents[2] / "deploy" / "haproxy" / "haproxy.cfg"
-QUIET_S, FLOODED_S, INTERVAL_S = 8.0, 15.0, 0.1
+QUIET_S, FLOODED_S, INTERVAL_S = 6.0, 15.0, 0.05
 POLITE_TOKEN = "polite-robot-token-0123456789"
 FLOOD_TOKEN = "flooding-robot-token-0123456789"
 
 
-def shipped_proxy_config(port: int, servers: list[str]) -> str:
-    """deploy/haproxy/haproxy.cfg as shipped, bound to ``port``, in front of ``servers``."""
-    lines = SHIPPED.read_text().splitlines()
-    bind = [i for i, line in enumerate(lines) if line.strip().startswith("bind ")]
-    server = [i for i, line in enumerate(lines) if line.strip().startswith("server")]
-    assert len(bind) == 1 and len(server) == 1, "the shipped config has one bind and one server line"
-    lines[bind[0]] = f"    bind 127.0.0.1:{port}"
-    lines[server[0] :] = [f"    server r{n} {s} check" for n, s in enumerate(servers)]
-    return "\n".join(lines) + "\n"
-
-
-@contextmanager
-def shipped_proxy(work: Path, servers: list[str]) -> Iterator[str]:
-    binary = haproxy_binary()
-    assert binary, "HAProxy is not installed: apt-get install haproxy (.ci/run does)"
-    port = free_port()
-    config = work / "haproxy.cfg"
-    config.write_text(shipped_proxy_config(port, servers))
-    process = subprocess.Popen([binary, "-f", str(config), "-db"], stderr=subprocess.PIPE, text=True)
-    url = f"http://127.0.0.1:{port}"
-    try:
-        wait_until(lambda: _ready(url, process), "HAProxy answers", timeout=30)
-        yield url
-    finally:
-        process.terminate()
-        process.wait(timeout=10)
-
-
-def _ready(url: str, process: subprocess.Popen) -> bool:
-    assert process.poll() is None, process.stderr.read() if process.stderr else ""
-    try:
-        return httpx.get(f"{url}/readyz", timeout=2).status_code == 200
-    except httpx.TransportError:
-        return False
-
-
 def assert_served_beside(url: str, flood: Flood, token: str | None = None) -> None:
-    quiet, statuses = polite_client(url, QUIET_S, INTERVAL_S, token=token)
-    assert set(statuses) == {200}, statuses
+    """The quiet p99 is the larger of the one just before the flood and the one just after it: the
+    machine's other work (other tests) weighs on both sides alike."""
+    before, statuses = polite_client(url, QUIET_S, INTERVAL_S, token=token)
     with flood:
-        flooded, statuses = polite_client(url, FLOODED_S, INTERVAL_S, token=token)
-    answered = statuses.count(200) / len(statuses)
-    quiet_p99, flooded_p99 = np.percentile(quiet, 99), np.percentile(flooded, 99)
+        flooded, flooded_statuses = polite_client(url, FLOODED_S, INTERVAL_S, token=token)
+    after, more = polite_client(url, QUIET_S, INTERVAL_S, token=token)
+    assert set(statuses + more) == {200}, statuses + more
+    answered = flooded_statuses.count(200) / len(flooded_statuses)
+    quiet_p99 = max(np.percentile(before, 99), np.percentile(after, 99))
+    flooded_p99 = np.percentile(flooded, 99)
     report = (
-        f"polite: {answered:.1%} of {len(statuses)} answered, p99 {flooded_p99 * 1e3:.0f} ms beside the flood"
+        f"polite: {answered:.1%} of {len(flooded_statuses)} answered, p99 {flooded_p99 * 1e3:.0f} ms beside the flood"
         f" against {quiet_p99 * 1e3:.0f} ms quiet; the flood got {dict(flood.statuses)}"
     )
     print(report)
@@ -102,7 +66,7 @@ def token_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServ
 
 def test_a_flood_from_one_network_through_the_shipped_proxy(open_service: LiveServer, tmp_path: Path) -> None:
     one_network = [f"127.0.1.{n}" for n in range(1, 101)]
-    with shipped_proxy(tmp_path, [open_service.url.removeprefix("http://")]) as proxy:
+    with haproxy([open_service.url], tmp_path) as proxy:
         assert_served_beside(proxy, Flood(proxy, 100, addresses=one_network))
 
 
