@@ -25,7 +25,6 @@ from service.infra.settings import Settings
 def _serve(args: argparse.Namespace, settings: Settings) -> int:
     from calibration_store import open_store
     from service.calibration.bundle import bootstrap_default_calibration
-    from service.calibration.stratification import difficulty_spec
     from service.detector.session import Detector
     from service.infra.metrics import enable_multiprocess
     from service.infra.operators import load_operators
@@ -45,9 +44,7 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
         remove_dead_process_folders(settings.storage.data_dir / shared, starting=True)
     with open_store(settings.storage.resolved_url) as store:
         if settings.storage.bootstrap_calibration:
-            bootstrap_default_calibration(
-                store, detector, settings.model.directory, difficulty_spec(*settings.calibration.difficulty)
-            )
+            bootstrap_default_calibration(store, detector, settings.model.directory)
     del detector  # the serving process loads its own
     metrics = (
         enable_multiprocess(settings.storage.data_dir / "metrics") if settings.server.workers > 1 else None
@@ -76,9 +73,9 @@ def _check_port(host: str, port: int) -> None:
 def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     from calibration_store import open_store
     from service.calibration.bundle import save_bundle
-    from service.calibration.coco import AnnotationLimits, NamedBatch, load_coco_batch
+    from service.calibration.coco import NamedBatch, load_coco_batch
     from service.calibration.intake import UploadOptions, check_batch, read_parent
-    from service.calibration.stratification import difficulty_spec, parse_stratify
+    from service.calibration.stratification import parse_stratify
     from service.calibration.versions import VersionRules, create_version
     from service.detector.session import Detector
     from service.infra.audit_trail import AuditTrail, Operator
@@ -97,7 +94,6 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
         max_rejected_share=args.max_rejected_share,
         stratify=stratify,
     )
-    share = options.rejected_share(settings.calibration.max_rejected_share)
     detector = Detector(
         settings.model.directory, settings.model.inference_threads, **detector_providers(settings)
     )
@@ -106,15 +102,14 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
         if args.append_to is not None:
             parent = read_parent(store, detector, args.append_to)
         batches = []
-        limits = AnnotationLimits(
-            settings.calibration.max_annotations_bytes, settings.calibration.max_annotations
-        )
         for folder in args.folders:
             if not Path(folder).is_dir():
                 raise InvalidInput(f"{folder} is not a folder (one holding annotations.json and the images)")
-            batch = load_coco_batch(Path(folder), detector.manifest, limits)
+            batch = load_coco_batch(Path(folder), detector.manifest, bounded=True)
             named = NamedBatch(name=args.name or Path(folder).name, sha256=batch.sha256, batch=batch)
-            batches.append(check_batch(named, parent, dedupe=args.dedupe, max_rejected_share=share))
+            batches.append(
+                check_batch(named, parent, dedupe=args.dedupe, max_rejected_share=options.rejected_share)
+            )
         total = sum(b.named.batch.count for b in batches)
         done = 0
 
@@ -123,12 +118,7 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
             done += count
             print(f"\rscored {done}/{total} instances", end="", file=sys.stderr, flush=True)
 
-        rules = VersionRules(
-            settings.predict.max_image_pixels,
-            settings.calibration.min_instances,
-            settings.calibration.max_rejected_share,
-            difficulty_spec(*settings.calibration.difficulty),
-        )
+        rules = VersionRules(settings.predict.max_image_pixels, settings.calibration.min_instances)
         audit = AuditTrail(store, detector.model_hash)
         operator = Operator(args.author, "cli")
         outcome = create_version(store, detector, batches, parent, options, operator, rules, audit, progress)
@@ -403,7 +393,7 @@ def build_parser() -> argparse.ArgumentParser:
     calibrate.add_argument(
         "--max-rejected-share",
         type=float,
-        help="share of instances the box rule may reject (default CKS_MAX_REJECTED_SHARE)",
+        help="share of instances the box rule may reject (default 0)",
     )
     calibrate.add_argument(
         "--stratify",

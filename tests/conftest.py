@@ -74,8 +74,6 @@ def limits(samples_dir: Path, coco: dict) -> dict[str, int]:
     largest_file = max((samples_dir / image["file_name"]).stat().st_size for image in coco["images"])
     return {
         "max_upload_bytes": upload_bytes,
-        "max_upload_uncompressed_bytes": 2 * upload_bytes,
-        "max_upload_files": 8,
         "max_image_pixels": max(image["width"] * image["height"] for image in coco["images"]),
         "max_request_bytes": max(300_000, 2 * largest_file),
         "max_instances": 3,
