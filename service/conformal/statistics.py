@@ -1,24 +1,13 @@
-"""Per-heatmap statistics shared by the three nonconformity functions (paper, Sec. 3).
+"""Per-heatmap statistics shared by the three nonconformity functions (paper, Sec. 3): the peak
+q* (centre of the argmax pixel) and p* = f(x)_pi(1); over the top-K pixels with weights
+renormalized to 1, the mean q_bar, variance gamma^2 = sum w ||q - q_bar||^2 and covariance Sigma.
 
-- peak: q* (centre of the argmax pixel) and p* = f(x)_pi(1);
-- spread: over the top-K pixels with weights renormalized to sum to 1, the
-  mean q_bar, the variance gamma^2 = sum w ||q - q_bar||^2 and the covariance
-  Sigma = sum w (q - q_bar)(q - q_bar)^T.
-
-Pixel (row r, col c) has centre (c + 0.5, r + 0.5); points are (x, y).
-
-Regularization, applied identically when scoring calibration data and when
-building sets: Sigma gets the smallest ridge that lifts its smallest eigenvalue
-to 1/12 px^2, and gamma^2 is floored at 2/12 px^2. 1/12 is the variance of a
-point uniform over one pixel: a heatmap cannot locate a keypoint more finely
-than its grid, so a smaller spread is an artefact (a single-pixel or
-collinear top-K) that would make Sigma singular and gamma zero. Real spreads
-(several pixels) are left bit-for-bit unchanged.
-
-Uninformative maps (degenerate after normalization, or flat) get the statistics
-of a uniform distribution over the whole heatmap: centre (W/2, H/2),
-p* = 1/(H*W), Sigma = diag(W^2/12, H^2/12). The set is then centred and as
-large as the heatmap allows, never NaN.
+Regularization, the same for calibration and sets: Sigma gets the smallest ridge lifting its
+smallest eigenvalue to 1/12 px^2, gamma^2 is floored at 2/12 px^2. 1/12 is the variance of a point
+uniform over one pixel: a heatmap cannot locate finer than its grid, so a smaller spread is an
+artefact (a single-pixel or collinear top-K) that would make Sigma singular; real spreads are
+unchanged. Uninformative maps (degenerate or flat) get the statistics of a uniform distribution
+over the heatmap (centre (W/2, H/2), p* = 1/(H*W), Sigma = diag(W^2/12, H^2/12)): never NaN.
 """
 
 from __future__ import annotations
@@ -130,12 +119,9 @@ def _weight_fields(
 def _raw_anchor_fields(
     flat: np.ndarray, k: int, width: int, peak: bool, spread: bool
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """``anchor`` selected on the raw values (see ``anchor``); rows left unsettled go exact.
-
-    With the native kernel every finite row is settled (overflowing weights aside);
-    without it, every ``peak`` row goes exact and the top-K rows whose selection
-    rounding could change.
-    """
+    """``anchor`` selected on the raw values (see ``anchor``); unsettled rows go exact: with the
+    native kernel none but overflowing ones, without it every ``peak`` row and the top-K rows
+    whose selection rounding could change."""
     peaks = anchor_peaks(flat) if peak else None
     top = top_k_spread(flat, k, width) if spread else None
     native = peaks if peaks is not None else top
@@ -185,11 +171,8 @@ def _peak(argmax: np.ndarray, probability: np.ndarray, width: int) -> dict[str, 
 
 
 def _spread(indices: np.ndarray, top_weights: np.ndarray, width: int) -> dict[str, np.ndarray]:
-    """Mean and covariance of the pixel centres of ``indices`` (N, k, ascending) under the weights.
-
-    Every term and sum is formed as the native kernel forms it (``kernel.top_k_spread``),
-    so that both paths give the same bits.
-    """
+    """Mean and covariance of the pixel centres of ``indices`` (N, k, ascending) under the weights,
+    every term and sum formed as ``kernel.top_k_spread`` forms it: the same bits."""
     probabilities = top_weights / _lane_sums(top_weights)[:, None]
     x, y = pixel_centers(indices, width)
     mean_x, mean_y = _lane_sums(np.stack([probabilities * x, probabilities * y]))
@@ -205,13 +188,9 @@ def _spread_fields(spread: np.ndarray) -> dict[str, np.ndarray]:
 
 
 def _lane_sums(terms: np.ndarray) -> np.ndarray:
-    """Sums over the last axis in the native kernel's fixed order.
-
-    Term j goes to lane j % 8; each lane adds its terms in order to +0.0, and the
-    lanes l0..l7 are combined as ((l0 + l4) + (l2 + l6)) + ((l1 + l5) + (l3 + l7)),
-    as ``sum_lanes`` in native/upper_half.c does. The padding adds +0.0, which
-    changes no lane (a lane that starts at +0.0 never holds -0.0).
-    """
+    """Sums over the last axis in the native kernel's order (``sum_lanes``): term j goes to lane
+    j % 8, each lane adds its terms in order to +0.0, and the lanes combine as ((l0 + l4) + (l2 +
+    l6)) + ((l1 + l5) + (l3 + l7)). The +0.0 padding changes no lane."""
     *outer, count = terms.shape
     chunks = -(-count // _SUM_LANES) + 1  # one leading chunk of zeros: the lanes' start
     padded = np.zeros((*outer, chunks * _SUM_LANES))

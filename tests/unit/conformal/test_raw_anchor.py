@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from service.conformal import heatmap_statistics, kernel, nonconformity_scores
-from service.conformal.anchor import isolated, raw_extremes, raw_top_k, upper_half_weight_sums
+from service.conformal.anchor import isolated, raw_top_k
 from service.conformal.normalization import normalized_weights
 from service.conformal.selection import top_k_indices
 
@@ -41,7 +41,7 @@ def test_top_k_on_raw_values_equals_top_k_on_weights_with_ties(dtype):
     rng = np.random.default_rng(9)
     blobs, _ = gaussian_blobs(rng, 60, size=64, noise=0.01)
     raw = (np.round(blobs * 40) / 7).astype(dtype).reshape(60, -1)  # many exact ties
-    minimum = raw_extremes(raw).minimum
+    minimum = raw.min(axis=1).astype(np.float64)
     indices, weights, exact = raw_top_k(raw, 100, minimum)
     assert exact.all() or dtype == np.float64  # float64 neighbours may merge: conservative flag
     expected = top_k_indices(normalized_weights(raw.astype(np.float64), skip_anchor_median=True).weights, 100)
@@ -60,7 +60,7 @@ def test_upper_half_sums_equal_the_median_masked_sum():
     rng = np.random.default_rng(2)
     raw = mixed_heatmaps(rng, 90).astype(np.float32).reshape(90, -1)
     raw[:5] = np.round(raw[:5])  # ties at the median
-    sums = upper_half_weight_sums(raw, raw_extremes(raw))
+    sums = kernel.anchor_peaks(raw).sums
     expected = normalized_weights(raw.astype(np.float64)).totals
     np.testing.assert_allclose(sums, expected, rtol=1e-12)
 
@@ -70,7 +70,7 @@ def test_without_the_native_kernel_the_numpy_path_matches_the_reference(float32_
     heatmaps, keypoints = float32_batch
     monkeypatch.setattr(kernel, "_library", lambda: None)  # as if the kernel were not built
     flat = heatmaps.reshape(len(heatmaps), -1)
-    assert upper_half_weight_sums(flat, raw_extremes(flat)) is None
+    assert kernel.anchor_peaks(flat) is None
     expected = _reference(kind, heatmaps, keypoints)
     np.testing.assert_allclose(nonconformity_scores(kind, heatmaps, keypoints), expected, rtol=1e-9)
 
