@@ -128,7 +128,7 @@ def load_coco_batch(folder: Path, manifest: Manifest, bounded: bool = False) -> 
     if bounded:
         check_annotations_size(path.stat().st_size, ANNOTATIONS_FILENAME)
     raw = path.read_bytes()
-    sections = _sections(_parse_json(raw))
+    sections = _sections(raw)
     if bounded and len(sections["annotations"]) > MAX_ANNOTATIONS:
         raise PayloadTooLarge(
             f"{ANNOTATIONS_FILENAME} holds {len(sections['annotations'])} annotations, above the limit of"
@@ -179,14 +179,11 @@ def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
-def _parse_json(raw: bytes) -> Any:
+def _sections(raw: bytes) -> dict[str, list[Any]]:
     try:
-        return json.loads(raw)
+        doc = json.loads(raw)
     except (ValueError, RecursionError) as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
         raise InvalidInput(f"{ANNOTATIONS_FILENAME} is not valid JSON: {exc}") from exc
-
-
-def _sections(doc: Any) -> dict[str, list[Any]]:
     if not isinstance(doc, dict):
         raise InvalidInput(
             f"{ANNOTATIONS_FILENAME} must be a JSON object with keys images, categories and annotations; "

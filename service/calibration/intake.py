@@ -130,17 +130,16 @@ class Intake:
 
     def unpack(self, archive: Path, sha256: str, name: str | None) -> NamedBatch:
         """Unzip beside the zip (then removed) within the limits and the disk budget, and read it."""
-        named_as = batch_name(name, sha256)  # refused before anything is unzipped
+        batch_name(name, sha256)  # refused before anything is unzipped
         with disk_full_refused("the unzipped upload"):  # what was unzipped is removed
             unzipped = extract_zip(archive, archive.parent / "batch", disk=self._rules.disk)
         archive.unlink()
-        return NamedBatch(named_as, sha256, load_coco_batch(unzipped, self._detector.manifest, bounded=True))
+        return self.read(unzipped, sha256, name)
 
     def read(self, folder: Path, sha256: str, name: str | None) -> NamedBatch:
         """The COCO batch of an unzipped ``folder`` (a kept upload), validated against the manifest."""
-        return NamedBatch(
-            batch_name(name, sha256), sha256, load_coco_batch(folder, self._detector.manifest, True)
-        )
+        batch = load_coco_batch(folder, self._detector.manifest, bounded=True)
+        return NamedBatch(batch_name(name, sha256), sha256, batch)
 
     def validate(self, named: NamedBatch, options: UploadOptions) -> ValidatedBatch:
         """The parent read once, then the rules that refuse a batch before it is scored."""

@@ -60,14 +60,14 @@ RETRY_DELAY_S = 0.25
 _TICK_S = 0.25
 
 
-def reported(job: JobRecord, now: datetime, stale_after: timedelta = STALE_AFTER) -> JobRecord:
-    """The job as clients see it: unfinished and silent for over stale_after is interrupted."""
+def reported(job: JobRecord, now: datetime) -> JobRecord:
+    """The job as clients see it: unfinished and silent for over STALE_AFTER is interrupted."""
     silent = now - job.heartbeat_at
-    if job.finished or silent <= stale_after:
+    if job.finished or silent <= STALE_AFTER:
         return job
     error = (
         f"the process running this job ({job.owner}) stopped: no heartbeat for"
-        f" {int(silent.total_seconds())} s (limit {int(stale_after.total_seconds())} s)."
+        f" {int(silent.total_seconds())} s (limit {int(STALE_AFTER.total_seconds())} s)."
         f" {interrupted_note(job.id)}"
     )
     return replace(job, state="interrupted", errors=(*job.errors, error), finished_at=job.heartbeat_at)
