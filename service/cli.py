@@ -12,7 +12,7 @@ import socket
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 from pydantic import ValidationError
 
@@ -22,33 +22,29 @@ from service.errors import InvalidInput, ServiceError
 from service.infra.logs import configure_logging
 from service.infra.settings import RemovedSettings, Settings, refuse_removed_settings
 
+if TYPE_CHECKING:
+    from service.detector.session import Detector
+
 
 def _serve(args: argparse.Namespace, settings: Settings) -> int:
     from calibration_store import open_store
     from service.calibration.bundle import bootstrap_default_calibration
-    from service.detector.session import Detector
     from service.infra.metrics import enable_multiprocess
     from service.infra.operators import load_operators
     from service.infra.processes import remove_dead_process_folders
-    from service.serving.container import (
-        DIFFICULTY,
-        detector_providers,
-    )
     from service.serving.server import serve
 
     host, port = args.host or settings.server.host, args.port or settings.server.port
     _check_port(host, port)
     # Check the model and store the bundled calibration once, before workers start racing.
     load_operators(settings.admin.token, settings.admin.tokens_file)
-    detector = Detector(
-        settings.model.directory, settings.model.inference_threads, **detector_providers(settings)
-    )
+    detector = _detector(settings)
     settings.storage.data_dir.mkdir(parents=True, exist_ok=True)
     for shared in ("uploads", "metrics"):  # of stopped processes: uploads were never stored
         remove_dead_process_folders(settings.storage.data_dir / shared, starting=True)
     with open_store(settings.storage.resolved_url) as store:
         if settings.storage.bootstrap_calibration:
-            bootstrap_default_calibration(store, detector, settings.model.directory, DIFFICULTY)
+            bootstrap_default_calibration(store, detector, settings.model.directory)
     del detector  # the serving process loads its own
     metrics = (
         enable_multiprocess(settings.storage.data_dir / "metrics") if settings.server.workers > 1 else None
@@ -58,6 +54,15 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
     finally:
         if metrics is not None:
             shutil.rmtree(metrics, ignore_errors=True)
+
+
+def _detector(settings: Settings) -> Detector:
+    from service.detector.session import Detector  # imported late: onnxruntime is slow to load
+    from service.serving.container import detector_providers
+
+    return Detector(
+        settings.model.directory, settings.model.inference_threads, **detector_providers(settings)
+    )
 
 
 def _check_port(host: str, port: int) -> None:
@@ -77,48 +82,31 @@ def _check_port(host: str, port: int) -> None:
 def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     from calibration_store import open_store
     from service.calibration.bundle import save_bundle
-    from service.calibration.coco import AnnotationLimits, NamedBatch, load_coco_batch
+    from service.calibration.coco import NamedBatch, load_coco_batch
     from service.calibration.intake import UploadOptions, check_batch, read_parent
     from service.calibration.stratification import parse_stratify
     from service.calibration.versions import VersionRules, create_version
-    from service.detector.session import Detector
     from service.infra.audit_trail import AuditTrail, Operator
-    from service.serving.container import (
-        DIFFICULTY,
-        MAX_ANNOTATIONS,
-        MAX_ANNOTATIONS_BYTES,
-        detector_providers,
-    )
 
+    names = ("name", "note", "append_to", "activate", "force", "reason", "dedupe", "allow_duplicate")
     stratify = None if args.stratify is None else parse_stratify(args.stratify)
     options = UploadOptions(
-        name=args.name,
-        note=args.note,
-        append_to=args.append_to,
-        activate=args.activate,
-        force=args.force,
-        reason=args.reason,
-        dedupe=args.dedupe,
-        allow_duplicate=args.allow_duplicate,
-        max_rejected_share=args.max_rejected_share,
-        stratify=stratify,
+        **{n: getattr(args, n) for n in names}, max_rejected_share=args.max_rejected_share, stratify=stratify
     )
-    share = options.rejected_share(0.0)
-    detector = Detector(
-        settings.model.directory, settings.model.inference_threads, **detector_providers(settings)
-    )
+    detector = _detector(settings)
     with open_store(settings.storage.resolved_url) as store:
         parent = None
         if args.append_to is not None:
             parent = read_parent(store, detector, args.append_to)
         batches = []
-        limits = AnnotationLimits(MAX_ANNOTATIONS_BYTES, MAX_ANNOTATIONS)
         for folder in args.folders:
             if not Path(folder).is_dir():
                 raise InvalidInput(f"{folder} is not a folder (one holding annotations.json and the images)")
-            batch = load_coco_batch(Path(folder), detector.manifest, limits)
+            batch = load_coco_batch(Path(folder), detector.manifest, bounded=True)
             named = NamedBatch(name=args.name or Path(folder).name, sha256=batch.sha256, batch=batch)
-            batches.append(check_batch(named, parent, dedupe=args.dedupe, max_rejected_share=share))
+            batches.append(
+                check_batch(named, parent, dedupe=args.dedupe, max_rejected_share=options.rejected_share)
+            )
         total = sum(b.named.batch.count for b in batches)
         done = 0
 
@@ -127,12 +115,7 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
             done += count
             print(f"\rscored {done}/{total} instances", end="", file=sys.stderr, flush=True)
 
-        rules = VersionRules(
-            settings.predict.max_image_pixels,
-            settings.calibration.min_instances,
-            0.0,
-            DIFFICULTY,
-        )
+        rules = VersionRules(settings.predict.max_image_pixels, settings.calibration.min_instances)
         audit = AuditTrail(store, detector.model_hash)
         operator = Operator(args.author, "cli")
         outcome = create_version(store, detector, batches, parent, options, operator, rules, audit, progress)
@@ -143,10 +126,8 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     for problem in outcome.summary.get("activation_problems", []):
         print(f"guardrail: {problem}", file=sys.stderr)
     if args.activate and not outcome.activated:
-        print(
-            "not activated: the guardrails refused it (see above); add --force --reason to override",
-            file=sys.stderr,
-        )
+        refused = "not activated: the guardrails refused it (see above); add --force --reason to override"
+        print(refused, file=sys.stderr)
     print(json.dumps(outcome.summary))
     return 0
 
@@ -343,14 +324,18 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-def _command(commands: argparse._SubParsersAction, name: str, summary: str) -> argparse.ArgumentParser:
-    return commands.add_parser(
+def _command(
+    commands: argparse._SubParsersAction, name: str, summary: str, run: Callable[..., int]
+) -> argparse.ArgumentParser:
+    command = commands.add_parser(
         name,
         help=summary,
         description=summary,
         epilog="examples:\n" + EXAMPLES[name],
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    command.set_defaults(run=run)
+    return command
 
 
 EXIT_STATUS = """\
@@ -371,55 +356,38 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    serve = _command(commands, "serve", "run the HTTP service (settings from CKS_* variables)")
+    serve = _command(commands, "serve", "run the HTTP service (settings from CKS_* variables)", _serve)
     serve.add_argument("--host", help="address to listen on (default CKS_HOST, 127.0.0.1)")
     serve.add_argument("--port", type=int, help="port to listen on (default CKS_PORT, 8000)")
-    serve.set_defaults(run=_serve)
 
-    calibrate = _command(commands, "calibrate", "score COCO-keypoints folders into a new version")
-    calibrate.add_argument("folders", nargs="+", help="folders holding annotations.json and images")
-    calibrate.add_argument("--name", help="batch name (default: the folder name)")
-    calibrate.add_argument("--author", default="cli", help="operator name in the audit trail (default cli)")
-    calibrate.add_argument("--note", default="", help="free text stored with the version")
-    calibrate.add_argument(
-        "--append-to",
-        type=int,
-        metavar="VERSION",
-        help="new version = this version's instances + the batches",
-    )
-    calibrate.add_argument(
-        "--activate", action="store_true", help="activate the new version (if the guardrails allow it)"
-    )
-    calibrate.add_argument(
+    calibrate = _command(commands, "calibrate", "score COCO-keypoints folders into a new version", _calibrate)
+    add = calibrate.add_argument
+    add("folders", nargs="+", help="folders holding annotations.json and images")
+    add("--name", help="batch name (default: the folder name)")
+    add("--author", default="cli", help="operator name in the audit trail (default cli)")
+    add("--note", default="", help="free text stored with the version")
+    add("--append-to", type=int, metavar="VERSION", help="new version = its instances + the batches")
+    add("--activate", action="store_true", help="activate the new version (if the guardrails allow it)")
+    add(
         "--force",
         action="store_true",
-        help="with --activate: activate although the guardrails refuse (needs --reason)",
+        help="with --activate: although the guardrails refuse (needs --reason)",
     )
-    calibrate.add_argument("--reason", default="", help="why (recorded in the activation log and the audit)")
-    calibrate.add_argument(
-        "--dedupe", action="store_true", help="drop instances already counted instead of refusing the batch"
-    )
-    calibrate.add_argument(
-        "--allow-duplicate",
-        action="store_true",
-        help="store a version equal to a stored one (the same instances and strata; needs --reason)",
-    )
-    calibrate.add_argument(
-        "--max-rejected-share",
-        type=float,
-        help="share of instances the box rule may reject (default CKS_MAX_REJECTED_SHARE)",
-    )
-    calibrate.add_argument(
+    add("--reason", default="", help="why (recorded in the activation log and the audit)")
+    add("--dedupe", action="store_true", help="drop instances already counted instead of refusing the batch")
+    add("--allow-duplicate", action="store_true", help="store a copy of a stored version (needs --reason)")
+    add("--max-rejected-share", type=float, help="share of instances the box rule may reject (default 0)")
+    add(
         "--stratify",
         help="Mondrian strata to store: none, difficulty, group or difficulty+group (default: difficulty"
         " when the scores carry heatmap features)",
     )
-    calibrate.add_argument("--bundle", help="also write the version to this .npz file")
-    calibrate.set_defaults(run=_calibrate)
+    add("--bundle", help="also write the version to this .npz file")
 
-    predict = _command(commands, "predict", "prediction sets for one image, as JSON (and a PNG)")
-    predict.add_argument("image", help="a JPEG or PNG file")
-    predict.add_argument(
+    predict = _command(commands, "predict", "prediction sets for one image, as JSON (and a PNG)", _predict)
+    add = predict.add_argument
+    add("image", help="a JPEG or PNG file")
+    add(
         "--instance",
         type=_instance,
         action="append",
@@ -427,45 +395,34 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="OBJECT:x,y,w,h",
         help="an object of the model and its box; repeat for several",
     )
-    predict.add_argument(
-        "--epsilon",
-        type=float,
-        default=0.1,
-        help="miscoverage: each set holds the keypoint with probability >= 1 - epsilon",
+    add("--epsilon", type=float, default=0.1, help="miscoverage: sets hold the keypoint w.p. >= 1 - epsilon")
+    add(
+        "--nonconformity", choices=["peak", "var", "cov"], default="cov", help="balls (peak, var) or ellipses"
     )
-    predict.add_argument(
-        "--nonconformity",
-        choices=["peak", "var", "cov"],
-        default="cov",
-        help="balls (peak, var) or ellipses (cov, the default)",
-    )
-    predict.add_argument(
+    add(
         "--coverage",
         choices=["keypoint", "object"],
         default="keypoint",
-        help="a guarantee per keypoint, or for all of an object's keypoints at once",
+        help="a guarantee per keypoint, or per object",
     )
-    predict.add_argument("--delta", type=float, help="PAC: the guarantee holds with probability >= 1 - delta")
-    predict.add_argument(
-        "--calibration-version",
-        type=int,
-        metavar="VERSION",
-        help="answer with this version (default: the active one)",
-    )
-    predict.add_argument(
+    add("--delta", type=float, help="PAC: the guarantee holds with probability >= 1 - delta")
+    add("--calibration-version", type=int, metavar="VERSION", help="this version (default: the active one)")
+    add(
         "--pose-k",
         type=_camera_matrix,
         metavar="fx,fy,cx,cy",
         help="also each instance's pose set (PURSE) for this camera (or a 3x3 JSON matrix), in the"
         " image's pixels with pixel centres at +0.5; needs --coverage object (docs/pose.md)",
     )
-    predict.add_argument("--png", help="also draw the sets (and the poses) into this PNG file")
-    predict.add_argument("--url", help="the service to ask (default: serve the model in this process)")
-    predict.set_defaults(run=_predict)
+    add("--png", help="also draw the sets (and the poses) into this PNG file")
+    add("--url", help="the service to ask (default: serve the model in this process)")
 
-    evaluate = _command(commands, "evaluate", "the paper's evaluation of a version on a labeled COCO folder")
-    evaluate.add_argument("folder", help="a folder holding annotations.json and images (as for calibrate)")
-    evaluate.add_argument(
+    evaluate = _command(
+        commands, "evaluate", "the paper's evaluation of a version on a COCO folder", _evaluate
+    )
+    add = evaluate.add_argument
+    add("folder", help="a folder holding annotations.json and images (as for calibrate)")
+    add(
         "--version",
         "--calibration-version",
         dest="version",
@@ -473,28 +430,19 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="VERSION",
         help="the calibration version to evaluate (default: the active one)",
     )
-    evaluate.add_argument(
-        "--epsilon",
-        type=float,
-        action="append",
-        help="miscoverage to evaluate at; repeat for several (default 0.1)",
+    add("--epsilon", type=float, action="append", help="miscoverage to evaluate at; repeat (default 0.1)")
+    add("--delta", type=float, help="also evaluate the PAC guarantee at this delta")
+    add("--out", default="evaluation", help="writes OUT/evaluation.md and OUT/figures/")
+    add("--title", help="the report's title (default: Conformal keypoint sets: evaluation)")
+
+    check = _command(
+        commands, "check-model", "validate a model directory, summarize its manifest", _check_model
     )
-    evaluate.add_argument("--delta", type=float, help="also evaluate the PAC guarantee at this delta")
-    evaluate.add_argument("--out", default="evaluation", help="writes OUT/evaluation.md and OUT/figures/")
-    evaluate.add_argument("--title", help="the report's title (default: Conformal keypoint sets: evaluation)")
-    evaluate.set_defaults(run=_evaluate)
-
-    check = _command(commands, "check-model", "validate a model directory and summarize its manifest")
     check.add_argument("model_dir", nargs="?", type=Path, help="default: CKS_MODEL_DIR")
-    check.set_defaults(run=_check_model)
-
-    export = _command(commands, "export-openapi", "write the OpenAPI document")
+    export = _command(commands, "export-openapi", "write the OpenAPI document", _export_openapi)
     export.add_argument("--output", default="openapi/openapi.json", help="file, or - for stdout")
-    export.set_defaults(run=_export_openapi)
-
-    schema = _command(commands, "manifest-schema", "write the JSON Schema of manifest.json")
+    schema = _command(commands, "manifest-schema", "write the JSON Schema of manifest.json", _manifest_schema)
     schema.add_argument("--output", default="docs/manifest.schema.json", help="file, or - for stdout")
-    schema.set_defaults(run=_manifest_schema)
     return parser
 
 

@@ -1,14 +1,10 @@
 """The service as a Ray Serve application: N replicas of the same FastAPI app on one PostgreSQL store.
 
-Each replica is a Ray actor that builds the app with ``create_app(settings)``; Serve runs the
-app's lifespan when the replica starts (model, store, job runner) and its shutdown when Serve
-stops the replica, as uvicorn would. Settings are read once, where the application is built
-(``python -m service.deploy_ray``, or ``serve run``/``serve deploy`` of
-deploy/ray/serve_config.yaml), and the same object is handed to every replica, so replicas on
-different nodes cannot drift apart through their own environment.
-
-It lives in the package, not in deploy/ray/, because every node of a Ray cluster must import
-it and the installed package is what every node has. See deploy/ray/README.md.
+Each replica builds the app with ``create_app(settings)``; Serve runs its lifespan when the replica
+starts and stops, as uvicorn would. Settings are read once, where the application is built, and
+handed to every replica, so replicas on different nodes cannot drift apart through their
+environment. It lives in the package because every node of a Ray cluster must import it
+(deploy/ray/README.md).
 """
 
 from __future__ import annotations
@@ -40,15 +36,11 @@ ADMIN_HEADROOM = 4
 
 @dataclass(frozen=True)
 class Scaling:
-    """How many replicas, how big, and how much Serve sends to each.
-
-    ``max_replicas`` set: Serve autoscales between ``min_replicas`` and ``max_replicas``,
-    aiming at ``target_ongoing_requests`` per replica (default CKS_MAX_CONCURRENT_INFERENCES:
-    scale up once requests wait in replicas' queues). Otherwise ``replicas`` is fixed.
-    ``max_ongoing_requests`` defaults to what a replica's admission control holds
-    (CKS_MAX_CONCURRENT_INFERENCES + CKS_MAX_QUEUED_REQUESTS) plus ADMIN_HEADROOM, so the
-    app, not Serve, queues predicts and answers 503 with Retry-After when they are too many.
-    """
+    """How many replicas, how big, and how much Serve sends to each: with ``max_replicas``, Serve
+    autoscales aiming at ``target_ongoing_requests`` per replica (default the compute slots: scale up
+    once requests wait), else ``replicas`` is fixed. ``max_ongoing_requests`` defaults to what a
+    replica's admission holds plus ADMIN_HEADROOM, so the app, not Serve, queues predicts and
+    answers 503 with Retry-After when they are too many."""
 
     replicas: int = 2
     min_replicas: int = 1
@@ -69,7 +61,6 @@ class Scaling:
             raise ValueError("num_gpus must be 0 or more")
 
     def deployment_options(self, settings: Settings) -> dict[str, Any]:
-        """Options for ``Deployment.options``."""
         slots = settings.predict.max_concurrent_inferences
         options: dict[str, Any] = {
             "max_ongoing_requests": self.max_ongoing_requests
@@ -89,8 +80,7 @@ class Scaling:
 
 
 class ReplicaHeader:
-    """Names the replica that answered in REPLICA_HEADER (ASGI middleware), so that clients and
-    operators can tell the replicas behind Serve's proxy apart."""
+    """ASGI middleware naming the replica that answered in REPLICA_HEADER."""
 
     def __init__(self, app: ASGIApp, replica: str) -> None:
         self._app = app
@@ -112,13 +102,11 @@ class ReplicaHeader:
 @serve.deployment(name=DEPLOYMENT_NAME)
 @serve.ingress()
 class KeypointService:
-    """One replica: the service's FastAPI app, built on the replica itself (Serve calls
-    ``__serve_build_asgi_app__`` after ``__init__`` and then runs the app's lifespan)."""
+    """One replica: the service's FastAPI app, built on the replica (``__serve_build_asgi_app__``)."""
 
     def __init__(self, settings: Settings) -> None:
         self._settings = settings
-        # Upload workspaces of replicas killed on this node (shared data directory): their
-        # uploads were never stored. `keypoint-service serve` does the same at start-up.
+        # upload workspaces of replicas killed on this node: their uploads were never stored
         remove_dead_process_folders(settings.storage.data_dir / "uploads", starting=True)
 
     def __serve_build_asgi_app__(self) -> FastAPI:
@@ -158,55 +146,22 @@ def _parser() -> argparse.ArgumentParser:
         description="Serve the keypoint service with Ray Serve: replicas on a Ray cluster, one PostgreSQL"
         " store. Other settings come from the CKS_* environment variables, as for keypoint-service serve.",
     )
-    ray_group = parser.add_argument_group("Ray")
-    ray_group.add_argument(
-        "--address",
-        help="Ray cluster to join (default: RAY_ADDRESS, a cluster started"
-        " on this machine with `ray start`, else a new local one)",
-    )
-    ray_group.add_argument(
-        "--detach",
-        action="store_true",
-        help="deploy and exit, leaving the application on the cluster (default: serve"
-        " until Ctrl-C or SIGTERM, then stop the application)",
-    )
+    cluster = parser.add_argument_group("Ray").add_argument
+    cluster("--address", help="Ray cluster to join (default: RAY_ADDRESS, `ray start`'s, or a new one)")
+    cluster("--detach", action="store_true", help="deploy and exit (default: serve until Ctrl-C or SIGTERM)")
     http = parser.add_argument_group("Serve's HTTP proxy (one per node)")
     http.add_argument("--host", help="address the proxies listen on (default CKS_HOST)")
     http.add_argument("--port", type=int, help="port the proxies listen on (default CKS_PORT)")
-    http.add_argument(
-        "--request-timeout-s",
-        type=float,
-        default=None,
-        help="end-to-end limit per request; the proxy answers 408 beyond (default: none)",
-    )
-    http.add_argument(
-        "--keep-alive-timeout-s",
-        type=int,
-        default=90,
-        help="idle keep-alive connections are closed after this (Serve's default)",
-    )
+    http.add_argument("--request-timeout-s", type=float, help="end-to-end limit per request (408 beyond)")
+    http.add_argument("--keep-alive-timeout-s", type=int, default=90, help="idle connections close after it")
     scale = parser.add_argument_group("replicas")
     scale.add_argument("--replicas", type=int, default=defaults.replicas, help="fixed number of replicas")
     scale.add_argument("--min-replicas", type=int, default=defaults.min_replicas, help="autoscaling floor")
     scale.add_argument("--max-replicas", type=int, help="autoscale up to this many (default: no autoscaling)")
-    scale.add_argument(
-        "--target-ongoing-requests",
-        type=float,
-        help="autoscaling target per replica (default CKS_MAX_CONCURRENT_INFERENCES)",
-    )
-    scale.add_argument(
-        "--max-ongoing-requests",
-        type=int,
-        help="requests Serve sends one replica at once (default CKS_MAX_CONCURRENT_INFERENCES"
-        f" + CKS_MAX_QUEUED_REQUESTS + {ADMIN_HEADROOM})",
-    )
+    scale.add_argument("--target-ongoing-requests", type=float, help="autoscaling target per replica")
+    scale.add_argument("--max-ongoing-requests", type=int, help="requests Serve sends one replica at once")
     scale.add_argument("--num-cpus", type=float, default=defaults.num_cpus, help="CPUs reserved per replica")
-    scale.add_argument(
-        "--num-gpus",
-        type=float,
-        default=defaults.num_gpus,
-        help="GPUs reserved per replica (a GPU in CKS_EXECUTION_PROVIDERS)",
-    )
+    scale.add_argument("--num-gpus", type=float, default=defaults.num_gpus, help="GPUs reserved per replica")
     service = parser.add_argument_group("service settings (override the CKS_* variables)")
     service.add_argument("--store-url", help="CKS_STORE_URL: postgresql://user@host:5432/db")
     service.add_argument("--data-dir", help="CKS_DATA_DIR, the same path on every node (shared, for retries)")

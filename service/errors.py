@@ -1,13 +1,10 @@
-"""Errors that carry an HTTP meaning; the API turns them into RFC 9457 problem+json.
-
-Domain code raises these with a message that tells the caller what to fix; it never
-needs to know about FastAPI.
-"""
+"""Errors that carry an HTTP meaning (the API turns them into RFC 9457 problem+json), with a
+message that tells the caller what to fix."""
 
 from __future__ import annotations
 
 import errno
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
 
@@ -64,9 +61,24 @@ class Gone(ServiceError):
 
 
 class InsufficientStorage(ServiceError):
-    """No room on disk for what the request would write: retry once space is freed."""
-
     status, title = 507, "Insufficient storage"
+
+
+class TooManyRequests(ServiceError):
+    status, title = 429, "Too many requests"
+
+
+class Unavailable(ServiceError):
+    status, title = 503, "Service unavailable"
+
+
+class StoreUnreachable(Unavailable):
+    """The calibration store is away: retry after ``Retry-After``; predictions go on from memory."""
+
+    title = "Calibration store unreachable"
+
+    def __init__(self, detail: str, retry_after_s: int = 1) -> None:
+        super().__init__(detail, headers={"Retry-After": str(retry_after_s)})
 
 
 #: what a write on a full file system fails with (no space; the user's quota)
@@ -75,8 +87,8 @@ DISK_FULL = frozenset({errno.ENOSPC, errno.EDQUOT})
 
 @contextmanager
 def disk_full_refused(what: str) -> Iterator[None]:
-    """A write of ``what`` that finds the disk full (``DISK_FULL``, or the store's) is a 507;
-    the caller removes what it had written."""
+    """A write of ``what`` that finds the disk full (or the store's) is a 507; the caller removes
+    what it had written."""
     try:
         yield
     except OSError as error:
@@ -93,19 +105,7 @@ def disk_full_refused(what: str) -> Iterator[None]:
         ) from error
 
 
-class Unavailable(ServiceError):
-    status, title = 503, "Service unavailable"
-
-
-class StoreUnreachable(Unavailable):
-    """The calibration store is away: the caller should retry (``Retry-After``); the active
-    version keeps answering predictions from memory."""
-
-    title = "Calibration store unreachable"
-
-    def __init__(self, detail: str, retry_after_s: int = 1) -> None:
-        super().__init__(detail, headers={"Retry-After": str(retry_after_s)})
-
-
-class TooManyRequests(ServiceError):
-    status, title = 429, "Too many requests"
+def capped(items: Sequence[str], limit: int) -> list[str]:
+    """The first ``limit`` items, and ``... and N more`` for the rest."""
+    more = [f"... and {len(items) - limit} more"] if len(items) > limit else []
+    return [*items[:limit], *more]

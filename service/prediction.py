@@ -1,8 +1,6 @@
-"""The predict use case: image bytes and a query in, calibrated sets, guarantees and pose sets
-out (``Predictor.predict``; service/api/predict/predict_presenter.py turns them into the response body).
-
-Scores live in heatmap coordinates (scale-free across object sizes); sets are mapped to
-image pixels through each instance's crop affine.
+"""The predict use case: image bytes and a query in, calibrated sets, guarantees and pose sets out
+(``Predictor.predict``). Scores live in heatmap coordinates (scale-free across object sizes); sets
+are mapped to image pixels through each instance's crop affine.
 """
 
 from __future__ import annotations
@@ -35,8 +33,8 @@ from service.pose import PoseOptions, PoseSets, check_pose_request, estimate_pos
 
 
 def _check_instances(instances: Sequence[Instance], width: int, height: int, limit: int) -> None:
-    """Refuse instances the image cannot answer for, naming each problem. Their object names and
-    box numbers were checked where the query was made (the API's request schema knows the model)."""
+    """Refuse instances the image cannot answer for, naming each problem (names and numbers were
+    checked by the API's request schema)."""
     if len(instances) > limit:
         raise InvalidInput(
             f"{len(instances)} instances in one request; the limit is {limit}: send the rest in another"
@@ -68,11 +66,9 @@ def calibrated_sets(
     all_statistics: bool = False,
     row_thresholds: Callable[[HeatmapStatistics], np.ndarray] | None = None,
 ) -> CalibratedSets:
-    """Apply per-channel thresholds to a detector result and map the sets to the image.
-
-    ``all_statistics`` computes every heatmap statistic, not only those ``kind`` needs;
-    ``row_thresholds`` (given them) picks one threshold per row instead (Mondrian strata).
-    """
+    """Apply per-channel thresholds to a detector result and map the sets to the image;
+    ``all_statistics``: every heatmap statistic, not only those ``kind`` needs; ``row_thresholds``
+    (given them): one threshold per row instead (Mondrian strata)."""
     score = get_nonconformity_score(kind)
     options = (heatmap.normalization, heatmap.top_k, heatmap.temperature)
     if all_statistics:
@@ -119,13 +115,9 @@ class PredictQuery:
 
 @dataclass(frozen=True)
 class Prediction:
-    """The calibrated sets of one request, before they become a response.
-
-    Rows are (instance, keypoint) pairs in the detector's order: ``channel`` and
-    ``instance_index`` say whose; ``guarantees`` gives each row's guarantee and the Mondrian
-    stratum that answered it (None: pooled); ``poses`` each instance's pose sets, when asked;
-    ``source`` the decoded frame (whole, or regions), for a drawing of the sets.
-    """
+    """The calibrated sets of one request: rows are (instance, keypoint) pairs in the detector's
+    order (``channel``, ``instance_index``), each with its guarantee and the Mondrian stratum that
+    answered (None: pooled); ``poses`` when asked; ``source`` the decoded frame, for a drawing."""
 
     model_name: str
     model_hash: str
@@ -167,11 +159,9 @@ class Predictor:
     def predict(
         self, image: bytes | EncodedFrame, query: PredictQuery, whole_image: bool = False
     ) -> Prediction:
-        """The predict use case: decode (an image file, or a frame's whole pixels or regions;
-        ``whole_image``: every pixel of a file, for a drawing of the sets, not only the boxes'),
-        check, pick the calibration, infer, calibrate the sets (pooled or per stratum), record
-        drift, estimate poses. Every refusal comes before the model runs, except a stratum that
-        cannot answer (it needs the heatmaps)."""
+        """Decode (``whole_image``: every pixel, for a drawing), check, pick the calibration, infer,
+        calibrate the sets (pooled or per stratum), record drift, estimate poses. Every refusal comes
+        before the model runs, but a stratum that cannot answer (it needs the heatmaps)."""
         with self.detector.computing():  # a lone request's run takes every usable core
             manifest = self.detector.manifest
             source = self._source(image, query, whole_image)
@@ -203,29 +193,12 @@ class Predictor:
                 guarantees = strata.guarantees()
             else:
                 guarantees = [(thresholds.guarantees[c], None) for c in result.channel]
+            rows = (result.channel, result.instance_index)
             poses = None
             if query.pose is not None:
-                poses = estimate_pose_sets(
-                    manifest,
-                    objects,
-                    query.pose,
-                    sets.centers,
-                    sets.shapes,
-                    result.channel,
-                    result.instance_index,
-                )
-            return Prediction(
-                manifest.name,
-                self.detector.model_hash,
-                version,
-                source,
-                sets,
-                result.channel,
-                result.instance_index,
-                guarantees,
-                poses,
-                result.affines,
-            )
+                poses = estimate_pose_sets(manifest, objects, query.pose, sets.centers, sets.shapes, *rows)
+            model = (manifest.name, self.detector.model_hash, version)
+            return Prediction(*model, source, sets, *rows, guarantees, poses, result.affines)
 
     def _source(self, image: bytes | EncodedFrame, query: PredictQuery, whole_image: bool) -> ImageSource:
         """The request's pixels, decoded once its instances and regions are checked: of an image
@@ -257,20 +230,11 @@ class _RequestStrata:
 
     def thresholds(self, statistics: HeatmapStatistics) -> np.ndarray:
         registry, version, kinds, p, result, pooled = self._lookup
-        options = (p.nonconformity, p.coverage, p.epsilon, p.delta)
-        stratified, refusal = registry.stratified(version, kinds, *options)
+        stratified = registry.stratified(version, kinds, p.nonconformity, p.coverage, p.epsilon, p.delta)
         features = heatmap_features(statistics) if DIFFICULTY in kinds else None
-        groups = [p.instances[i].group for i in result.instance_index]
-        self._answers = answer_rows(
-            stratified,
-            refusal,
-            (pooled.values, pooled.guarantees),
-            result.channel,
-            result.instance_index,
-            groups,
-            features,
-            p.group_fallback,
-        )
+        rows = (result.channel, result.instance_index, [p.instances[i].group for i in result.instance_index])
+        pooled_answers = (pooled.values, pooled.guarantees)
+        self._answers = answer_rows(*stratified, pooled_answers, *rows, features, p.group_fallback)
         return self._answers.values
 
     def guarantees(self) -> list[tuple[CoverageGuarantee, Stratum | None]]:

@@ -82,7 +82,7 @@ def limits(samples_dir: Path, coco: dict) -> dict[str, int]:
 @pytest.fixture(scope="session")
 def fixed_limits() -> dict[str, int]:
     """Small fixed limits of the service (service.serving.container) for refusal tests."""
-    return {"MAX_UPLOAD_FILES": 8, "MAX_INSTANCES": 3}
+    return {"MAX_INSTANCES": 3}
 
 
 @pytest.fixture(scope="session")

@@ -1,10 +1,8 @@
-"""Calibration uploads: stream to disk, then unzip safely within configured limits.
+"""Calibration uploads: stream to disk, then unzip safely within limits.
 
-Every member of an uploaded zip is checked before anything is written (names, types,
-encryption, counts, declared sizes), and the declared size against the disk: what kept
-uploads may take together and the free space to leave (``DiskBudget``). Then members are
-streamed to disk in bounded chunks while the bytes actually produced are counted, because
-a zip bomb's headers may lie. Any refusal removes the destination directory entirely.
+Every member of a zip is checked before anything is written (names, types, encryption, counts,
+declared sizes, room on disk); then members are streamed out in bounded chunks while the bytes
+really produced are counted, because a zip bomb's headers may lie. A refusal removes everything.
 """
 
 from __future__ import annotations
@@ -21,20 +19,17 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO, NamedTuple
 
-from service.calibration.coco import AnnotationLimits
-from service.errors import InsufficientStorage, InvalidInput, PayloadTooLarge
+from service.calibration.coco import ANNOTATIONS_FILENAME, MAX_REPORTED_PROBLEMS, check_annotations_size
+from service.errors import InsufficientStorage, InvalidInput, PayloadTooLarge, capped
 
-ANNOTATIONS_FILENAME = "annotations.json"
 CHUNK_BYTES = 1 << 20
-MAX_REPORTED_PROBLEMS = 50
 MAX_NAME_COMPONENT_BYTES = 255
-
-UPLOAD_BYTES_SETTING = "CKS_MAX_UPLOAD_BYTES"
-FILES_SETTING = "CKS_MAX_UPLOAD_FILES"
-UNCOMPRESSED_SETTING = "CKS_MAX_UPLOAD_UNCOMPRESSED_BYTES"
-DISK_BUDGET_SETTING = "CKS_MAX_UPLOADS_DISK_BYTES"
-FREE_DISK_SETTING = "CKS_MIN_FREE_DISK_BYTES"
-
+#: most entries of an uploaded zip
+MAX_UPLOAD_FILES = 100_000
+#: most bytes an uploaded zip may hold once unzipped
+MAX_UNCOMPRESSED_BYTES = 4 * 2**30
+#: free space that unzipping an upload must leave in the data directory
+MIN_FREE_DISK_BYTES = 2**30
 _SUPPORTED_COMPRESSION = {
     zipfile.ZIP_STORED: "stored",
     zipfile.ZIP_DEFLATED: "deflate",
@@ -42,32 +37,30 @@ _SUPPORTED_COMPRESSION = {
     zipfile.ZIP_LZMA: "lzma",
 }
 _DRIVE = re.compile(r"^[A-Za-z]:")
-_IGNORED_TOP_LEVEL = frozenset({"__MACOSX"})
 
 
 @dataclass(frozen=True)
 class DiskBudget:
-    """Room on disk for unzipped uploads: what the uploads kept in ``folders`` may take in all
-    (``max_bytes``), and the free space unzipping must leave on the file system."""
+    """What the uploads kept in ``folders`` may take in all, and the free space to leave."""
 
     folders: tuple[Path, ...]
     max_bytes: int
-    min_free_bytes: int
+    min_free_bytes: int = MIN_FREE_DISK_BYTES
 
     def check(self, incoming: int, where: Path) -> None:
-        """Refuse (507) ``incoming`` more bytes under ``where`` beyond the budget or the free space."""
+        """507 for ``incoming`` more bytes under ``where`` beyond the budget or the free space."""
         kept = sum(_tree_bytes(folder) for folder in self.folders)
         if kept + incoming > self.max_bytes:
             raise InsufficientStorage(
                 f"unzipped, the upload would take {incoming} bytes; with the {kept} bytes that kept uploads"
                 f" already take (of jobs queued, running or interrupted) that is above the budget of"
-                f" {self.max_bytes} bytes ({DISK_BUDGET_SETTING}): retry once jobs have finished"
+                f" {self.max_bytes} bytes (CKS_MAX_UPLOADS_DISK_BYTES): retry once jobs have finished"
             )
         free = shutil.disk_usage(where).free
         if free - incoming < self.min_free_bytes:
             raise InsufficientStorage(
                 f"the data directory's file system has {free} bytes free: unzipping the upload's {incoming}"
-                f" bytes would leave less than {self.min_free_bytes} ({FREE_DISK_SETTING})"
+                f" bytes would leave less than {self.min_free_bytes}"
             )
 
 
@@ -82,17 +75,11 @@ def _tree_bytes(folder: Path) -> int:
 
 @dataclass(frozen=True)
 class ArchiveLimits:
-    """Most entries and most uncompressed bytes an uploaded archive may hold, and the limits of
-    its annotations.json (None: unbounded)."""
-
-    max_files: int
-    max_uncompressed_bytes: int
-    annotations: AnnotationLimits | None = None
+    max_files: int = MAX_UPLOAD_FILES
+    max_uncompressed_bytes: int = MAX_UNCOMPRESSED_BYTES
 
 
 class SavedUpload(NamedTuple):
-    """An upload written to disk: its size in bytes and hex sha256."""
-
     size: int
     sha256: str
 
@@ -110,7 +97,7 @@ class UploadSink:
         if self._size > self._max:
             self.abort()
             raise PayloadTooLarge(
-                f"the upload is larger than the limit of {self._max} bytes ({UPLOAD_BYTES_SETTING}); "
+                f"the upload is larger than the limit of {self._max} bytes (CKS_MAX_UPLOAD_BYTES); "
                 "split the batch into smaller archives"
             )
         self._digest.update(chunk)
@@ -126,109 +113,95 @@ class UploadSink:
         self._dest.unlink(missing_ok=True)
 
 
-def extract_zip(zip_path: Path, dest: Path, limits: ArchiveLimits, disk: DiskBudget | None = None) -> Path:
-    """Safely extract ``zip_path`` into ``dest`` (absent or empty) and return the batch folder.
-
-    The batch folder is the one holding ``annotations.json``: ``dest`` itself or its single
-    top-level folder. Raises ``InvalidInput`` or ``PayloadTooLarge`` naming the offending
-    member and the setting involved, ``InsufficientStorage`` when ``disk`` cannot take it
-    (None: not checked); ``dest`` does not exist after a refusal.
-    """
+def extract_zip(
+    zip_path: Path, dest: Path, limits: ArchiveLimits = ArchiveLimits(), disk: DiskBudget | None = None
+) -> Path:
+    """Extract ``zip_path`` into ``dest`` (absent or empty) and return the batch folder: ``dest``
+    or its single top-level folder, the one holding ``annotations.json``. ``InvalidInput``,
+    ``PayloadTooLarge`` or (``disk``) ``InsufficientStorage`` name the offending member; ``dest``
+    does not exist after a refusal."""
     dest = Path(dest)
     if dest.exists() and any(dest.iterdir()):
         raise FileExistsError(f"extraction directory {dest} is not empty")
     dest.mkdir(parents=True, exist_ok=True)
     try:
-        with _open_zip(zip_path) as archive:
+        try:
+            archive = zipfile.ZipFile(zip_path)
+        except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, ValueError, EOFError) as exc:
+            raise InvalidInput(
+                f"the upload is not a readable zip archive ({exc});"
+                " upload a .zip of annotations.json and images"
+            ) from exc
+        with archive:
             members = archive.infolist()
             _check_members(members, limits)
             if disk is not None:
                 disk.check(sum(info.file_size for info in members), dest)
-            _extract_members(archive, members, dest, limits)
+            _extract_members(archive, members, dest, limits.max_uncompressed_bytes)
         return _batch_folder(dest)
     except BaseException:
         shutil.rmtree(dest, ignore_errors=True)
         raise
 
 
-def _open_zip(zip_path: Path) -> zipfile.ZipFile:
-    try:
-        return zipfile.ZipFile(zip_path)
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, ValueError, EOFError) as exc:
-        raise InvalidInput(
-            f"the upload is not a readable zip archive ({exc}); upload a .zip of annotations.json and images"
-        ) from exc
-
-
-# ---------------------------------------------------------------- checks before writing
-
-
 def _check_members(members: list[zipfile.ZipInfo], limits: ArchiveLimits) -> None:
     if len(members) > limits.max_files:
         raise PayloadTooLarge(
-            f"the archive has {len(members)} entries, above the limit of {limits.max_files} ({FILES_SETTING})"
+            f"the archive has {len(members)} entries, above the limit of {limits.max_files}"
         )
-    problems: list[str] = []
-    for info in members:
-        problem = _member_problem(info)
-        if problem:
-            problems.append(f"member {info.filename!r}: {problem}")
+    problems = [f"member {i.filename!r}: {p}" for i in members if (p := _member_problem(i))]
     problems.extend(_layout_problems(members))
     if problems:
-        raise _refusal(problems)
-    _check_declared_size(members, limits)
-    for info in members if limits.annotations is not None else []:  # before it is unzipped
+        raise InvalidInput(
+            f"the archive was refused ({len(problems)} problem(s)); first: {problems[0]}",
+            errors=capped(problems, MAX_REPORTED_PROBLEMS),
+        )
+    _check_declared_size(members, limits.max_uncompressed_bytes)
+    for info in members:  # before it is unzipped
         if PurePosixPath(info.filename).name == ANNOTATIONS_FILENAME:
-            limits.annotations.check_size(info.file_size, f"member {info.filename!r}")
+            check_annotations_size(info.file_size, f"member {info.filename!r}")
 
 
-def _refusal(problems: list[str]) -> InvalidInput:
-    shown = problems[:MAX_REPORTED_PROBLEMS]
-    if len(problems) > len(shown):
-        shown.append(f"... and {len(problems) - len(shown)} more")
-    return InvalidInput(
-        f"the archive was refused ({len(problems)} problem(s)); first: {problems[0]}", errors=shown
-    )
+def _check_declared_size(members: list[zipfile.ZipInfo], limit: int) -> None:
+    total = 0
+    for info in members:
+        total += info.file_size
+        if total > limit:
+            raise PayloadTooLarge(
+                f"member {info.filename!r} ({info.file_size} bytes) brings the archive's declared "
+                f"uncompressed size to {total} bytes, above the limit of {limit} bytes"
+            )
 
 
 def _member_problem(info: zipfile.ZipInfo) -> str | None:
     """Why this member may not be extracted, or None."""
-    return _name_problem(info.filename) or _type_problem(info) or _coding_problem(info)
-
-
-def _name_problem(name: str) -> str | None:
-    if "\\" in name:
-        return "contains a backslash; use '/' as the path separator"
-    if "\x00" in name:
-        return "contains a NUL character"
-    if name.startswith("/"):
-        return "is an absolute path; paths must be relative to the archive root"
-    if _DRIVE.match(name):
-        return "starts with a drive letter; paths must be relative to the archive root"
+    name, kind = info.filename, stat.S_IFMT(info.external_attr >> 16)
     parts = name.rstrip("/").split("/")
-    if any(p == ".." for p in parts):
-        return "contains a '..' component (path traversal)"
-    if any(p in ("", ".") for p in parts):
-        return "contains an empty or '.' path component"
-    if any(len(p.encode("utf-8", "surrogateescape")) > MAX_NAME_COMPONENT_BYTES for p in parts):
-        return f"has a path component longer than {MAX_NAME_COMPONENT_BYTES} bytes"
-    return None
-
-
-def _type_problem(info: zipfile.ZipInfo) -> str | None:
-    kind = stat.S_IFMT(info.external_attr >> 16)
-    if kind == stat.S_IFLNK:
-        return "is a symbolic link; archives may contain only regular files and folders"
-    if kind not in (0, stat.S_IFREG, stat.S_IFDIR):
-        return "is not a regular file (device, pipe or socket entry)"
-    if kind == stat.S_IFDIR and not info.is_dir():
-        return "is marked as a folder but its name does not end with '/'"
-    return None
-
-
-def _coding_problem(info: zipfile.ZipInfo) -> str | None:
-    if info.flag_bits & 0x1:
-        return "is encrypted; upload an archive without a password"
+    checks = (
+        ("\\" in name, "contains a backslash; use '/' as the path separator"),
+        ("\x00" in name, "contains a NUL character"),
+        (name.startswith("/"), "is an absolute path; paths must be relative to the archive root"),
+        (bool(_DRIVE.match(name)), "starts with a drive letter; paths must be relative to the archive root"),
+        (".." in parts, "contains a '..' component (path traversal)"),
+        (any(p in ("", ".") for p in parts), "contains an empty or '.' path component"),
+        (
+            any(len(p.encode("utf-8", "surrogateescape")) > MAX_NAME_COMPONENT_BYTES for p in parts),
+            f"has a path component longer than {MAX_NAME_COMPONENT_BYTES} bytes",
+        ),
+        (kind == stat.S_IFLNK, "is a symbolic link; archives may contain only regular files and folders"),
+        (
+            kind not in (0, stat.S_IFREG, stat.S_IFDIR),
+            "is not a regular file (device, pipe or socket entry)",
+        ),
+        (
+            kind == stat.S_IFDIR and not info.is_dir(),
+            "is marked as a folder but its name does not end with '/'",
+        ),
+        (bool(info.flag_bits & 0x1), "is encrypted; upload an archive without a password"),
+    )
+    for failed, problem in checks:
+        if failed:
+            return problem
     if info.compress_type not in _SUPPORTED_COMPRESSION:
         methods = ", ".join(_SUPPORTED_COMPRESSION.values())
         return f"uses compression method {info.compress_type}; supported: {methods}"
@@ -249,28 +222,14 @@ def _layout_problems(members: list[zipfile.ZipInfo]) -> list[str]:
         (folders if info.is_dir() else files).add(path)
         parts = path.split("/")
         folders.update("/".join(parts[:i]) for i in range(1, len(parts)))
-    for clash in sorted(files & folders):
-        problems.append(f"member {clash!r}: the name is used both as a file and as a folder")
+    problems += [
+        f"member {c!r}: the name is used both as a file and as a folder" for c in sorted(files & folders)
+    ]
     return problems
 
 
-def _check_declared_size(members: list[zipfile.ZipInfo], limits: ArchiveLimits) -> None:
-    total = 0
-    for info in members:
-        total += info.file_size
-        if total > limits.max_uncompressed_bytes:
-            raise PayloadTooLarge(
-                f"member {info.filename!r} ({info.file_size} bytes) brings the archive's declared "
-                f"uncompressed size to {total} bytes, above the limit of {limits.max_uncompressed_bytes} "
-                f"bytes ({UNCOMPRESSED_SETTING})"
-            )
-
-
-# ---------------------------------------------------------------- streaming extraction
-
-
 def _extract_members(
-    archive: zipfile.ZipFile, members: list[zipfile.ZipInfo], dest: Path, limits: ArchiveLimits
+    archive: zipfile.ZipFile, members: list[zipfile.ZipInfo], dest: Path, limit: int
 ) -> None:
     root = dest.resolve()
     written = 0
@@ -282,26 +241,25 @@ def _extract_members(
             target.mkdir(parents=True, exist_ok=True)
             continue
         target.parent.mkdir(parents=True, exist_ok=True)
-        written += _extract_file(archive, info, target, written, limits.max_uncompressed_bytes)
-
-
-def _extract_file(
-    archive: zipfile.ZipFile, info: zipfile.ZipInfo, target: Path, written: int, limit: int
-) -> int:
-    """Copy one member in bounded chunks; return its size. ``written`` bytes came before it."""
-    try:
-        with archive.open(info) as src, open(target, "xb") as out:
-            return copy_limited(src, out, limit - written)
-    except BudgetExceeded as exc:
-        raise PayloadTooLarge(
-            f"member {info.filename!r} (declared {info.file_size} bytes) expanded past the limit of "
-            f"{limit} uncompressed bytes ({UNCOMPRESSED_SETTING}) while extracting: the archive's "
-            "headers understate its size"
-        ) from exc
-    except (zipfile.BadZipFile, EOFError, zlib.error, NotImplementedError, RuntimeError, ValueError) as exc:
-        raise InvalidInput(
-            f"member {info.filename!r} is corrupt and cannot be extracted ({exc}); rebuild the archive"
-        ) from exc
+        try:
+            with archive.open(info) as src, open(target, "xb") as out:
+                written += copy_limited(src, out, limit - written)
+        except BudgetExceeded as exc:
+            raise PayloadTooLarge(
+                f"member {info.filename!r} (declared {info.file_size} bytes) expanded past the limit of "
+                f"{limit} uncompressed bytes while extracting: the archive's headers understate its size"
+            ) from exc
+        except (
+            zipfile.BadZipFile,
+            EOFError,
+            zlib.error,
+            NotImplementedError,
+            RuntimeError,
+            ValueError,
+        ) as exc:
+            raise InvalidInput(
+                f"member {info.filename!r} is corrupt and cannot be extracted ({exc}); rebuild the archive"
+            ) from exc
 
 
 class BudgetExceeded(Exception):
@@ -309,10 +267,8 @@ class BudgetExceeded(Exception):
 
 
 def copy_limited(src: BinaryIO, out: BinaryIO, budget: int) -> int:
-    """Copy ``src`` to ``out`` in chunks of at most 1 MiB; raise ``BudgetExceeded`` past ``budget``.
-
-    At most ``budget + 1`` bytes are ever read, whatever ``src`` claims about its size.
-    """
+    """Copy ``src`` to ``out`` in chunks of at most 1 MiB, reading at most ``budget + 1`` bytes
+    whatever ``src`` claims; ``BudgetExceeded`` past ``budget``."""
     written = 0
     while chunk := src.read(min(CHUNK_BYTES, budget - written + 1)):
         written += len(chunk)
@@ -322,13 +278,10 @@ def copy_limited(src: BinaryIO, out: BinaryIO, budget: int) -> int:
     return written
 
 
-# ---------------------------------------------------------------- locating the batch
-
-
 def _batch_folder(dest: Path) -> Path:
     if (dest / ANNOTATIONS_FILENAME).is_file():
         return dest
-    top = [p for p in dest.iterdir() if p.name not in _IGNORED_TOP_LEVEL and not p.name.startswith(".")]
+    top = [p for p in dest.iterdir() if p.name != "__MACOSX" and not p.name.startswith(".")]
     if len(top) == 1 and top[0].is_dir() and (top[0] / ANNOTATIONS_FILENAME).is_file():
         return top[0]
     found = ", ".join(sorted(p.name + ("/" if p.is_dir() else "") for p in top)[:10]) or "nothing"

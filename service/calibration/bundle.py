@@ -1,9 +1,6 @@
-"""A calibration version as one portable file, and the bundled default loaded on first start.
-
-The file is a numpy ``.npz`` (no pickles): ``metadata`` holds the version's JSON metadata,
-and for each object ``<object>/keypoint_ids``, ``<object>/refs``, ``<object>/<function>``
-(scores), and when the version has them ``<object>/features/<feature>`` (label-free heatmap
-features) and ``<object>/groups`` (caller group labels).
+"""A calibration version as one portable ``.npz`` file (no pickles), and the bundled default
+loaded on first start: ``metadata`` (JSON) and per object ``<object>/keypoint_ids``, ``/refs``,
+``/<function>`` (scores) and, when the version has them, ``/features/<feature>`` and ``/groups``.
 """
 
 from __future__ import annotations
@@ -18,7 +15,6 @@ import numpy as np
 from calibration_store import CalibrationStore, NewVersion, ObjectScores, ScoreTable, VersionInfo
 from service.calibration.compatibility import incompatibility
 from service.calibration.stratification import version_strata
-from service.conformal.strata import DifficultySpec
 from service.detector.session import Detector
 
 BUNDLE_FILENAME = "default_calibration.npz"
@@ -26,24 +22,17 @@ log = logging.getLogger(__name__)
 
 
 def save_bundle(path: Path, info: VersionInfo, table: ScoreTable) -> None:
-    metadata = {
-        "model_hash": info.model_hash,
-        "model_name": info.model_name,
-        "normalization": dict(info.normalization),
-        "source_batches": [batch.as_dict() for batch in info.source_batches],
-        "author": info.author,
-        "note": info.note,
-    }
+    metadata = {k: getattr(info, k) for k in ("model_hash", "model_name", "author", "note")}
+    metadata |= {"normalization": dict(info.normalization)}
+    metadata |= {"source_batches": [batch.as_dict() for batch in info.source_batches]}
     arrays = {"metadata": np.array(json.dumps(metadata))}
     for block in table.objects:
-        arrays[f"{block.object_name}/keypoint_ids"] = block.keypoint_ids
-        arrays[f"{block.object_name}/refs"] = np.array(block.instance_refs)
-        for function, matrix in block.scores.items():
-            arrays[f"{block.object_name}/{function}"] = matrix
-        for feature, matrix in block.features.items():
-            arrays[f"{block.object_name}/features/{feature}"] = matrix
+        name = block.object_name
+        arrays |= {f"{name}/keypoint_ids": block.keypoint_ids, f"{name}/refs": np.array(block.instance_refs)}
+        arrays |= {f"{name}/{function}": matrix for function, matrix in block.scores.items()}
+        arrays |= {f"{name}/features/{feature}": matrix for feature, matrix in block.features.items()}
         if block.has_groups:
-            arrays[f"{block.object_name}/groups"] = np.array(block.groups)
+            arrays[f"{name}/groups"] = np.array(block.groups)
     with open(path, "wb") as handle:
         np.savez_compressed(handle, **arrays)
 
@@ -60,28 +49,18 @@ def _block(data: np.lib.npyio.NpzFile, name: str) -> ObjectScores:
     parts = [key.split("/")[1:] for key in data.files if key.startswith(f"{name}/")]
     scores = {p[0]: data[f"{name}/{p[0]}"] for p in parts if len(p) == 1 and p[0] not in _BLOCK_KEYS}
     features = {p[1]: data[f"{name}/features/{p[1]}"] for p in parts if len(p) == 2 and p[0] == "features"}
-    groups = f"{name}/groups"
-    return ObjectScores(
-        name,
-        data[f"{name}/keypoint_ids"],
-        tuple(str(ref) for ref in data[f"{name}/refs"]),
-        scores,
-        features=features,
-        groups=tuple(str(g) for g in data[groups]) if groups in data.files else (),
-    )
+    groups = tuple(str(g) for g in data[f"{name}/groups"]) if f"{name}/groups" in data.files else ()
+    refs = tuple(str(ref) for ref in data[f"{name}/refs"])
+    return ObjectScores(name, data[f"{name}/keypoint_ids"], refs, scores, features=features, groups=groups)
 
 
 _BLOCK_KEYS = ("keypoint_ids", "refs", "groups")
 
 
-def bootstrap_default_calibration(
-    store: CalibrationStore, detector: Detector, model_dir: Path, difficulty: DifficultySpec | None = None
-) -> int | None:
-    """Store and activate the model's bundled calibration when the store has none for it yet,
-    with difficulty strata (``difficulty``, default bins) when it carries heatmap features.
-
-    Atomic in the store: replicas starting at once on an empty shared store bootstrap it once.
-    """
+def bootstrap_default_calibration(store: CalibrationStore, detector: Detector, model_dir: Path) -> int | None:
+    """Store and activate the model's bundled calibration (with difficulty strata when it carries
+    heatmap features) when the store has none for it yet; atomic: replicas starting at once on an
+    empty shared store bootstrap it once."""
     path = Path(model_dir) / BUNDLE_FILENAME
     if not path.is_file() or store.list_versions(detector.model_hash):  # the usual restart: skip the file
         return None
@@ -93,7 +72,7 @@ def bootstrap_default_calibration(
     if reason is not None:
         log.warning("%s is not loaded: %s", path, reason)
         return None
-    strata = version_strata(table, None, difficulty or DifficultySpec())
+    strata = version_strata(table, None)
     new = replace(new, strata=None if strata is None else strata.as_dict())
     info = store.create_first_version(new, table, "bootstrap", f"bundled default calibration {path.name}")
     if info is None:  # another process bootstrapped it first

@@ -1,13 +1,10 @@
 """Stored scores are valid only under the manifest settings they were computed with.
 
-A version records, next to its scores, the settings that turn an image and a box into
-the statistics behind a score: the heatmap normalization, temperature and top-K, and a
-fingerprint of the preprocessing (input transform, crop padding, output size, which
-channels belong to which object). The model hash covers the ONNX bytes but not the
-manifest, so an operator who edits one of these keeps the hash and would silently pair
-new statistics with old thresholds: the coverage guarantee would no longer hold. Every
-place that uses a version (prediction, activation, appending, the bundled bootstrap)
-checks it. Names, keypoint names and 3D keypoints do not change a score and may be edited.
+A version records the settings that turn an image and a box into the statistics behind a score
+(heatmap normalization, temperature, top-K and a fingerprint of the preprocessing). The model
+hash covers the ONNX bytes, not the manifest: an edit there would silently pair new statistics
+with old thresholds and void the guarantee, so every use of a version checks them. Names and 3D
+keypoints do not change a score and may be edited.
 """
 
 from __future__ import annotations
@@ -21,25 +18,21 @@ from service.detector.manifest import Manifest
 
 
 def scoring_settings(manifest: Manifest) -> dict:
-    """What stored scores depend on besides the model bytes (recorded with every version)."""
-    heatmap = manifest.heatmap
-    return {
-        "mode": heatmap.normalization,
-        "temperature": heatmap.temperature,
-        "top_k": heatmap.top_k,
-        "preprocessing": preprocessing_fingerprint(manifest),
-    }
-
-
-def preprocessing_fingerprint(manifest: Manifest) -> str:
-    """A short sha256 of the manifest fields that map an image and a box to heatmap channels."""
+    """What stored scores depend on besides the model bytes (recorded with every version); the
+    preprocessing is a short sha256 of the fields that map an image and a box to heatmap channels."""
     relevant = {
         "input": manifest.input.model_dump(mode="json", exclude={"name"}),
         "crop": manifest.crop.model_dump(mode="json"),
         "output": manifest.output.model_dump(mode="json", exclude={"name"}),
         "objects": [[spec.name, list(spec.keypoints)] for spec in manifest.objects],
     }
-    return hashlib.sha256(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:16]
+    heatmap = manifest.heatmap
+    return {
+        "mode": heatmap.normalization,
+        "temperature": heatmap.temperature,
+        "top_k": heatmap.top_k,
+        "preprocessing": hashlib.sha256(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:16],
+    }
 
 
 def incompatibility(recorded: Mapping, manifest: Manifest) -> str | None:
@@ -48,7 +41,10 @@ def incompatibility(recorded: Mapping, manifest: Manifest) -> str | None:
     changed = [key for key in current if recorded.get(key) != current[key]]
     if not changed:
         return None
-    described = ", ".join(f"{_label(key)} {recorded.get(key)!r} -> {current[key]!r}" for key in changed)
+    labels = {"preprocessing": "input/crop/output/object-channel fingerprint"}
+    described = ", ".join(
+        f"{labels.get(key, f'heatmap {key}')} {recorded.get(key)!r} -> {current[key]!r}" for key in changed
+    )
     return (
         f"it was scored under other manifest settings ({described}); "
         "calibrate a new version with the current manifest"
@@ -58,9 +54,3 @@ def incompatibility(recorded: Mapping, manifest: Manifest) -> str | None:
 def version_incompatibility(info: VersionInfo, manifest: Manifest) -> str | None:
     reason = incompatibility(info.normalization, manifest)
     return None if reason is None else f"calibration version {info.number} cannot be used: {reason}"
-
-
-def _label(key: str) -> str:
-    if key == "preprocessing":
-        return "input/crop/output/object-channel fingerprint"
-    return f"heatmap {key}"

@@ -1,9 +1,8 @@
 """Content hashes of calibration instances, and the repeats they reveal.
 
-A calibration set must be exchangeable with the images served: an instance counted twice
-weighs twice in every threshold, so n and the guarantee are wrong. Each stored instance
-keeps the sha256 of its image file and of the instance itself (image hash, object, box
-and labels), and a new batch is checked against itself and against the version it extends.
+An instance counted twice weighs twice in every threshold, so n and the guarantee are wrong.
+Each stored instance keeps the sha256 of its image file and of the instance (image hash, object,
+box, labels); a new batch is checked against itself and against the version it extends.
 """
 
 from __future__ import annotations
@@ -17,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from calibration_store import ScoreTable, SourceBatch
-from service.calibration.coco import CocoBatch, LabeledInstance, Rejection
+from service.calibration.coco import CocoBatch, Rejection
 
 #: stands for the hash of an instance stored before hashes were kept (never a repeat)
 UNKNOWN_DIGEST = "0" * 64
@@ -36,21 +35,18 @@ def fingerprints(batch: CocoBatch) -> tuple[Fingerprint, ...]:
         for image_id in {instance.image_id for instance in batch.instances}
     }
     return tuple(
-        Fingerprint(image_digests[i.image_id], _instance_digest(image_digests[i.image_id], i))
+        Fingerprint(
+            image := image_digests[i.image_id], instance_digest(image, i.object_name, i.bbox, i.keypoints)
+        )
         for i in batch.instances
     )
-
-
-def _instance_digest(image_digest: str, instance: LabeledInstance) -> str:
-    return instance_digest(image_digest, instance.object_name, instance.bbox, instance.keypoints)
 
 
 def instance_digest(image_digest: str, object_name: str, bbox: Sequence[float], keypoints: np.ndarray) -> str:
     """The content hash of one instance: its image's, object, box and labels ((K, 2), NaN: none)."""
     labels = [[None if np.isnan(v) else float(v) for v in row] for row in keypoints]
     canonical = json.dumps(
-        [image_digest, object_name, [float(v) for v in bbox], labels],
-        separators=(",", ":"),
+        [image_digest, object_name, [float(v) for v in bbox], labels], separators=(",", ":")
     )
     return hashlib.sha256(canonical.encode()).hexdigest()
 
@@ -63,11 +59,9 @@ def find_repeats(
     parent_sources: Iterable[SourceBatch] = (),
     parent_number: int | None = None,
 ) -> list[Rejection]:
-    """Instances of ``batch`` already counted: inside the batch or in the version it extends.
-
-    An image file that appears under two image ids, or that the parent version already
-    holds, repeats every instance on it; so does a batch whose sha256 the parent lists.
-    """
+    """Instances of ``batch`` already counted, inside the batch or in the version it extends (an
+    image file under two ids, or held by the parent, repeats every instance on it; so does a
+    batch whose sha256 the parent lists)."""
     where = f"version {parent_number}"
     for source in parent_sources:
         if source.sha256 == batch_sha256:
@@ -100,9 +94,8 @@ def instance_digests(table: ScoreTable) -> set[str]:
 
 
 def content_key(table: ScoreTable, strata: Iterable[str], scoring: Mapping[str, Any]) -> str | None:
-    """What makes two versions equal, as one sha256 (the store keeps one version per key): the
-    same instances, the same kinds of strata, scored under the same settings. None when an
-    instance's hash is unknown (stored before hashes were kept): nothing to compare."""
+    """What makes two versions equal (the same instances, kinds of strata and scoring settings) as
+    one sha256, the store keeping one version per key; None when an instance's hash is unknown."""
     instances = instance_digests(table)
     if len(instances) != table.n_instances:
         return None

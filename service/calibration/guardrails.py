@@ -1,19 +1,12 @@
 """Activation guardrails: compare a candidate version with the active one before it goes live.
 
-Thresholds from a small or unrepresentative batch would go live for every request, so an
-activation is refused when any keypoint's n falls below a floor (setting
-``CKS_MIN_CALIBRATION_INSTANCES``) or below half of the active version's, unless the
-operator forces it with a reason. The comparison is also what a dry run shows.
-
-Per keypoint, at a reference epsilon and nonconformity function:
-- n before and after, and the smallest epsilon whose sets stay bounded: t >= 1 needs
-  floor((n + 1) epsilon) >= 1, i.e. epsilon >= 1 / (n + 1);
-- the area ratio of the sets, candidate over active, for the same heatmap: set radii grow
-  linearly with the threshold for ``peak`` and ``var`` (area: its square) and ellipse areas
-  linearly for ``cov``;
-- the active version's coverage of the candidate's own scores: the share of the candidate's
-  calibration scores inside the active sets (near 1 - epsilon when both batches come from
-  the same distribution; far below warns of a shift).
+Thresholds from a small batch would go live for every request, so an activation is refused when
+a keypoint's n falls below CKS_MIN_CALIBRATION_INSTANCES or below half of the active version's,
+unless forced with a reason. Per keypoint, at a reference epsilon and function, it shows n before
+and after; the smallest epsilon with bounded sets (t >= 1 needs eps >= 1 / (n + 1)); the sets'
+area ratio, candidate over active (radii grow linearly with the threshold for ``peak`` and
+``var``, ellipse areas for ``cov``); and the active sets' coverage of the candidate's scores (near
+1 - eps for one distribution; far below warns of a shift).
 """
 
 from __future__ import annotations
@@ -27,7 +20,6 @@ from calibration_store import ScoreTable
 from service.calibration.registry import ChannelThresholds, channel_thresholds
 from service.detector.manifest import KeypointSpec, Manifest
 
-MIN_INSTANCES_SETTING = "CKS_MIN_CALIBRATION_INSTANCES"
 REFERENCE_EPSILON = 0.1
 REFERENCE_NONCONFORMITY = "cov"
 #: a keypoint's n may not fall below this share of the active version's
@@ -84,10 +76,13 @@ def compare(
     """Compare per keypoint and list the reasons an activation would be refused."""
     k = manifest.num_keypoints
     after = channel_thresholds(candidate, k, nonconformity, "keypoint", epsilon, None)
-    before = None
-    if active is not None:
-        before = channel_thresholds(active, k, nonconformity, "keypoint", epsilon, None)
-    columns = _score_columns(candidate, nonconformity, k)
+    before = (
+        None if active is None else channel_thresholds(active, k, nonconformity, "keypoint", epsilon, None)
+    )
+    columns = [np.empty(0)] * k  # the candidate's scores per channel (empty: no block for it)
+    for block in candidate.objects:
+        for j, channel in enumerate(block.keypoint_ids):
+            columns[int(channel)] = block.scores[nonconformity][:, j]
     changes, problems = [], []
     for spec in manifest.keypoints:
         change = _change(spec, after, before, columns[spec.index], nonconformity)
@@ -116,18 +111,23 @@ def _change(
     c = spec.index
     n_after = after.guarantees[c].n
     if before is None:
-        epsilon_after = _smallest_epsilon(n_after)
-        return KeypointChange(spec.name, spec.object, None, n_after, None, epsilon_after, None, None)
-    n_before = before.guarantees[c].n
+        return KeypointChange(
+            spec.name, spec.object, None, n_after, None, _smallest_epsilon(n_after), None, None
+        )
+    n_before, threshold = before.guarantees[c].n, before.values[c]
+    labeled = scores[~np.isnan(scores)]
+    ratio = None
+    if math.isfinite(after.values[c]) and math.isfinite(threshold) and threshold > 0:
+        ratio = float((after.values[c] / threshold) ** _AREA_POWER[nonconformity])
     return KeypointChange(
-        keypoint=spec.name,
-        object=spec.object,
-        n_before=n_before,
-        n_after=n_after,
-        smallest_bounded_epsilon_before=_smallest_epsilon(n_before),
-        smallest_bounded_epsilon_after=_smallest_epsilon(n_after),
-        set_area_ratio=_area_ratio(after.values[c], before.values[c], nonconformity),
-        active_coverage_of_candidate=_coverage(scores, before.values[c]),
+        spec.name,
+        spec.object,
+        n_before,
+        n_after,
+        _smallest_epsilon(n_before),
+        _smallest_epsilon(n_after),
+        ratio,
+        float(np.mean(labeled <= threshold)) if labeled.size else None,
     )
 
 
@@ -144,7 +144,7 @@ def _problems(name: str, n_before: int | None, n_after: int, min_instances: int)
     """The keypoint's problem, one line whatever rules it breaks (none: an empty list)."""
     reasons = []
     if n_after < min_instances:
-        reasons.append(f"below the floor of {min_instances} ({MIN_INSTANCES_SETTING})")
+        reasons.append(f"below the floor of {min_instances} (CKS_MIN_CALIBRATION_INSTANCES)")
     if n_before is not None and n_after < LARGEST_DROP * n_before:
         reasons.append(f"below half of the active version's {n_before}")
     if not reasons:
@@ -155,24 +155,3 @@ def _problems(name: str, n_before: int | None, n_after: int, min_instances: int)
 def _smallest_epsilon(n: int) -> float | None:
     """The smallest epsilon with a bounded set (t >= 1), None when no epsilon < 1 gives one."""
     return 1.0 / (n + 1) if n >= 1 else None
-
-
-def _area_ratio(after: float, before: float, nonconformity: str) -> float | None:
-    if not (math.isfinite(after) and math.isfinite(before)) or before <= 0:
-        return None
-    return float((after / before) ** _AREA_POWER[nonconformity])
-
-
-def _coverage(scores: np.ndarray, threshold: float) -> float | None:
-    labeled = scores[~np.isnan(scores)]
-    return float(np.mean(labeled <= threshold)) if labeled.size else None
-
-
-def _score_columns(table: ScoreTable, nonconformity: str, num_keypoints: int) -> list[np.ndarray]:
-    """The scores of each keypoint channel (empty for channels the table has no block for)."""
-    columns = [np.empty(0)] * num_keypoints
-    for block in table.objects:
-        matrix = block.scores[nonconformity]
-        for j, channel in enumerate(block.keypoint_ids):
-            columns[int(channel)] = matrix[:, j]
-    return columns

@@ -1,12 +1,11 @@
-"""From a received upload to a validated batch, or a 4xx: everything that can refuse a batch
-runs here, before an upload's 202, so a batch that would be refused never becomes a job.
+"""From a received upload to a validated batch, or a 4xx: everything that can refuse a batch runs
+here, before an upload's 202, so a batch that would be refused never becomes a job.
 
-Read top-down, ``Intake.take_in``: unzip within the limits and the disk budget, read the COCO
-file against the manifest, check the version to append to and read its scores (once: they
-travel with the batch to its job), refuse stratify=group without group labels, refuse
-repeats (inside the batch or in the parent; dropped instead with ``dedupe``), more
-instances rejected by the box rule than the caller allows, and a batch that would make a
-version equal to a stored one (unless ``allow_duplicate``, with a reason).
+``Intake.take_in``: unzip within the limits and the disk budget, read the COCO file against the
+manifest, read the version appended to (once: its scores travel with the batch to its job),
+refuse stratify=group without group labels, repeats (dropped instead with ``dedupe``), more
+instances rejected by the box rule than allowed, and a batch that would make a version equal to a
+stored one (unless ``allow_duplicate``, with a reason).
 """
 
 from __future__ import annotations
@@ -17,19 +16,18 @@ from pathlib import Path
 from typing import Any
 
 from calibration_store import CalibrationStore, ScoreTable, VersionInfo, VersionNotFound
-from service.calibration.archive import ArchiveLimits, DiskBudget, extract_zip
+from service.calibration.archive import DiskBudget, extract_zip
 from service.calibration.coco import CocoBatch, NamedBatch, Rejection, load_coco_batch
 from service.calibration.compatibility import version_incompatibility
 from service.calibration.fingerprints import Fingerprint, find_repeats, fingerprints, instance_digests
 from service.calibration.stratification import DIFFICULTY, GROUP, describe_kinds, parse_stratify, stored_kinds
 from service.detector.session import Detector
-from service.errors import Conflict, InvalidInput, NotFound, disk_full_refused
+from service.errors import Conflict, InvalidInput, NotFound, capped, disk_full_refused
 
 #: how many repeats or rejections a refusal lists (the count is always given)
 LISTED = 20
-REJECTED_SHARE_SETTING = "CKS_MAX_REJECTED_SHARE"
-#: where a received zip is unzipped, beside it
-UNZIPPED = "batch"
+#: share of a batch's instances the box rule may reject, unless the upload says otherwise
+MAX_REJECTED_SHARE = 0.0
 
 
 @dataclass(frozen=True)
@@ -44,7 +42,7 @@ class UploadOptions:
     reason: str = ""
     dedupe: bool = False
     allow_duplicate: bool = False
-    max_rejected_share: float | None = None  # None: CKS_MAX_REJECTED_SHARE
+    max_rejected_share: float | None = None  # None: MAX_REJECTED_SHARE
     stratify: frozenset[str] | None = None  # None: difficulty strata when the scores carry heatmap features
 
     def __post_init__(self) -> None:
@@ -61,13 +59,12 @@ class UploadOptions:
                 " say why a version equal to a stored one is wanted"
             )
 
-    def rejected_share(self, default: float) -> float:
-        return default if self.max_rejected_share is None else self.max_rejected_share
+    @property
+    def rejected_share(self) -> float:
+        return MAX_REJECTED_SHARE if self.max_rejected_share is None else self.max_rejected_share
 
     def as_json(self) -> dict[str, Any]:
-        kept = asdict(self)
-        kept["stratify"] = None if self.stratify is None else sorted(self.stratify)
-        return kept
+        return {**asdict(self), "stratify": None if self.stratify is None else sorted(self.stratify)}
 
     @classmethod
     def from_json(cls, kept: dict[str, Any]) -> UploadOptions:
@@ -111,9 +108,8 @@ class ValidatedBatch:
 
 @dataclass(frozen=True)
 class IntakeRules:
-    limits: ArchiveLimits
-    disk: DiskBudget | None
-    max_rejected_share: float
+    disk: DiskBudget | None = None
+    max_rejected_share: float = MAX_REJECTED_SHARE
 
 
 class Intake:
@@ -130,24 +126,20 @@ class Intake:
 
     def take_in(self, archive: Path, sha256: str, options: UploadOptions) -> ValidatedBatch:
         """A received zip (its body's ``sha256``) -> a batch ready to score, or a 4xx."""
-        named = self.unpack(archive, sha256, options.name)
-        return self.validate(named, options)
+        return self.validate(self.unpack(archive, sha256, options.name), options)
 
     def unpack(self, archive: Path, sha256: str, name: str | None) -> NamedBatch:
-        """Unzip beside the zip within the limits and the disk budget (the zip is removed), then
-        read the COCO batch."""
-        named_as = batch_name(name, sha256)  # refused before anything is unzipped
+        """Unzip beside the zip (then removed) within the limits and the disk budget, and read it."""
+        batch_name(name, sha256)  # refused before anything is unzipped
         with disk_full_refused("the unzipped upload"):  # what was unzipped is removed
-            unzipped = extract_zip(archive, archive.parent / UNZIPPED, self._rules.limits, self._rules.disk)
+            unzipped = extract_zip(archive, archive.parent / "batch", disk=self._rules.disk)
         archive.unlink()
-        return NamedBatch(named_as, sha256, self._load(unzipped))
+        return self.read(unzipped, sha256, name)
 
     def read(self, folder: Path, sha256: str, name: str | None) -> NamedBatch:
         """The COCO batch of an unzipped ``folder`` (a kept upload), validated against the manifest."""
-        return NamedBatch(batch_name(name, sha256), sha256, self._load(folder))
-
-    def _load(self, folder: Path) -> CocoBatch:
-        return load_coco_batch(folder, self._detector.manifest, self._rules.limits.annotations)
+        batch = load_coco_batch(folder, self._detector.manifest, bounded=True)
+        return NamedBatch(batch_name(name, sha256), sha256, batch)
 
     def validate(self, named: NamedBatch, options: UploadOptions) -> ValidatedBatch:
         """The parent read once, then the rules that refuse a batch before it is scored."""
@@ -156,13 +148,11 @@ class Intake:
             parent = read_parent(self._store, self._detector, options.append_to, self._scores)
         if options.stratify is not None and GROUP in options.stratify:
             check_group_labels(named, parent)
-        share = options.rejected_share(self._rules.max_rejected_share)
-        batch = check_batch(named, parent, dedupe=options.dedupe, max_rejected_share=share)
+        batch = check_batch(named, parent, dedupe=options.dedupe, max_rejected_share=options.rejected_share)
         return replace(batch, duplicate_of=self.duplicate_of(batch, options))
 
     def duplicate_of(self, batch: ValidatedBatch, options: UploadOptions) -> int | None:
-        """The stored version the batch would repeat (the same instances, the same strata asked),
-        refused (409) unless ``allow_duplicate``; None when it repeats none."""
+        """The stored version the batch would repeat (409 unless ``allow_duplicate``), or None."""
         instances = {p.instance for p in batch.fingerprints}
         count = len(batch.fingerprints)
         if batch.parent is not None:
@@ -184,9 +174,11 @@ def equal_version(
     if len(instances) != count:  # instances stored before hashes were kept: nothing to compare
         return None
     for info in store.list_versions(detector.model_hash):
+        stored = stored_kinds(info.strata)
+        same_strata = stored <= {DIFFICULTY} if options.stratify is None else stored == options.stratify
         if (
             info.n_instances == count
-            and _same_strata(stored_kinds(info.strata), options.stratify)
+            and same_strata
             and version_incompatibility(info, detector.manifest) is None
             and instance_digests(scores(info.number)) == instances
         ):
@@ -239,11 +231,10 @@ def check_batch(
     named: NamedBatch, parent: Parent | None, *, dedupe: bool, max_rejected_share: float
 ) -> ValidatedBatch:
     """Refuse repeats (409, unless ``dedupe`` drops them) and too many rejected instances (422)."""
-    batch = named.batch
+    batch: CocoBatch = named.batch
     prints = fingerprints(batch)
     sources = parent.info.source_batches if parent else ()
-    number = parent.info.number if parent else None
-    table = parent.scores if parent else None
+    table, number = (parent.scores, parent.info.number) if parent else (None, None)
     repeats = find_repeats(batch, prints, named.sha256, table, sources, number)
     if repeats and not dedupe:
         raise repeats_refused(repeats, batch.count)
@@ -256,9 +247,8 @@ def check_batch(
     check_rejected_share(batch.rejected, batch.annotations, max_rejected_share)
     if not kept:
         raise InvalidInput("no instance of the batch is left to calibrate with once repeats are dropped")
-    instances = tuple(i for i, _ in kept)
     return ValidatedBatch(
-        named=replace(named, batch=replace(batch, instances=instances)),
+        named=replace(named, batch=replace(batch, instances=tuple(i for i, _ in kept))),
         fingerprints=tuple(p for _, p in kept),
         repeats_dropped=len(repeats),
         rejected=batch.rejected,
@@ -270,22 +260,14 @@ def check_rejected_share(rejected: Sequence[Rejection], total: int, max_share: f
     """422 listing the rejections when more than ``max_share`` of ``total`` instances were rejected."""
     if not rejected or len(rejected) <= max_share * total:
         return
-    listed = [r.describe() for r in rejected[:LISTED]]
-    if len(rejected) > LISTED:
-        listed.append(f"... and {len(rejected) - LISTED} more")
+    listed = capped([r.describe() for r in rejected], LISTED)
     raise InvalidInput(
         f"{len(rejected)} of {total} instances were rejected (first: {listed[0]}), more than the allowed"
-        f" share of {max_share:g} (max_rejected_share, default {REJECTED_SHARE_SETTING}); fix them, or"
+        f" share of {max_share:g} (max_rejected_share, default {MAX_REJECTED_SHARE:g}); fix them, or"
         " allow a larger share to calibrate without them",
         errors=listed,
         extensions={"rejected": len(rejected), "instances": total},
     )
-
-
-def _same_strata(stored: frozenset[str], asked: frozenset[str] | None) -> bool:
-    """Whether a version stored with ``stored`` strata is what ``asked`` would make (None: the
-    default, difficulty strata when the scores carry heatmap features)."""
-    return stored <= {DIFFICULTY} if asked is None else stored == asked
 
 
 def duplicate_refused(version: int, count: int, stratify: frozenset[str] | None) -> Conflict:
@@ -300,9 +282,7 @@ def duplicate_refused(version: int, count: int, stratify: frozenset[str] | None)
 
 def repeats_refused(repeats: Sequence[Rejection], count: int) -> Conflict:
     """409 listing the repeats (anything with ``describe()``), or dropping them with dedupe."""
-    listed = [r.describe() for r in repeats[:LISTED]]
-    if len(repeats) > LISTED:
-        listed.append(f"... and {len(repeats) - LISTED} more")
+    listed = capped([r.describe() for r in repeats], LISTED)
     return Conflict(
         f"{len(repeats)} of {count} instances are already counted (first: {listed[0]}): each instance"
         " may enter a calibration once. Remove them, or drop them with dedupe=true (CLI: --dedupe)",

@@ -1,14 +1,10 @@
-"""Calibration uploads as background jobs on the job engine (service.infra.job_engine):
-accepted after the intake (``CalibrationJobs.accept``), run as one step that turns the
-validated batch into a version (``CalibrationJobs._job``), retried from their kept upload when
-a crash interrupted them or a full disk failed them (``CalibrationJobs.retry``), and taken over
-by a replica that can read the kept upload once the process running them stopped
-(``CalibrationJobs.take_over``).
+"""Calibration uploads as jobs of the job engine (``infra.job_engine``): accepted after the
+intake, run as one step that turns the validated batch into a version, retried from their kept
+upload (``<data>/jobs/<job id>``) when a crash interrupted them or a full disk failed them, and
+taken over by a replica that can read the kept upload once their process stopped.
 
-A version is written in the job's last step, in the same transaction that marks the job
-succeeded (versions.create_version), so an interrupted job stored nothing; its upload is kept
-(``<data>/jobs/<job id>``) and it can be retried. A retry marks the interrupted job finished
-first, so the process presumed dead can no longer complete it.
+A version is written in the transaction that marks its job succeeded, so an interrupted job stored
+nothing; a retry marks it finished first, so a process presumed dead can no longer complete it.
 """
 
 from __future__ import annotations
@@ -32,8 +28,6 @@ from service.infra.processes import process_owner
 
 log = logging.getLogger(__name__)
 JOB_KIND = "calibration"
-#: who retries a job of a stopped process in the audit trail (the client: the process that did)
-TAKEOVER_OPERATOR = "takeover"
 
 
 @dataclass(frozen=True)
@@ -44,7 +38,7 @@ class JobSettings:
 
 
 class DetectorJobs:
-    """What accepting and running background jobs over one detector's calibrations needs."""
+    """What background jobs over one detector's calibrations need."""
 
     def __init__(
         self,
@@ -82,16 +76,15 @@ class CalibrationJobs(DetectorJobs):
             raise
 
     def take_over(self, job: JobRecord) -> bool:
-        """Retry a job whose process stopped, as a new job, when its upload is kept in this
-        server's data directory (False when it is not: another server received it)."""
+        """Retry a job whose process stopped when its upload is kept here (False: another server
+        received it); the audit names the process that did."""
         if not JobFolder.of(self._settings.jobs_dir, job.id).exists():
             return False
-        self.retry(job.id, Operator(TAKEOVER_OPERATOR, client=process_owner()))
+        self.retry(job.id, Operator("takeover", client=process_owner()))
         return True
 
     def retry(self, job_id: str, operator: Operator) -> JobRecord:
-        """Run an interrupted job, or one failed for a full disk, again as a new job, from its
-        kept upload."""
+        """Run an interrupted job, or one failed for a full disk, again as a new job from its upload."""
         job = self._retryable(job_id)
         old = JobFolder.of(self._settings.jobs_dir, job_id)
         if not old.exists():
@@ -129,8 +122,9 @@ class CalibrationJobs(DetectorJobs):
         def job(progress: JobProgress) -> dict[str, Any]:
             return self._job(folder, batch, options, operator, progress)
 
-        count = batch.named.batch.count
-        return self._runner.submit(JOB_KIND, job, count, job_id=folder.job_id, audit=(accepted,))
+        return self._runner.submit(
+            JOB_KIND, job, batch.named.batch.count, job_id=folder.job_id, audit=(accepted,)
+        )
 
     def _job(
         self,
@@ -144,17 +138,10 @@ class CalibrationJobs(DetectorJobs):
         try:
             if batch.duplicate_of is None:  # a twin accepted beside it may have been stored since
                 self._intake.duplicate_of(batch, options)  # 409 (the job fails) unless allowed
+            store, detector, rules, audit = self._store, self._detector, self._settings.versions, self._audit
+            parent, advance = batch.parent, progress.advance
             outcome = create_version(
-                self._store,
-                self._detector,
-                [batch],
-                batch.parent,
-                options,
-                operator,
-                self._settings.versions,
-                self._audit,
-                progress.advance,
-                job_id=folder.job_id,
+                store, detector, [batch], parent, options, operator, rules, audit, advance, folder.job_id
             )
         except (JobCancelled, JobFinished):  # interrupted: its upload is kept
             raise
@@ -176,8 +163,7 @@ class CalibrationJobs(DetectorJobs):
         return outcome.summary
 
     def _retryable(self, job_id: str) -> JobRecord:
-        """The job to retry: an interrupted calibration job, or one failed for a full disk (404
-        or 409 otherwise)."""
+        """The job to retry: an interrupted calibration job, or one failed for a full disk."""
         job = self._runner.get(job_id)
         if job is None:
             raise NotFound(f"no job {job_id!r}: it never existed or was pruned")
@@ -193,8 +179,8 @@ class CalibrationJobs(DetectorJobs):
         return job
 
     def _take_over(self, job: JobRecord, new_id: str) -> None:
-        """Mark a job reported interrupted finished (so its old process can no longer complete it);
-        one that its stopping server marked interrupted already is left as it is (finished)."""
+        """Mark a job reported interrupted finished, so its old process can no longer complete it
+        (one its stopping server marked interrupted already is left as it is)."""
         try:
             self._store.update_job(
                 job.id,

@@ -1,13 +1,12 @@
-"""The served model's calibrations, held in memory: the active version with its scores, and
-cached thresholds per version.
+"""The served model's calibrations in memory: the active version with its scores, and cached
+thresholds per version.
 
-A poller thread reads the store every ``poll_seconds`` (the active version when the store's
-change counter moves; a newly active version's scores are loaded before it is served), which
-is how replicas see each other's activations. Requests read only what the poller left in
-memory, so the active version never waits on the store: while the store is away the last
-good state keeps being served and ``health()`` says how stale it is. Versions are immutable,
-so scores and thresholds are cached by version number and never invalidated; a request
-naming a version not in memory loads it from the store (503 while the store is away).
+A poller thread reads the store every ``poll_seconds`` (the active version when its change
+counter moves; a new active version's scores are loaded before it is served): that is how
+replicas see each other's activations. Requests read only memory, so the active version never
+waits on the store: while it is away the last good state is served and ``health()`` says how
+stale it is. Versions are immutable, so their scores and thresholds are cached for good; a
+request naming a version not in memory loads it (503 while the store is away).
 """
 
 from __future__ import annotations
@@ -45,6 +44,10 @@ log = logging.getLogger(__name__)
 
 #: score tables of versions other than the active one kept in memory
 CACHED_TABLES = 8
+#: how often the store is polled for a new active version
+POLL_SECONDS = 1.0
+#: longest wait for the store (its connection, statement, lock or round trip) before it counts as away
+STORE_TIMEOUT_SECONDS = 1.5
 
 
 @dataclass(frozen=True)
@@ -58,11 +61,9 @@ class ChannelThresholds:
 def channel_thresholds(
     table: ScoreTable, num_keypoints: int, kind: str, scope: str, epsilon: float, delta: float | None
 ) -> ChannelThresholds:
-    """Thresholds for every keypoint channel; a channel without calibration data is unbounded.
-
-    ``keypoint`` scope calibrates each keypoint column on its labeled instances; ``object``
-    scope calibrates the max over each fully labeled instance, one threshold per object.
-    """
+    """Thresholds for every keypoint channel (unbounded without calibration data): per keypoint
+    column on its labeled instances, or (``object`` scope) on the max over each fully labeled
+    instance, one threshold per object."""
     values = np.full(num_keypoints, np.inf)
     guarantees = [coverage_guarantee(0, epsilon, delta)] * num_keypoints
     for block in table.objects:
@@ -80,8 +81,6 @@ def channel_thresholds(
 
 @dataclass(frozen=True)
 class StoreHealth:
-    """What the poller last learned from the store."""
-
     reachable: bool
     age_seconds: float  # since the store last answered a poll: how stale the cached state may be
     error: str | None  # why the store is unreachable (None while it answers)
@@ -89,10 +88,8 @@ class StoreHealth:
 
 @dataclass(frozen=True)
 class _Served:
-    """The active version and its scores (None when there is none, or it cannot be used)."""
-
     version: int | None
-    table: ScoreTable | None
+    table: ScoreTable | None  # None when there is no active version, or it cannot be used
 
 
 @dataclass(frozen=True)
@@ -109,8 +106,8 @@ class CalibrationRegistry:
         store: CalibrationStore,
         model_hash: str,
         manifest: Manifest,
-        poll_seconds: float,
-        store_timeout_seconds: float,
+        poll_seconds: float = POLL_SECONDS,
+        store_timeout_seconds: float = STORE_TIMEOUT_SECONDS,
     ) -> None:
         self.store = store
         self.model_hash = model_hash
@@ -156,13 +153,13 @@ class CalibrationRegistry:
         return StoreHealth(reachable=error is None, age_seconds=now - polled.answered_at, error=error)
 
     def require_store(self) -> None:
-        """503 at once while the polls find the store unreachable: a call needing the store
-        would only wait for its timeout. The first poll the store answers lifts it."""
+        """503 at once while the polls find the store unreachable (a call would only wait for its
+        timeout), until a poll reaches it."""
         health = self.health()
         if not health.reachable:
             raise StoreUnreachable(
                 f"the calibration store is unreachable ({health.error}); calls that need it answer again"
-                f" within about {self._poll_seconds:g} s of its return (CKS_STORE_POLL_SECONDS). Predictions"
+                f" within about {self._poll_seconds:g} s of its return. Predictions"
                 f" keep using the active calibration version {self.active_version()} from memory",
                 self.retry_after_s,
             )
@@ -182,12 +179,9 @@ class CalibrationRegistry:
         return self.active_version()
 
     def resolve(self, version: int | None) -> int:
-        """The version a request asked for, or the active one, checked usable for this manifest.
-
-        A named version: 404 if missing, 409 if scored under other manifest settings, 503 if it
-        is not in memory and the store is away. The active one: 503 if there is none or it is
-        unusable (the caller did nothing wrong).
-        """
+        """The version a request asked for (404 if missing, 409 if scored under other manifest
+        settings, 503 if not in memory while the store is away), or the active one (503 if there
+        is none or it is unusable), checked usable for this manifest."""
         if version is not None:
             self._load_named(version)
             return version
@@ -247,8 +241,8 @@ class CalibrationRegistry:
             return self._strata[version]
 
     def _load_named(self, version: int) -> None:
-        """Check a version a request names and have its scores in memory. The store is not tried
-        while the polls find it unreachable: the request would hold its slot for the timeout."""
+        """Check a version a request names and load its scores; the store is not tried while the
+        polls find it unreachable (the request would hold its slot for the timeout)."""
         try:
             health = self.health()
             if not health.reachable and not self._in_memory(version):
@@ -281,8 +275,8 @@ class CalibrationRegistry:
                 log.exception("polling the calibration store failed")
 
     def _poll(self, force: bool) -> None:
-        """Read the store's change counter, and the active version when it moved; the caller holds
-        the poll lock. A store failure is recorded (health) and raised; what is served stays."""
+        """Read the change counter, and the active version when it moved (the caller holds the poll
+        lock); a store failure is recorded (health) and raised, what is served stays."""
         began = time.monotonic()
         self._polling_since = began
         try:

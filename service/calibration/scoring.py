@@ -27,8 +27,7 @@ NONCONFORMITY_KINDS = tuple(NONCONFORMITY_SCORES)
 
 @dataclass(frozen=True)
 class InstanceScores:
-    """One labeled instance's nonconformity scores (NaN = unlabeled keypoint) and the
-    label-free heatmap features of all its keypoints, each ``(K,)``."""
+    """One instance's scores per function (NaN: unlabeled) and heatmap features, each ``(K,)``."""
 
     scores: dict[str, np.ndarray]
     features: dict[str, np.ndarray]
@@ -49,9 +48,8 @@ _UNKNOWN = Fingerprint(UNKNOWN_DIGEST, UNKNOWN_DIGEST)
 
 
 class ScoreAccumulator:
-    """Collects per-instance score rows, features, group labels and fingerprints by object,
-    then freezes them into a ScoreTable (instances stored before fingerprints were kept get
-    UNKNOWN_DIGEST; features are kept only when every instance has them)."""
+    """Collects per-instance scores, features, group labels and fingerprints by object into a
+    ScoreTable (features only when every instance has them)."""
 
     def __init__(self) -> None:
         self._objects: dict[str, _ObjectRows] = {}
@@ -123,29 +121,22 @@ def _block(name: str, rows: _ObjectRows) -> ObjectScores:
 def score_image(
     detector: Detector, image_bgr: np.ndarray, instances: list[LabeledInstance]
 ) -> list[InstanceScores]:
-    """Per instance: per nonconformity function the scores of its keypoints (NaN =
-    unlabeled), and the label-free heatmap features of all its keypoints."""
+    """Per instance: the scores of its keypoints per function (NaN: unlabeled) and their features."""
     boxes = np.stack([inst.bbox for inst in instances])
     result = detector.infer(image_bgr, boxes, [inst.object_name for inst in instances])
     labels = np.concatenate([inst.keypoints for inst in instances])  # same row order as result
     labels_hm = apply_affines(result.affines[result.instance_index], labels)
     spec = detector.manifest.heatmap
-    statistics = heatmap_statistics(result.heatmaps, spec.normalization, spec.top_k, spec.temperature)
-    features = heatmap_features(statistics)
+    options = (spec.normalization, spec.top_k, spec.temperature)
+    features = heatmap_features(heatmap_statistics(result.heatmaps, *options))
     labeled = ~np.isnan(labels_hm).any(axis=1)
     per_kind = {}
     for kind in NONCONFORMITY_KINDS:
-        scores = np.full(len(labels), np.nan)
+        scores = per_kind[kind] = np.full(len(labels), np.nan)
         if labeled.any():
             scores[labeled] = nonconformity_scores(
-                kind,
-                result.heatmaps[labeled],
-                labels_hm[labeled],
-                normalization=spec.normalization,
-                top_k=spec.top_k,
-                temperature=spec.temperature,
+                kind, result.heatmaps[labeled], labels_hm[labeled], *options
             )
-        per_kind[kind] = scores
     bounds = np.cumsum([0] + [len(inst.keypoints) for inst in instances])
     return [
         InstanceScores(
@@ -165,14 +156,10 @@ def score_batch(
     progress: Callable[[int], None] = lambda count: None,
     fingerprints: tuple[Fingerprint, ...] = (),
 ) -> list[Rejection]:
-    """Score every instance of a validated COCO batch into ``accumulator``, image by image.
-
-    An image that does not decode strictly (the predict rule) is left out with its
-    instances, which are returned as rejections naming the file and the reason.
-    ``fingerprints`` align with ``batch.instances`` (empty: unknown). ``progress`` is told
-    after each image how many instances it held; an exception it raises stops scoring
-    there (a job's progress raises ``JobCancelled`` when the service stops).
-    """
+    """Score a validated batch into ``accumulator`` image by image; an image that does not decode
+    strictly (the predict rule) is left out, its instances returned as rejections. ``fingerprints``
+    align with ``batch.instances`` (empty: unknown); ``progress`` hears after each image how many
+    instances it held, and may stop scoring by raising (``JobCancelled``)."""
     manifest = detector.manifest
     prints = dict(zip(((i.image_id, i.annotation_id) for i in batch.instances), fingerprints, strict=False))
     rejected = []

@@ -1,9 +1,6 @@
-"""Where received uploads live on disk.
-
-An upload is received into this process's workspace folder (removed if the process
-dies mid-upload), then moved to ``<data>/jobs/<job id>`` where it stays until its job
-succeeds or fails: a job interrupted by a crash or a restart, or failed for a full disk,
-keeps it and can be retried (``retryable``).
+"""Where received uploads live on disk: in this process's workspace folder while received (removed
+if the process dies), then in ``<data>/jobs/<job id>`` until the job succeeds or fails; a job
+interrupted by a crash, or failed for a full disk, keeps it and can be retried.
 """
 
 from __future__ import annotations
@@ -25,10 +22,8 @@ log = logging.getLogger(__name__)
 
 
 def process_uploads_dir(uploads_dir: Path, pid: int | None = None) -> Path:
-    """This process's folder of upload workspaces: ``<uploads>/<host>--<pid>``, removed when it
-    stops (uploads of jobs cancelled at shutdown); a starting server removes dead processes'
-    folders (``remove_dead_process_folders``): a version is written in one transaction at the
-    end of a job, so an orphaned upload was never stored."""
+    """This process's folder of upload workspaces, removed when it stops; a starting server removes
+    dead processes' (an orphaned upload was never stored: a version is one transaction)."""
     return process_folder(uploads_dir, pid)
 
 
@@ -54,8 +49,7 @@ class UploadWorkspace:
 
 @dataclass(frozen=True)
 class JobFolder:
-    """The upload of one calibration job and the request that came with it, kept until the
-    job succeeds or fails, so an interrupted job can be retried."""
+    """The upload of one calibration job and its request, kept until the job succeeds or fails."""
 
     root: Path
 
@@ -96,8 +90,8 @@ class JobFolder:
 
 
 def remove_spent_job_folders(jobs_dir: Path, store: CalibrationStore) -> None:
-    """Remove kept uploads nobody can retry: of jobs that succeeded or failed (unless retryable),
-    pruned jobs, and folders a crash left before their job was recorded."""
+    """Remove kept uploads nobody can retry: of finished jobs (unless retryable), pruned jobs, and
+    folders a crash left before their job was recorded."""
     if not jobs_dir.is_dir():
         return
     for root in jobs_dir.iterdir():

@@ -17,14 +17,8 @@ def statistics_for(
     temperature: float = 1.0,
 ) -> HeatmapStatistics:
     """Only the statistics ``score`` needs (the peak alone skips the top-K selection)."""
-    return heatmap_statistics(
-        heatmaps,
-        normalization,
-        top_k,
-        temperature,
-        include_peak=score.needs_peak,
-        include_spread=score.needs_spread,
-    )
+    needs = {"include_peak": score.needs_peak, "include_spread": score.needs_spread}
+    return heatmap_statistics(heatmaps, normalization, top_k, temperature, **needs)
 
 
 def nonconformity_scores(
@@ -35,10 +29,8 @@ def nonconformity_scores(
     top_k: int = DEFAULT_TOP_K,
     temperature: float = 1.0,
 ) -> np.ndarray:
-    """Scores (N,) float64 of keypoints (N, 2) (x, y heatmap coords) under heatmaps (N, H, W).
-
-    An unlabeled keypoint (NaN) gets a NaN score, which thresholds ignore.
-    """
+    """Scores (N,) float64 of keypoints (N, 2) (x, y heatmap coords; NaN: unlabeled, NaN score)
+    under heatmaps (N, H, W)."""
     heatmaps = as_raw_batch(heatmaps)
     keypoints = np.asarray(keypoints, dtype=np.float64)
     if keypoints.shape != (heatmaps.shape[0], 2):
@@ -56,13 +48,16 @@ def prediction_sets(
     top_k: int = DEFAULT_TOP_K,
     temperature: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """ICP sets (eq. 3): centres (N, 2) and shapes L (N, 2, 2), (y-c)^T L (y-c) <= 1.
-
-    ``threshold`` is one float or one per heatmap (N,); ``math.inf`` (unbounded)
-    gives L = 0.
-    """
+    """ICP sets (eq. 3): centres (N, 2) and shapes L (N, 2, 2), (y-c)^T L (y-c) <= 1, for one
+    threshold or one per heatmap (``math.inf``, unbounded: L = 0)."""
     heatmaps = as_raw_batch(heatmaps)
-    thresholds = _thresholds(threshold, heatmaps.shape[0])
+    thresholds = np.asarray(threshold, dtype=np.float64)
+    if thresholds.ndim == 0:
+        thresholds = np.full(heatmaps.shape[0], float(thresholds))
+    if thresholds.shape != (heatmaps.shape[0],):
+        raise ValueError(f"threshold must be a float or an array of shape ({heatmaps.shape[0]},)")
+    if np.any(np.isnan(thresholds) | (thresholds < 0)):
+        raise ValueError("thresholds must be >= 0 (math.inf for an unbounded set)")
     score = get_nonconformity_score(kind)
     statistics = statistics_for(score, heatmaps, normalization, top_k, temperature)
     return score.region(statistics, thresholds)
@@ -79,14 +74,3 @@ def point_estimates(
     score = get_nonconformity_score(kind)
     statistics = statistics_for(score, heatmaps, normalization, top_k, temperature)
     return score.point_estimate(statistics)
-
-
-def _thresholds(threshold: float | np.ndarray, n: int) -> np.ndarray:
-    thresholds = np.asarray(threshold, dtype=np.float64)
-    if thresholds.ndim == 0:
-        thresholds = np.full(n, float(thresholds))
-    if thresholds.shape != (n,):
-        raise ValueError(f"threshold must be a float or an array of shape ({n},)")
-    if np.any(np.isnan(thresholds) | (thresholds < 0)):
-        raise ValueError("thresholds must be >= 0 (math.inf for an unbounded set)")
-    return thresholds

@@ -1,12 +1,8 @@
-"""Label-free features of each keypoint's heatmap, computed the same way at calibration and
-at prediction.
-
-They describe how hard a keypoint is for the model without knowing where it truly is:
-p* (the normalized peak probability; low when the model is unsure), gamma (the top-K
-spread of eq. Var, in heatmap pixels; large when the mass is diffuse) and the anisotropy
-of the top-K covariance (large when the mass is elongated, e.g. along an occluding edge).
-Stored with every calibration version, they are the reference distribution of the drift
-monitor and the difficulty signal of Mondrian strata.
+"""Label-free features of each keypoint's heatmap, the same at calibration and prediction: how
+hard a keypoint is without knowing where it is. p* (low when unsure), gamma (the top-K spread, in
+heatmap pixels; large when diffuse) and the anisotropy of the top-K covariance (large when the
+mass is elongated, e.g. along an occluding edge). Stored with every version: the drift monitor's
+reference and the difficulty signal of Mondrian strata.
 """
 
 from __future__ import annotations

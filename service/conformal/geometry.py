@@ -1,7 +1,5 @@
-"""Set geometry: sets {y : (y - c)^T L (y - c) <= 1}, vectorized over N.
-
-Conventions (shared with ``scores``): L = 0 is the unbounded set (whole plane),
-L = diag(inf, inf) the single point c, a ball of radius r has L = I / r^2.
+"""Set geometry: sets {y : (y - c)^T L (y - c) <= 1}, vectorized over N. L = 0 is the unbounded
+set (whole plane), L = diag(inf, inf) the single point c, a ball of radius r has L = I / r^2.
 """
 
 from __future__ import annotations
@@ -12,13 +10,8 @@ import numpy as np
 def map_sets_to_image(
     centers: np.ndarray, shapes: np.ndarray, affine: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Map sets from heatmap to image coordinates.
-
-    ``affine`` is the 2x3 image-to-heatmap map [M | b], x_hm = M x_img + b, one
-    for all sets or one per set (N, 2, 3). Centres map by the inverse,
-    c_img = M^-1 (c - b), and since y_hm - c = M (y_img - c_img), the shape
-    becomes M^T L M. A ball stays a ball when M is a similarity (radius / scale).
-    """
+    """Map sets from heatmap to image coordinates through the image-to-heatmap affine [M | b]
+    (one, or one per set): c_img = M^-1 (c - b) and, as y_hm - c = M (y_img - c_img), L -> M^T L M."""
     centers = np.asarray(centers, dtype=np.float64)
     shapes = np.asarray(shapes, dtype=np.float64)
     affine = np.broadcast_to(np.asarray(affine, dtype=np.float64), (centers.shape[0], 2, 3))
@@ -43,14 +36,9 @@ def contains(points: np.ndarray, centers: np.ndarray, shapes: np.ndarray) -> np.
 
 
 def ellipse_axes(shapes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Semi-axes a <= b and the angle (degrees, in (-90, 90]) of the b axis from +x.
-
-    The eigenvalues of L are 1/a^2 >= 1/b^2 (paper, after ICP-Cov). Unbounded
-    sets give a = b = inf, a point gives a = b = 0; the angle of a circle is 0.
-    The angle is measured from +x towards +y, i.e. clockwise on screen
-    (image y points down), matching matplotlib's Ellipse(angle=...) with
-    width 2b, height 2a when drawn over an image.
-    """
+    """Semi-axes a <= b (the eigenvalues of L are 1/a^2 >= 1/b^2; inf unbounded, 0 a point) and the
+    angle in degrees, (-90, 90], of the b axis from +x towards +y (clockwise on screen, as
+    matplotlib's Ellipse(angle=...) with width 2b, height 2a over an image; 0 for a circle)."""
     shapes = np.asarray(shapes, dtype=np.float64)
     p, q, r = shapes[:, 0, 0], shapes[:, 0, 1], shapes[:, 1, 1]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -58,8 +46,7 @@ def ellipse_axes(shapes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
         large, small = (p + r) / 2 + half_gap, (p + r) / 2 - half_gap
         semi_minor = 1.0 / np.sqrt(large)
         semi_major = 1.0 / np.sqrt(np.maximum(small, 0.0))
-        # eigenvector of the smallest eigenvalue (the major axis): angle of the
-        # principal axes is 0.5 * atan2(2q, p - r) for the largest eigenvalue.
+        # the major axis is 90 degrees from the largest eigenvalue's, 0.5 * atan2(2q, p - r)
         angle = np.degrees(0.5 * np.arctan2(2 * q, p - r)) + 90.0
     angle = np.where(angle > 90.0, angle - 180.0, angle)
     is_point = np.isinf(shapes).any(axis=(1, 2))

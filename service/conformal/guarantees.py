@@ -1,19 +1,12 @@
 """Coverage guarantees of Theorem 1 and the calibration-conditional (PAC) rank.
 
-Marginally 1 - eps <= 1 - t/(n+1) = P(cover) <= 1 - eps + 1/(n+1)  (eq. 4);
-conditionally on the calibration set, coverage ~ Beta(n+1-t, t)  (eq. 5).
-For integer parameters the Beta CDF is a binomial tail,
-P(Beta(a, b) <= x) = P(Binomial(a+b-1, x) >= a), summed here exactly in log
-space (no scipy at run time, stable for n up to 10^6 and beyond).
-
-PAC: given delta, use the largest t with P(Beta(n+1-t, t) < 1-eps) <= delta,
-i.e. P(Binomial(n, eps) <= t-1) <= delta; t = 0 (unbounded set) always qualifies.
-A PAC request never gives up the marginal guarantee: t is at most floor((n+1) eps).
-
-Every eps and delta in the open interval (0, 1) has an answer, subnormals and the
-neighbours of 1 included: 1 - p is never formed where it would round (see
-``_log_binomial_tails``), and the PAC test is made where the failure probability is
-exact (its log near 0, its complement near 1).
+Marginally 1 - eps <= 1 - t/(n+1) = P(cover) <= 1 - eps + 1/(n+1) (eq. 4); conditionally on the
+calibration set, coverage ~ Beta(n+1-t, t) (eq. 5). For integer parameters the Beta CDF is a
+binomial tail, P(Beta(a, b) <= x) = P(Binomial(a+b-1, x) >= a), summed exactly in log space (no
+scipy; stable for n up to 10^6 and beyond). PAC: the largest t with P(Binomial(n, eps) <= t-1)
+<= delta (t = 0 always qualifies), never above the marginal floor((n+1) eps). Every eps and delta
+in (0, 1), subnormals and neighbours of 1 included, has an answer: 1 - p is never formed where it
+would round, and the PAC test is made where the failure probability is exact.
 """
 
 from __future__ import annotations
@@ -82,12 +75,10 @@ class CoverageGuarantee:
         return None if self.delta is None else 1.0 - self.delta
 
     def as_dict(self) -> dict[str, object]:
-        names = ("unbounded", "marginal_lower", "marginal_coverage", "marginal_upper")
-        extra = {name: getattr(self, name) for name in names}
-        extra |= {"beta_a": self.beta_a, "beta_b": self.beta_b}
-        extra |= {"pac_failure_probability": self.pac_failure_probability}
-        extra |= {"pac_level": self.pac_level}
-        return asdict(self) | extra
+        names = ("unbounded", "marginal_lower", "marginal_coverage", "marginal_upper", "beta_a", "beta_b")
+        return asdict(self) | {
+            name: getattr(self, name) for name in (*names, "pac_failure_probability", "pac_level")
+        }
 
 
 @dataclass(frozen=True)
@@ -99,12 +90,9 @@ class Calibration:
 
 
 def coverage_guarantee(n: int, epsilon: float, delta: float | None = None) -> CoverageGuarantee:
-    """The rank t (marginal, or PAC when delta is given) and its guarantee for n scores.
-
-    With delta, t = min(PAC rank, marginal rank): for delta above about 0.37 the PAC
-    rank alone can exceed the marginal one, and then 1 - eps would no longer bound the
-    marginal coverage 1 - t/(n+1).
-    """
+    """The rank t (marginal, or PAC when delta is given) and its guarantee for n scores. With
+    delta, t = min(PAC rank, marginal rank): for delta above about 0.37 the PAC rank alone can
+    exceed the marginal one, and 1 - eps would no longer bound the marginal coverage."""
     t = conformal_rank(n, epsilon)
     if delta is not None:
         t = min(t, pac_rank(n, epsilon, delta))
@@ -161,24 +149,18 @@ def _pac_failure(n: int, t: int, epsilon: float) -> float:
 
 
 def _pac_failure_at_most(n: int, t: int, epsilon: float, delta: float) -> bool:
-    """Whether P(Binomial(n, eps) <= t-1) <= delta, decided where it is computed exactly.
-
-    Near 0 the failure probability is compared in log space (exp would lose a subnormal
-    delta's digits), near 1 its complement is compared with 1 - delta (exact there). The
-    reported value must not exceed delta either, so a tie within rounding refuses t.
-    """
+    """Whether P(Binomial(n, eps) <= t-1) <= delta, decided where it is exact: in log space near 0
+    (exp would lose a subnormal delta's digits), by its complement near 1; the reported value must
+    not exceed delta either, so a tie within rounding refuses t."""
     log_failure, log_success = _log_binomial_tails(t - 1, n, epsilon, 1.0 - epsilon)
     precise = log_failure <= math.log(delta) if delta <= 0.5 else log_success >= math.log1p(-delta)
     return precise and math.exp(log_failure) <= delta
 
 
 def _log_binomial_tails(m: int, n: int, p: float, q: float) -> tuple[float, float]:
-    """(log P(Binomial(n, p) <= m), log P(Binomial(n, p) > m)); log 0 is -inf.
-
-    q is 1 - p, passed separately because 1 - p rounds away what matters when p is tiny
-    (1 - 1e-17 == 1.0): the smaller of p and q must be exact, the other may be rounded.
-    The smaller tail is summed; the other is its complement.
-    """
+    """(log P(Binomial(n, p) <= m), log P(Binomial(n, p) > m)); log 0 is -inf. q = 1 - p is given
+    apart because 1 - p rounds away a tiny p (the smaller of p and q must be exact); the smaller
+    tail is summed, the other is its complement."""
     if m < 0:
         return -math.inf, 0.0
     if m >= n or p <= 0.0:
@@ -200,10 +182,8 @@ def _log_one_minus_exp(x: float) -> float:
 
 
 def _log_lower_tail(m: int, n: int, p: float, q: float) -> float:
-    """log P(Binomial(n, p) <= m) for 0 <= m < n, 0 < p, q < 1 with p + q = 1.
-
-    Both logs come from the smaller of p and q, the exact one.
-    """
+    """log P(Binomial(n, p) <= m) for 0 <= m < n, 0 < p, q < 1, p + q = 1; both logs come from the
+    smaller of p and q, the exact one."""
     small = min(p, q)
     log_small, log_large = math.log(small), math.log1p(-small)
     log_p, log_q = (log_small, log_large) if p <= q else (log_large, log_small)

@@ -1,10 +1,7 @@
-"""Exact laws of conformal coverage: Beta(n+1-t, t) and its Beta-binomial predictive law.
-
-Conditionally on the calibration set, the coverage of an ICP set is Beta(a, b) with
-a = n+1-t, b = t (Theorem 1). The number of covered points among m test points is then
-BetaBinomial(m, a, b): that is the law an *empirical* coverage must be compared with, as
-it adds the test set's binomial noise to the calibration set's Beta spread. No scipy:
-quantiles bisect ``service.conformal.beta_cdf`` (exact for integer parameters).
+"""Exact laws of conformal coverage: the coverage of an ICP set given its calibration set is
+Beta(a, b), a = n+1-t, b = t (Theorem 1), so the points covered among m test points follow
+BetaBinomial(m, a, b): the law an empirical coverage is compared with (the test set's binomial
+noise on top of the Beta spread). Quantiles bisect the exact ``beta_cdf`` (no scipy).
 """
 
 from __future__ import annotations

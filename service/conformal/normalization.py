@@ -1,18 +1,9 @@
-"""Heatmap normalization: raw detector output -> probability map f(x) in the simplex.
+"""Heatmap normalization: raw detector output -> probability map f(x) over the H*W pixels.
 
-The paper (Sec. 3) assumes f(x) is a probability vector over the H*W pixels. Raw
-network heatmaps are not, so a normalization mode is chosen per model:
-
-- ``anchor`` (default, the authors' reference ``clean_heatmap``): subtract the
-  minimum, set every value below the median to 0, divide by the sum.
-- ``softmax``: ``exp(h / temperature)`` divided by its sum.
-- ``relu``: clip negative values to 0, divide by the sum.
-
-A *degenerate* map, one whose normalizer is zero or not finite (constant or
-all-zero input under ``anchor``/``relu``, any NaN or infinity), becomes the
-uniform map 1/(H*W): the least informative answer, which turns into a tiny peak
-probability and a spread covering the whole heatmap, i.e. a large set. It never
-produces NaN and never raises.
+Modes: ``anchor`` (default, the reference ``clean_heatmap``: subtract the minimum, zero below the
+median, divide by the sum), ``softmax`` (``exp(h / temperature)`` over its sum), ``relu`` (clip at
+0, divide by the sum). A degenerate map (normalizer zero or not finite: constant input, NaN,
+infinity) becomes uniform 1/(H*W), the least informative answer (a large set); never NaN.
 """
 
 from __future__ import annotations
@@ -26,10 +17,7 @@ NORMALIZATION_MODES = ("anchor", "softmax", "relu")
 
 @dataclass(frozen=True)
 class NormalizedHeatmaps:
-    """Unnormalized nonnegative weights (N, P) with the probabilities weights / totals.
-
-    ``degenerate`` marks maps replaced by the uniform map (weights all 1).
-    """
+    """Nonnegative weights (N, P), probabilities weights / totals; ``degenerate``: uniform maps."""
 
     weights: np.ndarray
     totals: np.ndarray
@@ -41,14 +29,8 @@ class NormalizedHeatmaps:
 
 def normalize_heatmaps(heatmaps: np.ndarray, mode: str = "anchor", temperature: float = 1.0) -> np.ndarray:
     """Probability maps (N, H, W) float64, each summing to 1, from raw heatmaps (N, H, W)."""
-    heatmaps = as_heatmap_batch(heatmaps)
-    normalized = normalized_weights(heatmaps, mode, temperature)
-    return normalized.probabilities().reshape(heatmaps.shape)
-
-
-def as_heatmap_batch(heatmaps: np.ndarray) -> np.ndarray:
-    """Validate and convert to a float64 (N, H, W) array."""
-    return _checked_shape(np.asarray(heatmaps, dtype=np.float64))
+    heatmaps = _checked_shape(np.asarray(heatmaps, dtype=np.float64))
+    return normalized_weights(heatmaps, mode, temperature).probabilities().reshape(heatmaps.shape)
 
 
 def as_raw_batch(heatmaps: np.ndarray) -> np.ndarray:
@@ -72,13 +54,9 @@ def normalized_weights(
     *,
     skip_anchor_median: bool = False,
 ) -> NormalizedHeatmaps:
-    """Nonnegative weights and their totals for a (N, H, W) batch.
-
-    ``skip_anchor_median`` leaves the below-median values of ``anchor`` in place
-    (weights = h - min). Only callers that renormalize the top K <= H*W/2 weights
-    may ask for it: those K values all lie at or above the median, so the
-    result is unchanged and the O(H*W) median selection is saved.
-    """
+    """Nonnegative weights and their totals for a (N, H, W) batch. ``skip_anchor_median`` keeps
+    ``anchor``'s below-median values (weights = h - min): only for callers renormalizing the top
+    K <= H*W/2 weights, which all lie at or above the median (the median selection is saved)."""
     flat = heatmaps.reshape(heatmaps.shape[0], -1)
     finite = np.isfinite(flat).all(axis=1)
     if not finite.all():

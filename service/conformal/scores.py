@@ -1,10 +1,6 @@
-"""The paper's three nonconformity functions, one class each (MAPIE conformity-score style).
-
-Each class has a ``score`` side, r(y, f(x)) for labelled keypoints (calibration),
-and a ``region`` side, the ICP set {y : r(y, f(x)) <= thr} of eq. (3) returned as
-a centre c and a shape matrix L with (y - c)^T L (y - c) <= 1. By convention an
-unbounded set (thr = inf) has L = 0 and a single-point set (thr = 0) has
-L = diag(inf, inf).
+"""The paper's three nonconformity functions, one class each (MAPIE conformity-score style): a
+``score`` side r(y, f(x)) for labelled keypoints and a ``region`` side, the ICP set {y : r <= thr}
+of eq. (3) as a centre c and shape L; thr = inf gives L = 0, thr = 0 gives L = diag(inf, inf).
 """
 
 from __future__ import annotations

@@ -1,13 +1,10 @@
 """Exact, vectorized top-K selection over the rows of a 2-D array.
 
-``np.argpartition`` on a whole (N, P) batch costs about as much per row as a
-Python loop (introselect is bound by branch mispredictions), so ``top_k_indices``
-first shrinks each row to the entries above a cutoff guessed from a strided
-sample, sorts only those (numpy sorts rows of <= 512 values with SIMD networks,
-~0.3 us per row), and verifies that the cutoff kept every entry that could
-belong to the top K. Rows where the guess fails or the K-th value is tied take
-the exact slow path, so the answer never depends on the shortcut. Works on any
-real dtype (float32 heatmaps are selected without conversion).
+``np.argpartition`` on a (N, P) batch costs about a Python loop per row, so ``top_k_indices``
+shrinks each row to the entries above a cutoff guessed from a strided sample, sorts only those
+(SIMD sorts of <= 512 values), and checks that the cutoff kept every entry that could be in the
+top K. Rows where the guess fails or the K-th value is tied take the exact path, so the answer
+never depends on the shortcut. Any real dtype (float32 heatmaps are not converted).
 """
 
 from __future__ import annotations
@@ -20,12 +17,8 @@ _MAX_CANDIDATES = 512  # candidates sorted per row (SIMD sort range); more -> ex
 
 
 def top_k_indices(values: np.ndarray, k: int) -> np.ndarray:
-    """Column indices (N, k), unordered, of the k largest entries of each row.
-
-    Ties at the k-th value are broken towards the lowest column index, so the
-    selection is a well-defined function of the row (row-major order for a
-    flattened heatmap).
-    """
+    """Column indices (N, k), unordered, of the k largest entries of each row; ties at the k-th
+    value go to the lowest column, so the selection is a function of the row."""
     n_rows, width = values.shape
     if not 1 <= k <= width:
         raise ValueError(f"k must be in [1, {width}], got {k}")
@@ -60,11 +53,8 @@ def _row_counts(mask: np.ndarray) -> np.ndarray:
 def _pack_rows(
     mask: np.ndarray, values: np.ndarray, fill: float, counts: np.ndarray, min_width: int = 2
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Left-align the masked entries of each row into (N, width) arrays padded with fill.
-
-    ``counts`` is ``_row_counts(mask)``. Returns the values (dtype of ``values``)
-    and their columns, in increasing column order within each row.
-    """
+    """Left-align the masked entries of each row (``counts`` of them) into (N, width) arrays
+    padded with fill: their values and columns, in increasing column order."""
     flat_positions = np.flatnonzero(mask)
     rows, columns = np.divmod(flat_positions, mask.shape[1])
     starts = np.cumsum(counts) - counts

@@ -1,32 +1,24 @@
 """Mondrian (group-conditional) conformal thresholds: one ICP threshold per stratum.
 
-A Mondrian taxonomy (Vovk, Lindsay, Nouretdinov & Gammerman, "Mondrian confidence machine",
-2003; Vovk, Gammerman & Shafer, "Algorithmic Learning in a Random World", sec. 4.5) maps each
-example to a category known at prediction time. Calibrating eq. (3) of Yang & Pavone on the
-n_g calibration scores of one category alone gives, by Theorem 1 applied inside the category
-(exchangeable within it),
+A Mondrian taxonomy (Vovk et al., "Mondrian confidence machine", 2003; "Algorithmic Learning in a
+Random World", sec. 4.5) maps each example to a category known at prediction time. Eq. (3) on the
+n_g scores of one category alone gives, by Theorem 1 inside it (exchangeable within it),
+1 - eps <= P(cover | category) <= 1 - eps + 1/(n_g + 1) for every category at once. A stratum of
+one keypoint is a caller group (a camera, a site), a difficulty bin of a label-free heatmap signal
+(``features``), or the bin within the group.
 
-    1 - eps <= P(cover | category) <= 1 - eps + 1/(n_g + 1),
-
-a guarantee for every category at once instead of on average over them. Here a category
-(a *stratum*) of one keypoint is a caller-given group (a camera, a site), a difficulty bin
-of a label-free heatmap signal (``features.HEATMAP_FEATURES``: p*, gamma, anisotropy), or
-both: the bin within the group.
-
-Difficulty bins are quantile bins of the signal over the keypoint's labeled calibration
-instances, with at least ``min_instances`` in every bin (so a bin stays bounded down to
-eps = 1/(min_instances + 1)). The edges depend on the calibration features but never on
-their labels; the guarantee above is exact for edges fixed before calibration, and the
-deviation from fitting them on the same n instances vanishes as n grows. Two signals make
-joint bins: quantile bins of the first, then quantile bins of the second within each.
-
-Pure numpy, no I/O; thresholds come from ``guarantees.calibrate``.
+Difficulty bins are quantile bins of the signal over the keypoint's labeled calibration instances,
+at least ``min_instances`` each (bounded down to eps = 1/(min_instances + 1)); two signals make
+joint bins (bins of the second within each of the first). The edges use the features, never the
+labels: the guarantee is exact for edges fixed beforehand, and the deviation from fitting them on
+the same n instances vanishes as n grows.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -58,16 +50,13 @@ class DifficultySpec:
         return {"signals": list(self.signals), "bins": self.bins, "min_instances": self.min_instances}
 
     @classmethod
-    def from_dict(cls, value: Mapping[str, object]) -> DifficultySpec:
-        return cls(tuple(value["signals"]), int(value["bins"]), int(value["min_instances"]))  # type: ignore[arg-type]
+    def from_dict(cls, value: Mapping[str, Any]) -> DifficultySpec:
+        return cls(tuple(value["signals"]), int(value["bins"]), int(value["min_instances"]))
 
 
 def quantile_edges(values: np.ndarray, bins: int, min_instances: int) -> np.ndarray:
-    """Interior cut points splitting ``values`` into at most ``bins`` quantile bins, each
-    holding at least ``min_instances`` values (ties may merge bins); empty = one bin.
-
-    A value v falls in bin ``searchsorted(edges, v, side="right")``: bins are [c_{k-1}, c_k).
-    """
+    """Interior cut points splitting ``values`` into at most ``bins`` quantile bins [c_{k-1}, c_k)
+    of at least ``min_instances`` values each (ties may merge bins); empty = one bin."""
     ordered = np.sort(np.asarray(values, dtype=np.float64).ravel())
     n = ordered.size
     count = max(1, min(bins, n // min_instances))
@@ -136,24 +125,17 @@ class DifficultyBins:
         }
 
     def as_dict(self) -> dict[str, object]:
-        value: dict[str, object] = {
-            "signals": list(self.signals),
-            "edges": list(self.edges),
-            "counts": list(self.counts),
-        }
+        value: dict[str, object] = {"signals": list(self.signals), "edges": list(self.edges)}
+        value["counts"] = list(self.counts)
         if self.inner_edges:
             value["inner_edges"] = [list(e) for e in self.inner_edges]
         return value
 
     @classmethod
-    def from_dict(cls, value: Mapping[str, object]) -> DifficultyBins:
-        inner = tuple(tuple(float(v) for v in e) for e in value.get("inner_edges", ()))  # type: ignore[union-attr]
-        return cls(
-            signals=tuple(value["signals"]),  # type: ignore[arg-type]
-            edges=tuple(float(v) for v in value["edges"]),  # type: ignore[union-attr]
-            inner_edges=inner,
-            counts=tuple(int(v) for v in value["counts"]),  # type: ignore[union-attr]
-        )
+    def from_dict(cls, value: Mapping[str, Any]) -> DifficultyBins:
+        inner = tuple(tuple(map(float, e)) for e in value.get("inner_edges", ()))
+        edges, counts = tuple(map(float, value["edges"])), tuple(map(int, value["counts"]))
+        return cls(tuple(value["signals"]), edges, inner, counts)
 
 
 def _interval(edges: Sequence[float], index: int) -> tuple[float | None, float | None]:
@@ -177,18 +159,15 @@ def fit_difficulty_bins(features: Mapping[str, np.ndarray], spec: DifficultySpec
         inner = quantile_edges(values, spec.bins, spec.min_instances)
         inner_edges.append(tuple(inner.tolist()))
         counts.extend(np.bincount(np.searchsorted(inner, values, side="right"), minlength=inner.size + 1))
-    counts_tuple = tuple(int(c) for c in counts)
-    return DifficultyBins(spec.signals, tuple(edges.tolist()), tuple(inner_edges), counts_tuple)
+    return DifficultyBins(
+        spec.signals, tuple(edges.tolist()), tuple(inner_edges), tuple(int(c) for c in counts)
+    )
 
 
 def stratum_calibrations(
     scores: np.ndarray, strata: np.ndarray, n_strata: int, epsilon: float, delta: float | None = None
 ) -> list[Calibration]:
-    """One ICP threshold and guarantee per stratum: eq. (3) on that stratum's scores alone.
-
-    ``scores`` (n,) with NaN = unlabeled (left out), ``strata`` (n,) in [0, n_strata);
-    a stratum with too few scores for ``epsilon`` is unbounded (t = 0), as in ``calibrate``.
-    """
-    scores = np.asarray(scores, dtype=np.float64)
-    strata = np.asarray(strata)
+    """One ICP threshold and guarantee per stratum, eq. (3) on its scores alone (NaN: unlabeled;
+    ``strata`` in [0, n_strata)); a stratum with too few scores is unbounded (t = 0)."""
+    scores, strata = np.asarray(scores, dtype=np.float64), np.asarray(strata)
     return [calibrate(scores[strata == s], epsilon, delta) for s in range(n_strata)]

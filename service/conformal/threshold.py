@@ -1,10 +1,8 @@
-"""The ICP threshold of eq. (3): thr = alpha_(t), t = floor((n+1) eps), scores sorted nonincreasingly.
+"""The ICP threshold of eq. (3): alpha_(t), t = floor((n+1) eps), scores sorted nonincreasingly.
 
-t = 0 means no calibration score is large enough to exclude anything: the set
-is the whole plane and the threshold is ``math.inf`` (the reference code indexes
-alpha_(-1), the smallest score, there; that silently breaks the guarantee).
-NaN scores stand for unlabeled keypoints and are left out (n counts the rest);
-+inf scores are kept, as the conservative reading of an unbounded disagreement.
+t = 0 means no score is large enough to exclude anything: the set is the whole plane and the
+threshold ``math.inf`` (the reference code indexes alpha_(-1) there, silently breaking the
+guarantee). NaN scores are unlabeled keypoints, left out of n; +inf scores are kept.
 """
 
 from __future__ import annotations
@@ -16,11 +14,8 @@ import numpy as np
 
 
 def conformal_rank(n: int, epsilon: float) -> int:
-    """t = floor((n + 1) * epsilon), exact for the decimal the caller wrote.
-
-    (n + 1) * eps in floating point can land just below an integer (e.g.
-    100 * 0.29 = 28.999999999999996); the shortest decimal of eps is exact.
-    """
+    """t = floor((n + 1) * epsilon), exact for the decimal the caller wrote (in floating point,
+    100 * 0.29 = 28.999999999999996)."""
     _check_epsilon(epsilon)
     if n < 0:
         raise ValueError(f"n must be >= 0, got {n}")
@@ -63,12 +58,9 @@ def column_thresholds(score_matrix: np.ndarray, ranks: np.ndarray) -> np.ndarray
 
 
 def object_scores(keypoint_scores: np.ndarray) -> np.ndarray:
-    """Object-scope scores: max over an instance's keypoints, NaN unless all are labeled.
-
-    One threshold on these covers all keypoints of an object simultaneously.
-    """
-    matrix = _as_matrix(keypoint_scores)
-    return np.max(matrix, axis=1)  # any NaN propagates, as wanted
+    """Object-scope scores: max over an instance's keypoints (NaN unless all are labeled), so one
+    threshold covers all keypoints of an object simultaneously."""
+    return np.max(_as_matrix(keypoint_scores), axis=1)
 
 
 def _check_epsilon(epsilon: float) -> None:

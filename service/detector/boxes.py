@@ -1,12 +1,6 @@
-"""The one rule every object box obeys, in calibration and in prediction alike.
-
-Calibration and prediction instances must come from the same population for the
-guarantee to hold (exchangeability), so a box that prediction would refuse must not enter
-a calibration either: a sliver of a box turns its crop into a huge magnification and its
-labels into outlier scores that widen every set.
-
-Boxes are ``[x, y, width, height]`` in image pixels, origin at the top-left corner, finite numbers
-(their readers check that: the predict request schema, the COCO reader).
+"""The one rule every object box obeys, in calibration and prediction alike: the guarantee needs
+them from one population, and a sliver of a box magnifies its crop into outlier scores. Boxes are
+``[x, y, width, height]`` of finite numbers in image pixels, origin at the top-left corner.
 """
 
 from __future__ import annotations

@@ -1,9 +1,6 @@
-"""Crops from boxes, and the affine maps between image, network input and heatmap.
-
-Coordinates are continuous pixels with the origin at the top-left corner of the
-top-left pixel: pixel (row r, col c) has centre (c + 0.5, r + 0.5). This holds in
-the image, in the network input and in the heatmap, so one affine per instance maps
-a point between them with no half-pixel fudge at the call sites.
+"""Crops from boxes, and the affine maps between image, network input and heatmap. Pixel (row r,
+col c) has centre (c + 0.5, r + 0.5) in all three, so one affine per instance maps a point between
+them with no half-pixel fudge at the call sites.
 """
 
 from __future__ import annotations
@@ -17,11 +14,8 @@ CONTEXT_MARGIN_PX = 2
 
 
 def crop_affines(boxes: np.ndarray, padding: float, size: tuple[int, int]) -> np.ndarray:
-    """Image -> crop affines ``(N, 2, 3)`` for boxes ``(N, 4)`` as ``[x, y, w, h]``.
-
-    The crop is a square centred on the box with side ``max(w, h) * (1 + padding)``,
-    resized to ``size = (height, width)``.
-    """
+    """Image -> crop affines ``(N, 2, 3)`` for boxes ``[x, y, w, h]``: a square centred on the box,
+    side ``max(w, h) * (1 + padding)``, resized to ``size = (height, width)``."""
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
     centres = boxes[:, :2] + boxes[:, 2:] / 2
     sides = np.maximum(boxes[:, 2], boxes[:, 3]) * (1.0 + padding)
@@ -69,19 +63,10 @@ def invert_affines(affines: np.ndarray) -> np.ndarray:
 
 
 def warp_crop(image: np.ndarray, affine: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Resample ``image`` through one continuous-coordinate affine into ``size = (h, w)``.
-
-    OpenCV puts pixel centres at integer coordinates; the continuous affine is shifted
-    by half a pixel on both sides so that the two conventions agree exactly.
-    """
+    """Resample ``image`` through one continuous-coordinate affine into ``size = (h, w)``, shifted
+    by half a pixel on both sides for OpenCV, which puts pixel centres at integer coordinates."""
     linear = affine[:, :2]
     offset = affine[:, 2] + linear @ _HALF - _HALF
     matrix = np.concatenate([linear, offset[:, None]], axis=1)
-    return cv2.warpAffine(
-        image,
-        matrix,
-        (size[1], size[0]),
-        flags=cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_CONSTANT,
-        borderValue=0,
-    )
+    border = {"borderMode": cv2.BORDER_CONSTANT, "borderValue": 0}
+    return cv2.warpAffine(image, matrix, (size[1], size[0]), flags=cv2.INTER_LINEAR, **border)

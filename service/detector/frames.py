@@ -1,16 +1,11 @@
 """Image sources: a whole frame, or regions of one, in full-frame pixel coordinates.
 
-The detector asks its source for each box's crop (``ImageSource.crops``), so the same crop code,
-model and sets serve both. A region is resampled through the very affine the whole frame would
-be, from a frame-sized canvas that holds the region's pixels at their place and zeros elsewhere:
-the resampling reads only the pixels of the box's crop context (``crop_contexts``), which the
-region is checked to cover, so the crop, and every answer, is byte-identical to the whole
-frame's for the same pixels. (Resampling the region itself through a shifted affine is not: the
-resampler's rounding depends on the absolute coordinates.) The canvas costs no frame-sized
-memory: its pages are the kernel's zero pages until regions' rows are written; each thread keeps
-its canvas (of the last frame size it served) and zeroes what it wrote after each use.
-
-Every size is checked against the frame and the limits before any pixel is decoded or copied.
+The detector asks its source for each box's crop (``ImageSource.crops``). A region is resampled
+through the very affine the whole frame would be, from a frame-sized canvas holding the region's
+pixels at their place and zeros elsewhere: the resampling reads only the box's crop context,
+which the region is checked to cover, so every answer is byte-identical to the whole frame's
+(resampling the region through a shifted affine is not: rounding depends on absolute coordinates).
+The canvas's untouched pages stay the kernel's zero pages. Sizes are checked before any decode.
 """
 
 from __future__ import annotations
@@ -37,15 +32,13 @@ from service.errors import InvalidInput, PayloadTooLarge
 
 #: raw 8-bit encodings, as ROS sensor_msgs/Image names them, and their channels
 RAW_CHANNELS = {"rgb8": 3, "bgr8": 3, "mono8": 1}
-#: each thread's frame-sized canvas of zeros (the last size it served), only written where regions go
 _canvases = threading.local()
 
 
 @dataclass(frozen=True)
 class EncodedRegion:
-    """A rectangle of a frame as sent (ROS RegionOfInterest: offset and size in frame pixels),
-    its pixels' encoding and bytes (a JPEG's or PNG's as ``bytes``), and the instances whose crops
-    it serves (None: all)."""
+    """A rectangle of a frame as sent (ROS RegionOfInterest), its pixels' encoding and bytes, and
+    the instances whose crops it serves (None: all)."""
 
     x_offset: int
     y_offset: int
@@ -85,8 +78,8 @@ class EncodedFrame:
 
 @dataclass(frozen=True)
 class Region:
-    """Decoded pixels of a frame's rectangle: ``(h, w)`` gray or ``(h, w, 3)`` BGR, or RGB when
-    ``rgb`` (raw rgb8, reordered in the crops: reordering commutes with the resampling)."""
+    """Decoded pixels of a frame's rectangle: gray, BGR, or RGB when ``rgb`` (raw rgb8, reordered in
+    the crops: reordering commutes with the resampling)."""
 
     x_offset: int
     y_offset: int
@@ -133,9 +126,8 @@ class ImageSource:
     @contextmanager
     def _placed(self, region: Region) -> Iterator[np.ndarray]:
         """The region's pixels at their place in a frame of zeros (the region itself when it is the
-        whole frame). The thread's canvas is reused and its window zeroed again after use: a fresh
-        one per region pays a page fault per row the region touches (the 4 crops of a 3840x2160
-        frame: 0.96 ms kept, 20.9 ms fresh; the same at 1920x1080; bench_frames, docs/performance.md)."""
+        whole frame), on the thread's canvas, zeroed again after use: a fresh one would pay a page
+        fault per row the region touches."""
         if self._is_whole(region):
             yield region.pixels
             return
@@ -154,9 +146,8 @@ class ImageSource:
 
 def image_source(data: bytes, header: ImageHeader, boxes: np.ndarray | None, padding: float) -> ImageSource:
     """An image file's pixels (``header`` checked) that the crops of ``boxes`` read: of a JPEG, one
-    window around all their crop contexts (the rest not decoded: a 200x200 window of a 640x480
-    JPEG took 0.86 ms against 1.29 ms for the whole); the whole image for a PNG, a CMYK JPEG, or
-    where ``boxes`` is None (a drawing of the sets needs every pixel)."""
+    window around their crop contexts (the rest not decoded); the whole image for a PNG, a CMYK
+    JPEG, or where ``boxes`` is None (a drawing of the sets needs every pixel)."""
     window = None
     if boxes is not None and len(boxes):
         contexts = crop_contexts(boxes, padding, header.width, header.height)
@@ -172,10 +163,9 @@ def image_source(data: bytes, header: ImageHeader, boxes: np.ndarray | None, pad
 def open_frame(
     frame: EncodedFrame, boxes: np.ndarray, padding: float, max_pixels: int, max_bytes: int
 ) -> ImageSource:
-    """Check the frame's regions against the frame, the boxes (``[x, y, w, h]`` in frame pixels,
-    checked already) and the limits, then decode them. ``PayloadTooLarge`` above
-    CKS_MAX_IMAGE_PIXELS or the decoded bytes one image may take; ``InvalidInput`` naming every
-    region that lies outside the frame, disagrees with its bytes, or misses a margin of a box it serves."""
+    """Check the frame's regions against the frame, the (checked) boxes and the limits, then decode
+    them: ``PayloadTooLarge`` above the limits, ``InvalidInput`` naming every region outside the
+    frame, disagreeing with its bytes, or missing a margin of a box it serves."""
     _check_frame_size(frame, max_pixels)
     problems = [problem for region in frame.regions for problem in _placement_problems(frame, region)]
     if not problems:

@@ -1,17 +1,11 @@
 """The model manifest: everything the service needs to know about an ONNX heatmap detector.
 
-A model is a directory holding ``model.onnx`` and ``manifest.json``. The manifest
-describes the input tensor (name, size, colour order, pixel scaling), the crop rule,
-the heatmap output, the keypoints and the objects they belong to, and how heatmaps
-are turned into probability maps. Any heatmap model is servable by writing one; every
-field is documented in ``docs/bring-your-own-model.md`` and ``docs/manifest.schema.json``.
-
-Validation refuses what would be served wrongly or silently ignored: duplicate names,
-a ``top_k`` larger than the heatmap, options that have no effect together. Every problem
-is reported as ``<field path>: <what is wrong and what to do>``; ``load_manifest`` turns
-them into one ``ManifestError`` naming the file. Paths into ``keypoints`` count in the
-file's order while that list is checked, and in index order afterwards (the same thing
-when keypoints are listed by index, as they usually are).
+A model is a directory holding ``model.onnx`` and ``manifest.json`` (input tensor, crop rule,
+heatmap output, keypoints and their objects, normalization; docs/bring-your-own-model.md).
+Validation refuses what would be served wrongly or silently ignored (duplicate names, a ``top_k``
+larger than the heatmap, options without effect together), each problem as ``<field path>: <what
+to do>``, gathered in one ``ManifestError`` naming the file. Paths into ``keypoints`` count in the
+file's order while that list is checked, in index order afterwards.
 """
 
 from __future__ import annotations
@@ -41,11 +35,8 @@ class ManifestError(ValueError):
 
 
 def _refuse(problems: list[Problem]) -> None:
-    """Raise the problems of one validator as one ValueError, a ``path: message`` line each.
-
-    Paths are relative to the model being validated; ``validate_manifest`` prefixes them
-    with the model's own location (pydantic reports a validator's error at the model).
-    """
+    """Raise a validator's problems as one ValueError, a ``path: message`` line each (paths
+    relative to the model; ``validate_manifest`` prefixes the model's location)."""
     if problems:
         raise ValueError("\n".join(f"{field}: {message}" for field, message in problems))
 
@@ -217,9 +208,8 @@ class Manifest(_Strict):
     @model_validator(mode="before")
     @classmethod
     def _default_top_k_fits_the_heatmap(cls, data: Any) -> Any:
-        # The statistics never use more than h*w pixels; resolving an omitted top_k to that count
-        # lets a small heatmap go without a heatmap section, keeps an explicit top_k > h*w
-        # refusable, and records the K actually used with every calibration version.
+        # An omitted top_k on a heatmap of fewer pixels becomes h*w: a small heatmap needs no heatmap
+        # section, an explicit top_k > h*w stays refusable, and versions record the K used.
         if not isinstance(data, dict):
             return data
         heatmap, output = data.get("heatmap", {}), data.get("output")

@@ -1,8 +1,6 @@
-"""Turn an image and its boxes into the network's input batch, exactly as the manifest says.
-
-Crops are cut from the image as decoded and converted to the model's colour order
-afterwards: reordering channels commutes with the (per-channel) resampling, and touching
-only the crops' pixels instead of the whole image is what keeps this step cheap.
+"""An image and its boxes -> the network's input batch, as the manifest says. Crops are cut from
+the image as decoded and converted to the model's colour order afterwards (reordering commutes
+with the per-channel resampling; only the crops' pixels are touched).
 """
 
 from __future__ import annotations

@@ -1,18 +1,12 @@
 """The audit trail: every administrative action, who did it, from where and why.
 
-Entries go to the calibration store's append-only audit table (nothing in the API can
-change them) and to the log as one line each (``audit action=... outcome=... who=...``; in
-JSON those are members of the line). An entry about a stored change is written
-in the same transaction as the change (a version, an activation, an accepted upload's job);
-a refusal is appended on its own before the answer, or, when the store cannot take it then
-(the refusal was the store's), logged at once and appended as soon as the store can.
-
-Entries waiting for the store are kept in an outbox file of this process as well
-(``<outbox>/<host>--<pid>.jsonl``, one JSON entry a line, rewritten as they are stored), so a
-stop does not lose them: the next process of this host to start adopts the outbox of every
-process that stopped and appends its entries once the store takes them. (An entry stored just
-before a crash, its outbox not yet rewritten, is appended twice: never lost.) Another host's
-outbox is never adopted (docs/operations.md: what a host lost for good leaves).
+Entries go to the store's append-only audit table and to the log (``audit action=... outcome=...
+who=...``). An entry about a stored change is written in the change's transaction; a refusal is
+appended on its own before the answer or, when the store cannot take it, logged at once and
+appended once it can. Entries waiting for the store are also kept in this process's outbox file
+(``<outbox>/<host>--<pid>.jsonl``), which the next process of this host to start adopts when this
+one stopped: never lost (one stored just before a crash may be appended twice); another host's
+outbox is never adopted.
 """
 
 from __future__ import annotations
@@ -49,8 +43,6 @@ class AuditTrail:
     """Builds, stores and logs the audit entries of one model."""
 
     def __init__(self, store: CalibrationStore, model_hash: str, outbox: Path | None = None) -> None:
-        """outbox: the folder of the outbox files (None: entries waiting for the store live in memory
-        only); those of stopped processes of this host are adopted now."""
         self._store = store
         self._model_hash = model_hash
         self._pending: list[NewAuditEntry] = []  # oldest first
@@ -84,7 +76,7 @@ class AuditTrail:
 
     def record(self, operator: Operator, action: str, outcome: str, **fields: Any) -> None:
         """Append one entry on its own (a refusal, a failed job); one the store cannot take now is
-        logged and appended later (``record_later``), never raised."""
+        logged and appended later, never raised."""
         entry = self.entry(operator, action, outcome, **fields)
         try:
             self._store.append_audit(entry)
@@ -94,8 +86,8 @@ class AuditTrail:
         written(entry)
 
     def record_later(self, operator: Operator, action: str, outcome: str, **fields: Any) -> None:
-        """Log an entry now and append it from a background thread, retried every RETRY_S until the
-        store takes it: for refusals the store caused, which waiting on it again would only delay."""
+        """Log an entry now and append it from a thread retrying every RETRY_S: for refusals the store
+        caused, which waiting on it again would only delay."""
         self._defer(self.entry(operator, action, outcome, **fields), None)
 
     def _defer(self, entry: NewAuditEntry, error: StoreError | None) -> None:
@@ -131,8 +123,8 @@ class AuditTrail:
                 self._keep_outbox()
 
     def _keep_outbox(self) -> None:
-        """Write the waiting entries to this process's outbox (removed when none wait); the lock
-        is held. A disk that cannot take it leaves them in memory only, said in the log."""
+        """Write the waiting entries to this process's outbox (removed when none wait; the lock is
+        held); a disk that cannot take it leaves them in memory only, said in the log."""
         if self._outbox is None:
             return
         try:
@@ -148,16 +140,13 @@ class AuditTrail:
             draft.replace(self._outbox)
         except OSError as error:
             log.warning(
-                "audit outbox %s not written (%s): %d entries wait in memory only",
-                self._outbox,
-                error,
-                len(self._pending),
+                f"audit outbox {self._outbox} not written ({error}):"
+                f" {len(self._pending)} entries wait in memory only"
             )
 
     def _adopt(self, folder: Path) -> None:
-        """Take over the outboxes of stopped processes of this host (a rename: one adopter each),
-        that of this process's name included: an earlier process's with its pid (a restarted
-        container's server is pid 1 again), which its first rewrite would otherwise replace."""
+        """Take over the outboxes of stopped processes of this host (a rename: one adopter each), that
+        of this process's name included (a restarted container's server is pid 1 again)."""
         for path in sorted(folder.glob(f"{socket.gethostname()}--*.jsonl")) if folder.is_dir() else []:
             pid = path.stem.rpartition("--")[2]
             if path != self._outbox and (not pid.isdigit() or process_running(int(pid))):
@@ -182,13 +171,5 @@ def written(*entries: NewAuditEntry) -> None:
 
 def audit_fields(entry: NewAuditEntry) -> dict[str, Any]:
     """The fields of an entry's log line: who did what, with what outcome, from where, why."""
-    return {
-        "action": entry.action,
-        "outcome": entry.outcome,
-        "who": entry.who,
-        "client": entry.client,
-        "version": entry.version,
-        "previous_version": entry.previous_version,
-        "reason": entry.reason,
-        "details": dict(entry.details) or None,
-    }
+    names = ("action", "outcome", "who", "client", "version", "previous_version", "reason")
+    return {name: getattr(entry, name) for name in names} | {"details": dict(entry.details) or None}

@@ -1,26 +1,18 @@
-"""The job engine: background jobs run on this process's worker threads (``JobRunner``), their
-state in the store's job table, so that any process of any replica answers for any job.
-Calibration uploads and coverage audits are its jobs (service.calibration.jobs,
-service.monitoring.coverage_audits); it knows nothing of what a job does.
+"""The job engine: background jobs on this process's worker threads (``JobRunner``), their state
+in the store's job table, so that any process of any replica answers for any job (calibration
+uploads, coverage audits; it knows nothing of what a job does).
 
-- the row is created before the upload's 202 is returned, and state changes (running,
-  succeeded, failed) are written at once; the final write is retried, then kept in memory
-  and retried by the writer thread until it lands;
-- progress is written by one writer thread, at most once per PROGRESS_WRITE_S per job, so
-  a job never waits on the store and a failed write only logs a warning;
-- every write refreshes the row's heartbeat, and an unfinished job is rewritten at least
-  every HEARTBEAT_S even without progress;
-- an unfinished job whose heartbeat is older than STALE_AFTER is reported interrupted: the
-  process running it stopped. A job's result is written in the same transaction that marks
-  it succeeded, so an interrupted job stored nothing;
-- such a stale job is not left unfinished: every SWEEP_S the writer thread offers it to the
-  takeover of its kind (``on_stale``): a replica that can read its input runs it again (the
-  stale row is marked finished first, so its process, were it alive, could not complete
-  it); once no replica took it over within TAKEOVER_GRACE, any replica stores it
-  interrupted, as it is reported;
-- a finished job never changes (the store refuses it);
-- when the service stops, its unfinished jobs are marked interrupted at once rather than
-  waited for, and a running one stops at its next progress report (``JobCancelled``).
+- the row is created before the upload's 202; state changes are written at once (the final one
+  retried, then kept in memory and retried by the writer thread until it lands);
+- progress is written by one writer thread at most every PROGRESS_WRITE_S per job, so a job never
+  waits on the store; every write refreshes the heartbeat, at least every HEARTBEAT_S;
+- an unfinished job silent for over STALE_AFTER is reported interrupted (its process stopped;
+  a job's result is written in the transaction that marks it succeeded, so it stored nothing);
+- every SWEEP_S such a job is offered to the takeover of its kind (``on_stale``), which runs it
+  again where its input is readable (marking the stale row finished first); one nobody took over
+  within TAKEOVER_GRACE is stored interrupted, as reported; a finished job never changes;
+- at shutdown unfinished jobs are marked interrupted at once, not waited for, and a running one
+  stops at its next progress report (``JobCancelled``).
 """
 
 from __future__ import annotations
@@ -68,21 +60,21 @@ RETRY_DELAY_S = 0.25
 _TICK_S = 0.25
 
 
-def reported(job: JobRecord, now: datetime, stale_after: timedelta = STALE_AFTER) -> JobRecord:
-    """The job as clients see it: unfinished and silent for over stale_after means interrupted."""
+def reported(job: JobRecord, now: datetime) -> JobRecord:
+    """The job as clients see it: unfinished and silent for over STALE_AFTER is interrupted."""
     silent = now - job.heartbeat_at
-    if job.finished or silent <= stale_after:
+    if job.finished or silent <= STALE_AFTER:
         return job
     error = (
         f"the process running this job ({job.owner}) stopped: no heartbeat for"
-        f" {int(silent.total_seconds())} s (limit {int(stale_after.total_seconds())} s)."
+        f" {int(silent.total_seconds())} s (limit {int(STALE_AFTER.total_seconds())} s)."
         f" {interrupted_note(job.id)}"
     )
     return replace(job, state="interrupted", errors=(*job.errors, error), finished_at=job.heartbeat_at)
 
 
 def interrupted_note(job_id: str) -> str:
-    """What an interrupted job's report says (a version and its job's success are one transaction)."""
+    """What an interrupted job's report says."""
     return (
         "Nothing was stored: a version is written in the same transaction that marks its job"
         f" succeeded. Retry it with POST /v1/admin/jobs/{job_id}/retry on a server sharing the data"
@@ -91,7 +83,6 @@ def interrupted_note(job_id: str) -> str:
 
 
 def disk_full_note(job_id: str, error: StoreFull) -> str:
-    """What a job that failed for a full disk reports."""
     return (
         f"disk full: the calibration store could not write the version ({error}); nothing was stored."
         f" Its upload is kept: retry it with POST /v1/admin/jobs/{job_id}/retry once space is freed"
@@ -167,16 +158,11 @@ class JobRunner:
         job_id: str | None = None,
         audit: Sequence[NewAuditEntry] = (),
     ) -> JobRecord:
-        """Store a queued job with the ``audit`` entries that accept it (one transaction), then
-        queue it; raises Unavailable if the store cannot take them."""
+        """Store a queued job with the ``audit`` entries that accept it (one transaction) and queue
+        it; Unavailable if the store cannot take them."""
         now = datetime.now(UTC)
         job = JobRecord(
-            id=job_id or new_job_id(),
-            kind=kind,
-            owner=self._owner,
-            created_at=now,
-            heartbeat_at=now,
-            total=total,
+            job_id or new_job_id(), kind, self._owner, created_at=now, heartbeat_at=now, total=total
         )
         try:
             with disk_full_refused("the job's record"):
@@ -196,16 +182,15 @@ class JobRunner:
         return job
 
     def on_stale(self, kind: str, take_over: Takeover | None) -> None:
-        """Look after stale jobs of ``kind`` (the process running them stopped): ``take_over(job)``
-        runs one again here when this process can read its input (True), or says it cannot
-        (False); None: no process can. One nobody took over is stored interrupted, as reported."""
+        """Look after stale jobs of ``kind``: ``take_over(job)`` runs one again here when this process
+        can read its input (True) or says it cannot (False); None: no process can."""
         with self._lock:
             self._takeovers[kind] = take_over
 
     def get(self, job_id: str) -> JobRecord | None:
-        """The stored job, whichever process runs it (None if unknown or pruned); one this process
-        runs as it knows it, alive now, when the store has not taken its latest state (a store
-        that cannot write, a full disk, would otherwise have it read interrupted)."""
+        """The stored job, whichever process runs it (None if unknown or pruned); one this process runs
+        as it knows it, alive now, when the store lacks its latest state (else it would read
+        interrupted while the store cannot write)."""
         own = self._snapshot(job_id)
         try:
             job = self._store.get_job(job_id)
@@ -223,9 +208,8 @@ class JobRunner:
             return None if entry is None else entry.job
 
     def shutdown(self) -> None:
-        """Stop without waiting for jobs to finish: every queued or running job is marked
-        interrupted in the store at once (its upload is kept for a retry), a running one stops
-        at its next image; then what is left is written to the store."""
+        """Stop without waiting for jobs: each unfinished one is marked interrupted at once (its upload
+        kept for a retry), a running one stops at its next image; then what is left is written."""
         self._stopping.set()
         self._pool.shutdown(wait=False, cancel_futures=True)
         unfinished = [entry.job for entry in self._entries() if not entry.job.finished]
@@ -249,25 +233,18 @@ class JobRunner:
         try:
             stored = self._store.get_job(job.id)
         except StoreError as failure:
+            stale = int(STALE_AFTER.total_seconds())
             log.warning(
-                "job %s (%s) could not be marked interrupted (%s); it will be reported interrupted"
-                " once its heartbeat is %d s old",
-                job.id,
-                scored,
-                failure,
-                STALE_AFTER.total_seconds(),
+                f"job {job.id} ({scored}) could not be marked interrupted ({failure}); it will be reported"
+                f" interrupted once its heartbeat is {stale} s old"
             )
             return
         if stored is not None and stored.state != "interrupted":
             log.info("job %s %s before it could be interrupted", job.id, stored.state)
             return
         log.info(
-            "job %s (%s, %s) marked interrupted; its upload is kept: retry it with"
-            " POST /v1/admin/jobs/%s/retry",
-            job.id,
-            job.state,
-            scored,
-            job.id,
+            f"job {job.id} ({job.state}, {scored}) marked interrupted; its upload is kept: retry it with"
+            f" POST /v1/admin/jobs/{job.id}/retry"
         )
 
     # -- running ----------------------------------------------------------------
@@ -380,8 +357,8 @@ class JobRunner:
     # -- stale jobs of stopped processes --------------------------------------------
 
     def _sweep(self) -> None:
-        """Offer the stale jobs of the kinds looked after to their takeover; store interrupted
-        those nobody took over within TAKEOVER_GRACE (at once when nobody can)."""
+        """Offer stale jobs of the kinds looked after to their takeover; store interrupted those nobody
+        took over within TAKEOVER_GRACE (at once when nobody can)."""
         with self._lock:
             takeovers = dict(self._takeovers)
         if not takeovers or self._stopping.is_set():  # a stopping process starts no job
@@ -406,9 +383,7 @@ class JobRunner:
         try:
             taken = take_over(job)
         except Exception as error:  # e.g. taken over by another process meanwhile
-            log.warning(
-                "job %s (%s) of stopped process %s not taken over: %s", job.id, job.kind, job.owner, error
-            )
+            log.warning(f"job {job.id} ({job.kind}) of stopped process {job.owner} not taken over: {error}")
             return False
         if taken:
             log.info("job %s (%s) of stopped process %s taken over", job.id, job.kind, job.owner)
@@ -430,14 +405,12 @@ class JobRunner:
             return
         except StoreError as error:
             log.warning(
-                "job %s of stopped process %s could not be stored interrupted: %s", job.id, job.owner, error
+                f"job {job.id} of stopped process {job.owner} could not be stored interrupted: {error}"
             )
             return
         log.info(
-            "job %s (%s) of stopped process %s stored interrupted: nobody took it over",
-            job.id,
-            job.kind,
-            job.owner,
+            f"job {job.id} ({job.kind}) of stopped process {job.owner} stored interrupted: nobody took it"
+            " over"
         )
 
 

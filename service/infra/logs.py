@@ -1,17 +1,11 @@
 """Logging: one format for the service's lines and uvicorn's, text or JSON, with the request id.
 
-``uvicorn_log_config`` is the ``logging.config.dictConfig`` of every logger that matters:
-one stderr handler on the root logger, in the format ``CKS_LOG_FORMAT`` names, and the
-levels of ``CKS_LOG_LEVEL``. ``keypoint-service`` applies it and hands it to uvicorn
-(``log_config=``); a server started any other way (``python -m uvicorn
-service.serving.main:app``) gets it from ``ensure_logging`` when the app is created, before
-uvicorn logs its start-up, unless that process configured the root logger itself.
-
-While a request is handled its ``RequestContext`` is in a context variable, and a filter
-puts its id on every record: ``request_id`` in JSON, ``[id]`` in text (``[-]`` outside a
-request). Work a request hands to another thread keeps the id only if it runs in a copy
-of the request's context (``contextvars.copy_context().run``; ``run_in_threadpool`` does
-this itself).
+``uvicorn_log_config`` is the dictConfig of every logger that matters (one stderr handler on the
+root, ``CKS_LOG_FORMAT``, ``CKS_LOG_LEVEL``): ``keypoint-service`` applies it and hands it to
+uvicorn; a server started otherwise gets it from ``ensure_logging`` unless its process configured
+the root logger itself. A filter puts the id of the request being handled (a context variable) on
+every record: ``request_id`` in JSON, ``[id]`` in text; work handed to another thread keeps it only
+in a copy of the request's context (``run_in_threadpool`` does this).
 """
 
 from __future__ import annotations
@@ -31,8 +25,6 @@ from pythonjsonlogger.core import RESERVED_ATTRS
 from service.infra.settings import Settings
 
 TEXT_FORMAT = "%(asctime)s.%(msecs)03dZ %(levelname)s %(name)s [%(request_id)s] %(message)s"
-ISO_SECONDS = "%Y-%m-%dT%H:%M:%S"
-NO_REQUEST = "-"
 LOGGERS = ("service", "calibration_store", "uvicorn", "uvicorn.error")
 ACCESS_LOGGER = "service.access"
 _PLAIN = re.compile(r'[^\s"\\=]+')  # a value written without quotes in a key=value line
@@ -57,14 +49,12 @@ def begin_request(request_id: str) -> RequestContext:
 
 
 def current_request() -> RequestContext | None:
-    """The request being handled in this context, if any."""
     return _request.get()
 
 
 def note_calibration_version(version: int) -> None:
     """Record the calibration version that answered the current request (for its access line)."""
-    context = _request.get()
-    if context is not None:
+    if (context := _request.get()) is not None:
         context.calibration_version = version
 
 
@@ -72,8 +62,7 @@ class RequestIdFilter(logging.Filter):
     """Adds ``request_id`` to records logged while a request is handled."""
 
     def filter(self, record: logging.LogRecord) -> bool:
-        context = _request.get()
-        if context is not None:
+        if (context := _request.get()) is not None:
             record.request_id = context.request_id
         return True
 
@@ -84,7 +73,7 @@ class TextFormatter(logging.Formatter):
     converter = time.gmtime
 
     def __init__(self) -> None:
-        super().__init__(TEXT_FORMAT, ISO_SECONDS, defaults={"request_id": NO_REQUEST})
+        super().__init__(TEXT_FORMAT, "%Y-%m-%dT%H:%M:%S", defaults={"request_id": "-"})
 
 
 def _formatter(log_format: str) -> dict[str, Any]:
@@ -102,12 +91,9 @@ def _formatter(log_format: str) -> dict[str, Any]:
 
 
 def uvicorn_log_config(settings: Settings, level: str | None = None) -> dict[str, Any]:
-    """The dictConfig for the service's and uvicorn's loggers (uvicorn.run's ``log_config``).
-
-    ``level`` overrides ``CKS_LOG_LEVEL`` (the one-shot commands log warnings only).
-    uvicorn's own access log stays off whatever uvicorn is told: ``service.access`` writes
-    one line per request instead, with the latency, request id and calibration version.
-    """
+    """The dictConfig for the service's and uvicorn's loggers (uvicorn.run's ``log_config``);
+    ``level`` overrides ``CKS_LOG_LEVEL``. uvicorn's access log stays off: ``service.access`` writes
+    one line per request instead, with the latency, request id and calibration version."""
     level = level or settings.logs.level
     return {
         "version": 1,
@@ -148,10 +134,8 @@ def ensure_logging(settings: Settings) -> None:
 def log_fields(
     logger: logging.Logger, event: str, fields: Mapping[str, Any], level: int = logging.INFO
 ) -> None:
-    """One line ``event key=value ...``; in JSON the fields are members of the line's object.
-
-    Fields that are None or empty are left out.
-    """
+    """One line ``event key=value ...`` (in JSON, members of the line's object); fields that are
+    None or empty are left out."""
     present = {key: value for key, value in fields.items() if value is not None and value != ""}
     logger.log(level, "%s %s", event, " ".join(f"{k}={_text(v)}" for k, v in present.items()), extra=present)
 

@@ -1,20 +1,13 @@
-"""Prometheus metrics of the service: requests, inference batches, admission, calibration jobs,
-coverage audits, and the drift of live heatmap features (``cks_drift_*``, computed when scraped).
+"""Prometheus metrics: requests, inference batches, admission, calibration jobs, coverage audits,
+and the drift of live heatmap features (``cks_drift_*``, computed when scraped).
 
-With several worker processes (``CKS_WORKERS > 1``) ``serve`` points prometheus_client's
-multiprocess mode at a folder (``PROMETHEUS_MULTIPROC_DIR``) before the workers start:
-each worker writes its values there and ``/metrics``, whichever worker answers, reports
-the sum over all of them (gauges of live workers only). The ``cks_drift_*`` gauges are the
-exception: they are the fleet's (every worker and replica merges the windows all of them share
-through the store: service/monitoring/drift_shares.py), the same whichever answers, so
-Prometheus takes their max, not their sum; ``cks_drift_replicas`` says how many they cover.
-
-Those files are memory-mapped: a page the file system cannot give when it is first written
-kills the process with SIGBUS ("Fatal Python error: Bus error"). So each file's pages are
-reserved (``posix_fallocate``) before prometheus_client maps them, with room ahead for new
-label series; where the disk is full the reservation fails with ENOSPC instead, and that worker
-keeps its new series in its own memory (metrics degraded: logged once; its new series are
-missing from the sums) while it goes on serving.
+With several workers ``serve`` points prometheus_client's multiprocess mode at a folder before they
+start, and ``/metrics`` reports the sum over all of them (gauges of live workers only); the
+``cks_drift_*`` gauges are already the fleet's (workers and replicas merge their windows through
+the store), so Prometheus takes their max. Those files are memory-mapped: a page the file system
+cannot give kills the process with SIGBUS, so each file's pages are reserved (``posix_fallocate``)
+before they are mapped; on a full disk that fails with ENOSPC instead, and the worker keeps its
+new series in its own memory (logged once) while it goes on serving.
 """
 
 from __future__ import annotations
@@ -26,7 +19,7 @@ import shutil
 import struct
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 from prometheus_client import (
     CONTENT_TYPE_LATEST,
@@ -42,19 +35,6 @@ from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.registry import Collector
 
 from service.infra.processes import process_folder, process_running
-
-
-class DriftReading(Protocol):
-    """What ``cks_drift_*`` reads of the drift monitor's report (its ``DriftReading``)."""
-
-    test: str
-    alarm: bool
-    version: int | None
-    reference_available: bool
-    keypoints: Sequence[Any]  # each: object, keypoint, features {name: live_n, alarm, statistic, p_value}
-    objects: Sequence[Any]  # each: object, alarm
-    replicas: int
-
 
 MULTIPROCESS_ENV = "PROMETHEUS_MULTIPROC_DIR"
 log = logging.getLogger(__name__)
@@ -114,21 +94,8 @@ def reserve_pages(path: Path) -> None:
         os.close(descriptor)
 
 
-def _reserved_values() -> ReservedValues | None:
-    """Put the reserving ValueClass in place in a multiprocess worker (before any metric exists)."""
-    if not os.environ.get(MULTIPROCESS_ENV) or not getattr(values.ValueClass, "_multiprocess", False):
-        return None
-    reserved = ReservedValues(values.ValueClass)
-    values.ValueClass = reserved
-    return reserved
-
-
-RESERVED = _reserved_values()
-
-
-def metrics_degraded() -> str | None:
-    """Why this process's new metric series are kept in its own memory (a full disk), or None."""
-    return None if RESERVED is None else RESERVED.degraded
+if os.environ.get(MULTIPROCESS_ENV) and getattr(values.ValueClass, "_multiprocess", False):
+    values.ValueClass = ReservedValues(values.ValueClass)  # in a multiprocess worker, before any metric
 
 
 REGISTRY = CollectorRegistry(auto_describe=True)
@@ -155,29 +122,19 @@ INFERENCE_SECONDS = Histogram(
     buckets=(0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1),
     registry=REGISTRY,
 )
-PREDICT_IN_FLIGHT = Gauge(
-    "cks_predict_in_flight",
-    "predict places taken, one per request or batch image (computing or waiting)",
-    registry=REGISTRY,
-    multiprocess_mode="livesum",
+
+
+def _gauge(name: str, documentation: str, labels: Sequence[str] = (), mode: str = "livesum") -> Gauge:
+    return Gauge(name, documentation, labels, registry=REGISTRY, multiprocess_mode=mode)
+
+
+PREDICT_IN_FLIGHT = _gauge(
+    "cks_predict_in_flight", "predict places taken, one per request or batch image (computing or waiting)"
 )
-PREDICT_COMPUTING = Gauge(
-    "cks_predict_computing",
-    "predict requests holding a compute slot",
-    registry=REGISTRY,
-    multiprocess_mode="livesum",
-)
-PREDICT_WAITING = Gauge(
-    "cks_predict_waiting",
-    "predict requests waiting for a compute slot",
-    registry=REGISTRY,
-    multiprocess_mode="livesum",
-)
-PREDICT_RECEIVING = Gauge(
-    "cks_predict_receiving_bytes",
-    "bytes of predict bodies still arriving (CKS_MAX_RECEIVING_BYTES)",
-    registry=REGISTRY,
-    multiprocess_mode="livesum",
+PREDICT_COMPUTING = _gauge("cks_predict_computing", "predict requests holding a compute slot")
+PREDICT_WAITING = _gauge("cks_predict_waiting", "predict requests waiting for a compute slot")
+PREDICT_RECEIVING = _gauge(
+    "cks_predict_receiving_bytes", "bytes of predict bodies still arriving (CKS_MAX_RECEIVING_BYTES)"
 )
 PREDICT_REJECTED = Counter(
     "cks_predict_rejected",
@@ -194,40 +151,23 @@ CALIBRATION_INSTANCES = Counter(
 
 # The latest coverage audit (service/monitoring/coverage_audits.py); replaced whole by each new audit
 _AUDIT_LABELS = ["object", "keypoint", "nonconformity", "epsilon", "scope"]
-AUDIT_COVERAGE = Gauge(
+_BAND = "end of the 95% band of the coverage a valid calibration gives"
+AUDIT_COVERAGE = _gauge(
     "cks_audit_coverage",
     'empirical coverage in the latest coverage audit (keypoint="": pooled)',
     _AUDIT_LABELS,
-    registry=REGISTRY,
-    multiprocess_mode="mostrecent",
+    "mostrecent",
 )
-AUDIT_BAND_LOW = Gauge(
-    "cks_audit_band_low",
-    "low end of the 95% band of the coverage a valid calibration gives",
-    _AUDIT_LABELS,
-    registry=REGISTRY,
-    multiprocess_mode="mostrecent",
-)
-AUDIT_BAND_HIGH = Gauge(
-    "cks_audit_band_high",
-    "high end of the 95% band of the coverage a valid calibration gives",
-    _AUDIT_LABELS,
-    registry=REGISTRY,
-    multiprocess_mode="mostrecent",
-)
-AUDIT_FLAGGED = Gauge(
+AUDIT_BAND_LOW = _gauge("cks_audit_band_low", f"low {_BAND}", _AUDIT_LABELS, "mostrecent")
+AUDIT_BAND_HIGH = _gauge("cks_audit_band_high", f"high {_BAND}", _AUDIT_LABELS, "mostrecent")
+AUDIT_FLAGGED = _gauge(
     "cks_audit_flagged",
     "1 where the latest audit found the coverage significantly low (Holm)",
     _AUDIT_LABELS,
-    registry=REGISTRY,
-    multiprocess_mode="mostrecent",
+    "mostrecent",
 )
-AUDIT_LATEST = Gauge(
-    "cks_audit_latest_id",
-    "id of the latest coverage audit, by audited version",
-    ["version"],
-    registry=REGISTRY,
-    multiprocess_mode="mostrecent",
+AUDIT_LATEST = _gauge(
+    "cks_audit_latest_id", "id of the latest coverage audit, by audited version", ["version"], "mostrecent"
 )
 
 
@@ -235,7 +175,7 @@ class DriftCollector(Collector):
     """``cks_drift_*`` from the drift monitor's report, evaluated (or read from its cache) at scrape."""
 
     def __init__(self) -> None:
-        self.source: Callable[[], DriftReading] | None = None
+        self.source: Callable[[], Any] | None = None  # the drift monitor's report
 
     def collect(self) -> Iterator[GaugeMetricFamily]:
         if self.source is None:
@@ -272,18 +212,18 @@ def forget_drift_process_values() -> None:
         drift_process_values.cache_clear()
 
 
-def set_drift_source(source: Callable[[], DriftReading] | None) -> None:
+def set_drift_source(source: Callable[[], Any] | None) -> None:
     """Serve ``cks_drift_*`` from this report (the process's drift monitor); None: none."""
     DRIFT.source = source
 
 
-def forget_drift_source(source: Callable[[], DriftReading]) -> None:
+def forget_drift_source(source: Callable[[], Any]) -> None:
     """Stop serving ``cks_drift_*`` from ``source``, unless another monitor has taken its place."""
     if DRIFT.source == source:
         DRIFT.source = None
 
 
-def drift_families(report: DriftReading) -> list[GaugeMetricFamily]:
+def drift_families(report: Any) -> list[GaugeMetricFamily]:
     """Per keypoint and feature: statistic, p-value (ks), alarm, live window size; and totals."""
     labels = ["object", "keypoint", "feature"]
     statistic = GaugeMetricFamily(
@@ -323,26 +263,11 @@ def drift_families(report: DriftReading) -> list[GaugeMetricFamily]:
     return [statistic, p_value, alarm, window, objects, reference, any_alarm, replicas]
 
 
-class CoverageReading(Protocol):
-    """One group of the live labelled coverage (service.feedback.live_coverage.GroupCoverage)."""
-
-    level: str
-    name: str
-    version: int
-    nonconformity: str
-    coverage: str
-    epsilon: float
-    looks: int
-    lower: float
-    upper: float
-    alarm: bool
-
-
 class FeedbackCollector(Collector):
     """``cks_feedback_coverage_*`` from the live labelled coverage, at scrape (its reader caches)."""
 
     def __init__(self) -> None:
-        self.source: Callable[[], list[CoverageReading]] | None = None
+        self.source: Callable[[], list[Any]] | None = None  # live_coverage.GroupCoverage of each group
 
     def collect(self) -> Iterator[GaugeMetricFamily]:
         if self.source is None:
@@ -353,29 +278,18 @@ class FeedbackCollector(Collector):
             log.exception("feedback metrics: the live coverage could not be read")
             return
         labels = ["version", "nonconformity", "coverage", "epsilon", "level", "name"]
+        helps = {
+            "lower": "anytime-valid lower bound",
+            "upper": "anytime-valid upper bound",
+            "looks": "independent labelled looks",
+            "alarm": "1 when coverage is proven below the promise",
+        }
         families = {
-            "lower": GaugeMetricFamily(
-                "cks_feedback_coverage_lower", "anytime-valid lower bound", labels=labels
-            ),
-            "upper": GaugeMetricFamily(
-                "cks_feedback_coverage_upper", "anytime-valid upper bound", labels=labels
-            ),
-            "looks": GaugeMetricFamily(
-                "cks_feedback_coverage_looks", "independent labelled looks", labels=labels
-            ),
-            "alarm": GaugeMetricFamily(
-                "cks_feedback_coverage_alarm", "1 when coverage is proven below the promise", labels=labels
-            ),
+            k: GaugeMetricFamily(f"cks_feedback_coverage_{k}", h, labels=labels) for k, h in helps.items()
         }
         for group in groups:
-            names = [
-                str(group.version),
-                group.nonconformity,
-                group.coverage,
-                f"{group.epsilon:g}",
-                group.level,
-                group.name,
-            ]
+            names = [str(group.version), group.nonconformity, group.coverage, f"{group.epsilon:g}"]
+            names += [group.level, group.name]
             for attribute, family in families.items():
                 family.add_metric(names, float(getattr(group, attribute)))
         yield from families.values()
@@ -385,7 +299,7 @@ FEEDBACK = FeedbackCollector()
 REGISTRY.register(FEEDBACK)
 
 
-def set_feedback_source(source: Callable[[], list[CoverageReading]] | None) -> None:
+def set_feedback_source(source: Callable[[], list[Any]] | None) -> None:
     """Serve ``cks_feedback_coverage_*`` from this reading; None: none."""
     FEEDBACK.source = source
 
@@ -403,12 +317,9 @@ def metrics_payload() -> tuple[bytes, str]:
 
 
 def enable_multiprocess(parent: Path) -> Path | None:
-    """Call in the parent before worker processes start (and before they import this module).
-
-    The files go to a folder of this parent process (``<parent>/<host>--<pid>``), so another
-    server on the same data directory keeps its own sums; returns it (remove it at exit), or
-    None where it cannot be made (a full disk): then each worker keeps its own metrics.
-    """
+    """Call in the parent before workers start (and import this module): the files go to this
+    process's folder under ``parent``, so another server on the data directory keeps its own sums.
+    Returns it (remove it at exit), or None where it cannot be made: each worker keeps its own."""
     folder = process_folder(parent)
     shutil.rmtree(folder, ignore_errors=True)
     try:

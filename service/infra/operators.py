@@ -1,14 +1,11 @@
-"""Named admin tokens: who may administer calibrations, under which name.
+"""Named admin tokens: who may administer calibrations, under which name (recorded in the audit
+trail and the activation log).
 
-``CKS_ADMIN_TOKENS_FILE`` names a file of ``name:token`` lines (``#`` starts a comment,
-blank lines are ignored); ``CKS_ADMIN_TOKEN`` still works and is the operator ``admin``.
-The name is what the audit trail and the activation log record. Every token, wherever it is
-configured, obeys one rule: at least 16 characters, no spaces.
-
-A line ``feedback name:token`` gives a token of its own scope: it may send feedback on retained
-predictions (POST /v1/feedback/...) and nothing else. A line ``predict name:token`` gives a
+``CKS_ADMIN_TOKENS_FILE`` holds ``name:token`` lines (``#`` comments, blank lines ignored);
+``CKS_ADMIN_TOKEN`` is the operator ``admin``. A line ``feedback name:token`` gives a token that may
+only send feedback on retained predictions (admins may too). A line ``predict name:token`` gives a
 predict token: once the file has one, predict requests need a predict (or admin) token, and each
-token holder is one caller for admission's cap. Admin tokens may send feedback and predict too.
+holder is one caller for admission's cap. Every token has at least 16 characters and no spaces.
 """
 
 from __future__ import annotations

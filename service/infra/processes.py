@@ -1,9 +1,6 @@
-"""Which process of which host owns something: job rows (``host:pid``) and folders.
-
-Upload workspaces and the Prometheus multiprocess files live in folders of one process
-(``<host>--<pid>``), so that a process can remove its own and a starting server can remove
-those of processes that stopped without touching another live server's files on a shared
-data directory.
+"""Which process of which host owns something: job rows (``host:pid``) and folders
+(``<host>--<pid>``: upload workspaces, Prometheus files), so that a starting server can remove
+those of stopped processes without touching another live server's on a shared data directory.
 """
 
 from __future__ import annotations
@@ -18,7 +15,7 @@ log = logging.getLogger(__name__)
 
 
 def process_owner() -> str:
-    """The name a job's row gives this process: ``host:pid``."""
+    """``host:pid``, the name a job's row gives this process."""
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
@@ -28,12 +25,9 @@ def process_folder(parent: Path, pid: int | None = None) -> Path:
 
 
 def remove_dead_process_folders(parent: Path, *, starting: bool = False) -> list[Path]:
-    """Remove the folders of processes of this host that no longer run; returns them.
-
-    Folders of other hosts (a shared volume) are left to their own servers. ``starting``: this
-    process has made none yet, so one under its own pid is a predecessor's that had the same pid
-    (a container restarted in place runs its server as pid 1 again).
-    """
+    """Remove (and return) the folders of this host's processes that no longer run, leaving other
+    hosts' to them; ``starting``: one under this pid is a predecessor's (a container restarted in
+    place runs its server as pid 1 again)."""
     removed = []
     host, mine = socket.gethostname(), os.getpid() if starting else None
     for folder in sorted(parent.iterdir()) if parent.is_dir() else []:

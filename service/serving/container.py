@@ -18,13 +18,11 @@ import cv2
 from calibration_store import CalibrationStore, ScoreTable, open_store, store_location
 from service.api.http.admission import Admission
 from service.calibration import jobs as calibration_jobs
-from service.calibration.archive import ArchiveLimits, DiskBudget
+from service.calibration.archive import DiskBudget
 from service.calibration.bundle import bootstrap_default_calibration
-from service.calibration.coco import AnnotationLimits
 from service.calibration.intake import IntakeRules
 from service.calibration.jobs import CalibrationJobs, JobSettings
-from service.calibration.registry import CalibrationRegistry
-from service.calibration.stratification import difficulty_spec
+from service.calibration.registry import POLL_SECONDS, STORE_TIMEOUT_SECONDS, CalibrationRegistry
 from service.calibration.uploads import process_uploads_dir, remove_spent_job_folders
 from service.calibration.versions import VersionRules
 from service.detector.session import Detector, usable_cores
@@ -52,13 +50,8 @@ from service.prediction import Predictor
 log = logging.getLogger(__name__)
 #: how old the live coverage /metrics serves may be (each scrape would otherwise read every label)
 FEEDBACK_METRICS_AGE_S = 10.0
-#: how often the store is asked for a new active version, and how long any store call may wait
-STORE_POLL_SECONDS = 1.0
-STORE_TIMEOUT_SECONDS = 1.5
-# Fixed parts that were settings once (service.infra.settings.REMOVED_SETTINGS says which).
-DIFFICULTY = difficulty_spec(("gamma", "peak_probability"), 3, 30)
-MAX_UPLOAD_FILES, MAX_ANNOTATIONS_BYTES, MAX_ANNOTATIONS = 100_000, 16 * 2**20, 20_000
-MIN_FREE_DISK_BYTES = 2**30
+# Fixed values that were settings once (service.infra.settings.REMOVED_SETTINGS says which), where
+# tests change them (tests/api/in_process.py); the others are their modules' constants.
 MAX_DECODED_BYTES = 256 * 2**20  # an image's decoded pixels (16-bit and alpha take more per pixel)
 DRIFT_PSI_THRESHOLD, DRIFT_HISTORY_SECONDS = drift_monitor.PSI_THRESHOLD, drift_monitor.HISTORY_SECONDS
 DRIFT_FULL_STATISTICS_SHARE = drift_monitor.FULL_STATISTICS_SHARE
@@ -156,14 +149,8 @@ def build_state(settings: Settings) -> ServiceState:
     options = {"timeout_s": timeout} if kind == "postgresql" else {"busy_timeout_s": timeout}
     store = open_store(settings.storage.resolved_url, **options)
     if settings.storage.bootstrap_calibration:
-        bootstrap_default_calibration(store, detector, settings.model.directory, DIFFICULTY)
-    registry = CalibrationRegistry(
-        store,
-        detector.model_hash,
-        detector.manifest,
-        STORE_POLL_SECONDS,
-        STORE_TIMEOUT_SECONDS,
-    )
+        bootstrap_default_calibration(store, detector, settings.model.directory)
+    registry = CalibrationRegistry(store, detector.model_hash, detector.manifest)
     names = ", ".join(sorted(operators.values())) or "none (admin API disabled)"
     log.info(
         "serving model %s (sha256 %s) from %s; calibration store: %s at %s; data directory %s;"
@@ -187,7 +174,7 @@ def build_state(settings: Settings) -> ServiceState:
     calibrations = CalibrationJobs(store, detector, registry, jobs, audit, job_settings)
     jobs.on_stale(calibration_jobs.JOB_KIND, calibrations.take_over)
     jobs.on_stale(coverage_audits.JOB_KIND, None)  # its upload lives in its process's workspace
-    audits.follow_latest(5 * STORE_POLL_SECONDS, stopping)
+    audits.follow_latest(5 * POLL_SECONDS, stopping)
     drift = _drift_monitor(settings, detector, registry, store)
     predict = settings.predict
     return ServiceState(
@@ -267,27 +254,11 @@ def _drift_monitor(
 
 
 def _job_settings(settings: Settings) -> JobSettings:
+    kept_uploads = (settings.storage.jobs_dir, settings.storage.uploads_dir)
     return JobSettings(
         jobs_dir=settings.storage.jobs_dir,
-        intake=IntakeRules(
-            limits=ArchiveLimits(
-                MAX_UPLOAD_FILES,
-                2 * settings.calibration.max_upload_bytes,
-                AnnotationLimits(MAX_ANNOTATIONS_BYTES, MAX_ANNOTATIONS),
-            ),
-            disk=DiskBudget(  # kept uploads: those of the data directory's jobs and uploads folders
-                (settings.storage.jobs_dir, settings.storage.uploads_dir),
-                settings.calibration.max_uploads_disk_bytes,
-                MIN_FREE_DISK_BYTES,
-            ),
-            max_rejected_share=0.0,
-        ),
-        versions=VersionRules(
-            max_image_pixels=settings.predict.max_image_pixels,
-            min_instances=settings.calibration.min_instances,
-            max_rejected_share=0.0,
-            difficulty=DIFFICULTY,
-        ),
+        intake=IntakeRules(DiskBudget(kept_uploads, settings.calibration.max_uploads_disk_bytes)),
+        versions=VersionRules(settings.predict.max_image_pixels, settings.calibration.min_instances),
     )
 
 

@@ -53,7 +53,7 @@ class LogLines(logging.Handler):
 class InProcess(ServiceCalls):
     """The app of ``Settings(data_dir=..., **settings)``, started; ``client`` calls it in process.
 
-    ``fixed`` changes fixed values of ``service.serving.container`` (``{"MAX_UPLOAD_FILES": 8}``)
+    ``fixed`` changes fixed values of ``service.serving.container`` (``{"MAX_INSTANCES": 3}``)
     while the service runs: small limits that keep a refusal test small."""
 
     def __init__(self, data_dir: Path, fixed: dict[str, Any] | None = None, **settings: Any) -> None:

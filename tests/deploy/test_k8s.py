@@ -22,6 +22,7 @@ import pytest
 import yaml
 
 from service import __version__
+from service.calibration.archive import MAX_UNCOMPRESSED_BYTES
 from service.infra.operators import load_operators
 from service.infra.settings import PACKAGE_ROOT, Settings
 from service.serving.openapi import openapi_document
@@ -198,7 +199,7 @@ def test_resources_follow_docs_performance(settings: Settings) -> None:
     assert quantity(limits["memory"]) / MIB >= max(rss_mib) + images_mib
 
     writable = emptydir_mounts()
-    one_upload = settings.calibration.max_upload_bytes + settings.calibration.max_upload_uncompressed_bytes
+    one_upload = settings.calibration.max_upload_bytes + MAX_UNCOMPRESSED_BYTES
     assert quantity(writable[str(settings.storage.data_dir)]["sizeLimit"]) >= one_upload
     admitted = settings.predict.max_concurrent_inferences + settings.predict.max_queued_requests
     assert (

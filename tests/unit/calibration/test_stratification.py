@@ -14,7 +14,6 @@ from service.calibration.stratification import (
     StrataSpec,
     VersionStrata,
     answer_rows,
-    difficulty_spec,
     fit_strata,
     parse_stratify,
     stratified_thresholds,
@@ -22,7 +21,6 @@ from service.calibration.stratification import (
 from service.conformal import calibrate, object_scores
 from service.conformal.strata import ALL_GROUPS, DifficultySpec
 from service.errors import InvalidInput
-from service.infra.settings import Settings
 
 N, CHANNELS = 400, (3, 5)
 
@@ -129,9 +127,3 @@ def test_object_scope_calibrates_each_group_on_its_fully_labeled_instances(table
         (answer,) = thresholds.answers[channel]["cam-1"]
         assert answer.threshold == expected.threshold and answer.guarantee == expected.guarantee
         assert answer.stratum.kinds == "group" and answer.stratum.group == "cam-1"
-
-
-def test_an_unknown_stratum_signal_is_refused_at_start_up() -> None:
-    settings = Settings(stratum_signals="gamma,sharpness")
-    with pytest.raises(ValueError, match="unknown heatmap feature sharpness; give one or two of"):
-        difficulty_spec(*settings.calibration.difficulty)
