@@ -133,9 +133,6 @@ PREDICT_IN_FLIGHT = _gauge(
 )
 PREDICT_COMPUTING = _gauge("cks_predict_computing", "predict requests holding a compute slot")
 PREDICT_WAITING = _gauge("cks_predict_waiting", "predict requests waiting for a compute slot")
-PREDICT_RECEIVING = _gauge(
-    "cks_predict_receiving_bytes", "bytes of predict bodies still arriving (CKS_MAX_RECEIVING_BYTES)"
-)
 PREDICT_REJECTED = Counter(
     "cks_predict_rejected",
     "predict requests refused by admission control (503; 429 for client_share)",
