@@ -4,7 +4,14 @@
  * block of pixels one MCU covers) on every side: chroma upsampling treats the edge of what it
  * decodes as the image's edge, so only pixels that far inside are the full decode's (same
  * IDCT, upsampling and colour conversion; tests/unit/detector/test_jpeg_windows.py). Every
- * libjpeg warning is an error, as in simplejpeg's strict mode. */
+ * libjpeg warning is an error, as in simplejpeg's strict mode.
+ *
+ * Why C and not a library: PyTurboJPEG 2 needs libjpeg-turbo 3 (Debian 12 ships 2.1.5), and
+ * PyTurboJPEG 1.8 over Debian's libturbojpeg0 crops losslessly to the same pixels at the same
+ * speed (a 1080p frame's window: 6 ms against this decoder's 10 ms and the whole decode's 11 ms,
+ * on a loaded machine) but reports libjpeg's warnings as Python warnings, which a threaded server
+ * cannot turn into errors per call: of 300 JPEGs damaged outside the window, it decoded 146 that
+ * the full decode refuses. The guarantee needs the whole image's pixels or a refusal. */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <setjmp.h>
