@@ -21,18 +21,18 @@ def test_every_setting_has_a_description():
 
 
 def test_settings_are_read_from_prefixed_environment(monkeypatch):
-    monkeypatch.setenv("CKS_MAX_INSTANCES", "7")
+    monkeypatch.setenv("CKS_MAX_QUEUED_REQUESTS", "7")
     monkeypatch.setenv("CKS_STORE_URL", "sqlite:////tmp/x.db")
     monkeypatch.setenv("CKS_LOG_LEVEL", "debug")
-    settings = Settings(max_upload_files=9)
-    assert settings.predict.max_instances == 7
+    settings = Settings(max_upload_bytes=9)
+    assert settings.predict.max_queued_requests == 7
     assert settings.storage.resolved_url == "sqlite:////tmp/x.db"
     assert settings.logs.level == "DEBUG"
-    assert settings.calibration.max_upload_files == 9
+    assert settings.calibration.max_upload_bytes == 9
 
 
 def test_a_setting_given_by_name_wins_over_its_variable_and_an_unknown_name_is_refused(monkeypatch):
-    monkeypatch.setenv("CKS_MAX_INSTANCES", "7")
-    assert Settings(max_instances=5).predict.max_instances == 5
-    with pytest.raises(TypeError, match="max_instancez"):
-        Settings(max_instancez=5)
+    monkeypatch.setenv("CKS_MAX_QUEUED_REQUESTS", "7")
+    assert Settings(max_queued_requests=5).predict.max_queued_requests == 5
+    with pytest.raises(TypeError, match="max_queued_requestz"):
+        Settings(max_queued_requestz=5)

@@ -26,6 +26,7 @@ from benchmarks.faults_clients import flat_png, png_chunk
 from service.detector.images import PNG_SIGNATURE, decode_image, decoded_bytes, read_image_header
 from service.errors import InvalidInput, PayloadTooLarge
 from service.infra.settings import PACKAGE_ROOT, Settings
+from service.serving.container import MAX_DECODED_BYTES
 
 LIMIT = 10**8
 MiB = 2**20
@@ -125,9 +126,9 @@ class TestBudget:
         header = read_image_header(data)
         assert header.pixels <= Settings().predict.max_image_pixels
         with pytest.raises(PayloadTooLarge) as refused:
-            decode_image(data, Settings().predict.max_image_pixels, Settings().predict.max_decoded_bytes)
+            decode_image(data, Settings().predict.max_image_pixels, MAX_DECODED_BYTES)
         detail = refused.value.detail
-        assert str(decoded_bytes(data, header)) in detail and "CKS_MAX_DECODED_BYTES" in detail, detail
+        assert str(decoded_bytes(data, header)) in detail and f"of {MAX_DECODED_BYTES} bytes" in detail, detail
         assert "6324x6324" in detail
 
     def test_the_limit_is_inclusive(self) -> None:
@@ -230,5 +231,5 @@ def test_decoded_bytes_bound_the_real_peak(tmp_path: Path, kind: str) -> None:
 
 @pytest.mark.slow
 def test_a_refused_image_takes_no_memory(tmp_path: Path) -> None:
-    peak, error = peak_of_decode(tmp_path, flat_png(6324, 6324), Settings().predict.max_decoded_bytes)
+    peak, error = peak_of_decode(tmp_path, flat_png(6324, 6324), MAX_DECODED_BYTES)
     assert error == "PayloadTooLarge" and peak < 4 * MiB, (error, peak)
