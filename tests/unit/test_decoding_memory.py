@@ -128,7 +128,9 @@ class TestBudget:
         with pytest.raises(PayloadTooLarge) as refused:
             decode_image(data, Settings().predict.max_image_pixels, MAX_DECODED_BYTES)
         detail = refused.value.detail
-        assert str(decoded_bytes(data, header)) in detail and f"of {MAX_DECODED_BYTES} bytes" in detail, detail
+        assert str(decoded_bytes(data, header)) in detail and f"of {MAX_DECODED_BYTES} bytes" in detail, (
+            detail
+        )
         assert "6324x6324" in detail
 
     def test_the_limit_is_inclusive(self) -> None:
