@@ -16,7 +16,7 @@ from typing import Any
 import cv2
 
 from calibration_store import CalibrationStore, ScoreTable, open_store, store_location
-from service.api.http.admission import Admission
+from service.api.http.admission import QUEUE_TIMEOUT_SECONDS, Admission
 from service.calibration import jobs as calibration_jobs
 from service.calibration.archive import DiskBudget
 from service.calibration.bundle import bootstrap_default_calibration
@@ -192,6 +192,7 @@ def build_state(settings: Settings) -> ServiceState:
             predict.max_queued_requests,
             predict.client_share,
             min(predict.max_concurrent_inferences, usable_cores()),  # the threads that really run at once
+            QUEUE_TIMEOUT_SECONDS,
         ),
         audits=audits,
         drift=drift,
