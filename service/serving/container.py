@@ -18,7 +18,7 @@ import cv2
 from calibration_store import CalibrationStore, ScoreTable, open_store, store_location
 from service.api.http.admission import QUEUE_TIMEOUT_SECONDS, Admission
 from service.calibration import jobs as calibration_jobs
-from service.calibration.archive import DiskBudget
+from service.calibration.archive import MIN_FREE_DISK_BYTES, DiskBudget
 from service.calibration.bundle import bootstrap_default_calibration
 from service.calibration.intake import IntakeRules
 from service.calibration.jobs import CalibrationJobs, JobSettings
@@ -50,8 +50,9 @@ from service.prediction import Predictor
 log = logging.getLogger(__name__)
 #: how old the live coverage /metrics serves may be (each scrape would otherwise read every label)
 FEEDBACK_METRICS_AGE_S = 10.0
-# Fixed values that were settings once (service.infra.settings.REMOVED_SETTINGS says which), where
-# tests change them (tests/api/in_process.py); the others are their modules' constants.
+# Fixed values (service.infra.settings.REMOVED_SETTINGS says which were settings once): the
+# container's own, and those of other modules it passes on, are its globals, which tests change
+# (tests/api/in_process.py, tests/live/fixed_serve.py).
 MAX_DECODED_BYTES = 256 * 2**20  # an image's decoded pixels (16-bit and alpha take more per pixel)
 DRIFT_PSI_THRESHOLD, DRIFT_HISTORY_SECONDS = drift_monitor.PSI_THRESHOLD, drift_monitor.HISTORY_SECONDS
 DRIFT_FULL_STATISTICS_SHARE = drift_monitor.FULL_STATISTICS_SHARE
@@ -150,7 +151,9 @@ def build_state(settings: Settings) -> ServiceState:
     store = open_store(settings.storage.resolved_url, **options)
     if settings.storage.bootstrap_calibration:
         bootstrap_default_calibration(store, detector, settings.model.directory)
-    registry = CalibrationRegistry(store, detector.model_hash, detector.manifest)
+    registry = CalibrationRegistry(
+        store, detector.model_hash, detector.manifest, POLL_SECONDS, STORE_TIMEOUT_SECONDS
+    )
     names = ", ".join(sorted(operators.values())) or "none (admin API disabled)"
     log.info(
         "serving model %s (sha256 %s) from %s; calibration store: %s at %s; data directory %s;"
@@ -258,7 +261,9 @@ def _job_settings(settings: Settings) -> JobSettings:
     kept_uploads = (settings.storage.jobs_dir, settings.storage.uploads_dir)
     return JobSettings(
         jobs_dir=settings.storage.jobs_dir,
-        intake=IntakeRules(DiskBudget(kept_uploads, settings.calibration.max_uploads_disk_bytes)),
+        intake=IntakeRules(
+            DiskBudget(kept_uploads, settings.calibration.max_uploads_disk_bytes, MIN_FREE_DISK_BYTES)
+        ),
         versions=VersionRules(settings.predict.max_image_pixels, settings.calibration.min_instances),
     )
 

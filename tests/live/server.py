@@ -10,6 +10,7 @@ with the in-process service of tests/api.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import socket
@@ -73,9 +74,11 @@ def service_env(data_dir: Path, **settings: Any) -> dict[str, str]:
 
 
 class LiveServer(ServiceCalls):
-    """One ``keypoint-service serve`` process on a free loopback port."""
+    """One ``keypoint-service serve`` process on a free loopback port; ``fixed`` changes fixed values
+    of ``service.serving.container`` in it (tests/live/fixed_serve.py)."""
 
-    def __init__(self, data_dir: Path, **settings: Any) -> None:
+    def __init__(self, data_dir: Path, fixed: dict[str, Any] | None = None, **settings: Any) -> None:
+        self.fixed = fixed
         self.data_dir = Path(data_dir)
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self.settings = settings
@@ -93,10 +96,11 @@ class LiveServer(ServiceCalls):
             return ""
 
     def start(self) -> LiveServer:
+        launcher = ["tests.live.fixed_serve", json.dumps(self.fixed)] if self.fixed else ["service.cli"]
         command = [
             sys.executable,
             "-m",
-            "service.cli",
+            *launcher,
             "serve",
             "--host",
             "127.0.0.1",
