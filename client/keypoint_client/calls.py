@@ -52,7 +52,7 @@ M = TypeVar("M", bound=BaseModel)
 Files = list[tuple[str, tuple[str | None, bytes, str]]]
 Params = Mapping[str, str | list[str]]
 Reader = Callable[[httpx.Response, str], T]
-DEFAULT_BATCH_SIZE = 16  # the service's default CKS_MAX_BATCH_IMAGES
+DEFAULT_BATCH_SIZE = 16  # the most images the service takes in one batch
 # The values the document lists for these options of a prediction.
 Nonconformity = Literal["peak", "var", "cov"]
 Coverage = Literal["keypoint", "object"]

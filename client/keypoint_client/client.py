@@ -180,7 +180,7 @@ class KeypointClient(_Endpoints):
     ) -> list[PredictResult | ProblemError]:
         """One answer per request, in order: its result, or the problem that image alone had (a
         ``ProblemError``, returned, not raised). Sent ``batch_size`` images per POST
-        /v1/predict/batch (at most the service's CKS_MAX_BATCH_IMAGES); a problem of a whole
+        /v1/predict/batch (at most 16 images, the service's limit); a problem of a whole
         request (too large, or still 503 after the retries) is raised."""
         answers: list[PredictResult | ProblemError] = []
         for batch in calls.batches(list(requests), batch_size):
