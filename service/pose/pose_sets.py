@@ -1,9 +1,6 @@
-"""Pose sets for the instances of one predict request (Yang & Pavone, CVPR 2023).
-
-From an object's object-scope keypoint sets, PURSE contains the true pose with probability
->= 1 - epsilon (the sets' own guarantee). For each instance: an estimate inside PURSE and how it
-was found, the sampled inner bound, the relaxation's outer bound, and any poses the caller asked
-to check.
+"""Pose sets for the instances of one predict request (Yang & Pavone, CVPR 2023): from an object's
+object-scope keypoint sets, PURSE holds the true pose with probability >= 1 - epsilon. Per instance:
+an estimate inside PURSE, the inner and outer bounds on its error, and the poses asked to be checked.
 """
 
 from __future__ import annotations
@@ -119,11 +116,9 @@ def instance_pose_sets(
         sampled = sample_poses_in_set(
             estimate or start, camera, keypoints_3d, centers, shapes, options.samples
         )
-        if estimate is None and sampled.poses:
-            estimate, method = (
-                _least_violating(sampled.poses, camera, keypoints_3d, centers, shapes),
-                "sampled",
-            )
+        if estimate is None and sampled.poses:  # the least violating pose found
+            worst = [membership(p, camera, keypoints_3d, centers, shapes).worst for p in sampled.poses]
+            estimate, method = sampled.poses[int(np.argmin(worst))], "sampled"
         if estimate is not None and relaxation_available():  # the search needs the pose extra's SciPy
             boundary = boundary_poses(estimate, camera, keypoints_3d, centers, shapes)
             sampled = SampledPoses([*sampled.poses, *boundary], sampled.tried, len(boundary))
@@ -153,7 +148,3 @@ def _estimate(start: Pose, camera, keypoints_3d, centers, shapes) -> tuple[Pose 
         return start, "pnp"
     refined = refine_into_set(start, camera, keypoints_3d, centers, shapes)
     return (refined, "pnp+refined-into-set") if refined is not None else (None, "none")
-
-
-def _least_violating(poses: list[Pose], camera, keypoints_3d, centers, shapes) -> Pose:
-    return min(poses, key=lambda p: membership(p, camera, keypoints_3d, centers, shapes).worst)
