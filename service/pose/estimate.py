@@ -66,17 +66,14 @@ def refine_into_set(
             return pose
         try:
             projected, jacobian = cv2.projectPoints(objects, rvec, tvec, camera, None)
-        except cv2.error:
-            return None
-        residuals = np.einsum("nij,nj->ni", whiten, projected.reshape(-1, 2) - centers)
-        jacobians = np.einsum("nij,njk->nik", whiten, jacobian[:, :6].reshape(-1, 2, 6))
-        weights = weights * np.maximum(np.linalg.norm(residuals, axis=1), 1e-12)  # Lawson
-        weights /= weights.sum()
-        hessian = np.einsum("n,nij,nik->jk", weights, jacobians, jacobians)
-        gradient = np.einsum("n,nij,ni->j", weights, jacobians, residuals)
-        try:
+            residuals = np.einsum("nij,nj->ni", whiten, projected.reshape(-1, 2) - centers)
+            jacobians = np.einsum("nij,njk->nik", whiten, jacobian[:, :6].reshape(-1, 2, 6))
+            weights = weights * np.maximum(np.linalg.norm(residuals, axis=1), 1e-12)  # Lawson
+            weights /= weights.sum()
+            hessian = np.einsum("n,nij,nik->jk", weights, jacobians, jacobians)
+            gradient = np.einsum("n,nij,ni->j", weights, jacobians, residuals)
             step = np.linalg.solve(hessian + _DAMPING * np.trace(hessian) * np.eye(6), -gradient)
-        except np.linalg.LinAlgError:
+        except (cv2.error, np.linalg.LinAlgError):
             return None
         if not np.isfinite(step).all():
             return None

@@ -115,11 +115,11 @@ def _program(estimate: Pose, camera: np.ndarray, keypoints_3d, centers, shapes) 
         cone /= np.abs(cone).max()  # a positive scale keeps the cone and evens the rows' magnitudes
         rows.append(-cone @ linear)
         offsets.append(cone @ origin)
-    cuts = _depth_cuts(camera, keypoints_3d / scale, centers, shapes)
+    cuts, distance_bound = _rigidity(camera, keypoints_3d, centers, shapes, scale)
     for i, j, slope_i, slope_j, distance in cuts:  # slope_i z_i + slope_j z_j >= d_ij
         rows.append(-(slope_i * linears[i][2] + slope_j * linears[j][2])[None])
         offsets.append(np.array([(slope_i + slope_j) * origin[2] - distance]))
-    reach = (_distance_bound(camera, keypoints_3d, centers, shapes) + scale) / scale
+    reach = (distance_bound + scale) / scale
     return _Program(np.vstack(rows), np.concatenate(offsets), len(centers), len(cuts), scale, reach)
 
 
@@ -147,42 +147,37 @@ def _bilinear_rows(u: np.ndarray, w: np.ndarray) -> np.ndarray:
     return (u[:, :, None] * w[:, None, :]).reshape(len(u), 16) @ _OUTER_TO_TRIANGLE
 
 
-def _ray_slopes(camera: np.ndarray, centers: np.ndarray, shapes: np.ndarray):
-    """Per set: whether it is bounded, s_i >= ||K^-1 (y, 1)|| over it, its centre's normalised image
-    coordinates and its radius there (semi-major axis / f)."""
+def _rigidity(camera: np.ndarray, keypoints_3d: np.ndarray, centers, shapes, scale: float):
+    """Cuts (i, j, s_i, s_j, d_ij / scale) valid on PURSE that keep the relaxation, which holds R = 0,
+    t = 0, off the camera, and an upper bound on ||t|| over PURSE (inf when no two sets are apart).
+
+    Over a bounded set i, s_i >= ||K^-1 (y, 1)||, so ||p_i|| <= s_i z_i and rigidity gives d_ij =
+    ||p_i - p_j|| <= s_i z_i + s_j z_j (a chain through the bounded sets: all pairs cost a fifth of
+    each solve and tighten nothing). The rays through disjoint sets make an angle with sin >= gap_ij /
+    (s_i s_j) (gap_ij: between the sets in normalised image coordinates), so d_ij >= ||p_i|| sin(angle),
+    and ||t|| <= ||p_i|| + ||X_i||.
+    """
     values = np.linalg.eigvalsh(shapes)
-    bounded = values[:, 0] > 0
-    inverse = np.linalg.inv(camera)
+    bounded, inverse = values[:, 0] > 0, np.linalg.inv(camera)
     rays = np.c_[centers, np.ones(len(centers))] @ inverse.T
     radius = np.where(bounded, 1.0 / np.sqrt(np.where(bounded, values[:, 0], 1.0)), np.inf)
-    radius = radius * max(inverse[0, 0], inverse[1, 1])
-    return bounded, np.linalg.norm(rays, axis=1) + radius, rays[:, :2], radius
-
-
-def _depth_cuts(camera: np.ndarray, keypoints_3d: np.ndarray, centers: np.ndarray, shapes: np.ndarray):
-    """Linear cuts valid on PURSE that keep the relaxation (which holds R = 0, t = 0) off the camera:
-    p_i = z_i K^-1 (y, 1) gives ||p_i|| <= s_i z_i, and rigidity d_ij = ||p_i - p_j|| <= s_i z_i + s_j z_j.
-    A chain through the bounded sets: all pairs cost a fifth of each solve and tighten nothing."""
-    bounded, slopes, _, _ = _ray_slopes(camera, centers, shapes)
-    kept = np.flatnonzero(bounded)
-    return [
-        (i, j, slopes[i], slopes[j], float(np.linalg.norm(keypoints_3d[i] - keypoints_3d[j])))
+    radius = radius * max(inverse[0, 0], inverse[1, 1])  # semi-major axis / f
+    slopes, kept, scaled = (
+        np.linalg.norm(rays, axis=1) + radius,
+        np.flatnonzero(bounded),
+        keypoints_3d / scale,
+    )
+    cuts = [
+        (i, j, slopes[i], slopes[j], float(np.linalg.norm(scaled[i] - scaled[j])))
         for i, j in zip(kept[:-1], kept[1:], strict=True)
     ]
-
-
-def _distance_bound(camera: np.ndarray, keypoints_3d, centers, shapes) -> float:
-    """An upper bound on ||t|| over PURSE (inf when no two sets are apart): the rays through disjoint
-    sets i, j make an angle with sin >= gap_ij / (s_i s_j) (gap_ij: between the sets, in normalised
-    image coordinates), so d_ij >= ||p_i|| sin(angle), and ||t|| <= ||p_i|| + ||X_i||."""
-    bounded, slopes, normalised, radius = _ray_slopes(camera, centers, shapes)
     best = math.inf
-    for i, j in itertools.permutations(np.flatnonzero(bounded), 2):
-        gap = float(np.linalg.norm(normalised[i] - normalised[j]) - radius[i] - radius[j])
+    for i, j in itertools.permutations(kept, 2):
+        gap = float(np.linalg.norm(rays[i, :2] - rays[j, :2]) - radius[i] - radius[j])
         if gap > 0:
             distance = float(np.linalg.norm(keypoints_3d[i] - keypoints_3d[j]))
             best = min(best, distance * slopes[i] * slopes[j] / gap + float(np.linalg.norm(keypoints_3d[i])))
-    return best
+    return cuts, best
 
 
 @cache
@@ -273,10 +268,11 @@ def _outcome(program: _Program, objective: np.ndarray, solution) -> _Solved:
     z = _project_dual(np.asarray(solution.z), program)
     residual = (objective if status == "Solved" else 0.0) + program.matrix.T @ z
     gap = float(program.offset @ z)
-    bound = -gap - float(np.abs(residual[:_Q]).sum()) - float(np.linalg.norm(residual[_Q:])) * program.reach
+    lower = -gap - float(np.abs(residual[:_Q]).sum())
+    bound = lower - float(np.linalg.norm(residual[_Q:])) * program.reach
     if status == "PrimalInfeasible":
         return _Solved(status, bound, gap < 0 and bound > 0)
-    primal, lower = float(objective @ np.asarray(solution.x)), -gap - float(np.abs(residual[:_Q]).sum())
+    primal = float(objective @ np.asarray(solution.x))
     return _Solved(status, bound, abs(primal - lower) <= _AGREEMENT * (1.0 + abs(primal)))
 
 
@@ -363,13 +359,11 @@ def outer_bound(
     root = _bound_cell(program, objectives, None)
     if root.status != "bounded":
         return _empty(root.verified) if root.status == "empty" else OuterBound(False, root.status)
-    distances = [  # (translation, rotation in degrees) to the poses found in PURSE
-        (
-            float(np.linalg.norm(p.translation - estimate.translation)),
-            rotation_angle_deg(estimate.rotation, p.rotation),
-        )
-        for p in sampled or []
-    ]
+    found = sampled or []
+    shifts = [float(np.linalg.norm(p.translation - estimate.translation)) for p in found]
+    distances = list(
+        zip(shifts, [rotation_angle_deg(estimate.rotation, p.rotation) for p in found], strict=True)
+    )
     if splits > 0:
         return _split_rounds(program, objectives, root, distances, splits)
     bounds = np.append(root.extents, _angle(root.smallest_trace))
@@ -525,32 +519,23 @@ class _Search:
 
 def _split_rounds(program, objectives, root, distances, splits) -> OuterBound:
     """The older branch-and-bound: rounds of splitting the quaternion cells (wedges around the
-    identity) that attain a bound. A leaf is (cell, bound or None, its parent's bound): a cell whose
-    program fails keeps its parent's bound, valid for it too."""
-    leaves = [(cell, None, root) for cell in Wedge.around(math.pi)]
+    identity) that attain any of the seven bounds. A cell whose program fails keeps its parent's
+    bound, valid for it too."""
+    leaves, pending = [], [(cell, root) for cell in Wedge.around(math.pi)]  # (cell, bound), (cell, parent's)
     for round_ in range(splits + 1):
-        done = []
-        for cell, bound, parent in leaves:
-            bound = bound or _bound_cell(program, objectives, cell.cap())
-            if bound.status != "bounded" and bound.status != "empty":
-                if parent is None:
-                    return OuterBound(False, bound.status)
-                bound = parent
+        for cell, parent in pending:
+            bound = _bound_cell(program, objectives, cell.cap())
             if bound.status != "empty":
-                done.append((cell, bound, None))
-        if not done:
+                leaves.append((cell, bound if bound.status == "bounded" else parent))
+        if not leaves:
             return _empty(True)
-        leaves = done
-        if round_ < splits:  # split the cells attaining any of the seven bounds
-            worst = {int(np.argmax([b.extents[k] for _, b, _ in leaves])) for k in range(6)}
-            worst.add(int(np.argmin([b.smallest_trace for _, b, _ in leaves])))
-            kept = [leaf for i, leaf in enumerate(leaves) if i not in worst]
-            leaves = kept + [
-                (child, None, leaves[i][1]) for i in sorted(worst) for child in leaves[i][0].split()
-            ]
-    extents = np.max([bound.extents for _, bound, _ in leaves], axis=0)
-    rotation = _angle(min(bound.smallest_trace for _, bound, _ in leaves))
-    verified = all(bound.verified for _, bound, _ in leaves)
-    return _finish(
-        program.scale, np.append(extents, rotation), verified, distances, f"{len(leaves)} rotation cells"
-    )
+        if round_ < splits:
+            worst = {int(np.argmax([b.extents[k] for _, b in leaves])) for k in range(6)}
+            worst.add(int(np.argmin([b.smallest_trace for _, b in leaves])))
+            pending = [(child, leaves[i][1]) for i in sorted(worst) for child in leaves[i][0].split()]
+            leaves = [leaf for i, leaf in enumerate(leaves) if i not in worst]
+    extents = np.max([bound.extents for _, bound in leaves], axis=0)
+    rotation = _angle(min(bound.smallest_trace for _, bound in leaves))
+    verified = all(bound.verified for _, bound in leaves)
+    detail = f"{len(leaves)} rotation cells"
+    return _finish(program.scale, np.append(extents, rotation), verified, distances, detail)
