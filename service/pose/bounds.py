@@ -129,6 +129,7 @@ _ROTATION_STARTS = 0.05  # radians: the rotation search starts this far from the
 #: SLSQP runs converged this far: stopped at 1e-6, their poses moved in the 8th digit with the
 #: BLAS library's thread count, so the same request got other inner bounds on other machines
 BOUNDARY_FTOL = 1e-9
+_SLSQP = {"method": "SLSQP", "options": {"maxiter": 60, "ftol": BOUNDARY_FTOL}}
 
 
 def boundary_poses(
@@ -156,18 +157,16 @@ def boundary_poses(
         slack = 1.0 - np.einsum("ni,nij,nj->n", offsets, shapes, offsets)
         rotation, turning = cv2.Rodrigues(x[:3])  # Rodrigues' d vec(R) / d rvec, row-major
         depth = (objects @ rotation.T + estimate.translation + step * x[3:])[:, 2]
-        return np.concatenate([slack, depth]), np.vstack(
-            [slopes, np.hstack([objects @ turning[:, 6:9].T, moved])]
-        )
+        gradients = np.vstack([slopes, np.hstack([objects @ turning[:, 6:9].T, moved])])
+        return np.concatenate([slack, depth]), gradients
 
     def turn(x):  # tr(R_hat^T R): smallest at the largest angle
         rotation, jacobian = cv2.Rodrigues(x[:3])
         gradient = np.concatenate([jacobian @ estimate.rotation.reshape(9), np.zeros(3)])
         return float(np.sum(estimate.rotation * rotation)), gradient
 
-    constraints = [
-        {"type": "ineq", "fun": lambda x: feasible(x.tobytes())[0], "jac": lambda x: feasible(x.tobytes())[1]}
-    ]
+    constraint = {"type": "ineq", "fun": lambda x: feasible(x.tobytes())[0]}
+    constraint["jac"] = lambda x: feasible(x.tobytes())[1]
     sight, *across = ray_frame(estimate.translation)
     runs = [
         (lambda x, a=sign * sight: (-float(a @ x[3:]), np.concatenate([np.zeros(3), -a])), start)
@@ -178,12 +177,9 @@ def boundary_poses(
         runs.append((turn, np.concatenate([to_rotation_vector(turned), np.zeros(3)])))
     poses, origin = [], np.concatenate([start[:3], estimate.translation])
     for objective, x0 in runs:
-        options = {"maxiter": 60, "ftol": BOUNDARY_FTOL}
         try:
             with np.errstate(all="ignore"):
-                result = minimize(
-                    objective, x0, jac=True, constraints=constraints, method="SLSQP", options=options
-                )
+                result = minimize(objective, x0, jac=True, constraints=[constraint], **_SLSQP)
         except (cv2.error, ValueError):  # a run wandering off to poses OpenCV cannot project
             continue
         end = np.concatenate([result.x[:3], estimate.translation + step * result.x[3:]])
@@ -197,7 +193,7 @@ _BISECTION_STEPS = 30  # halvings of the segment towards the estimate
 _TOWARDS_HIGH = 2.0 ** -np.arange(1, _BISECTION_STEPS + 1)  # the middles of the halvings left, as fractions
 
 
-def _inside_towards(start, end, camera, keypoints_3d, centers, shapes) -> Pose | None:
+def _inside_towards(start, end, *scene) -> Pose | None:
     """The pose at ``end`` (rotation vector, translation) if it is in PURSE, else the last one in
     PURSE on the segment from ``start`` (by bisection; None if ``end`` is not finite)."""
     if not np.isfinite(end).all():
@@ -207,7 +203,7 @@ def _inside_towards(start, end, camera, keypoints_3d, centers, shapes) -> Pose |
         x = start + fraction * (end - start)
         return Pose(from_rotation_vector(x[:3]), x[3:].copy())
 
-    if membership(pose_at(1.0), camera, keypoints_3d, centers, shapes).inside:
+    if membership(pose_at(1.0), *scene).inside:
         return pose_at(1.0)
     # SLSQP ends a hair outside PURSE, so nearly every middle of the bisection lands inside: one batch
     # checks the middles (low + high) / 2 that path would visit (exact dyadic fractions), and the
@@ -217,7 +213,7 @@ def _inside_towards(start, end, camera, keypoints_3d, centers, shapes) -> Pose |
         middles = high - (high - low) * _TOWARDS_HIGH[:steps]
         x = start + middles[:, None] * (end - start)
         rotations = np.array([from_rotation_vector(v) for v in x[:, :3]])  # pose_at's, exactly
-        inside = poses_inside(rotations, x[:, 3:], camera, keypoints_3d, centers, shapes)
+        inside = poses_inside(rotations, x[:, 3:], *scene)
         kept = steps if inside.all() else int(inside.argmin())  # the middles inside before one outside
         if kept:
             low = float(middles[kept - 1])
@@ -225,7 +221,7 @@ def _inside_towards(start, end, camera, keypoints_3d, centers, shapes) -> Pose |
             high = float(middles[kept])
         steps -= min(kept + 1, steps)
     pose = pose_at(low)
-    return pose if membership(pose, camera, keypoints_3d, centers, shapes).inside else None
+    return pose if membership(pose, *scene).inside else None
 
 
 def inner_bound(estimate: Pose, sampled: SampledPoses) -> InnerBound:
