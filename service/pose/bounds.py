@@ -1,12 +1,8 @@
-"""The inner bound on the pose error: poses found inside PURSE, by sampling and on its boundary.
-
-Sampling (Yang & Pavone, CVPR 2023, sec. 4.2): PnP on one draw inside every keypoint's set, keeping
-the poses in PURSE. Draws rarely push every keypoint to its set's edge at once, so the boundary
-search (as CLOSURE's boundary samples, Gao, Tang, Qi & Yang, 2024) pushes the estimate by SLSQP, every
-set constraint kept, along and against the line of sight (where the depth error dominates) and away in
-rotation from turns about the two axes across it (a turn about the line of sight moves every keypoint
-in the image: PURSE is thin there). The largest distances from the estimate to the poses found (each
-checked to be in PURSE) bound the worst-case error from below; the relaxation bounds it from above.
+"""The inner bound on the pose error (docs/pose.md, "Inner"): poses found inside PURSE, by PnP on
+draws inside the sets (Yang & Pavone, CVPR 2023, sec. 4.2) and by a boundary search (after CLOSURE,
+Gao, Tang, Qi & Yang, 2024) that pushes the estimate by SLSQP along and against the line of sight
+and away in rotation. Their largest distances from the estimate bound the worst-case error from
+below; the relaxation (relaxation.py) bounds it from above.
 """
 
 from __future__ import annotations

@@ -1,13 +1,10 @@
-"""Wedges of rotation space for the branch-and-bounds of the outer bound (relaxation.py).
+"""Wedges of rotation space for the branch-and-bounds of the outer bound (docs/pose.md, "The search").
 
-A rotation's unit quaternion q (q and -q are one rotation) has a largest component q_k > 0, so the
-four faces {q : q_k >= |q_j|} of the 4-cube cover SO(3). A wedge is the rotations R_hat R(q) whose q
-has its largest component at ``face`` and u = (q_j / q_face)_{j != face} in a box; on face 0, u is the
-Gibbs vector tan(angle / 2) * axis. The box is cut out exactly by constraints linear in the moment
-matrix Q = q q^T, (q_j - low_j q_face)(q_j - high_j q_face) <= 0, and lies in the cap
-|q_0^T q| >= cos(phi) around its centre's quaternion q_0 (the cosine is quasi-concave on the cone over
-the box, so phi is the largest corner angle), i.e. q_0^T Q q_0 >= cos^2(phi). Both keep Q near rank
-one: conv SO(3) alone holds the shrunk rotations alpha R, which project like R when t shrinks too.
+A wedge is the rotations R_hat R(q) whose unit quaternion q (up to sign) has its largest component at
+``face`` and u = (q_j / q_face)_{j != face} in a box (on face 0, u is the Gibbs vector tan(angle / 2)
+* axis); the four faces cover SO(3). The box is cut out exactly by constraints linear in Q = q q^T,
+(q_j - low_j q_face)(q_j - high_j q_face) <= 0, and lies in the cap around its centre's quaternion q_0
+whose angle phi is the largest to a corner (the cosine is quasi-concave on the cone over the box).
 """
 
 from __future__ import annotations

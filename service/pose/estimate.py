@@ -1,10 +1,7 @@
-"""A pose inside PURSE: PnP on the set centres, then, if needed, moved inside the sets.
-
-The move minimises the largest normalised violation max_i sqrt((y_i - c_i)^T L_i (y_i - c_i))
-over the 6-dof pose (Yang & Pavone, CVPR 2023, sec. 4: any pose in PURSE is as good an
-estimate as any other with respect to the guarantee). The minimax is approached by Lawson's
-iteratively reweighted least squares, one damped Gauss-Newton step per reweighting, with
-OpenCV's projection Jacobian; it stops at the first pose inside every set.
+"""A pose inside PURSE (docs/pose.md, "Moving the estimate inside"): PnP on the set centres, then, if
+needed, the largest normalised violation minimised over the 6-dof pose by Lawson's iteratively
+reweighted least squares (one damped Gauss-Newton step per reweighting), stopping at the first pose
+inside every set: any pose in PURSE is as good an estimate as another (Yang & Pavone, CVPR 2023).
 """
 
 from __future__ import annotations

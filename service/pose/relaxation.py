@@ -1,17 +1,12 @@
-"""The certified outer bound: a convex relaxation of PURSE solved with Clarabel (the `pose` extra).
+"""The certified outer bound (docs/pose.md, "Outer"): a convex relaxation of PURSE solved with Clarabel.
 
-Keypoint i's constraint is a second-order cone in (R, t) (Yang & Pavone, CVPR 2023, eq. 8): with
-p_i = R X_i + t and W_i^T W_i = L_i, ||W_i (K[:2] - c_i e_3^T) p_i|| <= p_i[2]. Replacing SO(3) by its
-convex hull through the quaternion lift R = A(Q), Q = q q^T relaxed to {Q PSD, tr Q = 1} (Saunderson,
-Parrilo & Willsky, SIAM J. Optim. 2015), plus depth cuts, gives a convex set containing PURSE. Small
-conic programs over it bound max +-e_k^T (t - t_hat) (e_k: the ray frame of t_hat; a box, then a
-radius) and min tr(R_hat^T R) (an angle). Each bound is recomputed here by weak duality from the
-multipliers projected onto the dual cones, the translation residual bounded with a proven bound on ||t||
-over PURSE: ``certified`` only when every certificate checks out and the bounds dominate the poses found;
-a checked infeasibility certificate proves PURSE empty. The whole-space relaxation is loose (conv SO(3)
-holds the shrunk alpha R, and (alpha R, alpha t) projects like (R, t)), so a best-first search
-(``_Search``) cuts the rotations near the estimate into wedges (cells.Wedge), one program per step; the
-bounds, the worst over the wedges left, are valid at every step.
+Each keypoint's constraint is a second-order cone in (R, t) (Yang & Pavone, CVPR 2023, eq. 8); SO(3)
+is replaced by its convex hull through the quaternion lift R = A(Q), Q PSD, tr Q = 1 (Saunderson,
+Parrilo & Willsky 2015), plus depth cuts. Seven conic programs bound the translation offsets along
+the ray frame of t_hat and the rotation angle, each bound recomputed here from the dual (weak duality):
+``certified`` only when every certificate checks out and the bounds dominate the poses found. The
+whole-space relaxation is loose, so a best-first search (``_Search``) tightens it over rotation wedges
+(cells.Wedge); the bounds, the worst over the wedges left, are valid at every step.
 """
 
 from __future__ import annotations
@@ -124,9 +119,8 @@ def _program(estimate: Pose, camera: np.ndarray, keypoints_3d, centers, shapes) 
 
 
 def _with_minors(program: _Program) -> _Program:
-    """``program`` with Q's PSD cone replaced by its six 2x2 principal minors: weaker, still valid,
-    and within a wedge (Q near rank one) as tight in the median and proving 99 % of the empty wedges
-    empty, at about half of Clarabel's solve (no 4x4 eigen-decompositions per iteration)."""
+    """``program`` with Q's PSD cone replaced by its six 2x2 principal minors: weaker, but as tight
+    within a wedge's sides in the median, at about half of Clarabel's solve."""
     matrix, offset = program.matrix, program.offset
     return replace(
         program,
@@ -148,25 +142,18 @@ def _bilinear_rows(u: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 def _rigidity(camera: np.ndarray, keypoints_3d: np.ndarray, centers, shapes, scale: float):
-    """Cuts (i, j, s_i, s_j, d_ij / scale) valid on PURSE that keep the relaxation, which holds R = 0,
-    t = 0, off the camera, and an upper bound on ||t|| over PURSE (inf when no two sets are apart).
-
-    Over a bounded set i, s_i >= ||K^-1 (y, 1)||, so ||p_i|| <= s_i z_i and rigidity gives d_ij =
-    ||p_i - p_j|| <= s_i z_i + s_j z_j (a chain through the bounded sets: all pairs cost a fifth of
-    each solve and tighten nothing). The rays through disjoint sets make an angle with sin >= gap_ij /
-    (s_i s_j) (gap_ij: between the sets in normalised image coordinates), so d_ij >= ||p_i|| sin(angle),
-    and ||t|| <= ||p_i|| + ||X_i||.
-    """
+    """Depth cuts (i, j, s_i, s_j, d_ij / scale): s_i z_i + s_j z_j >= d_ij, as ||p_i|| <= s_i z_i over
+    set i, keep the relaxation (which holds R = 0, t = 0) off the camera; a chain through the bounded
+    sets (all pairs cost a fifth of each solve and tighten nothing). And an upper bound on ||t|| over
+    PURSE (inf when no two sets are apart): the rays through disjoint sets make an angle with sine at
+    least gap_ij / (s_i s_j), so ||p_i|| <= d_ij s_i s_j / gap_ij and ||t|| <= ||p_i|| + ||X_i||."""
     values = np.linalg.eigvalsh(shapes)
     bounded, inverse = values[:, 0] > 0, np.linalg.inv(camera)
     rays = np.c_[centers, np.ones(len(centers))] @ inverse.T
     radius = np.where(bounded, 1.0 / np.sqrt(np.where(bounded, values[:, 0], 1.0)), np.inf)
     radius = radius * max(inverse[0, 0], inverse[1, 1])  # semi-major axis / f
-    slopes, kept, scaled = (
-        np.linalg.norm(rays, axis=1) + radius,
-        np.flatnonzero(bounded),
-        keypoints_3d / scale,
-    )
+    slopes, kept = np.linalg.norm(rays, axis=1) + radius, np.flatnonzero(bounded)
+    scaled = keypoints_3d / scale
     cuts = [
         (i, j, slopes[i], slopes[j], float(np.linalg.norm(scaled[i] - scaled[j])))
         for i, j in zip(kept[:-1], kept[1:], strict=True)
@@ -448,15 +435,9 @@ class _WedgePrograms:
 
 
 class _Search:
-    """Best-first branch-and-bound over rotation wedges around the estimate.
-
-    The rotation bound rho puts PURSE's rotations within rho of R_hat: the wedge of Gibbs vectors
-    |g| <= tan(rho / 2) is cut in eight where a bound is attained. Each step proves one bound for the
-    leaf attaining the loosest quantity (dropping a wedge proven empty), or splits that leaf once its
-    bound is proven; a leaf wholly beyond the rotation bound is dropped unsolved. It stops after
-    ``programs`` conic programs, or once both bounds are within ROTATION_TOLERANCE and
-    TRANSLATION_TOLERANCE of the poses reached in PURSE.
-    """
+    """Best-first branch-and-bound over rotation wedges around the estimate: each step proves one bound
+    for the leaf attaining the loosest quantity, or splits that leaf once its bound is proven. It stops
+    after ``budget`` programs, or once both bounds are within their tolerances of the poses reached."""
 
     def __init__(self, programs: _WedgePrograms, distances: list[tuple[float, float]]) -> None:
         self.programs, self.spent, self.reached = programs, 0, None
