@@ -1,25 +1,15 @@
-"""The inner bound on the pose error: poses found inside PURSE, by sampling and on its boundary.
-
-Sampling, as in the RANSAC-style search of Yang & Pavone (CVPR 2023, sec. 4.2): draw one
-position inside every keypoint's set (uniform over the ball or ellipse), solve PnP on them from
-the estimate, keep the poses that are in PURSE. Such draws rarely push every keypoint to the
-edge of its set at once, so the far poses are missed; the boundary search finds them, as the
-boundary samples of CLOSURE (Gao, Tang, Qi & Yang, 2024) do: from the estimate, local
-optimisation (SLSQP over the 6-dof pose, every set constraint kept) pushes the pose as far as
-PURSE allows along and against the line of sight (the depth error dominates there; runs across
-it gave the farthest pose for 2 of 79 sample and sequence instances and left the medians of the
-outer / inner ratios unchanged, at a third of the search's cost), and away in rotation from
-turns about the two axes across the line of sight (a turn about it moves every keypoint in the
-image, so PURSE is thin there: four such runs reached as far as six turns about the object's
-axes in the median, between 97 % and 116 % of their reach on 79 instances, in 40 % less time). The
-largest rotation (geodesic) and translation distances from the estimate to the poses found are a
-lower bound on the worst-case error over PURSE (every pose is checked to be in PURSE): the true
-pose may be any of them. It is not an upper bound; that is the relaxation's job (relaxation.py).
+"""The inner bound on the pose error (docs/pose.md, "Inner"): poses found inside PURSE, by PnP on
+draws inside the sets (Yang & Pavone, CVPR 2023, sec. 4.2) and by a boundary search (after CLOSURE,
+Gao, Tang, Qi & Yang, 2024) that pushes the estimate by SLSQP along and against the line of sight
+and away in rotation. Their largest distances from the estimate bound the worst-case error from
+below; the relaxation (relaxation.py) bounds it from above.
 """
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -69,10 +59,8 @@ def sample_poses_in_set(
     count: int,
     seed: int = 0,
 ) -> SampledPoses:
-    """PnP on ``count`` draws of keypoint positions inside the sets; the poses that land in PURSE.
-
-    Every set must be bounded (an unbounded set has no uniform draw).
-    """
+    """PnP on ``count`` draws of keypoint positions inside the sets (every one bounded); the poses
+    that land in PURSE."""
     if count == 0:
         return SampledPoses([], 0)
     points = sample_points_in_sets(centers, shapes, np.random.default_rng(seed), count)
@@ -87,9 +75,8 @@ _GAUSS_NEWTON_STEPS = 8  # from the estimate to draws inside the sets: converged
 
 
 def _fitted_poses(start: Pose, camera: np.ndarray, objects: np.ndarray, points: np.ndarray):
-    """Least-squares PnP for every draw at once (``points`` (S, N, 2)): Gauss-Newton from ``start``
-    on the reprojection error, the rotation updated on the left (R <- exp([w]) R), all draws in
-    one batch of 6x6 systems. Returns rotations (S, 3, 3) and translations (S, 3)."""
+    """Least-squares PnP for every draw of ``points`` (S, N, 2) at once: Gauss-Newton from ``start``
+    on the reprojection error, R <- exp([w]) R, one batch of 6x6 systems. Returns (S, 3, 3), (S, 3)."""
     count = len(points)
     rotations = np.repeat(start.rotation[None].astype(np.float64), count, axis=0)
     translations = np.repeat(start.translation[None].astype(np.float64), count, axis=0)
@@ -104,8 +91,7 @@ def _fitted_poses(start: Pose, camera: np.ndarray, objects: np.ndarray, points: 
             projection[..., 0, 0], projection[..., 1, 1] = focal[0] / depth[..., 0], focal[1] / depth[..., 0]
             projection[..., :, 2] = -focal * camera_points[..., :2] / depth**2
             turning = -_skew(turned)  # d p / d w = -[R X]_x
-            jacobian = np.concatenate([projection @ turning, projection], axis=-1)  # (S, N, 2, 6)
-            jacobian = jacobian.reshape(count, -1, 6)
+            jacobian = np.concatenate([projection @ turning, projection], axis=-1).reshape(count, -1, 6)
             normal = jacobian.transpose(0, 2, 1) @ jacobian
             gradient = jacobian.transpose(0, 2, 1) @ residuals.reshape(count, -1, 1)
             damping = 1e-9 * np.trace(normal, axis1=1, axis2=2)[:, None, None] * np.eye(6)
@@ -120,12 +106,8 @@ def _fitted_poses(start: Pose, camera: np.ndarray, objects: np.ndarray, points: 
 
 def _skew(vectors: np.ndarray) -> np.ndarray:
     """[v]_x for every vector of (..., 3)."""
-    x, y, z = vectors[..., 0], vectors[..., 1], vectors[..., 2]
-    skew = np.zeros(vectors.shape[:-1] + (3, 3))
-    skew[..., 0, 1], skew[..., 0, 2] = -z, y
-    skew[..., 1, 0], skew[..., 1, 2] = z, -x
-    skew[..., 2, 0], skew[..., 2, 1] = -y, x
-    return skew
+    x, y, z, zero = *np.moveaxis(vectors, -1, 0), np.zeros(vectors.shape[:-1])
+    return np.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(vectors.shape[:-1] + (3, 3))
 
 
 def _exponential(vectors: np.ndarray) -> np.ndarray:
@@ -141,105 +123,75 @@ def _exponential(vectors: np.ndarray) -> np.ndarray:
 
 _ROTATION_STARTS = 0.05  # radians: the rotation search starts this far from the estimate
 #: SLSQP runs converged this far: stopped at 1e-6, their poses moved in the 8th digit with the
-#: BLAS library's thread count (OPENBLAS_NUM_THREADS=1 against the default), so the same request
-#: got other inner bounds on other machines
+#: BLAS library's thread count, so the same request got other inner bounds on other machines
 BOUNDARY_FTOL = 1e-9
+_SLSQP = {"method": "SLSQP", "options": {"maxiter": 60, "ftol": BOUNDARY_FTOL}}
 
 
 def boundary_poses(
     estimate: Pose, camera: np.ndarray, keypoints_3d: np.ndarray, centers: np.ndarray, shapes: np.ndarray
 ) -> list[Pose]:
-    """Poses of PURSE pushed to its boundary: the farthest along and against the line of sight
-    and in rotation (from four small turns of the estimate about the two axes across the line of
-    sight, in the camera's frame). Every set must be bounded.
-
-    The pose is x = (rotation vector, u), t = t_hat + step u with step a tenth of the distance, so
-    that SLSQP sees radians and tenths of the depth on one scale."""
+    """Poses of PURSE pushed to its boundary (every set bounded): the farthest along and against the
+    line of sight, and in rotation from four small turns about the two axes across it. The variable is
+    x = (rotation vector, u), t = t_hat + step u with step a tenth of the distance: SLSQP sees radians
+    and tenths of the depth on one scale."""
     from scipy.optimize import minimize  # the `pose` extra (Clarabel needs SciPy): not at start-up
 
     objects = keypoints_3d.astype(np.float64)
     step = 0.1 * (float(np.linalg.norm(estimate.translation)) or 1.0)
     start = np.concatenate([to_rotation_vector(estimate.rotation), np.zeros(3)])
-
     scaled = np.array([1.0, 1.0, 1.0, step, step, step])  # d (rvec, t) / d x
     moved = np.tile([0.0, 0.0, step], (len(objects), 1))  # d z_i / d u
 
-    @_last_value
-    def feasible(x):  # per keypoint, 1 - (y_i - c_i)^T L_i (y_i - c_i) >= 0 and z_i > 0, with Jacobians
-        projected, jacobian = cv2.projectPoints(
-            objects, x[:3], estimate.translation + step * x[3:], camera, None
-        )
+    @lru_cache(maxsize=1)  # SLSQP asks for the constraints, then their Jacobian, at one point
+    def feasible(key: bytes):  # per keypoint, 1 - (y_i - c_i)^T L_i (y_i - c_i) >= 0 and z_i > 0
+        x = np.frombuffer(key)
+        translation = estimate.translation + step * x[3:]
+        projected, jacobian = cv2.projectPoints(objects, x[:3], translation, camera, None)
         offsets = projected.reshape(-1, 2) - centers
-        jacobian = jacobian[:, :6].reshape(-1, 2, 6) * scaled
-        slopes = -2 * np.einsum("ni,nij,njk->nk", offsets, shapes, jacobian)
+        slopes = -2 * np.einsum("ni,nij,njk->nk", offsets, shapes, jacobian[:, :6].reshape(-1, 2, 6) * scaled)
         slack = 1.0 - np.einsum("ni,nij,nj->n", offsets, shapes, offsets)
         rotation, turning = cv2.Rodrigues(x[:3])  # Rodrigues' d vec(R) / d rvec, row-major
         depth = (objects @ rotation.T + estimate.translation + step * x[3:])[:, 2]
-        return np.concatenate([slack, depth]), np.vstack(
-            [slopes, np.hstack([objects @ turning[:, 6:9].T, moved])]
-        )
+        gradients = np.vstack([slopes, np.hstack([objects @ turning[:, 6:9].T, moved])])
+        return np.concatenate([slack, depth]), gradients
 
     def turn(x):  # tr(R_hat^T R): smallest at the largest angle
         rotation, jacobian = cv2.Rodrigues(x[:3])
-        return float(np.sum(estimate.rotation * rotation)), np.concatenate(
-            [jacobian @ estimate.rotation.reshape(9), np.zeros(3)]
-        )
+        gradient = np.concatenate([jacobian @ estimate.rotation.reshape(9), np.zeros(3)])
+        return float(np.sum(estimate.rotation * rotation)), gradient
 
-    constraints = [{"type": "ineq", "fun": lambda x: feasible(x)[0], "jac": lambda x: feasible(x)[1]}]
+    constraint = {"type": "ineq", "fun": lambda x: feasible(x.tobytes())[0]}
+    constraint["jac"] = lambda x: feasible(x.tobytes())[1]
     sight, *across = ray_frame(estimate.translation)
     runs = [
         (lambda x, a=sign * sight: (-float(a @ x[3:]), np.concatenate([np.zeros(3), -a])), start)
         for sign in (1.0, -1.0)
     ]
-    # a turn about the line of sight moves every keypoint in the image: PURSE is thin there
-    for axis in across:
-        for sign in (1.0, -1.0):
-            turned = from_rotation_vector(sign * _ROTATION_STARTS * axis) @ estimate.rotation
-            runs.append((turn, np.concatenate([to_rotation_vector(turned), np.zeros(3)])))
-    poses = []
+    for axis, sign in itertools.product(across, (1.0, -1.0)):
+        turned = from_rotation_vector(sign * _ROTATION_STARTS * axis) @ estimate.rotation
+        runs.append((turn, np.concatenate([to_rotation_vector(turned), np.zeros(3)])))
+    poses, origin = [], np.concatenate([start[:3], estimate.translation])
     for objective, x0 in runs:
         try:
             with np.errstate(all="ignore"):
-                result = minimize(
-                    objective,
-                    x0,
-                    jac=True,
-                    constraints=constraints,
-                    method="SLSQP",
-                    options={"maxiter": 60, "ftol": BOUNDARY_FTOL},
-                )
+                result = minimize(objective, x0, jac=True, constraints=[constraint], **_SLSQP)
         except (cv2.error, ValueError):  # a run wandering off to poses OpenCV cannot project
             continue
         end = np.concatenate([result.x[:3], estimate.translation + step * result.x[3:]])
-        origin = np.concatenate([start[:3], estimate.translation])
         pose = _inside_towards(origin, end, camera, keypoints_3d, centers, shapes)
         if pose is not None:
             poses.append(pose)
     return poses
 
 
-def _last_value(function):
-    """``function`` remembering its last argument's value: SLSQP asks for a constraint and then its
-    Jacobian at the same point, and both come from one projection."""
-    last: list = [None, None]
-
-    def remembered(x: np.ndarray):
-        key = x.tobytes()
-        if last[0] != key:
-            last[:] = [key, function(x)]
-        return last[1]
-
-    return remembered
-
-
 _BISECTION_STEPS = 30  # halvings of the segment towards the estimate
-#: the middles of the remaining halvings, as fractions of the interval left, should each land inside
-_TOWARDS_HIGH = 2.0 ** -np.arange(1, _BISECTION_STEPS + 1)
+_TOWARDS_HIGH = 2.0 ** -np.arange(1, _BISECTION_STEPS + 1)  # the middles of the halvings left, as fractions
 
 
-def _inside_towards(start, end, camera, keypoints_3d, centers, shapes) -> Pose | None:
+def _inside_towards(start, end, *scene) -> Pose | None:
     """The pose at ``end`` (rotation vector, translation) if it is in PURSE, else the last one in
-    PURSE on the segment from ``start`` (found by bisection; None if ``end`` is not finite)."""
+    PURSE on the segment from ``start`` (by bisection; None if ``end`` is not finite)."""
     if not np.isfinite(end).all():
         return None
 
@@ -247,22 +199,17 @@ def _inside_towards(start, end, camera, keypoints_3d, centers, shapes) -> Pose |
         x = start + fraction * (end - start)
         return Pose(from_rotation_vector(x[:3]), x[3:].copy())
 
-    def inside_at(fractions: np.ndarray) -> np.ndarray:
-        """``membership(pose_at(f), ...).inside`` for every fraction, in one batch."""
-        x = start + fractions[:, None] * (end - start)
-        rotations = np.array([from_rotation_vector(v) for v in x[:, :3]])  # pose_at's, exactly
-        return poses_inside(rotations, x[:, 3:], camera, keypoints_3d, centers, shapes)
-
-    if membership(pose_at(1.0), camera, keypoints_3d, centers, shapes).inside:
+    if membership(pose_at(1.0), *scene).inside:
         return pose_at(1.0)
-    # Bisection, its steps checked in batches: SLSQP ends a hair outside PURSE, so nearly always
-    # every middle lands inside; one batch checks the middles of that path at once (exact dyadic
-    # fractions, the very middles (low + high) / 2 one step after another would visit), and the
-    # bisection goes on from the first middle that does not
+    # SLSQP ends a hair outside PURSE, so nearly every middle of the bisection lands inside: one batch
+    # checks the middles (low + high) / 2 that path would visit (exact dyadic fractions), and the
+    # bisection goes on from the first that does not
     low, high, steps = 0.0, 1.0, _BISECTION_STEPS
     while steps:
         middles = high - (high - low) * _TOWARDS_HIGH[:steps]
-        inside = inside_at(middles)
+        x = start + middles[:, None] * (end - start)
+        rotations = np.array([from_rotation_vector(v) for v in x[:, :3]])  # pose_at's, exactly
+        inside = poses_inside(rotations, x[:, 3:], *scene)
         kept = steps if inside.all() else int(inside.argmin())  # the middles inside before one outside
         if kept:
             low = float(middles[kept - 1])
@@ -270,7 +217,7 @@ def _inside_towards(start, end, camera, keypoints_3d, centers, shapes) -> Pose |
             high = float(middles[kept])
         steps -= min(kept + 1, steps)
     pose = pose_at(low)
-    return pose if membership(pose, camera, keypoints_3d, centers, shapes).inside else None
+    return pose if membership(pose, *scene).inside else None
 
 
 def inner_bound(estimate: Pose, sampled: SampledPoses) -> InnerBound:

@@ -1,10 +1,7 @@
-"""A pose inside PURSE: PnP on the set centres, then, if needed, moved inside the sets.
-
-The move minimises the largest normalised violation max_i sqrt((y_i - c_i)^T L_i (y_i - c_i))
-over the 6-dof pose (Yang & Pavone, CVPR 2023, sec. 4: any pose in PURSE is as good an
-estimate as any other with respect to the guarantee). The minimax is approached by Lawson's
-iteratively reweighted least squares, one damped Gauss-Newton step per reweighting, with
-OpenCV's projection Jacobian; it stops at the first pose inside every set.
+"""A pose inside PURSE (docs/pose.md, "Moving the estimate inside"): PnP on the set centres, then, if
+needed, the largest normalised violation minimised over the 6-dof pose by Lawson's iteratively
+reweighted least squares (one damped Gauss-Newton step per reweighting), stopping at the first pose
+inside every set: any pose in PURSE is as good an estimate as another (Yang & Pavone, CVPR 2023).
 """
 
 from __future__ import annotations
@@ -66,17 +63,14 @@ def refine_into_set(
             return pose
         try:
             projected, jacobian = cv2.projectPoints(objects, rvec, tvec, camera, None)
-        except cv2.error:
-            return None
-        residuals = np.einsum("nij,nj->ni", whiten, projected.reshape(-1, 2) - centers)
-        jacobians = np.einsum("nij,njk->nik", whiten, jacobian[:, :6].reshape(-1, 2, 6))
-        weights = weights * np.maximum(np.linalg.norm(residuals, axis=1), 1e-12)  # Lawson
-        weights /= weights.sum()
-        hessian = np.einsum("n,nij,nik->jk", weights, jacobians, jacobians)
-        gradient = np.einsum("n,nij,ni->j", weights, jacobians, residuals)
-        try:
+            residuals = np.einsum("nij,nj->ni", whiten, projected.reshape(-1, 2) - centers)
+            jacobians = np.einsum("nij,njk->nik", whiten, jacobian[:, :6].reshape(-1, 2, 6))
+            weights = weights * np.maximum(np.linalg.norm(residuals, axis=1), 1e-12)  # Lawson
+            weights /= weights.sum()
+            hessian = np.einsum("n,nij,nik->jk", weights, jacobians, jacobians)
+            gradient = np.einsum("n,nij,ni->j", weights, jacobians, residuals)
             step = np.linalg.solve(hessian + _DAMPING * np.trace(hessian) * np.eye(6), -gradient)
-        except np.linalg.LinAlgError:
+        except (cv2.error, np.linalg.LinAlgError):
             return None
         if not np.isfinite(step).all():
             return None

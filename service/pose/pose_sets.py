@@ -1,9 +1,6 @@
-"""Pose sets for the instances of one predict request (Yang & Pavone, CVPR 2023).
-
-From an object's object-scope keypoint sets, PURSE contains the true pose with probability
->= 1 - epsilon (the sets' own guarantee). For each instance: an estimate inside PURSE and how it
-was found, the sampled inner bound, the relaxation's outer bound, and any poses the caller asked
-to check.
+"""Pose sets for the instances of one predict request (Yang & Pavone, CVPR 2023): from an object's
+object-scope keypoint sets, PURSE holds the true pose with probability >= 1 - epsilon. Per instance:
+an estimate inside PURSE, the inner and outer bounds on its error, and the poses asked to be checked.
 """
 
 from __future__ import annotations
@@ -107,39 +104,32 @@ def instance_pose_sets(
     checks: Sequence[Pose] = (),
 ) -> PoseSets:
     """Estimate, bounds and checks for one instance."""
-    camera = options.camera
-    checked = [PoseCheck(p, membership(p, camera, keypoints_3d, centers, shapes)) for p in checks]
-    start = pnp_on_centres(camera, keypoints_3d, centers)
+    scene = (options.camera, keypoints_3d, centers, shapes)
+    checked = [PoseCheck(p, membership(p, *scene)) for p in checks]
+    start = pnp_on_centres(options.camera, keypoints_3d, centers)
     if start is None:
         return PoseSets(None, "none", None, None, "fewer than 4 keypoints: no PnP", None, checked)
-    estimate, method = _estimate(start, camera, keypoints_3d, centers, shapes)
+    estimate, method = _estimate(start, *scene)
     bounded = bool((np.linalg.eigvalsh(shapes)[:, 0] > 0).all())
     sampled = None
     if bounded and options.samples > 0:
-        sampled = sample_poses_in_set(
-            estimate or start, camera, keypoints_3d, centers, shapes, options.samples
-        )
-        if estimate is None and sampled.poses:
-            estimate, method = (
-                _least_violating(sampled.poses, camera, keypoints_3d, centers, shapes),
-                "sampled",
-            )
+        sampled = sample_poses_in_set(estimate or start, *scene, options.samples)
+        if estimate is None and sampled.poses:  # the least violating pose found
+            worst = [membership(p, *scene).worst for p in sampled.poses]
+            estimate, method = sampled.poses[int(np.argmin(worst))], "sampled"
         if estimate is not None and relaxation_available():  # the search needs the pose extra's SciPy
-            boundary = boundary_poses(estimate, camera, keypoints_3d, centers, shapes)
+            boundary = boundary_poses(estimate, *scene)
             sampled = SampledPoses([*sampled.poses, *boundary], sampled.tried, len(boundary))
-    note = _inner_note(bounded, options.samples)
     inner = inner_bound(estimate, sampled) if estimate is not None and sampled is not None else None
     outer = None
     if options.outer:
         found = sampled.poses if sampled is not None else []
         splits, programs = (options.outer_splits, options.outer_programs) if estimate is not None else (0, 0)
-        outer = outer_bound(estimate or start, camera, keypoints_3d, centers, shapes, found, splits, programs)
+        outer = outer_bound(estimate or start, *scene, found, splits, programs)
         if estimate is None and not outer.empty:  # bounds around a pose outside PURSE mean nothing
             outer = OuterBound(False, "no estimate in PURSE to bound around; emptiness not proven")
-    violation = None
-    if estimate is not None:
-        violation = membership(estimate, camera, keypoints_3d, centers, shapes).worst
-    return PoseSets(estimate, method, violation, inner, note, outer, checked)
+    violation = membership(estimate, *scene).worst if estimate is not None else None
+    return PoseSets(estimate, method, violation, inner, _inner_note(bounded, options.samples), outer, checked)
 
 
 def _inner_note(bounded: bool, samples: int) -> str | None:
@@ -148,12 +138,8 @@ def _inner_note(bounded: bool, samples: int) -> str | None:
     return "pose.samples is 0: no sampling" if samples == 0 else None
 
 
-def _estimate(start: Pose, camera, keypoints_3d, centers, shapes) -> tuple[Pose | None, str]:
-    if membership(start, camera, keypoints_3d, centers, shapes).inside:
+def _estimate(start: Pose, *scene) -> tuple[Pose | None, str]:
+    if membership(start, *scene).inside:
         return start, "pnp"
-    refined = refine_into_set(start, camera, keypoints_3d, centers, shapes)
+    refined = refine_into_set(start, *scene)
     return (refined, "pnp+refined-into-set") if refined is not None else (None, "none")
-
-
-def _least_violating(poses: list[Pose], camera, keypoints_3d, centers, shapes) -> Pose:
-    return min(poses, key=lambda p: membership(p, camera, keypoints_3d, centers, shapes).worst)

@@ -1,34 +1,18 @@
-"""The certified outer bound: a convex relaxation of PURSE solved with Clarabel (optional extra).
+"""The certified outer bound (docs/pose.md, "Outer"): a convex relaxation of PURSE solved with Clarabel.
 
-Each keypoint's constraint is a second-order cone in (R, t) (Yang & Pavone, CVPR 2023, eq. 8):
-with p_i = R X_i + t, z_i = p_i[2] and W_i^T W_i = L_i,
-    || W_i (K[:2] - c_i e_3^T) p_i || <= z_i,
-which is (y_i - c_i)^T L_i (y_i - c_i) <= 1 multiplied by z_i^2 > 0. PURSE is these cones
-intersected with SO(3). Replacing SO(3) by its convex hull, written exactly through the unit
-quaternion lift R = A(Q), Q = q q^T relaxed to {Q PSD, tr Q = 1} (Saunderson, Parrilo & Willsky,
-SIAM J. Optim. 2015), plus valid depth cuts, gives a convex set containing PURSE. Over it (or
-over each rotation cell of a branch-and-bound, cells.py) we solve small conic programs:
-    max e_k^T (t - t_hat) for e_k in +-{ray frame of t_hat}  -> box, then radius, on the translation error
-    min tr(R_hat^T R)                                         -> angle bound on the rotation error
-Each bound is read from the dual: Clarabel's multipliers are projected onto the dual cones and
-the weak-duality bound is recomputed here (the certificate check), its residual in the
-translation bounded with a proven bound on ||t|| over PURSE (``_distance_bound``). ``certified``
-is True only when every program is solved, the recomputed dual bound agrees with the primal
-value, and it dominates the sampled poses. A relaxation whose infeasibility certificate checks
-out the same way proves PURSE empty.
-
-The whole-space relaxation is loose: conv SO(3) holds the shrunk rotations alpha R, and
-(alpha R, alpha t) projects like (R, t), so the relaxation reaches towards the camera and far in
-rotation. Restricting the rotations to a cell keeps alpha near 1, so the search (``_Search``) cuts
-the rotations near the estimate into wedges (boxes of Gibbs vectors, cells.Wedge, whose sides are
-linear constraints on the moment matrix, exact for the wedge's rotations), best-first where a
-bound is attained, one conic program per step: the bounds are the worst over the cells left,
-valid at every step.
+Each keypoint's constraint is a second-order cone in (R, t) (Yang & Pavone, CVPR 2023, eq. 8); SO(3)
+is replaced by its convex hull through the quaternion lift R = A(Q), Q PSD, tr Q = 1 (Saunderson,
+Parrilo & Willsky 2015), plus depth cuts. Seven conic programs bound the translation offsets along
+the ray frame of t_hat and the rotation angle, each bound recomputed here from the dual (weak duality):
+``certified`` only when every certificate checks out and the bounds dominate the poses found. The
+whole-space relaxation is loose, so a best-first search (``_Search``) tightens it over rotation wedges
+(cells.Wedge); the bounds, the worst over the wedges left, are valid at every step.
 """
 
 from __future__ import annotations
 
 import importlib.util
+import itertools
 import math
 from dataclasses import dataclass, replace
 from functools import cache
@@ -36,7 +20,7 @@ from functools import cache
 import numpy as np
 
 from .camera import ray_frame
-from .cells import SIDES, Wedge, root_cells
+from .cells import SIDES, Wedge
 from .estimate import whitening
 from .membership import Pose
 from .rotations import QUATERNION_BASIS, left_product, rotation_angle_deg, to_quaternion
@@ -45,6 +29,30 @@ _TRIANGLE = [(a, b) for b in range(4) for a in range(b + 1)]  # Clarabel's svec 
 _Q = len(_TRIANGLE)  # 10 entries of the 4x4 quaternion moment matrix
 _N = _Q + 3  # + the scaled translation offset
 _AGREEMENT = 1e-6  # relative primal-dual agreement required of a certificate
+_UPPER = tuple(np.array(index) for index in zip(*_TRIANGLE, strict=True))  # Q's entries in svec order
+_LOWER = _UPPER[::-1]
+_DIAGONAL = _UPPER[0] == _UPPER[1]
+_SVEC_SCALE = np.where(_DIAGONAL, 1.0, math.sqrt(2.0))
+# (16, _Q): u^T Q w = (u w^T).ravel() @ this over Q's upper triangle (unscaled entries)
+_OUTER_TO_TRIANGLE = np.zeros((4, 4, _Q))
+_OUTER_TO_TRIANGLE[(*_UPPER, np.arange(_Q))] = _OUTER_TO_TRIANGLE[(*_LOWER, np.arange(_Q))] = 1.0
+_OUTER_TO_TRIANGLE = _OUTER_TO_TRIANGLE.reshape(16, _Q)
+_ROTATION_MAP = QUATERNION_BASIS.reshape(9, 16) @ _OUTER_TO_TRIANGLE  # row-major vec(R) from Q
+
+
+def _minor_rows() -> np.ndarray:
+    """(18, _N): -A rows of Q's six 2x2 principal minors as SOC(3) cones (Q_aa + Q_bb, 2 Q_ab,
+    Q_aa - Q_bb), each a cone exactly when [[Q_aa, Q_ab], [Q_ab, Q_bb]] is PSD."""
+    column = {entry: k for k, entry in enumerate(_TRIANGLE)}
+    rows = np.zeros((6, 3, _N))
+    for k, (a, b) in enumerate(entry for entry in _TRIANGLE if entry[0] != entry[1]):
+        rows[k, 0, [column[a, a], column[b, b]]] = -1.0
+        rows[k, 1, column[a, b]] = -2.0
+        rows[k, 2, [column[a, a], column[b, b]]] = -1.0, 1.0
+    return rows.reshape(18, _N)
+
+
+_MINOR_ROWS = _minor_rows()
 
 
 def relaxation_available() -> bool:
@@ -70,36 +78,6 @@ class OuterBound:
     empty: bool = False  # the relaxation, hence PURSE, has no point
 
 
-def _rotation_map() -> np.ndarray:
-    """(9, 10): row-major vec(R) as a linear function of Q's upper triangle (unscaled entries)."""
-    mapping = np.zeros((9, _Q))
-    for column, (a, b) in enumerate(_TRIANGLE):
-        block = QUATERNION_BASIS[:, :, a, b] + (QUATERNION_BASIS[:, :, b, a] if a != b else 0.0)
-        mapping[:, column] = block.reshape(9)
-    return mapping
-
-
-_ROTATION_MAP = _rotation_map()
-_SVEC_SCALE = np.array([1.0 if a == b else math.sqrt(2.0) for a, b in _TRIANGLE])
-_UPPER = tuple(np.array(index) for index in zip(*_TRIANGLE, strict=True))  # Q's entries in svec order
-_LOWER = _UPPER[::-1]
-
-
-def _minor_rows() -> np.ndarray:
-    """(18, _N): -A rows of the six 2x2 principal minors of Q as SOC(3) cones,
-    (Q_aa + Q_bb, 2 Q_ab, Q_aa - Q_bb), each a cone exactly when [[Q_aa, Q_ab], [Q_ab, Q_bb]] is PSD."""
-    column = {entry: k for k, entry in enumerate(_TRIANGLE)}
-    rows = np.zeros((6, 3, _N))
-    for k, (a, b) in enumerate(entry for entry in _TRIANGLE if entry[0] != entry[1]):
-        rows[k, 0, [column[a, a], column[b, b]]] = -1.0
-        rows[k, 1, column[a, b]] = -2.0
-        rows[k, 2, [column[a, a], column[b, b]]] = -1.0, 1.0
-    return rows.reshape(18, _N)
-
-
-_MINOR_ROWS = _minor_rows()
-
-
 @dataclass(frozen=True)
 class _Program:
     """A x + s = b, s in (zero(1), PSD triangle(4) or, with ``minors``, SOC(3) per 2x2 principal minor
@@ -111,79 +89,51 @@ class _Program:
     cuts: int
     scale: float
     reach: float  # every pose in PURSE has || t - t_hat || / scale <= reach (inf: no such bound)
-    minors: bool = False  # Q's cone: its six 2x2 principal minors (SOC(3) each), not PSD(4)
+    minors: bool = False
 
 
 def _program(estimate: Pose, camera: np.ndarray, keypoints_3d, centers, shapes) -> _Program:
-    """The whole-space relaxation; ``_capped`` restricts it to a rotation cell."""
+    """The whole-space relaxation."""
     scale = float(np.linalg.norm(estimate.translation)) or 1.0
-    rows, offsets = [], []
     trace = np.zeros(_N)
-    trace[[i for i, (a, b) in enumerate(_TRIANGLE) if a == b]] = 1.0
-    rows.append(trace[None])
-    offsets.append(np.ones(1))
-    rows.append(np.hstack([-np.diag(_SVEC_SCALE), np.zeros((_Q, 3))]))
-    offsets.append(np.zeros(_Q))
-    whiten = whitening(shapes)
+    trace[:_Q] = _DIAGONAL
+    rows = [trace[None], np.hstack([-np.diag(_SVEC_SCALE), np.zeros((_Q, 3))])]
+    offsets = [np.ones(1), np.zeros(_Q)]
     # p_i / scale = linear_i x + t_hat / scale, with R X_i linear in Q
     linears = [
         np.hstack([np.kron(np.eye(3), point[None]) @ _ROTATION_MAP, np.eye(3)])
         for point in keypoints_3d / scale
     ]
     origin = estimate.translation / scale
-    for linear, center, w in zip(linears, centers, whiten, strict=True):
+    for linear, center, w in zip(linears, centers, whitening(shapes), strict=True):
         cone = np.vstack([[0.0, 0.0, 1.0], w @ (camera[:2] - np.outer(center, camera[2]))])
         cone /= np.abs(cone).max()  # a positive scale keeps the cone and evens the rows' magnitudes
         rows.append(-cone @ linear)
         offsets.append(cone @ origin)
-    cuts = _depth_cuts(camera, keypoints_3d / scale, centers, shapes)
+    cuts, distance_bound = _rigidity(camera, keypoints_3d, centers, shapes, scale)
     for i, j, slope_i, slope_j, distance in cuts:  # slope_i z_i + slope_j z_j >= d_ij
-        depth = slope_i * linears[i][2] + slope_j * linears[j][2]
-        rows.append(-depth[None])
+        rows.append(-(slope_i * linears[i][2] + slope_j * linears[j][2])[None])
         offsets.append(np.array([(slope_i + slope_j) * origin[2] - distance]))
-    reach = (_distance_bound(camera, keypoints_3d, centers, shapes) + scale) / scale
+    reach = (distance_bound + scale) / scale
     return _Program(np.vstack(rows), np.concatenate(offsets), len(centers), len(cuts), scale, reach)
 
 
 def _with_minors(program: _Program) -> _Program:
-    """``program`` with Q's PSD cone replaced by its six 2x2 principal minors (a weaker relaxation,
-    still valid: every rotation's Q = q q^T satisfies them). Within a wedge the sides hold Q near
-    rank one, where the minors bound as tightly as the PSD cone in the median program and still prove
-    99 % of the empty wedges empty, at about half of Clarabel's solve (no 4x4 eigen-decompositions
-    per iteration)."""
-    start, end = 1, 1 + _Q  # Q's PSD rows
+    """``program`` with Q's PSD cone replaced by its six 2x2 principal minors: weaker, but as tight
+    within a wedge's sides in the median, at about half of Clarabel's solve."""
+    matrix, offset = program.matrix, program.offset
     return replace(
         program,
-        matrix=np.vstack([program.matrix[:start], _MINOR_ROWS, program.matrix[end:]]),
-        offset=np.concatenate([program.offset[:start], np.zeros(len(_MINOR_ROWS)), program.offset[end:]]),
+        matrix=np.vstack([matrix[:1], _MINOR_ROWS, matrix[1 + _Q :]]),
+        offset=np.concatenate([offset[:1], np.zeros(len(_MINOR_ROWS)), offset[1 + _Q :]]),
         minors=True,
     )
 
 
-def _capped(program: _Program, cap: tuple[np.ndarray, float] | None) -> _Program:
-    """The relaxation of one rotation cell: q_0^T Q q_0 >= cos^2(phi) (None: the whole space)."""
-    if cap is None:
-        return program
-    centre, cosine_squared = cap
-    row = -np.concatenate([_quadratic_form(centre), np.zeros(3)])[None]
-    return replace(
-        program,
-        matrix=np.vstack([program.matrix, row]),
-        offset=np.append(program.offset, -cosine_squared),
-        cuts=program.cuts + 1,
-    )
-
-
-def _outer_to_triangle() -> np.ndarray:
-    """(16, _Q): u^T Q w = (u w^T).ravel() @ this, over Q's upper triangle (unscaled): Q_ab's
-    coefficient is u_a w_b + u_b w_a off the diagonal, u_a w_a on it."""
-    mapping = np.zeros((4, 4, _Q))
-    for column, (a, b) in enumerate(_TRIANGLE):
-        mapping[a, b, column] = mapping[b, a, column] = 1.0
-    return mapping.reshape(16, _Q)
-
-
-_OUTER_TO_TRIANGLE = _outer_to_triangle()
+def _with_cuts(program: _Program, rows: np.ndarray, offsets) -> _Program:
+    """``program`` with the linear cuts rows x <= offsets."""
+    matrix, offset = np.vstack([program.matrix, rows]), np.append(program.offset, offsets)
+    return replace(program, matrix=matrix, offset=offset, cuts=program.cuts + len(rows))
 
 
 def _bilinear_rows(u: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -191,58 +141,30 @@ def _bilinear_rows(u: np.ndarray, w: np.ndarray) -> np.ndarray:
     return (u[:, :, None] * w[:, None, :]).reshape(len(u), 16) @ _OUTER_TO_TRIANGLE
 
 
-def _quadratic_form(vector: np.ndarray) -> np.ndarray:
-    """v^T Q v as a row over Q's upper triangle (unscaled entries)."""
-    return np.array([vector[a] ** 2 if a == b else 2 * vector[a] * vector[b] for a, b in _TRIANGLE])
-
-
-def _ray_slopes(camera: np.ndarray, centers: np.ndarray, shapes: np.ndarray):
-    """Per set: whether it is bounded, s_i >= ||K^-1 (y, 1)|| over it, and its centre's normalised
-    image coordinates and radius (semi-major axis / f)."""
+def _rigidity(camera: np.ndarray, keypoints_3d: np.ndarray, centers, shapes, scale: float):
+    """Depth cuts (i, j, s_i, s_j, d_ij / scale): s_i z_i + s_j z_j >= d_ij, as ||p_i|| <= s_i z_i over
+    set i, keep the relaxation (which holds R = 0, t = 0) off the camera; a chain through the bounded
+    sets (all pairs cost a fifth of each solve and tighten nothing). And an upper bound on ||t|| over
+    PURSE (inf when no two sets are apart): the rays through disjoint sets make an angle with sine at
+    least gap_ij / (s_i s_j), so ||p_i|| <= d_ij s_i s_j / gap_ij and ||t|| <= ||p_i|| + ||X_i||."""
     values = np.linalg.eigvalsh(shapes)
-    bounded = values[:, 0] > 0
-    inverse = np.linalg.inv(camera)
+    bounded, inverse = values[:, 0] > 0, np.linalg.inv(camera)
     rays = np.c_[centers, np.ones(len(centers))] @ inverse.T
     radius = np.where(bounded, 1.0 / np.sqrt(np.where(bounded, values[:, 0], 1.0)), np.inf)
-    radius = radius * max(inverse[0, 0], inverse[1, 1])
-    return bounded, np.linalg.norm(rays, axis=1) + radius, rays[:, :2], radius
-
-
-def _depth_cuts(camera: np.ndarray, keypoints_3d: np.ndarray, centers: np.ndarray, shapes: np.ndarray):
-    """Linear cuts valid on PURSE that keep the relaxation off the camera centre.
-
-    A keypoint in set i lies on a ray p = z K^-1 (y, 1) with ||K^-1 (y, 1)|| <= s_i over the set, so
-    ||p_i|| <= s_i z_i, and rigidity gives d_ij = ||p_i - p_j|| <= s_i z_i + s_j z_j. Without them the
-    relaxation contains R = 0, t = 0 (every cone holds with equality at p = 0).
-    """
-    bounded, slopes, _, _ = _ray_slopes(camera, centers, shapes)
-    kept = np.flatnonzero(bounded)
-    return [  # a chain through the bounded sets: all pairs cost a fifth of each solve and tighten nothing
-        (i, j, slopes[i], slopes[j], float(np.linalg.norm(keypoints_3d[i] - keypoints_3d[j])))
+    radius = radius * max(inverse[0, 0], inverse[1, 1])  # semi-major axis / f
+    slopes, kept = np.linalg.norm(rays, axis=1) + radius, np.flatnonzero(bounded)
+    scaled = keypoints_3d / scale
+    cuts = [
+        (i, j, slopes[i], slopes[j], float(np.linalg.norm(scaled[i] - scaled[j])))
         for i, j in zip(kept[:-1], kept[1:], strict=True)
     ]
-
-
-def _distance_bound(camera: np.ndarray, keypoints_3d, centers, shapes) -> float:
-    """An upper bound on ||t|| over PURSE (inf when no two sets are apart).
-
-    The rays through two disjoint sets i, j make an angle with sin >= gap_ij / (s_i s_j), gap_ij
-    the distance between the sets in normalised image coordinates; p_j is on its ray, so
-    d_ij = ||p_i - p_j|| >= ||p_i|| sin(angle) and ||t|| <= ||p_i|| + ||X_i||.
-    """
-    bounded, slopes, normalised, radius = _ray_slopes(camera, centers, shapes)
     best = math.inf
-    for i in range(len(centers)):
-        for j in range(len(centers)):
-            if i == j or not (bounded[i] and bounded[j]):
-                continue
-            gap = float(np.linalg.norm(normalised[i] - normalised[j]) - radius[i] - radius[j])
-            if gap > 0:
-                distance = float(np.linalg.norm(keypoints_3d[i] - keypoints_3d[j]))
-                best = min(
-                    best, distance * slopes[i] * slopes[j] / gap + float(np.linalg.norm(keypoints_3d[i]))
-                )
-    return best
+    for i, j in itertools.permutations(kept, 2):
+        gap = float(np.linalg.norm(rays[i, :2] - rays[j, :2]) - radius[i] - radius[j])
+        if gap > 0:
+            distance = float(np.linalg.norm(keypoints_3d[i] - keypoints_3d[j]))
+            best = min(best, distance * slopes[i] * slopes[j] / gap + float(np.linalg.norm(keypoints_3d[i])))
+    return cuts, best
 
 
 @cache
@@ -254,17 +176,16 @@ def _cones(keypoints: int, cuts: int, minors: bool = False) -> tuple:
     return tuple(cones + ([clarabel.NonnegativeConeT(cuts)] if cuts else []))
 
 
-def _project_dual(dual: np.ndarray, keypoints: int, cuts: int, minors: bool = False) -> np.ndarray:
+def _project_dual(dual: np.ndarray, program: _Program) -> np.ndarray:
     """The multipliers projected onto the dual cones (all self-dual; the zero cone's dual is free)."""
-    projected = dual.copy()
-    if minors:
-        keypoints, start = keypoints + 6, 1
+    projected, start, keypoints, cuts = dual.copy(), 1, program.keypoints, program.cuts
+    if program.minors:
+        keypoints += 6
     else:
         matrix = np.zeros((4, 4))
         matrix[_UPPER] = matrix[_LOWER] = projected[1 : 1 + _Q] / _SVEC_SCALE
         values, vectors = np.linalg.eigh(matrix)
-        matrix = (vectors * np.maximum(values, 0.0)) @ vectors.T
-        projected[1 : 1 + _Q] = matrix[_UPPER] * _SVEC_SCALE
+        projected[1 : 1 + _Q] = ((vectors * np.maximum(values, 0.0)) @ vectors.T)[_UPPER] * _SVEC_SCALE
         start = 1 + _Q
     cones = projected[start : start + 3 * keypoints].reshape(keypoints, 3)  # a view: edits land
     heads, norms = cones[:, 0].copy(), np.sqrt(np.einsum("ij,ij->i", cones[:, 1:], cones[:, 1:]))
@@ -282,9 +203,7 @@ def _project_dual(dual: np.ndarray, keypoints: int, cuts: int, minors: bool = Fa
 @dataclass(frozen=True)
 class _Solved:
     status: str
-    primal: float  # the solver's optimal value of min q^T x
-    lower: float  # our weak-duality lower bound on it (before the translation residual term)
-    translation_residual: float  # || r_t ||: its coefficient on the translation offset
+    bound: float  # our weak-duality lower bound on min q^T x over PURSE
     agrees: bool  # the certificate checks out (of optimality, or of infeasibility)
 
 
@@ -318,58 +237,41 @@ def _status(solution) -> str:
     return str(solution.status).split(".")[-1]
 
 
-def _minimise(program: _Program, objective: np.ndarray, solver=None):
-    if solver is None:
-        solver = _solver(program, objective)
-    else:
-        solver.update(q=objective)
-    return solver, _outcome(program, objective, solver.solve())
-
-
 def _outcome(program: _Program, objective: np.ndarray, solution) -> _Solved:
-    """What a solution proves, its certificate checked here (a stalled solve is retried)."""
+    """What a solution proves, its certificate checked here (a stalled solve is retried).
+
+    With z the multipliers projected onto the dual cones and r = q + A^T z, every feasible x has
+    q^T x = -b^T z + z^T s + r^T x >= -b^T z - |r_Q|_1 - ||r_t|| reach (z^T s >= 0, |Q_ab| <= 1). An
+    infeasibility certificate (q = 0) proves the relaxation empty when b^T z < 0 and that bound is > 0.
+    """
     for options in _RETRIES:
         if _status(solution) in ("Solved", "PrimalInfeasible"):
             break
         # Clarabel sometimes stalls these programs at "AlmostSolved"; other settings solve them
         solution = _solver(program, objective, **options).solve()
     status = _status(solution)
-    if status == "PrimalInfeasible":
-        verified = _farkas_verified(program, np.asarray(solution.z))
-        return _Solved(status, math.nan, -math.inf, math.inf, verified)
-    if status != "Solved":
-        return _Solved(status, math.nan, -math.inf, math.inf, False)
-    dual = _project_dual(np.asarray(solution.z), program.keypoints, program.cuts, program.minors)
-    residual = objective + program.matrix.T @ dual
-    # q^T x = -b^T z + z^T s + r^T x >= -b^T z + r_Q^T x_Q + r_t^T x_t, z^T s >= 0; |Q_ab| <= 1
-    lower = -float(program.offset @ dual) - float(np.abs(residual[:_Q]).sum())
-    primal = float(objective @ np.asarray(solution.x))
-    agrees = abs(primal - lower) <= _AGREEMENT * (1.0 + abs(primal))
-    return _Solved(status, primal, lower, float(np.linalg.norm(residual[_Q:])), agrees)
-
-
-def _farkas_verified(program: _Program, certificate: np.ndarray) -> bool:
-    """Whether Clarabel's infeasibility certificate proves the relaxation empty.
-
-    With z in the dual cones, every feasible x has 0 <= z^T s = b^T z - (A^T z)^T x; b^T z < 0 and
-    A^T z = 0 make that impossible. Q's part of A^T z is bounded exactly (|Q_ab| <= 1); the
-    translation part must vanish to rounding (1e-9 of |b^T z|): t has no a-priori bound.
-    """
-    z = _project_dual(certificate, program.keypoints, program.cuts, program.minors)
+    if status not in ("Solved", "PrimalInfeasible"):
+        return _Solved(status, math.nan, False)
+    z = _project_dual(np.asarray(solution.z), program)
+    residual = (objective if status == "Solved" else 0.0) + program.matrix.T @ z
     gap = float(program.offset @ z)
-    residual = program.matrix.T @ z
-    margin = -gap - float(np.abs(residual[:_Q]).sum()) - float(np.linalg.norm(residual[_Q:])) * program.reach
-    return bool(gap < 0 and margin > 0)
-
-
-def _infeasible(status: str) -> bool:
-    return status == "PrimalInfeasible"
+    lower = -gap - float(np.abs(residual[:_Q]).sum())
+    bound = lower - float(np.linalg.norm(residual[_Q:])) * program.reach
+    if status == "PrimalInfeasible":
+        return _Solved(status, bound, gap < 0 and bound > 0)
+    primal = float(objective @ np.asarray(solution.x))
+    return _Solved(status, bound, abs(primal - lower) <= _AGREEMENT * (1.0 + abs(primal)))
 
 
 def _empty(verified: bool) -> OuterBound:
     if verified:
         return OuterBound(True, "relaxation infeasible: no pose is consistent with the sets", empty=True)
     return OuterBound(False, "relaxation reported infeasible, certificate not verified")
+
+
+def _angle(trace: float) -> float:
+    """The rotation angle (radians) of a rotation with this trace of R_hat^T R."""
+    return math.acos(min(1.0, max(-1.0, (trace - 1.0) / 2.0)))
 
 
 @dataclass(frozen=True)
@@ -388,37 +290,32 @@ def _objectives(estimate: Pose, frame: np.ndarray) -> list[np.ndarray]:
     return [*translation, np.concatenate([estimate.rotation.reshape(9) @ _ROTATION_MAP, np.zeros(3)])]
 
 
-def _proven(program: _Program, objective: int, solved: _Solved) -> float:
-    """The certified bound a solved program gives: an extent (scaled) or a rotation angle (radians)."""
-    lower = solved.lower - solved.translation_residual * program.reach  # r_t^T x_t over PURSE
-    if objective < 6:
-        return -lower
-    return math.acos(min(1.0, max(-1.0, (lower - 1.0) / 2.0)))
+def _proven(objective: int, solved: _Solved) -> float:
+    """The certified bound of a solved program: an extent (scaled) or a rotation angle (radians)."""
+    return -solved.bound if objective < 6 else _angle(solved.bound)
 
 
 def _bound_cell(program: _Program, objectives: list[np.ndarray], cap) -> _CellBound:
-    program, solver, values, verified = _capped(program, cap), None, [], True
+    """The seven bounds over the rotation cell in the cap (q_0, cos^2(phi)) (None: the whole space)."""
+    if cap is not None:  # q_0^T Q q_0 >= cos^2(phi)
+        square = [cap[0][a] ** 2 if a == b else 2 * cap[0][a] * cap[0][b] for a, b in _TRIANGLE]
+        row = -np.concatenate([square, np.zeros(3)])[None]
+        program = _with_cuts(program, row, -cap[1])
+    values, verified = [], True
     for k, objective in enumerate(objectives):
-        solver, solved = _minimise(program, objective, solver)
-        if _infeasible(solved.status):
+        if k == 0:
+            solver = _solver(program, objective)
+        else:
+            solver.update(q=objective)
+        solved = _outcome(program, objective, solver.solve())
+        if solved.status == "PrimalInfeasible":
             status = "empty" if solved.agrees else "infeasibility certificate not verified"
             return _CellBound(status, verified=solved.agrees)
         if solved.status != "Solved":
-            kind = "translation" if k < 6 else "rotation"
-            return _CellBound(f"{kind} program: {solved.status}")
-        values.append(_proven(program, k, solved))
+            return _CellBound(f"{'translation' if k < 6 else 'rotation'} program: {solved.status}")
+        values.append(_proven(k, solved))
         verified = verified and solved.agrees
-    smallest_trace = 1.0 + 2.0 * math.cos(values[6])
-    return _CellBound("bounded", np.array(values[:6]), smallest_trace, verified)
-
-
-def _posed(program: _Program) -> str | None:
-    """Why the relaxation cannot certify anything, if so."""
-    if not (np.isfinite(program.matrix).all() and np.isfinite(program.offset).all()):
-        return "relaxation not posed: the data overflow (extreme camera matrix or sets)"
-    if not math.isfinite(program.reach):
-        return "no proven bound on ||t|| over PURSE (no two sets apart): nothing to certify with"
-    return None
+    return _CellBound("bounded", np.array(values[:6]), 1.0 + 2.0 * math.cos(values[6]), verified)
 
 
 def outer_bound(
@@ -431,42 +328,48 @@ def outer_bound(
     splits: int = 0,
     programs: int = 0,
 ) -> OuterBound:
-    """Certified upper bounds on the rotation and translation error over PURSE (see the module doc).
-
-    ``programs`` conic programs of best-first search over rotation wedges around the estimate
-    (``_Search``) tighten the whole-space bounds; ``splits`` rounds of the older branch-and-bound
-    over quaternion cells (cells.py) do too, at more cost (used when ``splits`` > 0).
-    """
+    """Certified upper bounds on the rotation and translation error over PURSE (see the module doc):
+    the whole space's, tightened by ``programs`` conic programs of the search over rotation wedges
+    around the estimate or, when ``splits`` > 0, by as many rounds of the older, costlier splitting
+    of quaternion cells."""
     if not relaxation_available():
         return OuterBound(False, "the pose extra (clarabel) is not installed")
     with np.errstate(all="ignore"):
         program = _program(estimate, camera, keypoints_3d, centers, shapes)
-    problem = _posed(program)
-    if problem is not None:
-        return OuterBound(False, problem)
+    if not (np.isfinite(program.matrix).all() and np.isfinite(program.offset).all()):
+        return OuterBound(False, "relaxation not posed: the data overflow (extreme camera matrix or sets)")
+    if not math.isfinite(program.reach):
+        return OuterBound(
+            False, "no proven bound on ||t|| over PURSE (no two sets apart): nothing to certify with"
+        )
     objectives = _objectives(estimate, ray_frame(estimate.translation))
     root = _bound_cell(program, objectives, None)
     if root.status != "bounded":
         return _empty(root.verified) if root.status == "empty" else OuterBound(False, root.status)
-    sampled = sampled or []
+    found = sampled or []
+    shifts = [float(np.linalg.norm(p.translation - estimate.translation)) for p in found]
+    distances = list(
+        zip(shifts, [rotation_angle_deg(estimate.rotation, p.rotation) for p in found], strict=True)
+    )
     if splits > 0:
-        return _split_rounds(estimate, program, objectives, root, sampled, splits)
-    bounds = np.append(root.extents, math.acos(min(1.0, max(-1.0, (root.smallest_trace - 1.0) / 2.0))))
+        return _split_rounds(program, objectives, root, distances, splits)
+    bounds = np.append(root.extents, _angle(root.smallest_trace))
     if programs <= 0:
-        return _finish(estimate, program.scale, bounds, root.verified, sampled, "whole rotation space")
-    search = _Search(_WedgePrograms(program, estimate.rotation, objectives), _reached(estimate, sampled))
+        return _finish(program.scale, bounds, root.verified, distances, "whole rotation space")
+    search = _Search(_WedgePrograms(program, estimate.rotation, objectives), distances)
     leaves = search.run(bounds, programs)
     if not leaves:
         return OuterBound(False, "every rotation cell proven empty, yet the estimate is in PURSE")
     bounds = np.max([leaf.bounds for leaf in leaves], axis=0)
     detail = f"{search.spent} programs, {len(leaves)} rotation cells"
-    return _finish(estimate, program.scale, bounds, root.verified, sampled, detail)
+    return _finish(program.scale, bounds, root.verified, distances, detail)
 
 
-def _finish(estimate, scale, bounds, verified, sampled, detail) -> OuterBound:
-    rotation = math.degrees(bounds[6])
-    translation = _radius(bounds, scale)
-    certified = verified and _dominates(estimate, rotation, translation, sampled)
+def _finish(scale, bounds, verified, distances, detail) -> OuterBound:
+    rotation, translation, slack = math.degrees(bounds[6]), _radius(bounds, scale), 1e-6
+    certified = verified and all(
+        angle <= rotation + slack and shift <= translation * (1 + slack) + slack for shift, angle in distances
+    )
     status = "solved, certificate verified" if certified else "solved, certificate not verified"
     return OuterBound(certified, f"{status} ({detail})", rotation, translation)
 
@@ -475,15 +378,6 @@ def _radius(bounds: np.ndarray, scale: float) -> float:
     """The translation radius from the six extents (a box around the estimate)."""
     extents = bounds[:6].clip(min=0.0)
     return scale * math.sqrt(sum(max(extents[2 * k], extents[2 * k + 1]) ** 2 for k in range(3)))
-
-
-def _reached(estimate: Pose, poses: list[Pose]) -> tuple[float, float] | None:
-    """The largest (translation, rotation in radians) distances to poses known in PURSE, if any."""
-    if not poses:
-        return None
-    translation = max(float(np.linalg.norm(p.translation - estimate.translation)) for p in poses)
-    rotation = max(math.radians(rotation_angle_deg(estimate.rotation, p.rotation)) for p in poses)
-    return translation, rotation
 
 
 #: the search stops once the certified bounds are within these factors of the poses found in PURSE
@@ -510,30 +404,23 @@ class _Leaf:
 
 
 class _WedgePrograms:
-    """The relaxations of one search's wedges: the whole-space program plus a wedge's sides
-    a_k^T Q b_k <= 0 (cells.Wedge, exact for the wedge's rotations, Q = q q^T), solved by one
-    Clarabel solver whose data is updated per wedge (the sparsity stays: the sides' rows are kept
-    dense), which halves the cost of setting up each small program."""
+    """The relaxations of one search's wedges: the whole-space program (Q's cone by its minors) plus
+    a wedge's sides a_k^T Q b_k <= 0 (cells.SIDES), one Clarabel solver whose data is updated per
+    wedge (the sides' rows kept dense, so the sparsity stays): half the cost of setting up each."""
 
     def __init__(self, program: _Program, estimate: np.ndarray, objectives: list[np.ndarray]) -> None:
         program = _with_minors(program)
         self.program, self.objectives = program, objectives
         self._anchor = left_product(to_quaternion(estimate))
         sides = len(SIDES[0])
-        # one program for every wedge: its sides' rows (the last ones) are rewritten in place per wedge
-        self._restricted = replace(
-            program,
-            matrix=np.vstack([program.matrix, np.zeros((sides, _N))]),
-            offset=np.append(program.offset, np.zeros(sides)),
-            cuts=program.cuts + sides,
-        )
+        self._restricted = _with_cuts(program, np.zeros((sides, _N)), np.zeros(sides))  # sides rewritten
         pattern = np.vstack([program.matrix != 0, np.tile(np.arange(_N) < _Q, (sides, 1))])
         self._rows, self._columns = np.nonzero(pattern.T)  # column-major: compressed columns
         self._data = self._restricted.matrix.T[self._rows, self._columns]
         self._on_sides = self._columns >= len(program.matrix)  # by column of Q, then by side
         self._solver = None
 
-    def solve(self, wedge: Wedge, quantity: int) -> tuple[_Program, _Solved]:
+    def solve(self, wedge: Wedge, quantity: int) -> _Solved:
         forms = wedge.forms(self._anchor)
         sides = _bilinear_rows(-forms[SIDES[0]], forms[SIDES[1]])
         restricted, data = self._restricted, self._data
@@ -544,24 +431,18 @@ class _WedgePrograms:
             self._solver = _solver(restricted, objective, pattern=(data, self._rows, self._columns))
         else:
             self._solver.update(A=data, q=objective)
-        return restricted, _outcome(restricted, objective, self._solver.solve())
+        return _outcome(restricted, objective, self._solver.solve())
 
 
 class _Search:
-    """Best-first branch-and-bound over rotation wedges around the estimate (cells.Wedge).
+    """Best-first branch-and-bound over rotation wedges around the estimate: each step proves one bound
+    for the leaf attaining the loosest quantity, or splits that leaf once its bound is proven. It stops
+    after ``budget`` programs, or once both bounds are within their tolerances of the poses reached."""
 
-    The whole-space rotation bound rho puts every rotation of PURSE within rho of R_hat; the wedge
-    of Gibbs vectors |g| <= tan(rho / 2) is cut in eight again and again where a bound is
-    attained. Each step proves one bound for the leaf attaining the loosest quantity (a wedge
-    proven empty is dropped), or splits that leaf once its bound is proven; a leaf wholly farther
-    than the current rotation bound holds no pose of PURSE and is dropped unsolved. It stops after
-    ``programs`` conic programs, or once rotation and translation are within ROTATION_TOLERANCE
-    and TRANSLATION_TOLERANCE of the poses reached in PURSE. At every step the bounds (the worst
-    over the leaves) are valid.
-    """
-
-    def __init__(self, programs: _WedgePrograms, reached: tuple[float, float] | None) -> None:
-        self.programs, self.reached, self.spent = programs, reached, 0
+    def __init__(self, programs: _WedgePrograms, distances: list[tuple[float, float]]) -> None:
+        self.programs, self.spent, self.reached = programs, 0, None
+        if distances:  # the largest (translation, rotation in radians) distances to poses in PURSE
+            self.reached = max(d[0] for d in distances), math.radians(max(d[1] for d in distances))
 
     def run(self, root_bounds: np.ndarray, budget: int) -> list[_Leaf]:
         """The leaves left (empty: every wedge was proven empty)."""
@@ -591,20 +472,19 @@ class _Search:
         """Solve one program for ``leaf``; False when it proves the wedge empty."""
         self.spent += 1
         leaf.solved[quantity] = True
-        restricted, solved = self.programs.solve(leaf.cell, quantity)
-        if _infeasible(solved.status) and solved.agrees:
+        solved = self.programs.solve(leaf.cell, quantity)
+        if solved.status == "PrimalInfeasible" and solved.agrees:
             return False
         if solved.status == "Solved" and solved.agrees:
-            value = _proven(restricted, quantity, solved)
+            value = _proven(quantity, solved)
             if quantity == 6:
                 value = min(value, leaf.cell.farthest_angle())
             leaf.bounds[quantity] = min(leaf.bounds[quantity], value)
         return True
 
     def _loosest(self, bounds: np.ndarray) -> int | None:
-        """Which bound to tighten next: the largest extent or the rotation, whichever is further
-        (relative to its tolerance) from the poses reached (alternately without any); None once
-        both are within their tolerances."""
+        """The bound to tighten next: the largest extent or the rotation, whichever is further (relative
+        to its tolerance) from the poses reached (alternately without any); None once both are within."""
         extent = int(np.argmax(bounds[:6]))
         reached = self.reached
         if reached is None or min(reached) <= 0:
@@ -618,57 +498,25 @@ class _Search:
         return extent if gaps[0] >= gaps[1] else 6
 
 
-def _split_rounds(estimate, program, objectives, root, sampled, splits) -> OuterBound:
-    """The older branch-and-bound: rounds of splitting the quaternion cells attaining a bound."""
-    leaves = [(cell, None, root) for cell in root_cells()]
+def _split_rounds(program, objectives, root, distances, splits) -> OuterBound:
+    """The older branch-and-bound: rounds of splitting the quaternion cells (wedges around the
+    identity) that attain any of the seven bounds. A cell whose program fails keeps its parent's
+    bound, valid for it too."""
+    leaves, pending = [], [(cell, root) for cell in Wedge.around(math.pi)]  # (cell, bound), (cell, parent's)
     for round_ in range(splits + 1):
-        leaves = _evaluated(program, objectives, leaves)
-        if isinstance(leaves, str):
-            return OuterBound(False, leaves)
+        for cell, parent in pending:
+            bound = _bound_cell(program, objectives, cell.cap())
+            if bound.status != "empty":
+                leaves.append((cell, bound if bound.status == "bounded" else parent))
         if not leaves:
             return _empty(True)
         if round_ < splits:
-            leaves = _split_the_worst(leaves)
-    extents = np.max([bound.extents for _, bound, _ in leaves], axis=0)
-    smallest_trace = min(bound.smallest_trace for _, bound, _ in leaves)
-    rotation = math.acos(min(1.0, max(-1.0, (smallest_trace - 1.0) / 2.0)))
-    verified = all(bound.verified for _, bound, _ in leaves)
-    bounds = np.append(extents, rotation)
-    return _finish(estimate, program.scale, bounds, verified, sampled, f"{len(leaves)} rotation cells")
-
-
-def _evaluated(program, objectives, leaves):
-    """Every leaf with its bound (cells proven empty dropped), or the reason one failed.
-
-    A leaf is (cell, bound or None, its parent's bound or None): a cell whose program fails keeps
-    its parent's bound, which holds for it too (the cell lies in its parent).
-    """
-    done = []
-    for cell, bound, parent in leaves:
-        if bound is None:
-            bound = _bound_cell(program, objectives, cell.cap())
-        if bound.status == "empty":
-            continue
-        if bound.status != "bounded":
-            if parent is None:
-                return bound.status
-            bound = parent
-        done.append((cell, bound, None))
-    return done
-
-
-def _split_the_worst(leaves):
-    """Split the cells that attain any of the seven bounds; keep the others with their bounds."""
-    worst = {int(np.argmax([b.extents[k] for _, b, _ in leaves])) for k in range(6)}
-    worst.add(int(np.argmin([b.smallest_trace for _, b, _ in leaves])))
-    kept = [leaf for i, leaf in enumerate(leaves) if i not in worst]
-    return kept + [(child, None, leaves[i][1]) for i in sorted(worst) for child in leaves[i][0].split()]
-
-
-def _dominates(estimate: Pose, rotation_deg: float, translation: float, sampled: list[Pose]) -> bool:
-    slack = 1e-6
-    return all(
-        rotation_angle_deg(estimate.rotation, p.rotation) <= rotation_deg + slack
-        and float(np.linalg.norm(p.translation - estimate.translation)) <= translation * (1 + slack) + slack
-        for p in sampled
-    )
+            worst = {int(np.argmax([b.extents[k] for _, b in leaves])) for k in range(6)}
+            worst.add(int(np.argmin([b.smallest_trace for _, b in leaves])))
+            pending = [(child, leaves[i][1]) for i in sorted(worst) for child in leaves[i][0].split()]
+            leaves = [leaf for i, leaf in enumerate(leaves) if i not in worst]
+    extents = np.max([bound.extents for _, bound in leaves], axis=0)
+    rotation = _angle(min(bound.smallest_trace for _, bound in leaves))
+    verified = all(bound.verified for _, bound in leaves)
+    detail = f"{len(leaves)} rotation cells"
+    return _finish(program.scale, np.append(extents, rotation), verified, distances, detail)

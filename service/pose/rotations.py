@@ -39,25 +39,18 @@ def left_product(q: np.ndarray) -> np.ndarray:
 
 
 def _quaternion_basis() -> np.ndarray:
-    """B (3, 3, 4, 4) with R(q)_jk = q^T B_jk q for a unit quaternion q = (w, x, y, z)."""
-    basis = np.zeros((3, 3, 4, 4))
-    w, x, y, z = range(4)
-    terms = {  # R(q) entries as sums of coefficient * q_a * q_b
-        (0, 0): [(1, w, w), (1, x, x), (-1, y, y), (-1, z, z)],
-        (0, 1): [(2, x, y), (-2, w, z)],
-        (0, 2): [(2, x, z), (2, w, y)],
-        (1, 0): [(2, x, y), (2, w, z)],
-        (1, 1): [(1, w, w), (-1, x, x), (1, y, y), (-1, z, z)],
-        (1, 2): [(2, y, z), (-2, w, x)],
-        (2, 0): [(2, x, z), (-2, w, y)],
-        (2, 1): [(2, y, z), (2, w, x)],
-        (2, 2): [(1, w, w), (-1, x, x), (-1, y, y), (1, z, z)],
-    }
-    for (j, k), entries in terms.items():
-        for coefficient, a, b in entries:
-            basis[j, k, a, b] += coefficient / 2
-            basis[j, k, b, a] += coefficient / 2
-    return basis
+    """B (3, 3, 4, 4) with R(q)_jk = q^T B_jk q for a unit quaternion q = (w, x, y, z), by polarising
+    R(q) = (w^2 - |v|^2) I + 2 v v^T + 2 w [v]_x, v = (x, y, z)."""
+
+    def rotation(q: np.ndarray) -> np.ndarray:
+        w, v = q[0], q[1:]
+        return (w * w - v @ v) * np.eye(3) + 2 * np.outer(v, v) + 2 * w * np.cross(np.eye(3), v)
+
+    unit = np.eye(4)
+    polarised = [
+        [(rotation(unit[a] + unit[b]) - rotation(unit[a] - unit[b])) / 4 for b in range(4)] for a in range(4)
+    ]
+    return np.array(polarised).transpose(2, 3, 0, 1)
 
 
 QUATERNION_BASIS = _quaternion_basis()
