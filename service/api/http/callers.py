@@ -31,10 +31,6 @@ class Callers:
     def __init__(self, tokens: dict[str, str]) -> None:
         self._tokens = tokens
 
-    @property
-    def tokens_required(self) -> bool:
-        return bool(self._tokens)
-
     async def of(self, request: Request) -> str:
         if not self._tokens:
             return request.client.host if request.client else "unknown"
