@@ -20,6 +20,7 @@ from keypoint_client import (
 )
 from keypoint_client.retry import retry_after_seconds
 
+from tests.api.in_process import OnLoopback
 from tests.live.client.faulty_proxy import Drop, FaultyProxy, Unavailable
 from tests.live.server import LiveServer, free_port
 from tests.live.test_admission import hold_the_slot, metric
@@ -103,7 +104,7 @@ def test_the_client_waits_out_a_saturated_server(tmp_path: Path, sample) -> None
     image, instances = sample
     slow = (instances * 1000)[:256]  # about a second of computing quiet, 10+ s on a busy machine
     settings = {"max_concurrent_inferences": 1, "max_queued_requests": 0, "max_instances": len(slow)}
-    with LiveServer(tmp_path / "data", **settings) as server, ThreadPoolExecutor(1) as pool:
+    with OnLoopback(tmp_path / "data", **settings) as server, ThreadPoolExecutor(1) as pool:
         computing = hold_the_slot(pool, server, image, slow)
         with KeypointClient(server.url, retry=RetryPolicy(attempts=60, backoff=0.1)) as client:
             result = client.predict(image, instances)
