@@ -14,8 +14,8 @@ import pytest
 from scipy import stats
 
 from service import cli as service_cli
-from tests.cli_calls import run
 from tests.api.in_process import OnLoopback
+from tests.cli_calls import run
 from tests.live.server import service_env
 from tests.predict_client import contains, predict_ok
 from tests.samples import Sample, samples_by_image

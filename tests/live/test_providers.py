@@ -12,8 +12,8 @@ from pydantic import ValidationError
 
 from benchmarks.faults_clients import predict, sample_request
 from service.infra.settings import Settings
-from tests.cli_calls import assert_one_line_error, run
 from tests.api.in_process import InProcess
+from tests.cli_calls import assert_one_line_error, run
 from tests.live.server import free_port
 from tests.unit.detector.test_providers import missing_provider
 
