@@ -1,8 +1,11 @@
-"""The PostgreSQL store goes away under load and comes back: predictions never wait on it.
+"""The store goes away under load and comes back: predictions never wait on it.
 
 A real server (uvicorn on loopback) on a real PostgreSQL cluster of this module's own, so
-that stopping it (``pg_ctl stop -m fast``, clients cut off) disturbs no other test. The
-scenario is the one ``python -m benchmarks.faults_store`` measures.
+that stopping it (``pg_ctl stop -m fast``, clients cut off) disturbs no other test. A SQLite store
+that stops answering: a real second process holds every WAL lock of the server's database (as one
+stuck in a checkpoint or a recovery would), and the service's reads and writes wait on SQLite's own
+retries (about 10 s, then "locking protocol"): predictions go on from memory, admin calls get 503.
+The scenarios are the ones ``python -m benchmarks.faults_store`` measures (``--fault sqlite-locked``).
 """
 
 from __future__ import annotations
@@ -37,6 +40,8 @@ TWO_POLLS_S = 2 * (POLL_S + TIMEOUT_S)
 WITHIN_TIMEOUT_S = TIMEOUT_S + BUSY_MACHINE_MARGIN_S
 WITHIN_TWO_POLLS_S = TWO_POLLS_S + BUSY_MACHINE_MARGIN_S
 OUTAGE_S = WITHIN_TIMEOUT_S + 5
+#: SQLite's own limit on waiting for a WAL lock, with a margin for a loaded machine
+SQLITE_WAL_WAIT_S = 15.0
 
 
 @pytest.fixture(scope="module")
@@ -248,3 +253,25 @@ def test_refusals_of_a_store_outage_reach_the_audit_trail_after_a_stop(
             assert entry["details"]["status"] == 503 and "happened_at" in entry["details"], entry
             assert entry["who"] == "admin", entry
         wait_until(lambda: not list((data / "audit-outbox").glob("*.jsonl")), "the outbox is emptied")
+
+
+@pytest.mark.slow
+def test_a_locked_sqlite_store_answers_admin_503_and_predictions_go_on(tmp_path: Path) -> None:
+    with scene(tmp_path, None) as prepared:
+        report = run_outage(
+            prepared, outage_s=2.0, before_s=1.0, after_s=1.0, clients=1, fault="sqlite-locked"
+        )
+
+    for phase, figures in report.phases.items():
+        assert figures.answered > 0 and figures.failed == 0, (phase, figures)
+    first, known = report.admin_first, report.admin_known
+    for admin in (first, known):  # sent before the server knew, and after
+        assert admin.status == 503 and admin.retry_after == "1", admin
+        assert admin.body["title"] == "Calibration store unreachable", admin
+    assert first.seconds < SQLITE_WAL_WAIT_S, first
+    assert known.seconds < TIMEOUT_S, known  # the hung poll said the store is away: no wait
+    assert "the store has not answered a poll" in report.readyz_during.body["store_error"], report
+    assert report.named_active.status == 200 and report.named_other.status == 503, report
+    two_polls = 2 * (POLL_S + TIMEOUT_S) + BUSY_MACHINE_MARGIN_S
+    assert report.recovered_after_s < two_polls and report.admin_ok_after_s < two_polls, report
+    assert report.activation_seen_after_s < two_polls, report

@@ -1,4 +1,5 @@
-"""`keypoint-service serve` with CKS_WORKERS=2: /metrics sums every worker.
+"""`keypoint-service serve` with CKS_WORKERS=2: /metrics sums every worker, and every worker
+answers the drift of both (reads in a row no longer flip between the workers' own windows).
 
 Each request opens a new connection, so the kernel spreads them over both workers; each
 worker's own counter file must show some of them, which is what makes the summed count a
@@ -21,12 +22,14 @@ from prometheus_client.mmap_dict import MmapedDict
 from service.infra.settings import PACKAGE_ROOT
 from tests.api.test_audits import run_audit
 from tests.live.server import LiveServer, cli, free_port, service_env
+from tests.live.test_drift_streams import FRAMES_PER_SCENE
+from tests.live.test_replicas import SCENES, drift, send_heavy_scenes
 from tests.predict_client import instances_of, predict_json, predict_ok
 from tests.samples import Sample, batch_zip, samples_by_image
 from tests.service_calls import ADMIN_TOKEN, wait_until
 
 REQUESTS = 40
-SHARE_S = 1.0  # CKS_DRIFT_SHARE_SECONDS: each worker shares its drift windows this often
+SHARE_S = 1.0  # CKS_SHARE_SECONDS: each worker shares its drift windows this often
 
 
 @pytest.fixture
@@ -100,7 +103,7 @@ def test_every_worker_reports_the_windows_of_both(
     two_workers: tuple[str, Path],  # noqa: F811
     samples: list[Sample],
 ) -> None:
-    """Each worker shares its windows through the store (CKS_DRIFT_SHARE_SECONDS): whichever
+    """Each worker shares its windows through the store (CKS_SHARE_SECONDS): whichever
     answers, the drift report and cks_drift_* cover the values of both."""
     url, _ = two_workers
     path, group = next(iter(samples_by_image(samples).items()))
@@ -150,3 +153,17 @@ def test_with_several_workers_the_gauges_are_the_latest_audits(
             values = re.findall(r'^cks_audit_coverage\{epsilon="([^"]+)".*\} (\S+)$', metrics, re.MULTILINE)
             assert {epsilon for epsilon, value in values if value != "NaN"} == {"0.2"}
             assert f'cks_audit_latest_id{{version="1"}} {float(latest["id"])}' in metrics
+
+
+def test_two_workers_answer_the_same_drift(tmp_path: Path) -> None:
+    with LiveServer(tmp_path / "data", admin_token=ADMIN_TOKEN, workers=2, drift_share_seconds=SHARE_S) as s:
+        wait_until(lambda: drift(s.url)["replicas"] == 2, "both workers share their windows", timeout=60)
+        send_heavy_scenes([s], SCENES // 2)
+        frames = SCENES // 2 * FRAMES_PER_SCENE
+        wait_until(lambda: drift(s.url)["frames"] == frames, "every frame counted", timeout=30)
+        time.sleep(3 * SHARE_S)  # each worker's last share written and read by the other
+        reads = [drift(s.url) for _ in range(12)]
+        assert {(r["frames"], r["alarm"], r["independent_looks"], r["replicas"]) for r in reads} == {
+            (frames, reads[0]["alarm"], reads[0]["independent_looks"], 2)
+        }, [(r["process"], r["frames"], r["alarm"]) for r in reads]
+        assert len({r["process"] for r in reads}) == 2, "both workers must have answered"
