@@ -25,7 +25,7 @@ from tests.samples import Sample, batch_zip, load_samples, model_dir, samples_by
 from tests.service_calls import ADMIN_TOKEN
 
 # Which test files start a process, and the few that may (tests/process_starts.py).
-pytest_plugins = ["tests.process_starts"]
+pytest_plugins = ["tests.process_starts", "pytester"]
 
 
 def pytest_configure(config: pytest.Config) -> None:

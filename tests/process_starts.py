@@ -1,13 +1,19 @@
-"""Which test files start a process, and the few that may (issue 46: API behaviour in process).
+"""Which test files start a process, and the few that may (issue 46: API behaviour in process, a
+process only where the process is the point).
 
-A pytest plugin (loaded by tests/conftest.py). It wraps the calls every process start goes through
+A pytest plugin, loaded by tests/conftest.py. It wraps the calls every process start goes through
 (``subprocess``'s and ``multiprocessing``'s fork_exec, ``os.fork``, ``os.forkpty``,
 ``os.posix_spawn[p]``, ``os.system``) and charges a start to the fixture being set up or torn down,
-else to the test running. A test file starts a process when one of its tests did or uses a fixture
+else to the test running. A test file starts a process when one of its tests did, or used a fixture
 that did. A test of a file not in ``ALLOWED`` that starts one fails at its teardown.
 
-``--process-starts=PATH`` writes ``{file: [what started]}`` as JSON (each xdist worker sends its
-part to the controller) and prints the count. A nested session (pytester) records its own starts.
+Not charged: the PostgreSQL server of the ``postgres_cluster`` fixture, started once per worker for
+every file that stores in PostgreSQL (a real part, like the disk), and matplotlib's one listing of
+the fonts for its cache.
+
+``python -m pytest --process-starts=PATH`` writes ``{file: [what it started]}`` as JSON (each xdist
+worker sends its part to the controller) and prints the count. A nested session (pytester) records
+its starts, and so does the session around it.
 """
 
 from __future__ import annotations
@@ -22,11 +28,46 @@ from typing import Any
 
 import pytest
 
-# The files whose point is a process boundary, each with that boundary (at most 30).
-ALLOWED: dict[str, str] = {}
 MAX_ALLOWED = 30
+#: The files whose point is a process boundary, each with that boundary.
+ALLOWED: dict[str, str] = {
+    "tests/live/test_admission.py": "a flood of callers against a server process's admission",
+    "tests/live/test_decode_budget.py": "a server process's peak resident memory while it decodes",
+    "tests/live/test_fair_admission.py": "shares of a server process's compute threads under load",
+    "tests/live/test_slow_clients.py": "slow clients on a server process's sockets",
+    "tests/live/test_shutdown.py": "SIGTERM: a graceful stop, its exit status and bounds",
+    "tests/live/test_jobs_stale.py": "SIGKILL of a server mid-job; another process takes it over",
+    "tests/live/test_workers.py": "CKS_WORKERS=2: workers share metrics and drift; one SIGKILLed",
+    "tests/live/test_replicas.py": "replica processes (host:pid) sharing jobs and drift windows",
+    "tests/live/test_disk_full.py": "a real full tmpfs under a server; a worker SIGKILLed",
+    "tests/live/test_store_outage.py": "PostgreSQL stopped and frozen; a process holding SQLite's locks",
+    "tests/live/test_fleet.py": "three replicas behind HAProxy; one SIGKILLed, one drained",
+    "tests/live/test_logs.py": "what a server process writes on stderr",
+    "tests/live/test_readme_first_run.py": "the README's commands in bash with curl against `serve`",
+    "tests/live/test_installed_commands.py": "the installed entry point and uvicorn, started as people do",
+    "tests/live/test_schemathesis.py": "the schemathesis command line fuzzing a server",
+    "tests/live/test_generated_client.py": "openapi-python-client generating a client",
+    "tests/live/test_openapi_generator_client.py": "openapi-generator (Java) generating a client",
+    "tests/live/test_typescript_clients.py": "TypeScript generators, tsc and node",
+    "tests/live/client/test_isolation.py": "the client installed alone in a fresh virtual environment",
+    "tests/deploy/test_api_pages.py": "Chromium driven by Playwright",
+    "tests/deploy/test_console.py": "Chromium driven by Playwright; a server process's own metrics",
+    "tests/deploy/test_container.py": "buildah building and running the image",
+    "tests/deploy/test_ray_serve.py": "a local Ray cluster serving the service",
+    "tests/unit/benchmarks/test_bench_ab_smoke.py": "a revision's export imported by its own interpreter",
+    "tests/unit/benchmarks/test_bench_frames_smoke.py": "the benchmark's server processes",
+    "tests/unit/benchmarks/test_bench_memory_smoke.py": "a server process's resident memory",
+    "tests/unit/benchmarks/test_bench_peers_smoke.py": "the peers' servers (FastAPI, LitServe, BentoML, Ray)",
+    "tests/unit/calibration_store/test_processes.py": "several processes on one store; one SIGKILLed",
+    "tests/unit/test_decoding_memory.py": "a fresh process's peak resident memory while it decodes",
+    "tests/unit/test_process_starts.py": "sessions whose tests start processes, xdist's workers",
+}
+#: Fixtures whose processes serve every file that asks for them.
+SHARED_FIXTURES = {"postgres_cluster"}
+#: Programs a library starts once per machine, whatever the test.
+INCIDENTAL = {"fc-list"}  # matplotlib's font cache
 
-ACTIVE: list[Recorder] = []  # the innermost session's recorder gets the starts
+ACTIVE: list[Recorder] = []  # a session's, and a nested session's (pytester) within it
 
 
 def _label(program: Any) -> str:
@@ -35,10 +76,8 @@ def _label(program: Any) -> str:
 
 def _wrap(call: Callable[..., Any], what: Callable[..., str]) -> Callable[..., Any]:
     def started(*args: Any, **kwargs: Any) -> Any:
-        if ACTIVE:
-            ACTIVE[-1].started(what(*args, **kwargs))
-            if os.environ.get("REFUSE_STARTS") and (ACTIVE[-1].item or ACTIVE[-1].within):  # TEMPORARY survey aid
-                raise RuntimeError("refused")
+        for recorder in ACTIVE:
+            recorder.started(what(*args, **kwargs))
         return call(*args, **kwargs)
 
     started.__wrapped__ = call  # type: ignore[attr-defined]
@@ -46,7 +85,7 @@ def _wrap(call: Callable[..., Any], what: Callable[..., str]) -> Callable[..., A
 
 
 def _install() -> None:
-    """Wrap the process starts once per interpreter (nested sessions share the wrappers)."""
+    """Wrap the process starts, once per interpreter (nested sessions share the wrappers)."""
     if hasattr(os.fork, "__wrapped__"):
         return
     fork_exec = _wrap(_posixsubprocess.fork_exec, lambda argv, *_: _label(argv[0] if argv else None))
@@ -60,11 +99,11 @@ def _install() -> None:
 
 
 def _fixture_key(fixturedef: pytest.FixtureDef[Any]) -> str:
-    return f"{fixturedef.baseid}::{fixturedef.argname}" if fixturedef.baseid else fixturedef.argname
+    return f"{fixturedef.baseid}::{fixturedef.argname}"
 
 
 class Recorder:
-    """One session's starts: per test file directly, per fixture, and the fixtures each file used."""
+    """One session's starts: per test (outside fixtures), per fixture, and per test file."""
 
     def __init__(self, config: pytest.Config) -> None:
         self.config = config
@@ -73,9 +112,11 @@ class Recorder:
         self.item_starts: set[str] = set()
         self.item_fixtures: set[tuple[str, str]] = set()
         self.fixture_starts: dict[str, set[str]] = {}
-        self.files: dict[str, set[str]] = {}  # file -> what its tests started, fixtures by name
+        self.files: dict[str, set[str]] = {}
 
     def started(self, what: str) -> None:
+        if what in INCIDENTAL:
+            return
         if self.within:
             self.fixture_starts.setdefault(self.within[-1], set()).add(what)
         elif self.item is not None:
@@ -112,7 +153,11 @@ class Recorder:
         return report
 
     def _charge(self, item: pytest.Item, report: pytest.TestReport) -> None:
-        fixtures = {f"fixture {name}" for key, name in self.item_fixtures if key in self.fixture_starts}
+        fixtures = {
+            f"fixture {name}"
+            for key, name in self.item_fixtures
+            if key in self.fixture_starts and name not in SHARED_FIXTURES
+        }
         starts = self.item_starts | fixtures
         if not starts:
             return
@@ -121,21 +166,18 @@ class Recorder:
         if file not in ALLOWED and report.passed:
             report.outcome = "failed"
             report.longrepr = (
-                f"{file} started a process ({', '.join(sorted(starts))}) and is not in"
-                " tests/process_starts.py ALLOWED: call the API in process (tests/api/in_process.py)"
+                f"{file} started a process ({', '.join(sorted(starts))}) and is not in ALLOWED"
+                " (tests/process_starts.py): call the service in process (tests/api/in_process.py)"
                 " unless a process boundary is the point"
             )
-
-    def merge(self, files: dict[str, list[str]]) -> None:
-        for file, starts in files.items():
-            self.files.setdefault(file, set()).update(starts)
 
     def as_json(self) -> dict[str, list[str]]:
         return {file: sorted(starts) for file, starts in sorted(self.files.items())}
 
     @pytest.hookimpl(optionalhook=True)
     def pytest_testnodedown(self, node: Any, error: object) -> None:
-        self.merge(node.workeroutput.get("process_starts", {}))
+        for file, starts in node.workeroutput.get("process_starts", {}).items():
+            self.files.setdefault(file, set()).update(starts)
 
     def pytest_sessionfinish(self) -> None:
         if hasattr(self.config, "workeroutput"):  # an xdist worker: the controller writes
@@ -155,7 +197,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption(
         "--process-starts",
         metavar="PATH",
-        help="write the test files that started a process (and what) to PATH as JSON; print the count",
+        help="write the test files that started a process (and what) to PATH as JSON; print them",
     )
 
 

@@ -1,5 +1,6 @@
 """`keypoint-service serve` with CKS_WORKERS=2: /metrics sums every worker, and every worker
-answers the drift of both (reads in a row no longer flip between the workers' own windows).
+answers the drift of both (reads in a row no longer flip between the workers' own windows); the
+gauges of a worker SIGKILLed mid-request leave the sums.
 
 Each request opens a new connection, so the kernel spreads them over both workers; each
 worker's own counter file must show some of them, which is what makes the summed count a
@@ -8,9 +9,11 @@ real test of the aggregation.
 
 from __future__ import annotations
 
+import os
 import re
 import signal
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,6 +22,7 @@ import httpx
 import pytest
 from prometheus_client.mmap_dict import MmapedDict
 
+from service.infra.metrics import MULTIPROCESS_ENV, metrics_payload
 from service.infra.settings import PACKAGE_ROOT
 from tests.api.test_audits import run_audit
 from tests.live.server import LiveServer, cli, free_port, service_env
@@ -167,3 +171,23 @@ def test_two_workers_answer_the_same_drift(tmp_path: Path) -> None:
             (frames, reads[0]["alarm"], reads[0]["independent_looks"], 2)
         }, [(r["process"], r["frames"], r["alarm"]) for r in reads]
         assert len({r["process"] for r in reads}) == 2, "both workers must have answered"
+
+
+def test_gauges_of_a_killed_worker_leave_the_multiprocess_sums(tmp_path: Path, monkeypatch) -> None:
+    """A worker SIGKILLed while a request was in flight must not leave a permanent offset."""
+    env = {**os.environ, MULTIPROCESS_ENV: str(tmp_path)}
+    code = (
+        "import os, signal, sys\n"
+        "from service.infra.metrics import PREDICT_IN_FLIGHT\n"
+        "PREDICT_IN_FLIGHT.inc()\n"
+        "sys.stdout.write('ready\\n'); sys.stdout.flush()\n"
+        "signal.pause()\n"
+    )
+    worker = subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, text=True)
+    assert worker.stdout.readline() == "ready\n"
+    monkeypatch.setenv(MULTIPROCESS_ENV, str(tmp_path))
+    assert b"cks_predict_in_flight 1.0" in metrics_payload()[0]
+    worker.send_signal(signal.SIGKILL)
+    worker.wait()
+    assert b"cks_predict_in_flight 1.0" not in metrics_payload()[0]  # no live worker: no sample
+    assert not list(tmp_path.glob(f"gauge_live*_{worker.pid}.db"))
