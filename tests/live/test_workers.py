@@ -28,6 +28,7 @@ from tests.api.test_audits import run_audit
 from tests.live.server import LiveServer, cli, free_port, service_env
 from tests.live.test_drift_streams import FRAMES_PER_SCENE
 from tests.live.test_replicas import SCENES, drift, send_heavy_scenes
+from tests.live.test_replicas import SHARE_S as REPLICA_SHARE_S
 from tests.predict_client import instances_of, predict_json, predict_ok
 from tests.samples import Sample, batch_zip, samples_by_image
 from tests.service_calls import ADMIN_TOKEN, wait_until
@@ -160,12 +161,14 @@ def test_with_several_workers_the_gauges_are_the_latest_audits(
 
 
 def test_two_workers_answer_the_same_drift(tmp_path: Path) -> None:
-    with LiveServer(tmp_path / "data", admin_token=ADMIN_TOKEN, workers=2, drift_share_seconds=SHARE_S) as s:
+    with LiveServer(
+        tmp_path / "data", admin_token=ADMIN_TOKEN, workers=2, drift_share_seconds=REPLICA_SHARE_S
+    ) as s:
         wait_until(lambda: drift(s.url)["replicas"] == 2, "both workers share their windows", timeout=60)
         send_heavy_scenes([s], SCENES // 2)
         frames = SCENES // 2 * FRAMES_PER_SCENE
         wait_until(lambda: drift(s.url)["frames"] == frames, "every frame counted", timeout=30)
-        time.sleep(3 * SHARE_S)  # each worker's last share written and read by the other
+        time.sleep(3 * REPLICA_SHARE_S)  # each worker's last share written and read by the other
         reads = [drift(s.url) for _ in range(12)]
         assert {(r["frames"], r["alarm"], r["independent_looks"], r["replicas"]) for r in reads} == {
             (frames, reads[0]["alarm"], reads[0]["independent_looks"], 2)
