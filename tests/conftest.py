@@ -4,8 +4,9 @@ The samples: the model directory, its manifest, the COCO annotations, every labe
 (``samples``), one image with its instances (``sample``) and small limits that valid small batches
 fit (``limits``). PostgreSQL: a throwaway cluster per session, a fresh database per test; tests
 request `postgres_url` (a postgresql:// URL of an empty database) or `postgres_cluster`
-(tests.postgres_cluster.PostgresCluster). ``server``: a real server process (tests/live/server.py)
-for the tests whose point is the process or a real URL (tests/live, the browser in tests/deploy).
+(tests.postgres_cluster.PostgresCluster). ``server``: the service on a loopback port, served by a
+thread of the test's process (tests/api/in_process.py OnLoopback), for the tests that need a URL
+(the client, the command line, a browser); a test whose point is a process starts a LiveServer.
 """
 
 from __future__ import annotations
@@ -17,11 +18,14 @@ from pathlib import Path
 
 import pytest
 
-from tests.live.server import LiveServer
+from tests.api.in_process import OnLoopback
 from tests.postgres_cluster import PostgresCluster
 from tests.predict_client import instances_of
 from tests.samples import Sample, batch_zip, load_samples, model_dir, samples_by_image
 from tests.service_calls import ADMIN_TOKEN
+
+# Which test files start a process, and the few that may (tests/process_starts.py).
+pytest_plugins = ["tests.process_starts", "pytester"]
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -112,7 +116,7 @@ def store_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
-    """A server with the bundled calibration active and admin enabled, shared by one test module."""
-    with LiveServer(tmp_path_factory.mktemp("server") / "data", admin_token=ADMIN_TOKEN) as live:
-        yield live
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[OnLoopback]:
+    """The bundled calibration active and admin enabled, on a loopback URL, shared by one test module."""
+    with OnLoopback(tmp_path_factory.mktemp("server") / "data", admin_token=ADMIN_TOKEN) as served:
+        yield served

@@ -3,6 +3,8 @@ and its instances (object, box) from the generator's labels (training/streams.py
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import cv2
 import numpy as np
 
@@ -17,14 +19,24 @@ RequestFrame = tuple[bytes, list[dict]]
 
 def render_requests(seed: int, sequences: int, frames: int, shift: str = "none") -> list[list[RequestFrame]]:
     """``sequences`` scenes of ``frames`` frames each (sequence s drawn from ``(seed, s)``)."""
+    return _render([[seed, s] for s in range(sequences)], frames, shift)
+
+
+def render_scenes(seeds: Iterable[int], frames: int, shift: str = "none") -> list[list[RequestFrame]]:
+    """A scene per seed, the one ``render_requests(seed, 1, frames, shift)`` renders; one world for
+    all (loading a world's textures takes longer than rendering a frame)."""
+    return _render([[seed, 0] for seed in seeds], frames, shift)
+
+
+def _render(entropies: list[list[int]], frames: int, shift: str) -> list[list[RequestFrame]]:
     world = World()
     try:
         return [
             [
                 _request(view)
-                for view in render_sequence(world, np.random.default_rng([seed, s]), frames, SHIFTS[shift])
+                for view in render_sequence(world, np.random.default_rng(e), frames, SHIFTS[shift])
             ]
-            for s in range(sequences)
+            for e in entropies
         ]
     finally:
         world.close()

@@ -1,17 +1,22 @@
-"""The service in process: its ASGI app started through fastapi's TestClient, real model and SQLite."""
+"""The service in process, real model and SQLite: its ASGI app started through fastapi's TestClient
+(``InProcess``), or served by uvicorn in a thread on a loopback port (``OnLoopback``: a URL for the
+client, a browser or a tool; no process of its own)."""
 
 from __future__ import annotations
 
 import logging
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
+import httpx
 import pytest
 from fastapi.testclient import TestClient
 
 from service.infra.settings import Settings
 from service.serving import container
 from service.serving.app import create_app
+from service.serving.loopback import served
 from tests.samples import model_dir
 from tests.service_calls import ServiceCalls
 
@@ -80,3 +85,33 @@ class InProcess(ServiceCalls):
         self.client.__exit__(*exc)
         self.log_lines.detach()
         self.fixed.undo()
+
+
+class OnLoopback(ServiceCalls):
+    """The service of ``Settings(data_dir=..., **settings)`` served on a free loopback port by a
+    thread of this process, as ``keypoint-service predict`` serves it; ``url`` and ``client`` reach it."""
+
+    def __init__(self, data_dir: Path, fixed: dict[str, Any] | None = None, **settings: Any) -> None:
+        self.data_dir = Path(data_dir)
+        self.settings = settings
+        values = {"model_dir": model_dir(), **DEFAULTS, **settings}
+        self.service_settings = Settings(data_dir=self.data_dir, **values)
+        self.log_lines = LogLines()
+        self.stack = ExitStack()
+        self.fixed = self.stack.enter_context(pytest.MonkeyPatch.context())
+        for name, value in (fixed or {}).items():
+            self.fixed.setattr(container, name, value)
+
+    def log(self) -> str:
+        """What the process logged since this service started (any service in it, for that time)."""
+        return "\n".join(self.log_lines.lines)
+
+    def __enter__(self) -> OnLoopback:
+        self.log_lines.attach()
+        self.stack.callback(self.log_lines.detach)
+        self.url = self.stack.enter_context(served(self.service_settings))
+        self.client = self.stack.enter_context(httpx.Client(base_url=self.url, timeout=60.0))
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stack.close()

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import httpx
 
-from tests.api.in_process import InProcess
+from tests.api.in_process import InProcess, OnLoopback
 from tests.api.test_operations import metric_samples
 from tests.api.test_predict_batch import Part, image_part, post_batch, request_part
 from tests.predict_client import instances_of, predict_json
@@ -23,7 +23,7 @@ from tests.service_calls import assert_problem, wait_until
 SLOW_INSTANCES = 256
 
 
-def metric(service: InProcess, name: str, labels: str = "") -> float:
+def metric(service: InProcess | OnLoopback, name: str, labels: str = "") -> float:
     return metric_samples(service.client.get("/metrics").text, name).get(labels, 0.0)
 
 

@@ -6,8 +6,12 @@ promise, the alarm), the drift of every keypoint over time and the set sizes of 
 made here, or 'no drift data' (and no feedback) on a server without drift monitoring; at 1280 px
 and at a phone's 390 px nothing is cut or pushed out of its panel or the window, no word or
 number is split across lines, and no control shows empty (without a token, without audits).
+On a camera stream, after 300 frames of one static scene it says "no alarm" on one independent
+look; after heavily occluded scenes, "alarm raised", with the looks and frames the drift API
+reports (tests/live/test_drift_streams.py sends the same stream).
 Screenshots go to the test's temporary directory and to ``test-artifacts/console*.png``
-(gitignored)."""
+(gitignored). The services run in this process on loopback ports (tests/api/in_process.py), but
+the one without drift monitoring, a process: its metrics must be its own."""
 
 from __future__ import annotations
 
@@ -16,6 +20,7 @@ import shutil
 import struct
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from urllib.parse import urlsplit
 
@@ -25,10 +30,12 @@ from playwright.sync_api import Browser, BrowserContext, ConsoleMessage
 
 from service.api.monitoring.console_routes import CONSOLE_CONTENT_SECURITY_POLICY
 from service.infra.settings import PACKAGE_ROOT
+from tests.api.in_process import OnLoopback
 from tests.api.test_audits import run_audit, shifted
 from tests.api.test_feedback import send_all
 from tests.deploy.test_api_pages import RECORD_POLICY_VIOLATIONS, Watch, open_page, watched_context
 from tests.live.server import LiveServer
+from tests.live.test_drift_streams import send_heavy_until_alarm, send_static_scene
 from tests.predict_client import instances_of, predict_ok
 from tests.samples import Sample, batch_zip, samples_by_image
 from tests.service_calls import ADMIN_TOKEN
@@ -40,15 +47,15 @@ HISTORY_SECONDS = 0.5
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[OnLoopback]:
     """A server whose drift history takes a point every half second."""
     data = tmp_path_factory.mktemp("console") / "data"
-    with LiveServer(data, admin_token=ADMIN_TOKEN, drift_history_seconds=HISTORY_SECONDS) as live:
-        yield live
+    with OnLoopback(data, {"DRIFT_HISTORY_SECONDS": HISTORY_SECONDS}, admin_token=ADMIN_TOKEN) as served:
+        yield served
 
 
 @pytest.fixture(scope="module")
-def predictions(server: LiveServer, samples: list[Sample]) -> None:
+def predictions(server: OnLoopback, samples: list[Sample]) -> None:
     """Three rounds of predictions on the samples, a few history points apart."""
     for round_ in range(3):
         for path, group in samples_by_image(samples).items():
@@ -60,7 +67,7 @@ def predictions(server: LiveServer, samples: list[Sample]) -> None:
 
 
 @pytest.fixture(scope="module")
-def feedback(server: LiveServer, samples: list[Sample]) -> None:
+def feedback(server: OnLoopback, samples: list[Sample]) -> None:
     """Field labels of every sample: true ones from one camera (answers of difficulty strata), and
     labels 60 px off from another (its sets miss them: its alarm is raised)."""
     send_all(server, samples, 0.0, "cam-true", stratify="difficulty")  # type: ignore[arg-type]
@@ -68,16 +75,16 @@ def feedback(server: LiveServer, samples: list[Sample]) -> None:
 
 
 @pytest.fixture
-def context(browser: Browser, server: LiveServer) -> Iterator[tuple[BrowserContext, Watch]]:
+def context(browser: Browser, server: OnLoopback) -> Iterator[tuple[BrowserContext, Watch]]:
     yield from watched_context(browser, server, {"width": 1400, "height": 1350})
 
 
 @pytest.fixture(scope="module")
-def audit(server: LiveServer, samples_dir: Path, coco: dict) -> dict:
+def audit(server: OnLoopback, samples_dir: Path, coco: dict) -> dict:
     return run_audit(server, batch_zip(samples_dir, coco, mutate=shifted(5)), name="console-test")
 
 
-def test_the_console_is_served_from_the_package_without_other_hosts(server: LiveServer) -> None:
+def test_the_console_is_served_from_the_package_without_other_hosts(server: OnLoopback) -> None:
     for path in ("/console", "/console/console.js", "/console/console.css"):
         response = server.client.get(path)
         assert response.status_code == 200, path
@@ -88,7 +95,7 @@ def test_the_console_is_served_from_the_package_without_other_hosts(server: Live
 
 
 def test_the_console_shows_the_audit_against_its_bands(
-    server: LiveServer,
+    server: OnLoopback,
     context: tuple[BrowserContext, Watch],
     audit: dict,
     predictions: None,
@@ -240,13 +247,13 @@ def check_and_save(page, name: str, tmp_path: Path) -> None:  # noqa: ANN001 - a
 
 
 @pytest.fixture(params=[1280, 390], ids=["laptop", "phone"])
-def window(request: pytest.FixtureRequest, browser: Browser, server: LiveServer) -> Iterator[tuple]:
+def window(request: pytest.FixtureRequest, browser: Browser, server: OnLoopback) -> Iterator[tuple]:
     """A laptop's window, 1280 px wide, or a phone's, 390 px."""
     yield from watched_context(browser, server, {"width": request.param, "height": 900})
 
 
 def test_the_console_fits_a_laptop_and_a_phone(
-    server: LiveServer,
+    server: OnLoopback,
     window: tuple[BrowserContext, Watch],
     audit: dict,
     predictions: None,
@@ -270,13 +277,13 @@ def test_the_console_fits_a_laptop_and_a_phone(
     watch.assert_offline_and_clean(page)  # the favicon too: no 404
 
 
-def test_the_service_has_a_favicon(server: LiveServer) -> None:
+def test_the_service_has_a_favicon(server: OnLoopback) -> None:
     icon = server.client.get("/favicon.ico")
     assert icon.status_code == 200 and icon.headers["content-type"] == "image/svg+xml"
     assert icon.content == server.client.get("/console/favicon.svg").content
 
 
-def test_a_wrong_token_is_told_not_hidden(server: LiveServer, context: tuple[BrowserContext, Watch]) -> None:
+def test_a_wrong_token_is_told_not_hidden(server: OnLoopback, context: tuple[BrowserContext, Watch]) -> None:
     browser_context, watch = context
     page = browser_context.new_page()
     page.goto(f"{server.url}/console")
@@ -294,7 +301,7 @@ def _record_error(message: ConsoleMessage, errors: list[str]) -> None:
         errors.append(f"{message.text} ({message.location.get('url')})")
 
 
-def _assert_drift_panels(server: LiveServer, page) -> None:  # noqa: ANN001 - a Playwright Page
+def _assert_drift_panels(server: OnLoopback, page) -> None:  # noqa: ANN001 - a Playwright Page
     """Drift as the server reports it: a row per keypoint with its statistics over time, and a
     histogram of set sizes per nonconformity function predicted with."""
     drift = server.client.get("/v1/admin/drift", headers=server.admin).json()
@@ -336,7 +343,7 @@ def test_a_server_without_drift_says_so(browser: Browser, tmp_path: Path) -> Non
         context.close()
 
 
-def _assert_live_coverage(server: LiveServer, page) -> None:  # noqa: ANN001 - a Playwright Page
+def _assert_live_coverage(server: OnLoopback, page) -> None:  # noqa: ANN001 - a Playwright Page
     """Live coverage as the admin API reports it: totals and alarms first, then every group with its
     coverage so far, confidence sequence, promise and alarm state, and each level on its own."""
     groups = server.client.get("/v1/admin/coverage/live", headers=server.admin).json()["groups"]
@@ -369,3 +376,32 @@ def _assert_live_coverage(server: LiveServer, page) -> None:  # noqa: ANN001 - a
     strata = [g for g in groups if g["level"] == "stratum"]
     assert rows.count() == len(strata) > 1
     page.select_option("#live-level", "summary")
+
+
+def _drift_line(context: tuple[BrowserContext, Watch], server: OnLoopback) -> str:
+    page, watch = open_page(context, f"{server.url}/console")
+    page.wait_for_selector("#model table")
+    page.fill("#token", ADMIN_TOKEN)
+    page.click("#token-form button[type=submit]")
+    page.wait_for_selector("body[data-loaded=true]")
+    text = page.inner_text("#drift p.muted")
+    watch.assert_offline_and_clean(page)
+    page.close()
+    return text
+
+
+def test_the_console_shows_a_quiet_static_scene_then_the_alarm(browser: Browser, tmp_path: Path) -> None:
+    viewport = {"width": 1400, "height": 1000}
+    with (
+        OnLoopback(tmp_path / "data", admin_token=ADMIN_TOKEN) as streamed,
+        contextmanager(watched_context)(browser, streamed, viewport) as context,
+    ):
+        quiet = send_static_scene(streamed)
+        line = _drift_line(context, streamed)
+        assert f"{quiet['independent_looks']} independent looks in {quiet['frames']} frames" in line, line
+        assert "no alarm" in line and "alarm raised" not in line
+
+        _, shifted = send_heavy_until_alarm(streamed)
+        line = _drift_line(context, streamed)
+        assert f"{shifted['independent_looks']} independent looks in {shifted['frames']} frames" in line, line
+        assert "alarm raised" in line

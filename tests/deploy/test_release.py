@@ -15,7 +15,7 @@ from setuptools.config.pyprojecttoml import read_configuration
 
 from service import __version__
 from service.infra.settings import PACKAGE_ROOT
-from tests.live.server import LiveServer
+from tests.api.in_process import InProcess
 
 PYPROJECT = PACKAGE_ROOT / "pyproject.toml"
 # sha256 of https://www.apache.org/licenses/LICENSE-2.0.txt (also Debian's
@@ -59,6 +59,6 @@ def test_the_changelog_has_a_section_for_this_version() -> None:
 def test_the_api_reports_the_version(tmp_path: Path) -> None:
     committed = json.loads((PACKAGE_ROOT / "openapi" / "openapi.json").read_text(encoding="utf-8"))
     assert committed["info"]["version"] == __version__
-    with LiveServer(tmp_path / "data") as server:
+    with InProcess(tmp_path / "data") as server:
         assert server.client.get("/v1/model").json()["service_version"] == __version__
         assert server.client.get("/openapi.json").json()["info"]["version"] == __version__

@@ -1,5 +1,6 @@
 """What the tests of generated clients (tests/live/test_*client*.py) share: the server they drive
-and the import of a freshly generated package."""
+(on a loopback port, served by a thread of the test's process) and the import of a freshly
+generated package."""
 
 from __future__ import annotations
 
@@ -10,17 +11,17 @@ from contextlib import contextmanager
 from pathlib import Path
 from types import ModuleType
 
-from tests.live.server import LiveServer
+from tests.api.in_process import OnLoopback
 from tests.service_calls import ADMIN_TOKEN
 
 MAX_REQUEST_BYTES = 1_000_000  # small, so that a client's 413 is within reach
 
 
-def generated_client_server(data_dir: Path) -> LiveServer:
+def generated_client_server(data_dir: Path) -> OnLoopback:
     """An admin token, no calibration yet (predict answers 503 until one is activated) and a small
     request limit."""
     settings = {"bootstrap_calibration": False, "max_request_bytes": MAX_REQUEST_BYTES}
-    return LiveServer(data_dir, admin_token=ADMIN_TOKEN, **settings)
+    return OnLoopback(data_dir, admin_token=ADMIN_TOKEN, **settings)
 
 
 @contextmanager

@@ -1,5 +1,5 @@
-"""The keypoint-service command line: predict (JSON and PNG, through the client, in this
-process or from a running service) and offline calibrate."""
+"""The keypoint-service command line (its main, in this process): predict (JSON and PNG, through the
+client, serving the model itself or asking a running service) and offline calibrate."""
 
 from __future__ import annotations
 
@@ -13,21 +13,15 @@ import numpy as np
 from calibration_store import open_store
 from service.api.predict.predict_schemas import PoseOut
 from service.detector.session import file_sha256
-from service.infra.settings import PACKAGE_ROOT
-from tests.live.server import LiveServer, cli, free_port, service_env
+from tests.api.in_process import OnLoopback
+from tests.cli_calls import run as run_main
+from tests.live.server import free_port
 from tests.predict_client import predict_json
 from tests.samples import Sample, count_instances, samples_by_image
 
 
 def run(args: list[str], data_dir: Path, expect: int = 0) -> subprocess.CompletedProcess:
-    result = subprocess.run(
-        [*cli(), *args],
-        env=service_env(data_dir),
-        cwd=PACKAGE_ROOT,
-        capture_output=True,
-        text=True,
-        timeout=180,
-    )
+    result = run_main(args, data_dir)
     assert result.returncode == expect, (
         f"exit {result.returncode}\nstdout:\n{result.stdout}\nstderr:\n{result.stderr}"
     )
@@ -44,7 +38,7 @@ def predict_args(path: Path, group: list[Sample], *options: str) -> tuple[list[s
     return args, {"instances": instances}
 
 
-def services_answers(server: LiveServer, path: Path, parameters: dict) -> tuple[dict, bytes]:
+def services_answers(server: OnLoopback, path: Path, parameters: dict) -> tuple[dict, bytes]:
     """The service's JSON answer, and the PNG it draws."""
     image = path.read_bytes()
     answer = predict_json(server.client, image, parameters)
@@ -61,7 +55,7 @@ def printed_answer(printed: str) -> dict:
 
 
 def test_predict_prints_json_and_writes_a_png(
-    tmp_path: Path, samples: list[Sample], server: LiveServer
+    tmp_path: Path, samples: list[Sample], server: OnLoopback
 ) -> None:
     path, group = next(iter(samples_by_image(samples).items()))
     args, parameters = predict_args(path, group, "--png", str(tmp_path / "out.png"), "--nonconformity", "var")
@@ -86,7 +80,7 @@ def test_predict_prints_json_and_writes_a_png(
     )
 
 
-def test_predict_asks_a_running_service(tmp_path: Path, samples: list[Sample], server: LiveServer) -> None:
+def test_predict_asks_a_running_service(tmp_path: Path, samples: list[Sample], server: OnLoopback) -> None:
     path, group = list(samples_by_image(samples).items())[1]
     args, parameters = predict_args(path, group, "--url", server.url, "--png", str(tmp_path / "out.png"))
     printed = run(args, tmp_path / "data").stdout
@@ -110,7 +104,7 @@ def test_predict_asks_a_running_service(tmp_path: Path, samples: list[Sample], s
 
 
 def test_predict_prints_and_draws_the_pose(
-    tmp_path: Path, samples: list[Sample], server: LiveServer, coco: dict
+    tmp_path: Path, samples: list[Sample], server: OnLoopback, coco: dict
 ) -> None:
     path, group = next(iter(samples_by_image(samples).items()))
     camera = coco["annotations"][0]["cam_K"]  # one camera renders every sample

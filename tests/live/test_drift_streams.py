@@ -1,5 +1,5 @@
-"""The drift alarm on a camera stream, through a real server: 300 frames of one static scene raise
-no alarm (one independent look), a stream of heavily occluded scenes raises it, and
+"""The drift alarm on a camera stream, through the service in process: 300 frames of one static
+scene raise no alarm (one independent look), a stream of heavily occluded scenes raises it, and
 /v1/admin/drift (what the console reads) says both, with the looks it counted.
 
 Frames are rendered here by the bundled generator with seeds no bundled split used
@@ -13,10 +13,10 @@ from collections.abc import Iterator
 
 import pytest
 
-from tests.live.server import LiveServer
+from tests.api.in_process import InProcess
 from tests.predict_client import predict_ok
-from tests.service_calls import ADMIN_TOKEN
-from tests.streams import RequestFrame, render_requests
+from tests.service_calls import ADMIN_TOKEN, ServiceCalls
+from tests.streams import RequestFrame, render_requests, render_scenes
 
 STATIC_FRAMES = 300
 #: heavy scenes sent, at most, and frames per scene (a still camera: the frame repeats)
@@ -24,18 +24,18 @@ HEAVY_SCENES, FRAMES_PER_SCENE = 150, 3
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
-    with LiveServer(tmp_path_factory.mktemp("streams") / "data", admin_token=ADMIN_TOKEN) as live:
-        yield live
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[InProcess]:
+    with InProcess(tmp_path_factory.mktemp("streams") / "data", admin_token=ADMIN_TOKEN) as service:
+        yield service
 
 
-def drift(server: LiveServer) -> dict:
+def drift(server: ServiceCalls) -> dict:
     response = server.client.get("/v1/admin/drift", headers=server.admin)
     assert response.status_code == 200, response.text
     return response.json()
 
 
-def send(server: LiveServer, frame: RequestFrame) -> None:
+def send(server: ServiceCalls, frame: RequestFrame) -> None:
     image, instances = frame
     predict_ok(server.client, image, {"instances": instances})
 
@@ -47,27 +47,27 @@ def static_scene_stream() -> list[RequestFrame]:
     return [back_and_forth[k % len(back_and_forth)] for k in range(STATIC_FRAMES)]
 
 
-def send_static_scene(server: LiveServer) -> dict:
+def send_static_scene(server: ServiceCalls) -> dict:
     """300 frames of one scene; the drift document after them."""
     for frame in static_scene_stream():
         send(server, frame)
     return drift(server)
 
 
-def send_heavy_until_alarm(server: LiveServer) -> tuple[int, dict]:
+def send_heavy_until_alarm(server: ServiceCalls) -> tuple[int, dict]:
     """Heavily occluded scenes until the alarm (at most HEAVY_SCENES); how many, and the document."""
     sent = 0
     while sent < HEAVY_SCENES:
-        (views,) = render_requests(9402 + sent, 1, 1, "heavy_occlusion")
-        for _ in range(FRAMES_PER_SCENE):
-            send(server, views[0])
-        sent += 1
-        if sent % 5 == 0 and drift(server)["alarm"]:
+        for (frame,) in render_scenes(range(9402 + sent, 9402 + sent + 5), 1, "heavy_occlusion"):
+            for _ in range(FRAMES_PER_SCENE):
+                send(server, frame)
+        sent += 5
+        if drift(server)["alarm"]:
             break
     return sent, drift(server)
 
 
-def test_a_static_scene_is_quiet_and_heavy_occlusion_alarms(server: LiveServer) -> None:
+def test_a_static_scene_is_quiet_and_heavy_occlusion_alarms(server: ServiceCalls) -> None:
     quiet = send_static_scene(server)
     assert quiet["statistic"] == "sequential" and quiet["frames"] == STATIC_FRAMES
     assert quiet["independent_looks"] == 1 and not quiet["alarm"], quiet["evidence"]

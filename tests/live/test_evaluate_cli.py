@@ -14,8 +14,9 @@ import pytest
 from scipy import stats
 
 from service import cli as service_cli
+from tests.api.in_process import OnLoopback
 from tests.cli_calls import run
-from tests.live.server import LiveServer, service_env
+from tests.live.server import service_env
 from tests.predict_client import contains, predict_ok
 from tests.samples import Sample, samples_by_image
 
@@ -32,7 +33,7 @@ def evaluate(data_dir: Path, *args: str, expect: int = 0) -> subprocess.Complete
 
 
 @pytest.fixture(scope="module")
-def report(server: LiveServer, samples_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+def report(server: OnLoopback, samples_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The report on the bundled samples against the server's store (bundled calibration, version 1)."""
     out = tmp_path_factory.mktemp("evaluation")
     options = [f"--epsilon={e}" for e in EPSILONS]
@@ -48,7 +49,7 @@ def table_rows(text: str, heading: str) -> list[list[str]]:
     return [[cell.strip() for cell in line.strip("|").split("|")] for line in lines[2:]]
 
 
-def served_coverage(server: LiveServer, samples: list[Sample], kind: str, epsilon: float, scope: str):
+def served_coverage(server: OnLoopback, samples: list[Sample], kind: str, epsilon: float, scope: str):
     """Per group (keypoint, or object for the object scope): covered count, count, and the
     guarantee's n and t, from the sets POST /v1/predict answers."""
     counts: dict[str, list[int]] = {}
@@ -111,7 +112,7 @@ def test_writes_markdown_and_figures(report: Path) -> None:
 
 @pytest.mark.parametrize("scope", ["keypoint", "object"])
 def test_coverage_agrees_with_the_served_sets(
-    report: Path, server: LiveServer, samples: list[Sample], scope: str
+    report: Path, server: OnLoopback, samples: list[Sample], scope: str
 ) -> None:
     text = (report / "evaluation.md").read_text()
     heading = "## Validity" if scope == "keypoint" else "### Object scope"
@@ -140,7 +141,7 @@ def test_adaptiveness_counts_the_visibility_flags(report: Path, samples: list[Sa
     assert f"visible (n={flags.count(2)})" in text and f"occluded (n={flags.count(1)})" in text
 
 
-def test_the_active_version_is_the_default(server: LiveServer, samples_dir: Path, tmp_path: Path) -> None:
+def test_the_active_version_is_the_default(server: OnLoopback, samples_dir: Path, tmp_path: Path) -> None:
     result = evaluate(server.data_dir, str(samples_dir), "--out", str(tmp_path), "--epsilon", "0.1")
     assert "(version 1, 52 instances)" in result.stdout
     assert (tmp_path / "figures" / "bands.png").is_file()
@@ -175,7 +176,7 @@ def test_refuses_a_folder_that_is_not_coco(tmp_path: Path) -> None:
     assert not (tmp_path / "out").exists()
 
 
-def test_refuses_an_unknown_version(server: LiveServer, samples_dir: Path, tmp_path: Path) -> None:
+def test_refuses_an_unknown_version(server: OnLoopback, samples_dir: Path, tmp_path: Path) -> None:
     message = refusal(server.data_dir, str(samples_dir), "--version", "99", "--out", str(tmp_path / "out"))
     assert "calibration version 99 does not exist" in message and "versions: 1" in message
     assert not (tmp_path / "out").exists()
@@ -214,7 +215,7 @@ def one_object_without_occlusion_flags(samples_dir: Path, coco: dict, folder: Pa
 
 
 def test_a_batch_of_one_object_without_occlusion_flags(
-    server: LiveServer, samples_dir: Path, coco: dict, manifest: dict, tmp_path: Path
+    server: OnLoopback, samples_dir: Path, coco: dict, manifest: dict, tmp_path: Path
 ) -> None:
     duck = next(o for o in manifest["objects"] if o["name"] == "duck")
     count = one_object_without_occlusion_flags(samples_dir, coco, tmp_path / "duck", "duck")

@@ -39,8 +39,8 @@ def assert_served_beside(url: str, flood: Flood, token: str | None = None) -> No
     quiet_p99 = max(np.percentile(before, 99), np.percentile(after, 99))
     flooded_p99 = np.percentile(flooded, 99)
     report = (
-        f"polite: {answered:.1%} of {len(flooded_statuses)} answered, p99 {flooded_p99 * 1e3:.0f} ms beside the flood"
-        f" against {quiet_p99 * 1e3:.0f} ms quiet; the flood got {dict(flood.statuses)}"
+        f"polite: {answered:.1%} of {len(flooded_statuses)} answered, p99 {flooded_p99 * 1e3:.0f} ms"
+        f" beside the flood against {quiet_p99 * 1e3:.0f} ms quiet; the flood got {dict(flood.statuses)}"
     )
     print(report)
     assert answered >= 0.99, report

@@ -16,8 +16,8 @@ from typing import Any
 import pytest
 
 from service.infra.settings import PACKAGE_ROOT
+from tests.api.in_process import OnLoopback
 from tests.live.generated_clients import MAX_REQUEST_BYTES, generated_client_server, imported_package
-from tests.live.server import LiveServer
 from tests.predict_client import instances_of
 from tests.samples import Sample, batch_zip, samples_by_image
 from tests.service_calls import ADMIN_TOKEN
@@ -64,7 +64,7 @@ def generated(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SimpleNamesp
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[OnLoopback]:
     """No calibration yet (predict answers 503 until one is activated), small request limit."""
     data = tmp_path_factory.mktemp("generated-client") / "data"
     with generated_client_server(data) as live:
@@ -96,7 +96,7 @@ def zip_file(data: bytes) -> Any:
 
 
 def test_a_generated_client_drives_every_kind_of_call(
-    generated: SimpleNamespace, server: LiveServer, samples: list[Sample], samples_dir: Path, coco: dict
+    generated: SimpleNamespace, server: OnLoopback, samples: list[Sample], samples_dir: Path, coco: dict
 ) -> None:
     g, m = generated, generated.models
     File = g.types.File

@@ -180,7 +180,7 @@ def test_sigkill_at_the_worst_moment_leaves_all_or_nothing(
 ) -> None:
     data = tmp_path / "data"
     settings = {"admin_token": ADMIN_TOKEN, "store_url": postgres_url}
-    server = LiveServer(data, store_timeout_seconds=HELD_STORE_TIMEOUT_S, **settings).start()
+    server = LiveServer(data, {"STORE_TIMEOUT_SECONDS": HELD_STORE_TIMEOUT_S}, **settings).start()
     try:
         job_id = sigkill_on_postgres(server, postgres_url, moment)
     finally:
@@ -191,7 +191,7 @@ def test_sigkill_at_the_worst_moment_leaves_all_or_nothing(
 def test_sigkill_while_the_version_is_written_on_sqlite_leaves_nothing(tmp_path: Path) -> None:
     data = tmp_path / "data"
     settings = {"admin_token": ADMIN_TOKEN, "store_url": f"sqlite://{tmp_path}/shared/calibration.db"}
-    server = LiveServer(data, store_timeout_seconds=HELD_STORE_TIMEOUT_S, **settings).start()
+    server = LiveServer(data, {"STORE_TIMEOUT_SECONDS": HELD_STORE_TIMEOUT_S}, **settings).start()
     try:
         job_id = sigkill_on_sqlite(server, settings["store_url"])
     finally:

@@ -1,7 +1,8 @@
-"""A manifest that breaks the contract stops every command and a direct uvicorn start-up, naming the field.
+"""A manifest that breaks the contract stops every command, naming the field.
 
-The commands are the installed ``keypoint-service`` in subprocesses, the server a real uvicorn
-process (``LiveServer``); each case serves a copy of the bundled model with one manifest edit.
+The commands run their main in this process (tests/cli_calls.py); uvicorn started directly on the
+app, a process, is tests/live/test_installed_commands.py's. Each case serves a copy of the bundled
+model with one manifest edit.
 """
 
 from __future__ import annotations
@@ -14,8 +15,7 @@ import pytest
 
 from service.detector.session import file_sha256
 from tests.api.test_manifest_change import copy_model
-from tests.live.server import LiveServer, cli, service_env
-from tests.live.test_model_mismatch import run_until_exit
+from tests.cli_calls import run
 from tests.samples import Sample, model_dir
 
 
@@ -57,7 +57,7 @@ def edited_model(tmp_path: Path, edit: Callable[[dict], str]) -> tuple[Path, str
 def refused(tmp_path: Path, edit: Callable[[dict], str], args: list[str]) -> tuple[str, str]:
     """Run a command on an edited copy; it must fail without a traceback. Returns (output, expected line)."""
     model, expected = edited_model(tmp_path, edit)
-    result = run_until_exit([*cli(), *args], service_env(tmp_path / "data", model_dir=model))
+    result = run(args, tmp_path / "data", model_dir=model)
     output = result.stdout + result.stderr
     assert result.returncode != 0, output
     assert "Traceback" not in output, output
@@ -78,15 +78,8 @@ def test_check_model_names_the_field(tmp_path: Path, edit: Callable[[dict], str]
     assert expected in output, output
 
 
-def test_a_direct_uvicorn_start_up_fails_naming_the_field(tmp_path: Path) -> None:
-    model, expected = edited_model(tmp_path, duplicate_name)
-    with pytest.raises(RuntimeError, match="exited with code") as raised:
-        LiveServer(tmp_path / "data", model_dir=model).start()
-    assert expected in str(raised.value)
-
-
 def test_check_model_summarizes_the_bundled_model(model_path: Path, tmp_path: Path, manifest: dict) -> None:
-    result = run_until_exit([*cli(), "check-model", str(model_path)], service_env(tmp_path))
+    result = run(["check-model", str(model_path)], tmp_path)
     assert result.returncode == 0, result.stderr
     lines = result.stdout.splitlines()
     assert lines[0] == f"{model_path}: ok, model.onnx sha256 {file_sha256(model_path / 'model.onnx')}"

@@ -8,15 +8,14 @@ from pathlib import Path
 
 from service.detector.manifest import manifest_json_schema
 from service.infra.settings import PACKAGE_ROOT
-from tests.live.server import cli, service_env
-from tests.live.test_model_mismatch import run_until_exit
+from tests.cli_calls import run
 
 SCHEMA = PACKAGE_ROOT / "docs" / "manifest.schema.json"
 PAGE = PACKAGE_ROOT / "docs" / "bring-your-own-model.md"
 
 
 def test_the_committed_json_schema_is_generated_from_the_model(tmp_path: Path) -> None:
-    result = run_until_exit([*cli(), "manifest-schema", "--output", "-"], service_env(tmp_path))
+    result = run(["manifest-schema", "--output", "-"], tmp_path)
     assert result.returncode == 0, result.stderr
     assert json.loads(result.stdout) == manifest_json_schema()
     assert SCHEMA.read_text(encoding="utf-8") == result.stdout, (

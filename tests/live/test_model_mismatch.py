@@ -1,7 +1,8 @@
 """Bring your own model: a manifest that does not fit the ONNX graph is refused at start-up.
 
 Each case copies model.onnx into a temporary directory next to a modified manifest (the
-bundled model directory is never written to).
+bundled model directory is never written to). ``serve`` runs its main in this process; uvicorn
+started directly on the app, a process, is tests/live/test_installed_commands.py's.
 """
 
 from __future__ import annotations
@@ -9,16 +10,14 @@ from __future__ import annotations
 import copy
 import json
 import shutil
-import subprocess
-import sys
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
 from service.detector.session import Detector, ModelMismatch
-from service.infra.settings import PACKAGE_ROOT
-from tests.live.server import cli, free_port, service_env
+from tests.cli_calls import run
+from tests.live.server import free_port
 
 
 def wrong_input_name(manifest: dict) -> list[str]:
@@ -88,38 +87,12 @@ def test_the_unmodified_copy_is_accepted(model_path: Path, tmp_path: Path) -> No
     )
 
 
-def run_until_exit(command: list[str], env: dict[str, str]) -> subprocess.CompletedProcess:
-    return subprocess.run(command, env=env, cwd=PACKAGE_ROOT, capture_output=True, text=True, timeout=60)
-
-
 @pytest.mark.parametrize("case", list(CASES))
 def test_serve_exits_non_zero_naming_the_mismatch(model_path: Path, tmp_path: Path, case: str) -> None:
     fragments = mismatched_model(model_path, tmp_path / "model", case)
-    env = service_env(tmp_path / "data", model_dir=tmp_path / "model", port=free_port())
-    result = run_until_exit([*cli(), "serve"], env)
+    result = run(["serve"], tmp_path / "data", model_dir=tmp_path / "model", port=free_port())
     output = result.stdout + result.stderr
     assert result.returncode != 0, output
     assert "cannot be served" in output
-    for fragment in fragments:
-        assert fragment in output, f"{fragment!r} not in: {output}"
-
-
-def test_uvicorn_exits_non_zero_naming_the_mismatch(model_path: Path, tmp_path: Path) -> None:
-    fragments = mismatched_model(model_path, tmp_path / "model", "output name")
-    env = service_env(tmp_path / "data", model_dir=tmp_path / "model")
-    command = [
-        sys.executable,
-        "-m",
-        "uvicorn",
-        "service.serving.main:app",
-        "--host",
-        "127.0.0.1",
-        "--port",
-        str(free_port()),
-    ]
-    result = run_until_exit(command, env)
-    output = result.stdout + result.stderr
-    assert result.returncode != 0, output
-    assert "ModelMismatch" in output
     for fragment in fragments:
         assert fragment in output, f"{fragment!r} not in: {output}"

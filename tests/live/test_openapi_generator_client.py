@@ -18,8 +18,8 @@ import pydantic
 import pytest
 
 from service.infra.settings import PACKAGE_ROOT
+from tests.api.in_process import OnLoopback
 from tests.live.generated_clients import MAX_REQUEST_BYTES, generated_client_server, imported_package
-from tests.live.server import LiveServer
 from tests.predict_client import instances_of
 from tests.samples import Sample, batch_zip, samples_by_image
 from tests.service_calls import ADMIN_TOKEN
@@ -58,7 +58,7 @@ def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ModuleType]:
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[OnLoopback]:
     """No calibration yet (predict answers 503 until one is activated), small request limit."""
     data = tmp_path_factory.mktemp("openapi-generator-client") / "data"
     with generated_client_server(data) as live:
@@ -88,7 +88,7 @@ def wait(admin: Any, job: Any) -> Any:
 
 
 def test_an_openapi_generator_client_drives_every_kind_of_call(
-    client: ModuleType, server: LiveServer, samples: list[Sample], samples_dir: Path, coco: dict
+    client: ModuleType, server: OnLoopback, samples: list[Sample], samples_dir: Path, coco: dict
 ) -> None:
     c = client
     anyone_client = c.ApiClient(c.Configuration(host=server.url))

@@ -1,5 +1,5 @@
 """CKS_EXECUTION_PROVIDERS end to end: read as a list, reported by GET /v1/model and the start-up
-log of a real server, and refused by `keypoint-service serve` (exit 2, one line naming the
+log of the service (in process), and refused by `keypoint-service serve` (exit 2, one line naming the
 providers this onnxruntime has) when it names one the machine lacks."""
 
 from __future__ import annotations
@@ -12,8 +12,9 @@ from pydantic import ValidationError
 
 from benchmarks.load import predict, sample_request
 from service.infra.settings import Settings
+from tests.api.in_process import InProcess
 from tests.cli_calls import assert_one_line_error, run
-from tests.live.server import LiveServer, free_port
+from tests.live.server import free_port
 from tests.unit.detector.test_providers import missing_provider
 
 CPU = "CPUExecutionProvider"
@@ -59,7 +60,7 @@ def test_the_defaults_keep_todays_behaviour(monkeypatch) -> None:
 def test_the_server_reports_and_logs_the_providers_in_use(tmp_path: Path) -> None:
     image, instances = sample_request()
     settings = {"execution_providers": f'["{CPU}"]'}
-    with LiveServer(tmp_path / "data", **settings) as server:
+    with InProcess(tmp_path / "data", **settings) as server:
         info = server.client.get("/v1/model")
         answer = predict(server.client, image, instances)
         log = server.log()

@@ -2,7 +2,8 @@
 
 In-flight predicts get their answer, a running calibration job is marked interrupted at
 once (not waited for; its upload is kept and a restarted server retries it), every step is
-in the log, and the process exits 0 within CKS_SHUTDOWN_GRACE_SECONDS.
+in the log, and the process exits 0 within CKS_SHUTDOWN_GRACE_SECONDS, having removed its own
+upload folder (uploads of jobs cancelled at shutdown), not another process's.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import pytest
 
 from benchmarks.faults_clients import long_batch
 from benchmarks.faults_store import WalLocks
+from service.calibration.uploads import process_uploads_dir
 from tests.live.server import LiveServer, metric, read_until_closed
 from tests.predict_client import instances_of, predict_json
 from tests.samples import Sample, samples_by_image
@@ -184,3 +186,19 @@ def test_an_upload_and_an_admin_call_outlasting_the_grace_period_get_503(tmp_pat
     assert cut.status_code == 503 and cut.headers["retry-after"] == "1", cut.text
     assert "CKS_SHUTDOWN_GRACE_SECONDS" in cut.json()["detail"], cut.text
     assert "Exception in ASGI application" not in server.log(), server.log()
+
+
+def test_stopping_removes_this_process_upload_folder(tmp_path: Path) -> None:
+    server = LiveServer(tmp_path / "data", admin_token=ADMIN_TOKEN).start()
+    try:
+        own = process_uploads_dir(server.uploads_dir, server.process.pid)
+        leftover = own / "cancelled-job-upload"  # what a job cancelled at shutdown leaves behind
+        leftover.mkdir(parents=True)
+        (leftover / "batch.zip").write_bytes(b"zip")
+        other = process_uploads_dir(server.uploads_dir, server.process.pid + 1) / "another-server-upload"
+        other.mkdir(parents=True)
+    finally:
+        server.stop()
+    assert "Application shutdown complete" in server.log(), server.log()  # a graceful stop
+    assert not own.exists(), "the stopped server left its upload folder"
+    assert other.is_dir(), "a server removed another process's uploads"

@@ -20,8 +20,8 @@ from pathlib import Path
 import pytest
 
 from service.infra.settings import PACKAGE_ROOT
+from tests.api.in_process import OnLoopback
 from tests.live.generated_clients import MAX_REQUEST_BYTES, generated_client_server
-from tests.live.server import LiveServer
 from tests.predict_client import instances_of
 from tests.samples import Sample, batch_zip, samples_by_image
 from tests.service_calls import ADMIN_TOKEN
@@ -97,7 +97,7 @@ def fixture_file(
 
 
 @pytest.fixture
-def server(tmp_path: Path) -> Iterator[LiveServer]:
+def server(tmp_path: Path) -> Iterator[OnLoopback]:
     """A fresh server per client: no calibration yet (predict answers 503 until one is activated)."""
     with generated_client_server(tmp_path / "data") as live:
         yield live
@@ -106,7 +106,7 @@ def server(tmp_path: Path) -> Iterator[LiveServer]:
 @pytest.mark.usefixtures("node_tools")
 @pytest.mark.parametrize("driver", sorted(CLIENTS))
 def test_a_generated_typescript_client_drives_every_kind_of_call(
-    driver: str, server: LiveServer, fixture_file: dict, tmp_path: Path
+    driver: str, server: OnLoopback, fixture_file: dict, tmp_path: Path
 ) -> None:
     work = tmp_path / "client"
     work.mkdir()

@@ -1,4 +1,6 @@
-"""`keypoint-service serve` with CKS_WORKERS=2: /metrics sums every worker.
+"""`keypoint-service serve` with CKS_WORKERS=2: /metrics sums every worker, and every worker
+answers the drift of both (reads in a row no longer flip between the workers' own windows); the
+gauges of a worker SIGKILLed mid-request leave the sums.
 
 Each request opens a new connection, so the kernel spreads them over both workers; each
 worker's own counter file must show some of them, which is what makes the summed count a
@@ -7,9 +9,11 @@ real test of the aggregation.
 
 from __future__ import annotations
 
+import os
 import re
 import signal
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -18,9 +22,13 @@ import httpx
 import pytest
 from prometheus_client.mmap_dict import MmapedDict
 
+from service.infra.metrics import MULTIPROCESS_ENV, metrics_payload
 from service.infra.settings import PACKAGE_ROOT
 from tests.api.test_audits import run_audit
 from tests.live.server import LiveServer, cli, free_port, service_env
+from tests.live.test_drift_streams import FRAMES_PER_SCENE
+from tests.live.test_replicas import SCENES, drift, send_heavy_scenes
+from tests.live.test_replicas import SHARE_S as REPLICA_SHARE_S
 from tests.predict_client import instances_of, predict_json, predict_ok
 from tests.samples import Sample, batch_zip, samples_by_image
 from tests.service_calls import ADMIN_TOKEN, wait_until
@@ -150,3 +158,39 @@ def test_with_several_workers_the_gauges_are_the_latest_audits(
             values = re.findall(r'^cks_audit_coverage\{epsilon="([^"]+)".*\} (\S+)$', metrics, re.MULTILINE)
             assert {epsilon for epsilon, value in values if value != "NaN"} == {"0.2"}
             assert f'cks_audit_latest_id{{version="1"}} {float(latest["id"])}' in metrics
+
+
+def test_two_workers_answer_the_same_drift(tmp_path: Path) -> None:
+    with LiveServer(
+        tmp_path / "data", admin_token=ADMIN_TOKEN, workers=2, drift_share_seconds=REPLICA_SHARE_S
+    ) as s:
+        wait_until(lambda: drift(s.url)["replicas"] == 2, "both workers share their windows", timeout=60)
+        send_heavy_scenes([s], SCENES // 2)
+        frames = SCENES // 2 * FRAMES_PER_SCENE
+        wait_until(lambda: drift(s.url)["frames"] == frames, "every frame counted", timeout=30)
+        time.sleep(3 * REPLICA_SHARE_S)  # each worker's last share written and read by the other
+        reads = [drift(s.url) for _ in range(12)]
+        assert {(r["frames"], r["alarm"], r["independent_looks"], r["replicas"]) for r in reads} == {
+            (frames, reads[0]["alarm"], reads[0]["independent_looks"], 2)
+        }, [(r["process"], r["frames"], r["alarm"]) for r in reads]
+        assert len({r["process"] for r in reads}) == 2, "both workers must have answered"
+
+
+def test_gauges_of_a_killed_worker_leave_the_multiprocess_sums(tmp_path: Path, monkeypatch) -> None:
+    """A worker SIGKILLed while a request was in flight must not leave a permanent offset."""
+    env = {**os.environ, MULTIPROCESS_ENV: str(tmp_path)}
+    code = (
+        "import os, signal, sys\n"
+        "from service.infra.metrics import PREDICT_IN_FLIGHT\n"
+        "PREDICT_IN_FLIGHT.inc()\n"
+        "sys.stdout.write('ready\\n'); sys.stdout.flush()\n"
+        "signal.pause()\n"
+    )
+    worker = subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, text=True)
+    assert worker.stdout.readline() == "ready\n"
+    monkeypatch.setenv(MULTIPROCESS_ENV, str(tmp_path))
+    assert b"cks_predict_in_flight 1.0" in metrics_payload()[0]
+    worker.send_signal(signal.SIGKILL)
+    worker.wait()
+    assert b"cks_predict_in_flight 1.0" not in metrics_payload()[0]  # no live worker: no sample
+    assert not list(tmp_path.glob(f"gauge_live*_{worker.pid}.db"))

@@ -3,11 +3,10 @@ never a traceback; --version and every command's --help with examples.
 
 The command's ``main`` runs in this process, with the environment a server process would get
 (``service_env``) and its own stdout and stderr; the installed entry point, run as a process,
-answers the same (``test_the_installed_command_answers_the_same``)."""
+answers the same (tests/live/test_installed_commands.py)."""
 
 from __future__ import annotations
 
-import importlib.metadata
 import socket
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,7 +18,7 @@ from service import __version__
 from service.cli import EXAMPLES
 from service.infra.settings import Settings
 from service.serving.app import create_app
-from tests.cli_calls import assert_one_line_error, run, run_installed
+from tests.cli_calls import assert_one_line_error, run
 from tests.live.server import free_port
 
 SAMPLE_IMAGE = "models/lmo-synth-unet/samples/images/000000.jpg"
@@ -132,20 +131,6 @@ def test_a_data_directory_that_cannot_be_created(tmp_path: Path, a_file: Path, a
 @pytest.mark.parametrize(("args", "status", "fragments"), MISTAKES)
 def test_a_mistake_is_one_line(tmp_path: Path, args: list[str], status: int, fragments: list[str]) -> None:
     assert_one_line_error(run(args, tmp_path / "data"), status, *fragments)
-
-
-def test_version_is_the_package_version(tmp_path: Path) -> None:
-    assert __version__ == importlib.metadata.version("conformal-keypoint-service")  # one source
-    result = run_installed(["--version"], tmp_path / "data")
-    assert (result.returncode, result.stdout, result.stderr) == (0, f"keypoint-service {__version__}\n", "")
-
-
-@pytest.mark.parametrize(("args", "status", "fragments"), [MISTAKES[0], MISTAKES[-2]])
-def test_the_installed_command_answers_the_same(
-    tmp_path: Path, args: list[str], status: int, fragments: list[str]
-) -> None:
-    in_process = assert_one_line_error(run(args, tmp_path / "data"), status, *fragments)
-    assert assert_one_line_error(run_installed(args, tmp_path / "data"), status, *fragments) == in_process
 
 
 def test_the_server_reports_the_same_version(tmp_path: Path) -> None:

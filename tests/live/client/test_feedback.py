@@ -1,4 +1,4 @@
-"""Feedback end to end through the client, against two real server processes sharing PostgreSQL: an
+"""Feedback end to end through the client, against two replicas sharing PostgreSQL: an
 answer retained on one replica (asked with difficulty strata) is labelled through the other, and
 both report the same live coverage, per stratum too (the store is the one truth); a second label
 is refused."""
@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from keypoint_client import Conflict, KeypointClient, NotFound, ProblemError
 
-from tests.live.server import LiveServer
+from tests.api.in_process import OnLoopback
 from tests.predict_client import instances_of
 from tests.samples import Sample, samples_by_image
 from tests.service_calls import ADMIN_TOKEN
@@ -21,8 +21,8 @@ def test_feedback_and_live_coverage_across_replicas(
 ) -> None:
     images = list(samples_by_image(samples).items())[:3]
     with (
-        LiveServer(tmp_path / "a", admin_token=ADMIN_TOKEN, store_url=postgres_url) as a,
-        LiveServer(tmp_path / "b", admin_token=ADMIN_TOKEN, store_url=postgres_url) as b,
+        OnLoopback(tmp_path / "a", admin_token=ADMIN_TOKEN, store_url=postgres_url) as a,
+        OnLoopback(tmp_path / "b", admin_token=ADMIN_TOKEN, store_url=postgres_url) as b,
         KeypointClient(a.url, token=ADMIN_TOKEN) as on_a,
         KeypointClient(b.url, token=ADMIN_TOKEN) as on_b,
     ):

@@ -20,11 +20,12 @@ from keypoint_client import (
 )
 from keypoint_client.retry import retry_after_seconds
 
+from tests.api.in_process import OnLoopback
+from tests.api.test_overload import metric
 from tests.live.client.faulty_proxy import Drop, FaultyProxy, Unavailable
 from tests.live.server import LiveServer, free_port
-from tests.live.test_admission import hold_the_slot, metric
 from tests.predict_client import predict_json
-from tests.service_calls import ADMIN_TOKEN, BUSY_MACHINE_MARGIN_S
+from tests.service_calls import ADMIN_TOKEN, BUSY_MACHINE_MARGIN_S, wait_until
 
 QUICK = RetryPolicy(attempts=3, backoff=0.05)
 
@@ -102,9 +103,11 @@ def test_the_client_waits_out_a_saturated_server(tmp_path: Path, sample) -> None
     with 503 + Retry-After by admission control, waits, and is answered."""
     image, instances = sample
     slow = (instances * 1000)[:256]  # about a second of computing quiet, 10+ s on a busy machine
-    settings = {"max_concurrent_inferences": 1, "max_queued_requests": 0, "max_instances": len(slow)}
-    with LiveServer(tmp_path / "data", **settings) as server, ThreadPoolExecutor(1) as pool:
-        computing = hold_the_slot(pool, server, image, slow)
+    settings = {"max_concurrent_inferences": 1, "max_queued_requests": 0}
+    fixed = {"MAX_INSTANCES": len(slow)}
+    with OnLoopback(tmp_path / "data", fixed, **settings) as server, ThreadPoolExecutor(1) as pool:
+        computing = pool.submit(predict_json, server.client, image, {"instances": slow})
+        wait_until(lambda: metric(server, "cks_predict_computing") == 1, "the slow request computes")
         with KeypointClient(server.url, retry=RetryPolicy(attempts=60, backoff=0.1)) as client:
             result = client.predict(image, instances)
         assert metric(server, "cks_predict_rejected_total", '{reason="queue_full"}') >= 1

@@ -15,16 +15,12 @@ from calibration_store import (
     JobCompletion,
     JobRecord,
     NewAuditEntry,
-    open_store,
 )
 from tests.unit.calibration_store import rawdb
 from tests.unit.calibration_store.factories import MODEL_A, MODEL_B, new_version, score_table
-from tests.unit.calibration_store.processes import run_together
-from tests.unit.calibration_store.workers import create_same_content
 
 KEY = hashlib.sha256(b"the same instances").hexdigest()
 OTHER = hashlib.sha256(b"other instances").hexdigest()
-WORKERS = 6
 
 
 def keyed(key: str | None, model: str = MODEL_A):
@@ -75,13 +71,3 @@ def test_the_database_holds_the_rule_without_the_store(store: CalibrationStore, 
             f" VALUES ('{MODEL_A}', 99, 'm', '{{}}', '[]', 'a', '', '2026-01-01T00:00:00+00:00', 4, '{{}}',"
             f" '[]', '{KEY}')",
         )
-
-
-def test_writers_in_several_processes_store_one_version(store_url: str) -> None:
-    open_store(store_url).close()  # schema in place before the race
-    results = run_together(create_same_content, [(store_url, w, KEY) for w in range(WORKERS)])
-    stored = [number for _, outcome, number in results if outcome == "stored"]
-    refused = [number for _, outcome, number in results if outcome == "refused"]
-    assert len(stored) == 1 and refused == [stored[0]] * (WORKERS - 1), results
-    with open_store(store_url) as store:
-        assert [v.number for v in store.list_versions(MODEL_A)] == stored == [1]

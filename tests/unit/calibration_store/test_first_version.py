@@ -6,23 +6,6 @@ import pytest
 
 from calibration_store import open_store
 from tests.unit.calibration_store.factories import MODEL_A, new_version, score_table
-from tests.unit.calibration_store.processes import run_together
-from tests.unit.calibration_store.workers import bootstrap
-
-WORKERS = 4
-
-
-def test_exactly_one_of_several_concurrent_bootstraps_wins(store_url: str) -> None:
-    open_store(store_url).close()  # schema in place before the race
-    results = run_together(bootstrap, [(store_url, w) for w in range(WORKERS)])
-    winners = [worker for worker, number in results if number is not None]
-    assert len(winners) == 1 and sorted(n for _, n in results if n is not None) == [1]
-    with open_store(store_url) as store:
-        (version,) = store.list_versions(MODEL_A)
-        assert version.number == 1 and version.author == f"w{winners[0]}"
-        active = store.active_version(MODEL_A)
-        assert active.version == 1 and active.who == f"w{winners[0]}"
-        assert len(store.activation_log(MODEL_A)) == 1
 
 
 def test_a_model_with_a_version_is_not_bootstrapped_and_nothing_is_written(store_url: str) -> None:

@@ -14,8 +14,6 @@ from calibration_store import (
     open_store,
 )
 from tests.unit.calibration_store import rawdb
-from tests.unit.calibration_store.processes import run_together
-from tests.unit.calibration_store.workers import run_jobs
 
 T0 = datetime(2021, 1, 2, 3, 4, 5, 678901, tzinfo=UTC)
 
@@ -183,18 +181,6 @@ def test_two_store_objects_see_each_others_jobs(store_url: str) -> None:
         b.create_job(job("from-b"))
         a.update_job("from-b", state="failed", errors=["boom"], finished_at=T0)
         assert b.get_job("from-b").errors == ("boom",)
-
-
-def test_processes_share_jobs(store_url: str) -> None:
-    """Two processes write jobs at the same time; a third object reads all of them."""
-    reports = run_together(run_jobs, [(store_url, worker, 10) for worker in range(2)])
-    with open_store(store_url) as store:
-        for worker, ids in reports:
-            for i, job_id in enumerate(ids):
-                got = store.get_job(job_id)
-                assert got is not None, job_id
-                assert (got.state, got.done, got.total, got.result) == ("succeeded", 5, 5, {"i": i})
-                assert got.owner == f"worker-{worker}"
 
 
 def test_stale_jobs_are_the_silent_unfinished_ones(store: CalibrationStore) -> None:

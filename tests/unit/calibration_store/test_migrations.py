@@ -13,8 +13,6 @@ from calibration_store.migrations import POSTGRES_MIGRATIONS, SQLITE_MIGRATIONS
 from calibration_store.sqlstore import Cursor, EncodedBlock, SqlStore
 from tests.unit.calibration_store import rawdb
 from tests.unit.calibration_store.factories import MODEL_A, assert_tables_identical, new_version, score_table
-from tests.unit.calibration_store.processes import run_together
-from tests.unit.calibration_store.workers import open_concurrently
 
 LATEST = SQLITE_MIGRATIONS[-1].version
 
@@ -34,11 +32,6 @@ def test_reopen_is_idempotent(store_url: str) -> None:
         assert [v.number for v in store.list_versions(MODEL_A)] == [1]
 
 
-def test_concurrent_first_opens_migrate_once(store_url: str) -> None:
-    seen = run_together(open_concurrently, [(store_url,)] * 4)
-    assert seen == [list(range(1, LATEST + 1))] * 4
-
-
 def test_newer_schema_is_refused(store_url: str) -> None:
     open_store(store_url).close()
     rawdb.query(
@@ -50,7 +43,7 @@ def test_newer_schema_is_refused(store_url: str) -> None:
         open_store(store_url)
 
 
-def _open_with_schema_1(url: str, monkeypatch: pytest.MonkeyPatch) -> CalibrationStore:
+def open_with_schema_1(url: str, monkeypatch: pytest.MonkeyPatch) -> CalibrationStore:
     """A store opened the way the code before the job table did (only migration 1), writing
     score blocks as that code did (no content-hash columns)."""
     monkeypatch.setattr(SqlStore, "_insert_block", _insert_block_schema_1)
@@ -95,7 +88,7 @@ def _tables(url: str) -> set[str]:
 
 
 def test_database_from_before_jobs_is_upgraded(store_url: str, monkeypatch: pytest.MonkeyPatch) -> None:
-    with _open_with_schema_1(store_url, monkeypatch) as old:
+    with open_with_schema_1(store_url, monkeypatch) as old:
         table = score_table(n=3, extras=False)
         old.create_version(new_version(), table)
         old.activate(MODEL_A, 1, who="alice")
@@ -114,13 +107,3 @@ def test_database_from_before_jobs_is_upgraded(store_url: str, monkeypatch: pyte
         assert store.update_job("j", state="running").state == "running"
         assert store.update_job("j", state="interrupted").state == "interrupted"
         assert not store.load_scores(MODEL_A, 1).objects[0].has_hashes  # written before hashes existed
-
-
-def test_concurrent_upgrades_of_an_old_database_migrate_once(
-    store_url: str, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    _open_with_schema_1(store_url, monkeypatch).close()
-    seen = run_together(open_concurrently, [(store_url,)] * 4)
-    assert seen == [list(range(1, LATEST + 1))] * 4
-    with open_store(store_url) as store:
-        assert store.get_job("none") is None
