@@ -5,7 +5,8 @@ client, a browser or a tool; no process of its own)."""
 from __future__ import annotations
 
 import logging
-from contextlib import ExitStack
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -55,18 +56,26 @@ class LogLines(logging.Handler):
             logging.getLogger(name).setLevel(level)
 
 
-class InProcess(ServiceCalls):
-    """The app of ``Settings(data_dir=..., **settings)``, started; ``client`` calls it in process.
+@contextmanager
+def fixed_values(fixed: dict[str, Any] | None) -> Iterator[None]:
+    """Fixed values of ``service.serving.container`` changed (``{"MAX_INSTANCES": 3}``) while a
+    service starts, which is when it reads them: small limits that keep a refusal test small.
+    Services started after it, while it still runs, get the values as they are."""
+    with pytest.MonkeyPatch.context() as patch:
+        for name, value in (fixed or {}).items():
+            assert hasattr(container, name), f"service.serving.container has no {name}"
+            patch.setattr(container, name, value)
+        yield
 
-    ``fixed`` changes fixed values of ``service.serving.container`` (``{"MAX_INSTANCES": 3}``)
-    while the service runs: small limits that keep a refusal test small."""
+
+class InProcess(ServiceCalls):
+    """The app of ``Settings(data_dir=..., **settings)``, started; ``client`` calls it in process
+    (``fixed``: see ``fixed_values``)."""
 
     def __init__(self, data_dir: Path, fixed: dict[str, Any] | None = None, **settings: Any) -> None:
         self.data_dir = Path(data_dir)
         self.settings = settings
-        self.fixed = pytest.MonkeyPatch()
-        for name, value in (fixed or {}).items():
-            self.fixed.setattr(container, name, value)
+        self.fixed = fixed
         values = {"model_dir": model_dir(), **DEFAULTS, **settings}
         self.app = create_app(Settings(data_dir=self.data_dir, **values))
         self.client = TestClient(self.app, client=LOOPBACK_PEER)
@@ -78,13 +87,13 @@ class InProcess(ServiceCalls):
 
     def __enter__(self) -> InProcess:
         self.log_lines.attach()
-        self.client.__enter__()
+        with fixed_values(self.fixed):
+            self.client.__enter__()
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.client.__exit__(*exc)
         self.log_lines.detach()
-        self.fixed.undo()
 
 
 class OnLoopback(ServiceCalls):
@@ -98,9 +107,7 @@ class OnLoopback(ServiceCalls):
         self.service_settings = Settings(data_dir=self.data_dir, **values)
         self.log_lines = LogLines()
         self.stack = ExitStack()
-        self.fixed = self.stack.enter_context(pytest.MonkeyPatch.context())
-        for name, value in (fixed or {}).items():
-            self.fixed.setattr(container, name, value)
+        self.fixed = fixed
 
     def log(self) -> str:
         """What the process logged since this service started (any service in it, for that time)."""
@@ -109,7 +116,8 @@ class OnLoopback(ServiceCalls):
     def __enter__(self) -> OnLoopback:
         self.log_lines.attach()
         self.stack.callback(self.log_lines.detach)
-        self.url = self.stack.enter_context(served(self.service_settings))
+        with fixed_values(self.fixed):
+            self.url = self.stack.enter_context(served(self.service_settings))
         self.client = self.stack.enter_context(httpx.Client(base_url=self.url, timeout=60.0))
         return self
 
