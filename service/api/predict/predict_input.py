@@ -178,14 +178,18 @@ async def parse_batch(request: Request, body: bytes, limit: int, manifest: Manif
         images, requests, problems = await _batch_parts(form, limit)
     finally:
         await form.close()  # its spooled files, now rather than when collected
+    count = max([*images, *requests], default=-1) + 1
+    problems += [
+        f"part {name!r} is missing: send image_i and request_i together, for i = 0 .. n-1"
+        for name in _missing_parts(images, requests, count)
+    ]
     if problems:
         raise InvalidInput("; ".join(problems[:5]), errors=problems)
-    count = max([*images, *requests], default=-1) + 1
     if count == 0:
         raise InvalidInput(
             "the batch is empty: send parts image_0 and request_0 (and image_1, request_1, ...)"
         )
-    return [partial(_multipart_item, i, images.get(i), requests.get(i), manifest) for i in range(count)]
+    return [partial(_multipart_item, i, images[i], requests[i], manifest) for i in range(count)]
 
 
 def _json_batch(body: bytes, limit: int, manifest: Manifest) -> list[BatchItem]:
@@ -300,11 +304,20 @@ async def _batch_parts(form: FormData, limit: int) -> tuple[dict[int, bytes | No
     return images, requests, problems
 
 
+def _missing_parts(images: dict, requests: dict, count: int) -> list[str]:
+    """The parts a batch of ``count`` images lacks: image_i and request_i come together, i = 0 .. count-1
+    (as the document's dependentRequired says)."""
+    return [
+        f"{kind}_{i}"
+        for i in range(count)
+        for kind, parts in (("image", images), ("request", requests))
+        if i not in parts
+    ]
+
+
 def _multipart_item(
-    index: int, image: bytes | None, raw: str | None, manifest: Manifest
+    index: int, image: bytes | None, raw: str, manifest: Manifest
 ) -> tuple[bytes, PredictParameters]:
     if image is None:
-        raise InvalidInput(f"multipart part 'image_{index}' (a JPEG or PNG file) is missing")
-    if raw is None:
-        raise InvalidInput(f"multipart part 'request_{index}' (JSON with instances and options) is missing")
+        raise InvalidInput(f"multipart part 'image_{index}' must be a file (a JPEG or PNG with a filename)")
     return image, validated(PredictParameters, raw, manifest, f"the multipart part 'request_{index}'")

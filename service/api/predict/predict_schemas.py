@@ -8,6 +8,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, ValidationInfo, field_validator
 
 from service.api.http.problems import Problem
+from service.detector.boxes import MIN_BOX_SIDE_PX
 from service.pose.camera import camera_matrix_problems
 
 Nonconformity = Literal["peak", "var", "cov"]
@@ -22,10 +23,10 @@ class _Body(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
-def _positive_size(schema: dict) -> None:
-    """The validator's rule (width and height > 0) said in the JSON Schema too."""
+def _box_size(schema: dict) -> None:
+    """The validator's rule (width and height at least MIN_BOX_SIDE_PX) said in the JSON Schema too."""
     for size in schema["prefixItems"][2:]:
-        size["exclusiveMinimum"] = 0
+        size["minimum"] = MIN_BOX_SIDE_PX
 
 
 class InstanceIn(_Body):
@@ -33,8 +34,8 @@ class InstanceIn(_Body):
 
     object: str = Field(min_length=1, max_length=200, description="object name from GET /v1/model")
     bbox: tuple[float, float, float, float] = Field(
-        description="[x, y, width, height] in image pixels, width and height > 0",
-        json_schema_extra=_positive_size,
+        description=f"[x, y, width, height] in image pixels, width and height at least {MIN_BOX_SIDE_PX:g}",
+        json_schema_extra=_box_size,
     )
     group: str | None = Field(
         default=None,
@@ -61,8 +62,8 @@ class InstanceIn(_Body):
     def _finite_positive(cls, bbox: tuple[float, float, float, float]):
         if not all(math.isfinite(v) for v in bbox):
             raise ValueError("bbox values must be finite numbers")
-        if bbox[2] <= 0 or bbox[3] <= 0:
-            raise ValueError("bbox width and height must be > 0")
+        if bbox[2] < MIN_BOX_SIDE_PX or bbox[3] < MIN_BOX_SIDE_PX:
+            raise ValueError(f"bbox width and height must be at least {MIN_BOX_SIDE_PX:g} pixel")
         return bbox
 
 
@@ -223,24 +224,14 @@ class PredictJson(PredictParameters):
     image_base64: str = Field(min_length=1, description="JPEG or PNG file, base64 (standard alphabet)")
 
 
-ITEM_ANSWERED_ALONE = (
-    "anything else: this item alone is answered with status 422 and its problem, the others as usual"
-)
-
-
-def _items_answered_alone(schema: dict) -> None:
-    """An item that is no PredictJson does not refuse the batch (its own item is a 422): said so."""
-    schema["items"] = {"anyOf": [schema["items"], {"description": ITEM_ANSWERED_ALONE}]}
-
-
 class BatchJson(_Body):
     """Several images, each as POST /v1/predict's JSON body; answered one item per image."""
 
     items: list[PredictJson] = Field(
         min_length=1,
         max_length=DOCUMENTED_BATCH_IMAGES,
-        description="at most CKS_MAX_BATCH_IMAGES (default 16) images, each with its instances and options",
-        json_schema_extra=_items_answered_alone,
+        description="at most CKS_MAX_BATCH_IMAGES (default 16) images, each with its instances and options;"
+        " an item the schema refuses is answered in its own item (status 422), the others as usual",
     )
 
 
