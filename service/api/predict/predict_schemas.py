@@ -387,7 +387,11 @@ class PoseOut(BaseModel):
     method: Literal["pnp", "pnp+refined-into-set", "sampled", "none"]
     largest_violation: float | None = Field(description="the estimate's largest normalised distance (<= 1)")
     inner_bound: SampledBoundOut | None
-    inner_bound_note: str | None = None
+    inner_bound_note: str | None = Field(
+        default=None,
+        description="why there is no inner bound, or that it is sampling's alone (the boundary search"
+        " needs the pose extra's SciPy); absent: the samples and the boundary search made it",
+    )
     outer_bound: OuterBoundOut | None
     checks: list[PoseCheckOut] = Field(default_factory=list)
 
