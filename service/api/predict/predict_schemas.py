@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictBool, ValidationInfo, field_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, ValidationInfo, field_validator
 
 from service.api.http.problems import Problem
 from service.detector.boxes import MIN_BOX_SIDE_PX
@@ -33,7 +33,7 @@ class InstanceIn(_Body):
     """One object in the image: its class and its box in image pixels."""
 
     object: str = Field(min_length=1, max_length=200, description="object name from GET /v1/model")
-    bbox: tuple[float, float, float, float] = Field(
+    bbox: tuple[StrictFloat, StrictFloat, StrictFloat, StrictFloat] = Field(
         description=f"[x, y, width, height] in image pixels, width and height at least {MIN_BOX_SIDE_PX:g}",
         json_schema_extra=_box_size,
     )
