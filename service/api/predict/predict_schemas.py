@@ -5,7 +5,16 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, ValidationInfo, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictFloat,
+    StrictInt,
+    ValidationInfo,
+    field_validator,
+)
 
 from service.api.http.problems import Problem
 from service.detector.boxes import MIN_BOX_SIDE_PX
@@ -75,7 +84,7 @@ ROTATION_TOLERANCE = 1e-6
 class PoseCheckIn(_Body):
     """A pose to test for membership in PURSE: p_camera = rotation @ p_model + translation."""
 
-    instance: int = Field(ge=0, description="index into instances")
+    instance: StrictInt = Field(ge=0, description="index into instances")
     rotation: Matrix3 = Field(description="3x3 rotation matrix, rows first (R^T R = I, det 1)")
     translation: Vector3 = Field(description="in the units of the manifest's keypoints_3d")
 
@@ -112,20 +121,20 @@ class PoseRequest(_Body):
     K: list[list[float]] = Field(
         description="camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in the response's image pixels"
     )
-    samples: int = Field(
+    samples: StrictInt = Field(
         default=100, ge=0, le=500, description="keypoint draws for the sampled (inner) bound; 0: none"
     )
     outer_bound: StrictBool = Field(
         default=True, description="solve the convex relaxation for certified upper bounds (pose extra)"
     )
-    outer_splits: int = Field(
+    outer_splits: StrictInt = Field(
         default=0,
         ge=0,
         le=8,
         description="rounds of the older branch-and-bound over rotation cells (seconds per instance); "
         "when above 0 it replaces the rotation search of outer_programs",
     )
-    outer_programs: int = Field(
+    outer_programs: StrictInt = Field(
         default=150,
         ge=0,
         le=2000,
@@ -162,7 +171,7 @@ class PredictOptions(_Body):
         description="if set, coverage >= 1-epsilon holds with probability 1-delta "
         "over the calibration set (PAC); sets get larger",
     )
-    calibration_version: int | None = Field(
+    calibration_version: StrictInt | None = Field(
         default=None, ge=1, le=MAX_VERSION, description="default: the active version"
     )
     include_statistics: StrictBool = Field(
