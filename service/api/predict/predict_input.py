@@ -306,7 +306,7 @@ async def _batch_parts(form: FormData, limit: int) -> tuple[dict[int, bytes | No
 
 def _missing_parts(images: dict, requests: dict, count: int) -> list[str]:
     """The parts a batch of ``count`` images lacks: image_i and request_i come together, i = 0 .. count-1
-    (as the document's dependentRequired says)."""
+    (as the document's description of the form says)."""
     return [
         f"{kind}_{i}"
         for i in range(count)
