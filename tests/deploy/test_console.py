@@ -119,6 +119,7 @@ def test_the_console_shows_the_audit_against_its_bands(
     shown = set(page.eval_on_selector_all("#audit-plot circle.flagged", keypoints_of))
     assert shown == flagged and flagged
     assert f"Audit #{audit['id']} of version {audit['version']}" in page.inner_text("#audit-detail")
+    page.click("#audit-detail summary:has-text('What to do')")  # the advice, folded
     assert "Recalibrate" in page.inner_text("#audit-detail")
 
     versions = server.client.get("/v1/admin/calibrations", headers=server.admin).json()["versions"]
@@ -360,7 +361,7 @@ def _assert_live_coverage(server: LiveServer, page) -> None:  # noqa: ANN001 - a
     alarmed = [g for g in groups if g["alarm"]]
     assert alarmed and any(g["level"] == "stream" and g["name"] == "cam-moved" for g in alarmed)
     summary = page.inner_text("#live-coverage .body")
-    assert f"alarm raised in {len(alarmed)} of {len(groups)} groups" in summary, summary
+    assert f"Alarm raised in {len(alarmed)} of {len(groups)} groups" in summary, summary
     rows = page.locator("#live-detail tbody tr")
     assert rows.count() == len([g for g in groups if g["level"] == "version" or g["alarm"]])
     assert "alarm raised" in page.inner_text("#live-detail")

@@ -208,13 +208,17 @@ function drawAudit() {
     nodes.push(note(`Overall ${fixed(overall.coverage)} on ${overall.m} keypoints, band ${fixed(overall.band?.[0])}–${fixed(overall.band?.[1])} (union bound).`));
   }
   if (objectScope) {
-    nodes.push(el("h3", {}, "Per object (object scope: all keypoints of an instance at once)"));
-    nodes.push(table(["object", "m", "coverage", "band", "p", "Holm p", ""], (objectScope.objects || []).map((o) => [
+    // Folded like the drift's objects (open when one is flagged): a phone gets a page, not a card per object.
+    const objects = objectScope.objects || [];
+    const flagged = objects.filter((o) => o.flagged).length;
+    const summary = el("summary", {}, el("strong", {}, "Per object"), ` (object scope: all keypoints of an instance at once): ${objects.length} objects, `,
+      flagged ? el("span", { class: "fail" }, `${flagged} flagged`) : "none flagged");
+    nodes.push(el("details", flagged ? { open: "" } : {}, summary, table(["object", "m", "coverage", "band", "p", "Holm p", ""], objects.map((o) => [
       o.object, o.m, fixed(o.coverage), `${fixed(o.band?.[0])}–${fixed(o.band?.[1])}`, fixed(o.p_value, 4),
       fixed(o.adjusted_p_value, 4), o.flagged ? el("span", { class: "fail" }, "flagged") : o.in_band ? "" : "outside band",
-    ])));
+    ]))));
   }
-  nodes.push(el("p", { class: "advice" }, report.advice || ""));
+  if (report.advice) nodes.push(el("details", {}, el("summary", {}, el("strong", {}, "What to do")), el("p", { class: "advice" }, report.advice)));
   target.replaceChildren(...nodes);
 }
 
@@ -468,8 +472,9 @@ function drawSetSizes(sizes) {
     if (!histogram) continue;
     const quantiles = summary.quantiles ? Object.entries(summary.quantiles).map(([q, v]) => `${q} ${fixed(v, 1)}`).join(", ") : "";
     const counts = typeof value?.n === "number" ? `${value.n} sets, ${value.unbounded ?? 0} unbounded` : "";
-    nodes.push(el("h3", {}, `${kind}: semi-major axis (px)`), note([counts, quantiles].filter(Boolean).join("; ")));
-    nodes.push(histogramPlot(histogram, kind));
+    // Each kind's figures in one line, its histogram behind it: the page stays short on a phone.
+    const title = el("summary", {}, el("strong", {}, kind), `: semi-major axis (px); ${[counts, quantiles].filter(Boolean).join("; ")}`);
+    nodes.push(el("details", { class: "kind" }, title, histogramPlot(histogram, kind)));
   }
   if (!nodes.length) return show("set-sizes", note("Set sizes of recent predictions: not available (no recent prediction)."));
   show("set-sizes", ...nodes);
