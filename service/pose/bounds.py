@@ -121,6 +121,15 @@ def _exponential(vectors: np.ndarray) -> np.ndarray:
     return np.eye(3) + sine * cross + cosine * (cross @ cross)
 
 
+def boundary_search_available() -> bool:
+    """Whether SciPy (the `pose` extra) is installed: without it the inner bound is sampling's alone."""
+    try:
+        import scipy.optimize  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
 _ROTATION_STARTS = 0.05  # radians: the rotation search starts this far from the estimate
 #: SLSQP runs converged this far: stopped at 1e-6, their poses moved in the 8th digit with the
 #: BLAS library's thread count, so the same request got other inner bounds on other machines

@@ -13,10 +13,17 @@ import numpy as np
 from service.detector.manifest import Manifest
 from service.errors import InvalidInput
 
-from .bounds import InnerBound, SampledPoses, boundary_poses, inner_bound, sample_poses_in_set
+from .bounds import (
+    InnerBound,
+    SampledPoses,
+    boundary_poses,
+    boundary_search_available,
+    inner_bound,
+    sample_poses_in_set,
+)
 from .estimate import pnp_on_centres, refine_into_set
 from .membership import Membership, Pose, membership
-from .relaxation import OuterBound, outer_bound, relaxation_available
+from .relaxation import OuterBound, outer_bound
 
 
 @dataclass(frozen=True)
@@ -111,13 +118,14 @@ def instance_pose_sets(
         return PoseSets(None, "none", None, None, "fewer than 4 keypoints: no PnP", None, checked)
     estimate, method = _estimate(start, *scene)
     bounded = bool((np.linalg.eigvalsh(shapes)[:, 0] > 0).all())
+    searched = boundary_search_available()
     sampled = None
     if bounded and options.samples > 0:
         sampled = sample_poses_in_set(estimate or start, *scene, options.samples)
         if estimate is None and sampled.poses:  # the least violating pose found
             worst = [membership(p, *scene).worst for p in sampled.poses]
             estimate, method = sampled.poses[int(np.argmin(worst))], "sampled"
-        if estimate is not None and relaxation_available():  # the search needs the pose extra's SciPy
+        if estimate is not None and searched:
             boundary = boundary_poses(estimate, *scene)
             sampled = SampledPoses([*sampled.poses, *boundary], sampled.tried, len(boundary))
     inner = inner_bound(estimate, sampled) if estimate is not None and sampled is not None else None
@@ -129,13 +137,23 @@ def instance_pose_sets(
         if estimate is None and not outer.empty:  # bounds around a pose outside PURSE mean nothing
             outer = OuterBound(False, "no estimate in PURSE to bound around; emptiness not proven")
     violation = membership(estimate, *scene).worst if estimate is not None else None
-    return PoseSets(estimate, method, violation, inner, _inner_note(bounded, options.samples), outer, checked)
+    note = _inner_note(bounded, options.samples, searched)
+    return PoseSets(estimate, method, violation, inner, note, outer, checked)
 
 
-def _inner_note(bounded: bool, samples: int) -> str | None:
+#: the inner bound without the boundary search is much smaller (docs/pose.md): said in the answer
+SAMPLING_ALONE = (
+    "sampling alone: the boundary search needs SciPy (pip install 'conformal-keypoint-service[pose]'),"
+    " without it the inner bound is smaller"
+)
+
+
+def _inner_note(bounded: bool, samples: int, searched: bool) -> str | None:
     if not bounded:
         return "a keypoint set is unbounded (t = 0): PURSE does not constrain that keypoint"
-    return "pose.samples is 0: no sampling" if samples == 0 else None
+    if samples == 0:
+        return "pose.samples is 0: no sampling"
+    return None if searched else SAMPLING_ALONE
 
 
 def _estimate(start: Pose, *scene) -> tuple[Pose | None, str]:

@@ -69,3 +69,29 @@ def test_every_problem_of_a_predict_request_is_in_one_answer(api: InProcess) -> 
     body = {**request, "image_base64": "AAAA"}
     problem = assert_problem(api.client.post("/v1/predict", json=body), 422, "epsilon", "no-such-object")
     assert len(problem["errors"]) == 2, problem
+
+
+def test_a_path_without_v1_points_at_it_and_at_the_docs(api: InProcess) -> None:
+    assert_problem(api.client.post("/predict", json={}), 404, "send POST /v1/predict", "/docs")
+    assert_problem(api.client.get("/model"), 404, "send GET /v1/model", "/docs")
+    problem = assert_problem(api.client.get("/no/such/path"), 404, "/docs")
+    assert "/v1/no/such/path" not in problem["detail"], problem
+
+
+def test_activation_takes_no_body_as_an_empty_one(api: InProcess) -> None:
+    """The document gives the body one schema and does not require it."""
+    body = DOCUMENT["paths"]["/v1/admin/calibrations/{version}/activate"]["post"]["requestBody"]
+    assert body == {
+        "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ActivationIn"}}}
+    }
+    answer = api.client.post(ACTIVATE, headers=api.admin)
+    assert answer.status_code == 200, answer.text
+    assert answer.json()["version"] == 1
+
+
+def test_box_sizes_are_refused_where_the_schema_refuses_them(api: InProcess) -> None:
+    sizes = DOCUMENT["components"]["schemas"]["InstanceIn"]["properties"]["bbox"]["prefixItems"][2:]
+    assert all(size == {"type": "number", "minimum": 1.0} for size in sizes), sizes
+    instance = {"object": "duck", "bbox": [4, 4, 0.99, 8]}
+    body = {"image_base64": "AAAA", "instances": [instance]}
+    assert_problem(api.client.post("/v1/predict", json=body), 422, "at least 1 pixel")

@@ -130,12 +130,13 @@ def test_malformed_labels_are_422_naming_each_problem(api: InProcess, samples: l
         "outside the": [{"instance": 0, "keypoints": [(-5.0, 1.0, 2)] * k}],
         "no keypoint is labelled": [{"instance": 0, "keypoints": [(0.0, 0.0, 0)] * k}],
         "labelled twice": [{"instance": 0, "keypoints": group[0].keypoints}] * 2,
+        "not COCO's flat list": [{"instance": 0, "keypoints": [v for p in group[0].keypoints for v in p]}],
     }
     for fragment, instances in cases.items():
         response = api.client.post(
             f"/v1/feedback/{prediction_id}", json={"instances": instances}, headers=sender()
         )
-        assert_problem(response, 422, fragment)
+        assert assert_problem(response, 422, fragment)["title"] == "Invalid input"
     assert_problem(
         api.client.post(f"/v1/feedback/{prediction_id}", json={"instances": [], "x": 1}, headers=sender()),
         422,

@@ -126,6 +126,7 @@ def test_the_console_shows_the_audit_against_its_bands(
     shown = set(page.eval_on_selector_all("#audit-plot circle.flagged", keypoints_of))
     assert shown == flagged and flagged
     assert f"Audit #{audit['id']} of version {audit['version']}" in page.inner_text("#audit-detail")
+    page.click("#audit-detail summary:has-text('What to do')")  # the advice, folded
     assert "Recalibrate" in page.inner_text("#audit-detail")
 
     versions = server.client.get("/v1/admin/calibrations", headers=server.admin).json()["versions"]
@@ -246,10 +247,21 @@ def check_and_save(page, name: str, tmp_path: Path) -> None:  # noqa: ANN001 - a
     assert not problems, f"split or empty (screenshot {ARTIFACT.with_name(name)}): {problems}"
 
 
-@pytest.fixture(params=[1280, 390], ids=["laptop", "phone"])
+PHONE = (390, 844)  # a phone's window, in CSS pixels
+# Panels of half the page's width whose row holds nothing beside them (an empty half-cell).
+UNFILLED_ROWS = """() => {
+  const main = document.querySelector("main").getBoundingClientRect();
+  const sections = [...document.querySelectorAll("main > section")];
+  const halves = sections.filter((s) => s.offsetWidth < 0.75 * main.width);
+  return halves.filter((s) => !halves.some((t) => t !== s && t.offsetTop === s.offsetTop)).map((s) => s.id);
+}"""
+
+
+@pytest.fixture(params=[1280, PHONE[0]], ids=["laptop", "phone"])
 def window(request: pytest.FixtureRequest, browser: Browser, server: OnLoopback) -> Iterator[tuple]:
-    """A laptop's window, 1280 px wide, or a phone's, 390 px."""
-    yield from watched_context(browser, server, {"width": request.param, "height": 900})
+    """A laptop's window, 1280 px wide, or a phone's, 390 x 844 px."""
+    height = PHONE[1] if request.param == PHONE[0] else 900
+    yield from watched_context(browser, server, {"width": request.param, "height": height})
 
 
 def test_the_console_fits_a_laptop_and_a_phone(
@@ -268,6 +280,12 @@ def test_the_console_fits_a_laptop_and_a_phone(
     page.fill("#token", server.admin_token)
     page.click("#token-form button[type=submit]")
     page.wait_for_selector("body[data-loaded=true]")
+    check_and_save(page, f"console-{width}-folded.png", tmp_path)
+    assert not page.evaluate(UNFILLED_ROWS), "a panel stands alone in a row of two"
+    assert not re.search(r"[.!?] [a-z]", page.inner_text("main")), "a sentence starts in lower case"
+    if width == PHONE[0]:  # before any detail is opened: at most three screens, the hash on two lines
+        assert page.evaluate("document.documentElement.scrollHeight") <= 3 * PHONE[1]
+        assert page.evaluate("document.querySelector('#model code').getClientRects().length") <= 2
     page.eval_on_selector_all("details", "all => all.forEach((details) => { details.open = true; })")
     page.select_option("#live-level", "all")  # every live coverage group drawn
     name = f"console-{width}.png"
@@ -350,7 +368,7 @@ def _assert_live_coverage(server: OnLoopback, page) -> None:  # noqa: ANN001 - a
     alarmed = [g for g in groups if g["alarm"]]
     assert alarmed and any(g["level"] == "stream" and g["name"] == "cam-moved" for g in alarmed)
     summary = page.inner_text("#live-coverage .body")
-    assert f"alarm raised in {len(alarmed)} of {len(groups)} groups" in summary, summary
+    assert f"Alarm raised in {len(alarmed)} of {len(groups)} groups" in summary, summary
     rows = page.locator("#live-detail tbody tr")
     assert rows.count() == len([g for g in groups if g["level"] == "version" or g["alarm"]])
     assert "alarm raised" in page.inner_text("#live-detail")

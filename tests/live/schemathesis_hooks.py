@@ -112,8 +112,9 @@ def _fresh_zip() -> bytes:
 def _real_predict(body: dict[str, Any]) -> dict[str, Any]:
     body = dict(body)
     for name, value in body.items():
-        if name == "image_base64" and isinstance(value, str) and value:
-            body[name] = base64.b64encode(_IMAGE).decode()
+        if name == "image_base64":  # an empty or non-string one stays as generated (a JSON body)
+            if isinstance(value, str) and value:
+                body[name] = base64.b64encode(_IMAGE).decode()
         elif name.startswith("image") and isinstance(value, bytes | str):  # a form's image part
             body[name] = _IMAGE
         elif name == "items" and isinstance(value, list):

@@ -116,10 +116,10 @@ def test_an_openapi_generator_client_drives_every_kind_of_call(
     whole = batch_zip(samples_dir, coco)
     first = wait(admin, admin.upload_calibration(body=whole, name="first"))
     assert first.state == "succeeded" and first.version == 1, first
-    refused = problem_of(lambda: admin.activate_calibration(1, body=c.ActivationIn()), 409, c)
+    refused = problem_of(lambda: admin.activate_calibration(1, activation_in=c.ActivationIn()), 409, c)
     assert "CKS_MIN_CALIBRATION_INSTANCES" in refused.detail
     forced = c.ActivationIn(force=True, reason="generated client test: the samples are below the floor")
-    assert admin.activate_calibration(1, body=forced).version == 1
+    assert admin.activate_calibration(1, activation_in=forced).version == 1
 
     answer = prediction.predict_form(image=jpeg, request=parameters(instances))
     assert isinstance(answer, c.PredictResponse) and len(answer.instances) == len(instances)
@@ -133,8 +133,7 @@ def test_an_openapi_generator_client_drives_every_kind_of_call(
     items = prediction.predict_batch(batch).items
     assert [item.status for item in items] == [200, 200, 200]
     assert items[0].result.to_dict() == answer.to_dict()
-    request_0 = c.PredictBatchFormRequestRequest0(parameters(instances))
-    parts = prediction.predict_batch_form(image_0=jpeg, request_0=request_0)
+    parts = prediction.predict_batch_form(image_0=jpeg, request_0=parameters(instances))
     assert parts.items[0].result.to_dict() == answer.to_dict()
     drawing = prediction.predict_png_form(image=jpeg, request=parameters(instances))
     assert drawing.startswith(b"\x89PNG\r\n\x1a\n")
@@ -145,9 +144,9 @@ def test_an_openapi_generator_client_drives_every_kind_of_call(
     assert second.state == "succeeded" and second.version == 2, second
     comparison = admin.compare_calibration(2)
     assert isinstance(comparison, c.ComparisonOut) and not comparison.allowed
-    assert admin.activate_calibration(2, body=forced).version == 2
+    assert admin.activate_calibration(2, activation_in=forced).version == 2
     rollback = c.ActivationIn(force=True, reason="roll back to the whole batch")
-    assert admin.activate_calibration(1, body=rollback).version == 1
+    assert admin.activate_calibration(1, activation_in=rollback).version == 1
     assert admin.get_calibration(1).active
     actions = [entry.action for entry in admin.audit_trail().entries]
     assert actions.count("activation") >= 3 and "upload" in actions, actions

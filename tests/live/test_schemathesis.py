@@ -1,10 +1,14 @@
 """Property-based API testing with schemathesis against the committed OpenAPI document.
 
-A running server (admin enabled, so the admin routes are exercised with the token) gets
-generated requests from ``openapi/openapi.json`` in every phase, stateful included, under every
-check schemathesis has (``--checks all``: no 5xx, every status, content type, header and body as
-documented, schema-violating requests refused, Allow on 405, ...), told in schemathesis.toml what
-JSON Schema cannot say. The requests are counted on the server side, from its Prometheus counter.
+Plain (no hooks, no configuration), schemathesis's stateful phase reaches a successful predict from
+the document's example and follows the link from its answer to the feedback operation.
+
+With the project's hooks, a running server (admin enabled, so the admin routes are exercised with
+the token) gets generated requests from ``openapi/openapi.json`` in every phase, stateful
+included, under every check schemathesis has (``--checks all``: no 5xx, every status, content
+type, header and body as documented, schema-violating requests refused, Allow on 405, ...), told
+in schemathesis.toml what JSON Schema cannot say. The requests are counted on the server side,
+from its Prometheus counter.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from tests.service_calls import ADMIN_TOKEN
 CONFIG = Path(__file__).with_name("schemathesis.toml")
 DOCUMENT = PACKAGE_ROOT / "openapi" / "openapi.json"
 MIN_REQUESTS = 500
+LINKS = re.compile(r"API Links:\s+(\d+) covered / (\d+) selected")
 SAMPLE = re.compile(r'^cks_http_requests_total\{method="(\w+)",route="(.*)",status="(\d+)"\}\s+(\S+)$')
 
 
@@ -74,7 +79,7 @@ def test_no_server_errors_on_generated_requests(fuzzed_server: LiveServer, tmp_p
         "--phases",
         "examples,coverage,fuzzing,stateful",
         "--max-examples",
-        "40",
+        "60",  # with 40 the stateful phase ran 30 scenarios, too few to follow all 12 named links
         "--workers",
         "1",  # CPython 3.11's ast.parse is not thread-safe under hypothesis
         "--seed",
@@ -120,3 +125,18 @@ def test_no_server_errors_on_generated_requests(fuzzed_server: LiveServer, tmp_p
     assert len(named) >= 11, f"the document names fewer links than the job routes give: {sorted(named)}"
     missing = named - followed
     assert not missing, f"links the stateful phase never followed: {sorted(missing)}\n{output}"
+
+
+def test_a_plain_run_follows_the_feedback_link(fuzzed_server: LiveServer, tmp_path: Path) -> None:
+    """No hooks: the predict example (retained) answers with a prediction_id, which the link takes to
+    POST /v1/feedback/{prediction_id}. (An upload's zip is beyond a fuzzer: docs/api.md says so.)"""
+    command = ["schemathesis", "run", str(DOCUMENT), "--url", fuzzed_server.url]
+    command += ["--header", f"Authorization: Bearer {ADMIN_TOKEN}", "--phases", "stateful"]
+    command += ["--include-operation-id", "predict", "--include-operation-id", "send_feedback"]
+    command += ["--checks", "not_a_server_error", "--max-examples", "40", "--no-color"]
+    result = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    output = result.stdout[-6000:] + result.stderr[-3000:]
+    assert result.returncode == 0, output
+    links = LINKS.search(result.stdout)
+    assert links is not None, output
+    assert links.group(1) == links.group(2) == "1", f"the feedback link was not followed:\n{output}"

@@ -49,7 +49,10 @@ MISTAKES = [
     (
         ["predict", SAMPLE_IMAGE, "--instance", "duck:235,217,0,64", "--epsilon", "0"],
         2,
-        ["epsilon: 0.0 is not a probability", "instances.0.bbox: bbox width and height must be > 0"],
+        [
+            "epsilon: 0.0 is not a probability",
+            "instances.0.bbox: bbox width and height must be at least 1 pixel",
+        ],
     ),
     (
         ["predict", SAMPLE_IMAGE, "--instance", DUCK, "--nonconformity", "max"],

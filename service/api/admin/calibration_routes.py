@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Path, Query, Response
+from fastapi import APIRouter, Body, Path, Query, Response
 from fastapi.concurrency import run_in_threadpool
 from pydantic import Field
 
@@ -286,9 +286,9 @@ async def activate_calibration(
     trail: Trail,
     settings: Config,
     who: Admin,
-    body: ActivationIn | None = None,
+    # optional, documented as one schema (not anyOf with null): generators keep the body typed
+    body: Annotated[ActivationIn, Body(default_factory=ActivationIn)],
 ) -> ActivationOut:
-    body = body or ActivationIn()
     request = ActivationRequest(version, who, body.reason, body.force)
     async with refusals_audited(trail, who, "activation", version=version, reason=body.reason):
         entry, _ = await run_in_threadpool(

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from service.api.predict.predict_schemas import MAX_VERSION
 
@@ -15,8 +15,19 @@ class InstanceLabelsIn(BaseModel):
     instance: int = Field(ge=0, description="index into the prediction's instances")
     keypoints: list[Label] = Field(
         description="[x, y, v] per keypoint of the instance's object, in image pixels; v = 0 not labelled,"
-        " 1 occluded, 2 visible (COCO)",
+        " 1 occluded, 2 visible (COCO); triples, not COCO's flat list x1, y1, v1, x2, ...",
     )
+
+    @field_validator("keypoints", mode="before")
+    @classmethod
+    def _triples(cls, keypoints: object) -> object:
+        """COCO's flat list is what teams have: named in the refusal, with the way to fix it."""
+        if isinstance(keypoints, list) and keypoints and all(isinstance(v, int | float) for v in keypoints):
+            raise ValueError(
+                "send triples [x, y, v], not COCO's flat list x1, y1, v1, x2, ...: group its numbers in"
+                " threes, [[x1, y1, v1], [x2, y2, v2], ...]"
+            )
+        return keypoints
 
 
 class FeedbackIn(BaseModel):

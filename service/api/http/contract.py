@@ -2,7 +2,8 @@
 the bodies the routes parse by hand, one ``Problem`` schema for every error answer, the request id
 every operation takes, the headers the service sends (``X-Request-ID`` on every answer,
 ``Retry-After`` where it is sent), and the served model's object names as the enum of an
-instance's ``object`` (the model is known at start-up).
+instance's ``object`` (the model is known at start-up); the request examples name its first object,
+so that each is a request the service answers.
 
 Routes describe each status they can answer in words (``responses={404: {"description": ...}}``);
 this pass gives every status of 400 and above the problem+json body, so no route repeats it.
@@ -10,6 +11,7 @@ this pass gives every status of 400 and above the problem+json body, so no route
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
 from typing import Any
 
@@ -58,8 +60,10 @@ def install_contract(
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
             document = completed(generate(), (Problem, *parsed_bodies))
+            names = list(object_names())
             instance = document["components"]["schemas"]["InstanceIn"]
-            instance["properties"]["object"]["enum"] = list(object_names())
+            instance["properties"]["object"]["enum"] = names
+            _name_example_objects(document, names[0])
             app.openapi_schema = document
         return app.openapi_schema
 
@@ -81,6 +85,27 @@ def completed(document: dict[str, Any], models: tuple[type[BaseModel], ...]) -> 
     for unused in ("HTTPValidationError", "ValidationError"):  # FastAPI's 422 body, never sent
         components.pop(unused, None)
     return document
+
+
+def _name_example_objects(document: dict[str, Any], name: str) -> None:
+    for operations in document["paths"].values():
+        for operation in operations.values():
+            for media in operation.get("requestBody", {}).get("content", {}).values():
+                if "example" in media:
+                    media["example"] = _named(copy.deepcopy(media["example"]), name)
+
+
+def _named(value: Any, name: str) -> Any:
+    """``value`` with every instance (an object with a bbox) of object ``name``."""
+    if isinstance(value, dict):
+        if "object" in value and "bbox" in value:
+            value["object"] = name
+        for member in value.values():
+            _named(member, name)
+    elif isinstance(value, list):
+        for item in value:
+            _named(item, name)
+    return value
 
 
 def _complete(status: str, response: dict[str, Any]) -> None:

@@ -19,9 +19,12 @@ from service.infra.logs import current_request
 PROBLEM_JSON = "application/problem+json"
 log = logging.getLogger(__name__)
 _METHODS = ("DELETE", "GET", "HEAD", "PATCH", "POST", "PUT")
+_INVALID = "Invalid input"  # as every other 422 (service.errors.InvalidInput)
+_PREFIX = "Value error, "  # pydantic's, before the message of a validator's ValueError
 _TITLES = {401: "Unauthorized", 403: "Forbidden", 404: "Not found", 405: "Method not allowed"}
 # FastAPI's answer to a JSON body it cannot decode (not UTF-8, say): a 400 no operation documents.
 _UNPARSED_BODY = "There was an error parsing the body"
+_NO_ROUTE = "Not Found"  # Starlette's detail when no route matches the path
 # pydantic's error types for a body that is not an object (bytes, a list, a string)
 _NOT_AN_OBJECT = ("model_attributes_type", "dict_type", "model_type")
 
@@ -74,7 +77,8 @@ def _validation_errors(exc: RequestValidationError, content_type: str | None) ->
             messages.append(_not_a_json_object(content_type))
             continue
         where = ".".join(str(part) for part in error.get("loc", ()) if part != "body")
-        messages.append(f"{where}: {error.get('msg', 'invalid')}" if where else error.get("msg", "invalid"))
+        message = str(error.get("msg", "invalid")).removeprefix(_PREFIX)
+        messages.append(f"{where}: {message}" if where else message)
     return messages
 
 
@@ -99,13 +103,15 @@ def install_problem_handlers(app: FastAPI) -> None:
     async def _invalid_request(request: Request, exc: RequestValidationError) -> JSONResponse:
         errors = _validation_errors(exc, request.headers.get("content-type"))
         detail = "The request does not match the schema: " + "; ".join(errors[:5])
-        return problem(422, "Invalid request", detail, request, errors)
+        return problem(422, _INVALID, detail, request, errors)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         if exc.status_code == 400 and exc.detail == _UNPARSED_BODY:
             detail = "The body is not JSON in UTF-8: send a JSON object"
-            return problem(422, "Invalid request", detail, request)
+            return problem(422, _INVALID, detail, request)
+        if exc.status_code == 404 and exc.detail == _NO_ROUTE:
+            return problem(404, _TITLES[404], _no_route(request), request, headers=exc.headers)
         headers = exc.headers
         if exc.status_code == 405:  # Starlette names only the methods of the first route that matched
             headers = {**(headers or {}), "Allow": ", ".join(allowed_methods(request))}
@@ -128,6 +134,18 @@ def install_problem_handlers(app: FastAPI) -> None:
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
         log.exception("unhandled error on %s", request.url.path)
         return problem(500, "Internal error", "The server failed; the error was logged.", request)
+
+
+def _no_route(request: Request) -> str:
+    """Where to look instead: the same path under /v1 when some operation is there, and /docs."""
+    path = request.url.path
+    detail = f"no operation at {path}"
+    under_v1 = {**request.scope, "path": "/v1" + path}
+    if not path.startswith("/v1/") and any(
+        route.matches(under_v1)[0] is not Match.NONE for route in request.app.router.routes
+    ):
+        detail += f": the API is under /v1, send {request.method} /v1{path}"
+    return detail + "; every operation is listed at /docs"
 
 
 def allowed_methods(request: Request) -> list[str]:

@@ -13,18 +13,22 @@ from fastapi import APIRouter, Request, Response
 
 from service.api.deps import Predicting
 from service.api.predict.frame_input import LAYOUT, parse_frame, require_multipart
+from service.api.predict.predict_bodies import EXAMPLE_INSTANCES
 from service.api.predict.predict_routes import PREDICT_RESPONSES, compute
 from service.api.predict.predict_schemas import PredictResponse
 
 router = APIRouter(tags=["prediction"])
 
 _SCHEMAS = "#/components/schemas/{model}"
-_EXAMPLE_REQUEST = {
-    "instances": [{"object": "duck", "bbox": [812.0, 430.5, 96.0, 120.0]}],
-    "frame": {"width": 1920, "height": 1080},
-    "regions": [
-        {"x_offset": 783, "y_offset": 413, "width": 154, "height": 155, "encoding": "rgb8", "instances": [0]}
-    ],
+# A request the service answers as it is: a 16 x 16 grey frame, raw mono8, sent whole (one byte a
+# pixel, so the example's text is its pixels).
+_EXAMPLE_SIDE = 16
+_EXAMPLE = {
+    "request": {
+        "instances": EXAMPLE_INSTANCES,
+        "frame": {"width": _EXAMPLE_SIDE, "height": _EXAMPLE_SIDE, "encoding": "mono8"},
+    },
+    "pixels": ["~" * _EXAMPLE_SIDE**2],
 }
 FRAME_BODY: dict[str, Any] = {
     "required": True,
@@ -47,11 +51,10 @@ FRAME_BODY: dict[str, Any] = {
                 },
                 "additionalProperties": False,
             },
-            "encoding": {
-                "request": {"contentType": "application/json"},
-                "pixels": {"contentType": "application/octet-stream, image/jpeg, image/png"},
-            },
-            "example": {"request": _EXAMPLE_REQUEST, "pixels": ["(155 * 154 * 3 bytes: RGB, row-major)"]},
+            # pixels keep the default encoding (application/octet-stream): generators that read a list
+            # of types literally send the whole array as one part
+            "encoding": {"request": {"contentType": "application/json"}},
+            "example": _EXAMPLE,
         }
     },
 }

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, StrictInt
 
 from service.api.predict.predict_schemas import PredictParameters
 
@@ -24,8 +24,8 @@ class _Strict(BaseModel):
 class FrameIn(_Strict):
     """The camera frame the boxes and the answer's pixels refer to."""
 
-    width: int = Field(gt=0, le=MAX_SIDE, description="the full frame's width in pixels")
-    height: int = Field(gt=0, le=MAX_SIDE, description="the full frame's height in pixels")
+    width: StrictInt = Field(gt=0, le=MAX_SIDE, description="the full frame's width in pixels")
+    height: StrictInt = Field(gt=0, le=MAX_SIDE, description="the full frame's height in pixels")
     encoding: Encoding | None = Field(
         default=None,
         description="with the whole frame as the one `pixels` part: its encoding (" + _ENCODING + ");"
@@ -36,12 +36,12 @@ class FrameIn(_Strict):
 class RegionIn(_Strict):
     """A rectangle of the frame (ROS sensor_msgs/RegionOfInterest), sent as one `pixels` part."""
 
-    x_offset: int = Field(ge=0, le=MAX_SIDE, description="its left column in the frame")
-    y_offset: int = Field(ge=0, le=MAX_SIDE, description="its top row in the frame")
-    width: int = Field(gt=0, le=MAX_SIDE, description="x_offset + width <= frame.width")
-    height: int = Field(gt=0, le=MAX_SIDE, description="y_offset + height <= frame.height")
+    x_offset: StrictInt = Field(ge=0, le=MAX_SIDE, description="its left column in the frame")
+    y_offset: StrictInt = Field(ge=0, le=MAX_SIDE, description="its top row in the frame")
+    width: StrictInt = Field(gt=0, le=MAX_SIDE, description="x_offset + width <= frame.width")
+    height: StrictInt = Field(gt=0, le=MAX_SIDE, description="y_offset + height <= frame.height")
     encoding: Encoding = Field(description=_ENCODING)
-    instances: list[int] = Field(
+    instances: list[StrictInt] = Field(
         min_length=1,
         description="indexes into instances whose crops this region serves; each instance is served by"
         " exactly one region, which must hold its crop context (docs/predict.md)",

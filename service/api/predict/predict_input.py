@@ -172,20 +172,24 @@ async def parse_batch(request: Request, body: bytes, limit: int, manifest: Manif
     layout is wrong."""
     if media_type(request) == "application/json":
         return _json_batch(body, limit, manifest)
-    layout = f"at most {limit} images and {limit} requests (CKS_MAX_BATCH_IMAGES): image_0, request_0, ..."
+    layout = f"at most {limit} images and {limit} requests: image_0, request_0, ..."
     form = await _read_form(request, 2 * limit, layout)  # requests may come as files (Blobs)
     try:
         images, requests, problems = await _batch_parts(form, limit)
     finally:
         await form.close()  # its spooled files, now rather than when collected
+    count = max([*images, *requests], default=-1) + 1
+    problems += [
+        f"part {name!r} is missing: send image_i and request_i together, for i = 0 .. n-1"
+        for name in _missing_parts(images, requests, count)
+    ]
     if problems:
         raise InvalidInput("; ".join(problems[:5]), errors=problems)
-    count = max([*images, *requests], default=-1) + 1
     if count == 0:
         raise InvalidInput(
             "the batch is empty: send parts image_0 and request_0 (and image_1, request_1, ...)"
         )
-    return [partial(_multipart_item, i, images.get(i), requests.get(i), manifest) for i in range(count)]
+    return [partial(_multipart_item, i, images[i], requests[i], manifest) for i in range(count)]
 
 
 def _json_batch(body: bytes, limit: int, manifest: Manifest) -> list[BatchItem]:
@@ -273,7 +277,7 @@ def _parsed_json_batch(body: bytes, limit: int, manifest: Manifest) -> list[Batc
     if not items:
         raise InvalidInput("the batch is empty: send at least one item")
     if len(items) > limit:
-        raise InvalidInput(f"{len(items)} items: at most {limit} images per batch (CKS_MAX_BATCH_IMAGES)")
+        raise InvalidInput(f"{len(items)} items: at most {limit} images per batch")
     return [partial(_from_json, json.dumps(item), manifest) for item in items]
 
 
@@ -289,7 +293,7 @@ async def _batch_parts(form: FormData, limit: int) -> tuple[dict[int, bytes | No
             problems.append(f"unexpected part {name!r}: send image_0, request_0, image_1, request_1, ...")
         elif index >= limit:
             problems.append(
-                f"part {name!r}: at most {limit} images per batch, numbered from 0 (CKS_MAX_BATCH_IMAGES)"
+                f"part {name!r}: at most {limit} images per batch, numbered from 0"
             )
         elif index in (images if match.group(1) == "image" else requests):
             problems.append(f"part {name!r} appears more than once")
@@ -300,11 +304,20 @@ async def _batch_parts(form: FormData, limit: int) -> tuple[dict[int, bytes | No
     return images, requests, problems
 
 
+def _missing_parts(images: dict, requests: dict, count: int) -> list[str]:
+    """The parts a batch of ``count`` images lacks: image_i and request_i come together, i = 0 .. count-1
+    (as the document's description of the form says)."""
+    return [
+        f"{kind}_{i}"
+        for i in range(count)
+        for kind, parts in (("image", images), ("request", requests))
+        if i not in parts
+    ]
+
+
 def _multipart_item(
-    index: int, image: bytes | None, raw: str | None, manifest: Manifest
+    index: int, image: bytes | None, raw: str, manifest: Manifest
 ) -> tuple[bytes, PredictParameters]:
     if image is None:
-        raise InvalidInput(f"multipart part 'image_{index}' (a JPEG or PNG file) is missing")
-    if raw is None:
-        raise InvalidInput(f"multipart part 'request_{index}' (JSON with instances and options) is missing")
+        raise InvalidInput(f"multipart part 'image_{index}' must be a file (a JPEG or PNG with a filename)")
     return image, validated(PredictParameters, raw, manifest, f"the multipart part 'request_{index}'")

@@ -78,25 +78,44 @@ _BATCH_RESPONSES: dict[int | str, dict[str, Any]] = {
     413: {"description": "The body exceeds CKS_MAX_REQUEST_BYTES"},
     415: {"description": "Not JSON or multipart/form-data"},
     422: {
-        "description": "Not the documented layout (parts other than image_i and request_i, an index repeated"
-        " or beyond 16 images, no images, or more images than the server admits at once)"
+        "description": "Not the documented layout (parts other than image_i and request_i, an image without"
+        " its request or the reverse, an index repeated or beyond 16 images, no images, or more"
+        " images than the server admits at once)"
     },
     429: PREDICT_RESPONSES[429],
     503: {"description": "Not enough free places for every image of the batch (with Retry-After)"},
 }
 
 
+# POST /v1/predict's JSON example is retained: its answer's prediction_id leads to the feedback
+# operation (stateful testers and generated SDKs follow the loop from the example).
+_FEEDBACK_LINK = {
+    "SendFeedback": {
+        "operationId": "send_feedback",
+        "parameters": {"prediction_id": "$response.body#/prediction_id"},
+    }
+}
 _IMAGE_FORM = "multipart/form-data: the image as a file, its parameters as the JSON part request"
 
 
-def _json_and_form(path: str, bodies: tuple[dict, dict], form: str, summary: str, **route: Any):
+def _json_and_form(
+    path: str,
+    bodies: tuple[dict, dict],
+    form: str,
+    summary: str,
+    json_links: dict | None = None,
+    **route: Any,
+):
     """Register the route twice, one request content type each (client generators keep only one):
-    ``path`` documented with the JSON body, ``path``/form with the multipart one, as its own
-    operation (``<name>_form``). Either path takes either body at run time."""
+    ``path`` documented with the JSON body (its 200 with ``json_links``), ``path``/form with the
+    multipart one, as its own operation (``<name>_form``). Either path takes either body at run time."""
 
     def register(endpoint: Callable) -> Callable:
         json_body, form_body = bodies
-        router.post(path, summary=summary, openapi_extra={"requestBody": json_body}, **route)(endpoint)
+        extra: dict[str, Any] = {"requestBody": json_body}
+        if json_links:
+            extra["responses"] = {"200": {"links": json_links}}
+        router.post(path, summary=summary, openapi_extra=extra, **route)(endpoint)
         form_name, form_summary = f"{endpoint.__name__}_form", f"{summary} ({form})"
         extra = {"requestBody": form_body}
         router.post(f"{path}/form", name=form_name, summary=form_summary, openapi_extra=extra, **route)(
@@ -112,6 +131,7 @@ def _json_and_form(path: str, bodies: tuple[dict, dict], form: str, summary: str
     (PREDICT_JSON, PREDICT_FORM),
     _IMAGE_FORM,
     summary="Keypoint prediction sets with a coverage guarantee",
+    json_links=_FEEDBACK_LINK,
     description="The sets as JSON. (`Accept: image/png` here still answers the drawing, as before"
     " POST /v1/predict/png existed; generated clients should call that operation.)",
     response_model=PredictResponse,

@@ -5,9 +5,19 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictBool, ValidationInfo, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictFloat,
+    StrictInt,
+    ValidationInfo,
+    field_validator,
+)
 
 from service.api.http.problems import Problem
+from service.detector.boxes import MIN_BOX_SIDE_PX
 from service.pose.camera import camera_matrix_problems
 
 Nonconformity = Literal["peak", "var", "cov"]
@@ -22,19 +32,19 @@ class _Body(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
-def _positive_size(schema: dict) -> None:
-    """The validator's rule (width and height > 0) said in the JSON Schema too."""
+def _box_size(schema: dict) -> None:
+    """The validator's rule (width and height at least MIN_BOX_SIDE_PX) said in the JSON Schema too."""
     for size in schema["prefixItems"][2:]:
-        size["exclusiveMinimum"] = 0
+        size["minimum"] = MIN_BOX_SIDE_PX
 
 
 class InstanceIn(_Body):
     """One object in the image: its class and its box in image pixels."""
 
     object: str = Field(min_length=1, max_length=200, description="object name from GET /v1/model")
-    bbox: tuple[float, float, float, float] = Field(
-        description="[x, y, width, height] in image pixels, width and height > 0",
-        json_schema_extra=_positive_size,
+    bbox: tuple[StrictFloat, StrictFloat, StrictFloat, StrictFloat] = Field(
+        description=f"[x, y, width, height] in image pixels, width and height at least {MIN_BOX_SIDE_PX:g}",
+        json_schema_extra=_box_size,
     )
     group: str | None = Field(
         default=None,
@@ -61,8 +71,8 @@ class InstanceIn(_Body):
     def _finite_positive(cls, bbox: tuple[float, float, float, float]):
         if not all(math.isfinite(v) for v in bbox):
             raise ValueError("bbox values must be finite numbers")
-        if bbox[2] <= 0 or bbox[3] <= 0:
-            raise ValueError("bbox width and height must be > 0")
+        if bbox[2] < MIN_BOX_SIDE_PX or bbox[3] < MIN_BOX_SIDE_PX:
+            raise ValueError(f"bbox width and height must be at least {MIN_BOX_SIDE_PX:g} pixel")
         return bbox
 
 
@@ -74,7 +84,7 @@ ROTATION_TOLERANCE = 1e-6
 class PoseCheckIn(_Body):
     """A pose to test for membership in PURSE: p_camera = rotation @ p_model + translation."""
 
-    instance: int = Field(ge=0, description="index into instances")
+    instance: StrictInt = Field(ge=0, description="index into instances")
     rotation: Matrix3 = Field(description="3x3 rotation matrix, rows first (R^T R = I, det 1)")
     translation: Vector3 = Field(description="in the units of the manifest's keypoints_3d")
 
@@ -111,20 +121,20 @@ class PoseRequest(_Body):
     K: list[list[float]] = Field(
         description="camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in the response's image pixels"
     )
-    samples: int = Field(
+    samples: StrictInt = Field(
         default=100, ge=0, le=500, description="keypoint draws for the sampled (inner) bound; 0: none"
     )
     outer_bound: StrictBool = Field(
         default=True, description="solve the convex relaxation for certified upper bounds (pose extra)"
     )
-    outer_splits: int = Field(
+    outer_splits: StrictInt = Field(
         default=0,
         ge=0,
         le=8,
         description="rounds of the older branch-and-bound over rotation cells (seconds per instance); "
         "when above 0 it replaces the rotation search of outer_programs",
     )
-    outer_programs: int = Field(
+    outer_programs: StrictInt = Field(
         default=150,
         ge=0,
         le=2000,
@@ -161,7 +171,7 @@ class PredictOptions(_Body):
         description="if set, coverage >= 1-epsilon holds with probability 1-delta "
         "over the calibration set (PAC); sets get larger",
     )
-    calibration_version: int | None = Field(
+    calibration_version: StrictInt | None = Field(
         default=None, ge=1, le=MAX_VERSION, description="default: the active version"
     )
     include_statistics: StrictBool = Field(
@@ -223,24 +233,14 @@ class PredictJson(PredictParameters):
     image_base64: str = Field(min_length=1, description="JPEG or PNG file, base64 (standard alphabet)")
 
 
-ITEM_ANSWERED_ALONE = (
-    "anything else: this item alone is answered with status 422 and its problem, the others as usual"
-)
-
-
-def _items_answered_alone(schema: dict) -> None:
-    """An item that is no PredictJson does not refuse the batch (its own item is a 422): said so."""
-    schema["items"] = {"anyOf": [schema["items"], {"description": ITEM_ANSWERED_ALONE}]}
-
-
 class BatchJson(_Body):
     """Several images, each as POST /v1/predict's JSON body; answered one item per image."""
 
     items: list[PredictJson] = Field(
         min_length=1,
         max_length=MAX_BATCH_IMAGES,
-        description="at most CKS_MAX_BATCH_IMAGES (default 16) images, each with its instances and options",
-        json_schema_extra=_items_answered_alone,
+        description="at most 16 images, each with its instances and options;"
+        " an item the schema refuses is answered in its own item (status 422), the others as usual",
     )
 
 
@@ -396,7 +396,11 @@ class PoseOut(BaseModel):
     method: Literal["pnp", "pnp+refined-into-set", "sampled", "none"]
     largest_violation: float | None = Field(description="the estimate's largest normalised distance (<= 1)")
     inner_bound: SampledBoundOut | None
-    inner_bound_note: str | None = None
+    inner_bound_note: str | None = Field(
+        default=None,
+        description="why there is no inner bound, or that it is sampling's alone (the boundary search"
+        " needs the pose extra's SciPy); absent: the samples and the boundary search made it",
+    )
     outer_bound: OuterBoundOut | None
     checks: list[PoseCheckOut] = Field(default_factory=list)
 

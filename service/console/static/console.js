@@ -208,13 +208,17 @@ function drawAudit() {
     nodes.push(note(`Overall ${fixed(overall.coverage)} on ${overall.m} keypoints, band ${fixed(overall.band?.[0])}–${fixed(overall.band?.[1])} (union bound).`));
   }
   if (objectScope) {
-    nodes.push(el("h3", {}, "Per object (object scope: all keypoints of an instance at once)"));
-    nodes.push(table(["object", "m", "coverage", "band", "p", "Holm p", ""], (objectScope.objects || []).map((o) => [
+    // Folded like the drift's objects (open when one is flagged): a phone gets a page, not a card per object.
+    const objects = objectScope.objects || [];
+    const flagged = objects.filter((o) => o.flagged).length;
+    const summary = el("summary", {}, el("strong", {}, "Per object"), ` (object scope: all keypoints of an instance at once): ${objects.length} objects, `,
+      flagged ? el("span", { class: "fail" }, `${flagged} flagged`) : "none flagged");
+    nodes.push(el("details", flagged ? { open: "" } : {}, summary, table(["object", "m", "coverage", "band", "p", "Holm p", ""], objects.map((o) => [
       o.object, o.m, fixed(o.coverage), `${fixed(o.band?.[0])}–${fixed(o.band?.[1])}`, fixed(o.p_value, 4),
       fixed(o.adjusted_p_value, 4), o.flagged ? el("span", { class: "fail" }, "flagged") : o.in_band ? "" : "outside band",
-    ])));
+    ]))));
   }
-  nodes.push(el("p", { class: "advice" }, report.advice || ""));
+  if (report.advice) nodes.push(el("details", {}, el("summary", {}, el("strong", {}, "What to do")), el("p", { class: "advice" }, report.advice)));
   target.replaceChildren(...nodes);
 }
 
@@ -259,7 +263,7 @@ async function loadLiveCoverage() {
     return onlyNote("live-coverage", 'No labelled feedback yet: predict with "retain": true, then POST the true points to /v1/feedback/{prediction_id} (docs/feedback.md).');
   }
   const alarms = groups.filter((g) => g.alarm).length;
-  const verdict = alarms ? el("span", { class: "alarm" }, `alarm raised in ${alarms} of ${groups.length} groups`) : `no alarm in ${groups.length} groups`;
+  const verdict = alarms ? el("span", { class: "alarm" }, `Alarm raised in ${alarms} of ${groups.length} groups`) : `No alarm in ${groups.length} groups`;
   show("live-coverage", el("p", { class: "muted" },
     "Per calibration version and group: the labelled keypoints' coverage so far; an anytime-valid confidence sequence of the looks' mean ",
     "(a scene's frames vote once, together; valid however often it is read); the least coverage the version promises; ",
@@ -372,8 +376,8 @@ function drawDrift(drift) {
   const nodes = [header];
   if (drift.reference_available === false && drift.reason) nodes.push(note(drift.reason));
   if (!keypoints.length) return show("drift", ...nodes, note("No drift data yet."));
-  const rows = keypoints.map((k) => [
-    k.object ?? "", k.keypoint ?? "",
+  const cells = (k) => [
+    k.keypoint ?? "",
     ...features.map((name) => {
       const feature = (k.features || {})[name] || {};
       // Each number whole: the statistic and its "(p 0.903)" wrap between, never inside.
@@ -382,12 +386,34 @@ function drawDrift(drift) {
       if (feature.alarm) parts.push(" alarm");
       return el("span", feature.alarm ? { class: "alarm" } : {}, ...parts);
     }),
-    sparkline(historyOf(history, k), psi ? drift.alarm_threshold : undefined, Object.values(k.features || {}).some((f) => f?.alarm)),
-  ]);
+    sparkline(historyOf(history, k), psi ? drift.alarm_threshold : undefined, alarmed(k)),
+  ];
   const span = history.length > 1 ? ` (${history.length} points, ${when(new Date(1000 * history[0].time).toISOString())} to now)` : "";
-  nodes.push(note(`Over time: each keypoint's largest statistic${span}.`));
-  nodes.push(table(["object", "keypoint", ...features, "over time"], rows));
+  nodes.push(note(`Per object, its keypoints behind it (an object with an alarm is open). Over time: each keypoint's largest statistic${span}.`));
+  // One block per object, its keypoints' rows folded behind it: a phone gets a page, not a card per keypoint.
+  for (const [object, members] of byObject(keypoints)) {
+    const raised = members.filter(alarmed).length;
+    const largest = Math.max(...members.flatMap((k) => Object.values(k.features || {}).map((f) => f?.statistic)).filter((v) => typeof v === "number"));
+    const verdict = raised ? el("span", { class: "alarm" }, `alarm on ${raised}`) : "no alarm";
+    const summary = el("summary", {}, el("strong", {}, object), ` ${members.length} keypoints, largest statistic ${fixed(largest)}, `, verdict);
+    nodes.push(el("details", raised ? { class: "object", open: "" } : { class: "object" }, summary,
+      table(["keypoint", ...features, "over time"], members.map(cells))));
+  }
   show("drift", ...nodes);
+}
+
+function alarmed(keypoint) {
+  return Object.values(keypoint.features || {}).some((f) => f?.alarm);
+}
+
+function byObject(keypoints) {
+  const groups = new Map();
+  for (const k of keypoints) {
+    const object = k.object ?? "";
+    if (!groups.has(object)) groups.set(object, []);
+    groups.get(object).push(k);
+  }
+  return groups;
 }
 
 function historyOf(history, keypoint) {
@@ -446,8 +472,9 @@ function drawSetSizes(sizes) {
     if (!histogram) continue;
     const quantiles = summary.quantiles ? Object.entries(summary.quantiles).map(([q, v]) => `${q} ${fixed(v, 1)}`).join(", ") : "";
     const counts = typeof value?.n === "number" ? `${value.n} sets, ${value.unbounded ?? 0} unbounded` : "";
-    nodes.push(el("h3", {}, `${kind}: semi-major axis (px)`), note([counts, quantiles].filter(Boolean).join("; ")));
-    nodes.push(histogramPlot(histogram, kind));
+    // Each kind's figures in one line, its histogram behind it: the page stays short on a phone.
+    const title = el("summary", {}, el("strong", {}, kind), `: semi-major axis (px); ${[counts, quantiles].filter(Boolean).join("; ")}`);
+    nodes.push(el("details", { class: "kind" }, title, histogramPlot(histogram, kind)));
   }
   if (!nodes.length) return show("set-sizes", note("Set sizes of recent predictions: not available (no recent prediction)."));
   show("set-sizes", ...nodes);

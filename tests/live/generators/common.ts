@@ -1,4 +1,4 @@
-// What both TypeScript drivers share: the fixture the Python test wrote, the checks every error
+// What the TypeScript drivers share: the fixture the Python test wrote, the checks every error
 // answer must pass (a Problem with the request's id), and waiting for a job. No generated code.
 import assert from "node:assert/strict";
 import { readFileSync } from "node:fs";
@@ -7,6 +7,14 @@ export interface Fixture {
   url: string;
   token: string;
   images: { path: string; instances: { object: string; bbox: number[] }[] }[];
+  // an image of several boxes as a frame; region: its first box's crop context as raw bgr8 pixels
+  frame: {
+    path: string;
+    instances: { object: string; bbox: number[] }[];
+    width: number;
+    height: number;
+    region: { x_offset: number; y_offset: number; width: number; height: number; encoding: string; path: string };
+  };
   whole_zip: string;
   part_zip: string;
   max_request_bytes: number;

@@ -3,7 +3,10 @@ and the error of any pose in PURSE (the true one included)."""
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
+import pytest
 
 from service.pose import Pose, PoseOptions, instance_pose_sets, membership
 from service.pose.bounds import (
@@ -14,6 +17,7 @@ from service.pose.bounds import (
     sample_poses_in_set,
 )
 from service.pose.membership import set_violations
+from service.pose.pose_sets import SAMPLING_ALONE
 from service.pose.relaxation import outer_bound
 from service.pose.rotations import from_rotation_vector, rotation_angle_deg
 from tests.unit.pose.conftest import balls, projections
@@ -75,10 +79,22 @@ def test_the_certified_outer_bound_dominates_the_inner_bound_and_the_true_error(
     assert estimate is not None and inner is not None and outer is not None
     assert outer.certified, outer.status
     assert inner.poses_found > 0 and inner.boundary_poses == 6
+    assert answer.inner_note is None  # sampling and the boundary search made the inner bound
     assert inner.rotation_deg <= outer.rotation_deg
     assert inner.translation <= outer.translation
     assert rotation_angle_deg(estimate.rotation, true_pose.rotation) <= outer.rotation_deg
     assert np.linalg.norm(estimate.translation - true_pose.translation) <= outer.translation
+
+
+def test_without_scipy_the_answer_says_its_inner_bound_is_sampling_alone(
+    camera, duck_3d, true_pose, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The default install has no SciPy: the import fails as it does there, and the note says so."""
+    monkeypatch.setitem(sys.modules, "scipy.optimize", None)  # `import scipy.optimize` raises ImportError
+    centers, shapes = scene(camera, duck_3d, true_pose)
+    answer = instance_pose_sets(duck_3d, centers, shapes, PoseOptions(camera, samples=100, outer=False))
+    assert answer.inner is not None and answer.inner.boundary_poses == 0
+    assert answer.inner_note == SAMPLING_ALONE and "SciPy" in SAMPLING_ALONE
 
 
 def test_a_bound_below_a_sampled_pose_is_not_certified(camera, duck_3d, true_pose) -> None:
