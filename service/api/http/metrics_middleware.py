@@ -32,8 +32,7 @@ class MetricsMiddleware(HttpMiddleware):
             await self.app(scope, receive, send_with_status)
         finally:
             elapsed = time.perf_counter() - start
-            route = scope.get("route")
-            path = getattr(route, "path", None) or "unmatched"
+            path = getattr(scope.get("route"), "path", None) or "unmatched"
             method = scope.get("method", "GET")
             REQUESTS.labels(method, path, str(status["code"])).inc()
             LATENCY.labels(method, path).observe(elapsed)
@@ -42,8 +41,7 @@ class MetricsMiddleware(HttpMiddleware):
 
 
 def _log_access(scope: Scope, method: str, status: int, elapsed: float) -> None:
-    request = current_request()
-    client = scope.get("client")
+    request, client = current_request(), scope.get("client")
     fields = {
         "method": method,
         "path": scope.get("path", ""),

@@ -6,15 +6,8 @@ import math
 
 import numpy as np
 
-from service.api.predict.predict_schemas import (
-    OuterBoundOut,
-    PoseCheckOut,
-    PoseOut,
-    SampledBoundOut,
-)
-from service.pose import (
-    PoseSets,
-)
+from service.api.predict.predict_schemas import OuterBoundOut, PoseCheckOut, PoseOut, SampledBoundOut
+from service.pose import PoseSets
 
 
 def _matrix(array: np.ndarray) -> tuple:
@@ -37,15 +30,7 @@ def pose_out(answer: PoseSets) -> PoseOut:
         translation=_vector(estimate.translation) if estimate is not None else None,
         method=answer.method,
         largest_violation=answer.violation,
-        inner_bound=SampledBoundOut(
-            rotation_deg=inner.rotation_deg,
-            translation=inner.translation,
-            poses_found=inner.poses_found,
-            poses_tried=inner.poses_tried,
-            boundary_poses=inner.boundary_poses,
-        )
-        if inner is not None
-        else None,
+        inner_bound=None if inner is None else SampledBoundOut.model_validate(inner, from_attributes=True),
         inner_bound_note=answer.inner_note,
         outer_bound=OuterBoundOut(
             certified=outer.certified,

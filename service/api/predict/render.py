@@ -22,18 +22,9 @@ Box = tuple[int, int, int, int]  # x0, y0, x1, y1 in pixels, x1 and y1 excluded
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
 _SHIFT = 4  # OpenCV fixed-point bits: sub-pixel drawing
 _SCALE = 1 << _SHIFT
-_PALETTE = [
-    (75, 25, 230),
-    (75, 180, 60),
-    (25, 225, 255),
-    (200, 130, 0),
-    (48, 130, 245),
-    (180, 30, 145),
-    (240, 240, 70),
-    (230, 50, 240),
-    (60, 245, 210),
-    (190, 190, 250),
-]
+# Ten distinct colours (BGR), one per keypoint index modulo ten.
+_BGR = bytes.fromhex("4b19e6 4bb43c 19e1ff c88200 3082f5 b41e91 f0f046 e632f0 3cf5d2 bebefa")
+_PALETTE = [tuple(_BGR[i : i + 3]) for i in range(0, len(_BGR), 3)]
 # Labels in _PALETTE's colours, tinted toward white (by these shares) where needed to read at 7:1
 # or more on their black boxes (WCAG AAA; AA asks 4.5:1, which tests/api/test_png_labels.py
 # checks): the red, dark blue, purple and magenta were 4.6, 5.0, 3.0 and 6.3. Still each set's hue.
@@ -50,26 +41,12 @@ def _fixed(point: tuple[float, float]) -> tuple[int, int]:
 
 
 def _draw_set(canvas: np.ndarray, region, colour: tuple[int, int, int], thickness: int) -> None:
+    style = (colour, thickness, cv2.LINE_AA, _SHIFT)
     if isinstance(region, BallSet):
-        radius = min(region.radius, 1e5)
-        cv2.circle(
-            canvas, _fixed(region.center), round(radius * _SCALE), colour, thickness, cv2.LINE_AA, _SHIFT
-        )
+        cv2.circle(canvas, _fixed(region.center), round(min(region.radius, 1e5) * _SCALE), *style)
     elif isinstance(region, EllipseSet):
-        a, b = (min(axis, 1e5) for axis in region.semi_axes)
-        axes = (round(b * _SCALE), round(a * _SCALE))
-        cv2.ellipse(
-            canvas,
-            _fixed(region.center),
-            axes,
-            region.angle_deg,
-            0,
-            360,
-            colour,
-            thickness,
-            cv2.LINE_AA,
-            _SHIFT,
-        )
+        a, b = (round(min(axis, 1e5) * _SCALE) for axis in region.semi_axes)
+        cv2.ellipse(canvas, _fixed(region.center), (b, a), region.angle_deg, 0, 360, *style)
 
 
 def _legend_lines(response: PredictResponse) -> list[str]:
