@@ -32,7 +32,6 @@ def spearman(x: np.ndarray, y: np.ndarray) -> float:
 
 @dataclass(frozen=True)
 class Adaptiveness:
-    kind: str
     median_area_visible: float
     median_area_occluded: float
     visible: int
@@ -46,17 +45,10 @@ class Adaptiveness:
 
 
 def adaptiveness(
-    kind: str, area: np.ndarray, visibility: np.ndarray, visib_fract: np.ndarray, box_side: np.ndarray
+    area: np.ndarray, visibility: np.ndarray, visib_fract: np.ndarray, box_side: np.ndarray
 ) -> Adaptiveness:
     """Area by visibility flag and its rank correlation with the visible fraction."""
     visible, occluded = area[visibility == 2], area[visibility == 1]
-    relative = area / box_side**2
-    return Adaptiveness(
-        kind,
-        float(np.median(visible)) if visible.size else float("nan"),
-        float(np.median(occluded)) if occluded.size else float("nan"),
-        int(visible.size),
-        int(occluded.size),
-        spearman(visib_fract, area),
-        spearman(visib_fract, relative),
-    )
+    medians = [float(np.median(a)) if a.size else float("nan") for a in (visible, occluded)]
+    rho = spearman(visib_fract, area), spearman(visib_fract, area / box_side**2)
+    return Adaptiveness(*medians, int(visible.size), int(occluded.size), *rho)

@@ -106,42 +106,22 @@ class ValiditySummary:
         return beta_interval(median.n + 1 - median.t, median.t, LEVEL)
 
 
-def keypoint_groups(
-    covered: np.ndarray,
-    labeled: np.ndarray,
-    channel: np.ndarray,
-    guarantees: tuple[CoverageGuarantee, ...],
-    names: list[str],
-) -> tuple[GroupCoverage, ...]:
-    """Per manifest keypoint: covered count among its labeled test rows."""
-    groups = []
-    for k, guarantee in enumerate(guarantees):
-        rows = labeled & (channel == k)
-        groups.append(
-            GroupCoverage(names[k], guarantee.n, guarantee.t, int(rows.sum()), int(covered[rows].sum()))
-        )
-    return tuple(groups)
-
-
-def object_groups(
+def unit_groups(
     covered: np.ndarray,
     labeled: np.ndarray,
     channel: np.ndarray,
     instance: np.ndarray,
     guarantees: tuple[CoverageGuarantee, ...],
-    objects: list[tuple[str, tuple[int, ...]]],
+    units: list[tuple[str, tuple[int, ...]]],
 ) -> tuple[GroupCoverage, ...]:
-    """Per object: instances (fully labeled) whose keypoints are all covered at once."""
+    """Per unit (a keypoint, or an object: its name and keypoint channels): the instances with all its
+    keypoints labeled, and of them those with all covered at once."""
     groups = []
-    for name, keypoints in objects:
+    for name, keypoints in units:
         rows = np.isin(channel, keypoints)
         ids, index = np.unique(instance[rows], return_inverse=True)
         complete = np.bincount(index, weights=labeled[rows], minlength=len(ids)) == len(keypoints)
         all_covered = np.bincount(index, weights=covered[rows], minlength=len(ids)) == len(keypoints)
-        guarantee = guarantees[keypoints[0]]
-        groups.append(
-            GroupCoverage(
-                name, guarantee.n, guarantee.t, int(complete.sum()), int((all_covered & complete).sum())
-            )
-        )
+        n, t = guarantees[keypoints[0]].n, guarantees[keypoints[0]].t
+        groups.append(GroupCoverage(name, n, t, int(complete.sum()), int((all_covered & complete).sum())))
     return tuple(groups)

@@ -69,9 +69,7 @@ def _validity_panel(ax: plt.Axes, summary: ValiditySummary, objects: ValiditySum
         ax.text(0.5, 0.5, "no bounded sets", ha="center", transform=ax.transAxes)
         return
     coverage = np.array([g.coverage for g in groups])
-    n = int(np.median([g.n for g in groups]))
-    m = int(np.median([g.m for g in groups]))
-    t = int(np.median([g.t for g in groups]))
+    n, m, t = (int(np.median([getattr(g, name) for g in groups])) for name in "nmt")
     low, high = central_interval(betabinomial_pmf(m, n + 1 - t, t))
     lowest = min(float(coverage.min()), float(np.min(objects.coverages(), initial=1.0)))
     grid = np.linspace(max(0.0, min(summary.target - 0.25, lowest)), 1.0, 400)
@@ -80,16 +78,8 @@ def _validity_panel(ax: plt.Axes, summary: ValiditySummary, objects: ValiditySum
         coverage, bins=20, range=(grid[0], 1.0), density=True, color="tab:blue", alpha=0.7, label="keypoints"
     )
     ax.plot(grid, beta_pdf(grid, n + 1 - t, t), color="tab:red", label=f"Beta({n + 1 - t}, {t})")
-    simultaneous = objects.coverages()
-    ax.plot(
-        simultaneous,
-        np.zeros_like(simultaneous),
-        "^",
-        color="tab:green",
-        ms=7,
-        clip_on=False,
-        label="objects, object scope",
-    )
+    simultaneous, marks = objects.coverages(), {"ms": 7, "clip_on": False, "label": "objects, object scope"}
+    ax.plot(simultaneous, np.zeros_like(simultaneous), "^", color="tab:green", **marks)
     ax.axvline(summary.target, color="k", ls="--", lw=1)
     ax.set_title(f"{summary.kind}, eps={summary.epsilon}", fontsize=10)
     ax.set_xlabel("empirical coverage")
@@ -142,8 +132,9 @@ def tightness_figure(evaluation: Evaluation, path: Path) -> Path:
             ax.plot(*empirical_cdf(sizes.a[channel == k]), color=colors[k], lw=0.7)
             if kind == "cov":
                 ax.plot(*empirical_cdf(sizes.b[channel == k]), color=colors[k], lw=0.7, ls="--")
-        ax.set_xlim(0, limit)
-        ax.set_xlabel("semi-axes a (solid), b (dashed), px" if kind == "cov" else "radius, px")
+        ax.set(
+            xlim=(0, limit), xlabel="semi-axes a (solid), b (dashed), px" if kind == "cov" else "radius, px"
+        )
         ax.set_title(f"ICP-{kind.capitalize()}, eps={epsilon}", fontsize=10)
         ax.set_ylabel("CDF")
     figure.tight_layout()
@@ -155,10 +146,8 @@ def adaptiveness_figure(evaluation: Evaluation, path: Path) -> Path:
     epsilon, rows = evaluation.main_epsilon, evaluation.rows
     labeled = rows.labeled
     visibility, fraction, side = rows.visibility[labeled], rows.visib_fract[labeled], rows.box_side[labeled]
-    with_fraction = bool(np.isfinite(fraction).any())
-    figure, axes = plt.subplots(
-        1, 2 if with_fraction else 1, figsize=(12 if with_fraction else 6, 4), squeeze=False
-    )
+    panels = 2 if np.isfinite(fraction).any() else 1
+    figure, axes = plt.subplots(1, panels, figsize=(6 * panels, 4), squeeze=False)
     data, labels = [], []
     for kind in KINDS:
         radius = np.sqrt(evaluation.sizes[(kind, epsilon)].area / np.pi)
@@ -168,7 +157,7 @@ def adaptiveness_figure(evaluation: Evaluation, path: Path) -> Path:
     axes[0, 0].boxplot(data, tick_labels=labels, showfliers=False)
     axes[0, 0].set_ylabel("sqrt(area / pi), px")
     axes[0, 0].set_title(f"Set size by COCO visibility, eps={epsilon}", fontsize=10)
-    if with_fraction:
+    if panels == 2:
         _fraction_panel(axes[0, 1], evaluation, fraction, side)
     figure.tight_layout()
     return save(figure, path)
@@ -184,8 +173,6 @@ def _fraction_panel(ax: plt.Axes, evaluation: Evaluation, fraction: np.ndarray, 
             np.median(relative[which == i]) if (which == i).any() else np.nan for i in range(len(centers))
         ]
         ax.plot(centers, medians, marker="o", label=kind)
-    ax.set_xlabel("visib_fract of the object")
-    ax.set_ylabel("median area / box side^2")
-    ax.set_yscale("log")
+    ax.set(xlabel="visib_fract of the object", ylabel="median area / box side^2", yscale="log")
     ax.legend()
     ax.set_title("Relative set area against the visible fraction", fontsize=10)
