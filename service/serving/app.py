@@ -14,7 +14,7 @@ from starlette.types import Message, Receive, Scope, Send
 from service import __version__
 from service.api.admin import audit_routes, calibration_routes
 from service.api.deps import PredictParts
-from service.api.feedback import coverage_routes, feedback_routes
+from service.api.feedback import feedback_routes
 from service.api.http.callers import Callers
 from service.api.http.contract import install_contract
 from service.api.http.cut_requests import AnswerCutRequests
@@ -101,8 +101,9 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
     app.add_middleware(RequestIdMiddleware)  # outside the access line, which logs the id
     install_problem_handlers(app)
     routers = (predict_routes, frame_routes, model_routes, calibration_routes, health_routes, drift_routes)
-    for routes in (*routers, audit_routes, console_routes, feedback_routes, coverage_routes):
+    for routes in (*routers, audit_routes, console_routes, feedback_routes):
         app.include_router(routes.router)
+    app.include_router(feedback_routes.admin_router)
 
     def served_objects() -> tuple[str, ...]:
         service = getattr(app.state, "service", None)  # started: its model; else the one it would load

@@ -1,8 +1,10 @@
-"""POST /v1/feedback/{prediction_id}: the true points of a retained prediction, judged and stored."""
+"""POST /v1/feedback/{prediction_id}: the true points of a retained prediction, judged and stored; what
+they make: field calibrations, and GET /v1/admin/coverage/live (the sets' coverage, with its alarm)."""
 
 from __future__ import annotations
 
 import asyncio
+from dataclasses import asdict
 
 from fastapi import APIRouter
 
@@ -13,6 +15,7 @@ from service.feedback.field_calibration import FieldSelection, calibrate_from_fe
 from service.feedback.labels import InstanceLabels, record_feedback
 
 router = APIRouter(tags=["feedback"])
+admin_router = APIRouter(prefix="/v1/admin", tags=["admin"], responses=deps.ADMIN_RESPONSES)
 
 
 @router.post(
@@ -89,3 +92,15 @@ async def calibrate_from_field(
     return schemas.FieldCalibrationOut(
         version=outcome.info.number, activated=outcome.activated, summary=outcome.summary
     )
+
+
+@admin_router.get(
+    "/coverage/live",
+    response_model=schemas.LiveCoverageOut,
+    summary="Coverage of the sets served, from feedback labels: per version, object, keypoint, stream,"
+    " group; an anytime-valid confidence sequence and an alarm when coverage is proven below the promise",
+)
+async def live_coverage(reader: deps.LiveCoverage, who: deps.Admin) -> schemas.LiveCoverageOut:
+    groups = await asyncio.to_thread(reader.report)
+    alarm = any(g.alarm for g in groups)
+    return schemas.LiveCoverageOut(alarm_level=reader.level, alarm=alarm, groups=[asdict(g) for g in groups])

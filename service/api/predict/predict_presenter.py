@@ -10,11 +10,11 @@ from functools import lru_cache
 import numpy as np
 
 from service.api.predict import predict_schemas as schemas
-from service.api.predict.pose_presenter import pose_out
 from service.api.predict.render import render_prediction
 from service.calibration.stratification import Stratum as StratumChoice
 from service.conformal import CoverageGuarantee, HeatmapStatistics, ellipse_axes
 from service.detector.manifest import Manifest
+from service.pose import PoseSets
 from service.prediction import Prediction, PredictQuery
 
 UNBOUNDED = schemas.UnboundedSet(reason="too few calibration scores for this epsilon (t = 0)")
@@ -40,7 +40,7 @@ def predict_response(
         )
         for row, channel in enumerate(prediction.channel.tolist())
     ]
-    poses = [pose_out(p) for p in prediction.poses] if prediction.poses is not None else None
+    poses = [_pose(p) for p in prediction.poses] if prediction.poses is not None else None
     owners = prediction.instance_index.tolist()
     instances = [
         schemas.InstanceOut(
@@ -129,3 +129,63 @@ def _statistics(statistics: HeatmapStatistics) -> list[schemas.KeypointStatistic
         schemas.KeypointStatistics(peak_probability=p, peak=peak, mean=mean, gamma=g, covariance=covariance)
         for p, peak, mean, covariance, g in zip(*(c.tolist() for c in columns), gamma, strict=True)
     ]
+
+
+def _matrix(array: np.ndarray) -> tuple:
+    return tuple(tuple(float(v) for v in row) for row in array)
+
+
+def _vector(array: np.ndarray) -> tuple:
+    return tuple(float(v) for v in array)
+
+
+def _finite_or_none(value: float | None) -> float | None:
+    return value if value is not None and math.isfinite(value) else None
+
+
+def _pose(answer: PoseSets) -> schemas.PoseOut:
+    estimate, inner, outer = answer.estimate, answer.inner, answer.outer
+    return schemas.PoseOut(
+        empty=estimate is None,
+        rotation=_matrix(estimate.rotation) if estimate is not None else None,
+        translation=_vector(estimate.translation) if estimate is not None else None,
+        method=answer.method,
+        largest_violation=answer.violation,
+        inner_bound=None
+        if inner is None
+        else schemas.SampledBoundOut.model_validate(inner, from_attributes=True),
+        inner_bound_note=answer.inner_note,
+        outer_bound=schemas.OuterBoundOut(
+            certified=outer.certified,
+            status=outer.status,
+            rotation_deg=_finite_or_none(outer.rotation_deg),
+            translation=_finite_or_none(outer.translation),
+            **_tightness(answer),
+        )
+        if outer is not None
+        else None,
+        checks=[
+            schemas.PoseCheckOut(
+                rotation=_matrix(check.pose.rotation),
+                translation=_vector(check.pose.translation),
+                inside=check.membership.inside,
+                violations=[_finite_or_none(float(v)) for v in check.membership.violations],
+            )
+            for check in answer.checks
+        ],
+    )
+
+
+def _ratio(outer: float | None, inner: float) -> float | None:
+    return outer / inner if outer is not None and math.isfinite(outer) and inner > 0 else None
+
+
+def _tightness(answer: PoseSets) -> dict[str, float | None]:
+    """outer / inner per quantity, for certified bounds with an inner bound to compare with."""
+    inner, outer = answer.inner, answer.outer
+    if inner is None or outer is None or not outer.certified or outer.empty:
+        return {}
+    return {
+        "rotation_over_inner": _ratio(outer.rotation_deg, inner.rotation_deg),
+        "translation_over_inner": _ratio(outer.translation, inner.translation),
+    }

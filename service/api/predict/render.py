@@ -141,13 +141,9 @@ _RADII = np.array([3, 8, 14, 22, 32, 45, 60, 80, 105, 135, 170, 210, 260, 320, 4
 
 
 def _set_box(region, point: tuple[int, int]) -> Box:
-    reach = _MARK
-    if isinstance(region, BallSet) and region.radius <= _SMALL_SET:
-        reach = max(reach, math.ceil(region.radius))
-    elif isinstance(region, EllipseSet) and max(region.semi_axes) <= _SMALL_SET:
-        reach = max(reach, math.ceil(max(region.semi_axes)))
-    centre = point if isinstance(region, UnboundedSet) else (int(region.center[0]), int(region.center[1]))
-    x, y = centre
+    size = region.radius if isinstance(region, BallSet) else max(getattr(region, "semi_axes", [math.inf]))
+    reach = max(_MARK, math.ceil(size)) if size <= _SMALL_SET else _MARK
+    x, y = point if isinstance(region, UnboundedSet) else (int(region.center[0]), int(region.center[1]))
     return (x - reach, y - reach, x + reach + 1, y + reach + 1)
 
 
@@ -164,12 +160,11 @@ def _free_place(
     x0 = np.clip(x0, 0, max(0, shape[1] - width))
     y0 = np.clip(y0, 0, max(0, shape[0] - height))
     boxes = np.stack([x0, y0, x0 + width, y0 + height], axis=1)
+    # Boxes of positive size overlap where the larger start is below the smaller end, in x and in y.
+    b, t = boxes[:, None], taken[None]
     overlaps = (
-        (boxes[:, None, 0] < taken[None, :, 2])
-        & (taken[None, :, 0] < boxes[:, None, 2])
-        & (boxes[:, None, 1] < taken[None, :, 3])
-        & (taken[None, :, 1] < boxes[:, None, 3])
-    ).any(axis=1)
+        (np.maximum(b[..., :2], t[..., :2]) < np.minimum(b[..., 2:], t[..., 2:])).all(axis=2).any(axis=1)
+    )
     free = np.flatnonzero(~overlaps)
     return tuple(int(v) for v in boxes[free[0] if free.size else 0])
 
@@ -195,9 +190,8 @@ def render_prediction(
     camera: np.ndarray | None = None,
     manifest: Manifest | None = None,
 ) -> bytes:
-    """PNG bytes of the image with every set, point estimate and keypoint name drawn on it.
-
-    With a camera matrix and the manifest, each instance's estimated pose is drawn too."""
+    """PNG bytes of the image with every set, point estimate and keypoint name drawn on it; with a
+    camera matrix and the manifest, each instance's estimated pose too."""
     canvas = cv2.cvtColor(image_bgr, cv2.COLOR_GRAY2BGR) if image_bgr.ndim == 2 else image_bgr.copy()
     thickness = max(1, round(min(canvas.shape[:2]) / 400))
     for instance in response.instances:
