@@ -1,7 +1,6 @@
 """Adaptiveness: do sets grow where the detector should be unsure (occlusion)? Set area of visible
 (COCO v = 2) against occluded (v = 1) keypoints, and its Spearman correlation (average ranks for
-ties) with the object's visible fraction, raw and relative to the box area (size alone moves areas).
-"""
+ties) with the object's visible fraction, raw and relative to the box area (size alone moves areas)."""
 
 from __future__ import annotations
 

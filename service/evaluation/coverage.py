@@ -1,9 +1,7 @@
 """Validity: per-keypoint (and per-object) empirical coverage of a labeled batch against the exact law
 of Theorem 1 (Yang & Pavone): given the calibration set the coverage is Beta(n+1-t, t), so the covered
 count of m test points is BetaBinomial(m, n+1-t, t). A group is *inside* when its count lies in the
-central 95% interval of that law (about 95% should be); the plain Beta interval, which ignores the
-test set's own binomial noise, is a stricter check.
-"""
+central 95% interval of that law; the plain Beta interval ignores the test noise (stricter)."""
 
 from __future__ import annotations
 

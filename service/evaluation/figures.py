@@ -1,7 +1,5 @@
-"""The evaluation's figures (matplotlib, Agg, small PNGs): coverage histograms, per-keypoint coverage
-against its band, CDFs of set sizes, adaptiveness. matplotlib is optional (the ``evaluate`` extra):
-import this module only once ``service.evaluation.run.require_matplotlib`` passed.
-"""
+"""The evaluation's figures (matplotlib, Agg, small PNGs). matplotlib is optional (the ``evaluate``
+extra): import this module only once ``service.evaluation.run.require_matplotlib`` passed."""
 
 from __future__ import annotations
 

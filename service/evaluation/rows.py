@@ -1,8 +1,6 @@
-"""One inference pass over a labeled COCO folder (the detector once per image): per (instance, keypoint)
-row everything the evaluation needs, so no heatmap is kept: the three scores (the service's
-``score_image``), the heatmap statistics the sets are built from (service.evaluation.row_sets), the
-crop affine, the label and its COCO visibility flag.
-"""
+"""One inference pass over a labeled COCO folder (the detector once per image), keeping per (instance,
+keypoint) row what the evaluation needs instead of the heatmaps: the three scores (``score_image``),
+the heatmap statistics, the crop affine, the label and its COCO visibility flag."""
 
 from __future__ import annotations
 

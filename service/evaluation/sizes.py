@@ -1,7 +1,5 @@
-"""Tightness: sizes of the ICP sets in image pixels (the paper's Fig. 3): balls by their radius,
-ellipses by their semi-axes a <= b, areas pi r^2 and pi a b to compare them. Unbounded sets (t = 0)
-have infinite size and stay in the medians as such.
-"""
+"""Tightness (the paper's Fig. 3): set sizes in image pixels, balls by their radius, ellipses by their
+semi-axes a <= b, areas pi r^2 and pi a b; unbounded sets (t = 0) stay in the medians as infinite."""
 
 from __future__ import annotations
 
