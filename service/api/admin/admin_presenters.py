@@ -17,17 +17,10 @@ REPORTED_EPSILONS = (0.05, 0.1, 0.2)
 
 
 def summarize(info: VersionInfo, active: int | None) -> out.VersionSummary:
-    return out.VersionSummary(
-        version=info.number,
-        created_at=info.created_at,
-        author=info.author,
-        note=info.note,
-        parent_version=info.parent_version,
-        instances=info.n_instances,
-        objects=dict(info.object_counts),
-        source_batches=[b.as_dict() for b in info.source_batches],
-        active=info.number == active,
-    )
+    same = {name: getattr(info, name) for name in ("created_at", "author", "note", "parent_version")}
+    renamed = {"version": info.number, "instances": info.n_instances, "objects": dict(info.object_counts)}
+    batches = [b.as_dict() for b in info.source_batches]
+    return out.VersionSummary(**same, **renamed, source_batches=batches, active=info.number == active)
 
 
 def describe(
@@ -80,16 +73,9 @@ def audit_page(entries: list[AuditEntry], limit: int) -> out.AuditPage:
 
 
 def audit_summary(audit: CoverageAudit) -> out.AuditSummaryOut:
-    return out.AuditSummaryOut(
-        id=audit.id,
-        version=audit.version,
-        created_at=audit.created_at,
-        who=audit.who,
-        batch_sha256=audit.batch_sha256,
-        instances=audit.n_instances,
-        passed=audit.report["passed"],
-        flagged=len(audit.report["flagged"]),
-    )
+    same = {name: getattr(audit, name) for name in ("id", "version", "created_at", "who", "batch_sha256")}
+    counts = {"instances": audit.n_instances, "flagged": len(audit.report["flagged"])}
+    return out.AuditSummaryOut(**same, **counts, passed=audit.report["passed"])
 
 
 def audit_out(audit: CoverageAudit) -> out.AuditOut:

@@ -89,9 +89,8 @@ async def calibrate_from_field(
     arguments = (selection, options, operator, rules, trail, config.feedback.max_retained)
     outcome = await asyncio.to_thread(calibrate_from_feedback, store, model, registry.scores, *arguments)
     registry.refresh_now()
-    return schemas.FieldCalibrationOut(
-        version=outcome.info.number, activated=outcome.activated, summary=outcome.summary
-    )
+    version, activated = outcome.info.number, outcome.activated
+    return schemas.FieldCalibrationOut(version=version, activated=activated, summary=outcome.summary)
 
 
 @admin_router.get(

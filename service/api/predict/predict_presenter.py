@@ -131,29 +131,28 @@ def _statistics(statistics: HeatmapStatistics) -> list[schemas.KeypointStatistic
     ]
 
 
-def _matrix(array: np.ndarray) -> tuple:
-    return tuple(tuple(float(v) for v in row) for row in array)
-
-
-def _vector(array: np.ndarray) -> tuple:
-    return tuple(float(v) for v in array)
-
-
 def _finite_or_none(value: float | None) -> float | None:
     return value if value is not None and math.isfinite(value) else None
 
 
 def _pose(answer: PoseSets) -> schemas.PoseOut:
     estimate, inner, outer = answer.estimate, answer.inner, answer.outer
+    checks = [
+        schemas.PoseCheckOut(
+            rotation=check.pose.rotation.tolist(),
+            translation=check.pose.translation.tolist(),
+            inside=check.membership.inside,
+            violations=[_finite_or_none(float(v)) for v in check.membership.violations],
+        )
+        for check in answer.checks
+    ]
     return schemas.PoseOut(
         empty=estimate is None,
-        rotation=_matrix(estimate.rotation) if estimate is not None else None,
-        translation=_vector(estimate.translation) if estimate is not None else None,
+        rotation=None if estimate is None else estimate.rotation.tolist(),
+        translation=None if estimate is None else estimate.translation.tolist(),
         method=answer.method,
         largest_violation=answer.violation,
-        inner_bound=None
-        if inner is None
-        else schemas.SampledBoundOut.model_validate(inner, from_attributes=True),
+        inner_bound=None if inner is None else vars(inner),
         inner_bound_note=answer.inner_note,
         outer_bound=schemas.OuterBoundOut(
             certified=outer.certified,
@@ -164,15 +163,7 @@ def _pose(answer: PoseSets) -> schemas.PoseOut:
         )
         if outer is not None
         else None,
-        checks=[
-            schemas.PoseCheckOut(
-                rotation=_matrix(check.pose.rotation),
-                translation=_vector(check.pose.translation),
-                inside=check.membership.inside,
-                violations=[_finite_or_none(float(v)) for v in check.membership.violations],
-            )
-            for check in answer.checks
-        ],
+        checks=checks,
     )
 
 
