@@ -11,6 +11,7 @@ import numpy as np
 
 from service.conformal import CoverageGuarantee, binomial_cdf
 from service.conformal.laws import beta_interval, betabinomial_pmf, central_interval
+from service.evaluation.rows import Rows
 
 LEVEL = 0.95
 
@@ -105,10 +106,8 @@ class ValiditySummary:
 
 
 def unit_groups(
+    rows: Rows,
     covered: np.ndarray,
-    labeled: np.ndarray,
-    channel: np.ndarray,
-    instance: np.ndarray,
     guarantees: tuple[CoverageGuarantee, ...],
     units: list[tuple[str, tuple[int, ...]]],
 ) -> tuple[GroupCoverage, ...]:
@@ -116,10 +115,10 @@ def unit_groups(
     keypoints labeled, and of them those with all covered at once."""
     groups = []
     for name, keypoints in units:
-        rows = np.isin(channel, keypoints)
-        ids, index = np.unique(instance[rows], return_inverse=True)
-        complete = np.bincount(index, weights=labeled[rows], minlength=len(ids)) == len(keypoints)
-        all_covered = np.bincount(index, weights=covered[rows], minlength=len(ids)) == len(keypoints)
+        unit = np.isin(rows.channel, keypoints)
+        ids, index = np.unique(rows.instance[unit], return_inverse=True)
+        complete = np.bincount(index, weights=rows.labeled[unit], minlength=len(ids)) == len(keypoints)
+        all_covered = np.bincount(index, weights=covered[unit], minlength=len(ids)) == len(keypoints)
         n, t = guarantees[keypoints[0]].n, guarantees[keypoints[0]].t
         groups.append(GroupCoverage(name, n, t, int(complete.sum()), int((all_covered & complete).sum())))
     return tuple(groups)

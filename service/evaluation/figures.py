@@ -25,7 +25,8 @@ VALIDITY, BANDS, TIGHTNESS, ADAPTIVENESS = "validity.png", "bands.png", "tightne
 
 
 def save(figure: plt.Figure, path: Path) -> Path:
-    """PNG at ~100 dpi, quantized to a 256-colour palette to keep the repository small."""
+    """PNG at ~100 dpi, laid out tight, quantized to a 256-colour palette to keep the repository small."""
+    figure.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
     figure.savefig(buffer, dpi=DPI, bbox_inches="tight", format="png")
@@ -57,7 +58,6 @@ def validity_figure(evaluation: Evaluation, path: Path) -> Path:
         "Empirical coverage of the batch: per keypoint (keypoint scope, histogram) and per "
         "object (object scope, triangles)"
     )
-    figure.tight_layout()
     return save(figure, path)
 
 
@@ -92,7 +92,6 @@ def band_figure(evaluation: Evaluation, path: Path) -> Path:
         for col, scope in enumerate(scopes):
             _band_panel(axes[row, col], evaluation.validity[(kind, epsilon, scope)], row == col == 0)
     figure.suptitle(f"Coverage against the theoretical 95% band for the batch size, eps={epsilon}")
-    figure.tight_layout()
     return save(figure, path)
 
 
@@ -130,12 +129,9 @@ def tightness_figure(evaluation: Evaluation, path: Path) -> Path:
             ax.plot(*empirical_cdf(sizes.a[channel == k]), color=colors[k], lw=0.7)
             if kind == "cov":
                 ax.plot(*empirical_cdf(sizes.b[channel == k]), color=colors[k], lw=0.7, ls="--")
-        ax.set(
-            xlim=(0, limit), xlabel="semi-axes a (solid), b (dashed), px" if kind == "cov" else "radius, px"
-        )
+        xlabel = "semi-axes a (solid), b (dashed), px" if kind == "cov" else "radius, px"
+        ax.set(xlim=(0, limit), xlabel=xlabel, ylabel="CDF")
         ax.set_title(f"ICP-{kind.capitalize()}, eps={epsilon}", fontsize=10)
-        ax.set_ylabel("CDF")
-    figure.tight_layout()
     return save(figure, path)
 
 
@@ -157,7 +153,6 @@ def adaptiveness_figure(evaluation: Evaluation, path: Path) -> Path:
     axes[0, 0].set_title(f"Set size by COCO visibility, eps={epsilon}", fontsize=10)
     if panels == 2:
         _fraction_panel(axes[0, 1], evaluation, fraction, side)
-    figure.tight_layout()
     return save(figure, path)
 
 

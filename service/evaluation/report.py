@@ -21,12 +21,9 @@ def _f(value: float, digits: int = 3) -> str:
     return "inf" if np.isinf(value) else f"{value:.{digits}f}"
 
 
-def _mean(values: np.ndarray) -> float:
-    return float(values.mean()) if values.size else float("nan")
-
-
-def _min(values: np.ndarray) -> float:
-    return float(values.min()) if values.size else float("nan")
+def _of(reduce, values: np.ndarray) -> float:
+    """``reduce`` (np.mean, np.min) of ``values``; NaN when there are none."""
+    return float(reduce(values)) if values.size else float("nan")
 
 
 def _paragraphs(*texts: str) -> list[str]:
@@ -95,7 +92,13 @@ def validity(evaluation: Evaluation) -> list[str]:
             s = evaluation.validity[(kind, epsilon, "keypoint")]
             c = s.coverages()
             inside = [s.average(lambda g: g.inside_predictive()), s.average(lambda g: g.inside_beta())]
-            figures = [1 - epsilon, _mean(c), _min(c), *inside, s.average(lambda g: 1 - g.t / (g.n + 1))]
+            figures = [
+                1 - epsilon,
+                _of(np.mean, c),
+                _of(np.min, c),
+                *inside,
+                s.average(lambda g: 1 - g.t / (g.n + 1)),
+            ]
             rows.append([kind, f"{epsilon}", *map(_f, figures), _interval(s.one_calibration())])
     header = "function | eps | 1-eps | mean coverage | min coverage | inside (predictive) | inside (Beta)"
     lines += _table(f"{header} | mean 1-t/(n+1) | one calibration, 95%", rows) + unbounded(evaluation)
@@ -134,8 +137,8 @@ def object_scope(evaluation: Evaluation) -> list[str]:
         for epsilon in evaluation.epsilons:
             s = evaluation.validity[(kind, epsilon, "object")]
             c = s.coverages()
-            per_keypoint = _mean(evaluation.validity[(kind, epsilon, "keypoint")].coverages())
-            figures = map(_f, [_mean(c), _min(c), s.average(lambda g: g.inside_predictive())])
+            per_keypoint = _of(np.mean, evaluation.validity[(kind, epsilon, "keypoint")].coverages())
+            figures = map(_f, [_of(np.mean, c), _of(np.min, c), s.average(lambda g: g.inside_predictive())])
             rows.append([kind, f"{epsilon}", *figures, _interval(s.one_calibration()), _f(per_keypoint)])
     header = "function | eps | mean simultaneous coverage | min over objects | inside (predictive)"
     return lines + _table(f"{header} | one calibration, 95% | keypoint-scope coverage, for comparison", rows)
@@ -160,7 +163,7 @@ def pac(evaluation: Evaluation) -> list[str]:
             s = evaluation.validity[(kind, epsilon, PAC)]
             x = s.target
             figures = [
-                _mean(s.coverages()),
+                _of(np.mean, s.coverages()),
                 s.average(lambda g, x=x: g.coverage >= x - 1e-12),
                 s.average(lambda g, x=x: g.chance_at_least(x)),
                 s.average(lambda g, x=x: g.not_significantly_below(x)),

@@ -79,9 +79,8 @@ def evaluate(
 def _validity(evaluation: Evaluation, table: ScoreTable, kind: str, epsilon: float, scope: str) -> None:
     manifest, rows, labeled = evaluation.manifest, evaluation.rows, evaluation.rows.labeled
     delta = evaluation.delta if scope == PAC else None
-    result = channel_thresholds(
-        table, manifest.num_keypoints, kind, "object" if scope == "object" else "keypoint", epsilon, delta
-    )
+    thresholds_scope = "object" if scope == "object" else "keypoint"  # PAC: keypoint scope
+    result = channel_thresholds(table, manifest.num_keypoints, kind, thresholds_scope, epsilon, delta)
     centers, shapes = get_nonconformity_score(kind).region(rows.statistics, result.values[rows.channel])
     centers, shapes = map_sets_to_image(centers, shapes, rows.affine)
     covered = np.zeros(len(centers), dtype=bool)
@@ -90,7 +89,7 @@ def _validity(evaluation: Evaluation, table: ScoreTable, kind: str, epsilon: flo
         units = [(o.name, tuple(o.keypoints)) for o in manifest.objects]
     else:
         units = [(k.name, (k.index,)) for k in manifest.keypoints]
-    groups = unit_groups(covered, labeled, rows.channel, rows.instance, result.guarantees, units)
+    groups = unit_groups(rows, covered, result.guarantees, units)
     evaluation.validity[(kind, epsilon, scope)] = ValiditySummary(kind, epsilon, scope, delta, groups)
     if scope == "keypoint":
         with np.errstate(invalid="ignore"):  # unlabeled rows: NaN scores, not covered

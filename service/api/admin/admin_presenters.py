@@ -37,9 +37,7 @@ def describe(
             per_keypoint = registry.thresholds(info.number, kind, "keypoint", epsilon, None)
             per_object = registry.thresholds(info.number, kind, "object", epsilon, None)
             keypoint, object_ = finite(per_keypoint.values, keypoints), finite(per_object.values, objects)
-            rows.append(
-                out.ThresholdRow(nonconformity=kind, epsilon=epsilon, keypoint=keypoint, object=object_)
-            )
+            rows.append({"nonconformity": kind, "epsilon": epsilon, "keypoint": keypoint, "object": object_})
     unusable_reason = registry.incompatibility(info.number)
     return out.VersionDetail(
         **summarize(info, active).model_dump(),

@@ -52,12 +52,10 @@ async def send_feedback(
     for row in judged.rows:
         instance, channel = served[row["row"]]["instance"], served[row["row"]]["channel"]
         keypoints.append(schemas.JudgedKeypoint(instance=instance, index=channel, name=names[channel], **row))
+    counts = {"labelled": len(keypoints), "covered": sum(k.covered for k in keypoints)}
+    version = judged.prediction.version
     return schemas.FeedbackOut(
-        prediction_id=prediction_id,
-        calibration_version=judged.prediction.version,
-        labelled=len(keypoints),
-        covered=sum(k.covered for k in keypoints),
-        keypoints=keypoints,
+        prediction_id=prediction_id, calibration_version=version, keypoints=keypoints, **counts
     )
 
 

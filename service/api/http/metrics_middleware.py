@@ -42,12 +42,8 @@ class MetricsMiddleware(HttpMiddleware):
 
 def _log_access(scope: Scope, method: str, status: int, elapsed: float) -> None:
     request, client = current_request(), scope.get("client")
-    fields = {
-        "method": method,
-        "path": scope.get("path", ""),
-        "status": status,
-        "duration_ms": round(elapsed * 1000, 1),
-        "calibration_version": request.calibration_version if request else None,
-        "client": client[0] if client else None,
-    }
+    fields = {"method": method, "path": scope.get("path", ""), "status": status}
+    fields["duration_ms"] = round(elapsed * 1000, 1)
+    fields["calibration_version"] = request.calibration_version if request else None
+    fields["client"] = client[0] if client else None
     log_fields(access_log, "access", fields)

@@ -20,9 +20,7 @@ _VALID = re.compile(rf"[\x21-\x7e]{{1,{MAX_LENGTH}}}")
 
 def request_id(presented: str | None) -> str:
     """The caller's id if it is 1 to 128 visible ASCII characters, else a new one (32 hex digits)."""
-    if presented is not None and _VALID.fullmatch(presented):
-        return presented
-    return uuid.uuid4().hex
+    return presented if presented is not None and _VALID.fullmatch(presented) else uuid.uuid4().hex
 
 
 class RequestIdMiddleware(HttpMiddleware):

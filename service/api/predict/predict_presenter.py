@@ -29,6 +29,7 @@ def predict_response(
     guarantees = [_guarantee(guarantee, scope, stratum) for guarantee, stratum in prediction.guarantees]
     stats = _statistics(sets.statistics) if query.include_statistics else [None] * len(regions)
     centers = sets.centers.tolist()
+    asked = {"nonconformity": query.nonconformity, "epsilon": query.epsilon, "delta": query.delta}
     keypoints = [
         schemas.KeypointOut(
             index=channel,
@@ -53,13 +54,7 @@ def predict_response(
     ]
     return schemas.PredictResponse(
         model=schemas.ModelRef(name=prediction.model_name, hash=prediction.model_hash),
-        calibration=schemas.CalibrationRef(
-            version=prediction.version,
-            nonconformity=query.nonconformity,
-            coverage=scope,
-            epsilon=query.epsilon,
-            delta=query.delta,
-        ),
+        calibration=schemas.CalibrationRef(version=prediction.version, coverage=scope, **asked),
         image=schemas.ImageInfo(width=prediction.width, height=prediction.height),
         instances=instances,
     )
@@ -93,14 +88,8 @@ def _regions(centers: np.ndarray, shapes: np.ndarray, kind: str) -> list[schemas
 
 def _stratum(choice: StratumChoice) -> schemas.Stratum:
     edges = [schemas.SignalRange(signal=s, low=low, high=high) for s, low, high in choice.ranges] or None
-    return schemas.Stratum(
-        kind=choice.kinds,
-        group=choice.group,
-        bin=choice.bin,
-        edges=edges,
-        conditional=choice.kinds != "pooled",
-        fallback=choice.fallback,
-    )
+    same = {"group": choice.group, "bin": choice.bin, "fallback": choice.fallback}
+    return schemas.Stratum(kind=choice.kinds, edges=edges, conditional=choice.kinds != "pooled", **same)
 
 
 @lru_cache(maxsize=4096)

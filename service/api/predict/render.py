@@ -71,8 +71,7 @@ def _draw_legend(canvas: np.ndarray, response: PredictResponse) -> None:
     scale, line_height, box = _legend_layout(canvas.shape, lines)
     cv2.rectangle(canvas, box[:2], box[2:], (0, 0, 0), -1)
     for row, text in enumerate(lines):
-        origin = (6, line_height * (row + 1))
-        cv2.putText(canvas, text, origin, _FONT, scale, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(canvas, text, (6, line_height * (row + 1)), _FONT, scale, (255, 255, 255), 1, cv2.LINE_AA)
 
 
 _AXIS_COLOURS = [(0, 0, 255), (0, 255, 0), (255, 0, 0)]  # x red, y green, z blue (BGR)
@@ -89,17 +88,14 @@ def _draw_pose(canvas: np.ndarray, instance: InstanceOut, camera: np.ndarray, ma
     corners = np.array([[(high if (k >> d) & 1 else low)[d] for d in range(3)] for k in range(8)])
     axis = 0.5 * float(np.max(high - low))
     axes = np.array([[0.0, 0.0, 0.0], [axis, 0, 0], [0, axis, 0], [0, 0, axis]])
-    rotation, translation = np.array(pose.rotation), np.array(pose.translation)
-    camera_points = np.vstack([corners, axes]) @ rotation.T + translation
+    camera_points = np.vstack([corners, axes]) @ np.array(pose.rotation).T + np.array(pose.translation)
     if (camera_points[:, 2] <= 0).any():
         return  # a box reaching behind the camera has no faithful drawing
-    projected = camera_points @ camera.T
-    image_points = [_fixed(tuple(p[:2] / p[2])) for p in projected]
+    image_points = [_fixed(tuple(p[:2] / p[2])) for p in camera_points @ camera.T]
     for a, b in _BOX_EDGES:
         cv2.line(canvas, image_points[a], image_points[b], (255, 255, 255), 1, cv2.LINE_AA, _SHIFT)
-    origin = image_points[8]
-    for tip, colour in zip(image_points[9:], _AXIS_COLOURS, strict=True):
-        cv2.line(canvas, origin, tip, colour, 2, cv2.LINE_AA, _SHIFT)
+    for tip, colour in zip(image_points[9:], _AXIS_COLOURS, strict=True):  # from the origin, image_points[8]
+        cv2.line(canvas, image_points[8], tip, colour, 2, cv2.LINE_AA, _SHIFT)
 
 
 @dataclass(frozen=True)
