@@ -48,4 +48,4 @@ def adaptiveness(
     visible, occluded = area[visibility == 2], area[visibility == 1]
     medians = [float(np.median(a)) if a.size else float("nan") for a in (visible, occluded)]
     rho = spearman(visib_fract, area), spearman(visib_fract, area / box_side**2)
-    return Adaptiveness(*medians, int(visible.size), int(occluded.size), *rho)
+    return Adaptiveness(medians[0], medians[1], int(visible.size), int(occluded.size), *rho)

@@ -56,17 +56,9 @@ def served_request(
         {"object": i.object, "bbox": list(i.bbox), "group": i.group, "affine": affine}
         for i, affine in zip(query.instances, prediction.affines.tolist(), strict=True)
     ]
-    return ServedRequest(
-        query={
-            "nonconformity": query.nonconformity,
-            "coverage": query.coverage,
-            "epsilon": query.epsilon if adaptive is None else adaptive.epsilon,  # adaptive: the target
-            "delta": query.delta,
-        },
-        instances=instances,
-        rows=rows,
-        heatmap_shape=statistics.heatmap_shape,
-        width=prediction.width,
-        height=prediction.height,
-        adaptive=None if adaptive is None else {"key": adaptive.key, **adaptive.as_dict()},
-    )
+    asked = {"nonconformity": query.nonconformity, "coverage": query.coverage}
+    # with adaptive: the target epsilon, not the level served
+    asked |= {"epsilon": query.epsilon if adaptive is None else adaptive.epsilon, "delta": query.delta}
+    state = None if adaptive is None else {"key": adaptive.key, **adaptive.as_dict()}
+    image = (statistics.heatmap_shape, prediction.width, prediction.height)
+    return ServedRequest(asked, instances, rows, *image, adaptive=state)

@@ -46,9 +46,15 @@ async def healthz() -> Health:
 async def readyz(registry: Registry, model: Model) -> Readiness:
     active = registry.resolve(None)  # 503: none active, or unusable; never waits on the store
     health = registry.health()
-    served = {"model": model.manifest.name, "model_hash": model.model_hash, "active_calibration": active}
-    store = {"store": "ok" if health.reachable else "unreachable", "store_error": health.error}
-    return Readiness(status="ready", **served, **store, cache_age_seconds=round(health.age_seconds, 3))
+    return Readiness(
+        status="ready",
+        model=model.manifest.name,
+        model_hash=model.model_hash,
+        active_calibration=active,
+        store="ok" if health.reachable else "unreachable",
+        cache_age_seconds=round(health.age_seconds, 3),
+        store_error=health.error,
+    )
 
 
 @router.get(

@@ -40,7 +40,7 @@ def _fixed(point: tuple[float, float]) -> tuple[int, int]:
     return (round((point[0] - 0.5) * _SCALE), round((point[1] - 0.5) * _SCALE))
 
 
-def _draw_set(canvas: np.ndarray, region, colour: tuple[int, int, int], thickness: int) -> None:
+def _draw_set(canvas: np.ndarray, region, colour: tuple[int, ...], thickness: int) -> None:
     style = (colour, thickness, cv2.LINE_AA, _SHIFT)
     if isinstance(region, BallSet):
         cv2.circle(canvas, _fixed(region.center), round(min(region.radius, 1e5) * _SCALE), *style)
