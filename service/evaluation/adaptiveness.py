@@ -1,7 +1,6 @@
 """Adaptiveness: do sets grow where the detector should be unsure (occlusion)? Set area of visible
 (COCO v = 2) against occluded (v = 1) keypoints, and its Spearman correlation (average ranks for
-ties) with the object's visible fraction, raw and relative to the box area (size alone moves areas).
-"""
+ties) with the object's visible fraction, raw and relative to the box area (size alone moves areas)."""
 
 from __future__ import annotations
 
@@ -12,9 +11,7 @@ import numpy as np
 
 def average_ranks(values: np.ndarray) -> np.ndarray:
     """Ranks 1..n, tied values sharing the mean of their ranks."""
-    _, group, counts = np.unique(
-        np.asarray(values, dtype=np.float64), return_inverse=True, return_counts=True
-    )
+    _, group, counts = np.unique(np.asarray(values, float), return_inverse=True, return_counts=True)
     return (np.cumsum(counts) - (counts - 1) / 2)[group]
 
 
@@ -32,7 +29,6 @@ def spearman(x: np.ndarray, y: np.ndarray) -> float:
 
 @dataclass(frozen=True)
 class Adaptiveness:
-    kind: str
     median_area_visible: float
     median_area_occluded: float
     visible: int
@@ -46,17 +42,10 @@ class Adaptiveness:
 
 
 def adaptiveness(
-    kind: str, area: np.ndarray, visibility: np.ndarray, visib_fract: np.ndarray, box_side: np.ndarray
+    area: np.ndarray, visibility: np.ndarray, visib_fract: np.ndarray, box_side: np.ndarray
 ) -> Adaptiveness:
     """Area by visibility flag and its rank correlation with the visible fraction."""
     visible, occluded = area[visibility == 2], area[visibility == 1]
-    relative = area / box_side**2
-    return Adaptiveness(
-        kind,
-        float(np.median(visible)) if visible.size else float("nan"),
-        float(np.median(occluded)) if occluded.size else float("nan"),
-        int(visible.size),
-        int(occluded.size),
-        spearman(visib_fract, area),
-        spearman(visib_fract, relative),
-    )
+    medians = [float(np.median(a)) if a.size else float("nan") for a in (visible, occluded)]
+    rho = spearman(visib_fract, area), spearman(visib_fract, area / box_side**2)
+    return Adaptiveness(medians[0], medians[1], int(visible.size), int(occluded.size), *rho)

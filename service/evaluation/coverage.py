@@ -1,9 +1,7 @@
 """Validity: per-keypoint (and per-object) empirical coverage of a labeled batch against the exact law
 of Theorem 1 (Yang & Pavone): given the calibration set the coverage is Beta(n+1-t, t), so the covered
 count of m test points is BetaBinomial(m, n+1-t, t). A group is *inside* when its count lies in the
-central 95% interval of that law (about 95% should be); the plain Beta interval, which ignores the
-test set's own binomial noise, is a stricter check.
-"""
+central 95% interval of that law; the plain Beta interval ignores the test noise (stricter)."""
 
 from __future__ import annotations
 
@@ -13,6 +11,7 @@ import numpy as np
 
 from service.conformal import CoverageGuarantee, binomial_cdf
 from service.conformal.laws import beta_interval, betabinomial_pmf, central_interval
+from service.evaluation.rows import Rows
 
 LEVEL = 0.95
 
@@ -106,42 +105,20 @@ class ValiditySummary:
         return beta_interval(median.n + 1 - median.t, median.t, LEVEL)
 
 
-def keypoint_groups(
+def unit_groups(
+    rows: Rows,
     covered: np.ndarray,
-    labeled: np.ndarray,
-    channel: np.ndarray,
     guarantees: tuple[CoverageGuarantee, ...],
-    names: list[str],
+    units: list[tuple[str, tuple[int, ...]]],
 ) -> tuple[GroupCoverage, ...]:
-    """Per manifest keypoint: covered count among its labeled test rows."""
+    """Per unit (a keypoint, or an object: its name and keypoint channels): the instances with all its
+    keypoints labeled, and of them those with all covered at once."""
     groups = []
-    for k, guarantee in enumerate(guarantees):
-        rows = labeled & (channel == k)
-        groups.append(
-            GroupCoverage(names[k], guarantee.n, guarantee.t, int(rows.sum()), int(covered[rows].sum()))
-        )
-    return tuple(groups)
-
-
-def object_groups(
-    covered: np.ndarray,
-    labeled: np.ndarray,
-    channel: np.ndarray,
-    instance: np.ndarray,
-    guarantees: tuple[CoverageGuarantee, ...],
-    objects: list[tuple[str, tuple[int, ...]]],
-) -> tuple[GroupCoverage, ...]:
-    """Per object: instances (fully labeled) whose keypoints are all covered at once."""
-    groups = []
-    for name, keypoints in objects:
-        rows = np.isin(channel, keypoints)
-        ids, index = np.unique(instance[rows], return_inverse=True)
-        complete = np.bincount(index, weights=labeled[rows], minlength=len(ids)) == len(keypoints)
-        all_covered = np.bincount(index, weights=covered[rows], minlength=len(ids)) == len(keypoints)
-        guarantee = guarantees[keypoints[0]]
-        groups.append(
-            GroupCoverage(
-                name, guarantee.n, guarantee.t, int(complete.sum()), int((all_covered & complete).sum())
-            )
-        )
+    for name, keypoints in units:
+        unit = np.isin(rows.channel, keypoints)
+        ids, index = np.unique(rows.instance[unit], return_inverse=True)
+        complete = np.bincount(index, weights=rows.labeled[unit], minlength=len(ids)) == len(keypoints)
+        all_covered = np.bincount(index, weights=covered[unit], minlength=len(ids)) == len(keypoints)
+        n, t = guarantees[keypoints[0]].n, guarantees[keypoints[0]].t
+        groups.append(GroupCoverage(name, n, t, int(complete.sum()), int((all_covered & complete).sum())))
     return tuple(groups)

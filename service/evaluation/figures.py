@@ -1,7 +1,5 @@
-"""The evaluation's figures (matplotlib, Agg, small PNGs): coverage histograms, per-keypoint coverage
-against its band, CDFs of set sizes, adaptiveness. matplotlib is optional (the ``evaluate`` extra):
-import this module only once ``service.evaluation.run.require_matplotlib`` passed.
-"""
+"""The evaluation's figures (matplotlib, Agg, small PNGs). matplotlib is optional (the ``evaluate``
+extra): import this module only once ``service.evaluation.run.require_matplotlib`` passed."""
 
 from __future__ import annotations
 
@@ -27,7 +25,8 @@ VALIDITY, BANDS, TIGHTNESS, ADAPTIVENESS = "validity.png", "bands.png", "tightne
 
 
 def save(figure: plt.Figure, path: Path) -> Path:
-    """PNG at ~100 dpi, quantized to a 256-colour palette to keep the repository small."""
+    """PNG at ~100 dpi, laid out tight, quantized to a 256-colour palette to keep the repository small."""
+    figure.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
     figure.savefig(buffer, dpi=DPI, bbox_inches="tight", format="png")
@@ -59,7 +58,6 @@ def validity_figure(evaluation: Evaluation, path: Path) -> Path:
         "Empirical coverage of the batch: per keypoint (keypoint scope, histogram) and per "
         "object (object scope, triangles)"
     )
-    figure.tight_layout()
     return save(figure, path)
 
 
@@ -69,9 +67,7 @@ def _validity_panel(ax: plt.Axes, summary: ValiditySummary, objects: ValiditySum
         ax.text(0.5, 0.5, "no bounded sets", ha="center", transform=ax.transAxes)
         return
     coverage = np.array([g.coverage for g in groups])
-    n = int(np.median([g.n for g in groups]))
-    m = int(np.median([g.m for g in groups]))
-    t = int(np.median([g.t for g in groups]))
+    n, m, t = (int(np.median([getattr(g, name) for g in groups])) for name in "nmt")
     low, high = central_interval(betabinomial_pmf(m, n + 1 - t, t))
     lowest = min(float(coverage.min()), float(np.min(objects.coverages(), initial=1.0)))
     grid = np.linspace(max(0.0, min(summary.target - 0.25, lowest)), 1.0, 400)
@@ -80,16 +76,8 @@ def _validity_panel(ax: plt.Axes, summary: ValiditySummary, objects: ValiditySum
         coverage, bins=20, range=(grid[0], 1.0), density=True, color="tab:blue", alpha=0.7, label="keypoints"
     )
     ax.plot(grid, beta_pdf(grid, n + 1 - t, t), color="tab:red", label=f"Beta({n + 1 - t}, {t})")
-    simultaneous = objects.coverages()
-    ax.plot(
-        simultaneous,
-        np.zeros_like(simultaneous),
-        "^",
-        color="tab:green",
-        ms=7,
-        clip_on=False,
-        label="objects, object scope",
-    )
+    simultaneous, marks = objects.coverages(), {"ms": 7, "clip_on": False, "label": "objects, object scope"}
+    ax.plot(simultaneous, np.zeros_like(simultaneous), "^", color="tab:green", **marks)
     ax.axvline(summary.target, color="k", ls="--", lw=1)
     ax.set_title(f"{summary.kind}, eps={summary.epsilon}", fontsize=10)
     ax.set_xlabel("empirical coverage")
@@ -104,7 +92,6 @@ def band_figure(evaluation: Evaluation, path: Path) -> Path:
         for col, scope in enumerate(scopes):
             _band_panel(axes[row, col], evaluation.validity[(kind, epsilon, scope)], row == col == 0)
     figure.suptitle(f"Coverage against the theoretical 95% band for the batch size, eps={epsilon}")
-    figure.tight_layout()
     return save(figure, path)
 
 
@@ -142,11 +129,9 @@ def tightness_figure(evaluation: Evaluation, path: Path) -> Path:
             ax.plot(*empirical_cdf(sizes.a[channel == k]), color=colors[k], lw=0.7)
             if kind == "cov":
                 ax.plot(*empirical_cdf(sizes.b[channel == k]), color=colors[k], lw=0.7, ls="--")
-        ax.set_xlim(0, limit)
-        ax.set_xlabel("semi-axes a (solid), b (dashed), px" if kind == "cov" else "radius, px")
+        xlabel = "semi-axes a (solid), b (dashed), px" if kind == "cov" else "radius, px"
+        ax.set(xlim=(0, limit), xlabel=xlabel, ylabel="CDF")
         ax.set_title(f"ICP-{kind.capitalize()}, eps={epsilon}", fontsize=10)
-        ax.set_ylabel("CDF")
-    figure.tight_layout()
     return save(figure, path)
 
 
@@ -155,10 +140,8 @@ def adaptiveness_figure(evaluation: Evaluation, path: Path) -> Path:
     epsilon, rows = evaluation.main_epsilon, evaluation.rows
     labeled = rows.labeled
     visibility, fraction, side = rows.visibility[labeled], rows.visib_fract[labeled], rows.box_side[labeled]
-    with_fraction = bool(np.isfinite(fraction).any())
-    figure, axes = plt.subplots(
-        1, 2 if with_fraction else 1, figsize=(12 if with_fraction else 6, 4), squeeze=False
-    )
+    panels = 2 if np.isfinite(fraction).any() else 1
+    figure, axes = plt.subplots(1, panels, figsize=(6 * panels, 4), squeeze=False)
     data, labels = [], []
     for kind in KINDS:
         radius = np.sqrt(evaluation.sizes[(kind, epsilon)].area / np.pi)
@@ -168,9 +151,8 @@ def adaptiveness_figure(evaluation: Evaluation, path: Path) -> Path:
     axes[0, 0].boxplot(data, tick_labels=labels, showfliers=False)
     axes[0, 0].set_ylabel("sqrt(area / pi), px")
     axes[0, 0].set_title(f"Set size by COCO visibility, eps={epsilon}", fontsize=10)
-    if with_fraction:
+    if panels == 2:
         _fraction_panel(axes[0, 1], evaluation, fraction, side)
-    figure.tight_layout()
     return save(figure, path)
 
 
@@ -184,8 +166,6 @@ def _fraction_panel(ax: plt.Axes, evaluation: Evaluation, fraction: np.ndarray, 
             np.median(relative[which == i]) if (which == i).any() else np.nan for i in range(len(centers))
         ]
         ax.plot(centers, medians, marker="o", label=kind)
-    ax.set_xlabel("visib_fract of the object")
-    ax.set_ylabel("median area / box side^2")
-    ax.set_yscale("log")
+    ax.set(xlabel="visib_fract of the object", ylabel="median area / box side^2", yscale="log")
     ax.legend()
     ax.set_title("Relative set area against the visible fraction", fontsize=10)

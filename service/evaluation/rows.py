@@ -1,8 +1,6 @@
-"""One inference pass over a labeled COCO folder (the detector once per image): per (instance, keypoint)
-row everything the evaluation needs, so no heatmap is kept: the three scores (the service's
-``score_image``), the heatmap statistics the sets are built from (service.evaluation.row_sets), the
-crop affine, the label and its COCO visibility flag.
-"""
+"""One inference pass over a labeled COCO folder (the detector once per image), keeping per (instance,
+keypoint) row what the evaluation needs instead of the heatmaps: the three scores (``score_image``),
+the heatmap statistics, the crop affine, the label and its COCO visibility flag."""
 
 from __future__ import annotations
 
@@ -16,6 +14,7 @@ from service.calibration.coco import ANNOTATIONS_FILENAME, CocoBatch, LabeledIns
 from service.calibration.scoring import NONCONFORMITY_KINDS, score_image
 from service.conformal import HeatmapStatistics, heatmap_statistics
 from service.detector.images import decode_image
+from service.detector.manifest import HeatmapSpec
 from service.detector.session import Detector, InstanceHeatmaps
 from service.errors import InvalidInput, ServiceError
 
@@ -66,12 +65,9 @@ def collect_rows(
 ) -> Rows:
     """Run the detector once per image of a validated batch and collect every row; an image that
     does not decode by the predict rule is refused (skipping it would measure another batch)."""
-    flags = _visibility_flags(batch)
-    recorder = _RecordingDetector(detector)
+    flags, recorder = _visibility_flags(batch), _RecordingDetector(detector)
     parts: list[dict[str, np.ndarray]] = []
-    statistics: list[HeatmapStatistics] = []
-    groups = batch.instances_by_image()
-    offset = 0
+    offset, groups = 0, batch.instances_by_image()
     for image_id, instances in groups.items():
         record = batch.images[image_id]
         try:
@@ -81,15 +77,18 @@ def collect_rows(
             raise InvalidInput(detail) from None
         scores = [scored.scores for scored in score_image(recorder, image, instances)]
         assert recorder.last is not None
-        part, stats = _image_rows(recorder.last, instances, scores, flags, detector)
-        part["instance"] += offset
+        shape = recorder.last.heatmaps.shape[-2:]
+        parts.append(_image_rows(recorder.last, instances, scores, flags, detector.manifest.heatmap))
+        parts[-1]["instance"] += offset
         offset += len(instances)
-        parts.append(part)
-        statistics.append(stats)
         progress(len(instances))
     merged = {name: np.concatenate([p[name] for p in parts]) for name in parts[0]}
     scores = {kind: merged.pop(f"score_{kind}") for kind in NONCONFORMITY_KINDS}
-    return Rows(**merged, statistics=_concatenate(statistics), scores=scores, images=len(groups))
+    statistics = HeatmapStatistics(shape, *(merged.pop(name) for name in _STATISTICS))
+    return Rows(**merged, statistics=statistics, scores=scores, images=len(groups))
+
+
+_STATISTICS = ("uninformative", "peak_location", "peak_probability", "mean", "covariance")
 
 
 def _image_rows(
@@ -97,11 +96,10 @@ def _image_rows(
     instances: list[LabeledInstance],
     scores: list[dict[str, np.ndarray]],
     flags: dict[int, tuple[np.ndarray, float]],
-    detector: Detector,
-) -> tuple[dict[str, np.ndarray], HeatmapStatistics]:
-    spec = detector.manifest.heatmap
+    spec: HeatmapSpec,
+) -> dict[str, np.ndarray]:
     rows = result.instance_index
-    stats = heatmap_statistics(result.heatmaps, spec.normalization, spec.top_k, spec.temperature)
+    statistics = heatmap_statistics(result.heatmaps, spec.normalization, spec.top_k, spec.temperature)
     part = {
         "image_id": np.array([instances[i].image_id for i in rows]),
         "instance": rows.astype(np.int64),
@@ -112,9 +110,8 @@ def _image_rows(
         "box_side": np.array([max(instances[i].bbox[2], instances[i].bbox[3]) for i in rows]),
         "affine": result.affines[rows],
     }
-    for kind in NONCONFORMITY_KINDS:
-        part[f"score_{kind}"] = np.concatenate([s[kind] for s in scores])
-    return part, stats
+    part |= {name: getattr(statistics, name) for name in _STATISTICS}
+    return part | {f"score_{kind}": np.concatenate([s[kind] for s in scores]) for kind in NONCONFORMITY_KINDS}
 
 
 def _visibility_flags(batch: CocoBatch) -> dict[int, tuple[np.ndarray, float]]:
@@ -125,13 +122,3 @@ def _visibility_flags(batch: CocoBatch) -> dict[int, tuple[np.ndarray, float]]:
         a["id"]: (np.asarray(a["keypoints"], dtype=np.int64)[2::3], float(a.get("visib_fract", np.nan)))
         for a in document["annotations"]
     }
-
-
-def _concatenate(parts: list[HeatmapStatistics]) -> HeatmapStatistics:
-    return HeatmapStatistics(
-        parts[0].heatmap_shape,
-        *(np.concatenate([getattr(p, name) for p in parts]) for name in _STATISTIC_ARRAYS),
-    )
-
-
-_STATISTIC_ARRAYS = ("uninformative", "peak_location", "peak_probability", "mean", "covariance")

@@ -89,17 +89,12 @@ def run_evaluation(
 ) -> tuple[Evaluation, Path]:
     """Evaluate the version on the folder; write ``out/evaluation.md`` and ``out/figures/*.png``."""
     from service.evaluation.figures import draw_figures
-    from service.evaluation.report import REPORT_FILENAME, write_report
+    from service.evaluation.report import write_report
 
     check_request(request)
     info, table = resolve_version(store, detector, request.version)
     batch = load_coco_batch(request.folder, detector.manifest)
     rows = collect_rows(batch, detector, max_image_pixels, progress)
-    evaluation = evaluate(
-        rows, table, detector.manifest, detector.model_hash, info, request.epsilons, request.delta
-    )
+    evaluation = evaluate(rows, table, detector, info, request.epsilons, request.delta)
     draw_figures(evaluation, request.out / "figures")
-    path = write_report(
-        evaluation, request.title, request.command, request.folder.as_posix(), request.out / REPORT_FILENAME
-    )
-    return evaluation, path
+    return evaluation, write_report(evaluation, request)

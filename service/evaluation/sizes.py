@@ -1,7 +1,5 @@
-"""Tightness: sizes of the ICP sets in image pixels (the paper's Fig. 3): balls by their radius,
-ellipses by their semi-axes a <= b, areas pi r^2 and pi a b to compare them. Unbounded sets (t = 0)
-have infinite size and stay in the medians as such.
-"""
+"""Tightness (the paper's Fig. 3): set sizes in image pixels, balls by their radius, ellipses by their
+semi-axes a <= b, areas pi r^2 and pi a b; unbounded sets (t = 0) stay in the medians as infinite."""
 
 from __future__ import annotations
 
@@ -16,7 +14,6 @@ from service.conformal import ball_radii, ellipse_axes
 class SetSizes:
     """Per row: semi-axes a <= b (a = b = r for balls) and area, image pixels."""
 
-    kind: str
     a: np.ndarray
     b: np.ndarray
 
@@ -32,17 +29,12 @@ def set_sizes(kind: str, shapes: np.ndarray) -> SetSizes:
     """Radii of balls (peak, var) or semi-axes of ellipses (cov), from image-space shapes."""
     if kind == "cov":
         a, b, _ = ellipse_axes(shapes)
-        return SetSizes(kind, a, b)
+        return SetSizes(a, b)
     radii = ball_radii(shapes)
-    return SetSizes(kind, radii, radii)
+    return SetSizes(radii, radii)
 
 
 def empirical_cdf(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Sorted values and their CDF levels i/n, for a step plot."""
     x = np.sort(values)
     return x, np.arange(1, x.size + 1) / max(x.size, 1)
-
-
-def tightest(median_areas: dict[str, float]) -> str:
-    """The function with the smallest median set area."""
-    return min(median_areas, key=lambda kind: median_areas[kind])

@@ -1,17 +1,22 @@
-"""Every number the evaluation shows, computed from a batch's rows and a version's scores
-(no drawing, no text)."""
+"""Every number the evaluation shows, computed from a batch's rows and a version's scores (no drawing,
+no text). The sets are built by the steps ``predict`` takes (the function's ``region``, then
+``map_sets_to_image``) and cover a label when it lies in them (``contains``); the ICP definition
+(score <= threshold) is computed too, and the report says on how many keypoints both agree."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from calibration_store import ScoreTable, VersionInfo
 from service.calibration.registry import channel_thresholds
 from service.calibration.scoring import NONCONFORMITY_KINDS
+from service.conformal import contains, get_nonconformity_score, map_sets_to_image
 from service.detector.manifest import Manifest
+from service.detector.session import Detector
 from service.evaluation.adaptiveness import Adaptiveness, adaptiveness
-from service.evaluation.coverage import ValiditySummary, keypoint_groups, object_groups
-from service.evaluation.row_sets import covered_by_score, row_sets
+from service.evaluation.coverage import ValiditySummary, unit_groups
 from service.evaluation.rows import Rows
 from service.evaluation.sizes import SetSizes, set_sizes
 
@@ -55,14 +60,14 @@ class Evaluation:
 def evaluate(
     rows: Rows,
     table: ScoreTable,
-    manifest: Manifest,
-    model_hash: str,
+    detector: Detector,
     version: VersionInfo,
     epsilons: tuple[float, ...],
     delta: float | None = None,
 ) -> Evaluation:
     """Thresholds of the version (the service's ``channel_thresholds``), the batch's sets and
     their coverage, sizes and adaptiveness, for every function and epsilon."""
+    manifest, model_hash = detector.manifest, detector.model_hash
     evaluation = Evaluation(manifest, model_hash, version, table.n_instances, rows, tuple(epsilons), delta)
     for kind in NONCONFORMITY_KINDS:
         for epsilon in evaluation.epsilons:
@@ -72,27 +77,25 @@ def evaluate(
 
 
 def _validity(evaluation: Evaluation, table: ScoreTable, kind: str, epsilon: float, scope: str) -> None:
-    manifest, rows = evaluation.manifest, evaluation.rows
+    manifest, rows, labeled = evaluation.manifest, evaluation.rows, evaluation.rows.labeled
     delta = evaluation.delta if scope == PAC else None
-    result = channel_thresholds(
-        table, manifest.num_keypoints, kind, "object" if scope == "object" else "keypoint", epsilon, delta
-    )
-    sets = row_sets(rows, kind, result.values)
+    thresholds_scope = "object" if scope == "object" else "keypoint"  # PAC: keypoint scope
+    result = channel_thresholds(table, manifest.num_keypoints, kind, thresholds_scope, epsilon, delta)
+    centers, shapes = get_nonconformity_score(kind).region(rows.statistics, result.values[rows.channel])
+    centers, shapes = map_sets_to_image(centers, shapes, rows.affine)
+    covered = np.zeros(len(centers), dtype=bool)
+    covered[labeled] = contains(rows.label[labeled], centers[labeled], shapes[labeled])
     if scope == "object":
-        objects = [(o.name, tuple(o.keypoints)) for o in manifest.objects]
-        groups = object_groups(
-            sets.covered, rows.labeled, rows.channel, rows.instance, result.guarantees, objects
-        )
+        units = [(o.name, tuple(o.keypoints)) for o in manifest.objects]
     else:
-        names = [k.name for k in manifest.keypoints]
-        groups = keypoint_groups(sets.covered, rows.labeled, rows.channel, result.guarantees, names)
+        units = [(k.name, (k.index,)) for k in manifest.keypoints]
+    groups = unit_groups(rows, covered, result.guarantees, units)
     evaluation.validity[(kind, epsilon, scope)] = ValiditySummary(kind, epsilon, scope, delta, groups)
     if scope == "keypoint":
-        labeled = rows.labeled
-        by_score = covered_by_score(rows, kind, result.values)
-        evaluation.agreement[(kind, epsilon)] = float((by_score[labeled] == sets.covered[labeled]).mean())
-        sizes = set_sizes(kind, sets.shapes[labeled])
-        evaluation.sizes[(kind, epsilon)] = sizes
+        with np.errstate(invalid="ignore"):  # unlabeled rows: NaN scores, not covered
+            by_score = rows.scores[kind] <= result.values[rows.channel]
+        evaluation.agreement[(kind, epsilon)] = float((by_score[labeled] == covered[labeled]).mean())
+        sizes = evaluation.sizes[(kind, epsilon)] = set_sizes(kind, shapes[labeled])
         evaluation.adaptive[(kind, epsilon)] = adaptiveness(
-            kind, sizes.area, rows.visibility[labeled], rows.visib_fract[labeled], rows.box_side[labeled]
+            sizes.area, rows.visibility[labeled], rows.visib_fract[labeled], rows.box_side[labeled]
         )

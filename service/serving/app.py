@@ -14,7 +14,7 @@ from starlette.types import Message, Receive, Scope, Send
 from service import __version__
 from service.api.admin import audit_routes, calibration_routes
 from service.api.deps import PredictParts
-from service.api.feedback import coverage_routes, feedback_routes
+from service.api.feedback import feedback_routes
 from service.api.http.callers import Callers
 from service.api.http.contract import install_contract
 from service.api.http.cut_requests import AnswerCutRequests
@@ -59,11 +59,9 @@ DOCS_CONTENT_SECURITY_POLICY = (
 
 
 def create_app(settings: Settings | None = None, state: ServiceState | None = None) -> FastAPI:
-    """Build the app; the model and store are loaded at start-up (or ``state`` is used as is).
-
-    Settings are read now, and logging configured (unless the process did), so that a server
-    started as ``uvicorn service.serving.main:app`` logs its start-up in the service's format.
-    """
+    """Build the app; the model and store are loaded at start-up (or ``state`` is used as is). Settings
+    are read now, and logging configured (unless the process did), so that a server started as
+    ``uvicorn service.serving.main:app`` logs its start-up in the service's format."""
     settings = state.settings if state is not None else settings or Settings()
     ensure_logging(settings)
 
@@ -87,10 +85,9 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
 
     # Swagger UI and ReDoc served from the package, not a CDN: many deployments (factories,
     # labs, vehicles) have no internet access.
-    docs_url, redoc_url = DOCS_PAGES
     app = FastAPIOffline(
-        docs_url=docs_url,
-        redoc_url=redoc_url,
+        docs_url=DOCS_PAGES[0],
+        redoc_url=DOCS_PAGES[1],
         title="Conformal keypoint service",
         version=__version__,
         description=DESCRIPTION,
@@ -103,19 +100,10 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
     app.add_middleware(HeaderLimits)  # outside the metrics: headers refused before anything reads them
     app.add_middleware(RequestIdMiddleware)  # outside the access line, which logs the id
     install_problem_handlers(app)
-    for routes in (
-        predict_routes,
-        frame_routes,
-        model_routes,
-        calibration_routes,
-        health_routes,
-        drift_routes,
-        audit_routes,
-        console_routes,
-        feedback_routes,
-        coverage_routes,
-    ):
+    routers = (predict_routes, frame_routes, model_routes, calibration_routes, health_routes, drift_routes)
+    for routes in (*routers, audit_routes, console_routes, feedback_routes):
         app.include_router(routes.router)
+    app.include_router(feedback_routes.admin_router)
 
     def served_objects() -> tuple[str, ...]:
         service = getattr(app.state, "service", None)  # started: its model; else the one it would load
@@ -130,15 +118,8 @@ def create_app(settings: Settings | None = None, state: ServiceState | None = No
 
 def predict_parts(state: ServiceState) -> PredictParts:
     """What the predict routes take from the service (``service.api.deps.Predicting``)."""
-    return PredictParts(
-        state.predictor,
-        state.admission,
-        state.cpu_pool,
-        state.settings.predict.max_request_bytes,
-        Callers(state.predict_callers),
-        state.retention,
-        state.adaptive,
-    )
+    predict = (state.predictor, state.admission, state.cpu_pool, state.settings.predict.max_request_bytes)
+    return PredictParts(*predict, Callers(state.predict_callers), state.retention, state.adaptive)
 
 
 def operation_id(route: APIRoute) -> str:
@@ -150,8 +131,7 @@ class DocsPagesPolicy(HttpMiddleware):
     """Sends ``DOCS_CONTENT_SECURITY_POLICY`` with the API pages (``DOCS_PAGES``), nothing else."""
 
     async def handle(self, scope: Scope, receive: Receive, send: Send) -> None:
-        path = scope.get("path", "").removeprefix(scope.get("root_path", ""))
-        if path not in DOCS_PAGES:
+        if scope.get("path", "").removeprefix(scope.get("root_path", "")) not in DOCS_PAGES:
             await self.app(scope, receive, send)
             return
 

@@ -40,12 +40,12 @@ class ThresholdRow(BaseModel):
 class VersionDetail(VersionSummary):
     normalization: dict = Field(description="the manifest settings the scores were computed under")
     usable: bool = Field(description="whether the current manifest can serve this version")
-    unusable_reason: str | None = Field(default=None, description="why not, and what to do")
+    unusable_reason: str | None = Field(None, description="why not, and what to do")
     labeled_per_keypoint: dict[str, int] = Field(description="calibration scores per keypoint (n)")
     complete_per_object: dict[str, int] = Field(description="fully labeled instances (object scope n)")
     thresholds: list[ThresholdRow]
     strata: dict | None = Field(
-        default=None,
+        None,
         description="Mondrian strata stored with the version (null: none): spec (difficulty signals, bins,"
         " min_instances; group), groups (labels known), bins per keypoint channel and group ('*' = all"
         " instances): edges of each signal and the calibration instances (counts) per bin",
@@ -69,9 +69,9 @@ class ActivationIn(BaseModel):
         },
     )
 
-    reason: str = Field(default="", max_length=2000, description="why; required (not blank) with force")
+    reason: str = Field("", max_length=2000, description="why; required (not blank) with force")
     force: StrictBool = Field(
-        default=False, description="activate although the guardrails refuse it (needs a reason; audited)"
+        False, description="activate although the guardrails refuse it (needs a reason; audited)"
     )
 
     @model_validator(mode="after")
@@ -153,7 +153,7 @@ class JobOut(BaseModel):
     id: str
     kind: str
     state: str = Field(description="queued, running, succeeded, failed or interrupted (retryable)")
-    version: int | None = Field(default=None, description="the calibration version the job produced")
+    version: int | None = Field(None, description="the calibration version the job produced")
     done: int = Field(description="instances scored so far")
     total: int = Field(description="instances to score")
     errors: list[str]
@@ -183,12 +183,12 @@ class CoverageFigureOut(BaseModel):
         " approximation with the band's spread)"
     )
     expected: float | None = Field(
-        default=None, description="pooled: the mean coverage the calibration promises its units"
+        None, description="pooled: the mean coverage the calibration promises its units"
     )
-    n: int | None = Field(default=None, description="calibration instances behind the threshold")
-    rank: int | None = Field(default=None, description="l = floor((n+1) epsilon): Beta(n+1-l, l)")
-    adjusted_p_value: float | None = Field(default=None, description="Holm-adjusted over the audit's tests")
-    flagged: bool | None = Field(default=None, description="significantly low after Holm's correction")
+    n: int | None = Field(None, description="calibration instances behind the threshold")
+    rank: int | None = Field(None, description="l = floor((n+1) epsilon): Beta(n+1-l, l)")
+    adjusted_p_value: float | None = Field(None, description="Holm-adjusted over the audit's tests")
+    flagged: bool | None = Field(None, description="significantly low after Holm's correction")
 
 
 class ObjectCoverageOut(CoverageFigureOut):
@@ -214,7 +214,7 @@ class FlaggedFigureOut(CoverageFigureOut):
     nonconformity: Nonconformity
     epsilon: float
     scope: str
-    object: str | None = Field(default=None, description="null: the section's overall figure")
+    object: str | None = Field(None, description="null: the section's overall figure")
     keypoint: str | None = None
     index: int | None = None
 
@@ -325,21 +325,19 @@ class DriftOut(BaseModel):
         description="sequential: the evidence reached its threshold; ks, psi: any keypoint's alarm is raised"
     )
     independent_looks: int | None = Field(
-        default=None,
+        None,
         description="sequential: the independent looks the alarm has tested since the reference version"
         " became active (a scene's frames are one look); null for ks and psi, which count every frame",
     )
     frames: int | None = Field(
-        default=None, description="sequential: frames (requests) recorded by the replicas covered"
+        None, description="sequential: frames (requests) recorded by the replicas covered"
     )
     evidence: float | None = Field(
-        default=None,
+        None,
         description="sequential: the larger of the two e-CUSUMs (1: no evidence); the alarm is raised at"
         " evidence_threshold = 2 / CKS_DRIFT_ALARM_LEVEL",
     )
-    evidence_threshold: float | None = Field(
-        default=None, description="sequential: 2 / CKS_DRIFT_ALARM_LEVEL"
-    )
+    evidence_threshold: float | None = Field(None, description="sequential: 2 / CKS_DRIFT_ALARM_LEVEL")
     reference_version: int | None = Field(description="the active calibration version compared with")
     reference_available: bool
     reason: str | None = Field(description="why there is no reference (null when there is)")

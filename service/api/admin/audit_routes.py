@@ -18,11 +18,7 @@ from service.errors import NotFound
 from service.monitoring.audit_report import DEFAULT_EPSILONS
 from service.monitoring.coverage_audits import AuditRequest
 
-router = APIRouter(
-    prefix="/v1/admin",
-    tags=["admin"],
-    responses=ADMIN_RESPONSES,
-)
+router = APIRouter(prefix="/v1/admin", tags=["admin"], responses=ADMIN_RESPONSES)
 MAX_AUDIT_ID = 2**63 - 1
 
 
@@ -58,9 +54,8 @@ async def start_audit(
     max_rejected_share: AuditRejectedShare = None,
 ) -> JobOut:
     async with upload.audited("audit"):
-        audit = AuditRequest(
-            version, tuple(epsilon or DEFAULT_EPSILONS), name, note, dedupe, max_rejected_share
-        )
+        epsilons = tuple(epsilon or DEFAULT_EPSILONS)
+        audit = AuditRequest(version, epsilons, name, note, dedupe, max_rejected_share)
         return await upload.start(audit, audits.accept)
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any
 
 from service.api.predict.predict_schemas import PredictParameters
 from service.errors import InvalidInput
@@ -18,21 +17,13 @@ def adapted_query(
     """With ``adaptive: true``, the query at the stream's current ACI level (and its state)."""
     if not parameters.adaptive or adaptive is None:
         return query, None
-    problems = [
-        problem
-        for problem, present in (
-            (
-                "adaptive needs stream (the camera stream whose feedback moves its level)",
-                parameters.stream is None,
-            ),
-            (
-                "adaptive takes no delta (its guarantee is a long-run bound, not PAC)",
-                parameters.delta is not None,
-            ),
-            ("adaptive takes no stratify (one level per stream)", query.stratify != "none"),
-        )
-        if present
-    ]
+    problems = []
+    if parameters.stream is None:
+        problems.append("adaptive needs stream (the camera stream whose feedback moves its level)")
+    if parameters.delta is not None:
+        problems.append("adaptive takes no delta (its guarantee is a long-run bound, not PAC)")
+    if query.stratify != "none":
+        problems.append("adaptive takes no stratify (one level per stream)")
     if problems:
         raise InvalidInput("; ".join(problems), errors=problems)
     target = {"nonconformity": query.nonconformity, "coverage": query.coverage, "epsilon": query.epsilon}
@@ -41,58 +32,33 @@ def adapted_query(
 
 
 def served_request(
-    prediction: Prediction, query: PredictQuery, adaptive: dict[str, Any] | None
+    prediction: Prediction, query: PredictQuery, adaptive: AdaptiveView | None
 ) -> ServedRequest:
     """Every row's heatmap statistics, threshold, set centre, guarantee and stratum, and each instance's
     object, box, group and image -> heatmap affine, as plain values."""
     sets, statistics = prediction.sets, prediction.sets.statistics
     assert prediction.affines is not None and sets.thresholds is not None
-    rows = [
-        {
-            "instance": instance,
-            "channel": channel,
-            "uninformative": uninformative,
-            "peak": peak,
-            "peak_probability": probability,
-            "mean": mean,
-            "covariance": covariance,
-            "threshold": finite_or_none(threshold),
-            "center": center,
-            "guarantee": guarantee_values(guarantee),
-            "stratum": stratum_name(stratum),
-        }
-        for instance, channel, uninformative, peak, probability, mean, covariance, threshold, center, (
-            guarantee,
-            stratum,
-        ) in zip(
-            prediction.instance_index.tolist(),
-            prediction.channel.tolist(),
-            statistics.uninformative.tolist(),
-            statistics.peak_location.tolist(),
-            statistics.peak_probability.tolist(),
-            statistics.mean.tolist(),
-            statistics.covariance.tolist(),
-            sets.thresholds.tolist(),
-            sets.centers.tolist(),
-            prediction.guarantees,
-            strict=True,
-        )
-    ]
+    columns = {
+        "instance": prediction.instance_index.tolist(),
+        "channel": prediction.channel.tolist(),
+        "uninformative": statistics.uninformative.tolist(),
+        "peak": statistics.peak_location.tolist(),
+        "peak_probability": statistics.peak_probability.tolist(),
+        "mean": statistics.mean.tolist(),
+        "covariance": statistics.covariance.tolist(),
+        "threshold": [finite_or_none(threshold) for threshold in sets.thresholds.tolist()],
+        "center": sets.centers.tolist(),
+        "guarantee": [guarantee_values(guarantee) for guarantee, _ in prediction.guarantees],
+        "stratum": [stratum_name(stratum) for _, stratum in prediction.guarantees],
+    }
+    rows = [dict(zip(columns, row, strict=True)) for row in zip(*columns.values(), strict=True)]
     instances = [
         {"object": i.object, "bbox": list(i.bbox), "group": i.group, "affine": affine}
         for i, affine in zip(query.instances, prediction.affines.tolist(), strict=True)
     ]
-    return ServedRequest(
-        query={
-            "nonconformity": query.nonconformity,
-            "coverage": query.coverage,
-            "epsilon": query.epsilon if adaptive is None else adaptive.epsilon,  # adaptive: the target
-            "delta": query.delta,
-        },
-        instances=instances,
-        rows=rows,
-        heatmap_shape=statistics.heatmap_shape,
-        width=prediction.width,
-        height=prediction.height,
-        adaptive=None if adaptive is None else {"key": adaptive.key, **adaptive.as_dict()},
-    )
+    asked = {"nonconformity": query.nonconformity, "coverage": query.coverage}
+    # with adaptive: the target epsilon, not the level served
+    asked |= {"epsilon": query.epsilon if adaptive is None else adaptive.epsilon, "delta": query.delta}
+    state = None if adaptive is None else {"key": adaptive.key, **adaptive.as_dict()}
+    image = (statistics.heatmap_shape, prediction.width, prediction.height)
+    return ServedRequest(asked, instances, rows, *image, adaptive=state)

@@ -32,8 +32,7 @@ class MetricsMiddleware(HttpMiddleware):
             await self.app(scope, receive, send_with_status)
         finally:
             elapsed = time.perf_counter() - start
-            route = scope.get("route")
-            path = getattr(route, "path", None) or "unmatched"
+            path = getattr(scope.get("route"), "path", None) or "unmatched"
             method = scope.get("method", "GET")
             REQUESTS.labels(method, path, str(status["code"])).inc()
             LATENCY.labels(method, path).observe(elapsed)
@@ -42,14 +41,9 @@ class MetricsMiddleware(HttpMiddleware):
 
 
 def _log_access(scope: Scope, method: str, status: int, elapsed: float) -> None:
-    request = current_request()
-    client = scope.get("client")
-    fields = {
-        "method": method,
-        "path": scope.get("path", ""),
-        "status": status,
-        "duration_ms": round(elapsed * 1000, 1),
-        "calibration_version": request.calibration_version if request else None,
-        "client": client[0] if client else None,
-    }
+    request, client = current_request(), scope.get("client")
+    fields = {"method": method, "path": scope.get("path", ""), "status": status}
+    fields["duration_ms"] = round(elapsed * 1000, 1)
+    fields["calibration_version"] = request.calibration_version if request else None
+    fields["client"] = client[0] if client else None
     log_fields(access_log, "access", fields)

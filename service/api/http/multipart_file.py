@@ -16,8 +16,7 @@ class FilePart:
     Any other part is refused (422), so a parameter sent as a form field is not silently ignored."""
 
     def __init__(self, content_type: str, name: str, out: Callable[[bytes], None]) -> None:
-        _, options = parse_options_header(content_type)
-        boundary = options.get(b"boundary")
+        boundary = parse_options_header(content_type)[1].get(b"boundary")
         if not boundary:
             raise InvalidInput("multipart/form-data needs a boundary in its Content-Type")
         self._name, self._out = name, out

@@ -20,19 +20,13 @@ _VALID = re.compile(rf"[\x21-\x7e]{{1,{MAX_LENGTH}}}")
 
 def request_id(presented: str | None) -> str:
     """The caller's id if it is 1 to 128 visible ASCII characters, else a new one (32 hex digits)."""
-    if presented is not None and _VALID.fullmatch(presented):
-        return presented
-    return uuid.uuid4().hex
+    return presented if presented is not None and _VALID.fullmatch(presented) else uuid.uuid4().hex
 
 
 class RequestIdMiddleware(HttpMiddleware):
-    """Makes the request's id the id of its log lines and returns it in ``X-Request-ID``.
-
-    The context variable is not reset when the app returns: the server runs each request in
-    a task of its own, so the value ends with it, and lines logged after the app returned
-    (the 500 handler, which runs outside every middleware, and uvicorn's report of the
-    exception) still carry the id.
-    """
+    """Makes the request's id the id of its log lines and returns it in ``X-Request-ID``. The context
+    variable is not reset: each request's task ends it, and lines logged after the app returned (the
+    500 handler, outside every middleware, and uvicorn's report of the exception) still carry the id."""
 
     async def handle(self, scope: Scope, receive: Receive, send: Send) -> None:
         context = begin_request(request_id(Headers(scope=scope).get(HEADER)))

@@ -1,8 +1,5 @@
-"""The operator console: one page and its script and style, shipped in the package (no CDN).
-
-The page and its files are open; the data it shows comes from the admin API, which needs the
-admin token: the page asks for it and keeps it in the tab's sessionStorage only.
-"""
+"""The operator console: one page and its script and style, shipped in the package (no CDN). The files
+are open; the data comes from the admin API, whose token the page asks for and keeps in sessionStorage."""
 
 from __future__ import annotations
 

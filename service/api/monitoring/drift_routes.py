@@ -10,11 +10,7 @@ from service.api.admin.admin_schemas import DriftOut
 from service.api.deps import ADMIN_RESPONSES, Admin, Drift
 from service.errors import NotFound
 
-router = APIRouter(
-    prefix="/v1/admin",
-    tags=["admin"],
-    responses=ADMIN_RESPONSES,
-)
+router = APIRouter(prefix="/v1/admin", tags=["admin"], responses=ADMIN_RESPONSES)
 
 
 @router.get(
@@ -26,5 +22,4 @@ router = APIRouter(
 async def drift(monitor: Drift, who: Admin) -> DriftOut:
     if monitor is None:
         raise NotFound("drift monitoring is off in this server: set CKS_DRIFT_ENABLED=true to turn it on")
-    report = await run_in_threadpool(monitor.report)
-    return drift_out(report)
+    return drift_out(await run_in_threadpool(monitor.report))

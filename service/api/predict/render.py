@@ -22,18 +22,9 @@ Box = tuple[int, int, int, int]  # x0, y0, x1, y1 in pixels, x1 and y1 excluded
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
 _SHIFT = 4  # OpenCV fixed-point bits: sub-pixel drawing
 _SCALE = 1 << _SHIFT
-_PALETTE = [
-    (75, 25, 230),
-    (75, 180, 60),
-    (25, 225, 255),
-    (200, 130, 0),
-    (48, 130, 245),
-    (180, 30, 145),
-    (240, 240, 70),
-    (230, 50, 240),
-    (60, 245, 210),
-    (190, 190, 250),
-]
+# Ten distinct colours (BGR), one per keypoint index modulo ten.
+_BGR = bytes.fromhex("4b19e6 4bb43c 19e1ff c88200 3082f5 b41e91 f0f046 e632f0 3cf5d2 bebefa")
+_PALETTE = [tuple(_BGR[i : i + 3]) for i in range(0, len(_BGR), 3)]
 # Labels in _PALETTE's colours, tinted toward white (by these shares) where needed to read at 7:1
 # or more on their black boxes (WCAG AAA; AA asks 4.5:1, which tests/api/test_png_labels.py
 # checks): the red, dark blue, purple and magenta were 4.6, 5.0, 3.0 and 6.3. Still each set's hue.
@@ -49,27 +40,13 @@ def _fixed(point: tuple[float, float]) -> tuple[int, int]:
     return (round((point[0] - 0.5) * _SCALE), round((point[1] - 0.5) * _SCALE))
 
 
-def _draw_set(canvas: np.ndarray, region, colour: tuple[int, int, int], thickness: int) -> None:
+def _draw_set(canvas: np.ndarray, region, colour: tuple[int, ...], thickness: int) -> None:
+    style = (colour, thickness, cv2.LINE_AA, _SHIFT)
     if isinstance(region, BallSet):
-        radius = min(region.radius, 1e5)
-        cv2.circle(
-            canvas, _fixed(region.center), round(radius * _SCALE), colour, thickness, cv2.LINE_AA, _SHIFT
-        )
+        cv2.circle(canvas, _fixed(region.center), round(min(region.radius, 1e5) * _SCALE), *style)
     elif isinstance(region, EllipseSet):
-        a, b = (min(axis, 1e5) for axis in region.semi_axes)
-        axes = (round(b * _SCALE), round(a * _SCALE))
-        cv2.ellipse(
-            canvas,
-            _fixed(region.center),
-            axes,
-            region.angle_deg,
-            0,
-            360,
-            colour,
-            thickness,
-            cv2.LINE_AA,
-            _SHIFT,
-        )
+        a, b = (round(min(axis, 1e5) * _SCALE) for axis in region.semi_axes)
+        cv2.ellipse(canvas, _fixed(region.center), (b, a), region.angle_deg, 0, 360, *style)
 
 
 def _legend_lines(response: PredictResponse) -> list[str]:
@@ -94,8 +71,7 @@ def _draw_legend(canvas: np.ndarray, response: PredictResponse) -> None:
     scale, line_height, box = _legend_layout(canvas.shape, lines)
     cv2.rectangle(canvas, box[:2], box[2:], (0, 0, 0), -1)
     for row, text in enumerate(lines):
-        origin = (6, line_height * (row + 1))
-        cv2.putText(canvas, text, origin, _FONT, scale, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(canvas, text, (6, line_height * (row + 1)), _FONT, scale, (255, 255, 255), 1, cv2.LINE_AA)
 
 
 _AXIS_COLOURS = [(0, 0, 255), (0, 255, 0), (255, 0, 0)]  # x red, y green, z blue (BGR)
@@ -112,17 +88,14 @@ def _draw_pose(canvas: np.ndarray, instance: InstanceOut, camera: np.ndarray, ma
     corners = np.array([[(high if (k >> d) & 1 else low)[d] for d in range(3)] for k in range(8)])
     axis = 0.5 * float(np.max(high - low))
     axes = np.array([[0.0, 0.0, 0.0], [axis, 0, 0], [0, axis, 0], [0, 0, axis]])
-    rotation, translation = np.array(pose.rotation), np.array(pose.translation)
-    camera_points = np.vstack([corners, axes]) @ rotation.T + translation
+    camera_points = np.vstack([corners, axes]) @ np.array(pose.rotation).T + np.array(pose.translation)
     if (camera_points[:, 2] <= 0).any():
         return  # a box reaching behind the camera has no faithful drawing
-    projected = camera_points @ camera.T
-    image_points = [_fixed(tuple(p[:2] / p[2])) for p in projected]
+    image_points = [_fixed(tuple(p[:2] / p[2])) for p in camera_points @ camera.T]
     for a, b in _BOX_EDGES:
         cv2.line(canvas, image_points[a], image_points[b], (255, 255, 255), 1, cv2.LINE_AA, _SHIFT)
-    origin = image_points[8]
-    for tip, colour in zip(image_points[9:], _AXIS_COLOURS, strict=True):
-        cv2.line(canvas, origin, tip, colour, 2, cv2.LINE_AA, _SHIFT)
+    for tip, colour in zip(image_points[9:], _AXIS_COLOURS, strict=True):  # from the origin, image_points[8]
+        cv2.line(canvas, image_points[8], tip, colour, 2, cv2.LINE_AA, _SHIFT)
 
 
 @dataclass(frozen=True)
@@ -164,13 +137,9 @@ _RADII = np.array([3, 8, 14, 22, 32, 45, 60, 80, 105, 135, 170, 210, 260, 320, 4
 
 
 def _set_box(region, point: tuple[int, int]) -> Box:
-    reach = _MARK
-    if isinstance(region, BallSet) and region.radius <= _SMALL_SET:
-        reach = max(reach, math.ceil(region.radius))
-    elif isinstance(region, EllipseSet) and max(region.semi_axes) <= _SMALL_SET:
-        reach = max(reach, math.ceil(max(region.semi_axes)))
-    centre = point if isinstance(region, UnboundedSet) else (int(region.center[0]), int(region.center[1]))
-    x, y = centre
+    size = region.radius if isinstance(region, BallSet) else max(getattr(region, "semi_axes", [math.inf]))
+    reach = max(_MARK, math.ceil(size)) if size <= _SMALL_SET else _MARK
+    x, y = point if isinstance(region, UnboundedSet) else (int(region.center[0]), int(region.center[1]))
     return (x - reach, y - reach, x + reach + 1, y + reach + 1)
 
 
@@ -187,12 +156,11 @@ def _free_place(
     x0 = np.clip(x0, 0, max(0, shape[1] - width))
     y0 = np.clip(y0, 0, max(0, shape[0] - height))
     boxes = np.stack([x0, y0, x0 + width, y0 + height], axis=1)
+    # Boxes of positive size overlap where the larger start is below the smaller end, in x and in y.
+    b, t = boxes[:, None], taken[None]
     overlaps = (
-        (boxes[:, None, 0] < taken[None, :, 2])
-        & (taken[None, :, 0] < boxes[:, None, 2])
-        & (boxes[:, None, 1] < taken[None, :, 3])
-        & (taken[None, :, 1] < boxes[:, None, 3])
-    ).any(axis=1)
+        (np.maximum(b[..., :2], t[..., :2]) < np.minimum(b[..., 2:], t[..., 2:])).all(axis=2).any(axis=1)
+    )
     free = np.flatnonzero(~overlaps)
     return tuple(int(v) for v in boxes[free[0] if free.size else 0])
 
@@ -218,9 +186,8 @@ def render_prediction(
     camera: np.ndarray | None = None,
     manifest: Manifest | None = None,
 ) -> bytes:
-    """PNG bytes of the image with every set, point estimate and keypoint name drawn on it.
-
-    With a camera matrix and the manifest, each instance's estimated pose is drawn too."""
+    """PNG bytes of the image with every set, point estimate and keypoint name drawn on it; with a
+    camera matrix and the manifest, each instance's estimated pose too."""
     canvas = cv2.cvtColor(image_bgr, cv2.COLOR_GRAY2BGR) if image_bgr.ndim == 2 else image_bgr.copy()
     thickness = max(1, round(min(canvas.shape[:2]) / 400))
     for instance in response.instances:
