@@ -49,7 +49,7 @@ class AdaptiveOut(Frozen):
     epsilon: float = Field(..., title="Epsilon")
     """the target miscoverage"""
     gamma: float = Field(..., title="Gamma")
-    """ACI step size (CKS_FEEDBACK_ACI_GAMMA)"""
+    """ACI step size (0.005)"""
     guarantee: Literal["adaptive"] = Field("adaptive", title="Guarantee")
     label_lag: int = Field(..., title="Label Lag")
     """L: the most updates a label has come after the level its set was served at (the other labels of its answer, and those that arrived while it was in flight)"""
@@ -401,7 +401,7 @@ class InputSpec(Frozen):
     """input width in pixels; the square crop is resized to height x width"""
 
 
-BboxItem = TypeAliasType("BboxItem", Annotated[float, Field(..., gt=0.0)])
+BboxItem = TypeAliasType("BboxItem", Annotated[float, Field(..., ge=1.0)])
 
 
 Group = TypeAliasType(
@@ -417,7 +417,7 @@ class InstanceIn(Frozen):
         extra="forbid",
     )
     bbox: tuple[float, float, BboxItem, BboxItem] = Field(..., title="Bbox")
-    """[x, y, width, height] in image pixels, width and height > 0"""
+    """[x, y, width, height] in image pixels, width and height at least 1"""
     group: Group | None = Field(None, title="Group")
     """the caller's group of this instance (camera, site) for stratify=group: its calibration instances carried the same COCO "group\""""
     object: str = Field(..., title="Object")
@@ -436,7 +436,7 @@ class InstanceLabelsIn(Frozen):
     instance: int = Field(..., ge=0, title="Instance")
     """index into the prediction's instances"""
     keypoints: list[Keypoint] = Field(..., title="Keypoints")
-    """[x, y, v] per keypoint of the instance's object, in image pixels; v = 0 not labelled, 1 occluded, 2 visible (COCO)"""
+    """[x, y, v] per keypoint of the instance's object, in image pixels; v = 0 not labelled, 1 occluded, 2 visible (COCO); triples, not COCO's flat list x1, y1, v1, x2, ..."""
 
 
 class JobOut(JobBase):
@@ -988,8 +988,8 @@ class BatchJson(Frozen):
     model_config = ConfigDict(
         extra="forbid",
     )
-    items: list[PredictJson | Any] = Field(..., max_length=16, min_length=1, title="Items")
-    """at most CKS_MAX_BATCH_IMAGES (default 16) images, each with its instances and options"""
+    items: list[PredictJson] = Field(..., max_length=16, min_length=1, title="Items")
+    """at most 16 images, each with its instances and options; an item the schema refuses is answered in its own item (status 422), the others as usual"""
 
 
 class ComparisonOut(Frozen):
@@ -1171,6 +1171,7 @@ class PoseOut(Frozen):
     """no pose consistent with the sets was found (they likely missed)"""
     inner_bound: SampledBoundOut | None
     inner_bound_note: str | None = Field(None, title="Inner Bound Note")
+    """why there is no inner bound, or that it is sampling's alone (the boundary search needs the pose extra's SciPy); absent: the samples and the boundary search made it"""
     largest_violation: float | None = Field(..., title="Largest Violation")
     """the estimate's largest normalised distance (<= 1)"""
     method: Literal["pnp", "pnp+refined-into-set", "sampled", "none"] = Field(..., title="Method")
@@ -1221,7 +1222,7 @@ class DriftOut(Frozen):
     frames: int | None = Field(None, title="Frames")
     """sequential: frames (requests) recorded by the replicas covered"""
     history: list[HistoryPointOut] = Field(..., title="History")
-    """one point per CKS_DRIFT_HISTORY_SECONDS, oldest first"""
+    """one point a minute, oldest first"""
     independent_looks: int | None = Field(None, title="Independent Looks")
     """sequential: the independent looks the alarm has tested since the reference version became active (a scene's frames are one look); null for ks and psi, which count every frame"""
     keypoints: list[KeypointDriftOut] = Field(..., title="Keypoints")

@@ -356,7 +356,5 @@ class DriftOut(BaseModel):
     )
     keypoints: list[KeypointDriftOut]
     objects: list[ObjectDriftOut]
-    history: list[HistoryPointOut] = Field(
-        description="one point per CKS_DRIFT_HISTORY_SECONDS, oldest first"
-    )
+    history: list[HistoryPointOut] = Field(description="one point a minute, oldest first")
     set_sizes: dict[str, KindSizesOut] = Field(description="recent sets per nonconformity function")

@@ -52,8 +52,7 @@ ZIP_FORM: dict[str, Any] = {
     },
 }
 _RECEIVED = {
-    "408": "The body did not arrive within CKS_UPLOAD_READ_TIMEOUT_SECONDS, or slower than"
-    " CKS_MIN_BODY_BYTES_PER_SECOND",
+    "408": "The body did not arrive within an hour",
     "413": "The zip, its files or its unzipped size exceed the limits",
 }
 
@@ -89,8 +88,7 @@ Note = Annotated[str, Query(max_length=2000)]
 def _rejected_share(what: str) -> Any:
     """The ``max_rejected_share`` parameter of an upload whose failure is ``what``'s."""
     description = (
-        "share of instances the box rule or strict decoding may reject"
-        f" before {what} fails (default CKS_MAX_REJECTED_SHARE)"
+        f"share of instances the box rule or strict decoding may reject before {what} fails (default 0: none)"
     )
     return Annotated[float | None, Query(ge=0, le=1, description=description)]
 

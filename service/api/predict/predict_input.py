@@ -292,9 +292,7 @@ async def _batch_parts(form: FormData, limit: int) -> tuple[dict[int, bytes | No
         if match is None:
             problems.append(f"unexpected part {name!r}: send image_0, request_0, image_1, request_1, ...")
         elif index >= limit:
-            problems.append(
-                f"part {name!r}: at most {limit} images per batch, numbered from 0"
-            )
+            problems.append(f"part {name!r}: at most {limit} images per batch, numbered from 0")
         elif index in (images if match.group(1) == "image" else requests):
             problems.append(f"part {name!r} appears more than once")
         elif match.group(1) == "image":

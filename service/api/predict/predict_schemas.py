@@ -441,7 +441,7 @@ class AdaptiveOut(BaseModel):
     epsilon: float = Field(description="the target miscoverage")
     alpha: float = Field(description="alpha_t after the stream's labels so far")
     served_epsilon: float = Field(description="the level these sets were computed at (alpha_t, clipped)")
-    gamma: float = Field(description="ACI step size (CKS_FEEDBACK_ACI_GAMMA)")
+    gamma: float = Field(description="ACI step size (0.005)")
     steps: int = Field(description="T: labels learned from")
     miscoverage: float | None = Field(description="share of the T labels the sets missed")
     label_lag: int = Field(
