@@ -1,19 +1,12 @@
 """Adaptive conformal inference (Gibbs & Candes 2021) per camera stream, driven by feedback labels.
 
-A stream asking for adaptive sets is served the calibration's threshold at level alpha_t instead of
-epsilon; each labelled keypoint of its retained answers (instance, object scope) updates
-alpha_{t+1} = alpha_t + gamma (epsilon - err_t), err_t = 1 when the set served missed. Label t's set
-was served ``lag_t`` updates before its own (the other labels of its answer, and those learned
-between the answer and its feedback). With L = max lag_t, alpha_t stays within
-[-gamma (1 - epsilon) (L + 1), 1 + gamma epsilon (L + 1)], so over the T labels learned, whatever
-the shift (Prop. 4.1 is L = 0; alpha_1 = epsilon; docs/feedback.md derives it):
+A stream asking for adaptive sets is served the threshold at level alpha_t; each labelled unit updates
+alpha_{t+1} = alpha_t + gamma (epsilon - err_t). With labels up to L updates late (docs/feedback.md):
 
     | (1/T) sum err_t - epsilon | <= (max(alpha_1, 1 - alpha_1) + gamma (L + 1)) / (gamma T)
 
-Served levels lie in [1e-9, 0.999]: the whole plane below 1 / (n + 1) as the miscoverage side needs,
-but not the empty set at alpha >= 1, so a stream covered even by the smallest sets can cover more
-than the bound says, never less. The state lives in the store (one row per stream and query,
-compare-and-set): it survives restarts and replicas share it.
+Served levels lie in [1e-9, 0.999] (never the empty set: coverage can exceed the bound, not fall
+short). The state lives in the store (compare-and-set): it survives restarts and replicas share it.
 """
 
 from __future__ import annotations

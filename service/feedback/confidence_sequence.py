@@ -1,18 +1,13 @@
 """An anytime-valid confidence sequence for a mean coverage, and the alarm it proves.
 
-Votes x_i lie in [0, 1] (a look's share of covered keypoints, or 0/1). Against "each vote's mean is
-at least p" the mixture M_n(p) = (1/J) sum_j prod_i (q_j / p)^x_i ((1 - q_j) / (1 - p))^(1 - x_i) over
-J alternatives q_j < p is a nonnegative supermartingale (each factor is convex in x, so at most its
-Bernoulli value: 1 at mean p, less above), and by Ville P(sup_n M_n(p) >= 1/a) <= a however long it
-is watched. The upper bound is the largest p not rejected at level a; the lower bound mirrors it.
+Votes x_i in [0, 1]. Against "each vote's mean is at least p" the mixture M_n(p) = (1/J) sum_j
+prod_i (q_j / p)^x_i ((1 - q_j) / (1 - p))^(1 - x_i), q_j < p, is a nonnegative supermartingale, so
+by Ville P(sup_n M_n(p) >= 1/a) <= a; the bounds are the extreme p not rejected at level a.
 
-The alarm of a version (``CoverageAlarm``): coverage proven below what its calibration gives. A
-threshold's conditional coverage C is Beta(n + 1 - t, t) through its calibration draw (with a PAC
-delta, at least 1 - epsilon). Rung i tests "each vote's mean is at least the u_i quantile of that
-law" with an e-process alarming at 1 / a_i; the alarm is raised once every rung has. For C between
-rungs i and i + 1 rung i is a supermartingale, so P(alarm) <= u_0 + sum_i (u_(i+1) - u_i) a_i, which
-``alarm_rungs`` holds to the level: an unlucky calibration is caught by a low rung needing little
-evidence, a typical one by a high rung, closer to the votes (docs/feedback.md).
+``CoverageAlarm``: coverage proven below what the calibration gives. The conditional coverage C is
+Beta(n + 1 - t, t); rung i tests "mean >= the u_i quantile of that law" with an e-process alarming at
+1 / a_i, and the alarm is raised once every rung has: P(alarm) <= u_0 + sum_i (u_(i+1) - u_i) a_i,
+held to the level by ``alarm_rungs`` (docs/feedback.md).
 """
 
 from __future__ import annotations

@@ -1,11 +1,5 @@
-"""Recalibration from the field: labelled feedback becomes a calibration version without a zip.
-
-``calibrate_from_feedback``: the labelled predictions chosen (a stream, the version that served
-them), each labelled instance's stored scores, heatmap features and fingerprint (what an upload of
-the same image file and labels gets), then an upload's rules: repeats in the selection or in the
-version appended to (409, or dropped with ``dedupe``), a version equal to a stored one (409 unless
-``allow_duplicate``), the guardrails, the activation floor and the audit trail of every new version
-(service.calibration.versions.store_scored_version).
+"""Recalibration from the field: labelled feedback becomes a calibration version without a zip, under
+an upload's rules (repeats, equal versions, guardrails, activation floor, audit trail).
 """
 
 from __future__ import annotations

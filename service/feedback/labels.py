@@ -1,10 +1,6 @@
-"""Feedback on a retained prediction: true image points in, a judged and stored label out.
-
-``record_feedback``: find the retained prediction (404 unknown, 410 expired or evicted), check the
-labels against its instances (422 naming each problem), score every labelled point under the three
-nonconformity functions from the kept heatmap statistics (as a calibration upload of the same image
-and labels would), judge whether the served set covered it, and store the label with its audit
-entry and verdicts (service.feedback.verdicts) in one transaction (409 when labelled already).
+"""Feedback on a retained prediction: true image points in, a judged and stored label out
+(404 unknown, 410 expired, 422 bad labels, 409 labelled already): each labelled point is scored
+from the kept heatmap statistics as a calibration upload would, and stored with its verdicts.
 """
 
 from __future__ import annotations

@@ -1,22 +1,11 @@
 """Live labelled coverage: what the field's labels say of each calibration version's sets so far.
 
-``CoverageFold.add`` counts each labelled prediction's verdicts (service.feedback.verdicts) in its
-groups (the version, each object, keypoint, camera stream, caller group, Mondrian stratum): the raw
-coverage of its units, and one vote per look (frames of one scene are one observation; the look
-was fixed when the answer was served, service.feedback.retention): the share covered of the
-group's units over all the look's labelled frames, cast when a label of the next look of its
-stream is read (or when more than ``OPEN_LOOKS`` looks are open: the oldest). A frame of a look
-already cast counts raw only. Each group's confidence sequence and alarm (a ladder of betting
-e-processes, raised once coverage is proven below what the calibration gives) are
-service.feedback.confidence_sequence's; docs/feedback.md derives why pooling a look's frames keeps
-the false-alarm rate.
-
-``LiveCoverageReader`` keeps one fold per process and adds the labels new since its last read (their
-ids, then only their verdicts: a read costs what arrived since). Looks vote in label order, each
-label once; a raised alarm stays raised though its rows are evicted; replicas agree on the labels
-the store keeps. With ``coverage: object`` a unit is an instance whose keypoints were all labelled,
-covered when all are in their sets. A stratum group gathers the units its stratum's thresholds
-served, each unit's floor its own stratum's (n, t); ``pooled`` the rows that fell back to the pool.
+``CoverageFold.add`` counts each label's verdicts (verdicts.py) in its groups (version, object,
+keypoint, stream, caller group, Mondrian stratum): the raw coverage of its units, and one vote per
+look (a scene's frames are one observation): the share covered over the look's labelled frames, cast
+when a label of the next look of its stream is read (or beyond ``OPEN_LOOKS`` open looks: the
+oldest). Each group's confidence sequence and alarm are confidence_sequence.py's (docs/feedback.md).
+``LiveCoverageReader`` folds the labels new since its last read; a raised alarm stays raised.
 """
 
 from __future__ import annotations

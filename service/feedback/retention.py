@@ -1,10 +1,6 @@
-"""Keeping a predict answer for feedback: what it must remember to judge a true point later.
-
-Per (instance, keypoint) row: the heatmap statistics that give every nonconformity score of a true
-point, the instance's image -> heatmap affine, the threshold and centre of the set served, its
-guarantee and Mondrian stratum; per request: the version, the query, the image's sha256 and size,
-the camera stream, the client and the look (live coverage votes once per look). Labels arrive as
-image points; the affine takes them to the heatmap, the statistics score them as calibration would.
+"""Keeping a predict answer for feedback: per row the heatmap statistics that score a true point, the
+image -> heatmap affine, the set served and its guarantee; per request the version, query, image,
+stream, client and look.
 """
 
 from __future__ import annotations

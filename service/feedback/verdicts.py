@@ -1,14 +1,7 @@
-"""The verdicts of a label: what live coverage counts of a labelled prediction, judged once.
-
-A label's judgement never changes, so the feedback use case judges it when it stores the label and
-keeps the result beside it (about 2 KB where the record is 11 KB): live coverage reads these, never
-the records (docs/feedback.md). ``verdicts`` splits the prediction into its judged units (labelled
-keypoints, or with ``coverage: object`` instances whose keypoints were all labelled) and gathers
-them into the groups live coverage counts. What varies between labels (the covered units per group,
-the look) is the tally; the rest (version, guarantee, query, groups, each unit's floor) is the
-shape, one JSON text that repeats over a stream's frames and is parsed once. A floor is kept as
-the guarantees (n, t, epsilon, delta) behind it: its number depends on CKS_FEEDBACK_ALARM_LEVEL,
-which the reader applies.
+"""The verdicts of a label: what live coverage counts of a labelled prediction, judged once when the
+label is stored (about 2 KB beside an 11 KB record; docs/feedback.md). The tally (covered units per
+group, the look) varies between labels; the shape (version, guarantee, query, groups, each unit's
+floor as its guarantees (n, t, epsilon, delta)) is one JSON text a stream's frames share.
 """
 
 from __future__ import annotations

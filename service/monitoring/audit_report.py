@@ -1,14 +1,9 @@
-"""The report of a coverage audit: the empirical coverage of a version's sets on a labeled batch,
-figure by figure against what Theorem 1 predicts, the significantly low ones flagged, and advice.
+"""The report of a coverage audit: each figure's empirical coverage against Theorem 1, flags, advice.
 
-An instance is covered when its score is at most the version's threshold (the true keypoint lies in
-its set). ``keypoint`` scope: a keypoint's figure is exact (``coverage_law.coverage_test``), an
-object's and the overall one pool keypoints (``coverage_law.pooled_test``). ``object`` scope (one
-threshold on an object's max score): an instance counts when all its keypoints are labeled and is
-covered when all are in their sets; an object's figure is exact, the overall one pooled. Flags come
-from Holm's step-down over every figure of the audit in two families at ``FAMILY_ALPHA / 2`` each
-(the overall figures; all others), so a valid calibration gets any flag with probability at most
-``FAMILY_ALPHA`` (up to the pooled figures' normal approximation).
+``keypoint`` scope: a keypoint's figure is exact (``coverage_test``), an object's and the overall one
+pooled (``pooled_test``). ``object`` scope: an instance counts when all its keypoints are labeled,
+covered when all are in their sets. Flags: Holm over two families (the overall figures; all others) at
+``FAMILY_ALPHA / 2`` each, so a valid calibration gets any flag with probability <= ``FAMILY_ALPHA``.
 """
 
 from __future__ import annotations

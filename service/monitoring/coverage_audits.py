@@ -1,7 +1,5 @@
-"""Coverage audits as background jobs: a labeled batch, checked like a calibration upload, is
-scored by the served detector against a version's thresholds; the report is stored (immutable) and
-its figures published as Prometheus gauges. An audit never changes a calibration; its upload stays
-in this process's workspace until the job ends (an interrupted audit is not retried).
+"""Coverage audits as background jobs: a labeled batch scored against a version's thresholds, the
+report stored and published as Prometheus gauges (never changes a calibration; not retried).
 """
 
 from __future__ import annotations

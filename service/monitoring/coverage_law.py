@@ -1,13 +1,8 @@
-"""What Theorem 1 predicts for the empirical coverage of a labeled test batch, and how to tell a
-calibration that no longer holds from bad luck.
+"""What Theorem 1 predicts for the coverage of a labeled test batch (Yang & Pavone, after Vovk 2012).
 
-Yang & Pavone, Theorem 1 (after Vovk 2012): with n calibration scores and rank l = floor((n+1) eps),
-the coverage conditional on the calibration set is c ~ Beta(n + 1 - l, l) (eq. 5). Given c, the
-covered count of m exchangeable test instances is Binomial(m, c); unconditionally it is
-C ~ BetaBinomial(m, n + 1 - l, l): its central interval is the band a valid calibration's coverage
-falls in, and P(C <= covered) the p-value of "the coverage is below what the calibration promises".
-l = 0 (n + 1 < 1/eps) means unbounded sets: everything is covered. Pure numpy (scipy's
-``stats.betabinom`` is what the tests compare with).
+With n calibration scores and l = floor((n+1) eps), the conditional coverage is c ~ Beta(n + 1 - l, l)
+(eq. 5), so the covered count of m test instances is C ~ BetaBinomial(m, n + 1 - l, l): its central
+interval is the band, P(C <= covered) the p-value (l = 0: unbounded sets, all covered).
 """
 
 from __future__ import annotations

@@ -1,12 +1,8 @@
-"""What each replica's drift monitor saw, shared through the calibration store so that any
-replica answers for the fleet.
+"""What each replica's drift monitor saw, shared through the store so any replica answers for the fleet.
 
-A replica (a server process, ``host:pid``) writes its row of ``calib_monitor_shares`` when it
-starts, then every ``interval`` seconds: its live windows, its looks' first frames' windows, its
-recent looks (time, Z, key, fleet status) and frames (objects, boxes), as one numpy payload. A
-reader merges the rows written within ``STALE_INTERVALS`` intervals with its own state. A starting
-process takes over the rows of stopped processes of its host and of its own name, so a restart
-loses at most the last interval.
+A replica (``host:pid``) writes its row every ``interval`` seconds (windows, look windows, recent looks
+and frames; one numpy payload); readers merge rows fresher than ``STALE_INTERVALS`` intervals. A
+starting process takes over the rows of stopped processes of its host: a restart loses one interval.
 """
 
 from __future__ import annotations

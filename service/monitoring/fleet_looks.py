@@ -1,14 +1,10 @@
-"""The looks of a fleet counted as one process would count them.
+"""The looks of a fleet counted as one process would count them (the alarm's bound counts
+independent looks; a proxy spreading a camera's frames gives each replica a first frame).
 
-A proxy spreading one camera's frames over several replicas gives each a first frame of the scene:
-each would see a new look, more independent evidence than there is (the drift alarm's false-alarm
-bound counts independent looks). So each replica shares its recent frames and looks, and a look
-counts for the fleet only if one process seeing every replica's frames in time order would have
-seen a new look: its first frame continues none of the ``INTERLEAVED_STREAMS`` frames before it
-among all replicas' frames, and no other replica's earlier look is the same image. A look whose
-neighbouring frames are no longer all shared does not count: the count is at most one process's.
-A look is decided for good by its own replica once every other replica has shared its frames up to
-the look's time (``settled_until``); until then every reader decides it afresh, the same way.
+A look counts for the fleet if its first frame continues none of the ``INTERLEAVED_STREAMS`` frames
+before it among all replicas' frames and no other replica's earlier look is the same image; unknown
+neighbours: it does not count. Its replica decides it for good once every other replica has shared
+its frames up to the look's time (``settled_until``).
 """
 
 from __future__ import annotations

@@ -1,25 +1,15 @@
-"""A drift alarm that stays right on camera streams: one vote per independent look, summed by a
-sequential test whose false alarms are bounded.
+"""A drift alarm that stays right on camera streams: one vote per independent look (frames of one
+scene are one observation), summed by a sequential test whose false alarms are bounded.
 
-Consecutive frames of a camera show one scene: a window of them is one observation repeated, and
-a test that counts frames as independent (``ks``) alarms on any odd scene filmed long enough.
-
-1. **Looks.** A frame is a new look unless at least half of its instances continue one of the last
-   ``INTERLEAVED_STREAMS`` frames' (same object, IoU >= ``CONTINUATION_IOU``), or its objects and
-   boxes are those of a recent look (a replayed image). Only a look's first frame votes; in a fleet
-   the replicas' looks count as one process's would (service/monitoring/fleet_looks.py).
-2. **One Z per look.** Each instance's features are ranked among its keypoints' calibration values,
-   turned into normal scores and averaged (p* negated: positive is flatter); that mean, ranked among
-   the calibration instances' own (leave-one-out), gives z_i ~ N(0, 1) under no drift. A look's
-   ``Z = sum z_i / sqrt(m (1 + (m - 1) rho))`` has variance at most 1 while the correlation of
-   instances of one image is at most ``rho`` = ``WITHIN_FRAME_CORRELATION``.
-3. **e-CUSUM.** Each look gives e-values ``exp(+-lambda Z - lambda^2 / 2)`` (mean at most 1 under no
-   drift) and two CUSUMs ``M = e * max(M, 1)`` accumulate them; the alarm is raised while either
-   reaches ``2 / alarm_level``: at least ``1 / alarm_level`` independent quiet looks between false
-   alarms on average (Lorden's bound for e-detectors: Shin, Ramdas & Rinaldo, 2023).
-
-It assumes looks are independent draws of the calibration's law; it misses a drift confined to one
-long look, and one that leaves the features' law unchanged.
+1. Looks: a frame is a new look unless half its instances continue one of the last
+   ``INTERLEAVED_STREAMS`` frames' (same object, IoU >= ``CONTINUATION_IOU``) or it repeats a recent look.
+2. One Z per look: each instance's features, ranked among the calibration's, become normal scores
+   averaged (p* negated); ranked among the calibration instances' own (leave-one-out) that gives
+   z_i ~ N(0, 1), and ``Z = sum z_i / sqrt(m (1 + (m - 1) rho))`` has variance <= 1 while instances
+   of one image correlate at most ``rho`` = ``WITHIN_FRAME_CORRELATION``.
+3. e-CUSUM: e-values ``exp(+-lambda Z - lambda^2 / 2)`` feed two CUSUMs ``M = e * max(M, 1)``; alarm
+   while either reaches ``2 / alarm_level``: >= ``1 / alarm_level`` quiet looks between false alarms
+   on average (Lorden's bound for e-detectors: Shin, Ramdas & Rinaldo, 2023).
 """
 
 from __future__ import annotations

@@ -1,10 +1,8 @@
 """Two-sample tests of a live window against a reference sample, in numpy (no scipy at run time).
 
-- Kolmogorov-Smirnov: D = sup_t |F_ref(t) - F_live(t)| and its two-sided p-value, exact for small
-  samples (Hodges' lattice-path count, Ark. Mat. 3, 1958), else Kolmogorov's limit law with
-  Stephens' correction (JRSS B 32, 1970; Numerical Recipes 14.3). Continuous data (no ties) assumed.
-- Population stability index over quantile bins of the reference (Yurdakul, 2018):
-  PSI = sum_b (live_b - ref_b) ln(live_b / ref_b) over bin shares.
+- Kolmogorov-Smirnov: D = sup |F_ref - F_live|, its p-value exact for small samples (Hodges 1958),
+  else Kolmogorov's limit law with Stephens' correction (1970). No ties assumed.
+- Population stability index: sum_b (live_b - ref_b) ln(live_b / ref_b) over reference quantile bins.
 """
 
 from __future__ import annotations
