@@ -66,8 +66,7 @@ def aci_step(alpha: float, epsilon: float, gamma: float, missed: bool) -> float:
 
 
 def long_run_bound(alpha_1: float, gamma: float, steps: int, lag: int = 0) -> float | None:
-    """(max(alpha_1, 1 - alpha_1) + gamma (L + 1)) / (gamma T) with labels up to L updates late;
-    None before the first label."""
+    """(max(alpha_1, 1 - alpha_1) + gamma (L + 1)) / (gamma T); None before the first label."""
     return None if steps == 0 else (max(alpha_1, 1 - alpha_1) + gamma * (lag + 1)) / (gamma * steps)
 
 
@@ -78,8 +77,7 @@ class AdaptiveSets:
         self._store, self._model_hash, self.gamma = store, model_hash, gamma
 
     def key(self, query: dict[str, Any], stream: str) -> str:
-        """One level per model, stream and query, across calibration versions (a recalibration is
-        one more shift to ACI)."""
+        """One level per model, stream and query, across calibration versions."""
         kind, scope, epsilon = query["nonconformity"], query["coverage"], query["epsilon"]
         return ":".join(str(part) for part in (self._model_hash[:16], kind, scope, epsilon, stream))
 
@@ -94,9 +92,7 @@ class AdaptiveSets:
     def learn(
         self, key: str, epsilon: float, misses: list[bool], served_steps: int | None = None
     ) -> AdaptiveView:
-        """Apply one update per label of one answer, in order (compare-and-set, retried when a
-        replica wrote first); ``served_steps``: the answer's ``steps`` when it was served (unknown:
-        the lags within the answer alone, a floor)."""
+        """Apply one update per label of one answer (compare-and-set, retried when a replica wrote first)."""
         for _ in range(_CAS_ATTEMPTS):
             before = self.view(key, epsilon)
             alpha = before.alpha

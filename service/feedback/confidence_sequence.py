@@ -71,8 +71,7 @@ def coverage_bounds(total: float, count: int, level: float) -> CoverageBounds:
 
 @lru_cache(maxsize=4096)  # a few (n, t) per version, and 60 Beta cdfs each: read per labelled unit
 def promised_floor(n: int, t: int, epsilon: float, delta: float | None, band_level: float) -> float:
-    """The coverage a calibration promises at least: 1 - epsilon with a PAC delta, otherwise the
-    ``band_level`` quantile of Beta(n + 1 - t, t) (t = 0: unbounded sets, coverage 1)."""
+    """1 - epsilon with a PAC delta, else the ``band_level`` quantile of Beta(n + 1 - t, t)."""
     if delta is not None:
         return 1.0 - epsilon
     if t == 0:
@@ -104,8 +103,7 @@ def rung_floors(n: int, t: int, epsilon: float, delta: float | None, level: floa
 
 
 class CoverageAlarm:
-    """The alarm of a group: raised once every rung's e-process has been (module doc), and then
-    for good. False alarms at most the level (with a PAC delta: delta + the least a_i)."""
+    """Raised once every rung's e-process has been, then for good (module doc)."""
 
     def __init__(self, level: float) -> None:
         self._rungs = [BettingEProcess(a) for _, a in alarm_rungs(level)]
@@ -120,13 +118,8 @@ class CoverageAlarm:
 
 
 class BettingEProcess:
-    """One rung: a betting e-process (Waudby-Smith & Ramdas 2023) against "each vote's mean is at
-    least its floor", K_t = prod (1 + lambda_t (f_t - x_t)). The bet
-    lambda_t = (f_t - m) / (v + (f_t - m)^2), clipped to [0, 1 / (2 (1 - f_t))], comes from the mean m
-    and variance v of the earlier votes, discounted by ``_BET_MEMORY`` so that a shortfall after a long
-    good run is bet on within tens of looks. A bet fixed before x_t keeps each factor's mean at most 1
-    under the null, so P(ever K_t >= 1 / alpha) <= alpha (Ville); following the votes' own variance, it
-    proves a shortfall in fewer looks than the Bernoulli mixture of the bounds. Once raised, it stays."""
+    """One rung: K_t = prod (1 + lambda_t (f_t - x_t)) (Waudby-Smith & Ramdas 2023), the bet from the
+    discounted mean and variance of earlier votes; by Ville P(ever K_t >= 1 / alpha) <= alpha."""
 
     def __init__(self, alpha: float) -> None:
         self._limit = math.log(1.0 / alpha)

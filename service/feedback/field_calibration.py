@@ -121,8 +121,7 @@ def field_instances(prediction: RetainedPrediction) -> Iterator[FieldInstance]:
 
 
 def find_field_repeats(instances: list[FieldInstance], parent: Parent | None) -> list[FieldRepeat]:
-    """Instances already counted: in the version appended to (its image or the instance), or earlier
-    in the selection (the same instance, or the same image under another prediction)."""
+    """Instances already in the version appended to, or earlier in the selection."""
     old_images, old_instances = stored_digests(None if parent is None else parent.scores)
     where = f"version {parent.info.number}" if parent is not None else ""
     first_prediction: dict[str, str] = {}

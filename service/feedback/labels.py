@@ -31,8 +31,7 @@ POLL_S = 0.05
 
 @dataclass(frozen=True)
 class InstanceLabels:
-    """The true points of one instance of a retained prediction: ``(x, y, v)`` per keypoint of its
-    object, in image pixels (v = 0: not labelled)."""
+    """The true ``(x, y, v)`` per keypoint of one instance, image pixels (v = 0: not labelled)."""
 
     instance: int
     keypoints: tuple[tuple[float, float, int], ...]
@@ -61,8 +60,7 @@ def record_feedback(
     adaptive: AdaptiveSets | None = None,
     retention: Retention | None = None,
 ) -> Judged:
-    """The feedback use case (see the module's doc); a stream's adaptive level learns from it.
-    ``retention``: this process's, whose queued answers are written first."""
+    """The feedback use case; ``retention``: this process's, whose queued answers go first."""
     if retention is not None:
         retention.flush()
     retained = find_retained(store, prediction_id, max_age_s)
@@ -93,9 +91,7 @@ def record_feedback(
 
 
 def find_retained(store: Any, prediction_id: str, max_age_s: float) -> RetainedPrediction:
-    """The retained prediction, or 404 (never retained) / 410 (expired, or evicted by size); one made
-    moments ago on another replica may still be on its way (written in the background): it is waited
-    for, up to ``IN_FLIGHT_S`` after it was made."""
+    """The retained prediction, 404 or 410; one made moments ago may still be on its way."""
     made = retained_at(prediction_id)
     retained = store.retained_prediction(prediction_id) if made is not None else None
     while retained is None and made is not None and _age_s(made) < IN_FLIGHT_S:

@@ -125,8 +125,7 @@ class _OpenLook:
 
 
 class CoverageFold:
-    """Every group's live coverage, label by label, at false-alarm probability ``level`` per group;
-    the last ``looks_kept`` looks are remembered."""
+    """Every group's live coverage, label by label; the last ``looks_kept`` looks are remembered."""
 
     def __init__(self, level: float, looks_kept: int) -> None:
         self.level, self._looks_kept = level, looks_kept
@@ -239,8 +238,7 @@ class LiveCoverageReader:
         self._cached: tuple[float, list[GroupCoverage]] | None = None
 
     def report(self, max_age_s: float = 0.0) -> list[GroupCoverage]:
-        """Fold the new labels, then report; with ``max_age_s`` (/metrics must not wait) the last
-        report at once, refreshed in the background when older."""
+        """Fold the new labels, then report (``max_age_s``: the last report at once, refreshed behind)."""
         if max_age_s == 0.0:
             with self._lock:
                 return self._fold_and_report()

@@ -58,10 +58,7 @@ class ServedRequest:
 
 
 class Retention:
-    """Decides which answers are kept and writes them to the store from a background thread: a
-    predict answer waits for no database write (an fsync costs more than the model's run); batches
-    go in one transaction each, a refused one retried every ``RETRY_S``. Feedback on a prediction
-    this process retained waits for its row (``flush``)."""
+    """Decides which answers are kept and writes them from a background thread (answers never wait)."""
 
     def __init__(self, store: Any, model_hash: str, rules: RetentionRules, seed: int | None = None) -> None:
         self._store, self._model_hash, self.rules = store, model_hash, rules
@@ -104,8 +101,7 @@ class Retention:
         return prediction_id
 
     def _look(self, stream: str, instances: list[dict[str, Any]], prediction_id: str) -> str:
-        """The look this answer belongs to, named by its first retained frame (the drift monitor's
-        look tracker over the stream's retained frames), fixed once served."""
+        """The look this answer belongs to, named by its first retained frame."""
         frame = Frame(tuple(i["object"] for i in instances), np.array([i["bbox"] for i in instances]))
         with self._looks_lock:
             tracker, look = self._looks.pop(stream, (LookTracker(), prediction_id))
@@ -122,8 +118,7 @@ class Retention:
             self._changed.wait_for(lambda: not self._pending and not self._writing, timeout_s)
 
     def close(self, timeout_s: float = 2.0) -> None:
-        """Write what is queued (for ``timeout_s`` at most: a store that is away does not hold up a
-        shutdown), then stop the writer; rows left unwritten are logged."""
+        """Write what is queued (``timeout_s`` at most), then stop the writer."""
         self.flush(timeout_s)
         with self._changed:
             self._closed = True

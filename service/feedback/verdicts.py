@@ -18,9 +18,7 @@ _GUARANTEE = itemgetter("n", "t", "epsilon", "delta")
 
 
 def verdicts(prediction: RetainedPrediction, keypoint_names: list[str]) -> LabelVerdicts:
-    """The compact judgement of a labelled prediction that live coverage folds (module doc): its
-    shape (JSON text), and as its tally its ``look`` and ``covered``, the covered units of each of
-    the shape's groups."""
+    """The shape (JSON text) and tally (``look``, ``covered`` per group) of a labelled prediction."""
     record = prediction.record
     query = record["query"]
     floors: dict[tuple, int] = {}
@@ -52,8 +50,7 @@ def verdicts(prediction: RetainedPrediction, keypoint_names: list[str]) -> Label
 def _units(
     record: dict[str, Any], judged_rows: Sequence[dict[str, Any]], keypoint_names: list[str], stream: str
 ) -> Iterator[tuple[tuple[tuple[Any, ...], ...], bool, list[tuple[str, str]]]]:
-    """Per judged unit (keypoint, or whole instance: object scope): the guarantees of its rows (its
-    floor is the least), whether it is covered, and the groups (level, name) it counts in."""
+    """Per judged unit: the guarantees of its rows, whether it is covered, its groups."""
     rows, instances = record["rows"], record["instances"]
     for index, row, covered in covered_units(record, judged_rows):
         members = [r for r, kept in enumerate(rows) if kept["instance"] == index] if row is None else [row]
@@ -75,8 +72,7 @@ def _units(
 def covered_units(
     record: dict[str, Any], judged_rows: Sequence[dict[str, Any]]
 ) -> list[tuple[int, int | None, bool]]:
-    """(instance, row, covered) of each unit the query's guarantee speaks about: each labelled
-    keypoint, or (coverage object) each instance whose keypoints are all labelled (row None)."""
+    """(instance, row, covered) per labelled keypoint, or complete instance (coverage object)."""
     rows = record["rows"]
     judged = {row["row"]: row["covered"] for row in judged_rows}
     if record["query"]["coverage"] != "object":

@@ -40,8 +40,7 @@ ThresholdLookup = Callable[[str, str, float], tuple[np.ndarray, Sequence[int]]]
 
 @dataclass
 class _Unit:
-    """One exact figure (a keypoint, or an object in object scope) and its labeled and covered
-    counts per audited image."""
+    """One exact figure and its labeled and covered counts per audited image."""
 
     test: CoverageTest
     figure: dict[str, Any]
@@ -92,8 +91,7 @@ def audit_report(
 
 
 def _image_rows(table: ScoreTable) -> tuple[int, list[np.ndarray]]:
-    """How many images the instances come from, and each block's rows' image (0..images-1);
-    instances are referenced "batch:image:annotation" (service/calibration/scoring.py)."""
+    """How many images, and each block's rows' image (refs are "batch:image:annotation")."""
     index: dict[str, int] = {}
     rows = [
         np.array([index.setdefault(ref.rsplit(":", 1)[0], len(index)) for ref in b.instance_refs], dtype=int)
@@ -112,8 +110,7 @@ def _section(
     counts: Sequence[int],
     epsilon: float,
 ) -> dict[str, Any]:
-    """One scope's figures: exact per keypoint (keypoint scope) or per object (object scope, an
-    instance's max score over its keypoints: labeled when all are), pooled per object and overall."""
+    """One scope's figures: exact per keypoint or object, pooled per object and overall."""
     keypoints, objects, units = [], [], []
     for block, image in zip(table.objects, images[1], strict=True):
         scores = block.scores[kind]

@@ -101,8 +101,7 @@ class CoverageAudits(DetectorJobs):
             publish_audit(latest.id, latest.report)
 
     def follow_latest(self, interval: float, stop: threading.Event) -> None:
-        """Publish the newest audit whichever process or replica ran it: look every ``interval``
-        seconds in a daemon thread until ``stop`` is set."""
+        """Publish the newest audit of any process every ``interval`` seconds until ``stop``."""
 
         def follow() -> None:
             while not stop.wait(interval):
@@ -113,8 +112,7 @@ class CoverageAudits(DetectorJobs):
         threading.Thread(target=follow, name="audit-follower", daemon=True).start()
 
     def _newest(self, before: int | None = None) -> CoverageAudit | None:
-        """The newest audit of the served model (older than ``before``: the one whose gauges other
-        worker processes may still publish); None if none, or the store failed (logged)."""
+        """The newest audit of the served model (before ``before``); None if none or the store failed."""
         try:
             audits = self._store.coverage_audits(self._detector.model_hash, before=before, limit=1)
         except StoreError as error:
@@ -221,9 +219,7 @@ class CoverageAudits(DetectorJobs):
 
 
 def publish_audit(audit_id: int, report: dict[str, Any], previous: CoverageAudit | None = None) -> None:
-    """Replace the audit gauges with this audit's figures (aggregates have keypoint "" and, for
-    the overall figure, object ""), hiding those of the ``previous`` audit and of whatever this
-    process published before."""
+    """Replace the audit gauges with this audit's, hiding the ``previous`` audit's."""
     samples = _audit_samples(audit_id, report)
     stale = set() if previous is None else set(_audit_samples(previous.id, previous.report))
     with _PUBLISHED_LOCK:
@@ -264,8 +260,7 @@ def _audit_samples(audit_id: int, report: dict[str, Any]) -> dict[tuple[Gauge, t
 
 
 def _forget(gauge: Gauge, labels: tuple[str, ...]) -> None:
-    """Drop a sample of an older audit. With several workers each keeps its own file of values
-    and the newest wins ("mostrecent"): a NaN written now hides the other workers' old value."""
+    """Drop an older sample (with several workers a NaN hides the others' old value)."""
     if os.environ.get(MULTIPROCESS_ENV):
         gauge.labels(*labels).set(math.nan)
     else:

@@ -126,9 +126,7 @@ def pooled_test(tests: Sequence[CoverageTest], labeled: np.ndarray, covered: np.
 
 
 def recalibration_size(epsilon: float) -> int:
-    """The smallest n with bounded sets whose conditional coverage stays above 1 - eps - tol
-    (RECALIBRATION_TOLERANCE) with probability BAND_LEVEL: P(Beta(n+1-l, l) < 1 - eps - tol) <= 1 - BAND_LEVEL
-    (eq. 5), by doubling then bisection (the probability shrinks as n grows, up to the floor in l)."""
+    """The smallest n with P(Beta(n+1-l, l) < 1 - eps - tol) <= 1 - BAND_LEVEL (eq. 5)."""
     target = 1.0 - epsilon - RECALIBRATION_TOLERANCE
     floor = conformal_floor(epsilon)
     if target <= 0 or floor >= _MAX_RECALIBRATION_N:

@@ -216,8 +216,7 @@ class DriftMonitor:
         shapes: np.ndarray,
         frame: Frame | None = None,
     ) -> None:
-        """Keep one request's features and set shapes (image px); ``frame`` (its objects and boxes)
-        tells a new look from a continued one (None: every request is a look)."""
+        """Keep one request's features and set shapes; ``frame`` tells a new look (None: always one)."""
         rows = np.full((channels.size, _COLUMNS), np.nan)
         features = live_features(statistics)
         for position, name in enumerate(HEATMAP_FEATURES):
@@ -263,8 +262,7 @@ class DriftMonitor:
         return replace(report, history=history, oldest_share_seconds=oldest)
 
     def start(self) -> None:
-        """Add a history point every ``history_seconds`` until ``stop``; in a fleet, take over the
-        windows of stopped processes of this host and share this one's."""
+        """Add a history point every ``history_seconds``; in a fleet, take over and share windows."""
         self._ticker = threading.Thread(target=self._tick_forever, name="drift-history", daemon=True)
         self._ticker.start()
         if self._shares is not None:

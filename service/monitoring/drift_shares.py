@@ -120,8 +120,7 @@ def decode_share(replica: str, updated_at: float, payload: bytes) -> DriftShare:
 
 
 class DriftShares:
-    """This replica's row of the store, and the fresh rows of the others (read at most once per
-    ``interval / 2``; the last ones read while the store is away)."""
+    """This replica's row of the store, and the others' fresh rows (read at most every ``interval / 2``)."""
 
     def __init__(
         self,
@@ -167,9 +166,7 @@ class DriftShares:
         return fresh
 
     def take_over_stopped(self) -> list[DriftShare]:
-        """The rows of stopped processes of this host, removed from the store: their windows
-        continue in this process. Called before this process writes its row: a row of its own name
-        is an earlier process's with its pid (a restarted container's server is pid 1 again)."""
+        """The rows of stopped processes of this host (or of this name), removed: they continue here."""
         host = socket.gethostname()
         taken = []
         for row in self._store.monitor_shares(self._model_hash, KIND):

@@ -39,8 +39,7 @@ class ReplicaLooks:
 
 
 def fleet_statuses(replicas: list[ReplicaLooks]) -> list[np.ndarray]:
-    """Per replica, the status of each of its looks: the decided ones as they are, the others
-    decided on the frames and looks of ``replicas`` (a replica alone: every look counts)."""
+    """Per replica, each look's status: decided ones kept, others decided on the fleet's frames."""
     if len(replicas) == 1:
         only = replicas[0].statuses
         return [np.where(np.isnan(only), COUNTED, only)]
@@ -69,8 +68,7 @@ def settle(own: ReplicaLooks, others: list[ReplicaLooks], read_at: float) -> np.
 
 
 def settled_until(others: list[ReplicaLooks], read_at: float) -> float:
-    """The time until which every replica's frames are known: each replica writes its row when
-    it starts, so one that is not among ``others`` (read at ``read_at``) saw no frame before."""
+    """The time until which every replica's frames are known."""
     return min([read_at, *(other.covered_until for other in others)])
 
 
@@ -86,8 +84,7 @@ class _FleetFrames:
         self._replicas = replicas
 
     def starts_a_look(self, replica: int, seen: float) -> bool:
-        """Whether the frame of ``replica`` at ``seen`` continues none of the other replicas'
-        frames among the fleet's recent ones (False where those are not all known)."""
+        """Whether that frame continues none of the other replicas' recent frames (False: unknown)."""
         own = self._replicas[replica]
         place = int(np.searchsorted(own.frame_times, seen))
         if place == own.frame_times.size or own.frame_times[place] != seen:

@@ -81,8 +81,7 @@ class LookTracker:
         return self.new_look_key(frame) is not None
 
     def new_look_key(self, frame: Frame | None) -> int | None:
-        """The key of the look ``frame`` starts (NO_KEY without boxes), None when it continues or
-        repeats one."""
+        """The key of the look ``frame`` starts, None when it continues or repeats one."""
         if frame is None:
             return NO_KEY
         continued = any(continues(previous, frame) for previous in self._recent)
@@ -114,8 +113,7 @@ def look_key(frame: Frame) -> int:
 
 
 def continues(previous: Frame, frame: Frame) -> bool:
-    """At least half of the frame's instances continue one of the previous frame's: objects may
-    enter or leave a moving view; a cut rarely puts most objects back where they were."""
+    """At least half of the frame's instances continue one of the previous frame's."""
     before = list(zip(previous.objects, previous.boxes.tolist(), strict=True))  # floats: 10x faster
     matched = sum(
         any(name == other_name and _iou(box, other) >= CONTINUATION_IOU for other_name, other in before)
@@ -144,16 +142,14 @@ def sorted_features(table: ScoreTable, channels: int) -> list[list[np.ndarray | 
 
 
 def _ranks(reference: np.ndarray, values: np.ndarray | float, leave_one_out: bool = False) -> np.ndarray:
-    """Mid-ranks in (0, 1) among the sorted ``reference``; leave_one_out: values of the reference,
-    each ranked among the others (as a live value among all)."""
+    """Mid-ranks in (0, 1) among ``reference``; leave_one_out: values of the reference itself."""
     below = np.searchsorted(reference, values, side="left")
     equal = np.searchsorted(reference, values, side="right") - below - leave_one_out
     return (below + 0.5 * equal + 0.5) / (reference.size + 1 - leave_one_out)
 
 
 class FlatnessReference:
-    """The calibration side: per keypoint channel and feature its sorted values, and per object
-    and set of computed features the sorted leave-one-out flatness of its instances."""
+    """Per channel and feature the calibration's sorted values; per object its flatness."""
 
     def __init__(self, table: ScoreTable, channels: int) -> None:
         self._sorted = sorted_features(table, channels)
