@@ -87,9 +87,8 @@ def promised_floor(n: int, t: int, epsilon: float, delta: float | None, band_lev
 
 
 def alarm_rungs(level: float) -> tuple[tuple[float, float], ...]:
-    """Per rung (u_i, a_i): its floor is the u_i quantile of the calibration's coverage law, its
-    e-process alarms at 1 / a_i. The rungs below 0.5 of ``RUNGS`` (the lowest always), each of the m
-    paying an equal share of what u_0 leaves: u_0 + sum_i (u_(i+1) - u_i) a_i <= level, u_m = 1."""
+    """Per rung (u_i, a_i): floor at the u_i quantile of the coverage law, alarm at 1 / a_i; the rungs
+    of ``RUNGS`` below 0.5 share what u_0 leaves: u_0 + sum_i (u_(i+1) - u_i) a_i <= level, u_m = 1."""
     # level < 0.5: one rung at least
     quantiles = [level * multiple for multiple in RUNGS if level * multiple < 0.5]
     share = (level - quantiles[0]) / len(quantiles)

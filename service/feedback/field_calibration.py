@@ -68,7 +68,6 @@ def calibrate_from_feedback(
     audit: AuditTrail,
     limit: int,
 ) -> CalibrationOutcome:
-    """The use case (see the module's doc)."""
     labelled = [p for p in store.labelled_predictions(detector.model_hash, limit) if selection(p)]
     instances = [instance for prediction in labelled for instance in field_instances(prediction)]
     if not instances:

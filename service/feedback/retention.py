@@ -79,7 +79,6 @@ class Retention:
     def retain(
         self, version: int, served: ServedRequest, image_sha256: str, stream: str | None, client: str
     ) -> str:
-        """Queue the answer for the store; returns its prediction id."""
         now = datetime.now(UTC)
         prediction_id = new_prediction_id(now)
         record = {

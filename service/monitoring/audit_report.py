@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from calibration_store import ScoreTable
+from service.calibration.scoring import NONCONFORMITY_KINDS
 from service.conformal import object_scores
 from service.detector.manifest import Manifest
 from service.monitoring.coverage_law import (
@@ -52,7 +53,6 @@ def audit_report(
     table: ScoreTable,
     manifest: Manifest,
     thresholds: ThresholdLookup,
-    kinds: Sequence[str],
     epsilons: Sequence[float],
     version: int,
 ) -> dict[str, Any]:
@@ -60,7 +60,7 @@ def audit_report(
     sections, family = [], []  # family: (p-value, figure, overall) of every figure with instances
     images = _image_rows(table)
     names = {spec.index: spec.name for spec in manifest.keypoints}
-    for kind in kinds:
+    for kind in NONCONFORMITY_KINDS:
         for epsilon in epsilons:
             for scope in SCOPES:
                 values, counts = thresholds(kind, scope, epsilon)
@@ -188,7 +188,6 @@ def flagged_figures(sections: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def advice(version: int, flagged: Sequence[dict[str, Any]], epsilons: Sequence[float], tests: int) -> str:
-    """What the operator should do, in words."""
     if not flagged:
         return (
             f"Version {version} holds on this batch: no figure is significantly below its promised"

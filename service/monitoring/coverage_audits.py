@@ -26,7 +26,7 @@ from calibration_store import (
 from service.calibration.coco import NamedBatch
 from service.calibration.intake import Parent, ValidatedBatch, check_batch, check_rejected_share
 from service.calibration.jobs import DetectorJobs
-from service.calibration.scoring import NONCONFORMITY_KINDS, ScoreAccumulator, score_batch
+from service.calibration.scoring import ScoreAccumulator, score_batch
 from service.calibration.uploads import UploadWorkspace
 from service.errors import Conflict, InvalidInput
 from service.infra.audit_trail import Operator
@@ -48,8 +48,6 @@ MAX_EPSILONS = 10
 
 @dataclass(frozen=True)
 class AuditRequest:
-    """What the operator asked an audit for."""
-
     version: int | None = None  # None: the active version
     epsilons: tuple[float, ...] = DEFAULT_EPSILONS
     name: str | None = None
@@ -147,8 +145,6 @@ class CoverageAudits(DetectorJobs):
         operator: Operator,
         accepted: NewAuditEntry,
     ) -> JobRecord:
-        """Start the audit's job, its ``accepted`` entry stored with it."""
-
         def run(progress: JobProgress) -> dict[str, Any]:
             try:
                 report = self._measure(prepared, version, request, progress)
@@ -188,14 +184,8 @@ class CoverageAudits(DetectorJobs):
         check_rejected_share([*prepared.rejected, *rejected], prepared.annotations, self._share(request))
         if accumulator.count == 0:
             raise InvalidInput("no instance of the batch could be scored: every image was left out")
-        report = audit_report(
-            accumulator.table(),
-            self._detector.manifest,
-            self._lookup(version),
-            NONCONFORMITY_KINDS,
-            request.epsilons,
-            version,
-        )
+        lookup = self._lookup(version)
+        report = audit_report(accumulator.table(), self._detector.manifest, lookup, request.epsilons, version)
         rejections = [r.describe() for r in (*prepared.rejected, *rejected)]
         return {
             **report,

@@ -94,14 +94,10 @@ class PooledTest:
 
 
 def pooled_test(tests: Sequence[CoverageTest], labeled: np.ndarray, covered: np.ndarray) -> PooledTest:
-    """The pooled coverage of ``tests`` (units) from ``labeled`` and ``covered`` counts per image
-    (rows) and unit (columns), with a band that holds whatever the dependence between units.
-
-    Two variances add up (normal approximation): the calibration's, c_u ~ Beta(n_u+1-l_u, l_u)
-    taken perfectly correlated across units (they share calibration images: the worst case,
-    sd <= sum w_u sd(c_u), w_u = m_u / m); and the audited images', cluster-robust over images
-    (the keypoints of one image fail together: an image counts once), never below the binomial
-    spread of independent keypoints (the sandwich underestimates with few images or all covered).
+    """The pooled coverage of units ``tests`` from ``labeled`` and ``covered`` counts (image x unit),
+    whatever their dependence. Two variances add up (normal approximation): the calibration's, the
+    units' c_u ~ Beta(n_u+1-l_u, l_u) perfectly correlated (sd <= sum w_u sd(c_u), w_u = m_u / m), and
+    the images', cluster-robust (an image's keypoints fail together) but at least the binomial spread.
     """
     m, count = int(labeled.sum()), int(covered.sum())
     if m == 0:

@@ -540,13 +540,12 @@ def live_features(statistics: HeatmapStatistics) -> dict[str, np.ndarray]:
     """The features ``statistics`` allow (p* needs the peak, gamma and anisotropy the spread)."""
     rows = statistics.uninformative.size
     has_peak, has_spread = statistics.peak_probability is not None, statistics.covariance is not None
-    if not (has_peak and has_spread):
-        statistics = replace(
-            statistics,
-            peak_probability=statistics.peak_probability if has_peak else np.ones(rows),
-            covariance=statistics.covariance if has_spread else np.broadcast_to(np.eye(2), (rows, 2, 2)),
-        )
-    features = heatmap_features(statistics)
+    placeholders = replace(  # a part not computed gets a placeholder, its features dropped after
+        statistics,
+        peak_probability=statistics.peak_probability if has_peak else np.ones(rows),
+        covariance=statistics.covariance if has_spread else np.broadcast_to(np.eye(2), (rows, 2, 2)),
+    )
+    features = heatmap_features(placeholders)
     return {
         name: v for name, v in features.items() if (has_peak if name == "peak_probability" else has_spread)
     }

@@ -129,7 +129,6 @@ class DriftShares:
         interval: float = SHARE_SECONDS,
         replica: str | None = None,
     ) -> None:
-        """replica: this process's name in the store (default ``host:pid``)."""
         self.replica = replica or process_owner()
         self.interval = interval
         self.read_at = 0.0  # unix seconds: when the others' rows were last read

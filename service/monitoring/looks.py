@@ -213,7 +213,6 @@ class SequentialAlarm:
         self._cusums = [1.0, 1.0]
 
     def observe(self, look: list[float]) -> None:
-        """One look: the z of its instances."""
         z = look_statistic(look)
         if z is not None:
             self.observe_statistic(z)

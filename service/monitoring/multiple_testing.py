@@ -22,6 +22,5 @@ def holm_adjusted(p_values: Sequence[float] | np.ndarray) -> np.ndarray:
 
 
 def holm_rejections(p_values: Sequence[float] | np.ndarray, alpha: float) -> np.ndarray:
-    """Which hypotheses Holm's procedure rejects at family-wise error rate ``alpha``."""
     adjusted = holm_adjusted(p_values)
     return ~np.isnan(adjusted) & (adjusted <= alpha)

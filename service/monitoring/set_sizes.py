@@ -26,8 +26,6 @@ class SizeSummary:
 
 @dataclass(frozen=True)
 class KindSizes:
-    """Recent sets of one nonconformity function."""
-
     n: int
     unbounded: int  # sets reported as the whole plane (t = 0)
     semi_major_px: SizeSummary | None  # None when no bounded set was seen
