@@ -243,9 +243,8 @@ class LiveCoverageReader:
             with self._lock:
                 return self._fold_and_report()
         cached = self._cached
-        if (cached is None or time.monotonic() - cached[0] > max_age_s) and self._lock.acquire(
-            blocking=False
-        ):
+        stale = cached is None or time.monotonic() - cached[0] > max_age_s
+        if stale and self._lock.acquire(blocking=False):
             threading.Thread(target=self._fold_in_background, name="live-coverage", daemon=True).start()
         return [] if cached is None else cached[1]
 

@@ -40,10 +40,8 @@ def verdicts(prediction: RetainedPrediction, keypoint_names: list[str]) -> Label
         "floors": [[list(g) for g in guarantees] for guarantees in floors],
         "groups": [[level, name, runs] for (level, name), (_, runs) in groups.items()],
     }
-    tally = {
-        "look": record.get("look", prediction.id),  # rows kept before looks: one look each
-        "covered": [covered[0] for covered, _ in groups.values()],
-    }
+    # rows kept before looks: one look each
+    tally = {"look": record.get("look", prediction.id), "covered": [c[0] for c, _ in groups.values()]}
     return LabelVerdicts(json.dumps(shape, separators=(",", ":")), tally)
 
 

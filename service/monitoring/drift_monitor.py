@@ -560,13 +560,9 @@ def _object_drift(name: str, channels: list[int], keypoints: list[KeypointDrift]
     for feature in HEATMAP_FEATURES:
         tests = [keypoints[channel].features[feature] for channel in channels]
         p_values = [t.p_value for t in tests if t.p_value is not None]
-        features[feature] = FeatureTest(
-            statistic=_largest(tests),
-            p_value=min(1.0, len(p_values) * min(p_values)) if p_values else None,
-            alarm=any(t.alarm for t in tests),
-            live_n=min(t.live_n for t in tests),
-            reference_n=min(t.reference_n for t in tests),
-        )
+        bonferroni = min(1.0, len(p_values) * min(p_values)) if p_values else None
+        sizes = (min(t.live_n for t in tests), min(t.reference_n for t in tests))
+        features[feature] = FeatureTest(_largest(tests), bonferroni, any(t.alarm for t in tests), *sizes)
     return ObjectDrift(name, channels, features, any(t.alarm for t in features.values()))
 
 

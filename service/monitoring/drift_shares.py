@@ -26,6 +26,7 @@ from service.monitoring.looks import Frame
 log = logging.getLogger(__name__)
 
 KIND = "drift"
+Windows = list[np.ndarray]  # per channel, (n, width)
 #: a replica whose row is older than this many intervals no longer counts (stopped or cut off)
 STALE_INTERVALS = 5
 #: seconds between two writes of a process's row (a restart loses at most this much)
@@ -41,8 +42,8 @@ class DriftShare:
     version: int | None
     frames: int
     recorded: int  # live values it recorded, ever
-    windows: list[np.ndarray]  # per channel, (n, width)
-    look_windows: list[np.ndarray]
+    windows: Windows
+    look_windows: Windows
     seen: ReplicaLooks
 
 
@@ -50,8 +51,8 @@ def encode_share(
     version: int | None,
     frames: int,
     recorded: int,
-    windows: list[np.ndarray],
-    look_windows: list[np.ndarray],
+    windows: Windows,
+    look_windows: Windows,
     seen: ReplicaLooks,
 ) -> bytes:
     names = sorted({name for frame in seen.frames for name in frame.objects})

@@ -49,9 +49,8 @@ def kolmogorov_sf(x: float) -> float:
         return 1.0
     k = np.arange(1, 101, dtype=np.float64)
     if x < 1.0:  # the theta-function form converges fast for small x
-        cdf = (
-            math.sqrt(2 * math.pi) / x * float(np.sum(np.exp(-((2 * k - 1) ** 2) * math.pi**2 / (8 * x * x))))
-        )
+        terms = np.exp(-((2 * k - 1) ** 2) * math.pi**2 / (8 * x * x))
+        cdf = math.sqrt(2 * math.pi) / x * float(np.sum(terms))
         return float(min(max(1.0 - cdf, 0.0), 1.0))
     signs = np.where(k % 2 == 1, 1.0, -1.0)
     return float(min(max(2.0 * np.sum(signs * np.exp(-2.0 * k * k * x * x)), 0.0), 1.0))
