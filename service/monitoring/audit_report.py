@@ -63,8 +63,7 @@ def audit_report(
     for kind in NONCONFORMITY_KINDS:
         for epsilon in epsilons:
             for scope in SCOPES:
-                values, counts = thresholds(kind, scope, epsilon)
-                section = _section(table, images, names, kind, scope, values, counts, epsilon)
+                section = _section(table, images, names, thresholds, (kind, scope, epsilon))
                 sections.append({"nonconformity": kind, "epsilon": epsilon, "scope": scope, **section})
                 pooled = section["objects"] if scope == "keypoint" else []
                 exact = section["keypoints"] if scope == "keypoint" else section["objects"]
@@ -104,13 +103,11 @@ def _section(
     table: ScoreTable,
     images: tuple[int, list[np.ndarray]],
     names: dict[int, str],
-    kind: str,
-    scope: str,
-    values: np.ndarray,
-    counts: Sequence[int],
-    epsilon: float,
+    thresholds: ThresholdLookup,
+    query: tuple[str, str, float],
 ) -> dict[str, Any]:
     """One scope's figures: exact per keypoint or object, pooled per object and overall."""
+    (kind, scope, epsilon), (values, counts) = query, thresholds(*query)
     keypoints, objects, units = [], [], []
     for block, image in zip(table.objects, images[1], strict=True):
         scores = block.scores[kind]

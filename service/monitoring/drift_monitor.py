@@ -217,11 +217,8 @@ class DriftMonitor:
         frame: Frame | None = None,
     ) -> None:
         """Keep one request's features and set shapes; ``frame`` tells a new look (None: always one)."""
-        rows = np.full((channels.size, _COLUMNS), np.nan)
-        features = live_features(statistics)
-        for position, name in enumerate(HEATMAP_FEATURES):
-            if name in features:
-                rows[:, position] = features[name]
+        rows = np.empty((channels.size, _COLUMNS))
+        rows[:, : len(HEATMAP_FEATURES)] = live_features(statistics)
         rows[:, _SHAPE_COLUMNS] = shape_entries(shapes)
         rows[:, _KIND_COLUMN] = KINDS.index(kind)
         self._windows.append(channels, rows)
@@ -536,8 +533,8 @@ class DriftMonitor:
         return self._reference, None
 
 
-def live_features(statistics: HeatmapStatistics) -> dict[str, np.ndarray]:
-    """The features ``statistics`` allow (p* needs the peak, gamma and anisotropy the spread)."""
+def live_features(statistics: HeatmapStatistics) -> np.ndarray:
+    """(rows, features): those ``statistics`` allow (p* needs the peak, the others the spread), else NaN."""
     rows = statistics.uninformative.size
     has_peak, has_spread = statistics.peak_probability is not None, statistics.covariance is not None
     placeholders = replace(  # a part not computed gets a placeholder, its features dropped after
@@ -545,10 +542,11 @@ def live_features(statistics: HeatmapStatistics) -> dict[str, np.ndarray]:
         peak_probability=statistics.peak_probability if has_peak else np.ones(rows),
         covariance=statistics.covariance if has_spread else np.broadcast_to(np.eye(2), (rows, 2, 2)),
     )
-    features = heatmap_features(placeholders)
-    return {
-        name: v for name, v in features.items() if (has_peak if name == "peak_probability" else has_spread)
-    }
+    features, nan = heatmap_features(placeholders), np.full(rows, np.nan)
+    computed = [has_peak if name == "peak_probability" else has_spread for name in HEATMAP_FEATURES]
+    return np.column_stack(
+        [features[n] if c else nan for n, c in zip(HEATMAP_FEATURES, computed, strict=True)]
+    )
 
 
 def _largest(tests: Iterable[FeatureTest]) -> float | None:

@@ -58,13 +58,9 @@ def kolmogorov_sf(x: float) -> float:
 
 @lru_cache(maxsize=4096)
 def _exact_p_value(numerator: int, n: int, m: int) -> float:
-    """1 - P(every lattice point (i, j) of a random path to (n, m) has |i m - j n| < numerator).
-
-    u(i, j) = (paths to (i, j) staying inside) / C(i + j, i) = u(i-1, j) i / (i + j) + u(i, j-1) j / (i + j)
-    is a probability (no overflow). Row i is inside on one interval [lo, hi] of j, where the recurrence
-    is first order: u_j = Q_j sum_{t=lo..j} a_t u(i-1, t) / Q_t, Q_j = prod_{t=lo+1..j} t / (i + t),
-    solved at once with cumulative sums and products (in logs). n <= m: n rows of length m + 1.
-    """
+    """1 - P(every lattice point (i, j) of a random path to (n, m) has |i m - j n| < numerator), row by
+    row: u(i, j) = u(i-1, j) i / (i + j) + u(i, j-1) j / (i + j) (paths inside / C(i + j, i)) is first
+    order on the row's inside interval, solved with cumulative sums and products (in logs)."""
     if numerator <= 0:
         return 1.0
     j = np.arange(m + 1, dtype=np.float64)
