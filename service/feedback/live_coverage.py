@@ -58,8 +58,6 @@ class _Votes:
 
 @dataclass(frozen=True)
 class GroupCoverage:
-    """The coverage of one group so far, its confidence sequence and its alarm."""
-
     version: int
     guarantee: str  # exchangeable (the calibration's), or adaptive (ACI: no floor, no alarm)
     nonconformity: str

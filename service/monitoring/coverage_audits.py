@@ -65,8 +65,6 @@ class AuditRequest:
 
 
 class CoverageAudits(DetectorJobs):
-    """Accepts and runs coverage audits of one detector's calibration versions."""
-
     def accept(
         self, workspace: UploadWorkspace, sha256: str, request: AuditRequest, operator: Operator
     ) -> JobRecord:
@@ -93,7 +91,6 @@ class CoverageAudits(DetectorJobs):
             raise
 
     def publish_latest(self) -> None:
-        """Set the gauges from the newest stored audit (at start-up)."""
         latest = self._newest()
         if latest is not None:
             publish_audit(latest.id, latest.report)

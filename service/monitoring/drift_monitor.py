@@ -440,14 +440,8 @@ class DriftMonitor:
                     alarm.observe_statistic(z)
                     with self._look_lock:
                         self._looks_seen.append((seen, z, math.nan, key))
-        alarm = self._sequential
-        return SequentialState(
-            looks=0 if alarm is None else alarm.looks,
-            frames=frames,
-            evidence=1.0 if alarm is None else alarm.evidence,
-            threshold=2.0 / self.settings.alarm_level,
-            alarm=alarm is not None and alarm.alarm,
-        )
+        alarm = self._sequential or SequentialAlarm(self.settings.alarm_level)  # none: no evidence
+        return SequentialState(alarm.looks, frames, alarm.evidence, alarm.threshold, alarm.alarm)
 
     def _replay_taken_over(self, version: int) -> None:
         """A new reference: the taken-over looks tested against this version go first, in time order."""
@@ -491,7 +485,7 @@ class DriftMonitor:
         if self.settings.test == "psi":
             return rows
         p_values = np.array([[math.nan if t.p_value is None else t.p_value for t in row] for row in rows])
-        alarms = holm_rejections(p_values.ravel(), self.settings.alarm_level).reshape(p_values.shape)
+        alarms = holm_rejections(p_values, self.settings.alarm_level)
         return [
             [replace(t, alarm=bool(alarm) and may_alarm) for t, alarm in zip(row, alarm_row, strict=True)]
             for row, alarm_row in zip(rows, alarms, strict=True)

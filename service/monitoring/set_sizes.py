@@ -17,8 +17,6 @@ HISTOGRAM_BINS = 20
 
 @dataclass(frozen=True)
 class SizeSummary:
-    """Quantiles and a histogram of one size over the bounded sets of a window."""
-
     quantiles: dict[str, float]  # "p05" ... "p95"
     histogram_edges: list[float]
     histogram_counts: list[int]
