@@ -1,11 +1,8 @@
 """Live labelled coverage: what the field's labels say of each calibration version's sets so far.
-
-``CoverageFold.add`` counts each label's verdicts (verdicts.py) in its groups (version, object,
-keypoint, stream, caller group, Mondrian stratum): the raw coverage of its units, and one vote per
-look (a scene's frames are one observation): the share covered over the look's labelled frames, cast
-when a label of the next look of its stream is read (or beyond ``OPEN_LOOKS`` open looks: the
-oldest). Each group's confidence sequence and alarm are confidence_sequence.py's (docs/feedback.md).
-``LiveCoverageReader`` folds the labels new since its last read; a raised alarm stays raised.
+``CoverageFold`` counts each label's verdicts (verdicts.py) in its groups (version, object, keypoint,
+stream, caller group, Mondrian stratum): raw coverage, and one vote per look (a scene's frames are one
+observation), cast when its stream's next look is read (or the oldest beyond ``OPEN_LOOKS``). The
+confidence sequences and alarms are confidence_sequence.py's (docs/feedback.md).
 """
 
 from __future__ import annotations

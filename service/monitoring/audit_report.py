@@ -135,13 +135,12 @@ def _section(
 
 def figure_of(test: CoverageTest) -> dict[str, Any]:
     """An exact figure: the coverage, its Beta-Binomial band and p-value (adjusted later)."""
-    band = test.band_coverage
     return {
         "m": test.m,
         "covered": test.covered,
         "coverage": test.coverage,
         "promised": 1.0 - test.epsilon,
-        "band": None if band is None else list(band),
+        "band": None if test.m == 0 else [test.band[0] / test.m, test.band[1] / test.m],
         "in_band": test.in_band,
         "n": test.n,
         "rank": test.rank,

@@ -54,10 +54,6 @@ class CoverageTest:
         return None if self.m == 0 else self.covered / self.m
 
     @property
-    def band_coverage(self) -> tuple[float, float] | None:
-        return None if self.m == 0 else (self.band[0] / self.m, self.band[1] / self.m)
-
-    @property
     def in_band(self) -> bool:
         return self.band[0] <= self.covered <= self.band[1]
 

@@ -1,11 +1,9 @@
 """Label-free drift: each keypoint's heatmap features (p*, gamma, anisotropy) on live traffic against
-those of the active version's calibration images (the guarantee needs exchangeable test images).
-Per channel and feature, the last ``window`` live values meet the calibration's in a test, by ``test``:
+the active version's calibration images (the guarantee needs exchangeable test images), by ``test``:
 ``sequential`` (default), the e-CUSUM over independent looks (looks.py), per-keypoint KS (Holm) saying
 where while it alarms; ``ks``, Holm over every keypoint x feature at ``alarm_level``; ``psi``, the
 population stability index above ``psi_threshold`` once a window holds ``PSI_MIN_LIVE`` values.
-Tests run when the report is read, cached until a window, a replica's share or the version changes;
-a fleet shares its state through the store (drift_shares.py, fleet_looks.py).
+Tests run when the report is read (cached); a fleet shares its state (drift_shares.py, fleet_looks.py).
 """
 
 from __future__ import annotations

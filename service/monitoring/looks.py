@@ -1,15 +1,12 @@
-"""A drift alarm that stays right on camera streams: one vote per independent look (frames of one
-scene are one observation), summed by a sequential test whose false alarms are bounded.
-
-1. Looks: a frame is a new look unless half its instances continue one of the last
-   ``INTERLEAVED_STREAMS`` frames' (same object, IoU >= ``CONTINUATION_IOU``) or it repeats a recent look.
-2. One Z per look: each instance's features, ranked among the calibration's, become normal scores
-   averaged (p* negated); ranked among the calibration instances' own (leave-one-out) that gives
-   z_i ~ N(0, 1), and ``Z = sum z_i / sqrt(m (1 + (m - 1) rho))`` has variance <= 1 while instances
-   of one image correlate at most ``rho`` = ``WITHIN_FRAME_CORRELATION``.
-3. e-CUSUM: e-values ``exp(+-lambda Z - lambda^2 / 2)`` feed two CUSUMs ``M = e * max(M, 1)``; alarm
-   while either reaches ``2 / alarm_level``: >= ``1 / alarm_level`` quiet looks between false alarms
-   on average (Lorden's bound for e-detectors: Shin, Ramdas & Rinaldo, 2023).
+"""A drift alarm that stays right on camera streams: one vote per independent look, summed by a
+sequential test whose false alarms are bounded. A frame is a new look unless half its instances
+continue one of the last ``INTERLEAVED_STREAMS`` frames' (same object, IoU >= ``CONTINUATION_IOU``)
+or it repeats a recent look. Per look, its instances' z_i ~ N(0, 1) (normal scores of their features'
+ranks among the calibration's, ranked among the calibration instances' own) give
+``Z = sum z_i / sqrt(m (1 + (m - 1) rho))`` (variance <= 1 while instances of one image correlate at
+most ``rho``); e-values ``exp(+-lambda Z - lambda^2 / 2)`` feed two CUSUMs ``M = e * max(M, 1)``,
+alarming at ``2 / alarm_level``: >= ``1 / alarm_level`` quiet looks between false alarms on average
+(Lorden's bound for e-detectors: Shin, Ramdas & Rinaldo, 2023).
 """
 
 from __future__ import annotations
