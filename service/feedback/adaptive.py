@@ -1,12 +1,11 @@
-"""Adaptive conformal inference (Gibbs & Candes 2021) per camera stream, driven by feedback labels.
-
-A stream asking for adaptive sets is served the threshold at level alpha_t; each labelled unit updates
+"""Adaptive conformal inference (Gibbs & Candes 2021) per camera stream, driven by feedback labels:
+a stream is served the threshold at level alpha_t, each labelled unit updating
 alpha_{t+1} = alpha_t + gamma (epsilon - err_t). With labels up to L updates late (docs/feedback.md):
 
     | (1/T) sum err_t - epsilon | <= (max(alpha_1, 1 - alpha_1) + gamma (L + 1)) / (gamma T)
 
-Served levels lie in [1e-9, 0.999] (never the empty set: coverage can exceed the bound, not fall
-short). The state lives in the store (compare-and-set): it survives restarts and replicas share it.
+Served levels lie in [1e-9, 0.999] (never the empty set). The state lives in the store
+(compare-and-set): it survives restarts and replicas share it.
 """
 
 from __future__ import annotations
@@ -101,14 +100,8 @@ class AdaptiveSets:
             first_lag = 0 if served_steps is None else max(before.steps - served_steps, 0)
             lag = max(before.lag, first_lag + len(misses) - 1) if misses else before.lag
             steps, errors = before.steps + len(misses), before.errors + sum(misses)
-            after = AdaptiveView(key, before.epsilon, alpha, before.gamma, steps, errors, lag)
-            state = {
-                "epsilon": after.epsilon,
-                "alpha": alpha,
-                "gamma": after.gamma,
-                "errors": errors,
-                "lag": lag,
-            }
+            new = AdaptiveView(key, before.epsilon, alpha, before.gamma, steps, errors, lag)
+            state = {"epsilon": new.epsilon, "alpha": alpha, "gamma": new.gamma, "errors": errors, "lag": lag}
             if self._store.save_adaptive_state(key, before.steps, AdaptiveState(key, steps, state)):
-                return after
+                return new
         raise RuntimeError(f"adaptive state {key}: {_CAS_ATTEMPTS} writers in a row got there first")

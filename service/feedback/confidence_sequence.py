@@ -3,11 +3,8 @@
 Votes x_i in [0, 1]. Against "each vote's mean is at least p" the mixture M_n(p) = (1/J) sum_j
 prod_i (q_j / p)^x_i ((1 - q_j) / (1 - p))^(1 - x_i), q_j < p, is a nonnegative supermartingale, so
 by Ville P(sup_n M_n(p) >= 1/a) <= a; the bounds are the extreme p not rejected at level a.
-
-``CoverageAlarm``: coverage proven below what the calibration gives. The conditional coverage C is
-Beta(n + 1 - t, t); rung i tests "mean >= the u_i quantile of that law" with an e-process alarming at
-1 / a_i, and the alarm is raised once every rung has: P(alarm) <= u_0 + sum_i (u_(i+1) - u_i) a_i,
-held to the level by ``alarm_rungs`` (docs/feedback.md).
+``CoverageAlarm``: rung i tests "mean >= the u_i quantile of the coverage law Beta(n + 1 - t, t)" with
+an e-process alarming at 1 / a_i, raised once every rung has: P(alarm) <= u_0 + sum_i (u_(i+1) - u_i) a_i.
 """
 
 from __future__ import annotations

@@ -74,9 +74,8 @@ def record_feedback(
     counted = verdicts(replace(retained, labels=labels), keypoint_names)
     outcome = store.label_prediction(prediction_id, labels, operator.name, datetime.now(UTC), entry, counted)
     if outcome is LabelOutcome.ALREADY_LABELLED:
-        audit.record(
-            operator, "feedback", "refused", version=retained.version, details={"reason": "labelled"}
-        )
+        refused = {"reason": "labelled"}
+        audit.record(operator, "feedback", "refused", version=retained.version, details=refused)
         raise Conflict(
             f"prediction {prediction_id} has its feedback already; each prediction is labelled once"
         )

@@ -74,14 +74,8 @@ class CoverageAudits(DetectorJobs):
             version = self._registry.resolve(request.version)  # 404, 409, 503
             named = self._intake.unpack(workspace.archive, sha256, request.name)
             prepared = self._prepare(named, version, request)
-            details = {
-                "job": job_id,
-                "version": version,
-                "batch": named.name,
-                "sha256": sha256,
-                "instances": named.batch.count,
-                "epsilons": list(request.epsilons),
-            }
+            details = {"job": job_id, "version": version, "batch": named.name, "sha256": sha256}
+            details |= {"instances": named.batch.count, "epsilons": list(request.epsilons)}
             accepted = self._audit.entry(
                 operator, "audit", "accepted", version=version, reason=request.note, details=details
             )

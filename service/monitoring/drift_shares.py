@@ -1,8 +1,7 @@
-"""What each replica's drift monitor saw, shared through the store so any replica answers for the fleet.
-
-A replica (``host:pid``) writes its row every ``interval`` seconds (windows, look windows, recent looks
-and frames; one numpy payload); readers merge rows fresher than ``STALE_INTERVALS`` intervals. A
-starting process takes over the rows of stopped processes of its host: a restart loses one interval.
+"""What each replica's drift monitor saw, shared through the store so any replica answers for the fleet:
+every ``interval`` seconds a replica (``host:pid``) writes its windows, looks and frames as one numpy
+payload; readers merge rows fresher than ``STALE_INTERVALS`` intervals; a starting process takes over
+the rows of stopped processes of its host.
 """
 
 from __future__ import annotations

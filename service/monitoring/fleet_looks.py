@@ -1,10 +1,7 @@
-"""The looks of a fleet counted as one process would count them (the alarm's bound counts
-independent looks; a proxy spreading a camera's frames gives each replica a first frame).
-
-A look counts for the fleet if its first frame continues none of the ``INTERLEAVED_STREAMS`` frames
-before it among all replicas' frames and no other replica's earlier look is the same image; unknown
-neighbours: it does not count. Its replica decides it for good once every other replica has shared
-its frames up to the look's time (``settled_until``).
+"""The looks of a fleet counted as one process would count them (a proxy spreading a camera's frames
+gives each replica a first frame): a look counts if its first frame continues none of the
+``INTERLEAVED_STREAMS`` frames before it among all replicas' (all known) and no other replica's
+earlier look is the same image; decided for good once every replica shared its frames up to then.
 """
 
 from __future__ import annotations

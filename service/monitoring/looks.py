@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import math
-from collections import deque
+from collections import OrderedDict, deque
 from dataclasses import dataclass
 from statistics import NormalDist
 
@@ -70,8 +70,7 @@ class LookTracker:
 
     def __init__(self) -> None:
         self._recent: deque[Frame] = deque(maxlen=INTERLEAVED_STREAMS)
-        self._seen: set[int] = set()
-        self._order: deque[int] = deque()
+        self._seen: OrderedDict[int, None] = OrderedDict()  # oldest first
 
     def is_new_look(self, frame: Frame | None) -> bool:
         """None (no boxes known): every frame is a look."""
@@ -97,10 +96,9 @@ class LookTracker:
                 self._remember_key(key)
 
     def _remember_key(self, key: int) -> None:
-        self._seen.add(key)
-        self._order.append(key)
-        if len(self._order) > REMEMBERED_LOOKS:
-            self._seen.discard(self._order.popleft())
+        self._seen[key] = None
+        if len(self._seen) > REMEMBERED_LOOKS:
+            self._seen.popitem(last=False)
 
 
 def look_key(frame: Frame) -> int:
