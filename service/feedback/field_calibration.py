@@ -43,9 +43,8 @@ class FieldSelection:
     served_by: int | None = None
 
     def __call__(self, prediction: RetainedPrediction) -> bool:
-        return (self.stream is None or prediction.stream == self.stream) and (
-            self.served_by is None or prediction.version == self.served_by
-        )
+        in_stream = self.stream is None or prediction.stream == self.stream
+        return in_stream and (self.served_by is None or prediction.version == self.served_by)
 
 
 @dataclass(frozen=True)
@@ -157,9 +156,8 @@ class FieldRepeat:
 
 def _source(instances: list[FieldInstance], name: str | None) -> SourceBatch:
     """The selection as a source batch: its sha256 hashes the instances' refs and fingerprints."""
-    digest = hashlib.sha256(
-        "\n".join(f"{i.ref} {i.fingerprint.instance}" for i in instances).encode()
-    ).hexdigest()
+    text = "\n".join(f"{i.ref} {i.fingerprint.instance}" for i in instances)
+    digest = hashlib.sha256(text.encode()).hexdigest()
     named = f"feedback-{digest[:12]}" if name is None else batch_name(name, digest)
     return SourceBatch(named, digest, len(instances))
 

@@ -1,6 +1,5 @@
-"""Keeping a predict answer for feedback: per row the heatmap statistics that score a true point, the
-image -> heatmap affine, the set served and its guarantee; per request the version, query, image,
-stream, client and look.
+"""Keeping a predict answer for feedback: per row what scores a true point (heatmap statistics, the
+image -> heatmap affine) and the set served; per request its version, query, image, stream, client, look.
 """
 
 from __future__ import annotations

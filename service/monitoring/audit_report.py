@@ -1,9 +1,7 @@
-"""The report of a coverage audit: each figure's empirical coverage against Theorem 1, flags, advice.
-
-``keypoint`` scope: a keypoint's figure is exact (``coverage_test``), an object's and the overall one
-pooled (``pooled_test``). ``object`` scope: an instance counts when all its keypoints are labeled,
-covered when all are in their sets. Flags: Holm over two families (the overall figures; all others) at
-``FAMILY_ALPHA / 2`` each, so a valid calibration gets any flag with probability <= ``FAMILY_ALPHA``.
+"""The report of a coverage audit: each figure's coverage against Theorem 1, flags and advice. Keypoint
+scope: a keypoint's figure exact, an object's and the overall one pooled. Object scope: an instance counts
+when all its keypoints are labeled, covered when all are in their sets. Flags: Holm over the overall
+figures and over all others at ``FAMILY_ALPHA / 2`` each: any flag on a valid calibration <= ``FAMILY_ALPHA``.
 """
 
 from __future__ import annotations
