@@ -1,19 +1,11 @@
-"""Adaptive conformal inference (Gibbs & Candes 2021) per camera stream, driven by feedback labels.
-
-A stream asking for adaptive sets is served the calibration's threshold at level alpha_t instead of
-epsilon; each labelled keypoint of its retained answers (instance, object scope) updates
-alpha_{t+1} = alpha_t + gamma (epsilon - err_t), err_t = 1 when the set served missed. Label t's set
-was served ``lag_t`` updates before its own (the other labels of its answer, and those learned
-between the answer and its feedback). With L = max lag_t, alpha_t stays within
-[-gamma (1 - epsilon) (L + 1), 1 + gamma epsilon (L + 1)], so over the T labels learned, whatever
-the shift (Prop. 4.1 is L = 0; alpha_1 = epsilon; docs/feedback.md derives it):
+"""Adaptive conformal inference (Gibbs & Candes 2021) per camera stream, driven by feedback labels:
+a stream is served the threshold at level alpha_t, each labelled unit updating
+alpha_{t+1} = alpha_t + gamma (epsilon - err_t). With labels up to L updates late (docs/feedback.md):
 
     | (1/T) sum err_t - epsilon | <= (max(alpha_1, 1 - alpha_1) + gamma (L + 1)) / (gamma T)
 
-Served levels lie in [1e-9, 0.999]: the whole plane below 1 / (n + 1) as the miscoverage side needs,
-but not the empty set at alpha >= 1, so a stream covered even by the smallest sets can cover more
-than the bound says, never less. The state lives in the store (one row per stream and query,
-compare-and-set): it survives restarts and replicas share it.
+Served levels lie in [1e-9, 0.999] (never the empty set). The state lives in the store
+(compare-and-set): it survives restarts and replicas share it.
 """
 
 from __future__ import annotations
@@ -73,8 +65,7 @@ def aci_step(alpha: float, epsilon: float, gamma: float, missed: bool) -> float:
 
 
 def long_run_bound(alpha_1: float, gamma: float, steps: int, lag: int = 0) -> float | None:
-    """(max(alpha_1, 1 - alpha_1) + gamma (L + 1)) / (gamma T) with labels up to L updates late;
-    None before the first label."""
+    """(max(alpha_1, 1 - alpha_1) + gamma (L + 1)) / (gamma T); None before the first label."""
     return None if steps == 0 else (max(alpha_1, 1 - alpha_1) + gamma * (lag + 1)) / (gamma * steps)
 
 
@@ -85,8 +76,7 @@ class AdaptiveSets:
         self._store, self._model_hash, self.gamma = store, model_hash, gamma
 
     def key(self, query: dict[str, Any], stream: str) -> str:
-        """One level per model, stream and query, across calibration versions (a recalibration is
-        one more shift to ACI)."""
+        """One level per model, stream and query, across calibration versions."""
         kind, scope, epsilon = query["nonconformity"], query["coverage"], query["epsilon"]
         return ":".join(str(part) for part in (self._model_hash[:16], kind, scope, epsilon, stream))
 
@@ -101,9 +91,7 @@ class AdaptiveSets:
     def learn(
         self, key: str, epsilon: float, misses: list[bool], served_steps: int | None = None
     ) -> AdaptiveView:
-        """Apply one update per label of one answer, in order (compare-and-set, retried when a
-        replica wrote first); ``served_steps``: the answer's ``steps`` when it was served (unknown:
-        the lags within the answer alone, a floor)."""
+        """Apply one update per label of one answer (compare-and-set, retried when a replica wrote first)."""
         for _ in range(_CAS_ATTEMPTS):
             before = self.view(key, epsilon)
             alpha = before.alpha
@@ -112,14 +100,8 @@ class AdaptiveSets:
             first_lag = 0 if served_steps is None else max(before.steps - served_steps, 0)
             lag = max(before.lag, first_lag + len(misses) - 1) if misses else before.lag
             steps, errors = before.steps + len(misses), before.errors + sum(misses)
-            after = AdaptiveView(key, before.epsilon, alpha, before.gamma, steps, errors, lag)
-            state = {
-                "epsilon": after.epsilon,
-                "alpha": alpha,
-                "gamma": after.gamma,
-                "errors": errors,
-                "lag": lag,
-            }
+            new = AdaptiveView(key, before.epsilon, alpha, before.gamma, steps, errors, lag)
+            state = {"epsilon": new.epsilon, "alpha": alpha, "gamma": new.gamma, "errors": errors, "lag": lag}
             if self._store.save_adaptive_state(key, before.steps, AdaptiveState(key, steps, state)):
-                return after
+                return new
         raise RuntimeError(f"adaptive state {key}: {_CAS_ATTEMPTS} writers in a row got there first")

@@ -1,18 +1,10 @@
 """An anytime-valid confidence sequence for a mean coverage, and the alarm it proves.
 
-Votes x_i lie in [0, 1] (a look's share of covered keypoints, or 0/1). Against "each vote's mean is
-at least p" the mixture M_n(p) = (1/J) sum_j prod_i (q_j / p)^x_i ((1 - q_j) / (1 - p))^(1 - x_i) over
-J alternatives q_j < p is a nonnegative supermartingale (each factor is convex in x, so at most its
-Bernoulli value: 1 at mean p, less above), and by Ville P(sup_n M_n(p) >= 1/a) <= a however long it
-is watched. The upper bound is the largest p not rejected at level a; the lower bound mirrors it.
-
-The alarm of a version (``CoverageAlarm``): coverage proven below what its calibration gives. A
-threshold's conditional coverage C is Beta(n + 1 - t, t) through its calibration draw (with a PAC
-delta, at least 1 - epsilon). Rung i tests "each vote's mean is at least the u_i quantile of that
-law" with an e-process alarming at 1 / a_i; the alarm is raised once every rung has. For C between
-rungs i and i + 1 rung i is a supermartingale, so P(alarm) <= u_0 + sum_i (u_(i+1) - u_i) a_i, which
-``alarm_rungs`` holds to the level: an unlucky calibration is caught by a low rung needing little
-evidence, a typical one by a high rung, closer to the votes (docs/feedback.md).
+Votes x_i in [0, 1]. Against "each vote's mean is at least p" the mixture M_n(p) = (1/J) sum_j
+prod_i (q_j / p)^x_i ((1 - q_j) / (1 - p))^(1 - x_i), q_j < p, is a nonnegative supermartingale, so
+by Ville P(sup_n M_n(p) >= 1/a) <= a; the bounds are the extreme p not rejected at level a.
+``CoverageAlarm``: rung i tests "mean >= the u_i quantile of the coverage law Beta(n + 1 - t, t)" with
+an e-process alarming at 1 / a_i, raised once every rung has: P(alarm) <= u_0 + sum_i (u_(i+1) - u_i) a_i.
 """
 
 from __future__ import annotations
@@ -76,8 +68,7 @@ def coverage_bounds(total: float, count: int, level: float) -> CoverageBounds:
 
 @lru_cache(maxsize=4096)  # a few (n, t) per version, and 60 Beta cdfs each: read per labelled unit
 def promised_floor(n: int, t: int, epsilon: float, delta: float | None, band_level: float) -> float:
-    """The coverage a calibration promises at least: 1 - epsilon with a PAC delta, otherwise the
-    ``band_level`` quantile of Beta(n + 1 - t, t) (t = 0: unbounded sets, coverage 1)."""
+    """1 - epsilon with a PAC delta, else the ``band_level`` quantile of Beta(n + 1 - t, t)."""
     if delta is not None:
         return 1.0 - epsilon
     if t == 0:
@@ -93,9 +84,8 @@ def promised_floor(n: int, t: int, epsilon: float, delta: float | None, band_lev
 
 
 def alarm_rungs(level: float) -> tuple[tuple[float, float], ...]:
-    """Per rung (u_i, a_i): its floor is the u_i quantile of the calibration's coverage law, its
-    e-process alarms at 1 / a_i. The rungs below 0.5 of ``RUNGS`` (the lowest always), each of the m
-    paying an equal share of what u_0 leaves: u_0 + sum_i (u_(i+1) - u_i) a_i <= level, u_m = 1."""
+    """Per rung (u_i, a_i): floor at the u_i quantile of the coverage law, alarm at 1 / a_i; the rungs
+    of ``RUNGS`` below 0.5 share what u_0 leaves: u_0 + sum_i (u_(i+1) - u_i) a_i <= level, u_m = 1."""
     # level < 0.5: one rung at least
     quantiles = [level * multiple for multiple in RUNGS if level * multiple < 0.5]
     share = (level - quantiles[0]) / len(quantiles)
@@ -109,8 +99,7 @@ def rung_floors(n: int, t: int, epsilon: float, delta: float | None, level: floa
 
 
 class CoverageAlarm:
-    """The alarm of a group: raised once every rung's e-process has been (module doc), and then
-    for good. False alarms at most the level (with a PAC delta: delta + the least a_i)."""
+    """Raised once every rung's e-process has been, then for good (module doc)."""
 
     def __init__(self, level: float) -> None:
         self._rungs = [BettingEProcess(a) for _, a in alarm_rungs(level)]
@@ -125,13 +114,8 @@ class CoverageAlarm:
 
 
 class BettingEProcess:
-    """One rung: a betting e-process (Waudby-Smith & Ramdas 2023) against "each vote's mean is at
-    least its floor", K_t = prod (1 + lambda_t (f_t - x_t)). The bet
-    lambda_t = (f_t - m) / (v + (f_t - m)^2), clipped to [0, 1 / (2 (1 - f_t))], comes from the mean m
-    and variance v of the earlier votes, discounted by ``_BET_MEMORY`` so that a shortfall after a long
-    good run is bet on within tens of looks. A bet fixed before x_t keeps each factor's mean at most 1
-    under the null, so P(ever K_t >= 1 / alpha) <= alpha (Ville); following the votes' own variance, it
-    proves a shortfall in fewer looks than the Bernoulli mixture of the bounds. Once raised, it stays."""
+    """One rung: K_t = prod (1 + lambda_t (f_t - x_t)) (Waudby-Smith & Ramdas 2023), the bet from the
+    discounted mean and variance of earlier votes; by Ville P(ever K_t >= 1 / alpha) <= alpha."""
 
     def __init__(self, alpha: float) -> None:
         self._limit = math.log(1.0 / alpha)

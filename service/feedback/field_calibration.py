@@ -1,11 +1,5 @@
-"""Recalibration from the field: labelled feedback becomes a calibration version without a zip.
-
-``calibrate_from_feedback``: the labelled predictions chosen (a stream, the version that served
-them), each labelled instance's stored scores, heatmap features and fingerprint (what an upload of
-the same image file and labels gets), then an upload's rules: repeats in the selection or in the
-version appended to (409, or dropped with ``dedupe``), a version equal to a stored one (409 unless
-``allow_duplicate``), the guardrails, the activation floor and the audit trail of every new version
-(service.calibration.versions.store_scored_version).
+"""Recalibration from the field: labelled feedback becomes a calibration version without a zip, under
+an upload's rules (repeats, equal versions, guardrails, activation floor, audit trail).
 """
 
 from __future__ import annotations
@@ -49,9 +43,8 @@ class FieldSelection:
     served_by: int | None = None
 
     def __call__(self, prediction: RetainedPrediction) -> bool:
-        return (self.stream is None or prediction.stream == self.stream) and (
-            self.served_by is None or prediction.version == self.served_by
-        )
+        in_stream = self.stream is None or prediction.stream == self.stream
+        return in_stream and (self.served_by is None or prediction.version == self.served_by)
 
 
 @dataclass(frozen=True)
@@ -74,7 +67,6 @@ def calibrate_from_feedback(
     audit: AuditTrail,
     limit: int,
 ) -> CalibrationOutcome:
-    """The use case (see the module's doc)."""
     labelled = [p for p in store.labelled_predictions(detector.model_hash, limit) if selection(p)]
     instances = [instance for prediction in labelled for instance in field_instances(prediction)]
     if not instances:
@@ -127,8 +119,7 @@ def field_instances(prediction: RetainedPrediction) -> Iterator[FieldInstance]:
 
 
 def find_field_repeats(instances: list[FieldInstance], parent: Parent | None) -> list[FieldRepeat]:
-    """Instances already counted: in the version appended to (its image or the instance), or earlier
-    in the selection (the same instance, or the same image under another prediction)."""
+    """Instances already in the version appended to, or earlier in the selection."""
     old_images, old_instances = stored_digests(None if parent is None else parent.scores)
     where = f"version {parent.info.number}" if parent is not None else ""
     first_prediction: dict[str, str] = {}
@@ -165,9 +156,8 @@ class FieldRepeat:
 
 def _source(instances: list[FieldInstance], name: str | None) -> SourceBatch:
     """The selection as a source batch: its sha256 hashes the instances' refs and fingerprints."""
-    digest = hashlib.sha256(
-        "\n".join(f"{i.ref} {i.fingerprint.instance}" for i in instances).encode()
-    ).hexdigest()
+    text = "\n".join(f"{i.ref} {i.fingerprint.instance}" for i in instances)
+    digest = hashlib.sha256(text.encode()).hexdigest()
     named = f"feedback-{digest[:12]}" if name is None else batch_name(name, digest)
     return SourceBatch(named, digest, len(instances))
 

@@ -1,10 +1,6 @@
-"""Feedback on a retained prediction: true image points in, a judged and stored label out.
-
-``record_feedback``: find the retained prediction (404 unknown, 410 expired or evicted), check the
-labels against its instances (422 naming each problem), score every labelled point under the three
-nonconformity functions from the kept heatmap statistics (as a calibration upload of the same image
-and labels would), judge whether the served set covered it, and store the label with its audit
-entry and verdicts (service.feedback.verdicts) in one transaction (409 when labelled already).
+"""Feedback on a retained prediction: true image points in, a judged and stored label out
+(404 unknown, 410 expired, 422 bad labels, 409 labelled already): each labelled point is scored
+from the kept heatmap statistics as a calibration upload would, and stored with its verdicts.
 """
 
 from __future__ import annotations
@@ -35,8 +31,7 @@ POLL_S = 0.05
 
 @dataclass(frozen=True)
 class InstanceLabels:
-    """The true points of one instance of a retained prediction: ``(x, y, v)`` per keypoint of its
-    object, in image pixels (v = 0: not labelled)."""
+    """The true ``(x, y, v)`` per keypoint of one instance, image pixels (v = 0: not labelled)."""
 
     instance: int
     keypoints: tuple[tuple[float, float, int], ...]
@@ -65,8 +60,7 @@ def record_feedback(
     adaptive: AdaptiveSets | None = None,
     retention: Retention | None = None,
 ) -> Judged:
-    """The feedback use case (see the module's doc); a stream's adaptive level learns from it.
-    ``retention``: this process's, whose queued answers are written first."""
+    """The feedback use case; ``retention``: this process's, whose queued answers go first."""
     if retention is not None:
         retention.flush()
     retained = find_retained(store, prediction_id, max_age_s)
@@ -80,9 +74,8 @@ def record_feedback(
     counted = verdicts(replace(retained, labels=labels), keypoint_names)
     outcome = store.label_prediction(prediction_id, labels, operator.name, datetime.now(UTC), entry, counted)
     if outcome is LabelOutcome.ALREADY_LABELLED:
-        audit.record(
-            operator, "feedback", "refused", version=retained.version, details={"reason": "labelled"}
-        )
+        refused = {"reason": "labelled"}
+        audit.record(operator, "feedback", "refused", version=retained.version, details=refused)
         raise Conflict(
             f"prediction {prediction_id} has its feedback already; each prediction is labelled once"
         )
@@ -97,9 +90,7 @@ def record_feedback(
 
 
 def find_retained(store: Any, prediction_id: str, max_age_s: float) -> RetainedPrediction:
-    """The retained prediction, or 404 (never retained) / 410 (expired, or evicted by size); one made
-    moments ago on another replica may still be on its way (written in the background): it is waited
-    for, up to ``IN_FLIGHT_S`` after it was made."""
+    """The retained prediction, 404 or 410; one made moments ago may still be on its way."""
     made = retained_at(prediction_id)
     retained = store.retained_prediction(prediction_id) if made is not None else None
     while retained is None and made is not None and _age_s(made) < IN_FLIGHT_S:

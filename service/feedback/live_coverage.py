@@ -1,22 +1,8 @@
 """Live labelled coverage: what the field's labels say of each calibration version's sets so far.
-
-``CoverageFold.add`` counts each labelled prediction's verdicts (service.feedback.verdicts) in its
-groups (the version, each object, keypoint, camera stream, caller group, Mondrian stratum): the raw
-coverage of its units, and one vote per look (frames of one scene are one observation; the look
-was fixed when the answer was served, service.feedback.retention): the share covered of the
-group's units over all the look's labelled frames, cast when a label of the next look of its
-stream is read (or when more than ``OPEN_LOOKS`` looks are open: the oldest). A frame of a look
-already cast counts raw only. Each group's confidence sequence and alarm (a ladder of betting
-e-processes, raised once coverage is proven below what the calibration gives) are
-service.feedback.confidence_sequence's; docs/feedback.md derives why pooling a look's frames keeps
-the false-alarm rate.
-
-``LiveCoverageReader`` keeps one fold per process and adds the labels new since its last read (their
-ids, then only their verdicts: a read costs what arrived since). Looks vote in label order, each
-label once; a raised alarm stays raised though its rows are evicted; replicas agree on the labels
-the store keeps. With ``coverage: object`` a unit is an instance whose keypoints were all labelled,
-covered when all are in their sets. A stratum group gathers the units its stratum's thresholds
-served, each unit's floor its own stratum's (n, t); ``pooled`` the rows that fell back to the pool.
+``CoverageFold`` counts each label's verdicts (verdicts.py) in its groups (version, object, keypoint,
+stream, caller group, Mondrian stratum): raw coverage, and one vote per look (a scene's frames are one
+observation), cast when its stream's next look is read (or the oldest beyond ``OPEN_LOOKS``). The
+confidence sequences and alarms are confidence_sequence.py's (docs/feedback.md).
 """
 
 from __future__ import annotations
@@ -69,16 +55,14 @@ class _Votes:
 
 @dataclass(frozen=True)
 class GroupCoverage:
-    """The coverage of one group so far, its confidence sequence and its alarm."""
-
-    level: str
-    name: str
     version: int
     guarantee: str  # exchangeable (the calibration's), or adaptive (ACI: no floor, no alarm)
     nonconformity: str
     coverage: str
     epsilon: float
     delta: float | None
+    level: str
+    name: str
     labelled: int
     covered: int
     looks: int
@@ -92,15 +76,14 @@ class GroupCoverage:
 
 @dataclass
 class _Shape:
-    """A verdict shape (service.feedback.verdicts), parsed: per group its votes, units, their least
-    floor and their floors' sum on each rung; ``pending``: covered counts not yet added to the groups."""
+    """A verdict shape, parsed: per group its votes, units, their least floor and floors' sum per rung."""
 
     stream: str  # its stream group's name ("": none), whose next look completes a look of it
     groups: list[_Votes]
     units: list[int]
     least: list[float]
     floors: np.ndarray  # (groups, rungs): the sum of its units' floors on each rung of the alarm
-    pending: list[list[int]] = field(default_factory=list)
+    pending: list[list[int]] = field(default_factory=list)  # covered counts not yet added to the groups
 
 
 @dataclass
@@ -111,32 +94,25 @@ class _OpenLook:
     labels: dict[int, list] = field(default_factory=dict)  # id(shape): [shape, covered, labels]
 
     def add(self, shape: _Shape, covered: list[int]) -> None:
-        entry = self.labels.get(id(shape))
-        if entry is None:
-            self.labels[id(shape)] = [shape, np.array(covered, dtype=np.int64), 1]
-        else:
-            entry[1] += covered
-            entry[2] += 1
+        entry = self.labels.setdefault(id(shape), [shape, np.zeros(len(covered), dtype=np.int64), 0])
+        entry[1] += covered
+        entry[2] += 1
 
     def cast(self) -> None:
         """One vote per group: the share covered of its units, against their mean floor (per rung)."""
         entries = list(self.labels.values())
-        groups = [group for shape, _, _ in entries for group in shape.groups]
-        counts = np.concatenate(  # per group of each shape: covered, units, the floors' sum per rung
-            [
-                np.column_stack([covered, labels * np.asarray(shape.units), labels * shape.floors])
-                for shape, covered, labels in entries
-            ]
-        )
-        if len(entries) > 1:  # labels of several shapes: a group they share is one row
-            rows: dict[_Votes, int] = {}
-            index = [rows.setdefault(group, len(rows)) for group in groups]
-            groups, merged = list(rows), np.zeros((len(rows), counts.shape[1]))
-            np.add.at(merged, index, counts)
-            counts = merged
+        rows: dict[_Votes, int] = {}  # a group several shapes share is one row
+        index = [rows.setdefault(group, len(rows)) for shape, _, _ in entries for group in shape.groups]
+        # per group of each shape: covered, units, the floors' sum per rung
+        parts = [
+            np.column_stack([hits, n * np.asarray(shape.units), n * shape.floors])
+            for shape, hits, n in entries
+        ]
+        counts = np.zeros((len(rows), parts[0].shape[1]))
+        np.add.at(counts, index, np.concatenate(parts))
         votes = (counts[:, 0] / counts[:, 1]).tolist()
         floors = (counts[:, 2:] / counts[:, 1:2]).tolist()
-        for group, vote, floor in zip(groups, votes, floors, strict=True):
+        for group, vote, floor in zip(rows, votes, floors, strict=True):
             group.looks += 1
             group.total += vote
             group.alarm.observe(vote, floor)
@@ -144,9 +120,7 @@ class _OpenLook:
 
 
 class CoverageFold:
-    """Every group's live coverage, label by label; ``level``: the false-alarm probability of each
-    group's alarm and confidence sequence; the last ``looks_kept`` looks are remembered (a label of
-    a look forgotten since opens it again)."""
+    """Every group's live coverage, label by label; the last ``looks_kept`` looks are remembered."""
 
     def __init__(self, level: float, looks_kept: int) -> None:
         self.level, self._looks_kept = level, looks_kept
@@ -157,8 +131,7 @@ class CoverageFold:
         self._open_by_stream: dict[str, str] = {}
 
     def add(self, verdicts: LabelVerdicts) -> None:
-        """Count one labelled prediction's verdicts: raw counts always, its look's vote while the look
-        is open (a new look casts the vote of its stream's previous one)."""
+        """Count one label's verdicts: raw counts, and its look's vote while the look is open."""
         shape = self._shapes.get(verdicts.shape) or self._parse(verdicts.shape)
         covered = verdicts.tally["covered"]
         shape.pending.append(covered)
@@ -242,37 +215,17 @@ class CoverageFold:
 
 
 def _report(key: tuple, votes: _Votes, level: float) -> GroupCoverage:
-    version, guarantee, nonconformity, coverage, epsilon, delta, name_level, name = key
+    """``key``: (version, guarantee, nonconformity, coverage, epsilon, delta, level, name)."""
     bounds = coverage_bounds(votes.total, votes.looks, level)
-    return GroupCoverage(
-        level=name_level,
-        name=name,
-        version=version,
-        guarantee=guarantee,
-        nonconformity=nonconformity,
-        coverage=coverage,
-        epsilon=epsilon,
-        delta=delta,
-        labelled=votes.labelled,
-        covered=votes.covered,
-        looks=votes.looks,
-        look_mean=bounds.mean,
-        lower=bounds.lower,
-        upper=bounds.upper,
-        promised=votes.promised,
-        floor=votes.floor,
-        alarm=votes.alarm.raised,
-    )
+    counts = (votes.labelled, votes.covered, votes.looks, bounds.mean, bounds.lower, bounds.upper)
+    return GroupCoverage(*key, *counts, votes.promised, votes.floor, votes.alarm.raised)
 
 
 class LiveCoverageReader:
     """The live coverage of one model, read incrementally from the store (see the module's doc)."""
 
-    def __init__(
-        self, store: Any, model_hash: str, keypoint_names: list[str], looks_kept: int, level: float
-    ) -> None:
-        self._store, self._model_hash, self.level = store, model_hash, level
-        self._names = keypoint_names
+    def __init__(self, store: Any, model_hash: str, names: list[str], looks_kept: int, level: float) -> None:
+        self._store, self._model_hash, self._names, self.level = store, model_hash, names, level
         self._fold = CoverageFold(level, looks_kept)
         self._lock = threading.Lock()
         self._recent: dict[str, datetime] = {}  # ids folded, labelled within SETTLE of the newest
@@ -280,15 +233,13 @@ class LiveCoverageReader:
         self._cached: tuple[float, list[GroupCoverage]] | None = None
 
     def report(self, max_age_s: float = 0.0) -> list[GroupCoverage]:
-        """Fold the labels new since the last read, then report. With ``max_age_s`` (/metrics: its
-        scrape must not wait) the last report comes at once, refreshed in the background when older."""
+        """Fold the new labels, then report (``max_age_s``: the last report at once, refreshed behind)."""
         if max_age_s == 0.0:
             with self._lock:
                 return self._fold_and_report()
         cached = self._cached
-        if (cached is None or time.monotonic() - cached[0] > max_age_s) and self._lock.acquire(
-            blocking=False
-        ):
+        stale = cached is None or time.monotonic() - cached[0] > max_age_s
+        if stale and self._lock.acquire(blocking=False):
             threading.Thread(target=self._fold_in_background, name="live-coverage", daemon=True).start()
         return [] if cached is None else cached[1]
 
@@ -306,7 +257,6 @@ class LiveCoverageReader:
             self._lock.release()
 
     def _fold_new(self) -> bool:
-        """Fold what is new; whether anything was."""
         since = None if self._newest is None else self._newest - SETTLE
         listed = [
             (i, at) for i, at in self._store.labelled_since(self._model_hash, since) if i not in self._recent
@@ -324,8 +274,7 @@ class LiveCoverageReader:
         return bool(listed)
 
     def _verdicts(self, ids: list[str]) -> dict[str, LabelVerdicts]:
-        """The stored verdicts of ``ids``; those labelled before they were stored (schema 9) are
-        judged here from their records."""
+        """The stored verdicts of ``ids`` (labels older than stored verdicts are judged here)."""
         found = self._store.label_verdicts(ids)
         missing = [i for i in ids if i not in found]
         if missing:

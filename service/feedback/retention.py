@@ -1,10 +1,5 @@
-"""Keeping a predict answer for feedback: what it must remember to judge a true point later.
-
-Per (instance, keypoint) row: the heatmap statistics that give every nonconformity score of a true
-point, the instance's image -> heatmap affine, the threshold and centre of the set served, its
-guarantee and Mondrian stratum; per request: the version, the query, the image's sha256 and size,
-the camera stream, the client and the look (live coverage votes once per look). Labels arrive as
-image points; the affine takes them to the heatmap, the statistics score them as calibration would.
+"""Keeping a predict answer for feedback: per row what scores a true point (heatmap statistics, the
+image -> heatmap affine) and the set served; per request its version, query, image, stream, client, look.
 """
 
 from __future__ import annotations
@@ -62,10 +57,7 @@ class ServedRequest:
 
 
 class Retention:
-    """Decides which answers are kept and writes them to the store from a background thread: a
-    predict answer waits for no database write (an fsync costs more than the model's run); batches
-    go in one transaction each, a refused one retried every ``RETRY_S``. Feedback on a prediction
-    this process retained waits for its row (``flush``)."""
+    """Decides which answers are kept and writes them from a background thread (answers never wait)."""
 
     def __init__(self, store: Any, model_hash: str, rules: RetentionRules, seed: int | None = None) -> None:
         self._store, self._model_hash, self.rules = store, model_hash, rules
@@ -86,7 +78,6 @@ class Retention:
     def retain(
         self, version: int, served: ServedRequest, image_sha256: str, stream: str | None, client: str
     ) -> str:
-        """Queue the answer for the store; returns its prediction id."""
         now = datetime.now(UTC)
         prediction_id = new_prediction_id(now)
         record = {
@@ -108,8 +99,7 @@ class Retention:
         return prediction_id
 
     def _look(self, stream: str, instances: list[dict[str, Any]], prediction_id: str) -> str:
-        """The look this answer belongs to, named by its first retained frame (the drift monitor's
-        look tracker over the stream's retained frames), fixed once served."""
+        """The look this answer belongs to, named by its first retained frame."""
         frame = Frame(tuple(i["object"] for i in instances), np.array([i["bbox"] for i in instances]))
         with self._looks_lock:
             tracker, look = self._looks.pop(stream, (LookTracker(), prediction_id))
@@ -126,8 +116,7 @@ class Retention:
             self._changed.wait_for(lambda: not self._pending and not self._writing, timeout_s)
 
     def close(self, timeout_s: float = 2.0) -> None:
-        """Write what is queued (for ``timeout_s`` at most: a store that is away does not hold up a
-        shutdown), then stop the writer; rows left unwritten are logged."""
+        """Write what is queued (``timeout_s`` at most), then stop the writer."""
         self.flush(timeout_s)
         with self._changed:
             self._closed = True

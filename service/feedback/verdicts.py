@@ -1,14 +1,7 @@
-"""The verdicts of a label: what live coverage counts of a labelled prediction, judged once.
-
-A label's judgement never changes, so the feedback use case judges it when it stores the label and
-keeps the result beside it (about 2 KB where the record is 11 KB): live coverage reads these, never
-the records (docs/feedback.md). ``verdicts`` splits the prediction into its judged units (labelled
-keypoints, or with ``coverage: object`` instances whose keypoints were all labelled) and gathers
-them into the groups live coverage counts. What varies between labels (the covered units per group,
-the look) is the tally; the rest (version, guarantee, query, groups, each unit's floor) is the
-shape, one JSON text that repeats over a stream's frames and is parsed once. A floor is kept as
-the guarantees (n, t, epsilon, delta) behind it: its number depends on CKS_FEEDBACK_ALARM_LEVEL,
-which the reader applies.
+"""The verdicts of a label: what live coverage counts of a labelled prediction, judged once when the
+label is stored (about 2 KB beside an 11 KB record; docs/feedback.md). The tally (covered units per
+group, the look) varies between labels; the shape (version, guarantee, query, groups, each unit's
+floor as its guarantees (n, t, epsilon, delta)) is one JSON text a stream's frames share.
 """
 
 from __future__ import annotations
@@ -25,9 +18,7 @@ _GUARANTEE = itemgetter("n", "t", "epsilon", "delta")
 
 
 def verdicts(prediction: RetainedPrediction, keypoint_names: list[str]) -> LabelVerdicts:
-    """The compact judgement of a labelled prediction that live coverage folds (module doc): its
-    shape (JSON text), and as its tally its ``look`` and ``covered``, the covered units of each of
-    the shape's groups."""
+    """The shape (JSON text) and tally (``look``, ``covered`` per group) of a labelled prediction."""
     record = prediction.record
     query = record["query"]
     floors: dict[tuple, int] = {}
@@ -49,18 +40,15 @@ def verdicts(prediction: RetainedPrediction, keypoint_names: list[str]) -> Label
         "floors": [[list(g) for g in guarantees] for guarantees in floors],
         "groups": [[level, name, runs] for (level, name), (_, runs) in groups.items()],
     }
-    tally = {
-        "look": record.get("look", prediction.id),  # rows kept before looks: one look each
-        "covered": [covered[0] for covered, _ in groups.values()],
-    }
+    # rows kept before looks: one look each
+    tally = {"look": record.get("look", prediction.id), "covered": [c[0] for c, _ in groups.values()]}
     return LabelVerdicts(json.dumps(shape, separators=(",", ":")), tally)
 
 
 def _units(
     record: dict[str, Any], judged_rows: Sequence[dict[str, Any]], keypoint_names: list[str], stream: str
 ) -> Iterator[tuple[tuple[tuple[Any, ...], ...], bool, list[tuple[str, str]]]]:
-    """Per judged unit (keypoint, or whole instance: object scope): the guarantees of its rows (its
-    floor is the least), whether it is covered, and the groups (level, name) it counts in."""
+    """Per judged unit: the guarantees of its rows, whether it is covered, its groups."""
     rows, instances = record["rows"], record["instances"]
     for index, row, covered in covered_units(record, judged_rows):
         members = [r for r, kept in enumerate(rows) if kept["instance"] == index] if row is None else [row]
@@ -82,8 +70,7 @@ def _units(
 def covered_units(
     record: dict[str, Any], judged_rows: Sequence[dict[str, Any]]
 ) -> list[tuple[int, int | None, bool]]:
-    """(instance, row, covered) of each unit the query's guarantee speaks about: each labelled
-    keypoint, or (coverage object) each instance whose keypoints are all labelled (row None)."""
+    """(instance, row, covered) per labelled keypoint, or complete instance (coverage object)."""
     rows = record["rows"]
     judged = {row["row"]: row["covered"] for row in judged_rows}
     if record["query"]["coverage"] != "object":

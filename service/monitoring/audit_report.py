@@ -1,14 +1,7 @@
-"""The report of a coverage audit: the empirical coverage of a version's sets on a labeled batch,
-figure by figure against what Theorem 1 predicts, the significantly low ones flagged, and advice.
-
-An instance is covered when its score is at most the version's threshold (the true keypoint lies in
-its set). ``keypoint`` scope: a keypoint's figure is exact (``coverage_law.coverage_test``), an
-object's and the overall one pool keypoints (``coverage_law.pooled_test``). ``object`` scope (one
-threshold on an object's max score): an instance counts when all its keypoints are labeled and is
-covered when all are in their sets; an object's figure is exact, the overall one pooled. Flags come
-from Holm's step-down over every figure of the audit in two families at ``FAMILY_ALPHA / 2`` each
-(the overall figures; all others), so a valid calibration gets any flag with probability at most
-``FAMILY_ALPHA`` (up to the pooled figures' normal approximation).
+"""The report of a coverage audit: each figure's coverage against Theorem 1, flags and advice. Keypoint
+scope: a keypoint's figure exact, an object's and the overall one pooled. Object scope: an instance counts
+when all its keypoints are labeled, covered when all are in their sets. Flags: Holm over the overall
+figures and over all others at ``FAMILY_ALPHA / 2`` each: any flag on a valid calibration <= ``FAMILY_ALPHA``.
 """
 
 from __future__ import annotations
@@ -20,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from calibration_store import ScoreTable
+from service.calibration.scoring import NONCONFORMITY_KINDS
 from service.conformal import object_scores
 from service.detector.manifest import Manifest
 from service.monitoring.coverage_law import (
@@ -45,8 +39,7 @@ ThresholdLookup = Callable[[str, str, float], tuple[np.ndarray, Sequence[int]]]
 
 @dataclass
 class _Unit:
-    """One exact figure (a keypoint, or an object in object scope) and its labeled and covered
-    counts per audited image."""
+    """One exact figure and its labeled and covered counts per audited image."""
 
     test: CoverageTest
     figure: dict[str, Any]
@@ -58,7 +51,6 @@ def audit_report(
     table: ScoreTable,
     manifest: Manifest,
     thresholds: ThresholdLookup,
-    kinds: Sequence[str],
     epsilons: Sequence[float],
     version: int,
 ) -> dict[str, Any]:
@@ -66,11 +58,10 @@ def audit_report(
     sections, family = [], []  # family: (p-value, figure, overall) of every figure with instances
     images = _image_rows(table)
     names = {spec.index: spec.name for spec in manifest.keypoints}
-    for kind in kinds:
+    for kind in NONCONFORMITY_KINDS:
         for epsilon in epsilons:
             for scope in SCOPES:
-                values, counts = thresholds(kind, scope, epsilon)
-                section = _section(table, images, names, kind, scope, values, counts, epsilon)
+                section = _section(table, images, names, thresholds, (kind, scope, epsilon))
                 sections.append({"nonconformity": kind, "epsilon": epsilon, "scope": scope, **section})
                 pooled = section["objects"] if scope == "keypoint" else []
                 exact = section["keypoints"] if scope == "keypoint" else section["objects"]
@@ -97,8 +88,7 @@ def audit_report(
 
 
 def _image_rows(table: ScoreTable) -> tuple[int, list[np.ndarray]]:
-    """How many images the instances come from, and each block's rows' image (0..images-1);
-    instances are referenced "batch:image:annotation" (service/calibration/scoring.py)."""
+    """How many images, and each block's rows' image (refs are "batch:image:annotation")."""
     index: dict[str, int] = {}
     rows = [
         np.array([index.setdefault(ref.rsplit(":", 1)[0], len(index)) for ref in b.instance_refs], dtype=int)
@@ -111,14 +101,11 @@ def _section(
     table: ScoreTable,
     images: tuple[int, list[np.ndarray]],
     names: dict[int, str],
-    kind: str,
-    scope: str,
-    values: np.ndarray,
-    counts: Sequence[int],
-    epsilon: float,
+    thresholds: ThresholdLookup,
+    query: tuple[str, str, float],
 ) -> dict[str, Any]:
-    """One scope's figures: exact per keypoint (keypoint scope) or per object (object scope, an
-    instance's max score over its keypoints: labeled when all are), pooled per object and overall."""
+    """One scope's figures: exact per keypoint or object, pooled per object and overall."""
+    (kind, scope, epsilon), (values, counts) = query, thresholds(*query)
     keypoints, objects, units = [], [], []
     for block, image in zip(table.objects, images[1], strict=True):
         scores = block.scores[kind]
@@ -146,13 +133,12 @@ def _section(
 
 def figure_of(test: CoverageTest) -> dict[str, Any]:
     """An exact figure: the coverage, its Beta-Binomial band and p-value (adjusted later)."""
-    band = test.band_coverage
     return {
         "m": test.m,
         "covered": test.covered,
         "coverage": test.coverage,
         "promised": 1.0 - test.epsilon,
-        "band": None if band is None else list(band),
+        "band": None if test.m == 0 else [test.band[0] / test.m, test.band[1] / test.m],
         "in_band": test.in_band,
         "n": test.n,
         "rank": test.rank,
@@ -196,7 +182,6 @@ def flagged_figures(sections: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def advice(version: int, flagged: Sequence[dict[str, Any]], epsilons: Sequence[float], tests: int) -> str:
-    """What the operator should do, in words."""
     if not flagged:
         return (
             f"Version {version} holds on this batch: no figure is significantly below its promised"

@@ -1,7 +1,5 @@
-"""Coverage audits as background jobs: a labeled batch, checked like a calibration upload, is
-scored by the served detector against a version's thresholds; the report is stored (immutable) and
-its figures published as Prometheus gauges. An audit never changes a calibration; its upload stays
-in this process's workspace until the job ends (an interrupted audit is not retried).
+"""Coverage audits as background jobs: a labeled batch scored against a version's thresholds, the
+report stored and published as Prometheus gauges (never changes a calibration; not retried).
 """
 
 from __future__ import annotations
@@ -28,7 +26,7 @@ from calibration_store import (
 from service.calibration.coco import NamedBatch
 from service.calibration.intake import Parent, ValidatedBatch, check_batch, check_rejected_share
 from service.calibration.jobs import DetectorJobs
-from service.calibration.scoring import NONCONFORMITY_KINDS, ScoreAccumulator, score_batch
+from service.calibration.scoring import ScoreAccumulator, score_batch
 from service.calibration.uploads import UploadWorkspace
 from service.errors import Conflict, InvalidInput
 from service.infra.audit_trail import Operator
@@ -50,8 +48,6 @@ MAX_EPSILONS = 10
 
 @dataclass(frozen=True)
 class AuditRequest:
-    """What the operator asked an audit for."""
-
     version: int | None = None  # None: the active version
     epsilons: tuple[float, ...] = DEFAULT_EPSILONS
     name: str | None = None
@@ -69,8 +65,6 @@ class AuditRequest:
 
 
 class CoverageAudits(DetectorJobs):
-    """Accepts and runs coverage audits of one detector's calibration versions."""
-
     def accept(
         self, workspace: UploadWorkspace, sha256: str, request: AuditRequest, operator: Operator
     ) -> JobRecord:
@@ -80,14 +74,8 @@ class CoverageAudits(DetectorJobs):
             version = self._registry.resolve(request.version)  # 404, 409, 503
             named = self._intake.unpack(workspace.archive, sha256, request.name)
             prepared = self._prepare(named, version, request)
-            details = {
-                "job": job_id,
-                "version": version,
-                "batch": named.name,
-                "sha256": sha256,
-                "instances": named.batch.count,
-                "epsilons": list(request.epsilons),
-            }
+            details = {"job": job_id, "version": version, "batch": named.name, "sha256": sha256}
+            details |= {"instances": named.batch.count, "epsilons": list(request.epsilons)}
             accepted = self._audit.entry(
                 operator, "audit", "accepted", version=version, reason=request.note, details=details
             )
@@ -97,14 +85,12 @@ class CoverageAudits(DetectorJobs):
             raise
 
     def publish_latest(self) -> None:
-        """Set the gauges from the newest stored audit (at start-up)."""
         latest = self._newest()
         if latest is not None:
             publish_audit(latest.id, latest.report)
 
     def follow_latest(self, interval: float, stop: threading.Event) -> None:
-        """Publish the newest audit whichever process or replica ran it: look every ``interval``
-        seconds in a daemon thread until ``stop`` is set."""
+        """Publish the newest audit of any process every ``interval`` seconds until ``stop``."""
 
         def follow() -> None:
             while not stop.wait(interval):
@@ -115,8 +101,7 @@ class CoverageAudits(DetectorJobs):
         threading.Thread(target=follow, name="audit-follower", daemon=True).start()
 
     def _newest(self, before: int | None = None) -> CoverageAudit | None:
-        """The newest audit of the served model (older than ``before``: the one whose gauges other
-        worker processes may still publish); None if none, or the store failed (logged)."""
+        """The newest audit of the served model (before ``before``); None if none or the store failed."""
         try:
             audits = self._store.coverage_audits(self._detector.model_hash, before=before, limit=1)
         except StoreError as error:
@@ -151,8 +136,6 @@ class CoverageAudits(DetectorJobs):
         operator: Operator,
         accepted: NewAuditEntry,
     ) -> JobRecord:
-        """Start the audit's job, its ``accepted`` entry stored with it."""
-
         def run(progress: JobProgress) -> dict[str, Any]:
             try:
                 report = self._measure(prepared, version, request, progress)
@@ -192,14 +175,8 @@ class CoverageAudits(DetectorJobs):
         check_rejected_share([*prepared.rejected, *rejected], prepared.annotations, self._share(request))
         if accumulator.count == 0:
             raise InvalidInput("no instance of the batch could be scored: every image was left out")
-        report = audit_report(
-            accumulator.table(),
-            self._detector.manifest,
-            self._lookup(version),
-            NONCONFORMITY_KINDS,
-            request.epsilons,
-            version,
-        )
+        lookup = self._lookup(version)
+        report = audit_report(accumulator.table(), self._detector.manifest, lookup, request.epsilons, version)
         rejections = [r.describe() for r in (*prepared.rejected, *rejected)]
         return {
             **report,
@@ -223,9 +200,7 @@ class CoverageAudits(DetectorJobs):
 
 
 def publish_audit(audit_id: int, report: dict[str, Any], previous: CoverageAudit | None = None) -> None:
-    """Replace the audit gauges with this audit's figures (aggregates have keypoint "" and, for
-    the overall figure, object ""), hiding those of the ``previous`` audit and of whatever this
-    process published before."""
+    """Replace the audit gauges with this audit's, hiding the ``previous`` audit's."""
     samples = _audit_samples(audit_id, report)
     stale = set() if previous is None else set(_audit_samples(previous.id, previous.report))
     with _PUBLISHED_LOCK:
@@ -266,8 +241,7 @@ def _audit_samples(audit_id: int, report: dict[str, Any]) -> dict[tuple[Gauge, t
 
 
 def _forget(gauge: Gauge, labels: tuple[str, ...]) -> None:
-    """Drop a sample of an older audit. With several workers each keeps its own file of values
-    and the newest wins ("mostrecent"): a NaN written now hides the other workers' old value."""
+    """Drop an older sample (with several workers a NaN hides the others' old value)."""
     if os.environ.get(MULTIPROCESS_ENV):
         gauge.labels(*labels).set(math.nan)
     else:

@@ -1,13 +1,8 @@
-"""What Theorem 1 predicts for the empirical coverage of a labeled test batch, and how to tell a
-calibration that no longer holds from bad luck.
+"""What Theorem 1 predicts for the coverage of a labeled test batch (Yang & Pavone, after Vovk 2012).
 
-Yang & Pavone, Theorem 1 (after Vovk 2012): with n calibration scores and rank l = floor((n+1) eps),
-the coverage conditional on the calibration set is c ~ Beta(n + 1 - l, l) (eq. 5). Given c, the
-covered count of m exchangeable test instances is Binomial(m, c); unconditionally it is
-C ~ BetaBinomial(m, n + 1 - l, l): its central interval is the band a valid calibration's coverage
-falls in, and P(C <= covered) the p-value of "the coverage is below what the calibration promises".
-l = 0 (n + 1 < 1/eps) means unbounded sets: everything is covered. Pure numpy (scipy's
-``stats.betabinom`` is what the tests compare with).
+With n calibration scores and l = floor((n+1) eps), the conditional coverage is c ~ Beta(n + 1 - l, l)
+(eq. 5), so the covered count of m test instances is C ~ BetaBinomial(m, n + 1 - l, l): its central
+interval is the band, P(C <= covered) the p-value (l = 0: unbounded sets, all covered).
 """
 
 from __future__ import annotations
@@ -59,10 +54,6 @@ class CoverageTest:
         return None if self.m == 0 else self.covered / self.m
 
     @property
-    def band_coverage(self) -> tuple[float, float] | None:
-        return None if self.m == 0 else (self.band[0] / self.m, self.band[1] / self.m)
-
-    @property
     def in_band(self) -> bool:
         return self.band[0] <= self.covered <= self.band[1]
 
@@ -99,14 +90,10 @@ class PooledTest:
 
 
 def pooled_test(tests: Sequence[CoverageTest], labeled: np.ndarray, covered: np.ndarray) -> PooledTest:
-    """The pooled coverage of ``tests`` (units) from ``labeled`` and ``covered`` counts per image
-    (rows) and unit (columns), with a band that holds whatever the dependence between units.
-
-    Two variances add up (normal approximation): the calibration's, c_u ~ Beta(n_u+1-l_u, l_u)
-    taken perfectly correlated across units (they share calibration images: the worst case,
-    sd <= sum w_u sd(c_u), w_u = m_u / m); and the audited images', cluster-robust over images
-    (the keypoints of one image fail together: an image counts once), never below the binomial
-    spread of independent keypoints (the sandwich underestimates with few images or all covered).
+    """The pooled coverage of units ``tests`` from ``labeled`` and ``covered`` counts (image x unit),
+    whatever their dependence. Two variances add up (normal approximation): the calibration's, the
+    units' c_u ~ Beta(n_u+1-l_u, l_u) perfectly correlated (sd <= sum w_u sd(c_u), w_u = m_u / m), and
+    the images', cluster-robust (an image's keypoints fail together) but at least the binomial spread.
     """
     m, count = int(labeled.sum()), int(covered.sum())
     if m == 0:
@@ -131,9 +118,7 @@ def pooled_test(tests: Sequence[CoverageTest], labeled: np.ndarray, covered: np.
 
 
 def recalibration_size(epsilon: float) -> int:
-    """The smallest n with bounded sets whose conditional coverage stays above 1 - eps - tol
-    (RECALIBRATION_TOLERANCE) with probability BAND_LEVEL: P(Beta(n+1-l, l) < 1 - eps - tol) <= 1 - BAND_LEVEL
-    (eq. 5), by doubling then bisection (the probability shrinks as n grows, up to the floor in l)."""
+    """The smallest n with P(Beta(n+1-l, l) < 1 - eps - tol) <= 1 - BAND_LEVEL (eq. 5)."""
     target = 1.0 - epsilon - RECALIBRATION_TOLERANCE
     floor = conformal_floor(epsilon)
     if target <= 0 or floor >= _MAX_RECALIBRATION_N:

@@ -1,19 +1,9 @@
 """Label-free drift: each keypoint's heatmap features (p*, gamma, anisotropy) on live traffic against
-the same features on the active version's calibration images. The conformal guarantee needs test
-images exchangeable with the calibration ones; without labels, a change in the law of what the
-detector sees is the warning. Per channel and feature, a window of the last ``window`` live values
-meets the calibration values in a two-sample test (two_sample.py), by ``test``:
-
-- ``sequential`` (default): the e-CUSUM over independent looks of looks.py; per-keypoint KS tests
-  (Holm) on the looks' first frames say where the features moved, flagged only while it alarms;
-- ``ks``: KS over every frame's values, alarms where Holm rejects at family-wise error ``alarm_level``
-  over every keypoint x feature (for a window drawn afresh; docs/operations.md);
-- ``psi``: the population stability index, alarm above ``psi_threshold`` once a window holds
-  ``PSI_MIN_LIVE`` values (a score: no multiplicity correction).
-
-Requests append rows to ring buffers; the tests run when the report is read, cached until a window,
-a replica's contribution or the version changes. A fleet shares windows, looks and frames through
-the store (drift_shares.py), its sequential alarm counting the looks one process would (fleet_looks.py).
+the active version's calibration images (the guarantee needs exchangeable test images), by ``test``:
+``sequential`` (default), the e-CUSUM over independent looks (looks.py), per-keypoint KS (Holm) saying
+where while it alarms; ``ks``, Holm over every keypoint x feature at ``alarm_level``; ``psi``, the
+population stability index above ``psi_threshold`` once a window holds ``PSI_MIN_LIVE`` values.
+Tests run when the report is read (cached); a fleet shares its state (drift_shares.py, fleet_looks.py).
 """
 
 from __future__ import annotations
@@ -117,8 +107,7 @@ class KeypointDrift:
 
 @dataclass(frozen=True)
 class ObjectDrift:
-    """Per feature: the largest statistic of its keypoints, their smallest p-value times their
-    number (Bonferroni), alarm if any keypoint's is raised."""
+    """Per feature: its keypoints' largest statistic, Bonferroni p-value, and any alarm."""
 
     object: str
     keypoints: list[int]
@@ -177,7 +166,6 @@ class DriftMonitor:
         settings: DriftSettings,
         shares: DriftShares | None = None,
     ) -> None:
-        """shares: where the replicas of a fleet meet (None: this process alone)."""
         if settings.test == "psi" and settings.window < PSI_MIN_LIVE:
             never = (
                 "drift: psi alarms need %d live values per window; CKS_DRIFT_WINDOW is %d, so it never alarms"
@@ -195,7 +183,7 @@ class DriftMonitor:
         self._first_channels = np.array([manifest.object(k.object).keypoints[0] for k in manifest.keypoints])
         self._looks = LookTracker()
         self._pending: deque[tuple[float, int, list[InstanceFeatures]]] = deque(maxlen=MAX_PENDING_LOOKS)
-        self._shares = shares
+        self._shares = shares  # where the replicas of a fleet meet (None: this process alone)
         # looks tested against the current version: (time, Z, fleet status, look key)
         self._looks_seen: deque[tuple[float, float, float, int]] = deque(maxlen=SHARED_LOOKS)
         self._frame_log: deque[tuple[float, Frame]] = deque(maxlen=SHARED_FRAMES)
@@ -226,15 +214,9 @@ class DriftMonitor:
         shapes: np.ndarray,
         frame: Frame | None = None,
     ) -> None:
-        """Keep one request's features (those its statistics allow) and set shapes (image px).
-
-        ``frame`` (the request's objects and boxes) tells a new look from a frame that continues
-        one; without it every request is a look. The sequential test keeps only looks."""
-        rows = np.full((channels.size, _COLUMNS), np.nan)
-        features = live_features(statistics)
-        for position, name in enumerate(HEATMAP_FEATURES):
-            if name in features:
-                rows[:, position] = features[name]
+        """Keep one request's features and set shapes; ``frame`` tells a new look (None: always one)."""
+        rows = np.empty((channels.size, _COLUMNS))
+        rows[:, : len(HEATMAP_FEATURES)] = live_features(statistics)
         rows[:, _SHAPE_COLUMNS] = shape_entries(shapes)
         rows[:, _KIND_COLUMN] = KINDS.index(kind)
         self._windows.append(channels, rows)
@@ -275,8 +257,7 @@ class DriftMonitor:
         return replace(report, history=history, oldest_share_seconds=oldest)
 
     def start(self) -> None:
-        """Add a history point every ``history_seconds`` (a daemon thread) until ``stop``; in a
-        fleet, take over the windows of stopped processes of this host and share this one's."""
+        """Add a history point every ``history_seconds``; in a fleet, take over and share windows."""
         self._ticker = threading.Thread(target=self._tick_forever, name="drift-history", daemon=True)
         self._ticker.start()
         if self._shares is not None:
@@ -295,8 +276,7 @@ class DriftMonitor:
                 thread.join(timeout=5.0)
 
     def share(self) -> None:
-        """Write this process's windows and looks to the store, its looks that every replica's
-        frames now decide decided for good."""
+        """Write this process's windows and looks to the store (those now decided for good)."""
         assert self._shares is not None
         self.report()  # tests the pending looks: their Z are shared
         self._settle(self._shares.others())
@@ -304,7 +284,6 @@ class DriftMonitor:
         drift_process_values().set(self._windows.written())
 
     def _share_forever(self) -> None:
-        """Every interval (and once more at stop), write this process's windows and looks."""
         assert self._shares is not None
         while True:
             stopping = self._stop.wait(self._shares.interval)
@@ -347,8 +326,7 @@ class DriftMonitor:
         )
 
     def _settle(self, others: list[DriftShare]) -> None:
-        """Decide for good the fleet status of this process's looks that every replica's frames
-        now decide (service/monitoring/fleet_looks.py)."""
+        """Decide for good the fleet status of the looks every replica's frames now decide."""
         assert self._shares is not None
         with self._evaluation_lock:  # no look is added meanwhile
             own = self._replica_looks()  # every replica's frames count, whatever its version
@@ -400,10 +378,8 @@ class DriftMonitor:
         if sequential is not None and (others or self._continues_others):
             sequential = self._fleet_sequential(sequential, others)
         windows = self._merged(self._windows, [share.windows for share in others])
-        if sequential is not None:
-            tested = self._merged(self._look_windows, [share.look_windows for share in others])
-        else:
-            tested = windows
+        look_windows = [share.look_windows for share in others]
+        tested = windows if sequential is None else self._merged(self._look_windows, look_windows)
         live = [[w[np.isfinite(w[:, p]), p] for w in tested] for p in range(len(HEATMAP_FEATURES))]
         tests = self._tests(reference, live, sequential is None or sequential.alarm)
         by_channel = [dict(zip(HEATMAP_FEATURES, column, strict=True)) for column in zip(*tests, strict=True)]
@@ -440,8 +416,7 @@ class DriftMonitor:
         return merged
 
     def _sequential_state(self, version: int | None, table: ScoreTable | None) -> SequentialState | None:
-        """Test the looks recorded since the last evaluation (in order) against the reference;
-        a new active version starts the test afresh."""
+        """Test the looks recorded since the last evaluation; a new active version starts afresh."""
         if self.settings.test != "sequential":
             return None
         with self._look_lock:
@@ -463,18 +438,11 @@ class DriftMonitor:
                     alarm.observe_statistic(z)
                     with self._look_lock:
                         self._looks_seen.append((seen, z, math.nan, key))
-        alarm = self._sequential
-        return SequentialState(
-            looks=0 if alarm is None else alarm.looks,
-            frames=frames,
-            evidence=1.0 if alarm is None else alarm.evidence,
-            threshold=2.0 / self.settings.alarm_level,
-            alarm=alarm is not None and alarm.alarm,
-        )
+        alarm = self._sequential or SequentialAlarm(self.settings.alarm_level)  # none: no evidence
+        return SequentialState(alarm.looks, frames, alarm.evidence, alarm.threshold, alarm.alarm)
 
     def _replay_taken_over(self, version: int) -> None:
-        """A new reference: the looks of stopped processes of this host tested against the same
-        version go first (in time order); the others' are dropped."""
+        """A new reference: the taken-over looks tested against this version go first, in time order."""
         assert self._sequential is not None
         looks = sorted(
             (float(seen), float(z), float(status), int(key))
@@ -491,8 +459,7 @@ class DriftMonitor:
         self._taken_over = []
 
     def _fleet_sequential(self, own: SequentialState, others: list[DriftShare]) -> SequentialState:
-        """The sequential alarm over the looks of every replica tested against the same version
-        that count for the fleet, in time order (each replica's recent SHARED_LOOKS)."""
+        """The alarm over the looks every replica tested against this version that count for the fleet."""
         version = self._version()
         fleet = [self._replica_looks(), *(share.seen for share in others)]
         statuses = fleet_statuses(fleet)  # every replica's frames count, whatever its version
@@ -508,8 +475,7 @@ class DriftMonitor:
     def _tests(
         self, reference: _Reference | None, live: list[list[np.ndarray]], may_alarm: bool
     ) -> list[list[FeatureTest]]:
-        """[feature][channel] tests; ks alarms where Holm rejects over the whole family (sequential:
-        only while its alarm is raised, to say where the features moved)."""
+        """[feature][channel] tests; alarms where Holm rejects over all (sequential: while it alarms)."""
         rows = [
             [self._test(reference, p, c, values) for c, values in enumerate(row)]
             for p, row in enumerate(live)
@@ -517,7 +483,7 @@ class DriftMonitor:
         if self.settings.test == "psi":
             return rows
         p_values = np.array([[math.nan if t.p_value is None else t.p_value for t in row] for row in rows])
-        alarms = holm_rejections(p_values.ravel(), self.settings.alarm_level).reshape(p_values.shape)
+        alarms = holm_rejections(p_values, self.settings.alarm_level)
         return [
             [replace(t, alarm=bool(alarm) and may_alarm) for t, alarm in zip(row, alarm_row, strict=True)]
             for row, alarm_row in zip(rows, alarms, strict=True)
@@ -559,21 +525,20 @@ class DriftMonitor:
         return self._reference, None
 
 
-def live_features(statistics: HeatmapStatistics) -> dict[str, np.ndarray]:
-    """The features ``statistics`` allow (p* needs the peak, gamma and anisotropy the spread), by
-    the calibration's own ``heatmap_features``: a part not computed gets a placeholder, dropped after."""
+def live_features(statistics: HeatmapStatistics) -> np.ndarray:
+    """(rows, features): those ``statistics`` allow (p* needs the peak, the others the spread), else NaN."""
     rows = statistics.uninformative.size
     has_peak, has_spread = statistics.peak_probability is not None, statistics.covariance is not None
-    if not (has_peak and has_spread):
-        statistics = replace(
-            statistics,
-            peak_probability=statistics.peak_probability if has_peak else np.ones(rows),
-            covariance=statistics.covariance if has_spread else np.broadcast_to(np.eye(2), (rows, 2, 2)),
-        )
-    features = heatmap_features(statistics)
-    return {
-        name: v for name, v in features.items() if (has_peak if name == "peak_probability" else has_spread)
-    }
+    placeholders = replace(  # a part not computed gets a placeholder, its features dropped after
+        statistics,
+        peak_probability=statistics.peak_probability if has_peak else np.ones(rows),
+        covariance=statistics.covariance if has_spread else np.broadcast_to(np.eye(2), (rows, 2, 2)),
+    )
+    features, nan = heatmap_features(placeholders), np.full(rows, np.nan)
+    computed = [has_peak if name == "peak_probability" else has_spread for name in HEATMAP_FEATURES]
+    return np.column_stack(
+        [features[n] if c else nan for n, c in zip(HEATMAP_FEATURES, computed, strict=True)]
+    )
 
 
 def _largest(tests: Iterable[FeatureTest]) -> float | None:
@@ -585,13 +550,9 @@ def _object_drift(name: str, channels: list[int], keypoints: list[KeypointDrift]
     for feature in HEATMAP_FEATURES:
         tests = [keypoints[channel].features[feature] for channel in channels]
         p_values = [t.p_value for t in tests if t.p_value is not None]
-        features[feature] = FeatureTest(
-            statistic=_largest(tests),
-            p_value=min(1.0, len(p_values) * min(p_values)) if p_values else None,
-            alarm=any(t.alarm for t in tests),
-            live_n=min(t.live_n for t in tests),
-            reference_n=min(t.reference_n for t in tests),
-        )
+        bonferroni = min(1.0, len(p_values) * min(p_values)) if p_values else None
+        sizes = (min(t.live_n for t in tests), min(t.reference_n for t in tests))
+        features[feature] = FeatureTest(_largest(tests), bonferroni, any(t.alarm for t in tests), *sizes)
     return ObjectDrift(name, channels, features, any(t.alarm for t in features.values()))
 
 

@@ -1,12 +1,7 @@
-"""What each replica's drift monitor saw, shared through the calibration store so that any
-replica answers for the fleet.
-
-A replica (a server process, ``host:pid``) writes its row of ``calib_monitor_shares`` when it
-starts, then every ``interval`` seconds: its live windows, its looks' first frames' windows, its
-recent looks (time, Z, key, fleet status) and frames (objects, boxes), as one numpy payload. A
-reader merges the rows written within ``STALE_INTERVALS`` intervals with its own state. A starting
-process takes over the rows of stopped processes of its host and of its own name, so a restart
-loses at most the last interval.
+"""What each replica's drift monitor saw, shared through the store so any replica answers for the fleet:
+every ``interval`` seconds a replica (``host:pid``) writes its windows, looks and frames as one numpy
+payload; readers merge rows fresher than ``STALE_INTERVALS`` intervals; a starting process takes over
+the rows of stopped processes of its host.
 """
 
 from __future__ import annotations
@@ -30,6 +25,7 @@ from service.monitoring.looks import Frame
 log = logging.getLogger(__name__)
 
 KIND = "drift"
+Windows = list[np.ndarray]  # per channel, (n, width)
 #: a replica whose row is older than this many intervals no longer counts (stopped or cut off)
 STALE_INTERVALS = 5
 #: seconds between two writes of a process's row (a restart loses at most this much)
@@ -45,8 +41,8 @@ class DriftShare:
     version: int | None
     frames: int
     recorded: int  # live values it recorded, ever
-    windows: list[np.ndarray]  # per channel, (n, width)
-    look_windows: list[np.ndarray]
+    windows: Windows
+    look_windows: Windows
     seen: ReplicaLooks
 
 
@@ -54,8 +50,8 @@ def encode_share(
     version: int | None,
     frames: int,
     recorded: int,
-    windows: list[np.ndarray],
-    look_windows: list[np.ndarray],
+    windows: Windows,
+    look_windows: Windows,
     seen: ReplicaLooks,
 ) -> bytes:
     names = sorted({name for frame in seen.frames for name in frame.objects})
@@ -124,8 +120,7 @@ def decode_share(replica: str, updated_at: float, payload: bytes) -> DriftShare:
 
 
 class DriftShares:
-    """This replica's row of the store, and the fresh rows of the others (read at most once per
-    ``interval / 2``; the last ones read while the store is away)."""
+    """This replica's row of the store, and the others' fresh rows (read at most every ``interval / 2``)."""
 
     def __init__(
         self,
@@ -134,7 +129,6 @@ class DriftShares:
         interval: float = SHARE_SECONDS,
         replica: str | None = None,
     ) -> None:
-        """replica: this process's name in the store (default ``host:pid``)."""
         self.replica = replica or process_owner()
         self.interval = interval
         self.read_at = 0.0  # unix seconds: when the others' rows were last read
@@ -171,9 +165,7 @@ class DriftShares:
         return fresh
 
     def take_over_stopped(self) -> list[DriftShare]:
-        """The rows of stopped processes of this host, removed from the store: their windows
-        continue in this process. Called before this process writes its row: a row of its own name
-        is an earlier process's with its pid (a restarted container's server is pid 1 again)."""
+        """The rows of stopped processes of this host (or of this name), removed: they continue here."""
         host = socket.gethostname()
         taken = []
         for row in self._store.monitor_shares(self._model_hash, KIND):

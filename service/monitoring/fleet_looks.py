@@ -1,14 +1,7 @@
-"""The looks of a fleet counted as one process would count them.
-
-A proxy spreading one camera's frames over several replicas gives each a first frame of the scene:
-each would see a new look, more independent evidence than there is (the drift alarm's false-alarm
-bound counts independent looks). So each replica shares its recent frames and looks, and a look
-counts for the fleet only if one process seeing every replica's frames in time order would have
-seen a new look: its first frame continues none of the ``INTERLEAVED_STREAMS`` frames before it
-among all replicas' frames, and no other replica's earlier look is the same image. A look whose
-neighbouring frames are no longer all shared does not count: the count is at most one process's.
-A look is decided for good by its own replica once every other replica has shared its frames up to
-the look's time (``settled_until``); until then every reader decides it afresh, the same way.
+"""The looks of a fleet counted as one process would count them (a proxy spreading a camera's frames
+gives each replica a first frame): a look counts if its first frame continues none of the
+``INTERLEAVED_STREAMS`` frames before it among all replicas' (all known) and no other replica's
+earlier look is the same image; decided for good once every replica shared its frames up to then.
 """
 
 from __future__ import annotations
@@ -43,8 +36,7 @@ class ReplicaLooks:
 
 
 def fleet_statuses(replicas: list[ReplicaLooks]) -> list[np.ndarray]:
-    """Per replica, the status of each of its looks: the decided ones as they are, the others
-    decided on the frames and looks of ``replicas`` (a replica alone: every look counts)."""
+    """Per replica, each look's status: decided ones kept, others decided on the fleet's frames."""
     if len(replicas) == 1:
         only = replicas[0].statuses
         return [np.where(np.isnan(only), COUNTED, only)]
@@ -73,8 +65,7 @@ def settle(own: ReplicaLooks, others: list[ReplicaLooks], read_at: float) -> np.
 
 
 def settled_until(others: list[ReplicaLooks], read_at: float) -> float:
-    """The time until which every replica's frames are known: each replica writes its row when
-    it starts, so one that is not among ``others`` (read at ``read_at``) saw no frame before."""
+    """The time until which every replica's frames are known."""
     return min([read_at, *(other.covered_until for other in others)])
 
 
@@ -90,8 +81,7 @@ class _FleetFrames:
         self._replicas = replicas
 
     def starts_a_look(self, replica: int, seen: float) -> bool:
-        """Whether the frame of ``replica`` at ``seen`` continues none of the other replicas'
-        frames among the fleet's recent ones (False where those are not all known)."""
+        """Whether that frame continues none of the other replicas' recent frames (False: unknown)."""
         own = self._replicas[replica]
         place = int(np.searchsorted(own.frame_times, seen))
         if place == own.frame_times.size or own.frame_times[place] != seen:

@@ -1,32 +1,19 @@
 """A drift alarm that stays right on camera streams: one vote per independent look, summed by a
-sequential test whose false alarms are bounded.
-
-Consecutive frames of a camera show one scene: a window of them is one observation repeated, and
-a test that counts frames as independent (``ks``) alarms on any odd scene filmed long enough.
-
-1. **Looks.** A frame is a new look unless at least half of its instances continue one of the last
-   ``INTERLEAVED_STREAMS`` frames' (same object, IoU >= ``CONTINUATION_IOU``), or its objects and
-   boxes are those of a recent look (a replayed image). Only a look's first frame votes; in a fleet
-   the replicas' looks count as one process's would (service/monitoring/fleet_looks.py).
-2. **One Z per look.** Each instance's features are ranked among its keypoints' calibration values,
-   turned into normal scores and averaged (p* negated: positive is flatter); that mean, ranked among
-   the calibration instances' own (leave-one-out), gives z_i ~ N(0, 1) under no drift. A look's
-   ``Z = sum z_i / sqrt(m (1 + (m - 1) rho))`` has variance at most 1 while the correlation of
-   instances of one image is at most ``rho`` = ``WITHIN_FRAME_CORRELATION``.
-3. **e-CUSUM.** Each look gives e-values ``exp(+-lambda Z - lambda^2 / 2)`` (mean at most 1 under no
-   drift) and two CUSUMs ``M = e * max(M, 1)`` accumulate them; the alarm is raised while either
-   reaches ``2 / alarm_level``: at least ``1 / alarm_level`` independent quiet looks between false
-   alarms on average (Lorden's bound for e-detectors: Shin, Ramdas & Rinaldo, 2023).
-
-It assumes looks are independent draws of the calibration's law; it misses a drift confined to one
-long look, and one that leaves the features' law unchanged.
+sequential test whose false alarms are bounded. A frame is a new look unless half its instances
+continue one of the last ``INTERLEAVED_STREAMS`` frames' (same object, IoU >= ``CONTINUATION_IOU``)
+or it repeats a recent look. Per look, its instances' z_i ~ N(0, 1) (normal scores of their features'
+ranks among the calibration's, ranked among the calibration instances' own) give
+``Z = sum z_i / sqrt(m (1 + (m - 1) rho))`` (variance <= 1 while instances of one image correlate at
+most ``rho``); e-values ``exp(+-lambda Z - lambda^2 / 2)`` feed two CUSUMs ``M = e * max(M, 1)``,
+alarming at ``2 / alarm_level``: >= ``1 / alarm_level`` quiet looks between false alarms on average
+(Lorden's bound for e-detectors: Shin, Ramdas & Rinaldo, 2023).
 """
 
 from __future__ import annotations
 
 import hashlib
 import math
-from collections import deque
+from collections import OrderedDict, deque
 from dataclasses import dataclass
 from statistics import NormalDist
 
@@ -83,16 +70,14 @@ class LookTracker:
 
     def __init__(self) -> None:
         self._recent: deque[Frame] = deque(maxlen=INTERLEAVED_STREAMS)
-        self._seen: set[int] = set()
-        self._order: deque[int] = deque()
+        self._seen: OrderedDict[int, None] = OrderedDict()  # oldest first
 
     def is_new_look(self, frame: Frame | None) -> bool:
         """None (no boxes known): every frame is a look."""
         return self.new_look_key(frame) is not None
 
     def new_look_key(self, frame: Frame | None) -> int | None:
-        """The key of the look ``frame`` starts (NO_KEY without boxes), None when it continues or
-        repeats one."""
+        """The key of the look ``frame`` starts, None when it continues or repeats one."""
         if frame is None:
             return NO_KEY
         continued = any(continues(previous, frame) for previous in self._recent)
@@ -111,10 +96,9 @@ class LookTracker:
                 self._remember_key(key)
 
     def _remember_key(self, key: int) -> None:
-        self._seen.add(key)
-        self._order.append(key)
-        if len(self._order) > REMEMBERED_LOOKS:
-            self._seen.discard(self._order.popleft())
+        self._seen[key] = None
+        if len(self._seen) > REMEMBERED_LOOKS:
+            self._seen.popitem(last=False)
 
 
 def look_key(frame: Frame) -> int:
@@ -124,8 +108,7 @@ def look_key(frame: Frame) -> int:
 
 
 def continues(previous: Frame, frame: Frame) -> bool:
-    """At least half of the frame's instances continue one of the previous frame's: objects may
-    enter or leave a moving view; a cut rarely puts most objects back where they were."""
+    """At least half of the frame's instances continue one of the previous frame's."""
     before = list(zip(previous.objects, previous.boxes.tolist(), strict=True))  # floats: 10x faster
     matched = sum(
         any(name == other_name and _iou(box, other) >= CONTINUATION_IOU for other_name, other in before)
@@ -154,16 +137,14 @@ def sorted_features(table: ScoreTable, channels: int) -> list[list[np.ndarray | 
 
 
 def _ranks(reference: np.ndarray, values: np.ndarray | float, leave_one_out: bool = False) -> np.ndarray:
-    """Mid-ranks in (0, 1) among the sorted ``reference``; leave_one_out: values of the reference,
-    each ranked among the others (as a live value among all)."""
+    """Mid-ranks in (0, 1) among ``reference``; leave_one_out: values of the reference itself."""
     below = np.searchsorted(reference, values, side="left")
     equal = np.searchsorted(reference, values, side="right") - below - leave_one_out
     return (below + 0.5 * equal + 0.5) / (reference.size + 1 - leave_one_out)
 
 
 class FlatnessReference:
-    """The calibration side: per keypoint channel and feature its sorted values, and per object
-    and set of computed features the sorted leave-one-out flatness of its instances."""
+    """Per channel and feature the calibration's sorted values; per object its flatness."""
 
     def __init__(self, table: ScoreTable, channels: int) -> None:
         self._sorted = sorted_features(table, channels)
@@ -227,7 +208,6 @@ class SequentialAlarm:
         self._cusums = [1.0, 1.0]
 
     def observe(self, look: list[float]) -> None:
-        """One look: the z of its instances."""
         z = look_statistic(look)
         if z is not None:
             self.observe_statistic(z)

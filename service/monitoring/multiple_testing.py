@@ -10,8 +10,7 @@ import numpy as np
 
 
 def holm_adjusted(p_values: Sequence[float] | np.ndarray) -> np.ndarray:
-    """Holm's adjusted p-values (rejected at alpha where adjusted <= alpha): sorted ascending, p_(r)
-    becomes max over r' <= r of min(1, (N - r') p_(r')); NaN (tests not run) stay NaN, not counted in N."""
+    """Holm's adjusted p-values; NaN (tests not run) stay NaN, not counted."""
     p_values = np.asarray(p_values, dtype=np.float64)
     adjusted = np.full(p_values.shape, np.nan)
     flat = p_values.ravel()
@@ -23,6 +22,5 @@ def holm_adjusted(p_values: Sequence[float] | np.ndarray) -> np.ndarray:
 
 
 def holm_rejections(p_values: Sequence[float] | np.ndarray, alpha: float) -> np.ndarray:
-    """Which hypotheses Holm's procedure rejects at family-wise error rate ``alpha``."""
     adjusted = holm_adjusted(p_values)
     return ~np.isnan(adjusted) & (adjusted <= alpha)

@@ -17,8 +17,6 @@ HISTOGRAM_BINS = 20
 
 @dataclass(frozen=True)
 class SizeSummary:
-    """Quantiles and a histogram of one size over the bounded sets of a window."""
-
     quantiles: dict[str, float]  # "p05" ... "p95"
     histogram_edges: list[float]
     histogram_counts: list[int]
@@ -26,8 +24,6 @@ class SizeSummary:
 
 @dataclass(frozen=True)
 class KindSizes:
-    """Recent sets of one nonconformity function."""
-
     n: int
     unbounded: int  # sets reported as the whole plane (t = 0)
     semi_major_px: SizeSummary | None  # None when no bounded set was seen

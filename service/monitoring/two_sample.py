@@ -1,10 +1,8 @@
 """Two-sample tests of a live window against a reference sample, in numpy (no scipy at run time).
 
-- Kolmogorov-Smirnov: D = sup_t |F_ref(t) - F_live(t)| and its two-sided p-value, exact for small
-  samples (Hodges' lattice-path count, Ark. Mat. 3, 1958), else Kolmogorov's limit law with
-  Stephens' correction (JRSS B 32, 1970; Numerical Recipes 14.3). Continuous data (no ties) assumed.
-- Population stability index over quantile bins of the reference (Yurdakul, 2018):
-  PSI = sum_b (live_b - ref_b) ln(live_b / ref_b) over bin shares.
+- Kolmogorov-Smirnov: D = sup |F_ref - F_live|, its p-value exact for small samples (Hodges 1958),
+  else Kolmogorov's limit law with Stephens' correction (1970). No ties assumed.
+- Population stability index: sum_b (live_b - ref_b) ln(live_b / ref_b) over reference quantile bins.
 """
 
 from __future__ import annotations
@@ -51,9 +49,8 @@ def kolmogorov_sf(x: float) -> float:
         return 1.0
     k = np.arange(1, 101, dtype=np.float64)
     if x < 1.0:  # the theta-function form converges fast for small x
-        cdf = (
-            math.sqrt(2 * math.pi) / x * float(np.sum(np.exp(-((2 * k - 1) ** 2) * math.pi**2 / (8 * x * x))))
-        )
+        terms = np.exp(-((2 * k - 1) ** 2) * math.pi**2 / (8 * x * x))
+        cdf = math.sqrt(2 * math.pi) / x * float(np.sum(terms))
         return float(min(max(1.0 - cdf, 0.0), 1.0))
     signs = np.where(k % 2 == 1, 1.0, -1.0)
     return float(min(max(2.0 * np.sum(signs * np.exp(-2.0 * k * k * x * x)), 0.0), 1.0))
@@ -61,13 +58,9 @@ def kolmogorov_sf(x: float) -> float:
 
 @lru_cache(maxsize=4096)
 def _exact_p_value(numerator: int, n: int, m: int) -> float:
-    """1 - P(every lattice point (i, j) of a random path to (n, m) has |i m - j n| < numerator).
-
-    u(i, j) = (paths to (i, j) staying inside) / C(i + j, i) = u(i-1, j) i / (i + j) + u(i, j-1) j / (i + j)
-    is a probability (no overflow). Row i is inside on one interval [lo, hi] of j, where the recurrence
-    is first order: u_j = Q_j sum_{t=lo..j} a_t u(i-1, t) / Q_t, Q_j = prod_{t=lo+1..j} t / (i + t),
-    solved at once with cumulative sums and products (in logs). n <= m: n rows of length m + 1.
-    """
+    """1 - P(every lattice point (i, j) of a random path to (n, m) has |i m - j n| < numerator), row by
+    row: u(i, j) = u(i-1, j) i / (i + j) + u(i, j-1) j / (i + j) (paths inside / C(i + j, i)) is first
+    order on the row's inside interval, solved with cumulative sums and products (in logs)."""
     if numerator <= 0:
         return 1.0
     j = np.arange(m + 1, dtype=np.float64)
