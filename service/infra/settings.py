@@ -68,7 +68,7 @@ REMOVED_SETTINGS = {
     "CKS_MAX_ANNOTATIONS_BYTES": _FIXED.format("16 MiB"),
     "CKS_MAX_ANNOTATIONS": _FIXED.format("20,000"),
     "CKS_UPLOAD_READ_TIMEOUT_SECONDS": _FIXED.format("1 h"),
-    "CKS_MIN_FREE_DISK_BYTES": _FIXED.format("1 GiB"),
+    "CKS_MIN_FREE_DISK_BYTES": _FIXED.format("1 GiB, or a twentieth of a smaller file system"),
     "CKS_STRATUM_SIGNALS": _FIXED.format("gamma,peak_probability"),
     "CKS_STRATUM_BINS": _FIXED.format("3"),
     "CKS_MIN_STRATUM_INSTANCES": _FIXED.format("30"),

@@ -257,12 +257,19 @@ def _drift_monitor(
     return monitor
 
 
+def _free_space_to_leave(settings: Settings) -> int:
+    """What unzipping an upload must leave free: 1 GiB, or a twentieth of a smaller file system."""
+    return min(MIN_FREE_DISK_BYTES, shutil.disk_usage(settings.storage.data_dir).total // 20)
+
+
 def _job_settings(settings: Settings) -> JobSettings:
     kept_uploads = (settings.storage.jobs_dir, settings.storage.uploads_dir)
     return JobSettings(
         jobs_dir=settings.storage.jobs_dir,
         intake=IntakeRules(
-            DiskBudget(kept_uploads, settings.calibration.max_uploads_disk_bytes, MIN_FREE_DISK_BYTES)
+            DiskBudget(
+                kept_uploads, settings.calibration.max_uploads_disk_bytes, _free_space_to_leave(settings)
+            )
         ),
         versions=VersionRules(settings.predict.max_image_pixels, settings.calibration.min_instances),
     )

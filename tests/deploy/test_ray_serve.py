@@ -33,6 +33,7 @@ from ray.serve import Application
 from ray.serve.schema import ServeDeploySchema
 
 from calibration_store import open_store
+from service.calibration.registry import POLL_SECONDS
 from service.calibration.uploads import process_uploads_dir
 from service.deploy_ray import (
     ADMIN_HEADROOM,
@@ -43,7 +44,7 @@ from service.deploy_ray import (
     application,
     build_app,
 )
-from service.infra.settings import PACKAGE_ROOT, Settings, StorageSettings
+from service.infra.settings import PACKAGE_ROOT, Settings
 from tests.live.server import free_port, service_env
 from tests.predict_client import instances_of, predict_json
 from tests.samples import batch_zip, count_instances, load_samples, samples_by_image
@@ -52,7 +53,7 @@ from tests.service_calls import ADMIN_TOKEN, BUSY_MACHINE_MARGIN_S, wait_until
 SERVE_CONFIG = PACKAGE_ROOT / "deploy" / "ray" / "serve_config.yaml"
 REPLICAS = 2
 CLIENTS = 3  # clients predicting at once; each has at most one request in flight
-POLL_S = StorageSettings.model_fields["poll_seconds"].default  # a replica looks for a new version
+POLL_S = POLL_SECONDS  # how often a replica looks for a new version
 IMAGES = 4  # images of the calibration batch
 SETTINGS = {  # one onnxruntime thread and small admission per replica: two replicas on two cores
     "admin_token": ADMIN_TOKEN,

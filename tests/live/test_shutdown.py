@@ -69,8 +69,8 @@ def test_sigterm_answers_predicts_interrupts_the_job_and_exits_0(
     tmp_path: Path, samples: list[Sample]
 ) -> None:
     data = tmp_path / "data"
-    settings = {"admin_token": ADMIN_TOKEN, "shutdown_grace_seconds": GRACE, "max_instances": HEAVY}
-    server = LiveServer(data, **settings).start()
+    settings = {"admin_token": ADMIN_TOKEN, "shutdown_grace_seconds": GRACE}
+    server = LiveServer(data, {"MAX_INSTANCES": HEAVY}, **settings).start()
     with ThreadPoolExecutor(4) as pool:
         try:
             response = server.upload(long_batch(COPIES), activate=True, force=True, reason="shutdown test")
@@ -120,9 +120,8 @@ def test_sigterm_answers_predicts_interrupts_the_job_and_exits_0(
 @pytest.mark.slow
 def test_a_predict_outlasting_the_grace_period_is_cut(tmp_path: Path, samples: list[Sample]) -> None:
     """Requests still computing when the grace period ends are cut; the process still exits 0."""
-    settings = {"shutdown_grace_seconds": SHORT_GRACE, "max_instances": HEAVY * 4}
-    settings["max_concurrent_inferences"] = 1
-    server = LiveServer(tmp_path / "data", **settings).start()
+    settings = {"shutdown_grace_seconds": SHORT_GRACE, "max_concurrent_inferences": 1}
+    server = LiveServer(tmp_path / "data", {"MAX_INSTANCES": HEAVY * 4}, **settings).start()
     with ThreadPoolExecutor(4) as pool:
         try:
             started = time.monotonic()
