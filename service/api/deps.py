@@ -81,13 +81,12 @@ class PredictParts:
         """The served model's: a request naming another object is told so with its other problems."""
         return self.predictor.detector.manifest
 
-    async def caller_of(self, request: Request) -> str:
-        """Whose share of the admission places this request takes (service.api.http.callers)."""
-        return await self.callers.of(request)
-
-    async def receive(self, request: Request) -> bytes:
-        """The body within CKS_MAX_REQUEST_BYTES, in time."""
-        return await read_limited_body(request, self.max_request_bytes, "CKS_MAX_REQUEST_BYTES")
+    async def arrive(self, request: Request) -> tuple[str, bytes]:
+        """The caller (service.api.http.callers) and the body within CKS_MAX_REQUEST_BYTES, received once
+        a place is in the caller's share (not worth receiving beyond it); no place is held meanwhile."""
+        caller = await self.callers.of(request)
+        await self.admission.wait_for_place(caller)
+        return caller, await read_limited_body(request, self.max_request_bytes, "CKS_MAX_REQUEST_BYTES")
 
 
 async def get_predict_parts(request: Request) -> PredictParts:

@@ -45,11 +45,7 @@ from service.calibration.stratification import parse_stratify
 from service.calibration.versions import ActivationRequest, activate, comparison_with
 from service.errors import NotFound
 
-router = APIRouter(
-    prefix="/v1/admin",
-    tags=["admin"],
-    responses=ADMIN_RESPONSES,
-)
+router = APIRouter(prefix="/v1/admin", tags=["admin"], responses=ADMIN_RESPONSES)
 DISK_FULL = "No room on disk for what the call writes (a full disk or store): nothing was kept; retry later"
 VersionNumber = Annotated[int, Path(ge=1, le=MAX_VERSION, description="calibration version number")]
 
@@ -292,12 +288,7 @@ async def activate_calibration(
     request = ActivationRequest(version, who, body.reason, body.force)
     async with refusals_audited(trail, who, "activation", version=version, reason=body.reason):
         entry, _ = await run_in_threadpool(
-            activate,
-            registry,
-            model.manifest,
-            trail,
-            request,
-            settings.calibration.min_instances,
+            activate, registry, model.manifest, trail, request, settings.calibration.min_instances
         )
     return activation_out(entry)
 

@@ -85,9 +85,7 @@ _RESPONSES: dict[int | str, dict[str, Any]] = {
 async def predict_frame(request: Request, parts: Predicting) -> Response:
     content_type = request.headers.get("content-type", "")
     require_multipart(content_type)
-    caller = await parts.caller_of(request)
-    await parts.admission.wait_for_place(caller)  # not worth receiving beyond its share
-    body = await parts.receive(request)  # a slow client holds no place meanwhile
+    caller, body = await parts.arrive(request)
     async with parts.admission.admitted(caller):
         frame, parameters = parse_frame(content_type, body, parts.manifest)
         return await compute(parts, caller, frame, parameters, png=False)

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictInt
+from pydantic import Field, StrictInt
 
-from service.api.predict.predict_schemas import PredictParameters
+from service.api.predict.predict_schemas import PredictParameters, StrictBody
 
 Encoding = Literal["rgb8", "bgr8", "mono8", "jpeg", "png"]
 _ENCODING = (
@@ -17,11 +17,7 @@ _ENCODING = (
 MAX_SIDE = 2**31 - 1
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class FrameIn(_Strict):
+class FrameIn(StrictBody):
     """The camera frame the boxes and the answer's pixels refer to."""
 
     width: StrictInt = Field(gt=0, le=MAX_SIDE, description="the full frame's width in pixels")
@@ -33,7 +29,7 @@ class FrameIn(_Strict):
     )
 
 
-class RegionIn(_Strict):
+class RegionIn(StrictBody):
     """A rectangle of the frame (ROS sensor_msgs/RegionOfInterest), sent as one `pixels` part."""
 
     x_offset: StrictInt = Field(ge=0, le=MAX_SIDE, description="its left column in the frame")

@@ -52,12 +52,9 @@ def _problem(error: ErrorDetails, part: str) -> str:
             f"{part} is not valid JSON ({error['ctx']['error']}): JSON writes names and strings in double"
             """ quotes, e.g. {"instances": [{"object": "duck", "bbox": [235, 217, 67, 64]}]}"""
         )
-    return f"{_where(error['loc'])}: {error['msg'].removeprefix(_PREFIX)}"
-
-
-def _where(loc: tuple) -> str:
-    """A problem's place as the domain writes it: instances[0].bbox."""
-    return "".join(f"[{part}]" if isinstance(part, int) else f".{part}" for part in loc).lstrip(".")
+    # the place as the domain writes it: instances[0].bbox
+    where = "".join(f"[{key}]" if isinstance(key, int) else f".{key}" for key in error["loc"])
+    return f"{where.lstrip('.')}: {error['msg'].removeprefix(_PREFIX)}"
 
 
 def media_type(request: Request) -> str:
@@ -179,9 +176,11 @@ async def parse_batch(request: Request, body: bytes, limit: int, manifest: Manif
     finally:
         await form.close()  # its spooled files, now rather than when collected
     count = max([*images, *requests], default=-1) + 1
-    problems += [
-        f"part {name!r} is missing: send image_i and request_i together, for i = 0 .. n-1"
-        for name in _missing_parts(images, requests, count)
+    problems += [  # image_i and request_i come together, i = 0 .. count-1
+        f"part '{kind}_{i}' is missing: send image_i and request_i together, for i = 0 .. n-1"
+        for i in range(count)
+        for kind, parts in (("image", images), ("request", requests))
+        if i not in parts
     ]
     if problems:
         raise InvalidInput("; ".join(problems[:5]), errors=problems)
@@ -300,17 +299,6 @@ async def _batch_parts(form: FormData, limit: int) -> tuple[dict[int, bytes | No
         else:
             requests[index] = await _text(value)
     return images, requests, problems
-
-
-def _missing_parts(images: dict, requests: dict, count: int) -> list[str]:
-    """The parts a batch of ``count`` images lacks: image_i and request_i come together, i = 0 .. count-1
-    (as the document's description of the form says)."""
-    return [
-        f"{kind}_{i}"
-        for i in range(count)
-        for kind, parts in (("image", images), ("request", requests))
-        if i not in parts
-    ]
 
 
 def _multipart_item(

@@ -1,13 +1,7 @@
-"""POST /v1/predict, /v1/predict/png and /v1/predict/batch: images and boxes in, keypoint
-prediction sets out (JSON, or a PNG drawing for a single image).
+"""POST /v1/predict, /v1/predict/png and /v1/predict/batch: images and boxes in, keypoint sets out.
 
-Each is documented with a JSON body, and again under .../form with a multipart body (one request
-content type per operation, for client generators); each path takes either body at run time.
-
-Both take admission places before their bodies are parsed and compute inside a slot on the CPU
-pool: receive -> parse -> ``Predictor.predict`` -> present. A batch of n images takes n places,
-so batching cannot get round CKS_MAX_CONCURRENT_INFERENCES and CKS_MAX_QUEUED_REQUESTS; each of
-its images is answered (or refused) on its own, with the status it would have had alone.
+receive -> parse (inside admission places) -> ``Predictor.predict`` -> present (in a compute slot).
+A batch of n images takes n places; each image is answered with the status it would have had alone.
 """
 
 from __future__ import annotations
@@ -98,29 +92,16 @@ _FEEDBACK_LINK = {
 _IMAGE_FORM = "multipart/form-data: the image as a file, its parameters as the JSON part request"
 
 
-def _json_and_form(
-    path: str,
-    bodies: tuple[dict, dict],
-    form: str,
-    summary: str,
-    json_links: dict | None = None,
-    **route: Any,
-):
+def _json_and_form(path: str, bodies: tuple[dict, dict], form: str, summary: str, links=None, **route: Any):
     """Register the route twice, one request content type each (client generators keep only one):
-    ``path`` documented with the JSON body (its 200 with ``json_links``), ``path``/form with the
-    multipart one, as its own operation (``<name>_form``). Either path takes either body at run time."""
+    ``path`` with the JSON body (its 200 with ``links``), ``path``/form with the multipart one
+    (operation ``<name>_form``). Either path takes either body at run time."""
 
     def register(endpoint: Callable) -> Callable:
-        json_body, form_body = bodies
-        extra: dict[str, Any] = {"requestBody": json_body}
-        if json_links:
-            extra["responses"] = {"200": {"links": json_links}}
+        extra = {"requestBody": bodies[0], **({"responses": {"200": {"links": links}}} if links else {})}
         router.post(path, summary=summary, openapi_extra=extra, **route)(endpoint)
-        form_name, form_summary = f"{endpoint.__name__}_form", f"{summary} ({form})"
-        extra = {"requestBody": form_body}
-        router.post(f"{path}/form", name=form_name, summary=form_summary, openapi_extra=extra, **route)(
-            endpoint
-        )
+        form_route = {"name": f"{endpoint.__name__}_form", "summary": f"{summary} ({form})", **route}
+        router.post(f"{path}/form", openapi_extra={"requestBody": bodies[1]}, **form_route)(endpoint)
         return endpoint
 
     return register
@@ -131,7 +112,7 @@ def _json_and_form(
     (PREDICT_JSON, PREDICT_FORM),
     _IMAGE_FORM,
     summary="Keypoint prediction sets with a coverage guarantee",
-    json_links=_FEEDBACK_LINK,
+    links=_FEEDBACK_LINK,
     description="The sets as JSON. (`Accept: image/png` here still answers the drawing, as before"
     " POST /v1/predict/png existed; generated clients should call that operation.)",
     response_model=PredictResponse,
@@ -154,9 +135,7 @@ async def predict_png(request: Request, parts: Predicting) -> Response:
 
 
 async def _predict(request: Request, parts: PredictParts, png: bool) -> Response:
-    caller = await parts.caller_of(request)
-    await parts.admission.wait_for_place(caller)  # not worth receiving beyond its share
-    body = await parts.receive(request)  # a slow client holds no place meanwhile
+    caller, body = await parts.arrive(request)
     async with parts.admission.admitted(caller):
         image, parameters = await parse_predict(request, body, parts.manifest)
         return await compute(parts, caller, image, parameters, png)
@@ -172,9 +151,7 @@ async def _predict(request: Request, parts: PredictParts, png: bool) -> Response
 )
 async def predict_batch(request: Request, parts: Predicting) -> Response:
     require_batch_media(request)
-    caller = await parts.caller_of(request)
-    await parts.admission.wait_for_place(caller)  # not worth receiving beyond its share
-    body = await parts.receive(request)  # as predict: a slow client holds no place meanwhile
+    caller, body = await parts.arrive(request)
     items = await parse_batch(request, body, MAX_BATCH_IMAGES, parts.manifest)
     capacity = parts.admission.capacity
     if len(items) > capacity:

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import math
 from typing import Annotated, Literal
 
+import numpy as np
 from pydantic import (
     BaseModel,
     ConfigDict,
@@ -28,7 +28,7 @@ MAX_BATCH_IMAGES = 16  # images per POST /v1/predict/batch
 MAX_VERSION = 2**31 - 1  # the calibration store keeps version numbers in 32-bit INTEGER columns
 
 
-class _Body(BaseModel):
+class StrictBody(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
@@ -38,7 +38,7 @@ def _box_size(schema: dict) -> None:
         size["minimum"] = MIN_BOX_SIDE_PX
 
 
-class InstanceIn(_Body):
+class InstanceIn(StrictBody):
     """One object in the image: its class and its box in image pixels."""
 
     object: str = Field(min_length=1, max_length=200, description="object name from GET /v1/model")
@@ -69,7 +69,7 @@ class InstanceIn(_Body):
     @field_validator("bbox")
     @classmethod
     def _finite_positive(cls, bbox: tuple[float, float, float, float]):
-        if not all(math.isfinite(v) for v in bbox):
+        if not np.isfinite(bbox).all():
             raise ValueError("bbox values must be finite numbers")
         if bbox[2] < MIN_BOX_SIDE_PX or bbox[3] < MIN_BOX_SIDE_PX:
             raise ValueError(f"bbox width and height must be at least {MIN_BOX_SIDE_PX:g} pixel")
@@ -81,7 +81,7 @@ Matrix3 = tuple[Vector3, Vector3, Vector3]
 ROTATION_TOLERANCE = 1e-6
 
 
-class PoseCheckIn(_Body):
+class PoseCheckIn(StrictBody):
     """A pose to test for membership in PURSE: p_camera = rotation @ p_model + translation."""
 
     instance: StrictInt = Field(ge=0, description="index into instances")
@@ -91,31 +91,22 @@ class PoseCheckIn(_Body):
     @field_validator("rotation")
     @classmethod
     def _a_rotation(cls, rotation: Matrix3) -> Matrix3:
-        values = [v for row in rotation for v in row]
-        if not all(math.isfinite(v) for v in values):
+        r = np.array(rotation)
+        if not np.isfinite(r).all():
             raise ValueError("rotation entries must be finite numbers")
-        r = rotation
-        gram_error = max(
-            abs(sum(r[k][i] * r[k][j] for k in range(3)) - (i == j)) for i in range(3) for j in range(3)
-        )
-        det = (
-            r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1])
-            - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
-            + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0])
-        )
-        if gram_error > ROTATION_TOLERANCE or det <= 0:
+        if np.abs(r.T @ r - np.eye(3)).max() > ROTATION_TOLERANCE or np.linalg.det(r) <= 0:
             raise ValueError(f"is not a rotation matrix (R^T R = I within {ROTATION_TOLERANCE:g}, det +1)")
         return rotation
 
     @field_validator("translation")
     @classmethod
     def _finite(cls, translation: Vector3) -> Vector3:
-        if not all(math.isfinite(v) for v in translation):
+        if not np.isfinite(translation).all():
             raise ValueError("translation entries must be finite numbers")
         return translation
 
 
-class PoseRequest(_Body):
+class PoseRequest(StrictBody):
     """Ask for pose sets (PURSE, Yang & Pavone CVPR 2023): needs coverage 'object'."""
 
     K: list[list[float]] = Field(
@@ -154,7 +145,7 @@ class PoseRequest(_Body):
         return matrix
 
 
-class PredictOptions(_Body):
+class PredictOptions(StrictBody):
     """What set to compute, with which guarantee."""
 
     epsilon: float = Field(default=0.1, gt=0, lt=1, description="miscoverage rate: sets cover with 1-epsilon")
@@ -233,7 +224,7 @@ class PredictJson(PredictParameters):
     image_base64: str = Field(min_length=1, description="JPEG or PNG file, base64 (standard alphabet)")
 
 
-class BatchJson(_Body):
+class BatchJson(StrictBody):
     """Several images, each as POST /v1/predict's JSON body; answered one item per image."""
 
     items: list[PredictJson] = Field(
