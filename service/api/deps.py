@@ -56,8 +56,6 @@ Trail = Annotated[AuditTrail, Depends(_part("audit"))]
 Audits = Annotated[CoverageAudits, Depends(_part("audits"))]
 Drift = Annotated[DriftMonitor | None, Depends(_part("drift"))]
 Config = Annotated[Settings, Depends(_part("settings"))]
-Operators = Annotated[dict[str, str], Depends(_part("operators"))]
-FeedbackSenders = Annotated[dict[str, str], Depends(_part("feedback_senders"))]
 Retaining = Annotated[Retention, Depends(_part("retention"))]
 LiveCoverage = Annotated[LiveCoverageReader, Depends(_part("live_coverage"))]
 Adaptive = Annotated[AdaptiveSets, Depends(_part("adaptive"))]
@@ -96,45 +94,35 @@ async def get_predict_parts(request: Request) -> PredictParts:
 Predicting = Annotated[PredictParts, Depends(get_predict_parts)]
 
 
-async def require_admin(
-    request: Request,
-    operators: Operators,
-    registry: Registry,
-    trail: Trail,
-    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
-) -> Operator:
-    """Let the request through only with a configured admin token (and a reachable store);
-    returns the operator it names."""
-    disabled = "The admin API is disabled: set CKS_ADMIN_TOKEN or CKS_ADMIN_TOKENS_FILE to enable it."
-    return _token_holder(request, operators, registry, trail, credentials, disabled, "admin token")
+def _token_holder(tokens: str, kind: str, disabled: str) -> Callable[..., Awaitable[Operator]]:
+    """A dependency giving the operator a bearer token of ``tokens`` (a ServiceState attribute) names:
+    403 ``disabled`` with no tokens, 401 without one of them, 503 while the store is away."""
 
+    async def holder(
+        request: Request,
+        registry: Registry,
+        trail: Trail,
+        credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+    ) -> Operator:
+        held = getattr(request.app.state.service, tokens)
+        if not held:
+            raise HTTPException(403, disabled)
+        name = None if credentials is None else operator_named(held, credentials.credentials)
+        if name is None:
+            raise HTTPException(
+                401, _unauthorized(request, credentials, kind), headers={"WWW-Authenticate": "Bearer"}
+            )
+        operator = Operator(name=name, client=request.client.host if request.client else "")
+        try:
+            registry.require_store()  # every such call needs the store: 503 at once while it is away
+        except StoreUnreachable as error:  # audited once the store is back (the outbox keeps it)
+            call = {"method": request.method, "path": request.url.path}
+            details = {"status": 503, "detail": error.detail, **call}
+            trail.record_later(operator, "admin", "refused", details=details)
+            raise
+        return operator
 
-def _token_holder(
-    request: Request,
-    tokens: dict[str, str],
-    registry: CalibrationRegistry,
-    trail: AuditTrail,
-    credentials: HTTPAuthorizationCredentials | None,
-    disabled: str,
-    kind: str,
-) -> Operator:
-    """The operator a bearer token of ``tokens`` names: 403 with no tokens, 401 without one of
-    them, 503 while the store is away (every such call needs it)."""
-    if not tokens:
-        raise HTTPException(403, disabled)
-    name = None if credentials is None else operator_named(tokens, credentials.credentials)
-    if name is None:
-        raise HTTPException(
-            401, _unauthorized(request, credentials, kind), headers={"WWW-Authenticate": "Bearer"}
-        )
-    operator = Operator(name=name, client=request.client.host if request.client else "")
-    try:
-        registry.require_store()  # every admin call needs the store: 503 at once while it is away
-    except StoreUnreachable as error:  # audited once the store is back (the outbox keeps it)
-        details = {"status": 503, "detail": error.detail, "method": request.method, "path": request.url.path}
-        trail.record_later(operator, "admin", "refused", details=details)
-        raise
-    return operator
+    return holder
 
 
 def _unauthorized(request: Request, credentials: HTTPAuthorizationCredentials | None, kind: str) -> str:
@@ -155,8 +143,9 @@ def _unauthorized(request: Request, credentials: HTTPAuthorizationCredentials | 
     return f"No Authorization header: {path} 'Authorization: Bearer <{kind}>'."
 
 
-Admin = Annotated[Operator, Depends(require_admin)]
-# What require_admin answers, documented on every admin operation.
+_ADMIN_DISABLED = "The admin API is disabled: set CKS_ADMIN_TOKEN or CKS_ADMIN_TOKENS_FILE to enable it."
+Admin = Annotated[Operator, Depends(_token_holder("operators", "admin token", _ADMIN_DISABLED))]
+# What Admin answers, documented on every admin operation.
 ADMIN_RESPONSES: dict[int | str, dict[str, Any]] = {
     401: {"description": "No token, or not an admin token: send 'Authorization: Bearer <admin token>'"},
     403: {"description": "The admin API is disabled (no CKS_ADMIN_TOKEN nor CKS_ADMIN_TOKENS_FILE)"},
@@ -164,22 +153,13 @@ ADMIN_RESPONSES: dict[int | str, dict[str, Any]] = {
 }
 
 
-async def require_feedback_sender(
-    request: Request,
-    senders: FeedbackSenders,
-    registry: Registry,
-    trail: Trail,
-    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
-) -> Operator:
-    """Let feedback through with an admin token or a ``feedback`` token (CKS_ADMIN_TOKENS_FILE)."""
-    disabled = (
-        "Feedback is disabled: give its senders tokens ('feedback name:token' lines in"
-        " CKS_ADMIN_TOKENS_FILE, or an admin token)"
-    )
-    return _token_holder(request, senders, registry, trail, credentials, disabled, "feedback or admin token")
-
-
-FeedbackSender = Annotated[Operator, Depends(require_feedback_sender)]
+_FEEDBACK_DISABLED = (
+    "Feedback is disabled: give its senders tokens ('feedback name:token' lines in"
+    " CKS_ADMIN_TOKENS_FILE, or an admin token)"
+)
+FeedbackSender = Annotated[
+    Operator, Depends(_token_holder("feedback_senders", "feedback or admin token", _FEEDBACK_DISABLED))
+]
 FEEDBACK_RESPONSES: dict[int | str, dict[str, Any]] = {
     401: {"description": "No token, or neither a feedback nor an admin token"},
     403: {"description": "Feedback is disabled (no admin token and no 'feedback name:token' line)"},

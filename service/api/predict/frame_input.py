@@ -1,8 +1,7 @@
 """POST /v1/predict/frame bodies -> the domain's ``EncodedFrame`` and the request's parameters.
 
-The body is multipart/form-data, already received whole within CKS_MAX_REQUEST_BYTES: its parts
-are cut out of it in place (python-multipart's parser, one pass), so raw pixels reach the
-detector as views of the body, never copied or spooled to disk on the way.
+The multipart body, received whole, is cut into its parts in place (python-multipart's parser, one
+pass): raw pixels reach the detector as views of the body, never copied or spooled to disk.
 """
 
 from __future__ import annotations
@@ -83,9 +82,6 @@ def _parts(content_type: str, body: bytes) -> list[tuple[str, bytes | memoryview
     value = bytearray()
     whole = memoryview(body)
 
-    def header_value(data: bytes, start: int, end: int) -> None:
-        value.extend(data[start:end])
-
     def header_end() -> None:
         headers.append(bytes(value))
         value.clear()
@@ -99,14 +95,14 @@ def _parts(content_type: str, body: bytes) -> list[tuple[str, bytes | memoryview
     def part_data(data: bytes, start: int, end: int) -> None:
         parts[-1][1].append(whole[start:end] if data is body else bytes(data[start:end]))
 
+    ended: list[bool] = []
     callbacks = {
-        "on_header_value": header_value,
+        "on_header_value": lambda data, start, end: value.extend(data[start:end]),
         "on_header_end": header_end,
         "on_headers_finished": part_begins,
         "on_part_data": part_data,
+        "on_end": lambda: ended.append(True),
     }
-    ended: list[bool] = []
-    callbacks["on_end"] = lambda: ended.append(True)
     parser = MultipartParser(boundary, callbacks)  # type: ignore[arg-type]
     try:
         parser.write(body)

@@ -1,9 +1,5 @@
-"""POST /v1/predict/frame: a camera frame's pixels, whole or as the boxes' regions, raw or as
-JPEG/PNG, to the same answer as POST /v1/predict's for the same pixels (docs/predict.md, Frames).
-
-As POST /v1/predict: admission before the body is received, then parse -> ``Predictor.predict``
--> present inside a compute slot on the CPU pool.
-"""
+"""POST /v1/predict/frame: a camera frame's pixels, whole or as the boxes' regions, raw or as JPEG/PNG,
+to POST /v1/predict's answer for the same pixels (docs/predict.md, Frames), computed as that one is."""
 
 from __future__ import annotations
 
@@ -12,6 +8,7 @@ from typing import Any
 from fastapi import APIRouter, Request, Response
 
 from service.api.deps import Predicting
+from service.api.http.contract import SCHEMAS
 from service.api.predict.frame_input import LAYOUT, parse_frame, require_multipart
 from service.api.predict.predict_bodies import EXAMPLE_INSTANCES
 from service.api.predict.predict_routes import PREDICT_RESPONSES, compute
@@ -19,7 +16,6 @@ from service.api.predict.predict_schemas import PredictResponse
 
 router = APIRouter(tags=["prediction"])
 
-_SCHEMAS = "#/components/schemas/{model}"
 # A request the service answers as it is: a 16 x 16 grey frame, raw mono8, sent whole (one byte a
 # pixel, so the example's text is its pixels).
 _EXAMPLE_SIDE = 16
@@ -39,7 +35,7 @@ FRAME_BODY: dict[str, Any] = {
                 "description": LAYOUT,
                 "required": ["request", "pixels"],
                 "properties": {
-                    "request": {"$ref": _SCHEMAS.format(model="FrameRequest")},
+                    "request": {"$ref": SCHEMAS.format(model="FrameRequest")},
                     "pixels": {
                         "type": "array",
                         "minItems": 1,

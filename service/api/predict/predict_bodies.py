@@ -1,15 +1,13 @@
-"""How the predict routes' bodies are documented (they are parsed by hand, in predict_input): one
-request content type per operation, as every client generator can call it. One image as JSON
-(``PREDICT_JSON``) or as multipart (``PREDICT_FORM``), a batch as JSON (``BATCH_JSON``) or as
-multipart (``BATCH_FORM``). The routes take either type at run time (docs/api.md says which)."""
+"""How the predict routes' bodies (parsed by hand, in predict_input) are documented: one request content
+type per operation, as every client generator can call it; the routes take either at run time."""
 
 from __future__ import annotations
 
 from typing import Any
 
+from service.api.http.contract import SCHEMAS
 from service.api.predict.predict_schemas import MAX_BATCH_IMAGES
 
-_SCHEMAS = "#/components/schemas/{model}"
 _IMAGE = {"type": "string", "format": "binary", "description": "JPEG or PNG file"}
 # A JSON part may come as a plain field or as a file (a Blob in FormData): both are read as JSON.
 _JSON_PART = {"contentType": "application/json"}
@@ -27,7 +25,7 @@ _PREDICT_EXAMPLE = {"image_base64": _GREY_PNG, "instances": EXAMPLE_INSTANCES, "
 
 
 def _json(model: str, example: dict[str, Any]) -> dict[str, Any]:
-    schema = {"$ref": _SCHEMAS.format(model=model)}
+    schema = {"$ref": SCHEMAS.format(model=model)}
     return {"required": True, "content": {"application/json": {"schema": schema, "example": example}}}
 
 
@@ -37,11 +35,9 @@ def _form(schema: dict[str, Any], json_parts: list[str]) -> dict[str, Any]:
 
 
 def _batch_form() -> dict[str, Any]:
-    """What a client must send: image_i and request_i together (said in words: schemathesis cannot
-    generate from dependentRequired). A request_i the schema refuses is still answered in its own
-    item (behaviour, said in docs/api.md), not the whole batch."""
+    """image_i and request_i together, said in words (schemathesis cannot generate from dependentRequired)."""
     indexes = range(MAX_BATCH_IMAGES)
-    parameters = {"$ref": _SCHEMAS.format(model="PredictParameters")}
+    parameters = {"$ref": SCHEMAS.format(model="PredictParameters")}
     return {
         "type": "object",
         "description": "image_i and request_i for i = 0 .. n-1, n at most 16: a part without its twin, or"
@@ -60,7 +56,7 @@ PREDICT_FORM = _form(
     {
         "type": "object",
         "required": ["image", "request"],
-        "properties": {"image": _IMAGE, "request": {"$ref": _SCHEMAS.format(model="PredictParameters")}},
+        "properties": {"image": _IMAGE, "request": {"$ref": SCHEMAS.format(model="PredictParameters")}},
     },
     ["request"],
 )
