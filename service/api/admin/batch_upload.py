@@ -110,7 +110,7 @@ def upload_route(
 
 def _zip_body(how: str, batch: str, media: str, schema: dict[str, Any]) -> dict[str, Any]:
     description = f"{how}. A zip of a COCO-keypoints batch{batch}"
-    return {"required": True, "description": description, "content": {media: {"schema": schema}}}
+    return {"required": True, "content": {media: {"schema": schema}}, "description": description}
 
 
 @dataclass(frozen=True)
