@@ -32,9 +32,13 @@ router = APIRouter(prefix="/v1/admin", tags=["admin"], responses=ADMIN_RESPONSES
 DISK_FULL = "No room on disk for what the call writes (a full disk or store): nothing was kept; retry later"
 VersionNumber = Annotated[int, Path(ge=1, le=MAX_VERSION, description="calibration version number")]
 
+
+def _flag(description: str) -> dict[str, Any]:
+    return {"type": "boolean", "default": False, "description": description}
+
+
 # force, allow_duplicate and reason as one exploded query object (sent as force=true&reason=...,
 # as always), so that JSON Schema can say the rule: either flag needs a non-blank reason.
-_NEEDS_REASON = {"required": ["reason"], "properties": {"reason": {"pattern": r"\S"}}}
 _OVERRIDES = {
     "name": "overrides",
     "in": "query",
@@ -45,18 +49,10 @@ _OVERRIDES = {
     "schema": {
         "type": "object",
         "properties": {
-            "force": {
-                "type": "boolean",
-                "default": False,
-                "description": "with activate=true only: activate even if the guardrails refuse"
-                " (needs reason)",
-            },
-            "allow_duplicate": {
-                "type": "boolean",
-                "default": False,
-                "description": "store a version equal to a stored one instead of refusing (409)"
-                " (needs reason)",
-            },
+            "force": _flag("with activate=true only: activate even if the guardrails refuse (needs reason)"),
+            "allow_duplicate": _flag(
+                "store a version equal to a stored one instead of refusing (409) (needs reason)"
+            ),
             "reason": {
                 "type": "string",
                 "maxLength": 2000,
@@ -70,7 +66,7 @@ _OVERRIDES = {
                 for flag in ("force", "allow_duplicate")
             ]
         },
-        "then": _NEEDS_REASON,
+        "then": {"required": ["reason"], "properties": {"reason": {"pattern": r"\S"}}},
     },
 }
 _NO_SUCH_VERSION: dict[int | str, dict[str, Any]] = {404: {"description": "No such version"}}
