@@ -126,8 +126,7 @@ def _token_holder(tokens: str, kind: str, disabled: str) -> Callable[..., Awaita
 
 
 def _unauthorized(request: Request, credentials: HTTPAuthorizationCredentials | None, kind: str) -> str:
-    """Which of the three mistakes it is: no header, no ``Bearer `` before the token, or a token
-    that is not a ``kind`` (never echoed)."""
+    """No header, no ``Bearer `` before the token, or a token not a ``kind`` (never echoed)."""
     if credentials is not None:
         article = "an" if kind[0] in "aeiou" else "a"
         return (

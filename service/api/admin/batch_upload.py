@@ -87,10 +87,8 @@ def upload_route(
     responses: dict[str, str],
     parameters: tuple[dict[str, Any], ...] = (),
 ) -> Callable[[DecoratedCallable], DecoratedCallable]:
-    """The decorator of an upload route (202 with the job it starts; the body a zip of a COCO-keypoints
-    ``batch``; ``responses``: its refusals besides receiving's), registered twice, one request content
-    type per operation as client generators need: the raw zip on ``paths[0]`` as application/octet-stream
-    (judged by its bytes whatever its type), the form on ``paths[1]`` (operation ``<name>_form``)."""
+    """An upload route (202 with its job), registered twice as client generators need: the raw zip of a
+    ``batch`` on ``paths[0]`` (octet-stream), the form on ``paths[1]`` (``<name>_form``)."""
     refusals = {status: {"description": text} for status, text in {**_RECEIVED, **responses}.items()}
     raw = _zip_body("The raw zip", batch, "application/octet-stream", _BYTES)
     form = _zip_body("The zip as the part 'file'", batch, "multipart/form-data", _ZIP_FORM)

@@ -118,17 +118,16 @@ def install_problem_handlers(app: FastAPI) -> None:
         title = _TITLES.get(exc.status_code, "Error")
         return problem(exc.status_code, title, str(exc.detail), request, headers=headers)
 
-    @app.exception_handler(StoreUnavailable)
-    async def _store_unavailable(request: Request, exc: StoreUnavailable) -> JSONResponse:
-        error = StoreUnreachable(f"the calibration store is unreachable ({exc}): retry later")
-        return problem(error.status, error.title, error.detail, request, headers=error.headers)
-
-    @app.exception_handler(StoreFull)
-    async def _store_full(request: Request, exc: StoreFull) -> JSONResponse:
-        error = InsufficientStorage(
-            f"the calibration store's disk is full ({exc}): nothing was written; retry once space is freed"
-        )
-        return problem(error.status, error.title, error.detail, request)
+    @app.exception_handler(StoreUnavailable)  # and StoreFull, its kind
+    async def _store_error(request: Request, exc: StoreUnavailable) -> JSONResponse:
+        if isinstance(exc, StoreFull):
+            error: ServiceError = InsufficientStorage(
+                f"the calibration store's disk is full ({exc}): nothing was written;"
+                " retry once space is freed"
+            )
+        else:
+            error = StoreUnreachable(f"the calibration store is unreachable ({exc}): retry later")
+        return await _service_error(request, error)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:

@@ -1,8 +1,5 @@
-"""POST /v1/predict/frame bodies -> the domain's ``EncodedFrame`` and the request's parameters.
-
-The multipart body, received whole, is cut into its parts in place (python-multipart's parser, one
-pass): raw pixels reach the detector as views of the body, never copied or spooled to disk.
-"""
+"""POST /v1/predict/frame bodies -> ``EncodedFrame`` and parameters; parts are cut out of the body in
+place (one pass), so raw pixels reach the detector as views of it, never copied or spooled to disk."""
 
 from __future__ import annotations
 

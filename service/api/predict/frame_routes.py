@@ -10,7 +10,7 @@ from fastapi import APIRouter, Request, Response
 from service.api.deps import Predicting
 from service.api.http.contract import SCHEMAS
 from service.api.predict.frame_input import LAYOUT, parse_frame, require_multipart
-from service.api.predict.predict_bodies import EXAMPLE_INSTANCES
+from service.api.predict.predict_bodies import EXAMPLE_INSTANCES, form_body
 from service.api.predict.predict_routes import PREDICT_RESPONSES, compute
 from service.api.predict.predict_schemas import PredictResponse
 
@@ -18,42 +18,30 @@ router = APIRouter(tags=["prediction"])
 
 # A request the service answers as it is: a 16 x 16 grey frame, raw mono8, sent whole (one byte a
 # pixel, so the example's text is its pixels).
-_EXAMPLE_SIDE = 16
 _EXAMPLE = {
-    "request": {
-        "instances": EXAMPLE_INSTANCES,
-        "frame": {"width": _EXAMPLE_SIDE, "height": _EXAMPLE_SIDE, "encoding": "mono8"},
-    },
-    "pixels": ["~" * _EXAMPLE_SIDE**2],
+    "request": {"instances": EXAMPLE_INSTANCES, "frame": {"width": 16, "height": 16, "encoding": "mono8"}},
+    "pixels": ["~" * 16 * 16],
 }
-FRAME_BODY: dict[str, Any] = {
-    "required": True,
-    "content": {
-        "multipart/form-data": {
-            "schema": {
-                "type": "object",
-                "description": LAYOUT,
-                "required": ["request", "pixels"],
-                "properties": {
-                    "request": {"$ref": SCHEMAS.format(model="FrameRequest")},
-                    "pixels": {
-                        "type": "array",
-                        "minItems": 1,
-                        "items": {"type": "string", "format": "binary"},
-                        "description": "one part per regions[i], in order, or one part, the whole frame"
-                        " (frame.encoding): raw pixels (height * width * channels bytes, row-major) or a"
-                        " JPEG or PNG file",
-                    },
-                },
-                "additionalProperties": False,
-            },
-            # pixels keep the default encoding (application/octet-stream): generators that read a list
-            # of types literally send the whole array as one part
-            "encoding": {"request": {"contentType": "application/json"}},
-            "example": _EXAMPLE,
-        }
-    },
+_PIXELS = {
+    "type": "array",
+    "minItems": 1,
+    "items": {"type": "string", "format": "binary"},
+    "description": "one part per regions[i], in order, or one part, the whole frame (frame.encoding): raw"
+    " pixels (height * width * channels bytes, row-major) or a JPEG or PNG file",
 }
+# pixels keep the default encoding (application/octet-stream): generators that read a list of types
+# literally send the whole array as one part
+FRAME_BODY = form_body(
+    {
+        "type": "object",
+        "description": LAYOUT,
+        "required": ["request", "pixels"],
+        "properties": {"request": {"$ref": SCHEMAS.format(model="FrameRequest")}, "pixels": _PIXELS},
+        "additionalProperties": False,
+    },
+    ["request"],
+    _EXAMPLE,
+)
 _RESPONSES: dict[int | str, dict[str, Any]] = {
     **PREDICT_RESPONSES,
     413: {

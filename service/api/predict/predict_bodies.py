@@ -29,9 +29,11 @@ def _json(model: str, example: dict[str, Any]) -> dict[str, Any]:
     return {"required": True, "content": {"application/json": {"schema": schema, "example": example}}}
 
 
-def _form(schema: dict[str, Any], json_parts: list[str]) -> dict[str, Any]:
-    encoding = {part: _JSON_PART for part in json_parts}
-    return {"required": True, "content": {"multipart/form-data": {"schema": schema, "encoding": encoding}}}
+def form_body(schema: dict[str, Any], json_parts: list[str], example: Any = None) -> dict[str, Any]:
+    media = {"schema": schema, "encoding": {part: _JSON_PART for part in json_parts}}
+    if example is not None:
+        media["example"] = example
+    return {"required": True, "content": {"multipart/form-data": media}}
 
 
 def _batch_form() -> dict[str, Any]:
@@ -52,7 +54,7 @@ def _batch_form() -> dict[str, Any]:
 
 
 PREDICT_JSON = _json("PredictJson", _PREDICT_EXAMPLE)
-PREDICT_FORM = _form(
+PREDICT_FORM = form_body(
     {
         "type": "object",
         "required": ["image", "request"],
@@ -61,4 +63,4 @@ PREDICT_FORM = _form(
     ["request"],
 )
 BATCH_JSON = _json("BatchJson", {"items": [_PREDICT_EXAMPLE, _PREDICT_EXAMPLE]})
-BATCH_FORM = _form(_batch_form(), [f"request_{i}" for i in range(MAX_BATCH_IMAGES)])
+BATCH_FORM = form_body(_batch_form(), [f"request_{i}" for i in range(MAX_BATCH_IMAGES)])

@@ -1,5 +1,4 @@
-"""Predict requests as they arrive (JSON with base64, or multipart) -> image bytes and a domain
-``PredictQuery``; the batch route's parts, one request per index."""
+"""Predict requests as they arrive (JSON with base64, or multipart; a batch's) -> images and queries."""
 
 from __future__ import annotations
 
@@ -33,8 +32,7 @@ _BATCH_PART = re.compile(r"(image|request)_([0-9]{1,6})")
 def validated(
     model: type[Model], raw: str | bytes, manifest: Manifest | None = None, part: str = "the body"
 ) -> Model:
-    """``raw`` JSON (``part`` of the request) as ``model``; 422 listing every problem the schema
-    finds, and every instance whose object is not one of ``manifest``'s."""
+    """``raw`` JSON (``part`` of the request) as ``model``; 422 listing every problem, unknown objects too."""
     try:
         return model.model_validate_json(raw, context={"manifest": manifest})
     except ValidationError as error:
@@ -112,8 +110,7 @@ async def _parse_multipart(request: Request, manifest: Manifest) -> tuple[bytes,
 
 
 async def _read_form(request: Request, parts: int, layout: str) -> FormData:
-    """The multipart body as a form of at most ``parts`` files and ``parts`` text fields; 422 in one
-    wording for each mistake (a JSON part counts as a file when it has a filename, as a Blob does)."""
+    """The form, of at most ``parts`` files (a JSON Blob is one) and ``parts`` fields; 422 if malformed."""
     try:
         return await request.form(max_files=parts, max_fields=parts)
     except HTTPException as error:  # starlette's 400 for a body it cannot parse
@@ -130,8 +127,7 @@ async def _text(part: str | UploadFile) -> str:
 
 
 def predict_query(parameters: PredictParameters) -> PredictQuery:
-    """The schema's parameters as the domain's query: the options as they are, the instances and
-    the pose request in domain terms (checked against the image by the domain)."""
+    """The schema's parameters as the domain's query (checked against the image by the domain)."""
     asked = {field.name for field in dataclasses.fields(PredictQuery)}  # stream, adaptive: the API's
     options = {name: getattr(parameters, name) for name in PredictOptions.model_fields if name in asked}
     instances = tuple(Instance(i.object, i.bbox, i.group) for i in parameters.instances)
@@ -165,8 +161,7 @@ def require_batch_media(request: Request) -> None:
 
 
 async def parse_batch(request: Request, body: bytes, limit: int, manifest: Manifest) -> list[BatchItem]:
-    """The images of a POST /v1/predict/batch body; the whole request is refused only when its
-    layout is wrong."""
+    """The images of a POST /v1/predict/batch body; only a wrong layout refuses the whole request."""
     if media_type(request) == "application/json":
         return _json_batch(body, limit, manifest)
     layout = f"at most {limit} images and {limit} requests: image_0, request_0, ..."
@@ -192,9 +187,8 @@ async def parse_batch(request: Request, body: bytes, limit: int, manifest: Manif
 
 
 def _json_batch(body: bytes, limit: int, manifest: Manifest) -> list[BatchItem]:
-    """Each item's JSON parsed once, by the schema, where the body is plain UTF-8 JSON with a
-    well-formed envelope and valid items; any other body is read as before (the whole parsed,
-    each item written again and validated), so that every refusal keeps its words."""
+    """Each item parsed once, by the schema, from a plain UTF-8 ``{"items": [...]}``; any other body the
+    slow way (whole, then each item written again), which words every refusal."""
     raw_items = _raw_items(body)
     if raw_items is None or not 0 < len(raw_items) <= limit:
         return _parsed_json_batch(body, limit, manifest)

@@ -1,8 +1,5 @@
 """POST /v1/predict, /v1/predict/png and /v1/predict/batch: images and boxes in, keypoint sets out.
-
-receive -> parse (inside admission places) -> ``Predictor.predict`` -> present (in a compute slot).
-A batch of n images takes n places; each image is answered with the status it would have had alone.
-"""
+A batch of n images takes n admission places; each image is answered as it would have been alone."""
 
 from __future__ import annotations
 
@@ -93,9 +90,8 @@ _IMAGE_FORM = "multipart/form-data: the image as a file, its parameters as the J
 
 
 def _json_and_form(path: str, bodies: tuple[dict, dict], form: str, summary: str, links=None, **route: Any):
-    """Register the route twice, one request content type each (client generators keep only one):
-    ``path`` with the JSON body (its 200 with ``links``), ``path``/form with the multipart one
-    (operation ``<name>_form``). Either path takes either body at run time."""
+    """Register the route twice, one request content type each as client generators need: ``path`` with
+    the JSON body (200 with ``links``), ``path``/form (``<name>_form``) the multipart; either takes both."""
 
     def register(endpoint: Callable) -> Callable:
         extra = {"requestBody": bodies[0], **({"responses": {"200": {"links": links}}} if links else {})}
@@ -119,7 +115,8 @@ def _json_and_form(path: str, bodies: tuple[dict, dict], form: str, summary: str
     responses=PREDICT_RESPONSES,
 )
 async def predict(request: Request, parts: Predicting) -> Response:
-    return await _predict(request, parts, png=_wants_png(request))
+    accept = request.headers.get("accept", "")
+    return await _predict(request, parts, png="image/png" in accept and "application/json" not in accept)
 
 
 @_json_and_form(
@@ -171,8 +168,7 @@ async def predict_batch(request: Request, parts: Predicting) -> Response:
 async def compute(
     parts: PredictParts, caller: str, image: bytes | EncodedFrame, parameters: PredictParameters, png: bool
 ) -> Response:
-    """Predict and present on the CPU pool, inside a compute slot (decoded images exist only there);
-    ``image``: a JPEG or PNG file, or a frame's pixels (POST /v1/predict/frame)."""
+    """Predict and present on the CPU pool in a compute slot; ``image``: a JPEG/PNG file or a frame."""
     async with parts.admission.slot(caller):
         context = contextvars.copy_context()  # the pool's thread logs with the request's id
         answer = (_respond, parts, image, parameters, png, caller)
@@ -190,16 +186,15 @@ def _respond(
     query = replace(query, retain=True) if retained else query
     prediction = parts.predictor.predict(image, query, whole_image=png)
     note_calibration_version(prediction.version)
-    manifest = parts.predictor.detector.manifest
     if png:
-        return Response(predict_presenter.predict_png(prediction, query, manifest), media_type="image/png")
-    answer = predict_presenter.predict_json(prediction, query, manifest)
+        png_answer = predict_presenter.predict_png(prediction, query, parts.manifest)
+        return Response(png_answer, media_type="image/png")
+    answer = predict_presenter.predict_json(prediction, query, parts.manifest)
     if retained:  # prediction_id (and adaptive) follow the answer's last member, as PredictResponse has them
         served = served_request(prediction, query, adaptive)
         sha256 = image.sha256() if isinstance(image, EncodedFrame) else hashlib.sha256(image).hexdigest()
-        kept = {
-            "prediction_id": retention.retain(prediction.version, served, sha256, parameters.stream, client)
-        }
+        stream = parameters.stream
+        kept = {"prediction_id": retention.retain(prediction.version, served, sha256, stream, client)}
         if adaptive is not None:
             kept["adaptive"] = adaptive.as_dict()
         answer = answer[:-1] + b"," + to_json(kept)[1:]
@@ -225,8 +220,3 @@ async def _batch_answer(
         )
     # The same problem body POST /v1/predict would answer, built by the same function.
     return b'{"status":%d,"problem":%s}' % (answer.status_code, bytes(answer.body))
-
-
-def _wants_png(request: Request) -> bool:
-    accept = request.headers.get("accept", "")
-    return "image/png" in accept and "application/json" not in accept

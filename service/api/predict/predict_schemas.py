@@ -58,8 +58,7 @@ class InstanceIn(StrictBody):
     @field_validator("object")
     @classmethod
     def _known_object(cls, name: str, info: ValidationInfo) -> str:
-        """With the served model's manifest as context, an unknown name is one more problem of the
-        same answer (not a second answer once the schema's problems are fixed)."""
+        """With the manifest as context, an unknown name is one more problem of the same answer."""
         manifest = (info.context or {}).get("manifest")
         if manifest is not None and name not in manifest.object_names:
             known = ", ".join(manifest.object_names)
