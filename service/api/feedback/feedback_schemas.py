@@ -98,20 +98,18 @@ class LiveCoverageOut(BaseModel):
 class FieldCalibrationIn(StrictBody):
     """Labelled feedback made a calibration version: which labels, and the upload's options."""
 
-    stream: str | None = Field(default=None, max_length=64, description="only this camera stream's labels")
-    served_by: int | None = Field(
-        default=None, ge=1, description="only labels of answers served by this version"
-    )
-    name: str | None = Field(default=None, description="the source batch's name (default feedback-<sha256>)")
+    stream: str | None = Field(None, max_length=64, description="only this camera stream's labels")
+    served_by: int | None = Field(None, ge=1, description="only labels of answers served by this version")
+    name: str | None = Field(None, description="the source batch's name (default feedback-<sha256>)")
     note: str = ""
     append_to: int | None = Field(
-        default=None, ge=1, le=MAX_VERSION, description="new version = this one + the labels"
+        None, ge=1, le=MAX_VERSION, description="new version = this one + the labels"
     )
     activate: bool = False
-    force: bool = Field(default=False, description="activate past the guardrails (needs reason)")
+    force: bool = Field(False, description="activate past the guardrails (needs reason)")
     reason: str = ""
-    dedupe: bool = Field(default=False, description="drop instances already counted instead of refusing")
-    allow_duplicate: bool = Field(default=False, description="store a version equal to a stored one (reason)")
+    dedupe: bool = Field(False, description="drop instances already counted instead of refusing")
+    allow_duplicate: bool = Field(False, description="store a version equal to a stored one (reason)")
 
 
 class FieldCalibrationOut(BaseModel):

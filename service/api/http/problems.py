@@ -37,14 +37,14 @@ class Problem(BaseModel):
 
     model_config = ConfigDict(extra="allow")
 
-    type: str = Field(default="about:blank", description="always about:blank: the status says the kind")
+    type: str = Field("about:blank", description="always about:blank: the status says the kind")
     title: str = Field(description="the status in words")
     status: int = Field(description="the HTTP status")
     detail: str = Field(description="what went wrong and what to fix")
-    instance: str | None = Field(default=None, description="the request's path")
-    errors: list[str] | None = Field(default=None, description="every problem found, when there are several")
+    instance: str | None = Field(None, description="the request's path")
+    errors: list[str] | None = Field(None, description="every problem found, when there are several")
     request_id: str | None = Field(
-        default=None, description="the request's X-Request-ID: quote it when reporting a problem"
+        None, description="the request's X-Request-ID: quote it when reporting a problem"
     )
 
 

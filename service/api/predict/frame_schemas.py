@@ -23,7 +23,7 @@ class FrameIn(StrictBody):
     width: StrictInt = Field(gt=0, le=MAX_SIDE, description="the full frame's width in pixels")
     height: StrictInt = Field(gt=0, le=MAX_SIDE, description="the full frame's height in pixels")
     encoding: Encoding | None = Field(
-        default=None,
+        None,
         description="with the whole frame as the one `pixels` part: its encoding (" + _ENCODING + ");"
         " left out when regions are sent",
     )
@@ -49,7 +49,7 @@ class FrameRequest(PredictParameters):
 
     frame: FrameIn
     regions: list[RegionIn] | None = Field(
-        default=None,
+        None,
         min_length=1,
         description="the frame's regions, each sent as a `pixels` part in this order; left out when the"
         " whole frame is the one `pixels` part (frame.encoding)",
