@@ -18,7 +18,13 @@ from pydantic_core import ErrorDetails
 from starlette.datastructures import FormData, UploadFile
 from starlette.exceptions import HTTPException
 
-from service.api.predict.predict_schemas import PoseRequest, PredictJson, PredictOptions, PredictParameters
+from service.api.predict.predict_schemas import (
+    MAX_BATCH_IMAGES,
+    PoseRequest,
+    PredictJson,
+    PredictOptions,
+    PredictParameters,
+)
 from service.detector.manifest import Manifest
 from service.errors import InvalidInput, UnsupportedMediaType
 from service.pose import Pose, PoseOptions, as_camera_matrix
@@ -148,26 +154,25 @@ def _pose_options(request: PoseRequest) -> PoseOptions:
 
 # One image of a batch: called, its image and parameters, or the problem of that image alone.
 BatchItem = Callable[[], tuple[bytes, PredictParameters]]
-_BATCH_MEDIA = ("application/json", "multipart/form-data")
 
 
 def require_batch_media(request: Request) -> None:
     """415 unless the batch comes as JSON or multipart (checked before its body is received)."""
-    if media_type(request) not in _BATCH_MEDIA:
+    if media_type(request) not in ("application/json", "multipart/form-data"):
         raise UnsupportedMediaType(
             'send application/json ({"items": [...]}) or multipart/form-data (parts image_0, request_0,'
             f" image_1, ...), not {media_type(request)!r}"
         )
 
 
-async def parse_batch(request: Request, body: bytes, limit: int, manifest: Manifest) -> list[BatchItem]:
+async def parse_batch(request: Request, body: bytes, manifest: Manifest) -> list[BatchItem]:
     """The images of a POST /v1/predict/batch body; only a wrong layout refuses the whole request."""
     if media_type(request) == "application/json":
-        return _json_batch(body, limit, manifest)
-    layout = f"at most {limit} images and {limit} requests: image_0, request_0, ..."
-    form = await _read_form(request, 2 * limit, layout)  # requests may come as files (Blobs)
+        return _json_batch(body, manifest)
+    layout = f"at most {MAX_BATCH_IMAGES} images and {MAX_BATCH_IMAGES} requests: image_0, request_0, ..."
+    form = await _read_form(request, 2 * MAX_BATCH_IMAGES, layout)  # requests may come as files (Blobs)
     try:
-        images, requests, problems = await _batch_parts(form, limit)
+        images, requests, problems = await _batch_parts(form)
     finally:
         await form.close()  # its spooled files, now rather than when collected
     count = max([*images, *requests], default=-1) + 1
@@ -186,19 +191,19 @@ async def parse_batch(request: Request, body: bytes, limit: int, manifest: Manif
     return [partial(_multipart_item, i, images[i], requests[i], manifest) for i in range(count)]
 
 
-def _json_batch(body: bytes, limit: int, manifest: Manifest) -> list[BatchItem]:
+def _json_batch(body: bytes, manifest: Manifest) -> list[BatchItem]:
     """Each item parsed once, by the schema, from a plain UTF-8 ``{"items": [...]}``; any other body the
     slow way (whole, then each item written again), which words every refusal."""
     raw_items = _raw_items(body)
-    if raw_items is None or not 0 < len(raw_items) <= limit:
-        return _parsed_json_batch(body, limit, manifest)
+    if raw_items is None or not 0 < len(raw_items) <= MAX_BATCH_IMAGES:
+        return _parsed_json_batch(body, manifest)
     items: list[BatchItem] = []
     for raw in raw_items:
         try:
             parameters = PredictJson.model_validate_json(raw, context={"manifest": manifest})
         except ValidationError as error:
             if any(e["type"] == "json_invalid" for e in error.errors()):
-                return _parsed_json_batch(body, limit, manifest)
+                return _parsed_json_batch(body, manifest)
             items.append(partial(_raise, _schema_refusal(error, "the body")))
         except Exception as error:  # raised when its item is answered, as the other way does
             items.append(partial(_raise, error))
@@ -258,7 +263,7 @@ def _string_end(body: bytes, at: int) -> int:
     return -1
 
 
-def _parsed_json_batch(body: bytes, limit: int, manifest: Manifest) -> list[BatchItem]:
+def _parsed_json_batch(body: bytes, manifest: Manifest) -> list[BatchItem]:
     layout = 'send {"items": [...]}: an object whose only member, items, lists POST /v1/predict JSON bodies'
     try:
         envelope = json.loads(body)
@@ -269,12 +274,12 @@ def _parsed_json_batch(body: bytes, limit: int, manifest: Manifest) -> list[Batc
         raise InvalidInput(layout)
     if not items:
         raise InvalidInput("the batch is empty: send at least one item")
-    if len(items) > limit:
-        raise InvalidInput(f"{len(items)} items: at most {limit} images per batch")
+    if len(items) > MAX_BATCH_IMAGES:
+        raise InvalidInput(f"{len(items)} items: at most {MAX_BATCH_IMAGES} images per batch")
     return [partial(_from_json, json.dumps(item), manifest) for item in items]
 
 
-async def _batch_parts(form: FormData, limit: int) -> tuple[dict[int, bytes | None], dict[int, str], list]:
+async def _batch_parts(form: FormData) -> tuple[dict[int, bytes | None], dict[int, str], list]:
     """The images and requests by index, and what is wrong with the parts' names."""
     images: dict[int, bytes | None] = {}
     requests: dict[int, str] = {}
@@ -284,8 +289,8 @@ async def _batch_parts(form: FormData, limit: int) -> tuple[dict[int, bytes | No
         index = int(match.group(2)) if match else -1
         if match is None:
             problems.append(f"unexpected part {name!r}: send image_0, request_0, image_1, request_1, ...")
-        elif index >= limit:
-            problems.append(f"part {name!r}: at most {limit} images per batch, numbered from 0")
+        elif index >= MAX_BATCH_IMAGES:
+            problems.append(f"part {name!r}: at most {MAX_BATCH_IMAGES} images per batch, numbered from 0")
         elif index in (images if match.group(1) == "image" else requests):
             problems.append(f"part {name!r} appears more than once")
         elif match.group(1) == "image":

@@ -26,12 +26,7 @@ from service.api.predict.predict_input import (
     predict_query,
     require_batch_media,
 )
-from service.api.predict.predict_schemas import (
-    MAX_BATCH_IMAGES,
-    BatchResponse,
-    PredictParameters,
-    PredictResponse,
-)
+from service.api.predict.predict_schemas import BatchResponse, PredictParameters, PredictResponse
 from service.detector.frames import EncodedFrame
 from service.errors import InvalidInput, ServiceError
 from service.infra.logs import note_calibration_version
@@ -149,7 +144,7 @@ async def _predict(request: Request, parts: PredictParts, png: bool) -> Response
 async def predict_batch(request: Request, parts: Predicting) -> Response:
     require_batch_media(request)
     caller, body = await parts.arrive(request)
-    items = await parse_batch(request, body, MAX_BATCH_IMAGES, parts.manifest)
+    items = await parse_batch(request, body, parts.manifest)
     capacity = parts.admission.capacity
     if len(items) > capacity:
         raise InvalidInput(
