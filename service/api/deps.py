@@ -1,5 +1,4 @@
-"""FastAPI dependencies: each long-lived part a route uses (``Registry``, ``Store``, ...), what
-the predict routes use (``Predicting``), and the admin bearer token check (``Admin``)."""
+"""FastAPI dependencies: the service's long-lived parts, the predict routes' (``Predicting``), tokens."""
 
 from __future__ import annotations
 

@@ -1,6 +1,5 @@
-"""A labeled batch as the admin API receives it (calibration uploads, coverage audits): the route's
-shape (``UploadCall``: the zip into an upload workspace, handed to a job; 202 with the job), its shared
-query parameters and documentation, and every refusal of the action in the audit trail."""
+"""A labeled batch as the admin API receives it (calibration uploads, coverage audits): the route, its
+query parameters and documentation, the zip received for a job, every refusal in the audit trail."""
 
 from __future__ import annotations
 

@@ -1,5 +1,4 @@
-"""Calibration administration: upload batches, watch and retry jobs, list, inspect, compare,
-activate, roll back, and read the audit trail and where the store is."""
+"""Calibration administration: uploads, jobs, versions (list, compare, activate), audit trail, store."""
 
 from __future__ import annotations
 

@@ -1,5 +1,4 @@
-"""The request of POST /v1/predict/frame: a frame's size, and its pixels whole or as regions
-(ROS sensor_msgs/RegionOfInterest terms), raw or as JPEG/PNG files, beside the usual options."""
+"""POST /v1/predict/frame's request: the frame's size, its pixels whole or as regions, raw or encoded."""
 
 from __future__ import annotations
 

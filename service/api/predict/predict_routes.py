@@ -75,12 +75,8 @@ _BATCH_RESPONSES: dict[int | str, dict[str, Any]] = {
 
 # POST /v1/predict's JSON example is retained: its answer's prediction_id leads to the feedback
 # operation (stateful testers and generated SDKs follow the loop from the example).
-_FEEDBACK_LINK = {
-    "SendFeedback": {
-        "operationId": "send_feedback",
-        "parameters": {"prediction_id": "$response.body#/prediction_id"},
-    }
-}
+_PREDICTION_ID = {"prediction_id": "$response.body#/prediction_id"}
+_FEEDBACK_LINK = {"SendFeedback": {"operationId": "send_feedback", "parameters": _PREDICTION_ID}}
 _IMAGE_FORM = "multipart/form-data: the image as a file, its parameters as the JSON part request"
 
 
