@@ -188,11 +188,8 @@ async def retry_job(
 async def list_calibrations(store: Store, model: Model, registry: Registry, _: Admin) -> out.VersionList:
     versions = await run_in_threadpool(store.list_versions, model.model_hash)
     active = await run_in_threadpool(registry.refresh_now)
-    return out.VersionList(
-        model_hash=model.model_hash,
-        active_version=active,
-        versions=[present.summarize(info, active) for info in versions],
-    )
+    summaries = [present.summarize(info, active) for info in versions]
+    return out.VersionList(model_hash=model.model_hash, active_version=active, versions=summaries)
 
 
 @router.get(
@@ -290,10 +287,7 @@ async def audit_trail(
 async def store_info(model: Model, registry: Registry, settings: Config, _: Admin) -> out.StoreInfo:
     kind, location = store_location(settings.storage.resolved_url)
     active = await run_in_threadpool(registry.refresh_now)
+    data_dir = str(settings.storage.data_dir)
     return out.StoreInfo(
-        kind=kind,
-        location=location,
-        data_dir=str(settings.storage.data_dir),
-        model_hash=model.model_hash,
-        active_version=active,
+        kind=kind, location=location, data_dir=data_dir, model_hash=model.model_hash, active_version=active
     )

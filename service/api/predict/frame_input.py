@@ -50,10 +50,9 @@ def _frame(parameters: FrameRequest, pixels: list[bytes | memoryview]) -> Encode
         what = "the whole frame" if regions is None else f"the {expected} regions, in order"
         raise InvalidInput(f"{len(pixels)} 'pixels' parts, for {what}: send {expected}")
     if regions is None:
-        assert frame.encoding is not None
-        return EncodedFrame.of_whole(
-            frame.width, frame.height, frame.encoding, _data(frame.encoding, pixels[0])
-        )
+        encoding = frame.encoding
+        assert encoding is not None
+        return EncodedFrame.of_whole(frame.width, frame.height, encoding, _data(encoding, pixels[0]))
     encoded = tuple(
         EncodedRegion(
             r.x_offset, r.y_offset, r.width, r.height, r.encoding, _data(r.encoding, data), tuple(r.instances)

@@ -9,6 +9,7 @@ from service.api.http.contract import SCHEMAS
 from service.api.predict.predict_schemas import MAX_BATCH_IMAGES
 
 _IMAGE = {"type": "string", "format": "binary", "description": "JPEG or PNG file"}
+_PARAMETERS = {"$ref": SCHEMAS.format(model="PredictParameters")}
 # A JSON part may come as a plain field or as a file (a Blob in FormData): both are read as JSON.
 _JSON_PART = {"contentType": "application/json"}
 
@@ -39,7 +40,6 @@ def form_body(schema: dict[str, Any], json_parts: list[str], example: Any = None
 def _batch_form() -> dict[str, Any]:
     """image_i and request_i together, said in words (schemathesis cannot generate from dependentRequired)."""
     indexes = range(MAX_BATCH_IMAGES)
-    parameters = {"$ref": SCHEMAS.format(model="PredictParameters")}
     return {
         "type": "object",
         "description": "image_i and request_i for i = 0 .. n-1, n at most 16: a part without its twin, or"
@@ -47,7 +47,7 @@ def _batch_form() -> dict[str, Any]:
         "required": ["image_0", "request_0"],
         "properties": {
             **{f"image_{i}": _IMAGE for i in indexes},
-            **{f"request_{i}": parameters for i in indexes},
+            **{f"request_{i}": _PARAMETERS for i in indexes},
         },
         "additionalProperties": False,
     }
@@ -58,7 +58,7 @@ PREDICT_FORM = form_body(
     {
         "type": "object",
         "required": ["image", "request"],
-        "properties": {"image": _IMAGE, "request": {"$ref": SCHEMAS.format(model="PredictParameters")}},
+        "properties": {"image": _IMAGE, "request": _PARAMETERS},
     },
     ["request"],
 )

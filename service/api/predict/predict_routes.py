@@ -170,10 +170,8 @@ def _respond(
     parts: PredictParts, image: bytes | EncodedFrame, parameters: PredictParameters, png: bool, client: str
 ) -> Response:
     query, adaptive = adapted_query(parts.adaptive, predict_query(parameters), parameters)
-    retention = parts.retention
-    retained = (
-        not png and retention is not None and (adaptive is not None or retention.wanted(parameters.retain))
-    )
+    retention = None if png else parts.retention  # a drawing is never retained
+    retained = retention is not None and (adaptive is not None or retention.wanted(parameters.retain))
     query = replace(query, retain=True) if retained else query
     prediction = parts.predictor.predict(image, query, whole_image=png)
     note_calibration_version(prediction.version)

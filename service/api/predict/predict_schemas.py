@@ -137,8 +137,7 @@ class PoseRequest(StrictBody):
     @field_validator("K")
     @classmethod
     def _pinhole(cls, matrix: list[list[float]]) -> list[list[float]]:
-        problems = camera_matrix_problems(matrix)
-        if problems:
+        if problems := camera_matrix_problems(matrix):
             raise ValueError("; ".join(problems))
         return matrix
 
