@@ -31,6 +31,7 @@ from service.monitoring.coverage_audits import CoverageAudits
 from service.monitoring.drift_monitor import DriftMonitor
 from service.prediction import Predictor
 
+_CHALLENGE = {"WWW-Authenticate": "Bearer"}  # a 401's challenge
 _bearer = HTTPBearer(auto_error=False, description="CKS_ADMIN_TOKEN, or a token of CKS_ADMIN_TOKENS_FILE")
 
 
@@ -108,9 +109,7 @@ def _token_holder(tokens: str, kind: str, disabled: str) -> Callable[..., Awaita
             raise HTTPException(403, disabled)
         name = None if credentials is None else operator_named(held, credentials.credentials)
         if name is None:
-            raise HTTPException(
-                401, _unauthorized(request, credentials, kind), headers={"WWW-Authenticate": "Bearer"}
-            )
+            raise HTTPException(401, _unauthorized(request, credentials, kind), headers=_CHALLENGE)
         operator = Operator(name=name, client=request.client.host if request.client else "")
         try:
             registry.require_store()  # every such call needs the store: 503 at once while it is away

@@ -65,7 +65,7 @@ _OVERRIDES = {
                 for flag in ("force", "allow_duplicate")
             ]
         },
-        "then": {"required": ["reason"], "properties": {"reason": {"pattern": r"\S"}}},
+        "then": out.NEEDS_REASON,
     },
 }
 _NO_SUCH_VERSION: dict[int | str, dict[str, Any]] = {404: {"description": "No such version"}}

@@ -55,8 +55,7 @@ def install_contract(
         if app.openapi_schema is None:
             document = completed(generate(), (Problem, *parsed_bodies))
             names = list(object_names())
-            instance = document["components"]["schemas"]["InstanceIn"]
-            instance["properties"]["object"]["enum"] = names
+            document["components"]["schemas"]["InstanceIn"]["properties"]["object"]["enum"] = names
             # the examples' instances (module constants, shared with other apps) name its first object
             document["paths"] = _named(copy.deepcopy(document["paths"]), names[0])
             app.openapi_schema = document

@@ -140,9 +140,8 @@ def _no_route(request: Request) -> str:
     path = request.url.path
     detail = f"no operation at {path}"
     under_v1 = {**request.scope, "path": "/v1" + path}
-    if not path.startswith("/v1/") and any(
-        route.matches(under_v1)[0] is not Match.NONE for route in request.app.router.routes
-    ):
+    routes = request.app.router.routes
+    if not path.startswith("/v1/") and any(route.matches(under_v1)[0] is not Match.NONE for route in routes):
         detail += f": the API is under /v1, send {request.method} /v1{path}"
     return detail + "; every operation is listed at /docs"
 

@@ -69,8 +69,7 @@ def _data(encoding: str, data: bytes | memoryview) -> bytes | memoryview:
 
 def _parts(content_type: str, body: bytes) -> list[tuple[str, bytes | memoryview]]:
     """Each part's name and bytes, in order (a view of ``body`` where the part is one piece)."""
-    _, options = parse_options_header(content_type)
-    boundary = options.get(b"boundary")
+    boundary = parse_options_header(content_type)[1].get(b"boundary")
     if not boundary:
         raise InvalidInput("multipart/form-data needs a boundary in its Content-Type")
     parts: list[tuple[str, list]] = []

@@ -108,9 +108,8 @@ async def _parse_multipart(request: Request, manifest: Manifest) -> tuple[bytes,
             raise InvalidInput("multipart part 'image' must be a file (a part with a filename), not a field")
         if raw is None:
             raise InvalidInput("multipart part 'request' (JSON with instances and options) is missing")
-        return await image.read(), validated(
-            PredictParameters, await _text(raw), manifest, "the multipart part 'request'"
-        )
+        parameters = validated(PredictParameters, await _text(raw), manifest, "the multipart part 'request'")
+        return await image.read(), parameters
     finally:
         await form.close()  # its spooled files, now rather than when collected
 

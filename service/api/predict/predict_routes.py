@@ -77,6 +77,7 @@ _BATCH_RESPONSES: dict[int | str, dict[str, Any]] = {
 # operation (stateful testers and generated SDKs follow the loop from the example).
 _PREDICTION_ID = {"prediction_id": "$response.body#/prediction_id"}
 _FEEDBACK_LINK = {"SendFeedback": {"operationId": "send_feedback", "parameters": _PREDICTION_ID}}
+_FAILED = "The server failed on this image; the error was logged."  # a batch item's 500
 _IMAGE_FORM = "multipart/form-data: the image as a file, its parameters as the JSON part request"
 
 
@@ -204,8 +205,6 @@ async def _batch_answer(
         )
     except Exception:
         log.exception("unhandled error on image %d of a batch", index)
-        answer = problem(
-            500, "Internal error", "The server failed on this image; the error was logged.", request
-        )
+        answer = problem(500, "Internal error", _FAILED, request)
     # The same problem body POST /v1/predict would answer, built by the same function.
     return b'{"status":%d,"problem":%s}' % (answer.status_code, bytes(answer.body))
