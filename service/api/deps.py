@@ -1,5 +1,4 @@
-"""FastAPI dependencies: each long-lived part a route uses (``Registry``, ``Store``, ...), what
-the predict routes use (``Predicting``), and the admin bearer token check (``Admin``)."""
+"""FastAPI dependencies: the service's long-lived parts, the predict routes' (``Predicting``), tokens."""
 
 from __future__ import annotations
 
@@ -32,6 +31,7 @@ from service.monitoring.coverage_audits import CoverageAudits
 from service.monitoring.drift_monitor import DriftMonitor
 from service.prediction import Predictor
 
+_CHALLENGE = {"WWW-Authenticate": "Bearer"}  # a 401's challenge
 _bearer = HTTPBearer(auto_error=False, description="CKS_ADMIN_TOKEN, or a token of CKS_ADMIN_TOKENS_FILE")
 
 
@@ -56,8 +56,6 @@ Trail = Annotated[AuditTrail, Depends(_part("audit"))]
 Audits = Annotated[CoverageAudits, Depends(_part("audits"))]
 Drift = Annotated[DriftMonitor | None, Depends(_part("drift"))]
 Config = Annotated[Settings, Depends(_part("settings"))]
-Operators = Annotated[dict[str, str], Depends(_part("operators"))]
-FeedbackSenders = Annotated[dict[str, str], Depends(_part("feedback_senders"))]
 Retaining = Annotated[Retention, Depends(_part("retention"))]
 LiveCoverage = Annotated[LiveCoverageReader, Depends(_part("live_coverage"))]
 Adaptive = Annotated[AdaptiveSets, Depends(_part("adaptive"))]
@@ -81,13 +79,12 @@ class PredictParts:
         """The served model's: a request naming another object is told so with its other problems."""
         return self.predictor.detector.manifest
 
-    async def caller_of(self, request: Request) -> str:
-        """Whose share of the admission places this request takes (service.api.http.callers)."""
-        return await self.callers.of(request)
-
-    async def receive(self, request: Request) -> bytes:
-        """The body within CKS_MAX_REQUEST_BYTES, in time."""
-        return await read_limited_body(request, self.max_request_bytes, "CKS_MAX_REQUEST_BYTES")
+    async def arrive(self, request: Request) -> tuple[str, bytes]:
+        """The caller (service.api.http.callers) and the body within CKS_MAX_REQUEST_BYTES, received once
+        a place is in the caller's share (not worth receiving beyond it); no place is held meanwhile."""
+        caller = await self.callers.of(request)
+        await self.admission.wait_for_place(caller)
+        return caller, await read_limited_body(request, self.max_request_bytes, "CKS_MAX_REQUEST_BYTES")
 
 
 async def get_predict_parts(request: Request) -> PredictParts:
@@ -97,50 +94,37 @@ async def get_predict_parts(request: Request) -> PredictParts:
 Predicting = Annotated[PredictParts, Depends(get_predict_parts)]
 
 
-async def require_admin(
-    request: Request,
-    operators: Operators,
-    registry: Registry,
-    trail: Trail,
-    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
-) -> Operator:
-    """Let the request through only with a configured admin token (and a reachable store);
-    returns the operator it names."""
-    disabled = "The admin API is disabled: set CKS_ADMIN_TOKEN or CKS_ADMIN_TOKENS_FILE to enable it."
-    return _token_holder(request, operators, registry, trail, credentials, disabled, "admin token")
+def _token_holder(tokens: str, kind: str, disabled: str) -> Callable[..., Awaitable[Operator]]:
+    """A dependency giving the operator a bearer token of ``tokens`` (a ServiceState attribute) names:
+    403 ``disabled`` with no tokens, 401 without one of them, 503 while the store is away."""
 
+    async def holder(
+        request: Request,
+        registry: Registry,
+        trail: Trail,
+        credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+    ) -> Operator:
+        held = getattr(request.app.state.service, tokens)
+        if not held:
+            raise HTTPException(403, disabled)
+        name = None if credentials is None else operator_named(held, credentials.credentials)
+        if name is None:
+            raise HTTPException(401, _unauthorized(request, credentials, kind), headers=_CHALLENGE)
+        operator = Operator(name=name, client=request.client.host if request.client else "")
+        try:
+            registry.require_store()  # every such call needs the store: 503 at once while it is away
+        except StoreUnreachable as error:  # audited once the store is back (the outbox keeps it)
+            call = {"method": request.method, "path": request.url.path}
+            details = {"status": 503, "detail": error.detail, **call}
+            trail.record_later(operator, "admin", "refused", details=details)
+            raise
+        return operator
 
-def _token_holder(
-    request: Request,
-    tokens: dict[str, str],
-    registry: CalibrationRegistry,
-    trail: AuditTrail,
-    credentials: HTTPAuthorizationCredentials | None,
-    disabled: str,
-    kind: str,
-) -> Operator:
-    """The operator a bearer token of ``tokens`` names: 403 with no tokens, 401 without one of
-    them, 503 while the store is away (every such call needs it)."""
-    if not tokens:
-        raise HTTPException(403, disabled)
-    name = None if credentials is None else operator_named(tokens, credentials.credentials)
-    if name is None:
-        raise HTTPException(
-            401, _unauthorized(request, credentials, kind), headers={"WWW-Authenticate": "Bearer"}
-        )
-    operator = Operator(name=name, client=request.client.host if request.client else "")
-    try:
-        registry.require_store()  # every admin call needs the store: 503 at once while it is away
-    except StoreUnreachable as error:  # audited once the store is back (the outbox keeps it)
-        details = {"status": 503, "detail": error.detail, "method": request.method, "path": request.url.path}
-        trail.record_later(operator, "admin", "refused", details=details)
-        raise
-    return operator
+    return holder
 
 
 def _unauthorized(request: Request, credentials: HTTPAuthorizationCredentials | None, kind: str) -> str:
-    """Which of the three mistakes it is: no header, no ``Bearer `` before the token, or a token
-    that is not a ``kind`` (never echoed)."""
+    """No header, no ``Bearer `` before the token, or a token not a ``kind`` (never echoed)."""
     if credentials is not None:
         article = "an" if kind[0] in "aeiou" else "a"
         return (
@@ -156,8 +140,9 @@ def _unauthorized(request: Request, credentials: HTTPAuthorizationCredentials | 
     return f"No Authorization header: {path} 'Authorization: Bearer <{kind}>'."
 
 
-Admin = Annotated[Operator, Depends(require_admin)]
-# What require_admin answers, documented on every admin operation.
+_ADMIN_DISABLED = "The admin API is disabled: set CKS_ADMIN_TOKEN or CKS_ADMIN_TOKENS_FILE to enable it."
+Admin = Annotated[Operator, Depends(_token_holder("operators", "admin token", _ADMIN_DISABLED))]
+# What Admin answers, documented on every admin operation.
 ADMIN_RESPONSES: dict[int | str, dict[str, Any]] = {
     401: {"description": "No token, or not an admin token: send 'Authorization: Bearer <admin token>'"},
     403: {"description": "The admin API is disabled (no CKS_ADMIN_TOKEN nor CKS_ADMIN_TOKENS_FILE)"},
@@ -165,22 +150,13 @@ ADMIN_RESPONSES: dict[int | str, dict[str, Any]] = {
 }
 
 
-async def require_feedback_sender(
-    request: Request,
-    senders: FeedbackSenders,
-    registry: Registry,
-    trail: Trail,
-    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
-) -> Operator:
-    """Let feedback through with an admin token or a ``feedback`` token (CKS_ADMIN_TOKENS_FILE)."""
-    disabled = (
-        "Feedback is disabled: give its senders tokens ('feedback name:token' lines in"
-        " CKS_ADMIN_TOKENS_FILE, or an admin token)"
-    )
-    return _token_holder(request, senders, registry, trail, credentials, disabled, "feedback or admin token")
-
-
-FeedbackSender = Annotated[Operator, Depends(require_feedback_sender)]
+_FEEDBACK_DISABLED = (
+    "Feedback is disabled: give its senders tokens ('feedback name:token' lines in"
+    " CKS_ADMIN_TOKENS_FILE, or an admin token)"
+)
+FeedbackSender = Annotated[
+    Operator, Depends(_token_holder("feedback_senders", "feedback or admin token", _FEEDBACK_DISABLED))
+]
 FEEDBACK_RESPONSES: dict[int | str, dict[str, Any]] = {
     401: {"description": "No token, or neither a feedback nor an admin token"},
     403: {"description": "Feedback is disabled (no admin token and no 'feedback name:token' line)"},

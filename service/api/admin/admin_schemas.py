@@ -58,16 +58,15 @@ class VersionList(BaseModel):
     versions: list[VersionSummary]
 
 
+# JSON Schema's if/then: force (or allow_duplicate, in the upload's query) needs a non-blank reason
+_FORCED = {"properties": {"force": {"const": True}}, "required": ["force"]}
+NEEDS_REASON = {"required": ["reason"], "properties": {"reason": {"pattern": r"\S"}}}
+
+
 class ActivationIn(BaseModel):
     """force=true needs a non-blank reason (checked; JSON Schema says so with if/then)."""
 
-    model_config = ConfigDict(
-        extra="forbid",
-        json_schema_extra={
-            "if": {"properties": {"force": {"const": True}}, "required": ["force"]},
-            "then": {"required": ["reason"], "properties": {"reason": {"pattern": r"\S"}}},
-        },
-    )
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"if": _FORCED, "then": NEEDS_REASON})
 
     reason: str = Field("", max_length=2000, description="why; required (not blank) with force")
     force: StrictBool = Field(

@@ -1,7 +1,5 @@
-"""A labeled batch as the admin API receives it (calibration uploads and coverage audits): one
-route shape (``UploadCall``: the zip body into an upload workspace, handed to a job; 202 with
-the job), its shared query parameters and documentation (one operation per request content
-type), and every refusal of the action in the audit trail."""
+"""A labeled batch as the admin API receives it (calibration uploads, coverage audits): the route, its
+query parameters and documentation, the zip received for a job, every refusal in the audit trail."""
 
 from __future__ import annotations
 
@@ -32,24 +30,11 @@ Options = TypeVar("Options")
 _FLUSH_BYTES = 1 << 20
 
 ZIP_PART = "file"  # the zip's part name when the batch comes as multipart/form-data
-# One request content type per operation (client generators keep only one): the raw zip is documented
-# as application/octet-stream, the type generators know for bytes, and the form as its own operation
-# on its own path. Either path takes either body; a raw body is judged by its bytes whatever its type.
-ZIP_RAW: dict[str, Any] = {
-    "required": True,
-    "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
-}
-ZIP_FORM: dict[str, Any] = {
-    "required": True,
-    "content": {
-        "multipart/form-data": {
-            "schema": {
-                "type": "object",
-                "required": [ZIP_PART],
-                "properties": {ZIP_PART: {"type": "string", "format": "binary", "description": "the zip"}},
-            }
-        }
-    },
+_BYTES = {"type": "string", "format": "binary"}
+_ZIP_FORM = {
+    "type": "object",
+    "required": [ZIP_PART],
+    "properties": {ZIP_PART: {**_BYTES, "description": "the zip"}},
 }
 _RECEIVED = {
     "408": "The body did not arrive within an hour",
@@ -66,12 +51,8 @@ async def refusals_audited(
     try:
         yield
     except ServiceError as error:
-        details = {
-            **(context or {}),
-            "status": error.status,
-            "detail": error.detail,
-            "errors": error.errors[:10],
-        }
+        refused = {**(context or {}), "status": error.status, "detail": error.detail}
+        details = {**refused, "errors": error.errors[:10]}
         await run_in_threadpool(trail.record, operator, action, "refused", details=details, **fields)
         raise
     except StoreUnavailable as error:
@@ -105,13 +86,11 @@ def upload_route(
     responses: dict[str, str],
     parameters: tuple[dict[str, Any], ...] = (),
 ) -> Callable[[DecoratedCallable], DecoratedCallable]:
-    """The decorator of an upload route, registered twice: the raw zip on ``paths[0]``, the form on
-    ``paths[1]`` (operation ``<name>_form``); 202 with the job it starts, the body a zip of a
-    COCO-keypoints ``batch``, ``responses`` its refusals besides those of receiving the zip, and
-    ``parameters`` documented beside the route's own."""
+    """An upload route (202 with its job), registered twice as client generators need: the raw zip of a
+    ``batch`` on ``paths[0]`` (octet-stream), the form on ``paths[1]`` (``<name>_form``)."""
     refusals = {status: {"description": text} for status, text in {**_RECEIVED, **responses}.items()}
-    raw = {**ZIP_RAW, "description": f"The raw zip. A zip of a COCO-keypoints batch{batch}"}
-    form = {**ZIP_FORM, "description": f"The zip as the part 'file'. A zip of a COCO-keypoints batch{batch}"}
+    raw = _zip_body("The raw zip", batch, "application/octet-stream", _BYTES)
+    form = _zip_body("The zip as the part 'file'", batch, "multipart/form-data", _ZIP_FORM)
     route = {"status_code": 202, "responses": {202: {"links": JOB_LINKS}}, "response_model": JobOut}
 
     def register(endpoint: DecoratedCallable) -> DecoratedCallable:
@@ -124,6 +103,11 @@ def upload_route(
         return endpoint
 
     return register
+
+
+def _zip_body(how: str, batch: str, media: str, schema: dict[str, Any]) -> dict[str, Any]:
+    description = f"{how}. A zip of a COCO-keypoints batch{batch}"
+    return {"required": True, "content": {media: {"schema": schema}}, "description": description}
 
 
 @dataclass(frozen=True)
@@ -143,8 +127,7 @@ class UploadCall:
     async def start(
         self, options: Options, accept: Callable[[UploadWorkspace, str, Options, Operator], JobRecord]
     ) -> JobOut:
-        """Receive the zip and hand it with ``options`` to ``accept``: the job it starts, with its
-        Location."""
+        """Receive the zip, hand it with ``options`` to ``accept``: the job it starts, with its Location."""
         workspace, sha256 = await receive_batch_zip(self.request, self.settings)
         job = await run_in_threadpool(accept, workspace, sha256, options, self.who)
         self.response.headers["Location"] = f"/v1/admin/jobs/{job.id}"
@@ -161,10 +144,8 @@ Upload = Annotated[UploadCall, Depends(upload_call)]
 
 
 async def receive_batch_zip(request: Request, settings: Settings) -> tuple[UploadWorkspace, str]:
-    """Receive a zip body, or a form with the zip as its part 'file', in time and within the upload
-    limits, into a new upload workspace; returns it with the zip's sha256 (the caller removes it
-    when done). Any type but multipart/form-data is taken as the raw zip: a zip is a zip by its
-    bytes (the archive check refuses anything else with 422), whatever Content-Type was sent."""
+    """The zip (raw, or a form's part 'file') received in time and within the limits into a new upload
+    workspace, and its sha256. Any type but multipart/form-data is the raw zip: judged by its bytes."""
     content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     part = ZIP_PART if content_type == "multipart/form-data" else None
     with disk_full_refused("the upload"):
@@ -179,21 +160,20 @@ async def receive_batch_zip(request: Request, settings: Settings) -> tuple[Uploa
 
 
 async def receive_upload(request: Request, dest: Path, limit: int, part: str | None = None) -> SavedUpload:
-    """Stream the body, within UPLOAD_TIMEOUT_SECONDS, to ``dest`` (never whole in memory), hashing
-    it; 413 beyond ``limit``. With ``part``, the body is multipart/form-data and only that part's
-    bytes are kept."""
+    """Stream the body (with ``part``: only that form part's bytes), within UPLOAD_TIMEOUT_SECONDS, to
+    ``dest`` (never whole in memory), hashing it; 413 beyond ``limit``."""
     sink = await run_in_threadpool(UploadSink, dest, limit)
-    pending: list[bytes] = []
+    pending = bytearray()
     try:
         form = None if part is None else FilePart(request.headers.get("content-type", ""), part, sink.write)
         write = sink.write if form is None else form.write
         async with aclosing(timed_chunks(request, UPLOAD_TIMEOUT_SECONDS)) as stream:
             async for chunk in stream:
-                pending.append(chunk)
-                if sum(map(len, pending)) >= _FLUSH_BYTES:
-                    await run_in_threadpool(write, b"".join(pending))
+                pending += chunk
+                if len(pending) >= _FLUSH_BYTES:
+                    await run_in_threadpool(write, bytes(pending))
                     pending.clear()
-        await run_in_threadpool(write, b"".join(pending))
+        await run_in_threadpool(write, bytes(pending))
         if form is not None:
             form.finish()
     except BaseException:

@@ -1,5 +1,4 @@
-"""Calibration administration: upload batches, watch and retry jobs, list, inspect, compare,
-activate, roll back, and read the audit trail and where the store is."""
+"""Calibration administration: uploads, jobs, versions (list, compare, activate), audit trail, store."""
 
 from __future__ import annotations
 
@@ -10,25 +9,8 @@ from fastapi.concurrency import run_in_threadpool
 from pydantic import Field
 
 from calibration_store import VersionNotFound, store_location
-from service.api.admin.admin_presenters import (
-    activation_out,
-    audit_page,
-    comparison_out,
-    describe,
-    job_out,
-    summarize,
-)
-from service.api.admin.admin_schemas import (
-    ActivationIn,
-    ActivationLog,
-    ActivationOut,
-    AuditPage,
-    ComparisonOut,
-    JobOut,
-    StoreInfo,
-    VersionDetail,
-    VersionList,
-)
+from service.api.admin import admin_presenters as present
+from service.api.admin import admin_schemas as out
 from service.api.admin.batch_upload import (
     BatchName,
     BatchRejectedShare,
@@ -45,17 +27,17 @@ from service.calibration.stratification import parse_stratify
 from service.calibration.versions import ActivationRequest, activate, comparison_with
 from service.errors import NotFound
 
-router = APIRouter(
-    prefix="/v1/admin",
-    tags=["admin"],
-    responses=ADMIN_RESPONSES,
-)
+router = APIRouter(prefix="/v1/admin", tags=["admin"], responses=ADMIN_RESPONSES)
 DISK_FULL = "No room on disk for what the call writes (a full disk or store): nothing was kept; retry later"
 VersionNumber = Annotated[int, Path(ge=1, le=MAX_VERSION, description="calibration version number")]
 
+
+def _flag(description: str) -> dict[str, Any]:
+    return {"type": "boolean", "default": False, "description": description}
+
+
 # force, allow_duplicate and reason as one exploded query object (sent as force=true&reason=...,
 # as always), so that JSON Schema can say the rule: either flag needs a non-blank reason.
-_NEEDS_REASON = {"required": ["reason"], "properties": {"reason": {"pattern": r"\S"}}}
 _OVERRIDES = {
     "name": "overrides",
     "in": "query",
@@ -66,18 +48,10 @@ _OVERRIDES = {
     "schema": {
         "type": "object",
         "properties": {
-            "force": {
-                "type": "boolean",
-                "default": False,
-                "description": "with activate=true only: activate even if the guardrails refuse"
-                " (needs reason)",
-            },
-            "allow_duplicate": {
-                "type": "boolean",
-                "default": False,
-                "description": "store a version equal to a stored one instead of refusing (409)"
-                " (needs reason)",
-            },
+            "force": _flag("with activate=true only: activate even if the guardrails refuse (needs reason)"),
+            "allow_duplicate": _flag(
+                "store a version equal to a stored one instead of refusing (409) (needs reason)"
+            ),
             "reason": {
                 "type": "string",
                 "maxLength": 2000,
@@ -91,7 +65,7 @@ _OVERRIDES = {
                 for flag in ("force", "allow_duplicate")
             ]
         },
-        "then": _NEEDS_REASON,
+        "then": out.NEEDS_REASON,
     },
 }
 _NO_SUCH_VERSION: dict[int | str, dict[str, Any]] = {404: {"description": "No such version"}}
@@ -148,7 +122,7 @@ async def upload_calibration(
             " parameter repeated); default: difficulty when the scores carry heatmap features"
         ),
     ] = None,
-) -> JobOut:
+) -> out.JobOut:
     async with upload.audited("upload"):
         options = UploadOptions(
             name=name,
@@ -160,19 +134,15 @@ async def upload_calibration(
             dedupe=dedupe,
             allow_duplicate=allow_duplicate,
             max_rejected_share=max_rejected_share,
-            stratify=None if stratify is None else _stratify(stratify),
+            # repeated values are quoted as one ("difficulty+bogus") when refused, as they always were
+            stratify=None if stratify is None else parse_stratify("+".join(stratify)),
         )
         return await upload.start(options, calibrations.accept)
 
 
-def _stratify(values: list[str]) -> frozenset[str]:
-    # repeated values are quoted as one ("difficulty+bogus") when refused, as they always were
-    return parse_stratify("+".join(values))
-
-
 @router.get(
     "/jobs/{job_id}",
-    response_model=JobOut,
+    response_model=out.JobOut,
     summary="State, progress and errors of a job (any replica answers)",
     responses={
         200: {"links": JOB_RESULT_LINKS},
@@ -180,7 +150,7 @@ def _stratify(values: list[str]) -> frozenset[str]:
         503: {"description": "The calibration store is unreachable"},
     },
 )
-async def get_job(job_id: str, jobs: Jobs, registry: Registry, _: Admin) -> JobOut:
+async def get_job(job_id: str, jobs: Jobs, registry: Registry, _: Admin) -> out.JobOut:
     job = await run_in_threadpool(jobs.get, job_id)
     if job is None:
         raise NotFound(
@@ -189,13 +159,13 @@ async def get_job(job_id: str, jobs: Jobs, registry: Registry, _: Admin) -> JobO
         )
     if job.state == "succeeded" and job.result.get("activated"):  # the server that says so serves it
         await run_in_threadpool(registry.refresh_now)
-    return job_out(job)
+    return present.job_out(job)
 
 
 @router.post(
     "/jobs/{job_id}/retry",
     status_code=202,
-    response_model=JobOut,
+    response_model=out.JobOut,
     summary="Run an interrupted job again from its kept upload (a new job)",
     responses={
         404: {"description": "No such job"},
@@ -205,48 +175,45 @@ async def get_job(job_id: str, jobs: Jobs, registry: Registry, _: Admin) -> JobO
 )
 async def retry_job(
     job_id: str, response: Response, calibrations: Calibrations, trail: Trail, who: Admin
-) -> JobOut:
+) -> out.JobOut:
     async with refusals_audited(trail, who, "retry", {"job": job_id}):
         job = await run_in_threadpool(calibrations.retry, job_id, who)
     response.headers["Location"] = f"/v1/admin/jobs/{job.id}"
-    return job_out(job)
+    return present.job_out(job)
 
 
 @router.get(
-    "/calibrations", response_model=VersionList, summary="All calibration versions of the served model"
+    "/calibrations", response_model=out.VersionList, summary="All calibration versions of the served model"
 )
-async def list_calibrations(store: Store, model: Model, registry: Registry, _: Admin) -> VersionList:
+async def list_calibrations(store: Store, model: Model, registry: Registry, _: Admin) -> out.VersionList:
     versions = await run_in_threadpool(store.list_versions, model.model_hash)
     active = await run_in_threadpool(registry.refresh_now)
-    return VersionList(
-        model_hash=model.model_hash,
-        active_version=active,
-        versions=[summarize(info, active) for info in versions],
-    )
+    summaries = [present.summarize(info, active) for info in versions]
+    return out.VersionList(model_hash=model.model_hash, active_version=active, versions=summaries)
 
 
 @router.get(
     "/calibrations/{version}",
-    response_model=VersionDetail,
+    response_model=out.VersionDetail,
     summary="One version in detail",
     responses=_NO_SUCH_VERSION,
 )
 async def get_calibration(
     version: VersionNumber, store: Store, model: Model, registry: Registry, _: Admin
-) -> VersionDetail:
-    def build() -> VersionDetail:
+) -> out.VersionDetail:
+    def build() -> out.VersionDetail:
         try:
             info = store.get_version(model.model_hash, version)
         except VersionNotFound as error:
             raise NotFound(f"calibration version {version} does not exist for this model") from error
-        return describe(info, registry.refresh_now(), registry, model.manifest)
+        return present.describe(info, registry.refresh_now(), registry, model.manifest)
 
     return await run_in_threadpool(build)
 
 
 @router.get(
     "/calibrations/{version}/compare",
-    response_model=ComparisonOut,
+    response_model=out.ComparisonOut,
     summary="Dry run: compare a version with the active one (or another) without activating",
     responses=_NO_SUCH_VERSION,
 )
@@ -262,11 +229,11 @@ async def compare_calibration(
     ] = "active",
     epsilon: Annotated[float, Query(gt=0, lt=1, description="the epsilon the sets are compared at")] = 0.1,
     nonconformity: Annotated[Nonconformity, Query()] = "cov",
-) -> ComparisonOut:
-    def build() -> ComparisonOut:
+) -> out.ComparisonOut:
+    def build() -> out.ComparisonOut:
         reference = registry.refresh_now() if against == "active" else against
         minimum = settings.calibration.min_instances
-        return comparison_out(
+        return present.comparison_out(
             comparison_with(registry, model.manifest, version, reference, minimum, epsilon, nonconformity)
         )
 
@@ -275,7 +242,7 @@ async def compare_calibration(
 
 @router.post(
     "/calibrations/{version}/activate",
-    response_model=ActivationOut,
+    response_model=out.ActivationOut,
     summary="Make a version active (activating an older one is a rollback), behind the guardrails",
     responses=_ACTIVATE_RESPONSES,
 )
@@ -287,48 +254,40 @@ async def activate_calibration(
     settings: Config,
     who: Admin,
     # optional, documented as one schema (not anyOf with null): generators keep the body typed
-    body: Annotated[ActivationIn, Body(default_factory=ActivationIn)],
-) -> ActivationOut:
+    body: Annotated[out.ActivationIn, Body(default_factory=out.ActivationIn)],
+) -> out.ActivationOut:
     request = ActivationRequest(version, who, body.reason, body.force)
     async with refusals_audited(trail, who, "activation", version=version, reason=body.reason):
         entry, _ = await run_in_threadpool(
-            activate,
-            registry,
-            model.manifest,
-            trail,
-            request,
-            settings.calibration.min_instances,
+            activate, registry, model.manifest, trail, request, settings.calibration.min_instances
         )
-    return activation_out(entry)
+    return present.activation_out(entry)
 
 
-@router.get("/activations", response_model=ActivationLog, summary="The append-only activation history")
-async def activation_log(store: Store, model: Model, registry: Registry, _: Admin) -> ActivationLog:
+@router.get("/activations", response_model=out.ActivationLog, summary="The append-only activation history")
+async def activation_log(store: Store, model: Model, registry: Registry, _: Admin) -> out.ActivationLog:
     entries = await run_in_threadpool(store.activation_log, model.model_hash)
     active = await run_in_threadpool(registry.refresh_now)
-    return ActivationLog(active_version=active, activations=[activation_out(e) for e in entries])
+    return out.ActivationLog(active_version=active, activations=[present.activation_out(e) for e in entries])
 
 
-@router.get("/audit", response_model=AuditPage, summary="The append-only audit trail, newest first")
+@router.get("/audit", response_model=out.AuditPage, summary="The append-only audit trail, newest first")
 async def audit_trail(
     store: Store,
     model: Model,
     _: Admin,
     before: Annotated[int | None, Query(ge=1, le=2**63 - 1, description="entries before this seq")] = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-) -> AuditPage:
+) -> out.AuditPage:
     entries = await run_in_threadpool(store.audit_log, model.model_hash, before, limit)
-    return audit_page(entries, limit)
+    return present.audit_page(entries, limit)
 
 
-@router.get("/store", response_model=StoreInfo, summary="Which calibration store this server uses")
-async def store_info(model: Model, registry: Registry, settings: Config, _: Admin) -> StoreInfo:
+@router.get("/store", response_model=out.StoreInfo, summary="Which calibration store this server uses")
+async def store_info(model: Model, registry: Registry, settings: Config, _: Admin) -> out.StoreInfo:
     kind, location = store_location(settings.storage.resolved_url)
     active = await run_in_threadpool(registry.refresh_now)
-    return StoreInfo(
-        kind=kind,
-        location=location,
-        data_dir=str(settings.storage.data_dir),
-        model_hash=model.model_hash,
-        active_version=active,
+    data_dir = str(settings.storage.data_dir)
+    return out.StoreInfo(
+        kind=kind, location=location, data_dir=data_dir, model_hash=model.model_hash, active_version=active
     )

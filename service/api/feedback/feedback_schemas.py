@@ -2,20 +2,18 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, Field, field_validator
 
-from service.api.predict.predict_schemas import MAX_VERSION
+from service.api.predict.predict_schemas import MAX_VERSION, StrictBody
 
 Label = tuple[float, float, int]
 
 
-class InstanceLabelsIn(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class InstanceLabelsIn(StrictBody):
     instance: int = Field(ge=0, description="index into the prediction's instances")
     keypoints: list[Label] = Field(
         description="[x, y, v] per keypoint of the instance's object, in image pixels; v = 0 not labelled,"
-        " 1 occluded, 2 visible (COCO); triples, not COCO's flat list x1, y1, v1, x2, ...",
+        " 1 occluded, 2 visible (COCO); triples, not COCO's flat list x1, y1, v1, x2, ..."
     )
 
     @field_validator("keypoints", mode="before")
@@ -30,10 +28,8 @@ class InstanceLabelsIn(BaseModel):
         return keypoints
 
 
-class FeedbackIn(BaseModel):
+class FeedbackIn(StrictBody):
     """The true points of some or all of a retained prediction's instances."""
-
-    model_config = ConfigDict(extra="forbid")
 
     instances: list[InstanceLabelsIn] = Field(min_length=1, max_length=1000)
 
@@ -57,7 +53,7 @@ class FeedbackOut(BaseModel):
 class GroupCoverageOut(BaseModel):
     level: str = Field(
         description="version (all keypoints), object, keypoint, stream, group (the caller's) or stratum"
-        " (the Mondrian stratum that answered, with stratify)",
+        " (the Mondrian stratum that answered, with stratify)"
     )
     name: str
     version: int
@@ -99,25 +95,21 @@ class LiveCoverageOut(BaseModel):
     groups: list[GroupCoverageOut]
 
 
-class FieldCalibrationIn(BaseModel):
+class FieldCalibrationIn(StrictBody):
     """Labelled feedback made a calibration version: which labels, and the upload's options."""
 
-    model_config = ConfigDict(extra="forbid")
-
-    stream: str | None = Field(default=None, max_length=64, description="only this camera stream's labels")
-    served_by: int | None = Field(
-        default=None, ge=1, description="only labels of answers served by this version"
-    )
-    name: str | None = Field(default=None, description="the source batch's name (default feedback-<sha256>)")
+    stream: str | None = Field(None, max_length=64, description="only this camera stream's labels")
+    served_by: int | None = Field(None, ge=1, description="only labels of answers served by this version")
+    name: str | None = Field(None, description="the source batch's name (default feedback-<sha256>)")
     note: str = ""
     append_to: int | None = Field(
-        default=None, ge=1, le=MAX_VERSION, description="new version = this one + the labels"
+        None, ge=1, le=MAX_VERSION, description="new version = this one + the labels"
     )
     activate: bool = False
-    force: bool = Field(default=False, description="activate past the guardrails (needs reason)")
+    force: bool = Field(False, description="activate past the guardrails (needs reason)")
     reason: str = ""
-    dedupe: bool = Field(default=False, description="drop instances already counted instead of refusing")
-    allow_duplicate: bool = Field(default=False, description="store a version equal to a stored one (reason)")
+    dedupe: bool = Field(False, description="drop instances already counted instead of refusing")
+    allow_duplicate: bool = Field(False, description="store a version equal to a stored one (reason)")
 
 
 class FieldCalibrationOut(BaseModel):

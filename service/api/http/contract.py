@@ -1,13 +1,7 @@
-"""The OpenAPI document as generated clients read it: what FastAPI derives from the routes, plus
-the bodies the routes parse by hand, one ``Problem`` schema for every error answer, the request id
-every operation takes, the headers the service sends (``X-Request-ID`` on every answer,
-``Retry-After`` where it is sent), and the served model's object names as the enum of an
-instance's ``object`` (the model is known at start-up); the request examples name its first object,
-so that each is a request the service answers.
-
-Routes describe each status they can answer in words (``responses={404: {"description": ...}}``);
-this pass gives every status of 400 and above the problem+json body, so no route repeats it.
-"""
+"""The OpenAPI document as generated clients read it: FastAPI's, plus the bodies parsed by hand, the
+``Problem`` body of every status from 400 (routes describe them in words only), the request id every
+operation takes, the headers sent, and the served model's object names (the enum of an instance's
+``object``; the examples name the first, so that each is a request the service answers)."""
 
 from __future__ import annotations
 
@@ -61,9 +55,9 @@ def install_contract(
         if app.openapi_schema is None:
             document = completed(generate(), (Problem, *parsed_bodies))
             names = list(object_names())
-            instance = document["components"]["schemas"]["InstanceIn"]
-            instance["properties"]["object"]["enum"] = names
-            _name_example_objects(document, names[0])
+            document["components"]["schemas"]["InstanceIn"]["properties"]["object"]["enum"] = names
+            # the examples' instances (module constants, shared with other apps) name its first object
+            document["paths"] = _named(copy.deepcopy(document["paths"]), names[0])
             app.openapi_schema = document
         return app.openapi_schema
 
@@ -85,14 +79,6 @@ def completed(document: dict[str, Any], models: tuple[type[BaseModel], ...]) -> 
     for unused in ("HTTPValidationError", "ValidationError"):  # FastAPI's 422 body, never sent
         components.pop(unused, None)
     return document
-
-
-def _name_example_objects(document: dict[str, Any], name: str) -> None:
-    for operations in document["paths"].values():
-        for operation in operations.values():
-            for media in operation.get("requestBody", {}).get("content", {}).values():
-                if "example" in media:
-                    media["example"] = _named(copy.deepcopy(media["example"]), name)
 
 
 def _named(value: Any, name: str) -> Any:

@@ -37,14 +37,14 @@ class Problem(BaseModel):
 
     model_config = ConfigDict(extra="allow")
 
-    type: str = Field(default="about:blank", description="always about:blank: the status says the kind")
+    type: str = Field("about:blank", description="always about:blank: the status says the kind")
     title: str = Field(description="the status in words")
     status: int = Field(description="the HTTP status")
     detail: str = Field(description="what went wrong and what to fix")
-    instance: str | None = Field(default=None, description="the request's path")
-    errors: list[str] | None = Field(default=None, description="every problem found, when there are several")
+    instance: str | None = Field(None, description="the request's path")
+    errors: list[str] | None = Field(None, description="every problem found, when there are several")
     request_id: str | None = Field(
-        default=None, description="the request's X-Request-ID: quote it when reporting a problem"
+        None, description="the request's X-Request-ID: quote it when reporting a problem"
     )
 
 
@@ -118,17 +118,16 @@ def install_problem_handlers(app: FastAPI) -> None:
         title = _TITLES.get(exc.status_code, "Error")
         return problem(exc.status_code, title, str(exc.detail), request, headers=headers)
 
-    @app.exception_handler(StoreUnavailable)
-    async def _store_unavailable(request: Request, exc: StoreUnavailable) -> JSONResponse:
-        error = StoreUnreachable(f"the calibration store is unreachable ({exc}): retry later")
-        return problem(error.status, error.title, error.detail, request, headers=error.headers)
-
-    @app.exception_handler(StoreFull)
-    async def _store_full(request: Request, exc: StoreFull) -> JSONResponse:
-        error = InsufficientStorage(
-            f"the calibration store's disk is full ({exc}): nothing was written; retry once space is freed"
-        )
-        return problem(error.status, error.title, error.detail, request)
+    @app.exception_handler(StoreUnavailable)  # and StoreFull, its kind
+    async def _store_error(request: Request, exc: StoreUnavailable) -> JSONResponse:
+        if isinstance(exc, StoreFull):
+            error: ServiceError = InsufficientStorage(
+                f"the calibration store's disk is full ({exc}): nothing was written;"
+                " retry once space is freed"
+            )
+        else:
+            error = StoreUnreachable(f"the calibration store is unreachable ({exc}): retry later")
+        return await _service_error(request, error)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
@@ -141,9 +140,8 @@ def _no_route(request: Request) -> str:
     path = request.url.path
     detail = f"no operation at {path}"
     under_v1 = {**request.scope, "path": "/v1" + path}
-    if not path.startswith("/v1/") and any(
-        route.matches(under_v1)[0] is not Match.NONE for route in request.app.router.routes
-    ):
+    routes = request.app.router.routes
+    if not path.startswith("/v1/") and any(route.matches(under_v1)[0] is not Match.NONE for route in routes):
         detail += f": the API is under /v1, send {request.method} /v1{path}"
     return detail + "; every operation is listed at /docs"
 

@@ -1,9 +1,5 @@
-"""POST /v1/predict/frame bodies -> the domain's ``EncodedFrame`` and the request's parameters.
-
-The body is multipart/form-data, already received whole within CKS_MAX_REQUEST_BYTES: its parts
-are cut out of it in place (python-multipart's parser, one pass), so raw pixels reach the
-detector as views of the body, never copied or spooled to disk on the way.
-"""
+"""POST /v1/predict/frame bodies -> ``EncodedFrame`` and parameters; parts are cut out of the body in
+place (one pass), so raw pixels reach the detector as views of it, never copied or spooled to disk."""
 
 from __future__ import annotations
 
@@ -54,10 +50,9 @@ def _frame(parameters: FrameRequest, pixels: list[bytes | memoryview]) -> Encode
         what = "the whole frame" if regions is None else f"the {expected} regions, in order"
         raise InvalidInput(f"{len(pixels)} 'pixels' parts, for {what}: send {expected}")
     if regions is None:
-        assert frame.encoding is not None
-        return EncodedFrame.of_whole(
-            frame.width, frame.height, frame.encoding, _data(frame.encoding, pixels[0])
-        )
+        encoding = frame.encoding
+        assert encoding is not None
+        return EncodedFrame.of_whole(frame.width, frame.height, encoding, _data(encoding, pixels[0]))
     encoded = tuple(
         EncodedRegion(
             r.x_offset, r.y_offset, r.width, r.height, r.encoding, _data(r.encoding, data), tuple(r.instances)
@@ -74,17 +69,13 @@ def _data(encoding: str, data: bytes | memoryview) -> bytes | memoryview:
 
 def _parts(content_type: str, body: bytes) -> list[tuple[str, bytes | memoryview]]:
     """Each part's name and bytes, in order (a view of ``body`` where the part is one piece)."""
-    _, options = parse_options_header(content_type)
-    boundary = options.get(b"boundary")
+    boundary = parse_options_header(content_type)[1].get(b"boundary")
     if not boundary:
         raise InvalidInput("multipart/form-data needs a boundary in its Content-Type")
     parts: list[tuple[str, list]] = []
     headers: list[bytes] = []
     value = bytearray()
     whole = memoryview(body)
-
-    def header_value(data: bytes, start: int, end: int) -> None:
-        value.extend(data[start:end])
 
     def header_end() -> None:
         headers.append(bytes(value))
@@ -99,14 +90,14 @@ def _parts(content_type: str, body: bytes) -> list[tuple[str, bytes | memoryview
     def part_data(data: bytes, start: int, end: int) -> None:
         parts[-1][1].append(whole[start:end] if data is body else bytes(data[start:end]))
 
+    ended: list[bool] = []
     callbacks = {
-        "on_header_value": header_value,
+        "on_header_value": lambda data, start, end: value.extend(data[start:end]),
         "on_header_end": header_end,
         "on_headers_finished": part_begins,
         "on_part_data": part_data,
+        "on_end": lambda: ended.append(True),
     }
-    ended: list[bool] = []
-    callbacks["on_end"] = lambda: ended.append(True)
     parser = MultipartParser(boundary, callbacks)  # type: ignore[arg-type]
     try:
         parser.write(body)

@@ -1,9 +1,5 @@
-"""POST /v1/predict/frame: a camera frame's pixels, whole or as the boxes' regions, raw or as
-JPEG/PNG, to the same answer as POST /v1/predict's for the same pixels (docs/predict.md, Frames).
-
-As POST /v1/predict: admission before the body is received, then parse -> ``Predictor.predict``
--> present inside a compute slot on the CPU pool.
-"""
+"""POST /v1/predict/frame: a camera frame's pixels, whole or as the boxes' regions, raw or as JPEG/PNG,
+to POST /v1/predict's answer for the same pixels (docs/predict.md, Frames), computed as that one is."""
 
 from __future__ import annotations
 
@@ -12,52 +8,40 @@ from typing import Any
 from fastapi import APIRouter, Request, Response
 
 from service.api.deps import Predicting
+from service.api.http.contract import SCHEMAS
 from service.api.predict.frame_input import LAYOUT, parse_frame, require_multipart
-from service.api.predict.predict_bodies import EXAMPLE_INSTANCES
+from service.api.predict.predict_bodies import EXAMPLE_INSTANCES, form_body
 from service.api.predict.predict_routes import PREDICT_RESPONSES, compute
 from service.api.predict.predict_schemas import PredictResponse
 
 router = APIRouter(tags=["prediction"])
 
-_SCHEMAS = "#/components/schemas/{model}"
 # A request the service answers as it is: a 16 x 16 grey frame, raw mono8, sent whole (one byte a
 # pixel, so the example's text is its pixels).
-_EXAMPLE_SIDE = 16
 _EXAMPLE = {
-    "request": {
-        "instances": EXAMPLE_INSTANCES,
-        "frame": {"width": _EXAMPLE_SIDE, "height": _EXAMPLE_SIDE, "encoding": "mono8"},
-    },
-    "pixels": ["~" * _EXAMPLE_SIDE**2],
+    "request": {"instances": EXAMPLE_INSTANCES, "frame": {"width": 16, "height": 16, "encoding": "mono8"}},
+    "pixels": ["~" * 16 * 16],
 }
-FRAME_BODY: dict[str, Any] = {
-    "required": True,
-    "content": {
-        "multipart/form-data": {
-            "schema": {
-                "type": "object",
-                "description": LAYOUT,
-                "required": ["request", "pixels"],
-                "properties": {
-                    "request": {"$ref": _SCHEMAS.format(model="FrameRequest")},
-                    "pixels": {
-                        "type": "array",
-                        "minItems": 1,
-                        "items": {"type": "string", "format": "binary"},
-                        "description": "one part per regions[i], in order, or one part, the whole frame"
-                        " (frame.encoding): raw pixels (height * width * channels bytes, row-major) or a"
-                        " JPEG or PNG file",
-                    },
-                },
-                "additionalProperties": False,
-            },
-            # pixels keep the default encoding (application/octet-stream): generators that read a list
-            # of types literally send the whole array as one part
-            "encoding": {"request": {"contentType": "application/json"}},
-            "example": _EXAMPLE,
-        }
-    },
+_PIXELS = {
+    "type": "array",
+    "minItems": 1,
+    "items": {"type": "string", "format": "binary"},
+    "description": "one part per regions[i], in order, or one part, the whole frame (frame.encoding): raw"
+    " pixels (height * width * channels bytes, row-major) or a JPEG or PNG file",
 }
+# pixels keep the default encoding (application/octet-stream): generators that read a list of types
+# literally send the whole array as one part
+FRAME_BODY = form_body(
+    {
+        "type": "object",
+        "description": LAYOUT,
+        "required": ["request", "pixels"],
+        "properties": {"request": {"$ref": SCHEMAS.format(model="FrameRequest")}, "pixels": _PIXELS},
+        "additionalProperties": False,
+    },
+    ["request"],
+    _EXAMPLE,
+)
 _RESPONSES: dict[int | str, dict[str, Any]] = {
     **PREDICT_RESPONSES,
     413: {
@@ -85,9 +69,7 @@ _RESPONSES: dict[int | str, dict[str, Any]] = {
 async def predict_frame(request: Request, parts: Predicting) -> Response:
     content_type = request.headers.get("content-type", "")
     require_multipart(content_type)
-    caller = await parts.caller_of(request)
-    await parts.admission.wait_for_place(caller)  # not worth receiving beyond its share
-    body = await parts.receive(request)  # a slow client holds no place meanwhile
+    caller, body = await parts.arrive(request)
     async with parts.admission.admitted(caller):
         frame, parameters = parse_frame(content_type, body, parts.manifest)
         return await compute(parts, caller, frame, parameters, png=False)

@@ -1,13 +1,12 @@
-"""The request of POST /v1/predict/frame: a frame's size, and its pixels whole or as regions
-(ROS sensor_msgs/RegionOfInterest terms), raw or as JPEG/PNG files, beside the usual options."""
+"""POST /v1/predict/frame's request: the frame's size, its pixels whole or as regions, raw or encoded."""
 
 from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictInt
+from pydantic import Field, StrictInt
 
-from service.api.predict.predict_schemas import PredictParameters
+from service.api.predict.predict_schemas import PredictParameters, StrictBody
 
 Encoding = Literal["rgb8", "bgr8", "mono8", "jpeg", "png"]
 _ENCODING = (
@@ -17,23 +16,19 @@ _ENCODING = (
 MAX_SIDE = 2**31 - 1
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class FrameIn(_Strict):
+class FrameIn(StrictBody):
     """The camera frame the boxes and the answer's pixels refer to."""
 
     width: StrictInt = Field(gt=0, le=MAX_SIDE, description="the full frame's width in pixels")
     height: StrictInt = Field(gt=0, le=MAX_SIDE, description="the full frame's height in pixels")
     encoding: Encoding | None = Field(
-        default=None,
+        None,
         description="with the whole frame as the one `pixels` part: its encoding (" + _ENCODING + ");"
         " left out when regions are sent",
     )
 
 
-class RegionIn(_Strict):
+class RegionIn(StrictBody):
     """A rectangle of the frame (ROS sensor_msgs/RegionOfInterest), sent as one `pixels` part."""
 
     x_offset: StrictInt = Field(ge=0, le=MAX_SIDE, description="its left column in the frame")
@@ -53,7 +48,7 @@ class FrameRequest(PredictParameters):
 
     frame: FrameIn
     regions: list[RegionIn] | None = Field(
-        default=None,
+        None,
         min_length=1,
         description="the frame's regions, each sent as a `pixels` part in this order; left out when the"
         " whole frame is the one `pixels` part (frame.encoding)",

@@ -1,16 +1,15 @@
-"""How the predict routes' bodies are documented (they are parsed by hand, in predict_input): one
-request content type per operation, as every client generator can call it. One image as JSON
-(``PREDICT_JSON``) or as multipart (``PREDICT_FORM``), a batch as JSON (``BATCH_JSON``) or as
-multipart (``BATCH_FORM``). The routes take either type at run time (docs/api.md says which)."""
+"""How the predict routes' bodies (parsed by hand, in predict_input) are documented: one request content
+type per operation, as every client generator can call it; the routes take either at run time."""
 
 from __future__ import annotations
 
 from typing import Any
 
+from service.api.http.contract import SCHEMAS
 from service.api.predict.predict_schemas import MAX_BATCH_IMAGES
 
-_SCHEMAS = "#/components/schemas/{model}"
 _IMAGE = {"type": "string", "format": "binary", "description": "JPEG or PNG file"}
+_PARAMETERS = {"$ref": SCHEMAS.format(model="PredictParameters")}
 # A JSON part may come as a plain field or as a file (a Blob in FormData): both are read as JSON.
 _JSON_PART = {"contentType": "application/json"}
 
@@ -27,21 +26,20 @@ _PREDICT_EXAMPLE = {"image_base64": _GREY_PNG, "instances": EXAMPLE_INSTANCES, "
 
 
 def _json(model: str, example: dict[str, Any]) -> dict[str, Any]:
-    schema = {"$ref": _SCHEMAS.format(model=model)}
+    schema = {"$ref": SCHEMAS.format(model=model)}
     return {"required": True, "content": {"application/json": {"schema": schema, "example": example}}}
 
 
-def _form(schema: dict[str, Any], json_parts: list[str]) -> dict[str, Any]:
-    encoding = {part: _JSON_PART for part in json_parts}
-    return {"required": True, "content": {"multipart/form-data": {"schema": schema, "encoding": encoding}}}
+def form_body(schema: dict[str, Any], json_parts: list[str], example: Any = None) -> dict[str, Any]:
+    media = {"schema": schema, "encoding": {part: _JSON_PART for part in json_parts}}
+    if example is not None:
+        media["example"] = example
+    return {"required": True, "content": {"multipart/form-data": media}}
 
 
 def _batch_form() -> dict[str, Any]:
-    """What a client must send: image_i and request_i together (said in words: schemathesis cannot
-    generate from dependentRequired). A request_i the schema refuses is still answered in its own
-    item (behaviour, said in docs/api.md), not the whole batch."""
+    """image_i and request_i together, said in words (schemathesis cannot generate from dependentRequired)."""
     indexes = range(MAX_BATCH_IMAGES)
-    parameters = {"$ref": _SCHEMAS.format(model="PredictParameters")}
     return {
         "type": "object",
         "description": "image_i and request_i for i = 0 .. n-1, n at most 16: a part without its twin, or"
@@ -49,20 +47,20 @@ def _batch_form() -> dict[str, Any]:
         "required": ["image_0", "request_0"],
         "properties": {
             **{f"image_{i}": _IMAGE for i in indexes},
-            **{f"request_{i}": parameters for i in indexes},
+            **{f"request_{i}": _PARAMETERS for i in indexes},
         },
         "additionalProperties": False,
     }
 
 
 PREDICT_JSON = _json("PredictJson", _PREDICT_EXAMPLE)
-PREDICT_FORM = _form(
+PREDICT_FORM = form_body(
     {
         "type": "object",
         "required": ["image", "request"],
-        "properties": {"image": _IMAGE, "request": {"$ref": _SCHEMAS.format(model="PredictParameters")}},
+        "properties": {"image": _IMAGE, "request": _PARAMETERS},
     },
     ["request"],
 )
 BATCH_JSON = _json("BatchJson", {"items": [_PREDICT_EXAMPLE, _PREDICT_EXAMPLE]})
-BATCH_FORM = _form(_batch_form(), [f"request_{i}" for i in range(MAX_BATCH_IMAGES)])
+BATCH_FORM = form_body(_batch_form(), [f"request_{i}" for i in range(MAX_BATCH_IMAGES)])

@@ -1,5 +1,4 @@
-"""Predict requests as they arrive (JSON with base64, or multipart) -> image bytes and a domain
-``PredictQuery``; the batch route's parts, one request per index."""
+"""Predict requests as they arrive (JSON with base64, or multipart; a batch's) -> images and queries."""
 
 from __future__ import annotations
 
@@ -19,7 +18,13 @@ from pydantic_core import ErrorDetails
 from starlette.datastructures import FormData, UploadFile
 from starlette.exceptions import HTTPException
 
-from service.api.predict.predict_schemas import PoseRequest, PredictJson, PredictOptions, PredictParameters
+from service.api.predict.predict_schemas import (
+    MAX_BATCH_IMAGES,
+    PoseRequest,
+    PredictJson,
+    PredictOptions,
+    PredictParameters,
+)
 from service.detector.manifest import Manifest
 from service.errors import InvalidInput, UnsupportedMediaType
 from service.pose import Pose, PoseOptions, as_camera_matrix
@@ -33,8 +38,7 @@ _BATCH_PART = re.compile(r"(image|request)_([0-9]{1,6})")
 def validated(
     model: type[Model], raw: str | bytes, manifest: Manifest | None = None, part: str = "the body"
 ) -> Model:
-    """``raw`` JSON (``part`` of the request) as ``model``; 422 listing every problem the schema
-    finds, and every instance whose object is not one of ``manifest``'s."""
+    """``raw`` JSON (``part`` of the request) as ``model``; 422 listing every problem, unknown objects too."""
     try:
         return model.model_validate_json(raw, context={"manifest": manifest})
     except ValidationError as error:
@@ -52,12 +56,9 @@ def _problem(error: ErrorDetails, part: str) -> str:
             f"{part} is not valid JSON ({error['ctx']['error']}): JSON writes names and strings in double"
             """ quotes, e.g. {"instances": [{"object": "duck", "bbox": [235, 217, 67, 64]}]}"""
         )
-    return f"{_where(error['loc'])}: {error['msg'].removeprefix(_PREFIX)}"
-
-
-def _where(loc: tuple) -> str:
-    """A problem's place as the domain writes it: instances[0].bbox."""
-    return "".join(f"[{part}]" if isinstance(part, int) else f".{part}" for part in loc).lstrip(".")
+    # the place as the domain writes it: instances[0].bbox
+    where = "".join(f"[{key}]" if isinstance(key, int) else f".{key}" for key in error["loc"])
+    return f"{where.lstrip('.')}: {error['msg'].removeprefix(_PREFIX)}"
 
 
 def media_type(request: Request) -> str:
@@ -107,16 +108,14 @@ async def _parse_multipart(request: Request, manifest: Manifest) -> tuple[bytes,
             raise InvalidInput("multipart part 'image' must be a file (a part with a filename), not a field")
         if raw is None:
             raise InvalidInput("multipart part 'request' (JSON with instances and options) is missing")
-        return await image.read(), validated(
-            PredictParameters, await _text(raw), manifest, "the multipart part 'request'"
-        )
+        parameters = validated(PredictParameters, await _text(raw), manifest, "the multipart part 'request'")
+        return await image.read(), parameters
     finally:
         await form.close()  # its spooled files, now rather than when collected
 
 
 async def _read_form(request: Request, parts: int, layout: str) -> FormData:
-    """The multipart body as a form of at most ``parts`` files and ``parts`` text fields; 422 in one
-    wording for each mistake (a JSON part counts as a file when it has a filename, as a Blob does)."""
+    """The form, of at most ``parts`` files (a JSON Blob is one) and ``parts`` fields; 422 if malformed."""
     try:
         return await request.form(max_files=parts, max_fields=parts)
     except HTTPException as error:  # starlette's 400 for a body it cannot parse
@@ -133,8 +132,7 @@ async def _text(part: str | UploadFile) -> str:
 
 
 def predict_query(parameters: PredictParameters) -> PredictQuery:
-    """The schema's parameters as the domain's query: the options as they are, the instances and
-    the pose request in domain terms (checked against the image by the domain)."""
+    """The schema's parameters as the domain's query (checked against the image by the domain)."""
     asked = {field.name for field in dataclasses.fields(PredictQuery)}  # stream, adaptive: the API's
     options = {name: getattr(parameters, name) for name in PredictOptions.model_fields if name in asked}
     instances = tuple(Instance(i.object, i.bbox, i.group) for i in parameters.instances)
@@ -155,33 +153,33 @@ def _pose_options(request: PoseRequest) -> PoseOptions:
 
 # One image of a batch: called, its image and parameters, or the problem of that image alone.
 BatchItem = Callable[[], tuple[bytes, PredictParameters]]
-_BATCH_MEDIA = ("application/json", "multipart/form-data")
 
 
 def require_batch_media(request: Request) -> None:
     """415 unless the batch comes as JSON or multipart (checked before its body is received)."""
-    if media_type(request) not in _BATCH_MEDIA:
+    if media_type(request) not in ("application/json", "multipart/form-data"):
         raise UnsupportedMediaType(
             'send application/json ({"items": [...]}) or multipart/form-data (parts image_0, request_0,'
             f" image_1, ...), not {media_type(request)!r}"
         )
 
 
-async def parse_batch(request: Request, body: bytes, limit: int, manifest: Manifest) -> list[BatchItem]:
-    """The images of a POST /v1/predict/batch body; the whole request is refused only when its
-    layout is wrong."""
+async def parse_batch(request: Request, body: bytes, manifest: Manifest) -> list[BatchItem]:
+    """The images of a POST /v1/predict/batch body; only a wrong layout refuses the whole request."""
     if media_type(request) == "application/json":
-        return _json_batch(body, limit, manifest)
-    layout = f"at most {limit} images and {limit} requests: image_0, request_0, ..."
-    form = await _read_form(request, 2 * limit, layout)  # requests may come as files (Blobs)
+        return _json_batch(body, manifest)
+    layout = f"at most {MAX_BATCH_IMAGES} images and {MAX_BATCH_IMAGES} requests: image_0, request_0, ..."
+    form = await _read_form(request, 2 * MAX_BATCH_IMAGES, layout)  # requests may come as files (Blobs)
     try:
-        images, requests, problems = await _batch_parts(form, limit)
+        images, requests, problems = await _batch_parts(form)
     finally:
         await form.close()  # its spooled files, now rather than when collected
     count = max([*images, *requests], default=-1) + 1
-    problems += [
-        f"part {name!r} is missing: send image_i and request_i together, for i = 0 .. n-1"
-        for name in _missing_parts(images, requests, count)
+    problems += [  # image_i and request_i come together, i = 0 .. count-1
+        f"part '{kind}_{i}' is missing: send image_i and request_i together, for i = 0 .. n-1"
+        for i in range(count)
+        for kind, parts in (("image", images), ("request", requests))
+        if i not in parts
     ]
     if problems:
         raise InvalidInput("; ".join(problems[:5]), errors=problems)
@@ -192,20 +190,19 @@ async def parse_batch(request: Request, body: bytes, limit: int, manifest: Manif
     return [partial(_multipart_item, i, images[i], requests[i], manifest) for i in range(count)]
 
 
-def _json_batch(body: bytes, limit: int, manifest: Manifest) -> list[BatchItem]:
-    """Each item's JSON parsed once, by the schema, where the body is plain UTF-8 JSON with a
-    well-formed envelope and valid items; any other body is read as before (the whole parsed,
-    each item written again and validated), so that every refusal keeps its words."""
+def _json_batch(body: bytes, manifest: Manifest) -> list[BatchItem]:
+    """Each item parsed once, by the schema, from a plain UTF-8 ``{"items": [...]}``; any other body the
+    slow way (whole, then each item written again), which words every refusal."""
     raw_items = _raw_items(body)
-    if raw_items is None or not 0 < len(raw_items) <= limit:
-        return _parsed_json_batch(body, limit, manifest)
+    if raw_items is None or not 0 < len(raw_items) <= MAX_BATCH_IMAGES:
+        return _parsed_json_batch(body, manifest)
     items: list[BatchItem] = []
     for raw in raw_items:
         try:
             parameters = PredictJson.model_validate_json(raw, context={"manifest": manifest})
         except ValidationError as error:
             if any(e["type"] == "json_invalid" for e in error.errors()):
-                return _parsed_json_batch(body, limit, manifest)
+                return _parsed_json_batch(body, manifest)
             items.append(partial(_raise, _schema_refusal(error, "the body")))
         except Exception as error:  # raised when its item is answered, as the other way does
             items.append(partial(_raise, error))
@@ -265,7 +262,7 @@ def _string_end(body: bytes, at: int) -> int:
     return -1
 
 
-def _parsed_json_batch(body: bytes, limit: int, manifest: Manifest) -> list[BatchItem]:
+def _parsed_json_batch(body: bytes, manifest: Manifest) -> list[BatchItem]:
     layout = 'send {"items": [...]}: an object whose only member, items, lists POST /v1/predict JSON bodies'
     try:
         envelope = json.loads(body)
@@ -276,12 +273,12 @@ def _parsed_json_batch(body: bytes, limit: int, manifest: Manifest) -> list[Batc
         raise InvalidInput(layout)
     if not items:
         raise InvalidInput("the batch is empty: send at least one item")
-    if len(items) > limit:
-        raise InvalidInput(f"{len(items)} items: at most {limit} images per batch")
+    if len(items) > MAX_BATCH_IMAGES:
+        raise InvalidInput(f"{len(items)} items: at most {MAX_BATCH_IMAGES} images per batch")
     return [partial(_from_json, json.dumps(item), manifest) for item in items]
 
 
-async def _batch_parts(form: FormData, limit: int) -> tuple[dict[int, bytes | None], dict[int, str], list]:
+async def _batch_parts(form: FormData) -> tuple[dict[int, bytes | None], dict[int, str], list]:
     """The images and requests by index, and what is wrong with the parts' names."""
     images: dict[int, bytes | None] = {}
     requests: dict[int, str] = {}
@@ -291,8 +288,8 @@ async def _batch_parts(form: FormData, limit: int) -> tuple[dict[int, bytes | No
         index = int(match.group(2)) if match else -1
         if match is None:
             problems.append(f"unexpected part {name!r}: send image_0, request_0, image_1, request_1, ...")
-        elif index >= limit:
-            problems.append(f"part {name!r}: at most {limit} images per batch, numbered from 0")
+        elif index >= MAX_BATCH_IMAGES:
+            problems.append(f"part {name!r}: at most {MAX_BATCH_IMAGES} images per batch, numbered from 0")
         elif index in (images if match.group(1) == "image" else requests):
             problems.append(f"part {name!r} appears more than once")
         elif match.group(1) == "image":
@@ -300,17 +297,6 @@ async def _batch_parts(form: FormData, limit: int) -> tuple[dict[int, bytes | No
         else:
             requests[index] = await _text(value)
     return images, requests, problems
-
-
-def _missing_parts(images: dict, requests: dict, count: int) -> list[str]:
-    """The parts a batch of ``count`` images lacks: image_i and request_i come together, i = 0 .. count-1
-    (as the document's description of the form says)."""
-    return [
-        f"{kind}_{i}"
-        for i in range(count)
-        for kind, parts in (("image", images), ("request", requests))
-        if i not in parts
-    ]
 
 
 def _multipart_item(

@@ -1,14 +1,5 @@
-"""POST /v1/predict, /v1/predict/png and /v1/predict/batch: images and boxes in, keypoint
-prediction sets out (JSON, or a PNG drawing for a single image).
-
-Each is documented with a JSON body, and again under .../form with a multipart body (one request
-content type per operation, for client generators); each path takes either body at run time.
-
-Both take admission places before their bodies are parsed and compute inside a slot on the CPU
-pool: receive -> parse -> ``Predictor.predict`` -> present. A batch of n images takes n places,
-so batching cannot get round CKS_MAX_CONCURRENT_INFERENCES and CKS_MAX_QUEUED_REQUESTS; each of
-its images is answered (or refused) on its own, with the status it would have had alone.
-"""
+"""POST /v1/predict, /v1/predict/png and /v1/predict/batch: images and boxes in, keypoint sets out.
+A batch of n images takes n admission places; each image is answered as it would have been alone."""
 
 from __future__ import annotations
 
@@ -35,12 +26,7 @@ from service.api.predict.predict_input import (
     predict_query,
     require_batch_media,
 )
-from service.api.predict.predict_schemas import (
-    MAX_BATCH_IMAGES,
-    BatchResponse,
-    PredictParameters,
-    PredictResponse,
-)
+from service.api.predict.predict_schemas import BatchResponse, PredictParameters, PredictResponse
 from service.detector.frames import EncodedFrame
 from service.errors import InvalidInput, ServiceError
 from service.infra.logs import note_calibration_version
@@ -89,38 +75,21 @@ _BATCH_RESPONSES: dict[int | str, dict[str, Any]] = {
 
 # POST /v1/predict's JSON example is retained: its answer's prediction_id leads to the feedback
 # operation (stateful testers and generated SDKs follow the loop from the example).
-_FEEDBACK_LINK = {
-    "SendFeedback": {
-        "operationId": "send_feedback",
-        "parameters": {"prediction_id": "$response.body#/prediction_id"},
-    }
-}
+_PREDICTION_ID = {"prediction_id": "$response.body#/prediction_id"}
+_FEEDBACK_LINK = {"SendFeedback": {"operationId": "send_feedback", "parameters": _PREDICTION_ID}}
+_FAILED = "The server failed on this image; the error was logged."  # a batch item's 500
 _IMAGE_FORM = "multipart/form-data: the image as a file, its parameters as the JSON part request"
 
 
-def _json_and_form(
-    path: str,
-    bodies: tuple[dict, dict],
-    form: str,
-    summary: str,
-    json_links: dict | None = None,
-    **route: Any,
-):
-    """Register the route twice, one request content type each (client generators keep only one):
-    ``path`` documented with the JSON body (its 200 with ``json_links``), ``path``/form with the
-    multipart one, as its own operation (``<name>_form``). Either path takes either body at run time."""
+def _json_and_form(path: str, bodies: tuple[dict, dict], form: str, summary: str, links=None, **route: Any):
+    """Register the route twice, one request content type each as client generators need: ``path`` with
+    the JSON body (200 with ``links``), ``path``/form (``<name>_form``) the multipart; either takes both."""
 
     def register(endpoint: Callable) -> Callable:
-        json_body, form_body = bodies
-        extra: dict[str, Any] = {"requestBody": json_body}
-        if json_links:
-            extra["responses"] = {"200": {"links": json_links}}
+        extra = {"requestBody": bodies[0], **({"responses": {"200": {"links": links}}} if links else {})}
         router.post(path, summary=summary, openapi_extra=extra, **route)(endpoint)
-        form_name, form_summary = f"{endpoint.__name__}_form", f"{summary} ({form})"
-        extra = {"requestBody": form_body}
-        router.post(f"{path}/form", name=form_name, summary=form_summary, openapi_extra=extra, **route)(
-            endpoint
-        )
+        form_route = {"name": f"{endpoint.__name__}_form", "summary": f"{summary} ({form})", **route}
+        router.post(f"{path}/form", openapi_extra={"requestBody": bodies[1]}, **form_route)(endpoint)
         return endpoint
 
     return register
@@ -131,14 +100,15 @@ def _json_and_form(
     (PREDICT_JSON, PREDICT_FORM),
     _IMAGE_FORM,
     summary="Keypoint prediction sets with a coverage guarantee",
-    json_links=_FEEDBACK_LINK,
+    links=_FEEDBACK_LINK,
     description="The sets as JSON. (`Accept: image/png` here still answers the drawing, as before"
     " POST /v1/predict/png existed; generated clients should call that operation.)",
     response_model=PredictResponse,
     responses=PREDICT_RESPONSES,
 )
 async def predict(request: Request, parts: Predicting) -> Response:
-    return await _predict(request, parts, png=_wants_png(request))
+    accept = request.headers.get("accept", "")
+    return await _predict(request, parts, png="image/png" in accept and "application/json" not in accept)
 
 
 @_json_and_form(
@@ -154,9 +124,7 @@ async def predict_png(request: Request, parts: Predicting) -> Response:
 
 
 async def _predict(request: Request, parts: PredictParts, png: bool) -> Response:
-    caller = await parts.caller_of(request)
-    await parts.admission.wait_for_place(caller)  # not worth receiving beyond its share
-    body = await parts.receive(request)  # a slow client holds no place meanwhile
+    caller, body = await parts.arrive(request)
     async with parts.admission.admitted(caller):
         image, parameters = await parse_predict(request, body, parts.manifest)
         return await compute(parts, caller, image, parameters, png)
@@ -172,10 +140,8 @@ async def _predict(request: Request, parts: PredictParts, png: bool) -> Response
 )
 async def predict_batch(request: Request, parts: Predicting) -> Response:
     require_batch_media(request)
-    caller = await parts.caller_of(request)
-    await parts.admission.wait_for_place(caller)  # not worth receiving beyond its share
-    body = await parts.receive(request)  # as predict: a slow client holds no place meanwhile
-    items = await parse_batch(request, body, MAX_BATCH_IMAGES, parts.manifest)
+    caller, body = await parts.arrive(request)
+    items = await parse_batch(request, body, parts.manifest)
     capacity = parts.admission.capacity
     if len(items) > capacity:
         raise InvalidInput(
@@ -194,8 +160,7 @@ async def predict_batch(request: Request, parts: Predicting) -> Response:
 async def compute(
     parts: PredictParts, caller: str, image: bytes | EncodedFrame, parameters: PredictParameters, png: bool
 ) -> Response:
-    """Predict and present on the CPU pool, inside a compute slot (decoded images exist only there);
-    ``image``: a JPEG or PNG file, or a frame's pixels (POST /v1/predict/frame)."""
+    """Predict and present on the CPU pool in a compute slot; ``image``: a JPEG/PNG file or a frame."""
     async with parts.admission.slot(caller):
         context = contextvars.copy_context()  # the pool's thread logs with the request's id
         answer = (_respond, parts, image, parameters, png, caller)
@@ -206,23 +171,20 @@ def _respond(
     parts: PredictParts, image: bytes | EncodedFrame, parameters: PredictParameters, png: bool, client: str
 ) -> Response:
     query, adaptive = adapted_query(parts.adaptive, predict_query(parameters), parameters)
-    retention = parts.retention
-    retained = (
-        not png and retention is not None and (adaptive is not None or retention.wanted(parameters.retain))
-    )
+    retention = None if png else parts.retention  # a drawing is never retained
+    retained = retention is not None and (adaptive is not None or retention.wanted(parameters.retain))
     query = replace(query, retain=True) if retained else query
     prediction = parts.predictor.predict(image, query, whole_image=png)
     note_calibration_version(prediction.version)
-    manifest = parts.predictor.detector.manifest
     if png:
-        return Response(predict_presenter.predict_png(prediction, query, manifest), media_type="image/png")
-    answer = predict_presenter.predict_json(prediction, query, manifest)
+        png_answer = predict_presenter.predict_png(prediction, query, parts.manifest)
+        return Response(png_answer, media_type="image/png")
+    answer = predict_presenter.predict_json(prediction, query, parts.manifest)
     if retained:  # prediction_id (and adaptive) follow the answer's last member, as PredictResponse has them
         served = served_request(prediction, query, adaptive)
         sha256 = image.sha256() if isinstance(image, EncodedFrame) else hashlib.sha256(image).hexdigest()
-        kept = {
-            "prediction_id": retention.retain(prediction.version, served, sha256, parameters.stream, client)
-        }
+        stream = parameters.stream
+        kept = {"prediction_id": retention.retain(prediction.version, served, sha256, stream, client)}
         if adaptive is not None:
             kept["adaptive"] = adaptive.as_dict()
         answer = answer[:-1] + b"," + to_json(kept)[1:]
@@ -243,13 +205,6 @@ async def _batch_answer(
         )
     except Exception:
         log.exception("unhandled error on image %d of a batch", index)
-        answer = problem(
-            500, "Internal error", "The server failed on this image; the error was logged.", request
-        )
+        answer = problem(500, "Internal error", _FAILED, request)
     # The same problem body POST /v1/predict would answer, built by the same function.
     return b'{"status":%d,"problem":%s}' % (answer.status_code, bytes(answer.body))
-
-
-def _wants_png(request: Request) -> bool:
-    accept = request.headers.get("accept", "")
-    return "image/png" in accept and "application/json" not in accept

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import math
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
+import numpy as np
 from pydantic import (
     BaseModel,
     ConfigDict,
@@ -26,9 +26,10 @@ Stratify = Literal["none", "difficulty", "group", "difficulty+group"]
 Point = tuple[float, float]
 MAX_BATCH_IMAGES = 16  # images per POST /v1/predict/batch
 MAX_VERSION = 2**31 - 1  # the calibration store keeps version numbers in 32-bit INTEGER columns
+_NAME: Any = {"min_length": 1, "max_length": 64, "pattern": r"^[ -~]+$"}  # a group or stream: printable ASCII
 
 
-class _Body(BaseModel):
+class StrictBody(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
@@ -38,7 +39,7 @@ def _box_size(schema: dict) -> None:
         size["minimum"] = MIN_BOX_SIDE_PX
 
 
-class InstanceIn(_Body):
+class InstanceIn(StrictBody):
     """One object in the image: its class and its box in image pixels."""
 
     object: str = Field(min_length=1, max_length=200, description="object name from GET /v1/model")
@@ -47,10 +48,8 @@ class InstanceIn(_Body):
         json_schema_extra=_box_size,
     )
     group: str | None = Field(
-        default=None,
-        min_length=1,
-        max_length=64,
-        pattern=r"^[ -~]+$",
+        None,
+        **_NAME,
         description="the caller's group of this instance (camera, site) for stratify=group: its"
         ' calibration instances carried the same COCO "group"',
     )
@@ -58,8 +57,7 @@ class InstanceIn(_Body):
     @field_validator("object")
     @classmethod
     def _known_object(cls, name: str, info: ValidationInfo) -> str:
-        """With the served model's manifest as context, an unknown name is one more problem of the
-        same answer (not a second answer once the schema's problems are fixed)."""
+        """With the manifest as context, an unknown name is one more problem of the same answer."""
         manifest = (info.context or {}).get("manifest")
         if manifest is not None and name not in manifest.object_names:
             known = ", ".join(manifest.object_names)
@@ -69,7 +67,7 @@ class InstanceIn(_Body):
     @field_validator("bbox")
     @classmethod
     def _finite_positive(cls, bbox: tuple[float, float, float, float]):
-        if not all(math.isfinite(v) for v in bbox):
+        if not np.isfinite(bbox).all():
             raise ValueError("bbox values must be finite numbers")
         if bbox[2] < MIN_BOX_SIDE_PX or bbox[3] < MIN_BOX_SIDE_PX:
             raise ValueError(f"bbox width and height must be at least {MIN_BOX_SIDE_PX:g} pixel")
@@ -81,7 +79,7 @@ Matrix3 = tuple[Vector3, Vector3, Vector3]
 ROTATION_TOLERANCE = 1e-6
 
 
-class PoseCheckIn(_Body):
+class PoseCheckIn(StrictBody):
     """A pose to test for membership in PURSE: p_camera = rotation @ p_model + translation."""
 
     instance: StrictInt = Field(ge=0, description="index into instances")
@@ -91,51 +89,42 @@ class PoseCheckIn(_Body):
     @field_validator("rotation")
     @classmethod
     def _a_rotation(cls, rotation: Matrix3) -> Matrix3:
-        values = [v for row in rotation for v in row]
-        if not all(math.isfinite(v) for v in values):
+        r = np.array(rotation)
+        if not np.isfinite(r).all():
             raise ValueError("rotation entries must be finite numbers")
-        r = rotation
-        gram_error = max(
-            abs(sum(r[k][i] * r[k][j] for k in range(3)) - (i == j)) for i in range(3) for j in range(3)
-        )
-        det = (
-            r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1])
-            - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
-            + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0])
-        )
-        if gram_error > ROTATION_TOLERANCE or det <= 0:
+        if np.abs(r.T @ r - np.eye(3)).max() > ROTATION_TOLERANCE or np.linalg.det(r) <= 0:
             raise ValueError(f"is not a rotation matrix (R^T R = I within {ROTATION_TOLERANCE:g}, det +1)")
         return rotation
 
     @field_validator("translation")
     @classmethod
     def _finite(cls, translation: Vector3) -> Vector3:
-        if not all(math.isfinite(v) for v in translation):
+        if not np.isfinite(translation).all():
             raise ValueError("translation entries must be finite numbers")
         return translation
 
 
-class PoseRequest(_Body):
+class PoseRequest(StrictBody):
     """Ask for pose sets (PURSE, Yang & Pavone CVPR 2023): needs coverage 'object'."""
 
     K: list[list[float]] = Field(
         description="camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in the response's image pixels"
     )
     samples: StrictInt = Field(
-        default=100, ge=0, le=500, description="keypoint draws for the sampled (inner) bound; 0: none"
+        100, ge=0, le=500, description="keypoint draws for the sampled (inner) bound; 0: none"
     )
     outer_bound: StrictBool = Field(
-        default=True, description="solve the convex relaxation for certified upper bounds (pose extra)"
+        True, description="solve the convex relaxation for certified upper bounds (pose extra)"
     )
     outer_splits: StrictInt = Field(
-        default=0,
+        0,
         ge=0,
         le=8,
         description="rounds of the older branch-and-bound over rotation cells (seconds per instance); "
         "when above 0 it replaces the rotation search of outer_programs",
     )
     outer_programs: StrictInt = Field(
-        default=150,
+        150,
         ge=0,
         le=2000,
         description="conic programs the search over rotation cells may spend to tighten the outer bound "
@@ -148,63 +137,58 @@ class PoseRequest(_Body):
     @field_validator("K")
     @classmethod
     def _pinhole(cls, matrix: list[list[float]]) -> list[list[float]]:
-        problems = camera_matrix_problems(matrix)
-        if problems:
+        if problems := camera_matrix_problems(matrix):
             raise ValueError("; ".join(problems))
         return matrix
 
 
-class PredictOptions(_Body):
+class PredictOptions(StrictBody):
     """What set to compute, with which guarantee."""
 
-    epsilon: float = Field(default=0.1, gt=0, lt=1, description="miscoverage rate: sets cover with 1-epsilon")
-    nonconformity: Nonconformity = Field(default="cov", description="peak and var give balls, cov ellipses")
+    epsilon: float = Field(0.1, gt=0, lt=1, description="miscoverage rate: sets cover with 1-epsilon")
+    nonconformity: Nonconformity = Field("cov", description="peak and var give balls, cov ellipses")
     coverage: Coverage = Field(
-        default="keypoint",
+        "keypoint",
         description="keypoint: each keypoint covered with 1-epsilon; "
         "object: all of an object's keypoints at once",
     )
     delta: float | None = Field(
-        default=None,
+        None,
         gt=0,
         lt=1,
         description="if set, coverage >= 1-epsilon holds with probability 1-delta "
         "over the calibration set (PAC); sets get larger",
     )
     calibration_version: StrictInt | None = Field(
-        default=None, ge=1, le=MAX_VERSION, description="default: the active version"
+        None, ge=1, le=MAX_VERSION, description="default: the active version"
     )
-    include_statistics: StrictBool = Field(
-        default=False, description="add raw heatmap statistics per keypoint"
-    )
+    include_statistics: StrictBool = Field(False, description="add raw heatmap statistics per keypoint")
     stratify: Stratify | list[Stratify] = Field(
-        default="none",
+        "none",
         description="Mondrian strata: none (pooled threshold), difficulty (bins of a label-free heatmap"
         " signal), group (instances[i].group), difficulty+group; the version must have them. Each"
         " keypoint's guarantee then holds conditionally on its stratum (guarantee.stratum)",
     )
     group_fallback: Literal["refuse", "pooled"] = Field(
-        default="refuse",
+        "refuse",
         description="where a keypoint has no bounded stratum (unknown or missing group, too few"
         " calibration scores for epsilon, strata the version lacks): refuse (422 naming the known"
         " groups) or use the pooled threshold (guarantee.stratum says so)",
     )
-    pose: PoseRequest | None = Field(default=None, description="also return each instance's pose set")
+    pose: PoseRequest | None = Field(None, description="also return each instance's pose set")
     retain: StrictBool = Field(
-        default=False,
+        False,
         description="keep this answer for feedback: it then carries a prediction_id to send the true points"
         " to (POST /v1/feedback/{prediction_id}); CKS_FEEDBACK_RETAIN_SHARE retains a share unasked",
     )
     stream: str | None = Field(
-        default=None,
-        min_length=1,
-        max_length=64,
-        pattern=r"^[ -~]+$",
+        None,
+        **_NAME,
         description="the camera stream this image comes from: live coverage is reported per stream, and"
         " its frames are grouped into looks (one vote per look)",
     )
     adaptive: StrictBool = Field(
-        default=False,
+        False,
         description="adaptive sets for this stream (needs stream; no delta, no stratify): the threshold"
         " follows the stream's feedback (ACI, Gibbs & Candes 2021) and the answer's adaptive block states"
         " the long-run bound that then applies instead of the calibration's guarantee; it is retained",
@@ -233,7 +217,7 @@ class PredictJson(PredictParameters):
     image_base64: str = Field(min_length=1, description="JPEG or PNG file, base64 (standard alphabet)")
 
 
-class BatchJson(_Body):
+class BatchJson(StrictBody):
     """Several images, each as POST /v1/predict's JSON body; answered one item per image."""
 
     items: list[PredictJson] = Field(
@@ -289,14 +273,14 @@ class Stratum(BaseModel):
     """The Mondrian stratum whose calibration scores alone gave this keypoint's threshold."""
 
     kind: Literal["pooled", "difficulty", "group", "difficulty+group"]
-    group: str | None = Field(default=None, description="the caller group (kind group)")
-    bin: int | None = Field(default=None, description="difficulty bin of this keypoint (kind difficulty)")
-    edges: list[SignalRange] | None = Field(default=None, description="the bin's range of each signal")
+    group: str | None = Field(None, description="the caller group (kind group)")
+    bin: int | None = Field(None, description="difficulty bin of this keypoint (kind difficulty)")
+    edges: list[SignalRange] | None = Field(None, description="the bin's range of each signal")
     conditional: bool = Field(
         description="true: n, t and the bounds are the stratum's, and coverage >= 1 - epsilon holds"
         " conditionally on the stratum (Mondrian conformal); false: marginal over all keypoints"
     )
-    fallback: str | None = Field(default=None, description="why the pooled threshold answered instead")
+    fallback: str | None = Field(None, description="why the pooled threshold answered instead")
 
 
 class Guarantee(BaseModel):
@@ -317,14 +301,14 @@ class Guarantee(BaseModel):
     )
     conditional_coverage: BetaLaw = Field(description="coverage given the calibration set ~ Beta(a, b)")
     delta: float | None = Field(
-        default=None,
+        None,
         description="PAC: `pac_failure_probability <= delta`, i.e. P(coverage < 1-epsilon) <= this",
     )
     pac_failure_probability: float | None = Field(
-        default=None, description="exact `P(Beta(a, b) < 1 - epsilon)` for the chosen t (null without delta)"
+        None, description="exact `P(Beta(a, b) < 1 - epsilon)` for the chosen t (null without delta)"
     )
     stratum: Stratum | None = Field(
-        default=None,
+        None,
         exclude_if=lambda stratum: stratum is None,  # responses without stratify keep their shape
         description="which Mondrian stratum answered: present when the request asked for stratify",
     )
@@ -358,7 +342,7 @@ class SampledBoundOut(BaseModel):
     poses_found: int
     poses_tried: int
     boundary_poses: int = Field(
-        default=0, description="poses found by pushing the estimate to PURSE's boundary (not counted above)"
+        0, description="poses found by pushing the estimate to PURSE's boundary (not counted above)"
     )
 
 
@@ -370,11 +354,11 @@ class OuterBoundOut(BaseModel):
     rotation_deg: float | None = None
     translation: float | None = None
     rotation_over_inner: float | None = Field(
-        default=None,
+        None,
         description="tightness: rotation_deg / the inner bound's (1: no slack; the worst case lies between)",
     )
     translation_over_inner: float | None = Field(
-        default=None, description="tightness: translation / the inner bound's (1: no slack)"
+        None, description="tightness: translation / the inner bound's (1: no slack)"
     )
 
 
@@ -397,7 +381,7 @@ class PoseOut(BaseModel):
     largest_violation: float | None = Field(description="the estimate's largest normalised distance (<= 1)")
     inner_bound: SampledBoundOut | None
     inner_bound_note: str | None = Field(
-        default=None,
+        None,
         description="why there is no inner bound, or that it is sampling's alone (the boundary search"
         " needs the pose extra's SciPy); absent: the samples and the boundary search made it",
     )
@@ -410,7 +394,7 @@ class InstanceOut(BaseModel):
     bbox: tuple[float, float, float, float]
     keypoints: list[KeypointOut]
     pose: PoseOut | None = Field(
-        default=None,
+        None,
         exclude_if=lambda pose: pose is None,  # responses without pose keep their shape
         description="present when the request asked for pose",
     )
@@ -460,12 +444,12 @@ class PredictResponse(BaseModel):
     image: ImageInfo
     instances: list[InstanceOut]
     prediction_id: str | None = Field(
-        default=None,
+        None,
         exclude_if=lambda value: value is None,  # answers not retained keep their shape
         description="present when the answer was retained for feedback: POST /v1/feedback/{prediction_id}",
     )
     adaptive: AdaptiveOut | None = Field(
-        default=None,
+        None,
         exclude_if=lambda value: value is None,
         description="present with adaptive sets: the guarantee that applies is this long-run bound",
     )
@@ -475,8 +459,8 @@ class BatchItem(BaseModel):
     """The answer for one image of a batch: a result, or the problem that image alone had."""
 
     status: int = Field(description="200, or the status this image would have had on POST /v1/predict")
-    result: PredictResponse | None = Field(default=None, description="present when status is 200")
-    problem: Problem | None = Field(default=None, description="present otherwise")
+    result: PredictResponse | None = Field(None, description="present when status is 200")
+    problem: Problem | None = Field(None, description="present otherwise")
 
 
 class BatchResponse(BaseModel):
