@@ -1,8 +1,5 @@
-"""Calibration uploads: stream to disk, then unzip safely within limits.
-
-Every member of a zip is checked before anything is written (names, types, encryption, counts,
-declared sizes, room on disk); then members are streamed out in bounded chunks while the bytes
-really produced are counted, because a zip bomb's headers may lie. A refusal removes everything.
+"""Calibration uploads: stream to disk, then unzip safely within limits. Every member is checked
+before anything is written; the bytes unzipped are counted, because a zip bomb's headers may lie.
 """
 
 from __future__ import annotations
@@ -37,6 +34,7 @@ _SUPPORTED_COMPRESSION = {
     zipfile.ZIP_LZMA: "lzma",
 }
 _DRIVE = re.compile(r"^[A-Za-z]:")
+_CORRUPT = (zipfile.BadZipFile, EOFError, zlib.error, NotImplementedError, RuntimeError, ValueError)
 
 
 @dataclass(frozen=True)
@@ -116,10 +114,8 @@ class UploadSink:
 def extract_zip(
     zip_path: Path, dest: Path, limits: ArchiveLimits = ArchiveLimits(), disk: DiskBudget | None = None
 ) -> Path:
-    """Extract ``zip_path`` into ``dest`` (absent or empty) and return the batch folder: ``dest``
-    or its single top-level folder, the one holding ``annotations.json``. ``InvalidInput``,
-    ``PayloadTooLarge`` or (``disk``) ``InsufficientStorage`` name the offending member; ``dest``
-    does not exist after a refusal."""
+    """Extract ``zip_path`` into ``dest`` (absent or empty) and return the folder holding
+    ``annotations.json`` (``dest`` or its single top-level folder); a refusal removes ``dest``."""
     dest = Path(dest)
     if dest.exists() and any(dest.iterdir()):
         raise FileExistsError(f"extraction directory {dest} is not empty")
@@ -177,6 +173,8 @@ def _member_problem(info: zipfile.ZipInfo) -> str | None:
     """Why this member may not be extracted, or None."""
     name, kind = info.filename, stat.S_IFMT(info.external_attr >> 16)
     parts = name.rstrip("/").split("/")
+    too_long = any(len(p.encode("utf-8", "surrogateescape")) > MAX_NAME_COMPONENT_BYTES for p in parts)
+    methods, folder = ", ".join(_SUPPORTED_COMPRESSION.values()), info.is_dir()
     checks = (
         ("\\" in name, "contains a backslash; use '/' as the path separator"),
         ("\x00" in name, "contains a NUL character"),
@@ -184,28 +182,17 @@ def _member_problem(info: zipfile.ZipInfo) -> str | None:
         (bool(_DRIVE.match(name)), "starts with a drive letter; paths must be relative to the archive root"),
         (".." in parts, "contains a '..' component (path traversal)"),
         (any(p in ("", ".") for p in parts), "contains an empty or '.' path component"),
-        (
-            any(len(p.encode("utf-8", "surrogateescape")) > MAX_NAME_COMPONENT_BYTES for p in parts),
-            f"has a path component longer than {MAX_NAME_COMPONENT_BYTES} bytes",
-        ),
+        (too_long, f"has a path component longer than {MAX_NAME_COMPONENT_BYTES} bytes"),
         (kind == stat.S_IFLNK, "is a symbolic link; archives may contain only regular files and folders"),
-        (
-            kind not in (0, stat.S_IFREG, stat.S_IFDIR),
-            "is not a regular file (device, pipe or socket entry)",
-        ),
-        (
-            kind == stat.S_IFDIR and not info.is_dir(),
-            "is marked as a folder but its name does not end with '/'",
-        ),
+        (kind not in (0, stat.S_IFREG, stat.S_IFDIR), "is not a regular file (device, pipe or socket entry)"),
+        (kind == stat.S_IFDIR and not folder, "is marked as a folder but its name does not end with '/'"),
         (bool(info.flag_bits & 0x1), "is encrypted; upload an archive without a password"),
+        (
+            info.compress_type not in _SUPPORTED_COMPRESSION,
+            f"uses compression method {info.compress_type}; supported: {methods}",
+        ),
     )
-    for failed, problem in checks:
-        if failed:
-            return problem
-    if info.compress_type not in _SUPPORTED_COMPRESSION:
-        methods = ", ".join(_SUPPORTED_COMPRESSION.values())
-        return f"uses compression method {info.compress_type}; supported: {methods}"
-    return None
+    return next((problem for failed, problem in checks if failed), None)
 
 
 def _layout_problems(members: list[zipfile.ZipInfo]) -> list[str]:
@@ -249,14 +236,7 @@ def _extract_members(
                 f"member {info.filename!r} (declared {info.file_size} bytes) expanded past the limit of "
                 f"{limit} uncompressed bytes while extracting: the archive's headers understate its size"
             ) from exc
-        except (
-            zipfile.BadZipFile,
-            EOFError,
-            zlib.error,
-            NotImplementedError,
-            RuntimeError,
-            ValueError,
-        ) as exc:
+        except _CORRUPT as exc:
             raise InvalidInput(
                 f"member {info.filename!r} is corrupt and cannot be extracted ({exc}); rebuild the archive"
             ) from exc

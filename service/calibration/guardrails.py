@@ -67,7 +67,6 @@ def compare(
     active: ScoreTable | None,
     manifest: Manifest,
     min_instances: int,
-    *,
     candidate_version: int | None = None,
     active_version: int | None = None,
     epsilon: float = REFERENCE_EPSILON,

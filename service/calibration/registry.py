@@ -1,12 +1,7 @@
 """The served model's calibrations in memory: the active version with its scores, and cached
-thresholds per version.
-
-A poller thread reads the store every ``poll_seconds`` (the active version when its change
-counter moves; a new active version's scores are loaded before it is served): that is how
-replicas see each other's activations. Requests read only memory, so the active version never
-waits on the store: while it is away the last good state is served and ``health()`` says how
-stale it is. Versions are immutable, so their scores and thresholds are cached for good; a
-request naming a version not in memory loads it (503 while the store is away).
+thresholds per (immutable) version. A poller reads the store's active version (how replicas see
+each other's activations), so requests never wait on the store: while it is away the last good
+state is served and ``health()`` says how stale it is.
 """
 
 from __future__ import annotations
@@ -61,9 +56,8 @@ class ChannelThresholds:
 def channel_thresholds(
     table: ScoreTable, num_keypoints: int, kind: str, scope: str, epsilon: float, delta: float | None
 ) -> ChannelThresholds:
-    """Thresholds for every keypoint channel (unbounded without calibration data): per keypoint
-    column on its labeled instances, or (``object`` scope) on the max over each fully labeled
-    instance, one threshold per object."""
+    """Thresholds per keypoint channel (unbounded without data): per keypoint on its labeled
+    instances, or (``object`` scope) one per object on the max over each fully labeled instance."""
     values = np.full(num_keypoints, np.inf)
     guarantees = [coverage_guarantee(0, epsilon, delta)] * num_keypoints
     for block in table.objects:
@@ -328,3 +322,4 @@ class CalibrationRegistry:
     ) -> ChannelThresholds:
         table = self.scores(version)
         return channel_thresholds(table, self._manifest.num_keypoints, kind, scope, epsilon, delta)
+
