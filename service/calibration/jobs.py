@@ -1,10 +1,6 @@
-"""Calibration uploads as jobs of the job engine (``infra.job_engine``): accepted after the
-intake, run as one step that turns the validated batch into a version, retried from their kept
-upload (``<data>/jobs/<job id>``) when a crash interrupted them or a full disk failed them, and
-taken over by a replica that can read the kept upload once their process stopped.
-
-A version is written in the transaction that marks its job succeeded, so an interrupted job stored
-nothing; a retry marks it finished first, so a process presumed dead can no longer complete it.
+"""Calibration uploads as jobs of ``infra.job_engine``: accepted after the intake, run as one step
+that turns the batch into a version (in the transaction that marks the job succeeded), retried
+from their kept upload (``<data>/jobs/<job id>``) after a crash or a full disk.
 """
 
 from __future__ import annotations
@@ -12,6 +8,7 @@ from __future__ import annotations
 import logging
 from dataclasses import asdict, dataclass
 from datetime import UTC, datetime
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -119,9 +116,7 @@ class CalibrationJobs(DetectorJobs):
     ) -> JobRecord:
         """Start the job, its ``accepted`` entry stored with it."""
 
-        def job(progress: JobProgress) -> dict[str, Any]:
-            return self._job(folder, batch, options, operator, progress)
-
+        job = partial(self._job, folder, batch, options, operator)
         return self._runner.submit(
             JOB_KIND, job, batch.named.batch.count, job_id=folder.job_id, audit=(accepted,)
         )
@@ -181,13 +176,10 @@ class CalibrationJobs(DetectorJobs):
     def _take_over(self, job: JobRecord, new_id: str) -> None:
         """Mark a job reported interrupted finished, so its old process can no longer complete it
         (one its stopping server marked interrupted already is left as it is)."""
+        now, result = datetime.now(UTC), {**job.result, "retried_as": new_id}
         try:
             self._store.update_job(
-                job.id,
-                state="interrupted",
-                errors=job.errors,
-                finished_at=datetime.now(UTC),
-                result={**job.result, "retried_as": new_id},
+                job.id, state="interrupted", errors=job.errors, finished_at=now, result=result
             )
         except JobFinished as error:
             if error.state != "interrupted":
@@ -199,12 +191,7 @@ def _kept(
 ) -> dict[str, Any]:
     """What is kept with an upload for a retry."""
     batch_dir = str(batch.named.batch.folder.relative_to(folder.root))
-    return {
-        "request": options.as_json(),
-        "operator": asdict(operator),
-        "sha256": sha256,
-        "batch_dir": batch_dir,
-    }
+    return dict(request=options.as_json(), operator=asdict(operator), sha256=sha256, batch_dir=batch_dir)
 
 
 def _not_kept(job: JobRecord, jobs_dir: Path) -> Conflict:
