@@ -1,8 +1,5 @@
-"""Content hashes of calibration instances, and the repeats they reveal.
-
-An instance counted twice weighs twice in every threshold, so n and the guarantee are wrong.
-Each stored instance keeps the sha256 of its image file and of the instance (image hash, object,
-box, labels); a new batch is checked against itself and against the version it extends.
+"""Content hashes of calibration instances (of the image file; of image hash, object, box and
+labels), and the repeats they reveal: an instance counted twice voids n and the guarantee.
 """
 
 from __future__ import annotations
@@ -59,9 +56,8 @@ def find_repeats(
     parent_sources: Iterable[SourceBatch] = (),
     parent_number: int | None = None,
 ) -> list[Rejection]:
-    """Instances of ``batch`` already counted, inside the batch or in the version it extends (an
-    image file under two ids, or held by the parent, repeats every instance on it; so does a
-    batch whose sha256 the parent lists)."""
+    """Instances of ``batch`` already counted, in the batch or in the version it extends (a repeated
+    image file, or a batch the parent lists, repeats every instance on it)."""
     where = f"version {parent_number}"
     for source in parent_sources:
         if source.sha256 == batch_sha256:
@@ -105,11 +101,7 @@ def content_key(table: ScoreTable, strata: Iterable[str], scoring: Mapping[str, 
 
 def stored_digests(table: ScoreTable | None) -> tuple[set[str], set[str]]:
     """The image and instance hashes a version holds (less those stored before hashes were kept)."""
-    images: set[str] = set()
-    instances: set[str] = set()
-    for block in () if table is None else table.objects:
-        images.update(block.image_hashes)
-        instances.update(block.instance_hashes)
-    images.discard(UNKNOWN_DIGEST)
-    instances.discard(UNKNOWN_DIGEST)
-    return images, instances
+    blocks = () if table is None else table.objects
+    images = {digest for block in blocks for digest in block.image_hashes}
+    instances = {digest for block in blocks for digest in block.instance_hashes}
+    return images - {UNKNOWN_DIGEST}, instances - {UNKNOWN_DIGEST}

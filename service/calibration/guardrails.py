@@ -1,12 +1,7 @@
-"""Activation guardrails: compare a candidate version with the active one before it goes live.
-
-Thresholds from a small batch would go live for every request, so an activation is refused when
-a keypoint's n falls below CKS_MIN_CALIBRATION_INSTANCES or below half of the active version's,
-unless forced with a reason. Per keypoint, at a reference epsilon and function, it shows n before
-and after; the smallest epsilon with bounded sets (t >= 1 needs eps >= 1 / (n + 1)); the sets'
-area ratio, candidate over active (radii grow linearly with the threshold for ``peak`` and
-``var``, ellipse areas for ``cov``); and the active sets' coverage of the candidate's scores (near
-1 - eps for one distribution; far below warns of a shift).
+"""Activation guardrails: refused (unless forced) when a keypoint's n falls below
+CKS_MIN_CALIBRATION_INSTANCES or half the active version's. Per keypoint: n before and after, the
+smallest epsilon with bounded sets (1 / (n + 1)), the set-area ratio (radii grow with the
+threshold for peak and var, ellipse areas for cov), the active sets' coverage of the candidate.
 """
 
 from __future__ import annotations

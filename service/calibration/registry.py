@@ -136,7 +136,6 @@ class CalibrationRegistry:
             self._poller.join(timeout=self._store_timeout + 1.0)
 
     def active_version(self) -> int | None:
-        """The active version as last read from the store (never waits on it)."""
         return self._served.version
 
     def health(self) -> StoreHealth:
@@ -147,8 +146,7 @@ class CalibrationRegistry:
         return StoreHealth(reachable=error is None, age_seconds=now - polled.answered_at, error=error)
 
     def require_store(self) -> None:
-        """503 at once while the polls find the store unreachable (a call would only wait for its
-        timeout), until a poll reaches it."""
+        """503 at once while the polls find the store unreachable (a call would wait for its timeout)."""
         health = self.health()
         if not health.reachable:
             raise StoreUnreachable(
@@ -173,9 +171,8 @@ class CalibrationRegistry:
         return self.active_version()
 
     def resolve(self, version: int | None) -> int:
-        """The version a request asked for (404 if missing, 409 if scored under other manifest
-        settings, 503 if not in memory while the store is away), or the active one (503 if there
-        is none or it is unusable), checked usable for this manifest."""
+        """The version asked for (404, 409 if unusable, 503 if not in memory while the store is
+        away), or the active one (503 if there is none or it is unusable)."""
         if version is not None:
             self._load_named(version)
             return version
@@ -235,8 +232,7 @@ class CalibrationRegistry:
             return self._strata[version]
 
     def _load_named(self, version: int) -> None:
-        """Check a version a request names and load its scores; the store is not tried while the
-        polls find it unreachable (the request would hold its slot for the timeout)."""
+        """Check and load a version a request names; not tried while the store is unreachable."""
         try:
             health = self.health()
             if not health.reachable and not self._in_memory(version):
@@ -269,8 +265,8 @@ class CalibrationRegistry:
                 log.exception("polling the calibration store failed")
 
     def _poll(self, force: bool) -> None:
-        """Read the change counter, and the active version when it moved (the caller holds the poll
-        lock); a store failure is recorded (health) and raised, what is served stays."""
+        """Read the active version when the change counter moved (the caller holds the poll lock); a
+        store failure is recorded (health) and raised, what is served stays."""
         began = time.monotonic()
         self._polling_since = began
         try:
@@ -322,4 +318,3 @@ class CalibrationRegistry:
     ) -> ChannelThresholds:
         table = self.scores(version)
         return channel_thresholds(table, self._manifest.num_keypoints, kind, scope, epsilon, delta)
-

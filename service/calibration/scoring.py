@@ -48,14 +48,13 @@ _UNKNOWN = Fingerprint(UNKNOWN_DIGEST, UNKNOWN_DIGEST)
 
 
 class ScoreAccumulator:
-    """Collects per-instance scores, features, group labels and fingerprints by object into a
-    ScoreTable (features only when every instance has them)."""
+    """Collects instances by object into a ScoreTable (features only when every instance has them)."""
 
     def __init__(self) -> None:
         self._objects: dict[str, _ObjectRows] = {}
 
     def extend(self, table: ScoreTable) -> None:
-        """Start from an existing version's instances (append mode)."""
+
         for block in table.objects:
             rows = self._rows(block.object_name, tuple(int(k) for k in block.keypoint_ids))
             rows.refs.extend(block.instance_refs)
@@ -156,10 +155,8 @@ def score_batch(
     progress: Callable[[int], None] = lambda count: None,
     fingerprints: tuple[Fingerprint, ...] = (),
 ) -> list[Rejection]:
-    """Score a validated batch into ``accumulator`` image by image; an image that does not decode
-    strictly (the predict rule) is left out, its instances returned as rejections. ``fingerprints``
-    align with ``batch.instances`` (empty: unknown); ``progress`` hears after each image how many
-    instances it held, and may stop scoring by raising (``JobCancelled``)."""
+    """Score ``batch`` into ``accumulator`` image by image; the instances of an image that does not
+    decode strictly are returned as rejections. ``progress`` may stop scoring by raising."""
     manifest = detector.manifest
     prints = dict(zip(((i.image_id, i.annotation_id) for i in batch.instances), fingerprints, strict=False))
     rejected = []

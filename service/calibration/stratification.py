@@ -62,10 +62,8 @@ class StrataSpec:
         return frozenset(k for k, on in ((DIFFICULTY, self.difficulty), (GROUP, self.group)) if on)
 
     def as_dict(self) -> dict[str, Any]:
-        return {
-            "difficulty": None if self.difficulty is None else self.difficulty.as_dict(),
-            "group": self.group,
-        }
+        difficulty = None if self.difficulty is None else self.difficulty.as_dict()
+        return {"difficulty": difficulty, "group": self.group}
 
     @classmethod
     def from_dict(cls, value: Mapping[str, Any]) -> StrataSpec:
@@ -136,9 +134,8 @@ def version_strata(table: ScoreTable, stratify: frozenset[str] | None) -> Versio
         stratify = frozenset({DIFFICULTY} if all(b.has_features for b in table.objects) else ())
     if not stratify:
         return None
-    return fit_strata(
-        table, StrataSpec(DifficultySpec() if DIFFICULTY in stratify else None, GROUP in stratify)
-    )
+    spec = StrataSpec(DifficultySpec() if DIFFICULTY in stratify else None, GROUP in stratify)
+    return fit_strata(table, spec)
 
 
 def _members(block: ObjectScores, key: str) -> np.ndarray:
@@ -220,9 +217,7 @@ def stratified_thresholds(
 def _stratum(kinds: str, group: str | None, bins: DifficultyBins | None, index: int) -> Stratum:
     if bins is None:
         return Stratum(kinds, group)
-    return Stratum(
-        kinds, group, index, tuple((s, low, high) for s, (low, high) in bins.ranges(index).items())
-    )
+    return Stratum(kinds, group, index, tuple((s, *bounds) for s, bounds in bins.ranges(index).items()))
 
 
 @dataclass(frozen=True)
@@ -298,12 +293,9 @@ def _key(thresholds: StratifiedThresholds, group: str | None) -> str | None:
 
 
 def _row_answer(
-    thresholds: StratifiedThresholds | None,
-    refusal: str | None,
-    channel: int,
-    group: str | None,
-    bin_index: int,
+    thresholds: StratifiedThresholds | None, refusal: str | None, channel: int, group: str | None, index: int
 ) -> tuple[StratumAnswer | None, str]:
+
     if thresholds is None:
         return None, refusal or ""
     key = _key(thresholds, group)
@@ -313,7 +305,8 @@ def _row_answer(
         return None, f"{named} (known groups: {known})"
     if channel not in thresholds.answers:
         return None, f"calibration version has no scores for keypoint channel {channel}"
-    answer = thresholds.answers[channel][key][bin_index]
+    answer = thresholds.answers[channel][key][index]
+
     guarantee, stratum = answer.guarantee, answer.stratum
     if not guarantee.unbounded:
         return answer, ""
