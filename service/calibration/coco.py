@@ -111,7 +111,6 @@ class NamedBatch:
 
 def load_coco_batch(folder: Path, manifest: Manifest, bounded: bool = False) -> CocoBatch:
     """The validated batch, or one ``InvalidInput`` listing every problem (``bounded``: 413s too)."""
-
     folder = Path(folder)
     path = folder / ANNOTATIONS_FILENAME
     if path.is_symlink() or not path.is_file():

@@ -77,21 +77,12 @@ def compare(
     for block in candidate.objects:
         for j, channel in enumerate(block.keypoint_ids):
             columns[int(channel)] = block.scores[nonconformity][:, j]
-    changes, problems = [], []
-    for spec in manifest.keypoints:
-        change = _change(spec, after, before, columns[spec.index], nonconformity)
-        changes.append(change)
-        problems.extend(_problems(spec.name, change.n_before, change.n_after, min_instances))
+    changes = tuple(_change(s, after, before, columns[s.index], nonconformity) for s in manifest.keypoints)
+    problems = tuple(problem for change in changes for problem in _problems(change, min_instances))
     ratios = [c.set_area_ratio for c in changes if c.set_area_ratio is not None]
+    median = float(np.median(ratios)) if ratios else None
     return Comparison(
-        candidate=candidate_version,
-        against=active_version,
-        nonconformity=nonconformity,
-        epsilon=epsilon,
-        min_instances=min_instances,
-        keypoints=tuple(changes),
-        median_set_area_ratio=float(np.median(ratios)) if ratios else None,
-        problems=tuple(problems),
+        candidate_version, active_version, nonconformity, epsilon, min_instances, changes, median, problems
     )
 
 
@@ -113,16 +104,9 @@ def _change(
     ratio = None
     if math.isfinite(after.values[c]) and math.isfinite(threshold) and threshold > 0:
         ratio = float((after.values[c] / threshold) ** _AREA_POWER[nonconformity])
-    return KeypointChange(
-        spec.name,
-        spec.object,
-        n_before,
-        n_after,
-        _smallest_epsilon(n_before),
-        _smallest_epsilon(n_after),
-        ratio,
-        float(np.mean(labeled <= threshold)) if labeled.size else None,
-    )
+    coverage = float(np.mean(labeled <= threshold)) if labeled.size else None
+    epsilons = _smallest_epsilon(n_before), _smallest_epsilon(n_after)
+    return KeypointChange(spec.name, spec.object, n_before, n_after, *epsilons, ratio, coverage)
 
 
 def refusal_detail(comparison: Comparison) -> str:
@@ -134,16 +118,16 @@ def refusal_detail(comparison: Comparison) -> str:
     )
 
 
-def _problems(name: str, n_before: int | None, n_after: int, min_instances: int) -> list[str]:
+def _problems(change: KeypointChange, min_instances: int) -> list[str]:
     """The keypoint's problem, one line whatever rules it breaks (none: an empty list)."""
-    reasons = []
+    n_before, n_after, reasons = change.n_before, change.n_after, []
     if n_after < min_instances:
         reasons.append(f"below the floor of {min_instances} (CKS_MIN_CALIBRATION_INSTANCES)")
     if n_before is not None and n_after < LARGEST_DROP * n_before:
         reasons.append(f"below half of the active version's {n_before}")
     if not reasons:
         return []
-    return [f"keypoint {name!r}: n = {n_after} calibration scores, " + " and ".join(reasons)]
+    return [f"keypoint {change.keypoint!r}: n = {n_after} calibration scores, " + " and ".join(reasons)]
 
 
 def _smallest_epsilon(n: int) -> float | None:

@@ -71,16 +71,13 @@ class UploadOptions:
 
 @dataclass(frozen=True)
 class Parent:
-    """The version a batch is appended to (or audited against), checked, with its scores."""
-
     info: VersionInfo
     scores: ScoreTable
 
 
 @dataclass(frozen=True)
 class ValidatedBatch:
-    """A batch to score: its instances (repeats dropped), their fingerprints, what was left out,
-    the version it extends, and the stored version it repeats (with ``allow_duplicate``)."""
+    """A batch to score (repeats dropped), and the stored version it repeats (``allow_duplicate``)."""
 
     named: NamedBatch
     fingerprints: tuple[Fingerprint, ...]
@@ -118,7 +115,6 @@ class Intake:
         self._store, self._detector, self._scores, self._rules = store, detector, scores, rules
 
     def take_in(self, archive: Path, sha256: str, options: UploadOptions) -> ValidatedBatch:
-        """A received zip (its body's ``sha256``) -> a batch ready to score, or a 4xx."""
         return self.validate(self.unpack(archive, sha256, options.name), options)
 
     def unpack(self, archive: Path, sha256: str, name: str | None) -> NamedBatch:
@@ -135,8 +131,7 @@ class Intake:
         return NamedBatch(batch_name(name, sha256), sha256, batch)
 
     def validate(self, named: NamedBatch, options: UploadOptions) -> ValidatedBatch:
-        """The parent read once (its scores travel with the batch to its job), then the rules that
-        refuse a batch before it is scored: group labels, repeats, rejections, an equal version."""
+        """The parent read once (its scores go with the batch to its job), then the refusing rules."""
         parent = None
         if options.append_to is not None:
             parent = read_parent(self._store, self._detector, options.append_to, self._scores)
@@ -163,8 +158,7 @@ def equal_version(
     count: int,
     options: UploadOptions,
 ) -> int | None:
-    """The stored version a new one of ``count`` instances with these hashes would repeat (the same
-    instances, the same strata asked): 409 unless ``allow_duplicate``; None when it repeats none."""
+    """The stored version with the same instances and strata (409 unless ``allow_duplicate``)."""
     if len(instances) != count:  # instances stored before hashes were kept: nothing to compare
         return None
     for info in store.list_versions(detector.model_hash):
@@ -185,8 +179,7 @@ def equal_version(
 def read_parent(
     store: CalibrationStore, detector: Detector, version: int, scores: Scores | None = None
 ) -> Parent:
-    """The version to append to with its scores (``scores``, or the store's); refused when it is
-    missing or was scored differently."""
+    """The version to append to with its scores; refused when missing or scored differently."""
     try:
         info = store.get_version(detector.model_hash, version)
     except VersionNotFound as error:

@@ -35,8 +35,6 @@ class JobSettings:
 
 
 class DetectorJobs:
-    """What background jobs over one detector's calibrations need."""
-
     def __init__(
         self,
         store: CalibrationStore,
@@ -73,8 +71,7 @@ class CalibrationJobs(DetectorJobs):
             raise
 
     def take_over(self, job: JobRecord) -> bool:
-        """Retry a job whose process stopped when its upload is kept here (False: another server
-        received it); the audit names the process that did."""
+        """Retry a job whose process stopped when its upload is kept here (False: it is not)."""
         if not JobFolder.of(self._settings.jobs_dir, job.id).exists():
             return False
         self.retry(job.id, Operator("takeover", client=process_owner()))
@@ -114,8 +111,6 @@ class CalibrationJobs(DetectorJobs):
         operator: Operator,
         accepted: NewAuditEntry,
     ) -> JobRecord:
-        """Start the job, its ``accepted`` entry stored with it."""
-
         job = partial(self._job, folder, batch, options, operator)
         return self._runner.submit(
             JOB_KIND, job, batch.named.batch.count, job_id=folder.job_id, audit=(accepted,)
@@ -174,8 +169,7 @@ class CalibrationJobs(DetectorJobs):
         return job
 
     def _take_over(self, job: JobRecord, new_id: str) -> None:
-        """Mark a job reported interrupted finished, so its old process can no longer complete it
-        (one its stopping server marked interrupted already is left as it is)."""
+        """Mark a job reported interrupted finished, so its old process can no longer complete it."""
         now, result = datetime.now(UTC), {**job.result, "retried_as": new_id}
         try:
             self._store.update_job(
@@ -189,7 +183,6 @@ class CalibrationJobs(DetectorJobs):
 def _kept(
     options: UploadOptions, operator: Operator, sha256: str, batch: ValidatedBatch, folder: JobFolder
 ) -> dict[str, Any]:
-    """What is kept with an upload for a retry."""
     batch_dir = str(batch.named.batch.folder.relative_to(folder.root))
     return dict(request=options.as_json(), operator=asdict(operator), sha256=sha256, batch_dir=batch_dir)
 

@@ -54,7 +54,6 @@ class ScoreAccumulator:
         self._objects: dict[str, _ObjectRows] = {}
 
     def extend(self, table: ScoreTable) -> None:
-
         for block in table.objects:
             rows = self._rows(block.object_name, tuple(int(k) for k in block.keypoint_ids))
             rows.refs.extend(block.instance_refs)

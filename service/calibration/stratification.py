@@ -75,8 +75,7 @@ class StrataSpec:
 
 @dataclass(frozen=True)
 class VersionStrata:
-    """A version's strata: its spec, the group labels it knows and, per keypoint channel and
-    group (``ALL_GROUPS`` = every instance), the difficulty bins fitted on its instances."""
+    """A version's strata: spec, groups and difficulty bins per channel and group (or ALL_GROUPS)."""
 
     spec: StrataSpec
     groups: tuple[str, ...] = ()
@@ -99,8 +98,7 @@ class VersionStrata:
 
 
 def fit_strata(table: ScoreTable, spec: StrataSpec) -> VersionStrata:
-    """Fit ``spec`` on a version's instances: bins per keypoint over its labeled instances (and
-    within each group when both are asked). Refused when the table cannot carry it."""
+    """Fit ``spec``: bins per keypoint on its labeled instances (and per group, when both are asked)."""
     groups = tuple(sorted({str(g) for block in table.objects for g in block.groups if g}))
     if spec.group and not groups:
         raise InvalidInput(
@@ -128,8 +126,7 @@ def fit_strata(table: ScoreTable, spec: StrataSpec) -> VersionStrata:
 
 
 def version_strata(table: ScoreTable, stratify: frozenset[str] | None) -> VersionStrata | None:
-    """The strata a new version stores: those asked, or (None) difficulty strata whenever every
-    instance carries heatmap features; None when there are none."""
+    """The strata asked, or (None) difficulty strata when every instance carries heatmap features."""
     if stratify is None:
         stratify = frozenset({DIFFICULTY} if all(b.has_features for b in table.objects) else ())
     if not stratify:
@@ -139,7 +136,6 @@ def version_strata(table: ScoreTable, stratify: frozenset[str] | None) -> Versio
 
 
 def _members(block: ObjectScores, key: str) -> np.ndarray:
-    """The rows of ``block`` in group ``key`` (all of them for ALL_GROUPS)."""
     if key == ALL_GROUPS:
         return np.ones(block.n_instances, dtype=bool)
     return np.asarray(block.groups if block.has_groups else [""] * block.n_instances) == key
@@ -239,9 +235,8 @@ def answer_rows(
     features: Mapping[str, np.ndarray] | None,
     fallback: str,
 ) -> RowAnswers:
-    """Each row's stratum threshold; where a row has no bounded stratum (``refusal``: the version
-    lacks the strata asked; or an unknown group, or t = 0), the pooled threshold if ``fallback``
-    is ``pooled``, else a 422 listing every such row."""
+    """Each row's stratum threshold; without a bounded one (``refusal``, an unknown group, t = 0),
+    the pooled threshold with ``fallback`` ``pooled``, else a 422 listing every such row."""
     values, guarantees = pooled
     out = RowAnswers(np.empty(len(channels)), [], [])
     problems: list[str] = []
@@ -274,8 +269,7 @@ def _row_bins(
     row_groups: Sequence[str | None],
     features: Mapping[str, np.ndarray] | None,
 ) -> np.ndarray:
-    """The difficulty bin of every row (0 when not by difficulty or not answerable), assigned at
-    once for all rows of one keypoint and group."""
+    """The difficulty bin of every row (0 when not by difficulty or not answerable)."""
     bins = np.zeros(len(channels), dtype=np.intp)
     if thresholds is None or DIFFICULTY not in thresholds.kinds or features is None:
         return bins
@@ -295,7 +289,6 @@ def _key(thresholds: StratifiedThresholds, group: str | None) -> str | None:
 def _row_answer(
     thresholds: StratifiedThresholds | None, refusal: str | None, channel: int, group: str | None, index: int
 ) -> tuple[StratumAnswer | None, str]:
-
     if thresholds is None:
         return None, refusal or ""
     key = _key(thresholds, group)
@@ -306,7 +299,6 @@ def _row_answer(
     if channel not in thresholds.answers:
         return None, f"calibration version has no scores for keypoint channel {channel}"
     answer = thresholds.answers[channel][key][index]
-
     guarantee, stratum = answer.guarantee, answer.stratum
     if not guarantee.unbounded:
         return answer, ""

@@ -22,8 +22,7 @@ log = logging.getLogger(__name__)
 
 
 def process_uploads_dir(uploads_dir: Path, pid: int | None = None) -> Path:
-    """This process's folder of upload workspaces, removed when it stops; a starting server removes
-    dead processes' (an orphaned upload was never stored: a version is one transaction)."""
+    """This process's folder of upload workspaces, removed when it stops (or by the next start)."""
     return process_folder(uploads_dir, pid)
 
 
@@ -90,8 +89,7 @@ class JobFolder:
 
 
 def remove_spent_job_folders(jobs_dir: Path, store: CalibrationStore) -> None:
-    """Remove kept uploads nobody can retry: of finished jobs (unless retryable), pruned jobs, and
-    folders a crash left before their job was recorded."""
+    """Remove kept uploads nobody can retry (of finished or pruned jobs, or left by a crash)."""
     if not jobs_dir.is_dir():
         return
     for root in jobs_dir.iterdir():

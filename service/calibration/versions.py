@@ -53,8 +53,6 @@ LISTED_REJECTIONS = 50
 
 @dataclass(frozen=True)
 class VersionRules:
-    """What every new version is held to (from the settings)."""
-
     max_image_pixels: int
     min_instances: int
 
@@ -69,8 +67,6 @@ class CalibrationOutcome:
 
 @dataclass
 class ScoredInstances:
-    """Instances scored for a new version: the parent's and the new, their sources, the rejected."""
-
     accumulator: ScoreAccumulator
     sources: list[SourceBatch]
     rejected: list[Rejection]
@@ -89,8 +85,7 @@ def create_version(
     progress: Callable[[int], None] = lambda count: None,
     job_id: str | None = None,
 ) -> CalibrationOutcome:
-    """Score ``batches`` (plus the ``parent``'s instances when appending) and store one version
-    (``store_scored_version``); refused when too many instances were rejected."""
+    """Score ``batches`` (plus the ``parent``'s instances) and store them as one version."""
     accumulator, sources, rejected = ScoreAccumulator(), [], []
     if parent is not None:
         accumulator.extend(parent.scores)
@@ -127,9 +122,8 @@ def store_scored_version(
     audit: AuditTrail,
     job_id: str | None = None,
 ) -> CalibrationOutcome:
-    """Store scored instances as one version (also how labelled feedback becomes one); with
-    ``activate``, activated in its transaction unless the guardrails refuse and ``force`` does not
-    override them (then the refusal is in the summary); with ``job_id``, that job succeeds in it."""
+    """Store scored instances as one version, activated (``activate``) in its transaction unless the
+    guardrails refuse and ``force`` does not override them; ``job_id``'s job succeeds in it too."""
     table = scored.accumulator.table()
     strata = version_strata(table, options.stratify)
     comparison, previous = None, None
@@ -193,7 +187,6 @@ def _audit_entries(
     previous: int | None,
     activated: bool,
 ) -> list[NewAuditEntry]:
-    """The version's entry and, when activation was asked, its decision (all in its transaction)."""
     details = {k: summary[k] for k in ("instances", "added", "duplicates_dropped", "rejected")}
     stored = {"reason": options.note, "previous_version": options.append_to, "details": details}
     entries = [audit.entry(operator, "calibration", "stored", **stored)]
@@ -243,8 +236,7 @@ def activate(
     request: ActivationRequest,
     min_instances: int,
 ) -> tuple[Activation, Comparison]:
-    """Activate after comparing with the active version; 409 with the comparison when refused
-    (the caller audits refusals; an activation is audited in its own transaction)."""
+    """Activate after comparing with the active version; 409 with the comparison when refused."""
     registry.check_usable(request.version)
     previous = registry.refresh_now()
     reference = previous if previous is not None and registry.incompatibility(previous) is None else None
@@ -265,7 +257,6 @@ def activate(
         reason=request.reason,
         details=_problems(comparison),
     )
-
     try:
         activation = registry.store.activate(
             registry.model_hash, request.version, request.operator.name, request.reason, audit=[entry]
