@@ -198,9 +198,7 @@ def _member_problem(info: zipfile.ZipInfo) -> str | None:
 def _layout_problems(members: list[zipfile.ZipInfo]) -> list[str]:
     """Duplicate names, and names used both as a file and as a folder."""
     problems: list[str] = []
-    seen: set[str] = set()
-    files: set[str] = set()
-    folders: set[str] = set()
+    seen, files, folders = set[str](), set[str](), set[str]()
     for info in members:
         path = info.filename.rstrip("/")
         if path in seen:

@@ -164,12 +164,9 @@ def equal_version(
     for info in store.list_versions(detector.model_hash):
         stored = stored_kinds(info.strata)
         same_strata = stored <= {DIFFICULTY} if options.stratify is None else stored == options.stratify
-        if (
-            info.n_instances == count
-            and same_strata
-            and version_incompatibility(info, detector.manifest) is None
-            and instance_digests(scores(info.number)) == instances
-        ):
+        if info.n_instances != count or not same_strata or version_incompatibility(info, detector.manifest):
+            continue
+        if instance_digests(scores(info.number)) == instances:
             if not options.allow_duplicate:
                 raise duplicate_refused(info.number, count, options.stratify)
             return info.number

@@ -136,13 +136,12 @@ def score_image(
                 kind, result.heatmaps[labeled], labels_hm[labeled], *options
             )
     bounds = np.cumsum([0] + [len(inst.keypoints) for inst in instances])
-    return [
-        InstanceScores(
-            scores={kind: s[a:b] for kind, s in per_kind.items()},
-            features={name: f[a:b] for name, f in features.items()},
-        )
-        for a, b in zip(bounds[:-1], bounds[1:], strict=True)
-    ]
+    spans = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    return [InstanceScores(_rows_of(per_kind, rows), _rows_of(features, rows)) for rows in spans]
+
+
+def _rows_of(arrays: dict[str, np.ndarray], rows: slice) -> dict[str, np.ndarray]:
+    return {name: values[rows] for name, values in arrays.items()}
 
 
 def score_batch(

@@ -243,17 +243,14 @@ def answer_rows(
     bins_of_row = _row_bins(thresholds, channels, row_groups, features)
     for row, channel in enumerate(channels):
         answer, problem = _row_answer(thresholds, refusal, int(channel), row_groups[row], bins_of_row[row])
-        if answer is not None:
-            out.values[row] = answer.threshold
-            out.guarantees.append(answer.guarantee)
-            out.strata.append(answer.stratum)
-            continue
-        if refusal is None:
-            problem = f"instances[{int(row_instances[row])}]: {problem}"
-        problems.append(problem)
-        out.values[row] = values[channel]
-        out.guarantees.append(guarantees[channel])
-        out.strata.append(Stratum("pooled", fallback=problem))
+        if answer is None:
+            if refusal is None:
+                problem = f"instances[{int(row_instances[row])}]: {problem}"
+            problems.append(problem)
+            answer = StratumAnswer(values[channel], guarantees[channel], Stratum("pooled", fallback=problem))
+        out.values[row] = answer.threshold
+        out.guarantees.append(answer.guarantee)
+        out.strata.append(answer.stratum)
     if problems and fallback != "pooled":
         unique = list(dict.fromkeys(problems))
         raise InvalidInput(

@@ -27,16 +27,8 @@ def process_uploads_dir(uploads_dir: Path, pid: int | None = None) -> Path:
 
 
 @dataclass(frozen=True)
-class UploadWorkspace:
-    """A private directory under this process's uploads folder for one upload; removed when done."""
-
+class _UploadFolder:
     root: Path
-
-    @classmethod
-    def create(cls, uploads_dir: Path) -> UploadWorkspace:
-        root = process_uploads_dir(uploads_dir) / uuid.uuid4().hex
-        root.mkdir(parents=True)
-        return cls(root)
 
     @property
     def archive(self) -> Path:
@@ -47,10 +39,19 @@ class UploadWorkspace:
 
 
 @dataclass(frozen=True)
-class JobFolder:
-    """The upload of one calibration job and its request, kept until the job succeeds or fails."""
+class UploadWorkspace(_UploadFolder):
+    """A private directory under this process's uploads folder for one upload; removed when done."""
 
-    root: Path
+    @classmethod
+    def create(cls, uploads_dir: Path) -> UploadWorkspace:
+        root = process_uploads_dir(uploads_dir) / uuid.uuid4().hex
+        root.mkdir(parents=True)
+        return cls(root)
+
+
+@dataclass(frozen=True)
+class JobFolder(_UploadFolder):
+    """The upload of one calibration job and its request, kept until the job succeeds or fails."""
 
     REQUEST = "request.json"
     UNCLAIMED_AFTER_S = 3600.0  # a folder without a job row this old was left by a crash
@@ -62,10 +63,6 @@ class JobFolder:
     @property
     def job_id(self) -> str:
         return self.root.name
-
-    @property
-    def archive(self) -> Path:
-        return self.root / "batch.zip"
 
     def adopt(self, workspace: UploadWorkspace) -> None:
         """Move a received upload here (same file system: one rename)."""
@@ -83,9 +80,6 @@ class JobFolder:
 
     def move_to(self, other: JobFolder) -> None:
         self.root.rename(other.root)
-
-    def remove(self) -> None:
-        shutil.rmtree(self.root, ignore_errors=True)
 
 
 def remove_spent_job_folders(jobs_dir: Path, store: CalibrationStore) -> None:
