@@ -106,7 +106,6 @@ class UploadSink:
         return SavedUpload(self._size, self._digest.hexdigest())
 
     def abort(self) -> None:
-        """Close and delete the partial file."""
         self._out.close()
         self._dest.unlink(missing_ok=True)
 
@@ -170,7 +169,6 @@ def _check_declared_size(members: list[zipfile.ZipInfo], limit: int) -> None:
 
 
 def _member_problem(info: zipfile.ZipInfo) -> str | None:
-    """Why this member may not be extracted, or None."""
     name, kind = info.filename, stat.S_IFMT(info.external_attr >> 16)
     parts = name.rstrip("/").split("/")
     too_long = any(len(p.encode("utf-8", "surrogateescape")) > MAX_NAME_COMPONENT_BYTES for p in parts)

@@ -252,11 +252,9 @@ def _read_image(where: str, entry: Any, root: Path, problems: _Problems) -> Imag
         problems.add(where, f"file_name must be a non-empty string, got {_short(file_name)}")
         return None
     where = f"{where} ({file_name!r})"
-    problem = _file_name_problem(file_name, root)
-    if problem is not None:
+    if problem := _file_name_problem(file_name, root):
         problems.add(where, problem)
-        return None
-    if not fields_ok:
+    if problem or not fields_ok:
         return None
     path = (root / file_name).resolve()
     record = ImageRecord(entry["id"], file_name, path, entry["width"], entry["height"])
@@ -268,11 +266,10 @@ def _read_image(where: str, entry: Any, root: Path, problems: _Problems) -> Imag
     except (InvalidInput, OSError) as exc:
         problems.add(where, f"cannot be read as an image ({exc})")
         return record
-    if (header.width, header.height) != (record.width, record.height):
+    declared, actual = f"{record.width}x{record.height}", f"{header.width}x{header.height}"
+    if declared != actual:
         problems.add(
-            where,
-            f"declares {record.width}x{record.height} but the file is {header.width}x{header.height} "
-            "(width x height); fix width/height",
+            where, f"declares {declared} but the file is {actual} (width x height); fix width/height"
         )
     return record
 
@@ -420,8 +417,7 @@ class _AnnotationReader:
                 f"(expected 3 x {k} = {3 * k} values x, y, v)",
             )
             return None
-        flat = self._numbers(where, value, 3 * k)
-        if flat is None:
+        if (flat := self._numbers(where, value, 3 * k)) is None:
             return None
         triples = flat.reshape(k, 3)
         bad = [j for j, v in enumerate(triples[:, 2]) if v not in (0, 1, 2)]

@@ -110,7 +110,6 @@ def _change(
 
 
 def refusal_detail(comparison: Comparison) -> str:
-    """One sentence on why an activation is refused and what to do."""
     return (
         f"activation refused: {len(comparison.problems)} keypoint(s) would be calibrated on too few"
         f" instances (first: {comparison.problems[0]}). Calibrate with more labeled images (append_to"

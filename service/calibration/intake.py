@@ -181,8 +181,7 @@ def read_parent(
         info = store.get_version(detector.model_hash, version)
     except VersionNotFound as error:
         raise NotFound(f"cannot append to calibration version {version}: it does not exist") from error
-    reason = version_incompatibility(info, detector.manifest)
-    if reason is not None:
+    if (reason := version_incompatibility(info, detector.manifest)) is not None:
         raise Conflict(f"cannot append: {reason}")
     table = store.load_scores(detector.model_hash, version) if scores is None else scores(version)
     return Parent(info, table)

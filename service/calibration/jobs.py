@@ -154,8 +154,7 @@ class CalibrationJobs(DetectorJobs):
 
     def _retryable(self, job_id: str) -> JobRecord:
         """The job to retry: an interrupted calibration job, or one failed for a full disk."""
-        job = self._runner.get(job_id)
-        if job is None:
+        if (job := self._runner.get(job_id)) is None:
             raise NotFound(f"no job {job_id!r}: it never existed or was pruned")
         if job.kind != JOB_KIND:
             raise Conflict(

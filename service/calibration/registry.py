@@ -179,8 +179,7 @@ class CalibrationRegistry:
         active = self.active_version()
         if active is None:
             raise Unavailable("no calibration is active for this model: upload and activate one")
-        reason = self.incompatibility(active)
-        if reason is not None:
+        if (reason := self.incompatibility(active)) is not None:
             raise Unavailable(f"the active {reason}")
         return active
 
@@ -205,8 +204,7 @@ class CalibrationRegistry:
 
     def check_usable(self, version: int) -> None:
         """404 if the version does not exist, 409 if it was scored under other manifest settings."""
-        reason = self.incompatibility(version)
-        if reason is not None:
+        if (reason := self.incompatibility(version)) is not None:
             raise Conflict(reason)
 
     def incompatibility(self, version: int) -> str | None:

@@ -42,7 +42,6 @@ def parse_stratify(value: str | Sequence[str]) -> frozenset[str]:
 
 
 def stored_kinds(strata: Mapping[str, Any] | None) -> frozenset[str]:
-    """The kinds of strata a stored version has (``VersionInfo.strata``)."""
     return frozenset() if strata is None else StrataSpec.from_dict(strata["spec"]).kinds
 
 

@@ -133,9 +133,7 @@ def store_scored_version(
         reference = None
         if previous is not None and _usable(store, detector, previous):  # an unusable one is no reference
             reference = store.load_scores(detector.model_hash, previous)
-        comparison = compare(
-            table, reference, detector.manifest, rules.min_instances, active_version=previous
-        )
+        comparison = compare(table, reference, detector.manifest, rules.min_instances, None, previous)
     activated = options.activate and (comparison.allowed or options.force)
     summary: dict[str, Any] = {
         "instances": table.n_instances,
@@ -243,11 +241,8 @@ def activate(
     reference_args = (min_instances, REFERENCE_EPSILON, REFERENCE_NONCONFORMITY)
     comparison = comparison_with(registry, manifest, request.version, reference, *reference_args)
     if not comparison.allowed and not request.force:
-        raise Conflict(
-            refusal_detail(comparison),
-            errors=list(comparison.problems),
-            extensions={"comparison": comparison.as_dict()},
-        )
+        details = {"comparison": comparison.as_dict()}
+        raise Conflict(refusal_detail(comparison), errors=list(comparison.problems), extensions=details)
     entry = audit.entry(
         request.operator,
         "rollback" if previous is not None and request.version < previous else "activation",
