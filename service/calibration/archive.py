@@ -205,10 +205,8 @@ def _layout_problems(members: list[zipfile.ZipInfo]) -> list[str]:
         (folders if info.is_dir() else files).add(path)
         parts = path.split("/")
         folders.update("/".join(parts[:i]) for i in range(1, len(parts)))
-    problems += [
-        f"member {c!r}: the name is used both as a file and as a folder" for c in sorted(files & folders)
-    ]
-    return problems
+    clashes = sorted(files & folders)
+    return problems + [f"member {c!r}: the name is used both as a file and as a folder" for c in clashes]
 
 
 def _extract_members(
@@ -243,8 +241,7 @@ class BudgetExceeded(Exception):
 
 
 def copy_limited(src: BinaryIO, out: BinaryIO, budget: int) -> int:
-    """Copy ``src`` to ``out`` in chunks of at most 1 MiB, reading at most ``budget + 1`` bytes
-    whatever ``src`` claims; ``BudgetExceeded`` past ``budget``."""
+    """Copy ``src`` to ``out`` in 1 MiB chunks, reading at most ``budget + 1`` bytes whatever it claims."""
     written = 0
     while chunk := src.read(min(CHUNK_BYTES, budget - written + 1)):
         written += len(chunk)

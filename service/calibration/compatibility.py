@@ -14,8 +14,7 @@ from service.detector.manifest import Manifest
 
 
 def scoring_settings(manifest: Manifest) -> dict:
-    """What stored scores depend on besides the model bytes (recorded with every version); the
-    preprocessing is a short sha256 of the fields that map an image and a box to heatmap channels."""
+    """What stored scores depend on besides the model bytes (preprocessing: a short sha256)."""
     relevant = {
         "input": manifest.input.model_dump(mode="json", exclude={"name"}),
         "crop": manifest.crop.model_dump(mode="json"),

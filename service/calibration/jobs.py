@@ -94,9 +94,8 @@ class CalibrationJobs(DetectorJobs):
             old.move_to(new)  # one rename wins: a job is retried once
         except FileNotFoundError as error:
             raise Conflict(f"job {job_id} was retried meanwhile") from error
-        accepted = self._audit.entry(
-            operator, "retry", "accepted", details={"job": job_id, "new_job": new.job_id}
-        )
+        details = {"job": job_id, "new_job": new.job_id}
+        accepted = self._audit.entry(operator, "retry", "accepted", details=details)
         try:
             return self._submit(new, batch.moved(old.root, new.root), options, original, accepted)
         except BaseException:
@@ -136,15 +135,14 @@ class CalibrationJobs(DetectorJobs):
         except (JobCancelled, JobFinished):  # interrupted: its upload is kept
             raise
         except BaseException as error:  # refused or failed: its upload goes, unless retryable
+            note = options.note
             if isinstance(error, ServiceError):
                 twin = {k: v for k, v in error.extensions.items() if k == "duplicate_of"}
                 details = {"job": folder.job_id, "detail": error.detail, **twin}
-                self._audit.record(operator, "calibration", "failed", reason=options.note, details=details)
+                self._audit.record(operator, "calibration", "failed", reason=note, details=details)
             elif isinstance(error, StoreError):  # failed by the store: audited once it is back
                 details = {"job": folder.job_id, "detail": str(error)}
-                self._audit.record_later(
-                    operator, "calibration", "failed", reason=options.note, details=details
-                )
+                self._audit.record_later(operator, "calibration", "failed", reason=note, details=details)
             if not isinstance(error, StoreFull):  # a full disk's job is retried with its upload
                 folder.remove()
             raise
@@ -191,10 +189,9 @@ def _not_kept(job: JobRecord, jobs_dir: Path) -> Conflict:
     if retried_as:
         return Conflict(f"job {job.id} was retried already, as job {retried_as}")
     return Conflict(
-        f"the upload of job {job.id} is not kept in this server's data directory"
-        f" ({jobs_dir}): it was retried already (GET /v1/admin/audit says as"
-        f" which job), or it is kept by the server that received it ({job.owner}); retry"
-        " there, or upload the batch again"
+        f"the upload of job {job.id} is not kept in this server's data directory ({jobs_dir}): it was"
+        f" retried already (GET /v1/admin/audit says as which job), or it is kept by the server that"
+        f" received it ({job.owner}); retry there, or upload the batch again"
     )
 
 

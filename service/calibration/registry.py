@@ -43,6 +43,7 @@ CACHED_TABLES = 8
 POLL_SECONDS = 1.0
 #: longest wait for the store (its connection, statement, lock or round trip) before it counts as away
 STORE_TIMEOUT_SECONDS = 1.5
+_UNREACHABLE = "calibration store unreachable (%s); serving calibration version %s from memory"
 
 
 @dataclass(frozen=True)
@@ -56,8 +57,7 @@ class ChannelThresholds:
 def channel_thresholds(
     table: ScoreTable, num_keypoints: int, kind: str, scope: str, epsilon: float, delta: float | None
 ) -> ChannelThresholds:
-    """Thresholds per keypoint channel (unbounded without data): per keypoint on its labeled
-    instances, or (``object`` scope) one per object on the max over each fully labeled instance."""
+    """Thresholds per keypoint channel (inf without data): per keypoint, or per object (``object``)."""
     values = np.full(num_keypoints, np.inf)
     guarantees = [coverage_guarantee(0, epsilon, delta)] * num_keypoints
     for block in table.objects:
@@ -103,11 +103,8 @@ class CalibrationRegistry:
         poll_seconds: float = POLL_SECONDS,
         store_timeout_seconds: float = STORE_TIMEOUT_SECONDS,
     ) -> None:
-        self.store = store
-        self.model_hash = model_hash
-        self._manifest = manifest
-        self._poll_seconds = poll_seconds
-        self._store_timeout = store_timeout_seconds
+        self.store, self.model_hash, self._manifest = store, model_hash, manifest
+        self._poll_seconds, self._store_timeout = poll_seconds, store_timeout_seconds
         self.retry_after_s = max(1, math.ceil(poll_seconds))  # a store that returns is seen within one poll
         self._lock = threading.Lock()  # the caches
         self._poll_lock = threading.Lock()  # one poll at a time: the poller's or refresh_now's
@@ -151,8 +148,8 @@ class CalibrationRegistry:
         if not health.reachable:
             raise StoreUnreachable(
                 f"the calibration store is unreachable ({health.error}); calls that need it answer again"
-                f" within about {self._poll_seconds:g} s of its return. Predictions"
-                f" keep using the active calibration version {self.active_version()} from memory",
+                f" within about {self._poll_seconds:g} s of its return. Predictions keep using the active"
+                f" calibration version {self.active_version()} from memory",
                 self.retry_after_s,
             )
 
@@ -171,8 +168,7 @@ class CalibrationRegistry:
         return self.active_version()
 
     def resolve(self, version: int | None) -> int:
-        """The version asked for (404, 409 if unusable, 503 if not in memory while the store is
-        away), or the active one (503 if there is none or it is unusable)."""
+        """The version asked for, or the active one, checked usable (404, 409 or 503 if not)."""
         if version is not None:
             self._load_named(version)
             return version
@@ -219,8 +215,7 @@ class CalibrationRegistry:
         reason = version_incompatibility(info, self._manifest)
         strata = None if info.strata is None else VersionStrata.from_dict(info.strata)
         with self._lock:
-            self._incompatibilities[version] = reason
-            self._strata[version] = strata
+            self._incompatibilities[version], self._strata[version] = reason, strata
         return reason
 
     def strata(self, version: int) -> VersionStrata | None:
@@ -263,8 +258,7 @@ class CalibrationRegistry:
                 log.exception("polling the calibration store failed")
 
     def _poll(self, force: bool) -> None:
-        """Read the active version when the change counter moved (the caller holds the poll lock); a
-        store failure is recorded (health) and raised, what is served stays."""
+        """Read the active version if the change counter moved; a store failure is recorded and raised."""
         began = time.monotonic()
         self._polling_since = began
         try:
@@ -275,11 +269,7 @@ class CalibrationRegistry:
                 self._counter = counter
         except StoreError as error:
             if self._polled.error is None:
-                log.warning(
-                    "calibration store unreachable (%s); serving calibration version %s from memory",
-                    error,
-                    self.active_version(),
-                )
+                log.warning(_UNREACHABLE, error, self.active_version())
             self._polled = _Polled(self._polled.answered_at, f"{type(error).__name__}: {error}")
             raise
         finally:
@@ -290,10 +280,8 @@ class CalibrationRegistry:
 
     def _serve(self, version: int | None) -> None:
         """Serve ``version`` from now on, its scores loaded first (an unusable one has none)."""
-        table = None
-        if version is not None and self.incompatibility(version) is None:
-            table = self.scores(version)
-        self._served = _Served(version, table)
+        usable = version is not None and self.incompatibility(version) is None
+        self._served = _Served(version, self.scores(version) if usable else None)
 
     def _stratified(
         self, version: int, kinds: frozenset[str], kind: str, scope: str, epsilon: float, delta: float | None

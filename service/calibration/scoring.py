@@ -153,8 +153,7 @@ def score_batch(
     progress: Callable[[int], None] = lambda count: None,
     fingerprints: tuple[Fingerprint, ...] = (),
 ) -> list[Rejection]:
-    """Score ``batch`` into ``accumulator`` image by image; the instances of an image that does not
-    decode strictly are returned as rejections. ``progress`` may stop scoring by raising."""
+    """Score ``batch`` into ``accumulator``; an image that does not decode rejects its instances."""
     manifest = detector.manifest
     prints = dict(zip(((i.image_id, i.annotation_id) for i in batch.instances), fingerprints, strict=False))
     rejected = []

@@ -67,9 +67,8 @@ class StrataSpec:
     @classmethod
     def from_dict(cls, value: Mapping[str, Any]) -> StrataSpec:
         difficulty = value.get("difficulty")
-        return cls(
-            None if difficulty is None else DifficultySpec.from_dict(difficulty), bool(value.get("group"))
-        )
+        spec = None if difficulty is None else DifficultySpec.from_dict(difficulty)
+        return cls(spec, bool(value.get("group")))
 
 
 @dataclass(frozen=True)
@@ -81,11 +80,8 @@ class VersionStrata:
     bins: Mapping[int, Mapping[str, DifficultyBins]] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
-        return {
-            "spec": self.spec.as_dict(),
-            "groups": list(self.groups),
-            "bins": {str(c): {k: b.as_dict() for k, b in keyed.items()} for c, keyed in self.bins.items()},
-        }
+        bins = {str(c): {k: b.as_dict() for k, b in keyed.items()} for c, keyed in self.bins.items()}
+        return {"spec": self.spec.as_dict(), "groups": list(self.groups), "bins": bins}
 
     @classmethod
     def from_dict(cls, value: Mapping[str, Any]) -> VersionStrata:

@@ -144,8 +144,7 @@ def store_scored_version(
         "rejections": [r.describe() for r in scored.rejected[:LISTED_REJECTIONS]],
     }
     if comparison is not None and not comparison.allowed:
-        summary["activation_problems"] = list(comparison.problems)
-        summary["activation_forced"] = activated
+        summary |= {"activation_problems": list(comparison.problems), "activation_forced": activated}
     entries = _audit_entries(audit, options, operator, summary, comparison, previous, activated)
     scoring = scoring_settings(detector.manifest)
     stored_strata = None if strata is None else strata.as_dict()
