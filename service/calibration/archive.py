@@ -1,8 +1,5 @@
-"""Calibration uploads: stream to disk, then unzip safely within limits.
-
-Every member of a zip is checked before anything is written (names, types, encryption, counts,
-declared sizes, room on disk); then members are streamed out in bounded chunks while the bytes
-really produced are counted, because a zip bomb's headers may lie. A refusal removes everything.
+"""Calibration uploads: stream to disk, then unzip safely within limits. Every member is checked
+before anything is written; the bytes unzipped are counted, because a zip bomb's headers may lie.
 """
 
 from __future__ import annotations
@@ -37,6 +34,7 @@ _SUPPORTED_COMPRESSION = {
     zipfile.ZIP_LZMA: "lzma",
 }
 _DRIVE = re.compile(r"^[A-Za-z]:")
+_CORRUPT = (zipfile.BadZipFile, EOFError, zlib.error, NotImplementedError, RuntimeError, ValueError)
 
 
 @dataclass(frozen=True)
@@ -108,7 +106,6 @@ class UploadSink:
         return SavedUpload(self._size, self._digest.hexdigest())
 
     def abort(self) -> None:
-        """Close and delete the partial file."""
         self._out.close()
         self._dest.unlink(missing_ok=True)
 
@@ -116,10 +113,8 @@ class UploadSink:
 def extract_zip(
     zip_path: Path, dest: Path, limits: ArchiveLimits = ArchiveLimits(), disk: DiskBudget | None = None
 ) -> Path:
-    """Extract ``zip_path`` into ``dest`` (absent or empty) and return the batch folder: ``dest``
-    or its single top-level folder, the one holding ``annotations.json``. ``InvalidInput``,
-    ``PayloadTooLarge`` or (``disk``) ``InsufficientStorage`` name the offending member; ``dest``
-    does not exist after a refusal."""
+    """Extract ``zip_path`` into ``dest`` (absent or empty) and return the folder holding
+    ``annotations.json`` (``dest`` or its single top-level folder); a refusal removes ``dest``."""
     dest = Path(dest)
     if dest.exists() and any(dest.iterdir()):
         raise FileExistsError(f"extraction directory {dest} is not empty")
@@ -174,9 +169,10 @@ def _check_declared_size(members: list[zipfile.ZipInfo], limit: int) -> None:
 
 
 def _member_problem(info: zipfile.ZipInfo) -> str | None:
-    """Why this member may not be extracted, or None."""
     name, kind = info.filename, stat.S_IFMT(info.external_attr >> 16)
     parts = name.rstrip("/").split("/")
+    too_long = any(len(p.encode("utf-8", "surrogateescape")) > MAX_NAME_COMPONENT_BYTES for p in parts)
+    methods, folder = ", ".join(_SUPPORTED_COMPRESSION.values()), info.is_dir()
     checks = (
         ("\\" in name, "contains a backslash; use '/' as the path separator"),
         ("\x00" in name, "contains a NUL character"),
@@ -184,36 +180,23 @@ def _member_problem(info: zipfile.ZipInfo) -> str | None:
         (bool(_DRIVE.match(name)), "starts with a drive letter; paths must be relative to the archive root"),
         (".." in parts, "contains a '..' component (path traversal)"),
         (any(p in ("", ".") for p in parts), "contains an empty or '.' path component"),
-        (
-            any(len(p.encode("utf-8", "surrogateescape")) > MAX_NAME_COMPONENT_BYTES for p in parts),
-            f"has a path component longer than {MAX_NAME_COMPONENT_BYTES} bytes",
-        ),
+        (too_long, f"has a path component longer than {MAX_NAME_COMPONENT_BYTES} bytes"),
         (kind == stat.S_IFLNK, "is a symbolic link; archives may contain only regular files and folders"),
-        (
-            kind not in (0, stat.S_IFREG, stat.S_IFDIR),
-            "is not a regular file (device, pipe or socket entry)",
-        ),
-        (
-            kind == stat.S_IFDIR and not info.is_dir(),
-            "is marked as a folder but its name does not end with '/'",
-        ),
+        (kind not in (0, stat.S_IFREG, stat.S_IFDIR), "is not a regular file (device, pipe or socket entry)"),
+        (kind == stat.S_IFDIR and not folder, "is marked as a folder but its name does not end with '/'"),
         (bool(info.flag_bits & 0x1), "is encrypted; upload an archive without a password"),
+        (
+            info.compress_type not in _SUPPORTED_COMPRESSION,
+            f"uses compression method {info.compress_type}; supported: {methods}",
+        ),
     )
-    for failed, problem in checks:
-        if failed:
-            return problem
-    if info.compress_type not in _SUPPORTED_COMPRESSION:
-        methods = ", ".join(_SUPPORTED_COMPRESSION.values())
-        return f"uses compression method {info.compress_type}; supported: {methods}"
-    return None
+    return next((problem for failed, problem in checks if failed), None)
 
 
 def _layout_problems(members: list[zipfile.ZipInfo]) -> list[str]:
     """Duplicate names, and names used both as a file and as a folder."""
     problems: list[str] = []
-    seen: set[str] = set()
-    files: set[str] = set()
-    folders: set[str] = set()
+    seen, files, folders = set[str](), set[str](), set[str]()
     for info in members:
         path = info.filename.rstrip("/")
         if path in seen:
@@ -222,10 +205,8 @@ def _layout_problems(members: list[zipfile.ZipInfo]) -> list[str]:
         (folders if info.is_dir() else files).add(path)
         parts = path.split("/")
         folders.update("/".join(parts[:i]) for i in range(1, len(parts)))
-    problems += [
-        f"member {c!r}: the name is used both as a file and as a folder" for c in sorted(files & folders)
-    ]
-    return problems
+    clashes = sorted(files & folders)
+    return problems + [f"member {c!r}: the name is used both as a file and as a folder" for c in clashes]
 
 
 def _extract_members(
@@ -249,14 +230,7 @@ def _extract_members(
                 f"member {info.filename!r} (declared {info.file_size} bytes) expanded past the limit of "
                 f"{limit} uncompressed bytes while extracting: the archive's headers understate its size"
             ) from exc
-        except (
-            zipfile.BadZipFile,
-            EOFError,
-            zlib.error,
-            NotImplementedError,
-            RuntimeError,
-            ValueError,
-        ) as exc:
+        except _CORRUPT as exc:
             raise InvalidInput(
                 f"member {info.filename!r} is corrupt and cannot be extracted ({exc}); rebuild the archive"
             ) from exc
@@ -267,8 +241,7 @@ class BudgetExceeded(Exception):
 
 
 def copy_limited(src: BinaryIO, out: BinaryIO, budget: int) -> int:
-    """Copy ``src`` to ``out`` in chunks of at most 1 MiB, reading at most ``budget + 1`` bytes
-    whatever ``src`` claims; ``BudgetExceeded`` past ``budget``."""
+    """Copy ``src`` to ``out`` in 1 MiB chunks, reading at most ``budget + 1`` bytes whatever it claims."""
     written = 0
     while chunk := src.read(min(CHUNK_BYTES, budget - written + 1)):
         written += len(chunk)

@@ -1,7 +1,6 @@
-"""A calibration version as one portable ``.npz`` file (no pickles), and the bundled default
-loaded on first start: ``metadata`` (JSON) and per object ``<object>/keypoint_ids``, ``/refs``,
-``/<function>`` (scores) and, when the version has them, ``/features/<feature>`` and ``/groups``.
-"""
+"""A calibration version as one ``.npz`` file (no pickles; the bundled default is loaded on first
+start): ``metadata`` (JSON) and per object ``<object>/keypoint_ids``, ``/refs``, ``/<function>``
+(scores), and ``/features/<feature>`` and ``/groups`` when the version has them."""
 
 from __future__ import annotations
 
@@ -58,9 +57,8 @@ _BLOCK_KEYS = ("keypoint_ids", "refs", "groups")
 
 
 def bootstrap_default_calibration(store: CalibrationStore, detector: Detector, model_dir: Path) -> int | None:
-    """Store and activate the model's bundled calibration (with difficulty strata when it carries
-    heatmap features) when the store has none for it yet; atomic: replicas starting at once on an
-    empty shared store bootstrap it once."""
+    """Store and activate the model's bundled calibration when the store has none for it yet;
+    atomic: replicas starting at once on an empty shared store bootstrap it once."""
     path = Path(model_dir) / BUNDLE_FILENAME
     if not path.is_file() or store.list_versions(detector.model_hash):  # the usual restart: skip the file
         return None
@@ -68,8 +66,7 @@ def bootstrap_default_calibration(store: CalibrationStore, detector: Detector, m
     if new.model_hash != detector.model_hash:
         log.warning("%s was computed for another model (%s); not loading it", path, new.model_hash[:12])
         return None
-    reason = incompatibility(new.normalization, detector.manifest)
-    if reason is not None:
+    if (reason := incompatibility(new.normalization, detector.manifest)) is not None:
         log.warning("%s is not loaded: %s", path, reason)
         return None
     strata = version_strata(table, None)

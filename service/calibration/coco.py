@@ -1,11 +1,7 @@
-"""A labeled calibration batch in COCO-keypoints form, validated against the model manifest.
-
-The folder holds ``annotations.json`` and the images it names (checked by their headers only).
-Every problem is collected and reported in one ``InvalidInput``, so a batch is fixed in one pass.
-An annotation's ``keypoints`` are ``3 * K`` numbers ``x, y, v`` in the object's manifest order;
-``v = 0`` is not labeled (NaN), ``v = 1`` (occluded) and ``v = 2`` are labeled, possibly outside
-the image. A well-formed annotation whose box breaks the predict rule (``detector.boxes``) is
-*rejected* (listed with its reason and left out), as prediction would refuse it.
+"""A labeled COCO-keypoints batch (``annotations.json`` and its images, read by their headers),
+validated against the manifest; every problem is reported in one ``InvalidInput``. Keypoints are
+``x, y, v`` triples: ``v = 0`` not labeled (NaN), 1 (occluded) or 2 labeled. An annotation whose
+box breaks the predict rule (``detector.boxes``) is rejected: listed with its reason, left out.
 """
 
 from __future__ import annotations
@@ -57,8 +53,7 @@ class ImageRecord:
 
 @dataclass(frozen=True, eq=False)
 class LabeledInstance:
-    """One labeled object: ``bbox`` x, y, w, h and read-only ``keypoints`` ``(K, 2)`` image pixels
-    (NaN: not labeled); ``group`` the caller's Mondrian group (a camera, a site) or None."""
+    """``bbox`` x, y, w, h; read-only ``keypoints`` (K, 2) pixels, NaN: not labeled; ``group``: a site."""
 
     image_id: int
     annotation_id: int
@@ -82,8 +77,7 @@ class Rejection:
 
 @dataclass(frozen=True)
 class CocoBatch:
-    """A validated batch: images by id, instances in file order, sha256 of annotations.json,
-    and the annotations rejected by the box rule."""
+    """A validated batch: images by id, instances in file order, the annotations rejected."""
 
     folder: Path
     sha256: str
@@ -97,7 +91,6 @@ class CocoBatch:
 
     @property
     def annotations(self) -> int:
-        """Annotations read: the instances plus the rejected ones."""
         return len(self.instances) + len(self.rejected)
 
     def instances_by_image(self) -> dict[int, list[LabeledInstance]]:
@@ -117,14 +110,11 @@ class NamedBatch:
 
 
 def load_coco_batch(folder: Path, manifest: Manifest, bounded: bool = False) -> CocoBatch:
-    """Read and validate ``folder/annotations.json`` against ``manifest``: one ``InvalidInput``
-    listing every problem; ``bounded``: ``PayloadTooLarge`` beyond MAX_ANNOTATIONS(_BYTES)."""
+    """The validated batch, or one ``InvalidInput`` listing every problem (``bounded``: 413s too)."""
     folder = Path(folder)
     path = folder / ANNOTATIONS_FILENAME
     if path.is_symlink() or not path.is_file():
-        raise InvalidInput(
-            f"{ANNOTATIONS_FILENAME} is missing from the batch folder (or is not a regular file)"
-        )
+        raise InvalidInput(f"{path.name} is missing from the batch folder (or is not a regular file)")
     if bounded:
         check_annotations_size(path.stat().st_size, ANNOTATIONS_FILENAME)
     raw = path.read_bytes()
@@ -143,22 +133,20 @@ def load_coco_batch(folder: Path, manifest: Manifest, bounded: bool = False) -> 
     if not sections["annotations"]:
         problems.add("annotations", "is empty; a calibration batch needs at least one labeled instance")
     problems.raise_if_any()
-    digest = hashlib.sha256(raw).hexdigest()
-    return CocoBatch(folder, digest, images, tuple(instances), tuple(reader.rejected))
+    return CocoBatch(
+        folder, hashlib.sha256(raw).hexdigest(), images, tuple(instances), tuple(reader.rejected)
+    )
 
 
-@dataclass
-class _Problems:
-    items: list[str] = field(default_factory=list)
-
+class _Problems(list[str]):
     def add(self, where: str, what: str) -> None:
-        self.items.append(f"{where}: {what}")
+        self.append(f"{where}: {what}")
 
     def raise_if_any(self) -> None:
-        if self.items:
+        if self:
             raise InvalidInput(
-                f"{ANNOTATIONS_FILENAME} has {len(self.items)} problem(s); first: {self.items[0]}",
-                errors=capped(self.items, MAX_REPORTED_PROBLEMS),
+                f"{ANNOTATIONS_FILENAME} has {len(self)} problem(s); first: {self[0]}",
+                errors=capped(self, MAX_REPORTED_PROBLEMS),
             )
 
 
@@ -264,15 +252,12 @@ def _read_image(where: str, entry: Any, root: Path, problems: _Problems) -> Imag
         problems.add(where, f"file_name must be a non-empty string, got {_short(file_name)}")
         return None
     where = f"{where} ({file_name!r})"
-    problem = _file_name_problem(file_name, root)
-    if problem is not None:
+    if problem := _file_name_problem(file_name, root):
         problems.add(where, problem)
+    if problem or not fields_ok:
         return None
-    if not fields_ok:
-        return None
-    record = ImageRecord(
-        entry["id"], file_name, (root / file_name).resolve(), entry["width"], entry["height"]
-    )
+    path = (root / file_name).resolve()
+    record = ImageRecord(entry["id"], file_name, path, entry["width"], entry["height"])
     try:
         header = _file_header(record.path)
     except UnsupportedMediaType:
@@ -281,11 +266,10 @@ def _read_image(where: str, entry: Any, root: Path, problems: _Problems) -> Imag
     except (InvalidInput, OSError) as exc:
         problems.add(where, f"cannot be read as an image ({exc})")
         return record
-    if (header.width, header.height) != (record.width, record.height):
+    declared, actual = f"{record.width}x{record.height}", f"{header.width}x{header.height}"
+    if declared != actual:
         problems.add(
-            where,
-            f"declares {record.width}x{record.height} but the file is {header.width}x{header.height} "
-            "(width x height); fix width/height",
+            where, f"declares {declared} but the file is {actual} (width x height); fix width/height"
         )
     return record
 
@@ -343,9 +327,7 @@ class _AnnotationReader:
         bbox = self._numbers(f"{where}.bbox", entry.get("bbox"), 4)
         keypoints = self._keypoints(where, entry.get("keypoints"), obj)
         group = self._group(where, entry.get("group"))
-        if image is None or obj is None or bbox is None or keypoints is None or ann_id is None:
-            return None
-        if group is _INVALID:
+        if any(v is None for v in (image, obj, bbox, keypoints, ann_id)) or group is _INVALID:
             return None
         bbox.flags.writeable = False
         if problem := box_problem(bbox, image.width, image.height):
@@ -435,8 +417,7 @@ class _AnnotationReader:
                 f"(expected 3 x {k} = {3 * k} values x, y, v)",
             )
             return None
-        flat = self._numbers(where, value, 3 * k)
-        if flat is None:
+        if (flat := self._numbers(where, value, 3 * k)) is None:
             return None
         triples = flat.reshape(k, 3)
         bad = [j for j, v in enumerate(triples[:, 2]) if v not in (0, 1, 2)]

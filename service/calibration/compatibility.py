@@ -1,10 +1,6 @@
-"""Stored scores are valid only under the manifest settings they were computed with.
-
-A version records the settings that turn an image and a box into the statistics behind a score
-(heatmap normalization, temperature, top-K and a fingerprint of the preprocessing). The model
-hash covers the ONNX bytes, not the manifest: an edit there would silently pair new statistics
-with old thresholds and void the guarantee, so every use of a version checks them. Names and 3D
-keypoints do not change a score and may be edited.
+"""Stored scores are valid only under the manifest settings they were computed with: the model
+hash covers the ONNX bytes, not the manifest, whose edits would pair new statistics with old
+thresholds and void the guarantee. Names and 3D keypoints do not change a score.
 """
 
 from __future__ import annotations
@@ -18,8 +14,7 @@ from service.detector.manifest import Manifest
 
 
 def scoring_settings(manifest: Manifest) -> dict:
-    """What stored scores depend on besides the model bytes (recorded with every version); the
-    preprocessing is a short sha256 of the fields that map an image and a box to heatmap channels."""
+    """What stored scores depend on besides the model bytes (preprocessing: a short sha256)."""
     relevant = {
         "input": manifest.input.model_dump(mode="json", exclude={"name"}),
         "crop": manifest.crop.model_dump(mode="json"),

@@ -1,8 +1,5 @@
-"""Content hashes of calibration instances, and the repeats they reveal.
-
-An instance counted twice weighs twice in every threshold, so n and the guarantee are wrong.
-Each stored instance keeps the sha256 of its image file and of the instance (image hash, object,
-box, labels); a new batch is checked against itself and against the version it extends.
+"""Content hashes of calibration instances (of the image file; of image hash, object, box and
+labels), and the repeats they reveal: an instance counted twice voids n and the guarantee.
 """
 
 from __future__ import annotations
@@ -30,24 +27,17 @@ class Fingerprint:
 
 def fingerprints(batch: CocoBatch) -> tuple[Fingerprint, ...]:
     """One fingerprint per instance of ``batch``, in order (each image file is read once)."""
-    image_digests = {
-        image_id: hashlib.sha256(batch.images[image_id].path.read_bytes()).hexdigest()
-        for image_id in {instance.image_id for instance in batch.instances}
-    }
-    return tuple(
-        Fingerprint(
-            image := image_digests[i.image_id], instance_digest(image, i.object_name, i.bbox, i.keypoints)
-        )
-        for i in batch.instances
-    )
+    images = {instance.image_id for instance in batch.instances}
+    digests = {i: hashlib.sha256(batch.images[i].path.read_bytes()).hexdigest() for i in images}
+    pairs = [(digests[i.image_id], i) for i in batch.instances]
+    return tuple(Fingerprint(d, instance_digest(d, i.object_name, i.bbox, i.keypoints)) for d, i in pairs)
 
 
 def instance_digest(image_digest: str, object_name: str, bbox: Sequence[float], keypoints: np.ndarray) -> str:
     """The content hash of one instance: its image's, object, box and labels ((K, 2), NaN: none)."""
     labels = [[None if np.isnan(v) else float(v) for v in row] for row in keypoints]
-    canonical = json.dumps(
-        [image_digest, object_name, [float(v) for v in bbox], labels], separators=(",", ":")
-    )
+    document = [image_digest, object_name, [float(v) for v in bbox], labels]
+    canonical = json.dumps(document, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()
 
 
@@ -59,9 +49,7 @@ def find_repeats(
     parent_sources: Iterable[SourceBatch] = (),
     parent_number: int | None = None,
 ) -> list[Rejection]:
-    """Instances of ``batch`` already counted, inside the batch or in the version it extends (an
-    image file under two ids, or held by the parent, repeats every instance on it; so does a
-    batch whose sha256 the parent lists)."""
+    """Instances of ``batch`` already counted, in the batch or in the version it extends."""
     where = f"version {parent_number}"
     for source in parent_sources:
         if source.sha256 == batch_sha256:
@@ -94,8 +82,7 @@ def instance_digests(table: ScoreTable) -> set[str]:
 
 
 def content_key(table: ScoreTable, strata: Iterable[str], scoring: Mapping[str, Any]) -> str | None:
-    """What makes two versions equal (the same instances, kinds of strata and scoring settings) as
-    one sha256, the store keeping one version per key; None when an instance's hash is unknown."""
+    """One sha256 of what makes versions equal (None when an instance's hash is unknown)."""
     instances = instance_digests(table)
     if len(instances) != table.n_instances:
         return None
@@ -105,11 +92,7 @@ def content_key(table: ScoreTable, strata: Iterable[str], scoring: Mapping[str, 
 
 def stored_digests(table: ScoreTable | None) -> tuple[set[str], set[str]]:
     """The image and instance hashes a version holds (less those stored before hashes were kept)."""
-    images: set[str] = set()
-    instances: set[str] = set()
-    for block in () if table is None else table.objects:
-        images.update(block.image_hashes)
-        instances.update(block.instance_hashes)
-    images.discard(UNKNOWN_DIGEST)
-    instances.discard(UNKNOWN_DIGEST)
-    return images, instances
+    blocks = () if table is None else table.objects
+    images = {digest for block in blocks for digest in block.image_hashes}
+    instances = {digest for block in blocks for digest in block.instance_hashes}
+    return images - {UNKNOWN_DIGEST}, instances - {UNKNOWN_DIGEST}

@@ -1,12 +1,7 @@
-"""Activation guardrails: compare a candidate version with the active one before it goes live.
-
-Thresholds from a small batch would go live for every request, so an activation is refused when
-a keypoint's n falls below CKS_MIN_CALIBRATION_INSTANCES or below half of the active version's,
-unless forced with a reason. Per keypoint, at a reference epsilon and function, it shows n before
-and after; the smallest epsilon with bounded sets (t >= 1 needs eps >= 1 / (n + 1)); the sets'
-area ratio, candidate over active (radii grow linearly with the threshold for ``peak`` and
-``var``, ellipse areas for ``cov``); and the active sets' coverage of the candidate's scores (near
-1 - eps for one distribution; far below warns of a shift).
+"""Activation guardrails: refused (unless forced) when a keypoint's n falls below
+CKS_MIN_CALIBRATION_INSTANCES or half the active version's. Per keypoint: n before and after, the
+smallest epsilon with bounded sets (1 / (n + 1)), the set-area ratio (radii grow with the
+threshold for peak and var, ellipse areas for cov), the active sets' coverage of the candidate.
 """
 
 from __future__ import annotations
@@ -67,7 +62,6 @@ def compare(
     active: ScoreTable | None,
     manifest: Manifest,
     min_instances: int,
-    *,
     candidate_version: int | None = None,
     active_version: int | None = None,
     epsilon: float = REFERENCE_EPSILON,
@@ -83,21 +77,12 @@ def compare(
     for block in candidate.objects:
         for j, channel in enumerate(block.keypoint_ids):
             columns[int(channel)] = block.scores[nonconformity][:, j]
-    changes, problems = [], []
-    for spec in manifest.keypoints:
-        change = _change(spec, after, before, columns[spec.index], nonconformity)
-        changes.append(change)
-        problems.extend(_problems(spec.name, change.n_before, change.n_after, min_instances))
+    changes = tuple(_change(s, after, before, columns[s.index], nonconformity) for s in manifest.keypoints)
+    problems = tuple(problem for change in changes for problem in _problems(change, min_instances))
     ratios = [c.set_area_ratio for c in changes if c.set_area_ratio is not None]
+    median = float(np.median(ratios)) if ratios else None
     return Comparison(
-        candidate=candidate_version,
-        against=active_version,
-        nonconformity=nonconformity,
-        epsilon=epsilon,
-        min_instances=min_instances,
-        keypoints=tuple(changes),
-        median_set_area_ratio=float(np.median(ratios)) if ratios else None,
-        problems=tuple(problems),
+        candidate_version, active_version, nonconformity, epsilon, min_instances, changes, median, problems
     )
 
 
@@ -119,20 +104,12 @@ def _change(
     ratio = None
     if math.isfinite(after.values[c]) and math.isfinite(threshold) and threshold > 0:
         ratio = float((after.values[c] / threshold) ** _AREA_POWER[nonconformity])
-    return KeypointChange(
-        spec.name,
-        spec.object,
-        n_before,
-        n_after,
-        _smallest_epsilon(n_before),
-        _smallest_epsilon(n_after),
-        ratio,
-        float(np.mean(labeled <= threshold)) if labeled.size else None,
-    )
+    coverage = float(np.mean(labeled <= threshold)) if labeled.size else None
+    epsilons = _smallest_epsilon(n_before), _smallest_epsilon(n_after)
+    return KeypointChange(spec.name, spec.object, n_before, n_after, *epsilons, ratio, coverage)
 
 
 def refusal_detail(comparison: Comparison) -> str:
-    """One sentence on why an activation is refused and what to do."""
     return (
         f"activation refused: {len(comparison.problems)} keypoint(s) would be calibrated on too few"
         f" instances (first: {comparison.problems[0]}). Calibrate with more labeled images (append_to"
@@ -140,16 +117,16 @@ def refusal_detail(comparison: Comparison) -> str:
     )
 
 
-def _problems(name: str, n_before: int | None, n_after: int, min_instances: int) -> list[str]:
+def _problems(change: KeypointChange, min_instances: int) -> list[str]:
     """The keypoint's problem, one line whatever rules it breaks (none: an empty list)."""
-    reasons = []
+    n_before, n_after, reasons = change.n_before, change.n_after, []
     if n_after < min_instances:
         reasons.append(f"below the floor of {min_instances} (CKS_MIN_CALIBRATION_INSTANCES)")
     if n_before is not None and n_after < LARGEST_DROP * n_before:
         reasons.append(f"below half of the active version's {n_before}")
     if not reasons:
         return []
-    return [f"keypoint {name!r}: n = {n_after} calibration scores, " + " and ".join(reasons)]
+    return [f"keypoint {change.keypoint!r}: n = {n_after} calibration scores, " + " and ".join(reasons)]
 
 
 def _smallest_epsilon(n: int) -> float | None:

@@ -1,17 +1,12 @@
 """From a received upload to a validated batch, or a 4xx: everything that can refuse a batch runs
 here, before an upload's 202, so a batch that would be refused never becomes a job.
-
-``Intake.take_in``: unzip within the limits and the disk budget, read the COCO file against the
-manifest, read the version appended to (once: its scores travel with the batch to its job),
-refuse stratify=group without group labels, repeats (dropped instead with ``dedupe``), more
-instances rejected by the box rule than allowed, and a batch that would make a version equal to a
-stored one (unless ``allow_duplicate``, with a reason).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, replace
+from itertools import compress
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +23,8 @@ from service.errors import Conflict, InvalidInput, NotFound, capped, disk_full_r
 LISTED = 20
 #: share of a batch's instances the box rule may reject, unless the upload says otherwise
 MAX_REJECTED_SHARE = 0.0
+#: a version's scores by number
+Scores = Callable[[int], ScoreTable]
 
 
 @dataclass(frozen=True)
@@ -74,16 +71,13 @@ class UploadOptions:
 
 @dataclass(frozen=True)
 class Parent:
-    """The version a batch is appended to (or audited against), checked, with its scores."""
-
     info: VersionInfo
     scores: ScoreTable
 
 
 @dataclass(frozen=True)
 class ValidatedBatch:
-    """A batch to score: its instances (repeats dropped), their fingerprints, what was left out,
-    the version it extends, and the stored version it repeats (with ``allow_duplicate``)."""
+    """A batch to score (repeats dropped), and the stored version it repeats (``allow_duplicate``)."""
 
     named: NamedBatch
     fingerprints: tuple[Fingerprint, ...]
@@ -116,16 +110,11 @@ class Intake:
     """Checks received uploads for one detector: its manifest, the versions of its store."""
 
     def __init__(
-        self,
-        store: CalibrationStore,
-        detector: Detector,
-        scores: Callable[[int], ScoreTable],
-        rules: IntakeRules,
+        self, store: CalibrationStore, detector: Detector, scores: Scores, rules: IntakeRules
     ) -> None:
         self._store, self._detector, self._scores, self._rules = store, detector, scores, rules
 
     def take_in(self, archive: Path, sha256: str, options: UploadOptions) -> ValidatedBatch:
-        """A received zip (its body's ``sha256``) -> a batch ready to score, or a 4xx."""
         return self.validate(self.unpack(archive, sha256, options.name), options)
 
     def unpack(self, archive: Path, sha256: str, name: str | None) -> NamedBatch:
@@ -142,7 +131,7 @@ class Intake:
         return NamedBatch(batch_name(name, sha256), sha256, batch)
 
     def validate(self, named: NamedBatch, options: UploadOptions) -> ValidatedBatch:
-        """The parent read once, then the rules that refuse a batch before it is scored."""
+        """The parent read once (its scores go with the batch to its job), then the refusing rules."""
         parent = None
         if options.append_to is not None:
             parent = read_parent(self._store, self._detector, options.append_to, self._scores)
@@ -164,24 +153,20 @@ class Intake:
 def equal_version(
     store: CalibrationStore,
     detector: Detector,
-    scores: Callable[[int], ScoreTable],
+    scores: Scores,
     instances: set[str],
     count: int,
     options: UploadOptions,
 ) -> int | None:
-    """The stored version a new one of ``count`` instances with these hashes would repeat (the same
-    instances, the same strata asked): 409 unless ``allow_duplicate``; None when it repeats none."""
+    """The stored version with the same instances and strata (409 unless ``allow_duplicate``)."""
     if len(instances) != count:  # instances stored before hashes were kept: nothing to compare
         return None
     for info in store.list_versions(detector.model_hash):
         stored = stored_kinds(info.strata)
         same_strata = stored <= {DIFFICULTY} if options.stratify is None else stored == options.stratify
-        if (
-            info.n_instances == count
-            and same_strata
-            and version_incompatibility(info, detector.manifest) is None
-            and instance_digests(scores(info.number)) == instances
-        ):
+        if info.n_instances != count or not same_strata or version_incompatibility(info, detector.manifest):
+            continue
+        if instance_digests(scores(info.number)) == instances:
             if not options.allow_duplicate:
                 raise duplicate_refused(info.number, count, options.stratify)
             return info.number
@@ -189,23 +174,17 @@ def equal_version(
 
 
 def read_parent(
-    store: CalibrationStore,
-    detector: Detector,
-    version: int,
-    scores: Callable[[int], ScoreTable] | None = None,
+    store: CalibrationStore, detector: Detector, version: int, scores: Scores | None = None
 ) -> Parent:
-    """The version to append to with its scores (``scores``, or the store's); refused when it is
-    missing or was scored differently."""
+    """The version to append to with its scores; refused when missing or scored differently."""
     try:
         info = store.get_version(detector.model_hash, version)
     except VersionNotFound as error:
         raise NotFound(f"cannot append to calibration version {version}: it does not exist") from error
-    reason = version_incompatibility(info, detector.manifest)
-    if reason is not None:
+    if (reason := version_incompatibility(info, detector.manifest)) is not None:
         raise Conflict(f"cannot append: {reason}")
-    return Parent(
-        info, store.load_scores(detector.model_hash, version) if scores is None else scores(version)
-    )
+    table = store.load_scores(detector.model_hash, version) if scores is None else scores(version)
+    return Parent(info, table)
 
 
 def batch_name(requested: str | None, sha256: str) -> str:
@@ -239,21 +218,12 @@ def check_batch(
     if repeats and not dedupe:
         raise repeats_refused(repeats, batch.count)
     repeated = {(r.image_id, r.annotation_id) for r in repeats}
-    kept = [
-        (i, p)
-        for i, p in zip(batch.instances, prints, strict=True)
-        if (i.image_id, i.annotation_id) not in repeated
-    ]
+    keep = [(i.image_id, i.annotation_id) not in repeated for i in batch.instances]
     check_rejected_share(batch.rejected, batch.annotations, max_rejected_share)
-    if not kept:
+    if not any(keep):
         raise InvalidInput("no instance of the batch is left to calibrate with once repeats are dropped")
-    return ValidatedBatch(
-        named=replace(named, batch=replace(batch, instances=tuple(i for i, _ in kept))),
-        fingerprints=tuple(p for _, p in kept),
-        repeats_dropped=len(repeats),
-        rejected=batch.rejected,
-        parent=parent,
-    )
+    kept = replace(named, batch=replace(batch, instances=tuple(compress(batch.instances, keep))))
+    return ValidatedBatch(kept, tuple(compress(prints, keep)), len(repeats), batch.rejected, parent)
 
 
 def check_rejected_share(rejected: Sequence[Rejection], total: int, max_share: float) -> None:

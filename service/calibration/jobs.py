@@ -1,10 +1,6 @@
-"""Calibration uploads as jobs of the job engine (``infra.job_engine``): accepted after the
-intake, run as one step that turns the validated batch into a version, retried from their kept
-upload (``<data>/jobs/<job id>``) when a crash interrupted them or a full disk failed them, and
-taken over by a replica that can read the kept upload once their process stopped.
-
-A version is written in the transaction that marks its job succeeded, so an interrupted job stored
-nothing; a retry marks it finished first, so a process presumed dead can no longer complete it.
+"""Calibration uploads as jobs of ``infra.job_engine``: accepted after the intake, run as one step
+that turns the batch into a version (in the transaction that marks the job succeeded), retried
+from their kept upload (``<data>/jobs/<job id>``) after a crash or a full disk.
 """
 
 from __future__ import annotations
@@ -12,6 +8,7 @@ from __future__ import annotations
 import logging
 from dataclasses import asdict, dataclass
 from datetime import UTC, datetime
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -38,8 +35,6 @@ class JobSettings:
 
 
 class DetectorJobs:
-    """What background jobs over one detector's calibrations need."""
-
     def __init__(
         self,
         store: CalibrationStore,
@@ -76,8 +71,7 @@ class CalibrationJobs(DetectorJobs):
             raise
 
     def take_over(self, job: JobRecord) -> bool:
-        """Retry a job whose process stopped when its upload is kept here (False: another server
-        received it); the audit names the process that did."""
+        """Retry a job whose process stopped when its upload is kept here (False: it is not)."""
         if not JobFolder.of(self._settings.jobs_dir, job.id).exists():
             return False
         self.retry(job.id, Operator("takeover", client=process_owner()))
@@ -100,9 +94,8 @@ class CalibrationJobs(DetectorJobs):
             old.move_to(new)  # one rename wins: a job is retried once
         except FileNotFoundError as error:
             raise Conflict(f"job {job_id} was retried meanwhile") from error
-        accepted = self._audit.entry(
-            operator, "retry", "accepted", details={"job": job_id, "new_job": new.job_id}
-        )
+        details = {"job": job_id, "new_job": new.job_id}
+        accepted = self._audit.entry(operator, "retry", "accepted", details=details)
         try:
             return self._submit(new, batch.moved(old.root, new.root), options, original, accepted)
         except BaseException:
@@ -117,11 +110,7 @@ class CalibrationJobs(DetectorJobs):
         operator: Operator,
         accepted: NewAuditEntry,
     ) -> JobRecord:
-        """Start the job, its ``accepted`` entry stored with it."""
-
-        def job(progress: JobProgress) -> dict[str, Any]:
-            return self._job(folder, batch, options, operator, progress)
-
+        job = partial(self._job, folder, batch, options, operator)
         return self._runner.submit(
             JOB_KIND, job, batch.named.batch.count, job_id=folder.job_id, audit=(accepted,)
         )
@@ -146,15 +135,14 @@ class CalibrationJobs(DetectorJobs):
         except (JobCancelled, JobFinished):  # interrupted: its upload is kept
             raise
         except BaseException as error:  # refused or failed: its upload goes, unless retryable
+            note = options.note
             if isinstance(error, ServiceError):
                 twin = {k: v for k, v in error.extensions.items() if k == "duplicate_of"}
                 details = {"job": folder.job_id, "detail": error.detail, **twin}
-                self._audit.record(operator, "calibration", "failed", reason=options.note, details=details)
+                self._audit.record(operator, "calibration", "failed", reason=note, details=details)
             elif isinstance(error, StoreError):  # failed by the store: audited once it is back
                 details = {"job": folder.job_id, "detail": str(error)}
-                self._audit.record_later(
-                    operator, "calibration", "failed", reason=options.note, details=details
-                )
+                self._audit.record_later(operator, "calibration", "failed", reason=note, details=details)
             if not isinstance(error, StoreFull):  # a full disk's job is retried with its upload
                 folder.remove()
             raise
@@ -164,8 +152,7 @@ class CalibrationJobs(DetectorJobs):
 
     def _retryable(self, job_id: str) -> JobRecord:
         """The job to retry: an interrupted calibration job, or one failed for a full disk."""
-        job = self._runner.get(job_id)
-        if job is None:
+        if (job := self._runner.get(job_id)) is None:
             raise NotFound(f"no job {job_id!r}: it never existed or was pruned")
         if job.kind != JOB_KIND:
             raise Conflict(
@@ -179,15 +166,11 @@ class CalibrationJobs(DetectorJobs):
         return job
 
     def _take_over(self, job: JobRecord, new_id: str) -> None:
-        """Mark a job reported interrupted finished, so its old process can no longer complete it
-        (one its stopping server marked interrupted already is left as it is)."""
+        """Mark a job reported interrupted finished, so its old process can no longer complete it."""
+        now, result = datetime.now(UTC), {**job.result, "retried_as": new_id}
         try:
             self._store.update_job(
-                job.id,
-                state="interrupted",
-                errors=job.errors,
-                finished_at=datetime.now(UTC),
-                result={**job.result, "retried_as": new_id},
+                job.id, state="interrupted", errors=job.errors, finished_at=now, result=result
             )
         except JobFinished as error:
             if error.state != "interrupted":
@@ -197,14 +180,8 @@ class CalibrationJobs(DetectorJobs):
 def _kept(
     options: UploadOptions, operator: Operator, sha256: str, batch: ValidatedBatch, folder: JobFolder
 ) -> dict[str, Any]:
-    """What is kept with an upload for a retry."""
     batch_dir = str(batch.named.batch.folder.relative_to(folder.root))
-    return {
-        "request": options.as_json(),
-        "operator": asdict(operator),
-        "sha256": sha256,
-        "batch_dir": batch_dir,
-    }
+    return dict(request=options.as_json(), operator=asdict(operator), sha256=sha256, batch_dir=batch_dir)
 
 
 def _not_kept(job: JobRecord, jobs_dir: Path) -> Conflict:
@@ -212,10 +189,9 @@ def _not_kept(job: JobRecord, jobs_dir: Path) -> Conflict:
     if retried_as:
         return Conflict(f"job {job.id} was retried already, as job {retried_as}")
     return Conflict(
-        f"the upload of job {job.id} is not kept in this server's data directory"
-        f" ({jobs_dir}): it was retried already (GET /v1/admin/audit says as"
-        f" which job), or it is kept by the server that received it ({job.owner}); retry"
-        " there, or upload the batch again"
+        f"the upload of job {job.id} is not kept in this server's data directory ({jobs_dir}): it was"
+        f" retried already (GET /v1/admin/audit says as which job), or it is kept by the server that"
+        f" received it ({job.owner}); retry there, or upload the batch again"
     )
 
 

@@ -1,12 +1,7 @@
 """The served model's calibrations in memory: the active version with its scores, and cached
-thresholds per version.
-
-A poller thread reads the store every ``poll_seconds`` (the active version when its change
-counter moves; a new active version's scores are loaded before it is served): that is how
-replicas see each other's activations. Requests read only memory, so the active version never
-waits on the store: while it is away the last good state is served and ``health()`` says how
-stale it is. Versions are immutable, so their scores and thresholds are cached for good; a
-request naming a version not in memory loads it (503 while the store is away).
+thresholds per (immutable) version. A poller reads the store's active version (how replicas see
+each other's activations), so requests never wait on the store: while it is away the last good
+state is served and ``health()`` says how stale it is.
 """
 
 from __future__ import annotations
@@ -48,6 +43,7 @@ CACHED_TABLES = 8
 POLL_SECONDS = 1.0
 #: longest wait for the store (its connection, statement, lock or round trip) before it counts as away
 STORE_TIMEOUT_SECONDS = 1.5
+_UNREACHABLE = "calibration store unreachable (%s); serving calibration version %s from memory"
 
 
 @dataclass(frozen=True)
@@ -61,9 +57,7 @@ class ChannelThresholds:
 def channel_thresholds(
     table: ScoreTable, num_keypoints: int, kind: str, scope: str, epsilon: float, delta: float | None
 ) -> ChannelThresholds:
-    """Thresholds for every keypoint channel (unbounded without calibration data): per keypoint
-    column on its labeled instances, or (``object`` scope) on the max over each fully labeled
-    instance, one threshold per object."""
+    """Thresholds per keypoint channel (inf without data): per keypoint, or per object (``object``)."""
     values = np.full(num_keypoints, np.inf)
     guarantees = [coverage_guarantee(0, epsilon, delta)] * num_keypoints
     for block in table.objects:
@@ -109,11 +103,8 @@ class CalibrationRegistry:
         poll_seconds: float = POLL_SECONDS,
         store_timeout_seconds: float = STORE_TIMEOUT_SECONDS,
     ) -> None:
-        self.store = store
-        self.model_hash = model_hash
-        self._manifest = manifest
-        self._poll_seconds = poll_seconds
-        self._store_timeout = store_timeout_seconds
+        self.store, self.model_hash, self._manifest = store, model_hash, manifest
+        self._poll_seconds, self._store_timeout = poll_seconds, store_timeout_seconds
         self.retry_after_s = max(1, math.ceil(poll_seconds))  # a store that returns is seen within one poll
         self._lock = threading.Lock()  # the caches
         self._poll_lock = threading.Lock()  # one poll at a time: the poller's or refresh_now's
@@ -142,7 +133,6 @@ class CalibrationRegistry:
             self._poller.join(timeout=self._store_timeout + 1.0)
 
     def active_version(self) -> int | None:
-        """The active version as last read from the store (never waits on it)."""
         return self._served.version
 
     def health(self) -> StoreHealth:
@@ -153,14 +143,13 @@ class CalibrationRegistry:
         return StoreHealth(reachable=error is None, age_seconds=now - polled.answered_at, error=error)
 
     def require_store(self) -> None:
-        """503 at once while the polls find the store unreachable (a call would only wait for its
-        timeout), until a poll reaches it."""
+        """503 at once while the polls find the store unreachable (a call would wait for its timeout)."""
         health = self.health()
         if not health.reachable:
             raise StoreUnreachable(
                 f"the calibration store is unreachable ({health.error}); calls that need it answer again"
-                f" within about {self._poll_seconds:g} s of its return. Predictions"
-                f" keep using the active calibration version {self.active_version()} from memory",
+                f" within about {self._poll_seconds:g} s of its return. Predictions keep using the active"
+                f" calibration version {self.active_version()} from memory",
                 self.retry_after_s,
             )
 
@@ -179,17 +168,14 @@ class CalibrationRegistry:
         return self.active_version()
 
     def resolve(self, version: int | None) -> int:
-        """The version a request asked for (404 if missing, 409 if scored under other manifest
-        settings, 503 if not in memory while the store is away), or the active one (503 if there
-        is none or it is unusable), checked usable for this manifest."""
+        """The version asked for, or the active one, checked usable (404, 409 or 503 if not)."""
         if version is not None:
             self._load_named(version)
             return version
         active = self.active_version()
         if active is None:
             raise Unavailable("no calibration is active for this model: upload and activate one")
-        reason = self.incompatibility(active)
-        if reason is not None:
+        if (reason := self.incompatibility(active)) is not None:
             raise Unavailable(f"the active {reason}")
         return active
 
@@ -214,8 +200,7 @@ class CalibrationRegistry:
 
     def check_usable(self, version: int) -> None:
         """404 if the version does not exist, 409 if it was scored under other manifest settings."""
-        reason = self.incompatibility(version)
-        if reason is not None:
+        if (reason := self.incompatibility(version)) is not None:
             raise Conflict(reason)
 
     def incompatibility(self, version: int) -> str | None:
@@ -230,8 +215,7 @@ class CalibrationRegistry:
         reason = version_incompatibility(info, self._manifest)
         strata = None if info.strata is None else VersionStrata.from_dict(info.strata)
         with self._lock:
-            self._incompatibilities[version] = reason
-            self._strata[version] = strata
+            self._incompatibilities[version], self._strata[version] = reason, strata
         return reason
 
     def strata(self, version: int) -> VersionStrata | None:
@@ -241,8 +225,7 @@ class CalibrationRegistry:
             return self._strata[version]
 
     def _load_named(self, version: int) -> None:
-        """Check a version a request names and load its scores; the store is not tried while the
-        polls find it unreachable (the request would hold its slot for the timeout)."""
+        """Check and load a version a request names; not tried while the store is unreachable."""
         try:
             health = self.health()
             if not health.reachable and not self._in_memory(version):
@@ -275,8 +258,7 @@ class CalibrationRegistry:
                 log.exception("polling the calibration store failed")
 
     def _poll(self, force: bool) -> None:
-        """Read the change counter, and the active version when it moved (the caller holds the poll
-        lock); a store failure is recorded (health) and raised, what is served stays."""
+        """Read the active version if the change counter moved; a store failure is recorded and raised."""
         began = time.monotonic()
         self._polling_since = began
         try:
@@ -287,11 +269,7 @@ class CalibrationRegistry:
                 self._counter = counter
         except StoreError as error:
             if self._polled.error is None:
-                log.warning(
-                    "calibration store unreachable (%s); serving calibration version %s from memory",
-                    error,
-                    self.active_version(),
-                )
+                log.warning(_UNREACHABLE, error, self.active_version())
             self._polled = _Polled(self._polled.answered_at, f"{type(error).__name__}: {error}")
             raise
         finally:
@@ -302,10 +280,8 @@ class CalibrationRegistry:
 
     def _serve(self, version: int | None) -> None:
         """Serve ``version`` from now on, its scores loaded first (an unusable one has none)."""
-        table = None
-        if version is not None and self.incompatibility(version) is None:
-            table = self.scores(version)
-        self._served = _Served(version, table)
+        usable = version is not None and self.incompatibility(version) is None
+        self._served = _Served(version, self.scores(version) if usable else None)
 
     def _stratified(
         self, version: int, kinds: frozenset[str], kind: str, scope: str, epsilon: float, delta: float | None

@@ -48,14 +48,12 @@ _UNKNOWN = Fingerprint(UNKNOWN_DIGEST, UNKNOWN_DIGEST)
 
 
 class ScoreAccumulator:
-    """Collects per-instance scores, features, group labels and fingerprints by object into a
-    ScoreTable (features only when every instance has them)."""
+    """Collects instances by object into a ScoreTable (features only when every instance has them)."""
 
     def __init__(self) -> None:
         self._objects: dict[str, _ObjectRows] = {}
 
     def extend(self, table: ScoreTable) -> None:
-        """Start from an existing version's instances (append mode)."""
         for block in table.objects:
             rows = self._rows(block.object_name, tuple(int(k) for k in block.keypoint_ids))
             rows.refs.extend(block.instance_refs)
@@ -138,13 +136,12 @@ def score_image(
                 kind, result.heatmaps[labeled], labels_hm[labeled], *options
             )
     bounds = np.cumsum([0] + [len(inst.keypoints) for inst in instances])
-    return [
-        InstanceScores(
-            scores={kind: s[a:b] for kind, s in per_kind.items()},
-            features={name: f[a:b] for name, f in features.items()},
-        )
-        for a, b in zip(bounds[:-1], bounds[1:], strict=True)
-    ]
+    spans = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    return [InstanceScores(_rows_of(per_kind, rows), _rows_of(features, rows)) for rows in spans]
+
+
+def _rows_of(arrays: dict[str, np.ndarray], rows: slice) -> dict[str, np.ndarray]:
+    return {name: values[rows] for name, values in arrays.items()}
 
 
 def score_batch(
@@ -156,10 +153,7 @@ def score_batch(
     progress: Callable[[int], None] = lambda count: None,
     fingerprints: tuple[Fingerprint, ...] = (),
 ) -> list[Rejection]:
-    """Score a validated batch into ``accumulator`` image by image; an image that does not decode
-    strictly (the predict rule) is left out, its instances returned as rejections. ``fingerprints``
-    align with ``batch.instances`` (empty: unknown); ``progress`` hears after each image how many
-    instances it held, and may stop scoring by raising (``JobCancelled``)."""
+    """Score ``batch`` into ``accumulator``; an image that does not decode rejects its instances."""
     manifest = detector.manifest
     prints = dict(zip(((i.image_id, i.annotation_id) for i in batch.instances), fingerprints, strict=False))
     rejected = []

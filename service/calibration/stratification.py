@@ -42,7 +42,6 @@ def parse_stratify(value: str | Sequence[str]) -> frozenset[str]:
 
 
 def stored_kinds(strata: Mapping[str, Any] | None) -> frozenset[str]:
-    """The kinds of strata a stored version has (``VersionInfo.strata``)."""
     return frozenset() if strata is None else StrataSpec.from_dict(strata["spec"]).kinds
 
 
@@ -62,34 +61,27 @@ class StrataSpec:
         return frozenset(k for k, on in ((DIFFICULTY, self.difficulty), (GROUP, self.group)) if on)
 
     def as_dict(self) -> dict[str, Any]:
-        return {
-            "difficulty": None if self.difficulty is None else self.difficulty.as_dict(),
-            "group": self.group,
-        }
+        difficulty = None if self.difficulty is None else self.difficulty.as_dict()
+        return {"difficulty": difficulty, "group": self.group}
 
     @classmethod
     def from_dict(cls, value: Mapping[str, Any]) -> StrataSpec:
         difficulty = value.get("difficulty")
-        return cls(
-            None if difficulty is None else DifficultySpec.from_dict(difficulty), bool(value.get("group"))
-        )
+        spec = None if difficulty is None else DifficultySpec.from_dict(difficulty)
+        return cls(spec, bool(value.get("group")))
 
 
 @dataclass(frozen=True)
 class VersionStrata:
-    """A version's strata: its spec, the group labels it knows and, per keypoint channel and
-    group (``ALL_GROUPS`` = every instance), the difficulty bins fitted on its instances."""
+    """A version's strata: spec, groups and difficulty bins per channel and group (or ALL_GROUPS)."""
 
     spec: StrataSpec
     groups: tuple[str, ...] = ()
     bins: Mapping[int, Mapping[str, DifficultyBins]] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
-        return {
-            "spec": self.spec.as_dict(),
-            "groups": list(self.groups),
-            "bins": {str(c): {k: b.as_dict() for k, b in keyed.items()} for c, keyed in self.bins.items()},
-        }
+        bins = {str(c): {k: b.as_dict() for k, b in keyed.items()} for c, keyed in self.bins.items()}
+        return {"spec": self.spec.as_dict(), "groups": list(self.groups), "bins": bins}
 
     @classmethod
     def from_dict(cls, value: Mapping[str, Any]) -> VersionStrata:
@@ -101,8 +93,7 @@ class VersionStrata:
 
 
 def fit_strata(table: ScoreTable, spec: StrataSpec) -> VersionStrata:
-    """Fit ``spec`` on a version's instances: bins per keypoint over its labeled instances (and
-    within each group when both are asked). Refused when the table cannot carry it."""
+    """Fit ``spec``: bins per keypoint on its labeled instances (and per group, when both are asked)."""
     groups = tuple(sorted({str(g) for block in table.objects for g in block.groups if g}))
     if spec.group and not groups:
         raise InvalidInput(
@@ -130,19 +121,16 @@ def fit_strata(table: ScoreTable, spec: StrataSpec) -> VersionStrata:
 
 
 def version_strata(table: ScoreTable, stratify: frozenset[str] | None) -> VersionStrata | None:
-    """The strata a new version stores: those asked, or (None) difficulty strata whenever every
-    instance carries heatmap features; None when there are none."""
+    """The strata asked, or (None) difficulty strata when every instance carries heatmap features."""
     if stratify is None:
         stratify = frozenset({DIFFICULTY} if all(b.has_features for b in table.objects) else ())
     if not stratify:
         return None
-    return fit_strata(
-        table, StrataSpec(DifficultySpec() if DIFFICULTY in stratify else None, GROUP in stratify)
-    )
+    spec = StrataSpec(DifficultySpec() if DIFFICULTY in stratify else None, GROUP in stratify)
+    return fit_strata(table, spec)
 
 
 def _members(block: ObjectScores, key: str) -> np.ndarray:
-    """The rows of ``block`` in group ``key`` (all of them for ALL_GROUPS)."""
     if key == ALL_GROUPS:
         return np.ones(block.n_instances, dtype=bool)
     return np.asarray(block.groups if block.has_groups else [""] * block.n_instances) == key
@@ -220,9 +208,7 @@ def stratified_thresholds(
 def _stratum(kinds: str, group: str | None, bins: DifficultyBins | None, index: int) -> Stratum:
     if bins is None:
         return Stratum(kinds, group)
-    return Stratum(
-        kinds, group, index, tuple((s, low, high) for s, (low, high) in bins.ranges(index).items())
-    )
+    return Stratum(kinds, group, index, tuple((s, *bounds) for s, bounds in bins.ranges(index).items()))
 
 
 @dataclass(frozen=True)
@@ -244,26 +230,22 @@ def answer_rows(
     features: Mapping[str, np.ndarray] | None,
     fallback: str,
 ) -> RowAnswers:
-    """Each row's stratum threshold; where a row has no bounded stratum (``refusal``: the version
-    lacks the strata asked; or an unknown group, or t = 0), the pooled threshold if ``fallback``
-    is ``pooled``, else a 422 listing every such row."""
+    """Each row's stratum threshold; without a bounded one (``refusal``, an unknown group, t = 0),
+    the pooled threshold with ``fallback`` ``pooled``, else a 422 listing every such row."""
     values, guarantees = pooled
     out = RowAnswers(np.empty(len(channels)), [], [])
     problems: list[str] = []
     bins_of_row = _row_bins(thresholds, channels, row_groups, features)
     for row, channel in enumerate(channels):
         answer, problem = _row_answer(thresholds, refusal, int(channel), row_groups[row], bins_of_row[row])
-        if answer is not None:
-            out.values[row] = answer.threshold
-            out.guarantees.append(answer.guarantee)
-            out.strata.append(answer.stratum)
-            continue
-        if refusal is None:
-            problem = f"instances[{int(row_instances[row])}]: {problem}"
-        problems.append(problem)
-        out.values[row] = values[channel]
-        out.guarantees.append(guarantees[channel])
-        out.strata.append(Stratum("pooled", fallback=problem))
+        if answer is None:
+            if refusal is None:
+                problem = f"instances[{int(row_instances[row])}]: {problem}"
+            problems.append(problem)
+            answer = StratumAnswer(values[channel], guarantees[channel], Stratum("pooled", fallback=problem))
+        out.values[row] = answer.threshold
+        out.guarantees.append(answer.guarantee)
+        out.strata.append(answer.stratum)
     if problems and fallback != "pooled":
         unique = list(dict.fromkeys(problems))
         raise InvalidInput(
@@ -279,8 +261,7 @@ def _row_bins(
     row_groups: Sequence[str | None],
     features: Mapping[str, np.ndarray] | None,
 ) -> np.ndarray:
-    """The difficulty bin of every row (0 when not by difficulty or not answerable), assigned at
-    once for all rows of one keypoint and group."""
+    """The difficulty bin of every row (0 when not by difficulty or not answerable)."""
     bins = np.zeros(len(channels), dtype=np.intp)
     if thresholds is None or DIFFICULTY not in thresholds.kinds or features is None:
         return bins
@@ -298,11 +279,7 @@ def _key(thresholds: StratifiedThresholds, group: str | None) -> str | None:
 
 
 def _row_answer(
-    thresholds: StratifiedThresholds | None,
-    refusal: str | None,
-    channel: int,
-    group: str | None,
-    bin_index: int,
+    thresholds: StratifiedThresholds | None, refusal: str | None, channel: int, group: str | None, index: int
 ) -> tuple[StratumAnswer | None, str]:
     if thresholds is None:
         return None, refusal or ""
@@ -313,7 +290,7 @@ def _row_answer(
         return None, f"{named} (known groups: {known})"
     if channel not in thresholds.answers:
         return None, f"calibration version has no scores for keypoint channel {channel}"
-    answer = thresholds.answers[channel][key][bin_index]
+    answer = thresholds.answers[channel][key][index]
     guarantee, stratum = answer.guarantee, answer.stratum
     if not guarantee.unbounded:
         return answer, ""

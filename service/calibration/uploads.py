@@ -22,22 +22,13 @@ log = logging.getLogger(__name__)
 
 
 def process_uploads_dir(uploads_dir: Path, pid: int | None = None) -> Path:
-    """This process's folder of upload workspaces, removed when it stops; a starting server removes
-    dead processes' (an orphaned upload was never stored: a version is one transaction)."""
+    """This process's folder of upload workspaces, removed when it stops (or by the next start)."""
     return process_folder(uploads_dir, pid)
 
 
 @dataclass(frozen=True)
-class UploadWorkspace:
-    """A private directory under this process's uploads folder for one upload; removed when done."""
-
+class _UploadFolder:
     root: Path
-
-    @classmethod
-    def create(cls, uploads_dir: Path) -> UploadWorkspace:
-        root = process_uploads_dir(uploads_dir) / uuid.uuid4().hex
-        root.mkdir(parents=True)
-        return cls(root)
 
     @property
     def archive(self) -> Path:
@@ -48,10 +39,19 @@ class UploadWorkspace:
 
 
 @dataclass(frozen=True)
-class JobFolder:
-    """The upload of one calibration job and its request, kept until the job succeeds or fails."""
+class UploadWorkspace(_UploadFolder):
+    """A private directory under this process's uploads folder for one upload; removed when done."""
 
-    root: Path
+    @classmethod
+    def create(cls, uploads_dir: Path) -> UploadWorkspace:
+        root = process_uploads_dir(uploads_dir) / uuid.uuid4().hex
+        root.mkdir(parents=True)
+        return cls(root)
+
+
+@dataclass(frozen=True)
+class JobFolder(_UploadFolder):
+    """The upload of one calibration job and its request, kept until the job succeeds or fails."""
 
     REQUEST = "request.json"
     UNCLAIMED_AFTER_S = 3600.0  # a folder without a job row this old was left by a crash
@@ -63,10 +63,6 @@ class JobFolder:
     @property
     def job_id(self) -> str:
         return self.root.name
-
-    @property
-    def archive(self) -> Path:
-        return self.root / "batch.zip"
 
     def adopt(self, workspace: UploadWorkspace) -> None:
         """Move a received upload here (same file system: one rename)."""
@@ -85,13 +81,9 @@ class JobFolder:
     def move_to(self, other: JobFolder) -> None:
         self.root.rename(other.root)
 
-    def remove(self) -> None:
-        shutil.rmtree(self.root, ignore_errors=True)
-
 
 def remove_spent_job_folders(jobs_dir: Path, store: CalibrationStore) -> None:
-    """Remove kept uploads nobody can retry: of finished jobs (unless retryable), pruned jobs, and
-    folders a crash left before their job was recorded."""
+    """Remove kept uploads nobody can retry (of finished or pruned jobs, or left by a crash)."""
     if not jobs_dir.is_dir():
         return
     for root in jobs_dir.iterdir():

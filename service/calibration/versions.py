@@ -1,9 +1,6 @@
-"""Calibration versions: a new, immutable one made from validated batches (and optionally
-activated), and a stored one activated (a rollback when older than the active one), both behind
-the guardrails, with their decisions in the audit trail.
-
-A new version, its activation, its job's success and their audit entries are written in one
-transaction: a process killed at any moment leaves all of them or none.
+"""Calibration versions: a new one made from validated batches, and a stored one activated (a
+rollback when older than the active one), behind the guardrails, audited. A new version, its
+activation, its job's success and their audit entries are one transaction.
 """
 
 from __future__ import annotations
@@ -56,8 +53,6 @@ LISTED_REJECTIONS = 50
 
 @dataclass(frozen=True)
 class VersionRules:
-    """What every new version is held to (from the settings)."""
-
     max_image_pixels: int
     min_instances: int
 
@@ -72,8 +67,6 @@ class CalibrationOutcome:
 
 @dataclass
 class ScoredInstances:
-    """Instances scored for a new version: the parent's and the new, their sources, the rejected."""
-
     accumulator: ScoreAccumulator
     sources: list[SourceBatch]
     rejected: list[Rejection]
@@ -92,8 +85,7 @@ def create_version(
     progress: Callable[[int], None] = lambda count: None,
     job_id: str | None = None,
 ) -> CalibrationOutcome:
-    """Score ``batches`` (plus the ``parent``'s instances when appending) and store one version
-    (``store_scored_version``); refused when too many instances were rejected."""
+    """Score ``batches`` (plus the ``parent``'s instances) and store them as one version."""
     accumulator, sources, rejected = ScoreAccumulator(), [], []
     if parent is not None:
         accumulator.extend(parent.scores)
@@ -105,18 +97,10 @@ def create_version(
         progress(count)
 
     for validated in batches:
-        named = validated.named
-        rejected.extend(validated.rejected)
-        rejected.extend(
-            score_batch(
-                named.batch,
-                named.name,
-                detector,
-                accumulator,
-                rules.max_image_pixels,
-                counted,
-                validated.fingerprints,
-            )
+        named, pixels = validated.named, rules.max_image_pixels
+        rejected += validated.rejected
+        rejected += score_batch(
+            named.batch, named.name, detector, accumulator, pixels, counted, validated.fingerprints
         )
         sources.append(SourceBatch(named.name, named.sha256, named.batch.count))
     check_rejected_share(rejected, sum(v.named.batch.annotations for v in batches), options.rejected_share)
@@ -138,10 +122,8 @@ def store_scored_version(
     audit: AuditTrail,
     job_id: str | None = None,
 ) -> CalibrationOutcome:
-    """Store scored instances as one version; with ``activate``, compared with the active one and
-    activated in the same transaction unless the guardrails refuse (then stored, not activated,
-    the refusal in the summary) and ``force`` does not override them; with ``job_id``, that job
-    is marked succeeded in it too. Also how labelled feedback becomes a version."""
+    """Store scored instances as one version, activated (``activate``) in its transaction unless the
+    guardrails refuse and ``force`` does not override them; ``job_id``'s job succeeds in it too."""
     table = scored.accumulator.table()
     strata = version_strata(table, options.stratify)
     comparison, previous = None, None
@@ -151,9 +133,7 @@ def store_scored_version(
         reference = None
         if previous is not None and _usable(store, detector, previous):  # an unusable one is no reference
             reference = store.load_scores(detector.model_hash, previous)
-        comparison = compare(
-            table, reference, detector.manifest, rules.min_instances, active_version=previous
-        )
+        comparison = compare(table, reference, detector.manifest, rules.min_instances, None, previous)
     activated = options.activate and (comparison.allowed or options.force)
     summary: dict[str, Any] = {
         "instances": table.n_instances,
@@ -164,11 +144,12 @@ def store_scored_version(
         "rejections": [r.describe() for r in scored.rejected[:LISTED_REJECTIONS]],
     }
     if comparison is not None and not comparison.allowed:
-        summary["activation_problems"] = list(comparison.problems)
-        summary["activation_forced"] = activated
+        summary |= {"activation_problems": list(comparison.problems), "activation_forced": activated}
     entries = _audit_entries(audit, options, operator, summary, comparison, previous, activated)
     scoring = scoring_settings(detector.manifest)
     stored_strata = None if strata is None else strata.as_dict()
+    # the store refuses a second version of the same content, unless a copy was asked for
+    key = None if options.allow_duplicate else content_key(table, stored_kinds(stored_strata), scoring)
     new = NewVersion(
         model_hash=detector.model_hash,
         model_name=detector.manifest.name,
@@ -178,20 +159,12 @@ def store_scored_version(
         note=options.note,
         parent_version=options.append_to,
         strata=stored_strata,
-        # the store refuses a second version of the same content, unless a copy was asked for
-        content_key=None
-        if options.allow_duplicate
-        else content_key(table, stored_kinds(stored_strata), scoring),
+        content_key=key,
     )
     intent = ActivationIntent(operator.name, _activation_reason(options)) if activated else None
+    job = JobCompletion(job_id, summary) if job_id else None
     try:
-        info = store.create_version(
-            new,
-            table,
-            activation=intent,
-            job=JobCompletion(job_id, summary) if job_id else None,
-            audit=entries,
-        )
+        info = store.create_version(new, table, activation=intent, job=job, audit=entries)
     except DuplicateVersion as error:  # a twin scored beside it, in any process, was stored first
         raise duplicate_refused(error.number, table.n_instances, options.stratify) from error
     written(*(entry if entry.version else replace(entry, version=info.number) for entry in entries))
@@ -211,28 +184,20 @@ def _audit_entries(
     previous: int | None,
     activated: bool,
 ) -> list[NewAuditEntry]:
-    """The version's entry and, when activation was asked, its decision (all in its transaction)."""
     details = {k: summary[k] for k in ("instances", "added", "duplicates_dropped", "rejected")}
-    entries = [
-        audit.entry(
-            operator,
-            "calibration",
-            "stored",
-            reason=options.note,
-            previous_version=options.append_to,
-            details=details,
-        )
-    ]
+    stored = {"reason": options.note, "previous_version": options.append_to, "details": details}
+    entries = [audit.entry(operator, "calibration", "stored", **stored)]
     if comparison is not None:
         outcome = "refused" if not activated else "forced" if not comparison.allowed else "activated"
-        problems = {"problems": list(comparison.problems)} if comparison.problems else {}
-        reason = _activation_reason(options)
+        decision = {"previous_version": previous, "reason": _activation_reason(options)}
         entries.append(
-            audit.entry(
-                operator, "activation", outcome, previous_version=previous, reason=reason, details=problems
-            )
+            audit.entry(operator, "activation", outcome, **decision, details=_problems(comparison))
         )
     return entries
+
+
+def _problems(comparison: Comparison) -> dict[str, list[str]]:
+    return {"problems": list(comparison.problems)} if comparison.problems else {}
 
 
 def _activation_reason(options: UploadOptions) -> str:
@@ -257,18 +222,8 @@ def comparison_with(
     nonconformity: str,
 ) -> Comparison:
     """Version ``version`` against ``against`` (None: nothing); 404 for a missing version."""
-    candidate = registry.scores(version)
-    reference = None if against is None else registry.scores(against)
-    return compare(
-        candidate,
-        reference,
-        manifest,
-        min_instances,
-        candidate_version=version,
-        active_version=against,
-        epsilon=epsilon,
-        nonconformity=nonconformity,
-    )
+    candidate, reference = registry.scores(version), None if against is None else registry.scores(against)
+    return compare(candidate, reference, manifest, min_instances, version, against, epsilon, nonconformity)
 
 
 def activate(
@@ -278,26 +233,15 @@ def activate(
     request: ActivationRequest,
     min_instances: int,
 ) -> tuple[Activation, Comparison]:
-    """Activate after comparing with the active version; 409 with the comparison when refused
-    (the caller audits refusals; an activation is audited in its own transaction)."""
+    """Activate after comparing with the active version; 409 with the comparison when refused."""
     registry.check_usable(request.version)
     previous = registry.refresh_now()
     reference = previous if previous is not None and registry.incompatibility(previous) is None else None
-    comparison = comparison_with(
-        registry,
-        manifest,
-        request.version,
-        reference,
-        min_instances,
-        REFERENCE_EPSILON,
-        REFERENCE_NONCONFORMITY,
-    )
+    reference_args = (min_instances, REFERENCE_EPSILON, REFERENCE_NONCONFORMITY)
+    comparison = comparison_with(registry, manifest, request.version, reference, *reference_args)
     if not comparison.allowed and not request.force:
-        raise Conflict(
-            refusal_detail(comparison),
-            errors=list(comparison.problems),
-            extensions={"comparison": comparison.as_dict()},
-        )
+        details = {"comparison": comparison.as_dict()}
+        raise Conflict(refusal_detail(comparison), errors=list(comparison.problems), extensions=details)
     entry = audit.entry(
         request.operator,
         "rollback" if previous is not None and request.version < previous else "activation",
@@ -305,7 +249,7 @@ def activate(
         version=request.version,
         previous_version=previous,
         reason=request.reason,
-        details={"problems": list(comparison.problems)} if comparison.problems else {},
+        details=_problems(comparison),
     )
     try:
         activation = registry.store.activate(
