@@ -108,13 +108,7 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
                 check_batch(named, parent, dedupe=args.dedupe, max_rejected_share=options.rejected_share)
             )
         total = sum(b.named.batch.count for b in batches)
-        done = 0
-
-        def progress(count: int) -> None:
-            nonlocal done
-            done += count
-            print(f"\rscored {done}/{total} instances", end="", file=sys.stderr, flush=True)
-
+        progress = _progress(lambda done: f"scored {done}/{total} instances")
         rules = VersionRules(settings.predict.max_image_pixels, settings.calibration.min_instances)
         audit = AuditTrail(store, detector.model_hash)
         operator = Operator(args.author, "cli")
@@ -181,14 +175,9 @@ def _evaluate(args: argparse.Namespace, settings: Settings) -> int:
 
     command = shlex.join(["keypoint-service", *args.argv])
     epsilons = tuple(sorted(set(args.epsilon or run.DEFAULT_EPSILONS)))
+    title = args.title or run.DEFAULT_TITLE
     request = run.EvaluationRequest(
-        Path(args.folder),
-        Path(args.out),
-        args.version,
-        epsilons,
-        args.delta,
-        args.title or run.DEFAULT_TITLE,
-        command,
+        Path(args.folder), Path(args.out), args.version, epsilons, args.delta, title, command
     )
     run.require_matplotlib()  # refuse a mistake before a model is loaded for nothing
     run.check_request(request)
@@ -200,19 +189,25 @@ def _evaluate(args: argparse.Namespace, settings: Settings) -> int:
     with open_store(settings.storage.resolved_url) as store:
         if settings.storage.bootstrap_calibration:  # as serve would on its first start
             bootstrap_default_calibration(store, detector, settings.model.directory)
-        done = 0
-
-        def progress(count: int) -> None:
-            nonlocal done
-            done += count
-            print(f"\revaluated {done} instances", end="", file=sys.stderr, flush=True)
-
+        progress = _progress(lambda done: f"evaluated {done} instances")
         evaluation, path = run.run_evaluation(
             request, store, detector, settings.predict.max_image_pixels, progress
         )
     print(file=sys.stderr)
     print(f"wrote {path} (version {evaluation.version.number}, {evaluation.rows.instances} instances)")
     return 0
+
+
+def _progress(line: Callable[[int], str]) -> Callable[[int], None]:
+    """Counts instances done, rewriting one stderr line."""
+    done = 0
+
+    def advance(count: int) -> None:
+        nonlocal done
+        done += count
+        print(f"\r{line(done)}", end="", file=sys.stderr, flush=True)
+
+    return advance
 
 
 def _check_model(args: argparse.Namespace, settings: Settings) -> int:

@@ -1,10 +1,7 @@
 """The service as a Ray Serve application: N replicas of the same FastAPI app on one PostgreSQL store.
 
-Each replica builds the app with ``create_app(settings)``; Serve runs its lifespan when the replica
-starts and stops, as uvicorn would. Settings are read once, where the application is built, and
-handed to every replica, so replicas on different nodes cannot drift apart through their
-environment. It lives in the package because every node of a Ray cluster must import it
-(deploy/ray/README.md).
+Settings are read once, where the application is built, and handed to every replica. It lives in the
+package because every node of a Ray cluster must import it (deploy/ray/README.md).
 """
 
 from __future__ import annotations
@@ -29,18 +26,15 @@ from service.serving.app import create_app
 APP_NAME = "keypoints"
 DEPLOYMENT_NAME = "KeypointService"
 REPLICA_HEADER = "X-Replica"
-#: Serve slots of a replica beyond what its admission control holds: health probes and admin
-#: calls are not held back behind predicts
+#: Serve slots of a replica beyond its admission's: probes and admin calls are not held back
 ADMIN_HEADROOM = 4
 
 
 @dataclass(frozen=True)
 class Scaling:
-    """How many replicas, how big, and how much Serve sends to each: with ``max_replicas``, Serve
-    autoscales aiming at ``target_ongoing_requests`` per replica (default the compute slots: scale up
-    once requests wait), else ``replicas`` is fixed. ``max_ongoing_requests`` defaults to what a
-    replica's admission holds plus ADMIN_HEADROOM, so the app, not Serve, queues predicts and
-    answers 503 with Retry-After when they are too many."""
+    """How many replicas, how big, and how much Serve sends to each (autoscaling with
+    ``max_replicas``); by default Serve sends what a replica's admission holds plus ADMIN_HEADROOM,
+    so the app, not Serve, queues predicts and answers 503 when they are too many."""
 
     replicas: int = 2
     min_replicas: int = 1

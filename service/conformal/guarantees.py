@@ -1,12 +1,9 @@
 """Coverage guarantees of Theorem 1 and the calibration-conditional (PAC) rank.
 
-Marginally 1 - eps <= 1 - t/(n+1) = P(cover) <= 1 - eps + 1/(n+1) (eq. 4); conditionally on the
-calibration set, coverage ~ Beta(n+1-t, t) (eq. 5). For integer parameters the Beta CDF is a
-binomial tail, P(Beta(a, b) <= x) = P(Binomial(a+b-1, x) >= a), summed exactly in log space (no
-scipy; stable for n up to 10^6 and beyond). PAC: the largest t with P(Binomial(n, eps) <= t-1)
-<= delta (t = 0 always qualifies), never above the marginal floor((n+1) eps). Every eps and delta
-in (0, 1), subnormals and neighbours of 1 included, has an answer: 1 - p is never formed where it
-would round, and the PAC test is made where the failure probability is exact.
+Marginally 1 - eps <= 1 - t/(n+1) <= 1 - eps + 1/(n+1) (eq. 4); conditionally, coverage ~
+Beta(n+1-t, t) (eq. 5), whose CDF is a binomial tail summed exactly in log space (no scipy). PAC:
+the largest t with P(Binomial(n, eps) <= t-1) <= delta, never above floor((n+1) eps); every eps and
+delta in (0, 1) has an answer (1 - p is never formed where it would round).
 """
 
 from __future__ import annotations

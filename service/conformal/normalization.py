@@ -1,9 +1,8 @@
 """Heatmap normalization: raw detector output -> probability map f(x) over the H*W pixels.
 
-Modes: ``anchor`` (default, the reference ``clean_heatmap``: subtract the minimum, zero below the
-median, divide by the sum), ``softmax`` (``exp(h / temperature)`` over its sum), ``relu`` (clip at
-0, divide by the sum). A degenerate map (normalizer zero or not finite: constant input, NaN,
-infinity) becomes uniform 1/(H*W), the least informative answer (a large set); never NaN.
+Modes: ``anchor`` (the reference ``clean_heatmap``: subtract the minimum, zero below the median,
+divide by the sum), ``softmax`` and ``relu``. A degenerate map (normalizer zero or not finite)
+becomes uniform 1/(H*W), the least informative answer; never NaN.
 """
 
 from __future__ import annotations

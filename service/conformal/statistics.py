@@ -1,24 +1,13 @@
-"""Per-heatmap statistics shared by the three nonconformity functions (paper, Sec. 3).
+"""Per-heatmap statistics shared by the three nonconformity functions (paper, Sec. 3): the peak q*
+(centre of the argmax pixel) and p*; over the top-K pixels, weights renormalized to sum 1, the mean
+q_bar, gamma^2 = sum w ||q - q_bar||^2 and Sigma = sum w (q - q_bar)(q - q_bar)^T. Pixel (row r,
+col c) has centre (c + 0.5, r + 0.5); points are (x, y).
 
-- peak: q* (centre of the argmax pixel) and p* = f(x)_pi(1);
-- spread: over the top-K pixels with weights renormalized to sum to 1, the
-  mean q_bar, the variance gamma^2 = sum w ||q - q_bar||^2 and the covariance
-  Sigma = sum w (q - q_bar)(q - q_bar)^T.
-
-Pixel (row r, col c) has centre (c + 0.5, r + 0.5); points are (x, y).
-
-Regularization, applied identically when scoring calibration data and when
-building sets: Sigma gets the smallest ridge that lifts its smallest eigenvalue
-to 1/12 px^2, and gamma^2 is floored at 2/12 px^2. 1/12 is the variance of a
-point uniform over one pixel: a heatmap cannot locate a keypoint more finely
-than its grid, so a smaller spread is an artefact (a single-pixel or
-collinear top-K) that would make Sigma singular and gamma zero. Real spreads
-(several pixels) are left bit-for-bit unchanged.
-
-Uninformative maps (degenerate after normalization, or flat) get the statistics
-of a uniform distribution over the whole heatmap: centre (W/2, H/2),
-p* = 1/(H*W), Sigma = diag(W^2/12, H^2/12). The set is then centred and as
-large as the heatmap allows, never NaN.
+Regularization, identical in calibration and prediction: Sigma gets the smallest ridge lifting its
+smallest eigenvalue to 1/12 px^2 (the variance of a point uniform over one pixel: a heatmap cannot
+locate more finely than its grid), gamma^2 is floored at 2/12 px^2; real spreads are unchanged.
+Uninformative maps (degenerate or flat) get a uniform distribution's statistics: centre (W/2, H/2),
+p* = 1/(H*W), Sigma = diag(W^2/12, H^2/12): the largest set, never NaN.
 """
 
 from __future__ import annotations

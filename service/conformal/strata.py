@@ -1,17 +1,11 @@
 """Mondrian (group-conditional) conformal thresholds: one ICP threshold per stratum.
 
-A Mondrian taxonomy (Vovk et al., "Mondrian confidence machine", 2003; "Algorithmic Learning in a
-Random World", sec. 4.5) maps each example to a category known at prediction time. Eq. (3) on the
-n_g scores of one category alone gives, by Theorem 1 inside it (exchangeable within it),
-1 - eps <= P(cover | category) <= 1 - eps + 1/(n_g + 1) for every category at once. A stratum of
-one keypoint is a caller group (a camera, a site), a difficulty bin of a label-free heatmap signal
-(``features``), or the bin within the group.
-
-Difficulty bins are quantile bins of the signal over the keypoint's labeled calibration instances,
-at least ``min_instances`` each (bounded down to eps = 1/(min_instances + 1)); two signals make
-joint bins (bins of the second within each of the first). The edges use the features, never the
-labels: the guarantee is exact for edges fixed beforehand, and the deviation from fitting them on
-the same n instances vanishes as n grows.
+Eq. (3) on the n_g scores of one category known at prediction time gives, by Theorem 1 within it,
+1 - eps <= P(cover | category) <= 1 - eps + 1/(n_g + 1) for every category at once (Vovk et al.,
+"Algorithmic Learning in a Random World", sec. 4.5). A stratum is a caller group, a difficulty bin
+of a label-free heatmap signal, or the bin within the group. Difficulty bins are quantile bins of
+the signal over the labeled calibration instances, at least ``min_instances`` each; two signals make
+joint bins. The edges use the features, never the labels.
 """
 
 from __future__ import annotations

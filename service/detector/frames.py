@@ -1,11 +1,8 @@
 """Image sources: a whole frame, or regions of one, in full-frame pixel coordinates.
 
-The detector asks its source for each box's crop (``ImageSource.crops``). A region is resampled
-through the very affine the whole frame would be, from a frame-sized canvas holding the region's
-pixels at their place and zeros elsewhere: the resampling reads only the box's crop context,
-which the region is checked to cover, so every answer is byte-identical to the whole frame's
-(resampling the region through a shifted affine is not: rounding depends on absolute coordinates).
-The canvas's untouched pages stay the kernel's zero pages. Sizes are checked before any decode.
+A region is resampled through the very affine the whole frame would be, from a frame-sized canvas
+holding its pixels at their place (zeros elsewhere): answers are byte-identical to the whole
+frame's, since the resampling reads only the box's crop context, which the region must cover.
 """
 
 from __future__ import annotations

@@ -1,11 +1,6 @@
-"""The model manifest: everything the service needs to know about an ONNX heatmap detector.
-
-A model is a directory holding ``model.onnx`` and ``manifest.json`` (input tensor, crop rule,
-heatmap output, keypoints and their objects, normalization; docs/bring-your-own-model.md).
-Validation refuses what would be served wrongly or silently ignored (duplicate names, a ``top_k``
-larger than the heatmap, options without effect together), each problem as ``<field path>: <what
-to do>``, gathered in one ``ManifestError`` naming the file. Paths into ``keypoints`` count in the
-file's order while that list is checked, in index order afterwards.
+"""The model manifest: everything the service needs to know about an ONNX heatmap detector
+(docs/bring-your-own-model.md). Validation gathers every problem, as ``<field path>: <what to do>``,
+in one ``ManifestError`` naming the file.
 """
 
 from __future__ import annotations

@@ -1,18 +1,12 @@
-"""The job engine: background jobs on this process's worker threads (``JobRunner``), their state
-in the store's job table, so that any process of any replica answers for any job (calibration
-uploads, coverage audits; it knows nothing of what a job does).
+"""The job engine: background jobs on this process's worker threads (``JobRunner``), their state in
+the store's job table, so that any process of any replica answers for any job.
 
-- the row is created before the upload's 202; state changes are written at once (the final one
-  retried, then kept in memory and retried by the writer thread until it lands);
-- progress is written by one writer thread at most every PROGRESS_WRITE_S per job, so a job never
-  waits on the store; every write refreshes the heartbeat, at least every HEARTBEAT_S;
-- an unfinished job silent for over STALE_AFTER is reported interrupted (its process stopped;
-  a job's result is written in the transaction that marks it succeeded, so it stored nothing);
-- every SWEEP_S such a job is offered to the takeover of its kind (``on_stale``), which runs it
-  again where its input is readable (marking the stale row finished first); one nobody took over
-  within TAKEOVER_GRACE is stored interrupted, as reported; a finished job never changes;
-- at shutdown unfinished jobs are marked interrupted at once, not waited for, and a running one
-  stops at its next progress report (``JobCancelled``).
+Progress is written by one writer thread (at most every PROGRESS_WRITE_S, a heartbeat at least
+every HEARTBEAT_S). An unfinished job silent for over STALE_AFTER is reported interrupted (a job's
+result is written in the transaction that marks it succeeded, so it stored nothing) and offered to
+the takeover of its kind; one nobody took over within TAKEOVER_GRACE is stored interrupted. At
+shutdown unfinished jobs are marked interrupted at once; a running one stops at its next progress
+report (``JobCancelled``).
 """
 
 from __future__ import annotations

@@ -1,11 +1,7 @@
 """Logging: one format for the service's lines and uvicorn's, text or JSON, with the request id.
 
-``uvicorn_log_config`` is the dictConfig of every logger that matters (one stderr handler on the
-root, ``CKS_LOG_FORMAT``, ``CKS_LOG_LEVEL``): ``keypoint-service`` applies it and hands it to
-uvicorn; a server started otherwise gets it from ``ensure_logging`` unless its process configured
-the root logger itself. A filter puts the id of the request being handled (a context variable) on
-every record: ``request_id`` in JSON, ``[id]`` in text; work handed to another thread keeps it only
-in a copy of the request's context (``run_in_threadpool`` does this).
+``uvicorn_log_config`` configures every logger that matters (one stderr handler on the root); a
+filter puts the id of the request being handled (a context variable) on every record.
 """
 
 from __future__ import annotations

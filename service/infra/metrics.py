@@ -1,13 +1,9 @@
 """Prometheus metrics: requests, inference batches, admission, calibration jobs, coverage audits,
 and the drift of live heatmap features (``cks_drift_*``, computed when scraped).
 
-With several workers ``serve`` points prometheus_client's multiprocess mode at a folder before they
-start, and ``/metrics`` reports the sum over all of them (gauges of live workers only); the
-``cks_drift_*`` gauges are already the fleet's (workers and replicas merge their windows through
-the store), so Prometheus takes their max. Those files are memory-mapped: a page the file system
-cannot give kills the process with SIGBUS, so each file's pages are reserved (``posix_fallocate``)
-before they are mapped; on a full disk that fails with ENOSPC instead, and the worker keeps its
-new series in its own memory (logged once) while it goes on serving.
+With several workers, prometheus_client's multiprocess mode sums them. Its files are memory-mapped:
+a page the file system cannot give kills the process with SIGBUS, so pages are reserved
+(``posix_fallocate``) first; on a full disk the worker keeps new series in its own memory.
 """
 
 from __future__ import annotations
