@@ -96,69 +96,50 @@ if os.environ.get(MULTIPROCESS_ENV) and getattr(values.ValueClass, "_multiproces
 
 REGISTRY = CollectorRegistry(auto_describe=True)
 
-REQUESTS = Counter(
-    "cks_http_requests", "HTTP requests by route and status", ["method", "route", "status"], registry=REGISTRY
-)
-LATENCY = Histogram(
-    "cks_http_request_seconds",
-    "HTTP request latency by route",
-    ["method", "route"],
-    buckets=(0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10),
-    registry=REGISTRY,
-)
-BATCH_SIZE = Histogram(
-    "cks_inference_batch_size",
-    "instances per onnxruntime batch",
-    buckets=(1, 2, 4, 8, 16, 32, 64, 128),
-    registry=REGISTRY,
-)
-INFERENCE_SECONDS = Histogram(
-    "cks_inference_seconds",
-    "onnxruntime run time per batch",
-    buckets=(0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1),
-    registry=REGISTRY,
-)
+
+def _counter(name: str, documentation: str, labels: Sequence[str] = ()) -> Counter:
+    return Counter(name, documentation, labels, registry=REGISTRY)
+
+
+def _histogram(
+    name: str, documentation: str, buckets: Sequence[float], labels: Sequence[str] = ()
+) -> Histogram:
+    return Histogram(name, documentation, labels, buckets=buckets, registry=REGISTRY)
 
 
 def _gauge(name: str, documentation: str, labels: Sequence[str] = (), mode: str = "livesum") -> Gauge:
     return Gauge(name, documentation, labels, registry=REGISTRY, multiprocess_mode=mode)
 
 
+REQUESTS = _counter("cks_http_requests", "HTTP requests by route and status", ["method", "route", "status"])
+_SECONDS = (0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10)
+LATENCY = _histogram(
+    "cks_http_request_seconds", "HTTP request latency by route", _SECONDS, ["method", "route"]
+)
+_SIZES = (1, 2, 4, 8, 16, 32, 64, 128)
+BATCH_SIZE = _histogram("cks_inference_batch_size", "instances per onnxruntime batch", _SIZES)
+_RUN_SECONDS = (0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1)
+INFERENCE_SECONDS = _histogram("cks_inference_seconds", "onnxruntime run time per batch", _RUN_SECONDS)
 PREDICT_IN_FLIGHT = _gauge(
     "cks_predict_in_flight", "predict places taken, one per request or batch image (computing or waiting)"
 )
 PREDICT_COMPUTING = _gauge("cks_predict_computing", "predict requests holding a compute slot")
 PREDICT_WAITING = _gauge("cks_predict_waiting", "predict requests waiting for a compute slot")
-PREDICT_REJECTED = Counter(
-    "cks_predict_rejected",
-    "predict requests refused by admission control (503; 429 for client_share)",
-    ["reason"],
-    registry=REGISTRY,
-)
-CALIBRATION_JOBS = Counter(
-    "cks_calibration_jobs", "calibration jobs by final state", ["state"], registry=REGISTRY
-)
-CALIBRATION_INSTANCES = Counter(
-    "cks_calibration_instances_scored", "instances scored by calibration jobs", registry=REGISTRY
-)
+_REJECTED = "predict requests refused by admission control (503; 429 for client_share)"
+PREDICT_REJECTED = _counter("cks_predict_rejected", _REJECTED, ["reason"])
+CALIBRATION_JOBS = _counter("cks_calibration_jobs", "calibration jobs by final state", ["state"])
+CALIBRATION_INSTANCES = _counter("cks_calibration_instances_scored", "instances scored by calibration jobs")
 
 # The latest coverage audit (service/monitoring/coverage_audits.py); replaced whole by each new audit
-_AUDIT_LABELS = ["object", "keypoint", "nonconformity", "epsilon", "scope"]
+_AUDIT = (["object", "keypoint", "nonconformity", "epsilon", "scope"], "mostrecent")
 _BAND = "end of the 95% band of the coverage a valid calibration gives"
 AUDIT_COVERAGE = _gauge(
-    "cks_audit_coverage",
-    'empirical coverage in the latest coverage audit (keypoint="": pooled)',
-    _AUDIT_LABELS,
-    "mostrecent",
+    "cks_audit_coverage", 'empirical coverage in the latest coverage audit (keypoint="": pooled)', *_AUDIT
 )
-AUDIT_BAND_LOW = _gauge("cks_audit_band_low", f"low {_BAND}", _AUDIT_LABELS, "mostrecent")
-AUDIT_BAND_HIGH = _gauge("cks_audit_band_high", f"high {_BAND}", _AUDIT_LABELS, "mostrecent")
-AUDIT_FLAGGED = _gauge(
-    "cks_audit_flagged",
-    "1 where the latest audit found the coverage significantly low (Holm)",
-    _AUDIT_LABELS,
-    "mostrecent",
-)
+AUDIT_BAND_LOW = _gauge("cks_audit_band_low", f"low {_BAND}", *_AUDIT)
+AUDIT_BAND_HIGH = _gauge("cks_audit_band_high", f"high {_BAND}", *_AUDIT)
+_FLAGGED = "1 where the latest audit found the coverage significantly low (Holm)"
+AUDIT_FLAGGED = _gauge("cks_audit_flagged", _FLAGGED, *_AUDIT)
 AUDIT_LATEST = _gauge(
     "cks_audit_latest_id", "id of the latest coverage audit, by audited version", ["version"], "mostrecent"
 )
