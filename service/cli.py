@@ -135,13 +135,8 @@ def _predict(args: argparse.Namespace, settings: Settings) -> int:
     from service.serving.loopback import served
 
     image = Path(args.image).read_bytes()
-    options = {
-        "epsilon": args.epsilon,
-        "nonconformity": args.nonconformity,
-        "coverage": args.coverage,
-        "delta": args.delta,
-        "calibration_version": args.calibration_version,
-    }
+    names = ("epsilon", "nonconformity", "coverage", "delta", "calibration_version")
+    options = {name: getattr(args, name) for name in names}
     pose = None if args.pose_k is None else {"K": args.pose_k}
     if pose is not None and args.coverage != "object":
         raise InvalidInput("--pose-k needs --coverage object: only object-scope sets carry a pose guarantee")
@@ -312,6 +307,9 @@ Writes OUT/evaluation.md and OUT/figures/*.png (needs the `evaluate` extra: matp
 }
 
 
+_RAW = argparse.RawDescriptionHelpFormatter
+
+
 class _Parser(argparse.ArgumentParser):
     """Reports a usage mistake in one line (and exit status 2) rather than the whole usage."""
 
@@ -322,12 +320,9 @@ class _Parser(argparse.ArgumentParser):
 def _command(
     commands: argparse._SubParsersAction, name: str, summary: str, run: Callable[..., int]
 ) -> argparse.ArgumentParser:
+    epilog = "examples:\n" + EXAMPLES[name]
     command = commands.add_parser(
-        name,
-        help=summary,
-        description=summary,
-        epilog="examples:\n" + EXAMPLES[name],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        name, help=summary, description=summary, epilog=epilog, formatter_class=_RAW
     )
     command.set_defaults(run=run)
     return command
@@ -342,12 +337,7 @@ the command, its input or the settings; 3 the model cannot be served.
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(
-        prog="keypoint-service",
-        description=__doc__,
-        epilog=EXIT_STATUS,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = _Parser(prog="keypoint-service", description=__doc__, epilog=EXIT_STATUS, formatter_class=_RAW)
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 

@@ -5,6 +5,7 @@ in one ``ManifestError`` naming the file.
 
 from __future__ import annotations
 
+import functools
 import json
 from collections.abc import Iterable
 from pathlib import Path
@@ -30,8 +31,7 @@ class ManifestError(ValueError):
 
 
 def _refuse(problems: list[Problem]) -> None:
-    """Raise a validator's problems as one ValueError, a ``path: message`` line each (paths
-    relative to the model; ``validate_manifest`` prefixes the model's location)."""
+    """Raise a validator's problems as one ValueError, a ``path: message`` line each (relative paths)."""
     if problems:
         raise ValueError("\n".join(f"{field}: {message}" for field, message in problems))
 
@@ -40,16 +40,18 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
+def _input_side(side: str) -> Any:
+    return Field(
+        gt=0, le=4096, description=f"input {side} in pixels; the square crop is resized to height x width"
+    )
+
+
 class InputSpec(_Strict):
     """The network input: ``(pixel / scale - mean) / std`` per channel, in ``color`` order, NCHW."""
 
     name: str = Field(min_length=1, description="name of the ONNX graph input that takes the image batch")
-    height: int = Field(
-        gt=0, le=4096, description="input height in pixels; the square crop is resized to height x width"
-    )
-    width: int = Field(
-        gt=0, le=4096, description="input width in pixels; the square crop is resized to height x width"
-    )
+    height: int = _input_side("height")
+    width: int = _input_side("width")
     layout: Literal["NCHW"] = Field(
         default="NCHW", description="tensor layout: batch, channels, height, width (the only one supported)"
     )
@@ -343,13 +345,8 @@ class Manifest(_Strict):
 
 def _repeats(values: Iterable[Any]) -> list[tuple[int, Any]]:
     """(position, value) of every value already seen earlier in ``values``."""
-    seen: set[Any] = set()
-    repeats = []
-    for position, value in enumerate(values):
-        if value in seen:
-            repeats.append((position, value))
-        seen.add(value)
-    return repeats
+    values = list(values)
+    return [(position, value) for position, value in enumerate(values) if value in values[:position]]
 
 
 def validate_manifest(data: Any, source: Path | str) -> Manifest:
@@ -400,10 +397,7 @@ def _problems(error: ValidationError) -> list[Problem]:
 
 
 def _path(loc: tuple[int | str, ...]) -> str:
-    path = ""
-    for part in loc:
-        path = _join(path, f"[{part}]" if isinstance(part, int) else str(part))
-    return path
+    return functools.reduce(_join, (f"[{part}]" if isinstance(part, int) else str(part) for part in loc), "")
 
 
 def _join(path: str, relative: str) -> str:
