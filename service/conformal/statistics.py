@@ -162,12 +162,8 @@ def _spread(indices: np.ndarray, top_weights: np.ndarray, width: int) -> dict[st
     dx, dy = x - mean_x[:, None], y - mean_y[:, None]
     weighted_dx, weighted_dy = probabilities * dx, probabilities * dy
     sxx, sxy, syy = np.stack([weighted_dx * dx, weighted_dx * dy, weighted_dy * dy]).sum(axis=-1)
-    return _spread_fields(np.stack([mean_x, mean_y, sxx, sxy, syy], axis=1))
-
-
-def _spread_fields(spread: np.ndarray) -> dict[str, np.ndarray]:
-    """Mean (N, 2) and covariance (N, 2, 2) from the columns (mean x, mean y, Sxx, Sxy, Syy)."""
-    return {"mean": spread[:, :2].copy(), "covariance": spread[:, [2, 3, 3, 4]].reshape(-1, 2, 2)}
+    covariance = np.stack([sxx, sxy, sxy, syy], axis=1).reshape(-1, 2, 2)
+    return {"mean": np.stack([mean_x, mean_y], axis=1), "covariance": covariance}
 
 
 def _use_uniform_statistics(
