@@ -95,9 +95,7 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     )
     detector = _detector(settings)
     with open_store(settings.storage.resolved_url) as store:
-        parent = None
-        if args.append_to is not None:
-            parent = read_parent(store, detector, args.append_to)
+        parent = None if args.append_to is None else read_parent(store, detector, args.append_to)
         batches = []
         for folder in args.folders:
             if not Path(folder).is_dir():

@@ -91,19 +91,13 @@ def uvicorn_log_config(settings: Settings, level: str | None = None) -> dict[str
     ``level`` overrides ``CKS_LOG_LEVEL``. uvicorn's access log stays off: ``service.access`` writes
     one line per request instead, with the latency, request id and calibration version."""
     level = level or settings.logs.level
+    stderr = {"class": "logging.StreamHandler", "stream": "ext://sys.stderr", "formatter": "service"}
     return {
         "version": 1,
         "disable_existing_loggers": False,
         "filters": {"request_id": {"()": RequestIdFilter}},
         "formatters": {"service": _formatter(settings.logs.format)},
-        "handlers": {
-            "stderr": {
-                "class": "logging.StreamHandler",
-                "stream": "ext://sys.stderr",
-                "formatter": "service",
-                "filters": ["request_id"],
-            }
-        },
+        "handlers": {"stderr": stderr | {"filters": ["request_id"]}},
         "root": {"handlers": ["stderr"], "level": "WARNING"},
         "loggers": {
             # handlers []: uvicorn's own (from its default config) are dropped, lines go to the root's
@@ -121,8 +115,7 @@ def configure_logging(settings: Settings, level: str | None = None) -> None:
 
 
 def ensure_logging(settings: Settings) -> None:
-    """Configure logging unless the process already did (``keypoint-service``, a ``--log-config``
-    of uvicorn that sets up the root logger, a host application)."""
+    """Configure logging unless the process already did (a ``--log-config`` of uvicorn, a host)."""
     if not logging.getLogger().handlers:
         configure_logging(settings)
 

@@ -199,17 +199,13 @@ def forget_drift_source(source: Callable[[], Any]) -> None:
 
 def drift_families(report: Any) -> list[GaugeMetricFamily]:
     """Per keypoint and feature: statistic, p-value (ks), alarm, live window size; and totals."""
-    labels = ["object", "keypoint", "feature"]
-    statistic = GaugeMetricFamily(
-        "cks_drift_statistic",
-        f"drift statistic ({report.test}) of a keypoint's live feature window",
-        labels=labels,
+    family = functools.partial(GaugeMetricFamily, labels=["object", "keypoint", "feature"])
+    statistic = family(
+        "cks_drift_statistic", f"drift statistic ({report.test}) of a keypoint's live feature window"
     )
-    p_value = GaugeMetricFamily("cks_drift_p_value", "Kolmogorov-Smirnov p-value (ks test)", labels=labels)
-    alarm = GaugeMetricFamily(
-        "cks_drift_alarm", "1 when the drift alarm is raised (Holm-corrected for ks)", labels=labels
-    )
-    window = GaugeMetricFamily("cks_drift_window_size", "live values in the window", labels=labels)
+    p_value = family("cks_drift_p_value", "Kolmogorov-Smirnov p-value (ks test)")
+    alarm = family("cks_drift_alarm", "1 when the drift alarm is raised (Holm-corrected for ks)")
+    window = family("cks_drift_window_size", "live values in the window")
     for keypoint in report.keypoints:
         for feature, test in keypoint.features.items():
             names = [keypoint.object, keypoint.keypoint, feature]

@@ -1,11 +1,9 @@
-"""Named admin tokens: who may administer calibrations, under which name (recorded in the audit
-trail and the activation log).
+"""Named admin tokens: who may administer calibrations, under which name (recorded in the audit).
 
-``CKS_ADMIN_TOKENS_FILE`` holds ``name:token`` lines (``#`` comments, blank lines ignored);
-``CKS_ADMIN_TOKEN`` is the operator ``admin``. A line ``feedback name:token`` gives a token that may
-only send feedback on retained predictions (admins may too). A line ``predict name:token`` gives a
-predict token: once the file has one, predict requests need a predict (or admin) token, and each
-holder is one caller for admission's cap. Every token has at least 16 characters and no spaces.
+``CKS_ADMIN_TOKENS_FILE`` holds ``name:token`` lines (``#`` comments); ``CKS_ADMIN_TOKEN`` is the
+operator ``admin``. A line ``feedback name:token`` may only send feedback; ``predict name:token`` is
+a predict token: once the file has one, predict needs a predict (or admin) token, each holder one
+caller for admission's cap. Every token has at least 16 characters and no spaces.
 """
 
 from __future__ import annotations
