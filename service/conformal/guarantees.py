@@ -13,13 +13,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .threshold import (
-    _check_epsilon,
-    column_thresholds,
-    conformal_rank,
-    labeled_counts,
-    threshold_for_rank,
-)
+from .threshold import _check_epsilon, column_thresholds, conformal_rank, labeled_counts, threshold_for_rank
 
 _log_gamma = np.frompyfunc(math.lgamma, 1, 1)
 _TAIL_WIDTH_SD = 40  # terms further than this from the tail's largest term are < e^-800 of it

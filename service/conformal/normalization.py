@@ -47,11 +47,7 @@ def _checked_shape(heatmaps: np.ndarray) -> np.ndarray:
 
 
 def normalized_weights(
-    heatmaps: np.ndarray,
-    mode: str = "anchor",
-    temperature: float = 1.0,
-    *,
-    skip_anchor_median: bool = False,
+    heatmaps: np.ndarray, mode: str = "anchor", temperature: float = 1.0, *, skip_anchor_median: bool = False
 ) -> NormalizedHeatmaps:
     """Nonnegative weights and their totals for a (N, H, W) batch. ``skip_anchor_median`` keeps
     ``anchor``'s below-median values (weights = h - min): only for callers renormalizing the top

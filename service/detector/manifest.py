@@ -160,8 +160,7 @@ class ObjectSpec(_Strict):
     """One object class: its keypoints' channels, in the order of its COCO keypoint annotations."""
 
     name: str = Field(
-        min_length=1,
-        description="unique object name; predict instances and COCO category names refer to it",
+        min_length=1, description="unique object name; predict instances and COCO category names refer to it"
     )
     keypoints: tuple[Annotated[int, Field(ge=0)], ...] = Field(
         min_length=1,
