@@ -20,7 +20,7 @@ from .guarantees import (
     pac_rank,
 )
 from .normalization import normalize_heatmaps
-from .scores import NONCONFORMITY_SCORES, CovScore, get_nonconformity_score
+from .scores import NONCONFORMITY_SCORES, get_nonconformity_score
 from .statistics import HeatmapStatistics, heatmap_statistics
 from .threshold import (
     column_thresholds,
@@ -34,7 +34,6 @@ __all__ = [
     "HEATMAP_FEATURES",
     "heatmap_features",
     "NONCONFORMITY_SCORES",
-    "CovScore",
     "CoverageGuarantee",
     "HeatmapStatistics",
     "ball_radii",

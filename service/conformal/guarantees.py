@@ -58,7 +58,7 @@ class CoverageGuarantee:
     @property
     def pac_failure_probability(self) -> float:
         """P(conditional coverage < 1 - eps) = P(Beta(n+1-t, t) < 1 - eps); 0 when t = 0."""
-        return _pac_failure(self.n, self.t, self.epsilon)
+        return 0.0 if self.t == 0 else binomial_cdf(self.t - 1, self.n, self.epsilon)
 
     @property
     def pac_level(self) -> float | None:
@@ -133,10 +133,6 @@ def beta_cdf(x: float, a: int, b: int) -> float:
 def binomial_cdf(m: int, n: int, p: float) -> float:
     """P(Binomial(n, p) <= m), summing whichever tail is smaller in log space."""
     return math.exp(_log_binomial_tails(m, n, p, 1.0 - p)[0])
-
-
-def _pac_failure(n: int, t: int, epsilon: float) -> float:
-    return 0.0 if t == 0 else binomial_cdf(t - 1, n, epsilon)
 
 
 def _pac_failure_at_most(n: int, t: int, epsilon: float, delta: float) -> bool:
