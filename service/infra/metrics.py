@@ -145,25 +145,23 @@ AUDIT_LATEST = _gauge(
 )
 
 
-class DriftCollector(Collector):
-    """``cks_drift_*`` from the drift monitor's report, evaluated (or read from its cache) at scrape."""
+class ReportCollector(Collector):
+    """Families made at scrape from ``source``'s report (None: none); a failing source skips a scrape,
+    so the other metrics are still served."""
 
-    def __init__(self) -> None:
-        self.source: Callable[[], Any] | None = None  # the drift monitor's report
+    def __init__(self, families: Callable[[Any], list[GaugeMetricFamily]], failed: str) -> None:
+        self.source: Callable[[], Any] | None = None
+        self._families, self._failed = families, failed
 
     def collect(self) -> Iterator[GaugeMetricFamily]:
         if self.source is None:
             return
         try:
             report = self.source()
-        except Exception:  # the other metrics must still be served; the drift figures skip a scrape
-            log.exception("drift metrics: the evaluation failed")
+        except Exception:
+            log.exception(self._failed)
             return
-        yield from drift_families(report)
-
-
-DRIFT = DriftCollector()
-REGISTRY.register(DRIFT)
+        yield from self._families(report)
 
 
 @functools.cache
@@ -233,39 +231,29 @@ def drift_families(report: Any) -> list[GaugeMetricFamily]:
     return [statistic, p_value, alarm, window, objects, reference, any_alarm, replicas]
 
 
-class FeedbackCollector(Collector):
-    """``cks_feedback_coverage_*`` from the live labelled coverage, at scrape (its reader caches)."""
-
-    def __init__(self) -> None:
-        self.source: Callable[[], list[Any]] | None = None  # live_coverage.GroupCoverage of each group
-
-    def collect(self) -> Iterator[GaugeMetricFamily]:
-        if self.source is None:
-            return
-        try:
-            groups = self.source()
-        except Exception:  # the other metrics must still be served
-            log.exception("feedback metrics: the live coverage could not be read")
-            return
-        labels = ["version", "nonconformity", "coverage", "epsilon", "level", "name"]
-        helps = {
-            "lower": "anytime-valid lower bound",
-            "upper": "anytime-valid upper bound",
-            "looks": "independent labelled looks",
-            "alarm": "1 when coverage is proven below the promise",
-        }
-        families = {
-            k: GaugeMetricFamily(f"cks_feedback_coverage_{k}", h, labels=labels) for k, h in helps.items()
-        }
-        for group in groups:
-            names = [str(group.version), group.nonconformity, group.coverage, f"{group.epsilon:g}"]
-            names += [group.level, group.name]
-            for attribute, family in families.items():
-                family.add_metric(names, float(getattr(group, attribute)))
-        yield from families.values()
+def feedback_families(groups: list[Any]) -> list[GaugeMetricFamily]:
+    """``cks_feedback_coverage_*`` of each live_coverage.GroupCoverage (its reader caches)."""
+    labels = ["version", "nonconformity", "coverage", "epsilon", "level", "name"]
+    helps = {
+        "lower": "anytime-valid lower bound",
+        "upper": "anytime-valid upper bound",
+        "looks": "independent labelled looks",
+        "alarm": "1 when coverage is proven below the promise",
+    }
+    families = {
+        k: GaugeMetricFamily(f"cks_feedback_coverage_{k}", h, labels=labels) for k, h in helps.items()
+    }
+    for group in groups:
+        names = [str(group.version), group.nonconformity, group.coverage, f"{group.epsilon:g}"]
+        names += [group.level, group.name]
+        for attribute, family in families.items():
+            family.add_metric(names, float(getattr(group, attribute)))
+    return list(families.values())
 
 
-FEEDBACK = FeedbackCollector()
+DRIFT = ReportCollector(drift_families, "drift metrics: the evaluation failed")
+FEEDBACK = ReportCollector(feedback_families, "feedback metrics: the live coverage could not be read")
+REGISTRY.register(DRIFT)
 REGISTRY.register(FEEDBACK)
 
 
