@@ -88,23 +88,20 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     from service.calibration.versions import VersionRules, create_version
     from service.infra.audit_trail import AuditTrail, Operator
 
-    names = ("name", "note", "append_to", "activate", "force", "reason", "dedupe", "allow_duplicate")
+    flags = ("activate", "force", "dedupe", "allow_duplicate")
+    names = ("name", "note", "append_to", "reason", "max_rejected_share", *flags)
     stratify = None if args.stratify is None else parse_stratify(args.stratify)
-    options = UploadOptions(
-        **{n: getattr(args, n) for n in names}, max_rejected_share=args.max_rejected_share, stratify=stratify
-    )
+    options = UploadOptions(**{n: getattr(args, n) for n in names}, stratify=stratify)
     detector = _detector(settings)
     with open_store(settings.storage.resolved_url) as store:
         parent = None if args.append_to is None else read_parent(store, detector, args.append_to)
-        batches = []
+        batches, checks = [], {"dedupe": args.dedupe, "max_rejected_share": options.rejected_share}
         for folder in args.folders:
             if not Path(folder).is_dir():
                 raise InvalidInput(f"{folder} is not a folder (one holding annotations.json and the images)")
             batch = load_coco_batch(Path(folder), detector.manifest, bounded=True)
             named = NamedBatch(name=args.name or Path(folder).name, sha256=batch.sha256, batch=batch)
-            batches.append(
-                check_batch(named, parent, dedupe=args.dedupe, max_rejected_share=options.rejected_share)
-            )
+            batches.append(check_batch(named, parent, **checks))
         total = sum(b.named.batch.count for b in batches)
         progress = _progress(lambda done: f"scored {done}/{total} instances")
         rules = VersionRules(settings.predict.max_image_pixels, settings.calibration.min_instances)

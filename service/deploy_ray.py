@@ -56,12 +56,9 @@ class Scaling:
 
     def deployment_options(self, settings: Settings) -> dict[str, Any]:
         slots = settings.predict.max_concurrent_inferences
-        options: dict[str, Any] = {
-            "max_ongoing_requests": self.max_ongoing_requests
-            or slots + settings.predict.max_queued_requests + ADMIN_HEADROOM,
-            "ray_actor_options": {"num_cpus": self.num_cpus}
-            | ({"num_gpus": self.num_gpus} if self.num_gpus else {}),
-        }
+        ongoing = self.max_ongoing_requests or slots + settings.predict.max_queued_requests + ADMIN_HEADROOM
+        actor = {"num_cpus": self.num_cpus} | ({"num_gpus": self.num_gpus} if self.num_gpus else {})
+        options: dict[str, Any] = {"max_ongoing_requests": ongoing, "ray_actor_options": actor}
         if self.max_replicas is None:
             options["num_replicas"] = self.replicas
         else:
@@ -168,12 +165,8 @@ def main(argv: list[str] | None = None) -> int:
     overrides = {name: getattr(args, name) for name in ("store_url", "data_dir", "model_dir")}
     settings = Settings(**{name: value for name, value in overrides.items() if value is not None})
     scaling = Scaling(**{field.name: getattr(args, field.name) for field in fields(Scaling)})
-    http_options = {
-        "host": args.host or settings.server.host,
-        "port": args.port or settings.server.port,
-        "request_timeout_s": args.request_timeout_s,
-        "keep_alive_timeout_s": args.keep_alive_timeout_s,
-    }
+    http_options = {"host": args.host or settings.server.host, "port": args.port or settings.server.port}
+    http_options |= {name: getattr(args, name) for name in ("request_timeout_s", "keep_alive_timeout_s")}
     ray.init(address=args.address)
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # as Ctrl-C (ray.init's handler just exits)
     try:

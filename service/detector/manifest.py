@@ -255,12 +255,10 @@ class Manifest(_Strict):
 
     def _object_problems(self) -> list[Problem]:
         names = [o.name for o in self.objects]
+        also = "is also objects[{}].name; object names must be unique"
         duplicates = [
-            (
-                f"objects[{position}].name",
-                f"{name!r} is also objects[{names.index(name)}].name; object names must be unique",
-            )
-            for position, name in _repeats(names)
+            (f"objects[{i}].name", f"{name!r} {also.format(names.index(name))}")
+            for i, name in _repeats(names)
         ]
         if duplicates:  # which object owns a keypoint is ambiguous until these are fixed
             return duplicates
