@@ -68,13 +68,10 @@ def _merge_small_bins(ordered: np.ndarray, edges: np.ndarray, min_instances: int
         smallest = int(np.argmin(counts))
         if counts[smallest] >= min_instances:
             break
-        if smallest == 0:
-            cut = 0
-        elif smallest == len(counts) - 1:
-            cut = smallest - 1
-        else:
-            cut = smallest - 1 if counts[smallest - 1] <= counts[smallest + 1] else smallest
-        del edges[cut]
+        # the cut to drop: left of the smallest bin for the last bin or a smaller left neighbour
+        last = smallest == len(counts) - 1
+        left = last or (smallest > 0 and counts[smallest - 1] <= counts[smallest + 1])
+        del edges[smallest - 1 if left else smallest]
     return np.asarray(edges, dtype=np.float64)
 
 
@@ -119,11 +116,8 @@ class DifficultyBins:
         }
 
     def as_dict(self) -> dict[str, object]:
-        value: dict[str, object] = {"signals": list(self.signals), "edges": list(self.edges)}
-        value["counts"] = list(self.counts)
-        if self.inner_edges:
-            value["inner_edges"] = [list(e) for e in self.inner_edges]
-        return value
+        inner = {"inner_edges": [list(e) for e in self.inner_edges]} if self.inner_edges else {}
+        return {"signals": list(self.signals), "edges": list(self.edges), "counts": list(self.counts)} | inner
 
     @classmethod
     def from_dict(cls, value: Mapping[str, Any]) -> DifficultyBins:
