@@ -113,9 +113,8 @@ class PredictQuery:
 
 @dataclass(frozen=True)
 class Prediction:
-    """The calibrated sets of one request: rows are (instance, keypoint) pairs in the detector's
-    order (``channel``, ``instance_index``), each with its guarantee and the Mondrian stratum that
-    answered (None: pooled); ``poses`` when asked; ``source`` the decoded frame, for a drawing."""
+    """The calibrated sets of one request: (instance, keypoint) rows in the detector's order, each with
+    its guarantee and the Mondrian stratum that answered (None: pooled); ``source``, for a drawing."""
 
     model_name: str
     model_hash: str

@@ -81,9 +81,8 @@ class Calibration:
 
 
 def coverage_guarantee(n: int, epsilon: float, delta: float | None = None) -> CoverageGuarantee:
-    """The rank t (marginal, or PAC when delta is given) and its guarantee for n scores. With
-    delta, t = min(PAC rank, marginal rank): for delta above about 0.37 the PAC rank alone can
-    exceed the marginal one, and 1 - eps would no longer bound the marginal coverage."""
+    """The rank t (marginal, or PAC when delta is given) and its guarantee for n scores; the PAC rank
+    is capped at the marginal one (above it for delta > ~0.37), which 1 - eps must keep bounding."""
     t = conformal_rank(n, epsilon)
     if delta is not None:
         t = min(t, pac_rank(n, epsilon, delta))

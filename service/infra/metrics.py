@@ -275,9 +275,8 @@ def metrics_payload() -> tuple[bytes, str]:
 
 
 def enable_multiprocess(parent: Path) -> Path | None:
-    """Call in the parent before workers start (and import this module): the files go to this
-    process's folder under ``parent``, so another server on the data directory keeps its own sums.
-    Returns it (remove it at exit), or None where it cannot be made: each worker keeps its own."""
+    """Call in the parent before workers start: the files go to (and it returns, to remove at exit)
+    this process's folder under ``parent``, or None where it cannot be made (each worker its own)."""
     folder = process_folder(parent)
     shutil.rmtree(folder, ignore_errors=True)
     try:
