@@ -78,16 +78,12 @@ class ReplicaHeader:
         self._header = (REPLICA_HEADER.lower().encode(), replica.encode())
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self._app(scope, receive, send)
-            return
-
         async def send_named(message: Message) -> None:
             if message["type"] == "http.response.start":
                 message = {**message, "headers": [*message.get("headers", ()), self._header]}
             await send(message)
 
-        await self._app(scope, receive, send_named)
+        await self._app(scope, receive, send_named if scope["type"] == "http" else send)
 
 
 @serve.deployment(name=DEPLOYMENT_NAME)

@@ -107,7 +107,10 @@ def _weight_fields(
     if peak:
         argmax = weights.argmax(axis=1)
         peak_weight = weights[np.arange(weights.shape[0]), argmax]
-        fields.update(_peak(argmax, peak_weight / normalized.totals, width))
+        x, y = pixel_centers(argmax, width)
+        fields.update(
+            peak_location=np.stack([x, y], axis=1), peak_probability=peak_weight / normalized.totals
+        )
     if spread:
         indices = top_k_indices(weights, k)
         fields.update(_spread(indices, np.take_along_axis(weights, indices, axis=1), width))
@@ -147,11 +150,6 @@ def _raw_anchor_fields(
 def _extremes(flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """numpy's min and max of each row, float64 (NaN where a row holds a NaN)."""
     return flat.min(axis=1).astype(np.float64), flat.max(axis=1).astype(np.float64)
-
-
-def _peak(argmax: np.ndarray, probability: np.ndarray, width: int) -> dict[str, np.ndarray]:
-    x, y = pixel_centers(argmax, width)
-    return {"peak_location": np.stack([x, y], axis=1), "peak_probability": probability}
 
 
 def _spread(indices: np.ndarray, top_weights: np.ndarray, width: int) -> dict[str, np.ndarray]:

@@ -100,8 +100,7 @@ class _Tracked:
     """A job of this process: its latest snapshot and what the store last received."""
 
     def __init__(self, job: JobRecord) -> None:
-        self.job = job
-        self.stored = job
+        self.job = self.stored = job
         self.stored_at = self.attempted_at = time.monotonic()
         self.write_lock = threading.Lock()  # one write at a time, so writes land in order
 
@@ -332,9 +331,8 @@ class JobRunner:
         while not self._stop.wait(_TICK_S):
             now = time.monotonic()
             for entry in self._entries():
-                if now - entry.attempted_at < PROGRESS_WRITE_S:
-                    continue
-                if entry.job != entry.stored or now - entry.stored_at >= HEARTBEAT_S:
+                due = entry.job != entry.stored or now - entry.stored_at >= HEARTBEAT_S
+                if due and now - entry.attempted_at >= PROGRESS_WRITE_S:
                     self._write(entry)
             if now - self._swept_at >= SWEEP_S:
                 self._sweep()
