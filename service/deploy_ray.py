@@ -32,9 +32,8 @@ ADMIN_HEADROOM = 4
 
 @dataclass(frozen=True)
 class Scaling:
-    """How many replicas, how big, and how much Serve sends to each (autoscaling with
-    ``max_replicas``); by default Serve sends what a replica's admission holds plus ADMIN_HEADROOM,
-    so the app, not Serve, queues predicts and answers 503 when they are too many."""
+    """How many replicas, how big (autoscaling with ``max_replicas``); Serve sends each what its
+    admission holds plus ADMIN_HEADROOM by default, so the app, not Serve, queues and refuses."""
 
     replicas: int = 2
     min_replicas: int = 1

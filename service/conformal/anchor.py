@@ -30,9 +30,8 @@ def isolated(values: np.ndarray, minimum: np.ndarray) -> np.ndarray:
 
 
 def raw_top_k(flat: np.ndarray, k: int, minimum: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Top-k column indices (N, k) and their weights, selected on the raw values: the top-k of the
-    weights where the returned (N,) flag is True (the caller guarantees 2k <= H*W, so the
-    below-median zeroing never reaches them)."""
+    """Top-k column indices (N, k) and their weights, selected on the raw values: the weights' top-k
+    where the returned (N,) flag is True (the caller guarantees 2k <= H*W)."""
     indices = top_k_indices(flat, k)
     values = np.take_along_axis(flat, indices, axis=1)
     exact = isolated(values.min(axis=1), minimum)

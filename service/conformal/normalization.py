@@ -50,8 +50,7 @@ def normalized_weights(
     heatmaps: np.ndarray, mode: str = "anchor", temperature: float = 1.0, *, skip_anchor_median: bool = False
 ) -> NormalizedHeatmaps:
     """Nonnegative weights and their totals for a (N, H, W) batch. ``skip_anchor_median`` keeps
-    ``anchor``'s below-median values (weights = h - min): only for callers renormalizing the top
-    K <= H*W/2 weights, which all lie at or above the median (the median selection is saved)."""
+    ``anchor``'s below-median values: only for callers renormalizing the top K <= H*W/2 weights."""
     flat = heatmaps.reshape(heatmaps.shape[0], -1)
     finite = np.isfinite(flat).all(axis=1)
     if not finite.all():

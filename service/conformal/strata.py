@@ -77,9 +77,8 @@ def _merge_small_bins(ordered: np.ndarray, edges: np.ndarray, min_instances: int
 
 @dataclass(frozen=True)
 class DifficultyBins:
-    """Bins of one keypoint (within one group): edges on ``signals[0]`` and, for joint bins,
-    edges on ``signals[1]`` within each of those; ``counts``: calibration instances per bin
-    (bins numbered outer-major)."""
+    """Bins of one keypoint (within one group): edges on ``signals[0]`` and, for joint bins, on
+    ``signals[1]`` within each of those; ``counts``: calibration instances per bin, outer-major."""
 
     signals: tuple[str, ...]
     edges: tuple[float, ...]

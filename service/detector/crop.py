@@ -32,9 +32,8 @@ def _squares(boxes: np.ndarray, padding: float) -> tuple[np.ndarray, np.ndarray]
 
 
 def crop_contexts(boxes: np.ndarray, padding: float, width: int, height: int) -> np.ndarray:
-    """The pixels each box's crop is resampled from, ``(N, 4)`` integers ``[x0, y0, x1, y1)``:
-    the crop's square (``crop_affines``), widened by ``CONTEXT_MARGIN_PX`` on every side and
-    clipped to the ``width`` x ``height`` frame. Pixels outside it never reach the crop."""
+    """The pixels each box's crop is resampled from, ``(N, 4)`` integers ``[x0, y0, x1, y1)``: its
+    square widened by ``CONTEXT_MARGIN_PX`` on every side, clipped to the ``width`` x ``height`` frame."""
     centres, sides = _squares(boxes, padding)
     halves = (sides / 2)[:, None]
     low = np.floor(centres - halves).astype(np.int64) - CONTEXT_MARGIN_PX

@@ -87,9 +87,8 @@ def _formatter(log_format: str) -> dict[str, Any]:
 
 
 def uvicorn_log_config(settings: Settings, level: str | None = None) -> dict[str, Any]:
-    """The dictConfig for the service's and uvicorn's loggers (uvicorn.run's ``log_config``);
-    ``level`` overrides ``CKS_LOG_LEVEL``. uvicorn's access log stays off: ``service.access`` writes
-    one line per request instead, with the latency, request id and calibration version."""
+    """The dictConfig of the service's and uvicorn's loggers; ``level`` overrides ``CKS_LOG_LEVEL``.
+    uvicorn's access log stays off: ``service.access`` writes one line per request instead."""
     level = level or settings.logs.level
     stderr = {"class": "logging.StreamHandler", "stream": "ext://sys.stderr", "formatter": "service"}
     return {
