@@ -156,8 +156,7 @@ def image_source(data: bytes, header: ImageHeader, boxes: np.ndarray | None, pad
 def open_frame(
     frame: EncodedFrame, boxes: np.ndarray, padding: float, max_pixels: int, max_bytes: int
 ) -> ImageSource:
-    """Check the frame's regions against the frame, the (checked) boxes and the limits (naming every
-    problem), then decode them."""
+    """Check the frame's regions against the frame, the (checked) boxes and the limits, then decode them."""
     _check_frame_size(frame, max_pixels)
     problems = [problem for region in frame.regions for problem in _placement_problems(frame, region)]
     if not problems:

@@ -55,8 +55,7 @@ class AuditTrail:
         )
 
     def record(self, operator: Operator, action: str, outcome: str, **fields: Any) -> None:
-        """Append one entry on its own (a refusal, a failed job); one the store cannot take now is
-        logged and appended later, never raised."""
+        """Append one entry on its own; one the store cannot take now is logged and appended later."""
         entry = self.entry(operator, action, outcome, **fields)
         try:
             self._store.append_audit(entry)
@@ -103,8 +102,7 @@ class AuditTrail:
                 self._keep_outbox()
 
     def _keep_outbox(self) -> None:
-        """Write the waiting entries to this process's outbox (removed when none wait; the lock is
-        held); a disk that cannot take it leaves them in memory only, said in the log."""
+        """Write the waiting entries to this process's outbox (the lock is held; removed when none wait)."""
         if self._outbox is None:
             return
         try:

@@ -146,8 +146,7 @@ AUDIT_LATEST = _gauge(
 
 
 class ReportCollector(Collector):
-    """Families made at scrape from ``source``'s report (None: none); a failing source skips a scrape,
-    so the other metrics are still served."""
+    """Families made at scrape from ``source``'s report (None: none); a failing source skips a scrape."""
 
     def __init__(self, families: Callable[[Any], list[GaugeMetricFamily]], failed: str) -> None:
         self.source: Callable[[], Any] | None = None
@@ -166,8 +165,7 @@ class ReportCollector(Collector):
 
 @functools.cache
 def drift_process_values() -> Gauge:
-    """``cks_drift_process_values``, made when a drift monitor first shares: a process without
-    one (CKS_DRIFT_ENABLED=false) exports no ``cks_drift_*`` at all."""
+    """``cks_drift_process_values``, made when a drift monitor first shares (none: no ``cks_drift_*``)."""
     return Gauge(
         "cks_drift_process_values",
         "live values this process recorded into its drift windows, as of its last share (one series per"
