@@ -88,33 +88,22 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     from service.calibration.versions import VersionRules, create_version
     from service.infra.audit_trail import AuditTrail, Operator
 
-    names = ("name", "note", "append_to", "activate", "force", "reason", "dedupe", "allow_duplicate")
+    flags = ("activate", "force", "dedupe", "allow_duplicate")
+    names = ("name", "note", "append_to", "reason", "max_rejected_share", *flags)
     stratify = None if args.stratify is None else parse_stratify(args.stratify)
-    options = UploadOptions(
-        **{n: getattr(args, n) for n in names}, max_rejected_share=args.max_rejected_share, stratify=stratify
-    )
+    options = UploadOptions(**{n: getattr(args, n) for n in names}, stratify=stratify)
     detector = _detector(settings)
     with open_store(settings.storage.resolved_url) as store:
-        parent = None
-        if args.append_to is not None:
-            parent = read_parent(store, detector, args.append_to)
-        batches = []
+        parent = None if args.append_to is None else read_parent(store, detector, args.append_to)
+        batches, checks = [], {"dedupe": args.dedupe, "max_rejected_share": options.rejected_share}
         for folder in args.folders:
             if not Path(folder).is_dir():
                 raise InvalidInput(f"{folder} is not a folder (one holding annotations.json and the images)")
             batch = load_coco_batch(Path(folder), detector.manifest, bounded=True)
             named = NamedBatch(name=args.name or Path(folder).name, sha256=batch.sha256, batch=batch)
-            batches.append(
-                check_batch(named, parent, dedupe=args.dedupe, max_rejected_share=options.rejected_share)
-            )
+            batches.append(check_batch(named, parent, **checks))
         total = sum(b.named.batch.count for b in batches)
-        done = 0
-
-        def progress(count: int) -> None:
-            nonlocal done
-            done += count
-            print(f"\rscored {done}/{total} instances", end="", file=sys.stderr, flush=True)
-
+        progress = _progress(lambda done: f"scored {done}/{total} instances")
         rules = VersionRules(settings.predict.max_image_pixels, settings.calibration.min_instances)
         audit = AuditTrail(store, detector.model_hash)
         operator = Operator(args.author, "cli")
@@ -141,13 +130,8 @@ def _predict(args: argparse.Namespace, settings: Settings) -> int:
     from service.serving.loopback import served
 
     image = Path(args.image).read_bytes()
-    options = {
-        "epsilon": args.epsilon,
-        "nonconformity": args.nonconformity,
-        "coverage": args.coverage,
-        "delta": args.delta,
-        "calibration_version": args.calibration_version,
-    }
+    names = ("epsilon", "nonconformity", "coverage", "delta", "calibration_version")
+    options = {name: getattr(args, name) for name in names}
     pose = None if args.pose_k is None else {"K": args.pose_k}
     if pose is not None and args.coverage != "object":
         raise InvalidInput("--pose-k needs --coverage object: only object-scope sets carry a pose guarantee")
@@ -181,14 +165,9 @@ def _evaluate(args: argparse.Namespace, settings: Settings) -> int:
 
     command = shlex.join(["keypoint-service", *args.argv])
     epsilons = tuple(sorted(set(args.epsilon or run.DEFAULT_EPSILONS)))
+    title = args.title or run.DEFAULT_TITLE
     request = run.EvaluationRequest(
-        Path(args.folder),
-        Path(args.out),
-        args.version,
-        epsilons,
-        args.delta,
-        args.title or run.DEFAULT_TITLE,
-        command,
+        Path(args.folder), Path(args.out), args.version, epsilons, args.delta, title, command
     )
     run.require_matplotlib()  # refuse a mistake before a model is loaded for nothing
     run.check_request(request)
@@ -200,19 +179,25 @@ def _evaluate(args: argparse.Namespace, settings: Settings) -> int:
     with open_store(settings.storage.resolved_url) as store:
         if settings.storage.bootstrap_calibration:  # as serve would on its first start
             bootstrap_default_calibration(store, detector, settings.model.directory)
-        done = 0
-
-        def progress(count: int) -> None:
-            nonlocal done
-            done += count
-            print(f"\revaluated {done} instances", end="", file=sys.stderr, flush=True)
-
+        progress = _progress(lambda done: f"evaluated {done} instances")
         evaluation, path = run.run_evaluation(
             request, store, detector, settings.predict.max_image_pixels, progress
         )
     print(file=sys.stderr)
     print(f"wrote {path} (version {evaluation.version.number}, {evaluation.rows.instances} instances)")
     return 0
+
+
+def _progress(line: Callable[[int], str]) -> Callable[[int], None]:
+    """Counts instances done, rewriting one stderr line."""
+    done = 0
+
+    def advance(count: int) -> None:
+        nonlocal done
+        done += count
+        print(f"\r{line(done)}", end="", file=sys.stderr, flush=True)
+
+    return advance
 
 
 def _check_model(args: argparse.Namespace, settings: Settings) -> int:
@@ -317,6 +302,9 @@ Writes OUT/evaluation.md and OUT/figures/*.png (needs the `evaluate` extra: matp
 }
 
 
+_RAW = argparse.RawDescriptionHelpFormatter
+
+
 class _Parser(argparse.ArgumentParser):
     """Reports a usage mistake in one line (and exit status 2) rather than the whole usage."""
 
@@ -327,12 +315,9 @@ class _Parser(argparse.ArgumentParser):
 def _command(
     commands: argparse._SubParsersAction, name: str, summary: str, run: Callable[..., int]
 ) -> argparse.ArgumentParser:
+    epilog = "examples:\n" + EXAMPLES[name]
     command = commands.add_parser(
-        name,
-        help=summary,
-        description=summary,
-        epilog="examples:\n" + EXAMPLES[name],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        name, help=summary, description=summary, epilog=epilog, formatter_class=_RAW
     )
     command.set_defaults(run=run)
     return command
@@ -347,12 +332,7 @@ the command, its input or the settings; 3 the model cannot be served.
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(
-        prog="keypoint-service",
-        description=__doc__,
-        epilog=EXIT_STATUS,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = _Parser(prog="keypoint-service", description=__doc__, epilog=EXIT_STATUS, formatter_class=_RAW)
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 

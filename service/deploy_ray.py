@@ -1,10 +1,7 @@
 """The service as a Ray Serve application: N replicas of the same FastAPI app on one PostgreSQL store.
 
-Each replica builds the app with ``create_app(settings)``; Serve runs its lifespan when the replica
-starts and stops, as uvicorn would. Settings are read once, where the application is built, and
-handed to every replica, so replicas on different nodes cannot drift apart through their
-environment. It lives in the package because every node of a Ray cluster must import it
-(deploy/ray/README.md).
+Settings are read once, where the application is built, and handed to every replica. It lives in the
+package because every node of a Ray cluster must import it (deploy/ray/README.md).
 """
 
 from __future__ import annotations
@@ -29,18 +26,14 @@ from service.serving.app import create_app
 APP_NAME = "keypoints"
 DEPLOYMENT_NAME = "KeypointService"
 REPLICA_HEADER = "X-Replica"
-#: Serve slots of a replica beyond what its admission control holds: health probes and admin
-#: calls are not held back behind predicts
+#: Serve slots of a replica beyond its admission's: probes and admin calls are not held back
 ADMIN_HEADROOM = 4
 
 
 @dataclass(frozen=True)
 class Scaling:
-    """How many replicas, how big, and how much Serve sends to each: with ``max_replicas``, Serve
-    autoscales aiming at ``target_ongoing_requests`` per replica (default the compute slots: scale up
-    once requests wait), else ``replicas`` is fixed. ``max_ongoing_requests`` defaults to what a
-    replica's admission holds plus ADMIN_HEADROOM, so the app, not Serve, queues predicts and
-    answers 503 with Retry-After when they are too many."""
+    """How many replicas, how big (autoscaling with ``max_replicas``); Serve sends each what its
+    admission holds plus ADMIN_HEADROOM by default, so the app, not Serve, queues and refuses."""
 
     replicas: int = 2
     min_replicas: int = 1
@@ -62,12 +55,9 @@ class Scaling:
 
     def deployment_options(self, settings: Settings) -> dict[str, Any]:
         slots = settings.predict.max_concurrent_inferences
-        options: dict[str, Any] = {
-            "max_ongoing_requests": self.max_ongoing_requests
-            or slots + settings.predict.max_queued_requests + ADMIN_HEADROOM,
-            "ray_actor_options": {"num_cpus": self.num_cpus}
-            | ({"num_gpus": self.num_gpus} if self.num_gpus else {}),
-        }
+        ongoing = self.max_ongoing_requests or slots + settings.predict.max_queued_requests + ADMIN_HEADROOM
+        actor = {"num_cpus": self.num_cpus} | ({"num_gpus": self.num_gpus} if self.num_gpus else {})
+        options: dict[str, Any] = {"max_ongoing_requests": ongoing, "ray_actor_options": actor}
         if self.max_replicas is None:
             options["num_replicas"] = self.replicas
         else:
@@ -87,16 +77,12 @@ class ReplicaHeader:
         self._header = (REPLICA_HEADER.lower().encode(), replica.encode())
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self._app(scope, receive, send)
-            return
-
         async def send_named(message: Message) -> None:
             if message["type"] == "http.response.start":
                 message = {**message, "headers": [*message.get("headers", ()), self._header]}
             await send(message)
 
-        await self._app(scope, receive, send_named)
+        await self._app(scope, receive, send_named if scope["type"] == "http" else send)
 
 
 @serve.deployment(name=DEPLOYMENT_NAME)
@@ -174,12 +160,8 @@ def main(argv: list[str] | None = None) -> int:
     overrides = {name: getattr(args, name) for name in ("store_url", "data_dir", "model_dir")}
     settings = Settings(**{name: value for name, value in overrides.items() if value is not None})
     scaling = Scaling(**{field.name: getattr(args, field.name) for field in fields(Scaling)})
-    http_options = {
-        "host": args.host or settings.server.host,
-        "port": args.port or settings.server.port,
-        "request_timeout_s": args.request_timeout_s,
-        "keep_alive_timeout_s": args.keep_alive_timeout_s,
-    }
+    http_options = {"host": args.host or settings.server.host, "port": args.port or settings.server.port}
+    http_options |= {name: getattr(args, name) for name in ("request_timeout_s", "keep_alive_timeout_s")}
     ray.init(address=args.address)
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # as Ctrl-C (ray.init's handler just exits)
     try:

@@ -87,8 +87,7 @@ DISK_FULL = frozenset({errno.ENOSPC, errno.EDQUOT})
 
 @contextmanager
 def disk_full_refused(what: str) -> Iterator[None]:
-    """A write of ``what`` that finds the disk full (or the store's) is a 507; the caller removes
-    what it had written."""
+    """A write of ``what`` that finds the disk full (or the store's) is a 507."""
     try:
         yield
     except OSError as error:

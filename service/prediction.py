@@ -33,8 +33,7 @@ from service.pose import PoseOptions, PoseSets, check_pose_request, estimate_pos
 
 
 def _check_instances(instances: Sequence[Instance], width: int, height: int, limit: int) -> None:
-    """Refuse instances the image cannot answer for, naming each problem (names and numbers were
-    checked by the API's request schema)."""
+    """Refuse instances the image cannot answer for, naming each problem."""
     if len(instances) > limit:
         raise InvalidInput(
             f"{len(instances)} instances in one request; the limit is {limit}: send the rest in another"
@@ -66,9 +65,8 @@ def calibrated_sets(
     all_statistics: bool = False,
     row_thresholds: Callable[[HeatmapStatistics], np.ndarray] | None = None,
 ) -> CalibratedSets:
-    """Apply per-channel thresholds to a detector result and map the sets to the image;
-    ``all_statistics``: every heatmap statistic, not only those ``kind`` needs; ``row_thresholds``
-    (given them): one threshold per row instead (Mondrian strata)."""
+    """Apply per-channel thresholds (or ``row_thresholds``: Mondrian strata) to a detector result and
+    map the sets to the image; ``all_statistics``: every heatmap statistic, not only ``kind``'s."""
     score = get_nonconformity_score(kind)
     options = (heatmap.normalization, heatmap.top_k, heatmap.temperature)
     if all_statistics:
@@ -115,9 +113,8 @@ class PredictQuery:
 
 @dataclass(frozen=True)
 class Prediction:
-    """The calibrated sets of one request: rows are (instance, keypoint) pairs in the detector's
-    order (``channel``, ``instance_index``), each with its guarantee and the Mondrian stratum that
-    answered (None: pooled); ``poses`` when asked; ``source`` the decoded frame, for a drawing."""
+    """The calibrated sets of one request: (instance, keypoint) rows in the detector's order, each with
+    its guarantee and the Mondrian stratum that answered (None: pooled); ``source``, for a drawing."""
 
     model_name: str
     model_hash: str
@@ -160,8 +157,7 @@ class Predictor:
         self, image: bytes | EncodedFrame, query: PredictQuery, whole_image: bool = False
     ) -> Prediction:
         """Decode (``whole_image``: every pixel, for a drawing), check, pick the calibration, infer,
-        calibrate the sets (pooled or per stratum), record drift, estimate poses. Every refusal comes
-        before the model runs, but a stratum that cannot answer (it needs the heatmaps)."""
+        calibrate the sets, record drift, estimate poses; refusals come before the model runs."""
         with self.detector.computing():  # a lone request's run takes every usable core
             manifest = self.detector.manifest
             source = self._source(image, query, whole_image)
@@ -201,8 +197,7 @@ class Predictor:
             return Prediction(*model, source, sets, *rows, guarantees, poses, result.affines)
 
     def _source(self, image: bytes | EncodedFrame, query: PredictQuery, whole_image: bool) -> ImageSource:
-        """The request's pixels, decoded once its instances and regions are checked: of an image
-        file, what its boxes' crops read, or every pixel when ``whole_image``."""
+        """The request's pixels its boxes' crops read (every pixel when ``whole_image``), checked first."""
         manifest = self.detector.manifest
         if isinstance(image, EncodedFrame):
             _check_instances(query.instances, image.width, image.height, self.max_instances)
@@ -213,28 +208,27 @@ class Predictor:
         return image_source(image, header, None if whole_image else query.boxes, manifest.crop.padding)
 
 
+@dataclass
 class _RequestStrata:
     """The Mondrian thresholds of one request's rows, chosen once their heatmap statistics exist."""
 
-    def __init__(
-        self,
-        registry: CalibrationRegistry,
-        version: int,
-        kinds: frozenset[str],
-        query: PredictQuery,
-        result: InstanceHeatmaps,
-        pooled: ChannelThresholds,
-    ) -> None:
-        self._lookup = (registry, version, kinds, query, result, pooled)
-        self._answers: RowAnswers | None = None
+    registry: CalibrationRegistry
+    version: int
+    kinds: frozenset[str]
+    query: PredictQuery
+    result: InstanceHeatmaps
+    pooled: ChannelThresholds
+    _answers: RowAnswers | None = None
 
     def thresholds(self, statistics: HeatmapStatistics) -> np.ndarray:
-        registry, version, kinds, p, result, pooled = self._lookup
-        stratified = registry.stratified(version, kinds, p.nonconformity, p.coverage, p.epsilon, p.delta)
+        p, result, kinds = self.query, self.result, self.kinds
+        stratified = self.registry.stratified(
+            self.version, kinds, p.nonconformity, p.coverage, p.epsilon, p.delta
+        )
         features = heatmap_features(statistics) if DIFFICULTY in kinds else None
         rows = (result.channel, result.instance_index, [p.instances[i].group for i in result.instance_index])
-        pooled_answers = (pooled.values, pooled.guarantees)
-        self._answers = answer_rows(*stratified, pooled_answers, *rows, features, p.group_fallback)
+        pooled = (self.pooled.values, self.pooled.guarantees)
+        self._answers = answer_rows(*stratified, pooled, *rows, features, p.group_fallback)
         return self._answers.values
 
     def guarantees(self) -> list[tuple[CoverageGuarantee, Stratum | None]]:

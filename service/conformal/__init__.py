@@ -1,10 +1,7 @@
 """Conformal keypoint core: numpy, no I/O, vectorized over a batch of heatmaps.
 
-Implements "Conformal Semantic Keypoint Detection with Statistical Guarantees" (Yang & Pavone);
-see DESIGN.md, "Numerics contract". Pixel (row r, col c) has centre (c + 0.5, r + 0.5); points are
-(x, y). Entry points: ``nonconformity_scores`` (calibration), ``conformal_threshold`` (eq. 3,
-``math.inf`` when t = 0), ``prediction_sets`` (centres and shapes L with (y - c)^T L (y - c) <= 1;
-L = 0 unbounded) and ``point_estimates``.
+Implements "Conformal Semantic Keypoint Detection with Statistical Guarantees" (Yang & Pavone); see
+DESIGN.md, "Numerics contract". Pixel (row r, col c) has centre (c + 0.5, r + 0.5); points are (x, y).
 """
 
 from .entry_points import nonconformity_scores, point_estimates, prediction_sets, statistics_for
@@ -20,7 +17,7 @@ from .guarantees import (
     pac_rank,
 )
 from .normalization import normalize_heatmaps
-from .scores import NONCONFORMITY_SCORES, CovScore, get_nonconformity_score
+from .scores import NONCONFORMITY_SCORES, get_nonconformity_score
 from .statistics import HeatmapStatistics, heatmap_statistics
 from .threshold import (
     column_thresholds,
@@ -34,7 +31,6 @@ __all__ = [
     "HEATMAP_FEATURES",
     "heatmap_features",
     "NONCONFORMITY_SCORES",
-    "CovScore",
     "CoverageGuarantee",
     "HeatmapStatistics",
     "ball_radii",

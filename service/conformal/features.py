@@ -1,8 +1,6 @@
-"""Label-free features of each keypoint's heatmap, the same at calibration and prediction: how
-hard a keypoint is without knowing where it is. p* (low when unsure), gamma (the top-K spread, in
-heatmap pixels; large when diffuse) and the anisotropy of the top-K covariance (large when the
-mass is elongated, e.g. along an occluding edge). Stored with every version: the drift monitor's
-reference and the difficulty signal of Mondrian strata.
+"""Label-free features of each keypoint's heatmap, the same at calibration and prediction: p*,
+gamma (the top-K spread) and the anisotropy of the top-K covariance. Stored with every version: the
+drift monitor's reference and the difficulty signal of Mondrian strata.
 """
 
 from __future__ import annotations

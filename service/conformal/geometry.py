@@ -50,10 +50,8 @@ def ellipse_axes(shapes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
         angle = np.degrees(0.5 * np.arctan2(2 * q, p - r)) + 90.0
     angle = np.where(angle > 90.0, angle - 180.0, angle)
     is_point = np.isinf(shapes).any(axis=(1, 2))
-    semi_minor = np.where(is_point, 0.0, semi_minor)
-    semi_major = np.where(is_point, 0.0, semi_major)
-    circle = (half_gap == 0) | is_point
-    return semi_minor, semi_major, np.where(circle, 0.0, angle)
+    semi_minor, semi_major = np.where(is_point, 0.0, [semi_minor, semi_major])
+    return semi_minor, semi_major, np.where((half_gap == 0) | is_point, 0.0, angle)
 
 
 def ball_shapes(radii: np.ndarray) -> np.ndarray:

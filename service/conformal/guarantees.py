@@ -1,12 +1,9 @@
 """Coverage guarantees of Theorem 1 and the calibration-conditional (PAC) rank.
 
-Marginally 1 - eps <= 1 - t/(n+1) = P(cover) <= 1 - eps + 1/(n+1) (eq. 4); conditionally on the
-calibration set, coverage ~ Beta(n+1-t, t) (eq. 5). For integer parameters the Beta CDF is a
-binomial tail, P(Beta(a, b) <= x) = P(Binomial(a+b-1, x) >= a), summed exactly in log space (no
-scipy; stable for n up to 10^6 and beyond). PAC: the largest t with P(Binomial(n, eps) <= t-1)
-<= delta (t = 0 always qualifies), never above the marginal floor((n+1) eps). Every eps and delta
-in (0, 1), subnormals and neighbours of 1 included, has an answer: 1 - p is never formed where it
-would round, and the PAC test is made where the failure probability is exact.
+Marginally 1 - eps <= 1 - t/(n+1) <= 1 - eps + 1/(n+1) (eq. 4); conditionally, coverage ~
+Beta(n+1-t, t) (eq. 5), whose CDF is a binomial tail summed exactly in log space (no scipy). PAC:
+the largest t with P(Binomial(n, eps) <= t-1) <= delta, never above floor((n+1) eps); every eps and
+delta in (0, 1) has an answer (1 - p is never formed where it would round).
 """
 
 from __future__ import annotations
@@ -16,13 +13,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .threshold import (
-    _check_epsilon,
-    column_thresholds,
-    conformal_rank,
-    labeled_counts,
-    threshold_for_rank,
-)
+from .threshold import _check_epsilon, column_thresholds, conformal_rank, labeled_counts, threshold_for_rank
 
 _log_gamma = np.frompyfunc(math.lgamma, 1, 1)
 _TAIL_WIDTH_SD = 40  # terms further than this from the tail's largest term are < e^-800 of it
@@ -67,7 +58,7 @@ class CoverageGuarantee:
     @property
     def pac_failure_probability(self) -> float:
         """P(conditional coverage < 1 - eps) = P(Beta(n+1-t, t) < 1 - eps); 0 when t = 0."""
-        return _pac_failure(self.n, self.t, self.epsilon)
+        return 0.0 if self.t == 0 else binomial_cdf(self.t - 1, self.n, self.epsilon)
 
     @property
     def pac_level(self) -> float | None:
@@ -90,9 +81,8 @@ class Calibration:
 
 
 def coverage_guarantee(n: int, epsilon: float, delta: float | None = None) -> CoverageGuarantee:
-    """The rank t (marginal, or PAC when delta is given) and its guarantee for n scores. With
-    delta, t = min(PAC rank, marginal rank): for delta above about 0.37 the PAC rank alone can
-    exceed the marginal one, and 1 - eps would no longer bound the marginal coverage."""
+    """The rank t (marginal, or PAC when delta is given) and its guarantee for n scores; the PAC rank
+    is capped at the marginal one (above it for delta > ~0.37), which 1 - eps must keep bounding."""
     t = conformal_rank(n, epsilon)
     if delta is not None:
         t = min(t, pac_rank(n, epsilon, delta))
@@ -142,10 +132,6 @@ def beta_cdf(x: float, a: int, b: int) -> float:
 def binomial_cdf(m: int, n: int, p: float) -> float:
     """P(Binomial(n, p) <= m), summing whichever tail is smaller in log space."""
     return math.exp(_log_binomial_tails(m, n, p, 1.0 - p)[0])
-
-
-def _pac_failure(n: int, t: int, epsilon: float) -> float:
-    return 0.0 if t == 0 else binomial_cdf(t - 1, n, epsilon)
 
 
 def _pac_failure_at_most(n: int, t: int, epsilon: float, delta: float) -> bool:

@@ -1,7 +1,6 @@
-"""Exact laws of conformal coverage: the coverage of an ICP set given its calibration set is
-Beta(a, b), a = n+1-t, b = t (Theorem 1), so the points covered among m test points follow
-BetaBinomial(m, a, b): the law an empirical coverage is compared with (the test set's binomial
-noise on top of the Beta spread). Quantiles bisect the exact ``beta_cdf`` (no scipy).
+"""Exact laws of conformal coverage: given its calibration set an ICP set's coverage is Beta(n+1-t, t)
+(Theorem 1), so the points covered among m test points follow BetaBinomial(m, n+1-t, t).
+Quantiles bisect the exact ``beta_cdf`` (no scipy).
 """
 
 from __future__ import annotations

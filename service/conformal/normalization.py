@@ -1,9 +1,8 @@
 """Heatmap normalization: raw detector output -> probability map f(x) over the H*W pixels.
 
-Modes: ``anchor`` (default, the reference ``clean_heatmap``: subtract the minimum, zero below the
-median, divide by the sum), ``softmax`` (``exp(h / temperature)`` over its sum), ``relu`` (clip at
-0, divide by the sum). A degenerate map (normalizer zero or not finite: constant input, NaN,
-infinity) becomes uniform 1/(H*W), the least informative answer (a large set); never NaN.
+Modes: ``anchor`` (the reference ``clean_heatmap``: subtract the minimum, zero below the median,
+divide by the sum), ``softmax`` and ``relu``. A degenerate map (normalizer zero or not finite)
+becomes uniform 1/(H*W), the least informative answer; never NaN.
 """
 
 from __future__ import annotations
@@ -48,15 +47,10 @@ def _checked_shape(heatmaps: np.ndarray) -> np.ndarray:
 
 
 def normalized_weights(
-    heatmaps: np.ndarray,
-    mode: str = "anchor",
-    temperature: float = 1.0,
-    *,
-    skip_anchor_median: bool = False,
+    heatmaps: np.ndarray, mode: str = "anchor", temperature: float = 1.0, *, skip_anchor_median: bool = False
 ) -> NormalizedHeatmaps:
     """Nonnegative weights and their totals for a (N, H, W) batch. ``skip_anchor_median`` keeps
-    ``anchor``'s below-median values (weights = h - min): only for callers renormalizing the top
-    K <= H*W/2 weights, which all lie at or above the median (the median selection is saved)."""
+    ``anchor``'s below-median values: only for callers renormalizing the top K <= H*W/2 weights."""
     flat = heatmaps.reshape(heatmaps.shape[0], -1)
     finite = np.isfinite(flat).all(axis=1)
     if not finite.all():

@@ -28,9 +28,9 @@ class NonconformityScore(ABC):
     def region(self, statistics: HeatmapStatistics, threshold: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Centres (N, 2) and shape matrices (N, 2, 2) of the sets for thresholds (N,)."""
 
-    @abstractmethod
     def point_estimate(self, statistics: HeatmapStatistics) -> np.ndarray:
-        """The detector's point estimate (N, 2): the centre of the set."""
+        """The detector's point estimate (N, 2): the centre of the set (q* or q_bar)."""
+        return (statistics.peak_location if self.needs_peak else statistics.mean).copy()
 
 
 class PeakScore(NonconformityScore):
@@ -46,9 +46,6 @@ class PeakScore(NonconformityScore):
     def region(self, statistics: HeatmapStatistics, threshold: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         base = _identity_times(statistics.peak_probability**2)
         return statistics.peak_location.copy(), _scaled_shapes(base, threshold**2)
-
-    def point_estimate(self, statistics: HeatmapStatistics) -> np.ndarray:
-        return statistics.peak_location.copy()
 
 
 class VarScore(NonconformityScore):
@@ -66,9 +63,6 @@ class VarScore(NonconformityScore):
         base = _identity_times(1.0 / statistics.regularized_variance)
         return statistics.mean.copy(), _scaled_shapes(base, threshold**2)
 
-    def point_estimate(self, statistics: HeatmapStatistics) -> np.ndarray:
-        return statistics.mean.copy()
-
 
 class CovScore(NonconformityScore):
     """(Cov): r = (y - q_bar)^T Sigma^-1 (y - q_bar). Set (ICP-Cov): L = Sigma^-1 / thr."""
@@ -82,9 +76,6 @@ class CovScore(NonconformityScore):
 
     def region(self, statistics: HeatmapStatistics, threshold: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return statistics.mean.copy(), _scaled_shapes(statistics.precision, threshold)
-
-    def point_estimate(self, statistics: HeatmapStatistics) -> np.ndarray:
-        return statistics.mean.copy()
 
 
 NONCONFORMITY_SCORES: dict[str, type[NonconformityScore]] = {

@@ -1,10 +1,8 @@
 """Exact, vectorized top-K selection over the rows of a 2-D array.
 
-``np.argpartition`` on a (N, P) batch costs about a Python loop per row, so ``top_k_indices``
-shrinks each row to the entries above a cutoff guessed from a strided sample, sorts only those
-(SIMD sorts of <= 512 values), and checks that the cutoff kept every entry that could be in the
-top K. Rows where the guess fails or the K-th value is tied take the exact path, so the answer
-never depends on the shortcut. Any real dtype (float32 heatmaps are not converted).
+``np.argpartition`` costs about a Python loop per row, so ``top_k_indices`` keeps each row's entries
+above a cutoff guessed from a strided sample, sorts only those, and checks the cutoff kept the top K;
+rows where the guess fails or the K-th value is tied take the exact path. Any real dtype.
 """
 
 from __future__ import annotations

@@ -1,24 +1,13 @@
-"""Per-heatmap statistics shared by the three nonconformity functions (paper, Sec. 3).
+"""Per-heatmap statistics shared by the three nonconformity functions (paper, Sec. 3): the peak q*
+(centre of the argmax pixel) and p*; over the top-K pixels, weights renormalized to sum 1, the mean
+q_bar, gamma^2 = sum w ||q - q_bar||^2 and Sigma = sum w (q - q_bar)(q - q_bar)^T. Pixel (row r,
+col c) has centre (c + 0.5, r + 0.5); points are (x, y).
 
-- peak: q* (centre of the argmax pixel) and p* = f(x)_pi(1);
-- spread: over the top-K pixels with weights renormalized to sum to 1, the
-  mean q_bar, the variance gamma^2 = sum w ||q - q_bar||^2 and the covariance
-  Sigma = sum w (q - q_bar)(q - q_bar)^T.
-
-Pixel (row r, col c) has centre (c + 0.5, r + 0.5); points are (x, y).
-
-Regularization, applied identically when scoring calibration data and when
-building sets: Sigma gets the smallest ridge that lifts its smallest eigenvalue
-to 1/12 px^2, and gamma^2 is floored at 2/12 px^2. 1/12 is the variance of a
-point uniform over one pixel: a heatmap cannot locate a keypoint more finely
-than its grid, so a smaller spread is an artefact (a single-pixel or
-collinear top-K) that would make Sigma singular and gamma zero. Real spreads
-(several pixels) are left bit-for-bit unchanged.
-
-Uninformative maps (degenerate after normalization, or flat) get the statistics
-of a uniform distribution over the whole heatmap: centre (W/2, H/2),
-p* = 1/(H*W), Sigma = diag(W^2/12, H^2/12). The set is then centred and as
-large as the heatmap allows, never NaN.
+Regularization, identical in calibration and prediction: Sigma gets the smallest ridge lifting its
+smallest eigenvalue to 1/12 px^2 (the variance of a point uniform over one pixel: a heatmap cannot
+locate more finely than its grid), gamma^2 is floored at 2/12 px^2; real spreads are unchanged.
+Uninformative maps (degenerate or flat) get a uniform distribution's statistics: centre (W/2, H/2),
+p* = 1/(H*W), Sigma = diag(W^2/12, H^2/12): the largest set, never NaN.
 """
 
 from __future__ import annotations
@@ -118,7 +107,10 @@ def _weight_fields(
     if peak:
         argmax = weights.argmax(axis=1)
         peak_weight = weights[np.arange(weights.shape[0]), argmax]
-        fields.update(_peak(argmax, peak_weight / normalized.totals, width))
+        x, y = pixel_centers(argmax, width)
+        fields.update(
+            peak_location=np.stack([x, y], axis=1), peak_probability=peak_weight / normalized.totals
+        )
     if spread:
         indices = top_k_indices(weights, k)
         fields.update(_spread(indices, np.take_along_axis(weights, indices, axis=1), width))
@@ -160,11 +152,6 @@ def _extremes(flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return flat.min(axis=1).astype(np.float64), flat.max(axis=1).astype(np.float64)
 
 
-def _peak(argmax: np.ndarray, probability: np.ndarray, width: int) -> dict[str, np.ndarray]:
-    x, y = pixel_centers(argmax, width)
-    return {"peak_location": np.stack([x, y], axis=1), "peak_probability": probability}
-
-
 def _spread(indices: np.ndarray, top_weights: np.ndarray, width: int) -> dict[str, np.ndarray]:
     """Mean and covariance of the pixel centres of ``indices`` (N, k, ascending) under the weights."""
     probabilities = top_weights / top_weights.sum(axis=-1)[:, None]
@@ -173,12 +160,8 @@ def _spread(indices: np.ndarray, top_weights: np.ndarray, width: int) -> dict[st
     dx, dy = x - mean_x[:, None], y - mean_y[:, None]
     weighted_dx, weighted_dy = probabilities * dx, probabilities * dy
     sxx, sxy, syy = np.stack([weighted_dx * dx, weighted_dx * dy, weighted_dy * dy]).sum(axis=-1)
-    return _spread_fields(np.stack([mean_x, mean_y, sxx, sxy, syy], axis=1))
-
-
-def _spread_fields(spread: np.ndarray) -> dict[str, np.ndarray]:
-    """Mean (N, 2) and covariance (N, 2, 2) from the columns (mean x, mean y, Sxx, Sxy, Syy)."""
-    return {"mean": spread[:, :2].copy(), "covariance": spread[:, [2, 3, 3, 4]].reshape(-1, 2, 2)}
+    covariance = np.stack([sxx, sxy, sxy, syy], axis=1).reshape(-1, 2, 2)
+    return {"mean": np.stack([mean_x, mean_y], axis=1), "covariance": covariance}
 
 
 def _use_uniform_statistics(

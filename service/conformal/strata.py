@@ -1,17 +1,11 @@
 """Mondrian (group-conditional) conformal thresholds: one ICP threshold per stratum.
 
-A Mondrian taxonomy (Vovk et al., "Mondrian confidence machine", 2003; "Algorithmic Learning in a
-Random World", sec. 4.5) maps each example to a category known at prediction time. Eq. (3) on the
-n_g scores of one category alone gives, by Theorem 1 inside it (exchangeable within it),
-1 - eps <= P(cover | category) <= 1 - eps + 1/(n_g + 1) for every category at once. A stratum of
-one keypoint is a caller group (a camera, a site), a difficulty bin of a label-free heatmap signal
-(``features``), or the bin within the group.
-
-Difficulty bins are quantile bins of the signal over the keypoint's labeled calibration instances,
-at least ``min_instances`` each (bounded down to eps = 1/(min_instances + 1)); two signals make
-joint bins (bins of the second within each of the first). The edges use the features, never the
-labels: the guarantee is exact for edges fixed beforehand, and the deviation from fitting them on
-the same n instances vanishes as n grows.
+Eq. (3) on the n_g scores of one category known at prediction time gives, by Theorem 1 within it,
+1 - eps <= P(cover | category) <= 1 - eps + 1/(n_g + 1) for every category at once (Vovk et al.,
+"Algorithmic Learning in a Random World", sec. 4.5). A stratum is a caller group, a difficulty bin
+of a label-free heatmap signal, or the bin within the group. Difficulty bins are quantile bins of
+the signal over the labeled calibration instances, at least ``min_instances`` each; two signals make
+joint bins. The edges use the features, never the labels.
 """
 
 from __future__ import annotations
@@ -74,21 +68,17 @@ def _merge_small_bins(ordered: np.ndarray, edges: np.ndarray, min_instances: int
         smallest = int(np.argmin(counts))
         if counts[smallest] >= min_instances:
             break
-        if smallest == 0:
-            cut = 0
-        elif smallest == len(counts) - 1:
-            cut = smallest - 1
-        else:
-            cut = smallest - 1 if counts[smallest - 1] <= counts[smallest + 1] else smallest
-        del edges[cut]
+        # the cut to drop: left of the smallest bin for the last bin or a smaller left neighbour
+        last = smallest == len(counts) - 1
+        left = last or (smallest > 0 and counts[smallest - 1] <= counts[smallest + 1])
+        del edges[smallest - 1 if left else smallest]
     return np.asarray(edges, dtype=np.float64)
 
 
 @dataclass(frozen=True)
 class DifficultyBins:
-    """Bins of one keypoint (within one group): edges on ``signals[0]`` and, for joint bins,
-    edges on ``signals[1]`` within each of those; ``counts``: calibration instances per bin
-    (bins numbered outer-major)."""
+    """Bins of one keypoint (within one group): edges on ``signals[0]`` and, for joint bins, on
+    ``signals[1]`` within each of those; ``counts``: calibration instances per bin, outer-major."""
 
     signals: tuple[str, ...]
     edges: tuple[float, ...]
@@ -125,11 +115,8 @@ class DifficultyBins:
         }
 
     def as_dict(self) -> dict[str, object]:
-        value: dict[str, object] = {"signals": list(self.signals), "edges": list(self.edges)}
-        value["counts"] = list(self.counts)
-        if self.inner_edges:
-            value["inner_edges"] = [list(e) for e in self.inner_edges]
-        return value
+        inner = {"inner_edges": [list(e) for e in self.inner_edges]} if self.inner_edges else {}
+        return {"signals": list(self.signals), "edges": list(self.edges), "counts": list(self.counts)} | inner
 
     @classmethod
     def from_dict(cls, value: Mapping[str, Any]) -> DifficultyBins:

@@ -1,8 +1,7 @@
 """The ICP threshold of eq. (3): alpha_(t), t = floor((n+1) eps), scores sorted nonincreasingly.
 
-t = 0 means no score is large enough to exclude anything: the set is the whole plane and the
-threshold ``math.inf`` (the reference code indexes alpha_(-1) there, silently breaking the
-guarantee). NaN scores are unlabeled keypoints, left out of n; +inf scores are kept.
+t = 0: the set is the whole plane, threshold ``math.inf`` (the reference code indexes alpha_(-1)
+there). NaN scores are unlabeled keypoints, left out of n; +inf scores are kept.
 """
 
 from __future__ import annotations

@@ -16,24 +16,26 @@ CONTEXT_MARGIN_PX = 2
 def crop_affines(boxes: np.ndarray, padding: float, size: tuple[int, int]) -> np.ndarray:
     """Image -> crop affines ``(N, 2, 3)`` for boxes ``[x, y, w, h]``: a square centred on the box,
     side ``max(w, h) * (1 + padding)``, resized to ``size = (height, width)``."""
-    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
-    centres = boxes[:, :2] + boxes[:, 2:] / 2
-    sides = np.maximum(boxes[:, 2], boxes[:, 3]) * (1.0 + padding)
+    centres, sides = _squares(boxes, padding)
     height, width = size
-    affines = np.zeros((len(boxes), 2, 3))
+    affines = np.zeros((len(sides), 2, 3))
     affines[:, 0, 0] = width / sides
     affines[:, 1, 1] = height / sides
     affines[:, :, 2] = np.stack([width / 2.0, height / 2.0]) - affines[:, [0, 1], [0, 1]] * centres
     return affines
 
 
-def crop_contexts(boxes: np.ndarray, padding: float, width: int, height: int) -> np.ndarray:
-    """The pixels each box's crop is resampled from, ``(N, 4)`` integers ``[x0, y0, x1, y1)``:
-    the crop's square (``crop_affines``), widened by ``CONTEXT_MARGIN_PX`` on every side and
-    clipped to the ``width`` x ``height`` frame. Pixels outside it never reach the crop."""
+def _squares(boxes: np.ndarray, padding: float) -> tuple[np.ndarray, np.ndarray]:
+    """Centres (N, 2) and sides (N,) of the boxes' square crops."""
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
-    centres = boxes[:, :2] + boxes[:, 2:] / 2
-    halves = (np.maximum(boxes[:, 2], boxes[:, 3]) * (1.0 + padding) / 2)[:, None]
+    return boxes[:, :2] + boxes[:, 2:] / 2, np.maximum(boxes[:, 2], boxes[:, 3]) * (1.0 + padding)
+
+
+def crop_contexts(boxes: np.ndarray, padding: float, width: int, height: int) -> np.ndarray:
+    """The pixels each box's crop is resampled from, ``(N, 4)`` integers ``[x0, y0, x1, y1)``: its
+    square widened by ``CONTEXT_MARGIN_PX`` on every side, clipped to the ``width`` x ``height`` frame."""
+    centres, sides = _squares(boxes, padding)
+    halves = (sides / 2)[:, None]
     low = np.floor(centres - halves).astype(np.int64) - CONTEXT_MARGIN_PX
     high = np.ceil(centres + halves).astype(np.int64) + CONTEXT_MARGIN_PX
     size = np.array([width, height])

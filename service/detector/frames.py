@@ -1,11 +1,8 @@
 """Image sources: a whole frame, or regions of one, in full-frame pixel coordinates.
 
-The detector asks its source for each box's crop (``ImageSource.crops``). A region is resampled
-through the very affine the whole frame would be, from a frame-sized canvas holding the region's
-pixels at their place and zeros elsewhere: the resampling reads only the box's crop context,
-which the region is checked to cover, so every answer is byte-identical to the whole frame's
-(resampling the region through a shifted affine is not: rounding depends on absolute coordinates).
-The canvas's untouched pages stay the kernel's zero pages. Sizes are checked before any decode.
+A region is resampled through the very affine the whole frame would be, from a frame-sized canvas
+holding its pixels at their place (zeros elsewhere): answers are byte-identical to the whole
+frame's, since the resampling reads only the box's crop context, which the region must cover.
 """
 
 from __future__ import annotations
@@ -37,8 +34,7 @@ _canvases = threading.local()
 
 @dataclass(frozen=True)
 class EncodedRegion:
-    """A rectangle of a frame as sent (ROS RegionOfInterest), its pixels' encoding and bytes, and
-    the instances whose crops it serves (None: all)."""
+    """A rectangle of a frame as sent (ROS RegionOfInterest) and the instances it serves (None: all)."""
 
     x_offset: int
     y_offset: int
@@ -78,8 +74,7 @@ class EncodedFrame:
 
 @dataclass(frozen=True)
 class Region:
-    """Decoded pixels of a frame's rectangle: gray, BGR, or RGB when ``rgb`` (raw rgb8, reordered in
-    the crops: reordering commutes with the resampling)."""
+    """Decoded pixels of a frame's rectangle: gray, BGR, or RGB when ``rgb`` (reordered in the crops)."""
 
     x_offset: int
     y_offset: int
@@ -125,9 +120,8 @@ class ImageSource:
 
     @contextmanager
     def _placed(self, region: Region) -> Iterator[np.ndarray]:
-        """The region's pixels at their place in a frame of zeros (the region itself when it is the
-        whole frame), on the thread's canvas, zeroed again after use: a fresh one would pay a page
-        fault per row the region touches."""
+        """The region's pixels at their place in a frame of zeros, on the thread's canvas (zeroed again
+        after use: a fresh one would pay a page fault per row the region touches)."""
         if self._is_whole(region):
             yield region.pixels
             return
@@ -145,9 +139,8 @@ class ImageSource:
 
 
 def image_source(data: bytes, header: ImageHeader, boxes: np.ndarray | None, padding: float) -> ImageSource:
-    """An image file's pixels (``header`` checked) that the crops of ``boxes`` read: of a JPEG, one
-    window around their crop contexts (the rest not decoded); the whole image for a PNG, a CMYK
-    JPEG, or where ``boxes`` is None (a drawing of the sets needs every pixel)."""
+    """An image file's pixels that the crops of ``boxes`` read: of a JPEG, one window around their
+    crop contexts; the whole image for a PNG, a CMYK JPEG, or where ``boxes`` is None."""
     window = None
     if boxes is not None and len(boxes):
         contexts = crop_contexts(boxes, padding, header.width, header.height)
@@ -163,9 +156,7 @@ def image_source(data: bytes, header: ImageHeader, boxes: np.ndarray | None, pad
 def open_frame(
     frame: EncodedFrame, boxes: np.ndarray, padding: float, max_pixels: int, max_bytes: int
 ) -> ImageSource:
-    """Check the frame's regions against the frame, the (checked) boxes and the limits, then decode
-    them: ``PayloadTooLarge`` above the limits, ``InvalidInput`` naming every region outside the
-    frame, disagreeing with its bytes, or missing a margin of a box it serves."""
+    """Check the frame's regions against the frame, the (checked) boxes and the limits, then decode them."""
     _check_frame_size(frame, max_pixels)
     problems = [problem for region in frame.regions for problem in _placement_problems(frame, region)]
     if not problems:
@@ -285,8 +276,7 @@ def _check_budget(frame: EncodedFrame, max_bytes: int) -> None:
 
 
 def _decoded_size(region: EncodedRegion) -> int:
-    channels = RAW_CHANNELS.get(region.encoding)
-    if channels is not None:
+    if channels := RAW_CHANNELS.get(region.encoding):
         return region.width * region.height * channels
     return decoded_bytes(region.data, read_image_header(region.data))
 
@@ -298,5 +288,4 @@ def _decoded(region: EncodedRegion, max_pixels: int, max_bytes: int | None) -> R
     else:
         shape = (region.height, region.width) if channels == 1 else (region.height, region.width, channels)
         pixels = np.frombuffer(region.data, dtype=np.uint8).reshape(shape)
-    rgb = region.encoding == "rgb8"
-    return Region(region.x_offset, region.y_offset, pixels, rgb, region.instances)
+    return Region(region.x_offset, region.y_offset, pixels, region.encoding == "rgb8", region.instances)

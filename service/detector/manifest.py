@@ -1,15 +1,11 @@
-"""The model manifest: everything the service needs to know about an ONNX heatmap detector.
-
-A model is a directory holding ``model.onnx`` and ``manifest.json`` (input tensor, crop rule,
-heatmap output, keypoints and their objects, normalization; docs/bring-your-own-model.md).
-Validation refuses what would be served wrongly or silently ignored (duplicate names, a ``top_k``
-larger than the heatmap, options without effect together), each problem as ``<field path>: <what
-to do>``, gathered in one ``ManifestError`` naming the file. Paths into ``keypoints`` count in the
-file's order while that list is checked, in index order afterwards.
+"""The model manifest: everything the service needs to know about an ONNX heatmap detector
+(docs/bring-your-own-model.md). Validation gathers every problem, as ``<field path>: <what to do>``,
+in one ``ManifestError`` naming the file.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 from collections.abc import Iterable
 from pathlib import Path
@@ -35,8 +31,7 @@ class ManifestError(ValueError):
 
 
 def _refuse(problems: list[Problem]) -> None:
-    """Raise a validator's problems as one ValueError, a ``path: message`` line each (paths
-    relative to the model; ``validate_manifest`` prefixes the model's location)."""
+    """Raise a validator's problems as one ValueError, a ``path: message`` line each (relative paths)."""
     if problems:
         raise ValueError("\n".join(f"{field}: {message}" for field, message in problems))
 
@@ -45,16 +40,18 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
+def _input_side(side: str) -> Any:
+    return Field(
+        gt=0, le=4096, description=f"input {side} in pixels; the square crop is resized to height x width"
+    )
+
+
 class InputSpec(_Strict):
     """The network input: ``(pixel / scale - mean) / std`` per channel, in ``color`` order, NCHW."""
 
     name: str = Field(min_length=1, description="name of the ONNX graph input that takes the image batch")
-    height: int = Field(
-        gt=0, le=4096, description="input height in pixels; the square crop is resized to height x width"
-    )
-    width: int = Field(
-        gt=0, le=4096, description="input width in pixels; the square crop is resized to height x width"
-    )
+    height: int = _input_side("height")
+    width: int = _input_side("width")
     layout: Literal["NCHW"] = Field(
         default="NCHW", description="tensor layout: batch, channels, height, width (the only one supported)"
     )
@@ -163,8 +160,7 @@ class ObjectSpec(_Strict):
     """One object class: its keypoints' channels, in the order of its COCO keypoint annotations."""
 
     name: str = Field(
-        min_length=1,
-        description="unique object name; predict instances and COCO category names refer to it",
+        min_length=1, description="unique object name; predict instances and COCO category names refer to it"
     )
     keypoints: tuple[Annotated[int, Field(ge=0)], ...] = Field(
         min_length=1,
@@ -259,12 +255,10 @@ class Manifest(_Strict):
 
     def _object_problems(self) -> list[Problem]:
         names = [o.name for o in self.objects]
+        also = "is also objects[{}].name; object names must be unique"
         duplicates = [
-            (
-                f"objects[{position}].name",
-                f"{name!r} is also objects[{names.index(name)}].name; object names must be unique",
-            )
-            for position, name in _repeats(names)
+            (f"objects[{i}].name", f"{name!r} {also.format(names.index(name))}")
+            for i, name in _repeats(names)
         ]
         if duplicates:  # which object owns a keypoint is ambiguous until these are fixed
             return duplicates
@@ -348,13 +342,8 @@ class Manifest(_Strict):
 
 def _repeats(values: Iterable[Any]) -> list[tuple[int, Any]]:
     """(position, value) of every value already seen earlier in ``values``."""
-    seen: set[Any] = set()
-    repeats = []
-    for position, value in enumerate(values):
-        if value in seen:
-            repeats.append((position, value))
-        seen.add(value)
-    return repeats
+    values = list(values)
+    return [(position, value) for position, value in enumerate(values) if value in values[:position]]
 
 
 def validate_manifest(data: Any, source: Path | str) -> Manifest:
@@ -405,10 +394,7 @@ def _problems(error: ValidationError) -> list[Problem]:
 
 
 def _path(loc: tuple[int | str, ...]) -> str:
-    path = ""
-    for part in loc:
-        path = _join(path, f"[{part}]" if isinstance(part, int) else str(part))
-    return path
+    return functools.reduce(_join, (f"[{part}]" if isinstance(part, int) else str(part) for part in loc), "")
 
 
 def _join(path: str, relative: str) -> str:

@@ -1,12 +1,8 @@
 """The audit trail: every administrative action, who did it, from where and why.
 
-Entries go to the store's append-only audit table and to the log (``audit action=... outcome=...
-who=...``). An entry about a stored change is written in the change's transaction; a refusal is
-appended on its own before the answer or, when the store cannot take it, logged at once and
-appended once it can. Entries waiting for the store are also kept in this process's outbox file
-(``<outbox>/<host>--<pid>.jsonl``), which the next process of this host to start adopts when this
-one stopped: never lost (one stored just before a crash may be appended twice); another host's
-outbox is never adopted.
+Entries go to the store's append-only audit table and to the log. An entry about a stored change is
+written in the change's transaction; one the store cannot take now is logged at once, kept in this
+process's outbox file (adopted by the next process of this host to start) and appended once it can.
 """
 
 from __future__ import annotations
@@ -51,32 +47,15 @@ class AuditTrail:
         if outbox is not None:
             self._adopt(outbox)
 
-    def entry(
-        self,
-        operator: Operator,
-        action: str,
-        outcome: str,
-        *,
-        version: int | None = None,
-        previous_version: int | None = None,
-        reason: str = "",
-        details: dict[str, Any] | None = None,
-    ) -> NewAuditEntry:
+    def entry(self, operator: Operator, action: str, outcome: str, **fields: Any) -> NewAuditEntry:
+        """``fields``: NewAuditEntry's version, previous_version, reason and details."""
+        fields["details"] = fields.get("details") or {}
         return NewAuditEntry(
-            model_hash=self._model_hash,
-            who=operator.name,
-            action=action,
-            outcome=outcome,
-            version=version,
-            previous_version=previous_version,
-            reason=reason,
-            client=operator.client,
-            details=details or {},
+            self._model_hash, operator.name, action, outcome, client=operator.client, **fields
         )
 
     def record(self, operator: Operator, action: str, outcome: str, **fields: Any) -> None:
-        """Append one entry on its own (a refusal, a failed job); one the store cannot take now is
-        logged and appended later, never raised."""
+        """Append one entry on its own; one the store cannot take now is logged and appended later."""
         entry = self.entry(operator, action, outcome, **fields)
         try:
             self._store.append_audit(entry)
@@ -123,8 +102,7 @@ class AuditTrail:
                 self._keep_outbox()
 
     def _keep_outbox(self) -> None:
-        """Write the waiting entries to this process's outbox (removed when none wait; the lock is
-        held); a disk that cannot take it leaves them in memory only, said in the log."""
+        """Write the waiting entries to this process's outbox (the lock is held; removed when none wait)."""
         if self._outbox is None:
             return
         try:

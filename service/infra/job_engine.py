@@ -1,18 +1,12 @@
-"""The job engine: background jobs on this process's worker threads (``JobRunner``), their state
-in the store's job table, so that any process of any replica answers for any job (calibration
-uploads, coverage audits; it knows nothing of what a job does).
+"""The job engine: background jobs on this process's worker threads (``JobRunner``), their state in
+the store's job table, so that any process of any replica answers for any job.
 
-- the row is created before the upload's 202; state changes are written at once (the final one
-  retried, then kept in memory and retried by the writer thread until it lands);
-- progress is written by one writer thread at most every PROGRESS_WRITE_S per job, so a job never
-  waits on the store; every write refreshes the heartbeat, at least every HEARTBEAT_S;
-- an unfinished job silent for over STALE_AFTER is reported interrupted (its process stopped;
-  a job's result is written in the transaction that marks it succeeded, so it stored nothing);
-- every SWEEP_S such a job is offered to the takeover of its kind (``on_stale``), which runs it
-  again where its input is readable (marking the stale row finished first); one nobody took over
-  within TAKEOVER_GRACE is stored interrupted, as reported; a finished job never changes;
-- at shutdown unfinished jobs are marked interrupted at once, not waited for, and a running one
-  stops at its next progress report (``JobCancelled``).
+Progress is written by one writer thread (at most every PROGRESS_WRITE_S, a heartbeat at least
+every HEARTBEAT_S). An unfinished job silent for over STALE_AFTER is reported interrupted (a job's
+result is written in the transaction that marks it succeeded, so it stored nothing) and offered to
+the takeover of its kind; one nobody took over within TAKEOVER_GRACE is stored interrupted. At
+shutdown unfinished jobs are marked interrupted at once; a running one stops at its next progress
+report (``JobCancelled``).
 """
 
 from __future__ import annotations
@@ -106,14 +100,9 @@ class _Tracked:
     """A job of this process: its latest snapshot and what the store last received."""
 
     def __init__(self, job: JobRecord) -> None:
-        self.job = job
-        self.stored = job
+        self.job = self.stored = job
         self.stored_at = self.attempted_at = time.monotonic()
         self.write_lock = threading.Lock()  # one write at a time, so writes land in order
-
-    @property
-    def dirty(self) -> bool:
-        return self.job != self.stored
 
 
 class JobProgress:
@@ -158,8 +147,7 @@ class JobRunner:
         job_id: str | None = None,
         audit: Sequence[NewAuditEntry] = (),
     ) -> JobRecord:
-        """Store a queued job with the ``audit`` entries that accept it (one transaction) and queue
-        it; Unavailable if the store cannot take them."""
+        """Store a queued job with the ``audit`` entries that accept it (one transaction), and queue it."""
         now = datetime.now(UTC)
         job = JobRecord(
             job_id or new_job_id(), kind, self._owner, created_at=now, heartbeat_at=now, total=total
@@ -182,15 +170,13 @@ class JobRunner:
         return job
 
     def on_stale(self, kind: str, take_over: Takeover | None) -> None:
-        """Look after stale jobs of ``kind``: ``take_over(job)`` runs one again here when this process
-        can read its input (True) or says it cannot (False); None: no process can."""
+        """Look after stale jobs of ``kind`` with ``take_over`` (None: no process can)."""
         with self._lock:
             self._takeovers[kind] = take_over
 
     def get(self, job_id: str) -> JobRecord | None:
         """The stored job, whichever process runs it (None if unknown or pruned); one this process runs
-        as it knows it, alive now, when the store lacks its latest state (else it would read
-        interrupted while the store cannot write)."""
+        as it knows it, alive now, when the store lacks its latest state."""
         own = self._snapshot(job_id)
         try:
             job = self._store.get_job(job_id)
@@ -208,8 +194,7 @@ class JobRunner:
             return None if entry is None else entry.job
 
     def shutdown(self) -> None:
-        """Stop without waiting for jobs: each unfinished one is marked interrupted at once (its upload
-        kept for a retry), a running one stops at its next image; then what is left is written."""
+        """Stop without waiting for jobs: unfinished ones are marked interrupted at once."""
         self._stopping.set()
         self._pool.shutdown(wait=False, cancel_futures=True)
         unfinished = [entry.job for entry in self._entries() if not entry.job.finished]
@@ -305,8 +290,7 @@ class JobRunner:
             return list(self._tracked.values())
 
     def _change(self, job_id: str, change: Callable[[JobRecord], JobRecord]) -> _Tracked | None:
-        """Apply ``change`` to a tracked job's snapshot and return its entry; None when the job is
-        not tracked or finished (a finished job never changes)."""
+        """Apply ``change`` to a tracked, unfinished job's snapshot and return its entry, else None."""
         with self._lock:
             entry = self._tracked.get(job_id)
             if entry is None or entry.job.finished:
@@ -347,9 +331,8 @@ class JobRunner:
         while not self._stop.wait(_TICK_S):
             now = time.monotonic()
             for entry in self._entries():
-                if now - entry.attempted_at < PROGRESS_WRITE_S:
-                    continue
-                if entry.dirty or now - entry.stored_at >= HEARTBEAT_S:
+                due = entry.job != entry.stored or now - entry.stored_at >= HEARTBEAT_S
+                if due and now - entry.attempted_at >= PROGRESS_WRITE_S:
                     self._write(entry)
             if now - self._swept_at >= SWEEP_S:
                 self._sweep()
@@ -357,8 +340,7 @@ class JobRunner:
     # -- stale jobs of stopped processes --------------------------------------------
 
     def _sweep(self) -> None:
-        """Offer stale jobs of the kinds looked after to their takeover; store interrupted those nobody
-        took over within TAKEOVER_GRACE (at once when nobody can)."""
+        """Offer stale jobs to their kind's takeover; store interrupted those nobody took over."""
         with self._lock:
             takeovers = dict(self._takeovers)
         if not takeovers or self._stopping.is_set():  # a stopping process starts no job
@@ -383,10 +365,10 @@ class JobRunner:
         try:
             taken = take_over(job)
         except Exception as error:  # e.g. taken over by another process meanwhile
-            log.warning(f"job {job.id} ({job.kind}) of stopped process {job.owner} not taken over: {error}")
+            log.warning("job %s (%s) of stopped process %s not taken over: %s", *_named(job), error)
             return False
         if taken:
-            log.info("job %s (%s) of stopped process %s taken over", job.id, job.kind, job.owner)
+            log.info("job %s (%s) of stopped process %s taken over", *_named(job))
         return taken
 
     def _store_interrupted(self, job: JobRecord, now: datetime, takeover_possible: bool) -> None:
@@ -405,13 +387,14 @@ class JobRunner:
             return
         except StoreError as error:
             log.warning(
-                f"job {job.id} of stopped process {job.owner} could not be stored interrupted: {error}"
+                "job %s (%s) of stopped process %s could not be stored interrupted: %s", *_named(job), error
             )
             return
-        log.info(
-            f"job {job.id} ({job.kind}) of stopped process {job.owner} stored interrupted: nobody took it"
-            " over"
-        )
+        log.info("job %s (%s) of stopped process %s stored interrupted: nobody took it over", *_named(job))
+
+
+def _named(job: JobRecord) -> tuple[str, str, str]:
+    return job.id, job.kind, job.owner
 
 
 def new_job_id() -> str:

@@ -1,11 +1,7 @@
 """Logging: one format for the service's lines and uvicorn's, text or JSON, with the request id.
 
-``uvicorn_log_config`` is the dictConfig of every logger that matters (one stderr handler on the
-root, ``CKS_LOG_FORMAT``, ``CKS_LOG_LEVEL``): ``keypoint-service`` applies it and hands it to
-uvicorn; a server started otherwise gets it from ``ensure_logging`` unless its process configured
-the root logger itself. A filter puts the id of the request being handled (a context variable) on
-every record: ``request_id`` in JSON, ``[id]`` in text; work handed to another thread keeps it only
-in a copy of the request's context (``run_in_threadpool`` does this).
+``uvicorn_log_config`` configures every logger that matters (one stderr handler on the root); a
+filter puts the id of the request being handled (a context variable) on every record.
 """
 
 from __future__ import annotations
@@ -91,23 +87,16 @@ def _formatter(log_format: str) -> dict[str, Any]:
 
 
 def uvicorn_log_config(settings: Settings, level: str | None = None) -> dict[str, Any]:
-    """The dictConfig for the service's and uvicorn's loggers (uvicorn.run's ``log_config``);
-    ``level`` overrides ``CKS_LOG_LEVEL``. uvicorn's access log stays off: ``service.access`` writes
-    one line per request instead, with the latency, request id and calibration version."""
+    """The dictConfig of the service's and uvicorn's loggers; ``level`` overrides ``CKS_LOG_LEVEL``.
+    uvicorn's access log stays off: ``service.access`` writes one line per request instead."""
     level = level or settings.logs.level
+    stderr = {"class": "logging.StreamHandler", "stream": "ext://sys.stderr", "formatter": "service"}
     return {
         "version": 1,
         "disable_existing_loggers": False,
         "filters": {"request_id": {"()": RequestIdFilter}},
         "formatters": {"service": _formatter(settings.logs.format)},
-        "handlers": {
-            "stderr": {
-                "class": "logging.StreamHandler",
-                "stream": "ext://sys.stderr",
-                "formatter": "service",
-                "filters": ["request_id"],
-            }
-        },
+        "handlers": {"stderr": stderr | {"filters": ["request_id"]}},
         "root": {"handlers": ["stderr"], "level": "WARNING"},
         "loggers": {
             # handlers []: uvicorn's own (from its default config) are dropped, lines go to the root's
@@ -125,8 +114,7 @@ def configure_logging(settings: Settings, level: str | None = None) -> None:
 
 
 def ensure_logging(settings: Settings) -> None:
-    """Configure logging unless the process already did (``keypoint-service``, a ``--log-config``
-    of uvicorn that sets up the root logger, a host application)."""
+    """Configure logging unless the process already did (a ``--log-config`` of uvicorn, a host)."""
     if not logging.getLogger().handlers:
         configure_logging(settings)
 

@@ -1,13 +1,9 @@
 """Prometheus metrics: requests, inference batches, admission, calibration jobs, coverage audits,
 and the drift of live heatmap features (``cks_drift_*``, computed when scraped).
 
-With several workers ``serve`` points prometheus_client's multiprocess mode at a folder before they
-start, and ``/metrics`` reports the sum over all of them (gauges of live workers only); the
-``cks_drift_*`` gauges are already the fleet's (workers and replicas merge their windows through
-the store), so Prometheus takes their max. Those files are memory-mapped: a page the file system
-cannot give kills the process with SIGBUS, so each file's pages are reserved (``posix_fallocate``)
-before they are mapped; on a full disk that fails with ENOSPC instead, and the worker keeps its
-new series in its own memory (logged once) while it goes on serving.
+With several workers, prometheus_client's multiprocess mode sums them. Its files are memory-mapped:
+a page the file system cannot give kills the process with SIGBUS, so pages are reserved
+(``posix_fallocate``) first; on a full disk the worker keeps new series in its own memory.
 """
 
 from __future__ import annotations
@@ -100,99 +96,76 @@ if os.environ.get(MULTIPROCESS_ENV) and getattr(values.ValueClass, "_multiproces
 
 REGISTRY = CollectorRegistry(auto_describe=True)
 
-REQUESTS = Counter(
-    "cks_http_requests", "HTTP requests by route and status", ["method", "route", "status"], registry=REGISTRY
-)
-LATENCY = Histogram(
-    "cks_http_request_seconds",
-    "HTTP request latency by route",
-    ["method", "route"],
-    buckets=(0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10),
-    registry=REGISTRY,
-)
-BATCH_SIZE = Histogram(
-    "cks_inference_batch_size",
-    "instances per onnxruntime batch",
-    buckets=(1, 2, 4, 8, 16, 32, 64, 128),
-    registry=REGISTRY,
-)
-INFERENCE_SECONDS = Histogram(
-    "cks_inference_seconds",
-    "onnxruntime run time per batch",
-    buckets=(0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1),
-    registry=REGISTRY,
-)
+
+def _counter(name: str, documentation: str, labels: Sequence[str] = ()) -> Counter:
+    return Counter(name, documentation, labels, registry=REGISTRY)
+
+
+def _histogram(
+    name: str, documentation: str, buckets: Sequence[float], labels: Sequence[str] = ()
+) -> Histogram:
+    return Histogram(name, documentation, labels, buckets=buckets, registry=REGISTRY)
 
 
 def _gauge(name: str, documentation: str, labels: Sequence[str] = (), mode: str = "livesum") -> Gauge:
     return Gauge(name, documentation, labels, registry=REGISTRY, multiprocess_mode=mode)
 
 
+REQUESTS = _counter("cks_http_requests", "HTTP requests by route and status", ["method", "route", "status"])
+_SECONDS = (0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10)
+LATENCY = _histogram(
+    "cks_http_request_seconds", "HTTP request latency by route", _SECONDS, ["method", "route"]
+)
+_SIZES = (1, 2, 4, 8, 16, 32, 64, 128)
+BATCH_SIZE = _histogram("cks_inference_batch_size", "instances per onnxruntime batch", _SIZES)
+_RUN_SECONDS = (0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1)
+INFERENCE_SECONDS = _histogram("cks_inference_seconds", "onnxruntime run time per batch", _RUN_SECONDS)
 PREDICT_IN_FLIGHT = _gauge(
     "cks_predict_in_flight", "predict places taken, one per request or batch image (computing or waiting)"
 )
 PREDICT_COMPUTING = _gauge("cks_predict_computing", "predict requests holding a compute slot")
 PREDICT_WAITING = _gauge("cks_predict_waiting", "predict requests waiting for a compute slot")
-PREDICT_REJECTED = Counter(
-    "cks_predict_rejected",
-    "predict requests refused by admission control (503; 429 for client_share)",
-    ["reason"],
-    registry=REGISTRY,
-)
-CALIBRATION_JOBS = Counter(
-    "cks_calibration_jobs", "calibration jobs by final state", ["state"], registry=REGISTRY
-)
-CALIBRATION_INSTANCES = Counter(
-    "cks_calibration_instances_scored", "instances scored by calibration jobs", registry=REGISTRY
-)
+_REJECTED = "predict requests refused by admission control (503; 429 for client_share)"
+PREDICT_REJECTED = _counter("cks_predict_rejected", _REJECTED, ["reason"])
+CALIBRATION_JOBS = _counter("cks_calibration_jobs", "calibration jobs by final state", ["state"])
+CALIBRATION_INSTANCES = _counter("cks_calibration_instances_scored", "instances scored by calibration jobs")
 
 # The latest coverage audit (service/monitoring/coverage_audits.py); replaced whole by each new audit
-_AUDIT_LABELS = ["object", "keypoint", "nonconformity", "epsilon", "scope"]
+_AUDIT = (["object", "keypoint", "nonconformity", "epsilon", "scope"], "mostrecent")
 _BAND = "end of the 95% band of the coverage a valid calibration gives"
 AUDIT_COVERAGE = _gauge(
-    "cks_audit_coverage",
-    'empirical coverage in the latest coverage audit (keypoint="": pooled)',
-    _AUDIT_LABELS,
-    "mostrecent",
+    "cks_audit_coverage", 'empirical coverage in the latest coverage audit (keypoint="": pooled)', *_AUDIT
 )
-AUDIT_BAND_LOW = _gauge("cks_audit_band_low", f"low {_BAND}", _AUDIT_LABELS, "mostrecent")
-AUDIT_BAND_HIGH = _gauge("cks_audit_band_high", f"high {_BAND}", _AUDIT_LABELS, "mostrecent")
-AUDIT_FLAGGED = _gauge(
-    "cks_audit_flagged",
-    "1 where the latest audit found the coverage significantly low (Holm)",
-    _AUDIT_LABELS,
-    "mostrecent",
-)
+AUDIT_BAND_LOW = _gauge("cks_audit_band_low", f"low {_BAND}", *_AUDIT)
+AUDIT_BAND_HIGH = _gauge("cks_audit_band_high", f"high {_BAND}", *_AUDIT)
+_FLAGGED = "1 where the latest audit found the coverage significantly low (Holm)"
+AUDIT_FLAGGED = _gauge("cks_audit_flagged", _FLAGGED, *_AUDIT)
 AUDIT_LATEST = _gauge(
     "cks_audit_latest_id", "id of the latest coverage audit, by audited version", ["version"], "mostrecent"
 )
 
 
-class DriftCollector(Collector):
-    """``cks_drift_*`` from the drift monitor's report, evaluated (or read from its cache) at scrape."""
+class ReportCollector(Collector):
+    """Families made at scrape from ``source``'s report (None: none); a failing source skips a scrape."""
 
-    def __init__(self) -> None:
-        self.source: Callable[[], Any] | None = None  # the drift monitor's report
+    def __init__(self, families: Callable[[Any], list[GaugeMetricFamily]], failed: str) -> None:
+        self.source: Callable[[], Any] | None = None
+        self._families, self._failed = families, failed
 
     def collect(self) -> Iterator[GaugeMetricFamily]:
         if self.source is None:
             return
         try:
             report = self.source()
-        except Exception:  # the other metrics must still be served; the drift figures skip a scrape
-            log.exception("drift metrics: the evaluation failed")
+        except Exception:
+            log.exception(self._failed)
             return
-        yield from drift_families(report)
-
-
-DRIFT = DriftCollector()
-REGISTRY.register(DRIFT)
+        yield from self._families(report)
 
 
 @functools.cache
 def drift_process_values() -> Gauge:
-    """``cks_drift_process_values``, made when a drift monitor first shares: a process without
-    one (CKS_DRIFT_ENABLED=false) exports no ``cks_drift_*`` at all."""
+    """``cks_drift_process_values``, made when a drift monitor first shares (none: no ``cks_drift_*``)."""
     return Gauge(
         "cks_drift_process_values",
         "live values this process recorded into its drift windows, as of its last share (one series per"
@@ -222,17 +195,13 @@ def forget_drift_source(source: Callable[[], Any]) -> None:
 
 def drift_families(report: Any) -> list[GaugeMetricFamily]:
     """Per keypoint and feature: statistic, p-value (ks), alarm, live window size; and totals."""
-    labels = ["object", "keypoint", "feature"]
-    statistic = GaugeMetricFamily(
-        "cks_drift_statistic",
-        f"drift statistic ({report.test}) of a keypoint's live feature window",
-        labels=labels,
+    family = functools.partial(GaugeMetricFamily, labels=["object", "keypoint", "feature"])
+    statistic = family(
+        "cks_drift_statistic", f"drift statistic ({report.test}) of a keypoint's live feature window"
     )
-    p_value = GaugeMetricFamily("cks_drift_p_value", "Kolmogorov-Smirnov p-value (ks test)", labels=labels)
-    alarm = GaugeMetricFamily(
-        "cks_drift_alarm", "1 when the drift alarm is raised (Holm-corrected for ks)", labels=labels
-    )
-    window = GaugeMetricFamily("cks_drift_window_size", "live values in the window", labels=labels)
+    p_value = family("cks_drift_p_value", "Kolmogorov-Smirnov p-value (ks test)")
+    alarm = family("cks_drift_alarm", "1 when the drift alarm is raised (Holm-corrected for ks)")
+    window = family("cks_drift_window_size", "live values in the window")
     for keypoint in report.keypoints:
         for feature, test in keypoint.features.items():
             names = [keypoint.object, keypoint.keypoint, feature]
@@ -260,39 +229,29 @@ def drift_families(report: Any) -> list[GaugeMetricFamily]:
     return [statistic, p_value, alarm, window, objects, reference, any_alarm, replicas]
 
 
-class FeedbackCollector(Collector):
-    """``cks_feedback_coverage_*`` from the live labelled coverage, at scrape (its reader caches)."""
-
-    def __init__(self) -> None:
-        self.source: Callable[[], list[Any]] | None = None  # live_coverage.GroupCoverage of each group
-
-    def collect(self) -> Iterator[GaugeMetricFamily]:
-        if self.source is None:
-            return
-        try:
-            groups = self.source()
-        except Exception:  # the other metrics must still be served
-            log.exception("feedback metrics: the live coverage could not be read")
-            return
-        labels = ["version", "nonconformity", "coverage", "epsilon", "level", "name"]
-        helps = {
-            "lower": "anytime-valid lower bound",
-            "upper": "anytime-valid upper bound",
-            "looks": "independent labelled looks",
-            "alarm": "1 when coverage is proven below the promise",
-        }
-        families = {
-            k: GaugeMetricFamily(f"cks_feedback_coverage_{k}", h, labels=labels) for k, h in helps.items()
-        }
-        for group in groups:
-            names = [str(group.version), group.nonconformity, group.coverage, f"{group.epsilon:g}"]
-            names += [group.level, group.name]
-            for attribute, family in families.items():
-                family.add_metric(names, float(getattr(group, attribute)))
-        yield from families.values()
+def feedback_families(groups: list[Any]) -> list[GaugeMetricFamily]:
+    """``cks_feedback_coverage_*`` of each live_coverage.GroupCoverage (its reader caches)."""
+    labels = ["version", "nonconformity", "coverage", "epsilon", "level", "name"]
+    helps = {
+        "lower": "anytime-valid lower bound",
+        "upper": "anytime-valid upper bound",
+        "looks": "independent labelled looks",
+        "alarm": "1 when coverage is proven below the promise",
+    }
+    families = {
+        k: GaugeMetricFamily(f"cks_feedback_coverage_{k}", h, labels=labels) for k, h in helps.items()
+    }
+    for group in groups:
+        names = [str(group.version), group.nonconformity, group.coverage, f"{group.epsilon:g}"]
+        names += [group.level, group.name]
+        for attribute, family in families.items():
+            family.add_metric(names, float(getattr(group, attribute)))
+    return list(families.values())
 
 
-FEEDBACK = FeedbackCollector()
+DRIFT = ReportCollector(drift_families, "drift metrics: the evaluation failed")
+FEEDBACK = ReportCollector(feedback_families, "feedback metrics: the live coverage could not be read")
+REGISTRY.register(DRIFT)
 REGISTRY.register(FEEDBACK)
 
 
@@ -314,9 +273,8 @@ def metrics_payload() -> tuple[bytes, str]:
 
 
 def enable_multiprocess(parent: Path) -> Path | None:
-    """Call in the parent before workers start (and import this module): the files go to this
-    process's folder under ``parent``, so another server on the data directory keeps its own sums.
-    Returns it (remove it at exit), or None where it cannot be made: each worker keeps its own."""
+    """Call in the parent before workers start: the files go to (and it returns, to remove at exit)
+    this process's folder under ``parent``, or None where it cannot be made (each worker its own)."""
     folder = process_folder(parent)
     shutil.rmtree(folder, ignore_errors=True)
     try:

@@ -1,11 +1,9 @@
-"""Named admin tokens: who may administer calibrations, under which name (recorded in the audit
-trail and the activation log).
+"""Named admin tokens: who may administer calibrations, under which name (recorded in the audit).
 
-``CKS_ADMIN_TOKENS_FILE`` holds ``name:token`` lines (``#`` comments, blank lines ignored);
-``CKS_ADMIN_TOKEN`` is the operator ``admin``. A line ``feedback name:token`` gives a token that may
-only send feedback on retained predictions (admins may too). A line ``predict name:token`` gives a
-predict token: once the file has one, predict requests need a predict (or admin) token, and each
-holder is one caller for admission's cap. Every token has at least 16 characters and no spaces.
+``CKS_ADMIN_TOKENS_FILE`` holds ``name:token`` lines (``#`` comments); ``CKS_ADMIN_TOKEN`` is the
+operator ``admin``. A line ``feedback name:token`` may only send feedback; ``predict name:token`` is
+a predict token: once the file has one, predict needs a predict (or admin) token, each holder one
+caller for admission's cap. Every token has at least 16 characters and no spaces.
 """
 
 from __future__ import annotations
@@ -35,8 +33,7 @@ def load_operators(single_token: str | None, tokens_file: Path | None) -> dict[s
         _check_token(single_token, f"{TOKEN_SETTING}: the token")
         operators[single_token] = SINGLE_TOKEN_NAME
     if tokens_file is not None:
-        for number, name, token in _entries(tokens_file, scope=None):
-            where = f"{TOKENS_FILE_SETTING} {tokens_file}, line {number}"
+        for where, name, token in _entries(tokens_file, scope=None):
             if token in operators:
                 raise OperatorsError(f"{where}: this token is already given to {operators[token]!r}")
             if name in operators.values():
@@ -61,8 +58,7 @@ def load_predict_callers(single_token: str | None, tokens_file: Path | None) -> 
 def _scoped(single_token: str | None, tokens_file: Path | None, scope: str) -> dict[str, str]:
     """The admins' tokens and those of ``scope``'s lines."""
     senders = load_operators(single_token, tokens_file)
-    for number, name, token in _entries(tokens_file, scope) if tokens_file is not None else ():
-        where = f"{TOKENS_FILE_SETTING} {tokens_file}, line {number}"
+    for where, name, token in _entries(tokens_file, scope) if tokens_file is not None else ():
         if token in senders:
             raise OperatorsError(f"{where}: this token is already given to {senders[token]!r}")
         senders[token] = name
@@ -79,8 +75,8 @@ def operator_named(operators: dict[str, str], presented: str) -> str | None:
     return found
 
 
-def _entries(path: Path, scope: str | None) -> list[tuple[int, str, str]]:
-    """The lines of ``scope`` (None: the admin lines, which name no scope)."""
+def _entries(path: Path, scope: str | None) -> list[tuple[str, str, str]]:
+    """(where, name, token) of the lines of ``scope`` (None: the admin lines, which name no scope)."""
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as error:
@@ -102,7 +98,7 @@ def _entries(path: Path, scope: str | None) -> list[tuple[int, str, str]]:
         _check_token(token, f"{where}: the token of {name!r}")
         named += 1
         if line_scope == scope:
-            entries.append((number, name, token))
+            entries.append((where, name, token))
     if not named:
         raise OperatorsError(f"{TOKENS_FILE_SETTING} {path} names no operator; add 'name:token' lines")
     return entries

@@ -25,9 +25,8 @@ def process_folder(parent: Path, pid: int | None = None) -> Path:
 
 
 def remove_dead_process_folders(parent: Path, *, starting: bool = False) -> list[Path]:
-    """Remove (and return) the folders of this host's processes that no longer run, leaving other
-    hosts' to them; ``starting``: one under this pid is a predecessor's (a container restarted in
-    place runs its server as pid 1 again)."""
+    """Remove (and return) the folders of this host's stopped processes; ``starting``: one under this
+    pid is a predecessor's (a container restarted in place runs its server as pid 1 again)."""
     removed = []
     host, mine = socket.gethostname(), os.getpid() if starting else None
     for folder in sorted(parent.iterdir()) if parent.is_dir() else []:

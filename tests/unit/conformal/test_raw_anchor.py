@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from service.conformal import heatmap_statistics, nonconformity_scores
-from service.conformal.anchor import isolated, raw_extremes, raw_top_k
+from service.conformal.anchor import isolated, raw_top_k
 from service.conformal.normalization import normalized_weights
 from service.conformal.selection import top_k_indices
 
@@ -41,7 +41,7 @@ def test_top_k_on_raw_values_equals_top_k_on_weights_with_ties(dtype):
     rng = np.random.default_rng(9)
     blobs, _ = gaussian_blobs(rng, 60, size=64, noise=0.01)
     raw = (np.round(blobs * 40) / 7).astype(dtype).reshape(60, -1)  # many exact ties
-    minimum = raw_extremes(raw).minimum
+    minimum = raw.min(axis=1).astype(np.float64)
     indices, weights, exact = raw_top_k(raw, 100, minimum)
     assert exact.all() or dtype == np.float64  # float64 neighbours may merge: conservative flag
     expected = top_k_indices(normalized_weights(raw.astype(np.float64), skip_anchor_median=True).weights, 100)

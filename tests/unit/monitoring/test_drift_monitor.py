@@ -17,7 +17,7 @@ from calibration_store import ObjectScores, ScoreTable
 from service.conformal import HeatmapStatistics, ball_shapes
 from service.conformal.features import HEATMAP_FEATURES, heatmap_features
 from service.detector.manifest import load_manifest
-from service.infra.metrics import DriftCollector
+from service.infra.metrics import ReportCollector, drift_families
 from service.infra.settings import DEFAULT_MODEL_DIR
 from service.monitoring.drift_monitor import PSI_MIN_LIVE, DriftMonitor, DriftSettings
 
@@ -209,7 +209,7 @@ def test_prometheus_families_carry_every_keypoint_and_feature():
     rng = np.random.default_rng(9)
     monitor = _monitor(_table(rng))
     _record(monitor, rng, 12)
-    collector = DriftCollector()
+    collector = ReportCollector(drift_families, "drift metrics failed")
     collector.source = monitor.report
     registry = CollectorRegistry()
     registry.register(collector)
@@ -223,7 +223,7 @@ def test_a_failing_evaluation_leaves_the_other_metrics_served():
     def broken() -> None:
         raise RuntimeError("the store went away")
 
-    collector = DriftCollector()
+    collector = ReportCollector(drift_families, "drift metrics failed")
     collector.source = broken
     registry = CollectorRegistry()
     registry.register(collector)
