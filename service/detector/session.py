@@ -82,7 +82,9 @@ class Detector:
         self._session = create_session(model_path, threads, providers, provider_options, spinning=False)
         cores = usable_cores()
         alone = threads != 0 and cores > threads and tuple(providers) == CPU
-        self._alone_session = create_session(model_path, cores, spinning=False) if alone else None
+        # A lone request's threads spin between the pieces of its run, so the other cores stay awake
+        # for it (after an idle gap a halted core is slow to wake); beside others they sleep.
+        self._alone_session = create_session(model_path, cores) if alone else None
         self.alone_threads = cores if alone else threads
         self._computing, self._counting = 0, threading.Lock()
         _check_graph(self._session, self.manifest)

@@ -189,7 +189,9 @@ def build_state(settings: Settings) -> ServiceState:
         calibrations=calibrations,
         audit=audit,
         operators=operators,
-        cpu_pool=ThreadPoolExecutor(predict.max_concurrent_inferences, thread_name_prefix="cpu"),
+        cpu_pool=ThreadPoolExecutor(
+            _cpu_threads(predict.max_concurrent_inferences), thread_name_prefix="cpu"
+        ),
         admission=Admission(
             predict.max_concurrent_inferences,
             predict.max_queued_requests,
@@ -255,6 +257,12 @@ def _drift_monitor(
     monitor.start()
     set_drift_source(monitor.report)
     return monitor
+
+
+def _cpu_threads(slots: int) -> int:
+    """Threads that decode, crop and score: one per compute slot, at most two per usable core (more
+    only contend for the cores and the interpreter lock)."""
+    return min(slots, 2 * usable_cores())
 
 
 def _free_space_to_leave(settings: Settings) -> int:
