@@ -53,6 +53,7 @@ FEEDBACK_METRICS_AGE_S = 10.0
 # Fixed values (service.infra.settings.REMOVED_SETTINGS says which were settings once): the
 # container's own, and those of other modules it passes on, are its globals, which tests change
 # (tests/api/in_process.py, tests/live/fixed_serve.py).
+FREE_SPACE_SHARE = 1 / 20  # of the data directory's file system, where that is less than 1 GiB
 MAX_DECODED_BYTES = 256 * 2**20  # an image's decoded pixels (16-bit and alpha take more per pixel)
 DRIFT_PSI_THRESHOLD, DRIFT_HISTORY_SECONDS = drift_monitor.PSI_THRESHOLD, drift_monitor.HISTORY_SECONDS
 DRIFT_FULL_STATISTICS_SHARE = drift_monitor.FULL_STATISTICS_SHARE
@@ -267,7 +268,9 @@ def _cpu_threads(slots: int) -> int:
 
 def _free_space_to_leave(settings: Settings) -> int:
     """What unzipping an upload must leave free: 1 GiB, or a twentieth of a smaller file system."""
-    return min(MIN_FREE_DISK_BYTES, shutil.disk_usage(settings.storage.data_dir).total // 20)
+    return min(
+        MIN_FREE_DISK_BYTES, int(shutil.disk_usage(settings.storage.data_dir).total * FREE_SPACE_SHARE)
+    )
 
 
 def _job_settings(settings: Settings) -> JobSettings:

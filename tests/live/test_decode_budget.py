@@ -99,7 +99,7 @@ def test_an_upload_beyond_the_disk_budget_gets_507(tmp_path: Path, samples_dir: 
 
 def test_an_upload_the_free_space_cannot_take_gets_507(tmp_path: Path, samples_dir: Path, coco: dict) -> None:
     beyond = shutil.disk_usage(tmp_path).free + 2**30
-    fixed = {"MIN_FREE_DISK_BYTES": beyond}
+    fixed = {"MIN_FREE_DISK_BYTES": beyond, "FREE_SPACE_SHARE": 1.0}
     with LiveServer(tmp_path / "data", fixed, admin_token=ADMIN_TOKEN) as server:
         response = server.upload(batch_zip(samples_dir, coco, images=2))
         assert_problem(response, 507, "bytes free")

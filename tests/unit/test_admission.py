@@ -131,3 +131,27 @@ def test_a_cancelled_slot_wait_leaves_nothing_behind() -> None:
             pass
 
     asyncio.run(scenario())
+
+
+def test_a_slot_freed_as_every_request_is_cancelled_goes_to_nobody() -> None:
+    """A shutdown cancels every request at once: the computing one's slot, given back, must skip
+    the waiters whose requests were cancelled too (their futures are done), never fail on them."""
+
+    async def scenario() -> None:
+        admission = Admission(1, 3)
+        release = asyncio.Event()
+
+        async def compute() -> None:
+            async with admission.slot("a"):
+                await release.wait()
+
+        tasks = [asyncio.create_task(compute()) for _ in range(3)]
+        await asyncio.sleep(0.01)
+        for task in tasks:
+            task.cancel()
+        results = await asyncio.gather(*tasks, return_exceptions=True)
+        assert all(isinstance(result, asyncio.CancelledError) for result in results), results
+        async with admission.slot("b"):  # nothing left behind
+            pass
+
+    asyncio.run(scenario())

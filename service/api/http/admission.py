@@ -128,7 +128,7 @@ class Admission:
         except BaseException as error:
             if granted.done() and not granted.cancelled():  # granted just as the wait ended
                 self._give_back(caller)
-            else:
+            elif (caller, granted) in self._slot_waiters:  # else a grant already dropped it
                 self._slot_waiters.remove((caller, granted))
             if not isinstance(error, TimeoutError):
                 raise
@@ -158,6 +158,9 @@ class Admission:
         for caller, granted in list(self._slot_waiters):
             if not self._free_slots:
                 return
+            if granted.done():  # its request was cancelled (a shutdown cancels them all at once)
+                self._slot_waiters.remove((caller, granted))
+                continue
             if shared and self._computing[caller] >= self._caller_slots:
                 continue
             self._slot_waiters.remove((caller, granted))
