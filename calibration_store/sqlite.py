@@ -51,7 +51,10 @@ class _ConnectionPool:
                 raise StoreError("the calibration store is closed")
             conn = self._idle.pop() if self._idle else None
         if conn is None:
-            conn = self._connect()
+            try:
+                conn = self._connect()
+            except sqlite3.OperationalError as exc:  # a lock held by another process: as in a transaction
+                raise _unavailable(f"SQLite could not open a connection: {exc}", exc) from exc
         try:
             yield conn
         finally:
