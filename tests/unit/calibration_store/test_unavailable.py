@@ -36,9 +36,11 @@ def test_sqlite_a_connection_that_cannot_be_opened_is_unavailable(tmp_path: Path
         path.unlink()
         (tmp_path / "c.db-wal").unlink(missing_ok=True)
         path.mkdir()  # a folder where the database was: sqlite3 cannot open it
-        with store._pool.connection():  # the idle connection; the next one must be opened
-            with pytest.raises(StoreUnavailable, match="could not open a connection"):
-                store.list_versions(MODEL_A)
+        with (
+            store._pool.connection(),  # the idle connection: the next one must be opened
+            pytest.raises(StoreUnavailable, match="could not open a connection"),
+        ):
+            store.list_versions(MODEL_A)
 
 
 def test_postgres_unreachable() -> None:
