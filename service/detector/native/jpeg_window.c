@@ -6,6 +6,10 @@
  * IDCT, upsampling and colour conversion; tests/unit/detector/test_jpeg_windows.py). Every
  * libjpeg warning is an error, as in simplejpeg's strict mode.
  *
+ * What it earns, on the user's figure (python -m benchmarks.ab_jpeg_window --rounds 4 --per-round 8,
+ * 2 cores, frames 30 ms apart, POST /v1/predict with a whole JPEG and 4 boxes, paired against the
+ * same tree without it): 1920x1080 answered 1.14x sooner [1.06..1.17], 3840x2160 1.33x [1.30..1.37].
+ *
  * Why C and not a library: PyTurboJPEG 2 needs libjpeg-turbo 3 (Debian 12 ships 2.1.5), and
  * PyTurboJPEG 1.8 over Debian's libturbojpeg0 crops losslessly to the same pixels at the same
  * speed (a 1080p frame's window: 6 ms against this decoder's 10 ms and the whole decode's 11 ms,
