@@ -557,12 +557,9 @@ def _object_drift(name: str, channels: list[int], keypoints: list[KeypointDrift]
 
 
 def _history_point(report: DriftReport) -> HistoryPoint:
+    alarms = sum(t.alarm for k in report.keypoints for t in k.features.values())
+    keypoints = [_largest(k.features.values()) for k in report.keypoints]
+    objects = {o.object: _largest(o.features.values()) for o in report.objects}
     return HistoryPoint(
-        time=report.evaluated_at,
-        version=report.version,
-        recorded=report.recorded,
-        alarm=report.alarm,
-        alarms=sum(t.alarm for k in report.keypoints for t in k.features.values()),
-        keypoint_statistics=[_largest(k.features.values()) for k in report.keypoints],
-        object_statistics={o.object: _largest(o.features.values()) for o in report.objects},
+        report.evaluated_at, report.version, report.recorded, report.alarm, alarms, keypoints, objects
     )

@@ -43,12 +43,8 @@ def set_sizes(kinds: np.ndarray, entries: np.ndarray) -> dict[str, KindSizes]:
 def _kind_sizes(entries: np.ndarray) -> KindSizes:
     semi_minor, semi_major, _ = ellipse_axes(entries[:, [0, 1, 1, 2]].reshape(-1, 2, 2))
     bounded = np.isfinite(semi_major)
-    return KindSizes(
-        n=len(entries),
-        unbounded=int((~bounded).sum()),
-        semi_major_px=_summary(semi_major[bounded]),
-        area_px2=_summary(np.pi * semi_minor[bounded] * semi_major[bounded]),
-    )
+    area = np.pi * semi_minor[bounded] * semi_major[bounded]
+    return KindSizes(len(entries), int((~bounded).sum()), _summary(semi_major[bounded]), _summary(area))
 
 
 def _summary(values: np.ndarray) -> SizeSummary | None:
@@ -56,8 +52,5 @@ def _summary(values: np.ndarray) -> SizeSummary | None:
         return None
     counts, edges = np.histogram(values, bins=HISTOGRAM_BINS)
     quantiles = np.quantile(values, QUANTILES)
-    return SizeSummary(
-        quantiles={f"p{round(q * 100):02d}": float(v) for q, v in zip(QUANTILES, quantiles, strict=True)},
-        histogram_edges=edges.tolist(),
-        histogram_counts=counts.tolist(),
-    )
+    named = {f"p{round(q * 100):02d}": float(v) for q, v in zip(QUANTILES, quantiles, strict=True)}
+    return SizeSummary(named, edges.tolist(), counts.tolist())

@@ -50,7 +50,3 @@ class RingWindows:
         """Rows appended so far, all streams together (changes whenever a window does)."""
         with self._lock:
             return int(self._written.sum())
-
-    def clear(self) -> None:
-        with self._lock:
-            self._written[:] = 0
