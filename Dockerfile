@@ -101,6 +101,8 @@ RUN apt-get update && apt-get install -y --no-install-recommends libjpeg62-turbo
     && useradd --system --uid 10001 --no-create-home --shell /usr/sbin/nologin app \
     && mkdir -p /data && chown app /data
 COPY models/lmo-synth-unet ./models/lmo-synth-unet
+# The faster int8 variant: -e CKS_MODEL_DIR=/app/models/lmo-synth-unet-int8 (docs/variants.md).
+COPY models/lmo-synth-unet-int8 ./models/lmo-synth-unet-int8
 
 USER app
 VOLUME /data

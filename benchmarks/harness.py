@@ -355,13 +355,14 @@ def load_average() -> str:
 
 # ---------------------------------------------------------------- docs/performance.md
 
-SECTIONS = ("bench_peers", "bench_peers_gpu", "bench_frames", "bench_service")
+SECTIONS = ("bench_peers", "bench_peers_gpu", "bench_frames", "bench_service", "variant_trade")
 INTRO = (
-    "Three commands write this page, each its own section: `python -m benchmarks.bench_peers` (the service"
+    "Four commands write this page, each its own section: `python -m benchmarks.bench_peers` (the service"
     " against the frameworks a user would pick instead, ratios first; with `--gpu`, its own section for"
     " the model on a GPU), `python -m benchmarks.bench_frames` (a camera frame in memory to sets: regions"
     " and raw pixels against the whole JPEG) and `python -m benchmarks.bench_service` (the service against"
-    " its bare model: stage breakdown, memory). Do not edit by hand."
+    " its bare model: stage breakdown, memory); `python -m benchmarks.variant_trade` (what the int8 variant"
+    " trades: coverage, accuracy, set sizes, the model's run). Do not edit by hand."
 )
 
 

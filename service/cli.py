@@ -22,7 +22,12 @@ from service.errors import InvalidInput, ServiceError
 from service.infra.logs import configure_logging
 from service.infra.settings import RemovedSettings, Settings, refuse_removed_settings
 
+DEFAULT_RANGE_IMAGES = 64  # int8 ranges: docs/variants.md says why this many
+
 if TYPE_CHECKING:
+    from calibration_store import CalibrationStore
+    from service.calibration.intake import Parent, UploadOptions, ValidatedBatch
+    from service.calibration.versions import CalibrationOutcome
     from service.detector.session import Detector
 
 
@@ -56,13 +61,12 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
             shutil.rmtree(metrics, ignore_errors=True)
 
 
-def _detector(settings: Settings) -> Detector:
+def _detector(settings: Settings, model_dir: Path | None = None) -> Detector:
     from service.detector.session import Detector  # imported late: onnxruntime is slow to load
     from service.serving.container import detector_providers
 
-    return Detector(
-        settings.model.directory, settings.model.inference_threads, **detector_providers(settings)
-    )
+    directory = model_dir or settings.model.directory
+    return Detector(directory, settings.model.inference_threads, **detector_providers(settings))
 
 
 def _check_port(host: str, port: int) -> None:
@@ -85,8 +89,6 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
     from service.calibration.coco import NamedBatch, load_coco_batch
     from service.calibration.intake import UploadOptions, check_batch, read_parent
     from service.calibration.stratification import parse_stratify
-    from service.calibration.versions import VersionRules, create_version
-    from service.infra.audit_trail import AuditTrail, Operator
 
     flags = ("activate", "force", "dedupe", "allow_duplicate")
     names = ("name", "note", "append_to", "reason", "max_rejected_share", *flags)
@@ -102,12 +104,7 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
             batch = load_coco_batch(Path(folder), detector.manifest, bounded=True)
             named = NamedBatch(name=args.name or Path(folder).name, sha256=batch.sha256, batch=batch)
             batches.append(check_batch(named, parent, **checks))
-        total = sum(b.named.batch.count for b in batches)
-        progress = _progress(lambda done: f"scored {done}/{total} instances")
-        rules = VersionRules(settings.predict.max_image_pixels, settings.calibration.min_instances)
-        audit = AuditTrail(store, detector.model_hash)
-        operator = Operator(args.author, "cli")
-        outcome = create_version(store, detector, batches, parent, options, operator, rules, audit, progress)
+        outcome = _new_version(store, detector, batches, parent, options, args.author, settings)
         print(file=sys.stderr)
         if args.bundle:
             table = store.load_scores(detector.model_hash, outcome.info.number)
@@ -118,6 +115,66 @@ def _calibrate(args: argparse.Namespace, settings: Settings) -> int:
         refused = "not activated: the guardrails refused it (see above); add --force --reason to override"
         print(refused, file=sys.stderr)
     print(json.dumps(outcome.summary))
+    return 0
+
+
+def _new_version(
+    store: CalibrationStore,
+    detector: Detector,
+    batches: list[ValidatedBatch],
+    parent: Parent | None,
+    options: UploadOptions,
+    author: str,
+    settings: Settings,
+) -> CalibrationOutcome:
+    from service.calibration.versions import VersionRules, create_version
+    from service.infra.audit_trail import AuditTrail, Operator
+
+    total = sum(b.named.batch.count for b in batches)
+    progress = _progress(lambda done: f"scored {done}/{total} instances")
+    rules = VersionRules(settings.predict.max_image_pixels, settings.calibration.min_instances)
+    operator, audit = Operator(author, "cli"), AuditTrail(store, detector.model_hash)
+    return create_version(store, detector, batches, parent, options, operator, rules, audit, progress)
+
+
+def _optimize(args: argparse.Namespace, settings: Settings) -> int:
+    import tempfile
+
+    from calibration_store import open_store
+    from service.calibration.bundle import BUNDLE_FILENAME, save_bundle
+    from service.calibration.coco import NamedBatch, load_coco_batch
+    from service.calibration.intake import UploadOptions, check_batch
+    from service.calibration.variants import split_for_ranges, write_variant
+
+    source_dir, folder, out = Path(args.model_dir), Path(args.folder), Path(args.out)
+    if out.exists() and any(out.iterdir()):
+        raise InvalidInput(f"{out} is not empty: optimize writes a whole model folder, name a new one")
+    if args.precision == "float16" and settings.model.execution_providers == ("CPUExecutionProvider",):
+        raise InvalidInput(
+            "float16 is for GPUs, and its calibration is scored where it will run: set"
+            " CKS_EXECUTION_PROVIDERS (e.g. CUDAExecutionProvider,CPUExecutionProvider); on CPUs use int8"
+        )
+    source = _detector(settings, source_dir)
+    if source.manifest.variant is not None:
+        raise InvalidInput(f"{source_dir} is already the {source.manifest.variant.name} variant of a model")
+    batch = load_coco_batch(folder, source.manifest)
+    ranges, rest = split_for_ranges(batch, args.range_images)
+    pixels = settings.predict.max_image_pixels
+    variant = write_variant(source, source_dir, out, args.precision, ranges, pixels)
+    detector = _detector(settings, out)
+    name = args.name or folder.name
+    note = f"scored with the {variant.name} variant"
+    note += f"; ranges from {variant.ranges}" if variant.ranges else ""
+    options = UploadOptions(name=name, note=note)
+    named = NamedBatch(name=name, sha256=batch.sha256, batch=rest)
+    with tempfile.TemporaryDirectory() as scratch, open_store(f"sqlite:///{scratch}/store.db") as store:
+        batches = [check_batch(named, None, dedupe=False, max_rejected_share=options.rejected_share)]
+        outcome = _new_version(store, detector, batches, None, options, args.author, settings)
+        print(file=sys.stderr)
+        table = store.load_scores(detector.model_hash, outcome.info.number)
+        save_bundle(out / BUNDLE_FILENAME, outcome.info, table)
+    summary = {"model_dir": str(out), "variant": variant.model_dump(), "calibration": outcome.summary}
+    print(json.dumps(summary))
     return 0
 
 
@@ -287,6 +344,15 @@ A box is x,y,width,height in pixels, origin at the image's top-left corner.
 
 Writes OUT/evaluation.md and OUT/figures/*.png (needs the `evaluate` extra: matplotlib).
 """,
+    "optimize": """\
+  keypoint-service optimize models/lmo-synth-unet data/renders --out models/lmo-synth-unet-int8
+  CKS_EXECUTION_PROVIDERS=CUDAExecutionProvider,CPUExecutionProvider \\
+      keypoint-service optimize models/my-hrnet data/site_a --precision float16 --out models/my-hrnet-fp16
+
+Writes OUT/manifest.json (naming the variant and its source), OUT/model.onnx and
+OUT/default_calibration.npz, scored with the new model on the images not used for its ranges.
+Serve it with CKS_MODEL_DIR=OUT (docs/variants.md). Needs the `optimize` extra (onnx).
+""",
     "check-model": """\
   keypoint-service check-model
   keypoint-service check-model models/my-hrnet
@@ -414,6 +480,24 @@ def build_parser() -> argparse.ArgumentParser:
     add("--delta", type=float, help="also evaluate the PAC guarantee at this delta")
     add("--out", default="evaluation", help="writes OUT/evaluation.md and OUT/figures/")
     add("--title", help="the report's title (default: Conformal keypoint sets: evaluation)")
+
+    optimize = _command(
+        commands, "optimize", "a faster variant of a model folder, with its own calibration", _optimize
+    )
+    add = optimize.add_argument
+    add("model_dir", type=Path, help="the model folder to compress (manifest.json and model.onnx)")
+    add("folder", help="a labelled COCO-keypoints folder (as for calibrate), as served images")
+    add("--out", required=True, help="the new model folder (new or empty)")
+    add("--precision", choices=["int8", "float16"], default="int8", help="int8 for CPUs, float16 for GPUs")
+    add(
+        "--range-images",
+        type=int,
+        default=DEFAULT_RANGE_IMAGES,
+        help=f"int8: images whose crops set the activation ranges, left out of the calibration"
+        f" (default {DEFAULT_RANGE_IMAGES})",
+    )
+    add("--name", help="batch name in the calibration (default: the folder name)")
+    add("--author", default="optimize", help="recorded with the calibration (default optimize)")
 
     check = _command(
         commands, "check-model", "validate a model directory, summarize its manifest", _check_model

@@ -566,6 +566,8 @@ class LiveCoverageOut(Frozen):
 class ModelRef(Frozen):
     hash: str = Field(..., title="Hash")
     name: str = Field(..., title="Name")
+    variant: str = Field(..., examples=["original"], title="Variant")
+    """which copy of the model ran and was calibrated: `original`, or the `int8` or `float16` variant `keypoint-service optimize` made (GET /v1/model names its source)"""
 
 
 class ObjectCoverageOut(Frozen):
@@ -930,6 +932,24 @@ class UnboundedSet(UnboundedGeometry):
     type: Literal["unbounded"] = Field(..., title="Type")
 
 
+class VariantSpec(Frozen):
+    """A compressed copy of another model, written by ``keypoint-service optimize`` (docs/variants.md)."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+    )
+    model_sha256: str = Field(..., pattern="^[0-9a-f]{64}$", title="Model Sha256")
+    """sha256 of this folder's model.onnx: another model.onnx is refused, so that the variant an answer names is the one that ran"""
+    name: Literal["int8", "float16"] = Field(..., title="Name")
+    """int8: static quantization, for CPUs; float16: for GPU execution providers"""
+    ranges: str = Field("", title="Ranges")
+    """int8: the images whose crops set the activation ranges"""
+    source_name: str = Field(..., min_length=1, title="Source Name")
+    """name of the model it was made from"""
+    source_sha256: str = Field(..., pattern="^[0-9a-f]{64}$", title="Source Sha256")
+    """sha256 of that model's model.onnx"""
+
+
 class VersionDetail(Frozen):
     active: bool = Field(..., title="Active")
     author: str = Field(..., title="Author")
@@ -1095,6 +1115,8 @@ class Guarantee(GuaranteeBase):
     delta: float | None = Field(None, title="Delta")
     """PAC: `pac_failure_probability <= delta`, i.e. P(coverage < 1-epsilon) <= this"""
     epsilon: float = Field(..., title="Epsilon")
+    model_variant: str = Field(..., examples=["original"], title="Model Variant")
+    """the model variant the calibration was scored with and the set computed by; a calibration is never served with another variant"""
     n: int = Field(..., title="N")
     """calibration scores used"""
     pac_failure_probability: float | None = Field(None, title="Pac Failure Probability")
@@ -1149,6 +1171,8 @@ class Manifest(Frozen):
     """the object classes; every keypoint belongs to exactly one"""
     output: OutputSpec
     """the heatmap output"""
+    variant: VariantSpec | None = None
+    """present in a folder written by `keypoint-service optimize`: which compressed copy of which model this is"""
 
 
 class ModelInfo(ModelInfoBase):
@@ -1161,6 +1185,8 @@ class ModelInfo(ModelInfoBase):
     name: str = Field(..., title="Name")
     service_version: str = Field(..., title="Service Version")
     """the version of the service (`keypoint-service --version`)"""
+    variant: str = Field(..., examples=["original"], title="Variant")
+    """`original`, or the `int8` or `float16` variant of `manifest.variant.source_name`"""
 
 
 class PoseOut(Frozen):

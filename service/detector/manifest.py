@@ -18,6 +18,10 @@ from service.conformal.statistics import DEFAULT_TOP_K
 MANIFEST_FILENAME = "manifest.json"
 MODEL_FILENAME = "model.onnx"
 
+SHA256_PATTERN = "^[0-9a-f]{64}$"
+#: what answers call a model that is not a compressed copy of another
+ORIGINAL = "original"
+
 Problem = tuple[str, str]  # (field path, message)
 
 
@@ -186,6 +190,22 @@ class ObjectSpec(_Strict):
         return self
 
 
+class VariantSpec(_Strict):
+    """A compressed copy of another model, written by ``keypoint-service optimize`` (docs/variants.md)."""
+
+    name: Literal["int8", "float16"] = Field(
+        description="int8: static quantization, for CPUs; float16: for GPU execution providers"
+    )
+    source_name: str = Field(min_length=1, description="name of the model it was made from")
+    source_sha256: str = Field(pattern=SHA256_PATTERN, description="sha256 of that model's model.onnx")
+    model_sha256: str = Field(
+        pattern=SHA256_PATTERN,
+        description="sha256 of this folder's model.onnx: another model.onnx is refused, so that the variant"
+        " an answer names is the one that ran",
+    )
+    ranges: str = Field(default="", description="int8: the images whose crops set the activation ranges")
+
+
 class Manifest(_Strict):
     """A validated model manifest (see docs/bring-your-own-model.md)."""
 
@@ -199,6 +219,12 @@ class Manifest(_Strict):
     keypoints: tuple[KeypointSpec, ...] = Field(min_length=1, description="one entry per output channel")
     objects: tuple[ObjectSpec, ...] = Field(
         min_length=1, description="the object classes; every keypoint belongs to exactly one"
+    )
+    variant: VariantSpec | None = Field(
+        default=None,
+        exclude_if=lambda variant: variant is None,
+        description="present in a folder written by `keypoint-service optimize`: which compressed copy of"
+        " which model this is",
     )
 
     @model_validator(mode="before")
@@ -315,6 +341,10 @@ class Manifest(_Strict):
         raise KeyError(name)
 
     @property
+    def variant_name(self) -> str:
+        return self.variant.name if self.variant is not None else ORIGINAL
+
+    @property
     def object_names(self) -> tuple[str, ...]:
         return tuple(o.name for o in self.objects)
 
@@ -333,6 +363,8 @@ class Manifest(_Strict):
             + (f" (temperature {heatmap.temperature:g})" if heatmap.normalization == "softmax" else "")
             + f", top_k {heatmap.top_k}",
             f"objects   {len(self.objects)}, {self.num_keypoints} keypoints",
+            f"variant   {self.variant_name}"
+            + (f" of {self.variant.source_name} ({self.variant.source_sha256[:12]})" if self.variant else ""),
         ]
         for obj in self.objects:
             names = ", ".join(f"{c} {self.keypoints[c].name}" for c in obj.keypoints)

@@ -77,6 +77,7 @@ class Detector:
         if not model_path.is_file():
             raise ModelMismatch(f"{model_path} does not exist")
         self.model_hash = file_sha256(model_path)
+        _check_variant(self.manifest, self.model_hash, providers)
         # No busy-waiting between runs: a spinning intra-op thread holds a core that the request's
         # decode, its event loop and other requests need (bench_ab: half the server's core-ms).
         self._session = create_session(model_path, threads, providers, provider_options, spinning=False)
@@ -235,6 +236,23 @@ def _check_providers_loaded(requested: Sequence[str], in_use: list[str]) -> None
         raise InvalidInput(
             f"execution provider(s) {', '.join(missing)} (CKS_EXECUTION_PROVIDERS) failed to load:"
             f" the session runs on {', '.join(in_use)} only (onnxruntime's log above says why)"
+        )
+
+
+def _check_variant(manifest: Manifest, model_hash: str, providers: Sequence[str]) -> None:
+    """The variant an answer names is the one that runs: its manifest names this model.onnx."""
+    variant = manifest.variant
+    if variant is None:
+        return
+    if variant.model_sha256 != model_hash:
+        raise ModelMismatch(
+            f"manifest.json names the {variant.name} variant of model.onnx {variant.model_sha256[:12]}, but"
+            f" model.onnx here is {model_hash[:12]}: keep the folder `keypoint-service optimize` wrote whole"
+        )
+    if variant.name == "float16" and tuple(providers) == CPU:
+        raise ModelMismatch(
+            "a float16 variant runs on a GPU execution provider (CKS_EXECUTION_PROVIDERS); on CPUs serve"
+            f" its source {variant.source_name!r} or an int8 variant"
         )
 
 

@@ -157,9 +157,10 @@ def build_state(settings: Settings) -> ServiceState:
     )
     names = ", ".join(sorted(operators.values())) or "none (admin API disabled)"
     log.info(
-        "serving model %s (sha256 %s) from %s; calibration store: %s at %s; data directory %s;"
+        "serving model %s, variant %s (sha256 %s) from %s; calibration store: %s at %s; data directory %s;"
         " active calibration version %s; admin operators: %s",
         detector.manifest.name,
+        detector.manifest.variant_name,
         detector.model_hash,
         settings.model.directory,
         kind,

@@ -1,7 +1,7 @@
 """The service's answers to a fixed set of requests, for the test that they never change.
 
-``python -m tests.api.answers`` records them (``answers_before.json.gz``, made on main 585bd74
-before the consolidation); ``test_answers_unchanged.py`` asks again and compares. The requests
+``python -m tests.api.answers`` records them (``answers_before.json.gz``, recorded again, deliberately,
+when a bundled calibration changes); ``test_answers_unchanged.py`` asks again and compares. The requests
 cover every predict option on the bundled samples (JSON and PNG answers, the batch route), the
 refusals of bad requests, and the version and scores an upload makes.
 """

@@ -20,7 +20,7 @@ from service.conformal import beta_cdf
 from tests.api.in_process import InProcess
 from tests.predict_client import predict_ok
 
-INPUTS = {"scope", "n", "epsilon", "conditional_coverage", "stratum"}
+INPUTS = {"scope", "model_variant", "n", "epsilon", "conditional_coverage", "stratum"}
 FORMULA = re.compile(r"`([^`]+)`( without delta)?")
 
 

@@ -73,7 +73,7 @@ def test_response_structure(api: InProcess, images, model_info: dict, function: 
         body = predict_ok(api.client, image, parameters)
         height, width = cv2.imdecode(np.frombuffer(image, np.uint8), cv2.IMREAD_UNCHANGED).shape[:2]
         assert body["image"] == {"width": width, "height": height}
-        assert body["model"] == {"name": model_info["name"], "hash": model_info["hash"]}
+        assert body["model"] == {key: model_info[key] for key in ("name", "hash", "variant")}
         assert body["calibration"] == {
             "version": active,
             "nonconformity": function,

@@ -84,13 +84,13 @@ def test_difficulty_strata_answer_each_keypoint_from_its_bin(api: InProcess, fir
 
 def test_difficulty_bins_too_small_for_epsilon_are_refused_or_fall_back(api: InProcess, first_image) -> None:
     image, group = first_image
-    parameters = {"instances": instances_of(group), "stratify": "difficulty", "epsilon": 0.02}
+    parameters = {"instances": instances_of(group), "stratify": "difficulty", "epsilon": 0.003}
     assert_problem(
         predict_json(api.client, image, parameters),
         422,
         "too few",
-        "epsilon 0.02",
-        "needs n >= 49",
+        "epsilon 0.003",
+        "needs n >= 333",
         "group_fallback",
     )
     body = predict_ok(api.client, image, {**parameters, "group_fallback": "pooled"})

@@ -84,6 +84,16 @@ def audit(server: OnLoopback, samples_dir: Path, coco: dict) -> dict:
     return run_audit(server, batch_zip(samples_dir, coco, mutate=shifted(5)), name="console-test")
 
 
+def test_the_console_names_the_variant_that_serves(browser: Browser, tmp_path: Path) -> None:
+    int8 = PACKAGE_ROOT / "models" / "lmo-synth-unet-int8"
+    with OnLoopback(tmp_path / "data", model_dir=int8) as fast:
+        contexts = watched_context(browser, fast, {"width": 1280, "height": 900})  # type: ignore[arg-type]
+        page, _ = open_page(next(contexts), f"{fast.url}/console")
+        page.wait_for_selector("#model table")
+        assert "variant\tint8, of lmo-synth-unet" in page.inner_text("#model")
+        next(contexts, None)  # closes the browser context
+
+
 def test_the_console_is_served_from_the_package_without_other_hosts(server: OnLoopback) -> None:
     for path in ("/console", "/console/console.js", "/console/console.css"):
         response = server.client.get(path)
@@ -108,6 +118,7 @@ def test_the_console_shows_the_audit_against_its_bands(
     page.wait_for_selector("#model table")
     assert "Enter the admin token" in page.inner_text("#audits")  # nothing admin without the token
     assert server.client.get("/v1/model").json()["hash"] in page.inner_text("#model")
+    assert "variant\toriginal" in page.inner_text("#model")
 
     page.fill("#token", server.admin_token)
     page.click("#token-form button[type=submit]")

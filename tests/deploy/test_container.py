@@ -148,3 +148,12 @@ def test_the_container_serves_like_the_service_and_keeps_its_calibrations(
         assert [v["version"] for v in versions] == [1, 2]
     finally:
         restarted.stop()
+
+    fast = Container(image, data_dir, {**env, "CKS_MODEL_DIR": "/app/models/lmo-synth-unet-int8"}, log)
+    try:  # the bundled int8 variant, one setting away, beside the other's versions on the volume
+        wait_ready(url, start_period_s(image))
+        answer = predict(url, image_path, request)
+        assert answer["model"]["variant"] == "int8"
+        assert httpx.get(f"{url}/readyz", timeout=5).json()["active_calibration"] == 1
+    finally:
+        fast.stop()

@@ -15,6 +15,10 @@ router = APIRouter(tags=["model"])
 class ModelInfo(BaseModel):
     name: str
     hash: str
+    variant: str = Field(
+        description="`original`, or the `int8` or `float16` variant of `manifest.variant.source_name`",
+        examples=["original"],
+    )
     manifest: Manifest
     service_version: str = Field(description="the version of the service (`keypoint-service --version`)")
     execution_providers: list[str] = Field(
@@ -29,6 +33,7 @@ async def model_info(detector: Model) -> ModelInfo:
     return ModelInfo(
         name=detector.manifest.name,
         hash=detector.model_hash,
+        variant=detector.manifest.variant_name,
         manifest=detector.manifest,
         service_version=__version__,
         execution_providers=detector.execution_providers,

@@ -26,7 +26,8 @@ def predict_response(
     """The response body of ``prediction``, made for ``query``."""
     sets, scope = prediction.sets, query.coverage
     regions = _regions(sets.centers, sets.shapes, query.nonconformity)
-    guarantees = [_guarantee(guarantee, scope, stratum) for guarantee, stratum in prediction.guarantees]
+    variant = manifest.variant_name
+    guarantees = [_guarantee(g, scope, variant, stratum) for g, stratum in prediction.guarantees]
     stats = _statistics(sets.statistics) if query.include_statistics else [None] * len(regions)
     centers = sets.centers.tolist()
     asked = {"nonconformity": query.nonconformity, "epsilon": query.epsilon, "delta": query.delta}
@@ -53,7 +54,7 @@ def predict_response(
         for i, instance in enumerate(query.instances)
     ]
     return schemas.PredictResponse(
-        model=schemas.ModelRef(name=prediction.model_name, hash=prediction.model_hash),
+        model=schemas.ModelRef(name=prediction.model_name, hash=prediction.model_hash, variant=variant),
         calibration=schemas.CalibrationRef(version=prediction.version, coverage=scope, **asked),
         image=schemas.ImageInfo(width=prediction.width, height=prediction.height),
         instances=instances,
@@ -94,11 +95,12 @@ def _stratum(choice: StratumChoice) -> schemas.Stratum:
 
 @lru_cache(maxsize=4096)
 def _guarantee(
-    guarantee: CoverageGuarantee, scope: str, stratum: StratumChoice | None = None
+    guarantee: CoverageGuarantee, scope: str, variant: str, stratum: StratumChoice | None = None
 ) -> schemas.Guarantee:
     """Shared between rows and requests (cached): never change what it returns."""
     return schemas.Guarantee(
         scope=scope,
+        model_variant=variant,
         n=guarantee.n,
         t=guarantee.t,
         epsilon=guarantee.epsilon,

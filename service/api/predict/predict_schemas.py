@@ -287,6 +287,11 @@ class Guarantee(BaseModel):
     """What the calibration actually guarantees for this set (Theorem 1 of the paper)."""
 
     scope: Coverage
+    model_variant: str = Field(
+        description="the model variant the calibration was scored with and the set computed by; a"
+        " calibration is never served with another variant",
+        examples=["original"],
+    )
     n: int = Field(description="calibration scores used")
     t: int = Field(
         description="rank of the threshold among them (0: unbounded): `floor((n+1) * epsilon)` without delta,"
@@ -403,6 +408,11 @@ class InstanceOut(BaseModel):
 class ModelRef(BaseModel):
     name: str
     hash: str
+    variant: str = Field(
+        description="which copy of the model ran and was calibrated: `original`, or the `int8` or `float16`"
+        " variant `keypoint-service optimize` made (GET /v1/model names its source)",
+        examples=["original"],
+    )
 
 
 class CalibrationRef(BaseModel):

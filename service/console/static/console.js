@@ -107,6 +107,11 @@ function keypointNames() {
   return [...keypoints].sort((a, b) => a.index - b.index).map((k) => k.name);
 }
 
+function variantText(model) {
+  const variant = model.manifest?.variant;
+  return variant ? `${variant.name}, of ${variant.source_name}` : model.variant;
+}
+
 async function loadModel() {
   try {
     state.model = await getJson("v1/model", false);
@@ -118,6 +123,7 @@ async function loadModel() {
   const objects = (manifest.objects || []).map((o) => `${o.name} (${(o.keypoints || []).length})`).join(", ");
   show("model", table(["", ""], [
     ["name", state.model.name],
+    ["variant", variantText(state.model)],
     ["sha256", el("code", {}, state.model.hash)],
     ["service", state.model.service_version],
     ["keypoints", keypointNames().length],
