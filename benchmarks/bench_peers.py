@@ -1,16 +1,17 @@
-"""The service against the frameworks a user would serve the model with instead, side by side.
+"""The service (and its int8 variant) against the frameworks a user would serve the model with instead.
 
-    python -m benchmarks.bench_peers             # ~12 min: 2 rounds, 8 s a point; docs/performance.md
+    python -m benchmarks.bench_peers             # ~14 min: 2 rounds, 8 s a point; docs/performance.md
     python -m benchmarks.bench_peers --quick     # ~1 min smoke run: 1 round, 1 s per point
     python -m benchmarks.bench_peers --peers FastAPI,LitServe --duration 5
     python -m benchmarks.bench_peers --gpu       # the model on a GPU (onnxruntime-gpu); own section
 
 Needs wrk (``apt-get install -y wrk``) and the ``peers`` extra (``pip install -e '.[peers]'``:
-LitServe, BentoML, Ray Serve). Every server computes the same sets with the service's own
-functions; each peer's answer is checked against the service's before it is timed. Writes the
-``bench_peers`` section of docs/performance.md;
+LitServe, BentoML, Ray Serve). Every peer computes the service's sets with the service's own
+functions (float32, as its users run it); each peer's answer is checked against the service's before
+it is timed. The service also runs its bundled int8 variant (``CKS_MODEL_DIR``), a different model
+checked against its own first answer. Writes the ``bench_peers`` section of docs/performance.md;
 with ``--gpu`` every server runs the model through onnxruntime's CUDA provider (the service with
-the ``cuda`` image's settings) and the run writes the ``bench_peers_gpu`` section instead.
+the ``cuda`` image's settings; no int8 variant) and the run writes the ``bench_peers_gpu`` section instead.
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ from benchmarks.peers.accelerator import CUDA, GPU_SETTINGS, on_gpu
 from benchmarks.peers.measure import Plan, measure
 from benchmarks.peers.profile import Profile, profile_under_load
 from benchmarks.peers.report import PeerResults, goals, render
-from benchmarks.peers.servers import PEERS, SERVICE, SERVICE_ON_GPU, Contender
+from benchmarks.peers.servers import PEERS, SERVICE, SERVICE_INT8, SERVICE_ON_GPU, Contender
 from benchmarks.stages import in_process_limits
 from service.infra.settings import DEFAULT_MODEL_DIR
 
@@ -68,7 +69,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     unknown = [name for name in wanted if name not in known]
     if unknown:
         parser.error(f"unknown peer(s) {unknown}; known: {', '.join(p.name for p in PEERS)}")
-    args.contenders = [SERVICE_ON_GPU if args.gpu else SERVICE, *(known[name] for name in wanted)]
+    services = [SERVICE_ON_GPU] if args.gpu else [SERVICE, SERVICE_INT8]  # int8 is a CPU variant
+    args.contenders = [*services, *(known[name] for name in wanted)]
     args.section = "bench_peers_gpu" if args.gpu else "bench_peers"
     return args
 
@@ -79,8 +81,9 @@ def command_line(args: argparse.Namespace) -> str:
     parts += ["--quick"] if args.quick else []
     parts += [f"--duration {args.duration:g}"] if args.duration else []
     parts += [f"--rounds {args.rounds}"] if args.rounds else []
-    if len(args.contenders) != len(PEERS) + 1:
-        parts.append("--peers " + ",".join(c.name for c in args.contenders[1:]))
+    peers = [c.name for c in args.contenders if c.is_peer]
+    if len(peers) != len(PEERS):
+        parts.append("--peers " + ",".join(peers))
     return " ".join(parts)
 
 

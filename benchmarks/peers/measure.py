@@ -53,9 +53,17 @@ class Runs:
         return sum(r.errors for runs in self.results[name].values() for r in runs)
 
 
-def check_answers(url: str, requests: Requests, reference: dict[int, dict]) -> dict[int, dict]:
-    """The contender's answers; ``AnswerMismatch`` unless they equal ``reference`` (when given)."""
+def check_answers(
+    url: str, requests: Requests, reference: dict[int, dict], variant: str | None = None
+) -> dict[int, dict]:
+    """The contender's answers; ``AnswerMismatch`` unless they equal ``reference`` (when given), name
+    ``variant`` as their ``model.variant`` (when given) and give every box its keypoints."""
     answers = {boxes: post(url, *requests.bodies[boxes]) for boxes in BOXES}
+    for boxes, answer in answers.items():
+        if variant is not None and answer["model"]["variant"] != variant:
+            raise AnswerMismatch(f"{boxes} box(es): model {answer['model']['variant']}, not {variant}")
+        if (found := sum(1 for i in answer["instances"] if i["keypoints"])) != boxes:
+            raise AnswerMismatch(f"{boxes} box(es): {found} instance(s) with keypoints")
     for boxes, expected in reference.items():
         if problem := difference(expected, answers[boxes], GPU_TOLERANCE if on_gpu() else TOLERANCE):
             raise AnswerMismatch(f"{boxes} box(es): {problem}")
@@ -63,23 +71,24 @@ def check_answers(url: str, requests: Requests, reference: dict[int, dict]) -> d
 
 
 class AnswerMismatch(Exception):
-    """A peer's sets differ from the service's: timing it would compare different work."""
+    """A peer's sets differ from the service's (or a variant's from its own first answer): timing it
+    would compare different work."""
 
 
 def measure(
     contenders: list[Contender], requests: Requests, plan: Plan, logs: Path, log: Callable[[str], None]
 ) -> Runs:
-    """Each round starts every contender in turn (the order reversed every other round), checks its
-    answers against the service's (the first contender) and runs every point."""
-    runs, reference = Runs(), {}
+    """Each round starts every contender in turn (the order reversed every other round) and checks its
+    answers: a peer's against the service's (the first contender, so measured first), a service
+    variant's against its own first answer (another model gives other sets); then runs every point."""
+    runs, references = Runs(), {}
     for round_number in range(plan.rounds):
         order = contenders if round_number % 2 == 0 else contenders[::-1]
-        if round_number % 2 and order[0].module is None:  # the reference answer first, whatever the order
-            order = order[-1:] + order[:-1]
         for contender in order:
-            with contender.running(logs / f"{contender.module or 'service'}.log") as server:
-                answers = check_answers(server.url, requests, reference)
-                reference = reference or answers
+            with contender.running(logs / f"{contender.name.replace(' ', '-')}.log") as server:
+                key = contenders[0].name if contender.is_peer else contender.name
+                answers = check_answers(server.url, requests, references.get(key, {}), contender.variant)
+                references.setdefault(key, answers)
                 for boxes in BOXES:
                     run_wrk(server.url, requests.scripts[boxes], 4, plan.warmup_seconds)
                 for boxes in BOXES:
@@ -94,7 +103,7 @@ def measure(
 
 def format_result(round_number: int, name: str, boxes: int, result: LoadResult, cpu_seconds: float) -> str:
     return (
-        f"round {round_number + 1} {name:<10} {boxes} box(es) c={result.concurrency:<2} "
+        f"round {round_number + 1} {name:<12} {boxes} box(es) c={result.concurrency:<2} "
         f"{result.requests_per_s:7.1f} req/s  p50 {result.p50_ms:6.1f} ms  p99 {result.p99_ms:6.1f} ms  "
         f"{cpu_seconds * 1e3 / max(result.requests, 1):5.2f} server core-ms/request  errors {result.errors}"
     )

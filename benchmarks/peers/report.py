@@ -2,17 +2,20 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from benchmarks.harness import BOXES, Machine
 from benchmarks.peers.accelerator import execution_providers, gpu_names, on_gpu
 from benchmarks.peers.answers import GPU_TOLERANCE, TOLERANCE
-from benchmarks.peers.measure import CONCURRENCIES, Runs
+from benchmarks.peers.measure import CONCURRENCIES, Point, Runs
 from benchmarks.peers.profile import Profile
-from benchmarks.peers.servers import Contender
+from benchmarks.peers.servers import SERVICE_INT8, Contender
 from benchmarks.stages import Limit, cores
 
 SERVICE = "service"
+INT8 = SERVICE_INT8.name
+FASTAPI = "FastAPI"
 STAGE_NAMES = {
     "decode": "decode",
     "crop": "crop",
@@ -55,7 +58,12 @@ class PeerResults:
 
     @property
     def peers(self) -> list[str]:
-        return [c.name for c in self.contenders if c.name != SERVICE]
+        return [c.name for c in self.contenders if c.is_peer]
+
+    @property
+    def services(self) -> list[str]:
+        """The service's contenders with a ratio column: the default, then the int8 variant if run."""
+        return [c.name for c in self.contenders if not c.is_peer]
 
     def best_peer(self, point: tuple[int, int], by_rate: bool) -> str:
         if by_rate:
@@ -88,6 +96,7 @@ def goals(results: PeerResults) -> list[Goal]:
                 f"{runs.rate(SERVICE, point):.0f} vs {runs.rate(best, point):.0f}, {best}",
             )
         )
+    found += int8_goals(results) if INT8 in results.services and results.peers else []
     for limit in results.limits:
         rate = runs.rate(SERVICE, (limit.boxes, 16))
         found.append(
@@ -112,46 +121,80 @@ def goals(results: PeerResults) -> list[Goal]:
     return found
 
 
+def int8_goals(results: PeerResults) -> list[Goal]:
+    """Issue 47's: the int8 variant against the peers, which run the float32 model as their users do."""
+    runs, found = results.runs, []
+    for boxes, target in ((4, 1.3), (1, 1.15)):
+        point = (boxes, 16)
+        best = results.best_peer(point, by_rate=True)
+        found.append(
+            Goal(
+                f"req/s at concurrency 16, {boxes} box(es): service int8 / best peer",
+                runs.rate(INT8, point) / runs.rate(best, point),
+                target,
+                True,
+                f"{runs.rate(INT8, point):.0f} vs {runs.rate(best, point):.0f}, {best}",
+            )
+        )
+    if FASTAPI in results.peers:
+        point = (4, 1)
+        found.append(
+            Goal(
+                "p50 at concurrency 1, 4 box(es): service int8 / FastAPI",
+                runs.p50(INT8, point) / runs.p50(FASTAPI, point),
+                0.85,
+                False,
+                f"{runs.p50(INT8, point):.1f} vs {runs.p50(FASTAPI, point):.1f} ms",
+            )
+        )
+    return found
+
+
 def _cell(values: list[float], digits: int) -> str:
     return " / ".join(f"{v:.{digits}f}" for v in values)
 
 
 def table(results: PeerResults) -> list[str]:
     names = [c.name for c in results.contenders]
+    ratios = [f"{'service' if name == SERVICE else 'int8'} / best peer" for name in results.services]
     lines = [
-        "| point | " + " | ".join(names) + " | service / best peer |",
-        "|---|" + "---|" * len(names) + "---|",
+        "| point | " + " | ".join(names + ratios) + " |",
+        "|---|" + "---|" * (len(names) + len(ratios)),
     ]
-    runs = results.runs.results
-    lines += _rows(results, names, runs)
-    for boxes in BOXES:  # what the server process tree spent per request, whatever else ran
-        point = (boxes, 16)
-        cells = [_cell(results.runs.core_ms[name][point], 2) for name in names]
-        best = min(results.peers, key=lambda name: results.runs.cpu(name, point)) if results.peers else None
-        ratio = (
-            f"**{results.runs.cpu(SERVICE, point) / results.runs.cpu(best, point):.2f}** ({best})"
-            if best
-            else "-"
-        )
-        label = f"server core-ms per request, {boxes} box(es), concurrency 16"
-        lines.append(f"| {label} | " + " | ".join(cells) + f" | {ratio} |")
-    return lines
-
-
-def _rows(results: PeerResults, names: list[str], runs: dict) -> list[str]:
-    lines = []
+    runs = results.runs
     for by_rate in (True, False):
+        pick = (lambda r: r.requests_per_s) if by_rate else (lambda r: r.p50_ms)
+        digits = 0 if by_rate else 1
         for boxes in BOXES:
             for concurrency in CONCURRENCIES:
                 point = (boxes, concurrency)
-                pick = (lambda r: r.requests_per_s) if by_rate else (lambda r: r.p50_ms)
-                cells = [_cell([pick(r) for r in runs[name][point]], 0 if by_rate else 1) for name in names]
-                median = results.runs.rate if by_rate else results.runs.p50
+                cells = [_cell(list(map(pick, runs.results[name][point])), digits) for name in names]
                 best = results.best_peer(point, by_rate) if results.peers else None
-                ratio = f"**{median(SERVICE, point) / median(best, point):.2f}** ({best})" if best else "-"
                 label = f"{'req/s' if by_rate else 'p50 ms'}, {boxes} box(es), concurrency {concurrency}"
-                lines.append(f"| {label} | " + " | ".join(cells) + f" | {ratio} |")
+                lines.append(_row(label, cells, results, best, runs.rate if by_rate else runs.p50, point))
+    for boxes in BOXES:  # what the server process tree spent per request, whatever else ran
+        point = (boxes, 16)
+        cells = [_cell(runs.core_ms[name][point], 2) for name in names]
+        best = min(results.peers, key=lambda name: runs.cpu(name, point)) if results.peers else None
+        label = f"server core-ms per request, {boxes} box(es), concurrency 16"
+        lines.append(_row(label, cells, results, best, runs.cpu, point))
     return lines
+
+
+def _row(
+    label: str,
+    cells: list[str],
+    results: PeerResults,
+    best: str | None,
+    median: Callable[[str, Point], float],
+    point: Point,
+) -> str:
+    """A table row: its cells, then each service's median over the best peer's."""
+    ratios = [
+        f"**{median(name, point) / median(best, point):.2f}** ({best})" if best else "-"
+        for name in results.services
+    ]
+    return f"| {label} | " + " | ".join(cells + ratios) + " |"
 
 
 def render(results: PeerResults) -> str:
@@ -166,10 +209,11 @@ def render(results: PeerResults) -> str:
         "",
         f"- Machine: {machine.describe()}; load average at end {load_end}.",
         "- Request: `POST /v1/predict`, multipart/form-data, the README's 640x480 sample JPEG with 1 or 4 "
-        "boxes, `cov`, epsilon 0.1 (keypoint coverage); every server answers with the service's own "
-        "decode, crop, model and sets (`benchmarks/peers/pipeline.py`), and before timing each peer's "
-        f"centres and shape matrices were checked equal to the service's (centres within {tolerance:g} px, "
-        f"shape matrices within {tolerance:g} of their largest entry).",
+        "boxes, `cov`, epsilon 0.1 (keypoint coverage); every peer answers with the service's own "
+        "decode, crop, float32 model and sets (`benchmarks/peers/pipeline.py`), and before timing each "
+        "peer's centres and shape matrices were checked equal to the service's (centres within "
+        f"{tolerance:g} px, shape matrices within {tolerance:g} of their largest entry)."
+        + (_INT8_CHECK if INT8 in results.services else ""),
         f"- Load: `wrk -t1 -c<concurrency> --latency` on loopback, {results.seconds:g} s per point after a "
         f"warm-up; {results.rounds} round(s), each starting every server in turn (the order reversed in the "
         "second round); each cell gives every round's figure, ratios use the medians.",
@@ -237,6 +281,13 @@ def profile_section(results: PeerResults) -> list[str]:
         *[f"| {stage} | {share:.0%} | {share * core_ms:.2f} |" for stage, share in profile.shares.items()],
     ]
     return lines
+
+
+_INT8_CHECK = (
+    " The service int8 is another model (its sets differ a little from float32's): its answers were "
+    "checked to name `model.variant` int8, to give every box its keypoints, and to equal its own first "
+    "answer in every round."
+)
 
 
 def _gpu_note() -> str:

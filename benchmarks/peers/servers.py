@@ -1,4 +1,4 @@
-"""The servers compared: the service with its defaults and each peer, started the same way."""
+"""The servers compared: the service (its default model, its int8 variant) and each peer, started alike."""
 
 from __future__ import annotations
 
@@ -10,6 +10,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from benchmarks.harness import Server, free_port, launch, serve
+from service.infra.settings import DEFAULT_MODEL_DIR
+
+INT8_MODEL_DIR = DEFAULT_MODEL_DIR.parent / "lmo-synth-unet-int8"
 
 
 @dataclass(frozen=True)
@@ -21,6 +24,18 @@ class Contender:
     settings: str
     startup_timeout_s: float = 120
     settings_on_gpu: str | None = None  # where ``bench_peers --gpu`` changes them
+    model_dir: Path | None = None  # the service's CKS_MODEL_DIR (None: its default model)
+
+    @property
+    def is_peer(self) -> bool:
+        return self.module is not None
+
+    @property
+    def variant(self) -> str | None:
+        """The ``model.variant`` the service's answers must name (None for a peer)."""
+        if self.is_peer:
+            return None
+        return "original" if self.model_dir is None else "int8"
 
     def described(self, gpu: bool) -> str:
         return self.settings_on_gpu if gpu and self.settings_on_gpu else self.settings
@@ -28,7 +43,8 @@ class Contender:
     @contextmanager
     def running(self, log: Path) -> Iterator[Server]:
         if self.module is None:
-            with serve({}, log=log) as server:
+            settings = {"CKS_MODEL_DIR": str(self.model_dir)} if self.model_dir else {}
+            with serve(settings, log=log) as server:
                 yield server
             return
         port = free_port()
@@ -44,6 +60,14 @@ SERVICE = Contender(
     "process runs on every core, and beside others each request's crops are one run of one intra-op "
     "thread on the request's own thread, concurrent runs in parallel; intra-op threads sleep between "
     "the pieces of a run instead of spinning",
+)
+SERVICE_INT8 = Contender(
+    "service int8",
+    None,
+    "its defaults but `CKS_MODEL_DIR=models/lmo-synth-unet-int8` (the bundled int8 variant, onnxruntime "
+    "static quantization, with its own calibration; a CPU variant, so not in `--gpu` runs): a different "
+    "model, so its answers are checked against its own first answer, not the float32 sets",
+    model_dir=INT8_MODEL_DIR,
 )
 SERVICE_ON_GPU = Contender(
     "service",

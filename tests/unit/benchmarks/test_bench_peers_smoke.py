@@ -18,7 +18,7 @@ from benchmarks.peers.answers import difference
 from benchmarks.peers.measure import CONCURRENCIES, AnswerMismatch, Runs, check_answers
 from benchmarks.peers.profile import OTHER, summarize
 from benchmarks.peers.report import PeerResults, goals, render
-from benchmarks.peers.servers import PEERS, SERVICE, SERVICE_ON_GPU
+from benchmarks.peers.servers import PEERS, SERVICE, SERVICE_INT8, SERVICE_ON_GPU
 from benchmarks.stages import Limit
 
 PEER = {peer.name: peer for peer in PEERS}
@@ -32,7 +32,7 @@ def requests(tmp_path_factory: pytest.TempPathFactory) -> Requests:
 @pytest.fixture(scope="module")
 def service_answers(requests: Requests, tmp_path_factory: pytest.TempPathFactory) -> dict[int, dict]:
     with SERVICE.running(tmp_path_factory.mktemp("logs") / "service.log") as server:
-        return check_answers(server.url, requests, {})
+        return check_answers(server.url, requests, {}, "original")
 
 
 @pytest.mark.parametrize(
@@ -52,6 +52,19 @@ def test_the_peer_serves_the_services_answer(
         assert len(answers[boxes]["instances"]) == boxes and keypoints
 
 
+def test_the_int8_variant_is_checked_on_its_own_answers(
+    requests: Requests, service_answers: dict[int, dict], tmp_path: Path
+) -> None:
+    """Another model: float32's sets are not its reference; its own first answer and variant are."""
+    with SERVICE_INT8.running(tmp_path / "int8.log") as server:
+        first = check_answers(server.url, requests, {}, "int8")
+        check_answers(server.url, requests, first, "int8")
+        with pytest.raises(AnswerMismatch, match="model int8, not original"):
+            check_answers(server.url, requests, first, "original")
+    assert all(answer["model"]["variant"] == "int8" for answer in first.values())
+    assert difference(service_answers[4], first[4]) is not None
+
+
 def test_a_different_centre_or_shape_is_named(service_answers: dict[int, dict]) -> None:
     moved, stretched = copy.deepcopy(service_answers[1]), copy.deepcopy(service_answers[1])
     moved["instances"][0]["keypoints"][0]["point"][0] += 1e-3
@@ -67,7 +80,7 @@ def test_a_different_centre_or_shape_is_named(service_answers: dict[int, dict]) 
 def _results() -> PeerResults:
     args = parse_args(["--quick", "--peers", "FastAPI,LitServe"])
     runs = Runs()
-    for contender, speed in zip(args.contenders, (2.0, 1.0, 1.5), strict=True):
+    for contender, speed in zip(args.contenders, (2.0, 3.0, 1.0, 1.5), strict=True):
         for boxes in BOXES:
             for concurrency in CONCURRENCIES:
                 rate = 100.0 * speed / boxes
@@ -94,8 +107,13 @@ def test_the_report_gives_goals_table_and_settings_and_keeps_bench_services_sect
     text = render(results)
     for heading in ("### Goals", "### Service and peers", "### Settings, and why", "### In-process limit"):
         assert heading in text
-    assert len(goals(results)) == 8 and "| service | FastAPI | LitServe |" in text
-    assert "**1.33** (LitServe)" in text  # req/s: the service 2x FastAPI's speed, LitServe 1.5x
+    assert results.peers == ["FastAPI", "LitServe"]  # the int8 variant is the service, not a peer
+    assert len(goals(results)) == 11
+    assert "| service | service int8 | FastAPI | LitServe | service / best peer | int8 / best peer |" in text
+    # req/s: the service 2x FastAPI's speed, its int8 variant 3x, LitServe 1.5x
+    assert "| **1.33** (LitServe) | **2.00** (LitServe) |" in text
+    assert "4 box(es): service int8 / FastAPI | 0.33 (3.3 vs 10.0 ms) | 0.85 | met |" in text
+    assert "- **service int8**: its defaults but `CKS_MODEL_DIR=models/lmo-synth-unet-int8`" in text
     output = tmp_path / "performance.md"
     output.write_text(
         "# Performance\n\n<!-- bench_service:begin -->\nold figures\n<!-- bench_service:end -->\n"
@@ -141,6 +159,7 @@ def test_worker_processes_samples_count_like_the_servers_own() -> None:
 def test_gpu_mode_runs_the_service_with_gpu_settings_into_its_own_section(tmp_path: Path) -> None:
     args = parse_args(["--gpu", "--peers", "FastAPI"])
     assert args.contenders[0] is SERVICE_ON_GPU and args.section == "bench_peers_gpu"
+    assert SERVICE_INT8 not in args.contenders  # a CPU variant
     litserve = PEER["LitServe"]
     assert "accelerator='cuda'" in litserve.described(True) and litserve.described(False) == litserve.settings
     output = tmp_path / "performance.md"
