@@ -7,12 +7,15 @@
 Frames of 640x480, 1280x720, 1920x1080 and 3840x2160 (the samples folder's busiest image scaled
 to the height, the rest of the width its mirror image), 1 and 4 boxes, concurrency 1, keep-alive
 connections. Each round sends, in turn: the service with the boxes' regions as raw pixels and as
-JPEG (POST /v1/predict/frame, the client's ``frame_parts``), the service with the whole frame as
-JPEG (POST /v1/predict), the plain FastAPI peer (benchmarks/peers/fastapi_app.py, the fastest peer
-at concurrency 1 in bench_peers) with the whole JPEG, and through the Python client
+JPEG (POST /v1/predict/frame, the client's ``frame_parts``), the service's int8 variant (a second
+service process, ``CKS_MODEL_DIR=models/lmo-synth-unet-int8``) with raw regions, the service with the
+whole frame as JPEG (POST /v1/predict), the plain FastAPI peer (benchmarks/peers/fastapi_app.py,
+the fastest peer at concurrency 1 in bench_peers) with the whole JPEG, and through the Python client
 ``predict(frame)`` against JPEG encode + ``predict(jpeg bytes)``. Every time includes the
-client's encoding and the parsing of the answer. Before timing: the raw regions' answer must be
-the whole frame's (PNG) byte for byte, and the peer's the service's for the same JPEG.
+client's encoding and the parsing of the answer. Before timing: each service's raw regions' answer
+must be its whole frame's (PNG) byte for byte, and the peer's the service's for the same JPEG.
+Issue 47's goal: at 1920x1080 with 4 boxes, the int8 raw regions at least 3x sooner than FastAPI's
+whole JPEG.
 Each request starts ``--gap-ms`` (50) after the previous one ended, as frames come from a camera:
 longer than the peer's onnxruntime threads spin after its run (30-40 ms of CPU measured), so
 that no request pays for another contender's. Writes the ``bench_frames`` section of
@@ -49,7 +52,7 @@ from benchmarks.harness import (
     write_section,
 )
 from benchmarks.peers.answers import difference
-from benchmarks.peers.servers import PEERS, SERVICE
+from benchmarks.peers.servers import PEERS, SERVICE, SERVICE_INT8
 from service.infra.settings import DEFAULT_MODEL_DIR
 
 sys.path.insert(0, str(ROOT / "client"))  # this checkout's client, not an installed copy
@@ -61,12 +64,22 @@ SIZES = ((640, 480), (1280, 720), (1920, 1080), (3840, 2160))
 PEER = next(peer for peer in PEERS if peer.name == "FastAPI")
 CONTENDERS = (
     "service, raw regions",
+    "service int8, raw regions",
     "service, JPEG regions",
     "service, whole JPEG",
     "FastAPI, whole JPEG",
     "client predict(frame)",
     "client JPEG + predict",
 )
+#: each (slower, faster) pair's ratio of medians and of mean CPU
+RATIOS = (
+    ("FastAPI, whole JPEG", "service, raw regions"),
+    ("FastAPI, whole JPEG", "service int8, raw regions"),
+    ("service, whole JPEG", "service, raw regions"),
+    ("client JPEG + predict", "client predict(frame)"),
+    ("service, whole JPEG", "FastAPI, whole JPEG"),
+)
+GOAL = ("1920x1080, 4 boxes", RATIOS[1], 3.0)  # issue 47: the int8 raw regions 3x sooner than FastAPI
 Send = Callable[[], object]
 
 
@@ -117,20 +130,21 @@ def make_point(sample: Sample, width: int, height: int, boxes: int) -> Point:
 class Contenders:
     """How each contender sends one point's frame and parses the answer."""
 
-    def __init__(self, service: Server, peer: Server, padding: float) -> None:
-        self.servers = service, peer
+    def __init__(self, service: Server, int8: Server, peer: Server, padding: float) -> None:
+        self.servers = service, int8, peer
         self.http = httpx.Client(base_url=service.url, timeout=120)
+        self.int8 = httpx.Client(base_url=int8.url, timeout=120)
         self.peer = httpx.Client(base_url=peer.url, timeout=120)
         self.client = KeypointClient(service.url, timeout=120)
         self.padding = padding
 
     def close(self) -> None:
-        for closable in (self.http, self.peer, self.client):
+        for closable in (self.http, self.int8, self.peer, self.client):
             closable.close()
 
-    def regions(self, point: Point, sending: str = "regions") -> dict:
+    def regions(self, point: Point, sending: str = "regions", http: httpx.Client | None = None) -> dict:
         files = frame_parts(point.frame, point.parameters, self.padding, sending)  # type: ignore[arg-type]
-        return _answer(self.http.post("/v1/predict/frame", files=files))
+        return _answer((http or self.http).post("/v1/predict/frame", files=files))
 
     def whole_jpeg(self, point: Point, http: httpx.Client) -> dict:
         files = {"image": ("frame.jpg", jpeg_bytes(point.frame), "image/jpeg")}
@@ -139,25 +153,31 @@ class Contenders:
     def sends(self, point: Point) -> dict[str, tuple[Send, Server]]:
         """Each contender's request, and the server that answers it."""
         instances = point.parameters["instances"]
-        service, peer = self.servers
-        return {
-            CONTENDERS[0]: (lambda: self.regions(point), service),
-            CONTENDERS[1]: (lambda: self.regions(point, "jpeg-regions"), service),
-            CONTENDERS[2]: (lambda: self.whole_jpeg(point, self.http), service),
-            CONTENDERS[3]: (lambda: self.whole_jpeg(point, self.peer), peer),
-            CONTENDERS[4]: (lambda: self.client.predict(point.frame, instances), service),
-            CONTENDERS[5]: (lambda: self.client.predict(jpeg_bytes(point.frame), instances), service),
-        }
+        service, int8, peer = self.servers
+        sends = (
+            (lambda: self.regions(point), service),
+            (lambda: self.regions(point, http=self.int8), int8),
+            (lambda: self.regions(point, "jpeg-regions"), service),
+            (lambda: self.whole_jpeg(point, self.http), service),
+            (lambda: self.whole_jpeg(point, self.peer), peer),
+            (lambda: self.client.predict(point.frame, instances), service),
+            (lambda: self.client.predict(jpeg_bytes(point.frame), instances), service),
+        )
+        return dict(zip(CONTENDERS, sends, strict=True))
 
     def check(self, point: Point) -> None:
-        """Raw regions answer as the whole frame's PNG does, byte for byte; the peer as the service."""
+        """Each service's raw regions answer as its whole frame's PNG does, byte for byte (the int8
+        variant is another model: its answers are its own); the peer as the service."""
         png = cv2.imencode(".png", point.frame[:, :, ::-1])[1].tobytes()  # a raw 4K frame is above 20 MiB
         files = {"image": ("frame.png", png, "image/png")}
-        whole = self.http.post("/v1/predict", files=files, data={"request": json.dumps(point.parameters)})
-        regions = frame_parts(point.frame, point.parameters, self.padding, "regions")
-        answer = self.http.post("/v1/predict/frame", files=regions)
-        if whole.status_code != 200 or answer.content != whole.content:
-            raise SystemExit(f"{point.name}: the raw regions' answer is not the whole frame's")
+        for http, variant in ((self.http, "original"), (self.int8, "int8")):
+            whole = http.post("/v1/predict", files=files, data={"request": json.dumps(point.parameters)})
+            regions = frame_parts(point.frame, point.parameters, self.padding, "regions")
+            answer = http.post("/v1/predict/frame", files=regions)
+            if whole.status_code != 200 or answer.content != whole.content:
+                raise SystemExit(f"{point.name}: the {variant} raw regions' answer is not the whole frame's")
+            if answer.json()["model"]["variant"] != variant:
+                raise SystemExit(f"{point.name}: {http.base_url} does not serve the {variant} model")
         why = difference(self.whole_jpeg(point, self.http), self.whole_jpeg(point, self.peer))
         if why is not None:
             raise SystemExit(f"{point.name}: the peer's answer differs from the service's: {why}")
@@ -215,6 +235,23 @@ def _cell(values: list[float]) -> str:
     return f"{quartiles[1]:.1f} ({quartiles[0]:.1f}-{quartiles[2]:.1f})"
 
 
+def _ratio(figure: Callable[[tuple[str, str]], float], point: str, slow: str, fast: str) -> float:
+    return figure((point, slow)) / figure((point, fast))
+
+
+def goal_line(points: list[Point], timings: Timings) -> str:
+    """Issue 47's goal for the frame path, and whether this run met it."""
+    name, (slow, fast), target = GOAL
+    text = (
+        f"Goal (issue 47): at {name.replace(',', ' with')}, the service int8 with raw regions at least"
+        f" {target:g}x sooner than FastAPI with the whole JPEG (wall-time medians)"
+    )
+    if name not in {p.name for p in points}:
+        return text + ": not measured in this run."
+    ratio = _ratio(timings.median, name, slow, fast)
+    return text + f": **{ratio:.2f}x**, {'met' if ratio >= target else '**NOT met**'}."
+
+
 def render(
     command: str,
     machine: str,
@@ -237,18 +274,13 @@ def render(
         f"| {p.name} | " + " | ".join(f"{timings.cpu_mean((p.name, n)):.1f}" for n in CONTENDERS) + " |"
         for p in points
     ]
-    ratios = [
-        "| frame, boxes | FastAPI whole JPEG / service raw regions, time (CPU) | service whole JPEG / raw"
-        " regions, time (CPU) | client JPEG + predict / client predict(frame), time (CPU) |"
-        " service whole JPEG / FastAPI whole JPEG, time (CPU) |",
-        "|---|---|---|---|---|",
-    ]
+    labels = [f"{slow.replace(',', '')} / {fast.replace(',', '')}, time (CPU)" for slow, fast in RATIOS]
+    ratios = ["| frame, boxes | " + " | ".join(labels) + " |", "|---" * (len(RATIOS) + 1) + "|"]
     for p in points:
-        cells = []
-        for slow, fast in ((3, 0), (2, 0), (5, 4), (2, 3)):
-            (a, b) = ((p.name, CONTENDERS[slow]), (p.name, CONTENDERS[fast]))
-            wall, cpu = timings.median(a) / timings.median(b), timings.cpu_mean(a) / timings.cpu_mean(b)
-            cells.append(f"**{wall:.2f}** ({cpu:.2f})")
+        cells = [
+            f"**{_ratio(timings.median, p.name, *pair):.2f}** ({_ratio(timings.cpu_mean, p.name, *pair):.2f})"
+            for pair in RATIOS
+        ]
         ratios.append(f"| {p.name} | " + " | ".join(cells) + " |")
     return "\n".join(
         [
@@ -264,13 +296,17 @@ def render(
             " bench_peers: the client's regions share one rectangle for those two); every figure includes"
             " the client's encoding (JPEG"
             " quality 95 where JPEG). CPU: the client process's and the answering server's CPU time per"
-            " request (less moved by other jobs on the machine than the wall time). Checked first: the raw"
-            " regions' answer is the whole frame's PNG's byte for byte, and the peer's is the service's for"
-            " the same JPEG.",
+            " request (less moved by other jobs on the machine than the wall time). The service int8: a"
+            " second service process serving the bundled int8 variant (`CKS_MODEL_DIR=models/"
+            "lmo-synth-unet-int8`; another model, its sets differ a little). Checked first: each service's"
+            " raw regions' answer is its whole frame's PNG's byte for byte, and the peer's is the (float32)"
+            " service's for the same JPEG.",
             "",
             "### Ratios (wall-time medians, and mean CPU, of the same run)",
             "",
             *ratios,
+            "",
+            goal_line(points, timings),
             "",
             "### Wall time, ms: median (quartiles)",
             "",
@@ -290,8 +326,12 @@ def main(argv: list[str] | None = None) -> None:
     points = [make_point(sample, w, h, boxes) for w, h in args.sizes for boxes in BOXES]
     machine = this_machine().describe()
     logs = Path(tempfile.mkdtemp(prefix="bench-frames-"))
-    with SERVICE.running(logs / "service.log") as service, PEER.running(logs / "peer.log") as peer:
-        contenders = Contenders(service, peer, padding)
+    with (
+        SERVICE.running(logs / "service.log") as service,
+        SERVICE_INT8.running(logs / "service-int8.log") as int8,
+        PEER.running(logs / "peer.log") as peer,
+    ):
+        contenders = Contenders(service, int8, peer, padding)
         try:
             timings = measure(contenders, points, args.rounds, args.seed, args.gap_ms / 1000)
         finally:

@@ -25,7 +25,7 @@ def test_frames_have_their_size_and_boxes_inside(width: int, height: int, boxes:
 def test_regions_cut_with_another_padding_are_refused_not_timed(tmp_path: Path) -> None:
     point = make_point(load_sample(), 640, 480, 1)
     with serve({}, log=tmp_path / "service.log") as server:
-        contenders = Contenders(server, server, padding=0.0)
+        contenders = Contenders(server, server, server, padding=0.0)
         try:
             with pytest.raises(httpx.HTTPStatusError, match="422"):
                 contenders.regions(point)
@@ -43,3 +43,6 @@ def test_a_short_run_writes_its_section(tmp_path: Path) -> None:
     assert "each request 50 ms after the previous one ended" in written
     for name in CONTENDERS:
         assert name in written
+    assert "| FastAPI whole JPEG / service int8 raw regions, time (CPU) |" in written
+    assert "Goal (issue 47): at 1920x1080 with 4 boxes, the service int8" in written
+    assert "not measured in this run" in written
