@@ -16,7 +16,7 @@ import numpy as np
 
 from .camera import ray_frame
 from .membership import Pose, membership, poses_inside
-from .rotations import from_rotation_vector, rotation_angle_deg, to_rotation_vector
+from .rotations import from_rotation_vector, rotation_angle_deg
 
 
 @dataclass(frozen=True)
@@ -134,6 +134,12 @@ _ROTATION_STARTS = 0.05  # radians: the rotation search starts this far from the
 #: SLSQP runs converged this far: stopped at 1e-6, their poses moved in the 8th digit with the
 #: BLAS library's thread count, so the same request got other inner bounds on other machines
 BOUNDARY_FTOL = 1e-9
+#: SLSQP stops within its tolerance of the boundary it pushes against, a hair inside or out as the
+#: last bits fall (and the way back to the estimate may leave PURSE): it is asked to keep this inside
+_MARGIN = 1e-6
+#: a turn of at most pi about each axis, a translation within 90 % of the distance: without bounds a
+#: run could step to turns of 1e7 radians, and diverge or not with the BLAS library's thread count
+_BOUNDS = [(-np.pi, np.pi)] * 3 + [(-9.0, 9.0)] * 3
 _SLSQP = {"method": "SLSQP", "options": {"maxiter": 60, "ftol": BOUNDARY_FTOL}}
 
 
@@ -142,14 +148,15 @@ def boundary_poses(
 ) -> list[Pose]:
     """Poses of PURSE pushed to its boundary (every set bounded): the farthest along and against the
     line of sight, and in rotation from four small turns about the two axes across it. The variable is
-    x = (rotation vector, u), t = t_hat + step u with step a tenth of the distance: SLSQP sees radians
-    and tenths of the depth on one scale."""
+    x = (w, u): the rotation exp([w]) R_hat, and t = t_hat + step u with step a tenth of the distance:
+    SLSQP sees radians and tenths of the depth on one scale. The turn w is taken from the estimate, so
+    that it stays small, away from the rotation vector's singularity at pi (an estimate's own may be
+    near it)."""
     from scipy.optimize import minimize  # the `pose` extra (Clarabel needs SciPy): not at start-up
 
-    objects = keypoints_3d.astype(np.float64)
+    objects = keypoints_3d.astype(np.float64) @ estimate.rotation.T  # R_hat X: the estimate's turn
     step = 0.1 * (float(np.linalg.norm(estimate.translation)) or 1.0)
-    start = np.concatenate([to_rotation_vector(estimate.rotation), np.zeros(3)])
-    scaled = np.array([1.0, 1.0, 1.0, step, step, step])  # d (rvec, t) / d x
+    scaled = np.array([1.0, 1.0, 1.0, step, step, step])  # d (w, t) / d x
     moved = np.tile([0.0, 0.0, step], (len(objects), 1))  # d z_i / d u
 
     @lru_cache(maxsize=1)  # SLSQP asks for the constraints, then their Jacobian, at one point
@@ -159,36 +166,35 @@ def boundary_poses(
         projected, jacobian = cv2.projectPoints(objects, x[:3], translation, camera, None)
         offsets = projected.reshape(-1, 2) - centers
         slopes = -2 * np.einsum("ni,nij,njk->nk", offsets, shapes, jacobian[:, :6].reshape(-1, 2, 6) * scaled)
-        slack = 1.0 - np.einsum("ni,nij,nj->n", offsets, shapes, offsets)
-        rotation, turning = cv2.Rodrigues(x[:3])  # Rodrigues' d vec(R) / d rvec, row-major
-        depth = (objects @ rotation.T + estimate.translation + step * x[3:])[:, 2]
+        slack = 1.0 - _MARGIN - np.einsum("ni,nij,nj->n", offsets, shapes, offsets)
+        rotation, turning = cv2.Rodrigues(x[:3])  # Rodrigues' d vec(R) / d w, row-major
+        depth = (objects @ rotation.T + translation)[:, 2]
         gradients = np.vstack([slopes, np.hstack([objects @ turning[:, 6:9].T, moved])])
         return np.concatenate([slack, depth]), gradients
 
-    def turn(x):  # tr(R_hat^T R): smallest at the largest angle
+    def turn(x):  # tr(R_hat^T R) = tr(exp([w])): smallest at the largest angle
         rotation, jacobian = cv2.Rodrigues(x[:3])
-        gradient = np.concatenate([jacobian @ estimate.rotation.reshape(9), np.zeros(3)])
-        return float(np.sum(estimate.rotation * rotation)), gradient
+        return float(np.trace(rotation)), np.concatenate([jacobian @ np.eye(3).reshape(9), np.zeros(3)])
 
     constraint = {"type": "ineq", "fun": lambda x: feasible(x.tobytes())[0]}
     constraint["jac"] = lambda x: feasible(x.tobytes())[1]
     sight, *across = ray_frame(estimate.translation)
+    start = np.zeros(6)
     runs = [
         (lambda x, a=sign * sight: (-float(a @ x[3:]), np.concatenate([np.zeros(3), -a])), start)
         for sign in (1.0, -1.0)
     ]
     for axis, sign in itertools.product(across, (1.0, -1.0)):
-        turned = from_rotation_vector(sign * _ROTATION_STARTS * axis) @ estimate.rotation
-        runs.append((turn, np.concatenate([to_rotation_vector(turned), np.zeros(3)])))
+        runs.append((turn, np.concatenate([sign * _ROTATION_STARTS * axis, np.zeros(3)])))
     poses, origin = [], np.concatenate([start[:3], estimate.translation])
     for objective, x0 in runs:
         try:
             with np.errstate(all="ignore"):
-                result = minimize(objective, x0, jac=True, constraints=[constraint], **_SLSQP)
+                result = minimize(objective, x0, jac=True, constraints=[constraint], bounds=_BOUNDS, **_SLSQP)
         except (cv2.error, ValueError):  # a run wandering off to poses OpenCV cannot project
             continue
         end = np.concatenate([result.x[:3], estimate.translation + step * result.x[3:]])
-        pose = _inside_towards(origin, end, camera, keypoints_3d, centers, shapes)
+        pose = _inside_towards(origin, end, estimate.rotation, camera, keypoints_3d, centers, shapes)
         if pose is not None:
             poses.append(pose)
     return poses
@@ -198,15 +204,15 @@ _BISECTION_STEPS = 30  # halvings of the segment towards the estimate
 _TOWARDS_HIGH = 2.0 ** -np.arange(1, _BISECTION_STEPS + 1)  # the middles of the halvings left, as fractions
 
 
-def _inside_towards(start, end, *scene) -> Pose | None:
-    """The pose at ``end`` (rotation vector, translation) if it is in PURSE, else the last one in
+def _inside_towards(start, end, base: np.ndarray, *scene) -> Pose | None:
+    """The pose at ``end`` (turn w of ``base``, translation) if it is in PURSE, else the last one in
     PURSE on the segment from ``start`` (by bisection; None if ``end`` is not finite)."""
     if not np.isfinite(end).all():
         return None
 
     def pose_at(fraction: float) -> Pose:
         x = start + fraction * (end - start)
-        return Pose(from_rotation_vector(x[:3]), x[3:].copy())
+        return Pose(from_rotation_vector(x[:3]) @ base, x[3:].copy())
 
     if membership(pose_at(1.0), *scene).inside:
         return pose_at(1.0)
@@ -217,7 +223,7 @@ def _inside_towards(start, end, *scene) -> Pose | None:
     while steps:
         middles = high - (high - low) * _TOWARDS_HIGH[:steps]
         x = start + middles[:, None] * (end - start)
-        rotations = np.array([from_rotation_vector(v) for v in x[:, :3]])  # pose_at's, exactly
+        rotations = np.array([from_rotation_vector(v) @ base for v in x[:, :3]])  # pose_at's, exactly
         inside = poses_inside(rotations, x[:, 3:], *scene)
         kept = steps if inside.all() else int(inside.argmin())  # the middles inside before one outside
         if kept:

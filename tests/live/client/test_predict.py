@@ -74,7 +74,7 @@ def test_results_are_typed_and_mirror_the_json(
 
 def test_too_small_an_epsilon_gives_the_whole_plane(client: KeypointClient, images) -> None:
     path, instances = images[0]
-    result = client.predict(path, instances, epsilon=1e-5)  # n of a few thousand: t = floor((n + 1) * 1e-5) = 0
+    result = client.predict(path, instances, epsilon=1e-5)  # n of thousands: t = floor((n + 1) * 1e-5) = 0
     keypoint = result.instances[0].keypoints[0]
     assert isinstance(keypoint.set, Unbounded) and not keypoint.guarantee.bounded
     assert keypoint.set.area == float("inf") and keypoint.set.boundary().shape == (0, 2)
