@@ -56,7 +56,7 @@ ALLOWED: dict[str, str] = {
     "tests/unit/benchmarks/test_bench_frames_smoke.py": "the benchmark's server processes",
     "tests/unit/benchmarks/test_bench_service_smoke.py": "raw onnxruntime sessions in processes",
     "tests/unit/test_client_models.py": "the model generator and ruff, as commands",
-    "tests/unit/benchmarks/test_bench_peers_smoke.py": "the peers' servers (FastAPI, LitServe, BentoML, Ray)",
+    "tests/unit/benchmarks/test_bench_peers_smoke.py": "the peers' servers and the int8 service",
     "tests/unit/calibration_store/test_processes.py": "several processes on one store; one SIGKILLed",
     "tests/unit/test_decoding_memory.py": "a fresh process's peak resident memory while it decodes",
     "tests/unit/test_process_starts.py": "sessions whose tests start processes, xdist's workers",

@@ -85,17 +85,7 @@ def goals(results: PeerResults) -> list[Goal]:
                 f"{runs.p50(SERVICE, point):.1f} vs {runs.p50(best, point):.1f} ms, {best}",
             )
         )
-        point = (boxes, 16)
-        best = results.best_peer(point, by_rate=True)
-        found.append(
-            Goal(
-                f"req/s at concurrency 16, {boxes} box(es): service / best peer",
-                runs.rate(SERVICE, point) / runs.rate(best, point),
-                rate_goal,
-                True,
-                f"{runs.rate(SERVICE, point):.0f} vs {runs.rate(best, point):.0f}, {best}",
-            )
-        )
+        found.append(rate_against_best_peer(results, SERVICE, boxes, rate_goal))
     found += int8_goals(results) if INT8 in results.services and results.peers else []
     for limit in results.limits:
         rate = runs.rate(SERVICE, (limit.boxes, 16))
@@ -121,21 +111,23 @@ def goals(results: PeerResults) -> list[Goal]:
     return found
 
 
+def rate_against_best_peer(results: PeerResults, name: str, boxes: int, target: float) -> Goal:
+    """req/s at concurrency 16: ``name`` against the fastest peer at that point."""
+    runs, point = results.runs, (boxes, 16)
+    best = results.best_peer(point, by_rate=True)
+    return Goal(
+        f"req/s at concurrency 16, {boxes} box(es): {name} / best peer",
+        runs.rate(name, point) / runs.rate(best, point),
+        target,
+        True,
+        f"{runs.rate(name, point):.0f} vs {runs.rate(best, point):.0f}, {best}",
+    )
+
+
 def int8_goals(results: PeerResults) -> list[Goal]:
     """Issue 47's: the int8 variant against the peers, which run the float32 model as their users do."""
-    runs, found = results.runs, []
-    for boxes, target in ((4, 1.3), (1, 1.15)):
-        point = (boxes, 16)
-        best = results.best_peer(point, by_rate=True)
-        found.append(
-            Goal(
-                f"req/s at concurrency 16, {boxes} box(es): service int8 / best peer",
-                runs.rate(INT8, point) / runs.rate(best, point),
-                target,
-                True,
-                f"{runs.rate(INT8, point):.0f} vs {runs.rate(best, point):.0f}, {best}",
-            )
-        )
+    runs = results.runs
+    found = [rate_against_best_peer(results, INT8, boxes, target) for boxes, target in ((4, 1.3), (1, 1.15))]
     if FASTAPI in results.peers:
         point = (4, 1)
         found.append(
