@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from service.calibration.bundle import BUNDLE_FILENAME
+from service.detector.compression import convert_float16
 from service.detector.manifest import MANIFEST_FILENAME, MODEL_FILENAME
 from service.detector.session import Detector, ModelMismatch, file_sha256
 from service.infra.settings import PACKAGE_ROOT
@@ -163,3 +164,21 @@ def test_optimize_refuses_a_variant_and_a_folder_in_use(tmp_path: Path) -> None:
     assert_one_line_error(again, 2, "is already the int8 variant")
     busy = run(["optimize", str(SOURCE), str(SAMPLES), "--out", str(SOURCE)], tmp_path)
     assert_one_line_error(busy, 2, "is not empty")
+
+
+def test_float16_conversion_keeps_the_manifests_float32_tensors(tmp_path: Path) -> None:
+    import onnx
+    import onnxruntime as ort
+
+    converted = tmp_path / MODEL_FILENAME
+    convert_float16(SOURCE / MODEL_FILENAME, converted)
+    graph = onnx.load(str(converted)).graph
+    float32, float16 = onnx.TensorProto.FLOAT, onnx.TensorProto.FLOAT16
+    assert {t.type.tensor_type.elem_type for t in [*graph.input, *graph.output]} == {float32}
+    assert {t.data_type for t in graph.initializer} == {float16}
+    crops = np.random.default_rng(0).normal(size=(2, 3, 128, 128)).astype(np.float32)
+    ran = [
+        ort.InferenceSession(str(p)).run(None, {"image": crops})[0]
+        for p in (SOURCE / MODEL_FILENAME, converted)
+    ]
+    assert np.abs(ran[1] - ran[0]).max() < 0.02 * np.abs(ran[0]).max()  # float16's 11 bits, through 20 layers
