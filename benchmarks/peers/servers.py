@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from benchmarks.harness import Server, free_port, launch, serve
+from service.detector.session import usable_cores
 from service.infra.settings import DEFAULT_MODEL_DIR
 
 INT8_MODEL_DIR = DEFAULT_MODEL_DIR.parent / "lmo-synth-unet-int8"
@@ -25,6 +26,7 @@ class Contender:
     startup_timeout_s: float = 120
     settings_on_gpu: str | None = None  # where ``bench_peers --gpu`` changes them
     model_dir: Path | None = None  # the service's CKS_MODEL_DIR (None: its default model)
+    workers: int = 1  # the service's CKS_WORKERS
 
     @property
     def is_peer(self) -> bool:
@@ -44,6 +46,7 @@ class Contender:
     def running(self, log: Path) -> Iterator[Server]:
         if self.module is None:
             settings = {"CKS_MODEL_DIR": str(self.model_dir)} if self.model_dir else {}
+            settings |= {"CKS_WORKERS": str(self.workers)} if self.workers > 1 else {}
             with serve(settings, log=log) as server:
                 yield server
             return
@@ -64,10 +67,12 @@ SERVICE = Contender(
 SERVICE_INT8 = Contender(
     "service int8",
     None,
-    "its defaults but `CKS_MODEL_DIR=models/lmo-synth-unet-int8` (the bundled int8 variant, onnxruntime "
-    "static quantization, with its own calibration; a CPU variant, so not in `--gpu` runs): a different "
-    "model, so its answers are checked against its own first answer, not the float32 sets",
+    "`CKS_MODEL_DIR=models/lmo-synth-unet-int8` (the bundled int8 variant, onnxruntime static "
+    "quantization, with its own calibration; a CPU variant, so not in `--gpu` runs) and one worker per "
+    f"core (`CKS_WORKERS={usable_cores()}`, as LitServe, BentoML and Ray Serve run one process per core): "
+    "a different model, so its answers are checked against its own first answer, not the float32 sets",
     model_dir=INT8_MODEL_DIR,
+    workers=usable_cores(),
 )
 SERVICE_ON_GPU = Contender(
     "service",

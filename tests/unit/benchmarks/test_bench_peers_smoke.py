@@ -113,7 +113,7 @@ def test_the_report_gives_goals_table_and_settings_and_keeps_bench_services_sect
     # req/s: the service 2x FastAPI's speed, its int8 variant 3x, LitServe 1.5x
     assert "| **1.33** (LitServe) | **2.00** (LitServe) |" in text
     assert "4 box(es): service int8 / FastAPI | 0.33 (3.3 vs 10.0 ms) | 0.85 | met |" in text
-    assert "- **service int8**: its defaults but `CKS_MODEL_DIR=models/lmo-synth-unet-int8`" in text
+    assert "- **service int8**: `CKS_MODEL_DIR=models/lmo-synth-unet-int8`" in text
     output = tmp_path / "performance.md"
     output.write_text(
         "# Performance\n\n<!-- bench_service:begin -->\nold figures\n<!-- bench_service:end -->\n"
