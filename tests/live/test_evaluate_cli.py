@@ -225,7 +225,7 @@ def test_a_batch_of_one_object_without_occlusion_flags(
         "--out",
         str(tmp_path / "out"),
         "--epsilon",
-        "0.001",
+        "0.0001",
         "--epsilon",
         "0.1",
     )
@@ -238,6 +238,6 @@ def test_a_batch_of_one_object_without_occlusion_flags(
     for kind in KINDS:  # the keypoints and the one object of the batch, not the model's
         assert re.search(rf"\| {kind} \| keypoint \| [0-9.]+ \| \d+ of {keypoints} \|", text)
         assert re.search(rf"\| {kind} \| object \| [0-9.]+ \| [01] of 1 \|", text)
-    # eps 0.001 needs 999 calibration scores: every set is the whole plane, and says so
-    assert f"cov at eps 0.001: {keypoints} of {keypoints}" in text
-    assert "| 0.001 | cov | a inf, b inf | inf | 0.000 |" in text
+    # eps 0.0001 needs 9,999 calibration scores: every set is the whole plane, and says so
+    assert f"cov at eps 0.0001: {keypoints} of {keypoints}" in text
+    assert "| 0.0001 | cov | a inf, b inf | inf | 0.000 |" in text

@@ -98,7 +98,7 @@ def test_the_worked_example_is_exported_checked_calibrated_and_served(
         for scope in ("keypoint", "object"):
             request = {"instances": instances_of(group), "epsilon": EPSILON, "coverage": scope}
             body = predict_ok(server.client, image_path.read_bytes(), request)
-            assert body["model"] == {"name": "simplebaseline-demo", "hash": model_hash}
+            assert body["model"] == {"name": "simplebaseline-demo", "hash": model_hash, "variant": "original"}
             assert body["calibration"]["version"] == 1
             counts = expected_counts(samples, scope)
             for sample, instance in zip(group, body["instances"], strict=True):

@@ -111,7 +111,7 @@ def questions(server: LiveServer, samples: list[Sample]) -> tuple[list[dict], li
     sets; with the service's own answers."""
     groups = list(samples_by_image(samples).items())
     asked = [(index, function, 0.1) for index in range(len(groups)) for function in ("peak", "var", "cov")]
-    asked.append((0, "cov", 0.001))  # t = floor((n + 1) * 0.001) = 0: unbounded sets
+    asked.append((0, "cov", 0.0001))  # t = floor((n + 1) * 0.0001) = 0: unbounded sets
     rng = np.random.default_rng(18)
     items, expected = [], []
     for index, function, epsilon in asked:
