@@ -1,7 +1,7 @@
 """Pooled against Mondrian (per-stratum) calibration on held-out renders: prints a Markdown section.
 
     python -m training.evaluate_strata --model models/lmo-synth-unet \\
-        --calibration data/lmo_synth/calibration \\
+        --calibration data/lmo_synth/calibration_2027 \\
         --heldout data/lmo_synth/heldout_default --heldout data/lmo_synth/heldout_heavy \\
         --conditional-sample 1500 >> docs/evaluation.md
 
