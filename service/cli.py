@@ -139,6 +139,7 @@ def _new_version(
 
 def _optimize(args: argparse.Namespace, settings: Settings) -> int:
     import tempfile
+    from dataclasses import replace
 
     from calibration_store import open_store
     from service.calibration.bundle import BUNDLE_FILENAME, save_bundle
@@ -159,20 +160,27 @@ def _optimize(args: argparse.Namespace, settings: Settings) -> int:
         raise InvalidInput(f"{source_dir} is already the {source.manifest.variant.name} variant of a model")
     batch = load_coco_batch(folder, source.manifest)
     ranges, rest = split_for_ranges(batch, args.range_images)
-    pixels = settings.predict.max_image_pixels
-    variant = write_variant(source, source_dir, out, args.precision, ranges, pixels)
-    detector = _detector(settings, out)
     name = args.name or folder.name
-    note = f"scored with the {variant.name} variant"
-    note += f"; ranges from {variant.ranges}" if variant.ranges else ""
-    options = UploadOptions(name=name, note=note)
+    options = UploadOptions(name=name)
     named = NamedBatch(name=name, sha256=batch.sha256, batch=rest)
-    with tempfile.TemporaryDirectory() as scratch, open_store(f"sqlite:///{scratch}/store.db") as store:
-        batches = [check_batch(named, None, dedupe=False, max_rejected_share=options.rejected_share)]
-        outcome = _new_version(store, detector, batches, None, options, args.author, settings)
-        print(file=sys.stderr)
-        table = store.load_scores(detector.model_hash, outcome.info.number)
-        save_bundle(out / BUNDLE_FILENAME, outcome.info, table)
+    batches = [check_batch(named, None, dedupe=False, max_rejected_share=options.rejected_share)]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    # built beside OUT and renamed to it once whole: a failed run leaves no half-written model folder
+    with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.") as scratch:
+        staged = Path(scratch) / "model"
+        pixels = settings.predict.max_image_pixels
+        variant = write_variant(source, source_dir, staged, args.precision, ranges, pixels)
+        detector = _detector(settings, staged)
+        note = f"scored with the {variant.name} variant"
+        options = replace(options, note=note + (f"; ranges from {variant.ranges}" if variant.ranges else ""))
+        with open_store(f"sqlite:///{scratch}/store.db") as store:
+            outcome = _new_version(store, detector, batches, None, options, args.author, settings)
+            print(file=sys.stderr)
+            table = store.load_scores(detector.model_hash, outcome.info.number)
+        save_bundle(staged / BUNDLE_FILENAME, outcome.info, table)
+        if out.exists():
+            out.rmdir()  # empty, checked above
+        staged.rename(out)
     summary = {"model_dir": str(out), "variant": variant.model_dump(), "calibration": outcome.summary}
     print(json.dumps(summary))
     return 0

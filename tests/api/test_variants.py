@@ -182,3 +182,16 @@ def test_float16_conversion_keeps_the_manifests_float32_tensors(tmp_path: Path) 
         for p in (SOURCE / MODEL_FILENAME, converted)
     ]
     assert np.abs(ran[1] - ran[0]).max() < 0.02 * np.abs(ran[0]).max()  # float16's 11 bits, through 20 layers
+
+
+def test_a_failed_optimize_leaves_no_model_folder(tmp_path: Path) -> None:
+    batch = tmp_path / "batch"
+    shutil.copytree(SAMPLES, batch)
+    images = sorted(json.loads((batch / "annotations.json").read_text())["images"], key=lambda i: i["id"])
+    damaged = batch / images[1]["file_name"]  # not one of the 4 range images (0, 4, 7, 11 of 12)
+    damaged.write_bytes(damaged.read_bytes()[: damaged.stat().st_size // 2])  # its header still reads
+    out = tmp_path / "models" / "int8"
+    result = run(["optimize", str(SOURCE), str(batch), "--out", str(out), "--range-images", "4"], tmp_path)
+    assert result.returncode == 2, result.stderr
+    assert "rejected" in result.stderr and "cannot be decoded" in result.stderr
+    assert list((tmp_path / "models").iterdir()) == []  # neither the folder nor its staging copy
