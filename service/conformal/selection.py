@@ -1,8 +1,9 @@
 """Exact, vectorized top-K selection over the rows of a 2-D array.
 
 ``np.argpartition`` costs about a Python loop per row, so ``top_k_indices`` keeps each row's entries
-above a cutoff guessed from a strided sample, sorts only those, and checks the cutoff kept the top K;
-rows where the guess fails or the K-th value is tied take the exact path. Any real dtype.
+above a cutoff guessed from a strided sample, sorts only those, and checks the cutoff kept the top K
+(ties at the K-th value are among them, settled by column); rows where the guess fails take the exact
+path. Any real dtype.
 """
 
 from __future__ import annotations
@@ -32,9 +33,8 @@ def top_k_indices(values: np.ndarray, k: int) -> np.ndarray:
         candidates[~usable] = False
         counts[~usable] = 0
     packed, columns = _pack_rows(candidates, values, -np.inf, counts, min_width=k + 1)
-    kth_value = -np.sort(-packed, axis=1)[:, k - 1, None]
-    chosen = packed >= kth_value
-    usable &= _row_counts(chosen) == k  # a tie at the k-th value -> exact path
+    # every entry tied with the row's k-th value is a candidate, in column order: ties are settled here
+    chosen = _first_k(packed, -np.sort(-packed, axis=1)[:, k - 1, None], k)
     result = np.empty((n_rows, k), dtype=np.intp)
     result[usable] = columns[chosen & usable[:, None]].reshape(-1, k)
     slow_rows = np.flatnonzero(~usable)
@@ -68,8 +68,13 @@ def _pack_rows(
 def _exact_top_k(values: np.ndarray, k: int) -> np.ndarray:
     """Top-k by one partition per row; ties at the k-th value go to the lowest columns."""
     kth_value = -np.partition(-values, k - 1, axis=1)[:, k - 1, None]
+    return np.nonzero(_first_k(values, kth_value, k))[1].reshape(values.shape[0], k)
+
+
+def _first_k(values: np.ndarray, kth_value: np.ndarray, k: int) -> np.ndarray:
+    """The k entries of each row kept: those above its k-th value, then those tied with it from the
+    lowest column on."""
     greater = values > kth_value
     tied = values == kth_value
     missing = k - np.count_nonzero(greater, axis=1, keepdims=True)
-    selected = greater | (tied & (np.cumsum(tied, axis=1) <= missing))
-    return np.nonzero(selected)[1].reshape(values.shape[0], k)
+    return greater | (tied & (np.cumsum(tied, axis=1) <= missing))
