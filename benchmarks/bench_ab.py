@@ -2,10 +2,11 @@
 
     python -m benchmarks.bench_ab main HEAD                  # ~4 min: 6 rounds, 4 s a point
     python -m benchmarks.bench_ab main my-branch --rounds 12 --seconds 3
+    python -m benchmarks.bench_ab main HEAD --model-dir models/lmo-synth-unet-int8
 
 Each revision is exported (``git archive``, with this tree's built C kernel copied in) and served
-with its defaults (``keypoint-service serve``, the bundled model), both servers up side by side
-and loaded one at a time: POST /v1/predict, multipart, the sample image with 1 and 4 boxes, at
+with its defaults (``keypoint-service serve``, the bundled model or ``--model-dir``), both servers
+up side by side and loaded one at a time: POST /v1/predict, multipart, the sample image with 1 and 4 boxes, at
 concurrency 1 and 16 (wrk); then frames as a camera sends them, one at a time ``--gap-ms`` (30)
 apart (a robot's loop, where the server sits idle between frames): a 1920x1080 frame's regions
 as raw pixels (POST /v1/predict/frame) with 4 and 1 boxes, and the README's request with 1 box.
@@ -60,12 +61,14 @@ def export(revision: str, directory: Path) -> Path:
     return directory
 
 
-def server_argv_env(tree: Path, data_dir: Path, port: int) -> tuple[list[str], dict[str, str]]:
-    """How to serve ``tree``'s code (``-P``: not the working directory's) with the bundled model."""
+def server_argv_env(
+    tree: Path, data_dir: Path, port: int, model_dir: Path = DEFAULT_MODEL_DIR
+) -> tuple[list[str], dict[str, str]]:
+    """How to serve ``tree``'s code (``-P``: not the working directory's) with ``model_dir``."""
     env = {
         **os.environ,
         "PYTHONPATH": str(tree),
-        "CKS_MODEL_DIR": str(DEFAULT_MODEL_DIR),
+        "CKS_MODEL_DIR": str(model_dir),
         "CKS_DATA_DIR": str(data_dir),
         "CKS_PORT": str(port),
     }
@@ -184,6 +187,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--gap-ms", type=float, default=30.0, help="between paced frames (a camera's cadence)"
     )
+    parser.add_argument(
+        "--model-dir", type=Path, default=DEFAULT_MODEL_DIR, help="the model both serve (default: bundled)"
+    )
     args = parser.parse_args(argv)
     require_wrk()
     print(f"A = {args.a}, B = {args.b}; load {os.getloadavg()} on {os.cpu_count()} cores", flush=True)
@@ -196,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
             tree = export(revision, work / name)
             (work / f"data-{name}").mkdir()
             port = free_port()
-            argv_, env = server_argv_env(tree, work / f"data-{name}", port)
+            argv_, env = server_argv_env(tree, work / f"data-{name}", port, args.model_dir.resolve())
             servers[name] = stack.enter_context(launch(argv_, env, port, work / f"{name}.log"))
         runs = measure(servers, requests, args.rounds, args.seconds)
         paced = measure_paced(servers, sample, args.rounds, args.gap_ms / 1000)
