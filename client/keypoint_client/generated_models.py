@@ -713,8 +713,6 @@ class PoseRequest(PoseRequestBase):
     """solve the convex relaxation for certified upper bounds (pose extra)"""
     outer_programs: int = Field(150, ge=0, le=2000, title="Outer Programs")
     """conic programs the search over rotation cells may spend to tighten the outer bound (about 1 ms each); 0: the whole-space relaxation only"""
-    outer_splits: int = Field(0, ge=0, le=8, title="Outer Splits")
-    """rounds of the older branch-and-bound over rotation cells (seconds per instance); when above 0 it replaces the rotation search of outer_programs"""
     samples: int = Field(100, ge=0, le=500, title="Samples")
     """keypoint draws for the sampled (inner) bound; 0: none"""
 

@@ -1,10 +1,9 @@
-"""Wedges of rotation space for the branch-and-bounds of the outer bound (docs/pose.md, "The search").
+"""Wedges of rotation space for the search that tightens the outer bound (docs/pose.md, "The search").
 
 A wedge is the rotations R_hat R(q) whose unit quaternion q (up to sign) has its largest component at
 ``face`` and u = (q_j / q_face)_{j != face} in a box (on face 0, u is the Gibbs vector tan(angle / 2)
 * axis); the four faces cover SO(3). The box is cut out exactly by constraints linear in Q = q q^T,
-(q_j - low_j q_face)(q_j - high_j q_face) <= 0, and lies in the cap around its centre's quaternion q_0
-whose angle phi is the largest to a corner (the cosine is quasi-concave on the cone over the box).
+(q_j - low_j q_face)(q_j - high_j q_face) <= 0.
 """
 
 from __future__ import annotations
@@ -50,17 +49,6 @@ class Wedge:
         centre, half = np.array(_OFFSET) * reach, reach * (1 + max(_OFFSET))
         return [Wedge(0, tuple((centre - half).tolist()), tuple((centre + half).tolist()))]
 
-    def _quaternion(self, u: np.ndarray) -> np.ndarray:
-        q = np.insert(np.asarray(u, dtype=np.float64), self.face, 1.0)
-        return q / np.linalg.norm(q)
-
-    def cap(self) -> tuple[np.ndarray, float]:
-        """(q_0, cos^2(phi)) relative to R_hat: (q_0^T q)^2 >= cos^2(phi) over the wedge."""
-        low, high = np.array(self.low), np.array(self.high)
-        centre = self._quaternion((low + high) / 2)
-        corners = [np.where(bits, high, low) for bits in itertools.product([0, 1], repeat=3)]
-        return centre, min(abs(float(centre @ self._quaternion(corner))) for corner in corners) ** 2
-
     def forms(self, anchor: np.ndarray) -> np.ndarray:
         """(7, 4): linear forms g >= 0 on the wedge's q in absolute coordinates (``anchor`` =
         left_product(to_quaternion(R_hat))): q_face, then q_j - low_j q_face and high_j q_face - q_j."""
@@ -91,7 +79,7 @@ class Wedge:
         """A lower bound on the angle (radians) from R_hat to the wedge's rotations."""
         return 2.0 * math.acos(min(1.0, self._angle_cosines[1]))
 
-    def split(self, radius: float = math.inf) -> list[Wedge]:
+    def split(self, radius: float) -> list[Wedge]:
         """The eight half-size boxes, less those holding no rotation within ``radius`` of R_hat."""
         middles = [(low + high) / 2 for low, high in zip(self.low, self.high, strict=True)]
         halves = [((lo, mid), (mid, hi)) for lo, mid, hi in zip(self.low, middles, self.high, strict=True)]

@@ -33,9 +33,8 @@ class PoseOptions:
     camera: np.ndarray  # (3, 3), validated (camera.py)
     samples: int = 100
     outer: bool = True
-    outer_splits: int = 0  # rounds of the older branch-and-bound over rotation cells (relaxation.py)
-    checks: dict[int, list[Pose]] = field(default_factory=dict)  # instance index -> poses
     outer_programs: int = 150  # conic programs of the rotation search (relaxation.py)
+    checks: dict[int, list[Pose]] = field(default_factory=dict)  # instance index -> poses
 
 
 @dataclass(frozen=True)
@@ -132,8 +131,8 @@ def instance_pose_sets(
     outer = None
     if options.outer:
         found = sampled.poses if sampled is not None else []
-        splits, programs = (options.outer_splits, options.outer_programs) if estimate is not None else (0, 0)
-        outer = outer_bound(estimate or start, *scene, found, splits, programs)
+        programs = options.outer_programs if estimate is not None else 0
+        outer = outer_bound(estimate or start, *scene, found, programs)
         if estimate is None and not outer.empty:  # bounds around a pose outside PURSE mean nothing
             outer = OuterBound(False, "no estimate in PURSE to bound around; emptiness not proven")
     violation = membership(estimate, *scene).worst if estimate is not None else None

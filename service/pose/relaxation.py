@@ -275,8 +275,8 @@ def _angle(trace: float) -> float:
 
 
 @dataclass(frozen=True)
-class _CellBound:
-    """What the relaxation of one rotation cell proves (all in the program's scaled units)."""
+class _RootBound:
+    """What the whole-space relaxation proves (all in the program's scaled units)."""
 
     status: str  # "bounded", "empty" (infeasibility verified) or why it failed
     extents: np.ndarray | None = None  # (6,) upper bounds on +-e_k^T (t - t_hat) / scale
@@ -295,12 +295,8 @@ def _proven(objective: int, solved: _Solved) -> float:
     return -solved.bound if objective < 6 else _angle(solved.bound)
 
 
-def _bound_cell(program: _Program, objectives: list[np.ndarray], cap) -> _CellBound:
-    """The seven bounds over the rotation cell in the cap (q_0, cos^2(phi)) (None: the whole space)."""
-    if cap is not None:  # q_0^T Q q_0 >= cos^2(phi)
-        square = [cap[0][a] ** 2 if a == b else 2 * cap[0][a] * cap[0][b] for a, b in _TRIANGLE]
-        row = -np.concatenate([square, np.zeros(3)])[None]
-        program = _with_cuts(program, row, -cap[1])
+def _bound_root(program: _Program, objectives: list[np.ndarray]) -> _RootBound:
+    """The seven bounds over the whole rotation space."""
     values, verified = [], True
     for k, objective in enumerate(objectives):
         if k == 0:
@@ -310,12 +306,12 @@ def _bound_cell(program: _Program, objectives: list[np.ndarray], cap) -> _CellBo
         solved = _outcome(program, objective, solver.solve())
         if solved.status == "PrimalInfeasible":
             status = "empty" if solved.agrees else "infeasibility certificate not verified"
-            return _CellBound(status, verified=solved.agrees)
+            return _RootBound(status, verified=solved.agrees)
         if solved.status != "Solved":
-            return _CellBound(f"{'translation' if k < 6 else 'rotation'} program: {solved.status}")
+            return _RootBound(f"{'translation' if k < 6 else 'rotation'} program: {solved.status}")
         values.append(_proven(k, solved))
         verified = verified and solved.agrees
-    return _CellBound("bounded", np.array(values[:6]), 1.0 + 2.0 * math.cos(values[6]), verified)
+    return _RootBound("bounded", np.array(values[:6]), 1.0 + 2.0 * math.cos(values[6]), verified)
 
 
 def outer_bound(
@@ -325,13 +321,11 @@ def outer_bound(
     centers: np.ndarray,
     shapes: np.ndarray,
     sampled: list[Pose] | None = None,
-    splits: int = 0,
     programs: int = 0,
 ) -> OuterBound:
     """Certified upper bounds on the rotation and translation error over PURSE (see the module doc):
     the whole space's, tightened by ``programs`` conic programs of the search over rotation wedges
-    around the estimate or, when ``splits`` > 0, by as many rounds of the older, costlier splitting
-    of quaternion cells."""
+    around the estimate."""
     if not relaxation_available():
         return OuterBound(False, "the pose extra (clarabel) is not installed")
     with np.errstate(all="ignore"):
@@ -343,7 +337,7 @@ def outer_bound(
             False, "no proven bound on ||t|| over PURSE (no two sets apart): nothing to certify with"
         )
     objectives = _objectives(estimate, ray_frame(estimate.translation))
-    root = _bound_cell(program, objectives, None)
+    root = _bound_root(program, objectives)
     if root.status != "bounded":
         return _empty(root.verified) if root.status == "empty" else OuterBound(False, root.status)
     found = sampled or []
@@ -351,8 +345,6 @@ def outer_bound(
     distances = list(
         zip(shifts, [rotation_angle_deg(estimate.rotation, p.rotation) for p in found], strict=True)
     )
-    if splits > 0:
-        return _split_rounds(program, objectives, root, distances, splits)
     bounds = np.append(root.extents, _angle(root.smallest_trace))
     if programs <= 0:
         return _finish(program.scale, bounds, root.verified, distances, "whole rotation space")
@@ -496,27 +488,3 @@ class _Search:
         if max(gaps) <= 1.0:
             return None
         return extent if gaps[0] >= gaps[1] else 6
-
-
-def _split_rounds(program, objectives, root, distances, splits) -> OuterBound:
-    """The older branch-and-bound: rounds of splitting the quaternion cells (wedges around the
-    identity) that attain any of the seven bounds. A cell whose program fails keeps its parent's
-    bound, valid for it too."""
-    leaves, pending = [], [(cell, root) for cell in Wedge.around(math.pi)]  # (cell, bound), (cell, parent's)
-    for round_ in range(splits + 1):
-        for cell, parent in pending:
-            bound = _bound_cell(program, objectives, cell.cap())
-            if bound.status != "empty":
-                leaves.append((cell, bound if bound.status == "bounded" else parent))
-        if not leaves:
-            return _empty(True)
-        if round_ < splits:
-            worst = {int(np.argmax([b.extents[k] for _, b in leaves])) for k in range(6)}
-            worst.add(int(np.argmin([b.smallest_trace for _, b in leaves])))
-            pending = [(child, leaves[i][1]) for i in sorted(worst) for child in leaves[i][0].split()]
-            leaves = [leaf for i, leaf in enumerate(leaves) if i not in worst]
-    extents = np.max([bound.extents for _, bound in leaves], axis=0)
-    rotation = _angle(min(bound.smallest_trace for _, bound in leaves))
-    verified = all(bound.verified for _, bound in leaves)
-    detail = f"{len(leaves)} rotation cells"
-    return _finish(program.scale, np.append(extents, rotation), verified, distances, detail)

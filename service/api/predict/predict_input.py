@@ -146,9 +146,7 @@ def _pose_options(request: PoseRequest) -> PoseOptions:
         pose = Pose(np.array(check.rotation, dtype=np.float64), np.array(check.translation, dtype=np.float64))
         checks.setdefault(check.instance, []).append(pose)
     camera = as_camera_matrix(request.K)  # the schema has checked K already
-    return PoseOptions(
-        camera, request.samples, request.outer_bound, request.outer_splits, checks, request.outer_programs
-    )
+    return PoseOptions(camera, request.samples, request.outer_bound, request.outer_programs, checks)
 
 
 # One image of a batch: called, its image and parameters, or the problem of that image alone.

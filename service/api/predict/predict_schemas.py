@@ -116,13 +116,6 @@ class PoseRequest(StrictBody):
     outer_bound: StrictBool = Field(
         True, description="solve the convex relaxation for certified upper bounds (pose extra)"
     )
-    outer_splits: StrictInt = Field(
-        0,
-        ge=0,
-        le=8,
-        description="rounds of the older branch-and-bound over rotation cells (seconds per instance); "
-        "when above 0 it replaces the rotation search of outer_programs",
-    )
     outer_programs: StrictInt = Field(
         150,
         ge=0,

@@ -155,5 +155,5 @@ def test_refusals_are_typed(client: KeypointClient, scene) -> None:
     outside = PoseCheck(instance=len(boxes), rotation=np.eye(3), translation=(0.0, 0.0, 800.0))
     with pytest.raises(InvalidInput, match="pose.check"):
         client.predict(path, boxes, coverage="object", pose=PoseRequest(K=camera, check=[outside]))
-    with pytest.raises(ValidationError, match="outer_splits"):  # the document's bounds, checked here
-        PoseRequest(K=camera, outer_splits=9)
+    with pytest.raises(ValidationError, match="outer_programs"):  # the document's bounds, checked here
+        PoseRequest(K=camera, outer_programs=2001)
