@@ -2,7 +2,7 @@
 the active version's calibration images (the guarantee needs exchangeable test images), by ``test``:
 ``sequential`` (default), the e-CUSUM over independent looks (looks.py), per-keypoint KS (Holm) saying
 where while it alarms; ``ks``, Holm over every keypoint x feature at ``alarm_level``; ``psi``, the
-population stability index above ``psi_threshold`` once a window holds ``PSI_MIN_LIVE`` values.
+population stability index above ``PSI_THRESHOLD`` once a window holds ``PSI_MIN_LIVE`` values.
 Tests run when the report is read (cached); a fleet shares its state (drift_shares.py, fleet_looks.py).
 """
 
@@ -81,7 +81,6 @@ class DriftSettings:
     window: int  # live values kept per keypoint and feature
     test: DriftTest
     alarm_level: float  # ks: family-wise error of the Holm family; sequential: 1 / looks
-    psi_threshold: float = PSI_THRESHOLD
     full_statistics_share: float = FULL_STATISTICS_SHARE
     history_seconds: float = HISTORY_SECONDS
 
@@ -394,7 +393,7 @@ class DriftMonitor:
             reason=reason,
             window=settings.window,
             test=settings.test,
-            alarm_threshold=settings.psi_threshold if settings.test == "psi" else settings.alarm_level,
+            alarm_threshold=PSI_THRESHOLD if settings.test == "psi" else settings.alarm_level,
             alarm=any(o.alarm for o in objects) if sequential is None else sequential.alarm,
             keypoints=keypoints,
             objects=objects,
@@ -498,7 +497,7 @@ class DriftMonitor:
             return FeatureTest(None, None, False, live.size, n)
         if self.settings.test == "psi":
             score = population_stability_index(values, live, reference.edges[position][channel])
-            alarm = live.size >= PSI_MIN_LIVE and score > self.settings.psi_threshold
+            alarm = live.size >= PSI_MIN_LIVE and score > PSI_THRESHOLD
             return FeatureTest(score, None, alarm, live.size, n)
         statistic = ks_statistic(values, live)
         return FeatureTest(statistic, ks_p_value(statistic, live.size, n), False, live.size, n)

@@ -55,7 +55,7 @@ FEEDBACK_METRICS_AGE_S = 10.0
 # (tests/api/in_process.py, tests/live/fixed_serve.py).
 FREE_SPACE_SHARE = 1 / 20  # of the data directory's file system, where that is less than 1 GiB
 MAX_DECODED_BYTES = 256 * 2**20  # an image's decoded pixels (16-bit and alpha take more per pixel)
-DRIFT_PSI_THRESHOLD, DRIFT_HISTORY_SECONDS = drift_monitor.PSI_THRESHOLD, drift_monitor.HISTORY_SECONDS
+DRIFT_HISTORY_SECONDS = drift_monitor.HISTORY_SECONDS
 DRIFT_FULL_STATISTICS_SHARE = drift_monitor.FULL_STATISTICS_SHARE
 MAX_INSTANCES = 64  # per image
 ACI_GAMMA = adaptive.ACI_GAMMA
@@ -250,7 +250,6 @@ def _drift_monitor(
         window=settings.drift.window,
         test=settings.drift.test,
         alarm_level=settings.drift.alarm_level,
-        psi_threshold=DRIFT_PSI_THRESHOLD,
         full_statistics_share=DRIFT_FULL_STATISTICS_SHARE,
         history_seconds=DRIFT_HISTORY_SECONDS,
     )

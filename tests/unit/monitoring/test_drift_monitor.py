@@ -25,7 +25,7 @@ MANIFEST = load_manifest(DEFAULT_MODEL_DIR)
 K = MANIFEST.num_keypoints
 REFERENCE_N = 400
 SETTINGS = DriftSettings(
-    window=200, test="ks", alarm_level=0.01, psi_threshold=0.25, full_statistics_share=1.0, history_seconds=60
+    window=200, test="ks", alarm_level=0.01, full_statistics_share=1.0, history_seconds=60
 )
 
 
