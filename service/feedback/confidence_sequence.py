@@ -36,13 +36,6 @@ class CoverageBounds:
     upper: float
 
 
-def evidence_path(votes: np.ndarray, p: float) -> np.ndarray:
-    """log M_n(p) after each of ``votes`` (in [0, 1]), n = 1, 2, ...: the whole watched path."""
-    totals = np.cumsum(np.asarray(votes, dtype=np.float64))
-    counts = np.arange(1, totals.size + 1)
-    return _log_mixture(totals[:, None], counts[:, None], np.asarray(p, dtype=np.float64))
-
-
 def _log_mixture(total: np.ndarray, count: np.ndarray | int, p: np.ndarray) -> np.ndarray:
     q = p * (1.0 - _GAPS)
     terms = total * np.log(q / p) + (count - total) * np.log((1.0 - q) / (1.0 - p))
