@@ -114,9 +114,6 @@ class Intake:
     ) -> None:
         self._store, self._detector, self._scores, self._rules = store, detector, scores, rules
 
-    def take_in(self, archive: Path, sha256: str, options: UploadOptions) -> ValidatedBatch:
-        return self.validate(self.unpack(archive, sha256, options.name), options)
-
     def unpack(self, archive: Path, sha256: str, name: str | None) -> NamedBatch:
         """Unzip beside the zip (then removed) within the limits and the disk budget, and read it."""
         batch_name(name, sha256)  # refused before anything is unzipped

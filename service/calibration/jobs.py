@@ -60,7 +60,8 @@ class CalibrationJobs(DetectorJobs):
         try:
             with disk_full_refused("the upload's files"):
                 folder.adopt(workspace)
-                batch = self._intake.take_in(folder.archive, sha256, options)
+                named = self._intake.unpack(folder.archive, sha256, options.name)
+                batch = self._intake.validate(named, options)
                 folder.save(_kept(options, operator, sha256, batch, folder))
             details = _accepted(folder.job_id, batch, options)
             accepted = self._audit.entry(operator, "upload", "accepted", reason=options.note, details=details)

@@ -21,11 +21,6 @@ from service.infra.processes import process_folder
 log = logging.getLogger(__name__)
 
 
-def process_uploads_dir(uploads_dir: Path, pid: int | None = None) -> Path:
-    """This process's folder of upload workspaces, removed when it stops (or by the next start)."""
-    return process_folder(uploads_dir, pid)
-
-
 @dataclass(frozen=True)
 class _UploadFolder:
     root: Path
@@ -44,7 +39,7 @@ class UploadWorkspace(_UploadFolder):
 
     @classmethod
     def create(cls, uploads_dir: Path) -> UploadWorkspace:
-        root = process_uploads_dir(uploads_dir) / uuid.uuid4().hex
+        root = process_folder(uploads_dir) / uuid.uuid4().hex  # removed when the process stops
         root.mkdir(parents=True)
         return cls(root)
 

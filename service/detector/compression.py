@@ -13,8 +13,6 @@ import numpy as np
 
 from service.errors import InvalidInput
 
-PRECISIONS = ("int8", "float16")
-
 
 @dataclass(frozen=True)
 class Int8Choices:

@@ -23,7 +23,7 @@ from service.calibration.bundle import bootstrap_default_calibration
 from service.calibration.intake import IntakeRules
 from service.calibration.jobs import CalibrationJobs, JobSettings
 from service.calibration.registry import POLL_SECONDS, STORE_TIMEOUT_SECONDS, CalibrationRegistry
-from service.calibration.uploads import process_uploads_dir, remove_spent_job_folders
+from service.calibration.uploads import remove_spent_job_folders
 from service.calibration.versions import VersionRules
 from service.detector.session import Detector, usable_cores
 from service.feedback import adaptive
@@ -40,6 +40,7 @@ from service.infra.metrics import (
     set_feedback_source,
 )
 from service.infra.operators import load_feedback_senders, load_operators, load_predict_callers
+from service.infra.processes import process_folder
 from service.infra.settings import Settings, refuse_removed_settings
 from service.monitoring import coverage_audits, drift_monitor
 from service.monitoring.coverage_audits import CoverageAudits
@@ -111,9 +112,8 @@ class ServiceState:
             forget_drift_source(self.drift.report)
             forget_drift_process_values()
         self.jobs.shutdown()
-        shutil.rmtree(
-            process_uploads_dir(self.settings.storage.uploads_dir), ignore_errors=True
-        )  # cancelled jobs' uploads
+        # cancelled jobs' uploads
+        shutil.rmtree(process_folder(self.settings.storage.uploads_dir), ignore_errors=True)
         self.cpu_pool.shutdown(wait=True, cancel_futures=True)
         if self.retention is not None:
             self.retention.close()  # the answers retained so far reach the store

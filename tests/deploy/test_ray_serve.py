@@ -34,7 +34,6 @@ from ray.serve.schema import ServeDeploySchema
 
 from calibration_store import open_store
 from service.calibration.registry import POLL_SECONDS
-from service.calibration.uploads import process_uploads_dir
 from service.deploy_ray import (
     ADMIN_HEADROOM,
     APP_NAME,
@@ -44,6 +43,7 @@ from service.deploy_ray import (
     application,
     build_app,
 )
+from service.infra.processes import process_folder
 from service.infra.settings import PACKAGE_ROOT, Settings
 from tests.live.server import free_port, service_env
 from tests.predict_client import instances_of, predict_json
@@ -316,12 +316,12 @@ def every_replica_refuses_a_bad_upload(service: Service, replicas: set[str]) -> 
         headers={"Content-Type": "application/zip"},
     )
     uploads = service.data_dir / "uploads"
-    assert all(process_uploads_dir(uploads, pid).is_dir() for pid in replica_pids().values())
+    assert all(process_folder(uploads, pid).is_dir() for pid in replica_pids().values())
 
 
 def killed_replica_is_replaced(service: Service, version: int, victim: str) -> None:
     before = replica_pids()
-    victim_uploads = process_uploads_dir(service.data_dir / "uploads", before[victim])
+    victim_uploads = process_folder(service.data_dir / "uploads", before[victim])
 
     def replaced() -> bool:
         return healthy_replicas() == REPLICAS and len(replica_pids().keys() - before.keys()) == 1
@@ -354,7 +354,7 @@ def killed_replica_is_replaced(service: Service, version: int, victim: str) -> N
 def stopped_replicas_close_their_state(service: Service) -> None:
     started = time.monotonic()
     uploads = service.data_dir / "uploads"
-    survivors = [process_uploads_dir(uploads, pid) for pid in replica_pids().values()]
+    survivors = [process_folder(uploads, pid) for pid in replica_pids().values()]
     assert any(folder.is_dir() for folder in survivors), "removed only by its replica's ServiceState.close"
     serve.delete(APP_NAME)
     assert list(uploads.iterdir()) == [], "Serve ran the app's lifespan shutdown on every stopping replica"

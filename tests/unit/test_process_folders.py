@@ -6,8 +6,8 @@ import os
 import socket
 from pathlib import Path
 
-from service.calibration.uploads import UploadWorkspace, process_uploads_dir
-from service.infra.processes import remove_dead_process_folders
+from service.calibration.uploads import UploadWorkspace
+from service.infra.processes import process_folder, remove_dead_process_folders
 
 
 def dead_pid() -> int:
@@ -17,7 +17,7 @@ def dead_pid() -> int:
 
 def test_a_workspace_is_created_in_this_process_folder(tmp_path: Path) -> None:
     workspace = UploadWorkspace.create(tmp_path)
-    assert workspace.root.parent == process_uploads_dir(tmp_path)
+    assert workspace.root.parent == process_folder(tmp_path)
     assert workspace.root.parent.name == f"{socket.gethostname()}--{os.getpid()}"
     workspace.remove()
     assert not workspace.root.exists()
@@ -25,7 +25,7 @@ def test_a_workspace_is_created_in_this_process_folder(tmp_path: Path) -> None:
 
 def test_only_folders_of_stopped_processes_of_this_host_are_removed(tmp_path: Path) -> None:
     mine = UploadWorkspace.create(tmp_path).root
-    orphan = process_uploads_dir(tmp_path, dead_pid()) / "abc"
+    orphan = process_folder(tmp_path, dead_pid()) / "abc"
     other_host = tmp_path / "some-other-host--1" / "def"
     not_a_process = tmp_path / "notes"
     for folder in (orphan, other_host, not_a_process):
@@ -42,7 +42,7 @@ def test_only_folders_of_stopped_processes_of_this_host_are_removed(tmp_path: Pa
 def test_a_starting_process_removes_a_predecessors_folder_under_its_own_pid(tmp_path: Path) -> None:
     """A container restarted in place after a SIGKILL: its server is pid 1 again, and the
     uploads of the killed pid 1 (never stored) would otherwise stay for as long as it lives."""
-    left = process_uploads_dir(tmp_path) / "abc"
+    left = process_folder(tmp_path) / "abc"
     left.mkdir(parents=True)
     (left / "batch.zip").write_bytes(b"x")
     assert remove_dead_process_folders(tmp_path) == []  # a running process's own: kept
