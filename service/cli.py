@@ -275,9 +275,9 @@ def _check_model(args: argparse.Namespace, settings: Settings) -> int:
 
 
 def _export_openapi(args: argparse.Namespace, settings: Settings) -> int:
-    from service.serving.openapi import openapi_document
+    from service.serving.app import create_app
 
-    return _write_json(openapi_document(), args.output)
+    return _write_json(create_app().openapi(), args.output)  # the app's document, without starting it
 
 
 def _manifest_schema(args: argparse.Namespace, settings: Settings) -> int:

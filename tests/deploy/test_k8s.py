@@ -25,7 +25,7 @@ from service import __version__
 from service.calibration.archive import MAX_UNCOMPRESSED_BYTES
 from service.infra.operators import load_operators
 from service.infra.settings import PACKAGE_ROOT, Settings
-from service.serving.openapi import openapi_document
+from service.serving.app import create_app
 from tests.deploy import kubernetes_schemas
 
 K8S = PACKAGE_ROOT / "deploy" / "k8s"
@@ -125,7 +125,7 @@ def test_the_container_listens_where_the_service_and_probes_look(settings: Setti
     service_ports = applied("Service")["spec"]["ports"]
     assert [port["targetPort"] for port in service_ports] == ["http"]
 
-    get_routes = {path for path, item in openapi_document()["paths"].items() if "get" in item}
+    get_routes = {path for path, item in create_app().openapi()["paths"].items() if "get" in item}
     probes = {kind: container()[kind]["httpGet"] for kind in PROBES}
     assert probes["livenessProbe"]["path"] == "/healthz" and probes["readinessProbe"]["path"] == "/readyz"
     for kind, probe in probes.items():
