@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import signal
 from types import FrameType
-from typing import Any
 
 import uvicorn
 
@@ -23,31 +22,22 @@ APP = "service.serving.main:app"
 MAX_CONNECTIONS = 1000  # each takes a file descriptor
 
 
-def uvicorn_options(settings: Settings, host: str | None = None, port: int | None = None) -> dict[str, Any]:
-    """The arguments of ``uvicorn.run`` for this service."""
-    return {
-        "app": APP,
-        "host": host or settings.server.host,
-        "port": port or settings.server.port,
-        "workers": settings.server.workers,
-        "limit_concurrency": MAX_CONNECTIONS + 1,  # uvicorn counts the request's own connection
-        "proxy_headers": bool(settings.predict.trusted_proxies),
-        "forwarded_allow_ips": list(settings.predict.trusted_proxies) or None,
-        "timeout_graceful_shutdown": settings.server.shutdown_grace_seconds,
-        **_logging_options(settings),
-    }
-
-
-def _logging_options(settings: Settings) -> dict[str, Any]:
-    """uvicorn's lines in the service's format (the access line is the service's own)."""
-    return {"log_config": uvicorn_log_config(settings), "access_log": False}
-
-
 def serve(settings: Settings, host: str | None = None, port: int | None = None) -> int:
     """Serve until SIGTERM or SIGINT, then stop gracefully; 0 after a graceful stop."""
     previous = signal.signal(signal.SIGTERM, _exit_on_sigterm)
     try:
-        uvicorn.run(**uvicorn_options(settings, host, port))
+        uvicorn.run(
+            APP,
+            host=host or settings.server.host,
+            port=port or settings.server.port,
+            workers=settings.server.workers,
+            limit_concurrency=MAX_CONNECTIONS + 1,  # uvicorn counts the request's own connection
+            proxy_headers=bool(settings.predict.trusted_proxies),
+            forwarded_allow_ips=list(settings.predict.trusted_proxies) or None,
+            timeout_graceful_shutdown=settings.server.shutdown_grace_seconds,
+            log_config=uvicorn_log_config(settings),  # uvicorn's lines in the service's format
+            access_log=False,  # the access line is the service's own
+        )
     finally:
         signal.signal(signal.SIGTERM, previous)
     return 0
