@@ -3,9 +3,7 @@ place (one pass), so raw pixels reach the detector as views of it, never copied 
 
 from __future__ import annotations
 
-from python_multipart.exceptions import MultipartParseError
-from python_multipart.multipart import MultipartParser, parse_options_header
-
+from service.api.http.multipart_file import MultipartParts
 from service.api.predict.frame_schemas import FrameRequest
 from service.api.predict.predict_input import validated
 from service.detector.frames import RAW_CHANNELS, EncodedFrame, EncodedRegion
@@ -67,43 +65,24 @@ def _data(encoding: str, data: bytes | memoryview) -> bytes | memoryview:
     return data if encoding in RAW_CHANNELS else bytes(data)
 
 
+class _Parts(MultipartParts):
+    """Each part's name ("" for none) and pieces, in order: views of the body the parser was handed."""
+
+    def __init__(self, content_type: str, body: bytes) -> None:
+        super().__init__(content_type)
+        self.parts: list[tuple[str, list]] = []
+        self._body, self._whole = body, memoryview(body)
+
+    def part_begins(self, name: str | None) -> None:
+        self.parts.append((name or "", []))
+
+    def part_data(self, data: bytes, start: int, end: int) -> None:
+        self.parts[-1][1].append(self._whole[start:end] if data is self._body else bytes(data[start:end]))
+
+
 def _parts(content_type: str, body: bytes) -> list[tuple[str, bytes | memoryview]]:
     """Each part's name and bytes, in order (a view of ``body`` where the part is one piece)."""
-    boundary = parse_options_header(content_type)[1].get(b"boundary")
-    if not boundary:
-        raise InvalidInput("multipart/form-data needs a boundary in its Content-Type")
-    parts: list[tuple[str, list]] = []
-    headers: list[bytes] = []
-    value = bytearray()
-    whole = memoryview(body)
-
-    def header_end() -> None:
-        headers.append(bytes(value))
-        value.clear()
-
-    def part_begins() -> None:
-        found = [parse_options_header(v)[1].get(b"name") for v in headers]
-        name = next((n.decode("utf-8", "replace") for n in found if n), "")
-        parts.append((name, []))
-        headers.clear()
-
-    def part_data(data: bytes, start: int, end: int) -> None:
-        parts[-1][1].append(whole[start:end] if data is body else bytes(data[start:end]))
-
-    ended: list[bool] = []
-    callbacks = {
-        "on_header_value": lambda data, start, end: value.extend(data[start:end]),
-        "on_header_end": header_end,
-        "on_headers_finished": part_begins,
-        "on_part_data": part_data,
-        "on_end": lambda: ended.append(True),
-    }
-    parser = MultipartParser(boundary, callbacks)  # type: ignore[arg-type]
-    try:
-        parser.write(body)
-        parser.finalize()
-    except MultipartParseError as error:
-        raise InvalidInput(f"malformed multipart body: {error}") from error
-    if not ended:
-        raise InvalidInput("the multipart body ends before its closing boundary")
-    return [(name, pieces[0] if len(pieces) == 1 else b"".join(pieces)) for name, pieces in parts]
+    parsed = _Parts(content_type, body)
+    parsed.write(body)
+    parsed.require_end()
+    return [(name, pieces[0] if len(pieces) == 1 else b"".join(pieces)) for name, pieces in parsed.parts]
