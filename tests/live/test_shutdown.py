@@ -20,7 +20,7 @@ import pytest
 
 from benchmarks.faults_clients import long_batch
 from benchmarks.faults_store import WalLocks
-from service.calibration.uploads import process_uploads_dir
+from service.infra.processes import process_folder
 from tests.live.server import LiveServer, metric, read_until_closed
 from tests.predict_client import instances_of, predict_json
 from tests.samples import Sample, samples_by_image
@@ -190,11 +190,11 @@ def test_an_upload_and_an_admin_call_outlasting_the_grace_period_get_503(tmp_pat
 def test_stopping_removes_this_process_upload_folder(tmp_path: Path) -> None:
     server = LiveServer(tmp_path / "data", admin_token=ADMIN_TOKEN).start()
     try:
-        own = process_uploads_dir(server.uploads_dir, server.process.pid)
+        own = process_folder(server.uploads_dir, server.process.pid)
         leftover = own / "cancelled-job-upload"  # what a job cancelled at shutdown leaves behind
         leftover.mkdir(parents=True)
         (leftover / "batch.zip").write_bytes(b"zip")
-        other = process_uploads_dir(server.uploads_dir, server.process.pid + 1) / "another-server-upload"
+        other = process_folder(server.uploads_dir, server.process.pid + 1) / "another-server-upload"
         other.mkdir(parents=True)
     finally:
         server.stop()
