@@ -27,8 +27,6 @@ VISIBILITIES = (0, 1, 2)  # COCO: not labelled, occluded, visible
 #: how long after its prediction a row may still be on its way to the store (written in the background)
 IN_FLIGHT_S = 5.0
 POLL_S = 0.05
-#: a kept row's statistics, in HeatmapStatistics' order after the shape and uninformative
-STATISTICS = ("peak", "peak_probability", "mean", "covariance")
 
 
 @dataclass(frozen=True)
@@ -188,6 +186,15 @@ def judge(record: dict[str, Any], points: dict[int, np.ndarray]) -> list[dict[st
 
 def kept_statistics(record: dict[str, Any], rows: Sequence[dict[str, Any]]) -> HeatmapStatistics:
     """The heatmap statistics of ``rows`` as they were computed when the prediction was served."""
-    kept = [np.array([r[name] for r in rows], dtype=np.float64) for name in STATISTICS]
-    uninformative = np.array([r["uninformative"] for r in rows], dtype=bool)
-    return HeatmapStatistics(tuple(record["heatmap_shape"]), uninformative, *kept)
+
+    def column(name: str) -> np.ndarray:
+        return np.array([r[name] for r in rows], dtype=np.float64)
+
+    return HeatmapStatistics(
+        heatmap_shape=tuple(record["heatmap_shape"]),
+        uninformative=np.array([r["uninformative"] for r in rows], dtype=bool),
+        peak_location=column("peak"),
+        peak_probability=column("peak_probability"),
+        mean=column("mean"),
+        covariance=column("covariance"),
+    )

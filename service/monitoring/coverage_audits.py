@@ -140,9 +140,20 @@ class CoverageAudits(DetectorJobs):
             try:
                 report = self._measure(prepared, version, request, progress)
                 instances, flagged = report["instances"], len(report["flagged"])
-                summary = dict(version=version, passed=report["passed"], flagged=flagged, instances=instances)
-                model, sha256 = self._detector.model_hash, prepared.named.sha256
-                new = NewCoverageAudit(model, version, operator.name, sha256, instances, report)
+                summary = {
+                    "version": version,
+                    "passed": report["passed"],
+                    "flagged": flagged,
+                    "instances": instances,
+                }
+                new = NewCoverageAudit(
+                    model_hash=self._detector.model_hash,
+                    version=version,
+                    who=operator.name,
+                    batch_sha256=prepared.named.sha256,
+                    n_instances=instances,
+                    report=report,
+                )
                 stored = self._store.create_coverage_audit(new, job=JobCompletion(job_id, summary))
             finally:
                 workspace.remove()

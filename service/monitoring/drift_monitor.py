@@ -560,5 +560,11 @@ def _history_point(report: DriftReport) -> HistoryPoint:
     keypoints = [_largest(k.features.values()) for k in report.keypoints]
     objects = {o.object: _largest(o.features.values()) for o in report.objects}
     return HistoryPoint(
-        report.evaluated_at, report.version, report.recorded, report.alarm, alarms, keypoints, objects
+        time=report.evaluated_at,
+        version=report.version,
+        recorded=report.recorded,
+        alarm=report.alarm,
+        alarms=alarms,
+        keypoint_statistics=keypoints,
+        object_statistics=objects,
     )

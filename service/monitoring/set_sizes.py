@@ -44,7 +44,12 @@ def _kind_sizes(entries: np.ndarray) -> KindSizes:
     semi_minor, semi_major, _ = ellipse_axes(entries[:, [0, 1, 1, 2]].reshape(-1, 2, 2))
     bounded = np.isfinite(semi_major)
     area = np.pi * semi_minor[bounded] * semi_major[bounded]
-    return KindSizes(len(entries), int((~bounded).sum()), _summary(semi_major[bounded]), _summary(area))
+    return KindSizes(
+        n=len(entries),
+        unbounded=int((~bounded).sum()),
+        semi_major_px=_summary(semi_major[bounded]),
+        area_px2=_summary(area),
+    )
 
 
 def _summary(values: np.ndarray) -> SizeSummary | None:
@@ -53,4 +58,4 @@ def _summary(values: np.ndarray) -> SizeSummary | None:
     counts, edges = np.histogram(values, bins=HISTOGRAM_BINS)
     quantiles = np.quantile(values, QUANTILES)
     named = {f"p{round(q * 100):02d}": float(v) for q, v in zip(QUANTILES, quantiles, strict=True)}
-    return SizeSummary(named, edges.tolist(), counts.tolist())
+    return SizeSummary(quantiles=named, histogram_edges=edges.tolist(), histogram_counts=counts.tolist())
