@@ -28,7 +28,7 @@ from calibration_store import open_store
 from tests.api.in_process import InProcess
 from tests.api.test_audits import run_audit
 from tests.live.server import LiveServer
-from tests.live.test_drift_streams import FRAMES_PER_SCENE, send
+from tests.live.test_drift_streams import FRAMES_PER_SCENE, send, send_heavy_until_alarm
 from tests.predict_client import instances_of, predict_ok
 from tests.samples import Sample, batch_zip, count_instances, samples_by_image
 from tests.service_calls import ADMIN_TOKEN, BUSY_MACHINE_MARGIN_S, ServiceCalls, assert_problem, wait_until
@@ -39,7 +39,6 @@ DEADLINE_S = 2 * POLL_S + BUSY_MACHINE_MARGIN_S
 IMAGES = 4
 SHARE_S = 0.5  # CKS_DRIFT_SHARE_SECONDS: short, to keep the test short
 SCENES = 60
-MAX_HEAVY_SCENES = 200  # a stream of heavy scenes alarms well before (about 50 in tests/live)
 
 
 def wait_for_active(server: ServiceCalls, version: int, since: float) -> float:
@@ -188,26 +187,13 @@ def drift(url: str) -> dict:
     return response.json()
 
 
-def send_heavy_scenes(servers: list[ServiceCalls], scenes: int, first: int = 0) -> None:
+def send_heavy_scenes(servers: list[ServiceCalls], scenes: int) -> None:
     """Each scene's frames sent to the servers in turn, as a round-robin proxy does."""
     turn = 0
-    for (frame,) in render_scenes(range(9402 + first, 9402 + first + scenes), 1, "heavy_occlusion"):
+    for (frame,) in render_scenes(range(9402, 9402 + scenes), 1, "heavy_occlusion"):
         for _ in range(FRAMES_PER_SCENE):
             send(servers[turn % len(servers)], frame)
             turn += 1
-
-
-def send_heavy_until_alarm(server: LiveServer) -> int:
-    """Heavy scenes to ``server`` alone, a few at a time, until its alarm: how many were sent.
-
-    How many it takes depends on the bundled calibration and on how the scenes fall into looks, so
-    the test waits for the alarm rather than betting on a count."""
-    sent = 0
-    while not drift(server.url)["alarm"]:
-        assert sent < MAX_HEAVY_SCENES, f"no alarm after {sent} heavy scenes: {drift(server.url)}"
-        send_heavy_scenes([server], 10, first=sent)
-        sent += 10
-    return sent
 
 
 def test_shifted_traffic_to_one_replica_raises_the_alarm_read_from_another(
@@ -215,7 +201,8 @@ def test_shifted_traffic_to_one_replica_raises_the_alarm_read_from_another(
 ) -> None:
     settings = {"admin_token": ADMIN_TOKEN, "store_url": postgres_url, "drift_share_seconds": SHARE_S}
     with LiveServer(tmp_path / "a", **settings) as a, LiveServer(tmp_path / "b", **settings) as b:
-        scenes = send_heavy_until_alarm(a)
+        scenes, shifted = send_heavy_until_alarm(a)  # A alone: its own alarm, however many it takes
+        assert shifted["alarm"], f"no alarm on A after {scenes} heavy scenes: {shifted['evidence']}"
         wait_until(lambda: drift(b.url)["alarm"], "replica B raises the alarm of A's traffic", timeout=30)
         frames = scenes * FRAMES_PER_SCENE
         wait_until(lambda: drift(b.url)["frames"] == frames, "B covers every frame A saw", timeout=30)
